@@ -1,0 +1,69 @@
+"""minidiff: a small tape-based reverse-mode autodiff over NumPy arrays.
+
+Read in this order: ``tensor.py`` (the Tensor, the tape, backward), ``primitives.py`` (each
+primitive's forward and vector-Jacobian product side by side), ``functional.py`` (grad,
+value_and_grad, check_grad), ``optim.py`` (SGD, Adam).
+
+    >>> import minidiff as md
+    >>> x = md.tensor([1.0, 2.0, 3.0], requires_grad=True)
+    >>> y = (x * x).sum()
+    >>> y.backward()
+    >>> x.grad
+    array([2., 4., 6.])
+"""
+
+from minidiff import optim
+from minidiff.functional import check_grad, grad, numerical_grad, value_and_grad
+from minidiff.primitives import (
+    abs,
+    add,
+    broadcast_to,
+    clip,
+    concatenate,
+    cos,
+    cross,
+    divide,
+    dot,
+    exp,
+    getitem,
+    log,
+    matmul,
+    max,
+    maximum,
+    mean,
+    minimum,
+    multiply,
+    negative,
+    norm,
+    normalize,
+    power,
+    reshape,
+    scatter_add,
+    sin,
+    sqrt,
+    stack,
+    subtract,
+    sum,
+    tan,
+    tanh,
+    transpose,
+    where,
+)
+from minidiff.tensor import (
+    Tensor,
+    as_tensor,
+    detect_anomaly,
+    is_grad_enabled,
+    no_grad,
+    tensor,
+    unbroadcast,
+)
+
+__all__ = [
+    "Tensor", "tensor", "as_tensor", "no_grad", "detect_anomaly", "is_grad_enabled",
+    "unbroadcast", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
+    "add", "subtract", "multiply", "divide", "negative", "power", "matmul",
+    "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
+    "where", "sum", "mean", "max", "dot", "cross", "norm", "normalize", "reshape",
+    "transpose", "broadcast_to", "stack", "concatenate", "getitem", "scatter_add",
+]  # fmt: skip

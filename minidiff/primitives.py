@@ -1,0 +1,575 @@
+"""The primitives: each one's forward computation and its vector-Jacobian product, side by side.
+
+Reading guide. Every primitive follows the same pattern::
+
+    def exp(x):
+        x = as_tensor(x)
+        y = np.exp(x.data)                                # forward, plain NumPy
+        return record("exp", y, (x,), lambda g: (g * y,))   # VJP: g -> grad for each input
+
+``g`` is the gradient of the final scalar with respect to this primitive's output (same
+shape as the output). The VJP returns, for each input, the gradient with respect to that
+input. It may return a gradient of the *broadcast* shape; ``backward`` sums it back to the
+input's shape. ``None`` means "no gradient flows to this input" (e.g. integer indices).
+
+A few primitives (``dot``, ``cross``, ``norm``, ``normalize``, ``scatter_add``) could be
+composed from the others, but are written fused with hand-derived VJPs: renderers call them
+on every pixel, and the fused versions allocate fewer temporaries and record fewer nodes.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from minidiff.tensor import Tensor, as_tensor, record
+
+# ---------------------------------------------------------------------------------------------
+# Helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
+    """Both operands as tensors. A Python number takes the dtype of the other operand, so
+    that ``x32 * 2`` stays float32 (NumPy would make the 0-d int64 array win)."""
+    if isinstance(a, (int, float)) and isinstance(b, Tensor):
+        a = np.asarray(a, dtype=np.result_type(b.dtype, np.float32))
+    elif isinstance(b, (int, float)) and isinstance(a, Tensor):
+        b = np.asarray(b, dtype=np.result_type(a.dtype, np.float32))
+    return as_tensor(a), as_tensor(b)
+
+
+def _broadcast_op(name: str, op, a: Tensor, b: Tensor) -> np.ndarray:
+    """Apply a NumPy binary op, turning a broadcasting failure into a clear message."""
+    try:
+        return op(a.data, b.data)
+    except ValueError:
+        raise ValueError(
+            f"{name}: cannot broadcast shapes {a.shape} and {b.shape} together"
+        ) from None
+
+
+def _expand_reduced(g: np.ndarray, shape: tuple[int, ...], axis, keepdims: bool) -> np.ndarray:
+    """Give a reduction's output gradient back the reduced axes (as size 1), then broadcast."""
+    if axis is not None and not keepdims:
+        g = np.expand_dims(g, axis)
+    return np.broadcast_to(g, shape)
+
+
+def _count(shape: tuple[int, ...], axis) -> int:
+    """How many elements a reduction over ``axis`` combines."""
+    if axis is None:
+        return int(np.prod(shape, dtype=np.int64))
+    axes = (axis,) if isinstance(axis, int) else axis
+    return int(np.prod([shape[a] for a in axes], dtype=np.int64))
+
+
+# ---------------------------------------------------------------------------------------------
+# Arithmetic
+# ---------------------------------------------------------------------------------------------
+
+
+def add(a: Any, b: Any) -> Tensor:
+    """a + b with broadcasting.  d/da = 1, d/db = 1."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("add", np.add, a, b)
+    return record("add", out, (a, b), lambda g: (g, g))
+
+
+def subtract(a: Any, b: Any) -> Tensor:
+    """a - b with broadcasting.  d/da = 1, d/db = -1."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("subtract", np.subtract, a, b)
+    return record("subtract", out, (a, b), lambda g: (g, -g if b.requires_grad else None))
+
+
+def multiply(a: Any, b: Any) -> Tensor:
+    """a * b with broadcasting.  d/da = b, d/db = a."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("multiply", np.multiply, a, b)
+
+    def vjp(g):
+        return (
+            g * b.data if a.requires_grad else None,
+            g * a.data if b.requires_grad else None,
+        )
+
+    return record("multiply", out, (a, b), vjp)
+
+
+def divide(a: Any, b: Any) -> Tensor:
+    """a / b with broadcasting.  d/da = 1/b, d/db = -a/b^2 = -out/b."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("divide", np.divide, a, b)
+
+    def vjp(g):
+        ga = g / b.data
+        return (ga if a.requires_grad else None, -ga * out if b.requires_grad else None)
+
+    return record("divide", out, (a, b), vjp)
+
+
+def negative(x: Any) -> Tensor:
+    """-x."""
+    x = as_tensor(x)
+    return record("negative", -x.data, (x,), lambda g: (-g,))
+
+
+def power(a: Any, b: Any) -> Tensor:
+    """a ** b.  d/da = b a^(b-1);  d/db = a^b log(a) (needs a > 0 where b is differentiated)."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("power", np.power, a, b)
+
+    def vjp(g):
+        ga = g * b.data * np.power(a.data, b.data - 1) if a.requires_grad else None
+        gb = g * out * np.log(a.data) if b.requires_grad else None
+        return ga, gb
+
+    return record("power", out, (a, b), vjp)
+
+
+def matmul(a: Any, b: Any) -> Tensor:
+    """Matrix product a @ b (NumPy semantics, including 1-D vectors and batches).
+
+    For 2-D operands: d/da = g @ b^T, d/db = a^T @ g. Vectors are treated as a row (left)
+    or a column (right) and the added axis is removed again from their gradients.
+    """
+    a, b = _pair(a, b)
+    try:
+        out = a.data @ b.data
+    except ValueError:
+        raise ValueError(f"matmul: shapes {a.shape} and {b.shape} are not aligned") from None
+
+    def vjp(g):
+        a2 = a.data[None, :] if a.ndim == 1 else a.data
+        b2 = b.data[:, None] if b.ndim == 1 else b.data
+        g2 = g
+        if a.ndim == 1:
+            g2 = np.expand_dims(g2, -2)
+        if b.ndim == 1:
+            g2 = np.expand_dims(g2, -1)
+        ga = gb = None
+        if a.requires_grad:
+            ga = g2 @ np.swapaxes(b2, -1, -2)
+            ga = ga[..., 0, :] if a.ndim == 1 else ga
+        if b.requires_grad:
+            gb = np.swapaxes(a2, -1, -2) @ g2
+            gb = gb[..., 0] if b.ndim == 1 else gb
+        return ga, gb
+
+    return record("matmul", out, (a, b), vjp)
+
+
+# ---------------------------------------------------------------------------------------------
+# Elementwise functions
+# ---------------------------------------------------------------------------------------------
+
+
+def exp(x: Any) -> Tensor:
+    """e^x.  d/dx = e^x (the output itself)."""
+    x = as_tensor(x)
+    y = np.exp(x.data)
+    return record("exp", y, (x,), lambda g: (g * y,))
+
+
+def log(x: Any) -> Tensor:
+    """Natural log (x > 0).  d/dx = 1/x."""
+    x = as_tensor(x)
+    return record("log", np.log(x.data), (x,), lambda g: (g / x.data,))
+
+
+def sqrt(x: Any) -> Tensor:
+    """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)); infinite at 0, so keep inputs positive."""
+    x = as_tensor(x)
+    y = np.sqrt(x.data)
+    return record("sqrt", y, (x,), lambda g: (g * 0.5 / y,))
+
+
+def sin(x: Any) -> Tensor:
+    """sin x.  d/dx = cos x."""
+    x = as_tensor(x)
+    return record("sin", np.sin(x.data), (x,), lambda g: (g * np.cos(x.data),))
+
+
+def cos(x: Any) -> Tensor:
+    """cos x.  d/dx = -sin x."""
+    x = as_tensor(x)
+    return record("cos", np.cos(x.data), (x,), lambda g: (-g * np.sin(x.data),))
+
+
+def tan(x: Any) -> Tensor:
+    """tan x.  d/dx = 1 + tan^2 x."""
+    x = as_tensor(x)
+    y = np.tan(x.data)
+    return record("tan", y, (x,), lambda g: (g * (1.0 + y * y),))
+
+
+def tanh(x: Any) -> Tensor:
+    """tanh x.  d/dx = 1 - tanh^2 x."""
+    x = as_tensor(x)
+    y = np.tanh(x.data)
+    return record("tanh", y, (x,), lambda g: (g * (1.0 - y * y),))
+
+
+def abs(x: Any) -> Tensor:
+    """|x|.  d/dx = sign(x); at x = 0 we use the subgradient 0."""
+    x = as_tensor(x)
+    return record("abs", np.abs(x.data), (x,), lambda g: (g * np.sign(x.data),))
+
+
+def maximum(a: Any, b: Any) -> Tensor:
+    """Elementwise max(a, b). Subgradient at a tie (a == b): all of it goes to ``a``."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("maximum", np.maximum, a, b)
+
+    def vjp(g):
+        a_wins = a.data >= b.data
+        return (
+            np.where(a_wins, g, 0.0) if a.requires_grad else None,
+            np.where(a_wins, 0.0, g) if b.requires_grad else None,
+        )
+
+    return record("maximum", out, (a, b), vjp)
+
+
+def minimum(a: Any, b: Any) -> Tensor:
+    """Elementwise min(a, b). Subgradient at a tie (a == b): all of it goes to ``a``."""
+    a, b = _pair(a, b)
+    out = _broadcast_op("minimum", np.minimum, a, b)
+
+    def vjp(g):
+        a_wins = a.data <= b.data
+        return (
+            np.where(a_wins, g, 0.0) if a.requires_grad else None,
+            np.where(a_wins, 0.0, g) if b.requires_grad else None,
+        )
+
+    return record("minimum", out, (a, b), vjp)
+
+
+def clip(x: Any, lo: Any, hi: Any) -> Tensor:
+    """x limited to [lo, hi] (lo, hi constants). d/dx = 1 inside [lo, hi] (bounds included),
+    0 outside."""
+    x = as_tensor(x)
+    lo_v, hi_v = np.asarray(getattr(lo, "data", lo)), np.asarray(getattr(hi, "data", hi))
+    out = np.clip(x.data, lo_v, hi_v)
+    return record("clip", out, (x,), lambda g: (np.where(out == x.data, g, 0.0),))
+
+
+def where(condition: Any, a: Any, b: Any) -> Tensor:
+    """Pick a where ``condition`` (a boolean array, not differentiable) is true, else b."""
+    cond = np.asarray(getattr(condition, "data", condition), dtype=bool)
+    a, b = _pair(a, b)
+    try:
+        out = np.where(cond, a.data, b.data)
+    except ValueError:
+        raise ValueError(
+            f"where: cannot broadcast condition {cond.shape}, a {a.shape} and b {b.shape}"
+        ) from None
+
+    def vjp(g):
+        return (
+            np.where(cond, g, 0.0) if a.requires_grad else None,
+            np.where(cond, 0.0, g) if b.requires_grad else None,
+        )
+
+    return record("where", out, (a, b), vjp)
+
+
+# ---------------------------------------------------------------------------------------------
+# Reductions
+# ---------------------------------------------------------------------------------------------
+
+
+def sum(x: Any, axis=None, keepdims: bool = False) -> Tensor:
+    """Sum over ``axis`` (all axes if None). Every summed element gets the output's gradient."""
+    x = as_tensor(x)
+    out = np.sum(x.data, axis=axis, keepdims=keepdims)
+    return record(
+        "sum", np.asarray(out), (x,), lambda g: (_expand_reduced(g, x.shape, axis, keepdims),)
+    )
+
+
+def mean(x: Any, axis=None, keepdims: bool = False) -> Tensor:
+    """Mean over ``axis``. Like sum, with the gradient divided by the element count."""
+    x = as_tensor(x)
+    out = np.mean(x.data, axis=axis, keepdims=keepdims)
+    n = _count(x.shape, axis)
+    return record(
+        "mean",
+        np.asarray(out),
+        (x,),
+        lambda g: (_expand_reduced(g / n, x.shape, axis, keepdims),),
+    )
+
+
+def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
+    """Maximum over ``axis``. Subgradient: when several elements tie for the maximum, the
+    gradient is split equally among them (so the total is preserved)."""
+    x = as_tensor(x)
+    out = np.max(x.data, axis=axis, keepdims=keepdims)
+
+    def vjp(g):
+        peak = _expand_reduced(out, x.shape, axis, keepdims)
+        winners = (x.data == peak).astype(x.dtype)
+        ties = np.sum(winners, axis=axis, keepdims=True)
+        return (winners * _expand_reduced(g, x.shape, axis, keepdims) / ties,)
+
+    return record("max", np.asarray(out), (x,), vjp)
+
+
+# ---------------------------------------------------------------------------------------------
+# Vector algebra along the last axis (fused, hand-written VJPs)
+# ---------------------------------------------------------------------------------------------
+
+
+def _dot_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product. einsum avoids the (k, 3) temporary that (a * b).sum(-1) makes."""
+    if a.shape == b.shape:
+        return np.einsum("...i,...i->...", a, b)
+    return np.einsum("...i,...i->...", *np.broadcast_arrays(a, b))
+
+
+def dot(a: Any, b: Any) -> Tensor:
+    """Dot product along the last axis, broadcasting the others: (..., n) . (..., n) -> (...).
+
+    d/da = g[..., None] * b,  d/db = g[..., None] * a.
+    """
+    a, b = _pair(a, b)
+    if a.shape[-1:] != b.shape[-1:]:
+        raise ValueError(f"dot: last axes differ: {a.shape} and {b.shape}")
+    try:
+        out = _dot_np(a.data, b.data)
+    except ValueError:
+        raise ValueError(f"dot: cannot broadcast shapes {a.shape} and {b.shape}") from None
+
+    def vjp(g):
+        g = g[..., None]
+        return (g * b.data if a.requires_grad else None, g * a.data if b.requires_grad else None)
+
+    return record("dot", out, (a, b), vjp)
+
+
+def _cross_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of 3-vectors along the last axis, written out (np.cross copies inputs)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    shape = np.broadcast_shapes(a.shape, b.shape)
+    out = np.empty(shape, dtype=np.result_type(a, b))
+    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
+    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
+    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
+    return out
+
+
+def cross(a: Any, b: Any) -> Tensor:
+    """Cross product of 3-vectors along the last axis, broadcasting the others.
+
+    For c = a x b and upstream g:  d/da = b x g,  d/db = g x a  (from g.(a x b) = a.(b x g)).
+    """
+    a, b = _pair(a, b)
+    if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
+        raise ValueError(f"cross: both inputs need a last axis of size 3, got {a.shape}, {b.shape}")
+    try:
+        out = _cross_np(a.data, b.data)
+    except ValueError:
+        raise ValueError(f"cross: cannot broadcast shapes {a.shape} and {b.shape}") from None
+
+    def vjp(g):
+        return (
+            _cross_np(b.data, g) if a.requires_grad else None,
+            _cross_np(g, a.data) if b.requires_grad else None,
+        )
+
+    return record("cross", out, (a, b), vjp)
+
+
+def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
+    """Euclidean length along ``axis`` (default last). d/dx = g x / |x|; at |x| = 0 we use
+    the subgradient 0 (never NaN)."""
+    x = as_tensor(x)
+    length = np.sqrt(np.sum(x.data * x.data, axis=axis, keepdims=True))
+    out = length if keepdims else np.squeeze(length, axis=axis)
+
+    def vjp(g):
+        if not keepdims:
+            g = np.expand_dims(g, axis)
+        safe = np.where(length > 0, length, 1.0)
+        return (np.where(length > 0, g / safe, 0.0) * x.data,)
+
+    return record("norm", out, (x,), vjp)
+
+
+def normalize(x: Any) -> Tensor:
+    """x / |x| along the last axis. The zero vector maps to zero, with zero gradient.
+
+    With y = x/|x|:  d/dx = (g - y (y . g)) / |x|  (the part of g orthogonal to y, scaled).
+    """
+    x = as_tensor(x)
+    length = np.sqrt(_dot_np(x.data, x.data))[..., None]
+    inv = np.divide(1.0, length, out=np.zeros_like(length), where=length > 0)
+    y = x.data * inv
+
+    def vjp(g):
+        return ((g - y * _dot_np(y, g)[..., None]) * inv,)
+
+    return record("normalize", y, (x,), vjp)
+
+
+# ---------------------------------------------------------------------------------------------
+# Shape manipulation
+# ---------------------------------------------------------------------------------------------
+
+
+def reshape(x: Any, shape) -> Tensor:
+    """Same values, new shape. The gradient is reshaped back."""
+    x = as_tensor(x)
+    try:
+        out = x.data.reshape(shape)
+    except ValueError:
+        raise ValueError(f"reshape: cannot reshape {x.shape} into {shape}") from None
+    return record("reshape", out, (x,), lambda g: (g.reshape(x.shape),))
+
+
+def transpose(x: Any, axes=None) -> Tensor:
+    """Permute axes (reverse them if ``axes`` is None). The gradient is permuted back."""
+    x = as_tensor(x)
+    out = np.transpose(x.data, axes)
+    inverse = None if axes is None else np.argsort(axes)
+    return record("transpose", out, (x,), lambda g: (np.transpose(g, inverse),))
+
+
+def broadcast_to(x: Any, shape) -> Tensor:
+    """Broadcast to ``shape``; backward sums the repeated axes away."""
+    x = as_tensor(x)
+    try:
+        out = np.broadcast_to(x.data, shape)
+    except ValueError:
+        raise ValueError(f"broadcast_to: cannot broadcast {x.shape} to {tuple(shape)}") from None
+    return record("broadcast_to", out, (x,), lambda g: (g,))
+
+
+def stack(tensors, axis: int = 0) -> Tensor:
+    """Stack equal-shaped tensors along a new axis; the gradient is split back into slices."""
+    tensors = tuple(as_tensor(t) for t in tensors)
+    try:
+        out = np.stack([t.data for t in tensors], axis=axis)
+    except ValueError:
+        shapes = [t.shape for t in tensors]
+        raise ValueError(f"stack: all inputs need the same shape, got {shapes}") from None
+
+    def vjp(g):
+        return tuple(np.moveaxis(g, axis, 0))
+
+    return record("stack", out, tensors, vjp)
+
+
+def concatenate(tensors, axis: int = 0) -> Tensor:
+    """Join tensors along an existing axis; the gradient is cut back into the pieces."""
+    tensors = tuple(as_tensor(t) for t in tensors)
+    try:
+        out = np.concatenate([t.data for t in tensors], axis=axis)
+    except ValueError:
+        shapes = [t.shape for t in tensors]
+        raise ValueError(f"concatenate: shapes {shapes} do not match off axis {axis}") from None
+    cuts = np.cumsum([t.shape[axis] for t in tensors])[:-1]
+
+    def vjp(g):
+        return tuple(np.split(g, cuts, axis=axis))
+
+    return record("concatenate", out, tensors, vjp)
+
+
+# ---------------------------------------------------------------------------------------------
+# Indexing: gather and scatter
+# ---------------------------------------------------------------------------------------------
+
+
+def _scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """out[index[i]] += values[i] for an (n, ...) output; repeated indices accumulate.
+
+    np.bincount does the accumulation per column and is several times faster than
+    np.add.at, which is the textbook (but slow, unbuffered) way to do it.
+    """
+    rows = values.reshape(len(index), -1)
+    cols = rows.shape[1]
+    out = np.empty((n, cols), dtype=values.dtype)
+    if cols <= 4:
+        for j in range(cols):
+            out[:, j] = np.bincount(index, weights=rows[:, j], minlength=n)
+    else:  # one bincount over (row, column) pairs flattened
+        flat = (index[:, None] * cols + np.arange(cols)).ravel()
+        out[:] = np.bincount(flat, weights=rows.ravel(), minlength=n * cols).reshape(n, cols)
+    return out.reshape((n,) + values.shape[1:])
+
+
+def _is_row_gather(index: Any) -> bool:
+    """True for x[int_array] with a 1-D integer array: the renderer's hot path."""
+    return isinstance(index, np.ndarray) and index.ndim == 1 and index.dtype.kind in "iu"
+
+
+def _has_integer_array(index: Any) -> bool:
+    """True if the index contains an integer array or list (repeats possible)."""
+    parts = index if isinstance(index, tuple) else (index,)
+    for p in parts:
+        if isinstance(p, list):
+            p = np.asarray(p)
+        if isinstance(p, np.ndarray) and p.dtype.kind in "iu":
+            return True
+    return False
+
+
+def getitem(x: Any, index: Any) -> Tensor:
+    """x[index] for basic slices, integer-array gathers and boolean masks.
+
+    VJP: scatter the gradient back to where the values came from, *adding* where an index
+    repeats (x[[0, 0]] uses x[0] twice, so it gets both gradients).
+    """
+    x = as_tensor(x)
+    if isinstance(index, Tensor):
+        index = index.data
+    if isinstance(index, tuple):
+        index = tuple(i.data if isinstance(i, Tensor) else i for i in index)
+    out = x.data[index]
+
+    if _is_row_gather(index):
+        rows = np.where(index < 0, index + x.shape[0], index) if index.size else index
+
+        def vjp(g):
+            return (_scatter_add_rows(rows, g, x.shape[0]),)
+
+    elif _has_integer_array(index):
+
+        def vjp(g):
+            gx = np.zeros(x.shape, dtype=g.dtype)
+            np.add.at(gx, index, g)
+            return (gx,)
+
+    else:  # slices and masks never select an element twice: plain assignment is enough
+
+        def vjp(g):
+            gx = np.zeros(x.shape, dtype=g.dtype)
+            gx[index] = g
+            return (gx,)
+
+    return record("getitem", np.asarray(out), (x,), vjp)
+
+
+def scatter_add(values: Any, index: Any, size: int) -> Tensor:
+    """out = zeros((size, ...)); out[index[i]] += values[i]  (rows; repeats accumulate).
+
+    The inverse of a row gather: a renderer uses it to put per-hit colours into the image.
+    VJP: each value receives the gradient of the row it was added to, d/dvalues = g[index].
+    """
+    values = as_tensor(values)
+    index = np.asarray(getattr(index, "data", index))
+    if index.ndim != 1 or index.dtype.kind not in "iu" or len(index) != len(values):
+        raise ValueError(
+            f"scatter_add: index must be a 1-D integer array of length {len(values)}, "
+            f"got shape {index.shape} dtype {index.dtype}"
+        )
+    if index.size and (index.min() < 0 or index.max() >= size):
+        raise ValueError(f"scatter_add: indices must lie in [0, {size}), got {index.min()}..")
+    out = _scatter_add_rows(index, values.data, size)
+    return record("scatter_add", out, (values,), lambda g: (g[index],))

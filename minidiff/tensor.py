@@ -1,0 +1,398 @@
+"""The Tensor, the tape, and the reverse pass.
+
+How it works, in one paragraph: every differentiable operation (a *primitive*, see
+``primitives.py``) computes its result with NumPy and, if any input requires a gradient,
+appends a ``Node`` to the tape. A node remembers its inputs and a closure, the primitive's
+vector-Jacobian product (VJP), which maps the gradient of the output to the gradients of the
+inputs. ``backward()`` takes the nodes that lead to the output, walks them in the reverse of
+the order in which they were recorded, and hands each node's output gradient to its VJP.
+Gradients arriving at the same tensor from several uses are summed.
+
+The tape is kept *implicitly*: each node carries its position ``seq`` on the (global,
+ever-growing) recording order, and each tensor points at the node that made it. ``backward``
+collects the nodes reachable from the output and sorts them by ``seq``; that sorted list is
+exactly the slice of the tape that matters. Storing it this way means that a forward pass
+nobody differentiates is freed as soon as its tensors go out of scope, instead of piling up
+on a global list.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import numpy as np
+
+# Global switches. They are module state (like a tape recorder's record button), changed only
+# through the context managers below.
+_GRAD_ENABLED = True
+_ANOMALY_MODE = False
+_SEQUENCE = itertools.count()  # the position of the next node on the tape
+
+
+class Node:
+    """One entry on the tape: the record of one primitive application.
+
+    ``vjp(g)`` returns one gradient (or None) per input, each either of the input's shape or
+    broadcastable to it (``backward`` sums broadcast axes away, see ``unbroadcast``).
+    ``grad`` accumulates the gradient of the node's output during a reverse pass.
+    """
+
+    __slots__ = ("name", "inputs", "vjp", "seq", "grad", "freed")
+
+    def __init__(self, name: str, inputs: tuple[Tensor, ...], vjp: Callable):
+        self.name = name
+        self.inputs = inputs
+        self.vjp = vjp
+        self.seq = next(_SEQUENCE)
+        self.grad: np.ndarray | None = None
+        self.freed = False
+
+    def free(self) -> None:
+        """Drop the closure and the inputs so their arrays can be released."""
+        self.inputs = ()
+        self.vjp = None
+        self.grad = None
+        self.freed = True
+
+
+class Tensor:
+    """A NumPy array that remembers how it was computed.
+
+    Attributes: ``data`` (the ndarray), ``grad`` (ndarray of the same shape, or None; only
+    leaves, i.e. tensors created by the user with ``requires_grad=True``, receive it),
+    ``requires_grad``.
+    """
+
+    __slots__ = ("data", "grad", "requires_grad", "_node", "__weakref__")
+    # Make NumPy defer to our reflected operators (ndarray + Tensor -> Tensor.__radd__) and
+    # refuse ufuncs such as np.exp(tensor), which would silently drop the gradient.
+    __array_ufunc__ = None
+
+    def __init__(self, data: Any, requires_grad: bool = False, _node: Node | None = None):
+        self.data = data if isinstance(data, np.ndarray) else np.asarray(data)
+        self.grad: np.ndarray | None = None
+        self.requires_grad = bool(requires_grad)
+        self._node = _node
+
+    # -- array-like properties ------------------------------------------------------------
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self.data.shape
+
+    @property
+    def ndim(self) -> int:
+        return self.data.ndim
+
+    @property
+    def dtype(self) -> np.dtype:
+        return self.data.dtype
+
+    @property
+    def size(self) -> int:
+        return self.data.size
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __repr__(self) -> str:
+        flag = ", requires_grad=True" if self.requires_grad else ""
+        return f"Tensor({np.array2string(self.data, threshold=20)}{flag})"
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        # np.asarray(tensor) gives the values (for plotting, saving); it is not differentiable.
+        return self.data if dtype is None else self.data.astype(dtype)
+
+    __hash__ = object.__hash__  # comparisons return arrays, so keep identity hashing
+
+    def numpy(self) -> np.ndarray:
+        """The values as an ndarray (not a copy)."""
+        return self.data
+
+    def item(self) -> float:
+        """The value of a one-element tensor as a Python number."""
+        return self.data.item()
+
+    def detach(self) -> Tensor:
+        """A tensor sharing these values but cut from the tape (a constant)."""
+        return Tensor(self.data)
+
+    # -- the reverse pass -----------------------------------------------------------------
+    def backward(self, grad: Any = None) -> None:
+        """Accumulate d(self)/d(leaf) into ``leaf.grad`` for every leaf that requires grad.
+
+        ``grad`` is the seed, the gradient of some final scalar with respect to ``self``; it
+        defaults to 1 for a scalar (one-element) tensor and is required otherwise. Gradients
+        add up across calls until they are reset (``optimizer.zero_grad()``). The part of the
+        tape used is freed afterwards: a second ``backward`` through it is an error.
+        """
+        if not self.requires_grad:
+            raise ValueError(
+                "backward: this tensor does not require grad (no input of the computation "
+                "had requires_grad=True, or it was computed under no_grad())"
+            )
+        if grad is None:
+            if self.data.size != 1:
+                raise ValueError(
+                    f"backward: the output has shape {self.shape}; a seed gradient of that "
+                    "shape is needed for a non-scalar output (e.g. t.backward(np.ones(t.shape)))"
+                )
+            seed = np.ones(self.shape, dtype=self.dtype)
+        else:
+            seed = np.asarray(grad.data if isinstance(grad, Tensor) else grad, dtype=self.dtype)
+            if seed.shape != self.shape:
+                raise ValueError(
+                    f"backward: seed gradient has shape {seed.shape}, output has {self.shape}"
+                )
+            if not np.isfinite(seed).all():
+                raise ValueError("backward: the seed gradient contains NaN or inf")
+
+        if self._node is None:  # a leaf: d(self)/d(self) = 1
+            _accumulate_leaf(self, seed)
+            return
+        if self._node.freed:
+            raise RuntimeError(_FREED_MESSAGE.format(name=self._node.name))
+
+        tape = _tape_reaching(self._node)
+        self._node.grad = seed
+        for node in reversed(tape):  # reverse recording order: every user before its inputs
+            g = node.grad
+            if g is not None:
+                input_grads = node.vjp(g)
+                for x, gx in zip(node.inputs, input_grads, strict=True):
+                    if gx is None or not x.requires_grad:
+                        continue
+                    gx = unbroadcast(gx, x.shape)
+                    if _ANOMALY_MODE and not np.isfinite(gx).all():
+                        raise FloatingPointError(
+                            f"anomaly: the VJP of '{node.name}' produced NaN/inf in the "
+                            f"gradient of an input of shape {x.shape}"
+                        )
+                    if x._node is None:
+                        _accumulate_leaf(x, gx)
+                    elif x._node.grad is None:
+                        x._node.grad = gx
+                    else:
+                        x._node.grad = x._node.grad + gx
+            node.free()
+
+    # -- operators (each is a primitive from primitives.py) -------------------------------
+    def __add__(self, other):
+        return _p.add(self, other)
+
+    def __radd__(self, other):
+        return _p.add(other, self)
+
+    def __sub__(self, other):
+        return _p.subtract(self, other)
+
+    def __rsub__(self, other):
+        return _p.subtract(other, self)
+
+    def __mul__(self, other):
+        return _p.multiply(self, other)
+
+    def __rmul__(self, other):
+        return _p.multiply(other, self)
+
+    def __truediv__(self, other):
+        return _p.divide(self, other)
+
+    def __rtruediv__(self, other):
+        return _p.divide(other, self)
+
+    def __pow__(self, other):
+        return _p.power(self, other)
+
+    def __rpow__(self, other):
+        return _p.power(other, self)
+
+    def __neg__(self):
+        return _p.negative(self)
+
+    def __matmul__(self, other):
+        return _p.matmul(self, other)
+
+    def __rmatmul__(self, other):
+        return _p.matmul(other, self)
+
+    def __getitem__(self, index):
+        return _p.getitem(self, index)
+
+    # Comparisons are not differentiable: they return plain boolean arrays.
+    def __lt__(self, other):
+        return self.data < _values(other)
+
+    def __le__(self, other):
+        return self.data <= _values(other)
+
+    def __gt__(self, other):
+        return self.data > _values(other)
+
+    def __ge__(self, other):
+        return self.data >= _values(other)
+
+    def __eq__(self, other):
+        return self.data == _values(other)
+
+    def __ne__(self, other):
+        return self.data != _values(other)
+
+    # -- methods that forward to primitives -----------------------------------------------
+    def sum(self, axis=None, keepdims: bool = False) -> Tensor:
+        return _p.sum(self, axis=axis, keepdims=keepdims)
+
+    def mean(self, axis=None, keepdims: bool = False) -> Tensor:
+        return _p.mean(self, axis=axis, keepdims=keepdims)
+
+    def max(self, axis=None, keepdims: bool = False) -> Tensor:
+        return _p.max(self, axis=axis, keepdims=keepdims)
+
+    def reshape(self, *shape) -> Tensor:
+        if len(shape) == 1 and isinstance(shape[0], (tuple, list)):
+            shape = tuple(shape[0])
+        return _p.reshape(self, shape)
+
+    def transpose(self, *axes) -> Tensor:
+        if len(axes) == 1 and isinstance(axes[0], (tuple, list)):
+            axes = tuple(axes[0])
+        return _p.transpose(self, axes or None)
+
+    @property
+    def T(self) -> Tensor:
+        return _p.transpose(self, None)
+
+
+_FREED_MESSAGE = (
+    "backward: the tape through '{name}' was already used by an earlier backward() and "
+    "has been freed; recompute the forward pass before calling backward() again"
+)
+
+
+def _accumulate_leaf(x: Tensor, g: np.ndarray) -> None:
+    """Add g into a leaf's .grad (copying the first time, so .grad never aliases)."""
+    if x.grad is None:
+        x.grad = np.array(g, dtype=x.dtype)
+    else:
+        x.grad = x.grad + g
+
+
+def _tape_reaching(output: Node) -> list[Node]:
+    """The nodes that the output depends on, in recording order (the relevant tape slice)."""
+    seen = {id(output)}
+    stack = [output]
+    nodes = []
+    while stack:
+        node = stack.pop()
+        nodes.append(node)
+        for x in node.inputs:
+            parent = x._node
+            if parent is not None and id(parent) not in seen:
+                if parent.freed:
+                    raise RuntimeError(_FREED_MESSAGE.format(name=parent.name))
+                seen.add(id(parent))
+                stack.append(parent)
+    nodes.sort(key=lambda n: n.seq)
+    return nodes
+
+
+def unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Sum a gradient of a broadcast result back to the input's ``shape``.
+
+    If x of shape (3,) was broadcast against (k, 3), its gradient is the (k, 3) gradient
+    summed over the k rows. We sum leading axes with a matrix-vector product with a vector
+    of ones: BLAS does that an order of magnitude faster than ``g.sum(axis=0)`` for tall,
+    thin arrays such as per-pixel (k, 3) gradients.
+    """
+    if g.shape == shape:
+        return g
+    lead = g.ndim - len(shape)
+    if lead > 0:
+        rows = g.reshape(-1, int(np.prod(g.shape[lead:], dtype=np.int64)))
+        g = (np.ones(rows.shape[0], dtype=g.dtype) @ rows).reshape(g.shape[lead:])
+    axes = tuple(i for i, n in enumerate(shape) if n == 1 and g.shape[i] != 1)
+    if axes:
+        g = g.sum(axis=axes, keepdims=True)
+    return g
+
+
+def _values(x: Any) -> Any:
+    """The raw values of a Tensor, or x itself."""
+    return x.data if isinstance(x, Tensor) else x
+
+
+def tensor(data: Any, requires_grad: bool = False, dtype: Any = None) -> Tensor:
+    """Make a leaf tensor from array-like data.
+
+    Floating-point data keeps its dtype (float32 stays float32); anything else (lists of
+    Python numbers, integer arrays) becomes float64 unless ``dtype`` says otherwise. The
+    data is copied, so later changes to ``data`` do not affect the tensor.
+    """
+    if isinstance(data, Tensor):
+        data = data.data
+    if dtype is None:
+        arr = np.array(data)
+        if not np.issubdtype(arr.dtype, np.floating):
+            arr = arr.astype(np.float64)
+    else:
+        arr = np.array(data, dtype=dtype)
+    if requires_grad and not np.issubdtype(arr.dtype, np.floating):
+        raise TypeError(f"tensor: only floating-point tensors can require grad, got {arr.dtype}")
+    return Tensor(arr, requires_grad=requires_grad)
+
+
+def as_tensor(x: Any) -> Tensor:
+    """x itself if it is a Tensor, else a constant (non-differentiable) tensor of its values."""
+    if isinstance(x, Tensor):
+        return x
+    if isinstance(x, np.ndarray):
+        return Tensor(x)
+    return Tensor(np.asarray(x))
+
+
+def record(name: str, out: np.ndarray, inputs: Sequence[Tensor], vjp: Callable) -> Tensor:
+    """Wrap a primitive's forward result and, if needed, put its node on the tape.
+
+    A node is recorded only if gradients are enabled and some input requires grad; otherwise
+    the result is a constant and nothing is remembered.
+    """
+    if _ANOMALY_MODE and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
+        raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
+    if _GRAD_ENABLED and any(x.requires_grad for x in inputs):
+        return Tensor(out, requires_grad=True, _node=Node(name, tuple(inputs), vjp))
+    return Tensor(out)
+
+
+@contextmanager
+def no_grad():
+    """Within this block nothing is recorded: results are constants (faster, no memory)."""
+    global _GRAD_ENABLED
+    previous = _GRAD_ENABLED
+    _GRAD_ENABLED = False
+    try:
+        yield
+    finally:
+        _GRAD_ENABLED = previous
+
+
+@contextmanager
+def detect_anomaly():
+    """Opt-in checking: raise at the first primitive whose forward value or backward
+    gradient contains NaN or inf, naming it. Costs one ``isfinite`` scan per array."""
+    global _ANOMALY_MODE
+    previous = _ANOMALY_MODE
+    _ANOMALY_MODE = True
+    try:
+        yield
+    finally:
+        _ANOMALY_MODE = previous
+
+
+def is_grad_enabled() -> bool:
+    """True unless inside ``no_grad()``."""
+    return _GRAD_ENABLED
+
+
+from minidiff import primitives as _p  # noqa: E402  (primitives import Tensor from here)
