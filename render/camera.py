@@ -1,0 +1,107 @@
+"""Camera rays: where each pixel looks.
+
+A look-at pinhole camera is an orthonormal frame (forward, right, up) at the eye. The ray
+through the point (x, y) of the image plane, with x, y in [-1, 1] from left to right and
+bottom to top, has direction
+
+    d = forward + x * tan(fov / 2) * right + y * tan(fov / 2) * (height / width) * up.
+
+Two versions of this formula live here, for two jobs:
+
+* ``primary_rays`` evaluates it for every pixel in Numba, on plain arrays: visibility (the
+  BVH) only needs numbers, and generating 262,144 directions with NumPy temporaries would
+  cost more than tracing them.
+* ``ray_directions`` evaluates it on the tape for the rays that hit something, so gradients
+  reach the camera's position, look_at, up and fov.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+import minidiff as md
+from render.scene import Camera
+
+
+def subpixel_offsets(spp: int) -> np.ndarray:
+    """(spp, 2) fixed stratified sample positions inside a pixel, in [0, 1)^2.
+
+    spp = n^2 gives the centres of an n x n grid of cells. The pattern is fixed (no random
+    jitter), so the rendered image is a deterministic, differentiable function of the scene.
+    """
+    n = math.isqrt(spp)
+    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1 or n * n != spp:
+        raise ValueError(f"render: spp must be a perfect square (1, 4, 9, 16, ...), got {spp!r}")
+    cells = (np.arange(n) + 0.5) / n
+    sx, sy = np.meshgrid(cells, cells)
+    return np.stack([sx.ravel(), sy.ravel()], axis=1)
+
+
+def camera_frame(camera: Camera) -> tuple[md.Tensor, md.Tensor, md.Tensor, md.Tensor]:
+    """The camera's frame on the tape: (forward, right * half_width, up * half_height, eye).
+
+    ``right`` and ``up`` come pre-scaled by the half extent of the image plane at distance
+    1, so that a direction is simply forward + x * right + y * up.
+    """
+    eye = camera.position
+    forward = md.normalize(camera.look_at - eye)
+    right = md.normalize(md.cross(forward, camera.up))
+    up = md.cross(right, forward)  # unit: right and forward are orthonormal
+    half_width = md.tan(camera.fov * (math.pi / 360.0))  # tan(fov/2), fov in degrees
+    half_height = half_width * (camera.height / camera.width)
+    return forward, right * half_width, up * half_height, eye
+
+
+def image_plane_coords(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.ndarray:
+    """(k, 2) image-plane coordinates (x, y) in [-1, 1] of the given rays.
+
+    Ray r belongs to pixel r // spp (row-major, row 0 at the top) and sample r % spp.
+    """
+    offsets = subpixel_offsets(spp)
+    pixel, sample = np.divmod(ray_ids, spp)
+    py, px = np.divmod(pixel, camera.width)
+    x = 2.0 * (px + offsets[sample, 0]) / camera.width - 1.0
+    y = 1.0 - 2.0 * (py + offsets[sample, 1]) / camera.height
+    return np.stack([x, y], axis=1)
+
+
+def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
+    """(k, 3) unnormalised ray directions on the tape for image-plane coords (k, 2)."""
+    forward, right, up, _ = frame
+    return forward + coords[:, :1] * right + coords[:, 1:] * up
+
+
+@numba.njit(parallel=True, cache=True)
+def _primary_directions(width, height, offsets, forward, right, up):
+    spp = offsets.shape[0]
+    out = np.empty((height * width * spp, 3))
+    for py in numba.prange(height):
+        for px in range(width):
+            for s in range(spp):
+                x = 2.0 * (px + offsets[s, 0]) / width - 1.0
+                y = 1.0 - 2.0 * (py + offsets[s, 1]) / height
+                r = (py * width + px) * spp + s
+                for c in range(3):
+                    out[r, c] = forward[c] + x * right[c] + y * up[c]
+    return out
+
+
+def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """All camera rays as plain arrays: eye (3,) and directions (H * W * spp, 3).
+
+    Ray r goes through pixel r // spp at sub-pixel sample r % spp (see ``subpixel_offsets``).
+    """
+    with md.no_grad():
+        forward, right, up, eye = camera_frame(camera)
+    directions = _primary_directions(
+        camera.width,
+        camera.height,
+        subpixel_offsets(spp),
+        forward.data.astype(np.float64),
+        right.data.astype(np.float64),
+        up.data.astype(np.float64),
+    )
+    return eye.data.astype(np.float64), directions

@@ -1,0 +1,81 @@
+"""Geometry on the tape: ray-surface intersections and normals, recomputed differentiably.
+
+The BVH tells us *which* primitive each ray hits; that choice is discrete and is treated
+as a constant. *Where* the ray hits it is a smooth function of the ray and the primitive,
+so we recompute it here with minidiff: that is what carries gradients from a pixel back to
+the camera (through the ray) and to the vertex positions (through the triangle). Using the
+BVH's t and barycentrics as constants instead would silently zero those gradients.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import minidiff as md
+
+
+def intersect_triangles(origin, direction, a, b, c):
+    """Moller-Trumbore for rays known to hit their triangles, on the tape.
+
+    origin (3,) or (k, 3); direction (k, 3); a, b, c (k, 3) triangle corners.
+    Returns (t, u, v), each (k,): the hit point is origin + t * direction
+    = (1 - u - v) a + u b + v c.
+
+    Derivation in brief: solve origin + t d = a + u e1 + v e2 with Cramer's rule; the
+    determinants are triple products, written as dot(., cross(., .)).
+    """
+    e1 = b - a
+    e2 = c - a
+    p = md.cross(direction, e2)
+    inv_det = 1.0 / md.dot(e1, p)  # non-zero: the BVH only reports non-degenerate hits
+    s = origin - a
+    u = md.dot(s, p) * inv_det
+    q = md.cross(s, e1)
+    v = md.dot(direction, q) * inv_det
+    t = md.dot(e2, q) * inv_det
+    return t, u, v
+
+
+def intersect_spheres(origin, direction, center, radius, far_root: np.ndarray):
+    """Ray-sphere distance on the tape for rays known to hit (k rays).
+
+    origin (3,) or (k, 3), direction (k, 3), center (k, 3), radius (k,). ``far_root`` (k,)
+    bool picks the far root (rays starting inside the sphere), as the BVH did.
+    Solves |o + t d - c|^2 = r^2: t = (-b -+ sqrt(b^2 - a c')) / a.
+    """
+    oc = origin - center
+    a = md.dot(direction, direction)
+    b = md.dot(oc, direction)
+    c = md.dot(oc, oc) - radius * radius
+    # At a grazing hit the discriminant is ~0 and sqrt's derivative blows up; clamping keeps
+    # the value (it is ~0 anyway) and gives a finite gradient.
+    root = md.sqrt(md.maximum(b * b - a * c, 1e-18))
+    sign = np.where(far_root, 1.0, -1.0)
+    return (-b + sign * root) / a
+
+
+def face_normals(a, b, c):
+    """Unnormalised geometric normals (b - a) x (c - a), (k, 3); length = twice the area."""
+    return md.cross(b - a, c - a)
+
+
+def vertex_normals(vertices, faces: np.ndarray):
+    """(V, 3) unit area-weighted vertex normals, on the tape.
+
+    Each face adds its unnormalised normal (length proportional to its area) to its three
+    corners; the sums are normalised. Vertices used by no face get the zero vector.
+    """
+    corners = [vertices[faces[:, i]] for i in range(3)]
+    n = face_normals(*corners)
+    summed = md.scatter_add(md.concatenate([n, n, n]), faces.T.ravel(), vertices.shape[0])
+    return md.normalize(summed)
+
+
+def toward_ray(normals, directions) -> np.ndarray:
+    """(k, 1) constant signs that flip normals to face the incoming ray (two-sided shading).
+
+    A normal facing away from the viewer has dot(n, d) > 0. The sign is a discrete choice
+    (like visibility), so it is a constant on the tape.
+    """
+    facing_away = np.einsum("ij,ij->i", md.as_tensor(normals).data, directions.data) > 0
+    return np.where(facing_away, -1.0, 1.0)[:, None]

@@ -1,0 +1,296 @@
+"""``render(scene)``: visibility with the BVH, then shading on the tape.
+
+The pipeline, one step at a time:
+
+1. Flatten the scene's geometry into one list of primitives (all mesh triangles, then all
+   spheres) and build the accelerator over it (``render.accel``).
+2. Trace one ray per pixel (or ``spp`` rays) through the BVH: which primitive does each ray
+   hit? This is the only non-differentiable step; its answers are constants.
+3. Trace a shadow ray from every hit point to every light: is the light visible? Also a
+   constant.
+4. For the rays that hit something, *recompute* the hit on the tape (``render.geometry``)
+   and shade it (``render.shading``): gradients flow to every continuous parameter.
+5. Put the hit colours into the image (a scatter-add) and fill the misses with the
+   background.
+
+Steps 1-3 depend only on the geometry, the camera and the lights. When those have not
+changed since the previous render of the same scene (for example while only a material is
+optimised), their results are reused (``reuse_visibility=True``, the default): the cache
+compares the actual values, so it can never serve stale visibility.
+"""
+
+from __future__ import annotations
+
+import weakref
+from dataclasses import dataclass, field
+
+import numpy as np
+
+import minidiff as md
+from render.accel import Accelerator
+from render.camera import camera_frame, image_plane_coords, primary_rays, ray_directions
+from render.geometry import (
+    face_normals,
+    intersect_spheres,
+    intersect_triangles,
+    toward_ray,
+    vertex_normals,
+)
+from render.scene import DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.shading import column, sample_texture, shade
+
+# Shadow rays start on the surface; they skip the primitive they start on and ignore hits
+# closer than this fraction of the distance to the light (neighbouring triangles at a
+# shared edge would otherwise shadow the start point).
+_SHADOW_EPSILON = 1e-7
+
+
+@dataclass
+class RenderInfo:
+    """The discrete decisions behind an image (constants on the tape), per ray.
+
+    prim_id (H, W, spp) int64: the primitive each ray hit (-1: background).
+    lit (n_lights, H, W, spp) bool: light j reaches the ray's hit point unoccluded.
+    Two renders have the same visibility where both arrays agree.
+    """
+
+    prim_id: np.ndarray
+    lit: np.ndarray
+
+
+@dataclass
+class _Visibility:
+    """Cached results of steps 1-3, with the values they were computed from."""
+
+    geometry_key: list = field(default_factory=list)
+    accelerators: dict = field(default_factory=dict)
+    primary_key: list | None = None
+    primary: tuple | None = None
+    shadow_keys: dict = field(default_factory=dict)
+    shadows: dict = field(default_factory=dict)
+
+
+_CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _same(key_a: list | None, key_b: list) -> bool:
+    return (
+        key_a is not None
+        and len(key_a) == len(key_b)
+        and all(
+            a.shape == b.shape and np.array_equal(a, b) for a, b in zip(key_a, key_b, strict=True)
+        )
+    )
+
+
+def _geometry_arrays(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The current primitives as plain arrays: triangles (T, 3, 3), centres (S, 3), radii."""
+    meshes, spheres = scene.meshes, scene.spheres
+    triangles = (
+        np.concatenate([m.triangles() for m in meshes]).astype(np.float64)
+        if meshes
+        else np.zeros((0, 3, 3))
+    )
+    centers = np.array([s.center.data for s in spheres], dtype=np.float64).reshape(-1, 3)
+    radii = np.array([s.radius.data for s in spheres], dtype=np.float64).reshape(-1)
+    return triangles, centers, radii
+
+
+def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
+    """Steps 1-3: primary hits (prim_id, t per ray) and per-light lit masks per hit ray."""
+    cache = _CACHE.get(scene) if reuse else None
+    if cache is None:
+        cache = _Visibility()
+        if reuse:
+            _CACHE[scene] = cache
+
+    geometry = list(_geometry_arrays(scene))
+    if not _same(cache.geometry_key, geometry):
+        cache.geometry_key = geometry
+        cache.accelerators.clear()
+        cache.primary_key = None
+        cache.shadow_keys.clear()
+    if bvh not in cache.accelerators:
+        cache.accelerators[bvh] = Accelerator(*geometry, use_bvh=bvh)
+    accel = cache.accelerators[bvh]
+
+    camera = scene.camera
+    camera_key = [
+        np.asarray(x.data, dtype=np.float64)
+        for x in (camera.position, camera.look_at, camera.up, camera.fov)
+    ] + [np.array([camera.width, camera.height, spp, bvh])]
+    if not _same(cache.primary_key, camera_key):
+        eye, directions = primary_rays(camera, spp)
+        origins = np.broadcast_to(eye, directions.shape)
+        prim_id, t, _, _ = accel.closest_hit(origins, directions)
+        cache.primary_key, cache.primary = camera_key, (eye, directions, prim_id, t)
+        cache.shadow_keys.clear()
+    eye, directions, prim_id, t = cache.primary
+
+    hit_rays = np.flatnonzero(prim_id >= 0)
+    points = eye + t[hit_rays, None] * directions[hit_rays]
+    lit = []
+    for j, light in enumerate(scene.lights):
+        if not shadows:
+            lit.append(np.ones(len(hit_rays), dtype=bool))
+            continue
+        light_key = _light_key(light) + [np.array([bvh])]
+        if not _same(cache.shadow_keys.get(j), light_key):
+            cache.shadows[j] = _trace_shadows(accel, light, points, prim_id[hit_rays])
+            cache.shadow_keys[j] = light_key
+        lit.append(cache.shadows[j])
+    return prim_id, hit_rays, lit
+
+
+def _light_key(light) -> list:
+    if isinstance(light, PointLight):
+        return [np.asarray(light.position.data, dtype=np.float64), np.array([0.0])]
+    return [np.asarray(light.direction.data, dtype=np.float64), np.array([1.0])]
+
+
+def _trace_shadows(accel: Accelerator, light, points: np.ndarray, start_prim: np.ndarray):
+    """(k,) bool: True where the light reaches the hit point (no primitive in between)."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    if isinstance(light, PointLight):
+        # Unnormalised direction to the light: t = 1 is the light itself.
+        directions = np.asarray(light.position.data, dtype=np.float64) - points
+        tmax = 1.0 - _SHADOW_EPSILON
+        # A light sitting exactly on a hit point: no direction to trace; its contribution
+        # is zero anyway (see shading), so call it lit.
+        zero = ~directions.any(axis=1)
+        directions[zero] = (0.0, 1.0, 0.0)
+    elif isinstance(light, DirectionalLight):
+        directions = np.broadcast_to(-np.asarray(light.direction.data, np.float64), points.shape)
+        tmax = np.inf
+    else:
+        raise TypeError(f"render: unsupported light type {type(light).__name__}")
+    scale = max(1.0, float(np.abs(points).max()))
+    blocked = accel.occluded(
+        points, directions, tmax, tmin=_SHADOW_EPSILON * scale, ignore_prim=start_prim
+    )
+    return ~blocked
+
+
+def _shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tensor:
+    """Recompute the hits on one mesh's triangles on the tape and shade them: (k, 3)."""
+    faces = mesh.faces[faces_hit]
+    a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
+    t, u, v = intersect_triangles(eye, directions, a, b, c)
+    points = eye + column(t) * directions
+    normals = md.normalize(face_normals(a, b, c))
+    flip = toward_ray(normals, directions)
+    w = (column(1.0 - u - v), column(u), column(v))  # barycentric weights of a, b, c
+    if mesh.smooth:
+        vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+        normals = md.normalize(
+            w[0] * vn[faces[:, 0]] + w[1] * vn[faces[:, 1]] + w[2] * vn[faces[:, 2]]
+        )
+    normals = normals * flip
+    material = mesh.material
+    if material.texture is not None:
+        uv = (
+            w[0] * mesh.uvs[faces[:, 0]]
+            + w[1] * mesh.uvs[faces[:, 1]]
+            + w[2] * mesh.uvs[faces[:, 2]]
+        )
+        albedo = sample_texture(material.texture, uv)
+    else:
+        albedo = material.albedo
+    view = -md.normalize(directions)
+    return shade(points, normals, view, albedo, material, lights, lit)
+
+
+def _shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
+    """Recompute the hits on one sphere on the tape and shade them: (k, 3)."""
+    if sphere.material.texture is not None:
+        raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
+    inside = np.linalg.norm(eye.data - sphere.center.data) < sphere.radius.data
+    far_root = np.full(directions.shape[0], bool(inside))
+    t = intersect_spheres(eye, directions, sphere.center, sphere.radius, far_root)
+    points = eye + column(t) * directions
+    normals = md.normalize(points - sphere.center)
+    normals = normals * toward_ray(normals, directions)
+    view = -md.normalize(directions)
+    return shade(points, normals, view, sphere.material.albedo, sphere.material, lights, lit)
+
+
+def render(
+    scene: Scene,
+    bvh: bool = True,
+    shadows: bool = True,
+    spp: int = 1,
+    reuse_visibility: bool = True,
+    return_info: bool = False,
+):
+    """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
+
+    bvh: use the BVH (False: brute force over all primitives, same result, for ablations).
+    shadows: trace shadow rays (False: every light reaches every hit point).
+    spp: samples per pixel, a perfect square, on a fixed stratified pattern (deterministic,
+        hence differentiable); the pixel value is their mean.
+    reuse_visibility: reuse the previous render's visibility when geometry, camera and
+        lights have the same values (see the module docstring).
+    return_info: also return a ``RenderInfo`` with the visibility decisions.
+
+    Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
+    when the caller runs ``backward`` on a loss computed from the image.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
+    scene.validate()
+    camera, lights = scene.camera, scene.lights
+    prim_id, hit_rays, lit = _visibility(scene, bool(bvh), spp, bool(shadows), reuse_visibility)
+    n_pixels = camera.width * camera.height
+
+    frame = camera_frame(camera)
+    eye = frame[3]
+    coords = image_plane_coords(camera, hit_rays, spp)
+    hit_prims = prim_id[hit_rays]
+
+    colours, pixels = [], []
+    for obj, first, count in _primitive_ranges(scene):
+        in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
+        if len(in_obj) == 0:
+            continue
+        directions = ray_directions(frame, coords[in_obj])
+        obj_lit = [m[in_obj].astype(np.float64) for m in lit]
+        if isinstance(obj, Mesh):
+            local = hit_prims[in_obj] - first
+            colours.append(_shade_mesh(obj, local, eye, directions, lights, obj_lit))
+        else:
+            colours.append(_shade_sphere(obj, eye, directions, lights, obj_lit))
+        pixels.append(hit_rays[in_obj] // spp)
+
+    image = None
+    if colours:
+        colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
+        image = md.scatter_add(colour, np.concatenate(pixels), n_pixels)
+        if spp > 1:
+            image = image * (1.0 / spp)
+    background = scene.background
+    if image is None or background.requires_grad or np.any(background.data):
+        miss_fraction = np.bincount(np.flatnonzero(prim_id < 0) // spp, minlength=n_pixels) / float(
+            spp
+        )
+        fill = miss_fraction[:, None] * background
+        image = fill if image is None else image + fill
+    image = md.reshape(image, (camera.height, camera.width, 3))
+    if not return_info:
+        return image
+    shape = (camera.height, camera.width, spp)
+    lit_full = np.zeros((len(lights), prim_id.size), dtype=bool)
+    for j, m in enumerate(lit):
+        lit_full[j, hit_rays] = m
+    return image, RenderInfo(prim_id.reshape(shape), lit_full.reshape((len(lights),) + shape))
+
+
+def _primitive_ranges(scene: Scene) -> list[tuple[Mesh | Sphere, int, int]]:
+    """(object, first primitive id, primitive count) per object, in the accelerator's order:
+    the triangles of every mesh, then the spheres (see ``_geometry_arrays``)."""
+    ranges, first = [], 0
+    for obj in scene.meshes + scene.spheres:
+        count = obj.num_faces if isinstance(obj, Mesh) else 1
+        ranges.append((obj, first, count))
+        first += count
+    return ranges

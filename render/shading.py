@@ -1,0 +1,105 @@
+"""Shading on the tape: lights, the Lambert + Blinn-Phong BRDF, textures.
+
+All functions take per-hit arrays (k hits) as minidiff tensors and return tensors, so every
+light, material and texture parameter receives gradients. Radiometric convention (see
+``paper_scene.md``): for a point light of radiant intensity I at distance r,
+
+    L = (albedo / pi + f_specular) * I * color * max(0, cos theta) / r^2
+
+and for a directional light of irradiance E: the same with I / r^2 replaced by E.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+import minidiff as md
+from render.scene import DirectionalLight, Material, PointLight
+
+# Smallest squared light distance we divide by: a light exactly on the surface would give
+# 0/0; with the clamp its contribution is finite (and zero, since its direction is zero).
+_MIN_DISTANCE_SQUARED = 1e-12
+
+
+def column(x) -> md.Tensor:
+    """(k,) -> (k, 1), so that a per-hit scalar scales the three colour channels."""
+    return md.reshape(x, (-1, 1))
+
+
+def light_incidence(light, points):
+    """Direction to the light and the irradiance it delivers, per hit.
+
+    points (k, 3). Returns (to_light, irradiance, distance): to_light (k, 3) or (3,) unit
+    vectors; irradiance (k, 3) or (3,) RGB on a surface facing the light (no cosine yet);
+    distance (k,) plain array for the shadow rays (inf for a directional light).
+    """
+    if isinstance(light, PointLight):
+        offset = light.position - points
+        distance_sq = md.maximum(md.dot(offset, offset), _MIN_DISTANCE_SQUARED)
+        to_light = md.normalize(offset)
+        irradiance = light.intensity * light.color * column(1.0 / distance_sq)
+        return to_light, irradiance, np.sqrt(distance_sq.data)
+    if isinstance(light, DirectionalLight):
+        to_light = md.normalize(-light.direction)
+        irradiance = light.irradiance * light.color
+        return to_light, irradiance, np.full(points.shape[0], np.inf)
+    raise TypeError(f"render: unsupported light type {type(light).__name__}")
+
+
+def sample_texture(texture, uv) -> md.Tensor:
+    """Bilinear lookup of an (H, W, 3) texture at (k, 2) UVs, repeating outside [0, 1].
+
+    UV (0, 0) is the bottom-left corner of the image and (1, 1) the top-right (the OBJ
+    convention); texel centres sit at half-integer positions. Gradients reach both the four
+    texels involved (through the gathers) and the UVs (through the blend weights).
+    """
+    height, width = texture.shape[0], texture.shape[1]
+    x = uv[:, 0] * width - 0.5
+    y = (1.0 - uv[:, 1]) * height - 0.5
+    x0 = np.floor(x.data)
+    y0 = np.floor(y.data)
+    fx = column(x - x0)  # the blend weights are differentiable in uv
+    fy = column(y - y0)
+    ix0 = x0.astype(np.int64) % width
+    iy0 = y0.astype(np.int64) % height
+    ix1 = (ix0 + 1) % width
+    iy1 = (iy0 + 1) % height
+    texels = md.reshape(texture, (height * width, texture.shape[2]))
+    top = texels[iy0 * width + ix0] * (1.0 - fx) + texels[iy0 * width + ix1] * fx
+    bottom = texels[iy1 * width + ix0] * (1.0 - fx) + texels[iy1 * width + ix1] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+def _has_specular(material: Material) -> bool:
+    return material.specular.requires_grad or bool(np.any(material.specular.data))
+
+
+def shade(points, normals, view, albedo, material: Material, lights, lit) -> md.Tensor:
+    """Outgoing radiance (k, 3) at k hit points.
+
+    points (k, 3); normals (k, 3) unit, facing the viewer; view (k, 3) unit, towards the
+    viewer; albedo (3,) or (k, 3); lights a list; lit[j] a (k,) float array, 1 where light j
+    is unoccluded (a constant: visibility is discrete). The specular lobe is the
+    energy-normalised Blinn-Phong  f_s = specular * (n + 8) / (8 pi) * max(0, n.h)^n.
+    """
+    diffuse_brdf = albedo * (1.0 / math.pi)
+    radiance = None
+    for light, visible in zip(lights, lit, strict=True):
+        to_light, irradiance, _ = light_incidence(light, points)
+        cos_theta = md.maximum(md.dot(normals, to_light), 0.0)
+        brdf = diffuse_brdf
+        if _has_specular(material):
+            half = md.normalize(to_light + view)
+            # Clamp before the power: 0^n has an infinite log, which d/dn would need.
+            n_dot_h = md.maximum(md.dot(normals, half), 1e-12)
+            lobe = n_dot_h**material.shininess * ((material.shininess + 8.0) / (8.0 * math.pi))
+            brdf = brdf + column(lobe) * material.specular
+        contribution = brdf * irradiance * column(cos_theta * visible)
+        radiance = contribution if radiance is None else radiance + contribution
+    if radiance is None:  # no lights: only the ambient term
+        radiance = md.broadcast_to(md.as_tensor(np.zeros(3)), (points.shape[0], 3))
+    if material.ambient.requires_grad or np.any(material.ambient.data):
+        radiance = radiance + material.ambient
+    return radiance
