@@ -1,0 +1,609 @@
+"""Scene description: camera, lights, materials and geometry.
+
+These classes hold data only; the renderer (``render.render`` and friends) reads them.
+
+Convention the renderer relies on
+---------------------------------
+Every *continuous* parameter (positions, angles, colours, intensities, vertex positions,
+textures, ...) is stored as a :class:`minidiff.Tensor`, so that any of them can be made
+differentiable by the user:
+
+* if you pass a ``minidiff.Tensor`` we keep *that very object* (so a ``requires_grad=True``
+  tensor you hold receives its ``.grad`` after ``backward()``);
+* anything else (number, tuple, list, ndarray) is converted with
+  ``minidiff.tensor(np.asarray(x, dtype=np.float64))``;
+* scalars become 0-d tensors.
+
+Discrete data stays plain: mesh ``faces`` are an ``int64`` ndarray (never differentiable),
+image ``width``/``height`` are Python ints.
+
+Validation
+----------
+Every class has a ``validate()`` method that re-checks the *current* values. The optimiser
+updates ``tensor.data`` in place, so the renderer calls ``scene.validate()`` before every
+render; it is therefore cheap (shape checks and one ``np.isfinite(...).all()`` per array).
+Constructors call ``validate()`` too, so a bad scene fails where it is built, with an error
+naming the class and the argument.
+
+Coordinate system: right-handed, y up (the Newell teapot data, which is z up, is rotated on
+loading, see ``render.teapot``). Angles are in degrees. Colours are linear RGB.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from typing import Any
+
+import numpy as np
+
+import minidiff
+from minidiff import Tensor
+
+__all__ = [
+    "Camera",
+    "PointLight",
+    "DirectionalLight",
+    "Material",
+    "Mesh",
+    "Sphere",
+    "Scene",
+]
+
+# Anything we accept where a continuous parameter is expected.
+ArrayLike = Tensor | np.ndarray | Sequence[float] | float | int
+
+
+# --------------------------------------------------------------------------------------
+# Helpers shared by all classes
+# --------------------------------------------------------------------------------------
+
+
+def _as_tensor(value: Any, owner: str, name: str) -> Tensor:
+    """Return ``value`` as a float ``minidiff.Tensor``, keeping it if it already is one."""
+    if isinstance(value, Tensor):
+        # Keep the user's object: its identity is what carries the gradient back to them.
+        return value
+    if isinstance(value, str | bytes) or value is None:
+        raise TypeError(f"{owner}: {name} must be numeric, got {type(value).__name__}")
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise TypeError(
+            f"{owner}: {name} must be numeric (number, sequence or array), "
+            f"got {type(value).__name__}"
+        ) from err
+    return minidiff.tensor(array)
+
+
+def _shape_str(shape: tuple[int | str, ...]) -> str:
+    """Readable shape for messages: ``(3,)``, ``(H, W, 3)``, ``() (a scalar)``."""
+    if shape == ():
+        return "() (a scalar)"
+    inner = ", ".join(str(s) for s in shape)
+    return f"({inner},)" if len(shape) == 1 else f"({inner})"
+
+
+def _check_tensor(
+    value: Any,
+    owner: str,
+    name: str,
+    shapes: Sequence[tuple[int | str, ...]],
+) -> np.ndarray:
+    """Check that ``value`` is a finite float Tensor of one of ``shapes``; return its data.
+
+    A shape is a tuple of ints (exact size) or strings (any size >= 1, e.g. ``'V'``).
+    Only views and one ``isfinite`` reduction are made: this runs before every render.
+    """
+    if not isinstance(value, Tensor):
+        raise TypeError(
+            f"{owner}: {name} must be a minidiff.Tensor (assign a Tensor, or rebuild the "
+            f"{owner}), got {type(value).__name__}"
+        )
+    data = value.data
+    if not isinstance(data, np.ndarray) or not np.issubdtype(data.dtype, np.floating):
+        dtype = getattr(data, "dtype", type(data).__name__)
+        raise TypeError(f"{owner}: {name} must hold floating-point values, got {dtype}")
+    if not any(_shape_matches(data.shape, s) for s in shapes):
+        expected = " or ".join(_shape_str(s) for s in shapes)
+        raise ValueError(f"{owner}: {name} must have shape {expected}, got {data.shape}")
+    if not np.isfinite(data).all():
+        raise ValueError(f"{owner}: {name} contains NaN or infinite values")
+    return data
+
+
+def _shape_matches(actual: tuple[int, ...], expected: tuple[int | str, ...]) -> bool:
+    if len(actual) != len(expected):
+        return False
+    return all(
+        (a >= 1) if isinstance(e, str) else (a == e) for a, e in zip(actual, expected, strict=True)
+    )
+
+
+def _check_int(value: Any, owner: str, name: str) -> int:
+    """A strictly positive Python/NumPy integer (``bool`` is not an integer here)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise TypeError(f"{owner}: {name} must be a positive int, got {type(value).__name__}")
+    if value <= 0:
+        raise ValueError(f"{owner}: {name} must be a positive int, got {value}")
+    return int(value)
+
+
+def _check_instance(value: Any, owner: str, name: str, cls: type) -> None:
+    if not isinstance(value, cls):
+        raise TypeError(f"{owner}: {name} must be a {cls.__name__}, got {type(value).__name__}")
+
+
+def _fmt(t: Tensor) -> str:
+    """Short text of a small tensor for ``__repr__`` (large ones show their shape only)."""
+    data = t.data
+    if data.size > 4:
+        return f"<{'x'.join(map(str, data.shape))}>"
+    return np.array2string(data, precision=4, separator=", ")
+
+
+# --------------------------------------------------------------------------------------
+# Camera
+# --------------------------------------------------------------------------------------
+
+
+class Camera:
+    """A look-at pinhole camera.
+
+    Args:
+        position: (3,) eye position in world space.
+        look_at: (3,) point the camera looks at; the view direction is
+            ``look_at - position`` (must not be zero).
+        up: (3,) approximate up direction; only its component orthogonal to the view
+            direction matters, so it must not be parallel to the view direction.
+        fov: scalar *horizontal* field of view in degrees, in (0, 180). The vertical field
+            of view follows from the aspect ratio ``width / height`` (square pixels).
+        width, height: image size in pixels (positive ints). One primary ray goes through
+            the centre of each pixel.
+
+    The default ``fov`` (39.5978 degrees) is a 50 mm lens on a 36 mm wide sensor, as in the
+    paper's reference scene. All continuous arguments become ``minidiff.Tensor`` s
+    (see the module docstring); ``width``/``height`` stay ints.
+    """
+
+    def __init__(
+        self,
+        position: ArrayLike,
+        look_at: ArrayLike,
+        up: ArrayLike = (0, 1, 0),
+        fov: ArrayLike = 39.5978,
+        width: int = 512,
+        height: int = 512,
+    ) -> None:
+        self.position = _as_tensor(position, "Camera", "position")
+        self.look_at = _as_tensor(look_at, "Camera", "look_at")
+        self.up = _as_tensor(up, "Camera", "up")
+        self.fov = _as_tensor(fov, "Camera", "fov")
+        self.width = _check_int(width, "Camera", "width")
+        self.height = _check_int(height, "Camera", "height")
+        self.validate()
+
+    @classmethod
+    def from_focal_length(cls, focal_mm: float, sensor_mm: float = 36.0, **kwargs: Any) -> Camera:
+        """Build a camera from a lens focal length and the sensor *width*, both in mm.
+
+        ``fov = 2 * atan(sensor_mm / 2 / focal_mm)`` in degrees; e.g. 50 mm on a 36 mm
+        sensor gives 39.5978 degrees. ``kwargs`` are passed to ``Camera`` (position,
+        look_at, up, width, height). To optimise the field of view, pass ``fov`` as a
+        Tensor to the constructor instead.
+        """
+        focal, sensor = (
+            _positive_float(focal_mm, "focal_mm"),
+            _positive_float(sensor_mm, "sensor_mm"),
+        )
+        if "fov" in kwargs:
+            raise TypeError("Camera.from_focal_length: pass either focal_mm or fov, not both")
+        fov = math.degrees(2.0 * math.atan(sensor / 2.0 / focal))
+        return cls(fov=fov, **kwargs)
+
+    @property
+    def aspect(self) -> float:
+        """Image aspect ratio ``width / height``."""
+        return self.width / self.height
+
+    def validate(self) -> None:
+        """Re-check the current values (shapes, finiteness, fov range, a usable view frame)."""
+        position = _check_tensor(self.position, "Camera", "position", [(3,)])
+        look_at = _check_tensor(self.look_at, "Camera", "look_at", [(3,)])
+        up = _check_tensor(self.up, "Camera", "up", [(3,)])
+        fov = float(_check_tensor(self.fov, "Camera", "fov", [()]))
+        if not 0.0 < fov < 180.0:
+            raise ValueError(f"Camera: fov must be in (0, 180) degrees, got {fov}")
+        _check_int(self.width, "Camera", "width")
+        _check_int(self.height, "Camera", "height")
+
+        forward = look_at - position
+        norm_f = float(np.linalg.norm(forward))
+        if norm_f <= 1e-12 * max(1.0, float(np.abs(position).max())):
+            raise ValueError(f"Camera: position and look_at must differ, both are {position}")
+        norm_up = float(np.linalg.norm(up))
+        if norm_up == 0.0:
+            raise ValueError("Camera: up must be a non-zero vector")
+        # sin of the angle between up and the view direction; ~0 means no usable "right" axis.
+        sin_angle = float(np.linalg.norm(np.cross(forward, up))) / (norm_f * norm_up)
+        if sin_angle < 1e-6:
+            raise ValueError(
+                f"Camera: up {up} is parallel to the view direction {forward / norm_f}"
+            )
+
+    def __repr__(self) -> str:
+        return (
+            f"Camera(position={_fmt(self.position)}, look_at={_fmt(self.look_at)}, "
+            f"up={_fmt(self.up)}, fov={_fmt(self.fov)}, width={self.width}, "
+            f"height={self.height})"
+        )
+
+
+def _positive_float(value: Any, name: str) -> float:
+    if isinstance(value, Tensor):
+        raise TypeError(
+            f"Camera.from_focal_length: {name} must be a number (to optimise the field of "
+            "view pass Camera(fov=<Tensor>))"
+        )
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise TypeError(
+            f"Camera.from_focal_length: {name} must be a number, got {type(value).__name__}"
+        )
+    value = float(value)
+    if not (math.isfinite(value) and value > 0.0):
+        raise ValueError(f"Camera.from_focal_length: {name} must be positive, got {value}")
+    return value
+
+
+# --------------------------------------------------------------------------------------
+# Lights
+# --------------------------------------------------------------------------------------
+
+
+class PointLight:
+    """An isotropic point light.
+
+    Args:
+        position: (3,) position in world space.
+        intensity: scalar radiant intensity I (W/sr), >= 0. The irradiance at distance r
+            facing the light is ``I / r**2`` (inverse-square falloff).
+        color: (3,) linear RGB multiplier of the intensity (white by default).
+    """
+
+    def __init__(
+        self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = (1, 1, 1)
+    ) -> None:
+        self.position = _as_tensor(position, "PointLight", "position")
+        self.intensity = _as_tensor(intensity, "PointLight", "intensity")
+        self.color = _as_tensor(color, "PointLight", "color")
+        self.validate()
+
+    def validate(self) -> None:
+        """Re-check the current values."""
+        _check_tensor(self.position, "PointLight", "position", [(3,)])
+        intensity = float(_check_tensor(self.intensity, "PointLight", "intensity", [()]))
+        if intensity < 0.0:
+            raise ValueError(f"PointLight: intensity must be >= 0, got {intensity}")
+        _check_tensor(self.color, "PointLight", "color", [(3,)])
+
+    def __repr__(self) -> str:
+        return (
+            f"PointLight(position={_fmt(self.position)}, intensity={_fmt(self.intensity)}, "
+            f"color={_fmt(self.color)})"
+        )
+
+
+class DirectionalLight:
+    """A distant light (like the sun): parallel rays, no falloff.
+
+    Args:
+        direction: (3,) the direction in which the light **travels**, i.e. from the light
+            towards the scene (the Mitsuba / glTF convention). A sun shining straight down
+            has ``direction=(0, -1, 0)``. The vector towards the light, used for shading
+            and shadow rays, is ``-direction / |direction|``. Need not be unit length, must
+            not be zero.
+        irradiance: scalar irradiance E (W/m^2) on a surface facing the light, >= 0.
+        color: (3,) linear RGB multiplier of the irradiance (white by default).
+    """
+
+    def __init__(
+        self, direction: ArrayLike, irradiance: ArrayLike, color: ArrayLike = (1, 1, 1)
+    ) -> None:
+        self.direction = _as_tensor(direction, "DirectionalLight", "direction")
+        self.irradiance = _as_tensor(irradiance, "DirectionalLight", "irradiance")
+        self.color = _as_tensor(color, "DirectionalLight", "color")
+        self.validate()
+
+    def validate(self) -> None:
+        """Re-check the current values."""
+        direction = _check_tensor(self.direction, "DirectionalLight", "direction", [(3,)])
+        if not np.any(direction):
+            raise ValueError("DirectionalLight: direction must be a non-zero vector")
+        irradiance = float(_check_tensor(self.irradiance, "DirectionalLight", "irradiance", [()]))
+        if irradiance < 0.0:
+            raise ValueError(f"DirectionalLight: irradiance must be >= 0, got {irradiance}")
+        _check_tensor(self.color, "DirectionalLight", "color", [(3,)])
+
+    def __repr__(self) -> str:
+        return (
+            f"DirectionalLight(direction={_fmt(self.direction)}, "
+            f"irradiance={_fmt(self.irradiance)}, color={_fmt(self.color)})"
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Material
+# --------------------------------------------------------------------------------------
+
+
+class Material:
+    """Surface appearance: a Lambertian (diffuse) term plus an optional glossy lobe.
+
+    Args:
+        albedo: (3,) diffuse reflectance (linear RGB); the diffuse BRDF is ``albedo / pi``.
+        specular: scalar or (3,) specular coefficient Ks of the renderer's (Blinn-)Phong
+            lobe, see ``render.shading`` (0 = none).
+        shininess: scalar (Blinn-)Phong exponent, > 0.
+        ambient: scalar or (3,) ambient radiance **added to the pixel** where this
+            material is seen, *not* multiplied by the albedo: the classic Phong ``Ka * Ia``
+            term (``render.meshio`` sets it to ``Ka * ambient_light`` from an MTL file).
+        texture: optional (H, W, 3) image, values usually in [0, 1], that replaces
+            ``albedo`` at each hit, sampled at the hit's interpolated UV. Row 0 is the
+            *top* row of the image file; UV (0, 0) is the *bottom-left* corner of the image
+            and v grows upwards (the OBJ/OpenGL convention trimesh returns), so
+            ``row = (1 - v) * H``, ``column = u * W``. UVs outside [0, 1] wrap around
+            (repeat), as OBJ files assume. Only meshes with UVs can use a textured
+            material. Values are used as stored (no sRGB decoding).
+
+    Values are not clamped to [0, 1]: an optimiser may overshoot while fitting an albedo.
+    """
+
+    def __init__(
+        self,
+        albedo: ArrayLike,
+        specular: ArrayLike = 0.0,
+        shininess: ArrayLike = 32.0,
+        ambient: ArrayLike = 0.0,
+        texture: ArrayLike | None = None,
+    ) -> None:
+        self.albedo = _as_tensor(albedo, "Material", "albedo")
+        self.specular = _as_tensor(specular, "Material", "specular")
+        self.shininess = _as_tensor(shininess, "Material", "shininess")
+        self.ambient = _as_tensor(ambient, "Material", "ambient")
+        self.texture = None if texture is None else _as_tensor(texture, "Material", "texture")
+        self.validate()
+
+    def validate(self) -> None:
+        """Re-check the current values."""
+        _check_tensor(self.albedo, "Material", "albedo", [(3,)])
+        _check_tensor(self.specular, "Material", "specular", [(), (3,)])
+        shininess = float(_check_tensor(self.shininess, "Material", "shininess", [()]))
+        if shininess <= 0.0:
+            raise ValueError(f"Material: shininess must be > 0, got {shininess}")
+        _check_tensor(self.ambient, "Material", "ambient", [(), (3,)])
+        if self.texture is not None:
+            _check_tensor(self.texture, "Material", "texture", [("H", "W", 3)])
+
+    def __repr__(self) -> str:
+        texture = "None" if self.texture is None else _fmt(self.texture)
+        return (
+            f"Material(albedo={_fmt(self.albedo)}, specular={_fmt(self.specular)}, "
+            f"shininess={_fmt(self.shininess)}, ambient={_fmt(self.ambient)}, "
+            f"texture={texture})"
+        )
+
+
+# --------------------------------------------------------------------------------------
+# Geometry
+# --------------------------------------------------------------------------------------
+
+
+def _as_faces(faces: Any) -> np.ndarray:
+    """Faces as a C-contiguous int64 ndarray (no copy if it already is one)."""
+    if isinstance(faces, Tensor):
+        raise TypeError(
+            "Mesh: faces must be an integer ndarray, not a minidiff.Tensor "
+            "(connectivity is never differentiable)"
+        )
+    array = np.asarray(faces)
+    if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.integer):
+        if array.size == 0 and array.dtype == np.float64:
+            # np.asarray([]) is float64; report the emptiness, not the dtype.
+            array = array.astype(np.int64)
+        else:
+            raise TypeError(f"Mesh: faces must be an integer array, got dtype {array.dtype}")
+    return np.ascontiguousarray(array, dtype=np.int64)
+
+
+class Mesh:
+    """A triangle mesh with one shared vertex buffer and one material.
+
+    Args:
+        vertices: (V, 3) vertex positions, V >= 1.
+        faces: (F, 3) integer vertex indices, F >= 1, each in [0, V). Stored as a plain
+            ``int64`` ndarray (never differentiable). Counter-clockwise winding seen from
+            the front: the geometric normal is ``(b - a) x (c - a)``. Degenerate
+            (zero-area) triangles are legal; surfaces are shaded two-sided.
+        material: the ``Material`` of every triangle.
+        normals: optional (V, 3) per-vertex shading normals (need not be unit length).
+        uvs: optional (V, 2) per-vertex texture coordinates (see ``Material.texture``).
+        smooth: if True the renderer shades with the barycentric interpolation of the
+            vertex normals (``normals``, or if None normals it computes from the current
+            vertices); if False with the flat geometric normal (the paper's convention).
+    """
+
+    def __init__(
+        self,
+        vertices: ArrayLike,
+        faces: np.ndarray | Sequence[Sequence[int]],
+        material: Material,
+        normals: ArrayLike | None = None,
+        uvs: ArrayLike | None = None,
+        smooth: bool = False,
+    ) -> None:
+        self.vertices = _as_tensor(vertices, "Mesh", "vertices")
+        self.faces = _as_faces(faces)
+        self.material = material
+        self.normals = None if normals is None else _as_tensor(normals, "Mesh", "normals")
+        self.uvs = None if uvs is None else _as_tensor(uvs, "Mesh", "uvs")
+        self.smooth = smooth
+        self.validate()
+
+    @property
+    def num_vertices(self) -> int:
+        """V, the number of vertices."""
+        return int(self.vertices.shape[0])
+
+    @property
+    def num_faces(self) -> int:
+        """F, the number of triangles."""
+        return int(self.faces.shape[0])
+
+    def triangles(self) -> np.ndarray:
+        """(F, 3, 3) float array of the current corner positions, ``[face, corner, xyz]``."""
+        return self.vertices.data[self.faces]
+
+    def validate(self) -> None:
+        """Re-check shapes, finiteness, face indices and material/normals/uvs consistency."""
+        vertices = self.vertices
+        if isinstance(vertices, Tensor) and vertices.data.ndim == 2 and vertices.shape[0] == 0:
+            raise ValueError("Mesh: vertices is empty (a mesh needs at least one vertex)")
+        vertices = _check_tensor(self.vertices, "Mesh", "vertices", [("V", 3)])
+        faces = self.faces
+        if not isinstance(faces, np.ndarray) or faces.dtype != np.int64:
+            raise TypeError(
+                "Mesh: faces must be an int64 ndarray, got "
+                f"{getattr(faces, 'dtype', type(faces).__name__)}"
+            )
+        if faces.ndim != 2 or faces.shape[1] != 3:
+            raise ValueError(f"Mesh: faces must have shape (F, 3), got {faces.shape}")
+        if faces.shape[0] == 0:
+            raise ValueError("Mesh: faces is empty (a mesh needs at least one triangle)")
+        n_vertices = vertices.shape[0]
+        lo, hi = int(faces.min()), int(faces.max())
+        if lo < 0:
+            raise ValueError(f"Mesh: faces contain a negative index ({lo})")
+        if hi >= n_vertices:
+            raise ValueError(
+                f"Mesh: faces index vertex {hi} but there are only {n_vertices} vertices"
+            )
+        _check_instance(self.material, "Mesh", "material", Material)
+        if self.normals is not None:
+            _check_tensor(self.normals, "Mesh", "normals", [(n_vertices, 3)])
+        if self.uvs is not None:
+            _check_tensor(self.uvs, "Mesh", "uvs", [(n_vertices, 2)])
+        if not isinstance(self.smooth, bool | np.bool_):
+            raise TypeError(f"Mesh: smooth must be a bool, got {type(self.smooth).__name__}")
+        if self.material.texture is not None and self.uvs is None:
+            raise ValueError("Mesh: the material has a texture but the mesh has no uvs")
+
+    def __repr__(self) -> str:
+        extras = [name for name in ("normals", "uvs") if getattr(self, name) is not None]
+        return (
+            f"Mesh({self.num_vertices} vertices, {self.num_faces} faces"
+            f"{''.join(', ' + e for e in extras)}, smooth={self.smooth}, {self.material!r})"
+        )
+
+
+class Sphere:
+    """An analytic sphere.
+
+    Args:
+        center: (3,) centre in world space.
+        radius: scalar radius, > 0.
+        material: its ``Material`` (untextured: spheres carry no UVs).
+    """
+
+    def __init__(self, center: ArrayLike, radius: ArrayLike, material: Material) -> None:
+        self.center = _as_tensor(center, "Sphere", "center")
+        self.radius = _as_tensor(radius, "Sphere", "radius")
+        self.material = material
+        self.validate()
+
+    def validate(self) -> None:
+        """Re-check the current values."""
+        _check_tensor(self.center, "Sphere", "center", [(3,)])
+        radius = float(_check_tensor(self.radius, "Sphere", "radius", [()]))
+        if radius <= 0.0:
+            raise ValueError(f"Sphere: radius must be > 0, got {radius}")
+        _check_instance(self.material, "Sphere", "material", Material)
+        if self.material.texture is not None:
+            raise ValueError("Sphere: textured materials are not supported (spheres have no UVs)")
+
+    def __repr__(self) -> str:
+        return f"Sphere(center={_fmt(self.center)}, radius={_fmt(self.radius)}, {self.material!r})"
+
+
+# --------------------------------------------------------------------------------------
+# Scene
+# --------------------------------------------------------------------------------------
+
+_OBJECT_TYPES = (Mesh, Sphere)
+_LIGHT_TYPES = (PointLight, DirectionalLight)
+
+
+class Scene:
+    """Everything needed to render an image.
+
+    Args:
+        objects: iterable of ``Mesh`` and ``Sphere`` objects (stored as a list).
+        lights: iterable of ``PointLight`` and ``DirectionalLight`` objects (stored as a
+            list; may be empty, e.g. for a purely ambient scene).
+        camera: the ``Camera``.
+        background: (3,) linear RGB radiance of pixels whose primary ray hits nothing.
+    """
+
+    def __init__(
+        self,
+        objects: Iterable[Mesh | Sphere],
+        lights: Iterable[PointLight | DirectionalLight],
+        camera: Camera,
+        background: ArrayLike = (0, 0, 0),
+    ) -> None:
+        self.objects = _as_list(objects, "objects")
+        self.lights = _as_list(lights, "lights")
+        self.camera = camera
+        self.background = _as_tensor(background, "Scene", "background")
+        self.validate()
+
+    @property
+    def meshes(self) -> list[Mesh]:
+        """The ``Mesh`` objects, in scene order."""
+        return [o for o in self.objects if isinstance(o, Mesh)]
+
+    @property
+    def spheres(self) -> list[Sphere]:
+        """The ``Sphere`` objects, in scene order."""
+        return [o for o in self.objects if isinstance(o, Sphere)]
+
+    def validate(self) -> None:
+        """Re-check every object, light, the camera and the background (cheap)."""
+        for i, obj in enumerate(self.objects):
+            if not isinstance(obj, _OBJECT_TYPES):
+                raise TypeError(
+                    f"Scene: objects[{i}] must be a Mesh or a Sphere, got {type(obj).__name__}"
+                )
+            obj.validate()
+        for i, light in enumerate(self.lights):
+            if not isinstance(light, _LIGHT_TYPES):
+                raise TypeError(
+                    f"Scene: lights[{i}] must be a PointLight or a DirectionalLight, "
+                    f"got {type(light).__name__}"
+                )
+            light.validate()
+        _check_instance(self.camera, "Scene", "camera", Camera)
+        self.camera.validate()
+        _check_tensor(self.background, "Scene", "background", [(3,)])
+
+    def __repr__(self) -> str:
+        return (
+            f"Scene({len(self.meshes)} meshes, {len(self.spheres)} spheres, "
+            f"{len(self.lights)} lights, {self.camera!r})"
+        )
+
+
+def _as_list(items: Any, name: str) -> list:
+    # A lone object is a common slip (Scene(mesh, ...)); say so instead of iterating it.
+    if isinstance(items, _OBJECT_TYPES + _LIGHT_TYPES) or not isinstance(items, Iterable):
+        raise TypeError(f"Scene: {name} must be a list, got {type(items).__name__}")
+    return list(items)
