@@ -1,0 +1,324 @@
+"""Visibility queries for a scene of triangles and spheres: the public :class:`Accelerator`.
+
+Usage::
+
+    acc = Accelerator(triangles, sphere_centers, sphere_radii)   # builds the BVH
+    prim_id, t, u, v = acc.closest_hit(origins, directions)      # camera / bounce rays
+    shadowed = acc.occluded(hit_points, light - hit_points, tmax=np.full(n, 1 - 1e-6),
+                            ignore_prim=prim_id)                 # shadow rays
+
+``Accelerator(..., use_bvh=False)`` tests every ray against every primitive.  It answers
+exactly the same (bit for bit, see ``render.intersect``): it is the ablation baseline and the
+test oracle.
+
+Design notes
+
+* One BVH over all primitives: triangles and spheres are leaves of the same tree (the builder
+  only needs boxes), so mixed scenes need a single traversal.
+* All input checking happens here, in Python, before any Numba kernel runs: the kernels
+  assume contiguous float64 arrays of the right shapes with finite values.
+* An empty scene (no triangles, no spheres) is allowed: every ray misses.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from numba import njit, prange
+
+from render.bvh import N_BINS, build_bvh, padded_bounds
+from render.intersect import (
+    closest_hit_brute,
+    closest_hit_bvh,
+    occluded_brute,
+    occluded_bvh,
+    pack_primitives,
+)
+
+#: Default ``tmin`` for shadow rays, in units of the direction vector.  With the usual
+#: unnormalised direction ``light - point`` this is a millionth of the light distance; together
+#: with ``ignore_prim`` it removes shadow acne.
+SHADOW_TMIN = 1e-6
+
+
+# --------------------------------------------------------------------------------------------
+# Input validation
+# --------------------------------------------------------------------------------------------
+
+
+def _as_float_array(name: str, x, shape_text: str, ndim: int, last: tuple[int, ...]) -> np.ndarray:
+    """``x`` as a C-contiguous float64 array of ``ndim`` dimensions whose trailing dimensions
+    are ``last``; raises ValueError naming the argument and the expected shape otherwise."""
+    try:
+        a = np.asarray(x)
+    except Exception as exc:  # ragged lists and the like
+        raise ValueError(f"{name} must be an array of shape {shape_text}: {exc}") from None
+    if a.dtype == object or not (
+        np.issubdtype(a.dtype, np.floating)
+        or np.issubdtype(a.dtype, np.integer)
+        or a.dtype == np.bool_
+    ):
+        raise ValueError(f"{name} must be a real numeric array, got dtype {a.dtype}")
+    if a.ndim != ndim or a.shape[ndim - len(last) :] != last:
+        raise ValueError(f"{name} must have shape {shape_text}, got {a.shape}")
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+@njit(cache=True, parallel=True)
+def _count_bad_rays(origins, directions):
+    """Counts of (non-finite origins, non-finite directions, zero directions) over (N, 3)
+    arrays; one parallel pass instead of several NumPy temporaries."""
+    bad_o = 0
+    bad_d = 0
+    zero_d = 0
+    for i in prange(origins.shape[0]):
+        o = origins[i, 0] + origins[i, 1] + origins[i, 2]
+        dx = directions[i, 0]
+        dy = directions[i, 1]
+        dz = directions[i, 2]
+        # x - x is 0 for finite x and NaN for inf or NaN.
+        if (o - o) != 0.0:
+            bad_o += 1
+        if (dx - dx) + (dy - dy) + (dz - dz) != 0.0:
+            bad_d += 1
+        elif dx == 0.0 and dy == 0.0 and dz == 0.0:
+            zero_d += 1
+    return bad_o, bad_d, zero_d
+
+
+def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """Validate and convert the ray arrays: (N, 3) each, finite, directions nonzero."""
+    o = _as_float_array("origins", origins, "(N, 3)", 2, (3,))
+    d = _as_float_array("directions", directions, "(N, 3)", 2, (3,))
+    if o.shape[0] != d.shape[0]:
+        raise ValueError(
+            f"origins and directions must have the same number of rays N, got {o.shape[0]} "
+            f"and {d.shape[0]}"
+        )
+    if o.shape[0] > 0:
+        bad_o, bad_d, zero_d = _count_bad_rays(o, d)
+        if bad_o:
+            raise ValueError(f"origins must be finite; {bad_o} rays have NaN or inf coordinates")
+        if bad_d:
+            raise ValueError(f"directions must be finite; {bad_d} rays have NaN or inf components")
+        if zero_d:
+            raise ValueError(f"directions must be nonzero; {zero_d} rays have direction (0, 0, 0)")
+    return o, d
+
+
+def _check_scalar(name: str, x, allow_inf: bool) -> float:
+    """A real scalar (NaN never allowed, +-inf only if ``allow_inf``)."""
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a real scalar, got {x!r}") from None
+    if np.isnan(f) or (np.isinf(f) and not allow_inf):
+        raise ValueError(f"{name} must be {'not NaN' if allow_inf else 'finite'}, got {f}")
+    return f
+
+
+# --------------------------------------------------------------------------------------------
+# The accelerator
+# --------------------------------------------------------------------------------------------
+
+
+class Accelerator:
+    """Visibility for a set of triangles (T, 3, 3) and spheres (centres (S, 3), radii (S,)).
+
+    Primitive ids: triangles are 0..T-1 in the given order, spheres are T..T+S-1.
+
+    Build statistics (attributes): ``n_triangles``, ``n_spheres``, ``n_prims``,
+    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 without a tree), ``build_seconds``
+    (wall time of ``__init__``; the first build in a process also loads the compiled kernels),
+    ``use_bvh``.
+    """
+
+    def __init__(
+        self,
+        triangles: np.ndarray,
+        sphere_centers: np.ndarray | None = None,
+        sphere_radii: np.ndarray | None = None,
+        use_bvh: bool = True,
+        n_bins: int = N_BINS,
+    ) -> None:
+        t0 = time.perf_counter()
+        tri = _as_float_array("triangles", triangles, "(T, 3, 3)", 3, (3, 3))
+        if (sphere_centers is None) != (sphere_radii is None):
+            raise ValueError("sphere_centers and sphere_radii must be given together")
+        if sphere_centers is None:
+            centers = np.zeros((0, 3))
+            radii = np.zeros(0)
+        else:
+            centers = _as_float_array("sphere_centers", sphere_centers, "(S, 3)", 2, (3,))
+            radii = _as_float_array("sphere_radii", sphere_radii, "(S,)", 1, ())
+            if radii.shape[0] != centers.shape[0]:
+                raise ValueError(
+                    f"sphere_radii must have shape (S,) = ({centers.shape[0]},) to match "
+                    f"sphere_centers, got {radii.shape}"
+                )
+        if not np.isfinite(tri).all():
+            raise ValueError("triangles must have finite coordinates (found NaN or inf)")
+        if not np.isfinite(centers).all():
+            raise ValueError("sphere_centers must be finite (found NaN or inf)")
+        if not (np.isfinite(radii).all() and (radii > 0).all()):
+            raise ValueError("sphere_radii must be finite and > 0")
+        if int(n_bins) != n_bins or n_bins < 2:
+            raise ValueError(f"n_bins must be an integer >= 2, got {n_bins!r}")
+
+        self.use_bvh = bool(use_bvh)
+        self.n_triangles = tri.shape[0]
+        self.n_spheres = centers.shape[0]
+        self.n_prims = self.n_triangles + self.n_spheres
+        # Rows of the primitive table in id order (brute force reads this directly).
+        self.prim_data = pack_primitives(tri, centers, radii)
+
+        if self.use_bvh:
+            prim_min = np.concatenate([tri.min(axis=1), centers - radii[:, None]])
+            prim_max = np.concatenate([tri.max(axis=1), centers + radii[:, None]])
+            prim_min, prim_max = padded_bounds(prim_min, prim_max)
+            bounds, first, count, order, depth = build_bvh(prim_min, prim_max, int(n_bins))
+            self.node_bounds = bounds
+            self.node_first = first
+            self.node_count = count
+            # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
+            self.leaf_ids = order
+            self.leaf_prim = np.ascontiguousarray(self.prim_data[order])
+            self.depth = int(depth)
+        else:
+            self.node_bounds = np.zeros((0, 6))
+            self.node_first = self.node_count = self.leaf_ids = np.zeros(0, np.int64)
+            self.leaf_prim = np.zeros((0, self.prim_data.shape[1]))
+            self.depth = 0
+        self.n_nodes = int(self.node_bounds.shape[0])
+        self.n_leaves = int(np.count_nonzero(self.node_count))
+        self.build_seconds = time.perf_counter() - t0
+
+    def __repr__(self) -> str:
+        kind = (
+            f"BVH: {self.n_nodes} nodes, {self.n_leaves} leaves, depth {self.depth}"
+            if self.use_bvh
+            else "brute force"
+        )
+        return (
+            f"Accelerator({self.n_triangles} triangles, {self.n_spheres} spheres, {kind}, "
+            f"built in {self.build_seconds * 1e3:.1f} ms)"
+        )
+
+    # ----------------------------------------------------------------------------------------
+
+    def closest_hit(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        tmin: float = 0.0,
+        tmax: float = np.inf,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Closest hit along each ray ``origins[i] + t * directions[i]``, ``tmin < t < tmax``.
+
+        origins, directions: (N, 3); directions need not be unit length (t is in units of the
+        direction vector).  Returns ``prim_id`` (N,) int64 (-1 for a miss), ``t`` (N,) float64
+        (inf for a miss), ``u``, ``v`` (N,) float64 barycentrics: for triangle ``(a, b, c)`` the
+        hit is ``(1-u-v)*a + u*b + v*c``; for spheres and misses ``u = v = 0``.
+
+        Ties are broken by the order (t, prim_id): of two hits at exactly the same t (a ray
+        through a shared edge or vertex) the lower id wins, with or without the BVH.
+        """
+        o, d = _check_rays(origins, directions)
+        tmin = _check_scalar("tmin", tmin, allow_inf=False)
+        tmax = _check_scalar("tmax", tmax, allow_inf=True)
+        n = o.shape[0]
+        out_id = np.empty(n, np.int64)
+        out_t = np.empty(n)
+        out_u = np.empty(n)
+        out_v = np.empty(n)
+        if n == 0:
+            return out_id, out_t, out_u, out_v
+        if self.use_bvh:
+            closest_hit_bvh(
+                self.node_bounds,
+                self.node_first,
+                self.node_count,
+                self.leaf_prim,
+                self.leaf_ids,
+                self.n_triangles,
+                self.depth + 2,
+                o,
+                d,
+                tmin,
+                tmax,
+                out_id,
+                out_t,
+                out_u,
+                out_v,
+            )
+        else:
+            closest_hit_brute(
+                self.prim_data, self.n_triangles, o, d, tmin, tmax, out_id, out_t, out_u, out_v
+            )
+        return out_id, out_t, out_u, out_v
+
+    def occluded(
+        self,
+        origins: np.ndarray,
+        directions: np.ndarray,
+        tmax: np.ndarray | float,
+        tmin: float = SHADOW_TMIN,
+        ignore_prim: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """Any-hit shadow rays: (N,) bool, True if some primitive other than ``ignore_prim[i]``
+        is hit with ``tmin < t < tmax[i]``.
+
+        origins, directions (N, 3); tmax (N,) or a scalar (e.g. ``1 - 1e-6`` with the
+        unnormalised direction ``light - origin``); ignore_prim (N,) integer ids, -1 = none
+        (typically the ``prim_id`` the shadow ray starts on: a flat triangle cannot shadow
+        itself, so skipping it removes self-intersection acne).
+        """
+        o, d = _check_rays(origins, directions)
+        n = o.shape[0]
+        tmin = _check_scalar("tmin", tmin, allow_inf=False)
+        tmax_arr = np.asarray(tmax)
+        if tmax_arr.ndim == 0:
+            tmax_arr = np.full(n, _check_scalar("tmax", tmax_arr, allow_inf=True))
+        else:
+            tmax_arr = _as_float_array("tmax", tmax_arr, f"(N,) = ({n},)", 1, ())
+            if tmax_arr.shape[0] != n:
+                raise ValueError(f"tmax must have shape (N,) = ({n},), got {tmax_arr.shape}")
+            if np.isnan(tmax_arr).any():
+                raise ValueError("tmax must not contain NaN")
+        if ignore_prim is None:
+            ignore = np.full(n, -1, np.int64)
+        else:
+            ignore = np.asarray(ignore_prim)
+            if ignore.shape != (n,):
+                raise ValueError(f"ignore_prim must have shape (N,) = ({n},), got {ignore.shape}")
+            if not np.issubdtype(ignore.dtype, np.integer):
+                raise ValueError(f"ignore_prim must be an integer array, got dtype {ignore.dtype}")
+            ignore = np.ascontiguousarray(ignore, dtype=np.int64)
+            if n and (ignore.min() < -1 or ignore.max() >= self.n_prims):
+                raise ValueError(
+                    f"ignore_prim values must be -1 (none) or primitive ids in "
+                    f"[0, {self.n_prims - 1}]"
+                )
+        out = np.empty(n, np.bool_)
+        if n == 0:
+            return out
+        if self.use_bvh:
+            occluded_bvh(
+                self.node_bounds,
+                self.node_first,
+                self.node_count,
+                self.leaf_prim,
+                self.leaf_ids,
+                self.n_triangles,
+                self.depth + 2,
+                o,
+                d,
+                tmin,
+                tmax_arr,
+                ignore,
+                out,
+            )
+        else:
+            occluded_brute(self.prim_data, self.n_triangles, o, d, tmin, tmax_arr, ignore, out)
+        return out

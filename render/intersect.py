@@ -1,0 +1,581 @@
+"""Per-ray intersection kernels (Numba): ray-triangle, ray-sphere, ray-box, BVH traversal
+and the brute-force reference.
+
+Everything here works on flat NumPy arrays so that Numba can compile it:
+
+* ``prim_data`` (P, 16) float64 -- one row per primitive, see :func:`pack_primitives`.
+  Triangles and spheres share the table; a row with global id ``< n_tri`` is a triangle.
+* ``node_bounds`` (M, 6) float64 -- per BVH node ``(min x, min y, min z, max x, max y, max z)``.
+* ``node_first`` (M,) int64 -- leaf: first index into the leaf-ordered primitive arrays;
+  interior node: index of the left child (the right child is ``left + 1``).
+* ``node_count`` (M,) int64 -- number of primitives in a leaf, 0 for an interior node.
+
+A ray is ``origin + t * direction`` with ``tmin < t < tmax``.
+
+The single most important property of this module: the BVH kernels return *bit-identical*
+results to the brute-force kernels.  This needs three ingredients:
+
+1. The same per-primitive function (same floating-point operations) in both paths.
+2. A total order on hits: ``(t, prim_id)`` lexicographically.  A ray through an edge shared by
+   two triangles may hit both at exactly the same t; brute force would keep whichever it saw
+   first, the BVH whichever leaf it opened first.  With the order, both keep the lower id.
+3. Conservative node culling: a node is skipped only if it *cannot* contain an accepted hit.
+   The BVH boxes are padded (see ``render.bvh``) by far more than the rounding error of a hit
+   point, and a node whose entry distance *equals* the current best t is still opened,
+   because it may hold an equal-t hit with a lower id.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit, prange
+
+#: Row width of the primitive table (16 float64 = two 64-byte cache lines).
+PRIM_WIDTH = 16
+
+#: A triangle is a miss for a ray when |det| <= DEGENERATE_TOL * |d| * |e1| * |e2|, i.e. when
+#: sin(angle between the edges) * cos(angle between ray and normal) is below the tolerance.
+#: This catches zero-area triangles (sin ~ 0) and rays in the triangle's plane (cos ~ 0), the
+#: two cases where the Moller-Trumbore divisions would blow up (or give 0/0 = NaN).  It also
+#: bounds the rounding error of an accepted hit point to about 1e-9 of the ray length, far
+#: below the BVH box padding, which is what makes BVH == brute force exact.
+DEGENERATE_TOL = 1e-7
+
+#: Rays are processed in blocks of this many consecutive rays (one stack allocation per block).
+BLOCK = 64
+
+
+# --------------------------------------------------------------------------------------------
+# Primitive table
+# --------------------------------------------------------------------------------------------
+
+
+def pack_primitives(
+    triangles: np.ndarray, sphere_centers: np.ndarray, sphere_radii: np.ndarray
+) -> np.ndarray:
+    """Precompute the per-primitive data used by the intersection tests.
+
+    triangles (T, 3, 3), sphere_centers (S, 3), sphere_radii (S,)  ->  prim_data (T+S, 16).
+
+    Triangle row: ``v0[0:3], e1[3:6], e2[6:9], n[9:12], cut[12]`` with ``e1 = v1 - v0``,
+    ``e2 = v2 - v0``, geometric normal ``n = e1 x e2`` and ``cut = DEGENERATE_TOL*|e1|*|e2|``
+    (``inf`` for a degenerate triangle, so that it can never be hit).
+    Sphere row: ``centre[0:3], radius[3], radius**2[4]``.
+
+    Storing edges and normal instead of the three vertices saves two subtractions and a cross
+    product per ray-triangle test; the test itself reads one 128-byte row.
+    """
+    T = triangles.shape[0]
+    S = sphere_centers.shape[0]
+    data = np.zeros((T + S, PRIM_WIDTH))
+    v0 = triangles[:, 0]
+    e1 = triangles[:, 1] - v0
+    e2 = triangles[:, 2] - v0
+    n = np.cross(e1, e2)
+    scale = np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1)
+    cut = DEGENERATE_TOL * scale
+    # sin(angle between edges) = |n| / (|e1| |e2|); below the tolerance the triangle is a
+    # sliver or a point and no ray direction can pass the det test reliably: always a miss.
+    degenerate = np.linalg.norm(n, axis=1) <= cut
+    cut[degenerate] = np.inf
+    data[:T, 0:3] = v0
+    data[:T, 3:6] = e1
+    data[:T, 6:9] = e2
+    data[:T, 9:12] = n
+    data[:T, 12] = cut
+    data[T:, 0:3] = sphere_centers
+    data[T:, 3] = sphere_radii
+    data[T:, 4] = sphere_radii * sphere_radii
+    return data
+
+
+# --------------------------------------------------------------------------------------------
+# Ray-primitive tests (scalar; shared by the BVH and the brute-force kernels)
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def intersect_triangle(prim, k, ox, oy, oz, dx, dy, dz, dlen, tmin):
+    """Moller-Trumbore ray-triangle test against row ``k`` of ``prim`` (P, 16).
+
+    Returns ``(t, u, v)``; ``t = inf`` for a miss.  The hit point is
+    ``v0 + u*e1 + v*e2 = (1-u-v)*a + u*b + v*c``.  Edges are inclusive (u >= 0, v >= 0,
+    u + v <= 1) so a ray through a shared edge hits both neighbours and never slips through
+    the crack; the (t, id) order then picks one deterministically.
+
+    This is the Cramer's-rule form used by Embree: with C = v0 - o and R = d x C,
+    det = d.n, t = C.n / det, u = -R.e2 / det, v = R.e1 / det.  One cross product per test
+    because the normal n is precomputed.
+    """
+    nx = prim[k, 9]
+    ny = prim[k, 10]
+    nz = prim[k, 11]
+    det = dx * nx + dy * ny + dz * nz
+    # Degenerate triangle or ray (nearly) in the triangle's plane: a miss, never a NaN.
+    if abs(det) <= dlen * prim[k, 12]:
+        return np.inf, 0.0, 0.0
+    cx = prim[k, 0] - ox
+    cy = prim[k, 1] - oy
+    cz = prim[k, 2] - oz
+    rx = dy * cz - dz * cy
+    ry = dz * cx - dx * cz
+    rz = dx * cy - dy * cx
+    inv = 1.0 / det
+    u = -(rx * prim[k, 6] + ry * prim[k, 7] + rz * prim[k, 8]) * inv
+    if u < 0.0 or u > 1.0:
+        return np.inf, 0.0, 0.0
+    v = (rx * prim[k, 3] + ry * prim[k, 4] + rz * prim[k, 5]) * inv
+    if v < 0.0 or u + v > 1.0:
+        return np.inf, 0.0, 0.0
+    t = (cx * nx + cy * ny + cz * nz) * inv
+    if not t > tmin:
+        return np.inf, 0.0, 0.0
+    return t, u, v
+
+
+@njit(cache=True, inline="always")
+def intersect_sphere(prim, k, ox, oy, oz, dx, dy, dz, tmin):
+    """Ray-sphere test against row ``k`` of ``prim``; returns the nearest root ``t > tmin``
+    (``inf`` for a miss).
+
+    Solves |o + t d - c|^2 = r^2, i.e. a t^2 - 2 b t + c0 = 0 with a = d.d, b = -(o-c).d,
+    c0 = |o-c|^2 - r^2.  Two numerically careful choices ("Precision Improvements for
+    Ray/Sphere Intersection", Ray Tracing Gems ch. 7):
+    the discriminant b^2 - a c0 is computed as a (r^2 - |l|^2) with l the perpendicular from the
+    centre to the ray (no catastrophic cancellation for small spheres far away), and the roots
+    as c0/q and q/a with q = b + sign(b) sqrt(disc) (no cancellation between b and sqrt(disc)).
+    """
+    fx = ox - prim[k, 0]
+    fy = oy - prim[k, 1]
+    fz = oz - prim[k, 2]
+    a = dx * dx + dy * dy + dz * dz
+    b = -(fx * dx + fy * dy + fz * dz)
+    s = b / a
+    lx = fx + s * dx
+    ly = fy + s * dy
+    lz = fz + s * dz
+    disc = a * (prim[k, 4] - (lx * lx + ly * ly + lz * lz))
+    if disc < 0.0:
+        return np.inf
+    c0 = fx * fx + fy * fy + fz * fz - prim[k, 4]
+    q = b + np.copysign(np.sqrt(disc), b)
+    if q == 0.0:
+        # b == 0 and disc == 0: a tangent ray whose origin is the touching point.
+        t0 = 0.0
+        t1 = 0.0
+    else:
+        t0 = c0 / q
+        t1 = q / a
+        if t0 > t1:
+            t0, t1 = t1, t0
+    if t0 > tmin:
+        return t0
+    if t1 > tmin:
+        return t1
+    return np.inf
+
+
+@njit(cache=True, inline="always")
+def intersect_prim(prim, k, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, tmin):
+    """Dispatch on the primitive kind: global id ``pid < n_tri`` is a triangle.
+    Returns ``(t, u, v)`` with ``t = inf`` for a miss (u = v = 0 for spheres)."""
+    if pid < n_tri:
+        return intersect_triangle(prim, k, ox, oy, oz, dx, dy, dz, dlen, tmin)
+    return intersect_sphere(prim, k, ox, oy, oz, dx, dy, dz, tmin), 0.0, 0.0
+
+
+@njit(cache=True, inline="always")
+def safe_inverse(d):
+    """1/d for the slab test, with exact zeros replaced by a tiny positive number so that
+    ``(bound - origin) * inv`` is +-inf or 0, never ``0 * inf = NaN``."""
+    if d == 0.0:
+        d = 1e-300
+    return 1.0 / d
+
+
+@njit(cache=True, inline="always")
+def intersect_box(bounds, n, ox, oy, oz, ix, iy, iz, tmin, tmax):
+    """Slab test of the ray against box ``n`` of ``bounds`` (M, 6).
+
+    Returns the entry distance ``max(tmin, t_enter)`` if the ray overlaps the box somewhere in
+    ``[tmin, tmax]`` (both ends inclusive, see the tie rule), else ``inf``.  ``ix, iy, iz`` is
+    the inverse direction (see :func:`safe_inverse`): the slab distances are
+    ``(plane - origin) / d`` and a multiplication is much cheaper than a division.
+    """
+    t1 = (bounds[n, 0] - ox) * ix
+    t2 = (bounds[n, 3] - ox) * ix
+    tlo = min(t1, t2)
+    thi = max(t1, t2)
+    t1 = (bounds[n, 1] - oy) * iy
+    t2 = (bounds[n, 4] - oy) * iy
+    tlo = max(tlo, min(t1, t2))
+    thi = min(thi, max(t1, t2))
+    t1 = (bounds[n, 2] - oz) * iz
+    t2 = (bounds[n, 5] - oz) * iz
+    tlo = max(tlo, min(t1, t2))
+    thi = min(thi, max(t1, t2))
+    tlo = max(tlo, tmin)
+    thi = min(thi, tmax)
+    if tlo <= thi:
+        return tlo
+    return np.inf
+
+
+# --------------------------------------------------------------------------------------------
+# Single-ray traversal (the readable reference path)
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def closest_hit_ray(
+    node_bounds,
+    node_first,
+    node_count,
+    leaf_prim,
+    leaf_ids,
+    n_tri,
+    ox,
+    oy,
+    oz,
+    dx,
+    dy,
+    dz,
+    tmin,
+    tmax,
+    stack,
+    stack_t,
+):
+    """Closest hit of one ray in the BVH.  Returns ``(prim_id, t, u, v)``, ``(-1, inf, 0, 0)``
+    for a miss.  ``leaf_prim`` (P, 16) / ``leaf_ids`` (P,) are the primitive table and global
+    ids in leaf order; ``stack`` int64 and ``stack_t`` float64 (tree depth + 2,) are
+    scratch space supplied by the caller (allocating them per ray would dominate the cost).
+
+    Iterative traversal, near child first: at an interior node both children's boxes are
+    tested; we descend into the nearer one and push the farther one with its entry distance.
+    Visiting near boxes first finds a close hit early, which shrinks ``best_t`` and lets us
+    skip the far boxes when they are popped (their entry distance is then > best_t).
+    """
+    best_id = -1
+    best_t = tmax
+    best_u = 0.0
+    best_v = 0.0
+    if node_bounds.shape[0] == 0:
+        return best_id, np.inf, best_u, best_v
+    dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
+    ix = safe_inverse(dx)
+    iy = safe_inverse(dy)
+    iz = safe_inverse(dz)
+    if intersect_box(node_bounds, 0, ox, oy, oz, ix, iy, iz, tmin, best_t) == np.inf:
+        return best_id, np.inf, best_u, best_v
+    node = 0
+    sp = 0
+    while True:
+        count = node_count[node]
+        if count > 0:
+            first = node_first[node]
+            for k in range(first, first + count):
+                pid = leaf_ids[k]
+                t, u, v = intersect_prim(
+                    leaf_prim, k, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, tmin
+                )
+                # Lexicographic (t, id) order: an exact tie goes to the lower id.  best_id
+                # starts at -1, so a hit exactly at tmax is never accepted.
+                if t < best_t or (t == best_t and pid < best_id):
+                    best_id = pid
+                    best_t = t
+                    best_u = u
+                    best_v = v
+            # Pop the next node that can still hold a hit at t <= best_t.
+            node = -1
+            while sp > 0:
+                sp -= 1
+                if stack_t[sp] <= best_t:
+                    node = stack[sp]
+                    break
+            if node < 0:
+                break
+        else:
+            left = node_first[node]
+            d1 = intersect_box(node_bounds, left, ox, oy, oz, ix, iy, iz, tmin, best_t)
+            d2 = intersect_box(node_bounds, left + 1, ox, oy, oz, ix, iy, iz, tmin, best_t)
+            c1 = left
+            c2 = left + 1
+            if d2 < d1:
+                d1, d2 = d2, d1
+                c1, c2 = c2, c1
+            if d1 == np.inf:
+                node = -1
+                while sp > 0:
+                    sp -= 1
+                    if stack_t[sp] <= best_t:
+                        node = stack[sp]
+                        break
+                if node < 0:
+                    break
+            else:
+                node = c1
+                if d2 != np.inf:
+                    stack[sp] = c2
+                    stack_t[sp] = d2
+                    sp += 1
+    if best_id < 0:
+        best_t = np.inf
+    return best_id, best_t, best_u, best_v
+
+
+@njit(cache=True, inline="always")
+def occluded_ray(
+    node_bounds,
+    node_first,
+    node_count,
+    leaf_prim,
+    leaf_ids,
+    n_tri,
+    ox,
+    oy,
+    oz,
+    dx,
+    dy,
+    dz,
+    tmin,
+    tmax,
+    ignore,
+    stack,
+):
+    """Any-hit query for one shadow ray: True if some primitive other than ``ignore`` is hit
+    with ``tmin < t < tmax``.  Stops at the first such hit, so no ordering is needed: both
+    children are simply pushed when the ray overlaps them."""
+    if node_bounds.shape[0] == 0:
+        return False
+    dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
+    ix = safe_inverse(dx)
+    iy = safe_inverse(dy)
+    iz = safe_inverse(dz)
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        if intersect_box(node_bounds, node, ox, oy, oz, ix, iy, iz, tmin, tmax) == np.inf:
+            continue
+        count = node_count[node]
+        if count > 0:
+            first = node_first[node]
+            for k in range(first, first + count):
+                pid = leaf_ids[k]
+                if pid == ignore:
+                    continue
+                t, _, _ = intersect_prim(
+                    leaf_prim, k, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, tmin
+                )
+                if t < tmax:
+                    return True
+        else:
+            left = node_first[node]
+            stack[sp] = left + 1
+            stack[sp + 1] = left
+            sp += 2
+    return False
+
+
+# --------------------------------------------------------------------------------------------
+# Brute force (the ablation baseline and the test oracle)
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def closest_hit_brute_ray(prim, n_tri, ox, oy, oz, dx, dy, dz, tmin, tmax):
+    """Closest hit of one ray against every primitive, in id order.  Same tests and the same
+    (t, id) order as :func:`closest_hit_ray`; returns ``(prim_id, t, u, v)``."""
+    dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
+    best_id = -1
+    best_t = tmax
+    best_u = 0.0
+    best_v = 0.0
+    for k in range(prim.shape[0]):
+        t, u, v = intersect_prim(prim, k, k, n_tri, ox, oy, oz, dx, dy, dz, dlen, tmin)
+        if t < best_t or (t == best_t and k < best_id):
+            best_id = k
+            best_t = t
+            best_u = u
+            best_v = v
+    if best_id < 0:
+        best_t = np.inf
+    return best_id, best_t, best_u, best_v
+
+
+@njit(cache=True, inline="always")
+def occluded_brute_ray(prim, n_tri, ox, oy, oz, dx, dy, dz, tmin, tmax, ignore):
+    """Any-hit against every primitive; True if some primitive other than ``ignore`` is hit
+    with ``tmin < t < tmax``."""
+    dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
+    for k in range(prim.shape[0]):
+        if k == ignore:
+            continue
+        t, _, _ = intersect_prim(prim, k, k, n_tri, ox, oy, oz, dx, dy, dz, dlen, tmin)
+        if t < tmax:
+            return True
+    return False
+
+
+# --------------------------------------------------------------------------------------------
+# Parallel kernels over ray arrays
+# --------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _block_range(job, n_jobs, b, n_rays):
+    """Rays of the b-th block of job ``job``.  Blocks are dealt round-robin to jobs
+    (job j gets blocks j, j + n_jobs, ...) so that every thread gets a mix of image regions:
+    prange splits its range statically, and a contiguous split would give one thread all the
+    sky and the other all the teapot."""
+    start = (job + b * n_jobs) * BLOCK
+    return start, min(start + BLOCK, n_rays)
+
+
+@njit(cache=True)
+def _n_jobs(n_rays):
+    """Number of parallel jobs: enough for load balance, few enough to amortise the stacks."""
+    n_blocks = (n_rays + BLOCK - 1) // BLOCK
+    return max(1, min(n_blocks, 64))
+
+
+@njit(cache=True, parallel=True)
+def closest_hit_bvh(
+    node_bounds,
+    node_first,
+    node_count,
+    leaf_prim,
+    leaf_ids,
+    n_tri,
+    stack_size,
+    origins,
+    directions,
+    tmin,
+    tmax,
+    out_id,
+    out_t,
+    out_u,
+    out_v,
+):
+    """Closest hit for N rays through the BVH (single-ray traversal, rays in parallel).
+    ``stack_size`` must be at least the tree depth + 1.  origins, directions (N, 3) float64;
+    results written to out_id (N,) int64, out_t, out_u, out_v (N,) float64."""
+    n = origins.shape[0]
+    n_jobs = _n_jobs(n)
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    for job in prange(n_jobs):
+        stack = np.empty(stack_size, np.int64)
+        stack_t = np.empty(stack_size, np.float64)
+        for b in range((n_blocks - job + n_jobs - 1) // n_jobs):
+            start, stop = _block_range(job, n_jobs, b, n)
+            for i in range(start, stop):
+                pid, t, u, v = closest_hit_ray(
+                    node_bounds,
+                    node_first,
+                    node_count,
+                    leaf_prim,
+                    leaf_ids,
+                    n_tri,
+                    origins[i, 0],
+                    origins[i, 1],
+                    origins[i, 2],
+                    directions[i, 0],
+                    directions[i, 1],
+                    directions[i, 2],
+                    tmin,
+                    tmax,
+                    stack,
+                    stack_t,
+                )
+                out_id[i] = pid
+                out_t[i] = t
+                out_u[i] = u
+                out_v[i] = v
+
+
+@njit(cache=True, parallel=True)
+def occluded_bvh(
+    node_bounds,
+    node_first,
+    node_count,
+    leaf_prim,
+    leaf_ids,
+    n_tri,
+    stack_size,
+    origins,
+    directions,
+    tmin,
+    tmax,
+    ignore,
+    out,
+):
+    """Any-hit for N shadow rays through the BVH.  tmax (N,) float64, ignore (N,) int64,
+    result in out (N,) bool."""
+    n = origins.shape[0]
+    n_jobs = _n_jobs(n)
+    n_blocks = (n + BLOCK - 1) // BLOCK
+    for job in prange(n_jobs):
+        stack = np.empty(stack_size, np.int64)
+        for b in range((n_blocks - job + n_jobs - 1) // n_jobs):
+            start, stop = _block_range(job, n_jobs, b, n)
+            for i in range(start, stop):
+                out[i] = occluded_ray(
+                    node_bounds,
+                    node_first,
+                    node_count,
+                    leaf_prim,
+                    leaf_ids,
+                    n_tri,
+                    origins[i, 0],
+                    origins[i, 1],
+                    origins[i, 2],
+                    directions[i, 0],
+                    directions[i, 1],
+                    directions[i, 2],
+                    tmin,
+                    tmax[i],
+                    ignore[i],
+                    stack,
+                )
+
+
+@njit(cache=True, parallel=True)
+def closest_hit_brute(prim, n_tri, origins, directions, tmin, tmax, out_id, out_t, out_u, out_v):
+    """Closest hit for N rays by testing every primitive (see closest_hit_bvh for shapes)."""
+    for i in prange(origins.shape[0]):
+        pid, t, u, v = closest_hit_brute_ray(
+            prim,
+            n_tri,
+            origins[i, 0],
+            origins[i, 1],
+            origins[i, 2],
+            directions[i, 0],
+            directions[i, 1],
+            directions[i, 2],
+            tmin,
+            tmax,
+        )
+        out_id[i] = pid
+        out_t[i] = t
+        out_u[i] = u
+        out_v[i] = v
+
+
+@njit(cache=True, parallel=True)
+def occluded_brute(prim, n_tri, origins, directions, tmin, tmax, ignore, out):
+    """Any-hit for N shadow rays by testing every primitive (see occluded_bvh for shapes)."""
+    for i in prange(origins.shape[0]):
+        out[i] = occluded_brute_ray(
+            prim,
+            n_tri,
+            origins[i, 0],
+            origins[i, 1],
+            origins[i, 2],
+            directions[i, 0],
+            directions[i, 1],
+            directions[i, 2],
+            tmin,
+            tmax[i],
+            ignore[i],
+        )
