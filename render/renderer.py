@@ -116,7 +116,7 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
 
     camera = scene.camera
     camera_key = [
-        np.asarray(x.data, dtype=np.float64)
+        np.array(x.data, dtype=np.float64)  # a copy: the optimiser edits .data in place
         for x in (camera.position, camera.look_at, camera.up, camera.fov)
     ] + [np.array([camera.width, camera.height, spp, bvh])]
     if not _same(cache.primary_key, camera_key):
@@ -143,9 +143,10 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
 
 
 def _light_key(light) -> list:
+    """The values the shadow rays depend on (copies, so later in-place edits are seen)."""
     if isinstance(light, PointLight):
-        return [np.asarray(light.position.data, dtype=np.float64), np.array([0.0])]
-    return [np.asarray(light.direction.data, dtype=np.float64), np.array([1.0])]
+        return [np.array(light.position.data, dtype=np.float64), np.array([0.0])]
+    return [np.array(light.direction.data, dtype=np.float64), np.array([1.0])]
 
 
 def _trace_shadows(accel: Accelerator, light, points: np.ndarray, start_prim: np.ndarray):
