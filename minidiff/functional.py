@@ -58,18 +58,23 @@ def grad(f: Callable[..., Any], argnums: int | Sequence[int] = 0) -> Callable:
 
 def numerical_grad(f: Callable[..., Any], args: Sequence[Any], argnum: int, eps: float):
     """Central finite differences of a scalar f w.r.t. args[argnum]: (f(x+h) - f(x-h)) / 2h,
-    one element at a time. Runs under no_grad (nothing is recorded)."""
-    args = [a.data if isinstance(a, Tensor) else a for a in args]
-    x = np.array(args[argnum], dtype=np.float64)
+    one element at a time. Runs under no_grad (nothing is recorded).
+
+    f receives the perturbed argument as a (constant) Tensor, as it does under
+    value_and_grad, and every other argument as given, so that a function using
+    Tensor-only methods (``.numpy()``) or ``.data`` means the same on both sides of a check."""
+    args = list(args)
+    x = args[argnum]
+    x = np.array(x.data if isinstance(x, Tensor) else x, dtype=np.float64)
     g = np.zeros_like(x)
     flat, gflat = x.reshape(-1), g.reshape(-1)
     with no_grad():
         for k in range(flat.size):
             saved = flat[k]
             flat[k] = saved + eps
-            f_plus = float(np.asarray(f(*args[:argnum], x.copy(), *args[argnum + 1 :])))
+            f_plus = float(np.asarray(f(*args[:argnum], Tensor(x.copy()), *args[argnum + 1 :])))
             flat[k] = saved - eps
-            f_minus = float(np.asarray(f(*args[:argnum], x.copy(), *args[argnum + 1 :])))
+            f_minus = float(np.asarray(f(*args[:argnum], Tensor(x.copy()), *args[argnum + 1 :])))
             flat[k] = saved
             gflat[k] = (f_plus - f_minus) / (2 * eps)
     return g
@@ -94,7 +99,10 @@ def check_grad(
         for i, a in enumerate(args)
     ]
     _, g_ad = value_and_grad(f, nums)(*args64)
-    g_fd = tuple(numerical_grad(f, args64, i, eps) for i in nums)
+    # The checked arguments as constant Tensors: f sees a Tensor for each of them in every
+    # evaluation, as value_and_grad gives it.
+    args_fd = [Tensor(a) if i in nums else a for i, a in enumerate(args64)]
+    g_fd = tuple(numerical_grad(f, args_fd, i, eps) for i in nums)
     ad = np.concatenate([np.ravel(g) for g in g_ad])
     fd = np.concatenate([np.ravel(g) for g in g_fd])
     rel = float(np.linalg.norm(ad - fd) / (np.linalg.norm(fd) + 1e-8))

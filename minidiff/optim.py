@@ -54,8 +54,10 @@ class Optimizer:
         for p in self.params:
             p.grad = None
 
-    def _gradients(self):
-        """Yield (index, param, grad) for params that received a gradient, checking it."""
+    def _gradients(self) -> list[tuple[int, Tensor, np.ndarray]]:
+        """(index, param, grad) for params that received a gradient. All are checked before
+        any is returned, so a NaN in a later parameter cannot leave a half-applied step."""
+        found = []
         for i, p in enumerate(self.params):
             if p.grad is None:
                 continue
@@ -63,7 +65,18 @@ class Optimizer:
                 raise ValueError(
                     f"{type(self).__name__}.step: gradient of params[{i}] contains NaN/inf"
                 )
-            yield i, p, p.grad
+            found.append((i, p, p.grad))
+        return found
+
+    def _per_param_lr(self, lr) -> list[float]:
+        """One learning rate per parameter. A list is checked for length: passed on as is,
+        ``[0.1, 0.2] * g`` would silently broadcast against the gradient's elements."""
+        lrs = [lr] * len(self.params) if np.isscalar(lr) else list(lr)
+        if len(lrs) != len(self.params):
+            raise ValueError(
+                f"{type(self).__name__}: {len(lrs)} learning rates for {len(self.params)} params"
+            )
+        return lrs
 
     def _apply_projection(self, i: int, p: Tensor) -> None:
         if self.project[i] is not None:
@@ -71,11 +84,16 @@ class Optimizer:
 
 
 class SGD(Optimizer):
-    """theta <- theta - lr * g  (with optional momentum: v <- mu v + g; theta <- theta - lr v)."""
+    """theta <- theta - lr * g  (with optional momentum: v <- mu v + g; theta <- theta - lr v).
 
-    def __init__(self, params, lr: float = 0.01, momentum: float = 0.0, project=None):
+    ``lr`` may be one number or one per parameter, as for Adam.
+    """
+
+    def __init__(
+        self, params, lr: float | Sequence[float] = 0.01, momentum: float = 0.0, project=None
+    ):
         super().__init__(params, project)
-        self.lr, self.momentum = lr, momentum
+        self.lr, self.momentum = self._per_param_lr(lr), momentum
         self.velocity = [np.zeros_like(p.data) for p in self.params]
 
     def step(self) -> None:
@@ -84,7 +102,7 @@ class SGD(Optimizer):
             if self.momentum:
                 self.velocity[i] = self.momentum * self.velocity[i] + g
                 g = self.velocity[i]
-            p.data -= self.lr * g
+            p.data -= self.lr[i] * g
             self._apply_projection(i, p)
 
 
@@ -108,9 +126,7 @@ class Adam(Optimizer):
         project=None,
     ):
         super().__init__(params, project)
-        self.lr = [lr] * len(self.params) if np.isscalar(lr) else list(lr)
-        if len(self.lr) != len(self.params):
-            raise ValueError(f"Adam: {len(self.lr)} learning rates for {len(self.params)} params")
+        self.lr = self._per_param_lr(lr)
         self.betas, self.eps = betas, eps
         self.m = [np.zeros_like(p.data) for p in self.params]
         self.v = [np.zeros_like(p.data) for p in self.params]

@@ -144,11 +144,13 @@ def matmul(a: Any, b: Any) -> Tensor:
     def vjp(g):
         a2 = a.data[None, :] if a.ndim == 1 else a.data
         b2 = b.data[:, None] if b.ndim == 1 else b.data
+        # Put the removed vector axes back into g: b's (last) first, then a's, so that a
+        # 1-D @ 1-D product (g of shape ()) becomes (1, 1) rather than failing.
         g2 = g
-        if a.ndim == 1:
-            g2 = np.expand_dims(g2, -2)
         if b.ndim == 1:
             g2 = np.expand_dims(g2, -1)
+        if a.ndim == 1:
+            g2 = np.expand_dims(g2, -2)
         ga = gb = None
         if a.requires_grad:
             ga = g2 @ np.swapaxes(b2, -1, -2)
@@ -252,8 +254,15 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     """x limited to [lo, hi] (lo, hi constants). d/dx = 1 inside [lo, hi] (bounds included),
     0 outside."""
     x = as_tensor(x)
-    lo_v, hi_v = np.asarray(getattr(lo, "data", lo)), np.asarray(getattr(hi, "data", hi))
-    out = np.clip(x.data, lo_v, hi_v)
+    # Python numbers are passed on as they are (not via np.asarray, which would make them
+    # int64/float64 arrays) so that NumPy treats them as weak and float32 stays float32.
+    lo_v, hi_v = (v.data if isinstance(v, Tensor) else v for v in (lo, hi))
+    try:
+        out = np.clip(x.data, lo_v, hi_v)
+    except ValueError:
+        raise ValueError(
+            f"clip: cannot broadcast x {x.shape}, lo {np.shape(lo_v)} and hi {np.shape(hi_v)}"
+        ) from None
     return record("clip", out, (x,), lambda g: (np.where(out == x.data, g, 0.0),))
 
 
@@ -436,17 +445,20 @@ def transpose(x: Any, axes=None) -> Tensor:
     """Permute axes (reverse them if ``axes`` is None). The gradient is permuted back."""
     x = as_tensor(x)
     out = np.transpose(x.data, axes)
-    inverse = None if axes is None else np.argsort(axes)
+    # The inverse permutation; negative axes are made positive first (argsort of (-1, 0, 1)
+    # would otherwise give the identity).
+    inverse = None if axes is None else np.argsort([a % x.ndim for a in axes])
     return record("transpose", out, (x,), lambda g: (np.transpose(g, inverse),))
 
 
 def broadcast_to(x: Any, shape) -> Tensor:
     """Broadcast to ``shape``; backward sums the repeated axes away."""
     x = as_tensor(x)
+    shape = (shape,) if isinstance(shape, int) else tuple(shape)
     try:
         out = np.broadcast_to(x.data, shape)
     except ValueError:
-        raise ValueError(f"broadcast_to: cannot broadcast {x.shape} to {tuple(shape)}") from None
+        raise ValueError(f"broadcast_to: cannot broadcast {x.shape} to {shape}") from None
     return record("broadcast_to", out, (x,), lambda g: (g,))
 
 
@@ -492,7 +504,8 @@ def _scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarr
     np.bincount does the accumulation per column and is several times faster than
     np.add.at, which is the textbook (but slow, unbuffered) way to do it.
     """
-    rows = values.reshape(len(index), -1)
+    # An explicit column count, not -1: reshape cannot infer -1 when there are no rows.
+    rows = values.reshape(len(index), int(np.prod(values.shape[1:], dtype=np.int64)))
     cols = rows.shape[1]
     out = np.empty((n, cols), dtype=values.dtype)
     if cols <= 4:

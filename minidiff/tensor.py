@@ -164,7 +164,9 @@ class Tensor:
                 for x, gx in zip(node.inputs, input_grads, strict=True):
                     if gx is None or not x.requires_grad:
                         continue
-                    gx = unbroadcast(gx, x.shape)
+                    # A gradient has its input's dtype: a float32 leaf used with a float64
+                    # constant still gets a float32 .grad (also after accumulating).
+                    gx = unbroadcast(gx, x.shape).astype(x.dtype, copy=False)
                     if _ANOMALY_MODE and not np.isfinite(gx).all():
                         raise FloatingPointError(
                             f"anomaly: the VJP of '{node.name}' produced NaN/inf in the "
@@ -310,7 +312,9 @@ def unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
         return g
     lead = g.ndim - len(shape)
     if lead > 0:
-        rows = g.reshape(-1, int(np.prod(g.shape[lead:], dtype=np.int64)))
+        # Both sizes explicit: reshape cannot infer a -1 next to a zero-size axis.
+        n_rows = int(np.prod(g.shape[:lead], dtype=np.int64))
+        rows = g.reshape(n_rows, int(np.prod(g.shape[lead:], dtype=np.int64)))
         g = (np.ones(rows.shape[0], dtype=g.dtype) @ rows).reshape(g.shape[lead:])
     axes = tuple(i for i, n in enumerate(shape) if n == 1 and g.shape[i] != 1)
     if axes:
