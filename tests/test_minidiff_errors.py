@@ -1,0 +1,224 @@
+"""Bad input gets a clear exception of the documented type, naming the operation (and the
+shapes, where shapes are the problem)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+import minidiff as md
+from minidiff import optim
+
+
+def leaf(values):
+    return md.tensor(values, requires_grad=True)
+
+
+def shapes_pattern(name, *shapes):
+    """A regex: the operation's name, then each shape in order (e.g. 'add.*(2,).*(3,)')."""
+    return re.escape(name) + "".join(".*" + re.escape(str(s)) for s in shapes)
+
+
+# ---------------------------------------------------------------------------------------------
+# Shape mismatches
+# ---------------------------------------------------------------------------------------------
+
+BINARY = {
+    "add": md.add,
+    "subtract": md.subtract,
+    "multiply": md.multiply,
+    "divide": md.divide,
+    "power": md.power,
+    "maximum": md.maximum,
+    "minimum": md.minimum,
+}
+OPERATORS = {
+    "add": lambda a, b: a + b,
+    "subtract": lambda a, b: a - b,
+    "multiply": lambda a, b: a * b,
+    "divide": lambda a, b: a / b,
+    "power": lambda a, b: a**b,
+}
+
+
+@pytest.mark.parametrize("name", sorted(BINARY))
+def test_binary_broadcast_mismatch_names_op_and_shapes(name):
+    a, b = leaf(np.ones((2, 3))), leaf(np.ones((4,)))
+    with pytest.raises(ValueError, match=shapes_pattern(name, (2, 3), (4,))):
+        BINARY[name](a, b)
+    with pytest.raises(ValueError, match=shapes_pattern(name, (2, 3), (4,))):
+        BINARY[name](a, np.ones(4))  # a plain array operand too
+
+
+@pytest.mark.parametrize("name", sorted(OPERATORS))
+def test_operator_broadcast_mismatch_names_op_and_shapes(name):
+    a = leaf(np.ones((2, 3)))
+    with pytest.raises(ValueError, match=shapes_pattern(name, (2, 3), (2,))):
+        OPERATORS[name](a, np.ones(2))
+    with pytest.raises(ValueError, match=shapes_pattern(name, (2,), (2, 3))):
+        OPERATORS[name](np.ones(2), a)  # reflected operator: operands in written order
+
+
+def test_matmul_mismatch():
+    with pytest.raises(ValueError, match=shapes_pattern("matmul", (2, 3), (2, 3))):
+        leaf(np.ones((2, 3))) @ leaf(np.ones((2, 3)))
+    with pytest.raises(ValueError, match=shapes_pattern("matmul", (3,), (4,))):
+        md.matmul(leaf(np.ones(3)), np.ones(4))
+
+
+def test_where_mismatch():
+    with pytest.raises(ValueError, match=shapes_pattern("where", (3,), (2,), (4,))):
+        md.where(np.ones(3, bool), leaf(np.ones(2)), np.ones(4))
+
+
+def test_clip_mismatch():
+    with pytest.raises(ValueError, match=shapes_pattern("clip", (2,), (3,))):
+        md.clip(leaf(np.ones(2)), np.zeros(3), 1.0)
+
+
+def test_dot_and_cross_mismatch():
+    with pytest.raises(ValueError, match=shapes_pattern("dot", (2, 3), (2, 4))):
+        md.dot(leaf(np.ones((2, 3))), np.ones((2, 4)))
+    with pytest.raises(ValueError, match=shapes_pattern("dot", (2, 3), (4, 3))):
+        md.dot(leaf(np.ones((2, 3))), np.ones((4, 3)))
+    with pytest.raises(ValueError, match=shapes_pattern("cross", (2, 2), (2, 3))):
+        md.cross(leaf(np.ones((2, 2))), np.ones((2, 3)))
+    with pytest.raises(ValueError, match=shapes_pattern("cross", (2, 3), (4, 3))):
+        md.cross(leaf(np.ones((2, 3))), np.ones((4, 3)))
+
+
+def test_shape_manipulation_mismatch():
+    x = leaf(np.ones((2, 3)))
+    with pytest.raises(ValueError, match=shapes_pattern("reshape", (2, 3), (4,))):
+        md.reshape(x, (4,))
+    with pytest.raises(ValueError, match=shapes_pattern("reshape", (2, 3), (5, 5))):
+        x.reshape(5, 5)
+    with pytest.raises(ValueError, match=shapes_pattern("broadcast_to", (2, 3), (4, 3, 2))):
+        md.broadcast_to(x, (4, 3, 2))
+    with pytest.raises(ValueError, match=shapes_pattern("broadcast_to", (2, 3), (5,))):
+        md.broadcast_to(x, 5)
+    with pytest.raises(ValueError, match=shapes_pattern("stack", (2, 3), (3, 2))):
+        md.stack([x, np.ones((3, 2))])
+    with pytest.raises(ValueError, match=shapes_pattern("concatenate", (2, 3), (2, 4))):
+        md.concatenate([x, np.ones((2, 4))], axis=0)
+
+
+def test_scatter_add_bad_index():
+    values = leaf(np.ones((3, 2)))
+    with pytest.raises(ValueError, match=r"scatter_add: index must be .* length 3"):
+        md.scatter_add(values, np.array([0, 1]), 4)
+    with pytest.raises(ValueError, match=r"scatter_add: index must be"):
+        md.scatter_add(values, np.array([0.0, 1.0, 2.0]), 4)
+    with pytest.raises(ValueError, match=r"scatter_add: indices must lie in \[0, 4\)"):
+        md.scatter_add(values, np.array([0, 1, 4]), 4)
+    with pytest.raises(ValueError, match=r"scatter_add: indices must lie"):
+        md.scatter_add(values, np.array([0, -1, 2]), 4)
+
+
+# ---------------------------------------------------------------------------------------------
+# backward
+# ---------------------------------------------------------------------------------------------
+
+
+def test_backward_on_non_scalar_without_seed():
+    y = leaf(np.ones((2, 3))) * 2.0
+    with pytest.raises(ValueError, match=r"backward: the output has shape \(2, 3\)"):
+        y.backward()
+
+
+def test_backward_seed_of_wrong_shape():
+    y = leaf(np.ones((2, 3))) * 2.0
+    with pytest.raises(ValueError, match=r"backward: seed gradient has shape \(3,\).*\(2, 3\)"):
+        y.backward(np.ones(3))
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_backward_non_finite_seed(bad):
+    y = leaf([1.0, 2.0]) * 2.0
+    with pytest.raises(ValueError, match="backward: the seed gradient contains NaN or inf"):
+        y.backward(np.array([1.0, bad]))
+    z = (leaf(1.0) * 2.0).sum()
+    with pytest.raises(ValueError, match="backward: the seed gradient contains NaN or inf"):
+        z.backward(bad)
+
+
+def test_double_backward_through_freed_tape():
+    x = leaf([1.0, 2.0])
+    y = md.sum(md.exp(x) * x)
+    y.backward()
+    with pytest.raises(RuntimeError, match=r"backward: the tape through 'sum' .* freed"):
+        y.backward()
+
+
+def test_backward_on_a_constant():
+    with pytest.raises(ValueError, match="backward: this tensor does not require grad"):
+        md.tensor([1.0]).sum().backward()
+
+
+# ---------------------------------------------------------------------------------------------
+# Construction, NumPy interop, function transformations
+# ---------------------------------------------------------------------------------------------
+
+
+def test_integer_tensor_cannot_require_grad():
+    with pytest.raises(TypeError, match="tensor: only floating-point tensors can require grad"):
+        md.tensor([1, 2], requires_grad=True, dtype=np.int64)
+
+
+def test_numpy_ufunc_on_tensor_is_refused():
+    """np.exp(tensor) would silently drop the gradient; it is a TypeError instead."""
+    with pytest.raises(TypeError):
+        np.exp(leaf([1.0]))
+
+
+def test_value_and_grad_needs_scalar_output():
+    with pytest.raises(ValueError, match=r"value_and_grad: f must return a scalar.*\(2,\)"):
+        md.grad(lambda x: x * 2.0)(np.ones(2))
+    with pytest.raises(ValueError, match="value_and_grad: argnums 1 but only 1 arguments"):
+        md.grad(lambda x: md.sum(x), argnums=1)(np.ones(2))
+
+
+def test_anomaly_errors_name_the_primitive():
+    with np.errstate(all="ignore"), md.detect_anomaly():
+        with pytest.raises(FloatingPointError, match="anomaly: forward of 'log'"):
+            md.log(leaf([0.0]))
+        with pytest.raises(FloatingPointError, match="anomaly: forward of 'divide'"):
+            leaf([1.0]) / 0.0
+        y = md.sqrt(leaf([0.0, 1.0])).sum()
+        with pytest.raises(FloatingPointError, match=r"anomaly: the VJP of 'sqrt'.*\(2,\)"):
+            y.backward()
+
+
+# ---------------------------------------------------------------------------------------------
+# Optimisers
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("cls", [optim.SGD, optim.Adam])
+def test_optimizer_bad_params(cls):
+    name = cls.__name__
+    with pytest.raises(ValueError, match=f"{name}: params is empty"):
+        cls([])
+    with pytest.raises(TypeError, match=rf"{name}: params\[0\] must be a leaf Tensor"):
+        cls([md.tensor([1.0])])  # does not require grad
+    with pytest.raises(TypeError, match=rf"{name}: params\[1\] must be a leaf Tensor"):
+        cls([leaf([1.0]), leaf([1.0]) * 2.0])  # not a leaf
+    with pytest.raises(TypeError, match=rf"{name}: params\[0\] must be a leaf Tensor"):
+        cls([np.ones(2)])
+    with pytest.raises(ValueError, match=f"{name}: 1 projections for 2 params"):
+        cls([leaf([1.0]), leaf([1.0])], project=[optim.box(0, 1)])
+
+
+@pytest.mark.parametrize("cls", [optim.SGD, optim.Adam])
+def test_optimizer_refuses_non_finite_gradient(cls):
+    x, y = leaf([1.0, 2.0]), leaf([3.0])
+    opt = cls([x, y])
+    x.grad = np.array([1.0, 1.0])
+    y.grad = np.array([np.nan])
+    with pytest.raises(ValueError, match=rf"{cls.__name__}.step: gradient of params\[1\]"):
+        opt.step()
+    # Nothing was changed, not even the parameter before the bad one.
+    np.testing.assert_array_equal(x.data, [1.0, 2.0])
+    np.testing.assert_array_equal(y.data, [3.0])
