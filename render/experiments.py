@@ -20,7 +20,7 @@ from PIL import Image
 
 import minidiff as md
 from render.image import psnr, save_image
-from render.optimize import History, optimize
+from render.optimize import optimize
 from render.plot import line_plot
 from render.renderer import render
 from render.teapot import paper_scene
@@ -48,15 +48,10 @@ def _relative_error(estimate: np.ndarray, truth: np.ndarray) -> float:
     return float(100.0 * np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
 
 
-def _first_below(values, threshold: float, history: History) -> int:
-    """The first iteration whose value is below ``threshold`` (the updates made if never)."""
+def _first_below(values, threshold: float) -> float:
+    """The first iteration whose value is below ``threshold`` (NaN if never)."""
     below = np.flatnonzero(np.asarray(values) < threshold)
-    return int(below[0]) if len(below) else history.iterations
-
-
-def _iterations_to(history: History, tol: float) -> int:
-    """The first iteration whose loss is below ``tol``."""
-    return _first_below(history.loss, tol, history)
+    return float(below[0]) if len(below) else float("nan")
 
 
 class _Recorder:
@@ -103,6 +98,7 @@ def _write_outputs(out, name, target, initial, final, history, recorder):
 
 def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name="", quiet=True):
     """Shared driver: initial render, optimisation, final render, outputs, timings."""
+    target = np.clip(target, 0.0, 1.0)  # what the paper's Eq. 1 compares against
     initial = render(scene).data.copy()
     recorder = _Recorder(every=max(1, iters // 60))
     start = time.perf_counter()
@@ -125,7 +121,7 @@ def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name=
         "stalled": history.stalled,
         "initial_loss": history.loss[0],
         "final_loss": history.loss[-1],
-        "initial_psnr": psnr(np.clip(initial, 0, 1), target),
+        "initial_psnr": psnr(np.clip(initial, 0, 1), target),  # a camera's clipped view
         "final_psnr": psnr(np.clip(final, 0, 1), target),
         "seconds_total": total,
         "seconds_per_iteration": total / max(1, len(history.loss)),
@@ -176,9 +172,9 @@ def run_camera_calibration(
         initial_position_error_pct=_relative_error(start_position, TRUE_CAMERA),
         final_position_error_pct=_relative_error(position.data, TRUE_CAMERA),
         final_position=position.data.tolist(),
-        iterations_to_tol=_iterations_to(history, tol),
+        iterations_to_tol=_first_below(history.loss, tol),
         iterations_to_half_percent=_first_below(
-            [_relative_error(p[0], TRUE_CAMERA) for p in history.params], 0.5, history
+            [_relative_error(p[0], TRUE_CAMERA) for p in history.params], 0.5
         ),
     )
     return result
@@ -229,7 +225,7 @@ def run_light_estimation(
         final_intensity_error_pct=100 * abs(intensity.item() - TRUE_INTENSITY) / TRUE_INTENSITY,
         final_light=position.data.tolist(),
         final_intensity=intensity.item(),
-        iterations_to_tol=_iterations_to(history, tol),
+        iterations_to_tol=_first_below(history.loss, tol),
     )
     return result
 
@@ -270,14 +266,19 @@ def run_material_recovery(
         rgb_error_after_1=errors[min(1, len(errors) - 1)],
         rgb_error_after_50=errors[min(50, len(errors) - 1)],
         final_rgb_error=errors[-1],
-        iterations_to_tol=_iterations_to(history, tol),
+        iterations_to_tol=_first_below(history.loss, tol),
     )
     return result
 
 
-def command_line(description: str, default_iters: int, argv=None) -> argparse.Namespace:
-    """The shared command line of the example scripts: --size --iters --seed --out."""
+def command_line(
+    description: str, default_iters: int, argv=None, extra: dict[str, dict] | None = None
+) -> argparse.Namespace:
+    """The shared command line of the example scripts: --size --iters --seed --out --quiet,
+    plus ``extra`` options ({"--name": argparse keyword arguments})."""
     parser = argparse.ArgumentParser(description=description)
+    for name, options in (extra or {}).items():
+        parser.add_argument(name, **options)
     parser.add_argument("--size", type=int, default=512, help="image width = height (pixels)")
     parser.add_argument("--iters", type=int, default=default_iters, help="maximum iterations")
     parser.add_argument("--seed", type=int, default=42, help="random seed of the start")
