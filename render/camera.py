@@ -32,8 +32,10 @@ def subpixel_offsets(spp: int) -> np.ndarray:
     spp = n^2 gives the centres of an n x n grid of cells. The pattern is fixed (no random
     jitter), so the rendered image is a deterministic, differentiable function of the scene.
     """
-    n = math.isqrt(spp)
-    if isinstance(spp, bool) or not isinstance(spp, int) or spp < 1 or n * n != spp:
+    # Type and sign first: math.isqrt would fail on them with a message that names no spp.
+    valid = not isinstance(spp, bool) and isinstance(spp, int | np.integer) and spp >= 1
+    n = math.isqrt(spp) if valid else 0
+    if not valid or n * n != spp:
         raise ValueError(f"render: spp must be a perfect square (1, 4, 9, 16, ...), got {spp!r}")
     cells = (np.arange(n) + 0.5) / n
     sx, sy = np.meshgrid(cells, cells)
