@@ -39,7 +39,7 @@ from render.geometry import (
 from render.scene import DirectionalLight, Mesh, PointLight, Scene, Sphere
 from render.shading import column, sample_texture, shade
 
-# Shadow rays start on the surface; they skip the primitive they start on and ignore hits
+# Shadow rays start on the surface; they skip the triangle they start on and ignore hits
 # closer than this fraction of the distance to the light (neighbouring triangles at a
 # shared edge would otherwise shadow the start point).
 _SHADOW_EPSILON = 1e-7
@@ -162,13 +162,21 @@ def _trace_shadows(accel: Accelerator, light, points: np.ndarray, start_prim: np
         zero = ~directions.any(axis=1)
         directions[zero] = (0.0, 1.0, 0.0)
     elif isinstance(light, DirectionalLight):
-        directions = np.broadcast_to(-np.asarray(light.direction.data, np.float64), points.shape)
+        # Unit length: tmin is in units of the direction vector, and the user's direction
+        # may have any length (with |direction| = 1e7 every nearby occluder was skipped).
+        towards = -np.asarray(light.direction.data, np.float64)
+        directions = np.broadcast_to(towards / np.linalg.norm(towards), points.shape)
         tmax = np.inf
     else:
         raise TypeError(f"render: unsupported light type {type(light).__name__}")
     scale = max(1.0, float(np.abs(points).max()))
+    # Skip the triangle the ray starts on (a flat triangle cannot shadow its own points), but
+    # not a sphere: seen from inside it does shadow itself (a light outside cannot reach the
+    # inside). Starting on the outside of a sphere towards the light, its other root is
+    # behind the ray, and tmin removes the start point itself.
+    ignore = np.where(start_prim < accel.n_triangles, start_prim, -1)
     blocked = accel.occluded(
-        points, directions, tmax, tmin=_SHADOW_EPSILON * scale, ignore_prim=start_prim
+        points, directions, tmax, tmin=_SHADOW_EPSILON * scale, ignore_prim=ignore
     )
     return ~blocked
 

@@ -319,23 +319,7 @@ def test_occluder_shadow_matches_geometry():
     np.testing.assert_allclose(image.data[on_ground & lit], expected[on_ground & lit], rtol=RTOL)
 
 
-@pytest.mark.parametrize(
-    "length",
-    [
-        1e-6,
-        1.0,
-        1e4,
-        pytest.param(
-            1e7,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="_trace_shadows traces -light.direction unnormalised with a tmin in "
-                "units of that vector (1e-7 * scene scale), so for |direction| = 1e7 every "
-                "occluder within ~3 units of the surface is skipped (render/renderer.py)",
-            ),
-        ),
-    ],
-)
+@pytest.mark.parametrize("length", [1e-6, 1.0, 1e4, 1e7])
 def test_directional_shadow_does_not_depend_on_the_direction_length(length):
     """``direction`` need not be unit length: its length must not change the shadows."""
     occluder = render.Mesh(
@@ -356,19 +340,48 @@ def test_directional_shadow_does_not_depend_on_the_direction_length(length):
     np.testing.assert_array_equal(shadowed(length), reference)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="shadow rays skip the primitive they start on (ignore_prim); right for a flat "
-    "triangle, wrong for the inside of a sphere, which is not convex seen from inside: a "
-    "light outside a sphere lights its inside (render/renderer.py, _trace_shadows)",
-)
 def test_light_outside_a_sphere_does_not_reach_its_inside():
+    """Seen from inside, a sphere shadows itself (it is not convex from there)."""
     camera = render.Camera((0, 0, 0.2), (0, 0, -1), fov=90, width=16, height=16)
     sphere = render.Sphere((0, 0, 0), 2.0, render.Material((0.5, 0.5, 0.5)))
     scene = render.Scene([sphere], [render.PointLight((0, 0, 5.0), 5.0)], camera)
     image, info = render.render(scene, return_info=True)
     assert (info.prim_id >= 0).all()
     assert not info.lit.any() and (image.data == 0).all()
+
+
+@pytest.mark.parametrize(
+    ("centre", "radius", "light"),
+    [
+        ((0.0, 0.0, 0.0), 1.0, render.PointLight((2.0, 1.5, 1.0), 10.0)),
+        ((0.0, 0.0, 0.0), 1.0, render.DirectionalLight((-1.0, -0.2, -0.1), 1.0)),
+        ((0.0, -1000.0, 0.0), 1000.0, render.PointLight((3.0, 0.2, -2.0), 10.0)),  # grazing
+    ],
+    ids=["point", "directional", "giant-ground-sphere"],
+)
+def test_no_shadow_acne_on_spheres(centre, radius, light):
+    """Every sphere point that faces the light (analytic normal, cos > 1e-6) is lit: the
+    shadow ray does not find the sphere it starts on."""
+    camera = render.Camera((0.3, 1.0, 4.0), (0, 0, 0), fov=50, width=48, height=48)
+    sphere = render.Sphere(centre, radius, render.Material((0.5, 0.5, 0.5)))
+    image, info = render.render(render.Scene([sphere], [light], camera), return_info=True)
+    hit = info.prim_id[..., 0] == 0
+
+    d = camera_rays(camera)
+    oc = camera.position.data - np.asarray(centre)
+    b = d @ oc
+    t = -b - np.sqrt(np.maximum(b**2 - (oc @ oc - radius**2), 0))
+    p = camera.position.data + t[..., None] * d
+    n = (p - np.asarray(centre)) / radius
+    if isinstance(light, render.PointLight):
+        to_light = light.position.data - p
+    else:
+        to_light = np.broadcast_to(-light.direction.data, p.shape)
+    cos = np.sum(n * to_light, axis=-1) / np.linalg.norm(to_light, axis=-1)
+    facing = hit & (cos > 1e-6)
+    assert facing.sum() > 100
+    assert info.lit[0, ..., 0][facing].all()
+    assert (image.data[facing] > 0).all()
 
 
 def grid_plane(n, size, material):
