@@ -6,6 +6,7 @@ Run: python examples/render_teapot.py [--size 512] [--out out]
 import time
 
 import render
+from minidiff.memory import keep_freed_memory
 from render.experiments import command_line
 
 # (camera position, look-at point): the reference view, a view from the left, a high view.
@@ -17,6 +18,9 @@ VIEWPOINTS = {
 
 
 def main(argv=None) -> None:
+    # Opt-in allocator tuning: keep freed arrays for reuse instead of page-faulting them
+    # back in every iteration (measured ~2x faster here; see minidiff/memory.py).
+    keep_freed_memory()
     args = command_line(__doc__.splitlines()[0], default_iters=0, argv=argv)
     for name, (position, look_at) in VIEWPOINTS.items():
         scene = render.paper_scene(

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from minidiff.memory import keep_freed_memory
 from render.experiments import (
     command_line,
     run_camera_calibration,
@@ -106,6 +107,9 @@ def table(results: dict) -> str:
 
 
 def main(argv=None) -> None:
+    # Opt-in allocator tuning: keep freed arrays for reuse instead of page-faulting them
+    # back in every iteration (measured ~2x faster here; see minidiff/memory.py).
+    keep_freed_memory()
     extra = {"--quick": {"action": "store_true", "help": "128x128 and 3 seeds (smoke run)"}}
     args = command_line(__doc__.splitlines()[0], default_iters=500, argv=argv, extra=extra)
     size = 128 if args.quick else args.size
