@@ -27,7 +27,7 @@ import time
 import numpy as np
 from numba import njit, prange
 
-from render.bvh import N_BINS, build_bvh, padded_bounds
+from render.bvh import N_BINS, build_bvh, primitive_bounds
 from render.intersect import (
     closest_hit_brute,
     closest_hit_bvh,
@@ -35,6 +35,13 @@ from render.intersect import (
     occluded_bvh,
     pack_primitives,
 )
+
+#: Largest accepted magnitude of any coordinate, radius or direction component.  Products of
+#: up to four such numbers appear in the intersection tests; this keeps them far from
+#: float64 overflow (1.8e308), so the tests never produce inf - inf = NaN.
+MAX_COORD = 1e60
+#: A direction needs some component at least this large (so that |d|^2 does not underflow).
+MIN_DIRECTION = 1e-60
 
 #: Default ``tmin`` for shadow rays, in units of the direction vector.  With the usual
 #: unnormalised direction ``light - point`` this is a millionth of the light distance; together
@@ -67,24 +74,36 @@ def _as_float_array(name: str, x, shape_text: str, ndim: int, last: tuple[int, .
 
 @njit(cache=True, parallel=True)
 def _count_bad_rays(origins, directions):
-    """Counts of (non-finite origins, non-finite directions, zero directions) over (N, 3)
-    arrays; one parallel pass instead of several NumPy temporaries."""
+    """Counts of (bad origins, bad directions, too short directions) over (N, 3) arrays, one
+    parallel pass instead of several NumPy temporaries.  "Bad" means NaN, inf or larger than
+    MAX_COORD in magnitude (the comparisons are written so that NaN fails them)."""
     bad_o = 0
     bad_d = 0
-    zero_d = 0
+    short_d = 0
     for i in prange(origins.shape[0]):
-        o = origins[i, 0] + origins[i, 1] + origins[i, 2]
-        dx = directions[i, 0]
-        dy = directions[i, 1]
-        dz = directions[i, 2]
-        # x - x is 0 for finite x and NaN for inf or NaN.
-        if (o - o) != 0.0:
+        ox = abs(origins[i, 0])
+        oy = abs(origins[i, 1])
+        oz = abs(origins[i, 2])
+        dx = abs(directions[i, 0])
+        dy = abs(directions[i, 1])
+        dz = abs(directions[i, 2])
+        if not (ox <= MAX_COORD and oy <= MAX_COORD and oz <= MAX_COORD):
             bad_o += 1
-        if (dx - dx) + (dy - dy) + (dz - dz) != 0.0:
+        if not (dx <= MAX_COORD and dy <= MAX_COORD and dz <= MAX_COORD):
             bad_d += 1
-        elif dx == 0.0 and dy == 0.0 and dz == 0.0:
-            zero_d += 1
-    return bad_o, bad_d, zero_d
+        elif dx < MIN_DIRECTION and dy < MIN_DIRECTION and dz < MIN_DIRECTION:
+            short_d += 1
+    return bad_o, bad_d, short_d
+
+
+def _check_coordinates(name: str, a: np.ndarray) -> None:
+    """Finite values of magnitude at most MAX_COORD, else ValueError."""
+    if not np.isfinite(a).all():
+        raise ValueError(f"{name} must be finite (found NaN or inf)")
+    if a.size and np.abs(a).max() > MAX_COORD:
+        raise ValueError(
+            f"{name} must be at most {MAX_COORD:g} in magnitude, got {np.abs(a).max():g}"
+        )
 
 
 def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
@@ -97,13 +116,22 @@ def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
             f"and {d.shape[0]}"
         )
     if o.shape[0] > 0:
-        bad_o, bad_d, zero_d = _count_bad_rays(o, d)
+        bad_o, bad_d, short_d = _count_bad_rays(o, d)
         if bad_o:
-            raise ValueError(f"origins must be finite; {bad_o} rays have NaN or inf coordinates")
+            raise ValueError(
+                f"origins must be finite and at most {MAX_COORD:g} in magnitude; "
+                f"{bad_o} rays are not"
+            )
         if bad_d:
-            raise ValueError(f"directions must be finite; {bad_d} rays have NaN or inf components")
-        if zero_d:
-            raise ValueError(f"directions must be nonzero; {zero_d} rays have direction (0, 0, 0)")
+            raise ValueError(
+                f"directions must be finite and at most {MAX_COORD:g} in magnitude; "
+                f"{bad_d} rays are not"
+            )
+        if short_d:
+            raise ValueError(
+                f"directions must be nonzero (some component >= {MIN_DIRECTION:g} in "
+                f"magnitude); {short_d} rays are zero or too short"
+            )
     return o, d
 
 
@@ -157,12 +185,11 @@ class Accelerator:
                     f"sphere_radii must have shape (S,) = ({centers.shape[0]},) to match "
                     f"sphere_centers, got {radii.shape}"
                 )
-        if not np.isfinite(tri).all():
-            raise ValueError("triangles must have finite coordinates (found NaN or inf)")
-        if not np.isfinite(centers).all():
-            raise ValueError("sphere_centers must be finite (found NaN or inf)")
-        if not (np.isfinite(radii).all() and (radii > 0).all()):
-            raise ValueError("sphere_radii must be finite and > 0")
+        _check_coordinates("triangles", tri)
+        _check_coordinates("sphere_centers", centers)
+        _check_coordinates("sphere_radii", radii)
+        if not (radii > 0).all():
+            raise ValueError("sphere_radii must be > 0")
         if int(n_bins) != n_bins or n_bins < 2:
             raise ValueError(f"n_bins must be an integer >= 2, got {n_bins!r}")
 
@@ -174,9 +201,7 @@ class Accelerator:
         self.prim_data = pack_primitives(tri, centers, radii)
 
         if self.use_bvh:
-            prim_min = np.concatenate([tri.min(axis=1), centers - radii[:, None]])
-            prim_max = np.concatenate([tri.max(axis=1), centers + radii[:, None]])
-            prim_min, prim_max = padded_bounds(prim_min, prim_max)
+            prim_min, prim_max = primitive_bounds(tri, centers, radii)
             bounds, first, count, order, depth = build_bvh(prim_min, prim_max, int(n_bins))
             self.node_bounds = bounds
             self.node_first = first

@@ -18,7 +18,8 @@ surface areas, so the expected cost of splitting a node P into L and R is
 
     C_split = C_trav + C_isect * (A(L) * n_L + A(R) * n_R) / A(P)
 
-against C_leaf = C_isect * n_P for keeping P a leaf.  Evaluating every possible split is
+against C_leaf = C_isect * n_P for keeping P a leaf.  We measure costs in units of one
+primitive test (C_isect = 1).  Evaluating every possible split is
 expensive; *binning* evaluates only ``n_bins - 1`` candidate planes per axis, evenly spaced
 over the bounds of the primitive centroids (Wald 2007), which gives nearly the same trees in
 O(n) per node.
@@ -29,73 +30,118 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-#: Cost of one node visit (two box tests) relative to one primitive test.
+#: Cost of one node visit (two box tests) relative to one primitive test (the SAH unit).
 C_TRAV = 1.0
-#: Cost of one primitive test.
-C_ISECT = 1.0
 #: Leaves never hold more than this many primitives unless their centroids coincide exactly
 #: (duplicated triangles), in which case they are split by index.
 MAX_LEAF_SIZE = 8
 #: Default number of SAH bins per axis.
 N_BINS = 12
-#: Boxes are padded by this fraction of the scene size (see :func:`padded_bounds`).
+#: Boxes are padded by this fraction of the scene size (see :func:`primitive_bounds`).
 PAD_RELATIVE = 1e-5
 
 
-def padded_bounds(prim_min: np.ndarray, prim_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Grow the primitive boxes (P, 3) by a small absolute margin.
+@njit(cache=True, error_model="numpy")
+def primitive_bounds(triangles, sphere_centers, sphere_radii):
+    """Padded bounding boxes of all primitives, triangles first, then spheres.
 
-    The traversal culls a node when the ray misses its box.  A hit point computed by the
-    ray-triangle test carries rounding error, so a ray that the triangle test accepts right
-    at an edge could, after rounding, miss the exact box, and the BVH would then disagree with
-    brute force.  Padding every box by 1e-5 of the scene size (plus a few ulps of the
-    coordinates) is far more than that error, and costs nothing measurable in culling.
+    triangles (T, 3, 3), sphere_centers (S, 3), sphere_radii (S,)  ->
+    prim_min, prim_max (T + S, 3).
+
+    Why padded: the traversal culls a node when the ray misses its box.  A hit point computed
+    by the ray-triangle test carries rounding error, so a ray that the triangle test accepts
+    right at an edge could, after rounding, just miss the exact box, and the BVH would then
+    disagree with brute force.  Growing every box by 1e-5 of the scene size (plus a few ulps of
+    the coordinates) covers that error with a wide margin and costs nothing measurable.
     """
-    if prim_min.shape[0] == 0:
-        return prim_min.copy(), prim_max.copy()
-    extent = float(np.max(prim_max.max(axis=0) - prim_min.min(axis=0)))
-    magnitude = float(max(np.abs(prim_min).max(), np.abs(prim_max).max()))
+    T = triangles.shape[0]
+    S = sphere_centers.shape[0]
+    prim_min = np.empty((T + S, 3))
+    prim_max = np.empty((T + S, 3))
+    for i in range(T):
+        for a in range(3):
+            x0 = triangles[i, 0, a]
+            x1 = triangles[i, 1, a]
+            x2 = triangles[i, 2, a]
+            prim_min[i, a] = min(x0, min(x1, x2))
+            prim_max[i, a] = max(x0, max(x1, x2))
+    for j in range(S):
+        for a in range(3):
+            prim_min[T + j, a] = sphere_centers[j, a] - sphere_radii[j]
+            prim_max[T + j, a] = sphere_centers[j, a] + sphere_radii[j]
+    if T + S == 0:
+        return prim_min, prim_max
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(T + S):
+        for a in range(3):
+            lo[a] = min(lo[a], prim_min[i, a])
+            hi[a] = max(hi[a], prim_max[i, a])
+    extent = max(hi[0] - lo[0], max(hi[1] - lo[1], hi[2] - lo[2]))
+    magnitude = 0.0
+    for a in range(3):
+        magnitude = max(magnitude, max(abs(lo[a]), abs(hi[a])))
     pad = PAD_RELATIVE * extent + 64.0 * np.finfo(np.float64).eps * magnitude
-    return prim_min - pad, prim_max + pad
+    for i in range(T + S):
+        for a in range(3):
+            prim_min[i, a] -= pad
+            prim_max[i, a] += pad
+    return prim_min, prim_max
 
 
-@njit(cache=True)
-def _surface_area(bmin, bmax):
-    """Half the surface area of a box from its min/max corners (3,) (the factor 2 cancels in
-    the SAH ratios).  An empty box (min > max) has area 0."""
-    ex = bmax[0] - bmin[0]
-    ey = bmax[1] - bmin[1]
-    ez = bmax[2] - bmin[2]
+@njit(cache=True, error_model="numpy")
+def _half_area(lx, ly, lz, hx, hy, hz):
+    """Half the surface area of the box [lx, hx] x [ly, hy] x [lz, hz] (the factor 2 cancels
+    in the SAH ratios).  An empty box (lo > hi) has area 0."""
+    ex = hx - lx
+    ey = hy - ly
+    ez = hz - lz
     if ex < 0.0 or ey < 0.0 or ez < 0.0:
         return 0.0
     return ex * ey + ey * ez + ez * ex
 
 
-@njit(cache=True)
-def _update_bounds(node, first, count, order, prim_min, prim_max, node_bounds):
+@njit(cache=True, error_model="numpy")
+def _set_bounds(node, first, count, order, prim_min, prim_max, node_bounds):
     """Set ``node_bounds[node]`` to the union of the boxes of ``order[first:first+count]``."""
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
+    lx = ly = lz = np.inf
+    hx = hy = hz = -np.inf
     for k in range(first, first + count):
         p = order[k]
-        for a in range(3):
-            lo[a] = min(lo[a], prim_min[p, a])
-            hi[a] = max(hi[a], prim_max[p, a])
-    node_bounds[node, 0:3] = lo
-    node_bounds[node, 3:6] = hi
+        lx = min(lx, prim_min[p, 0])
+        ly = min(ly, prim_min[p, 1])
+        lz = min(lz, prim_min[p, 2])
+        hx = max(hx, prim_max[p, 0])
+        hy = max(hy, prim_max[p, 1])
+        hz = max(hz, prim_max[p, 2])
+    node_bounds[node, 0] = lx
+    node_bounds[node, 1] = ly
+    node_bounds[node, 2] = lz
+    node_bounds[node, 3] = hx
+    node_bounds[node, 4] = hy
+    node_bounds[node, 5] = hz
 
 
-@njit(cache=True)
-def _find_split(first, count, order, prim_min, prim_max, centroid, area, n_bins):
+@njit(cache=True, error_model="numpy")
+def _bin_index(c, cmin, scale, n_bins):
+    """Bin of centroid coordinate ``c`` along an axis binned from ``cmin`` with ``scale``
+    bins per unit.  Shared by the SAH evaluation and the partition so that they agree."""
+    return min(n_bins - 1, int((c - cmin) * scale))
+
+
+@njit(cache=True, error_model="numpy")
+def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav, bins, bin_box):
     """Binned SAH split search for the primitives ``order[first:first+count]``.
 
-    Returns ``(axis, split_bin, cmin, scale, cost)``: primitives whose centroid falls in a bin
-    ``< split_bin`` along ``axis`` go left, with ``bin = int((c - cmin) * scale)``.
-    ``axis = -1`` if every centroid coincides (no plane separates them).
-    ``cost`` is the SAH cost of the split (see the module docstring).
+    ``bins`` (3, n_bins) int64 and ``bin_box`` (3, n_bins, 6) float64 are scratch arrays
+    (allocated once per build, not per node).  Returns ``(axis, split_bin, cmin, scale,
+    cost)``: primitives whose centroid bin ``_bin_index(c[axis], cmin, scale)`` is
+    ``< split_bin`` go left; ``cost`` is the SAH cost of that split in units of one primitive
+    test.  ``axis = -1`` if no plane separates the centroids (all coincide).
     """
-    # Centroid bounds: bins are spread over where the centroids are, not the node's box,
-    # so that large primitives do not squeeze all small ones into one bin.
+    n_bins = bins.shape[1]
+    # Centroid bounds: the bins are spread over where the centroids are, not over the node's
+    # box, so that a few large primitives do not squeeze all small ones into one bin.
     cmin = np.full(3, np.inf)
     cmax = np.full(3, -np.inf)
     for k in range(first, first + count):
@@ -103,61 +149,69 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, n_bins)
         for a in range(3):
             cmin[a] = min(cmin[a], centroid[p, a])
             cmax[a] = max(cmax[a], centroid[p, a])
-
-    bin_count = np.zeros((3, n_bins), np.int64)
-    bin_lo = np.full((3, n_bins, 3), np.inf)
-    bin_hi = np.full((3, n_bins, 3), -np.inf)
     scale = np.zeros(3)
     for a in range(3):
         if cmax[a] > cmin[a]:
-            scale[a] = n_bins / (cmax[a] - cmin[a])
-    # One pass over the primitives fills the bins of all three axes.
+            s = n_bins / (cmax[a] - cmin[a])
+            if s < np.inf:  # an extent of a few denormals would give inf and then NaN bins
+                scale[a] = s
+
+    # One pass over the primitives fills the bins of all three axes: count and box.
+    bins[:] = 0
+    bin_box[:, :, 0:3] = np.inf
+    bin_box[:, :, 3:6] = -np.inf
     for k in range(first, first + count):
         p = order[k]
         for a in range(3):
             if scale[a] == 0.0:
                 continue
-            b = min(n_bins - 1, int((centroid[p, a] - cmin[a]) * scale[a]))
-            bin_count[a, b] += 1
+            b = _bin_index(centroid[p, a], cmin[a], scale[a], n_bins)
+            bins[a, b] += 1
             for c in range(3):
-                bin_lo[a, b, c] = min(bin_lo[a, b, c], prim_min[p, c])
-                bin_hi[a, b, c] = max(bin_hi[a, b, c], prim_max[p, c])
+                bin_box[a, b, c] = min(bin_box[a, b, c], prim_min[p, c])
+                bin_box[a, b, 3 + c] = max(bin_box[a, b, 3 + c], prim_max[p, c])
 
     best_axis = -1
     best_bin = 0
     best_cost = np.inf
-    left_area = np.zeros(n_bins)
-    left_count = np.zeros(n_bins, np.int64)
-    lo = np.empty(3)
-    hi = np.empty(3)
+    left_area = np.empty(n_bins)
+    left_count = np.empty(n_bins, np.int64)
     for a in range(3):
         if scale[a] == 0.0:
             continue
-        # Sweep left to right: area/count of everything left of plane i (between bins i-1, i).
-        lo[:] = np.inf
-        hi[:] = -np.inf
+        # Sweep left to right: count and area of everything left of plane i, the plane
+        # between bins i-1 and i.
+        lx = ly = lz = np.inf
+        hx = hy = hz = -np.inf
         n = 0
         for i in range(1, n_bins):
-            n += bin_count[a, i - 1]
-            for c in range(3):
-                lo[c] = min(lo[c], bin_lo[a, i - 1, c])
-                hi[c] = max(hi[c], bin_hi[a, i - 1, c])
+            n += bins[a, i - 1]
+            lx = min(lx, bin_box[a, i - 1, 0])
+            ly = min(ly, bin_box[a, i - 1, 1])
+            lz = min(lz, bin_box[a, i - 1, 2])
+            hx = max(hx, bin_box[a, i - 1, 3])
+            hy = max(hy, bin_box[a, i - 1, 4])
+            hz = max(hz, bin_box[a, i - 1, 5])
             left_count[i] = n
-            left_area[i] = _surface_area(lo, hi)
-        # Sweep right to left and evaluate each plane.
-        lo[:] = np.inf
-        hi[:] = -np.inf
+            left_area[i] = _half_area(lx, ly, lz, hx, hy, hz)
+        # Sweep right to left, growing the right side, and evaluate each plane.
+        lx = ly = lz = np.inf
+        hx = hy = hz = -np.inf
         n = 0
         for i in range(n_bins - 1, 0, -1):
-            n += bin_count[a, i]
-            for c in range(3):
-                lo[c] = min(lo[c], bin_lo[a, i, c])
-                hi[c] = max(hi[c], bin_hi[a, i, c])
+            n += bins[a, i]
+            lx = min(lx, bin_box[a, i, 0])
+            ly = min(ly, bin_box[a, i, 1])
+            lz = min(lz, bin_box[a, i, 2])
+            hx = max(hx, bin_box[a, i, 3])
+            hy = max(hy, bin_box[a, i, 4])
+            hz = max(hz, bin_box[a, i, 5])
             if n == 0 or left_count[i] == 0:
                 continue  # not a split: one side would be empty
-            cost = (
-                C_TRAV + C_ISECT * (left_count[i] * left_area[i] + n * _surface_area(lo, hi)) / area
-            )
+            # SAH: the cost of visiting this node plus testing each child's primitives,
+            # weighted by the probability that a ray through the node enters that child.
+            right_area = _half_area(lx, ly, lz, hx, hy, hz)
+            cost = c_trav + (left_count[i] * left_area[i] + n * right_area) / area
             if cost < best_cost:
                 best_cost = cost
                 best_axis = a
@@ -167,16 +221,14 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, n_bins)
     return best_axis, best_bin, cmin[best_axis], scale[best_axis], best_cost
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bins):
     """Reorder ``order[first:first+count]`` in place so that primitives with centroid bin
-    ``< split_bin`` come first; returns how many went left.  Uses exactly the binning formula
-    of :func:`_find_split`, so the counts match the SAH evaluation."""
+    ``< split_bin`` come first (a quicksort-style partition); returns how many went left."""
     i = first
     j = first + count - 1
     while i <= j:
-        b = min(n_bins - 1, int((centroid[order[i], axis] - cmin) * scale))
-        if b < split_bin:
+        if _bin_index(centroid[order[i], axis], cmin, scale, n_bins) < split_bin:
             i += 1
         else:
             order[i], order[j] = order[j], order[i]
@@ -184,81 +236,81 @@ def _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bi
     return i - first
 
 
-@njit(cache=True)
-def build_bvh(prim_min, prim_max, n_bins=N_BINS, max_leaf_size=MAX_LEAF_SIZE):
+@njit(cache=True, error_model="numpy")
+def build_bvh(prim_min, prim_max, n_bins=N_BINS, max_leaf_size=MAX_LEAF_SIZE, c_trav=C_TRAV):
     """Build a binned-SAH BVH over P primitive boxes ``prim_min``, ``prim_max`` (P, 3).
 
     Returns ``(node_bounds (M, 6), node_first (M,), node_count (M,), order (P,), depth)``
-    with M the number of nodes used (at most 2P - 1) and depth the number of levels.
-    Subdivision is top-down with an explicit stack: a node is split at the cheapest binned SAH
-    plane unless keeping it a leaf is cheaper (and it has at most ``max_leaf_size``
-    primitives).  Nodes whose centroids all coincide are split in the middle of their index
-    range, so leaves stay small even for duplicated primitives.
+    with M the number of nodes (at most 2P - 1) and depth the number of levels (root = 1).
+
+    Top-down subdivision with an explicit stack: a node is split at its cheapest binned-SAH
+    plane, unless keeping it a leaf is cheaper and it has at most ``max_leaf_size``
+    primitives.  A node whose centroids all coincide (duplicated primitives) cannot be split
+    by a plane; if it is too big it is split in the middle of its index range instead.
     """
     P = prim_min.shape[0]
     if P == 0:
-        return (
-            np.zeros((0, 6)),
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            0,
-        )
+        empty = np.zeros(0, np.int64)
+        return np.zeros((0, 6)), empty, empty.copy(), empty.copy(), 0
     centroid = 0.5 * (prim_min + prim_max)
     max_nodes = 2 * P - 1
     node_bounds = np.empty((max_nodes, 6))
     node_first = np.zeros(max_nodes, np.int64)
     node_count = np.zeros(max_nodes, np.int64)
     order = np.arange(P)
+    bins = np.empty((3, n_bins), np.int64)
+    bin_box = np.empty((3, n_bins, 6))
 
     node_first[0] = 0
     node_count[0] = P
-    _update_bounds(0, 0, P, order, prim_min, prim_max, node_bounds)
+    _set_bounds(0, 0, P, order, prim_min, prim_max, node_bounds)
     nodes_used = 1
     depth = 1
-    # Depth-first order: at most one pending sibling per level, and there are < P levels.
+    # Depth-first: at most one pending sibling per level, and there are fewer than P levels.
     stack = np.empty(P + 2, np.int64)
-    stack_depth = np.empty(P + 2, np.int64)
+    stack_level = np.empty(P + 2, np.int64)
     stack[0] = 0
-    stack_depth[0] = 1
+    stack_level[0] = 1
     sp = 1
     while sp > 0:
         sp -= 1
         node = stack[sp]
-        level = stack_depth[sp]
+        level = stack_level[sp]
         depth = max(depth, level)
         first = node_first[node]
         count = node_count[node]
         if count <= 1:
             continue
-        area = _surface_area(node_bounds[node, 0:3], node_bounds[node, 3:6])
+        b = node_bounds[node]
+        area = max(_half_area(b[0], b[1], b[2], b[3], b[4], b[5]), 1e-300)
         axis, split_bin, cmin, scale, cost = _find_split(
-            first, count, order, prim_min, prim_max, centroid, max(area, 1e-300), n_bins
+            first, count, order, prim_min, prim_max, centroid, area, c_trav, bins, bin_box
         )
         if axis >= 0:
-            if cost >= C_ISECT * count and count <= max_leaf_size:
-                continue  # a leaf is cheaper than any split
+            if cost >= count and count <= max_leaf_size:
+                continue  # testing all primitives is cheaper than any split: a leaf
             n_left = _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bins)
         elif count > max_leaf_size:
             n_left = count // 2  # all centroids coincide: split by index
         else:
             continue
+        # Children are allocated as a pair, so the right child is always left + 1.
         left = nodes_used
         nodes_used += 2
         node_first[left] = first
         node_count[left] = n_left
         node_first[left + 1] = first + n_left
         node_count[left + 1] = count - n_left
-        _update_bounds(left, first, n_left, order, prim_min, prim_max, node_bounds)
-        _update_bounds(
+        _set_bounds(left, first, n_left, order, prim_min, prim_max, node_bounds)
+        _set_bounds(
             left + 1, first + n_left, count - n_left, order, prim_min, prim_max, node_bounds
         )
         node_first[node] = left
         node_count[node] = 0
         stack[sp] = left + 1
-        stack_depth[sp] = level + 1
+        stack_level[sp] = level + 1
         stack[sp + 1] = left
-        stack_depth[sp + 1] = level + 1
+        stack_level[sp + 1] = level + 1
         sp += 2
     return (
         node_bounds[:nodes_used].copy(),

@@ -442,8 +442,9 @@ TRI = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
     [
         (dict(triangles=np.zeros((5, 3))), r"triangles must have shape \(T, 3, 3\), got \(5, 3\)"),
         (dict(triangles=np.zeros((5, 3, 2))), r"triangles must have shape \(T, 3, 3\)"),
-        (dict(triangles=np.full((1, 3, 3), np.nan)), "triangles must have finite"),
-        (dict(triangles=np.full((1, 3, 3), np.inf)), "triangles must have finite"),
+        (dict(triangles=np.full((1, 3, 3), np.nan)), "triangles must be finite"),
+        (dict(triangles=np.full((1, 3, 3), np.inf)), "triangles must be finite"),
+        (dict(triangles=np.full((1, 3, 3), 1e70)), "triangles must be at most 1e.60 in magn"),
         (dict(triangles=np.array([["a", "b", "c"]] * 3)[None]), "triangles must be a real"),
         (dict(triangles=TRI, sphere_centers=np.zeros((2, 3))), "given together"),
         (
@@ -456,11 +457,11 @@ TRI = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
         ),
         (
             dict(triangles=TRI, sphere_centers=np.zeros((1, 3)), sphere_radii=np.array([-1.0])),
-            "sphere_radii must be finite and > 0",
+            "sphere_radii must be > 0",
         ),
         (
             dict(triangles=TRI, sphere_centers=np.zeros((1, 3)), sphere_radii=np.array([np.nan])),
-            "sphere_radii must be finite and > 0",
+            "sphere_radii must be finite",
         ),
         (
             dict(triangles=TRI, sphere_centers=np.array([[0, np.inf, 0]]), sphere_radii=np.ones(1)),
@@ -489,6 +490,9 @@ def test_bad_scene_raises(kwargs, message):
             "directions must be finite",
         ),
         (np.zeros((2, 3)), np.array([[0.0, 0, 0], [1, 0, 0]]), {}, "directions must be nonzero"),
+        (np.zeros((2, 3)), np.array([[1e-70, 0, 0], [1, 0, 0]]), {}, "1 rays are zero or too"),
+        (np.full((2, 3), 1e61), np.ones((2, 3)), {}, "origins must be finite and at most 1e.60"),
+        (np.zeros((2, 3)), np.full((2, 3), -1e61), {}, "directions must be finite and at most"),
         (np.zeros((2, 3)), np.ones((2, 3)), dict(tmin=np.nan), "tmin must be finite"),
         (np.zeros((2, 3)), np.ones((2, 3)), dict(tmax=np.nan), "tmax must be not NaN"),
         (np.zeros((2, 3)), np.ones((2, 3)), dict(tmin="x"), "tmin must be a real scalar"),
