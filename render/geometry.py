@@ -50,7 +50,7 @@ def intersect_spheres(origin, direction, center, radius, far_root: np.ndarray):
     # At a grazing hit the discriminant is ~0 and sqrt's derivative blows up; clamping keeps
     # the value (it is ~0 anyway) and gives a finite gradient.
     root = md.sqrt(md.maximum(b * b - a * c, 1e-18))
-    sign = np.where(far_root, 1.0, -1.0)
+    sign = np.where(far_root, 1.0, -1.0).astype(a.dtype)
     return (-b + sign * root) / a
 
 
@@ -77,5 +77,6 @@ def toward_ray(normals, directions) -> np.ndarray:
     A normal facing away from the viewer has dot(n, d) > 0. The sign is a discrete choice
     (like visibility), so it is a constant on the tape.
     """
-    facing_away = np.einsum("ij,ij->i", md.as_tensor(normals).data, directions.data) > 0
-    return np.where(facing_away, -1.0, 1.0)[:, None]
+    normals = md.as_tensor(normals).data
+    facing_away = np.einsum("ij,ij->i", normals, directions.data) > 0
+    return np.where(facing_away, -1.0, 1.0).astype(normals.dtype)[:, None]

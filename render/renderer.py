@@ -252,9 +252,12 @@ def render(
     prim_id, hit_rays, lit = _visibility(scene, bool(bvh), spp, bool(shadows), reuse_visibility)
     n_pixels = camera.width * camera.height
 
+    # The working precision: float32 only if every parameter is float32 (constants such as
+    # pixel coordinates are cast to it, so that they do not promote the tape to float64).
+    dtype = np.result_type(*[t.dtype for t in scene.parameters()])
     frame = camera_frame(camera)
     eye = frame[3]
-    coords = image_plane_coords(camera, hit_rays, spp)
+    coords = image_plane_coords(camera, hit_rays, spp).astype(dtype)
     hit_prims = prim_id[hit_rays]
 
     colours, pixels = [], []
@@ -263,7 +266,7 @@ def render(
         if len(in_obj) == 0:
             continue
         directions = ray_directions(frame, coords[in_obj])
-        obj_lit = [m[in_obj].astype(np.float64) for m in lit]
+        obj_lit = [m[in_obj].astype(dtype) for m in lit]
         if isinstance(obj, Mesh):
             local = hit_prims[in_obj] - first
             colours.append(_shade_mesh(obj, local, eye, directions, lights, obj_lit))
@@ -279,10 +282,8 @@ def render(
             image = image * (1.0 / spp)
     background = scene.background
     if image is None or background.requires_grad or np.any(background.data):
-        miss_fraction = np.bincount(np.flatnonzero(prim_id < 0) // spp, minlength=n_pixels) / float(
-            spp
-        )
-        fill = miss_fraction[:, None] * background
+        misses = np.bincount(np.flatnonzero(prim_id < 0) // spp, minlength=n_pixels)
+        fill = (misses / spp).astype(dtype)[:, None] * background
         image = fill if image is None else image + fill
     image = md.reshape(image, (camera.height, camera.width, 3))
     if not return_info:

@@ -488,6 +488,7 @@ class Mesh:
                 f"Mesh: faces index vertex {hi} but there are only {n_vertices} vertices"
             )
         _check_instance(self.material, "Mesh", "material", Material)
+        self.material.validate()  # its tensors may have been edited in place too
         if self.normals is not None:
             _check_tensor(self.normals, "Mesh", "normals", [(n_vertices, 3)])
         if self.uvs is not None:
@@ -527,6 +528,7 @@ class Sphere:
         if radius <= 0.0:
             raise ValueError(f"Sphere: radius must be > 0, got {radius}")
         _check_instance(self.material, "Sphere", "material", Material)
+        self.material.validate()
         if self.material.texture is not None:
             raise ValueError("Sphere: textured materials are not supported (spheres have no UVs)")
 
@@ -575,6 +577,20 @@ class Scene:
     def spheres(self) -> list[Sphere]:
         """The ``Sphere`` objects, in scene order."""
         return [o for o in self.objects if isinstance(o, Sphere)]
+
+    def parameters(self) -> list[Tensor]:
+        """Every continuous parameter tensor of the scene (camera, lights, objects,
+        materials, background), each once, in a fixed order."""
+        owners = [self.camera, *self.lights]
+        for obj in self.objects:
+            owners += [obj, obj.material]
+        found, seen = [], set()
+        for owner in owners:
+            for value in vars(owner).values():
+                if isinstance(value, Tensor) and id(value) not in seen:
+                    seen.add(id(value))
+                    found.append(value)
+        return found + ([self.background] if id(self.background) not in seen else [])
 
     def validate(self) -> None:
         """Re-check every object, light, the camera and the background (cheap)."""

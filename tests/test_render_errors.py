@@ -33,16 +33,7 @@ def small_scene():
         (lambda s: s.camera, "look_at"),
         (lambda s: s.camera, "fov"),
         (lambda s: s.objects[0], "vertices"),
-        pytest.param(
-            lambda s: s.objects[0].material,
-            "albedo",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="Mesh.validate and Sphere.validate check the material's type but do "
-                "not call material.validate(), so a NaN set in place in a material renders "
-                "a NaN image (render/scene.py)",
-            ),
-        ),
+        (lambda s: s.objects[0].material, "albedo"),
         (lambda s: s.spheres[0], "radius"),
         (lambda s: s, "background"),
     ],
