@@ -4,7 +4,7 @@ Usage::
 
     acc = Accelerator(triangles, sphere_centers, sphere_radii)   # builds the BVH
     prim_id, t, u, v = acc.closest_hit(origins, directions)      # camera / bounce rays
-    shadowed = acc.occluded(hit_points, light - hit_points, tmax=np.full(n, 1 - 1e-6),
+    shadowed = acc.occluded(points, light - points, tmax=1 - 1e-6,
                             ignore_prim=prim_id)                 # shadow rays
 
 ``Accelerator(..., use_bvh=False)`` tests every ray against every primitive.  It answers
@@ -16,7 +16,10 @@ Design notes
 * One BVH over all primitives: triangles and spheres are leaves of the same tree (the builder
   only needs boxes), so mixed scenes need a single traversal.
 * All input checking happens here, in Python, before any Numba kernel runs: the kernels
-  assume contiguous float64 arrays of the right shapes with finite values.
+  assume contiguous float64 arrays of the right shapes with finite, moderate values.
+* A ray array in which every row is the same (``np.broadcast_to(eye, (N, 3))``, e.g. the
+  camera's eye or a directional light) is passed to the kernels as its single row instead of
+  being copied N times.
 * An empty scene (no triangles, no spheres) is allowed: every ray misses.
 """
 
@@ -54,22 +57,41 @@ SHADOW_TMIN = 1e-6
 # --------------------------------------------------------------------------------------------
 
 
-def _as_float_array(name: str, x, shape_text: str, ndim: int, last: tuple[int, ...]) -> np.ndarray:
-    """``x`` as a C-contiguous float64 array of ``ndim`` dimensions whose trailing dimensions
-    are ``last``; raises ValueError naming the argument and the expected shape otherwise."""
+def _as_real_array(name: str, x, shape_text: str) -> np.ndarray:
+    """``np.asarray(x)`` (no copy) if it is a real numeric array, else ValueError."""
     try:
         a = np.asarray(x)
     except Exception as exc:  # ragged lists and the like
         raise ValueError(f"{name} must be an array of shape {shape_text}: {exc}") from None
-    if a.dtype == object or not (
+    if not (
         np.issubdtype(a.dtype, np.floating)
         or np.issubdtype(a.dtype, np.integer)
         or a.dtype == np.bool_
     ):
         raise ValueError(f"{name} must be a real numeric array, got dtype {a.dtype}")
+    return a
+
+
+def _as_float_array(name: str, x, shape_text: str, ndim: int, last: tuple[int, ...]) -> np.ndarray:
+    """``x`` as a C-contiguous float64 array of ``ndim`` dimensions whose trailing dimensions
+    are ``last``; raises ValueError naming the argument and the expected shape otherwise."""
+    a = _as_real_array(name, x, shape_text)
     if a.ndim != ndim or a.shape[ndim - len(last) :] != last:
         raise ValueError(f"{name} must have shape {shape_text}, got {a.shape}")
     return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def _as_ray_array(name: str, x) -> tuple[np.ndarray, int, int]:
+    """A ray array (N, 3) as ``(array, step, N)`` for the kernels: ray i reads row
+    ``i * step``.  A broadcast array whose rows all share memory (stride 0) becomes its single
+    row (1, 3) with step 0; anything else a C-contiguous float64 copy/view with step 1."""
+    a = _as_real_array(name, x, "(N, 3)")
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+    n = a.shape[0]
+    if n > 1 and a.strides[0] == 0:
+        return np.ascontiguousarray(a[:1], dtype=np.float64), 0, n
+    return np.ascontiguousarray(a, dtype=np.float64), 1, n
 
 
 @njit(cache=True, parallel=True)
@@ -78,22 +100,52 @@ def _count_bad_rays(origins, directions):
     parallel pass instead of several NumPy temporaries.  "Bad" means NaN, inf or larger than
     MAX_COORD in magnitude (the comparisons are written so that NaN fails them)."""
     bad_o = 0
-    bad_d = 0
-    short_d = 0
     for i in prange(origins.shape[0]):
         ox = abs(origins[i, 0])
         oy = abs(origins[i, 1])
         oz = abs(origins[i, 2])
+        if not (ox <= MAX_COORD and oy <= MAX_COORD and oz <= MAX_COORD):
+            bad_o += 1
+    bad_d = 0
+    short_d = 0
+    for i in prange(directions.shape[0]):
         dx = abs(directions[i, 0])
         dy = abs(directions[i, 1])
         dz = abs(directions[i, 2])
-        if not (ox <= MAX_COORD and oy <= MAX_COORD and oz <= MAX_COORD):
-            bad_o += 1
         if not (dx <= MAX_COORD and dy <= MAX_COORD and dz <= MAX_COORD):
             bad_d += 1
         elif dx < MIN_DIRECTION and dy < MIN_DIRECTION and dz < MIN_DIRECTION:
             short_d += 1
     return bad_o, bad_d, short_d
+
+
+def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray, int, int, int]:
+    """Validate and convert the ray arrays: (N, 3) each, finite, moderate, directions nonzero.
+    Returns ``(origins, directions, o_step, d_step, N)`` as the kernels take them."""
+    o, o_step, n = _as_ray_array("origins", origins)
+    d, d_step, n_d = _as_ray_array("directions", directions)
+    if n != n_d:
+        raise ValueError(
+            f"origins and directions must have the same number of rays N, got {n} and {n_d}"
+        )
+    if n > 0:
+        bad_o, bad_d, short_d = _count_bad_rays(o, d)
+        if bad_o:
+            raise ValueError(
+                f"origins must be finite and at most {MAX_COORD:g} in magnitude; "
+                f"{bad_o * (n if o_step == 0 else 1)} rays are not"
+            )
+        if bad_d:
+            raise ValueError(
+                f"directions must be finite and at most {MAX_COORD:g} in magnitude; "
+                f"{bad_d * (n if d_step == 0 else 1)} rays are not"
+            )
+        if short_d:
+            raise ValueError(
+                f"directions must be nonzero (some component >= {MIN_DIRECTION:g} in "
+                f"magnitude); {short_d * (n if d_step == 0 else 1)} rays are zero or too short"
+            )
+    return o, d, o_step, d_step, n
 
 
 def _check_coordinates(name: str, a: np.ndarray) -> None:
@@ -106,37 +158,10 @@ def _check_coordinates(name: str, a: np.ndarray) -> None:
         )
 
 
-def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
-    """Validate and convert the ray arrays: (N, 3) each, finite, directions nonzero."""
-    o = _as_float_array("origins", origins, "(N, 3)", 2, (3,))
-    d = _as_float_array("directions", directions, "(N, 3)", 2, (3,))
-    if o.shape[0] != d.shape[0]:
-        raise ValueError(
-            f"origins and directions must have the same number of rays N, got {o.shape[0]} "
-            f"and {d.shape[0]}"
-        )
-    if o.shape[0] > 0:
-        bad_o, bad_d, short_d = _count_bad_rays(o, d)
-        if bad_o:
-            raise ValueError(
-                f"origins must be finite and at most {MAX_COORD:g} in magnitude; "
-                f"{bad_o} rays are not"
-            )
-        if bad_d:
-            raise ValueError(
-                f"directions must be finite and at most {MAX_COORD:g} in magnitude; "
-                f"{bad_d} rays are not"
-            )
-        if short_d:
-            raise ValueError(
-                f"directions must be nonzero (some component >= {MIN_DIRECTION:g} in "
-                f"magnitude); {short_d} rays are zero or too short"
-            )
-    return o, d
-
-
 def _check_scalar(name: str, x, allow_inf: bool) -> float:
     """A real scalar (NaN never allowed, +-inf only if ``allow_inf``)."""
+    if isinstance(x, str | bytes):
+        raise ValueError(f"{name} must be a real scalar, got {x!r}")
     try:
         f = float(x)
     except (TypeError, ValueError):
@@ -156,10 +181,13 @@ class Accelerator:
 
     Primitive ids: triangles are 0..T-1 in the given order, spheres are T..T+S-1.
 
+    ``use_bvh=False`` gives the brute-force baseline (same results, bit for bit).
+    ``n_bins`` is the number of SAH bins per axis used by the builder.
+
     Build statistics (attributes): ``n_triangles``, ``n_spheres``, ``n_prims``,
-    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 without a tree), ``build_seconds``
-    (wall time of ``__init__``; the first build in a process also loads the compiled kernels),
-    ``use_bvh``.
+    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 without a tree),
+    ``build_seconds`` (wall time of ``__init__``; the first build in a process also loads the
+    compiled kernels), ``use_bvh``.
     """
 
     def __init__(
@@ -190,7 +218,7 @@ class Accelerator:
         _check_coordinates("sphere_radii", radii)
         if not (radii > 0).all():
             raise ValueError("sphere_radii must be > 0")
-        if int(n_bins) != n_bins or n_bins < 2:
+        if isinstance(n_bins, bool) or not isinstance(n_bins, int | np.integer) or n_bins < 2:
             raise ValueError(f"n_bins must be an integer >= 2, got {n_bins!r}")
 
         self.use_bvh = bool(use_bvh)
@@ -249,10 +277,9 @@ class Accelerator:
         Ties are broken by the order (t, prim_id): of two hits at exactly the same t (a ray
         through a shared edge or vertex) the lower id wins, with or without the BVH.
         """
-        o, d = _check_rays(origins, directions)
+        o, d, o_step, d_step, n = _check_rays(origins, directions)
         tmin = _check_scalar("tmin", tmin, allow_inf=False)
         tmax = _check_scalar("tmax", tmax, allow_inf=True)
-        n = o.shape[0]
         out_id = np.empty(n, np.int64)
         out_t = np.empty(n)
         out_u = np.empty(n)
@@ -270,6 +297,8 @@ class Accelerator:
                 self.depth + 2,
                 o,
                 d,
+                o_step,
+                d_step,
                 tmin,
                 tmax,
                 out_id,
@@ -279,7 +308,18 @@ class Accelerator:
             )
         else:
             closest_hit_brute(
-                self.prim_data, self.n_triangles, o, d, tmin, tmax, out_id, out_t, out_u, out_v
+                self.prim_data,
+                self.n_triangles,
+                o,
+                d,
+                o_step,
+                d_step,
+                tmin,
+                tmax,
+                out_id,
+                out_t,
+                out_u,
+                out_v,
             )
         return out_id, out_t, out_u, out_v
 
@@ -299,18 +339,18 @@ class Accelerator:
         (typically the ``prim_id`` the shadow ray starts on: a flat triangle cannot shadow
         itself, so skipping it removes self-intersection acne).
         """
-        o, d = _check_rays(origins, directions)
-        n = o.shape[0]
+        o, d, o_step, d_step, n = _check_rays(origins, directions)
         tmin = _check_scalar("tmin", tmin, allow_inf=False)
-        tmax_arr = np.asarray(tmax)
-        if tmax_arr.ndim == 0:
-            tmax_arr = np.full(n, _check_scalar("tmax", tmax_arr, allow_inf=True))
+        if np.ndim(tmax) == 0:
+            tmax_arr = np.array([_check_scalar("tmax", tmax, allow_inf=True)])
+            t_step = 0
         else:
-            tmax_arr = _as_float_array("tmax", tmax_arr, f"(N,) = ({n},)", 1, ())
+            tmax_arr = _as_float_array("tmax", tmax, f"(N,) = ({n},)", 1, ())
             if tmax_arr.shape[0] != n:
                 raise ValueError(f"tmax must have shape (N,) = ({n},), got {tmax_arr.shape}")
             if np.isnan(tmax_arr).any():
                 raise ValueError("tmax must not contain NaN")
+            t_step = 1
         if ignore_prim is None:
             ignore = np.full(n, -1, np.int64)
         else:
@@ -339,11 +379,26 @@ class Accelerator:
                 self.depth + 2,
                 o,
                 d,
+                o_step,
+                d_step,
                 tmin,
                 tmax_arr,
+                t_step,
                 ignore,
                 out,
             )
         else:
-            occluded_brute(self.prim_data, self.n_triangles, o, d, tmin, tmax_arr, ignore, out)
+            occluded_brute(
+                self.prim_data,
+                self.n_triangles,
+                o,
+                d,
+                o_step,
+                d_step,
+                tmin,
+                tmax_arr,
+                t_step,
+                ignore,
+                out,
+            )
         return out

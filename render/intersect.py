@@ -473,6 +473,12 @@ def _n_jobs(n_rays):
     return max(1, min(n_blocks, 64))
 
 
+# Ray arrays: ``origins`` and ``directions`` are (N, 3) float64, or (1, 3) for a value shared by
+# all rays (a camera's eye, a directional light), with ``o_step`` / ``d_step`` = 1 or 0: ray i
+# reads row ``i * step``.  That avoids materialising a 6 MB copy of a broadcast array per call.
+# The ray count N is taken from the output arrays.
+
+
 @njit(cache=True, error_model="numpy", parallel=True)
 def closest_hit_bvh(
     node_bounds,
@@ -484,6 +490,8 @@ def closest_hit_bvh(
     stack_size,
     origins,
     directions,
+    o_step,
+    d_step,
     tmin,
     tmax,
     out_id,
@@ -492,9 +500,9 @@ def closest_hit_bvh(
     out_v,
 ):
     """Closest hit for N rays through the BVH (single-ray traversal, rays in parallel).
-    ``stack_size`` must be at least the tree depth + 1.  origins, directions (N, 3) float64;
-    results written to out_id (N,) int64, out_t, out_u, out_v (N,) float64."""
-    n = origins.shape[0]
+    ``stack_size`` must be at least the tree depth + 1.  Results are written to out_id (N,)
+    int64, out_t, out_u, out_v (N,) float64 (see :func:`closest_hit_ray`)."""
+    n = out_id.shape[0]
     n_jobs = _n_jobs(n)
     n_blocks = (n + BLOCK - 1) // BLOCK
     for job in prange(n_jobs):
@@ -503,6 +511,8 @@ def closest_hit_bvh(
         for b in range((n_blocks - job + n_jobs - 1) // n_jobs):
             start, stop = _block_range(job, n_jobs, b, n)
             for i in range(start, stop):
+                io = i * o_step
+                jd = i * d_step
                 pid, t, u, v = closest_hit_ray(
                     node_bounds,
                     node_first,
@@ -510,12 +520,12 @@ def closest_hit_bvh(
                     leaf_prim,
                     leaf_ids,
                     n_tri,
-                    origins[i, 0],
-                    origins[i, 1],
-                    origins[i, 2],
-                    directions[i, 0],
-                    directions[i, 1],
-                    directions[i, 2],
+                    origins[io, 0],
+                    origins[io, 1],
+                    origins[io, 2],
+                    directions[jd, 0],
+                    directions[jd, 1],
+                    directions[jd, 2],
                     tmin,
                     tmax,
                     stack,
@@ -538,14 +548,17 @@ def occluded_bvh(
     stack_size,
     origins,
     directions,
+    o_step,
+    d_step,
     tmin,
     tmax,
+    t_step,
     ignore,
     out,
 ):
-    """Any-hit for N shadow rays through the BVH.  tmax (N,) float64, ignore (N,) int64,
-    result in out (N,) bool."""
-    n = origins.shape[0]
+    """Any-hit for N shadow rays through the BVH.  tmax (N,) or (1,) float64 with ``t_step``
+    1 or 0 like the ray arrays, ignore (N,) int64; the result is written to out (N,) bool."""
+    n = out.shape[0]
     n_jobs = _n_jobs(n)
     n_blocks = (n + BLOCK - 1) // BLOCK
     for job in prange(n_jobs):
@@ -553,6 +566,8 @@ def occluded_bvh(
         for b in range((n_blocks - job + n_jobs - 1) // n_jobs):
             start, stop = _block_range(job, n_jobs, b, n)
             for i in range(start, stop):
+                io = i * o_step
+                jd = i * d_step
                 out[i] = occluded_ray(
                     node_bounds,
                     node_first,
@@ -560,32 +575,36 @@ def occluded_bvh(
                     leaf_prim,
                     leaf_ids,
                     n_tri,
-                    origins[i, 0],
-                    origins[i, 1],
-                    origins[i, 2],
-                    directions[i, 0],
-                    directions[i, 1],
-                    directions[i, 2],
+                    origins[io, 0],
+                    origins[io, 1],
+                    origins[io, 2],
+                    directions[jd, 0],
+                    directions[jd, 1],
+                    directions[jd, 2],
                     tmin,
-                    tmax[i],
+                    tmax[i * t_step],
                     ignore[i],
                     stack,
                 )
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def closest_hit_brute(prim, n_tri, origins, directions, tmin, tmax, out_id, out_t, out_u, out_v):
-    """Closest hit for N rays by testing every primitive (see closest_hit_bvh for shapes)."""
-    for i in prange(origins.shape[0]):
+def closest_hit_brute(
+    prim, n_tri, origins, directions, o_step, d_step, tmin, tmax, out_id, out_t, out_u, out_v
+):
+    """Closest hit for N rays by testing every primitive (arguments as closest_hit_bvh)."""
+    for i in prange(out_id.shape[0]):
+        io = i * o_step
+        jd = i * d_step
         pid, t, u, v = closest_hit_brute_ray(
             prim,
             n_tri,
-            origins[i, 0],
-            origins[i, 1],
-            origins[i, 2],
-            directions[i, 0],
-            directions[i, 1],
-            directions[i, 2],
+            origins[io, 0],
+            origins[io, 1],
+            origins[io, 2],
+            directions[jd, 0],
+            directions[jd, 1],
+            directions[jd, 2],
             tmin,
             tmax,
         )
@@ -596,19 +615,23 @@ def closest_hit_brute(prim, n_tri, origins, directions, tmin, tmax, out_id, out_
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def occluded_brute(prim, n_tri, origins, directions, tmin, tmax, ignore, out):
-    """Any-hit for N shadow rays by testing every primitive (see occluded_bvh for shapes)."""
-    for i in prange(origins.shape[0]):
+def occluded_brute(
+    prim, n_tri, origins, directions, o_step, d_step, tmin, tmax, t_step, ignore, out
+):
+    """Any-hit for N shadow rays by testing every primitive (arguments as occluded_bvh)."""
+    for i in prange(out.shape[0]):
+        io = i * o_step
+        jd = i * d_step
         out[i] = occluded_brute_ray(
             prim,
             n_tri,
-            origins[i, 0],
-            origins[i, 1],
-            origins[i, 2],
-            directions[i, 0],
-            directions[i, 1],
-            directions[i, 2],
+            origins[io, 0],
+            origins[io, 1],
+            origins[io, 2],
+            directions[jd, 0],
+            directions[jd, 1],
+            directions[jd, 2],
             tmin,
-            tmax[i],
+            tmax[i * t_step],
             ignore[i],
         )
