@@ -57,6 +57,13 @@ SHADOW_TMIN = 1e-6
 # --------------------------------------------------------------------------------------------
 
 
+def _contiguous_float64(a: np.ndarray) -> np.ndarray:
+    """C-contiguous, writeable float64 (a view if ``a`` already is one).  Writeable because
+    Numba types read-only arrays differently and would compile every kernel a second time."""
+    out = np.ascontiguousarray(a, dtype=np.float64)
+    return out if out.flags.writeable else out.copy()
+
+
 def _as_real_array(name: str, x, shape_text: str) -> np.ndarray:
     """``np.asarray(x)`` (no copy) if it is a real numeric array, else ValueError."""
     try:
@@ -78,7 +85,7 @@ def _as_float_array(name: str, x, shape_text: str, ndim: int, last: tuple[int, .
     a = _as_real_array(name, x, shape_text)
     if a.ndim != ndim or a.shape[ndim - len(last) :] != last:
         raise ValueError(f"{name} must have shape {shape_text}, got {a.shape}")
-    return np.ascontiguousarray(a, dtype=np.float64)
+    return _contiguous_float64(a)
 
 
 def _as_ray_array(name: str, x) -> tuple[np.ndarray, int, int]:
@@ -90,8 +97,8 @@ def _as_ray_array(name: str, x) -> tuple[np.ndarray, int, int]:
         raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
     n = a.shape[0]
     if n > 1 and a.strides[0] == 0:
-        return np.ascontiguousarray(a[:1], dtype=np.float64), 0, n
-    return np.ascontiguousarray(a, dtype=np.float64), 1, n
+        return _contiguous_float64(a[:1]), 0, n
+    return _contiguous_float64(a), 1, n
 
 
 @njit(cache=True, parallel=True)
@@ -359,7 +366,7 @@ class Accelerator:
                 raise ValueError(f"ignore_prim must have shape (N,) = ({n},), got {ignore.shape}")
             if not np.issubdtype(ignore.dtype, np.integer):
                 raise ValueError(f"ignore_prim must be an integer array, got dtype {ignore.dtype}")
-            ignore = np.ascontiguousarray(ignore, dtype=np.int64)
+            ignore = np.array(ignore, dtype=np.int64, order="C")  # a copy: writeable
             if n and (ignore.min() < -1 or ignore.max() >= self.n_prims):
                 raise ValueError(
                     f"ignore_prim values must be -1 (none) or primitive ids in "

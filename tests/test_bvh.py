@@ -530,6 +530,10 @@ def test_integer_and_noncontiguous_inputs_are_converted():
     d = np.tile(np.array([0, 0, -1]), (10, 1))  # integer directions
     pid, t, _, _ = acc.closest_hit(o, d)
     assert np.all(pid >= 0) and np.all(t == 1.0)
+    # Read-only arrays are accepted too (and copied, so Numba needs no second compilation).
+    o = np.ascontiguousarray(o)
+    o.flags.writeable = False
+    assert_same_hits(acc.closest_hit(o, d), (pid, t, *acc.closest_hit(o.copy(), d)[2:]))
 
 
 @pytest.mark.parametrize("use_bvh", [True, False])
