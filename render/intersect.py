@@ -199,8 +199,8 @@ def intersect_prim(prim, k, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, tmin):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def safe_inverse(d):
-    """1/d for the slab test, with exact zeros replaced by a tiny positive number so that
-    ``(bound - origin) * inv`` is +-inf or 0, never ``0 * inf = NaN``."""
+    """1/d for the slab test, with exact zeros replaced by a tiny positive number: then
+    ``(bound - origin) * inv`` is huge (or +-inf) or exactly 0, never ``0 * inf = NaN``."""
     if d == 0.0:
         d = 1e-300
     return 1.0 / d
