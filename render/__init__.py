@@ -3,12 +3,14 @@
 Read in this order: ``scene.py`` (what a scene is), ``teapot.py`` (the reference scene),
 ``camera.py`` (rays), ``bvh.py`` / ``intersect.py`` / ``accel.py`` (visibility),
 ``geometry.py`` (hits recomputed on the tape), ``shading.py`` (lights and materials),
-``renderer.py`` (putting it together), ``image.py`` / ``meshio.py`` (files).
+``renderer.py`` (putting it together), ``image.py`` / ``meshio.py`` (files),
+``optimize.py`` (inverse rendering) and ``experiments.py`` (the paper's experiments).
 """
 
 from render.accel import Accelerator
 from render.image import load_image, mse, psnr, save_image
 from render.meshio import load_mesh
+from render.optimize import FlatParameters, History, image_loss, optimize
 from render.renderer import RenderInfo, render
 from render.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
 from render.teapot import paper_scene, teapot, teapot_geometry
@@ -16,5 +18,6 @@ from render.teapot import paper_scene, teapot, teapot_geometry
 __all__ = [
     "Accelerator", "Camera", "DirectionalLight", "Material", "Mesh", "PointLight", "Scene",
     "Sphere", "RenderInfo", "render", "load_image", "save_image", "mse", "psnr", "load_mesh",
-    "paper_scene", "teapot", "teapot_geometry",
+    "paper_scene", "teapot", "teapot_geometry", "optimize", "FlatParameters", "History",
+    "image_loss",
 ]  # fmt: skip
