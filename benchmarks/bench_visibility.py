@@ -1,184 +1,192 @@
-"""Visibility benchmark: BVH vs brute force on the Utah teapot.
+"""Visibility benchmark: BVH vs brute force on the paper's teapot scene (no shading, no tape).
 
-Run:  python benchmarks/bench_visibility.py [--repeats 15] [--no-brute]
+Run:  python benchmarks/bench_visibility.py [--out DIR] [--quick] [--repeats 15] [--no-brute]
 
-Workload (the reference from the project brief): the Newell teapot tessellated into 1,536
-triangles, a 512x512 pinhole camera at (3, 2, 5) looking at the origin (one ray per pixel
-centre), and a point light at (2, 5, 3) for the shadow rays of the camera hits.  A finer
-tessellation (99,840 triangles) measures build time and primary rays on a bigger mesh.
+Workload (``paper_scene.md``): the Newell teapot tessellated into 1,536 triangles
+(``render.teapot``), the 512x512 pinhole camera at (3, 2, 5) looking at the origin, one ray
+per pixel centre (``render.camera.primary_rays``), and shadow rays from the camera hits to
+the point light at (2, 5, 3), with the arguments the renderer uses (tmin = 1e-7 of the
+scene scale, tmax = 1 - 1e-7 of the distance to the light, the start triangle ignored).
+A finer tessellation (26 x 60 cells per patch: 99,840 triangles) measures build time and
+ray casting on a bigger mesh.
 
-Every time is the median over repeats, after a warm-up call (JIT compilation / cache load).
-The thread count is Numba's default (set NUMBA_NUM_THREADS to change it).
+Measured (medians after a warm-up call, see ``timing.py``): BVH build, camera-ray
+generation, closest-hit for all camera rays, any-hit for the shadow rays; brute force for
+the same rays (identical answers are checked). The thread count is Numba's default (set
+NUMBA_NUM_THREADS to change it).
+
+The functions ``visibility_workload``, ``time_bvh_visibility`` and ``time_brute_visibility``
+are used by ``bench_render.py`` and ``fig2_bvh.py`` too.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import statistics
-import time
-from pathlib import Path
-
-import numba
 import numpy as np
+import timing
 
 from render.accel import Accelerator
+from render.camera import primary_rays
+from render.teapot import paper_scene
 
-DATA = Path(__file__).resolve().parents[1] / "render" / "data" / "newell_teapot.json"
-EYE = np.array([3.0, 2.0, 5.0])
-TARGET = np.zeros(3)
-UP = np.array([0.0, 1.0, 0.0])
-TAN_HALF_FOV = 18.0 / 50.0  # horizontal fov = 2 atan(18/50), a 50 mm lens on 36 mm film
-LIGHT = np.array([2.0, 5.0, 3.0])
+# The renderer's shadow-ray convention (render/renderer.py, _SHADOW_EPSILON).
+SHADOW_EPSILON = 1e-7
 
 
-def _bernstein3(t: np.ndarray) -> np.ndarray:
-    """Cubic Bernstein basis at parameters t (n,) -> (n, 4)."""
-    s = 1.0 - t
-    return np.stack([s**3, 3 * t * s**2, 3 * t**2 * s, t**3], axis=1)
+def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
+    """The plain arrays of the paper scene's visibility queries at ``size`` x ``size`` with
+    the teapot tessellated into nu x nv cells per patch: triangles, camera rays, and the
+    shadow rays of the camera hits (computed here once with the BVH)."""
+    scene = paper_scene(size, size, nu=nu, nv=nv)
+    triangles = scene.meshes[0].triangles()
+    eye, directions = primary_rays(scene.camera)
+    origins = np.broadcast_to(eye, directions.shape)  # as the renderer passes them
+    accel = Accelerator(triangles)
+    prim_id, t, _, _ = accel.closest_hit(origins, directions)
+    hit = np.flatnonzero(prim_id >= 0)
+    points = eye + t[hit, None] * directions[hit]
+    light = np.asarray(scene.lights[0].position.data, dtype=np.float64)
+    return {
+        "scene": scene,
+        "triangles": triangles,
+        "accel": accel,
+        "origins": origins,
+        "directions": directions,
+        "prim_id": prim_id,
+        "shadow_origins": points,
+        "shadow_directions": light - points,  # unnormalised: the light is at t = 1
+        "shadow_tmin": SHADOW_EPSILON * max(1.0, float(np.abs(points).max())),
+        "shadow_tmax": 1.0 - SHADOW_EPSILON,
+        "shadow_ignore": prim_id[hit],
+    }
 
 
-def teapot_triangles(cells_u: int = 4, cells_v: int = 6) -> np.ndarray:
-    """The Newell teapot as a triangle soup (32 * cells_u * cells_v * 2, 3, 3).
-
-    Each bicubic patch (4x4 control points, row-major) is evaluated on a
-    (cells_u + 1) x (cells_v + 1) grid, u along the first control-point index, and each cell
-    (i, j) becomes triangles (P[i,j], P[i+1,j+1], P[i+1,j]) and (P[i,j], P[i,j+1], P[i+1,j+1]).
-    Control points (x, y, z) (z up) are placed at 0.5 * (x, z, -y) + (0, -0.5, 0) (y up).
-    Pole patches give some zero-area triangles, as in the original data.
-
-    Swap point: replace this function by ``render.teapot`` once that module exists.
-    """
-    data = json.loads(DATA.read_text())
-    verts = np.asarray(data["vertices"], dtype=np.float64)
-    verts = 0.5 * np.stack([verts[:, 0], verts[:, 2], -verts[:, 1]], axis=1)
-    verts += np.array([0.0, -0.5, 0.0])
-    bu = _bernstein3(np.linspace(0.0, 1.0, cells_u + 1))  # (nu+1, 4)
-    bv = _bernstein3(np.linspace(0.0, 1.0, cells_v + 1))  # (nv+1, 4)
-    tris = []
-    for patch in data["patches"]:
-        cp = verts[np.asarray(patch)].reshape(4, 4, 3)
-        grid = np.einsum("ia,jb,abk->ijk", bu, bv, cp)  # (nu+1, nv+1, 3)
-        p00 = grid[:-1, :-1].reshape(-1, 3)
-        p10 = grid[1:, :-1].reshape(-1, 3)
-        p01 = grid[:-1, 1:].reshape(-1, 3)
-        p11 = grid[1:, 1:].reshape(-1, 3)
-        t1 = np.stack([p00, p11, p10], axis=1)
-        t2 = np.stack([p00, p01, p11], axis=1)
-        # Interleave so that cell (i, j) gives triangles 2k, 2k+1.
-        tris.append(np.stack([t1, t2], axis=1).reshape(-1, 3, 3))
-    return np.concatenate(tris)
-
-
-def camera_rays(width: int = 512, height: int = 512) -> tuple[np.ndarray, np.ndarray]:
-    """Pinhole camera rays through the pixel centres, row-major from the top-left pixel.
-    Returns origins, directions (width*height, 3); directions are unit length."""
-    forward = TARGET - EYE
-    forward /= np.linalg.norm(forward)
-    right = np.cross(forward, UP)
-    right /= np.linalg.norm(right)
-    up = np.cross(right, forward)
-    tan_v = TAN_HALF_FOV * height / width
-    x = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * TAN_HALF_FOV
-    y = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * tan_v
-    xx, yy = np.meshgrid(x, y)  # (height, width)
-    d = forward + xx[..., None] * right + yy[..., None] * up
-    d = d.reshape(-1, 3)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    return np.broadcast_to(EYE, d.shape).copy(), d
-
-
-def median_time(fn, repeats: int) -> float:
-    """Median wall time of ``fn()`` in seconds over ``repeats`` calls, after one warm-up."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
-def shadow_rays(origins, directions, prim_id, t):
-    """Shadow rays from the camera hits towards LIGHT: origin = hit point, direction =
-    LIGHT - hit (unnormalised, so the light is at t = 1), tmax = 1 - 1e-9, ignore = hit id."""
-    hit = prim_id >= 0
-    p = origins[hit] + t[hit, None] * directions[hit]
-    return p, LIGHT - p, np.full(p.shape[0], 1.0 - 1e-9), prim_id[hit]
-
-
-def run(repeats: int, brute: bool) -> None:
-    print(
-        f"numba {numba.__version__}, threads: {numba.get_num_threads()}, "
-        f"layer: {numba.config.THREADING_LAYER}"
-    )
-    origins, directions = camera_rays()
-    n_rays = origins.shape[0]
-
-    tris = teapot_triangles()
-    Accelerator(tris)  # warm-up: JIT compile / cache load of the builder
-    build = median_time(lambda: Accelerator(tris), repeats)
-    acc = Accelerator(tris)
-    print(f"\nteapot: {tris.shape[0]} triangles; {acc}")
-    print(f"  build                      {build * 1e3:8.2f} ms")
-
-    prim_id, t, u, v = acc.closest_hit(origins, directions)
-    n_hit = int((prim_id >= 0).sum())
-    primary = median_time(lambda: acc.closest_hit(origins, directions), repeats)
-    print(f"  closest_hit BVH  {n_rays} rays {primary * 1e3:8.2f} ms   ({n_hit} hits)")
-
-    so, sd, stmax, sign = shadow_rays(origins, directions, prim_id, t)
-    occ = acc.occluded(so, sd, stmax, ignore_prim=sign)
-    shadow = median_time(lambda: acc.occluded(so, sd, stmax, ignore_prim=sign), repeats)
-    print(
-        f"  occluded BVH     {so.shape[0]} rays  {shadow * 1e3:8.2f} ms   "
-        f"({int(occ.sum())} in shadow)"
+def _occluded(accel: Accelerator, w: dict, rays=slice(None)) -> np.ndarray:
+    return accel.occluded(
+        w["shadow_origins"][rays],
+        w["shadow_directions"][rays],
+        w["shadow_tmax"],
+        tmin=w["shadow_tmin"],
+        ignore_prim=w["shadow_ignore"][rays],
     )
 
-    if brute:
-        ref = Accelerator(tris, use_bvh=False)
-        r_id, r_t, r_u, r_v = ref.closest_hit(origins, directions)
-        same = (
-            np.array_equal(r_id, prim_id)
-            and np.array_equal(r_t, t)
-            and np.array_equal(r_u, u)
-            and np.array_equal(r_v, v)
-        )
-        bf = median_time(lambda: ref.closest_hit(origins, directions), max(1, repeats // 5))
-        print(f"  closest_hit brute force    {bf * 1e3:8.2f} ms   (identical to BVH: {same})")
-        r_occ = ref.occluded(so, sd, stmax, ignore_prim=sign)
-        bfs = median_time(
-            lambda: ref.occluded(so, sd, stmax, ignore_prim=sign), max(1, repeats // 5)
-        )
-        print(
-            f"  occluded brute force       {bfs * 1e3:8.2f} ms   "
-            f"(identical to BVH: {np.array_equal(r_occ, occ)})"
-        )
 
-    fine = teapot_triangles(26, 60)
-    build_fine = median_time(lambda: Accelerator(fine), max(3, repeats // 3))
-    acc_fine = Accelerator(fine)
-    print(f"\nfine teapot: {fine.shape[0]} triangles; {acc_fine}")
-    print(f"  build                      {build_fine * 1e3:8.2f} ms")
-    fid, ft, _, _ = acc_fine.closest_hit(origins, directions)
-    primary_fine = median_time(lambda: acc_fine.closest_hit(origins, directions), repeats)
-    print(
-        f"  closest_hit BVH  {n_rays} rays {primary_fine * 1e3:8.2f} ms   "
-        f"({int((fid >= 0).sum())} hits)"
-    )
-    fso, fsd, fstmax, fsign = shadow_rays(origins, directions, fid, ft)
-    shadow_fine = median_time(
-        lambda: acc_fine.occluded(fso, fsd, fstmax, ignore_prim=fsign), repeats
-    )
-    print(f"  occluded BVH     {fso.shape[0]} rays  {shadow_fine * 1e3:8.2f} ms")
+def time_bvh_visibility(w: dict, repeats: int) -> dict:
+    """Medians (ms) of the BVH build, camera-ray generation, closest hit of all camera rays
+    and any-hit of all shadow rays, plus counts and the tree's statistics."""
+    accel = w["accel"]
+    camera = w["scene"].camera
+    n_shadow = len(w["shadow_origins"])
+    occluded = _occluded(accel, w)
+    return {
+        "triangles": int(len(w["triangles"])),
+        "camera_rays": int(len(w["directions"])),
+        "hits": int((w["prim_id"] >= 0).sum()),
+        "shadow_rays": int(n_shadow),
+        "in_shadow": int(occluded.sum()),
+        "bvh_nodes": accel.n_nodes,
+        "bvh_depth": accel.depth,
+        "build": timing.measure(lambda: Accelerator(w["triangles"]), repeats),
+        "ray_generation": timing.measure(lambda: primary_rays(camera), repeats),
+        "closest_hit": timing.measure(
+            lambda: accel.closest_hit(w["origins"], w["directions"]), repeats
+        ),
+        "occluded": timing.measure(lambda: _occluded(accel, w), repeats),
+    }
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def time_brute_visibility(w: dict, repeats: int, stride: int = 1, warmup: int = 1) -> dict:
+    """Brute force (every ray against every triangle) on every ``stride``-th camera and
+    shadow ray; the times are scaled by (all rays / rays timed) to the full ray count.
+    Brute force costs the same for every ray (it tests all triangles), so the linear
+    extrapolation is sound; ``stride = 1`` times all rays. Also checks that the answers are
+    identical to the BVH's on the rays timed."""
+    brute = Accelerator(w["triangles"], use_bvh=False)
+    rays = slice(None, None, stride)
+    origins = np.ascontiguousarray(w["origins"][rays])
+    directions = np.ascontiguousarray(w["directions"][rays])
+    n_cam, n_cam_timed = len(w["directions"]), len(directions)
+    n_sh = len(w["shadow_origins"])
+    n_sh_timed = len(range(n_sh)[rays])
+
+    prim_id, _, _, _ = brute.closest_hit(origins, directions)
+    same_hits = bool(np.array_equal(prim_id, w["prim_id"][rays]))
+    same_shadows = bool(np.array_equal(_occluded(brute, w, rays), _occluded(w["accel"], w, rays)))
+    closest = timing.measure(lambda: brute.closest_hit(origins, directions), repeats, warmup)
+    occluded = timing.measure(lambda: _occluded(brute, w, rays), repeats, warmup)
+    scale_cam, scale_sh = n_cam / n_cam_timed, n_sh / max(1, n_sh_timed)
+    return {
+        "stride": stride,
+        "camera_rays_timed": n_cam_timed,
+        "shadow_rays_timed": n_sh_timed,
+        "closest_hit_timed": closest,
+        "occluded_timed": occluded,
+        "closest_hit_ms": closest["median_ms"] * scale_cam,
+        "occluded_ms": occluded["median_ms"] * scale_sh,
+        "extrapolated": stride > 1,
+        "identical_to_bvh": same_hits and same_shadows,
+    }
+
+
+def main(argv=None) -> dict:
+    parser = timing.make_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--no-brute", action="store_true", help="skip the brute-force runs")
-    args = parser.parse_args()
-    run(args.repeats, not args.no_brute)
+    args = parser.parse_args(argv)
+    size = 64 if args.quick else 512
+    repeats = 3 if args.quick else args.repeats
+    fine = (8, 13) if args.quick else (26, 60)
+
+    w = visibility_workload(size)
+    coarse = time_bvh_visibility(w, repeats)
+    if not args.no_brute:
+        coarse["brute"] = time_brute_visibility(w, max(1, repeats // 5))
+    wf = visibility_workload(size, *fine)
+    finer = time_bvh_visibility(wf, max(3, repeats // 3))
+
+    rows = []
+    for label, r in (
+        (f"{coarse['triangles']:,} tri", coarse),
+        (f"{finer['triangles']:,} tri", finer),
+    ):
+        rows += [
+            timing.row(f"{label}: BVH build", timing.ms(r["build"])),
+            timing.row(f"{label}: camera rays generation", timing.ms(r["ray_generation"])),
+            timing.row(
+                f"{label}: closest hit, {r['camera_rays']:,} camera rays",
+                timing.ms(r["closest_hit"]),
+                "Embree 1 thread: 10 ms" if r is coarse else "",
+            ),
+            timing.row(
+                f"{label}: any hit, {r['shadow_rays']:,} shadow rays", timing.ms(r["occluded"])
+            ),
+        ]
+    if "brute" in coarse:
+        b = coarse["brute"]
+        rows += [
+            timing.row("1,536 tri: closest hit, brute force", f"{b['closest_hit_ms']:.1f} ms"),
+            timing.row("1,536 tri: any hit, brute force", f"{b['occluded_ms']:.1f} ms"),
+        ]
+    notes = [
+        f"{size}x{size} image; medians of {repeats} runs [interquartile range] after a warm-up.",
+        f"BVH: {coarse['bvh_nodes']} nodes, depth {coarse['bvh_depth']} (1,536 triangles); "
+        f"{finer['bvh_nodes']} nodes, depth {finer['bvh_depth']} ({finer['triangles']:,}).",
+    ]
+    if "brute" in coarse:
+        notes.append(
+            "Brute force gives identical answers: " + str(coarse["brute"]["identical_to_bvh"])
+        )
+    section = timing.report_section("Visibility only (bench_visibility.py)", rows, notes, [])
+    result = {
+        "size": size,
+        "repeats": repeats,
+        "teapot_1536": coarse,
+        "teapot_fine": finer,
+        "report": section,
+    }
+    path = timing.write_json(args.out, "bench_visibility", result)
+    timing.print_report(section, timing.machine())
+    print(f"wrote {path}")
+    return result
 
 
 if __name__ == "__main__":

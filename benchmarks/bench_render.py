@@ -1,0 +1,404 @@
+"""The renderer at 512x512 on the paper scene: where the time goes, forward and backward.
+
+Run:  python benchmarks/bench_render.py [--out DIR] [--quick] [--repeats 15]
+
+Measured (medians after a warm-up, see ``timing.py``), on the scene of ``paper_scene.md``:
+
+* the visibility steps on their own (``bench_visibility.py``): BVH build, camera-ray
+  generation, closest hit of the 262,144 camera rays, any hit of the shadow rays;
+* shading forward: ``render`` with the visibility cached (the second render of an unchanged
+  scene), i.e. the on-tape part only;
+* full forward render: ``render(scene, reuse_visibility=False)`` of the plain scene (no
+  parameter requires a gradient, so no tape is recorded: what a user's render costs), and
+  of the scene whose parameters all require gradients (the tape is recorded);
+* forward+backward: the paper's loss (Eq. 1, MSE of the clipped image,
+  ``render.optimize.image_loss``) against a target rendered at the true parameters, from a
+  start with the light moved by 0.1, differentiated w.r.t. ALL parameters: light position
+  and intensity, albedo, camera position, look_at and fov, and all 1,120 vertices;
+* the same forward and forward+backward without the BVH (brute force);
+* peak memory of one forward and one forward+backward (tracemalloc and process RSS);
+* what visibility reuse buys: one iteration (render + loss + backward) of a material-only
+  optimisation, with ``reuse_visibility=True`` (camera, lights and geometry unchanged, so
+  the visibility is served from the cache) and ``False``;
+* where the time goes: the functions with the largest own time in cProfile of one
+  forward+backward (cProfile adds overhead per call; the shares are indicative);
+* threading: the forward render in fresh processes with different Numba/OpenMP settings
+  (the default OpenMP layer, OMP_WAIT_POLICY=passive, the workqueue layer, one thread),
+  plus the cost of launching an empty parallel kernel, which the renderer does ~5 times per
+  render.
+
+Numbers to compare with (from the project brief): targets full forward < 25 ms (stretch
+12 ms), primary visibility < 10 ms, forward+backward < 4x forward; Mitsuba 3 on this
+machine renders the scene in 3.7 ms and does render+loss+backward in 11-14 ms; Embree casts
+the 262,144 camera rays in 10 ms on one thread; the paper reports 52 ms per forward render
+on a 6-core Xeon (85 ms without BVH).
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import subprocess
+import sys
+
+import numpy as np
+import timing
+from bench_visibility import time_brute_visibility, time_bvh_visibility, visibility_workload
+
+import minidiff as md
+from render import render
+from render.optimize import image_loss
+from render.plot import line_plot
+from render.teapot import paper_scene
+
+PARAMETERS = (
+    # (name, object path, attribute): every continuous parameter of the paper scene
+    ("light_position", "light", "position"),
+    ("light_intensity", "light", "intensity"),
+    ("albedo", "material", "albedo"),
+    ("camera_position", "camera", "position"),
+    ("look_at", "camera", "look_at"),
+    ("fov", "camera", "fov"),
+    ("vertices", "mesh", "vertices"),
+)
+
+
+def differentiable_scene(size: int, nu: int = 4, nv: int = 6, names=None):
+    """The paper scene with the named parameters (default: all of ``PARAMETERS``) replaced
+    by leaves that require gradients. Returns (scene, {name: leaf})."""
+    scene = paper_scene(size, size, nu=nu, nv=nv)
+    owners = {
+        "light": scene.lights[0],
+        "material": scene.meshes[0].material,
+        "camera": scene.camera,
+        "mesh": scene.meshes[0],
+    }
+    params = {}
+    for name, owner, attr in PARAMETERS:
+        if names is None or name in names:
+            leaf = md.tensor(getattr(owners[owner], attr).data, requires_grad=True)
+            setattr(owners[owner], attr, leaf)
+            params[name] = leaf
+    return scene, params
+
+
+def loss_problem(size: int, nu: int = 4, nv: int = 6, names=None):
+    """(scene, params, target): the target is rendered at the true parameters, the scene
+    starts with the light moved by 0.1 along x, so the loss and its gradient are not zero."""
+    target = render(paper_scene(size, size, nu=nu, nv=nv)).data.copy()
+    scene, params = differentiable_scene(size, nu, nv, names)
+    scene.lights[0].position.data[0] += 0.1
+    return scene, params, target
+
+
+def forward_backward(scene, params, target, bvh: bool = True, reuse: bool = False) -> float:
+    """One gradient evaluation: render, Eq. 1 loss, backward into every parameter."""
+    for p in params.values():
+        p.grad = None
+    loss = image_loss(render(scene, bvh=bvh, reuse_visibility=reuse), target)
+    loss.backward()
+    return loss.item()
+
+
+def profile_top(fn, n: int = 10) -> list[dict]:
+    """The ``n`` functions with the largest own time in a cProfile of one ``fn()``."""
+    prof = cProfile.Profile()
+    prof.enable()
+    fn()
+    prof.disable()
+    stats = pstats.Stats(prof).stats
+    total = sum(v[2] for v in stats.values())
+    top = sorted(stats.items(), key=lambda kv: kv[1][2], reverse=True)[:n]
+    rows = []
+    for (filename, line, func), (_, calls, tottime, _, _) in top:
+        where = f"{os.path.basename(filename)}:{line}" if line else filename
+        rows.append(
+            {
+                "function": f"{func} ({where})",
+                "calls": calls,
+                "own_ms": tottime * 1e3,
+                "share": tottime / total,
+            }
+        )
+    return rows
+
+
+# --------------------------------------------------------------------------------------
+# Threading configurations (each in a fresh process: the threading layer is fixed at the
+# first parallel kernel launch, and OMP_WAIT_POLICY at libgomp's load)
+# --------------------------------------------------------------------------------------
+
+THREADING_SETTINGS = (
+    "OMP_WAIT_POLICY",
+    "NUMBA_THREADING_LAYER",
+    "NUMBA_NUM_THREADS",
+    "GOMP_SPINCOUNT",
+)
+THREADING_VARIANTS = {
+    "default (OpenMP layer, spin-waiting)": {},
+    "OMP_WAIT_POLICY=passive": {"OMP_WAIT_POLICY": "passive"},
+    "NUMBA_THREADING_LAYER=workqueue": {"NUMBA_THREADING_LAYER": "workqueue"},
+    "NUMBA_NUM_THREADS=1": {"NUMBA_NUM_THREADS": "1"},
+}
+
+
+def threading_worker(size: int, repeats: int) -> dict:
+    """Forward render time and the launch cost of an empty parallel kernel, this process."""
+    from numba import njit, prange
+
+    @njit(parallel=True)
+    def empty_kernel(a):
+        s = 0.0
+        for i in prange(a.shape[0]):
+            s += a[i]
+        return s
+
+    scene = paper_scene(size, size)
+    small = paper_scene(64, 64)
+    grad_scene, params, target = loss_problem(size)
+    a = np.ones(16)
+    return {
+        "parallel_launch": timing.measure(lambda: empty_kernel(a), 100, warmup=3),
+        "forward": timing.measure(lambda: render(scene, reuse_visibility=False), repeats, 2),
+        "forward_64": timing.measure(lambda: render(small, reuse_visibility=False), repeats, 2),
+        "forward_backward": timing.measure(
+            lambda: forward_backward(grad_scene, params, target), repeats, 2
+        ),
+        "machine": timing.machine(),
+    }
+
+
+def run_threading_variants(size: int, repeats: int, variants) -> dict:
+    results = {}
+    # Start from the environment without any of the settings compared here (run_all.py sets
+    # OMP_WAIT_POLICY=passive for the suite; the "default" variant must not inherit it).
+    clean = {k: v for k, v in os.environ.items() if k not in THREADING_SETTINGS}
+    for label in variants:
+        env = dict(clean, **THREADING_VARIANTS[label])
+        cmd = [
+            sys.executable,
+            os.path.abspath(__file__),
+            "--threading-worker",
+            "--size",
+            str(size),
+            "--repeats",
+            str(repeats),
+        ]
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            raise RuntimeError(f"threading worker ({label}) failed:\n{proc.stderr}")
+        results[label] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return results
+
+
+# --------------------------------------------------------------------------------------
+
+
+def main(argv=None) -> dict:
+    parser = timing.make_parser(__doc__)
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--size", type=int, default=None, help="image side (default 512)")
+    parser.add_argument("--threading-worker", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    size = args.size or (64 if args.quick else 512)
+    repeats = 3 if args.quick else args.repeats
+    brute_repeats = 2 if args.quick else 3
+    if args.threading_worker:
+        print(json.dumps(threading_worker(size, repeats), default=float))
+        return {}
+
+    r = {"size": size, "repeats": repeats}
+    # Visibility on its own
+    w = visibility_workload(size)
+    r["visibility"] = time_bvh_visibility(w, repeats)
+
+    # Forward renders
+    plain = paper_scene(size, size)
+    r["forward"] = timing.measure(lambda: render(plain, reuse_visibility=False), repeats)
+    render(plain)  # fill the visibility cache
+    r["shading_forward_cached_visibility"] = timing.measure(lambda: render(plain), repeats)
+    scene, params, target = loss_problem(size)
+    r["forward_tape"] = timing.measure(lambda: render(scene, reuse_visibility=False), repeats)
+    r["forward_tape_cached_visibility"] = timing.measure(lambda: render(scene), repeats)
+    r["forward_backward"] = timing.measure(lambda: forward_backward(scene, params, target), repeats)
+    r["ratio_forward_backward_to_forward"] = (
+        r["forward_backward"]["median_ms"] / r["forward"]["median_ms"]
+    )
+    r["ratio_forward_backward_to_forward_tape"] = (
+        r["forward_backward"]["median_ms"] / r["forward_tape"]["median_ms"]
+    )
+    r["memory_forward"] = timing.measure_memory(lambda: render(plain, reuse_visibility=False))
+    r["memory_forward_backward"] = timing.measure_memory(
+        lambda: forward_backward(scene, params, target)
+    )
+    r["profile_forward_backward"] = profile_top(lambda: forward_backward(scene, params, target))
+
+    # Without the BVH
+    r["forward_no_bvh"] = timing.measure(
+        lambda: render(plain, bvh=False, reuse_visibility=False), brute_repeats
+    )
+    r["forward_backward_no_bvh"] = timing.measure(
+        lambda: forward_backward(scene, params, target, bvh=False), brute_repeats
+    )
+    r["memory_forward_no_bvh"] = timing.measure_memory(
+        lambda: render(plain, bvh=False, reuse_visibility=False)
+    )
+    r["brute_visibility"] = time_brute_visibility(w, brute_repeats, warmup=0)
+
+    # Visibility reuse in a material-only optimisation
+    mat_scene, mat_params, mat_target = loss_problem(size, names=("albedo",))
+    albedo = mat_params["albedo"]
+
+    def material_iteration(reuse: bool):
+        albedo.data *= 0.999  # what an optimiser step does: only the material changes
+        forward_backward(mat_scene, mat_params, mat_target, reuse=reuse)
+
+    r["material_iteration_reuse"] = timing.measure(lambda: material_iteration(True), repeats)
+    r["material_iteration_no_reuse"] = timing.measure(lambda: material_iteration(False), repeats)
+
+    # Threading configurations
+    variants = list(THREADING_VARIANTS)[:2] if args.quick else list(THREADING_VARIANTS)
+    r["threading"] = run_threading_variants(size, repeats, variants)
+
+    section = make_report(r, args.out)
+    r["report"] = section
+    path = timing.write_json(args.out, "bench_render", r)
+    timing.print_report(section, timing.machine())
+    print(f"wrote {path}")
+    return r
+
+
+def make_report(r: dict, out) -> dict:
+    v = r["visibility"]
+    fwd = r["forward"]["median_ms"]
+    primary = v["ray_generation"]["median_ms"] + v["closest_hit"]["median_ms"]
+    parts = {
+        "BVH build": v["build"]["median_ms"],
+        "camera rays": v["ray_generation"]["median_ms"],
+        "closest hit": v["closest_hit"]["median_ms"],
+        "shadow rays": v["occluded"]["median_ms"],
+        "shading (cached visibility)": r["shading_forward_cached_visibility"]["median_ms"],
+    }
+    rest = fwd - sum(parts.values())
+    size = r["size"]
+    rows = [
+        timing.row("BVH build (1,536 triangles)", timing.ms(v["build"])),
+        timing.row(
+            f"camera-ray generation ({v['camera_rays']:,} rays)", timing.ms(v["ray_generation"])
+        ),
+        timing.row("closest hit, BVH", timing.ms(v["closest_hit"]), "Embree 1 thread: 10 ms"),
+        timing.row(
+            "primary visibility (generation + closest hit)",
+            f"{primary:.1f} ms",
+            "target < 10 ms",
+            timing.target_status(primary, 10.0),
+        ),
+        timing.row(f"shadow rays ({v['shadow_rays']:,})", timing.ms(v["occluded"])),
+        timing.row(
+            "shading forward (visibility cached, no tape)",
+            timing.ms(r["shading_forward_cached_visibility"]),
+        ),
+        timing.row(
+            "shading forward (visibility cached, tape)",
+            timing.ms(r["forward_tape_cached_visibility"]),
+        ),
+        timing.row("rest of a full forward (full - parts above)", f"{rest:.1f} ms"),
+        timing.row(
+            "full forward render (no tape)",
+            timing.ms(r["forward"]),
+            "target < 25 ms (stretch 12); paper 52.3; Mitsuba 3.7",
+            timing.target_status(fwd, 25.0) + (" (stretch met)" if fwd <= 12 else ""),
+        ),
+        timing.row(
+            "full forward render (all parameters require grad)", timing.ms(r["forward_tape"])
+        ),
+        timing.row(
+            "forward+backward, all parameters",
+            timing.ms(r["forward_backward"]),
+            "Mitsuba render+loss+backward 11-14 ms",
+        ),
+        timing.row(
+            "forward+backward / forward",
+            f"{r['ratio_forward_backward_to_forward']:.2f}x",
+            "target < 4x",
+            timing.target_status(r["ratio_forward_backward_to_forward"], 4.0),
+        ),
+        timing.row(
+            "forward+backward / forward with tape",
+            f"{r['ratio_forward_backward_to_forward_tape']:.2f}x",
+        ),
+        timing.row("full forward render, no BVH", timing.ms(r["forward_no_bvh"]), "paper 85.6 ms"),
+        timing.row("forward+backward, no BVH", timing.ms(r["forward_backward_no_bvh"])),
+        timing.row(
+            "peak memory forward: tracemalloc / process RSS",
+            f"{r['memory_forward']['tracemalloc_peak_mb']:.1f} / "
+            f"{r['memory_forward']['rss_peak_mb']:.0f} MB",
+            "paper 124.5 MB (resident)",
+        ),
+        timing.row(
+            "peak memory forward, no BVH: tracemalloc / RSS",
+            f"{r['memory_forward_no_bvh']['tracemalloc_peak_mb']:.1f} / "
+            f"{r['memory_forward_no_bvh']['rss_peak_mb']:.0f} MB",
+            "paper 207.3 MB (resident)",
+        ),
+        timing.row(
+            "peak memory forward+backward: tracemalloc / RSS",
+            f"{r['memory_forward_backward']['tracemalloc_peak_mb']:.1f} / "
+            f"{r['memory_forward_backward']['rss_peak_mb']:.0f} MB",
+        ),
+        timing.row(
+            "material-only iteration, reuse_visibility=True",
+            timing.ms(r["material_iteration_reuse"]),
+        ),
+        timing.row(
+            "material-only iteration, reuse_visibility=False",
+            timing.ms(r["material_iteration_no_reuse"]),
+        ),
+    ]
+    saved = (
+        r["material_iteration_no_reuse"]["median_ms"] - r["material_iteration_reuse"]["median_ms"]
+    )
+    rows.append(timing.row("visibility reuse saves per iteration", f"{saved:.1f} ms"))
+    for label, t in r["threading"].items():
+        rows.append(
+            timing.row(
+                f"threading {label}: forward {size}^2 / f+b {size}^2 / forward 64^2 / "
+                "empty parallel kernel",
+                f"{t['forward']['median_ms']:.1f} / {t['forward_backward']['median_ms']:.1f} / "
+                f"{t['forward_64']['median_ms']:.1f} ms / "
+                f"{t['parallel_launch']['median_ms'] * 1e3:.0f} us",
+            )
+        )
+    top = r["profile_forward_backward"][:6]
+    notes = [
+        f"{size}x{size}; medians of {r['repeats']} runs [interquartile range] after a warm-up "
+        "(no-BVH rows: fewer runs); NumPy and Numba use their default threads (2 cores).",
+        "Breakdown of a full forward: "
+        + ", ".join(f"{k} {val:.1f} ms" for k, val in parts.items())
+        + f", rest {rest:.1f} ms (validation, geometry copy, cache keys, image assembly).",
+        "Largest own times in cProfile of one forward+backward: "
+        + "; ".join(f"{p['function']} {p['own_ms']:.1f} ms ({100 * p['share']:.0f}%)" for p in top),
+        "Memory: tracemalloc = NumPy/Python allocations alive at the peak of the call; RSS = "
+        "the whole process's peak resident memory (interpreter, libraries and Numba included).",
+        "Threading rows: each configuration in a fresh process; 'empty parallel kernel' is the "
+        "median time of launching a Numba prange loop over 16 elements.",
+    ]
+    labels = list(parts) + ["rest"]
+    plot = line_plot(
+        {"forward breakdown (ms)": (np.arange(1, len(labels) + 1), list(parts.values()) + [rest])},
+        out / "bench_render_breakdown.png",
+        title="Forward render breakdown: "
+        + ", ".join(f"{i + 1} {n}" for i, n in enumerate(labels)),
+        xlabel="step (see title)",
+        ylabel="ms",
+    )
+    return timing.report_section(
+        f"Renderer at {size}x{size} (bench_render.py)", rows, notes, [plot.name]
+    )
+
+
+if __name__ == "__main__":
+    main()

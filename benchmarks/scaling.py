@@ -1,0 +1,179 @@
+"""Scaling: how forward and forward+backward time, and the tape's memory, grow.
+
+Run:  python benchmarks/scaling.py [--out DIR] [--quick]
+
+Two series on the paper scene (``paper_scene.md``), both with the BVH:
+
+* pixels: 64^2, 128^2, 256^2, 512^2, 1024^2 with the 1,536-triangle teapot;
+* triangles: the teapot tessellated 4x6, 8x13, 12x20, 18x40, 26x60 cells per patch
+  (1,536 to 99,840 triangles) at 512^2.
+
+Per point: the forward render of the plain scene (``render(scene, reuse_visibility=False)``,
+no tape) and forward+backward of the paper's loss w.r.t. all parameters (light, albedo,
+camera, all vertices; ``bench_render.forward_backward``), medians after a warm-up; and the
+peak memory of one forward+backward (tracemalloc: the NumPy arrays alive at once, i.e. the
+tape and its temporaries; and the process's peak RSS).
+
+Fitted: the exponent b of t = a n^b (least squares on log-log) over all points and over
+the upper half (where fixed per-render costs matter less). b = 1 is linear scaling; for
+triangles, a BVH should give b well below 1 for ray casting (logarithmic traversal), while
+the build (n log n) and the per-vertex work of the backward pass grow about linearly.
+"""
+
+from __future__ import annotations
+
+import timing
+from bench_render import forward_backward, loss_problem
+
+from render import render
+from render.plot import line_plot
+from render.teapot import paper_scene
+
+
+def point(size: int, nu: int, nv: int, repeats: int) -> dict:
+    plain = paper_scene(size, size, nu=nu, nv=nv)
+    scene, params, target = loss_problem(size, nu, nv)
+    return {
+        "size": size,
+        "pixels": size * size,
+        "triangles": plain.meshes[0].num_faces,
+        "vertices": plain.meshes[0].num_vertices,
+        "forward": timing.measure(lambda: render(plain, reuse_visibility=False), repeats),
+        "forward_backward": timing.measure(
+            lambda: forward_backward(scene, params, target), repeats
+        ),
+        "memory_forward_backward": timing.measure_memory(
+            lambda: forward_backward(scene, params, target)
+        ),
+    }
+
+
+def exponents(points: list[dict], key: str) -> dict:
+    """Fitted exponents of forward, forward+backward and tape memory vs ``key``."""
+    x = [p[key] for p in points]
+    upper = points[len(points) // 2 :]
+    xu = [p[key] for p in upper]
+    out = {}
+    for name, get in (
+        ("forward", lambda p: p["forward"]["median_ms"]),
+        ("forward_backward", lambda p: p["forward_backward"]["median_ms"]),
+        ("tape_memory", lambda p: p["memory_forward_backward"]["tracemalloc_peak_mb"]),
+    ):
+        out[name] = timing.fit_power_law(x, [get(p) for p in points])
+        out[name + "_upper"] = timing.fit_power_law(xu, [get(p) for p in upper])
+    return out
+
+
+def main(argv=None) -> dict:
+    parser = timing.make_parser(__doc__)
+    args = parser.parse_args(argv)
+    if args.quick:
+        sizes, tess, size_tri, repeats = [16, 32, 64], [(2, 3), (4, 6), (8, 13)], 64, 2
+    else:
+        sizes = [64, 128, 256, 512, 1024]
+        tess = [(4, 6), (8, 13), (12, 20), (18, 40), (26, 60)]
+        size_tri, repeats = 512, 7
+
+    pixels = []
+    for size in sizes:
+        pixels.append(point(size, 4, 6, repeats if size < 1024 else max(2, repeats - 2)))
+        p = pixels[-1]
+        print(
+            f"{size:5d}^2  forward {timing.ms(p['forward'])}  "
+            f"f+b {timing.ms(p['forward_backward'])}",
+            flush=True,
+        )
+    triangles = []
+    for nu, nv in tess:
+        triangles.append(point(size_tri, nu, nv, repeats))
+        p = triangles[-1]
+        print(
+            f"{p['triangles']:7,d} tri  forward {timing.ms(p['forward'])}  "
+            f"f+b {timing.ms(p['forward_backward'])}",
+            flush=True,
+        )
+    fit_px = exponents(pixels, "pixels")
+    fit_tri = exponents(triangles, "triangles")
+
+    plots = [
+        line_plot(
+            {
+                "forward": (
+                    [p["pixels"] for p in pixels],
+                    [p["forward"]["median_ms"] for p in pixels],
+                ),
+                "forward+backward": (
+                    [p["pixels"] for p in pixels],
+                    [p["forward_backward"]["median_ms"] for p in pixels],
+                ),
+                "tape peak MB (tracemalloc)": (
+                    [p["pixels"] for p in pixels],
+                    [p["memory_forward_backward"]["tracemalloc_peak_mb"] for p in pixels],
+                ),
+            },
+            args.out / "scaling_pixels.png",
+            title="Scaling with pixels (1,536 triangles): ms, and MB for the tape",
+            xlabel="pixels",
+            ylabel="ms / MB",
+            logx=True,
+            logy=True,
+        ),
+        line_plot(
+            {
+                "forward": (
+                    [p["triangles"] for p in triangles],
+                    [p["forward"]["median_ms"] for p in triangles],
+                ),
+                "forward+backward": (
+                    [p["triangles"] for p in triangles],
+                    [p["forward_backward"]["median_ms"] for p in triangles],
+                ),
+            },
+            args.out / "scaling_triangles.png",
+            title=f"Scaling with triangles at {size_tri}^2 (BVH)",
+            xlabel="triangles",
+            ylabel="ms",
+            logx=True,
+            logy=True,
+        ),
+    ]
+
+    rows = []
+    for label, fit in (("pixels", fit_px), ("triangles", fit_tri)):
+        for name in ("forward", "forward_backward", "tape_memory"):
+            rows.append(
+                timing.row(
+                    f"exponent of {name.replace('_', ' ')} vs {label} (all / upper half)",
+                    f"{fit[name]:.2f} / {fit[name + '_upper']:.2f}",
+                )
+            )
+    for p in pixels + triangles:
+        rows.append(
+            timing.row(
+                f"{p['size']}^2, {p['triangles']:,} tri: forward / f+b / tape peak",
+                f"{p['forward']['median_ms']:.1f} / {p['forward_backward']['median_ms']:.1f} ms / "
+                f"{p['memory_forward_backward']['tracemalloc_peak_mb']:.0f} MB",
+            )
+        )
+    notes = [
+        f"Medians of {repeats} runs after a warm-up. Exponent b of t ~ n^b by least squares "
+        "on log-log; 'upper half' fits the larger half of the points only.",
+        "Tape peak = tracemalloc peak of one forward+backward (NumPy arrays alive at once).",
+    ]
+    section = timing.report_section("Scaling (scaling.py)", rows, notes, [p.name for p in plots])
+    result = {
+        "pixels": pixels,
+        "triangles": triangles,
+        "triangle_series_size": size_tri,
+        "exponents_pixels": fit_px,
+        "exponents_triangles": fit_tri,
+        "report": section,
+    }
+    path = timing.write_json(args.out, "scaling", result)
+    timing.print_report(section, timing.machine())
+    print(f"wrote {path}")
+    return result
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,131 @@
+"""Smoke test of the benchmark suite: every script runs in --quick mode (tiny sizes, few
+repeats) and writes a JSON with the expected keys holding finite positive numbers, a report
+section and its plots. No timing is asserted (the machine is shared and noisy).
+
+Each script runs in a subprocess (as run_all.py runs them), with OMP_WAIT_POLICY=passive as
+run_all sets it; together they take well under a minute.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+
+# Per script: key paths (tuples; "*" = every element of a list) that must be finite and > 0.
+EXPECTED = {
+    "bench_visibility": [
+        ("teapot_1536", "build", "median_ms"),
+        ("teapot_1536", "closest_hit", "median_ms"),
+        ("teapot_1536", "occluded", "median_ms"),
+        ("teapot_1536", "brute", "closest_hit_ms"),
+        ("teapot_fine", "closest_hit", "median_ms"),
+    ],
+    "bench_minidiff": [
+        (variant, dtype, key, "median_ms")
+        for variant in ("default", "keep_freed")
+        for dtype in ("float64", "float32")
+        for key in ("numpy_forward", "minidiff_forward", "minidiff_forward_backward")
+    ]
+    + [
+        (variant, dtype, key)
+        for variant in ("default", "keep_freed")
+        for dtype in ("float64", "float32")
+        for key in ("ratio_forward", "ratio_forward_backward")
+    ],
+    "bench_render": [
+        ("visibility", "build", "median_ms"),
+        ("forward", "median_ms"),
+        ("forward_backward", "median_ms"),
+        ("forward_no_bvh", "median_ms"),
+        ("ratio_forward_backward_to_forward",),
+        ("memory_forward_backward", "tracemalloc_peak_mb"),
+        ("memory_forward", "rss_peak_mb"),
+        ("material_iteration_reuse", "median_ms"),
+    ],
+    "fig2_bvh": [
+        ("resolution", "*", "bvh", "time", "median_ms"),
+        ("resolution", "*", "no_bvh", "time", "median_ms"),
+        ("resolution", "*", "bvh", "memory", "rss_peak_mb"),
+        ("triangles", "*", "bvh_render", "time", "median_ms"),
+        ("triangles", "*", "brute_render_estimate_ms"),
+    ],
+    "fig3_ad_vs_fd": [
+        ("series", "*", "ad", "median_ms"),
+        ("series", "*", "fd_ms"),
+        ("crossover_parameters",),
+        ("accuracy", "ad_error"),
+        ("accuracy", "fd_error"),
+        ("at_full_size", "fd_ms_per_parameter"),
+    ],
+    "table2_ablation": [
+        ("runs", name, "seconds_for_500")
+        for name in ("AD + BVH", "AD, no BVH", "FD + BVH", "FD, no BVH")
+    ]
+    + [("runs", "AD + BVH", "position_errors", "*")],
+    "scaling": [
+        ("pixels", "*", "forward", "median_ms"),
+        ("pixels", "*", "forward_backward", "median_ms"),
+        ("pixels", "*", "memory_forward_backward", "tracemalloc_peak_mb"),
+        ("triangles", "*", "forward_backward", "median_ms"),
+    ],
+}
+
+
+def _values(data, path):
+    """All values at ``path`` ("*" expands lists)."""
+    if not path:
+        return [data]
+    head, rest = path[0], path[1:]
+    if head == "*":
+        assert isinstance(data, list) and data, f"expected a non-empty list at {path}"
+        return [v for item in data for v in _values(item, rest)]
+    assert head in data, f"missing key {head!r}"
+    return _values(data[head], rest)
+
+
+def _run(args, out: Path) -> None:
+    env = dict(os.environ, OMP_WAIT_POLICY="passive")
+    proc = subprocess.run(
+        [sys.executable, *args, "--quick", "--out", str(out)],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+
+
+@pytest.mark.parametrize("name", list(EXPECTED))
+def test_script_quick(name, tmp_path):
+    _run([str(BENCH / f"{name}.py")], tmp_path)
+    data = json.loads((tmp_path / f"{name}.json").read_text(encoding="utf-8"))
+    for path in EXPECTED[name]:
+        for value in _values(data, path):
+            assert isinstance(value, int | float) and math.isfinite(value) and value > 0, (
+                f"{name}: {path} = {value!r}"
+            )
+    section = data["report"]
+    assert section["title"] and section["rows"]
+    for row in section["rows"]:
+        assert set(row) == {"quantity", "ours", "reference", "status"}
+        assert row["status"] in ("", "met", "not met", "met (stretch met)")
+    for plot in section["plots"]:
+        assert (tmp_path / plot).stat().st_size > 0
+    assert data["machine"]["usable_cores"] >= 1
+
+
+def test_run_all_writes_report(tmp_path):
+    _run([str(BENCH / "run_all.py"), "--only", "bench_visibility"], tmp_path)
+    report = (tmp_path / "report.md").read_text(encoding="utf-8")
+    assert "# Benchmark report" in report
+    assert "Visibility only" in report
+    assert "| quantity | ours | paper / target | status |" in report
