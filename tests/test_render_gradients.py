@@ -288,16 +288,18 @@ def test_float32_parameters_end_to_end():
 
 
 def test_all_float32_scene_renders_a_float32_image():
+    """With every parameter float32 (Scene.parameters() lists them all, uvs included), the
+    image and the gradients stay float32; one float64 parameter promotes the image."""
     scene = random_scene(11, lights=POINT, sphere=False)
-    for tensor_owner, names in [
-        (scene.camera, ("position", "look_at", "up", "fov")),
-        (scene.lights[0], ("position", "intensity", "color")),
-        (scene, ("background",)),
-        *[(o, ("vertices",)) for o in scene.meshes],
-        *[(o.material, ("albedo", "specular", "shininess", "ambient")) for o in scene.objects],
-    ]:
-        for name in names:
-            value = getattr(tensor_owner, name)
-            setattr(tensor_owner, name, md.tensor(value.data.astype(np.float32)))
+    for t in scene.parameters():
+        t.data = t.data.astype(np.float32)
     scene.validate()
+    position = scene.lights[0].position
+    position.requires_grad = True
+    image = render.render(scene)
+    image.sum().backward()
+    assert position.grad.dtype == np.float32
+    scene.meshes[0].uvs.data = scene.meshes[0].uvs.data.astype(np.float64)
+    assert render.render(scene).dtype == np.float64
+    scene.meshes[0].uvs.data = scene.meshes[0].uvs.data.astype(np.float32)
     assert render.render(scene).dtype == np.float32
