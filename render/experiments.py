@@ -43,7 +43,7 @@ def rotate(vector: np.ndarray, axis: np.ndarray, degrees: float) -> np.ndarray:
     )
 
 
-def _relative_error(estimate: np.ndarray, truth: np.ndarray) -> float:
+def relative_error_pct(estimate: np.ndarray, truth: np.ndarray) -> float:
     """The paper's Eqs. 4-6: ||estimate - truth|| / ||truth||, in percent."""
     return float(100.0 * np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
 
@@ -133,6 +133,25 @@ def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name=
     return result, history
 
 
+def camera_calibration_problem(size: int, seed: int = 42, angle: float = 10.0):
+    """The camera-calibration problem: (scene, [position, look_at], target).
+
+    The target is the reference scene's render. The scene starts with the camera displaced
+    by 0.5 along x and y and its viewing direction rotated by ``angle`` degrees about a
+    random axis (seeded) perpendicular to it; position and look_at require grad.
+    """
+    rng = np.random.default_rng(seed)
+    target = render(paper_scene(width=size, height=size)).data.copy()
+    start_position = TRUE_CAMERA + np.array([0.5, 0.5, 0.0])
+    view = TRUE_LOOK_AT - start_position
+    axis = np.cross(view, rng.normal(size=3))
+    start_look_at = start_position + rotate(view, axis, angle)
+    position = md.tensor(start_position, requires_grad=True)
+    look_at = md.tensor(start_look_at, requires_grad=True)
+    scene = paper_scene(width=size, height=size, camera_position=position, look_at=look_at)
+    return scene, [position, look_at], target
+
+
 def run_camera_calibration(
     size: int = 512,
     iters: int = 500,
@@ -149,17 +168,8 @@ def run_camera_calibration(
     ``angle`` degrees about a random axis (seeded) perpendicular to it. Reported: Eq. 4
     position error before and after, the loss, PSNR, iterations until the loss is < tol.
     """
-    rng = np.random.default_rng(seed)
-    truth = paper_scene(width=size, height=size)
-    target = render(truth).data.copy()
-
-    start_position = TRUE_CAMERA + np.array([0.5, 0.5, 0.0])
-    view = TRUE_LOOK_AT - start_position
-    axis = np.cross(view, rng.normal(size=3))
-    start_look_at = start_position + rotate(view, axis, angle)
-    position = md.tensor(start_position, requires_grad=True)
-    look_at = md.tensor(start_look_at, requires_grad=True)
-    scene = paper_scene(width=size, height=size, camera_position=position, look_at=look_at)
+    scene, (position, look_at), target = camera_calibration_problem(size, seed, angle)
+    start_position = position.data.copy()
 
     result, history = _run(
         scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, out=out,
@@ -169,12 +179,12 @@ def run_camera_calibration(
         experiment="camera_calibration",
         seed=seed,
         angle_degrees=angle,
-        initial_position_error_pct=_relative_error(start_position, TRUE_CAMERA),
-        final_position_error_pct=_relative_error(position.data, TRUE_CAMERA),
+        initial_position_error_pct=relative_error_pct(start_position, TRUE_CAMERA),
+        final_position_error_pct=relative_error_pct(position.data, TRUE_CAMERA),
         final_position=position.data.tolist(),
         iterations_to_tol=_first_below(history.loss, tol),
         iterations_to_half_percent=_first_below(
-            [_relative_error(p[0], TRUE_CAMERA) for p in history.params], 0.5
+            [relative_error_pct(p[0], TRUE_CAMERA) for p in history.params], 0.5
         ),
     )
     return result
@@ -219,8 +229,8 @@ def run_light_estimation(
     result.update(
         experiment="light_estimation",
         seed=seed,
-        initial_position_error_pct=_relative_error(start_light, TRUE_LIGHT),
-        final_position_error_pct=_relative_error(position.data, TRUE_LIGHT),
+        initial_position_error_pct=relative_error_pct(start_light, TRUE_LIGHT),
+        final_position_error_pct=relative_error_pct(position.data, TRUE_LIGHT),
         initial_intensity_error_pct=100 * abs(start_intensity - TRUE_INTENSITY) / TRUE_INTENSITY,
         final_intensity_error_pct=100 * abs(intensity.item() - TRUE_INTENSITY) / TRUE_INTENSITY,
         final_light=position.data.tolist(),
