@@ -350,7 +350,12 @@ def main(argv=None) -> dict:
         "minidiff_forward_backward",
     ]
     series = {}
-    for label, res in (("float64", default), ("float32", default), ("float64 keep_freed", tuned)):
+    for label, res in (
+        ("float64", default),
+        ("float32", default),
+        ("float64 keep_freed", tuned),
+        ("float32 keep_freed", tuned),
+    ):
         dt = label.split()[0]
         series[label] = (list(range(1, 5)), [res[dt][k]["median_ms"] for k in keys])
     plot = line_plot(

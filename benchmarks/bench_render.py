@@ -22,10 +22,11 @@ Measured (medians after a warm-up, see ``timing.py``), on the scene of ``paper_s
   the visibility is served from the cache) and ``False``;
 * where the time goes: the functions with the largest own time in cProfile of one
   forward+backward (cProfile adds overhead per call; the shares are indicative);
-* threading: the forward render in fresh processes with different Numba/OpenMP settings
-  (the default OpenMP layer, OMP_WAIT_POLICY=passive, the workqueue layer, one thread),
-  plus the cost of launching an empty parallel kernel, which the renderer does ~5 times per
-  render.
+* configurations: forward and forward+backward in fresh processes with different
+  Numba/OpenMP settings (the default OpenMP layer whose idle threads spin, OMP_WAIT_POLICY=
+  passive, the workqueue layer, one thread) and with glibc told to keep freed memory (the
+  environment-variable form of ``minidiff.memory.keep_freed_memory()``), plus the cost of
+  launching an empty parallel kernel, which the renderer does ~5 times per render.
 
 Numbers to compare with (from the project brief): targets full forward < 25 ms (stretch
 12 ms), primary visibility < 10 ms, forward+backward < 4x forward; Mitsuba 3 on this
@@ -132,6 +133,8 @@ def profile_top(fn, n: int = 10) -> list[dict]:
 # --------------------------------------------------------------------------------------
 
 THREADING_SETTINGS = (
+    "MALLOC_MMAP_THRESHOLD_",
+    "MALLOC_TRIM_THRESHOLD_",
     "OMP_WAIT_POLICY",
     "NUMBA_THREADING_LAYER",
     "NUMBA_NUM_THREADS",
@@ -142,6 +145,12 @@ THREADING_VARIANTS = {
     "OMP_WAIT_POLICY=passive": {"OMP_WAIT_POLICY": "passive"},
     "NUMBA_THREADING_LAYER=workqueue": {"NUMBA_THREADING_LAYER": "workqueue"},
     "NUMBA_NUM_THREADS=1": {"NUMBA_NUM_THREADS": "1"},
+    # What minidiff.memory.keep_freed_memory() sets, through glibc's environment variables.
+    "OMP_WAIT_POLICY=passive + keep freed memory": {
+        "OMP_WAIT_POLICY": "passive",
+        "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
+        "MALLOC_TRIM_THRESHOLD_": str(1 << 30),
+    },
 }
 
 
@@ -305,7 +314,7 @@ def make_report(r: dict, out) -> dict:
             "shading forward (visibility cached, tape)",
             timing.ms(r["forward_tape_cached_visibility"]),
         ),
-        timing.row("rest of a full forward (full - parts above)", f"{rest:.1f} ms"),
+        timing.row("full forward - sum of the parts above (timed separately)", f"{rest:.1f} ms"),
         timing.row(
             "full forward render (no tape)",
             timing.ms(r["forward"]),
@@ -332,6 +341,11 @@ def make_report(r: dict, out) -> dict:
         ),
         timing.row("full forward render, no BVH", timing.ms(r["forward_no_bvh"]), "paper 85.6 ms"),
         timing.row("forward+backward, no BVH", timing.ms(r["forward_backward_no_bvh"])),
+        timing.row(
+            "minor page faults per pass: forward / forward+backward",
+            f"{r['forward']['page_faults_per_pass']:.0f} / "
+            f"{r['forward_backward']['page_faults_per_pass']:.0f}",
+        ),
         timing.row(
             "peak memory forward: tracemalloc / process RSS",
             f"{r['memory_forward']['tracemalloc_peak_mb']:.1f} / "
@@ -365,7 +379,7 @@ def make_report(r: dict, out) -> dict:
     for label, t in r["threading"].items():
         rows.append(
             timing.row(
-                f"threading {label}: forward {size}^2 / f+b {size}^2 / forward 64^2 / "
+                f"config {label}: forward {size}^2 / f+b {size}^2 / forward 64^2 / "
                 "empty parallel kernel",
                 f"{t['forward']['median_ms']:.1f} / {t['forward_backward']['median_ms']:.1f} / "
                 f"{t['forward_64']['median_ms']:.1f} ms / "
@@ -378,15 +392,18 @@ def make_report(r: dict, out) -> dict:
         "(no-BVH rows: fewer runs); NumPy and Numba use their default threads (2 cores).",
         "Breakdown of a full forward: "
         + ", ".join(f"{k} {val:.1f} ms" for k, val in parts.items())
-        + f", rest {rest:.1f} ms (validation, geometry copy, cache keys, image assembly).",
+        + f"; full forward - their sum = {rest:.1f} ms (the parts are timed separately, so "
+        "this is within their noise).",
         "Largest own times in cProfile of one forward+backward: "
         + "; ".join(f"{p['function']} {p['own_ms']:.1f} ms ({100 * p['share']:.0f}%)" for p in top),
         "Memory: tracemalloc = NumPy/Python allocations alive at the peak of the call; RSS = "
         "the whole process's peak resident memory (interpreter, libraries and Numba included).",
-        "Threading rows: each configuration in a fresh process; 'empty parallel kernel' is the "
-        "median time of launching a Numba prange loop over 16 elements.",
+        "Config rows: each configuration in a fresh process (the rows above run in this "
+        "process, with the environment run_all.py sets); 'empty parallel kernel' is the "
+        "median time of launching a Numba prange loop over 16 elements; 'keep freed memory' "
+        "= MALLOC_MMAP_THRESHOLD_=32 MiB, MALLOC_TRIM_THRESHOLD_=1 GiB.",
     ]
-    labels = list(parts) + ["rest"]
+    labels = list(parts) + ["full - sum"]
     plot = line_plot(
         {"forward breakdown (ms)": (np.arange(1, len(labels) + 1), list(parts.values()) + [rest])},
         out / "bench_render_breakdown.png",
