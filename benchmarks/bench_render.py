@@ -298,7 +298,12 @@ def make_report(r: dict, out) -> dict:
         timing.row(
             f"camera-ray generation ({v['camera_rays']:,} rays)", timing.ms(v["ray_generation"])
         ),
-        timing.row("closest hit, BVH", timing.ms(v["closest_hit"]), "Embree 1 thread: 10 ms"),
+        timing.row("closest hit, BVH", timing.ms(v["closest_hit"])),
+        timing.row(
+            "closest hit, BVH, 1 thread",
+            timing.ms(v["closest_hit_1_thread"]),
+            "Embree 1 thread: 10 ms",
+        ),
         timing.row(
             "primary visibility (generation + closest hit)",
             f"{primary:.1f} ms",

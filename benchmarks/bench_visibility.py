@@ -11,7 +11,8 @@ A finer tessellation (26 x 60 cells per patch: 99,840 triangles) measures build 
 ray casting on a bigger mesh.
 
 Measured (medians after a warm-up call, see ``timing.py``): BVH build, camera-ray
-generation, closest-hit for all camera rays, any-hit for the shadow rays; brute force for
+generation, closest-hit for all camera rays (also with Numba limited to one thread), any-hit
+for the shadow rays; brute force for
 the same rays (identical answers are checked). The thread count is Numba's default (set
 NUMBA_NUM_THREADS to change it).
 
@@ -21,6 +22,7 @@ are used by ``bench_render.py`` and ``fig2_bvh.py`` too.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import timing
 
@@ -70,6 +72,19 @@ def _occluded(accel: Accelerator, w: dict, rays=slice(None)) -> np.ndarray:
     )
 
 
+def closest_hit_one_thread(w: dict, repeats: int) -> dict:
+    """The camera rays' closest hits with Numba limited to one thread (for comparison with
+    single-threaded ray casters such as Embree's 10 ms)."""
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        return timing.measure(
+            lambda: w["accel"].closest_hit(w["origins"], w["directions"]), repeats
+        )
+    finally:
+        numba.set_num_threads(threads)
+
+
 def time_bvh_visibility(w: dict, repeats: int) -> dict:
     """Medians (ms) of the BVH build, camera-ray generation, closest hit of all camera rays
     and any-hit of all shadow rays, plus counts and the tree's statistics."""
@@ -90,6 +105,7 @@ def time_bvh_visibility(w: dict, repeats: int) -> dict:
         "closest_hit": timing.measure(
             lambda: accel.closest_hit(w["origins"], w["directions"]), repeats
         ),
+        "closest_hit_1_thread": closest_hit_one_thread(w, repeats),
         "occluded": timing.measure(lambda: _occluded(accel, w), repeats),
     }
 
@@ -154,6 +170,10 @@ def main(argv=None) -> dict:
             timing.row(
                 f"{label}: closest hit, {r['camera_rays']:,} camera rays",
                 timing.ms(r["closest_hit"]),
+            ),
+            timing.row(
+                f"{label}: closest hit, 1 thread",
+                timing.ms(r["closest_hit_1_thread"]),
                 "Embree 1 thread: 10 ms" if r is coarse else "",
             ),
             timing.row(

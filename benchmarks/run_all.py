@@ -153,9 +153,14 @@ def main(argv=None) -> Path:
         env.setdefault("OMP_WAIT_POLICY", "passive")
         note = (
             f"Threading: scripts run with OMP_WAIT_POLICY={env['OMP_WAIT_POLICY']} (idle "
-            "OpenMP threads sleep instead of spinning; see run_all.py and the threading rows "
+            "OpenMP threads sleep instead of spinning; see run_all.py and the 'config' rows "
             "of bench_render for what the default costs on this shared 2-core machine)."
         )
+    note += (
+        " The machine is shared (see the load averages): Numba's kernels use both cores, so a "
+        "process running on the other core can slow them up to 2x for a while. Ratios are "
+        "taken between numbers measured in the same run, close in time."
+    )
     runs = {}
     t0 = time.perf_counter()
     for name in args.only or SCRIPTS:

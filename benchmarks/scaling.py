@@ -150,15 +150,20 @@ def main(argv=None) -> dict:
     for p in pixels + triangles:
         rows.append(
             timing.row(
-                f"{p['size']}^2, {p['triangles']:,} tri: forward / f+b / tape peak",
+                f"{p['size']}^2, {p['triangles']:,} tri: forward / f+b / tape peak / "
+                "page faults per f+b",
                 f"{p['forward']['median_ms']:.1f} / {p['forward_backward']['median_ms']:.1f} ms / "
-                f"{p['memory_forward_backward']['tracemalloc_peak_mb']:.0f} MB",
+                f"{p['memory_forward_backward']['tracemalloc_peak_mb']:.0f} MB / "
+                f"{p['forward_backward']['page_faults_per_pass']:.0f}",
             )
         )
     notes = [
         f"Medians of {repeats} runs after a warm-up. Exponent b of t ~ n^b by least squares "
         "on log-log; 'upper half' fits the larger half of the points only.",
-        "Tape peak = tracemalloc peak of one forward+backward (NumPy arrays alive at once).",
+        "Tape peak = tracemalloc peak of one forward+backward (NumPy arrays alive at once). "
+        "Page faults: minor faults per forward+backward (fresh 4 KiB pages): with glibc's "
+        "default allocator, arrays above its mmap threshold (128 KiB at first, adapted as the "
+        "process runs) are mapped and unmapped on every pass.",
     ]
     section = timing.report_section("Scaling (scaling.py)", rows, notes, [p.name for p in plots])
     result = {
