@@ -37,7 +37,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, example, given, settings
+from hypothesis import HealthCheck, assume, example, given, settings
 from hypothesis import strategies as st
 from render_helpers import masked_gradient_check, random_scene
 
@@ -66,8 +66,14 @@ def assert_gradient_matches(scene, params, min_norm=1e-3, tolerance=TOLERANCE, *
     # The mask must not hide the comparison: almost every pixel is compared.
     assert result.kept >= 0.9 * result.pixels, f"only {result.kept}/{result.pixels} pixels kept"
     norm = float(np.linalg.norm(result.g_fd))
-    assert norm > min_norm, f"finite-difference gradient is ~0 ({norm:.3g}): the check is void"
     assert np.isfinite(result.g_ad).all()
+    if norm <= min_norm:
+        # A random scene where the parameters do not affect the image (e.g. a smooth
+        # pyramid whose normals all face away from the light: ambient only). AD must agree
+        # that the gradient vanishes; the example is then discarded as void, so that a pass
+        # always means a non-trivial comparison (the fixed @example seeds are non-void).
+        assert float(np.linalg.norm(result.g_ad)) <= min_norm, f"AD {result.g_ad}, FD ~0"
+        assume(False)
     assert result.rel_error < tolerance, (
         f"relative error {result.rel_error:.3g}\n AD {result.g_ad}\n FD {result.g_fd}"
     )
