@@ -57,7 +57,7 @@ def _first_below(values, threshold: float) -> float:
 class _Recorder:
     """Keeps a downsampled frame every few iterations for the GIF."""
 
-    def __init__(self, every: int, max_side: int = 256):
+    def __init__(self, every: int, max_side: int = 192):
         self.every, self.max_side, self.frames = max(1, every), max_side, []
 
     def __call__(self, it, loss, image, history):
@@ -100,7 +100,7 @@ def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name=
     """Shared driver: initial render, optimisation, final render, outputs, timings."""
     target = np.clip(target, 0.0, 1.0)  # what the paper's Eq. 1 compares against
     initial = render(scene).data.copy()
-    recorder = _Recorder(every=max(1, iters // 60))
+    recorder = _Recorder(every=max(1, iters // 40))
     start = time.perf_counter()
     _, history = optimize(
         scene,
@@ -173,7 +173,7 @@ def run_camera_calibration(
 
     result, history = _run(
         scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, out=out,
-        name=f"camera_calibration_seed{seed}", quiet=quiet,
+        name=f"camera_calibration_{angle:g}deg_seed{seed}", quiet=quiet,
     )  # fmt: skip
     result.update(
         experiment="camera_calibration",
