@@ -161,8 +161,7 @@ def minidiff_forward(w: dict, leaves: dict) -> md.Tensor:
     t, u, v = intersect_triangles(eye, d, a, b, c)
     points = eye + column(t) * d
     normals = md.normalize(face_normals(a, b, c))
-    # toward_ray returns float64 signs; cast so float32 stays float32 (see the report).
-    normals = normals * toward_ray(normals, d).astype(d.dtype)
+    normals = normals * toward_ray(normals, d)
     view = -md.normalize(d)
     radiance = shade(
         points, normals, view, leaves["albedo"], leaves["material"], [leaves["light"]], [w["lit"]]
