@@ -71,9 +71,14 @@ def image_plane_coords(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.ndar
 
 
 def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
-    """(k, 3) unnormalised ray directions on the tape for image-plane coords (k, 2)."""
+    """(k, 3) unnormalised ray directions on the tape for image-plane coords (k, 2).
+
+    x * right + y * up + 1 * forward is one small matrix product, [x, y, 1] @ [right; up;
+    forward]: one BLAS call and one tape node instead of four (k, 3) operations.
+    """
     forward, right, up, _ = frame
-    return forward + coords[:, :1] * right + coords[:, 1:] * up
+    homogeneous = np.concatenate([coords, np.ones((len(coords), 1), coords.dtype)], axis=1)
+    return homogeneous @ md.stack([right, up, forward])
 
 
 @numba.njit(parallel=True, cache=True)

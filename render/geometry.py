@@ -20,12 +20,17 @@ def intersect_triangles(origin, direction, a, b, c):
     origin (3,) or (k, 3); direction (k, 3); a, b, c (k, 3) triangle corners.
     Returns (t, u, v), each (k,): the hit point is origin + t * direction
     = (1 - u - v) a + u b + v c.
+    """
+    return intersect_edges(origin, direction, a, b - a, c - a)
+
+
+def intersect_edges(origin, direction, a, e1, e2):
+    """Moller-Trumbore with the triangle given as a corner and two edges (e1 = b - a,
+    e2 = c - a), for callers that need the edges anyway (e.g. for the normal).
 
     Derivation in brief: solve origin + t d = a + u e1 + v e2 with Cramer's rule; the
     determinants are triple products, written as dot(., cross(., .)).
     """
-    e1 = b - a
-    e2 = c - a
     p = md.cross(direction, e2)
     inv_det = 1.0 / md.dot(e1, p)  # non-zero: the BVH only reports non-degenerate hits
     s = origin - a

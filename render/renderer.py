@@ -30,9 +30,8 @@ import minidiff as md
 from render.accel import Accelerator
 from render.camera import camera_frame, image_plane_coords, primary_rays, ray_directions
 from render.geometry import (
-    face_normals,
+    intersect_edges,
     intersect_spheres,
-    intersect_triangles,
     toward_ray,
     vertex_normals,
 )
@@ -123,12 +122,12 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
         eye, directions = primary_rays(camera, spp)
         origins = np.broadcast_to(eye, directions.shape)
         prim_id, t, _, _ = accel.closest_hit(origins, directions)
-        cache.primary_key, cache.primary = camera_key, (eye, directions, prim_id, t)
+        hit_rays = np.flatnonzero(prim_id >= 0)
+        points = eye + t[hit_rays, None] * directions[hit_rays]  # where shadow rays start
+        cache.primary_key, cache.primary = camera_key, (prim_id, hit_rays, points)
         cache.shadow_keys.clear()
-    eye, directions, prim_id, t = cache.primary
+    prim_id, hit_rays, points = cache.primary
 
-    hit_rays = np.flatnonzero(prim_id >= 0)
-    points = eye + t[hit_rays, None] * directions[hit_rays]
     lit = []
     for j, light in enumerate(scene.lights):
         if not shadows:
@@ -185,9 +184,10 @@ def _shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tenso
     """Recompute the hits on one mesh's triangles on the tape and shade them: (k, 3)."""
     faces = mesh.faces[faces_hit]
     a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
-    t, u, v = intersect_triangles(eye, directions, a, b, c)
+    e1, e2 = b - a, c - a
+    t, u, v = intersect_edges(eye, directions, a, e1, e2)
     points = eye + column(t) * directions
-    normals = md.normalize(face_normals(a, b, c))
+    normals = md.normalize(md.cross(e1, e2))
     flip = toward_ray(normals, directions)
     w = (column(1.0 - u - v), column(u), column(v))  # barycentric weights of a, b, c
     if mesh.smooth:
@@ -206,8 +206,7 @@ def _shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tenso
         albedo = sample_texture(material.texture, uv)
     else:
         albedo = material.albedo
-    view = -md.normalize(directions)
-    return shade(points, normals, view, albedo, material, lights, lit)
+    return shade(points, normals, directions, albedo, material, lights, lit)
 
 
 def _shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
@@ -220,8 +219,7 @@ def _shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
     points = eye + column(t) * directions
     normals = md.normalize(points - sphere.center)
     normals = normals * toward_ray(normals, directions)
-    view = -md.normalize(directions)
-    return shade(points, normals, view, sphere.material.albedo, sphere.material, lights, lit)
+    return shade(points, normals, directions, sphere.material.albedo, sphere.material, lights, lit)
 
 
 def render(

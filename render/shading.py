@@ -73,15 +73,17 @@ def _has_specular(material: Material) -> bool:
     return material.specular.requires_grad or bool(np.any(material.specular.data))
 
 
-def shade(points, normals, view, albedo, material: Material, lights, lit) -> md.Tensor:
+def shade(points, normals, directions, albedo, material: Material, lights, lit) -> md.Tensor:
     """Outgoing radiance (k, 3) at k hit points.
 
-    points (k, 3); normals (k, 3) unit, facing the viewer; view (k, 3) unit, towards the
-    viewer; albedo (3,) or (k, 3); lights a list; lit[j] a (k,) float array, 1 where light j
-    is unoccluded (a constant: visibility is discrete). The specular lobe is the
+    points (k, 3); normals (k, 3) unit, facing the viewer; directions (k, 3) of the camera
+    rays (any length; only the specular lobe needs them); albedo (3,) or (k, 3); lights a
+    list; lit[j] a (k,) float array, 1 where light j is unoccluded (a constant: visibility
+    is discrete). The specular lobe is the
     energy-normalised Blinn-Phong  f_s = specular * (n + 8) / (8 pi) * max(0, n.h)^n.
     """
     diffuse_brdf = albedo * (1.0 / math.pi)
+    view = -md.normalize(directions) if _has_specular(material) else None  # towards the eye
     radiance = None
     for light, visible in zip(lights, lit, strict=True):
         to_light, irradiance = light_incidence(light, points)
