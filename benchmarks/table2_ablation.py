@@ -37,10 +37,9 @@ import timing
 
 import minidiff as md
 from render import render
-from render.experiments import TRUE_CAMERA, TRUE_LOOK_AT, rotate
+from render.experiments import TRUE_CAMERA, camera_calibration_problem, relative_error_pct
 from render.optimize import image_loss, optimize
 from render.plot import line_plot
-from render.teapot import paper_scene
 
 PAPER = {
     "AD + BVH": (8.7, 0.20),
@@ -54,23 +53,15 @@ FD_STEP = 1e-5
 
 
 def calibration_problem(size: int, seed: int = 42, angle: float = 10.0):
-    """The scene, its two camera parameters and the target, as run_camera_calibration
-    builds them."""
-    rng = np.random.default_rng(seed)
-    target = np.clip(render(paper_scene(width=size, height=size)).data, 0.0, 1.0)
-    start_position = TRUE_CAMERA + np.array([0.5, 0.5, 0.0])
-    view = TRUE_LOOK_AT - start_position
-    axis = np.cross(view, rng.normal(size=3))
-    start_look_at = start_position + rotate(view, axis, angle)
-    position = md.tensor(start_position, requires_grad=True)
-    look_at = md.tensor(start_look_at, requires_grad=True)
-    scene = paper_scene(width=size, height=size, camera_position=position, look_at=look_at)
-    return scene, [position, look_at], target
+    """The scene, its two camera parameters and the target, exactly as
+    ``run_camera_calibration`` builds them (the target clipped as the loss sees it)."""
+    scene, params, target = camera_calibration_problem(size, seed, angle)
+    return scene, params, np.clip(target, 0.0, 1.0)
 
 
 def position_error(position: np.ndarray) -> float:
     """Paper Eq. 4, in percent."""
-    return float(100 * np.linalg.norm(position - TRUE_CAMERA) / np.linalg.norm(TRUE_CAMERA))
+    return relative_error_pct(position, TRUE_CAMERA)
 
 
 def run_ad(size: int, iters: int, bvh: bool) -> dict:
