@@ -267,6 +267,20 @@ class Accelerator:
 
     # ----------------------------------------------------------------------------------------
 
+    def _tree(self) -> tuple:
+        """The flat tree as the traversal kernels take it: node arrays, leaf primitive table,
+        leaf ids, triangle count (ids below it are triangles) and the traversal stack size
+        (depth + 2 is enough for near-first traversal, which pushes one node per level)."""
+        return (
+            self.node_bounds,
+            self.node_first,
+            self.node_count,
+            self.leaf_prim,
+            self.leaf_ids,
+            self.n_triangles,
+            self.depth + 2,
+        )
+
     def closest_hit(
         self,
         origins: np.ndarray,
@@ -295,13 +309,7 @@ class Accelerator:
             return out_id, out_t, out_u, out_v
         if self.use_bvh:
             closest_hit_bvh(
-                self.node_bounds,
-                self.node_first,
-                self.node_count,
-                self.leaf_prim,
-                self.leaf_ids,
-                self.n_triangles,
-                self.depth + 2,
+                *self._tree(),
                 o,
                 d,
                 o_step,
@@ -377,13 +385,7 @@ class Accelerator:
             return out
         if self.use_bvh:
             occluded_bvh(
-                self.node_bounds,
-                self.node_first,
-                self.node_count,
-                self.leaf_prim,
-                self.leaf_ids,
-                self.n_triangles,
-                self.depth + 2,
+                *self._tree(),
                 o,
                 d,
                 o_step,
