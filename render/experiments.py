@@ -282,22 +282,29 @@ def run_material_recovery(
 
 
 def command_line(
-    description: str, default_iters: int, argv=None, extra: dict[str, dict] | None = None
+    description: str,
+    default_iters: int | None,
+    argv=None,
+    extra: dict[str, dict] | None = None,
+    default_size: int | None = 512,
 ) -> argparse.Namespace:
     """The shared command line of the example scripts: --size --iters --seed --out --quiet,
-    plus ``extra`` options ({"--name": argparse keyword arguments})."""
+    plus ``extra`` options ({"--name": argparse keyword arguments}). A default of None
+    means "not given" (the script then picks per experiment)."""
     parser = argparse.ArgumentParser(description=description)
     for name, options in (extra or {}).items():
         parser.add_argument(name, **options)
-    parser.add_argument("--size", type=int, default=512, help="image width = height (pixels)")
+    parser.add_argument(
+        "--size", type=int, default=default_size, help="image width = height (pixels)"
+    )
     parser.add_argument("--iters", type=int, default=default_iters, help="maximum iterations")
     parser.add_argument("--seed", type=int, default=42, help="random seed of the start")
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     args = parser.parse_args(argv)
-    if args.size < 8:
+    if args.size is not None and args.size < 8:
         parser.error(f"--size must be at least 8, got {args.size}")
-    if args.iters < 0:
+    if args.iters is not None and args.iters < 0:
         parser.error(f"--iters must be >= 0, got {args.iters}")
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} exists and is not a folder")
