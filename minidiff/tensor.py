@@ -317,7 +317,11 @@ def unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
         rows = g.reshape(n_rows, int(np.prod(g.shape[lead:], dtype=np.int64)))
         g = (np.ones(rows.shape[0], dtype=g.dtype) @ rows).reshape(g.shape[lead:])
     axes = tuple(i for i, n in enumerate(shape) if n == 1 and g.shape[i] != 1)
-    if axes:
+    if axes == (g.ndim - 1,) and g.ndim > 1:
+        # (k, 3) -> (k, 1), e.g. a per-hit scalar that scaled an RGB colour: summing rows of
+        # length 3 with .sum() is slow (per-row loop overhead); a mat-vec product is not.
+        g = (g @ np.ones(g.shape[-1], dtype=g.dtype))[..., None]
+    elif axes:
         g = g.sum(axis=axes, keepdims=True)
     return g
 

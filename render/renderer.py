@@ -180,8 +180,12 @@ def _trace_shadows(accel: Accelerator, light, points: np.ndarray, start_prim: np
     return ~blocked
 
 
-def _shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tensor:
-    """Recompute the hits on one mesh's triangles on the tape and shade them: (k, 3)."""
+def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tensor:
+    """Recompute the hits on one mesh's triangles on the tape and shade them: (k, 3).
+
+    faces_hit (k,) local face ids from the BVH; eye (3,) and directions (k, 3) the camera
+    rays (tensors); lit[j] (k,) float visibility of light j.
+    """
     faces = mesh.faces[faces_hit]
     a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
     e1, e2 = b - a, c - a
@@ -209,7 +213,7 @@ def _shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tenso
     return shade(points, normals, directions, albedo, material, lights, lit)
 
 
-def _shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
+def shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
     """Recompute the hits on one sphere on the tape and shade them: (k, 3)."""
     if sphere.material.texture is not None:
         raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
@@ -267,9 +271,9 @@ def render(
         obj_lit = [m[in_obj].astype(dtype) for m in lit]
         if isinstance(obj, Mesh):
             local = hit_prims[in_obj] - first
-            colours.append(_shade_mesh(obj, local, eye, directions, lights, obj_lit))
+            colours.append(shade_mesh(obj, local, eye, directions, lights, obj_lit))
         else:
-            colours.append(_shade_sphere(obj, eye, directions, lights, obj_lit))
+            colours.append(shade_sphere(obj, eye, directions, lights, obj_lit))
         pixels.append(hit_rays[in_obj] // spp)
 
     image = None
