@@ -118,10 +118,8 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     p = _cross(d, e2)
     inv_det = 1.0 / _dot(e1, p)
     s = eye - a
-    u = _dot(s, p) * inv_det  # noqa: F841  (computed by the renderer too)
     q = _cross(s, e1)
-    v_ = _dot(d, q) * inv_det  # noqa: F841
-    t = _dot(e2, q) * inv_det
+    t = _dot(e2, q) * inv_det  # no barycentrics: a flat, untextured mesh needs none
     points = eye + t[:, None] * d
     # Flat normal facing the ray (render.renderer.shade_mesh)
     normals = _normalize(_cross(e1, e2))

@@ -24,9 +24,10 @@ def intersect_triangles(origin, direction, a, b, c):
     return intersect_edges(origin, direction, a, b - a, c - a)
 
 
-def intersect_edges(origin, direction, a, e1, e2):
+def intersect_edges(origin, direction, a, e1, e2, barycentrics: bool = True):
     """Moller-Trumbore with the triangle given as a corner and two edges (e1 = b - a,
-    e2 = c - a), for callers that need the edges anyway (e.g. for the normal).
+    e2 = c - a), for callers that need the edges anyway (e.g. for the normal). With
+    ``barycentrics=False`` only t is computed (u and v are returned as None).
 
     Derivation in brief: solve origin + t d = a + u e1 + v e2 with Cramer's rule; the
     determinants are triple products, written as dot(., cross(., .)).
@@ -34,10 +35,12 @@ def intersect_edges(origin, direction, a, e1, e2):
     p = md.cross(direction, e2)
     inv_det = 1.0 / md.dot(e1, p)  # non-zero: the BVH only reports non-degenerate hits
     s = origin - a
-    u = md.dot(s, p) * inv_det
     q = md.cross(s, e1)
-    v = md.dot(direction, q) * inv_det
     t = md.dot(e2, q) * inv_det
+    if not barycentrics:
+        return t, None, None
+    u = md.dot(s, p) * inv_det
+    v = md.dot(direction, q) * inv_det
     return t, u, v
 
 

@@ -180,34 +180,35 @@ def _trace_shadows(accel: Accelerator, light, points: np.ndarray, start_prim: np
     return ~blocked
 
 
+def _interpolate(weights, attribute, faces):
+    """Barycentric interpolation of a per-vertex attribute (V, n) at k hits: (k, n)."""
+    return sum(w * attribute[faces[:, i]] for i, w in enumerate(weights))
+
+
 def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tensor:
     """Recompute the hits on one mesh's triangles on the tape and shade them: (k, 3).
 
     faces_hit (k,) local face ids from the BVH; eye (3,) and directions (k, 3) the camera
     rays (tensors); lit[j] (k,) float visibility of light j.
     """
+    material = mesh.material
     faces = mesh.faces[faces_hit]
     a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
     e1, e2 = b - a, c - a
-    t, u, v = intersect_edges(eye, directions, a, e1, e2)
+    # Barycentrics are needed only to interpolate vertex normals or UVs.
+    interpolated = mesh.smooth or material.texture is not None
+    t, u, v = intersect_edges(eye, directions, a, e1, e2, barycentrics=interpolated)
     points = eye + column(t) * directions
     normals = md.normalize(md.cross(e1, e2))
     flip = toward_ray(normals, directions)
-    w = (column(1.0 - u - v), column(u), column(v))  # barycentric weights of a, b, c
+    if interpolated:
+        weights = (column(1.0 - u - v), column(u), column(v))  # of corners a, b, c
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        normals = md.normalize(
-            w[0] * vn[faces[:, 0]] + w[1] * vn[faces[:, 1]] + w[2] * vn[faces[:, 2]]
-        )
+        normals = md.normalize(_interpolate(weights, vn, faces))
     normals = normals * flip
-    material = mesh.material
     if material.texture is not None:
-        uv = (
-            w[0] * mesh.uvs[faces[:, 0]]
-            + w[1] * mesh.uvs[faces[:, 1]]
-            + w[2] * mesh.uvs[faces[:, 2]]
-        )
-        albedo = sample_texture(material.texture, uv)
+        albedo = sample_texture(material.texture, _interpolate(weights, mesh.uvs, faces))
     else:
         albedo = material.albedo
     return shade(points, normals, directions, albedo, material, lights, lit)
