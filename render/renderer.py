@@ -234,7 +234,7 @@ def render(
     spp: int = 1,
     reuse_visibility: bool = True,
     return_info: bool = False,
-):
+) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
 
     bvh: use the BVH (False: brute force over all primitives, same result, for ablations).
