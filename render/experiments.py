@@ -287,24 +287,27 @@ def command_line(
     argv=None,
     extra: dict[str, dict] | None = None,
     default_size: int | None = 512,
+    iterative: bool = True,
 ) -> argparse.Namespace:
     """The shared command line of the example scripts: --size --iters --seed --out --quiet,
     plus ``extra`` options ({"--name": argparse keyword arguments}). A default of None
-    means "not given" (the script then picks per experiment)."""
+    means "not given" (the script then picks per experiment). ``iterative=False`` (a plain
+    render) leaves out --iters and --seed, which would mean nothing."""
     parser = argparse.ArgumentParser(description=description)
     for name, options in (extra or {}).items():
         parser.add_argument(name, **options)
     parser.add_argument(
         "--size", type=int, default=default_size, help="image width = height (pixels)"
     )
-    parser.add_argument("--iters", type=int, default=default_iters, help="maximum iterations")
-    parser.add_argument("--seed", type=int, default=42, help="random seed of the start")
+    if iterative:
+        parser.add_argument("--iters", type=int, default=default_iters, help="maximum iterations")
+        parser.add_argument("--seed", type=int, default=42, help="random seed of the start")
     parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
     parser.add_argument("--quiet", action="store_true", help="no progress line")
     args = parser.parse_args(argv)
     if args.size is not None and args.size < 8:
         parser.error(f"--size must be at least 8, got {args.size}")
-    if args.iters is not None and args.iters < 0:
+    if getattr(args, "iters", None) is not None and args.iters < 0:
         parser.error(f"--iters must be >= 0, got {args.iters}")
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} exists and is not a folder")
