@@ -157,7 +157,7 @@ def minidiff_forward(w: dict, leaves: dict) -> md.Tensor:
     """The renderer's own per-hit code on the tape (``render.renderer.shade_mesh``, exactly
     what ``render.render`` runs for a mesh) and the MSE loss."""
     d = md.Tensor(w["directions"])  # constant here (the renderer derives it from the camera)
-    radiance = shade_mesh(
+    radiance, _ = shade_mesh(
         leaves["mesh"], w["faces_hit"], leaves["eye"], d, [leaves["light"]], [w["lit"]]
     )
     diff = radiance - w["target"]

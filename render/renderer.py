@@ -36,7 +36,7 @@ from render.geometry import (
     vertex_normals,
 )
 from render.scene import DirectionalLight, Mesh, PointLight, Scene, Sphere
-from render.shading import column, sample_texture, shade
+from render.shading import column, sample_texture, shade, texel_cell
 
 # Shadow rays start on the surface; they skip the triangle they start on and ignore hits
 # closer than this fraction of the distance to the light (neighbouring triangles at a
@@ -50,11 +50,17 @@ class RenderInfo:
 
     prim_id (H, W, spp) int64: the primitive each ray hit (-1: background).
     lit (n_lights, H, W, spp) bool: light j reaches the ray's hit point unoccluded.
-    Two renders have the same visibility where both arrays agree.
+    texel (H, W, spp) int64: the cell of the bilinear texture lookup at the hit
+        (``render.shading.texel_cell``; -1 where the hit surface is untextured or missed).
+    Two renders have the same visibility where ``prim_id`` and ``lit`` agree. The image is a
+    smooth function of the parameters only while all three stay the same: the tape
+    gradient is the derivative for fixed decisions, so finite differences agree with it
+    only where a perturbation changes none of them.
     """
 
     prim_id: np.ndarray
     lit: np.ndarray
+    texel: np.ndarray
 
 
 @dataclass
@@ -185,11 +191,12 @@ def _interpolate(weights, attribute, faces):
     return sum(w * attribute[faces[:, i]] for i, w in enumerate(weights))
 
 
-def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tensor:
-    """Recompute the hits on one mesh's triangles on the tape and shade them: (k, 3).
+def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.Tensor, np.ndarray]:
+    """Recompute the hits on one mesh's triangles on the tape and shade them.
 
     faces_hit (k,) local face ids from the BVH; eye (3,) and directions (k, 3) the camera
-    rays (tensors); lit[j] (k,) float visibility of light j.
+    rays (tensors); lit[j] (k,) float visibility of light j. Returns the radiance (k, 3)
+    and the texture cell of each hit (k,) int64 (-1 for an untextured mesh).
     """
     material = mesh.material
     faces = mesh.faces[faces_hit]
@@ -208,10 +215,13 @@ def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> md.Tensor
         normals = md.normalize(_interpolate(weights, vn, faces))
     normals = normals * flip
     if material.texture is not None:
-        albedo = sample_texture(material.texture, _interpolate(weights, mesh.uvs, faces))
+        uv = _interpolate(weights, mesh.uvs, faces)
+        albedo = sample_texture(material.texture, uv)
+        texel = texel_cell(material.texture.shape, uv.data)
     else:
         albedo = material.albedo
-    return shade(points, normals, directions, albedo, material, lights, lit)
+        texel = np.full(len(faces_hit), -1, dtype=np.int64)
+    return shade(points, normals, directions, albedo, material, lights, lit), texel
 
 
 def shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
@@ -263,6 +273,7 @@ def render(
     coords = image_plane_coords(camera, hit_rays, spp).astype(dtype)
     hit_prims = prim_id[hit_rays]
 
+    texel = np.full(prim_id.size, -1, dtype=np.int64)  # per ray, for RenderInfo
     colours, pixels = [], []
     for obj, first, count in _primitive_ranges(scene):
         in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
@@ -272,7 +283,10 @@ def render(
         obj_lit = [m[in_obj].astype(dtype) for m in lit]
         if isinstance(obj, Mesh):
             local = hit_prims[in_obj] - first
-            colours.append(shade_mesh(obj, local, eye, directions, lights, obj_lit))
+            colour, texel[hit_rays[in_obj]] = shade_mesh(
+                obj, local, eye, directions, lights, obj_lit
+            )
+            colours.append(colour)
         else:
             colours.append(shade_sphere(obj, eye, directions, lights, obj_lit))
         pixels.append(hit_rays[in_obj] // spp)
@@ -295,7 +309,9 @@ def render(
     lit_full = np.zeros((len(lights), prim_id.size), dtype=bool)
     for j, m in enumerate(lit):
         lit_full[j, hit_rays] = m
-    return image, RenderInfo(prim_id.reshape(shape), lit_full.reshape((len(lights),) + shape))
+    return image, RenderInfo(
+        prim_id.reshape(shape), lit_full.reshape((len(lights),) + shape), texel.reshape(shape)
+    )
 
 
 def _primitive_ranges(scene: Scene) -> list[tuple[Mesh | Sphere, int, int]]:

@@ -45,16 +45,38 @@ def light_incidence(light, points):
     raise TypeError(f"render: unsupported light type {type(light).__name__}")
 
 
+def _texel_position(shape, uv):
+    """Continuous texel coordinates (x, y) of (k, 2) UVs in an (H, W, ...) texture.
+
+    Texel centres sit at integers: UV (0, 0) is the bottom-left corner of the image and
+    (1, 1) the top-right (the OBJ convention). Works on tensors and on plain arrays.
+    """
+    height, width = shape[0], shape[1]
+    return uv[:, 0] * width - 0.5, (1.0 - uv[:, 1]) * height - 0.5
+
+
+def texel_cell(shape, uv: np.ndarray) -> np.ndarray:
+    """(k,) int64: the flat index (row * W + column) of the top-left texel of each UV's
+    bilinear footprint in an (H, W, ...) texture, repeating outside [0, 1].
+
+    Bilinear filtering is smooth inside a cell and has a kink (a jump in its derivative)
+    where a sample crosses into the next cell, so the cell is a discrete decision of the
+    renderer, like visibility: ``RenderInfo.texel`` reports it.
+    """
+    x, y = _texel_position(shape, np.asarray(uv))
+    height, width = shape[0], shape[1]
+    return (np.floor(y).astype(np.int64) % height) * width + np.floor(x).astype(np.int64) % width
+
+
 def sample_texture(texture, uv) -> md.Tensor:
     """Bilinear lookup of an (H, W, 3) texture at (k, 2) UVs, repeating outside [0, 1].
 
-    UV (0, 0) is the bottom-left corner of the image and (1, 1) the top-right (the OBJ
-    convention); texel centres sit at half-integer positions. Gradients reach both the four
-    texels involved (through the gathers) and the UVs (through the blend weights).
+    Texel centres sit at half-integer UV positions (see ``_texel_position``). Gradients reach
+    both the four texels involved (through the gathers) and the UVs (through the blend
+    weights); the footprint itself (``texel_cell``) is a constant.
     """
     height, width = texture.shape[0], texture.shape[1]
-    x = uv[:, 0] * width - 0.5
-    y = (1.0 - uv[:, 1]) * height - 0.5
+    x, y = _texel_position(texture.shape, uv)
     x0 = np.floor(x.data)
     y0 = np.floor(y.data)
     fx = column(x - x0)  # the blend weights are differentiable in uv

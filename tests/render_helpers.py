@@ -159,8 +159,10 @@ class GradientCheck:
 
 
 def _same_visibility(info, reference) -> np.ndarray:
-    """(H, W) bool: every sample of the pixel hits the same primitive with the same shadows."""
+    """(H, W) bool: every sample of the pixel hits the same primitive with the same shadows
+    and looks up the same texture cell (bilinear filtering has a kink between cells)."""
     same = (info.prim_id == reference.prim_id).all(axis=-1)
+    same &= (info.texel == reference.texel).all(axis=-1)
     if reference.lit.size:
         same &= (info.lit == reference.lit).all(axis=(0, -1))
     return same
@@ -172,10 +174,10 @@ def masked_gradient_check(
     """Compare the tape gradient of loss = sum(image * W) with central differences.
 
     ``params`` are Tensors stored in ``scene`` (perturbed in place through ``.data``). The
-    weights W are a fixed random image, zeroed at every pixel whose visibility (``prim_id``
-    and ``lit`` of every sample) differs from the unperturbed render in any perturbed render;
-    the tape gradient is then computed with that same masked W. ``mask=False`` compares
-    every pixel (only to demonstrate why the mask is needed).
+    weights W are a fixed random image, zeroed at every pixel whose discrete decisions
+    (``prim_id``, ``lit`` and ``texel`` of every sample) differ from the unperturbed render
+    in any perturbed render; the tape gradient is then computed with that same masked W.
+    ``mask=False`` compares every pixel (only to demonstrate why the mask is needed).
 
     ``order=2``: the central difference D(h) = (f(x + h) - f(x - h)) / 2h, error O(h^2).
     ``order=4`` (default): Richardson's (4 D(h) - D(2h)) / 3, error O(h^4). A pixel whose ray

@@ -29,7 +29,9 @@ pixels would test something the renderer does not claim to compute. So
 every light) agree with the unperturbed render in *all* perturbed renders; W is zeroed
 everywhere else, and the tape gradient is computed with that same masked W. (With
 h = 1e-6 this rarely removes a pixel; ``test_masking_removes_exactly_the_visibility_jumps``
-shows the effect with a large h.)
+shows the effect with a large h.) The same holds for textures: bilinear filtering is smooth
+only inside one texel cell, so the mask also requires every sample to keep its cell
+(``RenderInfo.texel``).
 """
 
 from __future__ import annotations
@@ -189,11 +191,11 @@ def test_gradient_with_four_samples_per_pixel(seed):
     (the mask requires all four to keep theirs); the background enters through the miss
     fraction of edge pixels.
 
-    The texture's texels are checked, but the camera is not moved over the textured ground:
-    moving the camera slides the UVs, and bilinear interpolation has a kink (a jump in the
-    derivative) at every texel centre. A sample within h of a kink makes the finite
-    difference average two slopes. Seed 6636 did exactly that: the AD derivative of the
-    offending pixel equalled the finite difference at h = 1e-7 and differed at h = 1e-6.
+    The camera moves over the textured ground, which slides the UVs across texel cells:
+    bilinear interpolation has a kink at every cell boundary, and a sample within h of one
+    makes the finite difference average two slopes. Seed 6636 did exactly that (the AD
+    derivative of the offending pixel equalled the finite difference at h = 1e-7 and
+    differed at h = 1e-6), which is why ``RenderInfo.texel`` exists and the mask uses it.
     """
     scene = random_scene(seed, lights=BOTH, texture=True)
     params = [
@@ -202,10 +204,22 @@ def test_gradient_with_four_samples_per_pixel(seed):
         sphere(scene).radius,
         ground(scene).material.texture,
         scene.background,
+        scene.camera.position,
     ]
     assert_gradient_matches(scene, params, spp=4)
-    untextured = random_scene(seed, lights=BOTH, texture=False)
-    assert_gradient_matches(untextured, [untextured.camera.position], spp=4)
+
+
+def test_texel_cell_changes_are_masked():
+    """The two failures hypothesis found (a camera move at spp = 4, a UV move at spp = 1)
+    came from samples crossing a texel cell boundary. With a step large enough to cross
+    many boundaries, comparing every pixel fails and the texel-aware mask repairs it."""
+    scene = random_scene(43653231, lights=POINT, texture=True)
+    params = [ground(scene).uvs]
+    masked = masked_gradient_check(scene, params, h_rel=1e-4)
+    assert masked.kept < masked.pixels  # some samples changed cell
+    assert masked.rel_error < 1e-5
+    unmasked = masked_gradient_check(scene, params, h_rel=1e-4, mask=False)
+    assert unmasked.rel_error > 1e-3
 
 
 @pytest.mark.parametrize("bvh", [True, False])
