@@ -1,0 +1,22 @@
+"""Hypothesis profiles shared by every test module.
+
+- ``dev`` (the default): new random examples on every run, which is how property tests find
+  bugs. A failure prints the example; add it as an ``@example`` once fixed.
+- ``ci`` (``.ci/run`` sets ``HYPOTHESIS_PROFILE=ci``): the same examples on every run
+  (``derandomize``), so that CI judges the code, not the luck of the draw.
+
+Both drop Hypothesis' per-example deadline and its "too slow" health check: they are timing
+assertions, and timings on a shared 2-core machine are noise (Numba compiles on first call,
+too). Modules still choose their own ``max_examples``.
+"""
+
+from __future__ import annotations
+
+import os
+
+from hypothesis import HealthCheck, settings
+
+_COMMON = {"deadline": None, "suppress_health_check": [HealthCheck.too_slow]}
+settings.register_profile("dev", **_COMMON)
+settings.register_profile("ci", derandomize=True, **_COMMON)
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "dev"))
