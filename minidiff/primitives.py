@@ -334,15 +334,13 @@ def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
 
 
 def _dot_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot product along the last axis, the fastest way we measured for each case
-    (41k x 3 arrays): against one vector, a BLAS matrix-vector product (~6x faster than
-    einsum); for 3-vectors, three products summed (~2x faster than einsum, ~5x faster than
-    (a * b).sum(-1), whose reduction over a length-3 axis is slow); otherwise einsum."""
-    if b.ndim == 1:
-        return a @ b
-    if a.ndim == 1:
-        return b @ a
-    if a.shape[-1] == 3:
+    """Row-wise dot product along the last axis. For 3-vectors (the renderer's case: 41k x 3
+    arrays, or 41k x 3 against one (3,) vector), three products summed: ~2x faster than
+    einsum and ~5x faster than (a * b).sum(-1), whose reduction over a length-3 axis is slow.
+    Not a BLAS matrix-vector product, although that is faster in isolation: OpenBLAS runs
+    it on several threads, which then spin and slow the Numba kernels (see
+    ``minidiff.tensor._sum_rows``). Otherwise einsum."""
+    if a.shape[-1] == 3 and b.shape[-1] == 3:
         return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
     return np.einsum("...i,...i->...", *np.broadcast_arrays(a, b))
 
