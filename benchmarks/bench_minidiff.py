@@ -47,6 +47,7 @@ import timing
 
 import minidiff as md
 from minidiff.memory import keep_freed_memory
+from minidiff.primitives import _elementwise  # plain NumPy; the floor uses it as minidiff does
 from render import render
 from render.camera import primary_rays
 from render.plot import line_plot
@@ -100,14 +101,19 @@ def _cross(a, b):
     return out
 
 
+def _mul(x, y):
+    return _elementwise(np.multiply, x, y)
+
+
 def _normalize(x):
-    return x * (1.0 / np.sqrt(_dot(x, x)))[:, None]
+    return _mul(x, (1.0 / np.sqrt(_dot(x, x)))[:, None])
 
 
 def numpy_forward(w: dict, return_radiance: bool = False):
     """The floor: the same math as ``render.renderer.shade_mesh`` (flat-shaded mesh, one
     point light, Lambert) and the loss, in plain NumPy with the same fast building blocks
-    (np.take gathers, unrolled dot and cross), no tape."""
+    (np.take gathers, unrolled dot and cross, minidiff's column-at-a-time broadcasting
+    ``_elementwise`` for (k, 3) op (3,) and (k, 1) op (k, 3)), no tape."""
     v, d, eye = w["vertices"], w["directions"], w["eye"]
     faces = w["faces"][w["faces_hit"]]
     a, b, c = (np.take(v, faces[:, i], axis=0) for i in range(3))
@@ -115,22 +121,22 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     e1, e2 = b - a, c - a
     p = _cross(d, e2)
     inv_det = 1.0 / _dot(e1, p)
-    s = eye - a
+    s = _elementwise(np.subtract, eye, a)
     q = _cross(s, e1)
     t = _dot(e2, q) * inv_det  # no barycentrics: a flat, untextured mesh needs none
-    points = eye + t[:, None] * d
+    points = _elementwise(np.add, eye, _mul(t[:, None], d))
     # Flat normal facing the ray (render.renderer.shade_mesh)
     normals = _normalize(_cross(e1, e2))
     flip = np.where(_dot(normals, d) > 0, -1.0, 1.0).astype(d.dtype)[:, None]
-    normals = normals * flip
+    normals = _mul(normals, flip)
     # Point light, Lambert (render.shading.shade / light_incidence)
-    offset = w["light_position"] - points
+    offset = _elementwise(np.subtract, w["light_position"], points)
     distance_sq = np.maximum(_dot(offset, offset), 1e-12)
     to_light = _normalize(offset)
     irradiance = w["intensity"] / distance_sq
     cos_theta = np.maximum(_dot(normals, to_light), 0.0)
     brdf_colour = w["albedo"] * (1.0 / math.pi) * w["color"]
-    radiance = (irradiance * cos_theta * w["lit"])[:, None] * brdf_colour
+    radiance = _mul((irradiance * cos_theta * w["lit"])[:, None], brdf_colour)
     if return_radiance:
         return radiance
     return np.mean((radiance - w["target"]) ** 2)
