@@ -581,16 +581,20 @@ def getitem(x: Any, index: Any) -> Tensor:
         index = index.data
     if isinstance(index, tuple):
         index = tuple(i.data if isinstance(i, Tensor) else i for i in index)
-    if _is_row_gather(index):
+    row_gather = _is_row_gather(index)
+    try:
         # np.take is ~4x faster than x[index] for gathering rows (measured: 41k rows of 3).
-        out = np.take(x.data, index, axis=0) if x.ndim else x.data[index]
+        out = np.take(x.data, index, axis=0) if row_gather and x.ndim else x.data[index]
+    except IndexError as error:  # out of range, or a float index: name the operation
+        raise IndexError(f"getitem: {error} (indexing a tensor of shape {x.shape})") from None
+
+    if row_gather:
         rows = np.where(index < 0, index + x.shape[0], index) if index.size else index
 
         def vjp(g):
             return (_scatter_add_rows(rows, g, x.shape[0]),)
 
     elif _has_integer_array(index):
-        out = x.data[index]
 
         def vjp(g):
             gx = np.zeros(x.shape, dtype=g.dtype)
@@ -598,7 +602,6 @@ def getitem(x: Any, index: Any) -> Tensor:
             return (gx,)
 
     else:  # slices and masks never select an element twice: plain assignment is enough
-        out = x.data[index]
 
         def vjp(g):
             gx = np.zeros(x.shape, dtype=g.dtype)

@@ -117,6 +117,21 @@ def test_scatter_add_bad_index():
         md.scatter_add(values, np.array([0, -1, 2]), 4)
 
 
+@pytest.mark.parametrize(
+    "index, message",
+    [
+        (np.array([0, 5]), "index 5 is out of bounds for axis 0 with size 4"),  # row gather
+        ((0, 7), "index 7 is out of bounds for axis 1 with size 3"),  # basic indexing
+        (np.array([[0, 9]]), "index 9 is out of bounds"),  # 2-D integer array
+        (np.array([0.5]), "must be of integer"),  # a float index
+    ],
+)
+def test_getitem_bad_index_names_op_and_shape(index, message):
+    x = leaf(np.ones((4, 3)))
+    with pytest.raises(IndexError, match=rf"getitem: .*{message}.*shape \(4, 3\)"):
+        x[index]
+
+
 # ---------------------------------------------------------------------------------------------
 # backward
 # ---------------------------------------------------------------------------------------------
