@@ -627,4 +627,4 @@ def scatter_add(values: Any, index: Any, size: int) -> Tensor:
     if index.size and (index.min() < 0 or index.max() >= size):
         raise ValueError(f"scatter_add: indices must lie in [0, {size}), got {index.min()}..")
     out = _scatter_add_rows(index, values.data, size)
-    return record("scatter_add", out, (values,), lambda g: (g[index],))
+    return record("scatter_add", out, (values,), lambda g: (np.take(g, index, axis=0),))

@@ -102,7 +102,8 @@ def _geometry_arrays(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
-    """Steps 1-3: primary hits (prim_id, t per ray) and per-light lit masks per hit ray."""
+    """Steps 1-3: the primary hit of every ray (prim_id), the rays that hit (hit_rays), their
+    image-plane coordinates (coords, (k, 2) float64) and per light a lit mask per hit ray."""
     cache = _CACHE.get(scene) if reuse else None
     if cache is None:
         cache = _Visibility()
@@ -130,9 +131,12 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
         prim_id, t, _, _ = accel.closest_hit(origins, directions)
         hit_rays = np.flatnonzero(prim_id >= 0)
         points = eye + t[hit_rays, None] * directions[hit_rays]  # where shadow rays start
-        cache.primary_key, cache.primary = camera_key, (prim_id, hit_rays, points)
+        # Where the hit rays cross the image plane: constant while the camera is, so it is
+        # cached too (step 4 rebuilds the differentiable rays from it on every render).
+        coords = image_plane_coords(camera, hit_rays, spp)
+        cache.primary_key, cache.primary = camera_key, (prim_id, hit_rays, points, coords)
         cache.shadow_keys.clear()
-    prim_id, hit_rays, points = cache.primary
+    prim_id, hit_rays, points, coords = cache.primary
 
     lit = []
     for j, light in enumerate(scene.lights):
@@ -144,7 +148,7 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
             cache.shadows[j] = _trace_shadows(accel, light, points, prim_id[hit_rays])
             cache.shadow_keys[j] = light_key
         lit.append(cache.shadows[j])
-    return prim_id, hit_rays, lit
+    return prim_id, hit_rays, coords, lit
 
 
 def _light_key(light) -> list:
@@ -262,7 +266,9 @@ def render(
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
     scene.validate()
     camera, lights = scene.camera, scene.lights
-    prim_id, hit_rays, lit = _visibility(scene, bool(bvh), spp, bool(shadows), reuse_visibility)
+    prim_id, hit_rays, coords, lit = _visibility(
+        scene, bool(bvh), spp, bool(shadows), reuse_visibility
+    )
     n_pixels = camera.width * camera.height
 
     # The working precision: float32 only if every parameter is float32 (constants such as
@@ -270,7 +276,7 @@ def render(
     dtype = np.result_type(*[t.dtype for t in scene.parameters()])
     frame = camera_frame(camera)
     eye = frame[3]
-    coords = image_plane_coords(camera, hit_rays, spp).astype(dtype)
+    coords = coords.astype(dtype, copy=False)
     hit_prims = prim_id[hit_rays]
 
     texel = np.full(prim_id.size, -1, dtype=np.int64)  # per ray, for RenderInfo
