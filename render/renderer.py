@@ -16,7 +16,9 @@ The pipeline, one step at a time:
 Steps 1-3 depend only on the geometry, the camera and the lights. When those have not
 changed since the previous render of the same scene (for example while only a material is
 optimised), their results are reused (``reuse_visibility=True``, the default): the cache
-compares the actual values, so it can never serve stale visibility.
+compares the actual values, so it can never serve stale visibility. The first half of
+step 4, the hit points, normals and UVs of an object (its ``Surface``), is reused the same
+way when no parameter that moves them requires grad (e.g. while a light is optimised).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from render.geometry import (
     toward_ray,
     vertex_normals,
 )
-from render.scene import DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.scene import DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
 from render.shading import column, sample_texture, shade, texel_cell
 
 # Shadow rays start on the surface; they skip the triangle they start on and ignore hits
@@ -73,6 +75,9 @@ class _Visibility:
     primary: tuple | None = None
     shadow_keys: dict = field(default_factory=dict)
     shadows: dict = field(default_factory=dict)
+    # Step 4's geometry of an object nothing differentiable moves (see ``_cached_surface``):
+    # object index -> (key, Surface). Cleared with the primary hits.
+    surfaces: dict = field(default_factory=dict)
 
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -103,7 +108,8 @@ def _geometry_arrays(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
     """Steps 1-3: the primary hit of every ray (prim_id), the rays that hit (hit_rays), their
-    image-plane coordinates (coords, (k, 2) float64) and per light a lit mask per hit ray."""
+    image-plane coordinates (coords, (k, 2) float64), per light a lit mask per hit ray, and
+    the cache they came from."""
     cache = _CACHE.get(scene) if reuse else None
     if cache is None:
         cache = _Visibility()
@@ -136,6 +142,7 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
         coords = image_plane_coords(camera, hit_rays, spp)
         cache.primary_key, cache.primary = camera_key, (prim_id, hit_rays, points, coords)
         cache.shadow_keys.clear()
+        cache.surfaces.clear()
     prim_id, hit_rays, points, coords = cache.primary
 
     lit = []
@@ -148,7 +155,7 @@ def _visibility(scene: Scene, bvh: bool, spp: int, shadows: bool, reuse: bool):
             cache.shadows[j] = _trace_shadows(accel, light, points, prim_id[hit_rays])
             cache.shadow_keys[j] = light_key
         lit.append(cache.shadows[j])
-    return prim_id, hit_rays, coords, lit
+    return prim_id, hit_rays, coords, lit, cache
 
 
 def _light_key(light) -> list:
@@ -195,19 +202,29 @@ def _interpolate(weights, attribute, faces):
     return sum(w * attribute[faces[:, i]] for i, w in enumerate(weights))
 
 
-def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.Tensor, np.ndarray]:
-    """Recompute the hits on one mesh's triangles on the tape and shade them.
+@dataclass
+class Surface:
+    """What shading needs to know about k hits on one object (tensors, on the tape):
+    points (k, 3), unit normals facing the ray (k, 3), the camera rays' directions (k, 3)
+    and, for a textured mesh, the interpolated UVs (k, 2) (else None)."""
+
+    points: md.Tensor
+    normals: md.Tensor
+    directions: md.Tensor
+    uv: md.Tensor | None = None
+
+
+def mesh_surface(mesh: Mesh, faces_hit, eye, directions) -> Surface:
+    """Recompute the hits on one mesh's triangles on the tape.
 
     faces_hit (k,) local face ids from the BVH; eye (3,) and directions (k, 3) the camera
-    rays (tensors); lit[j] (k,) float visibility of light j. Returns the radiance (k, 3)
-    and the texture cell of each hit (k,) int64 (-1 for an untextured mesh).
+    rays (tensors).
     """
-    material = mesh.material
     faces = mesh.faces[faces_hit]
     a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
     e1, e2 = b - a, c - a
     # Barycentrics are needed only to interpolate vertex normals or UVs.
-    interpolated = mesh.smooth or material.texture is not None
+    interpolated = mesh.smooth or mesh.material.texture is not None
     t, u, v = intersect_edges(eye, directions, a, e1, e2, barycentrics=interpolated)
     points = eye + column(t) * directions
     normals = md.normalize(md.cross(e1, e2))
@@ -217,19 +234,12 @@ def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
         normals = md.normalize(_interpolate(weights, vn, faces))
-    normals = normals * flip
-    if material.texture is not None:
-        uv = _interpolate(weights, mesh.uvs, faces)
-        albedo = sample_texture(material.texture, uv)
-        texel = texel_cell(material.texture.shape, uv.data)
-    else:
-        albedo = material.albedo
-        texel = np.full(len(faces_hit), -1, dtype=np.int64)
-    return shade(points, normals, directions, albedo, material, lights, lit), texel
+    uv = _interpolate(weights, mesh.uvs, faces) if mesh.material.texture is not None else None
+    return Surface(points, normals * flip, directions, uv)
 
 
-def shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
-    """Recompute the hits on one sphere on the tape and shade them: (k, 3)."""
+def sphere_surface(sphere: Sphere, eye, directions) -> Surface:
+    """Recompute the hits on one sphere on the tape (k rays known to hit it)."""
     if sphere.material.texture is not None:
         raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
     inside = np.linalg.norm(eye.data - sphere.center.data) < sphere.radius.data
@@ -237,8 +247,62 @@ def shade_sphere(sphere: Sphere, eye, directions, lights, lit) -> md.Tensor:
     t = intersect_spheres(eye, directions, sphere.center, sphere.radius, far_root)
     points = eye + column(t) * directions
     normals = md.normalize(points - sphere.center)
-    normals = normals * toward_ray(normals, directions)
-    return shade(points, normals, directions, sphere.material.albedo, sphere.material, lights, lit)
+    return Surface(points, normals * toward_ray(normals, directions), directions)
+
+
+def shade_surface(
+    surface: Surface, material: Material, lights, lit
+) -> tuple[md.Tensor, np.ndarray]:
+    """Shade k hits: the radiance (k, 3) and the texture cell of each hit (k,) int64 (-1
+    when untextured). lit[j] (k,) float visibility of light j."""
+    k = surface.points.shape[0]
+    if material.texture is not None:
+        albedo = sample_texture(material.texture, surface.uv)
+        texel = texel_cell(material.texture.shape, surface.uv.data)
+    else:
+        albedo = material.albedo
+        texel = np.full(k, -1, dtype=np.int64)
+    radiance = shade(
+        surface.points, surface.normals, surface.directions, albedo, material, lights, lit
+    )
+    return radiance, texel
+
+
+def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.Tensor, np.ndarray]:
+    """``mesh_surface`` then ``shade_surface``: radiance (k, 3) and texel cells (k,)."""
+    return shade_surface(mesh_surface(mesh, faces_hit, eye, directions), mesh.material, lights, lit)
+
+
+def _moves_surface(obj: Mesh | Sphere, camera) -> list[md.Tensor]:
+    """The parameters that move an object's hit points, normals or UVs."""
+    tensors = [camera.position, camera.look_at, camera.up, camera.fov]
+    if isinstance(obj, Sphere):
+        return tensors + [obj.center, obj.radius]
+    return tensors + [t for t in (obj.vertices, obj.normals, obj.uvs) if t is not None]
+
+
+def _cached_surface(cache: _Visibility, index: int, obj, camera, dtype, compute) -> Surface:
+    """The object's Surface, reused from the previous render when nothing that moves it
+    requires grad and its values are unchanged (e.g. while a light or a material is
+    optimised); otherwise ``compute()`` on the tape. Saves the hit recomputation
+    (gathers, cross and dot products on every hit) in each such iteration."""
+    tensors = _moves_surface(obj, camera)
+    if any(t.requires_grad for t in tensors) and md.is_grad_enabled():
+        return compute()
+    # The camera and the vertices are in the primary key (``cache.surfaces`` is cleared
+    # when it changes); normals and UVs are not, so they are compared here.
+    # The object itself, its switches and the working dtype change the result too.
+    switches = [id(obj), np.dtype(dtype).num]
+    if isinstance(obj, Mesh):
+        switches += [obj.smooth, obj.material.texture is not None, obj.normals is not None]
+    key = [np.array(t.data) for t in tensors[4:]] + [np.array(switches, dtype=np.int64)]
+    entry = cache.surfaces.get(index)
+    if entry is not None and _same(entry[0], key):
+        return entry[1]
+    with md.no_grad():
+        surface = compute()
+    cache.surfaces[index] = (key, surface)
+    return surface
 
 
 def render(
@@ -266,7 +330,7 @@ def render(
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
     scene.validate()
     camera, lights = scene.camera, scene.lights
-    prim_id, hit_rays, coords, lit = _visibility(
+    prim_id, hit_rays, coords, lit, cache = _visibility(
         scene, bool(bvh), spp, bool(shadows), reuse_visibility
     )
     n_pixels = camera.width * camera.height
@@ -281,20 +345,21 @@ def render(
 
     texel = np.full(prim_id.size, -1, dtype=np.int64)  # per ray, for RenderInfo
     colours, pixels = [], []
-    for obj, first, count in _primitive_ranges(scene):
+    for index, (obj, first, count) in enumerate(_primitive_ranges(scene)):
         in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
         if len(in_obj) == 0:
             continue
-        directions = ray_directions(frame, coords[in_obj])
+
+        def compute(obj=obj, first=first, in_obj=in_obj) -> Surface:
+            directions = ray_directions(frame, coords[in_obj])
+            if isinstance(obj, Mesh):
+                return mesh_surface(obj, hit_prims[in_obj] - first, eye, directions)
+            return sphere_surface(obj, eye, directions)
+
+        surface = _cached_surface(cache, index, obj, camera, dtype, compute)
         obj_lit = [m[in_obj].astype(dtype) for m in lit]
-        if isinstance(obj, Mesh):
-            local = hit_prims[in_obj] - first
-            colour, texel[hit_rays[in_obj]] = shade_mesh(
-                obj, local, eye, directions, lights, obj_lit
-            )
-            colours.append(colour)
-        else:
-            colours.append(shade_sphere(obj, eye, directions, lights, obj_lit))
+        colour, texel[hit_rays[in_obj]] = shade_surface(surface, obj.material, lights, obj_lit)
+        colours.append(colour)
         pixels.append(hit_rays[in_obj] // spp)
 
     image = None

@@ -270,6 +270,46 @@ def test_visibility_cache_sees_in_place_edits():
         before = cached
 
 
+def test_surface_cache_sees_every_edit():
+    """While nothing that moves the geometry requires grad, ``render`` reuses each object's
+    hit points, normals and UVs (``renderer._cached_surface``). Every edit that changes
+    them must be seen: in-place edits of normals, UVs, vertices and the camera, switching
+    smooth shading or the texture, and a grad-requiring vertex tensor (recomputed on the
+    tape, with a gradient)."""
+    scene = random_scene(11, lights=BOTH, smooth=True, texture=True)
+    mesh = pyramid(scene)
+    explicit_normals(scene)  # the pyramid gets its own vertex normals
+
+    def check(label):
+        cached = render.render(scene).data
+        fresh = render.render(scene, reuse_visibility=False).data
+        np.testing.assert_array_equal(cached, fresh, err_msg=label)
+        return cached
+
+    before = check("first render")
+    edits = [
+        ("normals", lambda: mesh.normals.data.__setitem__((0, 0), 0.7)),
+        ("uvs", lambda: ground(scene).uvs.data.__setitem__((0, 1), 0.35)),
+        ("vertices", lambda: mesh.vertices.data.__setitem__((0, 1), 0.2)),
+        ("camera", lambda: scene.camera.look_at.data.__setitem__(0, 0.05)),
+        ("smooth off", lambda: setattr(mesh, "smooth", False)),
+        ("texture off", lambda: setattr(ground(scene).material, "texture", None)),
+    ]
+    for label, edit in edits:
+        edit()
+        after = check(label)
+        assert not np.array_equal(after, before), f"the edit of {label} changed nothing"
+        before = after
+
+    light = scene.lights[0].position
+    light.requires_grad = True  # the surfaces stay cached: only the light is differentiated
+    render.render(scene).sum().backward()
+    assert light.grad is not None and np.any(light.grad)
+    mesh.vertices.requires_grad = True  # now the pyramid's surface must be on the tape
+    render.render(scene).sum().backward()
+    assert mesh.vertices.grad is not None and np.any(mesh.vertices.grad)
+
+
 # --------------------------------------------------------------------------------------
 # float32
 # --------------------------------------------------------------------------------------
