@@ -86,7 +86,10 @@ def _mean_std(values) -> str:
     reached = values[np.isfinite(values)]
     if len(reached) == 0:
         return f"never (0 of {len(values)})"
-    text = f"{reached.mean():.4g} ± {reached.std():.2g}"
+    mean, std = reached.mean(), reached.std()
+    # Runs that start from the same value give a "std" of rounding noise (1e-15): print 0.
+    std = 0.0 if std <= 1e-9 * abs(mean) else std
+    text = f"{mean:.4g} ± {std:.2g}"
     return text if len(reached) == len(values) else f"{text} ({len(reached)} of {len(values)})"
 
 
