@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/bench_render.py [--out DIR] [--quick] [--repeats 15]
 
-Measured (medians after a warm-up, see ``timing.py``), on the scene of ``paper_scene.md``:
+Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/paper_scene.md``:
 
 * the visibility steps on their own (``bench_visibility.py``): BVH build, camera-ray
   generation, closest hit of the 262,144 camera rays, any hit of the shadow rays;

@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/bench_visibility.py [--out DIR] [--quick] [--repeats 15] [--no-brute]
 
-Workload (``paper_scene.md``): the Newell teapot tessellated into 1,536 triangles
+Workload (``docs/paper_scene.md``): the Newell teapot tessellated into 1,536 triangles
 (``render.teapot``), the 512x512 pinhole camera at (3, 2, 5) looking at the origin, one ray
 per pixel centre (``render.camera.primary_rays``), and shadow rays from the camera hits to
 the point light at (2, 5, 3), with the arguments the renderer uses (tmin = 1e-7 of the
@@ -29,9 +29,7 @@ import timing
 from render.accel import Accelerator
 from render.camera import primary_rays
 from render.teapot import paper_scene
-
-# The renderer's shadow-ray convention (render/renderer.py, _SHADOW_EPSILON).
-SHADOW_EPSILON = 1e-7
+from render.visibility import shadow_rays
 
 
 def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
@@ -46,7 +44,7 @@ def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
     prim_id, t, _, _ = accel.closest_hit(origins, directions)
     hit = np.flatnonzero(prim_id >= 0)
     points = eye + t[hit, None] * directions[hit]
-    light = np.asarray(scene.lights[0].position.data, dtype=np.float64)
+    shadows = shadow_rays(scene.lights[0], points, prim_id[hit], accel.n_triangles)  # as rendered
     return {
         "scene": scene,
         "triangles": triangles,
@@ -54,11 +52,11 @@ def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
         "origins": origins,
         "directions": directions,
         "prim_id": prim_id,
-        "shadow_origins": points,
-        "shadow_directions": light - points,  # unnormalised: the light is at t = 1
-        "shadow_tmin": SHADOW_EPSILON * max(1.0, float(np.abs(points).max())),
-        "shadow_tmax": 1.0 - SHADOW_EPSILON,
-        "shadow_ignore": prim_id[hit],
+        "shadow_origins": shadows.origins,
+        "shadow_directions": shadows.directions,  # unnormalised: the light is at t = 1
+        "shadow_tmin": shadows.tmin,
+        "shadow_tmax": shadows.tmax,
+        "shadow_ignore": shadows.ignore_prim,
     }
 
 

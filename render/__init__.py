@@ -1,10 +1,12 @@
 """render: a differentiable ray tracer built on minidiff.
 
-Read in this order: ``scene.py`` (what a scene is), ``teapot.py`` (the reference scene),
-``camera.py`` (rays), ``bvh.py`` / ``intersect.py`` / ``accel.py`` (visibility),
-``geometry.py`` (hits recomputed on the tape), ``shading.py`` (lights and materials),
-``renderer.py`` (putting it together), ``image.py`` / ``meshio.py`` (files),
-``optimize.py`` (inverse rendering) and ``experiments.py`` (the paper's experiments).
+Read in this order: ``renderer.py`` (the pipeline on one screen), then each step's module:
+``scene.py`` (what a scene is), ``teapot.py`` (the reference scene), ``camera.py`` (rays),
+``visibility.py`` (which primitive each ray hits, which lights each hit sees; built on
+``bvh.py`` / ``intersect.py`` / ``accel.py``), ``geometry.py`` (hits recomputed on the
+tape), ``shading.py`` (lights and materials), ``cache.py`` (reuse between renders),
+``image.py`` / ``meshio.py`` (files), ``optimize.py`` (inverse rendering) and
+``experiments.py`` (the paper's experiments).
 """
 
 from render.accel import Accelerator

@@ -9,25 +9,26 @@ BVH's t and barycentrics as constants instead would silently zero those gradient
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 import minidiff as md
+from render.scene import Mesh, Sphere
 
 
-def intersect_triangles(origin, direction, a, b, c):
-    """Moller-Trumbore for rays known to hit their triangles, on the tape.
-
-    origin (3,) or (k, 3); direction (k, 3); a, b, c (k, 3) triangle corners.
-    Returns (t, u, v), each (k,): the hit point is origin + t * direction
-    = (1 - u - v) a + u b + v c.
-    """
-    return intersect_edges(origin, direction, a, b - a, c - a)
+def column(x) -> md.Tensor:
+    """(k,) -> (k, 1), so that a per-hit scalar scales the three components of a vector."""
+    return md.reshape(x, (-1, 1))
 
 
 def intersect_edges(origin, direction, a, e1, e2, barycentrics: bool = True):
-    """Moller-Trumbore with the triangle given as a corner and two edges (e1 = b - a,
-    e2 = c - a), for callers that need the edges anyway (e.g. for the normal). With
-    ``barycentrics=False`` only t is computed (u and v are returned as None).
+    """Moller-Trumbore for rays known to hit their triangles, on the tape.
+
+    origin (3,) or (k, 3); direction (k, 3); the triangle as a corner a (k, 3) and two edges
+    e1 = b - a, e2 = c - a (k, 3), which the caller needs anyway for the normal. Returns
+    (t, u, v), each (k,): the hit is origin + t * direction = (1 - u - v) a + u b + v c.
+    With ``barycentrics=False`` only t is computed (u and v are returned as None).
 
     Derivation in brief: solve origin + t d = a + u e1 + v e2 with Cramer's rule; the
     determinants are triple products, written as dot(., cross(., .)).
@@ -88,3 +89,69 @@ def toward_ray(normals, directions) -> np.ndarray:
     normals = md.as_tensor(normals).data
     facing_away = np.einsum("ij,ij->i", normals, directions.data) > 0
     return np.where(facing_away, -1.0, 1.0).astype(normals.dtype)[:, None]
+
+
+# --------------------------------------------------------------------------------------
+# Surfaces: everything shading needs about the hits on one object, recomputed on the tape
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class Surface:
+    """What shading needs to know about k hits on one object (tensors, on the tape):
+    points (k, 3), unit normals facing the ray (k, 3), the camera rays' directions (k, 3)
+    and, for a textured mesh, the interpolated UVs (k, 2) (else None)."""
+
+    points: md.Tensor
+    normals: md.Tensor
+    directions: md.Tensor
+    uv: md.Tensor | None = None
+
+
+def _interpolate(weights, attribute, faces):
+    """Barycentric interpolation of a per-vertex attribute (V, n) at k hits: (k, n)."""
+    return sum(w * attribute[faces[:, i]] for i, w in enumerate(weights))
+
+
+def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
+    """Recompute the hits on one mesh's triangles on the tape.
+
+    faces_hit (k,) local face ids from the BVH; eye (3,) and directions (k, 3) the camera
+    rays (tensors).
+    """
+    faces = mesh.faces[faces_hit]
+    a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
+    e1, e2 = b - a, c - a
+    # Barycentrics are needed only to interpolate vertex normals or UVs.
+    interpolated = mesh.smooth or mesh.material.texture is not None
+    t, u, v = intersect_edges(eye, directions, a, e1, e2, barycentrics=interpolated)
+    points = eye + column(t) * directions
+    normals = md.normalize(md.cross(e1, e2))
+    flip = toward_ray(normals, directions)
+    if interpolated:
+        weights = (column(1.0 - u - v), column(u), column(v))  # of corners a, b, c
+    if mesh.smooth:
+        vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+        normals = md.normalize(_interpolate(weights, vn, faces))
+    uv = _interpolate(weights, mesh.uvs, faces) if mesh.material.texture is not None else None
+    return Surface(points, normals * flip, directions, uv)
+
+
+def sphere_surface(sphere: Sphere, eye, directions) -> Surface:
+    """Recompute the hits on one sphere on the tape (k rays known to hit it)."""
+    if sphere.material.texture is not None:
+        raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
+    inside = np.linalg.norm(eye.data - sphere.center.data) < sphere.radius.data
+    far_root = np.full(directions.shape[0], bool(inside))
+    t = intersect_spheres(eye, directions, sphere.center, sphere.radius, far_root)
+    points = eye + column(t) * directions
+    normals = md.normalize(points - sphere.center)
+    return Surface(points, normals * toward_ray(normals, directions), directions)
+
+
+def moves_surface(obj: Mesh | Sphere) -> list[md.Tensor]:
+    """The object's own parameters that move its hit points, normals or UVs (the camera's
+    move them too)."""
+    if isinstance(obj, Sphere):
+        return [obj.center, obj.radius]
+    return [t for t in (obj.vertices, obj.normals, obj.uvs) if t is not None]

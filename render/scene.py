@@ -32,7 +32,8 @@ loading, see ``render.teapot``). Angles are in degrees. Colours are linear RGB.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -143,11 +144,74 @@ def _fmt(t: Tensor) -> str:
 
 
 # --------------------------------------------------------------------------------------
+# Continuous fields, declared once per class
+# --------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Field:
+    """One continuous parameter of a scene class: its name, the shapes it may have (ints are
+    exact sizes; a string names a size that must agree across the class's fields, e.g. the
+    vertex count ``"V"``), an optional constraint on its value (``(test, requirement)``,
+    e.g. ``(lambda x: x > 0, "> 0")``) and whether it may be None."""
+
+    name: str
+    shapes: tuple[tuple[int | str, ...], ...]
+    constraint: tuple[Callable[[np.ndarray], Any], str] | None = None
+    optional: bool = False
+
+
+class _HasFields:
+    """What every scene class does with its ``FIELDS``: convert the constructor's values,
+    check them (``validate``), print them and name them (``named_parameters``)."""
+
+    FIELDS: tuple[Field, ...] = ()
+
+    def _set_fields(self, **values: Any) -> None:
+        owner = type(self).__name__
+        for f in self.FIELDS:
+            value = values[f.name]
+            if value is None and f.optional:
+                setattr(self, f.name, None)
+            else:
+                setattr(self, f.name, _as_tensor(value, owner, f.name))
+
+    def _check_fields(self) -> dict[str, np.ndarray]:
+        """Check every field's current value; return the data of those that are set."""
+        owner, sizes, data = type(self).__name__, {}, {}
+        for f in self.FIELDS:
+            value = getattr(self, f.name)
+            if value is None and f.optional:
+                continue
+            # Named sizes already bound by an earlier field become exact sizes.
+            shapes = [tuple(sizes.get(d, d) for d in shape) for shape in f.shapes]
+            x = data[f.name] = _check_tensor(value, owner, f.name, shapes)
+            for d, n in zip(f.shapes[0], x.shape, strict=False):
+                if isinstance(d, str):
+                    sizes.setdefault(d, n)
+            if f.constraint is not None and not f.constraint[0](x):
+                shown = float(x) if x.ndim == 0 else x
+                raise ValueError(f"{owner}: {f.name} must be {f.constraint[1]}, got {shown}")
+        return data
+
+    def named_parameters(self, prefix: str = "") -> dict[str, Tensor]:
+        """The set continuous parameters by name, e.g. ``{"position": <Tensor>, ...}``."""
+        fields = {f.name: getattr(self, f.name) for f in self.FIELDS}
+        return {prefix + name: t for name, t in fields.items() if t is not None}
+
+    def _fields_repr(self) -> str:
+        return ", ".join(
+            f"{f.name}={'None' if getattr(self, f.name) is None else _fmt(getattr(self, f.name))}"
+            for f in self.FIELDS
+        )
+
+
+# --------------------------------------------------------------------------------------
 # Camera
 # --------------------------------------------------------------------------------------
 
 
-class Camera:
+class Camera(_HasFields):
     """A look-at pinhole camera.
 
     Args:
@@ -166,6 +230,13 @@ class Camera:
     (see the module docstring); ``width``/``height`` stay ints.
     """
 
+    FIELDS = (
+        Field("position", ((3,),)),
+        Field("look_at", ((3,),)),
+        Field("up", ((3,),)),
+        Field("fov", ((),), (lambda x: 0.0 < x < 180.0, "in (0, 180) degrees")),
+    )
+
     def __init__(
         self,
         position: ArrayLike,
@@ -175,10 +246,7 @@ class Camera:
         width: int = 512,
         height: int = 512,
     ) -> None:
-        self.position = _as_tensor(position, "Camera", "position")
-        self.look_at = _as_tensor(look_at, "Camera", "look_at")
-        self.up = _as_tensor(up, "Camera", "up")
-        self.fov = _as_tensor(fov, "Camera", "fov")
+        self._set_fields(position=position, look_at=look_at, up=up, fov=fov)
         self.width = _check_int(width, "Camera", "width")
         self.height = _check_int(height, "Camera", "height")
         self.validate()
@@ -208,12 +276,8 @@ class Camera:
 
     def validate(self) -> None:
         """Re-check the current values (shapes, finiteness, fov range, a usable view frame)."""
-        position = _check_tensor(self.position, "Camera", "position", [(3,)])
-        look_at = _check_tensor(self.look_at, "Camera", "look_at", [(3,)])
-        up = _check_tensor(self.up, "Camera", "up", [(3,)])
-        fov = float(_check_tensor(self.fov, "Camera", "fov", [()]))
-        if not 0.0 < fov < 180.0:
-            raise ValueError(f"Camera: fov must be in (0, 180) degrees, got {fov}")
+        fields = self._check_fields()
+        position, look_at, up = fields["position"], fields["look_at"], fields["up"]
         _check_int(self.width, "Camera", "width")
         _check_int(self.height, "Camera", "height")
 
@@ -232,11 +296,7 @@ class Camera:
             )
 
     def __repr__(self) -> str:
-        return (
-            f"Camera(position={_fmt(self.position)}, look_at={_fmt(self.look_at)}, "
-            f"up={_fmt(self.up)}, fov={_fmt(self.fov)}, width={self.width}, "
-            f"height={self.height})"
-        )
+        return f"Camera({self._fields_repr()}, width={self.width}, height={self.height})"
 
 
 def _positive_float(value: Any, name: str) -> float:
@@ -260,7 +320,7 @@ def _positive_float(value: Any, name: str) -> float:
 # --------------------------------------------------------------------------------------
 
 
-class PointLight:
+class PointLight(_HasFields):
     """An isotropic point light.
 
     Args:
@@ -270,30 +330,27 @@ class PointLight:
         color: (3,) linear RGB multiplier of the intensity (white by default).
     """
 
+    FIELDS = (
+        Field("position", ((3,),)),
+        Field("intensity", ((),), (lambda x: x >= 0.0, ">= 0")),
+        Field("color", ((3,),)),
+    )
+
     def __init__(
         self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = (1, 1, 1)
     ) -> None:
-        self.position = _as_tensor(position, "PointLight", "position")
-        self.intensity = _as_tensor(intensity, "PointLight", "intensity")
-        self.color = _as_tensor(color, "PointLight", "color")
+        self._set_fields(position=position, intensity=intensity, color=color)
         self.validate()
 
     def validate(self) -> None:
         """Re-check the current values."""
-        _check_tensor(self.position, "PointLight", "position", [(3,)])
-        intensity = float(_check_tensor(self.intensity, "PointLight", "intensity", [()]))
-        if intensity < 0.0:
-            raise ValueError(f"PointLight: intensity must be >= 0, got {intensity}")
-        _check_tensor(self.color, "PointLight", "color", [(3,)])
+        self._check_fields()
 
     def __repr__(self) -> str:
-        return (
-            f"PointLight(position={_fmt(self.position)}, intensity={_fmt(self.intensity)}, "
-            f"color={_fmt(self.color)})"
-        )
+        return f"PointLight({self._fields_repr()})"
 
 
-class DirectionalLight:
+class DirectionalLight(_HasFields):
     """A distant light (like the sun): parallel rays, no falloff.
 
     Args:
@@ -306,29 +363,24 @@ class DirectionalLight:
         color: (3,) linear RGB multiplier of the irradiance (white by default).
     """
 
+    FIELDS = (
+        Field("direction", ((3,),), (np.any, "a non-zero vector")),
+        Field("irradiance", ((),), (lambda x: x >= 0.0, ">= 0")),
+        Field("color", ((3,),)),
+    )
+
     def __init__(
         self, direction: ArrayLike, irradiance: ArrayLike, color: ArrayLike = (1, 1, 1)
     ) -> None:
-        self.direction = _as_tensor(direction, "DirectionalLight", "direction")
-        self.irradiance = _as_tensor(irradiance, "DirectionalLight", "irradiance")
-        self.color = _as_tensor(color, "DirectionalLight", "color")
+        self._set_fields(direction=direction, irradiance=irradiance, color=color)
         self.validate()
 
     def validate(self) -> None:
         """Re-check the current values."""
-        direction = _check_tensor(self.direction, "DirectionalLight", "direction", [(3,)])
-        if not np.any(direction):
-            raise ValueError("DirectionalLight: direction must be a non-zero vector")
-        irradiance = float(_check_tensor(self.irradiance, "DirectionalLight", "irradiance", [()]))
-        if irradiance < 0.0:
-            raise ValueError(f"DirectionalLight: irradiance must be >= 0, got {irradiance}")
-        _check_tensor(self.color, "DirectionalLight", "color", [(3,)])
+        self._check_fields()
 
     def __repr__(self) -> str:
-        return (
-            f"DirectionalLight(direction={_fmt(self.direction)}, "
-            f"irradiance={_fmt(self.irradiance)}, color={_fmt(self.color)})"
-        )
+        return f"DirectionalLight({self._fields_repr()})"
 
 
 # --------------------------------------------------------------------------------------
@@ -336,7 +388,7 @@ class DirectionalLight:
 # --------------------------------------------------------------------------------------
 
 
-class Material:
+class Material(_HasFields):
     """Surface appearance: a Lambertian (diffuse) term plus an optional glossy lobe.
 
     Args:
@@ -358,6 +410,14 @@ class Material:
     Values are not clamped to [0, 1]: an optimiser may overshoot while fitting an albedo.
     """
 
+    FIELDS = (
+        Field("albedo", ((3,),)),
+        Field("specular", ((), (3,))),
+        Field("shininess", ((),), (lambda x: x > 0.0, "> 0")),
+        Field("ambient", ((), (3,))),
+        Field("texture", (("H", "W", 3),), optional=True),
+    )
+
     def __init__(
         self,
         albedo: ArrayLike,
@@ -366,31 +426,17 @@ class Material:
         ambient: ArrayLike = 0.0,
         texture: ArrayLike | None = None,
     ) -> None:
-        self.albedo = _as_tensor(albedo, "Material", "albedo")
-        self.specular = _as_tensor(specular, "Material", "specular")
-        self.shininess = _as_tensor(shininess, "Material", "shininess")
-        self.ambient = _as_tensor(ambient, "Material", "ambient")
-        self.texture = None if texture is None else _as_tensor(texture, "Material", "texture")
+        self._set_fields(
+            albedo=albedo, specular=specular, shininess=shininess, ambient=ambient, texture=texture
+        )
         self.validate()
 
     def validate(self) -> None:
         """Re-check the current values."""
-        _check_tensor(self.albedo, "Material", "albedo", [(3,)])
-        _check_tensor(self.specular, "Material", "specular", [(), (3,)])
-        shininess = float(_check_tensor(self.shininess, "Material", "shininess", [()]))
-        if shininess <= 0.0:
-            raise ValueError(f"Material: shininess must be > 0, got {shininess}")
-        _check_tensor(self.ambient, "Material", "ambient", [(), (3,)])
-        if self.texture is not None:
-            _check_tensor(self.texture, "Material", "texture", [("H", "W", 3)])
+        self._check_fields()
 
     def __repr__(self) -> str:
-        texture = "None" if self.texture is None else _fmt(self.texture)
-        return (
-            f"Material(albedo={_fmt(self.albedo)}, specular={_fmt(self.specular)}, "
-            f"shininess={_fmt(self.shininess)}, ambient={_fmt(self.ambient)}, "
-            f"texture={texture})"
-        )
+        return f"Material({self._fields_repr()})"
 
 
 # --------------------------------------------------------------------------------------
@@ -415,7 +461,7 @@ def _as_faces(faces: Any) -> np.ndarray:
     return np.ascontiguousarray(array, dtype=np.int64)
 
 
-class Mesh:
+class Mesh(_HasFields):
     """A triangle mesh with one shared vertex buffer and one material.
 
     Args:
@@ -432,6 +478,12 @@ class Mesh:
             vertices); if False with the flat geometric normal (the paper's convention).
     """
 
+    FIELDS = (
+        Field("vertices", (("V", 3),)),
+        Field("normals", (("V", 3),), optional=True),
+        Field("uvs", (("V", 2),), optional=True),
+    )
+
     def __init__(
         self,
         vertices: ArrayLike,
@@ -441,11 +493,9 @@ class Mesh:
         uvs: ArrayLike | None = None,
         smooth: bool = False,
     ) -> None:
-        self.vertices = _as_tensor(vertices, "Mesh", "vertices")
+        self._set_fields(vertices=vertices, normals=normals, uvs=uvs)
         self.faces = _as_faces(faces)
         self.material = material
-        self.normals = None if normals is None else _as_tensor(normals, "Mesh", "normals")
-        self.uvs = None if uvs is None else _as_tensor(uvs, "Mesh", "uvs")
         self.smooth = smooth
         self.validate()
 
@@ -468,7 +518,7 @@ class Mesh:
         vertices = self.vertices
         if isinstance(vertices, Tensor) and vertices.data.ndim == 2 and vertices.shape[0] == 0:
             raise ValueError("Mesh: vertices is empty (a mesh needs at least one vertex)")
-        vertices = _check_tensor(self.vertices, "Mesh", "vertices", [("V", 3)])
+        vertices = self._check_fields()["vertices"]
         faces = self.faces
         if not isinstance(faces, np.ndarray) or faces.dtype != np.int64:
             raise TypeError(
@@ -489,10 +539,6 @@ class Mesh:
             )
         _check_instance(self.material, "Mesh", "material", Material)
         self.material.validate()  # its tensors may have been edited in place too
-        if self.normals is not None:
-            _check_tensor(self.normals, "Mesh", "normals", [(n_vertices, 3)])
-        if self.uvs is not None:
-            _check_tensor(self.uvs, "Mesh", "uvs", [(n_vertices, 2)])
         if not isinstance(self.smooth, bool | np.bool_):
             raise TypeError(f"Mesh: smooth must be a bool, got {type(self.smooth).__name__}")
         if self.material.texture is not None and self.uvs is None:
@@ -506,7 +552,7 @@ class Mesh:
         )
 
 
-class Sphere:
+class Sphere(_HasFields):
     """An analytic sphere.
 
     Args:
@@ -515,18 +561,19 @@ class Sphere:
         material: its ``Material`` (untextured: spheres carry no UVs).
     """
 
+    FIELDS = (
+        Field("center", ((3,),)),
+        Field("radius", ((),), (lambda x: x > 0.0, "> 0")),
+    )
+
     def __init__(self, center: ArrayLike, radius: ArrayLike, material: Material) -> None:
-        self.center = _as_tensor(center, "Sphere", "center")
-        self.radius = _as_tensor(radius, "Sphere", "radius")
+        self._set_fields(center=center, radius=radius)
         self.material = material
         self.validate()
 
     def validate(self) -> None:
         """Re-check the current values."""
-        _check_tensor(self.center, "Sphere", "center", [(3,)])
-        radius = float(_check_tensor(self.radius, "Sphere", "radius", [()]))
-        if radius <= 0.0:
-            raise ValueError(f"Sphere: radius must be > 0, got {radius}")
+        self._check_fields()
         _check_instance(self.material, "Sphere", "material", Material)
         self.material.validate()
         if self.material.texture is not None:
@@ -578,19 +625,30 @@ class Scene:
         """The ``Sphere`` objects, in scene order."""
         return [o for o in self.objects if isinstance(o, Sphere)]
 
+    def named_parameters(self) -> dict[str, Tensor]:
+        """Every continuous parameter tensor of the scene by a readable name, in a fixed
+        order: ``{"camera.position": ..., "lights[0].position": ...,
+        "objects[0].vertices": ..., "objects[0].material.albedo": ..., "background": ...}``.
+        A tensor shared by several owners (e.g. one Material on two meshes) appears once,
+        under its first name."""
+        named = self.camera.named_parameters("camera.")
+        for i, light in enumerate(self.lights):
+            named.update(light.named_parameters(f"lights[{i}]."))
+        for i, obj in enumerate(self.objects):
+            named.update(obj.named_parameters(f"objects[{i}]."))
+            named.update(obj.material.named_parameters(f"objects[{i}].material."))
+        named["background"] = self.background
+        unique, seen = {}, set()
+        for name, tensor in named.items():
+            if id(tensor) not in seen:
+                seen.add(id(tensor))
+                unique[name] = tensor
+        return unique
+
     def parameters(self) -> list[Tensor]:
-        """Every continuous parameter tensor of the scene (camera, lights, objects,
-        materials, background), each once, in a fixed order."""
-        owners = [self.camera, *self.lights]
-        for obj in self.objects:
-            owners += [obj, obj.material]
-        found, seen = [], set()
-        for owner in owners:
-            for value in vars(owner).values():
-                if isinstance(value, Tensor) and id(value) not in seen:
-                    seen.add(id(value))
-                    found.append(value)
-        return found + ([self.background] if id(self.background) not in seen else [])
+        """Every continuous parameter tensor of the scene, each once, in the order of
+        ``named_parameters``."""
+        return list(self.named_parameters().values())
 
     def validate(self) -> None:
         """Re-check every object, light, the camera and the background (cheap)."""

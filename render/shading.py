@@ -2,7 +2,7 @@
 
 All functions take per-hit arrays (k hits) as minidiff tensors and return tensors, so every
 light, material and texture parameter receives gradients. Radiometric convention (see
-``paper_scene.md``): for a point light of radiant intensity I at distance r,
+``docs/paper_scene.md``): for a point light of radiant intensity I at distance r,
 
     L = (albedo / pi + f_specular) * I * color * max(0, cos theta) / r^2
 
@@ -16,16 +16,12 @@ import math
 import numpy as np
 
 import minidiff as md
-from render.scene import DirectionalLight, Material, PointLight
+from render.geometry import Surface, column, mesh_surface
+from render.scene import DirectionalLight, Material, Mesh, PointLight
 
 # Smallest squared light distance we divide by: a light exactly on the surface would give
 # 0/0; with the clamp its contribution is finite (and zero, since its direction is zero).
 _MIN_DISTANCE_SQUARED = 1e-12
-
-
-def column(x) -> md.Tensor:
-    """(k,) -> (k, 1), so that a per-hit scalar scales the three colour channels."""
-    return md.reshape(x, (-1, 1))
 
 
 def light_incidence(light, points):
@@ -125,3 +121,26 @@ def shade(points, normals, directions, albedo, material: Material, lights, lit) 
     if material.ambient.requires_grad or np.any(material.ambient.data):
         radiance = radiance + material.ambient
     return radiance
+
+
+def shade_surface(
+    surface: Surface, material: Material, lights, lit
+) -> tuple[md.Tensor, np.ndarray]:
+    """Shade k hits: the radiance (k, 3) and the texture cell of each hit (k,) int64 (-1
+    when untextured). lit[j] (k,) float visibility of light j."""
+    k = surface.points.shape[0]
+    if material.texture is not None:
+        albedo = sample_texture(material.texture, surface.uv)
+        texel = texel_cell(material.texture.shape, surface.uv.data)
+    else:
+        albedo = material.albedo
+        texel = np.full(k, -1, dtype=np.int64)
+    radiance = shade(
+        surface.points, surface.normals, surface.directions, albedo, material, lights, lit
+    )
+    return radiance, texel
+
+
+def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.Tensor, np.ndarray]:
+    """``mesh_surface`` then ``shade_surface``: radiance (k, 3) and texel cells (k,)."""
+    return shade_surface(mesh_surface(mesh, faces_hit, eye, directions), mesh.material, lights, lit)

@@ -2,7 +2,7 @@
 
 The teapot is Newell's 32 bicubic Bezier patches (public-domain data shipped in
 ``render/data/newell_teapot.json``), tessellated exactly as described in
-``paper_scene.md`` so that every part of the project renders the same triangles:
+``docs/paper_scene.md`` so that every part of the project renders the same triangles:
 
 * each patch is evaluated with cubic Bernstein polynomials on a regular
   (nu + 1) x (nv + 1) vertex grid ``P[i, j]`` at ``u_i = i / nu``, ``v_j = j / nv``, where u
@@ -130,7 +130,7 @@ def paper_scene(
     nu: int = 4,
     nv: int = 6,
 ) -> Scene:
-    """The reference scene of ``paper_scene.md``: the teapot lit by one white point light.
+    """The reference scene of ``docs/paper_scene.md``: the teapot lit by one white point light.
 
     Camera: pinhole at ``camera_position`` looking at ``look_at``, up (0, 1, 0), a 50 mm
     lens on a 36 mm sensor (horizontal fov 39.5978 degrees), ``width`` x ``height`` pixels.

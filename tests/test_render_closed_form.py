@@ -2,7 +2,7 @@
 
 Every expected value here is computed in the test from the documented conventions (the
 camera model of ``render.Camera``: horizontal fov, square pixels, rays through pixel
-centres, row 0 at the top; the radiometry of ``paper_scene.md``: L = albedo / pi * I *
+centres, row 0 at the top; the radiometry of ``docs/paper_scene.md``: L = albedo / pi * I *
 max(0, cos theta) / r^2 for a point light, E * albedo / pi * cos theta for a directional
 light), using ``render_helpers.pinhole_rays`` for the rays, never the renderer's own code.
 """
@@ -464,7 +464,7 @@ def test_no_shadow_acne_on_a_convex_mesh():
 
 
 def test_paper_teapot_render():
-    """512 x 512 teapot (paper_scene.md): ~41k hit pixels (40,929 when written), finite,
+    """512 x 512 teapot (docs/paper_scene.md): ~41k hit pixels (40,929 when written), finite,
     and the BVH and brute force give bit-identical images and visibility."""
     scene = render.paper_scene()
     image, info = render.render(scene, return_info=True)

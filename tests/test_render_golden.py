@@ -2,7 +2,7 @@
 
 A refactor of the renderer or of minidiff must not change a single bit of what a user
 gets. ``tests/data/golden_render.npz`` was written by running this file as a script
-(``python tests/test_render_golden.py``) at commit c1c911d, before the code was reorganised
+(``python tests/test_render_golden.py --write``) at commit c1c911d, before the code was reorganised
 (issue 8); the test recomputes the same renders and gradients and compares them exactly.
 Regenerate it only for a change that is meant to alter the numbers, and say so in the
 commit.
@@ -13,10 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from render_helpers import random_scene
 
 import minidiff as md
 import render
-from render_helpers import random_scene
 
 GOLDEN = Path(__file__).parent / "data" / "golden_render.npz"
 
@@ -56,5 +56,9 @@ def test_images_and_gradients_are_bit_identical_to_the_saved_ones():
 
 
 if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--write"]:
+        sys.exit("usage: python tests/test_render_golden.py --write (overwrites the saved arrays)")
     np.savez_compressed(GOLDEN, **golden_arrays())
     print(f"wrote {GOLDEN}")

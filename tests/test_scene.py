@@ -200,3 +200,28 @@ def test_fov_range(fov):
     else:
         with pytest.raises(ValueError, match="Camera: fov"):
             camera(fov=fov)
+
+
+def test_named_parameters_name_every_parameter_once_in_parameters_order():
+    shared = Material((0.5, 0.5, 0.5))
+    mesh = Mesh(TRI_V, TRI_F, shared, uvs=np.zeros((3, 2)))
+    sphere = Sphere((0, 0, -3), 0.5, shared)  # the same material: listed once
+    scene = Scene([mesh, sphere], [PointLight((0, 1, 0), 2.0)], camera(), (0.1, 0.2, 0.3))
+    named = scene.named_parameters()
+    assert list(named)[:5] == [
+        "camera.position", "camera.look_at", "camera.up", "camera.fov", "lights[0].position",
+    ]  # fmt: skip
+    assert named["objects[0].vertices"] is mesh.vertices
+    assert named["objects[0].uvs"] is mesh.uvs
+    assert named["objects[0].material.albedo"] is shared.albedo
+    assert named["objects[1].center"] is sphere.center
+    assert "objects[1].material.albedo" not in named  # shared: first name only
+    assert "objects[0].normals" not in named  # unset optional fields are not parameters
+    assert named["background"] is scene.background
+    assert list(named.values()) == scene.parameters()
+    assert len({id(t) for t in named.values()}) == len(named)
+
+
+def test_a_named_size_must_agree_across_fields():
+    with pytest.raises(ValueError, match=r"Mesh: uvs must have shape \(3, 2\), got \(4, 2\)"):
+        Mesh(TRI_V, TRI_F, Material((1, 1, 1)), uvs=np.zeros((4, 2)))

@@ -1,4 +1,4 @@
-"""Tests for render.teapot: the tessellation promised by paper_scene.md."""
+"""Tests for render.teapot: the tessellation promised by docs/paper_scene.md."""
 
 import json
 from pathlib import Path

@@ -1,0 +1,98 @@
+"""Reuse between renders: each stage's result, kept with the values it was computed from.
+
+While an inverse problem optimises only a material, the geometry, the camera and the lights
+keep their values, so the BVH, the camera rays' hits and the shadow rays of the previous
+render are still right; while it optimises a light, each object's hit points and normals
+are. ``render(..., reuse_visibility=True)`` (the default) keeps them in a ``RenderCache``
+per scene and reuses a result only when the *values* it depends on compare equal (copies
+are kept, since optimisers edit parameters in place): a cache can never serve stale
+results.
+
+Each stage's key is a list of arrays, written by one function below (``camera_key``,
+``light_key``, ``surface_key``; the geometry's key is the primitive arrays themselves).
+A stage that builds on another adds the earlier stage's *stamp* to its key: a number that
+changes whenever that stage is recomputed.
+"""
+
+from __future__ import annotations
+
+import weakref
+from collections.abc import Callable, Hashable
+from typing import Any
+
+import numpy as np
+
+from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+
+
+def same(key_a: list[np.ndarray] | None, key_b: list[np.ndarray]) -> bool:
+    """True if two keys hold arrays of equal shapes and values, pairwise."""
+    return (
+        key_a is not None
+        and len(key_a) == len(key_b)
+        and all(
+            a.shape == b.shape and np.array_equal(a, b) for a, b in zip(key_a, key_b, strict=True)
+        )
+    )
+
+
+class RenderCache:
+    """Stage results of earlier renders of one scene: slot -> (key, value, stamp)."""
+
+    def __init__(self) -> None:
+        self._entries: dict[Hashable, tuple[list[np.ndarray], Any, np.ndarray]] = {}
+        self._computed = 0
+
+    def get(
+        self, slot: Hashable, key: list[np.ndarray], compute: Callable[[], Any]
+    ) -> tuple[Any, np.ndarray]:
+        """The value in ``slot`` if it was computed for an equal ``key``, else ``compute()``
+        (stored for next time). Also returns the value's stamp, (1,) int64, for the keys of
+        the stages that build on it."""
+        entry = self._entries.get(slot)
+        if entry is None or not same(entry[0], key):
+            self._computed += 1
+            entry = (key, compute(), np.array([self._computed]))
+            self._entries[slot] = entry
+        return entry[1], entry[2]
+
+
+_CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def cache_for(scene: Scene, reuse: bool) -> RenderCache:
+    """The scene's cache (created on first use and dropped with the scene), or a fresh,
+    empty one that nobody keeps if ``reuse`` is False."""
+    if not reuse:
+        return RenderCache()
+    if scene not in _CACHES:
+        _CACHES[scene] = RenderCache()
+    return _CACHES[scene]
+
+
+def _copies(tensors) -> list[np.ndarray]:
+    return [np.array(t.data) for t in tensors]
+
+
+def camera_key(camera: Camera, spp: int, bvh: bool) -> list[np.ndarray]:
+    """What the camera rays depend on besides the geometry."""
+    return _copies([camera.position, camera.look_at, camera.up, camera.fov]) + [
+        np.array([camera.width, camera.height, spp, bvh])
+    ]
+
+
+def light_key(light: PointLight | DirectionalLight) -> list[np.ndarray]:
+    """What a light's shadow rays depend on besides the hit points."""
+    if isinstance(light, PointLight):
+        return _copies([light.position]) + [np.array([0.0])]
+    return _copies([light.direction]) + [np.array([1.0])]
+
+
+def surface_key(obj: Mesh | Sphere, owned: list, dtype) -> list[np.ndarray]:
+    """What an object's hit points, normals and UVs depend on besides the camera rays'
+    hits: its parameters ``owned`` (``render.geometry.moves_surface``), its switches and
+    the working dtype."""
+    switches = [id(obj), np.dtype(dtype).num]
+    if isinstance(obj, Mesh):
+        switches += [obj.smooth, obj.material.texture is not None, obj.normals is not None]
+    return _copies(owned) + [np.array(switches, dtype=np.int64)]

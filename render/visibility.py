@@ -1,0 +1,178 @@
+"""Visibility: which primitive each camera ray hits, and which lights each hit point sees.
+
+These are the renderer's discrete decisions. They are computed on plain arrays with the
+BVH (``render.accel``) and are constants on the tape: the image is differentiable for fixed
+visibility (``render.geometry`` recomputes *where* each ray hits, differentiably).
+
+* ``scene_primitives``: the scene's geometry as one list of primitives (all mesh triangles,
+  then all spheres), the accelerator's input and its primitive ids.
+* ``trace_primary``: one ray per pixel sample through the BVH: the primitive it hits.
+* ``shadow_rays`` / ``trace_shadows``: a ray from every hit point to a light: is it blocked?
+
+``trace_visibility`` runs the three, reusing earlier results from a ``render.cache``
+``RenderCache`` when the values they depend on are unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from render.accel import Accelerator
+from render.cache import RenderCache, camera_key, light_key
+from render.camera import image_plane_coords, primary_rays
+from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+
+#: Shadow rays start on the surface; they skip the triangle they start on and ignore hits
+#: closer than this fraction of the distance to the light (neighbouring triangles at a
+#: shared edge would otherwise shadow the start point).
+SHADOW_EPSILON = 1e-7
+
+
+def scene_primitives(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The current primitives as plain float64 arrays: triangles (T, 3, 3) of every mesh in
+    scene order, then sphere centres (S, 3) and radii (S,). Primitive id = row, spheres
+    numbered after the triangles (see ``primitive_ranges``)."""
+    meshes, spheres = scene.meshes, scene.spheres
+    triangles = (
+        np.concatenate([m.triangles() for m in meshes]).astype(np.float64)
+        if meshes
+        else np.zeros((0, 3, 3))
+    )
+    centers = np.array([s.center.data for s in spheres], dtype=np.float64).reshape(-1, 3)
+    radii = np.array([s.radius.data for s in spheres], dtype=np.float64).reshape(-1)
+    return triangles, centers, radii
+
+
+def primitive_ranges(scene: Scene) -> list[tuple[Mesh | Sphere, int, int]]:
+    """(object, first primitive id, primitive count) per object, in the order of
+    ``scene_primitives``: the triangles of every mesh, then the spheres."""
+    ranges, first = [], 0
+    for obj in scene.meshes + scene.spheres:
+        count = obj.num_faces if isinstance(obj, Mesh) else 1
+        ranges.append((obj, first, count))
+        first += count
+    return ranges
+
+
+@dataclass
+class PrimaryHits:
+    """The camera rays' hits. Ray r goes through pixel r // spp, sample r % spp.
+
+    prim_id (H * W * spp,) int64: the primitive each ray hits, -1 for the background.
+    hit_rays (k,) int64: the rays that hit something (``prim_id >= 0``), in ray order.
+    points (k, 3) float64: where they hit (the shadow rays start there).
+    coords (k, 2) float64: where they cross the image plane, x and y in [-1, 1]; the
+        renderer rebuilds the differentiable rays from them.
+    """
+
+    prim_id: np.ndarray
+    hit_rays: np.ndarray
+    points: np.ndarray
+    coords: np.ndarray
+
+
+def trace_primary(accel: Accelerator, camera: Camera, spp: int) -> PrimaryHits:
+    """Trace every camera ray (``spp`` per pixel) through ``accel``."""
+    eye, directions = primary_rays(camera, spp)
+    origins = np.broadcast_to(eye, directions.shape)
+    prim_id, t, _, _ = accel.closest_hit(origins, directions)
+    hit_rays = np.flatnonzero(prim_id >= 0)
+    points = eye + t[hit_rays, None] * directions[hit_rays]
+    return PrimaryHits(prim_id, hit_rays, points, image_plane_coords(camera, hit_rays, spp))
+
+
+@dataclass
+class ShadowRays:
+    """Rays from k surface points towards a light, as ``Accelerator.occluded`` takes them:
+    blocked if a primitive other than ``ignore_prim`` is hit with tmin < t < tmax."""
+
+    origins: np.ndarray
+    directions: np.ndarray
+    tmin: float
+    tmax: float
+    ignore_prim: np.ndarray
+
+
+def shadow_rays(
+    light: PointLight | DirectionalLight, points: np.ndarray, start_prim: np.ndarray, n_triangles
+) -> ShadowRays:
+    """The shadow rays from hit points (k, 3) on primitives start_prim (k,) to ``light``."""
+    if isinstance(light, PointLight):
+        # Unnormalised direction to the light: t = 1 is the light itself.
+        directions = np.asarray(light.position.data, dtype=np.float64) - points
+        tmax = 1.0 - SHADOW_EPSILON
+        # A light sitting exactly on a hit point: no direction to trace; its contribution
+        # is zero anyway (see shading), so call it lit.
+        zero = ~directions.any(axis=1)
+        directions[zero] = (0.0, 1.0, 0.0)
+    elif isinstance(light, DirectionalLight):
+        # Unit length: tmin is in units of the direction vector, and the user's direction
+        # may have any length (with |direction| = 1e7 every nearby occluder was skipped).
+        towards = -np.asarray(light.direction.data, np.float64)
+        directions = np.broadcast_to(towards / np.linalg.norm(towards), points.shape)
+        tmax = np.inf
+    else:
+        raise TypeError(f"render: unsupported light type {type(light).__name__}")
+    scale = max(1.0, float(np.abs(points).max())) if len(points) else 1.0
+    # Skip the triangle the ray starts on (a flat triangle cannot shadow its own points), but
+    # not a sphere: seen from inside it does shadow itself (a light outside cannot reach the
+    # inside). Starting on the outside of a sphere towards the light, its other root is
+    # behind the ray, and tmin removes the start point itself.
+    ignore = np.where(start_prim < n_triangles, start_prim, -1)
+    return ShadowRays(points, directions, SHADOW_EPSILON * scale, tmax, ignore)
+
+
+def trace_shadows(
+    accel: Accelerator, light: PointLight | DirectionalLight, points: np.ndarray, start_prim
+) -> np.ndarray:
+    """(k,) bool: True where ``light`` reaches the hit point (no primitive in between)."""
+    if len(points) == 0:
+        return np.zeros(0, dtype=bool)
+    rays = shadow_rays(light, points, start_prim, accel.n_triangles)
+    blocked = accel.occluded(
+        rays.origins, rays.directions, rays.tmax, tmin=rays.tmin, ignore_prim=rays.ignore_prim
+    )
+    return ~blocked
+
+
+@dataclass
+class Visibility:
+    """Every discrete decision of one render: the camera rays' hits and, per light, a lit
+    mask (k,) bool over the hit rays (all True with ``shadows=False``). ``stamp`` (1,)
+    identifies the computation of ``primary``: equal stamps, equal hits (for the keys of
+    the caches that build on them)."""
+
+    primary: PrimaryHits
+    lit: list[np.ndarray]
+    stamp: np.ndarray
+
+
+def trace_visibility(
+    scene: Scene, cache: RenderCache, bvh: bool, spp: int, shadows: bool
+) -> Visibility:
+    """Accelerator, camera rays and shadow rays of ``scene``, each reused from ``cache``
+    while the values it depends on are unchanged (a later stage depends on the earlier)."""
+    primitives = scene_primitives(scene)
+    accel, built = cache.get(
+        ("accelerator", bvh), list(primitives), lambda: Accelerator(*primitives, use_bvh=bvh)
+    )
+    primary, traced = cache.get(
+        "primary",
+        camera_key(scene.camera, spp, bvh) + [built],
+        lambda: trace_primary(accel, scene.camera, spp),
+    )
+    start_prim = primary.prim_id[primary.hit_rays]
+    lit = []
+    for j, light in enumerate(scene.lights):
+        if not shadows:
+            lit.append(np.ones(len(primary.hit_rays), dtype=bool))
+            continue
+        mask, _ = cache.get(
+            ("shadows", j),
+            light_key(light) + [traced],
+            lambda light=light: trace_shadows(accel, light, primary.points, start_prim),
+        )
+        lit.append(mask)
+    return Visibility(primary, lit, traced)
