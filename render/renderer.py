@@ -6,9 +6,12 @@
 2. Surfaces (``render.geometry``, on the tape): for the rays that hit, *recompute* the hit
    point, normal and UV differentiably from the camera and the primitive, object by object.
 3. Shading (``render.shading``, on the tape): lights and materials give each hit a colour.
-4. Image: scatter the hit colours into their pixels, fill the misses with the background.
+4. Edges (``render.edges``, with ``antialias=True``): where a silhouette passes between two
+   adjacent samples, blend them by how much of each one's box the edge covers, with the
+   crossing computed on the tape: gradients then see occlusion boundaries move.
+5. Image: each pixel the mean of its samples, misses showing the background.
 
-Gradients reach every continuous parameter through steps 2-4; step 1's decisions are
+Gradients reach every continuous parameter through steps 2-5; step 1's decisions are
 constants. With ``reuse_visibility=True`` (the default), step 1 and the surfaces of step 2
 are reused from the previous render of the same scene when the values they depend on are
 unchanged (``render.cache``), e.g. while only a material is optimised.
@@ -23,6 +26,8 @@ import numpy as np
 import minidiff as md
 from render.cache import RenderCache, cache_for, surface_key
 from render.camera import camera_frame, ray_directions
+from render.edges import EdgePairs, crossings
+from render.edges import antialias as blend_across_edges
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
 from render.scene import Mesh, Scene
 from render.shading import shade_mesh, shade_surface
@@ -38,6 +43,7 @@ def render(
     spp: int = 1,
     reuse_visibility: bool = True,
     return_info: bool = False,
+    antialias: bool = True,
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
 
@@ -48,6 +54,10 @@ def render(
     reuse_visibility: reuse the previous render's visibility when geometry, camera and
         lights have the same values (see the module docstring).
     return_info: also return a ``RenderInfo`` with the discrete decisions.
+    antialias: blend adjacent samples across silhouettes by their coverage, on the tape
+        (``render.edges``), so that moving edges have gradients. False: every sample shows
+        the primitive at its centre (the image is a step function at edges, and their
+        motion has no gradient).
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
     when the caller runs ``backward`` on a loss computed from the image.
@@ -57,9 +67,17 @@ def render(
     scene.validate()
     cache = cache_for(scene, reuse_visibility)
 
-    visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows))  # 1
-    colour, ray_of_colour, texel = _shade_objects(scene, visibility, cache)  # 2 and 3
-    image = _compose_image(scene, visibility, colour, ray_of_colour, spp)  # 4
+    antialias = _check_flag(antialias, "antialias")
+    visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows), antialias)  # 1
+    frame = camera_frame(scene.camera)
+    colour, ray_of_colour, texel = _shade_objects(scene, visibility, frame, cache)  # 2 and 3
+    if antialias:
+        samples = _sample_colours(scene, visibility, colour, ray_of_colour)
+        s, slope = crossings(scene, visibility.pairs, frame, spp, working_dtype(scene))
+        samples = blend_across_edges(samples, visibility.pairs, s, slope)  # 4
+        image = _pixel_means(scene, samples, spp)  # 5
+    else:
+        image = _compose_image(scene, visibility, colour, ray_of_colour, spp)  # 5
 
     if not return_info:
         return image
@@ -72,13 +90,18 @@ def working_dtype(scene: Scene) -> np.dtype:
     return np.result_type(*[t.dtype for t in scene.parameters()])
 
 
+def _check_flag(value, name: str) -> bool:
+    if not isinstance(value, bool | np.bool_):
+        raise TypeError(f"render: {name} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def _shade_objects(
-    scene: Scene, visibility: Visibility, cache: RenderCache
+    scene: Scene, visibility: Visibility, frame, cache: RenderCache
 ) -> tuple[md.Tensor | None, np.ndarray, np.ndarray]:
     """Steps 2 and 3 for every object: the colours (k, 3) of all hit rays, object by object,
     the ray each colour belongs to (k,), and the texture cell of every ray (N,) (-1: none)."""
     primary, dtype = visibility.primary, working_dtype(scene)
-    frame = camera_frame(scene.camera)
     eye = frame[3]
     coords = primary.coords.astype(dtype, copy=False)
     hit_prims = primary.prim_id[primary.hit_rays]
@@ -147,6 +170,28 @@ def _compose_image(scene: Scene, visibility: Visibility, colour, ray_of_colour, 
     return md.reshape(image, (camera.height, camera.width, 3))
 
 
+def _sample_colours(scene: Scene, visibility: Visibility, colour, ray_of_colour) -> md.Tensor:
+    """(N, 3) the colour of every ray: its hit's, or the background."""
+    prim_id = visibility.primary.prim_id
+    n_rays = prim_id.size
+    samples = None if colour is None else md.scatter_add(colour, ray_of_colour, n_rays)
+    background = scene.background
+    if samples is None or background.requires_grad or np.any(background.data):
+        misses = (prim_id < 0).astype(working_dtype(scene))[:, None]
+        fill = misses * background
+        samples = fill if samples is None else samples + fill
+    return samples
+
+
+def _pixel_means(scene: Scene, samples: md.Tensor, spp: int) -> md.Tensor:
+    """(H, W, 3) image: the mean of each pixel's spp consecutive samples (N, 3)."""
+    camera = scene.camera
+    if spp > 1:
+        pixel = np.arange(samples.shape[0]) // spp
+        samples = md.scatter_add(samples, pixel, camera.width * camera.height) * (1.0 / spp)
+    return md.reshape(samples, (camera.height, camera.width, 3))
+
+
 @dataclass
 class RenderInfo:
     """The discrete decisions behind an image (constants on the tape), per ray.
@@ -155,8 +200,11 @@ class RenderInfo:
     lit (n_lights, H, W, spp) bool: light j reaches the ray's hit point unoccluded.
     texel (H, W, spp) int64: the cell of the bilinear texture lookup at the hit
         (``render.shading.texel_cell``; -1 where the hit surface is untextured or missed).
+    pairs: with ``antialias=True``, the pairs of adjacent samples across a silhouette and
+        the edge each one uses (``render.edges.EdgePairs``, ray ids r = pixel * spp +
+        sample); None without.
     Two renders have the same visibility where ``prim_id`` and ``lit`` agree. The image is a
-    smooth function of the parameters only while all three stay the same: the tape
+    smooth function of the parameters only while all of these stay the same: the tape
     gradient is the derivative for fixed decisions, so finite differences agree with it
     only where a perturbation changes none of them.
     """
@@ -164,6 +212,7 @@ class RenderInfo:
     prim_id: np.ndarray
     lit: np.ndarray
     texel: np.ndarray
+    pairs: EdgePairs | None = None
 
     @classmethod
     def of(cls, scene: Scene, visibility: Visibility, texel: np.ndarray, spp: int) -> RenderInfo:
@@ -177,4 +226,5 @@ class RenderInfo:
             primary.prim_id.reshape(shape),
             lit.reshape((len(visibility.lit),) + shape),
             texel.reshape(shape),
+            visibility.pairs,
         )

@@ -22,6 +22,7 @@ import numpy as np
 from render.accel import Accelerator
 from render.cache import RenderCache, camera_key, light_key
 from render.camera import image_plane_coords, primary_rays
+from render.edges import EdgePairs, mesh_edges, silhouette_pairs
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
 
 #: Shadow rays start on the surface; they skip the triangle they start on and ignore hits
@@ -62,6 +63,7 @@ class PrimaryHits:
 
     prim_id (H * W * spp,) int64: the primitive each ray hits, -1 for the background.
     hit_rays (k,) int64: the rays that hit something (``prim_id >= 0``), in ray order.
+    depth (H * W * spp,) float64: each ray's hit distance along the view axis (inf: none).
     points (k, 3) float64: where they hit (the shadow rays start there).
     coords (k, 2) float64: where they cross the image plane, x and y in [-1, 1]; the
         renderer rebuilds the differentiable rays from them.
@@ -69,6 +71,7 @@ class PrimaryHits:
 
     prim_id: np.ndarray
     hit_rays: np.ndarray
+    depth: np.ndarray
     points: np.ndarray
     coords: np.ndarray
 
@@ -80,7 +83,9 @@ def trace_primary(accel: Accelerator, camera: Camera, spp: int) -> PrimaryHits:
     prim_id, t, _, _ = accel.closest_hit(origins, directions)
     hit_rays = np.flatnonzero(prim_id >= 0)
     points = eye + t[hit_rays, None] * directions[hit_rays]
-    return PrimaryHits(prim_id, hit_rays, points, image_plane_coords(camera, hit_rays, spp))
+    # The camera directions have unit component along the view axis: t is the depth.
+    coords = image_plane_coords(camera, hit_rays, spp)
+    return PrimaryHits(prim_id, hit_rays, t, points, coords)
 
 
 @dataclass
@@ -140,20 +145,23 @@ def trace_shadows(
 @dataclass
 class Visibility:
     """Every discrete decision of one render: the camera rays' hits and, per light, a lit
-    mask (k,) bool over the hit rays (all True with ``shadows=False``). ``stamp`` (1,)
+    mask (k,) bool over the hit rays (all True with ``shadows=False``), and the pairs of
+    adjacent samples across a silhouette (None without antialiasing). ``stamp`` (1,)
     identifies the computation of ``primary``: equal stamps, equal hits (for the keys of
     the caches that build on them)."""
 
     primary: PrimaryHits
     lit: list[np.ndarray]
     stamp: np.ndarray
+    pairs: EdgePairs | None = None
 
 
 def trace_visibility(
-    scene: Scene, cache: RenderCache, bvh: bool, spp: int, shadows: bool
+    scene: Scene, cache: RenderCache, bvh: bool, spp: int, shadows: bool, antialias: bool = False
 ) -> Visibility:
-    """Accelerator, camera rays and shadow rays of ``scene``, each reused from ``cache``
-    while the values it depends on are unchanged (a later stage depends on the earlier)."""
+    """Accelerator, camera rays, shadow rays and (with ``antialias``) the silhouette pairs
+    of ``scene``, each reused from ``cache`` while the values it depends on are unchanged
+    (a later stage depends on the earlier)."""
     primitives = scene_primitives(scene)
     accel, built = cache.get(
         ("accelerator", bvh), list(primitives), lambda: Accelerator(*primitives, use_bvh=bvh)
@@ -175,4 +183,16 @@ def trace_visibility(
             lambda light=light: trace_shadows(accel, light, primary.points, start_prim),
         )
         lit.append(mask)
-    return Visibility(primary, lit, traced)
+    if not antialias:
+        return Visibility(primary, lit, traced)
+    topology, _ = cache.get(
+        "topology",
+        [built],
+        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
+    )
+    pairs, _ = cache.get(
+        "pairs",
+        [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
+        lambda: silhouette_pairs(scene, primary.prim_id, primary.depth, spp, topology),
+    )
+    return Visibility(primary, lit, traced, pairs)

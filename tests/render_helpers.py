@@ -165,7 +165,32 @@ def _same_visibility(info, reference) -> np.ndarray:
     same &= (info.texel == reference.texel).all(axis=-1)
     if reference.lit.size:
         same &= (info.lit == reference.lit).all(axis=(0, -1))
+    if reference.pairs is not None:
+        same &= _same_edge_pairs(info, reference, same)
     return same
+
+
+def _pair_rows(pairs) -> np.ndarray:
+    return np.stack([pairs.near, pairs.far, pairs.prim, pairs.edge, pairs.horizontal], axis=1)
+
+
+def _same_edge_pairs(info, reference, same) -> np.ndarray:
+    """(H, W) bool: False at both pixels of every antialiasing pair (``RenderInfo.pairs``)
+    present in only one of the two renders, and of every pair whose other pixel changed
+    its decisions (a blended pixel shows its neighbour's colour too)."""
+    spp = reference.prim_id.shape[-1]
+    ok = np.ones(same.size, dtype=bool)
+    ref, now = _pair_rows(reference.pairs), _pair_rows(info.pairs)
+    for a, b in ((ref, now), (now, ref)):
+        in_b = (a[:, None, :] == b[None, :, :]).all(-1).any(1) if len(b) else np.zeros(len(a), bool)
+        ok[a[~in_b, 0] // spp] = False
+        ok[a[~in_b, 1] // spp] = False
+    flat_same = same.reshape(-1) & ok
+    near, far = ref[:, 0] // spp, ref[:, 1] // spp
+    touched = ~flat_same[near] | ~flat_same[far]
+    ok[near[touched]] = False
+    ok[far[touched]] = False
+    return ok.reshape(same.shape)
 
 
 def masked_gradient_check(

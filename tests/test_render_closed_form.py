@@ -18,6 +18,13 @@ from render_helpers import QUAD_FACES, ground_quad, pinhole_rays
 import minidiff as md
 import render
 
+
+def render_centres(scene, **kwargs):
+    """The renderer without edge antialiasing: every closed form here is the value at the
+    pixel (or sample) centre. ``tests/test_edges.py`` checks the antialiased image."""
+    return render.render(scene, antialias=False, **kwargs)
+
+
 RTOL = 1e-10
 
 
@@ -80,7 +87,7 @@ def test_lambert_triangle_matches_closed_form(case):
     camera = render.Camera(position, look_at, fov=fov, width=width, height=height)
     mesh = render.Mesh(corners, [[0, 1, 2]], render.Material(albedo))
     scene = render.Scene([mesh], [render.PointLight(light_position, intensity, colour)], camera)
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
 
     p, u, v, t, normal = plane_hits(camera, *corners)
     inside = (u > 1e-6) & (v > 1e-6) & (1 - u - v > 1e-6) & (t > 0)
@@ -105,7 +112,7 @@ def test_lambert_plane_of_two_triangles_matches_closed_form():
         [render.PointLight(light, 12.0)],
         camera,
     )
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     s = 4.0
     p, u, v, t, normal = plane_hits(camera, (-s, 0, s), (s, 0, s), (s, 0, -s))
     inside = (np.abs(p[..., 0]) < s - 1e-6) & (np.abs(p[..., 2]) < s - 1e-6) & (t > 0)
@@ -139,7 +146,7 @@ def test_smooth_shading_interpolates_vertex_normals():
         mesh = render.Mesh(vertices, faces, render.Material((0.6, 0.5, 0.4)), normals=given,
                            smooth=True)  # fmt: skip
         scene = render.Scene([mesh], [render.PointLight(light, intensity)], camera)
-        image, info = render.render(scene, return_info=True)
+        image, info = render_centres(scene, return_info=True)
         checked = 0
         for f in range(2):
             a, b, c = vertices[faces[f]]
@@ -167,7 +174,7 @@ def test_textured_quad_matches_bilinear_closed_form():
     camera = render.Camera((0.1, -0.2, 3.0), (0.0, 0.0, 0.0), fov=40, width=40, height=40)
     mesh = render.Mesh(corners, QUAD_FACES, render.Material((1, 1, 1), texture=texture), uvs=uvs)
     scene = render.Scene([mesh], [render.DirectionalLight((0, 0, -2.0), 2.5)], camera)
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     hit = info.prim_id[..., 0] >= 0
 
     p, _, _, _, _ = plane_hits(camera, *corners[:3])
@@ -212,7 +219,7 @@ def test_sphere_silhouette(centre, radius):
     camera = render.Camera((0, 0, 6.0), (0, 0, 0), fov=40, width=161, height=141)
     sphere = render.Sphere(centre, radius, render.Material((0.5, 0.5, 0.5)))
     scene = render.Scene([sphere], [render.PointLight((0, 5, 5), 10.0)], camera)
-    _, info = render.render(scene, return_info=True)
+    _, info = render_centres(scene, return_info=True)
     hit = info.prim_id[..., 0] == 0
 
     d = camera_rays(camera)
@@ -243,7 +250,7 @@ def test_sphere_centre_pixel_radiance():
         [render.PointLight(light, intensity, colour)],
         camera,
     )
-    image = render.render(scene).data
+    image = render_centres(scene).data
 
     f = (centre - eye) / np.linalg.norm(centre - eye)
     p, n = centre - radius * f, -f
@@ -274,7 +281,7 @@ def test_directional_light_cosine_law(theta):
     plane = render.Mesh(
         [(-9, -9, 0), (9, -9, 0), (9, 9, 0), (-9, 9, 0)], QUAD_FACES, render.Material(albedo)
     )
-    image, info = render.render(render.Scene([plane], [light], camera), return_info=True)
+    image, info = render_centres(render.Scene([plane], [light], camera), return_info=True)
     assert (info.prim_id >= 0).all()  # the plane fills the view
     expected = irradiance * colour * albedo / math.pi * max(math.cos(th), 0.0)
     np.testing.assert_allclose(image.data, np.broadcast_to(expected, image.shape), rtol=1e-12)
@@ -303,7 +310,7 @@ def test_occluder_shadow_matches_geometry():
         [render.PointLight(light, 20.0)],
         camera,
     )
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     on_ground = np.isin(info.prim_id[..., 0], (0, 1))
     lit = info.lit[0, ..., 0]
 
@@ -332,7 +339,7 @@ def test_directional_shadow_does_not_depend_on_the_direction_length(length):
     def shadowed(scale):
         light = render.DirectionalLight(np.array([1.0, -0.6, 0.2]) * scale, 1.0)
         scene = render.Scene([ground_quad(size=3.0), occluder], [light], camera)
-        _, info = render.render(scene, return_info=True)
+        _, info = render_centres(scene, return_info=True)
         return np.isin(info.prim_id[..., 0], (0, 1)) & ~info.lit[0, ..., 0]
 
     reference = shadowed(1.0)
@@ -345,7 +352,7 @@ def test_light_outside_a_sphere_does_not_reach_its_inside():
     camera = render.Camera((0, 0, 0.2), (0, 0, -1), fov=90, width=16, height=16)
     sphere = render.Sphere((0, 0, 0), 2.0, render.Material((0.5, 0.5, 0.5)))
     scene = render.Scene([sphere], [render.PointLight((0, 0, 5.0), 5.0)], camera)
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     assert (info.prim_id >= 0).all()
     assert not info.lit.any() and (image.data == 0).all()
 
@@ -364,7 +371,7 @@ def test_no_shadow_acne_on_spheres(centre, radius, light):
     shadow ray does not find the sphere it starts on."""
     camera = render.Camera((0.3, 1.0, 4.0), (0, 0, 0), fov=50, width=48, height=48)
     sphere = render.Sphere(centre, radius, render.Material((0.5, 0.5, 0.5)))
-    image, info = render.render(render.Scene([sphere], [light], camera), return_info=True)
+    image, info = render_centres(render.Scene([sphere], [light], camera), return_info=True)
     hit = info.prim_id[..., 0] == 0
 
     d = camera_rays(camera)
@@ -411,7 +418,7 @@ def test_no_shadow_acne_on_an_unoccluded_plane(light):
     material = render.Material((0.5, 0.5, 0.5))
     for plane in (ground_quad(size=3.0, material=material), grid_plane(12, 3.0, material)):
         for bvh in (True, False):
-            image, info = render.render(
+            image, info = render_centres(
                 render.Scene([plane], [light], camera), bvh=bvh, return_info=True
             )
             hit = info.prim_id[..., 0] >= 0
@@ -448,7 +455,7 @@ def test_no_shadow_acne_on_a_convex_mesh():
     light_position = np.array([2.0, 1.5, 1.0])
     camera = render.Camera((0.5, 0.8, 4.0), (0, 0, 0), fov=35, width=48, height=48)
     scene = render.Scene([mesh], [render.PointLight(light_position, 10.0)], camera)
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     hit = info.prim_id[..., 0] >= 0
     corners = mesh.vertices.data[mesh.faces[info.prim_id[..., 0][hit]]]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
@@ -467,7 +474,7 @@ def test_paper_teapot_render():
     """512 x 512 teapot (docs/paper_scene.md): ~41k hit pixels (40,929 when written), finite,
     and the BVH and brute force give bit-identical images and visibility."""
     scene = render.paper_scene()
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     hits = int((info.prim_id >= 0).sum())
     assert 40_000 <= hits <= 42_000, hits
     assert np.isfinite(image.data).all() and (image.data >= 0).all()
@@ -475,7 +482,7 @@ def test_paper_teapot_render():
     assert (image.data[info.prim_id[..., 0] < 0] == 0).all()
     lit = info.lit[0, ..., 0] & (info.prim_id[..., 0] >= 0)
     assert 0.3 * hits < lit.sum() < hits  # self-shadowing happens, most is lit
-    brute_image, brute_info = render.render(scene, bvh=False, return_info=True)
+    brute_image, brute_info = render_centres(scene, bvh=False, return_info=True)
     np.testing.assert_array_equal(brute_info.prim_id, info.prim_id)
     np.testing.assert_array_equal(brute_info.lit, info.lit)
     np.testing.assert_array_equal(brute_image.data, image.data)
@@ -496,7 +503,7 @@ def test_two_sided_shading():
     def draw(order, light):
         mesh = render.Mesh(corners[order], [[0, 1, 2]], render.Material((0.3, 0.6, 0.9)))
         scene = render.Scene([mesh], [render.PointLight(light, 8.0)], camera)
-        return render.render(scene, return_info=True)
+        return render_centres(scene, return_info=True)
 
     front, info = draw([0, 1, 2], (1.0, 1.0, 2.0))  # normal +z: towards the camera
     back, back_info = draw([0, 2, 1], (1.0, 1.0, 2.0))  # normal -z: seen from behind
@@ -519,8 +526,8 @@ def test_four_samples_per_pixel_of_a_constant_region():
     )
     camera = render.Camera((0.3, 0.2, 4.0), (0, 0, 0), fov=50, width=24, height=20)
     scene = render.Scene([plane], [render.DirectionalLight((0.2, -0.3, -1.0), 2.0)], camera)
-    one = render.render(scene).data
-    four = render.render(scene, spp=4).data
+    one = render_centres(scene).data
+    four = render_centres(scene, spp=4).data
     np.testing.assert_allclose(four, one, rtol=1e-14)
     np.testing.assert_allclose(one, np.broadcast_to(one[0, 0], one.shape), rtol=1e-14)
 
@@ -537,7 +544,7 @@ def test_four_samples_mix_object_and_background_by_coverage():
     )
     camera = render.Camera((0, 0, 3.0), (0, 0, 0), fov=50, width=30, height=26)
     scene = render.Scene([mesh], [], camera, background=background)
-    image, info = render.render(scene, spp=4, return_info=True)
+    image, info = render_centres(scene, spp=4, return_info=True)
     coverage = (info.prim_id >= 0).mean(axis=-1)[..., None]
     assert ((coverage > 0) & (coverage < 1)).sum() > 20  # there are edge pixels
     expected = coverage * colour + (1 - coverage) * background
@@ -547,20 +554,20 @@ def test_four_samples_mix_object_and_background_by_coverage():
 def test_background_fills_misses():
     background = (0.25, 0.5, 0.75)
     camera = render.Camera((0, 0, 5.0), (0, 0, 0), fov=40, width=20, height=16)
-    empty = render.render(render.Scene([], [], camera, background=background))
+    empty = render_centres(render.Scene([], [], camera, background=background))
     np.testing.assert_array_equal(empty.data, np.broadcast_to(background, (16, 20, 3)))
 
     sphere = render.Sphere((0.3, 0, 0), 0.8, render.Material((0.5, 0.5, 0.5)))
     light = render.PointLight((1, 2, 4), 10.0)
     scene = render.Scene([sphere], [light], camera, background=background)
-    image, info = render.render(scene, return_info=True)
+    image, info = render_centres(scene, return_info=True)
     miss = info.prim_id[..., 0] < 0
     assert 0 < miss.sum() < miss.size
     np.testing.assert_array_equal(
         image.data[miss], np.broadcast_to(background, image.data[miss].shape)
     )
     # Hit pixels carry no background: same as rendering over black.
-    black = render.render(render.Scene([sphere], [light], camera)).data
+    black = render_centres(render.Scene([sphere], [light], camera)).data
     np.testing.assert_array_equal(image.data[~miss], black[~miss])
 
 
@@ -575,7 +582,7 @@ def test_ambient_adds_exactly_ambient(ambient):
         material = render.Material((0.6, 0.3, 0.2), specular=spec, ambient=amb)
         sphere = render.Sphere((0, 0.6, 0), 0.6, material)
         scene = render.Scene([ground, sphere], lights, camera, background=(0.1, 0.1, 0.1))
-        return render.render(scene, return_info=True)
+        return render_centres(scene, return_info=True)
 
     lights = [render.PointLight((2, 4, 3), 20.0), render.DirectionalLight((0, -1, -1), 1.0)]
     base, info = draw(0.0, lights)
@@ -601,6 +608,6 @@ def test_stored_tensors_are_used_as_given():
         render.Camera((0, 2, 3), (0, 0, 0), width=8, height=8),
     )
     assert scene.lights[0].intensity is intensity
-    image = render.render(scene)
+    image = render_centres(scene)
     image.sum().backward()
     np.testing.assert_allclose(intensity.grad, image.data.sum() / 10.0, rtol=1e-12)

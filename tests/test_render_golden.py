@@ -36,7 +36,7 @@ def golden_arrays() -> dict[str, np.ndarray]:
         params = scene.parameters()
         for p in params:
             p.requires_grad = True
-        image = render.render(scene, reuse_visibility=False)
+        image = render.render(scene, reuse_visibility=False, antialias=False)
         weights = np.random.default_rng(0).standard_normal(image.shape)
         (image * md.tensor(weights)).sum().backward()
         out[f"{name}/image"] = image.data
