@@ -43,7 +43,7 @@ def render(
     spp: int = 1,
     reuse_visibility: bool = True,
     return_info: bool = False,
-    antialias: bool = True,
+    antialias: bool = False,
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
 
@@ -54,10 +54,11 @@ def render(
     reuse_visibility: reuse the previous render's visibility when geometry, camera and
         lights have the same values (see the module docstring).
     return_info: also return a ``RenderInfo`` with the discrete decisions.
-    antialias: blend adjacent samples across silhouettes by their coverage, on the tape
-        (``render.edges``), so that moving edges have gradients. False: every sample shows
-        the primitive at its centre (the image is a step function at edges, and their
-        motion has no gradient).
+    antialias: blend adjacent samples across silhouettes and creases by their coverage,
+        on the tape (``render.edges``), so that moving edges have gradients. False (the
+        default, the paper's renderer): every sample shows the primitive at its centre, the
+        image is a step function at edges and their motion has no gradient. See the README
+        for why False is the default and when to switch it on.
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
     when the caller runs ``backward`` on a loss computed from the image.

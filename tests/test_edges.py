@@ -59,7 +59,7 @@ def test_moving_a_straight_edge_matches_the_closed_form(slope, vertical_edge):
     mesh.vertices.requires_grad = True
     camera.position.requires_grad = True
     camera.look_at.requires_grad = True
-    image = render.render(scene)
+    image = render.render(scene, antialias=True)
     image.sum().backward()
     axis = 0 if vertical_edge else 1
     # Moving the edge by one pixel width in each of the rows (or columns) it crosses
@@ -80,7 +80,7 @@ def test_without_antialiasing_a_moving_edge_has_no_gradient():
     # Ambient-only colours do not depend on where the hits are: only edges could carry a
     # gradient, and without antialiasing nothing on the tape reaches the vertices.
     assert not render.render(scene, antialias=False).requires_grad
-    assert render.render(scene).requires_grad
+    assert render.render(scene, antialias=True).requires_grad
 
 
 def test_box_coverage_is_the_exact_area_and_c1():
@@ -121,7 +121,7 @@ def test_welding_finds_no_false_silhouettes_at_patch_seams():
 
 def test_render_info_reports_the_pairs():
     scene = half_plane_scene(0.3, True)
-    _, info = render.render(scene, return_info=True)
+    _, info = render.render(scene, antialias=True, return_info=True)
     pairs = info.pairs
     assert len(pairs.near) == HEIGHT  # one horizontal pair per row
     assert pairs.horizontal.all()
@@ -148,7 +148,7 @@ EDGE_PARAMETERS = {
 def test_antialiased_image_gradient_matches_its_own_finite_differences(name, seed):
     scene = random_scene(seed, smooth=seed == 2)
     params = EDGE_PARAMETERS[name](scene)
-    check = masked_gradient_check(scene, params, h_rel=1e-6, reuse_visibility=False)
+    check = masked_gradient_check(scene, params, h_rel=1e-6, reuse_visibility=False, antialias=True)
     assert check.kept >= 0.9 * check.pixels, f"{check.kept} of {check.pixels} kept"
     assert check.rel_error < 1e-5, (check.g_ad, check.g_fd)
 
@@ -156,7 +156,7 @@ def test_antialiased_image_gradient_matches_its_own_finite_differences(name, see
 def test_antialiasing_with_four_samples_per_pixel_is_continuous():
     scene = random_scene(3, width=20, height=16)
     params = [scene.objects[1].vertices, scene.camera.position]
-    check = masked_gradient_check(scene, params, spp=4, reuse_visibility=False)
+    check = masked_gradient_check(scene, params, spp=4, reuse_visibility=False, antialias=True)
     assert check.kept >= 0.9 * check.pixels
     assert check.rel_error < 1e-5, (check.g_ad, check.g_fd)
 
@@ -189,7 +189,7 @@ def test_sphere_translation_gradient_estimates_the_supersampled_derivative():
     scene = render.Scene([sphere], [light], camera, background=(0.1, 0.1, 0.1))
     weights = np.random.default_rng(5).standard_normal((40, 48, 3))
     sphere.center.requires_grad = True
-    (render.render(scene) * md.tensor(weights)).sum().backward()
+    (render.render(scene, antialias=True) * md.tensor(weights)).sum().backward()
     ad = sphere.center.grad.copy()
     sphere.center.requires_grad = False
     h = 0.005  # an eighth of a pixel: 32 x 32 samples per pixel resolve it
