@@ -13,8 +13,9 @@ cosine max(0, n.l), the radiance, and finally a mean-squared loss against a fixe
 Two implementations of exactly that math:
 
 * ``numpy_forward``: plain NumPy, no tape: the *floor* that a tape-based forward pass
-  cannot beat. It uses the same NumPy kernels as minidiff's primitives (einsum for row-wise
-  dots, the written-out cross product), so the ratio isolates the tape's overhead.
+  cannot beat. It uses the same NumPy kernels as minidiff's primitives
+  (``minidiff.kernels``: the written-out dot and cross products, the column-at-a-time
+  broadcasting), so the ratio isolates the tape's overhead.
 * ``minidiff_forward``: the renderer's own on-tape functions (``render.geometry.
   shade_mesh``, which calls ``render.geometry`` and ``render.shading``), with the
   vertices, the camera position, the light position and intensity and the albedo as leaves
@@ -46,8 +47,8 @@ import numpy as np
 import timing
 
 import minidiff as md
+from minidiff.kernels import cross3, dot_last, elementwise  # plain NumPy, as minidiff uses it
 from minidiff.memory import keep_freed_memory
-from minidiff.primitives import _elementwise  # plain NumPy; the floor uses it as minidiff does
 from render import render
 from render.camera import primary_rays
 from render.plot import line_plot
@@ -88,53 +89,41 @@ def make_workload(size: int, dtype) -> dict:
     return w
 
 
-def _dot(a, b):
-    """Row-wise dot of 3-vectors, the same way as minidiff's dot (three products summed)."""
-    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-
-
-def _cross(a, b):
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
-    np.subtract(a[..., 1] * b[..., 2], a[..., 2] * b[..., 1], out=out[..., 0])
-    np.subtract(a[..., 2] * b[..., 0], a[..., 0] * b[..., 2], out=out[..., 1])
-    np.subtract(a[..., 0] * b[..., 1], a[..., 1] * b[..., 0], out=out[..., 2])
-    return out
-
-
 def _mul(x, y):
-    return _elementwise(np.multiply, x, y)
+    return elementwise(np.multiply, x, y)
 
 
 def _normalize(x):
-    return _mul(x, (1.0 / np.sqrt(_dot(x, x)))[:, None])
+    return _mul(x, (1.0 / np.sqrt(dot_last(x, x)))[:, None])
 
 
 def numpy_forward(w: dict, return_radiance: bool = False):
     """The floor: the same math as ``render.renderer.shade_mesh`` (flat-shaded mesh, one
     point light, Lambert) and the loss, in plain NumPy with the same fast building blocks
-    (np.take gathers, unrolled dot and cross, minidiff's column-at-a-time broadcasting
-    ``_elementwise`` for (k, 3) op (3,) and (k, 1) op (k, 3)), no tape."""
+    (np.take gathers and ``minidiff.kernels``: the unrolled dot and cross, the
+    column-at-a-time broadcasting ``elementwise`` for (k, 3) op (3,) and (k, 1) op (k, 3)),
+    no tape."""
     v, d, eye = w["vertices"], w["directions"], w["eye"]
     faces = w["faces"][w["faces_hit"]]
     a, b, c = (np.take(v, faces[:, i], axis=0) for i in range(3))
     # Moller-Trumbore (render.geometry.intersect_edges)
     e1, e2 = b - a, c - a
-    p = _cross(d, e2)
-    inv_det = 1.0 / _dot(e1, p)
-    s = _elementwise(np.subtract, eye, a)
-    q = _cross(s, e1)
-    t = _dot(e2, q) * inv_det  # no barycentrics: a flat, untextured mesh needs none
-    points = _elementwise(np.add, eye, _mul(t[:, None], d))
+    p = cross3(d, e2)
+    inv_det = 1.0 / dot_last(e1, p)
+    s = elementwise(np.subtract, eye, a)
+    q = cross3(s, e1)
+    t = dot_last(e2, q) * inv_det  # no barycentrics: a flat, untextured mesh needs none
+    points = elementwise(np.add, eye, _mul(t[:, None], d))
     # Flat normal facing the ray (render.renderer.shade_mesh)
-    normals = _normalize(_cross(e1, e2))
-    flip = np.where(_dot(normals, d) > 0, -1.0, 1.0).astype(d.dtype)[:, None]
+    normals = _normalize(cross3(e1, e2))
+    flip = np.where(dot_last(normals, d) > 0, -1.0, 1.0).astype(d.dtype)[:, None]
     normals = _mul(normals, flip)
     # Point light, Lambert (render.shading.shade / light_incidence)
-    offset = _elementwise(np.subtract, w["light_position"], points)
-    distance_sq = np.maximum(_dot(offset, offset), 1e-12)
+    offset = elementwise(np.subtract, w["light_position"], points)
+    distance_sq = np.maximum(dot_last(offset, offset), 1e-12)
     to_light = _normalize(offset)
     irradiance = w["intensity"] / distance_sq
-    cos_theta = np.maximum(_dot(normals, to_light), 0.0)
+    cos_theta = np.maximum(dot_last(normals, to_light), 0.0)
     brdf_colour = w["albedo"] * (1.0 / math.pi) * w["color"]
     radiance = _mul((irradiance * cos_theta * w["lit"])[:, None], brdf_colour)
     if return_radiance:

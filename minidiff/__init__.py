@@ -2,7 +2,9 @@
 
 Read in this order: ``tensor.py`` (the Tensor, the tape, backward), ``primitives.py`` (each
 primitive's forward and vector-Jacobian product side by side), ``functional.py`` (grad,
-value_and_grad, check_grad), ``optim.py`` (SGD, Adam).
+value_and_grad, check_grad), ``optim.py`` (SGD, Adam). ``kernels.py`` holds the NumPy
+kernels that make the primitives fast on tall, thin arrays; each equals a plain NumPy
+expression.
 
     >>> import minidiff as md
     >>> x = md.tensor([1.0, 2.0, 3.0], requires_grad=True)
@@ -12,7 +14,7 @@ value_and_grad, check_grad), ``optim.py`` (SGD, Adam).
     array([2., 4., 6.])
 """
 
-from minidiff import optim
+from minidiff import kernels, optim
 from minidiff.functional import check_grad, grad, numerical_grad, value_and_grad
 from minidiff.primitives import (
     abs,
@@ -61,7 +63,7 @@ from minidiff.tensor import (
 
 __all__ = [
     "Tensor", "tensor", "as_tensor", "no_grad", "detect_anomaly", "is_grad_enabled",
-    "unbroadcast", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
+    "unbroadcast", "kernels", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul",
     "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
     "where", "sum", "mean", "max", "dot", "cross", "norm", "normalize", "reshape",

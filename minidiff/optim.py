@@ -34,7 +34,7 @@ class Optimizer:
         if not self.params:
             raise ValueError(f"{type(self).__name__}: params is empty")
         for i, p in enumerate(self.params):
-            if not isinstance(p, Tensor) or not p.requires_grad or p._node is not None:
+            if not isinstance(p, Tensor) or not p.requires_grad or not p.is_leaf:
                 raise TypeError(
                     f"{type(self).__name__}: params[{i}] must be a leaf Tensor with "
                     "requires_grad=True"

@@ -4,17 +4,26 @@ Reading guide. Every primitive follows the same pattern::
 
     def exp(x):
         x = as_tensor(x)
-        y = np.exp(x.data)                                # forward, plain NumPy
-        return record("exp", y, (x,), lambda g: (g * y,))   # VJP: g -> grad for each input
+        y = np.exp(x._data)                                   # forward, plain NumPy
+        return record("exp", y, (x,), lambda g: (g * y,),     # VJP: g -> grad for each input
+                      saves_output=True)                      # the VJP reads y
 
 ``g`` is the gradient of the final scalar with respect to this primitive's output (same
 shape as the output). The VJP returns, for each input, the gradient with respect to that
 input. It may return a gradient of the *broadcast* shape; ``backward`` sums it back to the
 input's shape. ``None`` means "no gradient flows to this input" (e.g. integer indices).
 
+``saves`` / ``saves_output`` tell the tape which values the VJP will read at backward
+time, so that ``backward`` can refuse to run if they were changed in the meantime (see
+``tensor.py``). Primitives read ``x._data``, the array itself: the public ``x.data``
+additionally watches for in-place edits by the user, which we do not need here.
+
 A few primitives (``dot``, ``cross``, ``norm``, ``normalize``, ``scatter_add``) could be
 composed from the others, but are written fused with hand-derived VJPs: renderers call them
 on every pixel, and the fused versions allocate fewer temporaries and record fewer nodes.
+How the NumPy work itself is done fast is not this file's business: ``kernels.py`` holds
+those functions (each equal to a plain NumPy expression, e.g. ``cross3(a, b)`` equals
+``np.cross(a, b)``).
 """
 
 from __future__ import annotations
@@ -23,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from minidiff import kernels
 from minidiff.tensor import Tensor, as_tensor, record
 
 # ---------------------------------------------------------------------------------------------
@@ -40,42 +50,22 @@ def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
     return as_tensor(a), as_tensor(b)
 
 
-def _elementwise(op, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """``op(x, y)`` for a NumPy binary ufunc, with broadcasting: the same result, faster
-    for tall, thin arrays.
-
-    NumPy's inner loop runs along the last axis. When that axis is short (an xyz or RGB
-    triple) and an operand is broadcast, as in (k, 3) * (3,), (k, 1) * (k, 3) or
-    (k, 1) * (3,), each row costs a loop set-up and the op runs 3-6x slower than a plain
-    (k, 3) * (k, 3) (measured for k = 41k). Applying the op to one output column at a time
-    gives long inner loops again. The renderer is made of exactly these shapes.
-    """
-    if x.shape == y.shape or x.size == 1 or y.size == 1 or x.size + y.size < 8192:
-        return op(x, y)  # NumPy is fast here, or the array is too small to matter
-    shape = np.broadcast_shapes(x.shape, y.shape)
-    if len(shape) < 2 or not 1 < shape[-1] <= 4:
-        return op(x, y)
-    out = np.empty(shape, dtype=np.result_type(x, y))
-    for j in range(shape[-1]):
-        op(_last_axis_column(x, j), _last_axis_column(y, j), out=out[..., j])
-    return out
-
-
-def _last_axis_column(x: np.ndarray, j: int) -> np.ndarray:
-    """Column j of x along the last axis, or its only column if x is broadcast there."""
-    if x.ndim == 0:
-        return x
-    return x[..., j] if x.shape[-1] > 1 else x[..., 0]
-
-
 def _broadcast_op(name: str, op, a: Tensor, b: Tensor) -> np.ndarray:
-    """Apply a NumPy binary op, turning a broadcasting failure into a clear message."""
+    """``op(a, b)`` for a NumPy binary ufunc, turning a broadcasting failure into a clear
+    message."""
     try:
-        return _elementwise(op, a.data, b.data)
+        return kernels.elementwise(op, a._data, b._data)
     except ValueError:
         raise ValueError(
             f"{name}: cannot broadcast shapes {a.shape} and {b.shape} together"
         ) from None
+
+
+def _each_reads_the_other(a: Tensor, b: Tensor) -> tuple[Tensor, ...]:
+    """What a product-like VJP (multiply, matmul, dot, cross) reads: the gradient of each
+    operand is made from the *other* one, so b is needed if a requires grad, and a if b
+    does."""
+    return tuple(t for t, needed in ((b, a.requires_grad), (a, b.requires_grad)) if needed)
 
 
 def _expand_reduced(g: np.ndarray, shape: tuple[int, ...], axis, keepdims: bool) -> np.ndarray:
@@ -91,6 +81,19 @@ def _count(shape: tuple[int, ...], axis) -> int:
         return int(np.prod(shape, dtype=np.int64))
     axes = (axis,) if isinstance(axis, int) else axis
     return int(np.prod([shape[a] for a in axes], dtype=np.int64))
+
+
+def _need_last_axis(name: str, *tensors: Tensor) -> None:
+    """Vector primitives work along the last axis: a 0-d tensor has none."""
+    if any(t.ndim == 0 for t in tensors):
+        shapes = " and ".join(str(t.shape) for t in tensors)
+        raise ValueError(f"{name}: needs vectors, shape (..., n), not 0-d; got shape {shapes}")
+
+
+def _need_some(name: str, tensors: tuple[Tensor, ...]) -> None:
+    """stack/concatenate of nothing has no shape or dtype to give the result."""
+    if not tensors:
+        raise ValueError(f"{name}: needs at least one tensor, got an empty sequence")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -119,11 +122,11 @@ def multiply(a: Any, b: Any) -> Tensor:
 
     def vjp(g):
         return (
-            _elementwise(np.multiply, g, b.data) if a.requires_grad else None,
-            _elementwise(np.multiply, g, a.data) if b.requires_grad else None,
+            kernels.elementwise(np.multiply, g, b._data) if a.requires_grad else None,
+            kernels.elementwise(np.multiply, g, a._data) if b.requires_grad else None,
         )
 
-    return record("multiply", out, (a, b), vjp)
+    return record("multiply", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
 
 
 def divide(a: Any, b: Any) -> Tensor:
@@ -132,16 +135,16 @@ def divide(a: Any, b: Any) -> Tensor:
     out = _broadcast_op("divide", np.divide, a, b)
 
     def vjp(g):
-        ga = _elementwise(np.divide, g, b.data)
+        ga = kernels.elementwise(np.divide, g, b._data)
         return (ga if a.requires_grad else None, -ga * out if b.requires_grad else None)
 
-    return record("divide", out, (a, b), vjp)
+    return record("divide", out, (a, b), vjp, saves=(b,), saves_output=b.requires_grad)
 
 
 def negative(x: Any) -> Tensor:
     """-x."""
     x = as_tensor(x)
-    return record("negative", -x.data, (x,), lambda g: (-g,))
+    return record("negative", -x._data, (x,), lambda g: (-g,))
 
 
 def power(a: Any, b: Any) -> Tensor:
@@ -150,11 +153,12 @@ def power(a: Any, b: Any) -> Tensor:
     out = _broadcast_op("power", np.power, a, b)
 
     def vjp(g):
-        ga = g * b.data * np.power(a.data, b.data - 1) if a.requires_grad else None
-        gb = g * out * np.log(a.data) if b.requires_grad else None
+        ga = g * b._data * np.power(a._data, b._data - 1) if a.requires_grad else None
+        gb = g * out * np.log(a._data) if b.requires_grad else None
         return ga, gb
 
-    return record("power", out, (a, b), vjp)
+    saves = (a, b) if a.requires_grad else (a,)
+    return record("power", out, (a, b), vjp, saves=saves, saves_output=b.requires_grad)
 
 
 def matmul(a: Any, b: Any) -> Tensor:
@@ -165,13 +169,13 @@ def matmul(a: Any, b: Any) -> Tensor:
     """
     a, b = _pair(a, b)
     try:
-        out = a.data @ b.data
+        out = a._data @ b._data
     except ValueError:
         raise ValueError(f"matmul: shapes {a.shape} and {b.shape} are not aligned") from None
 
     def vjp(g):
-        a2 = a.data[None, :] if a.ndim == 1 else a.data
-        b2 = b.data[:, None] if b.ndim == 1 else b.data
+        a2 = a._data[None, :] if a.ndim == 1 else a._data
+        b2 = b._data[:, None] if b.ndim == 1 else b._data
         # Put the removed vector axes back into g: b's (last) first, then a's, so that a
         # 1-D @ 1-D product (g of shape ()) becomes (1, 1) rather than failing.
         g2 = g
@@ -188,7 +192,7 @@ def matmul(a: Any, b: Any) -> Tensor:
             gb = gb[..., 0] if b.ndim == 1 else gb
         return ga, gb
 
-    return record("matmul", out, (a, b), vjp)
+    return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -199,53 +203,53 @@ def matmul(a: Any, b: Any) -> Tensor:
 def exp(x: Any) -> Tensor:
     """e^x.  d/dx = e^x (the output itself)."""
     x = as_tensor(x)
-    y = np.exp(x.data)
-    return record("exp", y, (x,), lambda g: (g * y,))
+    y = np.exp(x._data)
+    return record("exp", y, (x,), lambda g: (g * y,), saves_output=True)
 
 
 def log(x: Any) -> Tensor:
     """Natural log (x > 0).  d/dx = 1/x."""
     x = as_tensor(x)
-    return record("log", np.log(x.data), (x,), lambda g: (g / x.data,))
+    return record("log", np.log(x._data), (x,), lambda g: (g / x._data,), saves=(x,))
 
 
 def sqrt(x: Any) -> Tensor:
     """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)); infinite at 0, so keep inputs positive."""
     x = as_tensor(x)
-    y = np.sqrt(x.data)
-    return record("sqrt", y, (x,), lambda g: (g * 0.5 / y,))
+    y = np.sqrt(x._data)
+    return record("sqrt", y, (x,), lambda g: (g * 0.5 / y,), saves_output=True)
 
 
 def sin(x: Any) -> Tensor:
     """sin x.  d/dx = cos x."""
     x = as_tensor(x)
-    return record("sin", np.sin(x.data), (x,), lambda g: (g * np.cos(x.data),))
+    return record("sin", np.sin(x._data), (x,), lambda g: (g * np.cos(x._data),), saves=(x,))
 
 
 def cos(x: Any) -> Tensor:
     """cos x.  d/dx = -sin x."""
     x = as_tensor(x)
-    return record("cos", np.cos(x.data), (x,), lambda g: (-g * np.sin(x.data),))
+    return record("cos", np.cos(x._data), (x,), lambda g: (-g * np.sin(x._data),), saves=(x,))
 
 
 def tan(x: Any) -> Tensor:
     """tan x.  d/dx = 1 + tan^2 x."""
     x = as_tensor(x)
-    y = np.tan(x.data)
-    return record("tan", y, (x,), lambda g: (g * (1.0 + y * y),))
+    y = np.tan(x._data)
+    return record("tan", y, (x,), lambda g: (g * (1.0 + y * y),), saves_output=True)
 
 
 def tanh(x: Any) -> Tensor:
     """tanh x.  d/dx = 1 - tanh^2 x."""
     x = as_tensor(x)
-    y = np.tanh(x.data)
-    return record("tanh", y, (x,), lambda g: (g * (1.0 - y * y),))
+    y = np.tanh(x._data)
+    return record("tanh", y, (x,), lambda g: (g * (1.0 - y * y),), saves_output=True)
 
 
 def abs(x: Any) -> Tensor:
     """|x|.  d/dx = sign(x); at x = 0 we use the subgradient 0."""
     x = as_tensor(x)
-    return record("abs", np.abs(x.data), (x,), lambda g: (g * np.sign(x.data),))
+    return record("abs", np.abs(x._data), (x,), lambda g: (g * np.sign(x._data),), saves=(x,))
 
 
 def maximum(a: Any, b: Any) -> Tensor:
@@ -254,13 +258,13 @@ def maximum(a: Any, b: Any) -> Tensor:
     out = _broadcast_op("maximum", np.maximum, a, b)
 
     def vjp(g):
-        a_wins = a.data >= b.data
+        a_wins = a._data >= b._data
         return (
             np.where(a_wins, g, 0.0) if a.requires_grad else None,
             np.where(a_wins, 0.0, g) if b.requires_grad else None,
         )
 
-    return record("maximum", out, (a, b), vjp)
+    return record("maximum", out, (a, b), vjp, saves=(a, b))
 
 
 def minimum(a: Any, b: Any) -> Tensor:
@@ -269,13 +273,13 @@ def minimum(a: Any, b: Any) -> Tensor:
     out = _broadcast_op("minimum", np.minimum, a, b)
 
     def vjp(g):
-        a_wins = a.data <= b.data
+        a_wins = a._data <= b._data
         return (
             np.where(a_wins, g, 0.0) if a.requires_grad else None,
             np.where(a_wins, 0.0, g) if b.requires_grad else None,
         )
 
-    return record("minimum", out, (a, b), vjp)
+    return record("minimum", out, (a, b), vjp, saves=(a, b))
 
 
 def clip(x: Any, lo: Any, hi: Any) -> Tensor:
@@ -284,14 +288,18 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     x = as_tensor(x)
     # Python numbers are passed on as they are (not via np.asarray, which would make them
     # int64/float64 arrays) so that NumPy treats them as weak and float32 stays float32.
-    lo_v, hi_v = (v.data if isinstance(v, Tensor) else v for v in (lo, hi))
+    lo_v, hi_v = (v._data if isinstance(v, Tensor) else v for v in (lo, hi))
     try:
-        out = np.clip(x.data, lo_v, hi_v)
+        out = np.clip(x._data, lo_v, hi_v)
     except ValueError:
         raise ValueError(
             f"clip: cannot broadcast x {x.shape}, lo {np.shape(lo_v)} and hi {np.shape(hi_v)}"
         ) from None
-    return record("clip", out, (x,), lambda g: (np.where(out == x.data, g, 0.0),))
+
+    def vjp(g):
+        return (np.where(out == x._data, g, 0.0),)
+
+    return record("clip", out, (x,), vjp, saves=(x,), saves_output=True)
 
 
 def where(condition: Any, a: Any, b: Any) -> Tensor:
@@ -299,7 +307,7 @@ def where(condition: Any, a: Any, b: Any) -> Tensor:
     cond = np.asarray(getattr(condition, "data", condition), dtype=bool)
     a, b = _pair(a, b)
     try:
-        out = np.where(cond, a.data, b.data)
+        out = np.where(cond, a._data, b._data)
     except ValueError:
         raise ValueError(
             f"where: cannot broadcast condition {cond.shape}, a {a.shape} and b {b.shape}"
@@ -322,7 +330,7 @@ def where(condition: Any, a: Any, b: Any) -> Tensor:
 def sum(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Sum over ``axis`` (all axes if None). Every summed element gets the output's gradient."""
     x = as_tensor(x)
-    out = np.sum(x.data, axis=axis, keepdims=keepdims)
+    out = np.sum(x._data, axis=axis, keepdims=keepdims)
     return record(
         "sum", np.asarray(out), (x,), lambda g: (_expand_reduced(g, x.shape, axis, keepdims),)
     )
@@ -331,8 +339,13 @@ def sum(x: Any, axis=None, keepdims: bool = False) -> Tensor:
 def mean(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Mean over ``axis``. Like sum, with the gradient divided by the element count."""
     x = as_tensor(x)
-    out = np.mean(x.data, axis=axis, keepdims=keepdims)
     n = _count(x.shape, axis)
+    if n == 0:  # NumPy would warn and return NaN
+        raise ValueError(
+            f"mean: no elements to average (shape {x.shape}, axis={axis}); "
+            "the mean of an empty array is undefined"
+        )
+    out = np.mean(x._data, axis=axis, keepdims=keepdims)
     return record(
         "mean",
         np.asarray(out),
@@ -345,32 +358,20 @@ def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Maximum over ``axis``. Subgradient: when several elements tie for the maximum, the
     gradient is split equally among them (so the total is preserved)."""
     x = as_tensor(x)
-    out = np.max(x.data, axis=axis, keepdims=keepdims)
+    out = np.max(x._data, axis=axis, keepdims=keepdims)
 
     def vjp(g):
         peak = _expand_reduced(out, x.shape, axis, keepdims)
-        winners = (x.data == peak).astype(x.dtype)
+        winners = (x._data == peak).astype(x.dtype)
         ties = np.sum(winners, axis=axis, keepdims=True)
         return (winners * _expand_reduced(g, x.shape, axis, keepdims) / ties,)
 
-    return record("max", np.asarray(out), (x,), vjp)
+    return record("max", np.asarray(out), (x,), vjp, saves=(x,), saves_output=True)
 
 
 # ---------------------------------------------------------------------------------------------
 # Vector algebra along the last axis (fused, hand-written VJPs)
 # ---------------------------------------------------------------------------------------------
-
-
-def _dot_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot product along the last axis. For 3-vectors (the renderer's case: 41k x 3
-    arrays, or 41k x 3 against one (3,) vector), three products summed: ~2x faster than
-    einsum and ~5x faster than (a * b).sum(-1), whose reduction over a length-3 axis is slow.
-    Not a BLAS matrix-vector product, although that is faster in isolation: OpenBLAS runs
-    it on several threads, which then spin and slow the Numba kernels (see
-    ``minidiff.tensor._sum_rows``). Otherwise einsum."""
-    if a.shape[-1] == 3 and b.shape[-1] == 3:
-        return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
-    return np.einsum("...i,...i->...", *np.broadcast_arrays(a, b))
 
 
 def dot(a: Any, b: Any) -> Tensor:
@@ -379,33 +380,22 @@ def dot(a: Any, b: Any) -> Tensor:
     d/da = g[..., None] * b,  d/db = g[..., None] * a.
     """
     a, b = _pair(a, b)
+    _need_last_axis("dot", a, b)
     if a.shape[-1:] != b.shape[-1:]:
         raise ValueError(f"dot: last axes differ: {a.shape} and {b.shape}")
     try:
-        out = _dot_np(a.data, b.data)
+        out = kernels.dot_last(a._data, b._data)
     except ValueError:
         raise ValueError(f"dot: cannot broadcast shapes {a.shape} and {b.shape}") from None
 
     def vjp(g):
         g = g[..., None]
         return (
-            _elementwise(np.multiply, g, b.data) if a.requires_grad else None,
-            _elementwise(np.multiply, g, a.data) if b.requires_grad else None,
+            kernels.elementwise(np.multiply, g, b._data) if a.requires_grad else None,
+            kernels.elementwise(np.multiply, g, a._data) if b.requires_grad else None,
         )
 
-    return record("dot", out, (a, b), vjp)
-
-
-def _cross_np(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Cross product of 3-vectors along the last axis, written out (np.cross copies inputs)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    shape = np.broadcast_shapes(a.shape, b.shape)
-    out = np.empty(shape, dtype=np.result_type(a, b))
-    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
-    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
-    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
-    return out
+    return record("dot", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
 
 
 def cross(a: Any, b: Any) -> Tensor:
@@ -417,33 +407,35 @@ def cross(a: Any, b: Any) -> Tensor:
     if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
         raise ValueError(f"cross: both inputs need a last axis of size 3, got {a.shape}, {b.shape}")
     try:
-        out = _cross_np(a.data, b.data)
+        out = kernels.cross3(a._data, b._data)
     except ValueError:
         raise ValueError(f"cross: cannot broadcast shapes {a.shape} and {b.shape}") from None
 
     def vjp(g):
         return (
-            _cross_np(b.data, g) if a.requires_grad else None,
-            _cross_np(g, a.data) if b.requires_grad else None,
+            kernels.cross3(b._data, g) if a.requires_grad else None,
+            kernels.cross3(g, a._data) if b.requires_grad else None,
         )
 
-    return record("cross", out, (a, b), vjp)
+    return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
 
 
 def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
     """Euclidean length along ``axis`` (default last). d/dx = g x / |x|; at |x| = 0 we use
     the subgradient 0 (never NaN)."""
     x = as_tensor(x)
-    length = np.sqrt(np.sum(x.data * x.data, axis=axis, keepdims=True))
+    _need_last_axis("norm", x)
+    length = np.sqrt(np.sum(x._data * x._data, axis=axis, keepdims=True))
     out = length if keepdims else np.squeeze(length, axis=axis)
 
     def vjp(g):
         if not keepdims:
             g = np.expand_dims(g, axis)
         safe = np.where(length > 0, length, 1.0)
-        return (np.where(length > 0, g / safe, 0.0) * x.data,)
+        return (np.where(length > 0, g / safe, 0.0) * x._data,)
 
-    return record("norm", out, (x,), vjp)
+    # ``out`` is ``length`` or a view of it: the VJP reads the output.
+    return record("norm", out, (x,), vjp, saves=(x,), saves_output=True)
 
 
 def normalize(x: Any) -> Tensor:
@@ -452,15 +444,16 @@ def normalize(x: Any) -> Tensor:
     With y = x/|x|:  d/dx = (g - y (y . g)) / |x|  (the part of g orthogonal to y, scaled).
     """
     x = as_tensor(x)
-    length = np.sqrt(_dot_np(x.data, x.data))[..., None]
+    _need_last_axis("normalize", x)
+    length = np.sqrt(kernels.dot_last(x._data, x._data))[..., None]
     inv = np.divide(1.0, length, out=np.zeros_like(length), where=length > 0)
-    y = _elementwise(np.multiply, x.data, inv)
+    y = kernels.elementwise(np.multiply, x._data, inv)
 
     def vjp(g):
-        along = _elementwise(np.multiply, y, _dot_np(y, g)[..., None])
-        return (_elementwise(np.multiply, g - along, inv),)
+        along = kernels.elementwise(np.multiply, y, kernels.dot_last(y, g)[..., None])
+        return (kernels.elementwise(np.multiply, g - along, inv),)
 
-    return record("normalize", y, (x,), vjp)
+    return record("normalize", y, (x,), vjp, saves_output=True)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -472,7 +465,7 @@ def reshape(x: Any, shape) -> Tensor:
     """Same values, new shape. The gradient is reshaped back."""
     x = as_tensor(x)
     try:
-        out = x.data.reshape(shape)
+        out = x._data.reshape(shape)
     except ValueError:
         raise ValueError(f"reshape: cannot reshape {x.shape} into {shape}") from None
     return record("reshape", out, (x,), lambda g: (g.reshape(x.shape),))
@@ -481,7 +474,7 @@ def reshape(x: Any, shape) -> Tensor:
 def transpose(x: Any, axes=None) -> Tensor:
     """Permute axes (reverse them if ``axes`` is None). The gradient is permuted back."""
     x = as_tensor(x)
-    out = np.transpose(x.data, axes)
+    out = np.transpose(x._data, axes)
     # The inverse permutation; negative axes are made positive first (argsort of (-1, 0, 1)
     # would otherwise give the identity).
     inverse = None if axes is None else np.argsort([a % x.ndim for a in axes])
@@ -493,7 +486,7 @@ def broadcast_to(x: Any, shape) -> Tensor:
     x = as_tensor(x)
     shape = (shape,) if isinstance(shape, int) else tuple(shape)
     try:
-        out = np.broadcast_to(x.data, shape)
+        out = np.broadcast_to(x._data, shape)
     except ValueError:
         raise ValueError(f"broadcast_to: cannot broadcast {x.shape} to {shape}") from None
     return record("broadcast_to", out, (x,), lambda g: (g,))
@@ -502,8 +495,9 @@ def broadcast_to(x: Any, shape) -> Tensor:
 def stack(tensors, axis: int = 0) -> Tensor:
     """Stack equal-shaped tensors along a new axis; the gradient is split back into slices."""
     tensors = tuple(as_tensor(t) for t in tensors)
+    _need_some("stack", tensors)
     try:
-        out = np.stack([t.data for t in tensors], axis=axis)
+        out = np.stack([t._data for t in tensors], axis=axis)
     except ValueError:
         shapes = [t.shape for t in tensors]
         raise ValueError(f"stack: all inputs need the same shape, got {shapes}") from None
@@ -517,8 +511,9 @@ def stack(tensors, axis: int = 0) -> Tensor:
 def concatenate(tensors, axis: int = 0) -> Tensor:
     """Join tensors along an existing axis; the gradient is cut back into the pieces."""
     tensors = tuple(as_tensor(t) for t in tensors)
+    _need_some("concatenate", tensors)
     try:
-        out = np.concatenate([t.data for t in tensors], axis=axis)
+        out = np.concatenate([t._data for t in tensors], axis=axis)
     except ValueError:
         shapes = [t.shape for t in tensors]
         raise ValueError(f"concatenate: shapes {shapes} do not match off axis {axis}") from None
@@ -533,25 +528,6 @@ def concatenate(tensors, axis: int = 0) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 # Indexing: gather and scatter
 # ---------------------------------------------------------------------------------------------
-
-
-def _scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """out[index[i]] += values[i] for an (n, ...) output; repeated indices accumulate.
-
-    np.bincount does the accumulation per column and is several times faster than
-    np.add.at, which is the textbook (but slow, unbuffered) way to do it.
-    """
-    # An explicit column count, not -1: reshape cannot infer -1 when there are no rows.
-    rows = values.reshape(len(index), int(np.prod(values.shape[1:], dtype=np.int64)))
-    cols = rows.shape[1]
-    out = np.empty((n, cols), dtype=values.dtype)
-    if cols <= 4:
-        for j in range(cols):
-            out[:, j] = np.bincount(index, weights=rows[:, j], minlength=n)
-    else:  # one bincount over (row, column) pairs flattened
-        flat = (index[:, None] * cols + np.arange(cols)).ravel()
-        out[:] = np.bincount(flat, weights=rows.ravel(), minlength=n * cols).reshape(n, cols)
-    return out.reshape((n,) + values.shape[1:])
 
 
 def _is_row_gather(index: Any) -> bool:
@@ -578,13 +554,12 @@ def getitem(x: Any, index: Any) -> Tensor:
     """
     x = as_tensor(x)
     if isinstance(index, Tensor):
-        index = index.data
+        index = index._data
     if isinstance(index, tuple):
-        index = tuple(i.data if isinstance(i, Tensor) else i for i in index)
+        index = tuple(i._data if isinstance(i, Tensor) else i for i in index)
     row_gather = _is_row_gather(index)
     try:
-        # np.take is ~4x faster than x[index] for gathering rows (measured: 41k rows of 3).
-        out = np.take(x.data, index, axis=0) if row_gather and x.ndim else x.data[index]
+        out = kernels.gather_rows(x._data, index) if row_gather and x.ndim else x._data[index]
     except IndexError as error:  # out of range, or a float index: name the operation
         raise IndexError(f"getitem: {error} (indexing a tensor of shape {x.shape})") from None
 
@@ -592,7 +567,7 @@ def getitem(x: Any, index: Any) -> Tensor:
         rows = np.where(index < 0, index + x.shape[0], index) if index.size else index
 
         def vjp(g):
-            return (_scatter_add_rows(rows, g, x.shape[0]),)
+            return (kernels.scatter_add_rows(rows, g, x.shape[0]),)
 
     elif _has_integer_array(index):
 
@@ -626,5 +601,5 @@ def scatter_add(values: Any, index: Any, size: int) -> Tensor:
         )
     if index.size and (index.min() < 0 or index.max() >= size):
         raise ValueError(f"scatter_add: indices must lie in [0, {size}), got {index.min()}..")
-    out = _scatter_add_rows(index, values.data, size)
-    return record("scatter_add", out, (values,), lambda g: (np.take(g, index, axis=0),))
+    out = kernels.scatter_add_rows(index, values._data, size)
+    return record("scatter_add", out, (values,), lambda g: (kernels.gather_rows(g, index),))

@@ -14,6 +14,16 @@ collects the nodes reachable from the output and sorts them by ``seq``; that sor
 exactly the slice of the tape that matters. Storing it this way means that a forward pass
 nobody differentiates is freed as soon as its tensors go out of scope, instead of piling up
 on a global list.
+
+Versions: a VJP that needs an array from the forward pass (``multiply`` needs the other
+operand, ``exp`` its own output) reads it at backward time. If the array was changed in
+between, the gradient would silently belong to other values, so, as in PyTorch, every
+tensor counts the changes to its data (``version``), each node remembers the versions of
+the tensors it saved, and ``backward`` refuses to run a VJP whose saved tensors have
+changed, naming the primitive and the tensor. Assigning ``t.data = ...`` (and ``t.data
+-= ...``) counts as a change. An in-place write ``t.data[...] = ...`` cannot be seen by
+NumPy, so a tensor that a node has saved hands out its array only after keeping a copy,
+and changes are found by comparing with that copy (see ``Tensor.data``).
 """
 
 from __future__ import annotations
@@ -24,6 +34,8 @@ from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
+
+from minidiff import kernels
 
 # Global switches. They are module state (like a tape recorder's record button), changed only
 # through the context managers below.
@@ -38,24 +50,51 @@ class Node:
     ``vjp(g)`` returns one gradient (or None) per input, each either of the input's shape or
     broadcastable to it (``backward`` sums broadcast axes away, see ``unbroadcast``).
     ``grad`` accumulates the gradient of the node's output during a reverse pass.
+    ``saved`` are the tensors whose values the VJP reads, with their ``versions`` at
+    recording time; ``output_version`` is the output's version if the VJP reads the output's
+    values too (else None).
     """
 
-    __slots__ = ("name", "inputs", "vjp", "seq", "grad", "freed")
+    __slots__ = ("name", "inputs", "vjp", "seq", "grad", "freed", "saved", "versions")
+    __slots__ += ("output_version",)
 
-    def __init__(self, name: str, inputs: tuple[Tensor, ...], vjp: Callable):
+    def __init__(
+        self,
+        name: str,
+        inputs: tuple[Tensor, ...],
+        vjp: Callable,
+        saved: tuple[Tensor, ...] = (),
+        output_version: int | None = None,
+    ):
         self.name = name
         self.inputs = inputs
         self.vjp = vjp
         self.seq = next(_SEQUENCE)
         self.grad: np.ndarray | None = None
         self.freed = False
+        self.saved = saved
+        self.versions = tuple(t.version for t in saved)
+        self.output_version = output_version
 
     def free(self) -> None:
         """Drop the closure and the inputs so their arrays can be released."""
         self.inputs = ()
+        self.saved = ()
         self.vjp = None
         self.grad = None
         self.freed = True
+
+    def check_versions(self, output: Tensor) -> None:
+        """Raise if a tensor the VJP reads (``output`` is this node's result) has changed
+        since the forward pass: the VJP would compute the gradient of other values."""
+        for t, recorded in zip(self.saved, self.versions, strict=True):
+            if t.version != recorded:
+                i = next(i for i, x in enumerate(self.inputs) if x is t)
+                what = f"input {i} ({_describe(t)})"
+                raise RuntimeError(_CHANGED_MESSAGE.format(name=self.name, what=what))
+        if self.output_version is not None and output.version != self.output_version:
+            what = f"output ({_describe(output)})"
+            raise RuntimeError(_CHANGED_MESSAGE.format(name=self.name, what=what))
 
 
 class Tensor:
@@ -63,47 +102,116 @@ class Tensor:
 
     Attributes: ``data`` (the ndarray), ``grad`` (ndarray of the same shape, or None; only
     leaves, i.e. tensors created by the user with ``requires_grad=True``, receive it),
-    ``requires_grad``.
+    ``requires_grad`` (only floating-point tensors may require grad), ``version`` (how many
+    changes to ``data`` minidiff has seen), ``node`` and ``is_leaf``.
     """
 
-    __slots__ = ("data", "grad", "requires_grad", "_node", "__weakref__")
+    __slots__ = ("_data", "_version", "_copy", "_saved", "_requires_grad", "_node", "grad")
+    __slots__ += ("__weakref__",)
     # Make NumPy defer to our reflected operators (ndarray + Tensor -> Tensor.__radd__) and
     # refuse ufuncs such as np.exp(tensor), which would silently drop the gradient.
     __array_ufunc__ = None
 
     def __init__(self, data: Any, requires_grad: bool = False, _node: Node | None = None):
-        self.data = data if isinstance(data, np.ndarray) else np.asarray(data)
-        self.grad: np.ndarray | None = None
-        self.requires_grad = bool(requires_grad)
+        self._data = data if isinstance(data, np.ndarray) else np.asarray(data)
+        self._version = 0
+        self._copy: np.ndarray | None = None  # the values handed out by .data, to compare
+        self._saved = False  # a node saved this tensor since the last change of data
+        self._requires_grad = False
+        self.requires_grad = requires_grad  # the setter checks the dtype
         self._node = _node
+        self.grad: np.ndarray | None = None
+
+    # -- the values and their version -----------------------------------------------------
+    @property
+    def data(self) -> np.ndarray:
+        """The values: the ndarray itself, not a copy, so it may be edited in place.
+
+        Edits after ``backward()`` are fine (optimizers make them). Edits between the
+        forward pass and ``backward()`` of a tensor that a VJP needs make ``backward``
+        raise. To see in-place edits, the first time a saved tensor hands out its array we
+        keep a copy of it; ``version`` compares the two. Not seen: writes through an
+        ndarray obtained before the forward pass saved the tensor.
+        """
+        if self._saved and self._copy is None:
+            self._copy = self._data.copy()
+        return self._data
+
+    @data.setter
+    def data(self, value: Any) -> None:
+        array = value if isinstance(value, np.ndarray) else np.asarray(value)
+        if self._requires_grad:
+            _check_differentiable_dtype("Tensor.data", array.dtype)
+        self._data = array
+        self._version += 1
+        # The nodes that saved the old values are outdated by the new version; the copy of
+        # those values is no longer needed.
+        self._copy = None
+        self._saved = False
+
+    @property
+    def version(self) -> int:
+        """How many changes to ``data`` have been seen: assignments to ``.data`` (including
+        ``t.data -= ...``) and in-place edits of the array handed out by ``.data``."""
+        if self._copy is not None and not _same_values(self._copy, self._data):
+            self._version += 1
+            self._copy = self._data.copy()  # the array is still out there: keep watching
+        return self._version
+
+    def mark_saved(self) -> None:
+        """Note that a node saved this tensor: from now on ``.data`` keeps a copy of the
+        values it hands out, so that in-place edits can be found (see ``version``)."""
+        self._saved = True
+
+    @property
+    def requires_grad(self) -> bool:
+        """Whether gradients flow to this tensor (floating-point tensors only)."""
+        return self._requires_grad
+
+    @requires_grad.setter
+    def requires_grad(self, value: bool) -> None:
+        if value:
+            _check_differentiable_dtype("Tensor", self._data.dtype)
+        self._requires_grad = bool(value)
+
+    @property
+    def node(self) -> Node | None:
+        """The tape entry of the primitive that computed this tensor; None for a leaf or a
+        constant."""
+        return self._node
+
+    @property
+    def is_leaf(self) -> bool:
+        """True if no recorded primitive computed this tensor (a leaf or a constant)."""
+        return self._node is None
 
     # -- array-like properties ------------------------------------------------------------
     @property
     def shape(self) -> tuple[int, ...]:
-        return self.data.shape
+        return self._data.shape
 
     @property
     def ndim(self) -> int:
-        return self.data.ndim
+        return self._data.ndim
 
     @property
     def dtype(self) -> np.dtype:
-        return self.data.dtype
+        return self._data.dtype
 
     @property
     def size(self) -> int:
-        return self.data.size
+        return self._data.size
 
     def __len__(self) -> int:
-        return len(self.data)
+        return len(self._data)
 
     def __repr__(self) -> str:
         flag = ", requires_grad=True" if self.requires_grad else ""
-        return f"Tensor({np.array2string(self.data, threshold=20)}{flag})"
+        return f"Tensor({np.array2string(self._data, threshold=20)}{flag})"
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         # np.asarray(tensor) gives the values (for plotting, saving); it is not differentiable.
-        return self.data if dtype is None else self.data.astype(dtype)
+        return self.data if dtype is None else self._data.astype(dtype)
 
     __hash__ = object.__hash__  # comparisons return arrays, so keep identity hashing
 
@@ -113,7 +221,7 @@ class Tensor:
 
     def item(self) -> float:
         """The value of a one-element tensor as a Python number."""
-        return self.data.item()
+        return self._data.item()
 
     def detach(self) -> Tensor:
         """A tensor sharing these values but cut from the tape (a constant)."""
@@ -134,14 +242,14 @@ class Tensor:
                 "had requires_grad=True, or it was computed under no_grad())"
             )
         if grad is None:
-            if self.data.size != 1:
+            if self._data.size != 1:
                 raise ValueError(
                     f"backward: the output has shape {self.shape}; a seed gradient of that "
                     "shape is needed for a non-scalar output (e.g. t.backward(np.ones(t.shape)))"
                 )
             seed = np.ones(self.shape, dtype=self.dtype)
         else:
-            seed = np.asarray(grad.data if isinstance(grad, Tensor) else grad, dtype=self.dtype)
+            seed = np.asarray(_values(grad), dtype=self.dtype)
             if seed.shape != self.shape:
                 raise ValueError(
                     f"backward: seed gradient has shape {seed.shape}, output has {self.shape}"
@@ -155,7 +263,7 @@ class Tensor:
         if self._node.freed:
             raise RuntimeError(_FREED_MESSAGE.format(name=self._node.name))
 
-        tape = _tape_reaching(self._node)
+        tape = _tape_reaching(self)  # checks versions: raises before any gradient is added
         self._node.grad = seed
         for node in reversed(tape):  # reverse recording order: every user before its inputs
             g = node.grad
@@ -225,22 +333,22 @@ class Tensor:
 
     # Comparisons are not differentiable: they return plain boolean arrays.
     def __lt__(self, other):
-        return self.data < _values(other)
+        return self._data < _values(other)
 
     def __le__(self, other):
-        return self.data <= _values(other)
+        return self._data <= _values(other)
 
     def __gt__(self, other):
-        return self.data > _values(other)
+        return self._data > _values(other)
 
     def __ge__(self, other):
-        return self.data >= _values(other)
+        return self._data >= _values(other)
 
     def __eq__(self, other):
-        return self.data == _values(other)
+        return self._data == _values(other)
 
     def __ne__(self, other):
-        return self.data != _values(other)
+        return self._data != _values(other)
 
     # -- methods that forward to primitives -----------------------------------------------
     def sum(self, axis=None, keepdims: bool = False) -> Tensor:
@@ -271,6 +379,33 @@ _FREED_MESSAGE = (
     "backward: the tape through '{name}' was already used by an earlier backward() and "
     "has been freed; recompute the forward pass before calling backward() again"
 )
+_CHANGED_MESSAGE = (
+    "backward: '{name}' needs the values of its {what} from the forward pass to compute "
+    "its gradient, but that tensor's .data was changed after the forward pass; the "
+    "gradient would belong to other values. Change .data only after backward() (as the "
+    "optimizers do), or recompute the forward pass."
+)
+
+
+def _describe(t: Tensor) -> str:
+    """A tensor as an error message names it: shape, dtype and role."""
+    role = "a leaf" if t.is_leaf else "computed by '" + t.node.name + "'"
+    flag = ", requires_grad=True" if t.requires_grad else ""
+    return f"shape {t.shape}, {t.dtype}, {role}{flag}"
+
+
+def _check_differentiable_dtype(where: str, dtype: np.dtype) -> None:
+    """Gradients are real numbers: an integer or boolean tensor would truncate them to 0."""
+    if not np.issubdtype(dtype, np.floating):
+        raise TypeError(
+            f"{where}: only floating-point tensors can require grad, got dtype {dtype} "
+            "(convert first, e.g. md.tensor(values, dtype=np.float64))"
+        )
+
+
+def _same_values(a: np.ndarray, b: np.ndarray) -> bool:
+    """True if a and b hold the same values (NaN equals NaN: a NaN is not an edit)."""
+    return np.array_equal(a, b, equal_nan=a.dtype.kind in "fc")
 
 
 def _accumulate_leaf(x: Tensor, g: np.ndarray) -> None:
@@ -281,10 +416,14 @@ def _accumulate_leaf(x: Tensor, g: np.ndarray) -> None:
         x.grad = x.grad + g
 
 
-def _tape_reaching(output: Node) -> list[Node]:
-    """The nodes that the output depends on, in recording order (the relevant tape slice)."""
-    seen = {id(output)}
-    stack = [output]
+def _tape_reaching(output: Tensor) -> list[Node]:
+    """The nodes that the output depends on, in recording order (the relevant tape slice).
+
+    Each node's saved tensors are checked on the way (``Node.check_versions``), so that a
+    changed tensor stops ``backward`` before any gradient has been added anywhere."""
+    output._node.check_versions(output)
+    seen = {id(output._node)}
+    stack = [output._node]
     nodes = []
     while stack:
         node = stack.pop()
@@ -294,6 +433,7 @@ def _tape_reaching(output: Node) -> list[Node]:
             if parent is not None and id(parent) not in seen:
                 if parent.freed:
                     raise RuntimeError(_FREED_MESSAGE.format(name=parent.name))
+                parent.check_versions(x)
                 seen.add(id(parent))
                 stack.append(parent)
     nodes.sort(key=lambda n: n.seq)
@@ -304,45 +444,24 @@ def unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """Sum a gradient of a broadcast result back to the input's ``shape``.
 
     If x of shape (3,) was broadcast against (k, 3), its gradient is the (k, 3) gradient
-    summed over the k rows. Tall, thin arrays such as per-pixel (k, 3) gradients are the
-    common case, and NumPy's ``g.sum(axis=0)`` is slow on them (its inner loop runs over
-    the short axis), so we sum each column on its own (see ``_sum_rows``).
+    summed over the k rows: first the leading axes that broadcasting added, then the axes
+    where ``shape`` has size 1 (kept, as size 1). The sums are NumPy kernels that are fast
+    on tall, thin arrays (``minidiff.kernels``).
     """
     if g.shape == shape:
         return g
     lead = g.ndim - len(shape)
     if lead > 0:
-        # Both sizes explicit: reshape cannot infer a -1 next to a zero-size axis.
-        n_rows = int(np.prod(g.shape[:lead], dtype=np.int64))
-        rows = g.reshape(n_rows, int(np.prod(g.shape[lead:], dtype=np.int64)))
-        g = _sum_rows(rows).reshape(g.shape[lead:])
+        g = kernels.sum_leading_axes(g, lead)
     axes = tuple(i for i, n in enumerate(shape) if n == 1 and g.shape[i] != 1)
-    if axes == (g.ndim - 1,) and g.shape[-1] == 3:
-        # (k, 3) -> (k, 1), e.g. a per-hit scalar that scaled an RGB colour: .sum(axis=-1)
-        # over rows of length 3 pays per-row loop overhead; two additions do not.
-        g = (g[..., 0] + g[..., 1] + g[..., 2])[..., None]
-    elif axes:
-        g = g.sum(axis=axes, keepdims=True)
+    if axes:
+        g = kernels.sum_keepdims(g, axes)
     return g
-
-
-def _sum_rows(rows: np.ndarray) -> np.ndarray:
-    """(n, m) -> (m,): the sum of the rows. For a few columns, one contiguous-ish sum per
-    column (~15x faster than ``rows.sum(axis=0)`` for (41k, 3)). We deliberately avoid the
-    faster BLAS trick ``ones @ rows``: OpenBLAS runs it on several threads, whose idle
-    spinning afterwards halves the speed of the renderer's Numba kernels (measured: a
-    light-estimation iteration took 44 ms with it, 20 ms without)."""
-    if rows.shape[1] <= 8:
-        out = np.empty(rows.shape[1], dtype=rows.dtype)
-        for j in range(rows.shape[1]):
-            out[j] = rows[:, j].sum()
-        return out
-    return rows.sum(axis=0)
 
 
 def _values(x: Any) -> Any:
     """The raw values of a Tensor, or x itself."""
-    return x.data if isinstance(x, Tensor) else x
+    return x._data if isinstance(x, Tensor) else x
 
 
 def tensor(data: Any, requires_grad: bool = False, dtype: Any = None) -> Tensor:
@@ -352,16 +471,15 @@ def tensor(data: Any, requires_grad: bool = False, dtype: Any = None) -> Tensor:
     Python numbers, integer arrays) becomes float64 unless ``dtype`` says otherwise. The
     data is copied, so later changes to ``data`` do not affect the tensor.
     """
-    if isinstance(data, Tensor):
-        data = data.data
+    data = _values(data)
     if dtype is None:
         arr = np.array(data)
         if not np.issubdtype(arr.dtype, np.floating):
             arr = arr.astype(np.float64)
     else:
         arr = np.array(data, dtype=dtype)
-    if requires_grad and not np.issubdtype(arr.dtype, np.floating):
-        raise TypeError(f"tensor: only floating-point tensors can require grad, got {arr.dtype}")
+    if requires_grad:
+        _check_differentiable_dtype("tensor", arr.dtype)
     return Tensor(arr, requires_grad=requires_grad)
 
 
@@ -374,17 +492,32 @@ def as_tensor(x: Any) -> Tensor:
     return Tensor(np.asarray(x))
 
 
-def record(name: str, out: np.ndarray, inputs: Sequence[Tensor], vjp: Callable) -> Tensor:
+def record(
+    name: str,
+    out: np.ndarray,
+    inputs: Sequence[Tensor],
+    vjp: Callable,
+    saves: Sequence[Tensor] = (),
+    saves_output: bool = False,
+) -> Tensor:
     """Wrap a primitive's forward result and, if needed, put its node on the tape.
 
     A node is recorded only if gradients are enabled and some input requires grad; otherwise
-    the result is a constant and nothing is remembered.
+    the result is a constant and nothing is remembered. ``saves`` are the inputs whose
+    values the VJP reads, and ``saves_output`` says whether it reads ``out``: their versions
+    are remembered, and ``backward`` raises if they have changed by then.
     """
     if _ANOMALY_MODE and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
         raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
-    if _GRAD_ENABLED and any(x.requires_grad for x in inputs):
-        return Tensor(out, requires_grad=True, _node=Node(name, tuple(inputs), vjp))
-    return Tensor(out)
+    if not (_GRAD_ENABLED and any(x.requires_grad for x in inputs)):
+        return Tensor(out)
+    for t in saves:
+        t.mark_saved()
+    node = Node(name, tuple(inputs), vjp, tuple(saves), 0 if saves_output else None)
+    result = Tensor(out, requires_grad=True, _node=node)
+    if saves_output:
+        result.mark_saved()
+    return result
 
 
 @contextmanager

@@ -24,6 +24,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
+from test_minidiff_kernels import tall_broadcast_pairs
 
 import minidiff as md
 from minidiff.tensor import record
@@ -752,49 +753,9 @@ def test_composite_broadcast_back_to_size_one_axes(data, rows, cols):
 
 
 # ---------------------------------------------------------------------------------------------
-# Tall, thin arrays: the column-at-a-time fast path of binary ops (primitives._elementwise)
+# Tall, thin arrays: gradients through the column-at-a-time kernels (minidiff.kernels; their
+# values are compared with NumPy in test_minidiff_kernels.py)
 # ---------------------------------------------------------------------------------------------
-
-BINARY_UFUNCS = [np.add, np.subtract, np.multiply, np.divide, np.maximum, np.minimum]
-
-
-@st.composite
-def tall_broadcast_pairs(draw):
-    """Two shapes that broadcast to (..., k, n) with a short last axis n and a large k (the
-    fast path needs at least 8192 elements), one of them broadcast along some axis."""
-    lead = draw(st.lists(st.integers(1, 3), max_size=1))
-    k = draw(st.integers(1100, 5000))
-    n = draw(st.integers(2, 4))
-    full = (*lead, k, n)
-    patterns = [
-        (full, (n,)),  # (k, 3) op (3,): a point minus many points
-        (full, (*lead, k, 1)),  # (k, 3) op (k, 1): an RGB colour scaled per hit
-        ((*lead, k, 1), (n,)),  # (k, 1) op (3,): an outer product
-        ((1, n), full),
-        ((*lead, k, 1), full),
-    ]
-    a, b = draw(st.sampled_from(patterns))
-    return (a, b) if draw(st.booleans()) else (b, a)
-
-
-@settings(max_examples=40, deadline=None)
-@given(
-    shapes=tall_broadcast_pairs(),
-    op=st.sampled_from(BINARY_UFUNCS),
-    dtype=st.sampled_from([np.float32, np.float64]),
-    seed=st.integers(0, 2**16),
-)
-def test_elementwise_fast_path_equals_numpy(shapes, op, dtype, seed):
-    """Bit-identical to NumPy's own broadcasting, shape and dtype included."""
-    from minidiff.primitives import _elementwise
-
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(0.5, 2.0, shapes[0]).astype(dtype)
-    y = rng.uniform(0.5, 2.0, shapes[1]).astype(dtype)
-    expected = op(x, y)
-    got = _elementwise(op, x, y)
-    assert got.shape == expected.shape and got.dtype == expected.dtype
-    np.testing.assert_array_equal(got, expected)
 
 
 @settings(max_examples=10, deadline=None)

@@ -112,7 +112,7 @@ def test_recomputing_the_forward_pass_allows_another_backward():
 def test_freed_nodes_drop_their_arrays():
     x = leaf(np.ones(1000))
     y = md.exp(x)
-    node = y._node
+    node = y.node
     y.sum().backward()
     assert node.freed and node.vjp is None and node.inputs == () and node.grad is None
 
@@ -126,7 +126,7 @@ def test_constants_record_nothing_and_get_no_grad():
     c = md.tensor([1.0, 2.0])  # requires_grad=False
     arr = np.array([3.0, 4.0])
     y = md.exp(c) * arr + c
-    assert not y.requires_grad and y._node is None
+    assert not y.requires_grad and y.node is None
     x = leaf([0.5, 0.5])
     z = (x * c + arr * x + c).sum()
     z.backward()
@@ -141,7 +141,7 @@ def test_no_grad_records_nothing():
     with md.no_grad():
         assert not md.is_grad_enabled()
         y = md.sin(x) * x + 1.0
-        assert not y.requires_grad and y._node is None
+        assert not y.requires_grad and y.node is None
         with md.no_grad():  # nesting restores the outer state
             pass
         assert not md.is_grad_enabled()
@@ -161,12 +161,12 @@ def test_no_grad_restores_state_after_an_exception():
 def test_detach_cuts_the_tape():
     x = leaf([1.0, 2.0])
     d = x.detach()
-    assert not d.requires_grad and d._node is None
+    assert not d.requires_grad and d.node is None
     assert np.shares_memory(d.data, x.data)  # same values, no copy
     (d * x + x).sum().backward()  # d is a constant: d/dx (d x + x) = d + 1
     np.testing.assert_array_equal(x.grad, [2.0, 3.0])
     y = md.exp(leaf([0.0]))
-    assert y.detach()._node is None
+    assert y.detach().node is None
 
 
 def test_only_leaves_receive_grad():
@@ -318,7 +318,7 @@ def test_forward_passes_without_backward_are_freed():
     before = live_nodes()
     for _ in range(200):
         y = md.exp(md.sin(x) * 2.0).sum()
-    assert y._node is not None
+    assert y.node is not None
     del y
     assert live_nodes() == before
 

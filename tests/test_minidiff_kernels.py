@@ -1,0 +1,225 @@
+"""minidiff.kernels: every kernel equals the plain NumPy expression its docstring names
+(``np.array_equal``: the same values, shape and dtype; +0.0 and -0.0 count as equal), on
+shapes and values drawn by hypothesis.
+
+The renderer's golden images and gradients (test_render_golden.py) depend on these being
+exact: a kernel that is "close" would change the last bits of every image.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
+
+from minidiff import kernels
+
+DTYPES = st.sampled_from([np.float32, np.float64])
+BINARY_UFUNCS = [np.add, np.subtract, np.multiply, np.divide, np.maximum, np.minimum]
+
+
+def assert_identical(got: np.ndarray, expected: np.ndarray) -> None:
+    """Same shape, same dtype, same values (NaN where NaN)."""
+    assert got.shape == expected.shape, (got.shape, expected.shape)
+    assert got.dtype == expected.dtype, (got.dtype, expected.dtype)
+    np.testing.assert_array_equal(got, expected)
+
+
+def values(rng: np.random.Generator, shape, dtype) -> np.ndarray:
+    """Normal values with some exact zeros and negative zeros (sign bits must match too)."""
+    x = rng.normal(size=shape)
+    x[rng.uniform(size=shape) < 0.05] = 0.0
+    x[rng.uniform(size=shape) < 0.05] = -0.0
+    return x.astype(dtype)
+
+
+# ---------------------------------------------------------------------------------------------
+# elementwise: equals op(x, y)
+# ---------------------------------------------------------------------------------------------
+
+
+@st.composite
+def tall_broadcast_pairs(draw):
+    """Two shapes that broadcast to (..., k, n) with a short last axis n and a large k (the
+    fast path needs at least 8192 elements), one of them broadcast along some axis."""
+    lead = draw(st.lists(st.integers(1, 3), max_size=1))
+    k = draw(st.integers(1100, 5000))
+    n = draw(st.integers(2, 4))
+    full = (*lead, k, n)
+    patterns = [
+        (full, (n,)),  # (k, 3) op (3,): a point minus many points
+        (full, (*lead, k, 1)),  # (k, 3) op (k, 1): an RGB colour scaled per hit
+        ((*lead, k, 1), (n,)),  # (k, 1) op (3,): an outer product
+        ((1, n), full),
+        ((*lead, k, 1), full),
+    ]
+    a, b = draw(st.sampled_from(patterns))
+    return (a, b) if draw(st.booleans()) else (b, a)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shapes=tall_broadcast_pairs(),
+    op=st.sampled_from(BINARY_UFUNCS),
+    dtype=DTYPES,
+    seed=st.integers(0, 2**16),
+)
+def test_elementwise_fast_path_equals_numpy(shapes, op, dtype, seed):
+    """Bit-identical to NumPy's own broadcasting, shape and dtype included."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.5, 2.0, shapes[0]).astype(dtype)
+    y = rng.uniform(0.5, 2.0, shapes[1]).astype(dtype)
+    assert_identical(kernels.elementwise(op, x, y), op(x, y))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shapes=hnp.mutually_broadcastable_shapes(num_shapes=2, max_dims=3, max_side=5),
+    op=st.sampled_from(BINARY_UFUNCS),
+    dtypes=st.tuples(DTYPES, DTYPES),
+    seed=st.integers(0, 2**16),
+)
+def test_elementwise_small_and_mixed_dtypes_equal_numpy(shapes, op, dtypes, seed):
+    """The slow path (small arrays) and mixed float32/float64 operands."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.5, 2.0, shapes.input_shapes[0]).astype(dtypes[0])
+    y = rng.uniform(0.5, 2.0, shapes.input_shapes[1]).astype(dtypes[1])
+    assert_identical(np.asarray(kernels.elementwise(op, x, y)), np.asarray(op(x, y)))
+
+
+# ---------------------------------------------------------------------------------------------
+# dot_last, cross3, gather_rows
+# ---------------------------------------------------------------------------------------------
+
+TALL_PAIRS = [((4000, 3), (4000, 3)), ((4000, 3), (3,)), ((3,), (50, 3)), ((2, 7, 3), (7, 3))]
+
+
+@settings(max_examples=40, deadline=None)
+@given(shapes=st.sampled_from(TALL_PAIRS), dtype=DTYPES, seed=st.integers(0, 2**16))
+def test_dot_last_of_3_vectors_equals_numpy_sum(shapes, dtype, seed):
+    rng = np.random.default_rng(seed)
+    a, b = values(rng, shapes[0], dtype), values(rng, shapes[1], dtype)
+    assert_identical(kernels.dot_last(a, b), np.sum(a * b, axis=-1))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(1, 9).filter(lambda n: n != 3),
+    rows=st.integers(0, 20),
+    seed=st.integers(0, 2**16),
+)
+def test_dot_last_of_other_lengths_equals_numpy_sum_up_to_rounding(n, rows, seed):
+    rng = np.random.default_rng(seed)
+    a, b = values(rng, (rows, n), np.float64), values(rng, (n,), np.float64)
+    got = kernels.dot_last(a, b)
+    assert got.shape == (rows,)
+    np.testing.assert_allclose(got, np.sum(a * b, axis=-1), rtol=1e-13, atol=1e-13)
+
+
+@settings(max_examples=40, deadline=None)
+@given(shapes=st.sampled_from(TALL_PAIRS), dtype=DTYPES, seed=st.integers(0, 2**16))
+def test_cross3_equals_numpy_cross(shapes, dtype, seed):
+    rng = np.random.default_rng(seed)
+    a, b = values(rng, shapes[0], dtype), values(rng, shapes[1], dtype)
+    assert_identical(kernels.cross3(a, b), np.cross(a, b))
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    n=st.integers(1, 50),
+    trailing=hnp.array_shapes(min_dims=0, max_dims=2, max_side=4),
+    k=st.integers(0, 100),
+    seed=st.integers(0, 2**16),
+)
+def test_gather_rows_equals_fancy_indexing(n, trailing, k, seed):
+    rng = np.random.default_rng(seed)
+    x = values(rng, (n, *trailing), np.float64)
+    index = rng.integers(-n, n, size=k)
+    assert_identical(kernels.gather_rows(x, index), x[index])
+
+
+# ---------------------------------------------------------------------------------------------
+# scatter_add_rows: equals np.add.at in float64, rounded once
+# ---------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 30),
+    trailing=hnp.array_shapes(min_dims=0, max_dims=2, max_side=4),  # both paths: <= 4, > 4
+    k=st.integers(0, 200),
+    dtype=DTYPES,
+    seed=st.integers(0, 2**16),
+)
+def test_scatter_add_rows_equals_add_at_in_float64(n, trailing, k, dtype, seed):
+    rng = np.random.default_rng(seed)
+    index = rng.integers(0, n, size=k)  # with repeats
+    v = values(rng, (k, *trailing), dtype)
+    expected = np.zeros((n, *trailing))
+    np.add.at(expected, index, v.astype(np.float64))
+    assert_identical(kernels.scatter_add_rows(index, v, n), expected.astype(dtype))
+
+
+# ---------------------------------------------------------------------------------------------
+# The sums behind unbroadcast
+# ---------------------------------------------------------------------------------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    rows=st.integers(0, 30000), cols=st.integers(1, 12), dtype=DTYPES, seed=st.integers(0, 2**16)
+)
+def test_sum_rows_equals_column_sums(rows, cols, dtype, seed):
+    """Bit for bit: each column summed on its own up to 8 columns, rows.sum(axis=0) beyond;
+    and always rows.sum(axis=0) up to rounding."""
+    r = values(np.random.default_rng(seed), (rows, cols), dtype)
+    got = kernels.sum_rows(r)
+    if cols <= 8:
+        assert_identical(got, np.array([column.sum() for column in r.T], dtype=dtype))
+    else:
+        assert_identical(got, r.sum(axis=0))
+    tol = 1e-4 if dtype == np.float32 else 1e-11
+    np.testing.assert_allclose(got, r.sum(axis=0), rtol=tol, atol=tol * max(1, rows) ** 0.5)
+
+
+@settings(max_examples=30, deadline=None)
+@given(shape=hnp.array_shapes(min_dims=1, max_dims=4, min_side=0, max_side=6), data=st.data())
+def test_sum_leading_axes_equals_numpy_sum(shape, data):
+    lead = data.draw(st.integers(1, len(shape)))
+    g = values(np.random.default_rng(0), shape, np.float64)
+    got = kernels.sum_leading_axes(g, lead)
+    expected = g.sum(axis=tuple(range(lead)))
+    assert got.shape == expected.shape and got.dtype == expected.dtype
+    np.testing.assert_allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=hnp.array_shapes(min_dims=1, max_dims=3, min_side=1, max_side=5),
+    last3=st.booleans(),
+    data=st.data(),
+    dtype=DTYPES,
+)
+def test_sum_keepdims_equals_numpy_sum(shape, last3, data, dtype):
+    if last3:  # the written-out (k, 3) -> (k, 1) case, with many rows
+        shape = (*shape[:-1], 5000, 3)
+    ndim = len(shape)
+    axes = tuple(sorted(data.draw(st.sets(st.integers(0, ndim - 1), min_size=1))))
+    if last3 and data.draw(st.booleans()):
+        axes = (ndim - 1,)
+    g = values(np.random.default_rng(1), shape, dtype)
+    assert_identical(kernels.sum_keepdims(g, axes), g.sum(axis=axes, keepdims=True))
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_sum_keepdims_last3_differs_from_numpy_only_in_the_sign_of_zero(dtype):
+    """The one difference the contract allows: NumPy starts a sum from +0.0, so three
+    negative zeros sum to +0.0 there and to -0.0 here. Equal values all the same."""
+    g = np.array([[-0.0, -0.0, -0.0], [0.0, -0.0, -0.0], [1.0, -1.0, -0.0]], dtype=dtype)
+    got = kernels.sum_keepdims(g, (1,))
+    expected = g.sum(axis=1, keepdims=True)
+    assert_identical(got, expected)
+    np.testing.assert_array_equal(np.signbit(got), [[True], [False], [False]])
+    np.testing.assert_array_equal(np.signbit(expected), [[False], [False], [False]])
