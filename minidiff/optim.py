@@ -8,7 +8,10 @@ cube (the paper's section 5.8).
 
 from __future__ import annotations
 
+import math
+import numbers
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -69,18 +72,48 @@ class Optimizer:
         return found
 
     def _per_param_lr(self, lr) -> list[float]:
-        """One learning rate per parameter. A list is checked for length: passed on as is,
-        ``[0.1, 0.2] * g`` would silently broadcast against the gradient's elements."""
-        lrs = [lr] * len(self.params) if np.isscalar(lr) else list(lr)
+        """One learning rate per parameter, each a finite number >= 0. A list is checked
+        for length: passed on as is, ``[0.1, 0.2] * g`` would silently broadcast against
+        the gradient's elements."""
+        one = np.ndim(lr) == 0  # a number (or a string, None, ...: refused by _real)
+        if one:
+            lrs = [_real(self, "lr", lr)] * len(self.params)
+        else:
+            lrs = [_real(self, f"lr[{i}]", v) for i, v in enumerate(lr)]
         if len(lrs) != len(self.params):
             raise ValueError(
                 f"{type(self).__name__}: {len(lrs)} learning rates for {len(self.params)} params"
             )
+        for i, v in enumerate(lrs):
+            if not (math.isfinite(v) and v >= 0):
+                name = "lr" if one else f"lr[{i}]"
+                raise ValueError(
+                    f"{type(self).__name__}: {name} must be a finite number >= 0, got {v}"
+                )
         return lrs
 
     def _apply_projection(self, i: int, p: Tensor) -> None:
         if self.project[i] is not None:
             p.data[...] = self.project[i](p.data)
+
+
+def _real(optimizer: Optimizer, name: str, value: Any) -> float:
+    """``value`` as a float, if it is a real number (not a string, a bool or an array)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise TypeError(
+            f"{type(optimizer).__name__}: {name} must be a real number, "
+            f"got {type(value).__name__} {value!r}"
+        )
+    return float(value)
+
+
+def _fraction(optimizer: Optimizer, name: str, value: Any) -> float:
+    """A decay rate such as momentum or Adam's betas: a number in [0, 1). At 1 the running
+    averages would never forget (and Adam's bias correction would divide by 1 - 1 = 0)."""
+    value = _real(optimizer, name, value)
+    if not 0.0 <= value < 1.0:
+        raise ValueError(f"{type(optimizer).__name__}: {name} must lie in [0, 1), got {value}")
+    return value
 
 
 class SGD(Optimizer):
@@ -93,7 +126,8 @@ class SGD(Optimizer):
         self, params, lr: float | Sequence[float] = 0.01, momentum: float = 0.0, project=None
     ):
         super().__init__(params, project)
-        self.lr, self.momentum = self._per_param_lr(lr), momentum
+        self.lr = self._per_param_lr(lr)
+        self.momentum = _fraction(self, "momentum", momentum)
         self.velocity = [np.zeros_like(p.data) for p in self.params]
 
     def step(self) -> None:
@@ -127,7 +161,14 @@ class Adam(Optimizer):
     ):
         super().__init__(params, project)
         self.lr = self._per_param_lr(lr)
-        self.betas, self.eps = betas, eps
+        try:
+            b1, b2 = betas
+        except (TypeError, ValueError):
+            raise TypeError(f"Adam: betas must be a pair (b1, b2), got {betas!r}") from None
+        self.betas = (_fraction(self, "betas[0]", b1), _fraction(self, "betas[1]", b2))
+        self.eps = _real(self, "eps", eps)
+        if not (math.isfinite(self.eps) and self.eps > 0):
+            raise ValueError(f"Adam: eps must be a finite number > 0, got {self.eps}")
         self.m = [np.zeros_like(p.data) for p in self.params]
         self.v = [np.zeros_like(p.data) for p in self.params]
         self.t = [0] * len(self.params)  # per parameter: a parameter may skip steps

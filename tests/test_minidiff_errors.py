@@ -7,6 +7,9 @@ import re
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra import numpy as hnp
 
 import minidiff as md
 from minidiff import optim
@@ -105,6 +108,45 @@ def test_shape_manipulation_mismatch():
         md.concatenate([x, np.ones((2, 4))], axis=0)
 
 
+@pytest.mark.parametrize(
+    ("call", "name", "shapes"),
+    [
+        (lambda a: md.normalize(a), "normalize", "()"),
+        (lambda a: md.norm(a), "norm", "()"),
+        (lambda a: md.dot(a, a), "dot", "() and ()"),
+        (lambda a: md.dot(a, np.ones(3)), "dot", "() and (3,)"),
+        (lambda a: md.dot(np.ones(3), a), "dot", "(3,) and ()"),
+    ],
+)
+def test_vector_primitives_refuse_0d_inputs(call, name, shapes):
+    """These work along a last axis; a 0-d input has none (NumPy says 'too many indices')."""
+    pattern = re.escape(f"{name}: needs vectors, shape (..., n), not 0-d; got shape {shapes}")
+    with pytest.raises(ValueError, match=pattern):
+        call(leaf(2.0))
+
+
+@pytest.mark.parametrize(
+    ("shape", "axis"), [((0,), None), ((0, 3), None), ((0, 3), 0), ((2, 0), 1), ((2, 0, 3), (0, 1))]
+)
+def test_mean_of_no_elements(shape, axis):
+    """NumPy would warn 'Mean of empty slice' and return NaN."""
+    pattern = re.escape(f"mean: no elements to average (shape {shape}, axis={axis})")
+    with pytest.raises(ValueError, match=pattern):
+        md.mean(leaf(np.ones(shape)), axis=axis)
+
+
+def test_mean_over_a_non_empty_axis_of_an_empty_array_is_fine():
+    out = md.mean(leaf(np.ones((0, 3))), axis=1)  # 3 elements per (non-existent) row
+    assert out.shape == (0,)
+
+
+@pytest.mark.parametrize("name", ["stack", "concatenate"])
+@pytest.mark.parametrize("empty", [[], (), iter([])])
+def test_stack_and_concatenate_of_nothing(name, empty):
+    with pytest.raises(ValueError, match=f"{name}: needs at least one tensor, got an empty"):
+        getattr(md, name)(empty)
+
+
 def test_scatter_add_bad_index():
     values = leaf(np.ones((3, 2)))
     with pytest.raises(ValueError, match=r"scatter_add: index must be .* length 3"):
@@ -182,6 +224,45 @@ def test_integer_tensor_cannot_require_grad():
         md.tensor([1, 2], requires_grad=True, dtype=np.int64)
 
 
+NOT_FLOAT = [np.array([1, 2]), np.array([1, 2], dtype=np.uint8), np.array([True, False])]
+
+
+@pytest.mark.parametrize("values", NOT_FLOAT, ids=lambda v: str(v.dtype))
+def test_tensor_constructor_refuses_grad_for_integer_and_bool(values):
+    """Tensor(int_array, requires_grad=True) used to truncate every gradient to 0."""
+    pattern = rf"Tensor: only floating-point tensors can require grad, got dtype {values.dtype}"
+    with pytest.raises(TypeError, match=pattern):
+        md.Tensor(values, requires_grad=True)
+    t = md.Tensor(values)  # as a constant it is fine
+    with pytest.raises(TypeError, match=pattern):
+        t.requires_grad = True  # ... and stays one
+    assert not t.requires_grad
+
+
+def test_data_of_a_tensor_that_requires_grad_stays_floating_point():
+    x = leaf([1.0, 2.0])
+    with pytest.raises(TypeError, match="Tensor.data: only floating-point tensors .* int64"):
+        x.data = np.array([1, 2])
+    np.testing.assert_array_equal(x.data, [1.0, 2.0])  # unchanged
+    x.data = np.array([3.0, 4.0], dtype=np.float32)  # another float dtype is fine
+    assert x.dtype == np.float32
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    dtype=st.sampled_from(
+        [np.int8, np.int16, np.int32, np.int64, np.uint16, np.uint64, np.bool_, np.complex128]
+    ),
+    shape=hnp.array_shapes(min_dims=0, max_dims=3, max_side=3),
+)
+def test_no_non_float_dtype_can_require_grad(dtype, shape):
+    values = np.zeros(shape, dtype=dtype)
+    with pytest.raises(TypeError, match="only floating-point tensors can require grad"):
+        md.Tensor(values, requires_grad=True)
+    with pytest.raises(TypeError, match="only floating-point tensors can require grad"):
+        md.tensor(values, requires_grad=True, dtype=dtype)
+
+
 def test_numpy_ufunc_on_tensor_is_refused():
     """np.exp(tensor) would silently drop the gradient; it is a TypeError instead."""
     with pytest.raises(TypeError):
@@ -224,6 +305,74 @@ def test_optimizer_bad_params(cls):
         cls([np.ones(2)])
     with pytest.raises(ValueError, match=f"{name}: 1 projections for 2 params"):
         cls([leaf([1.0]), leaf([1.0])], project=[optim.box(0, 1)])
+
+
+BAD_LR = [
+    (float("nan"), ValueError, r"lr must be a finite number >= 0, got nan"),
+    (float("inf"), ValueError, r"lr must be a finite number >= 0, got inf"),
+    (-0.1, ValueError, r"lr must be a finite number >= 0, got -0.1"),
+    ("0.1", TypeError, r"lr must be a real number, got str '0.1'"),
+    (None, TypeError, r"lr must be a real number, got NoneType"),
+    (True, TypeError, r"lr must be a real number, got bool"),
+    ([0.1, "x"], TypeError, r"lr\[1\] must be a real number, got str"),
+    ([0.1, -1.0], ValueError, r"lr\[1\] must be a finite number >= 0, got -1.0"),
+]
+
+
+@pytest.mark.parametrize("cls", [optim.SGD, optim.Adam])
+@pytest.mark.parametrize(("lr", "error", "message"), BAD_LR)
+def test_optimizer_bad_learning_rate(cls, lr, error, message):
+    with pytest.raises(error, match=f"{cls.__name__}: {message}"):
+        cls([leaf([1.0]), leaf([2.0])], lr=lr)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error", "message"),
+    [
+        ({"betas": (1, 1)}, ValueError, r"betas\[0\] must lie in \[0, 1\), got 1.0"),
+        ({"betas": (0.9, 1.0)}, ValueError, r"betas\[1\] must lie in \[0, 1\), got 1.0"),
+        ({"betas": (-0.1, 0.9)}, ValueError, r"betas\[0\] must lie in \[0, 1\), got -0.1"),
+        ({"betas": (0.9, float("nan"))}, ValueError, r"betas\[1\] must lie in \[0, 1\)"),
+        ({"betas": (0.9, "0.99")}, TypeError, r"betas\[1\] must be a real number"),
+        ({"betas": 0.9}, TypeError, r"betas must be a pair \(b1, b2\), got 0.9"),
+        ({"betas": (0.9, 0.99, 0.1)}, TypeError, r"betas must be a pair"),
+        ({"eps": 0.0}, ValueError, r"eps must be a finite number > 0, got 0.0"),
+        ({"eps": -1e-8}, ValueError, r"eps must be a finite number > 0"),
+        ({"eps": float("inf")}, ValueError, r"eps must be a finite number > 0, got inf"),
+        ({"eps": float("nan")}, ValueError, r"eps must be a finite number > 0, got nan"),
+        ({"eps": "1e-8"}, TypeError, r"eps must be a real number, got str"),
+    ],
+)
+def test_adam_bad_betas_and_eps(kwargs, error, message):
+    with pytest.raises(error, match=f"Adam: {message}"):
+        optim.Adam([leaf([1.0])], **kwargs)
+
+
+@pytest.mark.parametrize(
+    ("momentum", "error"),
+    [(1.0, ValueError), (-0.5, ValueError), (float("nan"), ValueError), ("0.9", TypeError)],
+)
+def test_sgd_bad_momentum(momentum, error):
+    with pytest.raises(error, match="SGD: momentum must"):
+        optim.SGD([leaf([1.0])], momentum=momentum)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    lr=st.floats(0.0, 10.0),
+    b1=st.floats(0.0, 1.0, exclude_max=True),
+    b2=st.floats(0.0, 1.0, exclude_max=True),
+    eps=st.floats(1e-12, 1.0),
+    g=st.floats(-1e3, 1e3),
+)
+def test_adam_step_is_finite_for_every_accepted_setting(lr, b1, b2, eps, g):
+    """What the checks let through never produces NaN parameters (the failure they prevent)."""
+    x = leaf([1.0])
+    opt = optim.Adam([x], lr=lr, betas=(b1, b2), eps=eps)
+    for _ in range(3):
+        x.grad = np.array([g])
+        opt.step()
+    assert np.isfinite(x.data).all()
 
 
 @pytest.mark.parametrize("cls", [optim.SGD, optim.Adam])
