@@ -15,7 +15,8 @@ input's shape. ``None`` means "no gradient flows to this input" (e.g. integer in
 
 ``saves`` / ``saves_output`` tell the tape which values the VJP will read at backward
 time, so that ``backward`` can refuse to run if they were changed in the meantime (see
-``tensor.py``). Primitives read ``x._data``, the array itself: the public ``x.data``
+``tensor.py``); ``view_of`` names the input whose memory the result shares (a reshape,
+a slice). Primitives read ``x._data``, the array itself: the public ``x.data``
 additionally watches for in-place edits by the user, which we do not need here.
 
 A few primitives (``dot``, ``cross``, ``norm``, ``normalize``, ``scatter_add``) could be
@@ -468,7 +469,7 @@ def reshape(x: Any, shape) -> Tensor:
         out = x._data.reshape(shape)
     except ValueError:
         raise ValueError(f"reshape: cannot reshape {x.shape} into {shape}") from None
-    return record("reshape", out, (x,), lambda g: (g.reshape(x.shape),))
+    return record("reshape", out, (x,), lambda g: (g.reshape(x.shape),), view_of=x)
 
 
 def transpose(x: Any, axes=None) -> Tensor:
@@ -478,7 +479,7 @@ def transpose(x: Any, axes=None) -> Tensor:
     # The inverse permutation; negative axes are made positive first (argsort of (-1, 0, 1)
     # would otherwise give the identity).
     inverse = None if axes is None else np.argsort([a % x.ndim for a in axes])
-    return record("transpose", out, (x,), lambda g: (np.transpose(g, inverse),))
+    return record("transpose", out, (x,), lambda g: (np.transpose(g, inverse),), view_of=x)
 
 
 def broadcast_to(x: Any, shape) -> Tensor:
@@ -489,7 +490,7 @@ def broadcast_to(x: Any, shape) -> Tensor:
         out = np.broadcast_to(x._data, shape)
     except ValueError:
         raise ValueError(f"broadcast_to: cannot broadcast {x.shape} to {shape}") from None
-    return record("broadcast_to", out, (x,), lambda g: (g,))
+    return record("broadcast_to", out, (x,), lambda g: (g,), view_of=x)
 
 
 def stack(tensors, axis: int = 0) -> Tensor:
@@ -583,7 +584,8 @@ def getitem(x: Any, index: Any) -> Tensor:
             gx[index] = g
             return (gx,)
 
-    return record("getitem", np.asarray(out), (x,), vjp)
+    # Basic slices give a view of x; gathers and masks give a copy (record tells them apart).
+    return record("getitem", np.asarray(out), (x,), vjp, view_of=x)
 
 
 def scatter_add(values: Any, index: Any, size: int) -> Tensor:

@@ -64,7 +64,6 @@ class Node:
         inputs: tuple[Tensor, ...],
         vjp: Callable,
         saved: tuple[Tensor, ...] = (),
-        output_version: int | None = None,
     ):
         self.name = name
         self.inputs = inputs
@@ -74,7 +73,7 @@ class Node:
         self.freed = False
         self.saved = saved
         self.versions = tuple(t.version for t in saved)
-        self.output_version = output_version
+        self.output_version: int | None = None  # set by record() if the VJP reads the output
 
     def free(self) -> None:
         """Drop the closure and the inputs so their arrays can be released."""
@@ -106,8 +105,8 @@ class Tensor:
     changes to ``data`` minidiff has seen), ``node`` and ``is_leaf``.
     """
 
-    __slots__ = ("_data", "_version", "_copy", "_saved", "_requires_grad", "_node", "grad")
-    __slots__ += ("__weakref__",)
+    __slots__ = ("_data", "_version", "_copy", "_saved", "_base", "_requires_grad", "_node")
+    __slots__ += ("grad", "__weakref__")
     # Make NumPy defer to our reflected operators (ndarray + Tensor -> Tensor.__radd__) and
     # refuse ufuncs such as np.exp(tensor), which would silently drop the gradient.
     __array_ufunc__ = None
@@ -117,6 +116,7 @@ class Tensor:
         self._version = 0
         self._copy: np.ndarray | None = None  # the values handed out by .data, to compare
         self._saved = False  # a node saved this tensor since the last change of data
+        self._base: Tensor | None = None  # the tensor whose array ours is a view of
         self._requires_grad = False
         self.requires_grad = requires_grad  # the setter checks the dtype
         self._node = _node
@@ -130,11 +130,15 @@ class Tensor:
         Edits after ``backward()`` are fine (optimizers make them). Edits between the
         forward pass and ``backward()`` of a tensor that a VJP needs make ``backward``
         raise. To see in-place edits, the first time a saved tensor hands out its array we
-        keep a copy of it; ``version`` compares the two. Not seen: writes through an
-        ndarray obtained before the forward pass saved the tensor.
+        keep a copy of it; ``version`` compares the two. A view (``x[1:]``, ``x.reshape``,
+        ``x.detach()``) shares memory with its base tensor, so both are watched. Not seen:
+        writes through an ndarray obtained before the forward pass saved the tensor.
         """
-        if self._saved and self._copy is None:
-            self._copy = self._data.copy()
+        t = self
+        while t is not None:
+            if t._saved and t._copy is None:
+                t._copy = t._data.copy()
+            t = t._base
         return self._data
 
     @data.setter
@@ -152,16 +156,21 @@ class Tensor:
     @property
     def version(self) -> int:
         """How many changes to ``data`` have been seen: assignments to ``.data`` (including
-        ``t.data -= ...``) and in-place edits of the array handed out by ``.data``."""
+        ``t.data -= ...``) and in-place edits of the array handed out by ``.data``. A view
+        counts its base's changes too (they share memory)."""
         if self._copy is not None and not _same_values(self._copy, self._data):
             self._version += 1
             self._copy = self._data.copy()  # the array is still out there: keep watching
-        return self._version
+        return self._version if self._base is None else self._version + self._base.version
 
     def mark_saved(self) -> None:
         """Note that a node saved this tensor: from now on ``.data`` keeps a copy of the
-        values it hands out, so that in-place edits can be found (see ``version``)."""
-        self._saved = True
+        values it hands out, so that in-place edits can be found (see ``version``). An edit
+        of the base of a view changes the view: the base is watched too."""
+        t = self
+        while t is not None:
+            t._saved = True
+            t = t._base
 
     @property
     def requires_grad(self) -> bool:
@@ -225,7 +234,9 @@ class Tensor:
 
     def detach(self) -> Tensor:
         """A tensor sharing these values but cut from the tape (a constant)."""
-        return Tensor(self.data)
+        out = Tensor(self._data)
+        out._base = self  # the same array: edits through either must be seen by both
+        return out
 
     # -- the reverse pass -----------------------------------------------------------------
     def backward(self, grad: Any = None) -> None:
@@ -499,24 +510,31 @@ def record(
     vjp: Callable,
     saves: Sequence[Tensor] = (),
     saves_output: bool = False,
+    view_of: Tensor | None = None,
 ) -> Tensor:
     """Wrap a primitive's forward result and, if needed, put its node on the tape.
 
     A node is recorded only if gradients are enabled and some input requires grad; otherwise
     the result is a constant and nothing is remembered. ``saves`` are the inputs whose
     values the VJP reads, and ``saves_output`` says whether it reads ``out``: their versions
-    are remembered, and ``backward`` raises if they have changed by then.
+    are remembered, and ``backward`` raises if they have changed by then. ``view_of`` is the
+    input whose memory ``out`` may share (reshape, slices): edits of one change the other,
+    so their versions are linked.
     """
     if _ANOMALY_MODE and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
         raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
-    if not (_GRAD_ENABLED and any(x.requires_grad for x in inputs)):
-        return Tensor(out)
-    for t in saves:
-        t.mark_saved()
-    node = Node(name, tuple(inputs), vjp, tuple(saves), 0 if saves_output else None)
-    result = Tensor(out, requires_grad=True, _node=node)
-    if saves_output:
+    if _GRAD_ENABLED and any(x.requires_grad for x in inputs):
+        for t in saves:
+            t.mark_saved()
+        node = Node(name, tuple(inputs), vjp, tuple(saves))
+        result = Tensor(out, requires_grad=True, _node=node)
+    else:
+        node, result = None, Tensor(out)
+    if view_of is not None and np.may_share_memory(out, view_of._data):
+        result._base = view_of
+    if node is not None and saves_output:
         result.mark_saved()
+        node.output_version = result.version
     return result
 
 
