@@ -64,6 +64,7 @@ class MeshEdges:
     neighbour_edge (F, 3) int64: which edge of that neighbour it is.
     shared_ids (F, 3) bool: the neighbour uses the same two vertex ids on that edge, so
         per-vertex attributes (smooth normals, UVs) are continuous across it.
+    welded (F, 3) int64: each corner's welded vertex id.
     """
 
     edge_group: np.ndarray
@@ -71,6 +72,7 @@ class MeshEdges:
     neighbour: np.ndarray
     neighbour_edge: np.ndarray
     shared_ids: np.ndarray
+    welded: np.ndarray
 
 
 def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
@@ -111,7 +113,7 @@ def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
     f, k = np.maximum(neighbour, 0), np.maximum(neighbour_edge, 0)
     na, nb = a_ids[f, k], b_ids[f, k]
     shared = (neighbour >= 0) & (((na == b_ids) & (nb == a_ids)) | ((na == a_ids) & (nb == b_ids)))
-    return MeshEdges(group, n_groups, neighbour, neighbour_edge, shared)
+    return MeshEdges(group, n_groups, neighbour, neighbour_edge, shared, ids)
 
 
 def silhouette_edges(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, eye) -> np.ndarray:
@@ -144,7 +146,10 @@ class EdgePairs:
     prim (n,) int64: the primitive whose outline passes between them (global id,
         ``render.visibility.scene_primitives``): a sphere, or the triangle owning the
         silhouette edge (on the nearer surface, not always the face hit at the sample).
-    edge (n,) int64: its edge 0..2 (corners k, k + 1) for a triangle; -1 for a sphere.
+    edge (n,) int64: its edge 0..2 (corners k, k + 1) for a triangle; -1 for a sphere; 3
+        for the line where triangle ``prim`` passes behind triangle ``other`` (two surfaces
+        that intersect, like the teapot's spout and body).
+    other (n,) int64: that second triangle (-1 for the other kinds).
     horizontal (n,) bool: the samples are side by side in a row (else one above the other).
     """
 
@@ -152,6 +157,7 @@ class EdgePairs:
     far: np.ndarray
     prim: np.ndarray
     edge: np.ndarray
+    other: np.ndarray
     horizontal: np.ndarray
 
     def take(self, rows: np.ndarray) -> EdgePairs:
@@ -235,8 +241,72 @@ def silhouette_pairs(
                                      d_near[rows], d_far[rows], np.nan_to_num(s[rows]))  # fmt: skip
             ok = np.isfinite(s[rows]) & _axis_ok(normal, horizontal[rows], to_pixels)
             edge[rows] = np.where(ok, -1, -2)
+    other = np.full(len(near), -1, dtype=np.int64)
+    if n_triangles:
+        triangles = np.concatenate([m.triangles() for m in scene.meshes]).astype(np.float64)
+        welded, offset = [], 0  # welded vertex ids, distinct between meshes
+        for index in range(len(scene.meshes)):
+            welded.append(topology[index].welded + offset)
+            offset += int(topology[index].welded.max()) + 1
+        _intersections(
+            triangles, np.concatenate(welded), prim_id[near], prim_id[far], depth[far], eye,
+            d_near, d_far, horizontal, to_pixels, prim, edge, s, other,
+        )  # fmt: skip
     keep = edge >= -1
-    return EdgePairs(near[keep], far[keep], prim[keep], edge[keep], horizontal[keep])
+    return EdgePairs(near[keep], far[keep], prim[keep], edge[keep], other[keep], horizontal[keep])
+
+
+def _plane_normal(corners):
+    """Unnormalised normals (n, 3) of triangles (n, 3, 3): (b - a) x (c - a)."""
+    if isinstance(corners[0], md.Tensor):
+        return md.cross(corners[1] - corners[0], corners[2] - corners[0])
+    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+
+
+def _intersection_normal(n1, a1, n2, a2, eye):
+    """The edge function's normal m for the line where two planes (normal n, point a)
+    cross, seen from the eye: the plane through the eye and that line is
+    (n2 . (C - a2)) n1 . (p - a1) - (n1 . (C - a1)) n2 . (p - a2) = 0, so e(d) = m . d with
+    m = (n2 . (C - a2)) n1 - (n1 . (C - a1)) n2. Tensors or arrays."""
+    return _column(_dot(n2, eye - a2)) * n1 - _column(_dot(n1, eye - a1)) * n2
+
+
+def _intersections(
+    triangles, welded, near_prim, far_prim, far_depth, eye, d_near, d_far, horizontal,
+    to_pixels, prim, edge, s, other,
+):  # fmt: skip
+    """Where the near sample's face dives behind the far sample's face before any
+    silhouette or crease: the two planes' intersection line crosses the segment and, at the
+    far sample, the near plane lies behind the far hit. Only for faces that touch nowhere
+    (no welded vertex in common: neighbours meet at an edge, handled as a crease or not a
+    discontinuity at all) and whose planes are not nearly parallel (their line would be
+    ill-defined). Updates prim, edge (3), s and other in place for those pairs."""
+    n_tri = len(triangles)
+    rows = np.flatnonzero((near_prim < n_tri) & (far_prim >= 0) & (far_prim < n_tri))
+    a, b = welded[near_prim[rows]], welded[far_prim[rows]]
+    touching = (a[:, :, None] == b[:, None, :]).any(axis=(1, 2))
+    rows = rows[~touching]
+    if len(rows) == 0:
+        return
+    t1, t2 = triangles[near_prim[rows]], triangles[far_prim[rows]]
+    n1, n2 = _plane_normal(t1), _plane_normal(t2)
+    sin_angle = np.linalg.norm(np.cross(n1, n2), axis=1) / (
+        np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
+    )
+    # The near face's plane along the far sample's ray, against the far hit (same units).
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_plane = np.sum(n1 * (t1[:, 0] - eye), axis=1) / np.sum(n1 * d_far[rows], axis=1)
+    behind = ~(t_plane > 0) | (t_plane > far_depth[rows])
+    m = _intersection_normal(n1, t1[:, 0], n2, t2[:, 0], eye)
+    e_near, e_far = np.sum(d_near[rows] * m, axis=1), np.sum(d_far[rows] * m, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_int = e_near / (e_near - e_far)
+    crosses = (np.sign(e_near) != np.sign(e_far)) & (s_int > 0) & (s_int < 1)
+    earlier = (edge[rows] < -1) | (s_int < s[rows] - 1e-9)
+    use = behind & crosses & earlier & _axis_ok(m, horizontal[rows], to_pixels)
+    use &= sin_angle > 0.05
+    rows = rows[use]
+    prim[rows], edge[rows], s[rows], other[rows] = near_prim[rows], 3, s_int[use], far_prim[rows]
 
 
 def _plain_rays(camera: Camera, near: np.ndarray, far: np.ndarray, spp: int):
@@ -382,6 +452,21 @@ def _sphere_crossing_plain(sphere: Sphere, eye, d_near, d_far) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
+def _corners(scene: Scene, ids: np.ndarray):
+    """The corners (a, b, c), each (k, 3) on the tape, of the triangles with global ids
+    ``ids`` (k,), in that order."""
+    parts, order, first = [], [], 0
+    for mesh in scene.meshes:
+        rows = np.flatnonzero((ids >= first) & (ids < first + mesh.num_faces))
+        if len(rows):
+            parts.append(mesh.vertices[mesh.faces[ids[rows] - first].reshape(-1)])
+            order.append(rows)
+        first += mesh.num_faces
+    flat = parts[0] if len(parts) == 1 else md.concatenate(parts)
+    corners = md.reshape(flat, (-1, 3, 3))[np.argsort(np.concatenate(order))]
+    return corners[:, 0], corners[:, 1], corners[:, 2]
+
+
 def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     """On the tape, per pair: s* (n,), where the edge crosses the segment from the near
     sample (s = 0) to the far one (s = 1), and its slope (n,) across the pair, |t| <= 1:
@@ -390,22 +475,33 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     camera, eye = scene.camera, frame[3]
     d_near = ray_directions(frame, image_plane_coords(camera, pairs.near, spp).astype(dtype))
     d_far = ray_directions(frame, image_plane_coords(camera, pairs.far, spp).astype(dtype))
-    s_parts, normals, order = [], [], []
-    first = 0
-    for mesh in scene.meshes:
-        rows = np.flatnonzero((pairs.prim >= first) & (pairs.prim < first + mesh.num_faces))
-        if len(rows):
-            face = mesh.faces[pairs.prim[rows] - first]
-            k = pairs.edge[rows]
-            r = np.arange(len(rows))
-            m = md.cross(mesh.vertices[face[r, k]] - eye, mesh.vertices[face[r, (k + 1) % 3]] - eye)
-            e_near, e_far = md.dot(d_near[rows], m), md.dot(d_far[rows], m)
-            s_parts.append(e_near / (e_near - e_far))
-            normals.append(m)
-            order.append(rows)
-        first += mesh.num_faces
+    normals, order = [], []
+    edges = np.flatnonzero((pairs.edge >= 0) & (pairs.edge < 3))
+    if len(edges):  # a triangle's edge (v_k, v_k+1): m = (v_k - C) x (v_k+1 - C)
+        corners = md.stack(_corners(scene, pairs.prim[edges]), axis=1)  # (k, 3, 3)
+        r, k = np.arange(len(edges)), pairs.edge[edges]
+        normals.append(md.cross(corners[r, k] - eye, corners[r, (k + 1) % 3] - eye))
+        order.append(edges)
+    crossing = np.flatnonzero(pairs.edge == 3)
+    if len(crossing):  # two faces' planes
+        near_face, far_face = (
+            _corners(scene, pairs.prim[crossing]),
+            _corners(scene, pairs.other[crossing]),
+        )
+        normals.append(
+            _intersection_normal(
+                _plane_normal(near_face), near_face[0], _plane_normal(far_face), far_face[0], eye
+            )
+        )
+        order.append(crossing)
+    s_parts = []
+    if normals:
+        m = normals[0] if len(normals) == 1 else md.concatenate(normals)
+        rows = np.concatenate(order)
+        e_near, e_far = md.dot(d_near[rows], m), md.dot(d_far[rows], m)
+        s_parts.append(e_near / (e_near - e_far))
     for index, sphere in enumerate(scene.spheres):
-        rows = np.flatnonzero(pairs.prim == first + index)
+        rows = np.flatnonzero((pairs.edge == -1) & (pairs.prim == _first_sphere(scene) + index))
         if len(rows):
             s = _sphere_crossing(sphere, eye, d_near[rows], d_far[rows])
             s_parts.append(s)
@@ -425,6 +521,11 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     along = md.where(pairs.horizontal, gx, gy)
     across = md.where(pairs.horizontal, gy, gx)
     return s, across / along
+
+
+def _first_sphere(scene: Scene) -> int:
+    """The global primitive id of the first sphere (spheres follow all triangles)."""
+    return sum(m.num_faces for m in scene.meshes)
 
 
 def _sphere_crossing(sphere: Sphere, eye, d_near, d_far) -> md.Tensor:
