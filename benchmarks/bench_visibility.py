@@ -29,7 +29,7 @@ import timing
 from render.accel import Accelerator
 from render.camera import primary_rays
 from render.teapot import paper_scene
-from render.visibility import shadow_rays
+from render.visibility import scene_primitives, scene_size, shadow_rays
 
 
 def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
@@ -44,7 +44,8 @@ def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
     prim_id, t, _, _ = accel.closest_hit(origins, directions)
     hit = np.flatnonzero(prim_id >= 0)
     points = eye + t[hit, None] * directions[hit]
-    shadows = shadow_rays(scene.lights[0], points, prim_id[hit], accel.n_triangles)  # as rendered
+    size = scene_size(scene_primitives(scene))
+    shadows = shadow_rays(scene.lights[0], points, prim_id[hit], accel.n_triangles, size)
     return {
         "scene": scene,
         "triangles": triangles,
@@ -54,7 +55,7 @@ def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
         "prim_id": prim_id,
         "shadow_origins": shadows.origins,
         "shadow_directions": shadows.directions,  # unnormalised: the light is at t = 1
-        "shadow_tmin": shadows.tmin,
+        "shadow_tmin": 0.0,  # the rays start off the surface (render.visibility)
         "shadow_tmax": shadows.tmax,
         "shadow_ignore": shadows.ignore_prim,
     }

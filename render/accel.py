@@ -46,9 +46,10 @@ MAX_COORD = 1e60
 #: A direction needs some component at least this large (so that |d|^2 does not underflow).
 MIN_DIRECTION = 1e-60
 
-#: Default ``tmin`` for shadow rays, in units of the direction vector.  With the usual
+#: Default ``tmin`` of ``occluded``, in units of the direction vector.  With the usual
 #: unnormalised direction ``light - point`` this is a millionth of the light distance; together
-#: with ``ignore_prim`` it removes shadow acne.
+#: with ``ignore_prim`` it removes shadow acne.  (The renderer starts its shadow rays off the
+#: surface instead and passes tmin=0: see ``render.visibility.shadow_rays``.)
 SHADOW_TMIN = 1e-6
 
 

@@ -57,8 +57,10 @@ def intersect_spheres(origin, direction, center, radius, far_root: np.ndarray):
     b = md.dot(oc, direction)
     c = md.dot(oc, oc) - radius * radius
     # At a grazing hit the discriminant is ~0 and sqrt's derivative blows up; clamping keeps
-    # the value (it is ~0 anyway) and gives a finite gradient.
-    root = md.sqrt(md.maximum(b * b - a * c, 1e-18))
+    # the value (it is ~0 anyway) and gives a finite gradient. The floor is relative to b^2
+    # (the discriminant's scale), so that it means the same for a sphere of any size.
+    floor = np.maximum((b * b).data * 1e-16, np.finfo(b.dtype).tiny)
+    root = md.sqrt(md.maximum(b * b - a * c, floor))
     sign = np.where(far_root, 1.0, -1.0).astype(a.dtype)
     return (-b + sign * root) / a
 

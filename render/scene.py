@@ -283,8 +283,11 @@ class Camera(_HasFields):
 
         forward = look_at - position
         norm_f = float(np.linalg.norm(forward))
-        if norm_f <= 1e-12 * max(1.0, float(np.abs(position).max())):
-            raise ValueError(f"Camera: position and look_at must differ, both are {position}")
+        if norm_f <= 1e-12 * float(max(np.abs(position).max(), np.abs(look_at).max())):
+            raise ValueError(
+                f"Camera: position and look_at must differ (to 12 digits), got position "
+                f"{position} and look_at {look_at}"
+            )
         norm_up = float(np.linalg.norm(up))
         if norm_up == 0.0:
             raise ValueError("Camera: up must be a non-zero vector")

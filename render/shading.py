@@ -19,10 +19,6 @@ import minidiff as md
 from render.geometry import Surface, column, mesh_surface
 from render.scene import DirectionalLight, Material, Mesh, PointLight
 
-# Smallest squared light distance we divide by: a light exactly on the surface would give
-# 0/0; with the clamp its contribution is finite (and zero, since its direction is zero).
-_MIN_DISTANCE_SQUARED = 1e-12
-
 
 def light_incidence(light, points):
     """Direction to the light and the irradiance it delivers, per hit.
@@ -34,7 +30,11 @@ def light_incidence(light, points):
     """
     if isinstance(light, PointLight):
         offset = light.position - points
-        distance_sq = md.maximum(md.dot(offset, offset), _MIN_DISTANCE_SQUARED)
+        # A light exactly on the surface would give 0/0: the smallest normal number of the
+        # dtype keeps it finite (and zero, since its direction is zero) without changing
+        # any other distance, however small the scene (a fixed floor would: issue 9).
+        tiny = np.finfo(offset.dtype).tiny
+        distance_sq = md.maximum(md.dot(offset, offset), tiny)
         return md.normalize(offset), light.intensity / distance_sq
     if isinstance(light, DirectionalLight):
         return md.normalize(-light.direction), light.irradiance

@@ -25,10 +25,14 @@ from render.camera import image_plane_coords, primary_rays
 from render.edges import EdgePairs, mesh_edges, silhouette_pairs
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
 
-#: Shadow rays start on the surface; they skip the triangle they start on and ignore hits
-#: closer than this fraction of the distance to the light (neighbouring triangles at a
-#: shared edge would otherwise shadow the start point).
-SHADOW_EPSILON = 1e-7
+#: Shadow rays skip the triangle they start on and start a little off the surface, towards
+#: the light, so that rounding in the hit point cannot make a neighbouring triangle at a
+#: shared edge shadow it. The offset is relative, so that a scene renders the same at any
+#: scale and anywhere (issue 9): this fraction of the scene's size (its bounding box
+#: diagonal), or SHADOW_ULPS units in the last place of the coordinates involved if that is
+#: larger (far from the origin, where coordinates carry fewer digits).
+SHADOW_EPSILON = 1e-9
+SHADOW_ULPS = 1024
 
 
 def scene_primitives(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -91,53 +95,89 @@ def trace_primary(accel: Accelerator, camera: Camera, spp: int) -> PrimaryHits:
 @dataclass
 class ShadowRays:
     """Rays from k surface points towards a light, as ``Accelerator.occluded`` takes them:
-    blocked if a primitive other than ``ignore_prim`` is hit with tmin < t < tmax."""
+    blocked if a primitive other than ``ignore_prim`` is hit with 0 < t < tmax."""
 
     origins: np.ndarray
     directions: np.ndarray
-    tmin: float
-    tmax: float
+    tmax: np.ndarray | float
     ignore_prim: np.ndarray
 
 
+def shadow_offset(points: np.ndarray, scene_size: float, light_position=None) -> np.ndarray:
+    """(k,) how far above the surface each shadow ray starts (see ``SHADOW_EPSILON``)."""
+    magnitude = np.abs(points).max(axis=1)
+    if light_position is not None:
+        magnitude = np.maximum(magnitude, np.abs(light_position).max())
+    ulps = SHADOW_ULPS * np.finfo(np.float64).eps * magnitude
+    return np.maximum(SHADOW_EPSILON * scene_size, ulps)
+
+
 def shadow_rays(
-    light: PointLight | DirectionalLight, points: np.ndarray, start_prim: np.ndarray, n_triangles
+    light: PointLight | DirectionalLight,
+    points: np.ndarray,
+    start_prim: np.ndarray,
+    n_triangles: int,
+    scene_size: float,
 ) -> ShadowRays:
-    """The shadow rays from hit points (k, 3) on primitives start_prim (k,) to ``light``."""
+    """The shadow rays from hit points (k, 3) on primitives start_prim (k,) to ``light``;
+    ``scene_size`` is the diagonal of the geometry's bounding box."""
     if isinstance(light, PointLight):
+        position = np.asarray(light.position.data, dtype=np.float64)
+        to_light = position - points
+        distance = np.linalg.norm(to_light, axis=1)
+        offset = shadow_offset(points, scene_size, position)
+        # A light on (or within the offset of) the hit point: nothing can come between; its
+        # contribution is zero or nearly so (see shading), so call it lit.
+        near = distance <= 2.0 * offset
+        unit = to_light / np.where(near, 1.0, distance)[:, None]
+        unit[near] = (0.0, 1.0, 0.0)
+        origins = points + offset[:, None] * unit
         # Unnormalised direction to the light: t = 1 is the light itself.
-        directions = np.asarray(light.position.data, dtype=np.float64) - points
-        tmax = 1.0 - SHADOW_EPSILON
-        # A light sitting exactly on a hit point: no direction to trace; its contribution
-        # is zero anyway (see shading), so call it lit.
-        zero = ~directions.any(axis=1)
-        directions[zero] = (0.0, 1.0, 0.0)
+        directions = position - origins
+        tmax = np.where(near, 0.0, 1.0 - offset / np.maximum(distance, offset))
     elif isinstance(light, DirectionalLight):
-        # Unit length: tmin is in units of the direction vector, and the user's direction
-        # may have any length (with |direction| = 1e7 every nearby occluder was skipped).
+        # Unit length: the user's direction may have any length.
         towards = -np.asarray(light.direction.data, np.float64)
-        directions = np.broadcast_to(towards / np.linalg.norm(towards), points.shape)
+        unit = towards / np.linalg.norm(towards)
+        origins = points + shadow_offset(points, scene_size)[:, None] * unit
+        directions = np.broadcast_to(unit, points.shape)
         tmax = np.inf
     else:
         raise TypeError(f"render: unsupported light type {type(light).__name__}")
-    scale = max(1.0, float(np.abs(points).max())) if len(points) else 1.0
     # Skip the triangle the ray starts on (a flat triangle cannot shadow its own points), but
     # not a sphere: seen from inside it does shadow itself (a light outside cannot reach the
     # inside). Starting on the outside of a sphere towards the light, its other root is
-    # behind the ray, and tmin removes the start point itself.
+    # behind the ray, and the offset removes the start point itself.
     ignore = np.where(start_prim < n_triangles, start_prim, -1)
-    return ShadowRays(points, directions, SHADOW_EPSILON * scale, tmax, ignore)
+    return ShadowRays(origins, directions, tmax, ignore)
+
+
+def scene_size(primitives: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+    """The diagonal of the bounding box of ``scene_primitives`` (0 for an empty scene)."""
+    triangles, centers, radii = primitives
+    lo = [triangles.reshape(-1, 3).min(axis=0)] if len(triangles) else []
+    hi = [triangles.reshape(-1, 3).max(axis=0)] if len(triangles) else []
+    if len(centers):
+        lo.append((centers - radii[:, None]).min(axis=0))
+        hi.append((centers + radii[:, None]).max(axis=0))
+    if not lo:
+        return 0.0
+    return float(np.linalg.norm(np.max(hi, axis=0) - np.min(lo, axis=0)))
 
 
 def trace_shadows(
-    accel: Accelerator, light: PointLight | DirectionalLight, points: np.ndarray, start_prim
+    accel: Accelerator,
+    light: PointLight | DirectionalLight,
+    points: np.ndarray,
+    start_prim: np.ndarray,
+    size: float,
 ) -> np.ndarray:
     """(k,) bool: True where ``light`` reaches the hit point (no primitive in between)."""
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
-    rays = shadow_rays(light, points, start_prim, accel.n_triangles)
+    rays = shadow_rays(light, points, start_prim, accel.n_triangles, size)
     blocked = accel.occluded(
-        rays.origins, rays.directions, rays.tmax, tmin=rays.tmin, ignore_prim=rays.ignore_prim
+        rays.origins, rays.directions, rays.tmax, tmin=0.0, ignore_prim=rays.ignore_prim
     )
     return ~blocked
 
@@ -180,7 +220,9 @@ def trace_visibility(
         mask, _ = cache.get(
             ("shadows", j),
             light_key(light) + [traced],
-            lambda light=light: trace_shadows(accel, light, primary.points, start_prim),
+            lambda light=light: trace_shadows(
+                accel, light, primary.points, start_prim, scene_size(primitives)
+            ),
         )
         lit.append(mask)
     if not antialias:
