@@ -40,7 +40,8 @@ import minidiff as md
 from render.camera import camera_frame, image_plane_coords, ray_directions
 from render.scene import Camera, Scene, Sphere
 
-# Vertices closer than this fraction of the mesh's size are one position when welding.
+# Vertices closer than this fraction of the mesh's size (its bounding box diagonal) are one
+# position when welding.
 _WELD_TOLERANCE = 1e-9
 # A triangle whose area is below this fraction of the mesh's squared size is degenerate.
 _DEGENERATE_AREA = 1e-12
@@ -77,8 +78,11 @@ class MeshEdges:
 
 def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
     """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3)."""
-    scale = max(float(np.abs(vertices).max()), np.finfo(float).tiny)
-    keys = np.round(vertices / (scale * _WELD_TOLERANCE))
+    # Relative to the mesh's own size and corner, so that welding does not depend on where
+    # the mesh is or how large it is.
+    low = vertices.min(axis=0)
+    scale = max(float(np.linalg.norm(vertices.max(axis=0) - low)), np.finfo(float).tiny)
+    keys = np.round((vertices - low) / (scale * _WELD_TOLERANCE))
     _, welded = np.unique(keys, axis=0, return_inverse=True)
     ids = welded.reshape(-1)[faces]  # (F, 3) welded vertex ids
     corners = vertices[faces]
