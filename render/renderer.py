@@ -25,11 +25,11 @@ import numpy as np
 
 import minidiff as md
 from render.cache import RenderCache, cache_for, surface_key
-from render.camera import camera_frame, ray_directions
+from render.camera import camera_frame, ray_directions, subpixel_offsets
 from render.edges import EdgePairs, crossings
 from render.edges import antialias as blend_across_edges
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
-from render.scene import Mesh, Scene
+from render.scene import Mesh, Scene, check_ray_count
 from render.shading import shade_mesh, shade_surface
 from render.visibility import Visibility, primitive_ranges, trace_visibility
 
@@ -66,6 +66,8 @@ def render(
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
     scene.validate()
+    subpixel_offsets(spp)  # a clear error for a bad spp before anything else
+    check_ray_count(scene.camera.width, scene.camera.height, spp)
     cache = cache_for(scene, reuse_visibility)
 
     antialias = _check_flag(antialias, "antialias")

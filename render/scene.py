@@ -130,6 +130,22 @@ def _check_int(value: Any, owner: str, name: str) -> int:
     return int(value)
 
 
+#: The most rays (width * height * spp) one render may trace. Every per-ray array is
+#: indexed with 64-bit integers, but 2**31 rays already need 50 GB for their directions
+#: alone; beyond it an image could only fail later, inside an allocation or a kernel.
+MAX_RAYS = 2**31
+
+
+def check_ray_count(width: int, height: int, spp: int) -> None:
+    """ValueError naming width, height and spp if width * height * spp exceeds MAX_RAYS.
+    Python integers do not overflow, so the check itself is exact; nothing is allocated."""
+    if width * height * spp > MAX_RAYS:
+        raise ValueError(
+            f"render: width x height x spp = {width} x {height} x {spp} = "
+            f"{width * height * spp:,} rays is more than the limit of {MAX_RAYS:,} (2**31)"
+        )
+
+
 def _check_instance(value: Any, owner: str, name: str, cls: type) -> None:
     if not isinstance(value, cls):
         raise TypeError(f"{owner}: {name} must be a {cls.__name__}, got {type(value).__name__}")
@@ -280,6 +296,7 @@ class Camera(_HasFields):
         position, look_at, up = fields["position"], fields["look_at"], fields["up"]
         _check_int(self.width, "Camera", "width")
         _check_int(self.height, "Camera", "height")
+        check_ray_count(self.width, self.height, 1)
 
         forward = look_at - position
         norm_f = float(np.linalg.norm(forward))

@@ -30,11 +30,12 @@ def light_incidence(light, points):
     """
     if isinstance(light, PointLight):
         offset = light.position - points
-        # A light exactly on the surface would give 0/0: the smallest normal number of the
-        # dtype keeps it finite (and zero, since its direction is zero) without changing
-        # any other distance, however small the scene (a fixed floor would: issue 9).
-        tiny = np.finfo(offset.dtype).tiny
-        distance_sq = md.maximum(md.dot(offset, offset), tiny)
+        # A light exactly on the surface would give 0/0: divide by 1 there instead (the
+        # contribution is zero anyway, since the direction to the light is zero). Only exact
+        # zeros are replaced, so that any distance, however small the scene, is used as it
+        # is (a fixed floor was not scale-invariant: issue 9).
+        distance_sq = md.dot(offset, offset)
+        distance_sq = md.where(distance_sq.data == 0, 1.0, distance_sq)
         return md.normalize(offset), light.intensity / distance_sq
     if isinstance(light, DirectionalLight):
         return md.normalize(-light.direction), light.irradiance

@@ -261,3 +261,26 @@ def test_quad_textured_with_degenerate_uvs():
         )
         scene = render.Scene([mesh], [render.DirectionalLight((0, 0, -1), 1.0)], camera)
         assert_finite_render_and_gradients(scene, min_hits=100)
+
+
+@pytest.mark.parametrize(
+    "width, height, spp",
+    [(2**32, 2**32, 1), (2**62 + 1, 4, 1), (2**31, 2**31, 4), (2**33, 2**31, 1), (65536, 65536, 1),
+     (100_000, 100_000, 1), (32768, 32768, 4)],
+)  # fmt: skip
+def test_image_sizes_that_cannot_fit_fail_before_allocating(width, height, spp):
+    """They crashed the interpreter (int64 overflow in a Numba kernel) or failed inside an
+    allocation. Now a ValueError names width, height and spp, and nothing big is allocated."""
+    import tracemalloc
+
+    tracemalloc.start()
+    try:
+        with pytest.raises(ValueError, match=r"width x height x spp = .* the limit of"):
+            camera = render.Camera((0, 0, 5), (0, 0, 0), width=width, height=min(height, 4))
+            if height > 4 or spp > 1:  # the camera itself was fine: the render is too big
+                camera.height = height
+                scene = render.Scene([], [], camera)
+                render.render(scene, spp=spp)
+        assert tracemalloc.get_traced_memory()[1] < 50e6  # peak bytes
+    finally:
+        tracemalloc.stop()
