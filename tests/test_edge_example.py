@@ -1,0 +1,21 @@
+"""``examples/edge_gradients.py --quick`` runs end to end and writes what it promises."""
+
+from __future__ import annotations
+
+import json
+import runpy
+import sys
+from pathlib import Path
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "edge_gradients.py"
+
+
+def test_edge_gradients_example_quick(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys, "argv", [str(EXAMPLE), "--quick", "--out", str(tmp_path)])
+    runpy.run_path(str(EXAMPLE), run_name="__main__")
+    result = json.loads((tmp_path / "edge_gradients.json").read_text())
+    assert len(result["calibration"]) == 2
+    assert set(result["basin"]) == {"pixel centres", "edges"}
+    assert all(0.0 <= c["fraction"] <= 1.0 for c in result["coverage_30deg"])
+    for name in ("basin.png", "silhouette_zoom.png", "edge_gradients.md"):
+        assert (tmp_path / name).stat().st_size > 0
