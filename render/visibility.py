@@ -22,8 +22,9 @@ import numpy as np
 from render.accel import Accelerator
 from render.cache import RenderCache, camera_key, light_key
 from render.camera import image_plane_coords, primary_rays
-from render.edges import EdgePairs, mesh_edges, silhouette_pairs
+from render.edges import EdgePairs, edge_pairs
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.topology import mesh_edges
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
 #: the light, so that rounding in the hit point cannot make a neighbouring triangle at a
@@ -235,6 +236,6 @@ def trace_visibility(
     pairs, _ = cache.get(
         "pairs",
         [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
-        lambda: silhouette_pairs(scene, primary.prim_id, primary.depth, spp, topology),
+        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
     )
     return Visibility(primary, lit, traced, pairs)

@@ -21,7 +21,8 @@ from render_helpers import masked_gradient_check, random_scene
 
 import minidiff as md
 import render
-from render.edges import box_coverage, mesh_edges, silhouette_edges
+from render.edges import box_coverage
+from render.topology import mesh_edges, silhouette_edges
 
 WIDTH, HEIGHT, FOV = 40, 32, 40.0
 FG, BG = 0.5, 0.1  # ambient-only foreground radiance, background radiance
@@ -206,3 +207,33 @@ def test_sphere_translation_gradient_estimates_the_supersampled_derivative():
     rel_plain = np.linalg.norm(sphere.center.grad - fd) / np.linalg.norm(fd)
     assert rel < 0.3, (ad, fd, rel)
     assert rel < 0.5 * rel_plain, (rel, rel_plain)
+
+
+@pytest.mark.parametrize("size", [64, 160])
+def test_the_numba_walk_equals_the_numpy_walk(size):
+    """``walk_to_silhouette_fast`` (what the renderer runs) against the NumPy version, on
+    every pair of adjacent pixels with different hits of the teapot."""
+    from render.edges import _candidate_pairs, _plain_rays, _sample_grid
+    from render.topology import walk_to_silhouette, walk_to_silhouette_fast
+    from render.visibility import primitive_ranges, scene_primitives, trace_primary
+
+    scene = render.paper_scene(size, size)
+    hits = trace_primary(render.Accelerator(*scene_primitives(scene)), scene.camera, 1)
+    a, b, _ = _candidate_pairs(_sample_grid(scene.camera, 1), hits.prim_id)
+    near_a = hits.depth[a] < hits.depth[b]
+    near, far = np.where(near_a, a, b), np.where(near_a, b, a)
+    assert primitive_ranges(scene)[0][1] == 0  # the teapot's faces are ids 0..F-1
+    eye, d_near, d_far, _ = _plain_rays(scene.camera, near, far, 1)
+    mesh = scene.meshes[0]
+    vertices, faces = mesh.vertices.data, mesh.faces
+    edges = mesh_edges(vertices, faces)
+    silhouette = silhouette_edges(edges, vertices, faces, eye)
+    args = (edges, silhouette, vertices, faces, hits.prim_id[near], eye, d_near, d_far)
+    slow, fast = walk_to_silhouette(*args), walk_to_silhouette_fast(*args)
+    # Faces and edges exactly; s* in [0, 1] to 1e-12 (Numba may fuse multiply-adds).
+    for x, y in zip((*slow[:3], *slow[3]), (*fast[:3], *fast[3]), strict=True):
+        if x.dtype.kind == "i":
+            np.testing.assert_array_equal(x, y)
+        else:
+            np.testing.assert_allclose(x, y, rtol=0, atol=1e-12)
+    assert (slow[1] >= 0).sum() > 50  # silhouettes were found

@@ -1,0 +1,239 @@
+"""Mesh topology for edge antialiasing (constants, off the tape): which faces share an
+edge once coincident vertices are welded, which edges are silhouettes seen from the eye,
+and a walk across the faces along a segment of the image.
+
+The teapot's 32 patches share positions but not vertex ids, and some of their triangles
+are degenerate: adjacency is therefore built on *welded* positions (within a tiny fraction
+of the mesh's size) and skips degenerate faces. Without welding every patch seam would be a
+false boundary, hence a false silhouette (a known failure of nvdiffrast's own tracker).
+
+``walk_to_silhouette`` is written twice: in NumPy, one step for all segments at a time
+(the version to read), and as a Numba kernel, one segment at a time (the version the
+renderer runs); ``tests/test_edges.py`` checks that they agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+# Vertices closer than this fraction of the mesh's size (its bounding box diagonal) are one
+# position when welding.
+_WELD_TOLERANCE = 1e-9
+# A triangle whose area is below this fraction of the mesh's squared size is degenerate.
+_DEGENERATE_AREA = 1e-12
+
+
+@dataclass
+class MeshEdges:
+    """Each face's three edges grouped by the welded edge they lie on.
+
+    edge_group (F, 3) int64: edge k of face f (corners k and k+1 mod 3) lies on welded edge
+        ``edge_group[f, k]``; -1 for the edges of degenerate faces (never silhouettes, and
+        they are nobody's neighbour).
+    n_groups: the number of welded edges.
+    neighbour (F, 3) int64: the other face on edge k of face f when exactly two
+        non-degenerate faces share it; -1 otherwise (a boundary or non-manifold edge).
+    neighbour_edge (F, 3) int64: which edge of that neighbour it is.
+    shared_ids (F, 3) bool: the neighbour uses the same two vertex ids on that edge, so
+        per-vertex attributes (smooth normals, UVs) are continuous across it.
+    welded (F, 3) int64: each corner's welded vertex id.
+    """
+
+    edge_group: np.ndarray
+    n_groups: int
+    neighbour: np.ndarray
+    neighbour_edge: np.ndarray
+    shared_ids: np.ndarray
+    welded: np.ndarray
+
+
+def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
+    """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3)."""
+    # Relative to the mesh's own size and corner, so that welding does not depend on where
+    # the mesh is or how large it is.
+    low = vertices.min(axis=0)
+    scale = max(float(np.linalg.norm(vertices.max(axis=0) - low)), np.finfo(float).tiny)
+    keys = np.round((vertices - low) / (scale * _WELD_TOLERANCE))
+    _, welded = np.unique(keys, axis=0, return_inverse=True)
+    ids = welded.reshape(-1)[faces]  # (F, 3) welded vertex ids
+    corners = vertices[faces]
+    area = np.linalg.norm(
+        np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
+    )
+    degenerate = (
+        (ids[:, 0] == ids[:, 1]) | (ids[:, 1] == ids[:, 2]) | (ids[:, 2] == ids[:, 0])
+    ) | (area <= _DEGENERATE_AREA * scale * scale)
+    a, b = ids, np.roll(ids, -1, axis=1)  # edge k joins corner k and corner k + 1
+    pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=-1).reshape(-1, 2)
+    _, group = np.unique(pairs, axis=0, return_inverse=True)
+    group = group.reshape(-1, 3).astype(np.int64)
+    group[degenerate] = -1
+    n_groups = int(group.max()) + 1 if group.size else 0
+
+    # Pair up the two (face, edge) slots of each manifold welded edge.
+    slots = np.flatnonzero(group.reshape(-1) >= 0)
+    slots = slots[np.argsort(group.reshape(-1)[slots], kind="stable")]
+    g = group.reshape(-1)[slots]
+    count = np.bincount(g, minlength=n_groups)
+    first = slots[:-1][(g[:-1] == g[1:]) & (count[g[:-1]] == 2)]
+    second = slots[1:][(g[:-1] == g[1:]) & (count[g[1:]] == 2)]
+    neighbour = np.full(group.size, -1, dtype=np.int64)
+    neighbour_edge = np.full(group.size, -1, dtype=np.int64)
+    neighbour[first], neighbour_edge[first] = second // 3, second % 3
+    neighbour[second], neighbour_edge[second] = first // 3, first % 3
+    neighbour, neighbour_edge = neighbour.reshape(-1, 3), neighbour_edge.reshape(-1, 3)
+    # Same ids on both sides: the neighbour's edge runs the other way (b, a) if consistently
+    # wound, or the same way (a, b) if not; either way the id sets agree.
+    a_ids, b_ids = faces, np.roll(faces, -1, axis=1)
+    f, k = np.maximum(neighbour, 0), np.maximum(neighbour_edge, 0)
+    na, nb = a_ids[f, k], b_ids[f, k]
+    shared = (neighbour >= 0) & (((na == b_ids) & (nb == a_ids)) | ((na == a_ids) & (nb == b_ids)))
+    return MeshEdges(group, n_groups, neighbour, neighbour_edge, shared, ids)
+
+
+def silhouette_edges(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, eye) -> np.ndarray:
+    """(F, 3) bool: edge k of face f is a silhouette seen from ``eye`` (3,): a boundary
+    edge (no other non-degenerate face shares it) or one whose faces face opposite ways."""
+    corners = vertices[faces]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    front = np.einsum("ij,ij->i", normal, eye - corners[:, 0]) > 0
+    valid = edges.edge_group >= 0
+    groups = edges.edge_group[valid]
+    facing = np.broadcast_to(front[:, None], valid.shape)[valid]
+    n_front = np.bincount(groups[facing], minlength=edges.n_groups)
+    n_back = np.bincount(groups[~facing], minlength=edges.n_groups)
+    total = n_front + n_back
+    silhouette = np.zeros(valid.shape, dtype=bool)
+    silhouette[valid] = (total[groups] == 1) | ((n_front[groups] > 0) & (n_back[groups] > 0))
+    return silhouette
+
+
+def walk_to_silhouette(
+    edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32
+):
+    """Follow each segment (near sample at s = 0, far sample at s = 1) across the mesh from
+    the near sample's face ``start`` (n,), face to face, until it leaves through a
+    silhouette edge. Returns the face (n,), its edge (n,) (-2: none before s = 1, or a
+    non-manifold edge on the way) and the crossing s* (n,).
+
+    Seen from the eye, the segment enters a face through one edge and leaves through the
+    first of the other two edge lines it crosses (a triangle is convex). At low resolution
+    the face hit at the near sample is often not the one on the silhouette: this walk finds
+    the one that is (nvdiffrast only looks at the face in the pixel).
+
+    Also returns the first edge crossed, its s and the face beyond it, (n,) each, for the
+    crease test of flat-shaded meshes (``edge_pairs``).
+    """
+    n = len(start)
+    face = start.copy()
+    entry = np.full(n, -1, dtype=np.int64)  # the edge the segment came in through
+    s_entry = np.zeros(n)
+    edge = np.full(n, -2, dtype=np.int64)
+    s_out = np.full(n, np.nan)
+    active = np.arange(n)
+    first = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))
+    for step in range(max_steps):
+        if len(active) == 0:
+            break
+        corners = vertices[faces[face[active]]]
+        s_k = np.full((len(active), 3), np.inf)
+        for k in range(3):
+            m = np.cross(corners[:, k] - eye, corners[:, (k + 1) % 3] - eye)
+            e_near = np.einsum("ij,ij->i", d_near[active], m)
+            e_far = np.einsum("ij,ij->i", d_far[active], m)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                s = e_near / (e_near - e_far)
+            ahead = (np.sign(e_near) != np.sign(e_far)) & (s > s_entry[active])
+            s_k[:, k] = np.where(ahead & (entry[active] != k), s, np.inf)
+        k = np.argmin(s_k, axis=1)
+        s = s_k[np.arange(len(active)), k]
+        if step == 0:  # every row is active: remember the first edge crossed
+            first = (k.copy(), s.copy(), edges.neighbour[face, k])
+        inside = s < 1.0  # else the far sample lies on this face's side: no edge between
+        at_silhouette = inside & silhouette[face[active], k]
+        done = active[at_silhouette]
+        edge[done], s_out[done] = k[at_silhouette], s[at_silhouette]
+        step = inside & ~at_silhouette
+        nb = edges.neighbour[face[active], k]
+        step &= nb >= 0
+        moving = active[step]
+        entry[moving] = edges.neighbour_edge[face[moving], k[step]]
+        face[moving], s_entry[moving] = nb[step], s[step]
+        active = moving
+    return face, edge, s_out, first
+
+
+@numba.njit(cache=True, parallel=True)
+def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, eye, d_near,
+                 d_far, max_steps):  # fmt: skip
+    """``walk_to_silhouette`` one segment at a time (same steps, same tie-breaking: the
+    lowest edge index wins)."""
+    n = start.shape[0]
+    face = start.copy()
+    edge = np.full(n, -2, dtype=np.int64)
+    s_out = np.full(n, np.nan)
+    first_k = np.zeros(n, dtype=np.int64)
+    first_s = np.full(n, np.inf)
+    first_beyond = np.zeros(n, dtype=np.int64)
+    for i in numba.prange(n):
+        f = start[i]
+        entry = -1
+        s_entry = 0.0
+        for step in range(max_steps):
+            best_k = 0
+            best_s = np.inf
+            for k in range(3):
+                if k == entry:
+                    continue
+                a, b = faces[f, k], faces[f, (k + 1) % 3]  # scalars only: no temporaries
+                px, py, pz = (
+                    vertices[a, 0] - eye[0],
+                    vertices[a, 1] - eye[1],
+                    vertices[a, 2] - eye[2],
+                )
+                qx, qy, qz = (
+                    vertices[b, 0] - eye[0],
+                    vertices[b, 1] - eye[1],
+                    vertices[b, 2] - eye[2],
+                )
+                mx = py * qz - pz * qy
+                my = pz * qx - px * qz
+                mz = px * qy - py * qx
+                e_near = d_near[i, 0] * mx + d_near[i, 1] * my + d_near[i, 2] * mz
+                e_far = d_far[i, 0] * mx + d_far[i, 1] * my + d_far[i, 2] * mz
+                if np.sign(e_near) != np.sign(e_far):
+                    s = e_near / (e_near - e_far)
+                    if s > s_entry and s < best_s:
+                        best_k, best_s = k, s
+            if step == 0:
+                first_k[i], first_s[i] = best_k, best_s
+                first_beyond[i] = neighbour[f, best_k]
+            if not best_s < 1.0:
+                break
+            if silhouette[f, best_k]:
+                edge[i], s_out[i] = best_k, best_s
+                break
+            nb = neighbour[f, best_k]
+            if nb < 0:
+                break
+            entry = neighbour_edge[f, best_k]
+            f = nb
+            s_entry = best_s
+        face[i] = f
+    return face, edge, s_out, first_k, first_s, first_beyond
+
+
+def walk_to_silhouette_fast(
+    edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32
+):
+    """``walk_to_silhouette`` (same arguments, same results) as one Numba kernel."""
+    face, edge, s, k1, s1, beyond = _walk_kernel(
+        np.ascontiguousarray(vertices, dtype=np.float64), faces, edges.neighbour,
+        edges.neighbour_edge, np.ascontiguousarray(silhouette), np.asarray(start, np.int64),
+        np.asarray(eye, np.float64), np.ascontiguousarray(d_near, dtype=np.float64),
+        np.ascontiguousarray(d_far, dtype=np.float64), max_steps,
+    )  # fmt: skip
+    return face, edge, s, (k1, s1, beyond)
