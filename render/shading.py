@@ -92,30 +92,47 @@ def _has_specular(material: Material) -> bool:
     return material.specular.requires_grad or bool(np.any(material.specular.data))
 
 
-def shade(points, normals, directions, albedo, material: Material, lights, lit) -> md.Tensor:
-    """Outgoing radiance (k, 3) at k hit points.
+def light_contribution(
+    points, normals, directions, albedo, material: Material, light, visible=None
+) -> md.Tensor:
+    """Radiance (k, 3) that one light reflects towards the camera at k hit points.
 
     points (k, 3); normals (k, 3) unit, facing the viewer; directions (k, 3) of the camera
-    rays (any length; only the specular lobe needs them); albedo (3,) or (k, 3); lights a
-    list; lit[j] a (k,) float array, 1 where light j is unoccluded (a constant: visibility
-    is discrete). The specular lobe is the
-    energy-normalised Blinn-Phong  f_s = specular * (n + 8) / (8 pi) * max(0, n.h)^n.
+    rays (any length; only the specular lobe needs them); albedo (3,) or (k, 3);
+    visible (k,) float, 1 where the light is unoccluded (a constant: visibility is
+    discrete), or None for the unoccluded contribution (the shadow-edge term needs it where
+    the light is blocked too).
     """
+    view = -md.normalize(directions) if _has_specular(material) else None
+    return _light_term(points, normals, view, albedo * (1.0 / math.pi), material, light, visible)
+
+
+def _light_term(points, normals, view, diffuse_brdf, material, light, visible):
+    """``light_contribution`` with the per-hit terms that do not depend on the light (the
+    unit direction to the eye, the diffuse BRDF) computed once by the caller. The specular
+    lobe is the energy-normalised Blinn-Phong  f_s = specular (n + 8) / (8 pi) max(0, n.h)^n."""
+    to_light, irradiance = light_incidence(light, points)
+    cos_theta = md.maximum(md.dot(normals, to_light), 0.0)
+    brdf = diffuse_brdf
+    if view is not None:
+        half = md.normalize(to_light + view)
+        # Clamp before the power: 0^n has an infinite log, which d/dn would need.
+        n_dot_h = md.maximum(md.dot(normals, half), 1e-12)
+        lobe = n_dot_h**material.shininess * ((material.shininess + 8.0) / (8.0 * math.pi))
+        brdf = brdf + column(lobe) * material.specular
+    # Per-hit scalars first, then a single (k, 3) product with the colours.
+    scalar = irradiance * cos_theta if visible is None else irradiance * cos_theta * visible
+    return column(scalar) * (brdf * light.color)
+
+
+def shade(points, normals, directions, albedo, material: Material, lights, lit) -> md.Tensor:
+    """Outgoing radiance (k, 3) at k hit points: every light's ``light_contribution``
+    (lit[j] (k,) float, 1 where light j is unoccluded) plus the material's ambient term."""
     diffuse_brdf = albedo * (1.0 / math.pi)
     view = -md.normalize(directions) if _has_specular(material) else None  # towards the eye
     radiance = None
     for light, visible in zip(lights, lit, strict=True):
-        to_light, irradiance = light_incidence(light, points)
-        cos_theta = md.maximum(md.dot(normals, to_light), 0.0)
-        brdf = diffuse_brdf
-        if _has_specular(material):
-            half = md.normalize(to_light + view)
-            # Clamp before the power: 0^n has an infinite log, which d/dn would need.
-            n_dot_h = md.maximum(md.dot(normals, half), 1e-12)
-            lobe = n_dot_h**material.shininess * ((material.shininess + 8.0) / (8.0 * math.pi))
-            brdf = brdf + column(lobe) * material.specular
-        # Per-hit scalars first, then a single (k, 3) product with the colours.
-        contribution = column(irradiance * cos_theta * visible) * (brdf * light.color)
+        contribution = _light_term(points, normals, view, diffuse_brdf, material, light, visible)
         radiance = contribution if radiance is None else radiance + contribution
     if radiance is None:  # no lights: only the ambient term
         radiance = md.broadcast_to(md.as_tensor(np.zeros(3)), (points.shape[0], 3))
