@@ -30,7 +30,8 @@ from render.edges import EdgePairs, crossings
 from render.edges import antialias as blend_across_edges
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
 from render.scene import Mesh, Scene, check_ray_count
-from render.shading import shade_mesh, shade_surface
+from render.shading import light_contribution, sample_texture, shade_mesh, shade_surface
+from render.shadow_edges import ShadowPairs, _object_of, blend_shadow_edges, shadow_crossings
 from render.visibility import Visibility, primitive_ranges, trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]
@@ -73,11 +74,13 @@ def render(
     antialias = _check_flag(antialias, "antialias")
     visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows), antialias)  # 1
     frame = camera_frame(scene.camera)
-    colour, ray_of_colour, texel = _shade_objects(scene, visibility, frame, cache)  # 2 and 3
-    if antialias:
+    colour, ray_of_colour, texel, shaded = _shade_objects(scene, visibility, frame, cache)
+    if antialias:  # 4
+        dtype = working_dtype(scene)
         samples = _sample_colours(scene, visibility, colour, ray_of_colour)
-        s, slope = crossings(scene, visibility.pairs, frame, spp, working_dtype(scene))
-        samples = blend_across_edges(samples, visibility.pairs, s, slope)  # 4
+        s, slope = crossings(scene, visibility.pairs, frame, spp, dtype)
+        samples = blend_across_edges(samples, visibility.pairs, s, slope)
+        samples = _blend_shadow_edges(scene, visibility, shaded, frame, spp, samples)
         image = _pixel_means(scene, samples, spp)  # 5
     else:
         image = _compose_image(scene, visibility, colour, ray_of_colour, spp)  # 5
@@ -99,18 +102,17 @@ def _check_flag(value, name: str) -> bool:
     return bool(value)
 
 
-def _shade_objects(
-    scene: Scene, visibility: Visibility, frame, cache: RenderCache
-) -> tuple[md.Tensor | None, np.ndarray, np.ndarray]:
+def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCache):
     """Steps 2 and 3 for every object: the colours (k, 3) of all hit rays, object by object,
-    the ray each colour belongs to (k,), and the texture cell of every ray (N,) (-1: none)."""
+    the ray each colour belongs to (k,), the texture cell of every ray (N,) (-1: none), and
+    per object index (in ``primitive_ranges`` order) its hit rays and ``Surface``."""
     primary, dtype = visibility.primary, working_dtype(scene)
     eye = frame[3]
     coords = primary.coords.astype(dtype, copy=False)
     hit_prims = primary.prim_id[primary.hit_rays]
 
     texel = np.full(primary.prim_id.size, -1, dtype=np.int64)
-    colours, rays = [], []
+    colours, rays, shaded = [], [], {}
     for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
         in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
         if len(in_obj) == 0:
@@ -129,10 +131,11 @@ def _shade_objects(
         )
         colours.append(colour)
         rays.append(primary.hit_rays[in_obj])
+        shaded[index] = (primary.hit_rays[in_obj], hits)
     if not colours:
-        return None, np.zeros(0, np.int64), texel
+        return None, np.zeros(0, np.int64), texel, shaded
     colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
-    return colour, np.concatenate(rays), texel
+    return colour, np.concatenate(rays), texel, shaded
 
 
 def _reused_surface(scene, cache, visibility, index, obj, dtype, compute) -> Surface:
@@ -173,6 +176,52 @@ def _compose_image(scene: Scene, visibility: Visibility, colour, ray_of_colour, 
     return md.reshape(image, (camera.height, camera.width, 3))
 
 
+def _blend_shadow_edges(scene, visibility, shaded, frame, spp, samples) -> md.Tensor:
+    """Step 4 for shadows: each shadow pair's light contribution blended across its edge
+    (``render.shadow_edges``). The unoccluded contribution of the pair's light is shaded
+    again at both samples, from their object's Surface."""
+    pairs = visibility.shadow_pairs
+    if pairs is None or len(pairs.lit) == 0:
+        return samples
+    prim_id = visibility.primary.prim_id
+    objects = [obj for obj, _, _ in primitive_ranges(scene)]
+    owner = _object_of(scene, prim_id[pairs.lit])  # both samples are on this object
+    lit_light, dark_light, lit_points, order = [], [], [], []
+    for index, (rays, surface) in shaded.items():
+        obj = objects[index]
+        row_of_ray = np.full(prim_id.size, -1, dtype=np.int64)
+        row_of_ray[rays] = np.arange(len(rays))
+        for j, light in enumerate(scene.lights):
+            rows = np.flatnonzero((owner == index) & (pairs.light == j))
+            if len(rows) == 0:
+                continue
+            lit_rows, dark_rows = row_of_ray[pairs.lit[rows]], row_of_ray[pairs.dark[rows]]
+            lit_light.append(_unoccluded(surface, lit_rows, obj.material, light))
+            dark_light.append(_unoccluded(surface, dark_rows, obj.material, light))
+            lit_points.append(surface.points[lit_rows])
+            order.append(rows)
+    inverse = np.argsort(np.concatenate(order))
+    cat = lambda xs: xs[0] if len(xs) == 1 else md.concatenate(xs)  # noqa: E731
+    s, slope = shadow_crossings(
+        scene, pairs, prim_id[pairs.lit], cat(lit_points)[inverse], frame, spp,
+        working_dtype(scene),
+    )  # fmt: skip
+    return blend_shadow_edges(
+        samples, pairs, s, slope, cat(lit_light)[inverse], cat(dark_light)[inverse]
+    )
+
+
+def _unoccluded(surface: Surface, rows: np.ndarray, material, light) -> md.Tensor:
+    """One light's unoccluded contribution (k, 3) at some rows of a Surface."""
+    albedo = material.albedo
+    if material.texture is not None:
+        albedo = sample_texture(material.texture, surface.uv[rows])
+    return light_contribution(
+        surface.points[rows], surface.normals[rows], surface.directions[rows], albedo,
+        material, light,
+    )  # fmt: skip
+
+
 def _sample_colours(scene: Scene, visibility: Visibility, colour, ray_of_colour) -> md.Tensor:
     """(N, 3) the colour of every ray: its hit's, or the background."""
     prim_id = visibility.primary.prim_id
@@ -206,6 +255,8 @@ class RenderInfo:
     pairs: with ``antialias=True``, the pairs of adjacent samples across a silhouette and
         the edge each one uses (``render.edges.EdgePairs``, ray ids r = pixel * spp +
         sample); None without.
+    shadow_pairs: likewise across shadow edges (``render.shadow_edges.ShadowPairs``);
+        None without antialiasing or without shadows.
     Two renders have the same visibility where ``prim_id`` and ``lit`` agree. The image is a
     smooth function of the parameters only while all of these stay the same: the tape
     gradient is the derivative for fixed decisions, so finite differences agree with it
@@ -216,6 +267,7 @@ class RenderInfo:
     lit: np.ndarray
     texel: np.ndarray
     pairs: EdgePairs | None = None
+    shadow_pairs: ShadowPairs | None = None
 
     @classmethod
     def of(cls, scene: Scene, visibility: Visibility, texel: np.ndarray, spp: int) -> RenderInfo:
@@ -230,4 +282,5 @@ class RenderInfo:
             lit.reshape((len(visibility.lit),) + shape),
             texel.reshape(shape),
             visibility.pairs,
+            visibility.shadow_pairs,
         )

@@ -94,12 +94,19 @@ def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
     return MeshEdges(group, n_groups, neighbour, neighbour_edge, shared, ids)
 
 
-def silhouette_edges(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, eye) -> np.ndarray:
+def silhouette_edges(
+    edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, eye, directional: bool = False
+) -> np.ndarray:
     """(F, 3) bool: edge k of face f is a silhouette seen from ``eye`` (3,): a boundary
-    edge (no other non-degenerate face shares it) or one whose faces face opposite ways."""
+    edge (no other non-degenerate face shares it) or one whose faces face opposite ways.
+    With ``directional`` the viewer is at infinity and ``eye`` is the direction in which
+    it looks (a directional light's direction of travel)."""
     corners = vertices[faces]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    front = np.einsum("ij,ij->i", normal, eye - corners[:, 0]) > 0
+    if directional:
+        front = normal @ -np.asarray(eye, np.float64) > 0
+    else:
+        front = np.einsum("ij,ij->i", normal, eye - corners[:, 0]) > 0
     valid = edges.edge_group >= 0
     groups = edges.edge_group[valid]
     facing = np.broadcast_to(front[:, None], valid.shape)[valid]
@@ -112,8 +119,9 @@ def silhouette_edges(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, 
 
 
 def walk_to_silhouette(
-    edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32
-):
+    edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32,
+    directional: bool = False,
+):  # fmt: skip
     """Follow each segment (near sample at s = 0, far sample at s = 1) across the mesh from
     the near sample's face ``start`` (n,), face to face, until it leaves through a
     silhouette edge. Returns the face (n,), its edge (n,) (-2: none before s = 1, or a
@@ -126,6 +134,10 @@ def walk_to_silhouette(
 
     Also returns the first edge crossed, its s and the face beyond it, (n,) each, for the
     crease test of flat-shaded meshes (``edge_pairs``).
+
+    With ``directional`` the viewer is at infinity looking along ``eye`` (a directional
+    light), and d_near, d_far are the segment's end *points*: an edge's plane then contains
+    the edge and the viewing direction, normal (v_k+1 - v_k) x eye.
     """
     n = len(start)
     face = start.copy()
@@ -141,9 +153,14 @@ def walk_to_silhouette(
         corners = vertices[faces[face[active]]]
         s_k = np.full((len(active), 3), np.inf)
         for k in range(3):
-            m = np.cross(corners[:, k] - eye, corners[:, (k + 1) % 3] - eye)
-            e_near = np.einsum("ij,ij->i", d_near[active], m)
-            e_far = np.einsum("ij,ij->i", d_far[active], m)
+            if directional:
+                m = np.cross(corners[:, (k + 1) % 3] - corners[:, k], eye)
+                e_near = np.einsum("ij,ij->i", d_near[active] - corners[:, k], m)
+                e_far = np.einsum("ij,ij->i", d_far[active] - corners[:, k], m)
+            else:
+                m = np.cross(corners[:, k] - eye, corners[:, (k + 1) % 3] - eye)
+                e_near = np.einsum("ij,ij->i", d_near[active], m)
+                e_far = np.einsum("ij,ij->i", d_far[active], m)
             with np.errstate(divide="ignore", invalid="ignore"):
                 s = e_near / (e_near - e_far)
             ahead = (np.sign(e_near) != np.sign(e_far)) & (s > s_entry[active])
@@ -166,9 +183,33 @@ def walk_to_silhouette(
     return face, edge, s_out, first
 
 
+@numba.njit(cache=True, inline="always")
+def _edge_values(vertices, a, b, eye, directional, near, far):
+    """The edge function of edge (a, b) at the segment's two ends, with scalars only (no
+    temporaries in the walk's inner loop): e = near . m with m = (v_a - eye) x (v_b - eye)
+    for a viewer at ``eye``, e = (near - v_a) . m with m = (v_b - v_a) x eye for a viewer
+    looking along ``eye`` (``directional``); likewise at ``far``."""
+    if directional:
+        px = vertices[b, 0] - vertices[a, 0]
+        py = vertices[b, 1] - vertices[a, 1]
+        pz = vertices[b, 2] - vertices[a, 2]
+        qx, qy, qz = eye[0], eye[1], eye[2]
+        ox, oy, oz = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+    else:
+        px, py, pz = vertices[a, 0] - eye[0], vertices[a, 1] - eye[1], vertices[a, 2] - eye[2]
+        qx, qy, qz = vertices[b, 0] - eye[0], vertices[b, 1] - eye[1], vertices[b, 2] - eye[2]
+        ox, oy, oz = 0.0, 0.0, 0.0
+    mx = py * qz - pz * qy
+    my = pz * qx - px * qz
+    mz = px * qy - py * qx
+    e_near = (near[0] - ox) * mx + (near[1] - oy) * my + (near[2] - oz) * mz
+    e_far = (far[0] - ox) * mx + (far[1] - oy) * my + (far[2] - oz) * mz
+    return e_near, e_far
+
+
 @numba.njit(cache=True, parallel=True)
 def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, eye, d_near,
-                 d_far, max_steps):  # fmt: skip
+                 d_far, max_steps, directional):  # fmt: skip
     """``walk_to_silhouette`` one segment at a time (same steps, same tie-breaking: the
     lowest edge index wins)."""
     n = start.shape[0]
@@ -188,22 +229,10 @@ def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, 
             for k in range(3):
                 if k == entry:
                     continue
-                a, b = faces[f, k], faces[f, (k + 1) % 3]  # scalars only: no temporaries
-                px, py, pz = (
-                    vertices[a, 0] - eye[0],
-                    vertices[a, 1] - eye[1],
-                    vertices[a, 2] - eye[2],
-                )
-                qx, qy, qz = (
-                    vertices[b, 0] - eye[0],
-                    vertices[b, 1] - eye[1],
-                    vertices[b, 2] - eye[2],
-                )
-                mx = py * qz - pz * qy
-                my = pz * qx - px * qz
-                mz = px * qy - py * qx
-                e_near = d_near[i, 0] * mx + d_near[i, 1] * my + d_near[i, 2] * mz
-                e_far = d_far[i, 0] * mx + d_far[i, 1] * my + d_far[i, 2] * mz
+                e_near, e_far = _edge_values(
+                    vertices, faces[f, k], faces[f, (k + 1) % 3], eye, directional,
+                    d_near[i], d_far[i],
+                )  # fmt: skip
                 if np.sign(e_near) != np.sign(e_far):
                     s = e_near / (e_near - e_far)
                     if s > s_entry and s < best_s:
@@ -227,13 +256,14 @@ def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, 
 
 
 def walk_to_silhouette_fast(
-    edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32
-):
+    edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32,
+    directional: bool = False,
+):  # fmt: skip
     """``walk_to_silhouette`` (same arguments, same results) as one Numba kernel."""
     face, edge, s, k1, s1, beyond = _walk_kernel(
         np.ascontiguousarray(vertices, dtype=np.float64), faces, edges.neighbour,
         edges.neighbour_edge, np.ascontiguousarray(silhouette), np.asarray(start, np.int64),
         np.asarray(eye, np.float64), np.ascontiguousarray(d_near, dtype=np.float64),
-        np.ascontiguousarray(d_far, dtype=np.float64), max_steps,
+        np.ascontiguousarray(d_far, dtype=np.float64), max_steps, directional,
     )  # fmt: skip
     return face, edge, s, (k1, s1, beyond)

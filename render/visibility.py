@@ -24,6 +24,7 @@ from render.cache import RenderCache, camera_key, light_key
 from render.camera import image_plane_coords, primary_rays
 from render.edges import EdgePairs, edge_pairs
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.shadow_edges import ShadowPairs, shadow_pairs
 from render.topology import mesh_edges
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
@@ -187,7 +188,8 @@ def trace_shadows(
 class Visibility:
     """Every discrete decision of one render: the camera rays' hits and, per light, a lit
     mask (k,) bool over the hit rays (all True with ``shadows=False``), and the pairs of
-    adjacent samples across a silhouette (None without antialiasing). ``stamp`` (1,)
+    adjacent samples across a silhouette or a shadow edge (None without antialiasing; no
+    shadow pairs with ``shadows=False``). ``stamp`` (1,)
     identifies the computation of ``primary``: equal stamps, equal hits (for the keys of
     the caches that build on them)."""
 
@@ -195,6 +197,7 @@ class Visibility:
     lit: list[np.ndarray]
     stamp: np.ndarray
     pairs: EdgePairs | None = None
+    shadow_pairs: ShadowPairs | None = None
 
 
 def trace_visibility(
@@ -238,4 +241,12 @@ def trace_visibility(
         [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
         lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
     )
-    return Visibility(primary, lit, traced, pairs)
+    shadow = None
+    if shadows:
+        light_keys = [k for light in scene.lights for k in light_key(light)]
+        shadow, _ = cache.get(
+            "shadow pairs",
+            light_keys + [traced],
+            lambda: shadow_pairs(scene, accel, primary, lit, spp, topology, scene_size(primitives)),
+        )
+    return Visibility(primary, lit, traced, pairs, shadow)

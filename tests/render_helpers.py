@@ -165,22 +165,31 @@ def _same_visibility(info, reference) -> np.ndarray:
     same &= (info.texel == reference.texel).all(axis=-1)
     if reference.lit.size:
         same &= (info.lit == reference.lit).all(axis=(0, -1))
+    spp = reference.prim_id.shape[-1]
     if reference.pairs is not None:
-        same &= _same_edge_pairs(info, reference, same)
+        same &= _same_edge_pairs(_pair_rows(info.pairs), _pair_rows(reference.pairs), same, spp)
+    if reference.shadow_pairs is not None:
+        now, ref = _shadow_rows(info.shadow_pairs), _shadow_rows(reference.shadow_pairs)
+        same &= _same_edge_pairs(now, ref, same, spp)
     return same
 
 
 def _pair_rows(pairs) -> np.ndarray:
-    return np.stack([pairs.near, pairs.far, pairs.prim, pairs.edge, pairs.horizontal], axis=1)
+    columns = [pairs.near, pairs.far, pairs.prim, pairs.edge, pairs.other, pairs.horizontal]
+    return np.stack(columns, axis=1)
 
 
-def _same_edge_pairs(info, reference, same) -> np.ndarray:
-    """(H, W) bool: False at both pixels of every antialiasing pair (``RenderInfo.pairs``)
-    present in only one of the two renders, and of every pair whose other pixel changed
-    its decisions (a blended pixel shows its neighbour's colour too)."""
-    spp = reference.prim_id.shape[-1]
+def _shadow_rows(pairs) -> np.ndarray:
+    columns = [pairs.lit, pairs.dark, pairs.light, pairs.occluder, pairs.edge, pairs.horizontal]
+    return np.stack(columns, axis=1)
+
+
+def _same_edge_pairs(now, ref, same, spp) -> np.ndarray:
+    """(H, W) bool: False at both pixels of every antialiasing pair (rows of ray ids and
+    choices, the two rays first) present in only one of the two renders, and of every
+    pair whose other pixel changed its decisions (a blended pixel shows its neighbour's
+    colour too)."""
     ok = np.ones(same.size, dtype=bool)
-    ref, now = _pair_rows(reference.pairs), _pair_rows(info.pairs)
     for a, b in ((ref, now), (now, ref)):
         in_b = (a[:, None, :] == b[None, :, :]).all(-1).any(1) if len(b) else np.zeros(len(a), bool)
         ok[a[~in_b, 0] // spp] = False

@@ -1,0 +1,368 @@
+"""Shadow edges: hard shadows whose boundaries move with the light, the occluder and the
+receiver, on the tape.
+
+A shadow boundary is where the plane through an occluder's silhouette edge (as seen from
+the light) cuts the receiving surface. Between two adjacent samples on the same object,
+one lit by a light and one not, it is found and blended exactly like a silhouette between
+two samples (``render.edges``), but only the light's own contribution is blended:
+
+1. Constants (``shadow_pairs``): the pairs; the occluder (the primitive that blocks the
+   dark sample's shadow ray: ``Accelerator.closest_hit`` along it); its silhouette edge
+   *as seen from the light* between the two shadow rays (``render.topology``'s walk, with
+   the light as the viewer: for a directional light the viewer is at infinity).
+2. On the tape (``shadow_crossings``): the shadow plane of edge (v_i, v_j) has normal
+   m = (v_i - L) x (v_j - L) for a point light L and m = (v_j - v_i) x w for a directional
+   light travelling along w. Along the pair, the receiver point seen through camera
+   direction d on the receiver's plane (normal n through a) is P(d) = C + (n.(a - C) /
+   n.d) d, so m . (P(d) - v_i) = 0 is, times n.d, linear in d:
+       M . d = 0  with  M = (m . (C - v_i)) n + (n . (a - C)) m,
+   and d is affine along the pair: the crossing is s* = M.d_lit / (M.d_lit - M.d_dark),
+   the same closed form as a silhouette. A sphere occluder (point lights): the light's
+   ray to P(d) grazes it where a quadratic in s vanishes (``render.edges``'s sphere
+   crossing, with the light as the eye and u(d) = (n.d)(P(d) - L), linear in d, as the
+   directions).
+3. Blend (``blend_shadow_edges``): the lit sample's box loses, and the dark sample's box
+   gains, the light's unoccluded contribution times the area of the box on the other side
+   of the shadow edge (``render.edges.box_coverage``).
+
+Approximations (measured in ``tests/test_shadow_edges.py``): the receiver is taken to be
+the plane of the lit sample's face (its tangent plane on a sphere), so a curved receiver
+or a pair across a crease of the receiver is approximated by that plane; pairs whose two
+samples hit different objects get no shadow-edge term (their silhouette term, if any,
+blends the whole colour already); a sphere occluder under a directional light gets none.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import minidiff as md
+from render.accel import Accelerator
+from render.camera import image_plane_coords, ray_directions
+from render.edges import (
+    _axis_ok,
+    _column,
+    _corners,
+    _dot,
+    _grid_gradient,
+    _outline_normal,
+    _plain_rays,
+    _plane_normal,
+    _sample_grid,
+    _sphere_crossing,
+    _sphere_crossing_plain,
+    box_coverage,
+)
+from render.scene import PointLight, Scene
+from render.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
+
+
+@dataclass
+class ShadowPairs:
+    """Adjacent samples on one object, lit and not lit by one light, one row per pair.
+
+    lit, dark (n,) int64: ray ids of the lit and of the shadowed sample.
+    light (n,) int64: the light's index in ``scene.lights``.
+    occluder (n,) int64: the primitive whose outline (seen from the light) casts the edge.
+    edge (n,) int64: its edge 0..2 (corners k, k + 1); -1 for a sphere.
+    horizontal (n,) bool: the samples are side by side in a row.
+    """
+
+    lit: np.ndarray
+    dark: np.ndarray
+    light: np.ndarray
+    occluder: np.ndarray
+    edge: np.ndarray
+    horizontal: np.ndarray
+
+    @classmethod
+    def empty(cls) -> ShadowPairs:
+        return cls(*(np.zeros(0, np.int64) for _ in range(5)), np.zeros(0, bool))
+
+    @classmethod
+    def concatenate(cls, parts: list[ShadowPairs]) -> ShadowPairs:
+        if not parts:
+            return cls.empty()
+        columns = zip(*(vars(p).values() for p in parts), strict=True)
+        return cls(*(np.concatenate(x) for x in columns))
+
+
+def _object_of(scene: Scene, prim: np.ndarray) -> np.ndarray:
+    """(n,) the index in ``scene.meshes + scene.spheres`` of the object owning each
+    primitive id (-1 for -1)."""
+    counts = [m.num_faces for m in scene.meshes] + [1] * len(scene.spheres)
+    starts = np.cumsum([0] + counts)
+    return np.where(prim >= 0, np.searchsorted(starts, prim, side="right") - 1, -1)
+
+
+def _receiver_planes(scene: Scene, prim: np.ndarray, points: np.ndarray):
+    """The receiver's plane at each sample: normal (n, 3) and a point on it (n, 3): the hit
+    face's plane, or a sphere's tangent plane at the hit point."""
+    n_tri = sum(m.num_faces for m in scene.meshes)
+    normal, anchor = np.empty((len(prim), 3)), np.array(points, dtype=np.float64)
+    triangles = [m.triangles() for m in scene.meshes]
+    if n_tri:
+        tri = np.concatenate(triangles).astype(np.float64)
+        on_tri = prim < n_tri
+        corners = tri[prim[on_tri]]
+        normal[on_tri] = _plane_normal(corners)
+        anchor[on_tri] = corners[:, 0]
+    for index, sphere in enumerate(scene.spheres):
+        on = prim == n_tri + index
+        normal[on] = points[on] - np.asarray(sphere.center.data, np.float64)
+    return normal, anchor
+
+
+def _light_viewer(light) -> tuple[np.ndarray, bool]:
+    """Where the light 'looks from': its position, or its direction of travel."""
+    if isinstance(light, PointLight):
+        return np.asarray(light.position.data, np.float64), False
+    return np.asarray(light.direction.data, np.float64), True
+
+
+def _image_normal(m, v_i, normal, anchor, eye):
+    """M = (m . (C - v_i)) n + (n . (a - C)) m: the normal, in camera-direction space, of
+    the image line where the plane m . (P - v_i) = 0 cuts the receiver plane (n, a).
+    Tensors or arrays, (k, 3) each."""
+    return _column(_dot(m, eye - v_i)) * normal + _column(_dot(normal, anchor - eye)) * m
+
+
+def _homogeneous_points(d, normal, anchor, eye, origin):
+    """u(d) = (n . d)(C - origin) + (n . (a - C)) d = (n . d) (P(d) - origin), with P(d)
+    the receiver point seen along d: linear in d. Tensors or arrays."""
+    return _column(_dot(normal, d)) * (eye - origin) + _column(_dot(normal, anchor - eye)) * d
+
+
+def _shadow_plane_normal(corner_i, corner_j, light):
+    """m of the plane through an occluder edge and the light (arrays or tensors)."""
+    if isinstance(light, PointLight):
+        position = light.position if isinstance(corner_i, md.Tensor) else light.position.data
+        cross = md.cross if isinstance(corner_i, md.Tensor) else np.cross
+        return cross(corner_i - position, corner_j - position)
+    direction = light.direction if isinstance(corner_i, md.Tensor) else light.direction.data
+    cross = md.cross if isinstance(corner_i, md.Tensor) else np.cross
+    return cross(corner_j - corner_i, direction)
+
+
+def shadow_pairs(
+    scene: Scene,
+    accel: Accelerator,
+    primary,
+    lit: list[np.ndarray],
+    spp: int,
+    topology: dict[int, MeshEdges],
+    size: float,
+) -> ShadowPairs:
+    """Every pair of adjacent samples on one object across a shadow edge of some light.
+
+    primary: ``render.visibility.PrimaryHits``; lit[j] (k,) bool per hit ray; topology:
+    ``mesh_edges`` per mesh; size: the scene's size (for the shadow rays' start offset).
+    """
+    from render.visibility import shadow_rays  # the same rays as the shadows themselves
+
+    camera, prim_id = scene.camera, primary.prim_id
+    grid = _sample_grid(camera, spp)
+    hit_index = np.full(prim_id.size, -1, dtype=np.int64)
+    hit_index[primary.hit_rays] = np.arange(len(primary.hit_rays))
+    obj = _object_of(scene, prim_id)
+    pairs_a = np.concatenate([grid[:, :-1].ravel(), grid[:-1, :].ravel()])
+    pairs_b = np.concatenate([grid[:, 1:].ravel(), grid[1:, :].ravel()])
+    horizontal = np.concatenate(
+        [np.ones(grid[:, :-1].size, bool), np.zeros(grid[:-1, :].size, bool)]
+    )
+    same = (obj[pairs_a] == obj[pairs_b]) & (obj[pairs_a] >= 0)
+    pairs_a, pairs_b, horizontal = pairs_a[same], pairs_b[same], horizontal[same]
+    n_tri = sum(m.num_faces for m in scene.meshes)
+    parts = []
+    for j, light in enumerate(scene.lights):
+        lit_ray = np.zeros(prim_id.size, dtype=bool)
+        lit_ray[primary.hit_rays] = lit[j]
+        differ = lit_ray[pairs_a] != lit_ray[pairs_b]
+        a, b, h = pairs_a[differ], pairs_b[differ], horizontal[differ]
+        if len(a) == 0:
+            continue
+        lit_id, dark_id = np.where(lit_ray[a], a, b), np.where(lit_ray[a], b, a)
+        dark_points = primary.points[hit_index[dark_id]]
+        rays = shadow_rays(light, dark_points, prim_id[dark_id], accel.n_triangles, size)
+        tmax = 1.0 if isinstance(light, PointLight) else np.inf
+        blocker, _, _, _ = accel.closest_hit(rays.origins, rays.directions, 0.0, tmax)
+        parts.append(
+            _edges_of_blockers(
+                scene,
+                light,
+                j,
+                primary,
+                hit_index,
+                lit_id,
+                dark_id,
+                h,
+                blocker,
+                n_tri,
+                topology,
+                spp,
+            )  # fmt: skip
+        )
+    return ShadowPairs.concatenate(parts)
+
+
+def _edges_of_blockers(
+    scene, light, j, primary, hit_index, lit_id, dark_id, horizontal, blocker, n_tri,
+    topology, spp,
+) -> ShadowPairs:  # fmt: skip
+    """For one light: each pair's occluder edge (seen from the light), kept where the
+    shadow edge crosses the pair within the 45-degree rule."""
+    viewer, directional = _light_viewer(light)
+    lit_points = primary.points[hit_index[lit_id]]
+    dark_points = primary.points[hit_index[dark_id]]
+    eye, d_lit, d_dark, to_pixels = _plain_rays(scene.camera, lit_id, dark_id, spp)
+    normal, anchor = _receiver_planes(scene, primary.prim_id[lit_id], lit_points)
+    occluder = blocker.copy()
+    edge = np.full(len(lit_id), -2, dtype=np.int64)
+    image_normal = np.zeros((len(lit_id), 3))
+    first = 0
+    for index, mesh in enumerate(scene.meshes):
+        rows = np.flatnonzero((blocker >= first) & (blocker < first + mesh.num_faces))
+        if len(rows):
+            vertices = np.asarray(mesh.vertices.data, np.float64)
+            topo = topology[index]
+            silhouette = silhouette_edges(topo, vertices, mesh.faces, viewer, directional)
+            if directional:  # segment end points
+                near, far = dark_points[rows], lit_points[rows]
+            else:  # directions from the light
+                near, far = dark_points[rows] - viewer, lit_points[rows] - viewer
+            face, k, _, _ = walk_to_silhouette_fast(
+                topo, silhouette, vertices, mesh.faces, blocker[rows] - first, viewer, near,
+                far, directional=directional,
+            )  # fmt: skip
+            found = k >= 0
+            corners = vertices[mesh.faces[face]]
+            r, kk = np.arange(len(rows)), np.maximum(k, 0)
+            m = _shadow_plane_normal(corners[r, kk], corners[r, (kk + 1) % 3], light)
+            image_normal[rows] = _image_normal(m, corners[r, kk], normal[rows], anchor[rows], eye)
+            edge[rows] = np.where(found, k, -2)
+            occluder[rows] = face + first
+        first += mesh.num_faces
+    s = np.full(len(lit_id), np.nan)
+    triangle = edge >= 0
+    e_lit = np.sum(d_lit * image_normal, axis=1)
+    e_dark = np.sum(d_dark * image_normal, axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s[triangle] = (e_lit / (e_lit - e_dark))[triangle]
+    for index, sphere in enumerate(scene.spheres):
+        rows = np.flatnonzero(blocker == n_tri + index)
+        if len(rows) == 0 or directional:
+            continue
+        u_dark = _homogeneous_points(d_dark[rows], normal[rows], anchor[rows], eye, viewer)
+        u_lit = _homogeneous_points(d_lit[rows], normal[rows], anchor[rows], eye, viewer)
+        s_dark = _sphere_crossing_plain(sphere, viewer, u_dark, u_lit)
+        g = _outline_normal(sphere.center.data, sphere.radius.data, viewer, u_dark, u_lit,
+                            np.nan_to_num(s_dark))  # fmt: skip
+        image_normal[rows] = _chain_to_directions(g, normal[rows], anchor[rows], eye, viewer)
+        s[rows] = 1.0 - s_dark
+        edge[rows] = np.where(np.isfinite(s_dark), -1, -2)
+    keep = (edge >= -1) & (s > 0) & (s < 1)
+    keep &= _axis_ok(image_normal, horizontal, to_pixels)
+    return ShadowPairs(
+        lit_id[keep], dark_id[keep], np.full(keep.sum(), j, np.int64), occluder[keep],
+        edge[keep], horizontal[keep],
+    )  # fmt: skip
+
+
+def _chain_to_directions(g, normal, anchor, eye, origin):
+    """The gradient with respect to d of a function of u(d) (``_homogeneous_points``) whose
+    gradient with respect to u is g: n ((C - origin) . g) + (n . (a - C)) g."""
+    return _column(_dot(eye - origin, g)) * normal + _column(_dot(normal, anchor - eye)) * g
+
+
+# --------------------------------------------------------------------------------------
+# On the tape
+# --------------------------------------------------------------------------------------
+
+
+def _receiver_planes_tape(scene: Scene, prim: np.ndarray, points: md.Tensor):
+    """``_receiver_planes`` on the tape: (normal, anchor), (k, 3) each. ``points`` are the
+    samples' hit points on the tape (used for spheres)."""
+    n_tri = sum(m.num_faces for m in scene.meshes)
+    normals, anchors, order = [], [], []
+    on_tri = np.flatnonzero(prim < n_tri)
+    if len(on_tri):
+        corners = _corners(scene, prim[on_tri])
+        normals.append(_plane_normal(corners))
+        anchors.append(corners[0])
+        order.append(on_tri)
+    for index, sphere in enumerate(scene.spheres):
+        on = np.flatnonzero(prim == n_tri + index)
+        if len(on):
+            p = points[on]
+            normals.append(p - sphere.center)
+            anchors.append(p)
+            order.append(on)
+    inverse = np.argsort(np.concatenate(order))
+    cat = lambda xs: xs[0] if len(xs) == 1 else md.concatenate(xs)  # noqa: E731
+    return cat(normals)[inverse], cat(anchors)[inverse]
+
+
+def shadow_crossings(
+    scene: Scene, pairs: ShadowPairs, prim_lit: np.ndarray, lit_points, frame, spp: int, dtype
+):
+    """On the tape, per pair: s* (n,), where the shadow edge crosses the segment from the
+    lit sample (s = 0) to the dark one (s = 1), and its slope across the pair (n,).
+    prim_lit (n,): the lit samples' primitives; lit_points (n, 3): their hit points on the
+    tape."""
+    camera, eye = scene.camera, frame[3]
+    d_lit = ray_directions(frame, image_plane_coords(camera, pairs.lit, spp).astype(dtype))
+    d_dark = ray_directions(frame, image_plane_coords(camera, pairs.dark, spp).astype(dtype))
+    normal, anchor = _receiver_planes_tape(scene, prim_lit, lit_points)
+    s_parts, normals, order = [], [], []
+    for j, light in enumerate(scene.lights):
+        rows = np.flatnonzero((pairs.light == j) & (pairs.edge >= 0))
+        if len(rows):
+            corners = md.stack(_corners(scene, pairs.occluder[rows]), axis=1)
+            r, k = np.arange(len(rows)), pairs.edge[rows]
+            v_i, v_j = corners[r, k], corners[r, (k + 1) % 3]
+            m = _shadow_plane_normal(v_i, v_j, light)
+            big_m = _image_normal(m, v_i, normal[rows], anchor[rows], eye)
+            e_lit, e_dark = md.dot(d_lit[rows], big_m), md.dot(d_dark[rows], big_m)
+            s_parts.append(e_lit / (e_lit - e_dark))
+            normals.append(big_m)
+            order.append(rows)
+        n_tri = sum(mesh.num_faces for mesh in scene.meshes)
+        for index, sphere in enumerate(scene.spheres):
+            rows = np.flatnonzero(
+                (pairs.light == j) & (pairs.edge == -1) & (pairs.occluder == n_tri + index)
+            )
+            if len(rows) == 0:
+                continue
+            position = light.position
+            u_dark = _homogeneous_points(d_dark[rows], normal[rows], anchor[rows], eye, position)
+            u_lit = _homogeneous_points(d_lit[rows], normal[rows], anchor[rows], eye, position)
+            s_dark = _sphere_crossing(sphere, position, u_dark, u_lit)
+            g = _outline_normal(sphere.center, sphere.radius, position, u_dark, u_lit, s_dark)
+            s_parts.append(1.0 - s_dark)
+            normals.append(_chain_to_directions(g, normal[rows], anchor[rows], eye, position))
+            order.append(rows)
+    inverse = np.argsort(np.concatenate(order))
+    s = (s_parts[0] if len(s_parts) == 1 else md.concatenate(s_parts))[inverse]
+    big_m = (normals[0] if len(normals) == 1 else md.concatenate(normals))[inverse]
+    n = round(spp**0.5)
+    to_samples = np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)], dtype)
+    gx, gy = _grid_gradient(big_m, frame[1], frame[2], to_samples)
+    along = md.where(pairs.horizontal, gx, gy)
+    across = md.where(pairs.horizontal, gy, gx)
+    return s, across / along
+
+
+def blend_shadow_edges(ray_colour, pairs: ShadowPairs, s, slope, light_lit, light_dark):
+    """ray_colour (N, 3) with each pair's light contribution blended across its shadow
+    edge: the lit sample loses its unoccluded contribution light_lit (n, 3) times the area
+    of its box in the shadow, the dark sample gains light_dark (n, 3) times the area of
+    its box in the light."""
+    if len(pairs.lit) == 0:
+        return ray_colour
+    shadowed = md.reshape(box_coverage(0.5 - s, slope), (-1, 1))
+    lighted = md.reshape(box_coverage(s - 0.5, slope, include_zero=False), (-1, 1))
+    updates = md.concatenate([-(shadowed * light_lit), lighted * light_dark])
+    rays = np.concatenate([pairs.lit, pairs.dark])
+    return ray_colour + md.scatter_add(updates, rays, ray_colour.shape[0])
