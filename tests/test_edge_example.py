@@ -7,6 +7,8 @@ import runpy
 import sys
 from pathlib import Path
 
+import numpy as np
+
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "edge_gradients.py"
 
 
@@ -19,3 +21,15 @@ def test_edge_gradients_example_quick(tmp_path, monkeypatch):
     assert all(0.0 <= c["fraction"] <= 1.0 for c in result["coverage_30deg"])
     for name in ("basin.png", "silhouette_zoom.png", "edge_gradients.md"):
         assert (tmp_path / name).stat().st_size > 0
+
+
+SHADOW_EXAMPLE = EXAMPLE.parent / "shadow_light_estimation.py"
+
+
+def test_shadow_light_estimation_example_quick(tmp_path, monkeypatch):
+    monkeypatch.setattr(sys, "argv", [str(SHADOW_EXAMPLE), "--quick", "--out", str(tmp_path)])
+    runpy.run_path(str(SHADOW_EXAMPLE), run_name="__main__")
+    result = json.loads((tmp_path / "shadow_light_estimation.json").read_text())
+    assert len(result["ground"]) == 4 and len(result["paper"]) == 2
+    assert {r["antialias"] for r in result["ground"]} == {False, True}
+    assert all(np.isfinite(r["position_error_pct"]) for r in result["ground"])
