@@ -500,8 +500,9 @@ def closest_hit_bvh(
     out_v,
 ):
     """Closest hit for N rays through the BVH (single-ray traversal, rays in parallel).
-    ``stack_size`` must be at least the tree depth + 1.  Results are written to out_id (N,)
-    int64, out_t, out_u, out_v (N,) float64 (see :func:`closest_hit_ray`)."""
+    ``stack_size`` must be at least the tree depth + 2 (``Accelerator._tree``).  Results are
+    written to out_id (N,) int64, out_t, out_u, out_v (N,) float64 (see
+    :func:`closest_hit_ray`)."""
     n = out_id.shape[0]
     n_jobs = _n_jobs(n)
     n_blocks = (n + BLOCK - 1) // BLOCK
