@@ -67,10 +67,10 @@ PARAMETERS = (
 )
 
 
-def differentiable_scene(size: int, nu: int = 4, nv: int = 6, names=None):
+def differentiable_scene(size: int, nu: int = 4, nv: int = 6, names=None, ground=False):
     """The paper scene with the named parameters (default: all of ``PARAMETERS``) replaced
     by leaves that require gradients. Returns (scene, {name: leaf})."""
-    scene = paper_scene(size, size, nu=nu, nv=nv)
+    scene = paper_scene(size, size, nu=nu, nv=nv, ground=ground)
     owners = {
         "light": scene.lights[0],
         "material": scene.meshes[0].material,
@@ -86,20 +86,24 @@ def differentiable_scene(size: int, nu: int = 4, nv: int = 6, names=None):
     return scene, params
 
 
-def loss_problem(size: int, nu: int = 4, nv: int = 6, names=None):
+def loss_problem(size: int, nu: int = 4, nv: int = 6, names=None, ground=False):
     """(scene, params, target): the target is rendered at the true parameters, the scene
-    starts with the light moved by 0.1 along x, so the loss and its gradient are not zero."""
-    target = render(paper_scene(size, size, nu=nu, nv=nv)).data.copy()
-    scene, params = differentiable_scene(size, nu, nv, names)
+    starts with the light moved by 0.1 along x, so the loss and its gradient are not zero.
+    ``ground``: the teapot stands on a ground plane (``paper_scene(ground=True)``)."""
+    target = render(paper_scene(size, size, nu=nu, nv=nv, ground=ground)).data.copy()
+    scene, params = differentiable_scene(size, nu, nv, names, ground)
     scene.lights[0].position.data[0] += 0.1
     return scene, params, target
 
 
-def forward_backward(scene, params, target, bvh: bool = True, reuse: bool = False) -> float:
+def forward_backward(
+    scene, params, target, bvh: bool = True, reuse: bool = False, antialias: bool = False
+) -> float:
     """One gradient evaluation: render, Eq. 1 loss, backward into every parameter."""
     for p in params.values():
         p.grad = None
-    loss = image_loss(render(scene, bvh=bvh, reuse_visibility=reuse), target)
+    image = render(scene, bvh=bvh, reuse_visibility=reuse, antialias=antialias)
+    loss = image_loss(image, target)
     loss.backward()
     return loss.item()
 
@@ -206,6 +210,35 @@ def run_threading_variants(size: int, repeats: int, variants) -> dict:
 # --------------------------------------------------------------------------------------
 
 
+def time_antialias(size: int, repeats: int) -> dict:
+    """Forward render and forward+backward (all parameters) with and without
+    ``antialias=True``, on the paper scene and on the teapot standing on a ground plane
+    (where shadow edges appear), and the ratios (the target: at most 1.25)."""
+    out = {}
+    for name, ground in (("paper", False), ("ground", True)):
+        plain = paper_scene(size, size, ground=ground)
+        scene, params, target = loss_problem(size, ground=ground)
+        row = {}
+        for antialias in (False, True):
+            key = "antialias" if antialias else "plain"
+            row[f"forward_{key}"] = timing.measure(
+                lambda a=antialias, sc=plain: render(sc, reuse_visibility=False, antialias=a),
+                repeats,
+            )
+            row[f"forward_backward_{key}"] = timing.measure(
+                lambda a=antialias, problem=(scene, params, target): forward_backward(
+                    *problem, antialias=a
+                ),
+                repeats,
+            )
+        for kind in ("forward", "forward_backward"):
+            row[f"ratio_{kind}"] = (
+                row[f"{kind}_antialias"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
+            )
+        out[name] = row
+    return out
+
+
 def main(argv=None) -> dict:
     parser = timing.make_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=15)
@@ -245,6 +278,9 @@ def main(argv=None) -> dict:
     )
     r["profile_forward_backward"] = profile_top(lambda: forward_backward(scene, params, target))
 
+    # Edge antialiasing (silhouettes, creases and, on the teapot and its ground, shadows)
+    r["antialias"] = time_antialias(size, repeats)
+
     # Without the BVH
     r["forward_no_bvh"] = timing.measure(
         lambda: render(plain, bvh=False, reuse_visibility=False), brute_repeats
@@ -278,6 +314,23 @@ def main(argv=None) -> dict:
     timing.print_report(section, timing.machine())
     print(f"wrote {path}")
     return r
+
+
+def antialias_rows(aa: dict) -> list:
+    rows = []
+    for name, label in (("paper", "paper scene"), ("ground", "teapot on a ground plane")):
+        a = aa[name]
+        for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
+            rows.append(
+                timing.row(
+                    f"{text} with antialias=True / without, {label}",
+                    f"{timing.ms(a[f'{kind}_antialias'])} / {timing.ms(a[f'{kind}_plain'])} "
+                    f"= {a[f'ratio_{kind}']:.2f}x",
+                    "target <= 1.25x",
+                    timing.target_status(a[f"ratio_{kind}"], 1.25),
+                )
+            )
+    return rows
 
 
 def make_report(r: dict, out) -> dict:
@@ -345,6 +398,7 @@ def make_report(r: dict, out) -> dict:
             f"{r['ratio_forward_backward_to_forward_tape']:.2f}x",
         ),
         timing.row("full forward render, no BVH", timing.ms(r["forward_no_bvh"]), "paper 85.6 ms"),
+        *antialias_rows(r["antialias"]),
         timing.row("forward+backward, no BVH", timing.ms(r["forward_backward_no_bvh"])),
         timing.row(
             "minor page faults per pass: forward / forward+backward",

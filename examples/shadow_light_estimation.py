@@ -26,20 +26,7 @@ import minidiff as md
 from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, relative_error_pct
 from render.optimize import optimize
 from render.renderer import render
-from render.scene import Material, Mesh
 from render.teapot import paper_scene
-
-GROUND_Y = -0.5  # where the teapot stands (``render.teapot``: its bottom is at y = -0.5)
-
-
-def with_ground(scene):
-    """The scene with a 6 x 6 grey ground quad under the teapot (added in place)."""
-    s = 3.0
-    vertices = np.array(
-        [(-s, GROUND_Y, s), (s, GROUND_Y, s), (s, GROUND_Y, -s), (-s, GROUND_Y, -s)]
-    )
-    scene.objects.append(Mesh(vertices, [[0, 1, 2], [0, 2, 3]], Material((0.6, 0.6, 0.6))))
-    return scene
 
 
 def start_light(seed: int) -> tuple[np.ndarray, float]:
@@ -54,16 +41,17 @@ def start_light(seed: int) -> tuple[np.ndarray, float]:
 
 def estimate(size, seed, ground: bool, antialias: bool, iters: int, tol: float) -> dict:
     """One light estimation run."""
-    build = (lambda sc: with_ground(sc)) if ground else (lambda sc: sc)  # noqa: E731
-    truth = build(
-        paper_scene(size, size, light_position=TRUE_LIGHT, light_intensity=TRUE_INTENSITY)
+    truth = paper_scene(
+        size, size, light_position=TRUE_LIGHT, light_intensity=TRUE_INTENSITY, ground=ground
     )
     with md.no_grad():
         target = render(truth, antialias=antialias).data.copy()
     light, intensity = start_light(seed)
     position = md.tensor(light, requires_grad=True)
     strength = md.tensor(intensity, requires_grad=True)
-    scene = build(paper_scene(size, size, light_position=position, light_intensity=strength))
+    scene = paper_scene(
+        size, size, light_position=position, light_intensity=strength, ground=ground
+    )
     _, history = optimize(
         scene, [position, strength], np.clip(target, 0, 1), lr=[0.3, 20.0], max_iters=iters,
         tol=tol, quiet=True, render_kwargs={"antialias": antialias},

@@ -33,6 +33,9 @@ __all__ = ["teapot_geometry", "teapot", "paper_scene", "PAPER_ALBEDO"]
 
 _DATA = Path(__file__).parent / "data" / "newell_teapot.json"
 
+#: Where the teapot stands: its lowest point (the bottom patches) is at y = -0.5.
+GROUND_Y = -0.5
+
 #: The paper's Lambertian teapot albedo (linear RGB).
 PAPER_ALBEDO = (0.7, 0.3, 0.3)
 
@@ -129,6 +132,7 @@ def paper_scene(
     look_at: ArrayLike = (0, 0, 0),
     nu: int = 4,
     nv: int = 6,
+    ground: bool = False,
 ) -> Scene:
     """The reference scene of ``docs/paper_scene.md``: the teapot lit by one white point light.
 
@@ -139,6 +143,9 @@ def paper_scene(
 
     Continuous arguments may be ``minidiff.Tensor`` s (e.g. ``requires_grad=True`` for the
     inverse-rendering experiments); the scene keeps those very objects.
+
+    ``ground=True`` stands the teapot on a 6 x 6 grey (albedo 0.6) square at its bottom,
+    y = -0.5, so that it casts a shadow a camera can see (not part of the paper's scene).
     """
     camera = Camera.from_focal_length(
         50.0, 36.0, position=camera_position, look_at=look_at, up=(0, 1, 0),
@@ -146,4 +153,9 @@ def paper_scene(
     )  # fmt: skip
     light = PointLight(light_position, light_intensity)
     mesh = teapot(nu, nv, material=Material(albedo=albedo))
-    return Scene([mesh], [light], camera, background=(0, 0, 0))
+    objects = [mesh]
+    if ground:
+        s, y = 3.0, GROUND_Y
+        square = np.array([(-s, y, s), (s, y, s), (s, y, -s), (-s, y, -s)], dtype=np.float64)
+        objects.append(Mesh(square, [[0, 1, 2], [0, 2, 3]], Material((0.6, 0.6, 0.6))))
+    return Scene(objects, [light], camera, background=(0, 0, 0))
