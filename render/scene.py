@@ -146,6 +146,11 @@ def check_ray_count(width: int, height: int, spp: int) -> None:
         )
 
 
+def _normalisable(v: np.ndarray) -> bool:
+    """True if ``v / |v|`` is a finite unit vector (|v| is no denormal or zero)."""
+    return bool(np.linalg.norm(v) > 1e-150)
+
+
 def _check_instance(value: Any, owner: str, name: str, cls: type) -> None:
     if not isinstance(value, cls):
         raise TypeError(f"{owner}: {name} must be a {cls.__name__}, got {type(value).__name__}")
@@ -384,7 +389,8 @@ class DirectionalLight(_HasFields):
     """
 
     FIELDS = (
-        Field("direction", ((3,),), (np.any, "a non-zero vector")),
+        # Shading and shadow rays divide by its length: it must not underflow.
+        Field("direction", ((3,),), (_normalisable, "a non-zero vector (length > 1e-150)")),
         Field("irradiance", ((),), (lambda x: x >= 0.0, ">= 0")),
         Field("color", ((3,),)),
     )
@@ -471,7 +477,14 @@ def _as_faces(faces: Any) -> np.ndarray:
             "Mesh: faces must be an integer ndarray, not a minidiff.Tensor "
             "(connectivity is never differentiable)"
         )
-    array = np.asarray(faces)
+    try:
+        array = np.asarray(faces)
+    except ValueError as err:  # ragged lists: NumPy says "inhomogeneous shape"
+        raise ValueError(f"Mesh: faces must be an (F, 3) array of integers: {err}") from None
+    if array.dtype == object:
+        raise ValueError("Mesh: faces must be an (F, 3) array of integers, got ragged rows")
+    if array.dtype == np.uint64 and array.size and int(array.max()) > np.iinfo(np.int64).max:
+        raise ValueError(f"Mesh: faces contain an index too large for int64 ({int(array.max())})")
     if array.dtype == np.bool_ or not np.issubdtype(array.dtype, np.integer):
         if array.size == 0 and array.dtype == np.float64:
             # np.asarray([]) is float64; report the emptiness, not the dtype.
@@ -563,6 +576,14 @@ class Mesh(_HasFields):
             raise TypeError(f"Mesh: smooth must be a bool, got {type(self.smooth).__name__}")
         if self.material.texture is not None and self.uvs is None:
             raise ValueError("Mesh: the material has a texture but the mesh has no uvs")
+        if self.smooth and self.normals is not None:
+            # All zero would shade every hit black without a word (one zero normal among
+            # others is fine: the interpolation is still defined near the others).
+            if not self.normals.data[np.unique(faces)].any():
+                raise ValueError(
+                    "Mesh: normals are all (0, 0, 0) on the vertices the faces use; smooth "
+                    "shading needs non-zero normals (or normals=None to compute them)"
+                )
 
     def __repr__(self) -> str:
         extras = [name for name in ("normals", "uvs") if getattr(self, name) is not None]

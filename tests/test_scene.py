@@ -225,3 +225,23 @@ def test_named_parameters_name_every_parameter_once_in_parameters_order():
 def test_a_named_size_must_agree_across_fields():
     with pytest.raises(ValueError, match=r"Mesh: uvs must have shape \(3, 2\), got \(4, 2\)"):
         Mesh(TRI_V, TRI_F, Material((1, 1, 1)), uvs=np.zeros((4, 2)))
+
+
+@pytest.mark.parametrize(
+    "build, message",
+    [
+        (lambda: DirectionalLight((0, -1e-300, 0), 1.0), "direction must be a non-zero vector"),
+        (lambda: Mesh(TRI_V, [[0, 1, 2], [0, 1]], Material((1, 1, 1))), "faces must be an"),
+        (
+            lambda: Mesh(TRI_V, np.array([[0, 1, 2**63 + 5]], np.uint64), Material((1, 1, 1))),
+            "too large for int64",
+        ),
+        (
+            lambda: Mesh(TRI_V, TRI_F, Material((1, 1, 1)), normals=np.zeros((3, 3)), smooth=True),
+            "normals are all",
+        ),
+    ],
+)
+def test_inputs_that_gave_unclear_errors_or_silent_black(build, message):
+    with pytest.raises(ValueError, match=message):
+        build()
