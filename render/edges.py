@@ -123,17 +123,24 @@ def edge_pairs(
             topo = topology[index]
             silhouette = silhouette_edges(topo, vertices, mesh.faces, eye)
             start = prim[rows] - first
-            face, k, s[rows], (k1, s1, beyond) = walk_to_silhouette_fast(
+            # Creases: the colour jumps across an edge that is not a silhouette too where
+            # flat shading changes normal, or where the faces do not share the edge's vertex
+            # ids (a seam: smooth normals and UVs are per vertex id).
+            jumps = ~topo.shared_ids if mesh.smooth else np.ones(mesh.faces.shape, bool)
+            face, k, s[rows], (mid_face, mid_k, mid_s) = walk_to_silhouette_fast(
                 topo, silhouette, vertices, mesh.faces, start, eye, d_near[rows], d_far[rows],
+                jumps=jumps,
             )  # fmt: skip
-            # A crease: the colour jumps across an edge that is not a silhouette too when
-            # flat shading changes normal there, or when the faces do not share the edge's
-            # vertex ids (a seam: smooth normals and UVs are per vertex id). Taken where no
-            # silhouette lies between the samples and the far sample's face is the next one.
-            jumps = ~topo.shared_ids[start, np.maximum(k1, 0)] if mesh.smooth else True
-            crease = (k < 0) & (k1 >= 0) & (s1 < 1.0) & (beyond == prim_id[far[rows]] - first)
-            crease &= jumps
-            face[crease], k[crease], s[rows[crease]] = start[crease], k1[crease], s1[crease]
+            # Where no silhouette lies between the samples and the walk ended on the far
+            # sample's face, blend across the crease crossed nearest the middle (at low
+            # resolution several may lie between two samples: they move together, and one
+            # crossing carries the whole colour difference).
+            crease = (k < 0) & (mid_k >= 0) & (face == prim_id[far[rows]] - first)
+            face[crease], k[crease], s[rows[crease]] = (
+                mid_face[crease],
+                mid_k[crease],
+                mid_s[crease],
+            )
             corners = vertices[mesh.faces[face]]
             kk, r = np.maximum(k, 0), np.arange(len(rows))
             normal = np.cross(corners[r, kk] - eye, corners[r, (kk + 1) % 3] - eye)

@@ -120,7 +120,7 @@ def silhouette_edges(
 
 def walk_to_silhouette(
     edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32,
-    directional: bool = False,
+    directional: bool = False, jumps=None,
 ):  # fmt: skip
     """Follow each segment (near sample at s = 0, far sample at s = 1) across the mesh from
     the near sample's face ``start`` (n,), face to face, until it leaves through a
@@ -132,8 +132,9 @@ def walk_to_silhouette(
     the face hit at the near sample is often not the one on the silhouette: this walk finds
     the one that is (nvdiffrast only looks at the face in the pixel).
 
-    Also returns the first edge crossed, its s and the face beyond it, (n,) each, for the
-    crease test of flat-shaded meshes (``edge_pairs``).
+    Also returns, for the crease test (``render.edges.edge_pairs``), the crossing of an
+    edge where ``jumps`` (F, 3) bool says the colour jumps (flat shading, seams) that lies
+    closest to the middle of the segment: its face, edge and s, (n,) each (edge -1: none).
 
     With ``directional`` the viewer is at infinity looking along ``eye`` (a directional
     light), and d_near, d_far are the segment's end *points*: an edge's plane then contains
@@ -146,8 +147,9 @@ def walk_to_silhouette(
     edge = np.full(n, -2, dtype=np.int64)
     s_out = np.full(n, np.nan)
     active = np.arange(n)
-    first = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64))
-    for step in range(max_steps):
+    jumps = np.zeros(silhouette.shape, bool) if jumps is None else jumps
+    mid = (np.full(n, -1, np.int64), np.full(n, -1, np.int64), np.full(n, np.nan))
+    for _ in range(max_steps):
         if len(active) == 0:
             break
         corners = vertices[faces[face[active]]]
@@ -167,10 +169,12 @@ def walk_to_silhouette(
             s_k[:, k] = np.where(ahead & (entry[active] != k), s, np.inf)
         k = np.argmin(s_k, axis=1)
         s = s_k[np.arange(len(active)), k]
-        if step == 0:  # every row is active: remember the first edge crossed
-            first = (k.copy(), s.copy(), edges.neighbour[face, k])
         inside = s < 1.0  # else the far sample lies on this face's side: no edge between
         at_silhouette = inside & silhouette[face[active], k]
+        jump = inside & ~at_silhouette & jumps[face[active], k]
+        closer = jump & ~(np.abs(mid[2][active] - 0.5) <= np.abs(s - 0.5))
+        rows = active[closer]
+        mid[0][rows], mid[1][rows], mid[2][rows] = face[rows], k[closer], s[closer]
         done = active[at_silhouette]
         edge[done], s_out[done] = k[at_silhouette], s[at_silhouette]
         step = inside & ~at_silhouette
@@ -180,7 +184,7 @@ def walk_to_silhouette(
         entry[moving] = edges.neighbour_edge[face[moving], k[step]]
         face[moving], s_entry[moving] = nb[step], s[step]
         active = moving
-    return face, edge, s_out, first
+    return face, edge, s_out, mid
 
 
 @numba.njit(cache=True, inline="always")
@@ -208,22 +212,22 @@ def _edge_values(vertices, a, b, eye, directional, near, far):
 
 
 @numba.njit(cache=True, parallel=True)
-def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, eye, d_near,
-                 d_far, max_steps, directional):  # fmt: skip
+def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, jumps, start, eye,
+                 d_near, d_far, max_steps, directional):  # fmt: skip
     """``walk_to_silhouette`` one segment at a time (same steps, same tie-breaking: the
     lowest edge index wins)."""
     n = start.shape[0]
     face = start.copy()
     edge = np.full(n, -2, dtype=np.int64)
     s_out = np.full(n, np.nan)
-    first_k = np.zeros(n, dtype=np.int64)
-    first_s = np.full(n, np.inf)
-    first_beyond = np.zeros(n, dtype=np.int64)
+    mid_face = np.full(n, -1, dtype=np.int64)
+    mid_k = np.full(n, -1, dtype=np.int64)
+    mid_s = np.full(n, np.nan)
     for i in numba.prange(n):
         f = start[i]
         entry = -1
         s_entry = 0.0
-        for step in range(max_steps):
+        for _ in range(max_steps):
             best_k = 0
             best_s = np.inf
             for k in range(3):
@@ -237,14 +241,13 @@ def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, 
                     s = e_near / (e_near - e_far)
                     if s > s_entry and s < best_s:
                         best_k, best_s = k, s
-            if step == 0:
-                first_k[i], first_s[i] = best_k, best_s
-                first_beyond[i] = neighbour[f, best_k]
             if not best_s < 1.0:
                 break
             if silhouette[f, best_k]:
                 edge[i], s_out[i] = best_k, best_s
                 break
+            if jumps[f, best_k] and not abs(mid_s[i] - 0.5) <= abs(best_s - 0.5):
+                mid_face[i], mid_k[i], mid_s[i] = f, best_k, best_s
             nb = neighbour[f, best_k]
             if nb < 0:
                 break
@@ -252,18 +255,20 @@ def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, start, 
             f = nb
             s_entry = best_s
         face[i] = f
-    return face, edge, s_out, first_k, first_s, first_beyond
+    return face, edge, s_out, mid_face, mid_k, mid_s
 
 
 def walk_to_silhouette_fast(
     edges: MeshEdges, silhouette, vertices, faces, start, eye, d_near, d_far, max_steps=32,
-    directional: bool = False,
+    directional: bool = False, jumps=None,
 ):  # fmt: skip
     """``walk_to_silhouette`` (same arguments, same results) as one Numba kernel."""
-    face, edge, s, k1, s1, beyond = _walk_kernel(
+    jumps = np.zeros(silhouette.shape, bool) if jumps is None else jumps
+    face, edge, s, mid_face, mid_k, mid_s = _walk_kernel(
         np.ascontiguousarray(vertices, dtype=np.float64), faces, edges.neighbour,
-        edges.neighbour_edge, np.ascontiguousarray(silhouette), np.asarray(start, np.int64),
+        edges.neighbour_edge, np.ascontiguousarray(silhouette), np.ascontiguousarray(jumps),
+        np.asarray(start, np.int64),
         np.asarray(eye, np.float64), np.ascontiguousarray(d_near, dtype=np.float64),
         np.ascontiguousarray(d_far, dtype=np.float64), max_steps, directional,
     )  # fmt: skip
-    return face, edge, s, (k1, s1, beyond)
+    return face, edge, s, (mid_face, mid_k, mid_s)

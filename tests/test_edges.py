@@ -229,7 +229,9 @@ def test_the_numba_walk_equals_the_numpy_walk(size):
     edges = mesh_edges(vertices, faces)
     silhouette = silhouette_edges(edges, vertices, faces, eye)
     args = (edges, silhouette, vertices, faces, hits.prim_id[near], eye, d_near, d_far)
-    slow, fast = walk_to_silhouette(*args), walk_to_silhouette_fast(*args)
+    jumps = np.ones(faces.shape, bool)  # flat shading: every edge is a crease
+    slow = walk_to_silhouette(*args, jumps=jumps)
+    fast = walk_to_silhouette_fast(*args, jumps=jumps)
     # Faces and edges exactly; s* in [0, 1] to 1e-12 (Numba may fuse multiply-adds).
     for x, y in zip((*slow[:3], *slow[3]), (*fast[:3], *fast[3]), strict=True):
         if x.dtype.kind == "i":
@@ -237,3 +239,4 @@ def test_the_numba_walk_equals_the_numpy_walk(size):
         else:
             np.testing.assert_allclose(x, y, rtol=0, atol=1e-12)
     assert (slow[1] >= 0).sum() > 50  # silhouettes were found
+    assert (slow[3][1] >= 0).sum() > 50  # and creases

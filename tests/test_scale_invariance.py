@@ -53,9 +53,7 @@ def render_plain(scene, antialias):
     lights=st.sampled_from([("point",), ("directional",), ("point", "directional")]),
     antialias=st.booleans(),
 )
-def test_scaled_and_translated_scene_renders_the_same(
-    seed, log_scale, shift, lights, antialias
-):
+def test_scaled_and_translated_scene_renders_the_same(seed, log_scale, shift, lights, antialias):
     reference, ref_info = render_plain(random_scene(seed, lights=lights), antialias)
     scale = 10.0**log_scale
     moved = transformed(random_scene(seed, lights=lights), scale, np.array(shift) * scale)
