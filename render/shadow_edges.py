@@ -262,7 +262,11 @@ def _edges_of_blockers(
         image_normal[rows] = _chain_to_directions(g, normal[rows], anchor[rows], eye, viewer)
         s[rows] = 1.0 - s_dark
         edge[rows] = np.where(np.isfinite(s_dark), -1, -2)
-    keep = (edge >= -1) & (s > 0) & (s < 1)
+    # The receiver's plane is an approximation: the crossing it gives may fall just outside
+    # the pair although the shadow rays say the edge lies between the samples. Such pairs
+    # are kept and their crossing clamped to [0, 1] on the tape (``shadow_crossings``):
+    # dropping them would make the image jump when the crossing re-enters the pair.
+    keep = (edge >= -1) & np.isfinite(s)
     keep &= _axis_ok(image_normal, horizontal, to_pixels)
     return ShadowPairs(
         lit_id[keep], dark_id[keep], np.full(keep.sum(), j, np.int64), occluder[keep],
@@ -308,7 +312,8 @@ def shadow_crossings(
     scene: Scene, pairs: ShadowPairs, prim_lit: np.ndarray, lit_points, frame, spp: int, dtype
 ):
     """On the tape, per pair: s* (n,), where the shadow edge crosses the segment from the
-    lit sample (s = 0) to the dark one (s = 1), and its slope across the pair (n,).
+    lit sample (s = 0) to the dark one (s = 1), clamped to [0, 1] (see ``shadow_pairs``),
+    and its slope across the pair (n,).
     prim_lit (n,): the lit samples' primitives; lit_points (n, 3): their hit points on the
     tape."""
     camera, eye = scene.camera, frame[3]
@@ -351,7 +356,7 @@ def shadow_crossings(
     gx, gy = _grid_gradient(big_m, frame[1], frame[2], to_samples)
     along = md.where(pairs.horizontal, gx, gy)
     across = md.where(pairs.horizontal, gy, gx)
-    return s, across / along
+    return md.clip(s, 0.0, 1.0), across / along
 
 
 def blend_shadow_edges(ray_colour, pairs: ShadowPairs, s, slope, light_lit, light_dark):
