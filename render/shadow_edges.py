@@ -166,21 +166,22 @@ def shadow_pairs(
     grid = _sample_grid(camera, spp)
     hit_index = np.full(prim_id.size, -1, dtype=np.int64)
     hit_index[primary.hit_rays] = np.arange(len(primary.hit_rays))
-    obj = _object_of(scene, prim_id)
-    pairs_a = np.concatenate([grid[:, :-1].ravel(), grid[:-1, :].ravel()])
-    pairs_b = np.concatenate([grid[:, 1:].ravel(), grid[1:, :].ravel()])
-    horizontal = np.concatenate(
-        [np.ones(grid[:, :-1].size, bool), np.zeros(grid[:-1, :].size, bool)]
-    )
-    same = (obj[pairs_a] == obj[pairs_b]) & (obj[pairs_a] >= 0)
-    pairs_a, pairs_b, horizontal = pairs_a[same], pairs_b[same], horizontal[same]
     n_tri = sum(m.num_faces for m in scene.meshes)
     parts = []
     for j, light in enumerate(scene.lights):
-        lit_ray = np.zeros(prim_id.size, dtype=bool)
+        lit_ray = np.zeros(prim_id.size, dtype=bool)  # per ray: light j reaches its hit
         lit_ray[primary.hit_rays] = lit[j]
-        differ = lit_ray[pairs_a] != lit_ray[pairs_b]
-        a, b, h = pairs_a[differ], pairs_b[differ], horizontal[differ]
+        lit_grid = lit_ray[grid]
+        # Pairs whose shadow state differs (cheap on the whole grid), then only those few on
+        # one object (both samples hit it).
+        h = lit_grid[:, :-1] != lit_grid[:, 1:]
+        v = lit_grid[:-1, :] != lit_grid[1:, :]
+        a = np.concatenate([grid[:, :-1][h], grid[:-1, :][v]])
+        b = np.concatenate([grid[:, 1:][h], grid[1:, :][v]])
+        horizontal = np.concatenate([np.ones(h.sum(), bool), np.zeros(v.sum(), bool)])
+        obj_a, obj_b = _object_of(scene, prim_id[a]), _object_of(scene, prim_id[b])
+        same = (obj_a == obj_b) & (obj_a >= 0)
+        a, b, h = a[same], b[same], horizontal[same]
         if len(a) == 0:
             continue
         lit_id, dark_id = np.where(lit_ray[a], a, b), np.where(lit_ray[a], b, a)
@@ -188,31 +189,20 @@ def shadow_pairs(
         rays = shadow_rays(light, dark_points, prim_id[dark_id], accel.n_triangles, size)
         tmax = 1.0 if isinstance(light, PointLight) else np.inf
         blocker, _, _, _ = accel.closest_hit(rays.origins, rays.directions, 0.0, tmax)
+        rows = (lit_id, dark_id, h, blocker)
         parts.append(
-            _edges_of_blockers(
-                scene,
-                light,
-                j,
-                primary,
-                hit_index,
-                lit_id,
-                dark_id,
-                h,
-                blocker,
-                n_tri,
-                topology,
-                spp,
-            )  # fmt: skip
+            _edges_of_blockers(scene, light, j, primary, hit_index, rows, n_tri, topology, spp)
         )
     return ShadowPairs.concatenate(parts)
 
 
 def _edges_of_blockers(
-    scene, light, j, primary, hit_index, lit_id, dark_id, horizontal, blocker, n_tri,
-    topology, spp,
-) -> ShadowPairs:  # fmt: skip
-    """For one light: each pair's occluder edge (seen from the light), kept where the
-    shadow edge crosses the pair within the 45-degree rule."""
+    scene, light, j, primary, hit_index, rows, n_tri, topology, spp
+) -> ShadowPairs:
+    """For one light j: each pair's occluder edge (seen from the light), kept where the
+    shadow edge crosses the pair within the 45-degree rule. rows: (lit ray ids, dark ray
+    ids, horizontal, blocker of the dark ray's shadow ray), (n,) each."""
+    lit_id, dark_id, horizontal, blocker = rows
     viewer, directional = _light_viewer(light)
     lit_points = primary.points[hit_index[lit_id]]
     dark_points = primary.points[hit_index[dark_id]]
