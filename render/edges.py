@@ -72,7 +72,7 @@ class EdgePairs:
         return EdgePairs(*(x[rows] for x in vars(self).values()))
 
 
-def _sample_grid(camera: Camera, spp: int) -> np.ndarray:
+def sample_grid(camera: Camera, spp: int) -> np.ndarray:
     """(H n, W n) int64: the ray id at each position of the regular sample grid."""
     n = int(round(spp**0.5))
     rays = np.arange(camera.height * camera.width * spp).reshape(camera.height, camera.width, n, n)
@@ -80,7 +80,7 @@ def _sample_grid(camera: Camera, spp: int) -> np.ndarray:
     return rays.transpose(0, 2, 1, 3).reshape(camera.height * n, camera.width * n)
 
 
-def _candidate_pairs(grid: np.ndarray, prim_id: np.ndarray):
+def candidate_pairs(grid: np.ndarray, prim_id: np.ndarray):
     """Adjacent samples (a, b) with different primitives, and whether the pair is
     horizontal: a (m,), b (m,), horizontal (m,) bool."""
     left, right = grid[:, :-1].ravel(), grid[:, 1:].ravel()
@@ -106,13 +106,13 @@ def edge_pairs(
     axis (inf: none); topology: ``mesh_edges`` per mesh index in ``scene.meshes``.
     """
     camera = scene.camera
-    grid = _sample_grid(camera, spp)
-    a, b, horizontal = _candidate_pairs(grid, prim_id)
+    grid = sample_grid(camera, spp)
+    a, b, horizontal = candidate_pairs(grid, prim_id)
     a_nearer = depth[a] < depth[b]
     near, far = np.where(a_nearer, a, b), np.where(a_nearer, b, a)
     prim = prim_id[near]
 
-    eye, d_near, d_far, to_pixels = _plain_rays(camera, near, far, spp)
+    eye, d_near, d_far, to_pixels = plain_rays(camera, near, far, spp)
     edge = np.full(len(near), -2, dtype=np.int64)  # -2: not a silhouette pair
     s = np.full(len(near), np.nan)
     n_triangles, first = sum(m.num_faces for m in scene.meshes), 0
@@ -144,17 +144,17 @@ def edge_pairs(
             corners = vertices[mesh.faces[face]]
             kk, r = np.maximum(k, 0), np.arange(len(rows))
             normal = np.cross(corners[r, kk] - eye, corners[r, (kk + 1) % 3] - eye)
-            ok = (k >= 0) & _axis_ok(normal, horizontal[rows], to_pixels)
+            ok = (k >= 0) & axis_ok(normal, horizontal[rows], to_pixels)
             edge[rows] = np.where(ok, k, -2)
             prim[rows] = face + first
         first += mesh.num_faces
     for index, sphere in enumerate(scene.spheres):
         rows = np.flatnonzero(prim == n_triangles + index)
         if len(rows):
-            s[rows] = _sphere_crossing_plain(sphere, eye, d_near[rows], d_far[rows])
-            normal = _outline_normal(sphere.center.data, sphere.radius.data, eye,
+            s[rows] = sphere_crossing_plain(sphere, eye, d_near[rows], d_far[rows])
+            normal = outline_normal(sphere.center.data, sphere.radius.data, eye,
                                      d_near[rows], d_far[rows], np.nan_to_num(s[rows]))  # fmt: skip
-            ok = np.isfinite(s[rows]) & _axis_ok(normal, horizontal[rows], to_pixels)
+            ok = np.isfinite(s[rows]) & axis_ok(normal, horizontal[rows], to_pixels)
             edge[rows] = np.where(ok, -1, -2)
     other = np.full(len(near), -1, dtype=np.int64)
     if n_triangles:
@@ -171,7 +171,7 @@ def edge_pairs(
     return EdgePairs(near[keep], far[keep], prim[keep], edge[keep], other[keep], horizontal[keep])
 
 
-def _plane_normal(corners):
+def plane_normal(corners):
     """Unnormalised normals (n, 3) of triangles (n, 3, 3): (b - a) x (c - a)."""
     if isinstance(corners[0], md.Tensor):
         return md.cross(corners[1] - corners[0], corners[2] - corners[0])
@@ -183,7 +183,7 @@ def _intersection_normal(n1, a1, n2, a2, eye):
     cross, seen from the eye: the plane through the eye and that line is
     (n2 . (C - a2)) n1 . (p - a1) - (n1 . (C - a1)) n2 . (p - a2) = 0, so e(d) = m . d with
     m = (n2 . (C - a2)) n1 - (n1 . (C - a1)) n2. Tensors or arrays."""
-    return _column(_dot(n2, eye - a2)) * n1 - _column(_dot(n1, eye - a1)) * n2
+    return as_column(dot_last(n2, eye - a2)) * n1 - as_column(dot_last(n1, eye - a1)) * n2
 
 
 def _intersections(
@@ -204,7 +204,7 @@ def _intersections(
     if len(rows) == 0:
         return
     t1, t2 = triangles[near_prim[rows]], triangles[far_prim[rows]]
-    n1, n2 = _plane_normal(t1), _plane_normal(t2)
+    n1, n2 = plane_normal(t1), plane_normal(t2)
     sin_angle = np.linalg.norm(np.cross(n1, n2), axis=1) / (
         np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
     )
@@ -218,13 +218,13 @@ def _intersections(
         s_int = e_near / (e_near - e_far)
     crosses = (np.sign(e_near) != np.sign(e_far)) & (s_int > 0) & (s_int < 1)
     earlier = (edge[rows] < -1) | (s_int < s[rows] - 1e-9)
-    use = behind & crosses & earlier & _axis_ok(m, horizontal[rows], to_pixels)
+    use = behind & crosses & earlier & axis_ok(m, horizontal[rows], to_pixels)
     use &= sin_angle > 0.05
     rows = rows[use]
     prim[rows], edge[rows], s[rows], other[rows] = near_prim[rows], 3, s_int[use], far_prim[rows]
 
 
-def _plain_rays(camera: Camera, near: np.ndarray, far: np.ndarray, spp: int):
+def plain_rays(camera: Camera, near: np.ndarray, far: np.ndarray, spp: int):
     """Eye (3,), directions (n, 3) of the near and far samples (float64, off the tape), and
     the factors (2,) that turn an image-plane gradient into sample-grid units."""
     with md.no_grad():
@@ -243,40 +243,40 @@ def _homogeneous(coords: np.ndarray) -> np.ndarray:
     return np.concatenate([coords, np.ones((len(coords), 1), coords.dtype)], axis=1)
 
 
-def _dot(a, b):
+def dot_last(a, b):
     """Dot product over the last axis, for tensors (on the tape) and plain arrays alike."""
     if isinstance(a, md.Tensor) or isinstance(b, md.Tensor):
         return md.dot(a, b)
     return np.sum(a * b, axis=-1)
 
 
-def _grid_gradient(normal, right, up, to_samples):
+def grid_gradient(normal, right, up, to_samples):
     """(gx, gy): the gradient, in sample-grid units, of an edge function whose gradient with
     respect to the ray direction is ``normal`` (n, 3). Directions are d = forward + x right
     + y up, and one sample step is ``to_samples`` (2,) in x and in y (y grows upwards, rows
     downwards: only magnitudes are used)."""
-    return _dot(normal, right) * to_samples[0], _dot(normal, up) * to_samples[1]
+    return dot_last(normal, right) * to_samples[0], dot_last(normal, up) * to_samples[1]
 
 
-def _axis_ok(normal, horizontal, to_pixels) -> np.ndarray:
+def axis_ok(normal, horizontal, to_pixels) -> np.ndarray:
     """(n,) bool: the edge is handled by pairs of this axis: horizontal pairs take edges
     within 45 degrees of vertical (|gx| >= |gy|), vertical pairs the others. Each edge is
     then blended in one direction only, and its slope across a pair is at most 1."""
-    gx, gy = _grid_gradient(normal, *to_pixels)
+    gx, gy = grid_gradient(normal, *to_pixels)
     return np.where(horizontal, np.abs(gx) >= np.abs(gy), np.abs(gy) > np.abs(gx))
 
 
-def _outline_normal(center, radius, eye, d_near, d_far, s):
+def outline_normal(center, radius, eye, d_near, d_far, s):
     """The gradient of a sphere's discriminant D(d) = (oc . d)^2 - |d|^2 (|oc|^2 - r^2)
     with respect to the direction, at the crossing d* = d_near + s (d_far - d_near):
     2 (oc . d*) oc - 2 (|oc|^2 - r^2) d*. Tensors or arrays."""
     oc = eye - center
-    d = d_near + _column(s) * (d_far - d_near)
-    kappa = _dot(oc, oc) - radius * radius
-    return _column(_dot(oc, d) * 2.0) * oc - _column(kappa * 2.0) * d
+    d = d_near + as_column(s) * (d_far - d_near)
+    kappa = dot_last(oc, oc) - radius * radius
+    return as_column(dot_last(oc, d) * 2.0) * oc - as_column(kappa * 2.0) * d
 
 
-def _column(x):
+def as_column(x):
     return md.reshape(x, (-1, 1)) if isinstance(x, md.Tensor) else np.reshape(x, (-1, 1))
 
 
@@ -286,13 +286,13 @@ def _sphere_quadratic(eye, center, radius, d_near, d_far):
     and on arrays)."""
     oc = eye - center
     delta = d_far - d_near
-    kappa = _dot(oc, oc) - radius * radius
-    b0, b1 = _dot(d_near, oc), _dot(delta, oc)
-    a0, a1, a2 = _dot(d_near, d_near), _dot(d_near, delta), _dot(delta, delta)
+    kappa = dot_last(oc, oc) - radius * radius
+    b0, b1 = dot_last(d_near, oc), dot_last(delta, oc)
+    a0, a1, a2 = dot_last(d_near, d_near), dot_last(d_near, delta), dot_last(delta, delta)
     return b1 * b1 - kappa * a2, b0 * b1 - kappa * a1, b0 * b0 - kappa * a0
 
 
-def _sphere_crossing_plain(sphere: Sphere, eye, d_near, d_far) -> np.ndarray:
+def sphere_crossing_plain(sphere: Sphere, eye, d_near, d_far) -> np.ndarray:
     """(n,) s* where the segment leaves the sphere's outline (NaN where it does not: the far
     ray hits the sphere too, or the eye is inside it)."""
     center = np.asarray(sphere.center.data, np.float64)
@@ -311,7 +311,7 @@ def _sphere_crossing_plain(sphere: Sphere, eye, d_near, d_far) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 
-def _corners(scene: Scene, ids: np.ndarray):
+def triangle_corners(scene: Scene, ids: np.ndarray):
     """The corners (a, b, c), each (k, 3) on the tape, of the triangles with global ids
     ``ids`` (k,), in that order."""
     parts, order, first = [], [], 0
@@ -337,19 +337,19 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     normals, order = [], []
     edges = np.flatnonzero((pairs.edge >= 0) & (pairs.edge < 3))
     if len(edges):  # a triangle's edge (v_k, v_k+1): m = (v_k - C) x (v_k+1 - C)
-        corners = md.stack(_corners(scene, pairs.prim[edges]), axis=1)  # (k, 3, 3)
+        corners = md.stack(triangle_corners(scene, pairs.prim[edges]), axis=1)  # (k, 3, 3)
         r, k = np.arange(len(edges)), pairs.edge[edges]
         normals.append(md.cross(corners[r, k] - eye, corners[r, (k + 1) % 3] - eye))
         order.append(edges)
     crossing = np.flatnonzero(pairs.edge == 3)
     if len(crossing):  # two faces' planes
         near_face, far_face = (
-            _corners(scene, pairs.prim[crossing]),
-            _corners(scene, pairs.other[crossing]),
+            triangle_corners(scene, pairs.prim[crossing]),
+            triangle_corners(scene, pairs.other[crossing]),
         )
         normals.append(
             _intersection_normal(
-                _plane_normal(near_face), near_face[0], _plane_normal(far_face), far_face[0], eye
+                plane_normal(near_face), near_face[0], plane_normal(far_face), far_face[0], eye
             )
         )
         order.append(crossing)
@@ -362,10 +362,10 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     for index, sphere in enumerate(scene.spheres):
         rows = np.flatnonzero((pairs.edge == -1) & (pairs.prim == _first_sphere(scene) + index))
         if len(rows):
-            s = _sphere_crossing(sphere, eye, d_near[rows], d_far[rows])
+            s = sphere_crossing(sphere, eye, d_near[rows], d_far[rows])
             s_parts.append(s)
             normals.append(
-                _outline_normal(sphere.center, sphere.radius, eye, d_near[rows], d_far[rows], s)
+                outline_normal(sphere.center, sphere.radius, eye, d_near[rows], d_far[rows], s)
             )
             order.append(rows)
     if not s_parts:
@@ -376,7 +376,7 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     normal = (normals[0] if len(normals) == 1 else md.concatenate(normals))[inverse]
     n = round(spp**0.5)
     to_samples = np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)])
-    gx, gy = _grid_gradient(normal, frame[1], frame[2], to_samples.astype(dtype))
+    gx, gy = grid_gradient(normal, frame[1], frame[2], to_samples.astype(dtype))
     along = md.where(pairs.horizontal, gx, gy)
     across = md.where(pairs.horizontal, gy, gx)
     return s, across / along
@@ -387,7 +387,7 @@ def _first_sphere(scene: Scene) -> int:
     return sum(m.num_faces for m in scene.meshes)
 
 
-def _sphere_crossing(sphere: Sphere, eye, d_near, d_far) -> md.Tensor:
+def sphere_crossing(sphere: Sphere, eye, d_near, d_far) -> md.Tensor:
     """s* of the sphere's outline along each segment, on the tape.
 
     disc(s) = q2 s^2 + 2 q1 s + q0 goes from positive (the near ray hits) to negative (the

@@ -6,9 +6,10 @@
 2. Surfaces (``render.geometry``, on the tape): for the rays that hit, *recompute* the hit
    point, normal and UV differentiably from the camera and the primitive, object by object.
 3. Shading (``render.shading``, on the tape): lights and materials give each hit a colour.
-4. Edges (``render.edges``, with ``antialias=True``): where a silhouette passes between two
-   adjacent samples, blend them by how much of each one's box the edge covers, with the
-   crossing computed on the tape: gradients then see occlusion boundaries move.
+4. Edges (``render.edges`` and ``render.shadow_edges``, with ``antialias=True``): where a
+   silhouette, a crease or a shadow edge passes between two adjacent samples, blend them
+   by how much of each one's box the edge covers, with the crossing computed on the tape:
+   gradients then see occlusion and shadow boundaries move.
 5. Image: each pixel the mean of its samples, misses showing the background.
 
 Gradients reach every continuous parameter through steps 2-5; step 1's decisions are
@@ -31,7 +32,7 @@ from render.edges import antialias as blend_across_edges
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
 from render.scene import Mesh, Scene, check_ray_count
 from render.shading import light_contribution, sample_texture, shade_mesh, shade_surface
-from render.shadow_edges import ShadowPairs, _object_of, blend_shadow_edges, shadow_crossings
+from render.shadow_edges import ShadowPairs, blend_shadow_edges, object_index_of, shadow_crossings
 from render.visibility import Visibility, primitive_ranges, trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]
@@ -55,8 +56,9 @@ def render(
     reuse_visibility: reuse the previous render's visibility when geometry, camera and
         lights have the same values (see the module docstring).
     return_info: also return a ``RenderInfo`` with the discrete decisions.
-    antialias: blend adjacent samples across silhouettes and creases by their coverage,
-        on the tape (``render.edges``), so that moving edges have gradients. False (the
+    antialias: blend adjacent samples across silhouettes, creases and shadow edges by
+        their coverage, on the tape (``render.edges``, ``render.shadow_edges``), so that
+        moving edges have gradients. False (the
         default, the paper's renderer): every sample shows the primitive at its centre, the
         image is a step function at edges and their motion has no gradient. See the README
         for why False is the default and when to switch it on.
@@ -74,7 +76,7 @@ def render(
     antialias = _check_flag(antialias, "antialias")
     visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows), antialias)  # 1
     frame = camera_frame(scene.camera)
-    colour, ray_of_colour, texel, shaded = _shade_objects(scene, visibility, frame, cache)
+    colour, ray_of_colour, texel, shaded = _shade_objects(scene, visibility, frame, cache)  # 2, 3
     if antialias:  # 4
         dtype = working_dtype(scene)
         samples = _sample_colours(scene, visibility, colour, ray_of_colour)
@@ -185,7 +187,7 @@ def _blend_shadow_edges(scene, visibility, shaded, frame, spp, samples) -> md.Te
         return samples
     prim_id = visibility.primary.prim_id
     objects = [obj for obj, _, _ in primitive_ranges(scene)]
-    owner = _object_of(scene, prim_id[pairs.lit])  # both samples are on this object
+    owner = object_index_of(scene, prim_id[pairs.lit])  # both samples are on this object
     lit_light, dark_light, lit_points, order = [], [], [], []
     for index, (rays, surface) in shaded.items():
         obj = objects[index]

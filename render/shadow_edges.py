@@ -42,18 +42,18 @@ import minidiff as md
 from render.accel import Accelerator
 from render.camera import image_plane_coords, ray_directions
 from render.edges import (
-    _axis_ok,
-    _column,
-    _corners,
-    _dot,
-    _grid_gradient,
-    _outline_normal,
-    _plain_rays,
-    _plane_normal,
-    _sample_grid,
-    _sphere_crossing,
-    _sphere_crossing_plain,
+    as_column,
+    axis_ok,
     box_coverage,
+    dot_last,
+    grid_gradient,
+    outline_normal,
+    plain_rays,
+    plane_normal,
+    sample_grid,
+    sphere_crossing,
+    sphere_crossing_plain,
+    triangle_corners,
 )
 from render.scene import PointLight, Scene
 from render.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
@@ -89,7 +89,7 @@ class ShadowPairs:
         return cls(*(np.concatenate(x) for x in columns))
 
 
-def _object_of(scene: Scene, prim: np.ndarray) -> np.ndarray:
+def object_index_of(scene: Scene, prim: np.ndarray) -> np.ndarray:
     """(n,) the index in ``scene.meshes + scene.spheres`` of the object owning each
     primitive id (-1 for -1)."""
     counts = [m.num_faces for m in scene.meshes] + [1] * len(scene.spheres)
@@ -107,7 +107,7 @@ def _receiver_planes(scene: Scene, prim: np.ndarray, points: np.ndarray):
         tri = np.concatenate(triangles).astype(np.float64)
         on_tri = prim < n_tri
         corners = tri[prim[on_tri]]
-        normal[on_tri] = _plane_normal(corners)
+        normal[on_tri] = plane_normal(corners)
         anchor[on_tri] = corners[:, 0]
     for index, sphere in enumerate(scene.spheres):
         on = prim == n_tri + index
@@ -126,13 +126,18 @@ def _image_normal(m, v_i, normal, anchor, eye):
     """M = (m . (C - v_i)) n + (n . (a - C)) m: the normal, in camera-direction space, of
     the image line where the plane m . (P - v_i) = 0 cuts the receiver plane (n, a).
     Tensors or arrays, (k, 3) each."""
-    return _column(_dot(m, eye - v_i)) * normal + _column(_dot(normal, anchor - eye)) * m
+    return (
+        as_column(dot_last(m, eye - v_i)) * normal + as_column(dot_last(normal, anchor - eye)) * m
+    )
 
 
 def _homogeneous_points(d, normal, anchor, eye, origin):
     """u(d) = (n . d)(C - origin) + (n . (a - C)) d = (n . d) (P(d) - origin), with P(d)
     the receiver point seen along d: linear in d. Tensors or arrays."""
-    return _column(_dot(normal, d)) * (eye - origin) + _column(_dot(normal, anchor - eye)) * d
+    return (
+        as_column(dot_last(normal, d)) * (eye - origin)
+        + as_column(dot_last(normal, anchor - eye)) * d
+    )
 
 
 def _shadow_plane_normal(corner_i, corner_j, light):
@@ -163,7 +168,7 @@ def shadow_pairs(
     from render.visibility import shadow_rays  # the same rays as the shadows themselves
 
     camera, prim_id = scene.camera, primary.prim_id
-    grid = _sample_grid(camera, spp)
+    grid = sample_grid(camera, spp)
     hit_index = np.full(prim_id.size, -1, dtype=np.int64)
     hit_index[primary.hit_rays] = np.arange(len(primary.hit_rays))
     n_tri = sum(m.num_faces for m in scene.meshes)
@@ -179,7 +184,7 @@ def shadow_pairs(
         a = np.concatenate([grid[:, :-1][h], grid[:-1, :][v]])
         b = np.concatenate([grid[:, 1:][h], grid[1:, :][v]])
         horizontal = np.concatenate([np.ones(h.sum(), bool), np.zeros(v.sum(), bool)])
-        obj_a, obj_b = _object_of(scene, prim_id[a]), _object_of(scene, prim_id[b])
+        obj_a, obj_b = object_index_of(scene, prim_id[a]), object_index_of(scene, prim_id[b])
         same = (obj_a == obj_b) & (obj_a >= 0)
         a, b, h = a[same], b[same], horizontal[same]
         if len(a) == 0:
@@ -206,7 +211,7 @@ def _edges_of_blockers(
     viewer, directional = _light_viewer(light)
     lit_points = primary.points[hit_index[lit_id]]
     dark_points = primary.points[hit_index[dark_id]]
-    eye, d_lit, d_dark, to_pixels = _plain_rays(scene.camera, lit_id, dark_id, spp)
+    eye, d_lit, d_dark, to_pixels = plain_rays(scene.camera, lit_id, dark_id, spp)
     normal, anchor = _receiver_planes(scene, primary.prim_id[lit_id], lit_points)
     occluder = blocker.copy()
     edge = np.full(len(lit_id), -2, dtype=np.int64)
@@ -246,8 +251,8 @@ def _edges_of_blockers(
             continue
         u_dark = _homogeneous_points(d_dark[rows], normal[rows], anchor[rows], eye, viewer)
         u_lit = _homogeneous_points(d_lit[rows], normal[rows], anchor[rows], eye, viewer)
-        s_dark = _sphere_crossing_plain(sphere, viewer, u_dark, u_lit)
-        g = _outline_normal(sphere.center.data, sphere.radius.data, viewer, u_dark, u_lit,
+        s_dark = sphere_crossing_plain(sphere, viewer, u_dark, u_lit)
+        g = outline_normal(sphere.center.data, sphere.radius.data, viewer, u_dark, u_lit,
                             np.nan_to_num(s_dark))  # fmt: skip
         image_normal[rows] = _chain_to_directions(g, normal[rows], anchor[rows], eye, viewer)
         s[rows] = 1.0 - s_dark
@@ -257,7 +262,7 @@ def _edges_of_blockers(
     # are kept and their crossing clamped to [0, 1] on the tape (``shadow_crossings``):
     # dropping them would make the image jump when the crossing re-enters the pair.
     keep = (edge >= -1) & np.isfinite(s)
-    keep &= _axis_ok(image_normal, horizontal, to_pixels)
+    keep &= axis_ok(image_normal, horizontal, to_pixels)
     return ShadowPairs(
         lit_id[keep], dark_id[keep], np.full(keep.sum(), j, np.int64), occluder[keep],
         edge[keep], horizontal[keep],
@@ -267,7 +272,10 @@ def _edges_of_blockers(
 def _chain_to_directions(g, normal, anchor, eye, origin):
     """The gradient with respect to d of a function of u(d) (``_homogeneous_points``) whose
     gradient with respect to u is g: n ((C - origin) . g) + (n . (a - C)) g."""
-    return _column(_dot(eye - origin, g)) * normal + _column(_dot(normal, anchor - eye)) * g
+    return (
+        as_column(dot_last(eye - origin, g)) * normal
+        + as_column(dot_last(normal, anchor - eye)) * g
+    )
 
 
 # --------------------------------------------------------------------------------------
@@ -282,8 +290,8 @@ def _receiver_planes_tape(scene: Scene, prim: np.ndarray, points: md.Tensor):
     normals, anchors, order = [], [], []
     on_tri = np.flatnonzero(prim < n_tri)
     if len(on_tri):
-        corners = _corners(scene, prim[on_tri])
-        normals.append(_plane_normal(corners))
+        corners = triangle_corners(scene, prim[on_tri])
+        normals.append(plane_normal(corners))
         anchors.append(corners[0])
         order.append(on_tri)
     for index, sphere in enumerate(scene.spheres):
@@ -314,7 +322,7 @@ def shadow_crossings(
     for j, light in enumerate(scene.lights):
         rows = np.flatnonzero((pairs.light == j) & (pairs.edge >= 0))
         if len(rows):
-            corners = md.stack(_corners(scene, pairs.occluder[rows]), axis=1)
+            corners = md.stack(triangle_corners(scene, pairs.occluder[rows]), axis=1)
             r, k = np.arange(len(rows)), pairs.edge[rows]
             v_i, v_j = corners[r, k], corners[r, (k + 1) % 3]
             m = _shadow_plane_normal(v_i, v_j, light)
@@ -333,8 +341,8 @@ def shadow_crossings(
             position = light.position
             u_dark = _homogeneous_points(d_dark[rows], normal[rows], anchor[rows], eye, position)
             u_lit = _homogeneous_points(d_lit[rows], normal[rows], anchor[rows], eye, position)
-            s_dark = _sphere_crossing(sphere, position, u_dark, u_lit)
-            g = _outline_normal(sphere.center, sphere.radius, position, u_dark, u_lit, s_dark)
+            s_dark = sphere_crossing(sphere, position, u_dark, u_lit)
+            g = outline_normal(sphere.center, sphere.radius, position, u_dark, u_lit, s_dark)
             s_parts.append(1.0 - s_dark)
             normals.append(_chain_to_directions(g, normal[rows], anchor[rows], eye, position))
             order.append(rows)
@@ -343,7 +351,7 @@ def shadow_crossings(
     big_m = (normals[0] if len(normals) == 1 else md.concatenate(normals))[inverse]
     n = round(spp**0.5)
     to_samples = np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)], dtype)
-    gx, gy = _grid_gradient(big_m, frame[1], frame[2], to_samples)
+    gx, gy = grid_gradient(big_m, frame[1], frame[2], to_samples)
     along = md.where(pairs.horizontal, gx, gy)
     across = md.where(pairs.horizontal, gy, gx)
     return md.clip(s, 0.0, 1.0), across / along

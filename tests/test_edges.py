@@ -213,17 +213,17 @@ def test_sphere_translation_gradient_estimates_the_supersampled_derivative():
 def test_the_numba_walk_equals_the_numpy_walk(size):
     """``walk_to_silhouette_fast`` (what the renderer runs) against the NumPy version, on
     every pair of adjacent pixels with different hits of the teapot."""
-    from render.edges import _candidate_pairs, _plain_rays, _sample_grid
+    from render.edges import candidate_pairs, plain_rays, sample_grid
     from render.topology import walk_to_silhouette, walk_to_silhouette_fast
     from render.visibility import primitive_ranges, scene_primitives, trace_primary
 
     scene = render.paper_scene(size, size)
     hits = trace_primary(render.Accelerator(*scene_primitives(scene)), scene.camera, 1)
-    a, b, _ = _candidate_pairs(_sample_grid(scene.camera, 1), hits.prim_id)
+    a, b, _ = candidate_pairs(sample_grid(scene.camera, 1), hits.prim_id)
     near_a = hits.depth[a] < hits.depth[b]
     near, far = np.where(near_a, a, b), np.where(near_a, b, a)
     assert primitive_ranges(scene)[0][1] == 0  # the teapot's faces are ids 0..F-1
-    eye, d_near, d_far, _ = _plain_rays(scene.camera, near, far, 1)
+    eye, d_near, d_far, _ = plain_rays(scene.camera, near, far, 1)
     mesh = scene.meshes[0]
     vertices, faces = mesh.vertices.data, mesh.faces
     edges = mesh_edges(vertices, faces)
