@@ -5,22 +5,28 @@ across it contributes nothing to the gradient of the plain image. This module ad
 missing term the way nvdiffrast's ``antialias`` does (Laine et al. 2020, "Modular
 Primitives for High-Performance Differentiable Rendering"), reformulated for rays:
 
-1. Constants (``edge_pairs``, NumPy): every pair of horizontally or vertically
-   adjacent samples whose primary hits differ. For each, the *nearer* hit's primitive and
-   the edge of it that separates the two sample positions, kept only if it is a
-   *silhouette*: a mesh boundary edge, or an edge whose two faces face opposite ways as
-   seen from the eye (a sphere's outline always is). Adjacency is built on *welded*
-   positions (``mesh_edges``): the teapot's patches share positions but not vertex ids.
+1. Constants (``edge_pairs``, NumPy): every pair of horizontally or vertically adjacent
+   samples whose primary hits differ, and the edge that separates them:
+   * a *silhouette* of the nearer surface: a mesh boundary edge, or an edge whose two faces
+     face opposite ways as seen from the eye (a sphere's outline always is). When the face
+     hit at the near sample is not the one on the silhouette (faces smaller than pixels),
+     ``render.topology.walk_to_silhouette`` walks across the mesh, on *welded* adjacency
+     (the teapot's patches share positions but not vertex ids), to the face that is;
+   * else a *crease*: an edge across which the colour jumps (flat shading, or a seam of
+     vertex ids for smooth normals and UVs);
+   * or the line where the near face passes behind the far one (two surfaces that
+     intersect, like the teapot's spout and body), when that comes first.
 2. On the tape (``crossings``): where the edge crosses the segment between the two sample
    positions. With camera rays d_N (near sample) and d_F (far sample) and the edge
    (v_i, v_j) seen from the eye C, the edge function e(d) = d . ((v_i - C) x (v_j - C)) is
    linear along the segment of directions (d is affine in the image position), so the
    crossing is s* = e(d_N) / (e(d_N) - e(d_F)), in units of the sample spacing.
    For a sphere the outline is where the ray's discriminant vanishes: a quadratic in s.
-3. Blend (``antialias``): 1-D box coverage along the pair's axis. The sample whose box
-   contains the crossing takes w = 0.5 - |s* - its position| of the other sample's colour.
-   Each edge is handled by the pairs of one axis only: horizontal pairs take edges within
-   45 degrees of vertical, vertical pairs the others.
+3. Blend (``edge_updates``): each sample takes the other's colour in proportion to the
+   area of its box on the other side of the edge (``box_coverage``: exact for a straight
+   edge, its slope included; nvdiffrast uses the 1-D coverage along the pair). Each edge
+   is handled by the pairs of one axis only: horizontal pairs take edges within 45
+   degrees of vertical, vertical pairs the others.
 
 The derivative of the blended colour with respect to s* is the colour difference across
 the edge, so gradients reach the edge's vertices (or the sphere), the camera and, through
@@ -28,6 +34,7 @@ the colours, every shading parameter, with no hand-written backward pass.
 
 With ``spp = n^2`` samples per pixel the samples form a regular grid n times finer than
 the pixels; pairs are taken on that grid and the pixel is the mean of its blended samples.
+Shadow edges reuse all of this (``render.shadow_edges``).
 """
 
 from __future__ import annotations
@@ -420,8 +427,9 @@ def box_coverage(offset: md.Tensor, slope: md.Tensor, include_zero: bool = True)
     return md.where(corner, triangle, straight)
 
 
-def antialias(ray_colour: md.Tensor, pairs: EdgePairs, s: md.Tensor, slope: md.Tensor):
-    """Blend the two samples of each pair by the coverage of their boxes (N, 3) -> (N, 3).
+def edge_updates(ray_colour: md.Tensor, pairs: EdgePairs, s: md.Tensor, slope: md.Tensor):
+    """What blending the two samples of each pair by the coverage of their boxes adds to
+    the samples' colours ray_colour (N, 3): (ray ids (2n,), additions (2n, 3)), or None.
 
     The near sample's box (centre at s = 0) shows the far colour on the far side of the
     edge, area ``box_coverage(0.5 - s*, t)``; the far sample's box (centre at s = 1) shows
@@ -430,10 +438,21 @@ def antialias(ray_colour: md.Tensor, pairs: EdgePairs, s: md.Tensor, slope: md.T
     is accounted for exactly for a straight edge between two flat colours.
     """
     if len(pairs.near) == 0:
-        return ray_colour
+        return None
     change = ray_colour[pairs.far] - ray_colour[pairs.near]  # (n, 3)
     to_far = md.reshape(box_coverage(0.5 - s, slope), (-1, 1))
     to_near = md.reshape(box_coverage(s - 0.5, slope, include_zero=False), (-1, 1))
     rays = np.concatenate([pairs.near, pairs.far])
-    updates = md.concatenate([to_far * change, to_near * (-change)])
-    return ray_colour + md.scatter_add(updates, rays, ray_colour.shape[0])
+    return rays, md.concatenate([to_far * change, to_near * (-change)])
+
+
+def add_to_samples(ray_colour: md.Tensor, updates: list) -> md.Tensor:
+    """ray_colour (N, 3) plus every (ray ids, additions) in ``updates`` (None: nothing),
+    scattered in one pass. Each pair's additions are computed from the colours before any
+    blending, as in nvdiffrast."""
+    updates = [u for u in updates if u is not None]
+    if not updates:
+        return ray_colour
+    rays = np.concatenate([r for r, _ in updates])
+    values = md.concatenate([v for _, v in updates]) if len(updates) > 1 else updates[0][1]
+    return ray_colour + md.scatter_add(values, rays, ray_colour.shape[0])

@@ -27,12 +27,11 @@ import numpy as np
 import minidiff as md
 from render.cache import RenderCache, cache_for, surface_key
 from render.camera import camera_frame, ray_directions, subpixel_offsets
-from render.edges import EdgePairs, crossings
-from render.edges import antialias as blend_across_edges
+from render.edges import EdgePairs, add_to_samples, crossings, edge_updates
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
 from render.scene import Mesh, Scene, check_ray_count
 from render.shading import light_contribution, sample_texture, shade_mesh, shade_surface
-from render.shadow_edges import ShadowPairs, blend_shadow_edges, object_index_of, shadow_crossings
+from render.shadow_edges import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
 from render.visibility import Visibility, primitive_ranges, trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]
@@ -81,8 +80,9 @@ def render(
         dtype = working_dtype(scene)
         samples = _sample_colours(scene, visibility, colour, ray_of_colour)
         s, slope = crossings(scene, visibility.pairs, frame, spp, dtype)
-        samples = blend_across_edges(samples, visibility.pairs, s, slope)
-        samples = _blend_shadow_edges(scene, visibility, shaded, frame, spp, samples)
+        silhouettes = edge_updates(samples, visibility.pairs, s, slope)
+        shadows = _shadow_updates(scene, visibility, shaded, frame, spp)
+        samples = add_to_samples(samples, [silhouettes, shadows])
         image = _pixel_means(scene, samples, spp)  # 5
     else:
         image = _compose_image(scene, visibility, colour, ray_of_colour, spp)  # 5
@@ -178,13 +178,14 @@ def _compose_image(scene: Scene, visibility: Visibility, colour, ray_of_colour, 
     return md.reshape(image, (camera.height, camera.width, 3))
 
 
-def _blend_shadow_edges(scene, visibility, shaded, frame, spp, samples) -> md.Tensor:
-    """Step 4 for shadows: each shadow pair's light contribution blended across its edge
-    (``render.shadow_edges``). The unoccluded contribution of the pair's light is shaded
-    again at both samples, from their object's Surface."""
+def _shadow_updates(scene, visibility, shaded, frame, spp):
+    """Step 4 for shadows: what blending each shadow pair's light contribution across its
+    edge adds to the samples (``render.shadow_edges.shadow_updates``), or None. The
+    unoccluded contribution of the pair's light is shaded again at both samples, from
+    their object's Surface."""
     pairs = visibility.shadow_pairs
     if pairs is None or len(pairs.lit) == 0:
-        return samples
+        return None
     prim_id = visibility.primary.prim_id
     objects = [obj for obj, _, _ in primitive_ranges(scene)]
     owner = object_index_of(scene, prim_id[pairs.lit])  # both samples are on this object
@@ -208,9 +209,7 @@ def _blend_shadow_edges(scene, visibility, shaded, frame, spp, samples) -> md.Te
         scene, pairs, prim_id[pairs.lit], cat(lit_points)[inverse], frame, spp,
         working_dtype(scene),
     )  # fmt: skip
-    return blend_shadow_edges(
-        samples, pairs, s, slope, cat(lit_light)[inverse], cat(dark_light)[inverse]
-    )
+    return shadow_updates(pairs, s, slope, cat(lit_light)[inverse], cat(dark_light)[inverse])
 
 
 def _unoccluded(surface: Surface, rows: np.ndarray, material, light) -> md.Tensor:

@@ -21,7 +21,7 @@ two samples (``render.edges``), but only the light's own contribution is blended
    ray to P(d) grazes it where a quadratic in s vanishes (``render.edges``'s sphere
    crossing, with the light as the eye and u(d) = (n.d)(P(d) - L), linear in d, as the
    directions).
-3. Blend (``blend_shadow_edges``): the lit sample's box loses, and the dark sample's box
+3. Blend (``shadow_updates``): the lit sample's box loses, and the dark sample's box
    gains, the light's unoccluded contribution times the area of the box on the other side
    of the shadow edge (``render.edges.box_coverage``).
 
@@ -357,15 +357,12 @@ def shadow_crossings(
     return md.clip(s, 0.0, 1.0), across / along
 
 
-def blend_shadow_edges(ray_colour, pairs: ShadowPairs, s, slope, light_lit, light_dark):
-    """ray_colour (N, 3) with each pair's light contribution blended across its shadow
-    edge: the lit sample loses its unoccluded contribution light_lit (n, 3) times the area
-    of its box in the shadow, the dark sample gains light_dark (n, 3) times the area of
-    its box in the light."""
-    if len(pairs.lit) == 0:
-        return ray_colour
+def shadow_updates(pairs: ShadowPairs, s, slope, light_lit, light_dark):
+    """What blending each pair's light contribution across its shadow edge adds to the
+    samples' colours: (ray ids (2n,), additions (2n, 3)). The lit sample loses its
+    unoccluded contribution light_lit (n, 3) times the area of its box in the shadow, the
+    dark sample gains light_dark (n, 3) times the area of its box in the light."""
     shadowed = md.reshape(box_coverage(0.5 - s, slope), (-1, 1))
     lighted = md.reshape(box_coverage(s - 0.5, slope, include_zero=False), (-1, 1))
-    updates = md.concatenate([-(shadowed * light_lit), lighted * light_dark])
     rays = np.concatenate([pairs.lit, pairs.dark])
-    return ray_colour + md.scatter_add(updates, rays, ray_colour.shape[0])
+    return rays, md.concatenate([-(shadowed * light_lit), lighted * light_dark])
