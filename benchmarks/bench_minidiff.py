@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/bench_minidiff.py [--out DIR] [--quick] [--repeats 21]
 
-Workload: the paper scene at 512x512 (``paper_scene.md``), ~41,000 pixels that hit the
+Workload: the paper scene at 512x512 (``docs/paper_scene.md``), ~41,000 pixels that hit the
 teapot. Which triangle each pixel sees, and whether the light reaches it, is computed once
 with the renderer (``render(..., return_info=True)``), *outside* the timing. Then, per hit:
 gather the triangle's three vertices by hit id, recompute the ray-triangle intersection

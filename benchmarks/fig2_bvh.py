@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/fig2_bvh.py [--out DIR] [--quick]
 
-Two series on the paper scene (``paper_scene.md``):
+Two series on the paper scene (``docs/paper_scene.md``):
 
 1. Resolution: the 1,536-triangle teapot at 64^2, 128^2, 256^2, 512^2 and 1024^2 pixels.
    Each point is a full forward render, ``render(scene, bvh=..., reuse_visibility=False)``

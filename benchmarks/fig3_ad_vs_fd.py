@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/fig3_ad_vs_fd.py [--out DIR] [--quick] [--size 128] [--fd-budget 90]
 
-Problem: the paper scene (``paper_scene.md``) at ``--size`` x ``--size`` pixels (128 by
+Problem: the paper scene (``docs/paper_scene.md``) at ``--size`` x ``--size`` pixels (128 by
 default: a full finite-difference gradient costs 6,720 renders, see below). The target is
 rendered from the true teapot; the start moves every vertex by Gaussian noise (sigma 0.005,
 seed 42). Loss: the paper's Eq. 1 (MSE of the clipped image). Parameters: the positions of

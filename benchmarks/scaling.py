@@ -2,7 +2,7 @@
 
 Run:  python benchmarks/scaling.py [--out DIR] [--quick]
 
-Two series on the paper scene (``paper_scene.md``), both with the BVH:
+Two series on the paper scene (``docs/paper_scene.md``), both with the BVH:
 
 * pixels: 64^2, 128^2, 256^2, 512^2, 1024^2 with the 1,536-triangle teapot;
 * triangles: the teapot tessellated 4x6, 8x13, 12x20, 18x40, 26x60 cells per patch

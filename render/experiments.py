@@ -25,7 +25,7 @@ from render.plot import line_plot
 from render.renderer import render
 from render.teapot import paper_scene
 
-# The true parameters of the reference scene (paper_scene.md).
+# The true parameters of the reference scene (docs/paper_scene.md).
 TRUE_CAMERA = np.array([3.0, 2.0, 5.0])
 TRUE_LOOK_AT = np.array([0.0, 0.0, 0.0])
 TRUE_LIGHT = np.array([1.0, 4.0, 2.0])  # the light-estimation variant
