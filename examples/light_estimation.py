@@ -11,7 +11,7 @@ from render.experiments import command_line, run_light_estimation
 
 def main(argv=None) -> None:
     # Opt-in allocator tuning: keep freed arrays for reuse instead of page-faulting them
-    # back in every iteration (measured ~2x faster here; see minidiff/memory.py).
+    # back in every iteration (the README's benchmarks measure how much; minidiff/memory.py).
     keep_freed_memory()
     args = command_line(__doc__.splitlines()[0], default_iters=500, argv=argv)
     result = run_light_estimation(

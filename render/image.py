@@ -141,12 +141,11 @@ def mse(image: Any, target: Any) -> Tensor | float:
     """
     _check_same_shape(image, target, "mse")
     if isinstance(image, Tensor) or isinstance(target, Tensor):
-        # Keep the Tensor on the left so its operator (not NumPy's) handles the mixed case;
-        # the squared difference does not care about the sign.
-        if isinstance(image, Tensor):
-            d = image - (target if isinstance(target, Tensor) else _as_array(target))
-        else:
-            d = target - _as_array(image)
+        # Tensor.__array_ufunc__ is None, so NumPy defers to the Tensor's operators in
+        # either order: the difference is a Tensor whichever side the array is on.
+        image = image if isinstance(image, Tensor) else _as_array(image)
+        target = target if isinstance(target, Tensor) else _as_array(target)
+        d = image - target
         return (d * d).mean()
     d = _as_array(image) - _as_array(target)
     return float(np.mean(d * d))
