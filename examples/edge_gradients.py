@@ -1,12 +1,13 @@
 """Edge gradients (``render(..., antialias=True)``) on the paper's camera calibration.
 
-Run:  python examples/edge_gradients.py [--out out/edge_gradients] [--quick]
+Run:  python examples/edge_gradients.py [--out out] [--size 512] [--iters 500] [--seed 42]
+      [--quick]
 
 Four measurements, each written to ``<out>/edge_gradients.json`` and summarised in
 ``<out>/edge_gradients.md``:
 
 1. calibration: camera calibration from the 10-degree start at --size (512 by default),
-   seeds 42..51, with antialiasing: the final position error (Eq. 4) per seed;
+   seeds 42..51 (--seed is the first), with antialiasing: the final position error (Eq. 4) per seed;
 2. basin: the success rate (final position error < 0.5 %) against the initial view error
    0, 5, ..., 25 degrees, 10 seeds each at 128x128, with and without edge gradients
    (``basin.png``);
@@ -20,7 +21,6 @@ Four measurements, each written to ``<out>/edge_gradients.json`` and summarised 
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
@@ -29,7 +29,7 @@ import numpy as np
 from PIL import Image
 
 import minidiff as md
-from render.experiments import TRUE_CAMERA, camera_calibration_problem
+from render.experiments import TRUE_CAMERA, camera_calibration_problem, command_line
 from render.image import linear_to_srgb
 from render.optimize import optimize
 from render.plot import line_plot
@@ -37,6 +37,7 @@ from render.renderer import render
 from render.teapot import paper_scene
 
 SUCCESS = 0.5  # per cent position error that counts as converged in the basin
+QUICK = {"--quick": {"action": "store_true", "help": "a few small runs (not results)"}}
 
 
 def calibrate(size: int, seed: int, angle: float, antialias: bool, iters: int) -> dict:
@@ -86,15 +87,12 @@ def silhouette_figure(path: Path, size: int = 128, crop: tuple[slice, slice] | N
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="out/edge_gradients")
-    parser.add_argument("--size", type=int, default=512, help="calibration image size")
-    parser.add_argument("--iters", type=int, default=500)
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    out = Path(args.out)
+    args = command_line(
+        __doc__.splitlines()[0], default_iters=500, argv=argv, extra=QUICK
+    )  # --seed: the first of the ten seeds
+    out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    seeds = [42, 43] if args.quick else list(range(42, 52))
+    seeds = [args.seed, args.seed + 1] if args.quick else list(range(args.seed, args.seed + 10))
     size = 48 if args.quick else args.size
     basin_size = 48 if args.quick else 128
     iters = 20 if args.quick else args.iters
@@ -103,7 +101,8 @@ def main(argv=None) -> dict:
 
     result["calibration"] = [calibrate(size, s, 10.0, True, iters) for s in seeds]
     for run in result["calibration"]:
-        print(f"calibration seed {run['seed']}: {run['error_percent']:.3f} %", flush=True)
+        if not args.quiet:
+            print(f"calibration seed {run['seed']}: {run['error_percent']:.3f} %", flush=True)
 
     basin = {}
     for antialias in (False, True):
@@ -111,7 +110,8 @@ def main(argv=None) -> dict:
         for angle in angles:
             runs = [calibrate(basin_size, s, angle, antialias, iters) for s in seeds]
             rates.append(float(np.mean([r["error_percent"] < SUCCESS for r in runs])))
-            print(f"basin antialias={antialias} {angle:g} deg: {rates[-1]:.0%}", flush=True)
+            if not args.quiet:
+                print(f"basin antialias={antialias} {angle:g} deg: {rates[-1]:.0%}", flush=True)
         basin["edges" if antialias else "pixel centres"] = (angles, rates)
     result["basin"] = {k: {"angles": a, "success_rate": r} for k, (a, r) in basin.items()}
     line_plot(

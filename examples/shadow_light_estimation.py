@@ -1,6 +1,7 @@
 """Light estimation where the shadow is the main cue, with and without shadow-edge gradients.
 
-Run:  python examples/shadow_light_estimation.py [--out out/shadow_light] [--size 256] [--quick]
+Run:  python examples/shadow_light_estimation.py [--out out] [--size 256] [--iters 500]
+      [--seed 42] [--quick]
 
 1. "teapot on a ground plane": the paper's teapot standing on a grey ground, lit by the
    paper's light-estimation truth (light at (1, 4, 2), I = 150), recovered from one image
@@ -16,17 +17,17 @@ the iterations until the loss fell below the tolerance (None: never). Results go
 
 from __future__ import annotations
 
-import argparse
 import json
-from pathlib import Path
 
 import numpy as np
 
 import minidiff as md
-from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, relative_error_pct
+from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, command_line, relative_error_pct
 from render.optimize import optimize
 from render.renderer import render
 from render.teapot import paper_scene
+
+QUICK = {"--quick": {"action": "store_true", "help": "a few small runs (not results)"}}
 
 
 def start_light(seed: int) -> tuple[np.ndarray, float]:
@@ -94,24 +95,23 @@ def report(result: dict) -> str:
 
 
 def main(argv=None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="out/shadow_light")
-    parser.add_argument("--size", type=int, default=256)
-    parser.add_argument("--iters", type=int, default=500)
-    parser.add_argument("--quick", action="store_true")
-    args = parser.parse_args(argv)
-    out = Path(args.out)
+    args = command_line(
+        __doc__.splitlines()[0], default_iters=500, argv=argv, extra=QUICK, default_size=256
+    )  # --seed: the first of the ten seeds
+    out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    seeds = [42, 43] if args.quick else list(range(42, 52))
+    seeds = [args.seed, args.seed + 1] if args.quick else list(range(args.seed, args.seed + 10))
     size, iters, tol = (48, 20, 1e-9) if args.quick else (args.size, args.iters, 1e-9)
     result = {"quick": args.quick, "size": size, "iters": iters, "ground": [], "paper": []}
     for antialias in (False, True):
         for seed in seeds:
             result["ground"].append(estimate(size, seed, True, antialias, iters, tol))
-            print(result["ground"][-1], flush=True)
+            if not args.quiet:
+                print(result["ground"][-1], flush=True)
     for seed in seeds:
         result["paper"].append(estimate(size, seed, False, True, iters, tol))
-        print(result["paper"][-1], flush=True)
+        if not args.quiet:
+            print(result["paper"][-1], flush=True)
     (out / "shadow_light_estimation.json").write_text(json.dumps(result, indent=1))
     (out / "shadow_light_estimation.md").write_text(report(result))
     print(report(result))
