@@ -11,6 +11,7 @@ The example scripts in ``examples/`` are thin command-line wrappers around these
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
 from pathlib import Path
@@ -312,3 +313,21 @@ def command_line(
     if args.out.exists() and not args.out.is_dir():
         parser.error(f"--out {args.out} exists and is not a folder")
     return args
+
+
+def run_example(run, description: str, default_iters: int, argv=None, extra=None) -> dict:
+    """What each paper-experiment script does: keep freed memory for reuse (an opt-in
+    allocator tuning, see ``minidiff.memory``), read the shared command line (plus
+    ``extra`` options, passed on to ``run`` by name), run, print the result as JSON."""
+    from minidiff.memory import keep_freed_memory
+
+    keep_freed_memory()
+    args = command_line(description, default_iters=default_iters, argv=argv, extra=extra)
+    options = {name.lstrip("-").replace("-", "_"): None for name in (extra or {})}
+    options = {name: getattr(args, name) for name in options}
+    result = run(
+        size=args.size, iters=args.iters, seed=args.seed, out=args.out, quiet=args.quiet,
+        **options,
+    )  # fmt: skip
+    print(json.dumps(result, indent=2))
+    return result
