@@ -66,7 +66,9 @@ LABELS = {
     "initial_loss": "initial loss (MSE)",
     "final_loss": "final loss (MSE)",
     "final_psnr": "final PSNR (dB)",
-    "stalled": "runs that lost the object (no gradient)",
+    "initial_object_in_view_pct": "object pixels in the initial view (% of the target's)",
+    "final_object_in_view_pct": "object pixels in the final view (% of the target's)",
+    "stalled": "runs whose loss stopped depending on the parameters (no gradient left)",
     "seconds_total": "wall time per run (s)",
     "seconds_per_iteration": "wall time per iteration (s)",
 }

@@ -171,6 +171,9 @@ def run_camera_calibration(
     """
     scene, (position, look_at), target = camera_calibration_problem(size, seed, angle)
     start_position = position.data.copy()
+    with md.no_grad():
+        _, truth = render(paper_scene(width=size, height=size), return_info=True)
+    initial_view = object_in_view_pct(scene, truth)
 
     result, history = _run(
         scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, out=out,
@@ -187,8 +190,20 @@ def run_camera_calibration(
         iterations_to_half_percent=_first_below(
             [relative_error_pct(p[0], TRUE_CAMERA) for p in history.params], 0.5
         ),
+        initial_object_in_view_pct=initial_view,
+        final_object_in_view_pct=object_in_view_pct(scene, truth),
     )
     return result
+
+
+def object_in_view_pct(scene, target_info) -> float:
+    """How many pixels show the object, as a percentage of those of the target render
+    (``target_info``: its ``RenderInfo``): 0 means nothing in view (no image loss has a
+    gradient), 100 as many as in the target."""
+    with md.no_grad():
+        _, info = render(scene, return_info=True)
+    shown = (info.prim_id >= 0).sum()
+    return float(100.0 * shown / max(1, (target_info.prim_id >= 0).sum()))
 
 
 def run_light_estimation(
