@@ -105,14 +105,13 @@ class ShadowRays:
     ignore_prim: np.ndarray
 
 
-def shadow_offset(points: np.ndarray, scene_size: float, light_position=None) -> np.ndarray:
-    """(k,) how far above the surface each shadow ray starts (see ``SHADOW_EPSILON``)."""
-    x, y, z = np.abs(points[:, 0]), np.abs(points[:, 1]), np.abs(points[:, 2])
-    magnitude = np.maximum(np.maximum(x, y), z)  # max |coordinate| (faster than .max(1))
+def shadow_offset(points: np.ndarray, scene_size: float, light_position=None) -> float:
+    """How far above the surface the shadow rays start (see ``SHADOW_EPSILON``): one
+    distance for all of them, from the largest coordinate involved."""
+    magnitude = float(np.abs(points).max()) if len(points) else 0.0
     if light_position is not None:
-        magnitude = np.maximum(magnitude, np.abs(light_position).max())
-    ulps = SHADOW_ULPS * np.finfo(np.float64).eps * magnitude
-    return np.maximum(SHADOW_EPSILON * scene_size, ulps)
+        magnitude = max(magnitude, float(np.abs(light_position).max()))
+    return max(SHADOW_EPSILON * scene_size, SHADOW_ULPS * np.finfo(np.float64).eps * magnitude)
 
 
 def shadow_rays(
@@ -127,22 +126,22 @@ def shadow_rays(
     if isinstance(light, PointLight):
         position = np.asarray(light.position.data, dtype=np.float64)
         to_light = position - points
-        distance = np.linalg.norm(to_light, axis=1)
+        distance = np.sqrt(np.einsum("ij,ij->i", to_light, to_light))
         offset = shadow_offset(points, scene_size, position)
         # A light on (or within the offset of) the hit point: nothing can come between; its
-        # contribution is zero or nearly so (see shading), so call it lit.
+        # contribution is zero or nearly so (see shading), so call it lit (tmax = 0).
         near = distance <= 2.0 * offset
-        unit = to_light / np.where(near, 1.0, distance)[:, None]
-        unit[near] = (0.0, 1.0, 0.0)
-        origins = points + offset[:, None] * unit
+        fraction = offset / np.where(near, 1.0, distance)  # of the way to the light
+        origins = points + fraction[:, None] * to_light
         # Unnormalised direction to the light: t = 1 is the light itself.
         directions = position - origins
-        tmax = np.where(near, 0.0, 1.0 - offset / np.maximum(distance, offset))
+        directions[near] = (0.0, 1.0, 0.0)
+        tmax = np.where(near, 0.0, 1.0 - fraction / (1.0 - fraction))
     elif isinstance(light, DirectionalLight):
         # Unit length: the user's direction may have any length.
         towards = -np.asarray(light.direction.data, np.float64)
         unit = towards / np.linalg.norm(towards)
-        origins = points + shadow_offset(points, scene_size)[:, None] * unit
+        origins = points + shadow_offset(points, scene_size) * unit
         directions = np.broadcast_to(unit, points.shape)
         tmax = np.inf
     else:
