@@ -37,7 +37,6 @@ from __future__ import annotations
 
 import argparse
 import gc
-import json
 import math
 import os
 import platform
@@ -48,6 +47,8 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+
+from render.jsonio import write_json as write_strict_json
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "out" / "benchmarks"  # out/ is git-ignored
@@ -220,18 +221,6 @@ def machine_line(m: dict) -> str:
 # --------------------------------------------------------------------------------------
 
 
-def _to_json(x):
-    if isinstance(x, np.integer | np.bool_):
-        return x.item()
-    if isinstance(x, np.floating):
-        return float(x)
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, Path):
-        return str(x)
-    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
-
-
 def write_json(out: Path, name: str, payload: dict) -> Path:
     """Write ``payload`` (plus the machine description and the command line) to
     ``out/name.json``; returns the path."""
@@ -240,9 +229,9 @@ def write_json(out: Path, name: str, payload: dict) -> Path:
     payload = dict(payload)
     payload["machine"] = machine()
     payload["argv"] = sys.argv
-    path = out / f"{name}.json"
-    path.write_text(json.dumps(payload, indent=2, default=_to_json) + "\n", encoding="utf-8")
-    return path
+    # Strict JSON (NaN and infinities become null), which every parser reads: see
+    # render.jsonio.
+    return write_strict_json(out / f"{name}.json", payload, indent=2)
 
 
 def make_parser(doc: str) -> argparse.ArgumentParser:

@@ -21,7 +21,6 @@ Four measurements, each written to ``<out>/edge_gradients.json`` and summarised 
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -31,6 +30,7 @@ from PIL import Image
 import minidiff as md
 from render.experiments import TRUE_CAMERA, camera_calibration_problem, command_line
 from render.image import linear_to_srgb
+from render.jsonio import write_json
 from render.optimize import optimize
 from render.plot import line_plot
 from render.renderer import render
@@ -123,7 +123,7 @@ def main(argv=None) -> dict:
         {"seed": s, "fraction": coverage_at_start(basin_size, s, 30.0)} for s in seeds
     ]
     silhouette_figure(out / "silhouette_zoom.png")
-    (out / "edge_gradients.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "edge_gradients.json", result)
     (out / "edge_gradients.md").write_text(report(result))
     print(report(result))
     return result

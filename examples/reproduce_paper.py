@@ -12,7 +12,6 @@ a smoke run of well under a minute. --seed S runs seeds S..S+9 (S..S+2 with --qu
 
 from __future__ import annotations
 
-import json
 import platform
 import time
 
@@ -25,6 +24,7 @@ from render.experiments import (
     run_light_estimation,
     run_material_recovery,
 )
+from render.jsonio import write_json
 
 # The paper's section 6 claims (mean, std over 10 runs), quoted for comparison only.
 PAPER = {
@@ -165,7 +165,7 @@ def main(argv=None) -> None:
         verdicts.append(f"- {experiment} {metric}: {mean:.4g} (target < {bound}): {status}")
     report = header + table(results) + "\n" + "\n".join(verdicts) + "\n"
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(results, indent=1))
+    write_json(args.out / "results.json", results)
     (args.out / "results.md").write_text(report)
     print(report)
     print(f"Wrote {args.out / 'results.json'}, {args.out / 'results.md'} and images in {args.out}/")

@@ -17,12 +17,11 @@ the iterations until the loss fell below the tolerance (None: never). Results go
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
 import minidiff as md
 from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, command_line, relative_error_pct
+from render.jsonio import write_json
 from render.optimize import optimize
 from render.renderer import render
 from render.teapot import paper_scene
@@ -112,7 +111,7 @@ def main(argv=None) -> dict:
         result["paper"].append(estimate(size, seed, False, True, iters, tol))
         if not args.quiet:
             print(result["paper"][-1], flush=True)
-    (out / "shadow_light_estimation.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "shadow_light_estimation.json", result)
     (out / "shadow_light_estimation.md").write_text(report(result))
     print(report(result))
     return result
