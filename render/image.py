@@ -103,6 +103,8 @@ def load_image(path: str | Path, srgb: bool = False) -> np.ndarray:
         FileNotFoundError: no file at ``path``.
         ValueError: the file is not a readable image.
     """
+    if not isinstance(path, str | Path):
+        raise TypeError(f"load_image: path must be a str or Path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_image: no such file: {path}")
@@ -113,9 +115,17 @@ def load_image(path: str | Path, srgb: bool = False) -> np.ndarray:
                 array = np.repeat(np.clip(grey, 0.0, 1.0)[:, :, None], 3, axis=2)
             elif im.mode == "F":  # 32-bit float greyscale: values are taken as they are
                 grey = np.asarray(im, dtype=np.float64)
+                if not np.isfinite(grey).all():  # a float TIFF can hold NaN or inf
+                    bad = int((~np.isfinite(grey)).sum())
+                    raise ValueError(f"load_image: {path} has {bad} pixels that are NaN or inf")
                 array = np.repeat(np.clip(grey, 0.0, 1.0)[:, :, None], 3, axis=2)
             else:
                 array = np.asarray(im.convert("RGB"), dtype=np.float64) / 255.0
+    except Image.DecompressionBombError as err:  # Pillow's guard against huge images
+        raise ValueError(
+            f"load_image: {path} is larger than Pillow's safety limit of "
+            f"{Image.MAX_IMAGE_PIXELS:,} pixels: {err}"
+        ) from err
     except (UnidentifiedImageError, OSError, SyntaxError) as err:
         # OSError covers truncated files; SyntaxError is what some Pillow plugins raise.
         raise ValueError(f"load_image: cannot read {path} as an image: {err}") from err

@@ -261,3 +261,21 @@ def test_mesh_errors(tmp_path):
         load_mesh(tmp_path / "junk.glb")
     with pytest.raises(TypeError, match="material must be a Material"):
         load_mesh(MESHES / "tree.obj", material="red")
+
+
+def test_load_image_bad_inputs_say_what_is_wrong(tmp_path):
+    with pytest.raises(TypeError, match="path must be a str or Path"):
+        load_image(None)
+    nan_tiff = tmp_path / "nan.tif"
+    Image.fromarray(np.array([[0.5, np.nan], [np.inf, 0.1]], np.float32), mode="F").save(nan_tiff)
+    with pytest.raises(ValueError, match="2 pixels that are NaN or inf"):
+        load_image(nan_tiff)
+    big = tmp_path / "big.png"
+    Image.new("L", (200, 200)).save(big)
+    limit = Image.MAX_IMAGE_PIXELS
+    try:
+        Image.MAX_IMAGE_PIXELS = 100  # 40,000 pixels is then "more than twice the limit"
+        with pytest.raises(ValueError, match="safety limit"):
+            load_image(big)
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
