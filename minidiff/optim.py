@@ -44,12 +44,23 @@ class Optimizer:
                 )
         if project is None or callable(project):
             self.project = [project] * len(self.params)
-        else:
+        elif isinstance(project, list | tuple):
             self.project = list(project)
             if len(self.project) != len(self.params):
                 raise ValueError(
                     f"{type(self).__name__}: {len(self.project)} projections for "
                     f"{len(self.params)} params"
+                )
+        else:
+            raise TypeError(
+                f"{type(self).__name__}: project must be a callable, a list of callables or "
+                f"None, got {type(project).__name__}"
+            )
+        for i, f in enumerate(self.project):
+            if f is not None and not callable(f):
+                raise TypeError(
+                    f"{type(self).__name__}: project[{i}] must be callable or None, "
+                    f"got {type(f).__name__}"
                 )
 
     def zero_grad(self) -> None:
@@ -94,7 +105,14 @@ class Optimizer:
 
     def _apply_projection(self, i: int, p: Tensor) -> None:
         if self.project[i] is not None:
-            p.data[...] = self.project[i](p.data)
+            projected = np.asarray(self.project[i](p.data))
+            # Broadcasting a scalar or a row into the parameter would pass silently.
+            if projected.shape != p.data.shape:
+                raise ValueError(
+                    f"{type(self).__name__}: project[{i}] must return an array of the "
+                    f"parameter's shape {p.data.shape}, got {projected.shape}"
+                )
+            p.data[...] = projected
 
 
 def _real(optimizer: Optimizer, name: str, value: Any) -> float:

@@ -12,7 +12,7 @@ tape), ``shading.py`` (lights and materials), ``cache.py`` (reuse between render
 from render.accel import Accelerator
 from render.image import load_image, mse, psnr, save_image
 from render.meshio import load_mesh
-from render.optimize import FlatParameters, History, image_loss, optimize
+from render.optimize import FlatParameters, History, OptimizationError, image_loss, optimize
 from render.renderer import RenderInfo, render
 from render.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
 from render.teapot import paper_scene, teapot, teapot_geometry
@@ -21,5 +21,5 @@ __all__ = [
     "Accelerator", "Camera", "DirectionalLight", "Material", "Mesh", "PointLight", "Scene",
     "Sphere", "RenderInfo", "render", "load_image", "save_image", "mse", "psnr", "load_mesh",
     "paper_scene", "teapot", "teapot_geometry", "optimize", "FlatParameters", "History",
-    "image_loss",
+    "OptimizationError", "image_loss",
 ]  # fmt: skip

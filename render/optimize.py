@@ -15,11 +15,12 @@ import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 import minidiff as md
-from render.image import mse
+from render.image import load_image, mse
 from render.renderer import render
 from render.scene import Scene
 
@@ -98,15 +99,26 @@ def optimize(
     scene: the scene holding the parameters, or any zero-argument function returning an
         (H, W, 3) image tensor (for custom pipelines).
     params: leaf tensors with ``requires_grad=True`` used by the scene; updated in place.
-    target: (H, W, 3) array of the target image.
+    target: (H, W, 3) array of the target image, or the path of an image file (read with
+        ``render.load_image``, values as stored).
     optimizer: defaults to ``Adam(params, lr, project=project)``.
     max_iters, tol: stop after ``max_iters`` updates, or as soon as the loss is < ``tol``.
     callback(it, loss, image, history): called every iteration with the rendered image
         (an ndarray, before the update); returning True stops early.
-    Returns (params, history).
+    Returns (params, history). Raises ``OptimizationError`` (with ``.history``) if a step
+    fails, e.g. on a NaN gradient; ValueError if a parameter is not in the scene.
     """
+    if isinstance(target, str | Path):  # a file: read as stored (no sRGB decoding)
+        target = load_image(target)
     target = np.asarray(target, dtype=np.float64)
     if isinstance(scene, Scene):
+        known = {id(t) for t in scene.parameters()}
+        for i, p in enumerate(params):
+            if id(p) not in known:
+                raise ValueError(
+                    f"optimize: params[{i}] (shape {getattr(p, 'shape', '?')}) is not a "
+                    "parameter of the scene: optimising it would change nothing"
+                )
         kwargs = render_kwargs or {}
         scene_obj = scene
 
@@ -142,7 +154,10 @@ def optimize(
         stop = history.converged or history.stalled or it == max_iters
         if not stop:
             loss.backward()
-            opt.step()
+            try:
+                opt.step()
+            except (ValueError, FloatingPointError) as err:  # e.g. a NaN gradient
+                raise OptimizationError(f"optimize: iteration {it}: {err}", history) from err
             history.iterations += 1
         history.seconds.append(time.perf_counter() - start)
         progress.update(it, value, final=stop)
@@ -151,6 +166,15 @@ def optimize(
         if stop:
             break
     return params, history
+
+
+class OptimizationError(RuntimeError):
+    """``optimize`` stopped on an error (e.g. a NaN gradient); ``history`` holds the
+    iterations made until then, so that one can see where it went wrong."""
+
+    def __init__(self, message: str, history: History):
+        super().__init__(message)
+        self.history = history
 
 
 class FlatParameters:
