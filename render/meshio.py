@@ -34,6 +34,7 @@ texture image; see ``Material``).
 
 from __future__ import annotations
 
+import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,8 +92,17 @@ def load_mesh(
             f"load_mesh: ambient_light must be a scalar or (3,), got {ambient_light.shape}"
         )
 
+    if path.stat().st_size == 0:
+        raise ValueError(f"load_mesh: {path} is empty")
+    source: Any = str(path)
+    resolver = None
+    if ext == ".obj":
+        text = check_obj(path)  # clear errors for what trimesh would misread or crash on
+        source, resolver = io.StringIO(text), trimesh.resolvers.FilePathResolver(str(path))
     try:
-        loaded = trimesh.load_scene(str(path), process=False, group_material=True)
+        loaded = trimesh.load_scene(
+            source, file_type=ext[1:], resolver=resolver, process=False, group_material=True
+        )
     except Exception as err:  # trimesh raises many different types for bad input
         raise ValueError(f"load_mesh: cannot parse {path}: {err}") from err
 
@@ -125,6 +135,91 @@ def load_mesh(
     if not meshes:
         raise ValueError(f"load_mesh: {path} contains no triangles")
     return meshes
+
+
+def read_text(path: Path) -> str:
+    """A text file's content: UTF-8, or Latin-1 if it is not valid UTF-8 (one accented
+    byte in a comment is common in the wild; Latin-1 decodes any byte)."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return data.decode("latin-1")
+
+
+def _obj_number(token: str, path: Path, line_no: int, what: str) -> float:
+    try:
+        value = float(token)
+    except ValueError:
+        raise ValueError(
+            f"load_mesh: {path}, line {line_no}: {what} must be a number, got {token!r}"
+        ) from None
+    if not np.isfinite(value):
+        raise ValueError(f"load_mesh: {path}, line {line_no}: {what} is {token!r}")
+    return value
+
+
+def _obj_index(token: str, count: int, path: Path, line_no: int, what: str) -> None:
+    """Check one OBJ index: a non-zero integer, 1-based from the start or negative from
+    the end, referring to one of the ``count`` entries defined so far."""
+    try:
+        index = int(token)
+    except ValueError:
+        raise ValueError(
+            f"load_mesh: {path}, line {line_no}: {what} index must be an integer, got {token!r}"
+        ) from None
+    if index == 0:
+        raise ValueError(
+            f"load_mesh: {path}, line {line_no}: {what} index 0 is invalid (OBJ indices "
+            "start at 1; negative ones count from the end)"
+        )
+    if index > count or index < -count:
+        raise ValueError(
+            f"load_mesh: {path}, line {line_no}: {what} index {index} refers past the "
+            f"{count} defined so far"
+        )
+
+
+def check_obj(path: Path) -> str:
+    """Read an OBJ file's text and check the lines that trimesh would silently misread:
+    vertices need three numbers, faces at least three corners whose indices are non-zero
+    integers within range. Raises ValueError naming the file, the line and the problem.
+    (A file cut in the middle of its last index that still leaves a valid index cannot be
+    told from a complete one: many valid OBJ files have no final newline.) Returns the
+    text (see ``read_text``)."""
+    text = read_text(path)
+    counts = {"v": 0, "vt": 0, "vn": 0}
+    for line_no, raw in enumerate(text.splitlines(), start=1):
+        tokens = raw.split("#", 1)[0].split()
+        if not tokens:
+            continue
+        key, args = tokens[0], tokens[1:]
+        if key in counts:
+            needed = {"v": 3, "vt": 1, "vn": 3}[key]
+            if len(args) < needed:
+                raise ValueError(
+                    f"load_mesh: {path}, line {line_no}: {key} needs {needed} numbers, "
+                    f"got {raw.strip()!r}"
+                )
+            for token in args[: {"v": 3, "vt": 2, "vn": 3}[key]]:
+                _obj_number(token, path, line_no, f"a {key} coordinate")
+            counts[key] += 1
+        elif key == "f":
+            if len(args) < 3:
+                raise ValueError(
+                    f"load_mesh: {path}, line {line_no}: a face needs 3 corners, got "
+                    f"{raw.strip()!r}"
+                )
+            for corner in args:
+                parts = corner.split("/")
+                if len(parts) > 3 or parts[0] == "":
+                    raise ValueError(
+                        f"load_mesh: {path}, line {line_no}: bad face corner {corner!r}"
+                    )
+                for part, kind in zip(parts, ("v", "vt", "vn"), strict=False):
+                    if part != "":
+                        _obj_index(part, counts[kind], path, line_no, kind)
+    return text
 
 
 # --------------------------------------------------------------------------------------
