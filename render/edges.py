@@ -75,9 +75,6 @@ class EdgePairs:
     other: np.ndarray
     horizontal: np.ndarray
 
-    def take(self, rows: np.ndarray) -> EdgePairs:
-        return EdgePairs(*(x[rows] for x in vars(self).values()))
-
 
 def sample_grid(camera: Camera, spp: int) -> np.ndarray:
     """(H n, W n) int64: the ray id at each position of the regular sample grid."""
@@ -122,7 +119,7 @@ def edge_pairs(
     eye, d_near, d_far, to_pixels = plain_rays(camera, near, far, spp)
     edge = np.full(len(near), -2, dtype=np.int64)  # -2: not a silhouette pair
     s = np.full(len(near), np.nan)
-    n_triangles, first = sum(m.num_faces for m in scene.meshes), 0
+    n_triangles, first = first_sphere_id(scene), 0
     for index, mesh in enumerate(scene.meshes):
         rows = np.flatnonzero((prim >= first) & (prim < first + mesh.num_faces))
         if len(rows):
@@ -240,10 +237,21 @@ def plain_rays(camera: Camera, near: np.ndarray, far: np.ndarray, spp: int):
     basis = np.stack([right, up, forward])
     d_near = _homogeneous(image_plane_coords(camera, near, spp)) @ basis
     d_far = _homogeneous(image_plane_coords(camera, far, spp)) @ basis
+    return eye, d_near, d_far, (right, up, sample_steps(camera, spp))
+
+
+def sample_steps(camera: Camera, spp: int, dtype=np.float64) -> np.ndarray:
+    """(2,) one sample step in image-plane x and y: x spans [-1, 1] over W n samples, so a
+    step is 2 / (W n) (likewise y with H)."""
     n = round(spp**0.5)
-    # x spans [-1, 1] over W n samples: one sample is 2 / (W n) in x (likewise y).
-    to_samples = np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)])
-    return eye, d_near, d_far, (right, up, to_samples)
+    return np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)], dtype=dtype)
+
+
+def slope_across(normal, frame, horizontal: np.ndarray, steps: np.ndarray) -> md.Tensor:
+    """(n,) on the tape: how far an edge with edge-function normal ``normal`` (n, 3) moves
+    along each pair's axis per sample step across it (|t| <= 1 by the 45-degree rule)."""
+    gx, gy = grid_gradient(normal, frame[1], frame[2], steps)
+    return md.where(horizontal, gy, gx) / md.where(horizontal, gx, gy)
 
 
 def _homogeneous(coords: np.ndarray) -> np.ndarray:
@@ -325,12 +333,19 @@ def triangle_corners(scene: Scene, ids: np.ndarray):
     for mesh in scene.meshes:
         rows = np.flatnonzero((ids >= first) & (ids < first + mesh.num_faces))
         if len(rows):
-            parts.append(mesh.vertices[mesh.faces[ids[rows] - first].reshape(-1)])
+            corners = mesh.vertices[mesh.faces[ids[rows] - first].reshape(-1)]
+            parts.append(md.reshape(corners, (-1, 3, 3)))
             order.append(rows)
         first += mesh.num_faces
-    flat = parts[0] if len(parts) == 1 else md.concatenate(parts)
-    corners = md.reshape(flat, (-1, 3, 3))[np.argsort(np.concatenate(order))]
+    corners = in_order(parts, order)
     return corners[:, 0], corners[:, 1], corners[:, 2]
+
+
+def in_order(parts: list[md.Tensor], order: list[np.ndarray]) -> md.Tensor:
+    """The rows of ``parts`` (computed group by group) put back in the original order:
+    part i holds the rows ``order[i]`` (together a permutation of 0..n-1)."""
+    joined = parts[0] if len(parts) == 1 else md.concatenate(parts)
+    return joined[np.argsort(np.concatenate(order))]
 
 
 def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
@@ -366,8 +381,9 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
         rows = np.concatenate(order)
         e_near, e_far = md.dot(d_near[rows], m), md.dot(d_far[rows], m)
         s_parts.append(e_near / (e_near - e_far))
+    first = first_sphere_id(scene)
     for index, sphere in enumerate(scene.spheres):
-        rows = np.flatnonzero((pairs.edge == -1) & (pairs.prim == _first_sphere(scene) + index))
+        rows = np.flatnonzero((pairs.edge == -1) & (pairs.prim == first + index))
         if len(rows):
             s = sphere_crossing(sphere, eye, d_near[rows], d_far[rows])
             s_parts.append(s)
@@ -378,19 +394,14 @@ def crossings(scene: Scene, pairs: EdgePairs, frame, spp: int, dtype):
     if not s_parts:
         empty = md.tensor(np.zeros(0, dtype))
         return empty, empty
-    inverse = np.argsort(np.concatenate(order))
-    s = (s_parts[0] if len(s_parts) == 1 else md.concatenate(s_parts))[inverse]
-    normal = (normals[0] if len(normals) == 1 else md.concatenate(normals))[inverse]
-    n = round(spp**0.5)
-    to_samples = np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)])
-    gx, gy = grid_gradient(normal, frame[1], frame[2], to_samples.astype(dtype))
-    along = md.where(pairs.horizontal, gx, gy)
-    across = md.where(pairs.horizontal, gy, gx)
-    return s, across / along
+    normal = in_order(normals, order)
+    steps = sample_steps(camera, spp, dtype)
+    return in_order(s_parts, order), slope_across(normal, frame, pairs.horizontal, steps)
 
 
-def _first_sphere(scene: Scene) -> int:
-    """The global primitive id of the first sphere (spheres follow all triangles)."""
+def first_sphere_id(scene: Scene) -> int:
+    """The global primitive id of the first sphere: spheres follow all triangles, so it is
+    also the number of triangles."""
     return sum(m.num_faces for m in scene.meshes)
 
 
@@ -412,9 +423,10 @@ def box_coverage(offset: md.Tensor, slope: md.Tensor, include_zero: bool = True)
     In the box's frame, u along the pair's axis (box centre at u = 0) and v across it, the
     edge is u = -offset + slope * v, |slope| <= 1, and the covered part is u > that line:
     area = integral over v in [-1/2, 1/2] of max(0, offset - slope v). With h = |slope|/2:
-    offset itself (clamped at 0) where |offset| >= h (the edge does not cross the box's
-    centre column ... its sides), else the triangle (offset + h)^2 / (4 h). With slope 0
-    this is nvdiffrast's 1-D coverage; the slope makes it exact for any straight edge.
+    offset itself (clamped at 0) where |offset| >= h (the edge stays on one side of the
+    box's centre line across the whole box), else the triangle (offset + h)^2 / (4 h).
+    With slope 0 this is nvdiffrast's 1-D coverage; the slope makes it exact for any
+    straight edge.
     The two branches meet with equal value and derivative (the area is C^1).
     """
     h = md.abs(slope) * 0.5
@@ -440,10 +452,18 @@ def edge_updates(ray_colour: md.Tensor, pairs: EdgePairs, s: md.Tensor, slope: m
     if len(pairs.near) == 0:
         return None
     change = ray_colour[pairs.far] - ray_colour[pairs.near]  # (n, 3)
-    to_far = md.reshape(box_coverage(0.5 - s, slope), (-1, 1))
-    to_near = md.reshape(box_coverage(s - 0.5, slope, include_zero=False), (-1, 1))
+    to_far, to_near = pair_coverages(s, slope)
     rays = np.concatenate([pairs.near, pairs.far])
     return rays, md.concatenate([to_far * change, to_near * (-change)])
+
+
+def pair_coverages(s: md.Tensor, slope: md.Tensor) -> tuple[md.Tensor, md.Tensor]:
+    """For an edge crossing a pair at s* (sample 0 at s = 0, sample 1 at s = 1): the area
+    of sample 0's box beyond the edge and of sample 1's box before it, (n, 1) each. At
+    s* = 0.5 exactly the edge lies on the boxes' border: only one of them moves with it."""
+    beyond = box_coverage(0.5 - s, slope)
+    before = box_coverage(s - 0.5, slope, include_zero=False)
+    return md.reshape(beyond, (-1, 1)), md.reshape(before, (-1, 1))
 
 
 def add_to_samples(ray_colour: md.Tensor, updates: list) -> md.Tensor:

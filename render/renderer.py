@@ -27,7 +27,7 @@ import numpy as np
 import minidiff as md
 from render.cache import RenderCache, cache_for, surface_key
 from render.camera import camera_frame, ray_directions, subpixel_offsets
-from render.edges import EdgePairs, add_to_samples, crossings, edge_updates
+from render.edges import EdgePairs, add_to_samples, crossings, edge_updates, in_order
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
 from render.scene import Mesh, Scene, check_ray_count
 from render.shading import light_contribution, sample_texture, shade_mesh, shade_surface
@@ -203,13 +203,11 @@ def _shadow_updates(scene, visibility, shaded, frame, spp):
             dark_light.append(_unoccluded(surface, dark_rows, obj.material, light))
             lit_points.append(surface.points[lit_rows])
             order.append(rows)
-    inverse = np.argsort(np.concatenate(order))
-    cat = lambda xs: xs[0] if len(xs) == 1 else md.concatenate(xs)  # noqa: E731
     s, slope = shadow_crossings(
-        scene, pairs, prim_id[pairs.lit], cat(lit_points)[inverse], frame, spp,
+        scene, pairs, prim_id[pairs.lit], in_order(lit_points, order), frame, spp,
         working_dtype(scene),
     )  # fmt: skip
-    return shadow_updates(pairs, s, slope, cat(lit_light)[inverse], cat(dark_light)[inverse])
+    return shadow_updates(pairs, s, slope, in_order(lit_light, order), in_order(dark_light, order))
 
 
 def _unoccluded(surface: Surface, rows: np.ndarray, material, light) -> md.Tensor:

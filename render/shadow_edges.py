@@ -44,13 +44,16 @@ from render.camera import image_plane_coords, ray_directions
 from render.edges import (
     as_column,
     axis_ok,
-    box_coverage,
     dot_last,
-    grid_gradient,
+    first_sphere_id,
+    in_order,
     outline_normal,
+    pair_coverages,
     plain_rays,
     plane_normal,
     sample_grid,
+    sample_steps,
+    slope_across,
     sphere_crossing,
     sphere_crossing_plain,
     triangle_corners,
@@ -100,11 +103,10 @@ def object_index_of(scene: Scene, prim: np.ndarray) -> np.ndarray:
 def _receiver_planes(scene: Scene, prim: np.ndarray, points: np.ndarray):
     """The receiver's plane at each sample: normal (n, 3) and a point on it (n, 3): the hit
     face's plane, or a sphere's tangent plane at the hit point."""
-    n_tri = sum(m.num_faces for m in scene.meshes)
+    n_tri = first_sphere_id(scene)
     normal, anchor = np.empty((len(prim), 3)), np.array(points, dtype=np.float64)
-    triangles = [m.triangles() for m in scene.meshes]
     if n_tri:
-        tri = np.concatenate(triangles).astype(np.float64)
+        tri = np.concatenate([m.triangles() for m in scene.meshes]).astype(np.float64)
         on_tri = prim < n_tri
         corners = tri[prim[on_tri]]
         normal[on_tri] = plane_normal(corners)
@@ -142,12 +144,12 @@ def _homogeneous_points(d, normal, anchor, eye, origin):
 
 def _shadow_plane_normal(corner_i, corner_j, light):
     """m of the plane through an occluder edge and the light (arrays or tensors)."""
+    on_tape = isinstance(corner_i, md.Tensor)
+    cross = md.cross if on_tape else np.cross
     if isinstance(light, PointLight):
-        position = light.position if isinstance(corner_i, md.Tensor) else light.position.data
-        cross = md.cross if isinstance(corner_i, md.Tensor) else np.cross
+        position = light.position if on_tape else light.position.data
         return cross(corner_i - position, corner_j - position)
-    direction = light.direction if isinstance(corner_i, md.Tensor) else light.direction.data
-    cross = md.cross if isinstance(corner_i, md.Tensor) else np.cross
+    direction = light.direction if on_tape else light.direction.data
     return cross(corner_j - corner_i, direction)
 
 
@@ -171,7 +173,7 @@ def shadow_pairs(
     grid = sample_grid(camera, spp)
     hit_index = np.full(prim_id.size, -1, dtype=np.int64)
     hit_index[primary.hit_rays] = np.arange(len(primary.hit_rays))
-    n_tri = sum(m.num_faces for m in scene.meshes)
+    n_tri = first_sphere_id(scene)
     parts = []
     for j, light in enumerate(scene.lights):
         lit_ray = np.zeros(prim_id.size, dtype=bool)  # per ray: light j reaches its hit
@@ -286,7 +288,7 @@ def _chain_to_directions(g, normal, anchor, eye, origin):
 def _receiver_planes_tape(scene: Scene, prim: np.ndarray, points: md.Tensor):
     """``_receiver_planes`` on the tape: (normal, anchor), (k, 3) each. ``points`` are the
     samples' hit points on the tape (used for spheres)."""
-    n_tri = sum(m.num_faces for m in scene.meshes)
+    n_tri = first_sphere_id(scene)
     normals, anchors, order = [], [], []
     on_tri = np.flatnonzero(prim < n_tri)
     if len(on_tri):
@@ -301,9 +303,7 @@ def _receiver_planes_tape(scene: Scene, prim: np.ndarray, points: md.Tensor):
             normals.append(p - sphere.center)
             anchors.append(p)
             order.append(on)
-    inverse = np.argsort(np.concatenate(order))
-    cat = lambda xs: xs[0] if len(xs) == 1 else md.concatenate(xs)  # noqa: E731
-    return cat(normals)[inverse], cat(anchors)[inverse]
+    return in_order(normals, order), in_order(anchors, order)
 
 
 def shadow_crossings(
@@ -319,6 +319,7 @@ def shadow_crossings(
     d_dark = ray_directions(frame, image_plane_coords(camera, pairs.dark, spp).astype(dtype))
     normal, anchor = _receiver_planes_tape(scene, prim_lit, lit_points)
     s_parts, normals, order = [], [], []
+    n_tri = first_sphere_id(scene)
     for j, light in enumerate(scene.lights):
         rows = np.flatnonzero((pairs.light == j) & (pairs.edge >= 0))
         if len(rows):
@@ -331,7 +332,6 @@ def shadow_crossings(
             s_parts.append(e_lit / (e_lit - e_dark))
             normals.append(big_m)
             order.append(rows)
-        n_tri = sum(mesh.num_faces for mesh in scene.meshes)
         for index, sphere in enumerate(scene.spheres):
             rows = np.flatnonzero(
                 (pairs.light == j) & (pairs.edge == -1) & (pairs.occluder == n_tri + index)
@@ -346,15 +346,10 @@ def shadow_crossings(
             s_parts.append(1.0 - s_dark)
             normals.append(_chain_to_directions(g, normal[rows], anchor[rows], eye, position))
             order.append(rows)
-    inverse = np.argsort(np.concatenate(order))
-    s = (s_parts[0] if len(s_parts) == 1 else md.concatenate(s_parts))[inverse]
-    big_m = (normals[0] if len(normals) == 1 else md.concatenate(normals))[inverse]
-    n = round(spp**0.5)
-    to_samples = np.array([2.0 / (camera.width * n), 2.0 / (camera.height * n)], dtype)
-    gx, gy = grid_gradient(big_m, frame[1], frame[2], to_samples)
-    along = md.where(pairs.horizontal, gx, gy)
-    across = md.where(pairs.horizontal, gy, gx)
-    return md.clip(s, 0.0, 1.0), across / along
+    s = in_order(s_parts, order)
+    slope = slope_across(in_order(normals, order), frame, pairs.horizontal,
+                         sample_steps(camera, spp, dtype))  # fmt: skip
+    return md.clip(s, 0.0, 1.0), slope
 
 
 def shadow_updates(pairs: ShadowPairs, s, slope, light_lit, light_dark):
@@ -362,7 +357,6 @@ def shadow_updates(pairs: ShadowPairs, s, slope, light_lit, light_dark):
     samples' colours: (ray ids (2n,), additions (2n, 3)). The lit sample loses its
     unoccluded contribution light_lit (n, 3) times the area of its box in the shadow, the
     dark sample gains light_dark (n, 3) times the area of its box in the light."""
-    shadowed = md.reshape(box_coverage(0.5 - s, slope), (-1, 1))
-    lighted = md.reshape(box_coverage(s - 0.5, slope, include_zero=False), (-1, 1))
+    shadowed, lighted = pair_coverages(s, slope)
     rays = np.concatenate([pairs.lit, pairs.dark])
     return rays, md.concatenate([-(shadowed * light_lit), lighted * light_dark])
