@@ -4,7 +4,9 @@ Run: python examples/camera_calibration.py [--size 512] [--iters 500] [--seed 42
      [--angle 10]
 """
 
-from render.experiments import run_camera_calibration, run_example
+from script_support import run_example
+
+from render.experiments import run_camera_calibration
 
 ANGLE = {"--angle": {"type": float, "default": 10.0, "help": "initial view error (degrees)"}}
 

@@ -26,9 +26,10 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
+from script_support import command_line
 
 import minidiff as md
-from render.experiments import TRUE_CAMERA, camera_calibration_problem, command_line
+from render.experiments import TRUE_CAMERA, camera_calibration_problem
 from render.image import linear_to_srgb
 from render.jsonio import write_json
 from render.optimize import optimize

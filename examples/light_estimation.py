@@ -3,7 +3,9 @@
 Run: python examples/light_estimation.py [--size 512] [--iters 500] [--seed 42] [--out out]
 """
 
-from render.experiments import run_example, run_light_estimation
+from script_support import run_example
+
+from render.experiments import run_light_estimation
 
 
 def main(argv=None) -> dict:

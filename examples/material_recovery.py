@@ -3,7 +3,9 @@
 Run: python examples/material_recovery.py [--size 512] [--iters 100] [--seed 42] [--out out]
 """
 
-from render.experiments import run_example, run_material_recovery
+from script_support import run_example
+
+from render.experiments import run_material_recovery
 
 
 def main(argv=None) -> dict:

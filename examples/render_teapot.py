@@ -5,9 +5,10 @@ Run: python examples/render_teapot.py [--size 512] [--out out]
 
 import time
 
+from script_support import command_line
+
 import render
 from minidiff.memory import keep_freed_memory
-from render.experiments import command_line
 
 # (camera position, look-at point): the reference view, a view from the left, a high view.
 VIEWPOINTS = {

@@ -16,10 +16,10 @@ import platform
 import time
 
 import numpy as np
+from script_support import command_line, run_with_outputs
 
 from minidiff.memory import keep_freed_memory
 from render.experiments import (
-    command_line,
     run_camera_calibration,
     run_light_estimation,
     run_material_recovery,
@@ -124,7 +124,6 @@ def main(argv=None) -> None:
     size = args.size or (128 if args.quick else 512)
     seeds = range(args.seed, args.seed + (3 if args.quick else 10))
     # --iters overrides every experiment's own budget (500, 500 and 100 iterations).
-    budget = {} if args.iters is None else {"iters": args.iters}
     experiments = {
         "camera_calibration": lambda **kw: run_camera_calibration(angle=10.0, **kw),
         "camera_calibration_30deg": lambda **kw: run_camera_calibration(angle=30.0, **kw),
@@ -137,7 +136,7 @@ def main(argv=None) -> None:
         results[name] = []
         for seed in seeds:
             out = args.out if seed == seeds[0] else None
-            r = run(size=size, seed=seed, out=out, quiet=args.quiet, **budget)
+            r = run_with_outputs(run, out, args.iters, size=size, seed=seed, quiet=args.quiet)
             results[name].append(r)
             print(
                 f"{name:26s} seed {seed}: {r['iterations']:4d} iterations, "

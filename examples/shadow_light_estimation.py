@@ -18,9 +18,10 @@ the iterations until the loss fell below the tolerance (None: never). Results go
 from __future__ import annotations
 
 import numpy as np
+from script_support import command_line
 
 import minidiff as md
-from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, command_line, relative_error_pct
+from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, relative_error_pct
 from render.jsonio import write_json
 from render.optimize import optimize
 from render.renderer import render

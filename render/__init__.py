@@ -5,8 +5,12 @@ Read in this order: ``renderer.py`` (the pipeline on one screen), then each step
 ``visibility.py`` (which primitive each ray hits, which lights each hit sees; built on
 ``bvh.py`` / ``intersect.py`` / ``accel.py``), ``geometry.py`` (hits recomputed on the
 tape), ``shading.py`` (lights and materials), ``cache.py`` (reuse between renders),
-``image.py`` / ``meshio.py`` (files), ``optimize.py`` (inverse rendering) and
-``experiments.py`` (the paper's experiments).
+``edges.py`` / ``topology.py`` / ``shadow_edges.py`` (the motion of silhouettes and shadow
+edges, ``antialias=True``), ``image.py`` / ``meshio.py`` / ``jsonio.py`` (files),
+``optimize.py`` (inverse rendering), ``experiments.py`` (the paper's experiments, as
+functions returning numbers and images) and ``plot.py`` (a dependency-free line plot for
+loss curves). Command lines and output writing belong to the scripts:
+``examples/script_support.py``.
 """
 
 from render.accel import Accelerator

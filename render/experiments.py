@@ -1,28 +1,26 @@
 """The paper's three inverse-rendering experiments (sections 5.6-5.8) on the reference scene.
 
 Each ``run_*`` function builds the target from the true parameters, starts from a seeded
-perturbation, runs ``optimize`` and returns a dict of the paper's metrics. With ``out`` it
-also writes what a person wants to look at: target, initial and final renders, an
-absolute-difference image, the loss curve and an animated GIF of the optimisation.
+perturbation, runs ``optimize`` and returns an ``ExperimentRun``: the paper's metrics (a
+dict, JSON-ready), the loss history and the target, initial and final renders. A
+``callback`` sees every iteration (e.g. to keep frames for an animation).
 
-The example scripts in ``examples/`` are thin command-line wrappers around these.
+The example scripts in ``examples/`` are the command line around these; writing images,
+plots and animations is theirs (``examples/script_support.py``).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import time
-from pathlib import Path
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
-from PIL import Image
 
 import minidiff as md
-from render.image import psnr, save_image
-from render.optimize import optimize
-from render.plot import line_plot
+from render.image import psnr
+from render.optimize import History, optimize
 from render.renderer import render
 from render.teapot import paper_scene
 
@@ -55,53 +53,26 @@ def _first_below(values, threshold: float) -> float:
     return float(below[0]) if len(below) else float("nan")
 
 
-class _Recorder:
-    """Keeps a downsampled frame every few iterations for the GIF."""
+@dataclass
+class ExperimentRun:
+    """One run of an experiment: ``metrics`` (the paper's numbers and ours, JSON-ready),
+    the optimisation's ``history``, and the (H, W, 3) ``target``, ``initial`` and ``final``
+    renders; ``name`` says which experiment, start and seed."""
 
-    def __init__(self, every: int, max_side: int = 192):
-        self.every, self.max_side, self.frames = max(1, every), max_side, []
-
-    def __call__(self, it, loss, image, history):
-        if it % self.every == 0:
-            frame = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
-            if max(frame.size) > self.max_side:
-                frame.thumbnail((self.max_side, self.max_side))
-            self.frames.append(frame)
-
-
-def _write_outputs(out, name, target, initial, final, history, recorder):
-    """Target / initial / final / |difference| PNGs, the loss curve and the GIF."""
-    folder = Path(out) / name
-    save_image(target, folder / "target.png")
-    save_image(initial, folder / "initial.png")
-    save_image(final, folder / "final.png")
-    difference = np.abs(final - target)
-    scale = max(float(difference.max()), 1e-12)
-    save_image(difference / scale, folder / "difference.png")
-    line_plot(
-        {"loss (MSE)": (np.arange(len(history.loss)), history.loss)},
-        folder / "loss.png",
-        title=f"{name}: loss per iteration (difference image scaled by 1/{scale:.3g})",
-        xlabel="iteration",
-        ylabel="MSE",
-        logy=True,
-    )
-    if recorder.frames:
-        recorder.frames[0].save(
-            folder / "optimisation.gif",
-            save_all=True,
-            append_images=recorder.frames[1:],
-            duration=80,
-            loop=0,
-        )
-    return folder
+    name: str
+    metrics: dict
+    history: History
+    target: np.ndarray
+    initial: np.ndarray
+    final: np.ndarray
 
 
-def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name="", quiet=True):
-    """Shared driver: initial render, optimisation, final render, outputs, timings."""
+def _run(
+    scene, params, target, *, lr, iters, tol, project=None, callback=None, name="", quiet=True
+):
+    """Shared driver: initial render, optimisation, final render, timings."""
     target = np.clip(target, 0.0, 1.0)  # what the paper's Eq. 1 compares against
     initial = render(scene).data.copy()
-    recorder = _Recorder(every=max(1, iters // 40))
     start = time.perf_counter()
     _, history = optimize(
         scene,
@@ -111,7 +82,7 @@ def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name=
         max_iters=iters,
         tol=tol,
         project=project,
-        callback=recorder if out else None,
+        callback=callback,
         quiet=quiet,
     )
     total = time.perf_counter() - start
@@ -127,11 +98,7 @@ def _run(scene, params, target, *, lr, iters, tol, project=None, out=None, name=
         "seconds_total": total,
         "seconds_per_iteration": total / max(1, len(history.loss)),
     }
-    if out:
-        result["outputs"] = str(
-            _write_outputs(out, name, target, initial, final, history, recorder)
-        )
-    return result, history
+    return ExperimentRun(name, result, history, target, initial, final)
 
 
 def camera_calibration_problem(size: int, seed: int = 42, angle: float = 10.0):
@@ -160,9 +127,9 @@ def run_camera_calibration(
     angle: float = 10.0,
     lr: float = 0.03,
     tol: float = 1e-6,
-    out: str | Path | None = None,
+    callback: Callable | None = None,
     quiet: bool = True,
-) -> dict:
+) -> ExperimentRun:
     """Section 5.6: recover the camera position and look-at point from a target render.
 
     Start: position displaced by 0.5 along x and y; the viewing direction rotated by
@@ -175,25 +142,25 @@ def run_camera_calibration(
         _, truth = render(paper_scene(width=size, height=size), return_info=True)
     initial_view = object_in_view_pct(scene, truth)
 
-    result, history = _run(
-        scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, out=out,
+    run = _run(
+        scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, callback=callback,
         name=f"camera_calibration_{angle:g}deg_seed{seed}", quiet=quiet,
     )  # fmt: skip
-    result.update(
+    run.metrics.update(
         experiment="camera_calibration",
         seed=seed,
         angle_degrees=angle,
         initial_position_error_pct=relative_error_pct(start_position, TRUE_CAMERA),
         final_position_error_pct=relative_error_pct(position.data, TRUE_CAMERA),
         final_position=position.data.tolist(),
-        iterations_to_tol=_first_below(history.loss, tol),
+        iterations_to_tol=_first_below(run.history.loss, tol),
         iterations_to_half_percent=_first_below(
-            [relative_error_pct(p[0], TRUE_CAMERA) for p in history.params], 0.5
+            [relative_error_pct(p[0], TRUE_CAMERA) for p in run.history.params], 0.5
         ),
         initial_object_in_view_pct=initial_view,
         final_object_in_view_pct=object_in_view_pct(scene, truth),
     )
-    return result
+    return run
 
 
 def object_in_view_pct(scene, target_info) -> float:
@@ -212,9 +179,9 @@ def run_light_estimation(
     seed: int = 42,
     lr: tuple[float, float] = (0.3, 20.0),
     tol: float = 1e-9,
-    out: str | Path | None = None,
+    callback: Callable | None = None,
     quiet: bool = True,
-) -> dict:
+) -> ExperimentRun:
     """Section 5.7: recover a point light's position and intensity from a random start.
 
     Truth: light at (1, 4, 2) with I = 150. Start (seeded): the position moved by a random
@@ -238,11 +205,11 @@ def run_light_estimation(
     intensity = md.tensor(start_intensity, requires_grad=True)
     scene = paper_scene(width=size, height=size, light_position=position, light_intensity=intensity)
 
-    result, history = _run(
-        scene, [position, intensity], target, lr=list(lr), iters=iters, tol=tol, out=out,
+    run = _run(
+        scene, [position, intensity], target, lr=list(lr), iters=iters, tol=tol, callback=callback,
         name=f"light_estimation_seed{seed}", quiet=quiet,
     )  # fmt: skip
-    result.update(
+    run.metrics.update(
         experiment="light_estimation",
         seed=seed,
         initial_position_error_pct=relative_error_pct(start_light, TRUE_LIGHT),
@@ -251,9 +218,9 @@ def run_light_estimation(
         final_intensity_error_pct=100 * abs(intensity.item() - TRUE_INTENSITY) / TRUE_INTENSITY,
         final_light=position.data.tolist(),
         final_intensity=intensity.item(),
-        iterations_to_tol=_first_below(history.loss, tol),
+        iterations_to_tol=_first_below(run.history.loss, tol),
     )
-    return result
+    return run
 
 
 def run_material_recovery(
@@ -262,9 +229,9 @@ def run_material_recovery(
     seed: int = 42,
     lr: float = 0.05,
     tol: float = 1e-10,
-    out: str | Path | None = None,
+    callback: Callable | None = None,
     quiet: bool = True,
-) -> dict:
+) -> ExperimentRun:
     """Section 5.8: recover the teapot's albedo, projected onto [0, 1]^3 after every step.
 
     Truth: albedo drawn from [0.1, 0.9]^3; start: drawn from [0, 1]^3 (both seeded).
@@ -277,13 +244,13 @@ def run_material_recovery(
     albedo = md.tensor(start_albedo, requires_grad=True)
     scene = paper_scene(width=size, height=size, albedo=albedo)
 
-    result, history = _run(
+    run = _run(
         scene, [albedo], target, lr=lr, iters=iters, tol=tol, project=md.optim.box(0.0, 1.0),
-        out=out, name=f"material_recovery_seed{seed}", quiet=quiet,
+        callback=callback, name=f"material_recovery_seed{seed}", quiet=quiet,
     )  # fmt: skip
-    errors = [float(np.linalg.norm(p[0] - true_albedo)) for p in history.params]
+    errors = [float(np.linalg.norm(p[0] - true_albedo)) for p in run.history.params]
     errors.append(float(np.linalg.norm(albedo.data - true_albedo)))
-    result.update(
+    run.metrics.update(
         experiment="material_recovery",
         seed=seed,
         true_albedo=true_albedo.tolist(),
@@ -292,57 +259,6 @@ def run_material_recovery(
         rgb_error_after_1=errors[min(1, len(errors) - 1)],
         rgb_error_after_50=errors[min(50, len(errors) - 1)],
         final_rgb_error=errors[-1],
-        iterations_to_tol=_first_below(history.loss, tol),
+        iterations_to_tol=_first_below(run.history.loss, tol),
     )
-    return result
-
-
-def command_line(
-    description: str,
-    default_iters: int | None,
-    argv=None,
-    extra: dict[str, dict] | None = None,
-    default_size: int | None = 512,
-    iterative: bool = True,
-) -> argparse.Namespace:
-    """The shared command line of the example scripts: --size --iters --seed --out --quiet,
-    plus ``extra`` options ({"--name": argparse keyword arguments}). A default of None
-    means "not given" (the script then picks per experiment). ``iterative=False`` (a plain
-    render) leaves out --iters and --seed, which would mean nothing."""
-    parser = argparse.ArgumentParser(description=description)
-    for name, options in (extra or {}).items():
-        parser.add_argument(name, **options)
-    parser.add_argument(
-        "--size", type=int, default=default_size, help="image width = height (pixels)"
-    )
-    if iterative:
-        parser.add_argument("--iters", type=int, default=default_iters, help="maximum iterations")
-        parser.add_argument("--seed", type=int, default=42, help="random seed of the start")
-    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
-    parser.add_argument("--quiet", action="store_true", help="no progress line")
-    args = parser.parse_args(argv)
-    if args.size is not None and args.size < 8:
-        parser.error(f"--size must be at least 8, got {args.size}")
-    if getattr(args, "iters", None) is not None and args.iters < 0:
-        parser.error(f"--iters must be >= 0, got {args.iters}")
-    if args.out.exists() and not args.out.is_dir():
-        parser.error(f"--out {args.out} exists and is not a folder")
-    return args
-
-
-def run_example(run, description: str, default_iters: int, argv=None, extra=None) -> dict:
-    """What each paper-experiment script does: keep freed memory for reuse (an opt-in
-    allocator tuning, see ``minidiff.memory``), read the shared command line (plus
-    ``extra`` options, passed on to ``run`` by name), run, print the result as JSON."""
-    from minidiff.memory import keep_freed_memory
-
-    keep_freed_memory()
-    args = command_line(description, default_iters=default_iters, argv=argv, extra=extra)
-    options = {name.lstrip("-").replace("-", "_"): None for name in (extra or {})}
-    options = {name: getattr(args, name) for name in options}
-    result = run(
-        size=args.size, iters=args.iters, seed=args.seed, out=args.out, quiet=args.quiet,
-        **options,
-    )  # fmt: skip
-    print(json.dumps(result, indent=2))
-    return result
+    return run

@@ -13,6 +13,7 @@ EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "edge_gradients.py"
 
 
 def test_edge_gradients_example_quick(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE.parent))  # as `python examples/...` would
     monkeypatch.setattr(sys, "argv", [str(EXAMPLE), "--quick", "--out", str(tmp_path)])
     runpy.run_path(str(EXAMPLE), run_name="__main__")
     result = json.loads((tmp_path / "edge_gradients.json").read_text())
@@ -27,6 +28,7 @@ SHADOW_EXAMPLE = EXAMPLE.parent / "shadow_light_estimation.py"
 
 
 def test_shadow_light_estimation_example_quick(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE.parent))
     monkeypatch.setattr(sys, "argv", [str(SHADOW_EXAMPLE), "--quick", "--out", str(tmp_path)])
     runpy.run_path(str(SHADOW_EXAMPLE), run_name="__main__")
     result = json.loads((tmp_path / "shadow_light_estimation.json").read_text())

@@ -1,6 +1,7 @@
 """Inverse rendering: the optimisation loop, the three experiments at small size, SciPy
 interop, and the example scripts' command lines."""
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -71,7 +72,7 @@ def test_optimize_rejects_bad_arguments():
 def test_camera_calibration_moves_towards_the_truth():
     # The path first moves away (no silhouette gradients), then converges: at 48x48 the
     # error is ~1% after 300 iterations (it starts at 11.5%).
-    r = run_camera_calibration(size=SIZE, iters=300, seed=42, angle=10.0)
+    r = run_camera_calibration(size=SIZE, iters=300, seed=42, angle=10.0).metrics
     assert r["final_loss"] < 0.05 * r["initial_loss"]
     assert r["final_position_error_pct"] < 0.3 * r["initial_position_error_pct"]
     assert np.linalg.norm(np.array(r["final_position"]) - TRUE_CAMERA) < 0.2
@@ -80,19 +81,30 @@ def test_camera_calibration_moves_towards_the_truth():
 def test_light_estimation_moves_towards_the_truth():
     # Position and intensity trade off along the way (a farther, brighter light looks
     # alike), so the intensity error may grow before both converge (~400 iterations here).
-    r = run_light_estimation(size=SIZE, iters=500, seed=43)
+    r = run_light_estimation(size=SIZE, iters=500, seed=43).metrics
     assert r["final_loss"] < 1e-4 * r["initial_loss"]
     assert r["final_position_error_pct"] < 1.0 < r["initial_position_error_pct"]
     assert r["final_intensity_error_pct"] < 1.0
 
 
-def test_material_recovery_converges_and_respects_the_box(tmp_path):
-    r = run_material_recovery(size=SIZE, iters=100, seed=44, out=tmp_path)
+def test_material_recovery_converges_and_respects_the_box():
+    r = run_material_recovery(size=SIZE, iters=100, seed=44).metrics
     assert r["final_rgb_error"] < 0.02 < r["initial_rgb_error"]
     assert all(0.0 <= c <= 1.0 for c in r["final_albedo"])
-    folder = Path(r["outputs"])
-    for name in ("target.png", "initial.png", "final.png", "difference.png", "loss.png"):
-        assert render.load_image(folder / name).shape[2] == 3
+
+
+def test_experiment_script_writes_its_images(tmp_path):
+    done = _run_example(
+        "material_recovery.py", "--size", "24", "--iters", "20", "--seed", "44", "--quiet",
+        "--out", str(tmp_path),
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    metrics = json.loads(done.stdout)
+    folder = Path(metrics["outputs"])
+    assert folder == tmp_path / "material_recovery_seed44"
+    for name in ("target.png", "initial.png", "final.png", "difference.png"):
+        assert render.load_image(folder / name).shape == (24, 24, 3)
+    assert render.load_image(folder / "loss.png").shape[2] == 3
     assert (folder / "optimisation.gif").stat().st_size > 0
 
 

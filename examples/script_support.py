@@ -1,0 +1,129 @@
+"""What the example scripts share: their command line and the files they write.
+
+Not part of the library: ``render.experiments`` runs the paper's experiments and returns
+their numbers and images; this module turns that into a command-line program that prints
+JSON and writes PNGs, a loss plot and an animated GIF. Scripts in this folder import it as
+``script_support`` (Python puts a script's own folder on the import path).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from render.experiments import ExperimentRun
+from render.image import save_image
+from render.plot import line_plot
+
+
+def command_line(
+    description: str,
+    default_iters: int | None,
+    argv=None,
+    extra: dict[str, dict] | None = None,
+    default_size: int | None = 512,
+    iterative: bool = True,
+) -> argparse.Namespace:
+    """The shared command line of the example scripts: --size --iters --seed --out --quiet,
+    plus ``extra`` options ({"--name": argparse keyword arguments}). A default of None
+    means "not given" (the script then picks per experiment). ``iterative=False`` (a plain
+    render) leaves out --iters and --seed, which would mean nothing."""
+    parser = argparse.ArgumentParser(description=description)
+    for name, options in (extra or {}).items():
+        parser.add_argument(name, **options)
+    parser.add_argument(
+        "--size", type=int, default=default_size, help="image width = height (pixels)"
+    )
+    if iterative:
+        parser.add_argument("--iters", type=int, default=default_iters, help="maximum iterations")
+        parser.add_argument("--seed", type=int, default=42, help="random seed of the start")
+    parser.add_argument("--out", type=Path, default=Path("out"), help="output folder")
+    parser.add_argument("--quiet", action="store_true", help="no progress line")
+    args = parser.parse_args(argv)
+    if args.size is not None and args.size < 8:
+        parser.error(f"--size must be at least 8, got {args.size}")
+    if getattr(args, "iters", None) is not None and args.iters < 0:
+        parser.error(f"--iters must be >= 0, got {args.iters}")
+    if args.out.exists() and not args.out.is_dir():
+        parser.error(f"--out {args.out} exists and is not a folder")
+    return args
+
+
+class FrameRecorder:
+    """An ``optimize`` callback that keeps a downsampled frame every ``every`` iterations,
+    for the animation."""
+
+    def __init__(self, every: int, max_side: int = 192):
+        self.every, self.max_side, self.frames = max(1, every), max_side, []
+
+    def __call__(self, it, loss, image, history):
+        if it % self.every == 0:
+            frame = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
+            if max(frame.size) > self.max_side:
+                frame.thumbnail((self.max_side, self.max_side))
+            self.frames.append(frame)
+
+
+def write_outputs(run: ExperimentRun, out: Path, frames: list | None = None) -> Path:
+    """Write ``out/<run.name>/``: target, initial and final PNGs, the |final - target|
+    difference (scaled to its maximum), the loss curve and, given ``frames``, the GIF."""
+    folder = Path(out) / run.name
+    save_image(run.target, folder / "target.png")
+    save_image(run.initial, folder / "initial.png")
+    save_image(run.final, folder / "final.png")
+    difference = np.abs(run.final - run.target)
+    scale = max(float(difference.max()), 1e-12)
+    save_image(difference / scale, folder / "difference.png")
+    loss = run.history.loss
+    line_plot(
+        {"loss (MSE)": (np.arange(len(loss)), loss)},
+        folder / "loss.png",
+        title=f"{run.name}: loss per iteration (difference image scaled by 1/{scale:.3g})",
+        xlabel="iteration",
+        ylabel="MSE",
+        logy=True,
+    )
+    if frames:
+        frames[0].save(
+            folder / "optimisation.gif",
+            save_all=True,
+            append_images=frames[1:],
+            duration=80,
+            loop=0,
+        )
+    return folder
+
+
+def run_with_outputs(experiment, out: Path | None, iters: int | None = None, **options) -> dict:
+    """Run ``experiment`` (a ``render.experiments.run_*``) and, if ``out`` is given, write
+    its images with frames for the GIF (about 40 of them); the metrics are returned, with
+    the output folder under "outputs"."""
+    budget = {} if iters is None else {"iters": iters}
+    recorder = FrameRecorder(every=max(1, (iters or 500) // 40)) if out else None
+    run = experiment(callback=recorder, **budget, **options)
+    if out:
+        run.metrics["outputs"] = str(write_outputs(run, out, recorder.frames))
+    return run.metrics
+
+
+def run_example(run, description: str, default_iters: int, argv=None, extra=None) -> dict:
+    """What each paper-experiment script does: keep freed memory for reuse (an opt-in
+    allocator tuning, see ``minidiff.memory``), read the shared command line (plus
+    ``extra`` options, passed on to ``run`` by name), run, write the images, print the
+    metrics as JSON."""
+    from minidiff.memory import keep_freed_memory
+
+    keep_freed_memory()
+    args = command_line(description, default_iters=default_iters, argv=argv, extra=extra)
+    options = {name.lstrip("-").replace("-", "_"): None for name in (extra or {})}
+    options = {name: getattr(args, name) for name in options}
+    metrics = run_with_outputs(
+        run, args.out, iters=args.iters, size=args.size, seed=args.seed, quiet=args.quiet,
+        **options,
+    )  # fmt: skip
+    print(json.dumps(metrics, indent=2))
+    return metrics
