@@ -94,5 +94,5 @@ def surface_key(obj: Mesh | Sphere, owned: list, dtype) -> list[np.ndarray]:
     the working dtype."""
     switches = [id(obj), np.dtype(dtype).num]
     if isinstance(obj, Mesh):
-        switches += [obj.smooth, obj.material.texture is not None, obj.normals is not None]
+        switches += [obj.smooth, bool(obj.material.textures), obj.normals is not None]
     return _copies(owned) + [np.array(switches, dtype=np.int64)]

@@ -101,7 +101,7 @@ def toward_ray(normals, directions) -> np.ndarray:
 @dataclass
 class Surface:
     """What shading needs to know about k hits on one object (tensors, on the tape):
-    points (k, 3), unit normals facing the ray (k, 3), the camera rays' directions (k, 3)
+    points (k, 3), unit normals facing the ray (k, 3), the incoming rays' directions (k, 3)
     and, for a textured mesh, the interpolated UVs (k, 2) (else None)."""
 
     points: md.Tensor
@@ -118,14 +118,15 @@ def _interpolate(weights, attribute, faces):
 def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
     """Recompute the hits on one mesh's triangles on the tape.
 
-    faces_hit (k,) local face ids from the BVH; eye (3,) and directions (k, 3) the camera
-    rays (tensors).
+    faces_hit (k,) local face ids from the BVH; eye (3,) or (k, 3) and directions (k, 3)
+    the rays (tensors): the camera's, or reflected rays starting on another surface.
     """
     faces = mesh.faces[faces_hit]
     a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
     e1, e2 = b - a, c - a
     # Barycentrics are needed only to interpolate vertex normals or UVs.
-    interpolated = mesh.smooth or mesh.material.texture is not None
+    textured = bool(mesh.material.textures)
+    interpolated = mesh.smooth or textured
     t, u, v = intersect_edges(eye, directions, a, e1, e2, barycentrics=interpolated)
     points = eye + column(t) * directions
     normals = md.normalize(md.cross(e1, e2))
@@ -135,16 +136,22 @@ def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
         normals = md.normalize(_interpolate(weights, vn, faces))
-    uv = _interpolate(weights, mesh.uvs, faces) if mesh.material.texture is not None else None
+    uv = _interpolate(weights, mesh.uvs, faces) if textured else None
     return Surface(points, normals * flip, directions, uv)
 
 
-def sphere_surface(sphere: Sphere, eye, directions) -> Surface:
-    """Recompute the hits on one sphere on the tape (k rays known to hit it)."""
-    if sphere.material.texture is not None:
+def sphere_surface(sphere: Sphere, eye, directions, inside: np.ndarray | None = None) -> Surface:
+    """Recompute the hits on one sphere on the tape (k rays known to hit it).
+
+    eye (3,) or (k, 3) and directions (k, 3): the rays. ``inside`` (k,) bool: which rays
+    start inside the sphere (they hit its far side); by default decided from ``eye``
+    (a reflected ray starting *on* the sphere passes the side it was traced from).
+    """
+    if sphere.material.textures:
         raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
-    inside = np.linalg.norm(eye.data - sphere.center.data) < sphere.radius.data
-    far_root = np.full(directions.shape[0], bool(inside))
+    if inside is None:
+        inside = np.linalg.norm(eye.data - sphere.center.data, axis=-1) < sphere.radius.data
+    far_root = np.broadcast_to(inside, (directions.shape[0],))
     t = intersect_spheres(eye, directions, sphere.center, sphere.radius, far_root)
     points = eye + column(t) * directions
     normals = md.normalize(points - sphere.center)

@@ -30,7 +30,7 @@ from render.camera import camera_frame, ray_directions, subpixel_offsets
 from render.edges import EdgePairs, add_to_samples, crossings, edge_updates, in_order
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
 from render.scene import Mesh, Scene, check_ray_count
-from render.shading import light_contribution, sample_texture, shade_mesh, shade_surface
+from render.shading import appearance, light_contribution, shade_mesh, shade_surface
 from render.shadow_edges import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
 from render.visibility import Visibility, primitive_ranges, trace_visibility
 
@@ -212,13 +212,11 @@ def _shadow_updates(scene, visibility, shaded, frame, spp):
 
 def _unoccluded(surface: Surface, rows: np.ndarray, material, light) -> md.Tensor:
     """One light's unoccluded contribution (k, 3) at some rows of a Surface."""
-    albedo = material.albedo
-    if material.texture is not None:
-        albedo = sample_texture(material.texture, surface.uv[rows])
+    uv = surface.uv[rows] if surface.uv is not None else None
+    look = appearance(material, uv, len(rows))
     return light_contribution(
-        surface.points[rows], surface.normals[rows], surface.directions[rows], albedo,
-        material, light,
-    )  # fmt: skip
+        surface.points[rows], surface.normals[rows], surface.directions[rows], look, light
+    )
 
 
 def _sample_colours(scene: Scene, visibility: Visibility, colour, ray_of_colour) -> md.Tensor:

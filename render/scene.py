@@ -432,6 +432,13 @@ class Material(_HasFields):
             ``row = (1 - v) * H``, ``column = u * W``. UVs outside [0, 1] wrap around
             (repeat), as OBJ files assume. Only meshes with UVs can use a textured
             material. Values are used as stored (no sRGB decoding).
+        reflectance: scalar or (3,) mirror coefficient: the radiance arriving along the
+            mirror direction, times this, is added at every hit (``render.reflection``;
+            ``render(..., max_bounces=)`` bounds the recursion). 0 = not a mirror.
+        specular_texture: optional (H, W, 3) image multiplying ``specular`` at each hit
+            (an MTL file's ``map_Ks``), sampled like ``texture``.
+        ambient_texture: optional (H, W, 3) image multiplying ``ambient`` at each hit (an
+            MTL file's ``map_Ka``), sampled like ``texture``.
 
     Values are not clamped to [0, 1]: an optimiser may overshoot while fitting an albedo.
     """
@@ -442,6 +449,10 @@ class Material(_HasFields):
         Field("shininess", ((),), (lambda x: x > 0.0, "> 0")),
         Field("ambient", ((), (3,))),
         Field("texture", (("H", "W", 3),), optional=True),
+        Field("reflectance", ((), (3,))),
+        # Own size names: the three textures need not have the same resolution.
+        Field("specular_texture", (("Hs", "Ws", 3),), optional=True),
+        Field("ambient_texture", (("Ha", "Wa", 3),), optional=True),
     )
 
     def __init__(
@@ -451,11 +462,28 @@ class Material(_HasFields):
         shininess: ArrayLike = 32.0,
         ambient: ArrayLike = 0.0,
         texture: ArrayLike | None = None,
+        reflectance: ArrayLike = 0.0,
+        specular_texture: ArrayLike | None = None,
+        ambient_texture: ArrayLike | None = None,
     ) -> None:
         self._set_fields(
-            albedo=albedo, specular=specular, shininess=shininess, ambient=ambient, texture=texture
-        )
+            albedo=albedo, specular=specular, shininess=shininess, ambient=ambient,
+            texture=texture, reflectance=reflectance, specular_texture=specular_texture,
+            ambient_texture=ambient_texture,
+        )  # fmt: skip
         self.validate()
+
+    @property
+    def textures(self) -> list[Tensor]:
+        """The textures that are set (each needs UVs at the hits)."""
+        maps = (self.texture, self.specular_texture, self.ambient_texture)
+        return [t for t in maps if t is not None]
+
+    @property
+    def reflective(self) -> bool:
+        """Whether hits need a reflected ray: a non-zero reflectance, or one being
+        differentiated (its gradient at 0 is the reflected radiance)."""
+        return self.reflectance.requires_grad or bool(np.any(self.reflectance.data))
 
     def validate(self) -> None:
         """Re-check the current values."""
@@ -574,7 +602,7 @@ class Mesh(_HasFields):
         self.material.validate()  # its tensors may have been edited in place too
         if not isinstance(self.smooth, bool | np.bool_):
             raise TypeError(f"Mesh: smooth must be a bool, got {type(self.smooth).__name__}")
-        if self.material.texture is not None and self.uvs is None:
+        if self.material.textures and self.uvs is None:
             raise ValueError("Mesh: the material has a texture but the mesh has no uvs")
         if self.smooth and self.normals is not None:
             # All zero would shade every hit black without a word (one zero normal among
@@ -617,7 +645,7 @@ class Sphere(_HasFields):
         self._check_fields()
         _check_instance(self.material, "Sphere", "material", Material)
         self.material.validate()
-        if self.material.texture is not None:
+        if self.material.textures:
             raise ValueError("Sphere: textured materials are not supported (spheres have no UVs)")
 
     def __repr__(self) -> str:

@@ -12,6 +12,7 @@ and for a directional light of irradiance E: the same with I / r^2 replaced by E
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -88,26 +89,54 @@ def sample_texture(texture, uv) -> md.Tensor:
     return top * (1.0 - fy) + bottom * fy
 
 
-def _has_specular(material: Material) -> bool:
-    return material.specular.requires_grad or bool(np.any(material.specular.data))
+@dataclass
+class Appearance:
+    """A material's values at k hits, its textures sampled at their UVs: ``albedo`` (3,)
+    or (k, 3); ``specular`` and ``ambient`` (), (3,) or (k, 3); ``shininess`` (); and
+    ``texel`` (k,) int64, the diffuse texture's cell at each hit (-1: untextured)."""
+
+    albedo: md.Tensor
+    specular: md.Tensor
+    ambient: md.Tensor
+    shininess: md.Tensor
+    texel: np.ndarray
 
 
-def light_contribution(
-    points, normals, directions, albedo, material: Material, light, visible=None
-) -> md.Tensor:
-    """Radiance (k, 3) that one light reflects towards the camera at k hit points.
+def appearance(material: Material, uv, k: int) -> Appearance:
+    """The material at k hits with UVs ``uv`` (k, 2) (None when untextured): ``texture``
+    replaces the albedo; ``specular_texture`` and ``ambient_texture`` multiply Ks and Ka,
+    as an MTL file's map_Kd, map_Ks and map_Ka do."""
+    albedo, texel = material.albedo, np.full(k, -1, dtype=np.int64)
+    if material.texture is not None:
+        albedo = sample_texture(material.texture, uv)
+        texel = texel_cell(material.texture.shape, uv.data)
+    specular, ambient = material.specular, material.ambient
+    if material.specular_texture is not None:
+        specular = specular * sample_texture(material.specular_texture, uv)
+    if material.ambient_texture is not None:
+        ambient = ambient * sample_texture(material.ambient_texture, uv)
+    return Appearance(albedo, specular, ambient, material.shininess, texel)
 
-    points (k, 3); normals (k, 3) unit, facing the viewer; directions (k, 3) of the camera
-    rays (any length; only the specular lobe needs them); albedo (3,) or (k, 3);
-    visible (k,) float, 1 where the light is unoccluded (a constant: visibility is
+
+def _nonzero(x: md.Tensor) -> bool:
+    """Whether a term is present: non-zero somewhere, or being differentiated."""
+    return x.requires_grad or bool(np.any(x.data))
+
+
+def light_contribution(points, normals, directions, look: Appearance, light, visible=None):
+    """Radiance (k, 3) that one light reflects back along the incoming rays at k hits.
+
+    points (k, 3); normals (k, 3) unit, facing the incoming ray; directions (k, 3) of the
+    incoming rays (any length; only the specular lobe needs them); ``look`` the material
+    there; visible (k,) float, 1 where the light is unoccluded (a constant: visibility is
     discrete), or None for the unoccluded contribution (the shadow-edge term needs it where
     the light is blocked too).
     """
-    view = -md.normalize(directions) if _has_specular(material) else None
-    return _light_term(points, normals, view, albedo * (1.0 / math.pi), material, light, visible)
+    view = -md.normalize(directions) if _nonzero(look.specular) else None
+    return _light_term(points, normals, view, look.albedo * (1.0 / math.pi), look, light, visible)
 
 
-def _light_term(points, normals, view, diffuse_brdf, material, light, visible):
+def _light_term(points, normals, view, diffuse_brdf, look: Appearance, light, visible):
     """``light_contribution`` with the per-hit terms that do not depend on the light (the
     unit direction to the eye, the diffuse BRDF) computed once by the caller. The specular
     lobe is the energy-normalised Blinn-Phong  f_s = specular (n + 8) / (8 pi) max(0, n.h)^n."""
@@ -118,26 +147,26 @@ def _light_term(points, normals, view, diffuse_brdf, material, light, visible):
         half = md.normalize(to_light + view)
         # Clamp before the power: 0^n has an infinite log, which d/dn would need.
         n_dot_h = md.maximum(md.dot(normals, half), 1e-12)
-        lobe = n_dot_h**material.shininess * ((material.shininess + 8.0) / (8.0 * math.pi))
-        brdf = brdf + column(lobe) * material.specular
+        lobe = n_dot_h**look.shininess * ((look.shininess + 8.0) / (8.0 * math.pi))
+        brdf = brdf + column(lobe) * look.specular
     # Per-hit scalars first, then a single (k, 3) product with the colours.
     scalar = irradiance * cos_theta if visible is None else irradiance * cos_theta * visible
     return column(scalar) * (brdf * light.color)
 
 
-def shade(points, normals, directions, albedo, material: Material, lights, lit) -> md.Tensor:
+def shade(points, normals, directions, look: Appearance, lights, lit) -> md.Tensor:
     """Outgoing radiance (k, 3) at k hit points: every light's ``light_contribution``
     (lit[j] (k,) float, 1 where light j is unoccluded) plus the material's ambient term."""
-    diffuse_brdf = albedo * (1.0 / math.pi)
-    view = -md.normalize(directions) if _has_specular(material) else None  # towards the eye
+    diffuse_brdf = look.albedo * (1.0 / math.pi)
+    view = -md.normalize(directions) if _nonzero(look.specular) else None  # towards the eye
     radiance = None
     for light, visible in zip(lights, lit, strict=True):
-        contribution = _light_term(points, normals, view, diffuse_brdf, material, light, visible)
+        contribution = _light_term(points, normals, view, diffuse_brdf, look, light, visible)
         radiance = contribution if radiance is None else radiance + contribution
     if radiance is None:  # no lights: only the ambient term
         radiance = md.broadcast_to(md.as_tensor(np.zeros(3)), (points.shape[0], 3))
-    if material.ambient.requires_grad or np.any(material.ambient.data):
-        radiance = radiance + material.ambient
+    if _nonzero(look.ambient):
+        radiance = radiance + look.ambient
     return radiance
 
 
@@ -146,17 +175,9 @@ def shade_surface(
 ) -> tuple[md.Tensor, np.ndarray]:
     """Shade k hits: the radiance (k, 3) and the texture cell of each hit (k,) int64 (-1
     when untextured). lit[j] (k,) float visibility of light j."""
-    k = surface.points.shape[0]
-    if material.texture is not None:
-        albedo = sample_texture(material.texture, surface.uv)
-        texel = texel_cell(material.texture.shape, surface.uv.data)
-    else:
-        albedo = material.albedo
-        texel = np.full(k, -1, dtype=np.int64)
-    radiance = shade(
-        surface.points, surface.normals, surface.directions, albedo, material, lights, lit
-    )
-    return radiance, texel
+    look = appearance(material, surface.uv, surface.points.shape[0])
+    radiance = shade(surface.points, surface.normals, surface.directions, look, lights, lit)
+    return radiance, look.texel
 
 
 def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.Tensor, np.ndarray]:
