@@ -5,22 +5,25 @@
    shadow ray from every hit to every light (is the light visible?).
 2. Surfaces (``render.geometry``, on the tape): for the rays that hit, *recompute* the hit
    point, normal and UV differentiably from the camera and the primitive, object by object.
-3. Shading (``render.shading``, on the tape): lights and materials give each hit a colour.
+3. Shading (``render.shading``, on the tape): lights and materials give each hit a colour;
+   a reflective material adds what its mirror ray sees (``render.reflection``: traced like
+   step 1, recomputed like step 2, shaded like step 3, up to ``max_bounces`` times).
 4. Edges (``render.edges`` and ``render.shadow_edges``, with ``antialias=True``): where a
    silhouette, a crease or a shadow edge passes between two adjacent samples, blend them
    by how much of each one's box the edge covers, with the crossing computed on the tape:
    gradients then see occlusion and shadow boundaries move.
 5. Image: each pixel the mean of its samples, misses showing the background.
 
-Gradients reach every continuous parameter through steps 2-5; step 1's decisions are
-constants. With ``reuse_visibility=True`` (the default), step 1 and the surfaces of step 2
-are reused from the previous render of the same scene when the values they depend on are
-unchanged (``render.cache``), e.g. while only a material is optimised.
+Gradients reach every continuous parameter through steps 2-5; step 1's decisions (and
+which primitive each mirror ray hits) are constants. With ``reuse_visibility=True`` (the
+default), step 1 and the surfaces of step 2 are reused from the previous render of the
+same scene when the values they depend on are unchanged (``render.cache``), e.g. while
+only a material is optimised; mirror rays are traced anew on every render.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,10 +32,11 @@ from render.cache import RenderCache, cache_for, surface_key
 from render.camera import camera_frame, ray_directions, subpixel_offsets
 from render.edges import EdgePairs, add_to_samples, crossings, edge_updates, in_order
 from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
+from render.reflection import Bounces, reflected_radiance
 from render.scene import Mesh, Scene, check_ray_count
 from render.shading import appearance, light_contribution, shade_mesh, shade_surface
 from render.shadow_edges import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
-from render.visibility import Visibility, primitive_ranges, trace_visibility
+from render.visibility import Visibility, primitive_ranges, scene_size, trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]
 
@@ -45,6 +49,7 @@ def render(
     reuse_visibility: bool = True,
     return_info: bool = False,
     antialias: bool = False,
+    max_bounces: int = 2,
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
 
@@ -61,6 +66,9 @@ def render(
         default, the paper's renderer): every sample shows the primitive at its centre, the
         image is a step function at edges and their motion has no gradient. See the README
         for why False is the default and when to switch it on.
+    max_bounces: how many mirror reflections a camera ray may take (RayTracer.jl's depth:
+        the camera hit plus two reflections); 0 turns reflection off. Only hits on a
+        material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
     when the caller runs ``backward`` on a loss computed from the image.
@@ -73,9 +81,13 @@ def render(
     cache = cache_for(scene, reuse_visibility)
 
     antialias = _check_flag(antialias, "antialias")
+    max_bounces = _check_bounces(max_bounces)
     visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows), antialias)  # 1
     frame = camera_frame(scene.camera)
-    colour, ray_of_colour, texel, shaded = _shade_objects(scene, visibility, frame, cache)  # 2, 3
+    bounces = _bounces(scene, visibility, bool(shadows), max_bounces)
+    colour, ray_of_colour, texel, shaded = _shade_objects(  # 2, 3
+        scene, visibility, frame, cache, bounces
+    )
     if antialias:  # 4
         dtype = working_dtype(scene)
         samples = _sample_colours(scene, visibility, colour, ray_of_colour)
@@ -89,7 +101,7 @@ def render(
 
     if not return_info:
         return image
-    return image, RenderInfo.of(scene, visibility, texel, spp)
+    return image, RenderInfo.of(scene, visibility, texel, spp, bounces)
 
 
 def working_dtype(scene: Scene) -> np.dtype:
@@ -98,16 +110,38 @@ def working_dtype(scene: Scene) -> np.dtype:
     return np.result_type(*[t.dtype for t in scene.parameters()])
 
 
+def _check_bounces(value) -> int:
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
+        raise ValueError(f"render: max_bounces must be an integer >= 0, got {value!r}")
+    return int(value)
+
+
+def _bounces(scene: Scene, visibility: Visibility, shadows: bool, max_bounces: int):
+    """What the mirror rays need (``render.reflection.Bounces``), or None if no hit can
+    spawn one."""
+    if max_bounces == 0 or not any(obj.material.reflective for obj in scene.objects):
+        return None
+    triangles, centers, _ = visibility.primitives
+    n_rays = visibility.primary.prim_id.size
+    ids = [np.full(n_rays, -2, dtype=np.int64) for _ in range(max_bounces)]
+    lit = [np.zeros((len(scene.lights), n_rays), dtype=bool) for _ in range(max_bounces)]
+    size = scene_size(visibility.primitives)
+    accel = visibility.accel
+    return Bounces(scene, accel, triangles, centers, size, shadows, max_bounces, ids, lit)
+
+
 def _check_flag(value, name: str) -> bool:
     if not isinstance(value, bool | np.bool_):
         raise TypeError(f"render: {name} must be True or False, got {value!r}")
     return bool(value)
 
 
-def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCache):
+def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCache, bounces):
     """Steps 2 and 3 for every object: the colours (k, 3) of all hit rays, object by object,
     the ray each colour belongs to (k,), the texture cell of every ray (N,) (-1: none), and
-    per object index (in ``primitive_ranges`` order) its hit rays and ``Surface``."""
+    per object index (in ``primitive_ranges`` order) its hit rays and ``Surface``. With
+    ``bounces`` (``render.reflection.Bounces``), reflective objects add what their mirror
+    rays see."""
     primary, dtype = visibility.primary, working_dtype(scene)
     eye = frame[3]
     coords = primary.coords.astype(dtype, copy=False)
@@ -131,6 +165,10 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
         colour, texel[primary.hit_rays[in_obj]] = shade_surface(
             hits, obj.material, scene.lights, obj_lit
         )
+        if bounces is not None and obj.material.reflective:
+            rays_in_obj = primary.hit_rays[in_obj]
+            seen = reflected_radiance(bounces, hits, hit_prims[in_obj], rays_in_obj, 1)
+            colour = colour + obj.material.reflectance * seen
         colours.append(colour)
         rays.append(primary.hit_rays[in_obj])
         shaded[index] = (primary.hit_rays[in_obj], hits)
@@ -254,8 +292,14 @@ class RenderInfo:
         sample); None without.
     shadow_pairs: likewise across shadow edges (``render.shadow_edges.ShadowPairs``);
         None without antialiasing or without shadows.
-    Two renders have the same visibility where ``prim_id`` and ``lit`` agree. The image is a
-    smooth function of the parameters only while all of these stay the same: the tape
+    bounces: per mirror reflection b = 1, 2, ..., an (H, W, spp) int64 array: the
+        primitive the ray's b-th mirror ray hit (-1: the background; -2: no such ray).
+        Empty when nothing in the scene reflects (or ``max_bounces=0``).
+    bounce_lit: per mirror reflection, (n_lights, H, W, spp) bool: light j reaches the
+        point that mirror ray hit (False where there is none).
+    Two renders have the same visibility where ``prim_id``, ``lit``, ``bounces`` and
+    ``bounce_lit`` agree.
+    The image is a smooth function of the parameters only while all of these stay the same: the tape
     gradient is the derivative for fixed decisions, so finite differences agree with it
     only where a perturbation changes none of them.
     """
@@ -265,9 +309,11 @@ class RenderInfo:
     texel: np.ndarray
     pairs: EdgePairs | None = None
     shadow_pairs: ShadowPairs | None = None
+    bounces: list[np.ndarray] = field(default_factory=list)
+    bounce_lit: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
-    def of(cls, scene: Scene, visibility: Visibility, texel: np.ndarray, spp: int) -> RenderInfo:
+    def of(cls, scene: Scene, visibility: Visibility, texel: np.ndarray, spp: int, bounces):
         """The per-ray arrays of one render, shaped (H, W, spp)."""
         camera, primary = scene.camera, visibility.primary
         shape = (camera.height, camera.width, spp)
@@ -280,4 +326,6 @@ class RenderInfo:
             texel.reshape(shape),
             visibility.pairs,
             visibility.shadow_pairs,
+            [] if bounces is None else [ids.reshape(shape) for ids in bounces.hit_ids],
+            [] if bounces is None else [m.reshape(lit.shape[:1] + shape) for m in bounces.lit],
         )

@@ -186,16 +186,19 @@ def trace_shadows(
 
 @dataclass
 class Visibility:
-    """Every discrete decision of one render: the camera rays' hits and, per light, a lit
-    mask (k,) bool over the hit rays (all True with ``shadows=False``), and the pairs of
-    adjacent samples across a silhouette or a shadow edge (None without antialiasing; no
-    shadow pairs with ``shadows=False``). ``stamp`` (1,)
-    identifies the computation of ``primary``: equal stamps, equal hits (for the keys of
-    the caches that build on them)."""
+    """Every discrete decision of one render about camera rays: their hits and, per light,
+    a lit mask (k,) bool over the hit rays (all True with ``shadows=False``), and the pairs
+    of adjacent samples across a silhouette or a shadow edge (None without antialiasing; no
+    shadow pairs with ``shadows=False``). ``stamp`` (1,) identifies the computation of
+    ``primary``: equal stamps, equal hits (for the keys of the caches that build on them).
+    ``accel`` and ``primitives`` (``scene_primitives``) are what they were traced with,
+    for the mirror rays that follow (``render.reflection``)."""
 
     primary: PrimaryHits
     lit: list[np.ndarray]
     stamp: np.ndarray
+    accel: Accelerator
+    primitives: tuple[np.ndarray, np.ndarray, np.ndarray]
     pairs: EdgePairs | None = None
     shadow_pairs: ShadowPairs | None = None
 
@@ -230,7 +233,7 @@ def trace_visibility(
         )
         lit.append(mask)
     if not antialias:
-        return Visibility(primary, lit, traced)
+        return Visibility(primary, lit, traced, accel, primitives)
     topology, _ = cache.get(
         "topology",
         [built],
@@ -249,4 +252,4 @@ def trace_visibility(
             light_keys + [traced],
             lambda: shadow_pairs(scene, accel, primary, lit, spp, topology, scene_size(primitives)),
         )
-    return Visibility(primary, lit, traced, pairs, shadow)
+    return Visibility(primary, lit, traced, accel, primitives, pairs, shadow)

@@ -165,6 +165,14 @@ def _same_visibility(info, reference) -> np.ndarray:
     same &= (info.texel == reference.texel).all(axis=-1)
     if reference.lit.size:
         same &= (info.lit == reference.lit).all(axis=(0, -1))
+    assert len(info.bounces) == len(reference.bounces)
+    # Mirror rays: where both renders traced one (-2: none, e.g. a reflectance moved off
+    # 0, which changes the image smoothly), the same primitive and the same lights.
+    for b, (now, ref) in enumerate(zip(info.bounces, reference.bounces, strict=True)):
+        both = (now != -2) & (ref != -2)
+        lit_now, lit_ref = info.bounce_lit[b], reference.bounce_lit[b]
+        agree = (now == ref) & (lit_now == lit_ref).all(axis=0)
+        same &= (agree | ~both).all(axis=-1)
     spp = reference.prim_id.shape[-1]
     if reference.pairs is not None:
         same &= _same_edge_pairs(_pair_rows(info.pairs), _pair_rows(reference.pairs), same, spp)
@@ -258,8 +266,11 @@ def masked_gradient_check(
         p.requires_grad, p.grad = True, None
     try:
         img = render.render(scene, **render_kwargs)
-        (img * md.tensor(masked)).sum().backward()
-        g_ad = np.concatenate([np.ravel(p.grad) for p in params])
+        if img.requires_grad:  # else nothing in view depends on the parameters
+            (img * md.tensor(masked)).sum().backward()
+        g_ad = np.concatenate(
+            [np.ravel(p.grad if p.grad is not None else np.zeros_like(p.data)) for p in params]
+        )
     finally:
         for p, (requires_grad, grad) in zip(params, saved, strict=True):
             p.requires_grad, p.grad = requires_grad, grad
