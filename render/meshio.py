@@ -23,7 +23,16 @@ Ks     specular (3,)                  default 0
 Ns     shininess                      values <= 0 (some exporters write 0) become 1
 Ka     ambient = Ka * ambient_light   an added radiance (classic Phong ``Ka * Ia``)
 map_Kd texture (H, W, 3) in [0, 1]    read with Pillow, stored values (no sRGB decode)
+map_Ks specular_texture (H, W, 3)     multiplies Ks at each hit
+map_Ka ambient_texture (H, W, 3)      multiplies Ka * ambient_light at each hit
 ====== ============================== =============================================
+
+What we do not model is not read silently: a warning names it, once per MTL file. That
+includes transparency (``d`` < 1, ``Tr`` > 0: RayTracer.jl reads ``d`` as a reflection
+coefficient; here it means dissolve, and mirrors are ``Material(reflectance=...)``, set by
+the user), emission (``Ke``), the ray-traced illumination models (``illum`` 3-9) and
+other maps (bump, displacement, dissolve, ...). Keys without an effect on a rendering
+(``illum`` 0-2, ``Ni`` outside refraction) pass quietly.
 
 GLB/PLY/... materials come from trimesh (base colour, base colour texture); files without
 a material get grey albedo (0.8, 0.8, 0.8).
@@ -290,6 +299,8 @@ class _MtlEntry:
     ka: tuple[float, ...] = (0.0, 0.0, 0.0)
     ns: float = 32.0
     map_kd: Path | None = None
+    map_ks: Path | None = None
+    map_ka: Path | None = None
 
 
 def _obj_directives(path: Path, keyword: str) -> list[str]:
@@ -329,10 +340,49 @@ def _floats(values: list[str], mtl_path: Path, key: str) -> tuple[float, ...]:
     return numbers[:3]
 
 
+#: MTL keys that change a rendering but that we do not model, with what they mean; a
+#: value saying "no effect" (d 1, Tr 0, Ke 0 0 0) is not reported.
+_UNMODELLED = {
+    "d": "dissolve (transparency)",
+    "tr": "transparency",
+    "ke": "emission",
+    "tf": "transmission filter",
+    "illum": "illumination model",
+    "map_d": "dissolve map",
+    "map_ke": "emission map",
+    "map_ns": "shininess map",
+    "map_bump": "bump map",
+    "bump": "bump map",
+    "norm": "normal map",
+    "disp": "displacement map",
+    "decal": "decal map",
+    "refl": "reflection map",
+}
+
+
+def _has_effect(key: str, values: list[str]) -> bool:
+    """Whether an unmodelled MTL statement would change the image."""
+    try:
+        numbers = [float(v) for v in values]
+    except ValueError:
+        return True
+    if key == "d":
+        return numbers[0] != 1.0
+    if key in ("tr", "ke"):
+        return any(numbers)
+    if key == "tf":
+        return any(n != 1.0 for n in numbers)
+    if key == "illum":
+        return numbers[0] > 2  # 0-2: colour, ambient, highlight (what we model)
+    return True
+
+
 def _parse_mtl(mtl_path: Path) -> dict[str, _MtlEntry]:
-    """Kd, Ks, Ka, Ns and map_Kd of each material in an MTL file."""
+    """Kd, Ks, Ka, Ns, map_Kd, map_Ks and map_Ka of each material in an MTL file; one
+    warning naming what the file asks for that we do not model."""
     materials: dict[str, _MtlEntry] = {}
     current: _MtlEntry | None = None
+    ignored: dict[str, str] = {}
     with open(mtl_path, encoding="utf-8", errors="replace") as f:
         for line in f:
             parts = line.split()
@@ -349,8 +399,18 @@ def _parse_mtl(mtl_path: Path) -> dict[str, _MtlEntry]:
                     setattr(current, key, _floats(parts[1:], mtl_path, key))
             elif key == "ns":
                 current.ns = _floats(parts[1:2], mtl_path, key)[0]
-            elif key == "map_kd":
-                current.map_kd = _texture_path(mtl_path, line.strip()[len(parts[0]) :].strip())
+            elif key in ("map_kd", "map_ks", "map_ka"):
+                path = _texture_path(mtl_path, line.strip()[len(parts[0]) :].strip())
+                setattr(current, key, path)
+            elif key in _UNMODELLED and _has_effect(key, parts[1:]):
+                ignored.setdefault(f"{parts[0]} {' '.join(parts[1:])}", _UNMODELLED[key])
+    if ignored:
+        listed = "; ".join(f"{text!r} ({meaning})" for text, meaning in ignored.items())
+        warnings.warn(
+            f"load_mesh: {mtl_path}: not modelled, ignored: {listed}. A mirror is "
+            "Material(reflectance=...), set by you (MTL 'd' is not read as reflection)",
+            stacklevel=4,
+        )
     return materials
 
 
@@ -376,19 +436,25 @@ def _obj_material(
     if entry is None:
         return Material(albedo=DEFAULT_ALBEDO)
 
-    texture = None
-    if entry.map_kd is not None:
-        if entry.map_kd.is_file():
-            texture = load_image(entry.map_kd)
-        else:
-            warnings.warn(f"load_mesh: {path}: texture {entry.map_kd} not found", stacklevel=3)
     return Material(
         albedo=entry.kd,
         specular=entry.ks,
         shininess=entry.ns if entry.ns > 0 else 1.0,
         ambient=np.asarray(entry.ka) * ambient_light,
-        texture=texture,
+        texture=_texture(entry.map_kd, path),
+        specular_texture=_texture(entry.map_ks, path),
+        ambient_texture=_texture(entry.map_ka, path),
     )
+
+
+def _texture(file: Path | None, obj_path: Path) -> np.ndarray | None:
+    """A texture map's image, or None (with a warning if the file named is missing)."""
+    if file is None:
+        return None
+    if not file.is_file():
+        warnings.warn(f"load_mesh: {obj_path}: texture {file} not found", stacklevel=4)
+        return None
+    return load_image(file)
 
 
 def _trimesh_material(geom: trimesh.Trimesh, ambient_light: np.ndarray) -> Material:

@@ -1,6 +1,7 @@
 """Tests for render.image (files, mse, psnr) and render.meshio (mesh files)."""
 
 import math
+import shutil
 import warnings
 from pathlib import Path
 
@@ -239,6 +240,59 @@ def test_missing_mtl_and_texture_warn(tmp_path):
     assert "gone.mtl" in text and "missing.png" in text
     np.testing.assert_array_equal(mesh.material.albedo.data, [1, 0, 0])
     assert mesh.material.texture is None
+
+
+TRIANGLE_WITH_UVS = "v 0 0 0\nv 1 0 0\nv 0 1 0\nvt 0 0\nvt 1 0\nvt 0 1\n"
+
+
+def test_specular_and_ambient_texture_maps(tmp_path):
+    """map_Ks and map_Ka become specular_texture and ambient_texture (each its own size),
+    read like map_Kd; Ks and Ka keep multiplying them."""
+    shutil.copy(TEXTURES / "sign_yield.png", tmp_path / "kd.png")
+    ks = np.random.default_rng(1).uniform(0, 1, (3, 5, 3))
+    ka = np.random.default_rng(2).uniform(0, 1, (6, 2, 3))
+    save_image(ks, tmp_path / "ks.png", srgb=False)
+    save_image(ka, tmp_path / "ka.png", srgb=False)
+    mtl = "newmtl m\nKd 1 1 1\nKs 0.5 0.5 0.5\nKa 0.2 0.2 0.2\n"
+    mtl += "map_Kd kd.png\nmap_Ks -s 1 1 1 ks.png\nmap_Ka ka.png\nillum 2\nd 1\nKe 0 0 0\n"
+    (tmp_path / "m.mtl").write_text(mtl)
+    (tmp_path / "t.obj").write_text(
+        "mtllib m.mtl\n" + TRIANGLE_WITH_UVS + "usemtl m\nf 1/1 2/2 3/3\n"
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing unmodelled in this file
+        (mesh,) = load_mesh(tmp_path / "t.obj", ambient_light=2.0)
+    material = mesh.material
+    assert material.texture.shape == load_image(tmp_path / "kd.png").shape
+    np.testing.assert_allclose(material.specular_texture.data, ks, atol=0.5 / 255)
+    np.testing.assert_allclose(material.ambient_texture.data, ka, atol=0.5 / 255)
+    np.testing.assert_allclose(material.specular.data, [0.5, 0.5, 0.5])
+    np.testing.assert_allclose(material.ambient.data, [0.4, 0.4, 0.4])
+
+
+def test_what_an_mtl_asks_for_and_we_do_not_model_is_named_in_one_warning(tmp_path):
+    mtl = "newmtl glass\nKd 1 1 1\nd 0.5\nillum 3\nmap_Bump n.png\nKe 0 0 0\nNi 1.5\n"
+    mtl += "newmtl other\nKd 1 1 1\nd 0.5\nTr 0\n"
+    (tmp_path / "m.mtl").write_text(mtl)
+    (tmp_path / "t.obj").write_text(
+        "mtllib m.mtl\n" + TRIANGLE_WITH_UVS + "usemtl glass\nf 1 2 3\n"
+    )
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        (mesh,) = load_mesh(tmp_path / "t.obj")
+    messages = [str(w.message) for w in caught]
+    assert len(messages) == 1, messages
+    for named in ("'d 0.5'", "'illum 3'", "'map_Bump n.png'", "reflectance"):
+        assert named in messages[0]
+    assert "Ke" not in messages[0] and "Tr" not in messages[0] and "Ni" not in messages[0]
+    assert not mesh.material.reflective  # d is not read as a reflection coefficient
+
+
+def test_the_raytracerjl_mtl_files_load_without_warnings():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_mesh(MESHES / "sign_yield.obj")
+        load_mesh(MESHES / "tree.obj")
 
 
 def test_mesh_errors(tmp_path):

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 import pytest
-from render_helpers import QUAD_FACES, ground_quad, pinhole_rays
+from render_helpers import QUAD_FACES, ground_quad, pinhole_rays, random_scene
 
 import minidiff as md
 import render
@@ -611,3 +611,21 @@ def test_stored_tensors_are_used_as_given():
     image = render_centres(scene)
     image.sum().backward()
     np.testing.assert_allclose(intensity.grad, image.data.sum() / 10.0, rtol=1e-12)
+
+
+def test_specular_and_ambient_maps_multiply_ks_and_ka():
+    """map_Ks / map_Ka: a constant texture c renders as Ks * c / Ka * c without one."""
+    scene = random_scene(4, lights=("point",), texture=True)
+    material = scene.objects[0].material
+    plain = render.render(scene).data
+    material.specular_texture = md.tensor(np.ones((2, 3, 3)))
+    material.ambient_texture = md.tensor(np.ones((4, 1, 3)))
+    np.testing.assert_array_equal(render.render(scene).data, plain)
+    c_s, c_a = np.array([0.5, 0.25, 1.0]), np.array([0.3, 0.6, 0.9])
+    material.specular_texture = md.tensor(np.ones((2, 3, 3)) * c_s)
+    material.ambient_texture = md.tensor(np.ones((4, 1, 3)) * c_a)
+    textured = render.render(scene).data
+    material.specular_texture = material.ambient_texture = None
+    material.specular = md.tensor(material.specular.data * c_s)
+    material.ambient = md.tensor(material.ambient.data * c_a)
+    np.testing.assert_allclose(textured, render.render(scene).data, rtol=1e-12, atol=1e-15)

@@ -131,6 +131,14 @@ def explicit_normals(scene):
     return [mesh.normals]
 
 
+def specular_and_ambient_maps(scene):
+    """Give the textured ground map_Ks and map_Ka textures of their own sizes."""
+    m, rng = ground(scene).material, np.random.default_rng(5)
+    m.specular_texture = md.tensor(rng.uniform(0.2, 1.0, (3, 4, 3)))
+    m.ambient_texture = md.tensor(rng.uniform(0.2, 1.0, (5, 2, 3)))
+    return [m.specular_texture, m.ambient_texture, m.specular, m.ambient]
+
+
 POINT, DIRECTIONAL, BOTH = ("point",), ("directional",), ("point", "directional")
 
 CASES = {
@@ -151,6 +159,7 @@ CASES = {
     "ambient_rgb": ({"lights": POINT}, rgb_ambient),
     "texture_texels": ({"lights": BOTH, "texture": True}, lambda s: [ground(s).material.texture]),
     "uvs": ({"lights": POINT, "texture": True}, lambda s: [ground(s).uvs]),
+    "specular_ambient_textures": ({"lights": BOTH, "texture": True}, specular_and_ambient_maps),
     "vertices_flat": ({"lights": BOTH}, lambda s: [pyramid(s).vertices]),
     "vertices_flat_ground": ({"lights": POINT, "pyramid": False}, lambda s: [ground(s).vertices]),
     "vertices_smooth": (
