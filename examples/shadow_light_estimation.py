@@ -21,23 +21,18 @@ import numpy as np
 from script_support import command_line
 
 import minidiff as md
-from render.experiments import TRUE_INTENSITY, TRUE_LIGHT, relative_error_pct
+from render.experiments import (
+    TRUE_INTENSITY,
+    TRUE_LIGHT,
+    light_estimation_start,
+    relative_error_pct,
+)
 from render.jsonio import write_json
 from render.optimize import optimize
 from render.renderer import render
 from render.teapot import paper_scene
 
 QUICK = {"--quick": {"action": "store_true", "help": "a few small runs (not results)"}}
-
-
-def start_light(seed: int) -> tuple[np.ndarray, float]:
-    """The paper experiment's seeded start (``render.experiments.run_light_estimation``)."""
-    rng = np.random.default_rng(seed)
-    direction = rng.normal(size=3)
-    direction /= np.linalg.norm(direction)
-    light = TRUE_LIGHT + rng.uniform(0.5, 1.0) * np.linalg.norm(TRUE_LIGHT) * direction
-    light[1] = max(light[1], 1.0)
-    return light, TRUE_INTENSITY * rng.uniform(0.3, 1.7)
 
 
 def estimate(size, seed, ground: bool, antialias: bool, iters: int, tol: float) -> dict:
@@ -47,7 +42,7 @@ def estimate(size, seed, ground: bool, antialias: bool, iters: int, tol: float) 
     )
     with md.no_grad():
         target = render(truth, antialias=antialias).data.copy()
-    light, intensity = start_light(seed)
+    light, intensity = light_estimation_start(seed)
     position = md.tensor(light, requires_grad=True)
     strength = md.tensor(intensity, requires_grad=True)
     scene = paper_scene(

@@ -173,6 +173,20 @@ def object_in_view_pct(scene, target_info) -> float:
     return float(100.0 * shown / max(1, (target_info.prim_id >= 0).sum()))
 
 
+def light_estimation_start(seed: int) -> tuple[np.ndarray, float]:
+    """The light-estimation experiment's seeded start: (position (3,), intensity). The true
+    position moved by a random direction times a distance drawn from [0.5, 1.0] x |truth|
+    (kept above y = 1, so the light stays over the teapot), the intensity scaled by a
+    factor from [0.3, 1.7]."""
+    rng = np.random.default_rng(seed)
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    distance = rng.uniform(0.5, 1.0) * np.linalg.norm(TRUE_LIGHT)
+    position = TRUE_LIGHT + distance * direction
+    position[1] = max(position[1], 1.0)
+    return position, TRUE_INTENSITY * rng.uniform(0.3, 1.7)
+
+
 def run_light_estimation(
     size: int = 512,
     iters: int = 500,
@@ -184,23 +198,14 @@ def run_light_estimation(
 ) -> ExperimentRun:
     """Section 5.7: recover a point light's position and intensity from a random start.
 
-    Truth: light at (1, 4, 2) with I = 150. Start (seeded): the position moved by a random
-    direction times a distance drawn from [0.5, 1.0] x |truth| (kept above y = 1, so the
-    light stays over the teapot), the intensity scaled by a factor from [0.3, 1.7].
+    Truth: light at (1, 4, 2) with I = 150. Start: ``light_estimation_start(seed)``.
     Reported: Eq. 5 (position) and Eq. 6 (intensity) errors.
     """
-    rng = np.random.default_rng(seed)
     truth = paper_scene(
         width=size, height=size, light_position=TRUE_LIGHT, light_intensity=TRUE_INTENSITY
     )
     target = render(truth).data.copy()
-
-    direction = rng.normal(size=3)
-    direction /= np.linalg.norm(direction)
-    distance = rng.uniform(0.5, 1.0) * np.linalg.norm(TRUE_LIGHT)
-    start_light = TRUE_LIGHT + distance * direction
-    start_light[1] = max(start_light[1], 1.0)
-    start_intensity = TRUE_INTENSITY * rng.uniform(0.3, 1.7)
+    start_light, start_intensity = light_estimation_start(seed)
     position = md.tensor(start_light, requires_grad=True)
     intensity = md.tensor(start_intensity, requires_grad=True)
     scene = paper_scene(width=size, height=size, light_position=position, light_intensity=intensity)

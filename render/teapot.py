@@ -133,6 +133,7 @@ def paper_scene(
     nu: int = 4,
     nv: int = 6,
     ground: bool = False,
+    ground_material: Material | None = None,
 ) -> Scene:
     """The reference scene of ``docs/paper_scene.md``: the teapot lit by one white point light.
 
@@ -145,7 +146,9 @@ def paper_scene(
     inverse-rendering experiments); the scene keeps those very objects.
 
     ``ground=True`` stands the teapot on a 6 x 6 grey (albedo 0.6) square at its bottom,
-    y = -0.5, so that it casts a shadow a camera can see (not part of the paper's scene).
+    y = -0.5, so that it casts a shadow a camera can see (not part of the paper's scene);
+    ``ground_material`` replaces its material (e.g. ``Material(..., reflectance=0.8)``: a
+    mirror floor).
     """
     camera = Camera.from_focal_length(
         50.0, 36.0, position=camera_position, look_at=look_at, up=(0, 1, 0),
@@ -157,5 +160,6 @@ def paper_scene(
     if ground:
         s, y = 3.0, GROUND_Y
         square = np.array([(-s, y, s), (s, y, s), (s, y, -s), (-s, y, -s)], dtype=np.float64)
-        objects.append(Mesh(square, [[0, 1, 2], [0, 2, 3]], Material((0.6, 0.6, 0.6))))
+        material = ground_material if ground_material is not None else Material((0.6,) * 3)
+        objects.append(Mesh(square, [[0, 1, 2], [0, 2, 3]], material))
     return Scene(objects, [light], camera, background=(0, 0, 0))

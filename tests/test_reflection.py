@@ -3,6 +3,11 @@ decisions in ``RenderInfo``, and bad input."""
 
 from __future__ import annotations
 
+import json
+import runpy
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import example, given
@@ -203,3 +208,20 @@ def test_reflectance_has_a_checked_shape():
         render.Material((0.5, 0.5, 0.5), reflectance=(1.0, 0.5))
     quad = ground_quad(material=mirror_material())
     assert quad.material.reflective
+
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "mirror_reflection.py"
+
+
+def test_mirror_example_quick(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE.parent))  # as `python examples/...` would
+    monkeypatch.setattr(sys, "argv", [str(EXAMPLE), "--quick", "--quiet", "--out", str(tmp_path)])
+    runpy.run_path(str(EXAMPLE), run_name="__main__")
+    folder = tmp_path / "mirror_reflection"
+    result = json.loads((folder / "mirror_reflection.json").read_text())
+    (run,) = result["runs"]
+    assert run["direct_teapot_rays"] == 0 and run["teapot_rays_via_mirror"] > 0
+    assert run["position_error_pct"] < run["initial_position_error_pct"]
+    figure = render.load_image(folder / "teapot_mirror_floor.png")
+    assert figure.shape == (48, 96, 3)
+    assert np.abs(figure[:, :48] - figure[:, 48:]).max() > 0.1  # the reflections show
