@@ -15,6 +15,8 @@ Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/pa
   ``render.optimize.image_loss``) against a target rendered at the true parameters, from a
   start with the light moved by 0.1, differentiated w.r.t. ALL parameters: light position
   and intensity, albedo, camera position, look_at and fov, and all 1,120 vertices;
+* mirror reflection: forward and forward+backward of the teapot on a mirror floor at
+  max_bounces = 0, 1, 2 (what each bounce costs);
 * the same forward and forward+backward without the BVH (brute force);
 * peak memory of one forward and one forward+backward (tracemalloc and process RSS);
 * what visibility reuse buys: one iteration (render + loss + backward) of a material-only
@@ -239,6 +241,38 @@ def time_antialias(size: int, repeats: int) -> dict:
     return out
 
 
+def time_reflection(size: int, repeats: int) -> dict:
+    """The teapot on a mirror floor (``paper_scene(ground=True)`` with reflectance 0.8):
+    forward render and forward+backward (all parameters, reflectance included) at
+    max_bounces = 0, 1, 2, and what each bounce adds."""
+    from render.scene import Material
+
+    def floor():
+        return Material((0.05, 0.05, 0.05), reflectance=0.8)
+
+    plain = paper_scene(size, size, ground=True, ground_material=floor())
+    target = render(plain).data.copy()
+    scene, params = differentiable_scene(size, names=None, ground=True)
+    scene.objects[1].material = floor()
+    reflectance = scene.objects[1].material.reflectance
+    reflectance.requires_grad = True
+    params = {**params, "reflectance": reflectance}
+    scene.lights[0].position.data[0] += 0.1
+    out = {}
+    for bounces in (0, 1, 2):
+        out[f"forward_{bounces}"] = timing.measure(
+            lambda b=bounces: render(plain, reuse_visibility=False, max_bounces=b), repeats
+        )
+
+        def step(b=bounces):
+            for p in params.values():
+                p.grad = None
+            image_loss(render(scene, reuse_visibility=False, max_bounces=b), target).backward()
+
+        out[f"forward_backward_{bounces}"] = timing.measure(step, repeats)
+    return out
+
+
 def main(argv=None) -> dict:
     parser = timing.make_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=15)
@@ -280,6 +314,9 @@ def main(argv=None) -> dict:
 
     # Edge antialiasing (silhouettes, creases and, on the teapot and its ground, shadows)
     r["antialias"] = time_antialias(size, repeats)
+
+    # Mirror reflection: the cost of each bounce
+    r["reflection"] = time_reflection(size, repeats)
 
     # Without the BVH
     r["forward_no_bvh"] = timing.measure(
@@ -330,6 +367,18 @@ def antialias_rows(aa: dict) -> list:
                     timing.target_status(a[f"ratio_{kind}"], 1.25),
                 )
             )
+    return rows
+
+
+def reflection_rows(refl: dict) -> list:
+    rows = []
+    for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
+        times = [refl[f"{kind}_{b}"]["median_ms"] for b in (0, 1, 2)]
+        each = " / ".join(timing.ms(refl[f"{kind}_{b}"]) for b in (0, 1, 2))
+        added = f"first bounce +{times[1] - times[0]:.1f} ms, second +{times[2] - times[1]:.1f} ms"
+        rows.append(
+            timing.row(f"{text}, teapot on a mirror floor, max_bounces 0 / 1 / 2", each, added)
+        )
     return rows
 
 
@@ -399,6 +448,7 @@ def make_report(r: dict, out) -> dict:
         ),
         timing.row("full forward render, no BVH", timing.ms(r["forward_no_bvh"]), "paper 85.6 ms"),
         *antialias_rows(r["antialias"]),
+        *reflection_rows(r["reflection"]),
         timing.row("forward+backward, no BVH", timing.ms(r["forward_backward_no_bvh"])),
         timing.row(
             "minor page faults per pass: forward / forward+backward",
