@@ -32,6 +32,7 @@ from numba import njit, prange
 
 from render.bvh import N_BINS, build_bvh, primitive_bounds
 from render.intersect import (
+    FlatBVH,
     closest_hit_brute,
     closest_hit_bvh,
     occluded_brute,
@@ -268,11 +269,9 @@ class Accelerator:
 
     # ----------------------------------------------------------------------------------------
 
-    def _tree(self) -> tuple:
-        """The flat tree as the traversal kernels take it: node arrays, leaf primitive table,
-        leaf ids, triangle count (ids below it are triangles) and the traversal stack size
-        (depth + 2 is enough for near-first traversal, which pushes one node per level)."""
-        return (
+    def _tree(self) -> FlatBVH:
+        """The flat tree as the traversal kernels take it (one argument)."""
+        return FlatBVH(
             self.node_bounds,
             self.node_first,
             self.node_count,
@@ -310,7 +309,7 @@ class Accelerator:
             return out_id, out_t, out_u, out_v
         if self.use_bvh:
             closest_hit_bvh(
-                *self._tree(),
+                self._tree(),
                 o,
                 d,
                 o_step,
@@ -386,7 +385,7 @@ class Accelerator:
             return out
         if self.use_bvh:
             occluded_bvh(
-                *self._tree(),
+                self._tree(),
                 o,
                 d,
                 o_step,
