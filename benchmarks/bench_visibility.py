@@ -5,8 +5,9 @@ Run:  python benchmarks/bench_visibility.py [--out DIR] [--quick] [--repeats 15]
 Workload (``docs/paper_scene.md``): the Newell teapot tessellated into 1,536 triangles
 (``render.teapot``), the 512x512 pinhole camera at (3, 2, 5) looking at the origin, one ray
 per pixel centre (``render.camera.primary_rays``), and shadow rays from the camera hits to
-the point light at (2, 5, 3), with the arguments the renderer uses (tmin = 1e-7 of the
-scene scale, tmax = 1 - 1e-7 of the distance to the light, the start triangle ignored).
+the point light at (2, 5, 3), built exactly as the renderer builds them
+(``render.visibility.shadow_rays``: started off the surface by the scale-relative
+``SHADOW_EPSILON`` offset, tmin = 0, the start triangle ignored).
 A finer tessellation (26 x 60 cells per patch: 99,840 triangles) measures build time and
 ray casting on a bigger mesh.
 
