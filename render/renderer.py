@@ -50,6 +50,7 @@ def render(
     return_info: bool = False,
     antialias: bool = False,
     max_bounces: int = 2,
+    primary: str = "auto",
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
 
@@ -69,6 +70,10 @@ def render(
     max_bounces: how many mirror reflections a camera ray may take (RayTracer.jl's depth:
         the camera hit plus two reflections); 0 turns reflection off. Only hits on a
         material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.
+    primary: how the camera rays' hits are found: "bvh" traces them through the BVH,
+        "raster" rasterises the primitives (``render.raster``; the same hits bit for bit,
+        faster for the pinhole camera), "auto" (default) rasterises. With ``bvh=False``
+        both are brute force (the ablation).
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
     when the caller runs ``backward`` on a loss computed from the image.
@@ -82,7 +87,10 @@ def render(
 
     antialias = _check_flag(antialias, "antialias")
     max_bounces = _check_bounces(max_bounces)
-    visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows), antialias)  # 1
+    raster = _check_primary(primary) and bool(bvh)
+    visibility = trace_visibility(  # 1
+        scene, cache, bool(bvh), spp, bool(shadows), antialias, raster
+    )
     frame = camera_frame(scene.camera)
     bounces = _bounces(scene, visibility, bool(shadows), max_bounces)
     colour, ray_of_colour, texel, shaded = _shade_objects(  # 2, 3
@@ -108,6 +116,13 @@ def working_dtype(scene: Scene) -> np.dtype:
     """float32 only if every parameter is float32 (constants such as pixel coordinates are
     cast to it, so that they do not promote the tape to float64)."""
     return np.result_type(*[t.dtype for t in scene.parameters()])
+
+
+def _check_primary(value) -> bool:
+    """True to rasterise the camera rays' hits."""
+    if value not in ("auto", "raster", "bvh"):
+        raise ValueError(f'render: primary must be "auto", "raster" or "bvh", got {value!r}')
+    return value in ("auto", "raster")
 
 
 def _check_bounces(value) -> int:

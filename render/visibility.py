@@ -19,10 +19,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import minidiff as md
 from render.accel import Accelerator
 from render.cache import RenderCache, camera_key, light_key
-from render.camera import image_plane_coords, primary_rays
+from render.camera import camera_frame, image_plane_coords, primary_rays
 from render.edges import EdgePairs, edge_pairs
+from render.raster import raster_closest_hit
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
 from render.shadow_edges import ShadowPairs, shadow_pairs
 from render.topology import mesh_edges
@@ -82,11 +84,23 @@ class PrimaryHits:
     coords: np.ndarray
 
 
-def trace_primary(accel: Accelerator, camera: Camera, spp: int) -> PrimaryHits:
-    """Trace every camera ray (``spp`` per pixel) through ``accel``."""
+def trace_primary(
+    accel: Accelerator, camera: Camera, spp: int, primitives=None, raster: bool = False
+) -> PrimaryHits:
+    """Trace every camera ray (``spp`` per pixel) through ``accel``, or with ``raster``
+    find the same hits by rasterising ``primitives`` (``render.raster``: bit-identical,
+    faster for a pinhole camera)."""
     eye, directions = primary_rays(camera, spp)
-    origins = np.broadcast_to(eye, directions.shape)
-    prim_id, t, _, _ = accel.closest_hit(origins, directions)
+    if raster:
+        with md.no_grad():
+            forward, right, up, _ = camera_frame(camera)
+        frame = (forward.data, right.data, up.data)
+        width, height = camera.width, camera.height
+        found = raster_closest_hit(*primitives, eye, frame, directions, width, height, spp)
+        prim_id, t = found[0], found[1]
+    else:
+        origins = np.broadcast_to(eye, directions.shape)
+        prim_id, t, _, _ = accel.closest_hit(origins, directions)
     hit_rays = np.flatnonzero(prim_id >= 0)
     points = eye + t[hit_rays, None] * directions[hit_rays]
     # The camera directions have unit component along the view axis: t is the depth.
@@ -204,19 +218,25 @@ class Visibility:
 
 
 def trace_visibility(
-    scene: Scene, cache: RenderCache, bvh: bool, spp: int, shadows: bool, antialias: bool = False
+    scene: Scene,
+    cache: RenderCache,
+    bvh: bool,
+    spp: int,
+    shadows: bool,
+    antialias: bool = False,
+    raster: bool = False,
 ) -> Visibility:
-    """Accelerator, camera rays, shadow rays and (with ``antialias``) the silhouette pairs
-    of ``scene``, each reused from ``cache`` while the values it depends on are unchanged
-    (a later stage depends on the earlier)."""
+    """Accelerator, camera rays (traced, or with ``raster`` rasterised), shadow rays and
+    (with ``antialias``) the silhouette pairs of ``scene``, each reused from ``cache``
+    while the values it depends on are unchanged (a later stage depends on the earlier)."""
     primitives = scene_primitives(scene)
     accel, built = cache.get(
         ("accelerator", bvh), list(primitives), lambda: Accelerator(*primitives, use_bvh=bvh)
     )
     primary, traced = cache.get(
         "primary",
-        camera_key(scene.camera, spp, bvh) + [built],
-        lambda: trace_primary(accel, scene.camera, spp),
+        camera_key(scene.camera, spp, bvh) + [built, np.array([raster])],
+        lambda: trace_primary(accel, scene.camera, spp, primitives, raster),
     )
     start_prim = primary.prim_id[primary.hit_rays]
     lit = []

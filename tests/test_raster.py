@@ -1,0 +1,93 @@
+"""Rasterised camera-ray visibility (``render.raster``) against the BVH: bit-identical ids,
+t, u, v, ties included (the lower id wins), and the renderer's choice between them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from test_accel import grid_triangles
+
+import minidiff as md
+import render
+from render.accel import Accelerator
+from render.camera import camera_frame, primary_rays
+from render.raster import raster_closest_hit
+from render.visibility import scene_primitives
+
+SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+def assert_raster_equals_bvh(triangles, centers, radii, camera: render.Camera, spp: int = 1):
+    eye, directions = primary_rays(camera, spp)
+    with md.no_grad():
+        forward, right, up, _ = camera_frame(camera)
+    frame = (forward.data, right.data, up.data)
+    raster = raster_closest_hit(
+        triangles, centers, radii, eye, frame, directions, camera.width, camera.height, spp
+    )
+    bvh = Accelerator(triangles, centers, radii).closest_hit(
+        np.broadcast_to(eye, directions.shape), directions
+    )
+    for name, a, b in zip(("prim_id", "t", "u", "v"), raster, bvh, strict=True):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+    return raster
+
+
+def points(n: int, lo: float, hi: float):
+    return st.lists(
+        st.tuples(*[st.floats(lo, hi, allow_nan=False, allow_infinity=False)] * 3),
+        min_size=n,
+        max_size=n,
+    ).map(np.array)
+
+
+@SETTINGS
+@given(
+    corners=st.integers(1, 40).flatmap(lambda n: points(3 * n, -3.0, 3.0)),
+    spheres=st.integers(0, 4).flatmap(lambda n: points(n, -2.0, 2.0)),
+    radius=st.floats(0.05, 1.5),
+    eye=points(1, -4.0, 4.0),
+    fov=st.floats(20.0, 100.0),
+    spp=st.sampled_from([1, 4]),
+)
+def test_random_soups_and_spheres_match_the_bvh(corners, spheres, radius, eye, fov, spp):
+    """Random triangles around the eye (some behind it, some crossing its plane) and
+    spheres (the eye may be inside one)."""
+    eye = eye[0]
+    look_at = eye + np.array([0.3, -0.2, -1.0])
+    camera = render.Camera(eye, look_at, fov=fov, width=23, height=17)
+    radii = np.full(len(spheres), radius)
+    assert_raster_equals_bvh(corners.reshape(-1, 3, 3), spheres.reshape(-1, 3), radii, camera, spp)
+
+
+@pytest.mark.parametrize("spp", [1, 4, 9])
+def test_rays_through_shared_edges_and_vertices(spp):
+    """A grid whose vertices and edges lie exactly under pixel centres and samples: every
+    tie must go to the lower id, as in the BVH."""
+    triangles = grid_triangles(16, 16, size=0.125) - np.array([1.0, 1.0, 0.0])
+    camera = render.Camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), fov=90.0, width=16, height=16)
+    ids, *_ = assert_raster_equals_bvh(triangles, np.zeros((0, 3)), np.zeros(0), camera, spp)
+    assert (ids >= 0).all()
+
+
+def test_the_teapot_on_its_ground_and_a_sphere():
+    scene = render.paper_scene(96, 80, ground=True)
+    scene.objects.append(render.Sphere((1.5, 0.5, 1.0), 0.6, render.Material((0.5, 0.5, 0.5))))
+    triangles, centers, radii = scene_primitives(scene)
+    ids, *_ = assert_raster_equals_bvh(triangles, centers, radii, scene.camera, 4)
+    assert (ids == len(triangles)).any()  # the sphere is in view
+
+
+def test_render_uses_either_and_gets_the_same_image():
+    scene = render.paper_scene(64, 48, ground=True)
+    a, info_a = render.render(scene, primary="raster", reuse_visibility=False, return_info=True)
+    b, info_b = render.render(scene, primary="bvh", reuse_visibility=False, return_info=True)
+    np.testing.assert_array_equal(info_a.prim_id, info_b.prim_id)
+    np.testing.assert_array_equal(a.data, b.data)
+
+
+def test_bad_primary_is_refused():
+    with pytest.raises(ValueError, match="primary must be"):
+        render.render(render.paper_scene(8, 8), primary="zbuffer")
