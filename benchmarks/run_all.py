@@ -31,6 +31,7 @@ SCRIPTS = [
     "bench_visibility",
     "bench_minidiff",
     "bench_render",
+    "bench_mitsuba",
     "fig2_bvh",
     "fig3_ad_vs_fd",
     "table2_ablation",

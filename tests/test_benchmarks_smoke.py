@@ -50,6 +50,10 @@ EXPECTED = {
         ("memory_forward", "rss_peak_mb"),
         ("material_iteration_reuse", "median_ms"),
     ],
+    "bench_mitsuba": [  # ours only: Mitsuba is optional
+        ("results", name, "ours", "median_ms")
+        for name in ("forward", "light_iteration", "shape_iteration")
+    ],
     "fig2_bvh": [
         ("resolution", "*", "bvh", "time", "median_ms"),
         ("resolution", "*", "no_bvh", "time", "median_ms"),
