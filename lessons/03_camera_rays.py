@@ -43,8 +43,13 @@ from PIL import Image, ImageDraw
 
 import minidiff as md
 import render
-from render.camera import camera_frame, image_plane_coords, primary_rays, ray_directions
-from render.camera import subpixel_offsets
+from render.camera import (
+    camera_frame,
+    image_plane_coords,
+    primary_rays,
+    ray_directions,
+    subpixel_offsets,
+)
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "03_camera_rays"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -170,7 +175,7 @@ print(f"d(d_x)/d(fov): tape {dx_dfov:.8f}, formula {dx_dfov_formula:.8f}")
 def draw_ray_grid(path: Path) -> None:
     img = Image.new("RGB", (900, 420), "white")
     draw = ImageDraw.Draw(img)
-    hw, hh = half_width, half_height
+    hw = half_width
 
     # Left panel: top view, world x to the right, depth (along f) upwards.
     def top(x, depth):
