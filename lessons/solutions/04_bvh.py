@@ -27,7 +27,9 @@ from render.camera import primary_rays
 from render.intersect import intersect_triangle, pack_primitives
 
 with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
-    lesson = runpy.run_path(str(Path(__file__).resolve().parents[1] / "04_bvh.py"))
+    # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+    here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+    lesson = runpy.run_path(str(here.parent / "04_bvh.py"))
 closest_hit_counted, sah_cost = lesson["closest_hit_counted"], lesson["sah_cost"]
 triangles = lesson["triangles"]
 
