@@ -49,56 +49,37 @@ OUT.mkdir(parents=True, exist_ok=True)
 #
 # A `Value` holds `data`, `grad` (its adjoint, accumulated), its `parents`, and a
 # `_backward` closure that adds `grad · ∂self/∂parent` to each parent's `grad`. Each
-# operation builds its output and its closure together: the forward value and the local
-# derivative sit side by side.
+# operation computes its value and its local derivatives `∂self/∂parent` together, while
+# the inputs are at hand: the forward value and the derivative sit side by side.
 
 
 # %%
 class Value:
-    def __init__(self, data, parents=()):
+    def __init__(self, data, parents=(), local_grads=()):
         self.data, self.grad, self.parents = float(data), 0.0, parents
-        self._backward = lambda: None
 
-    def __add__(self, other):
+        def _backward():  # the chain rule: add grad · ∂self/∂parent to each parent
+            for parent, local in zip(parents, local_grads, strict=True):
+                parent.grad += self.grad * local
+
+        self._backward = _backward
+
+    def __add__(self, other):  # ∂(a + b)/∂a = 1, ∂(a + b)/∂b = 1
         other = other if isinstance(other, Value) else Value(other)
-        out = Value(self.data + other.data, (self, other))
+        return Value(self.data + other.data, (self, other), (1.0, 1.0))
 
-        def _backward():  # d(a + b)/da = 1, d(a + b)/db = 1
-            self.grad += out.grad
-            other.grad += out.grad
-
-        out._backward = _backward
-        return out
-
-    def __mul__(self, other):
+    def __mul__(self, other):  # ∂(ab)/∂a = b, ∂(ab)/∂b = a
         other = other if isinstance(other, Value) else Value(other)
-        out = Value(self.data * other.data, (self, other))
-
-        def _backward():  # d(ab)/da = b, d(ab)/db = a
-            self.grad += out.grad * other.data
-            other.grad += out.grad * self.data
-
-        out._backward = _backward
-        return out
+        return Value(self.data * other.data, (self, other), (other.data, self.data))
 
     __radd__, __rmul__ = __add__, __mul__
 
-    def unary(self, value, derivative):
-        """An elementwise function with its derivative at self.data."""
-        out = Value(value, (self,))
-
-        def _backward():
-            self.grad += out.grad * derivative
-
-        out._backward = _backward
-        return out
-
     def sin(self):
-        return self.unary(math.sin(self.data), math.cos(self.data))
+        return Value(math.sin(self.data), (self,), (math.cos(self.data),))
 
     def exp(self):
         e = math.exp(self.data)
-        return self.unary(e, e)
+        return Value(e, (self,), (e,))
 
     def backward(self):
         order, seen = [], set()

@@ -23,56 +23,46 @@ from minidiff.tensor import as_tensor, record
 
 
 class Value:
-    def __init__(self, data, parents=()):
+    def __init__(self, data, parents=(), local_grads=()):
         self.data, self.grad, self.parents = float(data), 0.0, parents
-        self._backward = lambda: None
 
-    def __add__(self, other):
+        def _backward():  # the chain rule: add grad · ∂self/∂parent to each parent
+            for parent, local in zip(parents, local_grads, strict=True):
+                parent.grad += self.grad * local
+
+        self._backward = _backward
+
+    def __add__(self, other):  # ∂(a + b)/∂a = 1, ∂(a + b)/∂b = 1
         other = other if isinstance(other, Value) else Value(other)
-        out = Value(self.data + other.data, (self, other))
+        return Value(self.data + other.data, (self, other), (1.0, 1.0))
 
-        def _backward():
-            self.grad += out.grad
-            other.grad += out.grad
-
-        out._backward = _backward
-        return out
-
-    def __mul__(self, other):
+    def __mul__(self, other):  # ∂(ab)/∂a = b, ∂(ab)/∂b = a
         other = other if isinstance(other, Value) else Value(other)
-        out = Value(self.data * other.data, (self, other))
-
-        def _backward():
-            self.grad += out.grad * other.data
-            other.grad += out.grad * self.data
-
-        out._backward = _backward
-        return out
+        return Value(self.data * other.data, (self, other), (other.data, self.data))
 
     __radd__, __rmul__ = __add__, __mul__
 
-    def unary(self, value, derivative):
-        out = Value(value, (self,))
+    def sin(self):
+        return Value(math.sin(self.data), (self,), (math.cos(self.data),))
 
-        def _backward():
-            self.grad += out.grad * derivative
-
-        out._backward = _backward
-        return out
+    def exp(self):
+        e = math.exp(self.data)
+        return Value(e, (self,), (e,))
 
     # Exercise 1: two more operations, each a value and its local derivative.
     def tanh(self):
         t = math.tanh(self.data)
-        return self.unary(t, 1.0 - t * t)
+        return Value(t, (self,), (1.0 - t * t,))
 
     def __pow__(self, k):  # a constant exponent
-        return self.unary(self.data**k, k * self.data ** (k - 1))
+        return Value(self.data**k, (self,), (k * self.data ** (k - 1),))
 
     def backward(self, dedupe=True):
+        """As in the lesson; dedupe=False forgets `seen` (exercise 2). Returns the number
+        of _backward calls."""
         order, seen = [], set()
-        calls = 0
 
-        def visit(v):
+        def visit(v):  # depth first: a value is appended after all its parents
             if not dedupe or id(v) not in seen:
                 seen.add(id(v))
                 for p in v.parents:
@@ -80,11 +70,10 @@ class Value:
                 order.append(v)
 
         visit(self)
-        self.grad = 1.0
-        for v in reversed(order):
+        self.grad = 1.0  # df/df
+        for v in reversed(order):  # every user before the values it uses
             v._backward()
-            calls += 1
-        return calls
+        return len(order)
 
 
 # %% [markdown]
