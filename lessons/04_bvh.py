@@ -193,6 +193,8 @@ bvh_triangle_tests, bvh_box_tests = int(counted[:, 2].sum()), int(counted[:, 1].
 brute_triangle_tests = n_rays * n_triangles
 tests_saved_factor = round(brute_triangle_tests / bvh_triangle_tests)
 tests_per_hit_ray = counted[prim_id >= 0, 2].mean()
+rays_missing_root = int((counted[:, 1] == 1).sum())  # one box test: the root's
+rays_without_tests = int((counted[:, 2] == 0).sum())
 print(f"same hits as Accelerator.closest_hit: {same_hits}; {rays_hitting} rays hit the teapot")
 print(f"triangle tests: BVH {bvh_triangle_tests:,}, brute force {brute_triangle_tests:,} "
       f"({tests_saved_factor:.0f}x fewer); box tests {bvh_box_tests:,}")  # fmt: skip
@@ -205,8 +207,9 @@ print(f"a ray that hits the teapot tests {tests_per_hit_ray:.1f} triangles on av
 # tests in all, against `6,291,456` <!-- check: brute_triangle_tests --> for brute force:
 # `1863` <!-- check: tests_saved_factor --> times fewer, for `34,652`
 # <!-- check: bvh_box_tests --> box tests. A ray that hits the teapot tests `3.9`
-# <!-- check: tests_per_hit_ray --> triangles on average; most rays miss the root box, or
-# enter it and miss every child box, and test none. The SAH cost (20) is an estimate for
+# <!-- check: tests_per_hit_ray --> triangles on average. Most rays test none at all
+# (`3,326` <!-- check: rays_without_tests -->): `2,404` <!-- check: rays_missing_root -->
+# miss the root box, the others pass through boxes but miss every leaf's box. The SAH cost (20) is an estimate for
 # rays spread evenly through the root box that visit every leaf they pass through; a
 # closest-hit search visits the near leaves first and stops early.
 #

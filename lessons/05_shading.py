@@ -34,6 +34,8 @@
 # of primitive, that answer is a constant on the tape.
 #
 # We check the formulas on a case with a closed form, then render a small scene.
+# (`tests/test_render_closed_form.py` holds the renderer to closed forms the same way, for
+# triangles, spheres, textures, directional lights and shadows.)
 
 # %%
 import math
