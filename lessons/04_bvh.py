@@ -209,9 +209,9 @@ print(f"a ray that hits the teapot tests {tests_per_hit_ray:.1f} triangles on av
 # <!-- check: bvh_box_tests --> box tests. A ray that hits the teapot tests `3.9`
 # <!-- check: tests_per_hit_ray --> triangles on average. Most rays test none at all
 # (`3,326` <!-- check: rays_without_tests -->): `2,404` <!-- check: rays_missing_root -->
-# miss the root box, the others pass through boxes but miss every leaf's box. The SAH cost (20) is an estimate for
-# rays spread evenly through the root box that visit every leaf they pass through; a
-# closest-hit search visits the near leaves first and stops early.
+# miss the root box, the others enter some boxes but no leaf's box. The SAH cost (20) is
+# an estimate for rays spread evenly through the root box that visit every leaf they pass
+# through; a closest-hit search visits the near leaves first and stops early.
 #
 # In wall time (Numba, both cores; the numbers vary with the machine and its load), with
 # identical answers, bit for bit:
