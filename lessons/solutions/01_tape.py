@@ -1,0 +1,148 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+# ---
+
+# %% [markdown]
+# # Solutions to lesson 1 (a tape from scratch)
+#
+# The lesson's `Value`, repeated so that this file runs on its own, with the additions of
+# exercise 1 (`tanh`, `__pow__`) and a switch for exercise 2.
+
+# %%
+import math
+
+import numpy as np
+
+import minidiff as md
+from minidiff.tensor import as_tensor, record
+
+
+class Value:
+    def __init__(self, data, parents=(), local_grads=()):
+        self.data, self.grad, self.parents = float(data), 0.0, parents
+
+        def _backward():  # the chain rule: add grad · ∂self/∂parent to each parent
+            for parent, local in zip(parents, local_grads, strict=True):
+                parent.grad += self.grad * local
+
+        self._backward = _backward
+
+    def __add__(self, other):  # ∂(a + b)/∂a = 1, ∂(a + b)/∂b = 1
+        other = other if isinstance(other, Value) else Value(other)
+        return Value(self.data + other.data, (self, other), (1.0, 1.0))
+
+    def __mul__(self, other):  # ∂(ab)/∂a = b, ∂(ab)/∂b = a
+        other = other if isinstance(other, Value) else Value(other)
+        return Value(self.data * other.data, (self, other), (other.data, self.data))
+
+    __radd__, __rmul__ = __add__, __mul__
+
+    def sin(self):
+        return Value(math.sin(self.data), (self,), (math.cos(self.data),))
+
+    def exp(self):
+        e = math.exp(self.data)
+        return Value(e, (self,), (e,))
+
+    # Exercise 1: two more operations, each a value and its local derivative.
+    def tanh(self):
+        t = math.tanh(self.data)
+        return Value(t, (self,), (1.0 - t * t,))
+
+    def __pow__(self, k):  # a constant exponent
+        return Value(self.data**k, (self,), (k * self.data ** (k - 1),))
+
+    def backward(self, dedupe=True):
+        """As in the lesson; dedupe=False forgets `seen` (exercise 2). Returns the number
+        of _backward calls."""
+        order, seen = [], set()
+
+        def visit(v):  # depth first: a value is appended after all its parents
+            if not dedupe or id(v) not in seen:
+                seen.add(id(v))
+                for p in v.parents:
+                    visit(p)
+                order.append(v)
+
+        visit(self)
+        self.grad = 1.0  # df/df
+        for v in reversed(order):  # every user before the values it uses
+            v._backward()
+        return len(order)
+
+
+# %% [markdown]
+# ## Exercise 1
+#
+# `g(x) = tanh(x)³ + x²`, `g'(x) = 3 tanh(x)² (1 − tanh(x)²) + 2x`.
+
+# %%
+x = Value(0.7)
+g = x.tanh() ** 3 + x**2
+g.backward()
+
+
+def g_float(v):
+    return math.tanh(v) ** 3 + v**2
+
+
+h = 1e-5
+fd = (g_float(0.7 + h) - g_float(0.7 - h)) / (2 * h)
+t = math.tanh(0.7)
+exact = 3 * t**2 * (1 - t**2) + 2 * 0.7
+print(f"tape {x.grad:.10f}  central difference {fd:.10f}  by hand {exact:.10f}")
+assert abs(x.grad - exact) < 1e-14 and abs(fd - exact) < 1e-9
+
+# %% [markdown]
+# ## Exercise 2
+#
+# Without `seen`, `visit` walks every *path* from the output to the leaves: `a + a` lists its
+# parent twice, so after ten doublings `x` is reached along 2¹⁰ paths, every intermediate
+# value is listed (and its `_backward` run) once per path to it, and each run adds its whole
+# `grad` again. The number of calls grows as 2ⁿ and the gradient is wrong.
+
+# %%
+for dedupe in (True, False):
+    x = Value(1.0)
+    a = x
+    for _ in range(10):
+        a = a + a
+    calls = a.backward(dedupe=dedupe)
+    print(f"dedupe={dedupe!s:<5}: x.grad = {x.grad:>10.0f}, _backward calls = {calls}")
+    if dedupe:
+        assert x.grad == 1024 and calls == 11
+    else:
+        assert x.grad != 1024 and calls == 2**11 - 1
+
+# %% [markdown]
+# ## Exercise 3
+#
+# `softplus(x) = log(1 + eˣ)`. Written as `max(x, 0) + log(1 + e^(−|x|))` it never
+# overflows (`np.logaddexp(0, x)` computes the same). Its VJP multiplies by the logistic
+# function, read from the saved input.
+
+
+# %%
+def softplus(x):
+    x = as_tensor(x)
+    out = np.logaddexp(0.0, x.data)
+
+    def vjp(g):
+        return (g / (1.0 + np.exp(-x.data)),)
+
+    return record("softplus", out, (x,), vjp, saves=(x,))
+
+
+error, g_tape, g_fd = md.check_grad(lambda v: softplus(v).sum(), np.array([-3.0, 0.0, 0.5, 4.0]))
+print(f"softplus: tape {g_tape}, relative error to finite differences {error:.1e}")
+assert error < 1e-8
+big = md.tensor([800.0], requires_grad=True)
+y = softplus(big)
+y.sum().backward()
+print(f"softplus(800) = {y.data[0]}, gradient {big.grad[0]}")
+assert y.data[0] == 800.0 and big.grad[0] == 1.0
