@@ -5,12 +5,14 @@ Read in this order: ``renderer.py`` (the pipeline on one screen), then each step
 ``visibility.py`` (which primitive each ray hits, which lights each hit sees; built on
 ``bvh.py`` / ``intersect.py`` / ``accel.py``), ``geometry.py`` (hits recomputed on the
 tape), ``shading.py`` (lights and materials), ``cache.py`` (reuse between renders),
+``gradient_image.py`` (forward mode: where in the picture a parameter acts),
 ``image.py`` / ``meshio.py`` (files), ``optimize.py`` (inverse rendering) and
 ``experiments.py`` (the paper's experiments).
 """
 
 from render.accel import Accelerator
-from render.image import load_image, mse, psnr, save_image
+from render.gradient_image import gradient_image
+from render.image import load_image, mse, psnr, save_image, write_gradient_png
 from render.meshio import load_mesh
 from render.optimize import FlatParameters, History, OptimizationError, image_loss, optimize
 from render.renderer import RenderInfo, render
@@ -21,5 +23,5 @@ __all__ = [
     "Accelerator", "Camera", "DirectionalLight", "Material", "Mesh", "PointLight", "Scene",
     "Sphere", "RenderInfo", "render", "load_image", "save_image", "mse", "psnr", "load_mesh",
     "paper_scene", "teapot", "teapot_geometry", "optimize", "FlatParameters", "History",
-    "OptimizationError", "image_loss",
+    "OptimizationError", "image_loss", "gradient_image", "write_gradient_png",
 ]  # fmt: skip

@@ -141,14 +141,15 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
 
 
 def _reused_surface(scene, cache, visibility, index, obj, dtype, compute) -> Surface:
-    """The object's Surface from ``cache`` when nothing that moves it requires grad and its
+    """The object's Surface from ``cache`` when nothing that moves it is differentiated (requires
+    grad or carries a tangent, ``Tensor.is_differentiated``) and its
     values are unchanged (e.g. while a light or a material is optimised): saves the hit
     recomputation (gathers, cross and dot products on every hit). Otherwise ``compute()``
     on the tape."""
     camera = scene.camera
     owned = moves_surface(obj)
     movers = [camera.position, camera.look_at, camera.up, camera.fov] + owned
-    if md.is_grad_enabled() and any(t.requires_grad for t in movers):
+    if md.is_grad_enabled() and any(t.is_differentiated() for t in movers):
         return compute()
 
     def untaped() -> Surface:
@@ -171,7 +172,7 @@ def _compose_image(scene: Scene, visibility: Visibility, colour, ray_of_colour, 
         if spp > 1:
             image = image * (1.0 / spp)
     background = scene.background
-    if image is None or background.requires_grad or np.any(background.data):
+    if image is None or background.is_differentiated() or np.any(background.data):
         misses = np.bincount(np.flatnonzero(prim_id < 0) // spp, minlength=n_pixels)
         fill = (misses / spp).astype(working_dtype(scene))[:, None] * background
         image = fill if image is None else image + fill
@@ -227,7 +228,7 @@ def _sample_colours(scene: Scene, visibility: Visibility, colour, ray_of_colour)
     n_rays = prim_id.size
     samples = None if colour is None else md.scatter_add(colour, ray_of_colour, n_rays)
     background = scene.background
-    if samples is None or background.requires_grad or np.any(background.data):
+    if samples is None or background.is_differentiated() or np.any(background.data):
         misses = (prim_id < 0).astype(working_dtype(scene))[:, None]
         fill = misses * background
         samples = fill if samples is None else samples + fill

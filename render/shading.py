@@ -89,7 +89,7 @@ def sample_texture(texture, uv) -> md.Tensor:
 
 
 def _has_specular(material: Material) -> bool:
-    return material.specular.requires_grad or bool(np.any(material.specular.data))
+    return material.specular.is_differentiated() or bool(np.any(material.specular.data))
 
 
 def light_contribution(
@@ -136,7 +136,7 @@ def shade(points, normals, directions, albedo, material: Material, lights, lit) 
         radiance = contribution if radiance is None else radiance + contribution
     if radiance is None:  # no lights: only the ambient term
         radiance = md.broadcast_to(md.as_tensor(np.zeros(3)), (points.shape[0], 3))
-    if material.ambient.requires_grad or np.any(material.ambient.data):
+    if material.ambient.is_differentiated() or np.any(material.ambient.data):
         radiance = radiance + material.ambient
     return radiance
 
