@@ -15,6 +15,10 @@ vertices, a sphere's centre), on small random scenes (``render_helpers.random_sc
 
 from __future__ import annotations
 
+import runpy
+import sys
+from pathlib import Path
+
 import numba
 import numpy as np
 import pytest
@@ -225,3 +229,16 @@ def test_write_gradient_png(tmp_path):
         render.write_gradient_png(channel, tmp_path / "bad.png", scale=0.0)
     with pytest.raises(ValueError, match="must end in .png"):
         render.write_gradient_png(channel, tmp_path / "bad.jpg")
+
+
+EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "gradient_images.py"
+
+
+def test_gradient_images_example_runs(tmp_path, monkeypatch):
+    """``examples/gradient_images.py`` at 24 x 24 writes the render and five gradient PNGs."""
+    monkeypatch.setattr(sys, "argv", [str(EXAMPLE), "--size", "24", "--out", str(tmp_path)])
+    runpy.run_path(str(EXAMPLE), run_name="__main__")
+    stems = ["render", "light_x", "light_intensity", "albedo_red", "camera_x", "teapot_x"]
+    for stem in stems:
+        with Image.open(tmp_path / "gradient_images" / f"{stem}.png") as image:
+            assert image.width >= 24
