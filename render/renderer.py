@@ -141,11 +141,10 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
 
 
 def _reused_surface(scene, cache, visibility, index, obj, dtype, compute) -> Surface:
-    """The object's Surface from ``cache`` when nothing that moves it is differentiated (requires
-    grad or carries a tangent, ``Tensor.is_differentiated``) and its
-    values are unchanged (e.g. while a light or a material is optimised): saves the hit
-    recomputation (gathers, cross and dot products on every hit). Otherwise ``compute()``
-    on the tape."""
+    """The object's Surface from ``cache`` when nothing that moves it is differentiated
+    (requires grad or carries a tangent) and its values are unchanged (e.g. while a light
+    or a material is optimised): saves the hit recomputation (gathers, cross and dot
+    products on every hit). Otherwise ``compute()`` on the tape."""
     camera = scene.camera
     owned = moves_surface(obj)
     movers = [camera.position, camera.look_at, camera.up, camera.fov] + owned
