@@ -19,6 +19,9 @@ Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/pa
   max_bounces = 0, 1, 2 (what each bounce costs);
 * the same forward and forward+backward without the BVH (brute force);
 * peak memory of one forward and one forward+backward (tracemalloc and process RSS);
+* gradient images (``render.gradient_image``, forward mode): one image along one direction
+  (light x, camera x, all vertices moved along +x) against a plain forward render, both
+  without visibility reuse, with antialias False and True; the target is at most ~3x;
 * what visibility reuse buys: one iteration (render + loss + backward) of a material-only
   optimisation, with ``reuse_visibility=True`` (camera, lights and geometry unchanged, so
   the visibility is served from the cache) and ``False``;
@@ -52,7 +55,7 @@ import timing
 from bench_visibility import time_brute_visibility, time_bvh_visibility, visibility_workload
 
 import minidiff as md
-from render import render
+from render import gradient_image, render
 from render.optimize import image_loss
 from render.plot import line_plot
 from render.teapot import paper_scene
@@ -273,6 +276,58 @@ def time_reflection(size: int, repeats: int) -> dict:
     return out
 
 
+def time_gradient_image(size: int, repeats: int) -> dict:
+    """One forward-mode pass (a gradient image along one direction) against a plain forward
+    render of the paper scene, both with ``reuse_visibility=False`` (each pass traces its
+    own rays), with and without antialiasing, and the ratios (the target: at most ~3)."""
+    scene = paper_scene(size, size)
+    along_x = np.zeros(scene.meshes[0].vertices.shape)
+    along_x[:, 0] = 1.0
+    directions = {
+        "light_x": ("lights[0].position", np.array([1.0, 0.0, 0.0])),
+        "camera_x": ("camera.position", np.array([1.0, 0.0, 0.0])),
+        "vertices_x": ("objects[0].vertices", along_x),
+    }
+    out = {}
+    for antialias in (False, True):
+        row = {
+            "forward": timing.measure(
+                lambda a=antialias: render(scene, reuse_visibility=False, antialias=a), repeats
+            )
+        }
+        for key, (name, d) in directions.items():
+            row[key] = timing.measure(
+                lambda a=antialias, n=name, d=d: gradient_image(
+                    scene, n, d, reuse_visibility=False, antialias=a
+                ),
+                repeats,
+            )
+            row[f"ratio_{key}"] = row[key]["median_ms"] / row["forward"]["median_ms"]
+        out["antialias" if antialias else "plain"] = row
+    return out
+
+
+def gradient_image_rows(g: dict) -> list:
+    rows = []
+    for mode, label in (("plain", ""), ("antialias", ", antialias=True")):
+        row = g[mode]
+        for key, text in (
+            ("light_x", "light x"),
+            ("camera_x", "camera x"),
+            ("vertices_x", "all vertices along x"),
+        ):
+            rows.append(
+                timing.row(
+                    f"gradient image ({text}) / forward render{label}",
+                    f"{timing.ms(row[key])} / {timing.ms(row['forward'])} "
+                    f"= {row[f'ratio_{key}']:.2f}x",
+                    "target <= ~3x",
+                    timing.target_status(row[f"ratio_{key}"], 3.0),
+                )
+            )
+    return rows
+
+
 def main(argv=None) -> dict:
     parser = timing.make_parser(__doc__)
     parser.add_argument("--repeats", type=int, default=15)
@@ -317,6 +372,8 @@ def main(argv=None) -> dict:
 
     # Mirror reflection: the cost of each bounce
     r["reflection"] = time_reflection(size, repeats)
+    # Forward mode: gradient images
+    r["gradient_image"] = time_gradient_image(size, repeats)
 
     # Without the BVH
     r["forward_no_bvh"] = timing.measure(
@@ -449,6 +506,7 @@ def make_report(r: dict, out) -> dict:
         timing.row("full forward render, no BVH", timing.ms(r["forward_no_bvh"]), "paper 85.6 ms"),
         *antialias_rows(r["antialias"]),
         *reflection_rows(r["reflection"]),
+        *gradient_image_rows(r["gradient_image"]),
         timing.row("forward+backward, no BVH", timing.ms(r["forward_backward_no_bvh"])),
         timing.row(
             "minor page faults per pass: forward / forward+backward",

@@ -1,21 +1,24 @@
-"""minidiff: a small tape-based reverse-mode autodiff over NumPy arrays.
+"""minidiff: a small tape-based reverse-mode autodiff over NumPy arrays, with forward mode.
 
-Read in this order: ``tensor.py`` (the Tensor, the tape, backward), ``primitives.py`` (each
-primitive's forward and vector-Jacobian product side by side), ``functional.py`` (grad,
-value_and_grad, check_grad), ``optim.py`` (SGD, Adam). ``kernels.py`` holds the NumPy
-kernels that make the primitives fast on tall, thin arrays; each equals a plain NumPy
-expression.
+Read in this order: ``tensor.py`` (the Tensor, the tape, backward, and forward mode's
+tangents), ``primitives.py`` (each primitive's forward, vector-Jacobian product and
+Jacobian-vector product side by side), ``functional.py`` (grad, value_and_grad, jvp,
+check_grad), ``optim.py`` (SGD, Adam). ``kernels.py`` holds the NumPy kernels that make the
+primitives fast on tall, thin arrays; each equals a plain NumPy expression.
 
+    >>> import numpy as np
     >>> import minidiff as md
     >>> x = md.tensor([1.0, 2.0, 3.0], requires_grad=True)
     >>> y = (x * x).sum()
     >>> y.backward()
     >>> x.grad
     array([2., 4., 6.])
+    >>> md.jvp(lambda x: (x * x).sum(), (np.array([1.0, 2.0, 3.0]),), (np.ones(3),))[1]
+    array(12.)
 """
 
 from minidiff import kernels, optim
-from minidiff.functional import check_grad, grad, numerical_grad, value_and_grad
+from minidiff.functional import check_grad, grad, jvp, numerical_grad, value_and_grad
 from minidiff.primitives import (
     abs,
     add,
@@ -57,6 +60,7 @@ from minidiff.tensor import (
     detect_anomaly,
     is_grad_enabled,
     no_grad,
+    tangents,
     tensor,
     unbroadcast,
 )
@@ -64,6 +68,7 @@ from minidiff.tensor import (
 __all__ = [
     "Tensor", "tensor", "as_tensor", "no_grad", "detect_anomaly", "is_grad_enabled",
     "unbroadcast", "kernels", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
+    "jvp", "tangents",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul",
     "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
     "where", "sum", "mean", "max", "dot", "cross", "norm", "normalize", "reshape",

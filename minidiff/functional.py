@@ -1,4 +1,5 @@
-"""Function transformations over plain arrays: grad, value_and_grad, and a gradient checker."""
+"""Function transformations over plain arrays: grad, value_and_grad (reverse mode), jvp
+(forward mode), and a gradient checker."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from minidiff.tensor import Tensor, no_grad, tensor
+from minidiff.tensor import Tensor, as_tangent, no_grad, tangents, tensor
 
 
 def _argnums_tuple(argnums: int | Sequence[int]) -> tuple[int, ...]:
@@ -54,6 +55,47 @@ def grad(f: Callable[..., Any], argnums: int | Sequence[int] = 0) -> Callable:
     """Turn a scalar function f(*args) into one returning its gradient (see value_and_grad)."""
     vg = value_and_grad(f, argnums)
     return lambda *args: vg(*args)[1]
+
+
+def jvp(
+    f: Callable[..., Any], primals: Sequence[Any], tangents_in: Sequence[Any]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Forward mode: the value of ``f(*primals)`` and its directional derivative along
+    ``tangents_in``, ``J_f(primals) @ tangents_in``, in one pass.
+
+    primals: the arguments (arrays, numbers or tensors), each copied into a fresh leaf
+    tensor (it need not require grad). tangents_in: one direction per primal, of the
+    primal's shape (integer or floating-point values, converted to the primal's dtype).
+    f returns a Tensor (or an array or number, which does not depend on the primals).
+    Returns ``(value, tangent)``, two ndarrays of the output's shape; the tangent is zeros
+    where the output does not depend on the primals.
+
+        >>> md.jvp(lambda x: x * x, (np.array([1.0, 3.0]),), (np.array([1.0, 0.0]),))
+        (array([1., 9.]), array([2., 0.]))
+    """
+    if not isinstance(primals, (tuple, list)) or not isinstance(tangents_in, (tuple, list)):
+        raise TypeError(
+            "jvp: primals and tangents must be tuples or lists (one entry per argument of f), "
+            f"got {type(primals).__name__} and {type(tangents_in).__name__}"
+        )
+    if len(primals) != len(tangents_in):
+        raise ValueError(
+            f"jvp: {len(primals)} primals but {len(tangents_in)} tangents; give one tangent "
+            "per primal"
+        )
+    leaves = [tensor(p) for p in primals]
+    directions = {
+        leaf: as_tangent("jvp", f"tangent {i}", leaf, t)
+        for i, (leaf, t) in enumerate(zip(leaves, tangents_in, strict=True))
+    }
+    with tangents(directions):
+        out = f(*leaves)
+    if isinstance(out, Tensor):
+        value = np.array(out.data)
+        t = out.tangent
+        return value, (np.zeros_like(value) if t is None else np.array(t))
+    value = np.asarray(out)
+    return value, np.zeros(value.shape, dtype=np.result_type(value.dtype, np.float64))
 
 
 def numerical_grad(f: Callable[..., Any], args: Sequence[Any], argnum: int, eps: float):

@@ -1,4 +1,5 @@
-"""The primitives: each one's forward computation and its vector-Jacobian product, side by side.
+"""The primitives: each one's forward computation, its vector-Jacobian product (reverse mode)
+and its Jacobian-vector product (forward mode), side by side.
 
 Reading guide. Every primitive follows the same pattern::
 
@@ -6,12 +7,24 @@ Reading guide. Every primitive follows the same pattern::
         x = as_tensor(x)
         y = np.exp(x._data)                                   # forward, plain NumPy
         return record("exp", y, (x,), lambda g: (g * y,),     # VJP: g -> grad for each input
-                      saves_output=True)                      # the VJP reads y
+                      saves_output=True,                      # the VJP reads y
+                      jvp=lambda t: t * y)                    # JVP: input tangents -> output's
 
 ``g`` is the gradient of the final scalar with respect to this primitive's output (same
 shape as the output). The VJP returns, for each input, the gradient with respect to that
 input. It may return a gradient of the *broadcast* shape; ``backward`` sums it back to the
 input's shape. ``None`` means "no gradient flows to this input" (e.g. integer indices).
+
+The JVP goes the other way: it receives one tangent per input (an array of that input's
+shape, the direction in which the input moves; ``None`` for an input without one, meaning
+zero) and returns the tangent of the output, the directional derivative J t. It may
+return an array that still broadcasts to the output's shape (``record`` broadcasts it).
+For the same derivative the two are transposes of each other: where the VJP of multiply
+gives ``g * b`` to ``a``, the JVP gives ``ta * b`` to the output; where the VJP of a
+broadcast sums ``g`` back to the input's shape, the JVP just lets the tangent broadcast.
+At kinks (maximum, clip, max, abs) both pick the same subgradient, so that forward and
+reverse mode always agree: <u, J t> = <J^T u, t>. The JVP runs during the forward pass
+(see ``tensor.py``), so it reads the inputs directly and saves nothing.
 
 ``saves`` / ``saves_output`` tell the tape which values the VJP will read at backward
 time, so that ``backward`` can refuse to run if they were changed in the meantime (see
@@ -39,6 +52,25 @@ from minidiff.tensor import Tensor, as_tensor, record
 # ---------------------------------------------------------------------------------------------
 # Helpers
 # ---------------------------------------------------------------------------------------------
+
+
+def _scaled(t: np.ndarray | None, factor: Any) -> np.ndarray | None:
+    """A tangent times ``factor`` (broadcasting); a zero tangent (None) stays None."""
+    return None if t is None else kernels.elementwise(np.multiply, t, factor)
+
+
+def _plus(*terms: np.ndarray | None) -> np.ndarray | None:
+    """The sum of the tangent terms that are not None (broadcasting); None if all are."""
+    total = None
+    for t in terms:
+        if t is not None:
+            total = t if total is None else kernels.elementwise(np.add, total, t)
+    return total
+
+
+def _or_zeros(t: np.ndarray | None, x: Tensor) -> np.ndarray:
+    """A tangent as an array: None (zero) becomes zeros of x's shape."""
+    return np.zeros(x.shape, dtype=x.dtype) if t is None else t
 
 
 def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
@@ -106,14 +138,20 @@ def add(a: Any, b: Any) -> Tensor:
     """a + b with broadcasting.  d/da = 1, d/db = 1."""
     a, b = _pair(a, b)
     out = _broadcast_op("add", np.add, a, b)
-    return record("add", out, (a, b), lambda g: (g, g))
+    return record("add", out, (a, b), lambda g: (g, g), jvp=_plus)
 
 
 def subtract(a: Any, b: Any) -> Tensor:
     """a - b with broadcasting.  d/da = 1, d/db = -1."""
     a, b = _pair(a, b)
     out = _broadcast_op("subtract", np.subtract, a, b)
-    return record("subtract", out, (a, b), lambda g: (g, -g if b.requires_grad else None))
+    return record(
+        "subtract",
+        out,
+        (a, b),
+        lambda g: (g, -g if b.requires_grad else None),
+        jvp=lambda ta, tb: _plus(ta, None if tb is None else -tb),
+    )
 
 
 def multiply(a: Any, b: Any) -> Tensor:
@@ -127,7 +165,10 @@ def multiply(a: Any, b: Any) -> Tensor:
             kernels.elementwise(np.multiply, g, a._data) if b.requires_grad else None,
         )
 
-    return record("multiply", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
+    def jvp(ta, tb):
+        return _plus(_scaled(ta, b._data), _scaled(tb, a._data))
+
+    return record("multiply", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
 def divide(a: Any, b: Any) -> Tensor:
@@ -139,13 +180,16 @@ def divide(a: Any, b: Any) -> Tensor:
         ga = kernels.elementwise(np.divide, g, b._data)
         return (ga if a.requires_grad else None, -ga * out if b.requires_grad else None)
 
-    return record("divide", out, (a, b), vjp, saves=(b,), saves_output=b.requires_grad)
+    def jvp(ta, tb):  # (ta - out tb) / b
+        return kernels.elementwise(np.divide, _plus(ta, _scaled(tb, -out)), b._data)
+
+    return record("divide", out, (a, b), vjp, saves=(b,), saves_output=b.requires_grad, jvp=jvp)
 
 
 def negative(x: Any) -> Tensor:
     """-x."""
     x = as_tensor(x)
-    return record("negative", -x._data, (x,), lambda g: (-g,))
+    return record("negative", -x._data, (x,), lambda g: (-g,), jvp=lambda t: -t)
 
 
 def power(a: Any, b: Any) -> Tensor:
@@ -158,8 +202,14 @@ def power(a: Any, b: Any) -> Tensor:
         gb = g * out * np.log(a._data) if b.requires_grad else None
         return ga, gb
 
+    def jvp(ta, tb):
+        return _plus(
+            None if ta is None else ta * b._data * np.power(a._data, b._data - 1),
+            None if tb is None else tb * out * np.log(a._data),
+        )
+
     saves = (a, b) if a.requires_grad else (a,)
-    return record("power", out, (a, b), vjp, saves=saves, saves_output=b.requires_grad)
+    return record("power", out, (a, b), vjp, saves=saves, saves_output=b.requires_grad, jvp=jvp)
 
 
 def matmul(a: Any, b: Any) -> Tensor:
@@ -193,7 +243,10 @@ def matmul(a: Any, b: Any) -> Tensor:
             gb = gb[..., 0] if b.ndim == 1 else gb
         return ga, gb
 
-    return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
+    def jvp(ta, tb):  # (a + ta) @ (b + tb) to first order; vectors need no special case
+        return _plus(None if ta is None else ta @ b._data, None if tb is None else a._data @ tb)
+
+    return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -205,52 +258,72 @@ def exp(x: Any) -> Tensor:
     """e^x.  d/dx = e^x (the output itself)."""
     x = as_tensor(x)
     y = np.exp(x._data)
-    return record("exp", y, (x,), lambda g: (g * y,), saves_output=True)
+    return record("exp", y, (x,), lambda g: (g * y,), saves_output=True, jvp=lambda t: t * y)
 
 
 def log(x: Any) -> Tensor:
     """Natural log (x > 0).  d/dx = 1/x."""
     x = as_tensor(x)
-    return record("log", np.log(x._data), (x,), lambda g: (g / x._data,), saves=(x,))
+    return record(
+        "log", np.log(x._data), (x,), lambda g: (g / x._data,), saves=(x,),
+        jvp=lambda t: t / x._data,
+    )  # fmt: skip
 
 
 def sqrt(x: Any) -> Tensor:
     """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)); infinite at 0, so keep inputs positive."""
     x = as_tensor(x)
     y = np.sqrt(x._data)
-    return record("sqrt", y, (x,), lambda g: (g * 0.5 / y,), saves_output=True)
+    return record(
+        "sqrt", y, (x,), lambda g: (g * 0.5 / y,), saves_output=True, jvp=lambda t: t * 0.5 / y
+    )
 
 
 def sin(x: Any) -> Tensor:
     """sin x.  d/dx = cos x."""
     x = as_tensor(x)
-    return record("sin", np.sin(x._data), (x,), lambda g: (g * np.cos(x._data),), saves=(x,))
+    return record(
+        "sin", np.sin(x._data), (x,), lambda g: (g * np.cos(x._data),), saves=(x,),
+        jvp=lambda t: t * np.cos(x._data),
+    )  # fmt: skip
 
 
 def cos(x: Any) -> Tensor:
     """cos x.  d/dx = -sin x."""
     x = as_tensor(x)
-    return record("cos", np.cos(x._data), (x,), lambda g: (-g * np.sin(x._data),), saves=(x,))
+    return record(
+        "cos", np.cos(x._data), (x,), lambda g: (-g * np.sin(x._data),), saves=(x,),
+        jvp=lambda t: -t * np.sin(x._data),
+    )  # fmt: skip
 
 
 def tan(x: Any) -> Tensor:
     """tan x.  d/dx = 1 + tan^2 x."""
     x = as_tensor(x)
     y = np.tan(x._data)
-    return record("tan", y, (x,), lambda g: (g * (1.0 + y * y),), saves_output=True)
+    return record(
+        "tan", y, (x,), lambda g: (g * (1.0 + y * y),), saves_output=True,
+        jvp=lambda t: t * (1.0 + y * y),
+    )  # fmt: skip
 
 
 def tanh(x: Any) -> Tensor:
     """tanh x.  d/dx = 1 - tanh^2 x."""
     x = as_tensor(x)
     y = np.tanh(x._data)
-    return record("tanh", y, (x,), lambda g: (g * (1.0 - y * y),), saves_output=True)
+    return record(
+        "tanh", y, (x,), lambda g: (g * (1.0 - y * y),), saves_output=True,
+        jvp=lambda t: t * (1.0 - y * y),
+    )  # fmt: skip
 
 
 def abs(x: Any) -> Tensor:
     """|x|.  d/dx = sign(x); at x = 0 we use the subgradient 0."""
     x = as_tensor(x)
-    return record("abs", np.abs(x._data), (x,), lambda g: (g * np.sign(x._data),), saves=(x,))
+    return record(
+        "abs", np.abs(x._data), (x,), lambda g: (g * np.sign(x._data),), saves=(x,),
+        jvp=lambda t: t * np.sign(x._data),
+    )  # fmt: skip
 
 
 def maximum(a: Any, b: Any) -> Tensor:
@@ -265,7 +338,11 @@ def maximum(a: Any, b: Any) -> Tensor:
             np.where(a_wins, 0.0, g) if b.requires_grad else None,
         )
 
-    return record("maximum", out, (a, b), vjp, saves=(a, b))
+    def jvp(ta, tb):  # the same choice as the VJP: a tie takes a's tangent
+        a_wins = a._data >= b._data
+        return np.where(a_wins, 0.0 if ta is None else ta, 0.0 if tb is None else tb)
+
+    return record("maximum", out, (a, b), vjp, saves=(a, b), jvp=jvp)
 
 
 def minimum(a: Any, b: Any) -> Tensor:
@@ -280,7 +357,11 @@ def minimum(a: Any, b: Any) -> Tensor:
             np.where(a_wins, 0.0, g) if b.requires_grad else None,
         )
 
-    return record("minimum", out, (a, b), vjp, saves=(a, b))
+    def jvp(ta, tb):  # the same choice as the VJP: a tie takes a's tangent
+        a_wins = a._data <= b._data
+        return np.where(a_wins, 0.0 if ta is None else ta, 0.0 if tb is None else tb)
+
+    return record("minimum", out, (a, b), vjp, saves=(a, b), jvp=jvp)
 
 
 def clip(x: Any, lo: Any, hi: Any) -> Tensor:
@@ -300,7 +381,10 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     def vjp(g):
         return (np.where(out == x._data, g, 0.0),)
 
-    return record("clip", out, (x,), vjp, saves=(x,), saves_output=True)
+    def jvp(t):  # slope 1 wherever the VJP passes the gradient (bounds included)
+        return np.where(out == x._data, t, 0.0)
+
+    return record("clip", out, (x,), vjp, saves=(x,), saves_output=True, jvp=jvp)
 
 
 def where(condition: Any, a: Any, b: Any) -> Tensor:
@@ -320,7 +404,10 @@ def where(condition: Any, a: Any, b: Any) -> Tensor:
             np.where(cond, 0.0, g) if b.requires_grad else None,
         )
 
-    return record("where", out, (a, b), vjp)
+    def jvp(ta, tb):
+        return np.where(cond, 0.0 if ta is None else ta, 0.0 if tb is None else tb)
+
+    return record("where", out, (a, b), vjp, jvp=jvp)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -333,7 +420,11 @@ def sum(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     x = as_tensor(x)
     out = np.sum(x._data, axis=axis, keepdims=keepdims)
     return record(
-        "sum", np.asarray(out), (x,), lambda g: (_expand_reduced(g, x.shape, axis, keepdims),)
+        "sum",
+        np.asarray(out),
+        (x,),
+        lambda g: (_expand_reduced(g, x.shape, axis, keepdims),),
+        jvp=lambda t: np.sum(t, axis=axis, keepdims=keepdims),
     )
 
 
@@ -352,6 +443,7 @@ def mean(x: Any, axis=None, keepdims: bool = False) -> Tensor:
         np.asarray(out),
         (x,),
         lambda g: (_expand_reduced(g / n, x.shape, axis, keepdims),),
+        jvp=lambda t: np.mean(t, axis=axis, keepdims=keepdims),
     )
 
 
@@ -367,7 +459,12 @@ def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
         ties = np.sum(winners, axis=axis, keepdims=True)
         return (winners * _expand_reduced(g, x.shape, axis, keepdims) / ties,)
 
-    return record("max", np.asarray(out), (x,), vjp, saves=(x,), saves_output=True)
+    def jvp(t):  # the mean of the tied maxima's tangents: the transpose of the equal split
+        winners = x._data == _expand_reduced(out, x.shape, axis, keepdims)
+        ties = np.sum(winners, axis=axis, keepdims=keepdims)
+        return np.sum(np.where(winners, t, 0.0), axis=axis, keepdims=keepdims) / ties
+
+    return record("max", np.asarray(out), (x,), vjp, saves=(x,), saves_output=True, jvp=jvp)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -396,7 +493,13 @@ def dot(a: Any, b: Any) -> Tensor:
             kernels.elementwise(np.multiply, g, a._data) if b.requires_grad else None,
         )
 
-    return record("dot", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
+    def jvp(ta, tb):
+        return _plus(
+            None if ta is None else kernels.dot_last(ta, b._data),
+            None if tb is None else kernels.dot_last(a._data, tb),
+        )
+
+    return record("dot", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
 def cross(a: Any, b: Any) -> Tensor:
@@ -418,7 +521,13 @@ def cross(a: Any, b: Any) -> Tensor:
             kernels.cross3(g, a._data) if b.requires_grad else None,
         )
 
-    return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b))
+    def jvp(ta, tb):
+        return _plus(
+            None if ta is None else kernels.cross3(ta, b._data),
+            None if tb is None else kernels.cross3(a._data, tb),
+        )
+
+    return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
 def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
@@ -435,8 +544,13 @@ def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
         safe = np.where(length > 0, length, 1.0)
         return (np.where(length > 0, g / safe, 0.0) * x._data,)
 
+    def jvp(t):  # (x . t) / |x|, and 0 at |x| = 0 as in the VJP
+        safe = np.where(length > 0, length, 1.0)
+        d = np.where(length > 0, np.sum(x._data * t, axis=axis, keepdims=True) / safe, 0.0)
+        return d if keepdims else np.squeeze(d, axis=axis)
+
     # ``out`` is ``length`` or a view of it: the VJP reads the output.
-    return record("norm", out, (x,), vjp, saves=(x,), saves_output=True)
+    return record("norm", out, (x,), vjp, saves=(x,), saves_output=True, jvp=jvp)
 
 
 def normalize(x: Any) -> Tensor:
@@ -450,11 +564,11 @@ def normalize(x: Any) -> Tensor:
     inv = np.divide(1.0, length, out=np.zeros_like(length), where=length > 0)
     y = kernels.elementwise(np.multiply, x._data, inv)
 
-    def vjp(g):
+    def project(g):  # the Jacobian (I - y y^T) / |x| is symmetric: the VJP's g and the JVP's t
         along = kernels.elementwise(np.multiply, y, kernels.dot_last(y, g)[..., None])
-        return (kernels.elementwise(np.multiply, g - along, inv),)
+        return kernels.elementwise(np.multiply, g - along, inv)
 
-    return record("normalize", y, (x,), vjp, saves_output=True)
+    return record("normalize", y, (x,), lambda g: (project(g),), saves_output=True, jvp=project)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -469,7 +583,10 @@ def reshape(x: Any, shape) -> Tensor:
         out = x._data.reshape(shape)
     except ValueError:
         raise ValueError(f"reshape: cannot reshape {x.shape} into {shape}") from None
-    return record("reshape", out, (x,), lambda g: (g.reshape(x.shape),), view_of=x)
+    return record(
+        "reshape", out, (x,), lambda g: (g.reshape(x.shape),), view_of=x,
+        jvp=lambda t: t.reshape(out.shape),
+    )  # fmt: skip
 
 
 def transpose(x: Any, axes=None) -> Tensor:
@@ -479,7 +596,10 @@ def transpose(x: Any, axes=None) -> Tensor:
     # The inverse permutation; negative axes are made positive first (argsort of (-1, 0, 1)
     # would otherwise give the identity).
     inverse = None if axes is None else np.argsort([a % x.ndim for a in axes])
-    return record("transpose", out, (x,), lambda g: (np.transpose(g, inverse),), view_of=x)
+    return record(
+        "transpose", out, (x,), lambda g: (np.transpose(g, inverse),), view_of=x,
+        jvp=lambda t: np.transpose(t, axes),
+    )  # fmt: skip
 
 
 def broadcast_to(x: Any, shape) -> Tensor:
@@ -490,7 +610,10 @@ def broadcast_to(x: Any, shape) -> Tensor:
         out = np.broadcast_to(x._data, shape)
     except ValueError:
         raise ValueError(f"broadcast_to: cannot broadcast {x.shape} to {shape}") from None
-    return record("broadcast_to", out, (x,), lambda g: (g,), view_of=x)
+    return record(
+        "broadcast_to", out, (x,), lambda g: (g,), view_of=x,
+        jvp=lambda t: np.broadcast_to(t, shape),
+    )  # fmt: skip
 
 
 def stack(tensors, axis: int = 0) -> Tensor:
@@ -506,7 +629,10 @@ def stack(tensors, axis: int = 0) -> Tensor:
     def vjp(g):
         return tuple(np.moveaxis(g, axis, 0))
 
-    return record("stack", out, tensors, vjp)
+    def jvp(*ts):
+        return np.stack([_or_zeros(t, x) for t, x in zip(ts, tensors, strict=True)], axis=axis)
+
+    return record("stack", out, tensors, vjp, jvp=jvp)
 
 
 def concatenate(tensors, axis: int = 0) -> Tensor:
@@ -523,7 +649,11 @@ def concatenate(tensors, axis: int = 0) -> Tensor:
     def vjp(g):
         return tuple(np.split(g, cuts, axis=axis))
 
-    return record("concatenate", out, tensors, vjp)
+    def jvp(*ts):
+        pieces = [_or_zeros(t, x) for t, x in zip(ts, tensors, strict=True)]
+        return np.concatenate(pieces, axis=axis)
+
+    return record("concatenate", out, tensors, vjp, jvp=jvp)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -584,8 +714,11 @@ def getitem(x: Any, index: Any) -> Tensor:
             gx[index] = g
             return (gx,)
 
+    def jvp(t):  # the tangent is gathered like the values
+        return kernels.gather_rows(t, index) if row_gather else t[index]
+
     # Basic slices give a view of x; gathers and masks give a copy (record tells them apart).
-    return record("getitem", np.asarray(out), (x,), vjp, view_of=x)
+    return record("getitem", np.asarray(out), (x,), vjp, view_of=x, jvp=jvp)
 
 
 def scatter_add(values: Any, index: Any, size: int) -> Tensor:
@@ -604,4 +737,7 @@ def scatter_add(values: Any, index: Any, size: int) -> Tensor:
     if index.size and (index.min() < 0 or index.max() >= size):
         raise ValueError(f"scatter_add: indices must lie in [0, {size}), got {index.min()}..")
     out = kernels.scatter_add_rows(index, values._data, size)
-    return record("scatter_add", out, (values,), lambda g: (kernels.gather_rows(g, index),))
+    return record(
+        "scatter_add", out, (values,), lambda g: (kernels.gather_rows(g, index),),
+        jvp=lambda t: kernels.scatter_add_rows(index, t, size),
+    )  # fmt: skip

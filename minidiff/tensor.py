@@ -1,4 +1,4 @@
-"""The Tensor, the tape, and the reverse pass.
+"""The Tensor, the tape, the reverse pass, and forward mode.
 
 How it works, in one paragraph: every differentiable operation (a *primitive*, see
 ``primitives.py``) computes its result with NumPy and, if any input requires a gradient,
@@ -25,6 +25,18 @@ changed, naming the primitive and the tensor. Assigning ``t.data = ...`` (and ``
 NumPy, so a parameter (a leaf that requires grad) that a node has saved hands out its
 array only after keeping a copy, and changes are found by comparing with that copy (see
 ``Tensor.data`` for what is and is not seen).
+
+Forward mode, in one paragraph: a tensor may also carry a *tangent*, an array of its own
+shape: the direction in which its values are imagined to move. Every primitive also has a
+Jacobian-vector product (JVP), written next to its VJP in ``primitives.py``, which maps the
+tangents of its inputs to the tangent of its output (the directional derivative). When an
+input carries a tangent, ``record`` calls the JVP at once, during the forward pass, and
+attaches the result to the output: no tape is needed, and the cost is one extra
+computation per primitive while the values are at hand. Tangents are given to tensors by
+``tangents({tensor: direction})`` (restored afterwards) or by ``functional.jvp``. Both
+modes coexist: a tensor may carry a tangent and be on the tape. What reverse mode treats as
+a constant, forward mode does too: under ``no_grad()`` and through ``detach()`` no tangent
+flows, so that <u, J v> from forward mode equals <J^T u, v> from reverse mode everywhere.
 """
 
 from __future__ import annotations
@@ -103,11 +115,12 @@ class Tensor:
     Attributes: ``data`` (the ndarray), ``grad`` (ndarray of the same shape, or None; only
     leaves, i.e. tensors created by the user with ``requires_grad=True``, receive it),
     ``requires_grad`` (only floating-point tensors may require grad), ``version`` (how many
-    changes to ``data`` minidiff has seen), ``node`` and ``is_leaf``.
+    changes to ``data`` minidiff has seen), ``node`` and ``is_leaf``, and ``tangent``
+    (forward mode: an ndarray of the same shape, or None for zero).
     """
 
     __slots__ = ("_data", "_version", "_copy", "_saved", "_base", "_requires_grad", "_node")
-    __slots__ += ("grad", "__weakref__")
+    __slots__ += ("grad", "_tangent", "__weakref__")
     # Make NumPy defer to our reflected operators (ndarray + Tensor -> Tensor.__radd__) and
     # refuse ufuncs such as np.exp(tensor), which would silently drop the gradient.
     __array_ufunc__ = None
@@ -122,6 +135,7 @@ class Tensor:
         self.requires_grad = requires_grad  # the setter checks the dtype
         self._node = _node
         self.grad: np.ndarray | None = None
+        self._tangent: np.ndarray | None = None  # forward mode; None means zero
 
     # -- the values and their version -----------------------------------------------------
     @property
@@ -190,6 +204,19 @@ class Tensor:
         self._requires_grad = bool(value)
 
     @property
+    def tangent(self) -> np.ndarray | None:
+        """Forward mode: the derivative of this tensor's values along the directions given
+        to the inputs (``tangents``, ``functional.jvp``), an ndarray of ``shape``; None if
+        no input with a tangent reaches this tensor (a zero tangent). Read-only."""
+        return self._tangent
+
+    def is_differentiated(self) -> bool:
+        """True if derivatives flow through this tensor in either mode: it requires grad
+        or carries a tangent. Code that skips work on constants should test this, not
+        ``requires_grad`` alone, so that forward mode takes the same path."""
+        return self._requires_grad or self._tangent is not None
+
+    @property
     def node(self) -> Node | None:
         """The tape entry of the primitive that computed this tensor; None for a leaf or a
         constant."""
@@ -239,7 +266,7 @@ class Tensor:
         return self._data.item()
 
     def detach(self) -> Tensor:
-        """A tensor sharing these values but cut from the tape (a constant)."""
+        """A tensor sharing these values but cut from the tape (a constant, no tangent)."""
         out = Tensor(self._data)
         out._base = _base_to_link(self)  # the same array: edits through either count for both
         return out
@@ -525,8 +552,10 @@ def record(
     saves: Sequence[Tensor] = (),
     saves_output: bool = False,
     view_of: Tensor | None = None,
+    jvp: Callable | None = None,
 ) -> Tensor:
-    """Wrap a primitive's forward result and, if needed, put its node on the tape.
+    """Wrap a primitive's forward result and, if needed, put its node on the tape and give
+    it a tangent.
 
     A node is recorded only if gradients are enabled and some input requires grad; otherwise
     the result is a constant and nothing is remembered. ``saves`` are the inputs whose
@@ -534,6 +563,11 @@ def record(
     are remembered, and ``backward`` raises if they have changed by then. ``view_of`` is the
     input whose memory ``out`` may share (reshape, slices): edits of one change the other,
     so their versions are linked.
+
+    Forward mode: if gradients are enabled and some input carries a tangent, ``jvp`` is
+    called now with one tangent per input (None for an input without one, meaning zero)
+    and returns the output's tangent, of ``out``'s shape or broadcastable to it (or None
+    for zero). A primitive without a JVP refuses inputs with tangents.
     """
     if _ANOMALY_MODE and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
         raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
@@ -551,12 +585,34 @@ def record(
     if node is not None and saves_output:
         result.mark_saved()
         node.output_version = result.version
+    if _GRAD_ENABLED and any(x._tangent is not None for x in inputs):
+        result._tangent = _output_tangent(name, out, inputs, jvp)
     return result
+
+
+def _output_tangent(name: str, out: np.ndarray, inputs: Sequence[Tensor], jvp) -> np.ndarray | None:
+    """The JVP's result for ``out``, broadcast to its shape and cast to its dtype."""
+    if jvp is None:
+        raise NotImplementedError(
+            f"forward mode: the primitive '{name}' has no JVP, but an input carries a tangent"
+        )
+    t = jvp(*(x._tangent for x in inputs))
+    if t is None:
+        return None
+    t = np.asarray(t)
+    if t.shape != out.shape:  # e.g. a + b where only the smaller operand has a tangent
+        t = np.broadcast_to(t, out.shape)
+    if t.dtype != out.dtype:
+        t = t.astype(out.dtype)
+    if _ANOMALY_MODE and not np.isfinite(t).all():
+        raise FloatingPointError(f"anomaly: the JVP of '{name}' produced NaN/inf")
+    return t
 
 
 @contextmanager
 def no_grad():
-    """Within this block nothing is recorded: results are constants (faster, no memory)."""
+    """Within this block nothing is differentiated: results are constants, with no node on
+    the tape and no tangent (faster, no memory)."""
     global _GRAD_ENABLED
     previous = _GRAD_ENABLED
     _GRAD_ENABLED = False
@@ -577,6 +633,59 @@ def detect_anomaly():
         yield
     finally:
         _ANOMALY_MODE = previous
+
+
+def as_tangent(where: str, what: str, primal: Tensor, direction: Any) -> np.ndarray:
+    """``direction`` as a tangent for ``primal``: an array of the primal's shape and dtype.
+
+    Integer and floating-point directions are accepted (``[1, 0, 0]``) and converted;
+    anything else, a wrong shape, or a primal that is not floating-point is a ValueError
+    naming ``what`` (e.g. "tangent 0") and the expected shape."""
+    if not np.issubdtype(primal.dtype, np.floating):
+        raise ValueError(
+            f"{where}: {what} belongs to a {primal.dtype} tensor; only floating-point "
+            "tensors can have tangents"
+        )
+    array = np.asarray(_values(direction))
+    if array.dtype.kind not in "iuf":
+        raise ValueError(
+            f"{where}: {what} must be a real number array of shape {primal.shape} "
+            f"(floating-point or integer), got dtype {array.dtype}"
+        )
+    if array.shape != primal.shape:
+        raise ValueError(
+            f"{where}: {what} has shape {array.shape}, expected {primal.shape} (the shape "
+            "of the tensor it moves)"
+        )
+    return np.array(array, dtype=primal.dtype)  # a copy: later edits of direction do not leak
+
+
+@contextmanager
+def tangents(directions: dict[Tensor, Any]):
+    """Forward mode on existing tensors: within this block each tensor in ``directions``
+    carries its direction (an array of the tensor's shape) as its tangent, so every result
+    computed from it carries its derivative along that direction (``Tensor.tangent``).
+    The previous tangents (usually None) are restored afterwards.
+
+        >>> with md.tangents({light_position: np.array([1.0, 0.0, 0.0])}):
+        ...     image = render(scene)
+        >>> image.tangent          # d image / d (light x), shape (H, W, 3)
+    """
+    # Lists of pairs, not dicts: a Tensor's == compares values, so it makes a poor dict key.
+    checked = []
+    for t, d in directions.items():
+        if not isinstance(t, Tensor):
+            raise TypeError(f"tangents: keys must be minidiff Tensors, got {type(t).__name__}")
+        what = f"the direction of a tensor of shape {t.shape}"
+        checked.append((t, as_tangent("tangents", what, t, d)))
+    previous = [(t, t._tangent) for t, _ in checked]
+    try:
+        for t, d in checked:
+            t._tangent = d
+        yield
+    finally:
+        for t, d in reversed(previous):
+            t._tangent = d
 
 
 def is_grad_enabled() -> bool:

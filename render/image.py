@@ -5,7 +5,8 @@ clips to [0, 1] and optionally applies the sRGB transfer curve (what monitors ex
 reading one back returns floats in [0, 1], optionally decoded back to linear.
 
 ``mse`` is the paper's image loss (Eq. 1); it stays differentiable when the rendered image
-is a ``minidiff.Tensor``.
+is a ``minidiff.Tensor``. ``write_gradient_png`` writes a signed gradient image
+(``render.gradient_image``) in diverging colours with a scale bar.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageDraw, UnidentifiedImageError
 
 from minidiff import Tensor
 
@@ -27,6 +28,8 @@ __all__ = [
     "linear_to_srgb",
     "srgb_to_linear",
     "SUPPORTED_IMAGE_EXTENSIONS",
+    "write_gradient_png",
+    "diverging_colours",
 ]
 
 #: File extensions ``save_image`` can write (the format follows the extension).
@@ -171,3 +174,80 @@ def psnr(image: Any, target: Any, peak: float = 1.0) -> float:
     if err == 0.0:
         return math.inf
     return 10.0 * math.log10(peak * peak / err)
+
+
+# Diverging colours (ColorBrewer RdBu): -1 blue, 0 white, +1 red, with lighter tints at +-0.5.
+_DIVERGING_STOPS = np.array([-1.0, -0.5, 0.0, 0.5, 1.0])
+_DIVERGING_RGB = np.array(
+    [[33, 102, 172], [146, 197, 222], [255, 255, 255], [244, 165, 130], [178, 24, 43]],
+    dtype=np.float64,
+)
+
+
+def diverging_colours(values: np.ndarray, scale: float) -> np.ndarray:
+    """uint8 RGB (..., 3) for ``values`` (...): 0 white, positive red, negative blue, full
+    colour at +-scale and beyond (values are clipped to [-scale, scale])."""
+    t = np.clip(np.asarray(values, dtype=np.float64) / scale, -1.0, 1.0)
+    rgb = np.stack([np.interp(t, _DIVERGING_STOPS, c) for c in _DIVERGING_RGB.T], axis=-1)
+    return np.round(rgb).astype(np.uint8)
+
+
+def write_gradient_png(
+    image_or_channel: Any,
+    path: str | Path,
+    scale: float | None = None,
+    label: str = "",
+    min_width: int = 256,
+) -> Path:
+    """Write a gradient image (``render.gradient_image``) as a diverging-colour PNG with a
+    scale bar; returns the ``Path`` written.
+
+    image_or_channel: (H, W, 3) (its three channels are summed: the derivative of R + G + B)
+        or (H, W) (e.g. one channel), ndarray or ``minidiff.Tensor``.
+    scale: the value shown in full colour, symmetric: -scale blue, 0 white, +scale red;
+        larger magnitudes are clipped. None: the 99.5th percentile of |value| over the
+        pixels (a few silhouette pixels with much larger values would otherwise wash out
+        the rest), or 1 if all values are 0.
+    label: a caption drawn above the scale bar (e.g. the parameter's name).
+    min_width: the picture is enlarged by an integer factor (nearest neighbour) to at
+        least this width, so that small images and the bar's numbers stay legible.
+    """
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        raise ValueError(f"write_gradient_png: path must end in .png, got {path.suffix!r}")
+    array = _as_array(image_or_channel)
+    if array.ndim == 3 and array.shape[2] == 3:
+        array = array.sum(axis=2)
+    if array.ndim != 2 or 0 in array.shape:
+        raise ValueError(
+            "write_gradient_png: image_or_channel must have shape (H, W, 3) or (H, W), got "
+            f"{_as_array(image_or_channel).shape}"
+        )
+    if not np.isfinite(array).all():
+        raise ValueError("write_gradient_png: image_or_channel contains NaN or inf values")
+    if scale is None:
+        scale = float(np.percentile(np.abs(array), 99.5)) or float(np.abs(array).max()) or 1.0
+    elif not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"write_gradient_png: scale must be a positive number, got {scale!r}")
+
+    factor = max(1, math.ceil(min_width / array.shape[1]))
+    picture = np.repeat(np.repeat(diverging_colours(array, scale), factor, 0), factor, 1)
+    height, width = picture.shape[:2]
+    bar_top, bar_height, margin = height + (22 if label else 8), 14, 34
+    canvas = Image.new("RGB", (width, bar_top + bar_height + margin), "white")
+    canvas.paste(Image.fromarray(picture), (0, 0))
+    draw = ImageDraw.Draw(canvas)
+    if label:
+        draw.text((6, height + 5), label, fill="black")
+    left, right = 12, width - 12
+    ramp = diverging_colours(np.linspace(-scale, scale, right - left), scale)
+    canvas.paste(Image.fromarray(np.repeat(ramp[None], bar_height, 0)), (left, bar_top))
+    draw.rectangle([left, bar_top, right - 1, bar_top + bar_height - 1], outline="black")
+    for u, value in ((left, -scale), ((left + right) // 2, 0.0), (right - 1, scale)):
+        text = "0" if value == 0 else f"{value:+.3g}"
+        draw.line([u, bar_top + bar_height, u, bar_top + bar_height + 4], fill="black")
+        x = min(max(u - 3 * len(text), 0), width - 6 * len(text))
+        draw.text((x, bar_top + bar_height + 7), text, fill="black")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    canvas.save(path, format="PNG")
+    return path

@@ -483,7 +483,7 @@ class Material(_HasFields):
     def reflective(self) -> bool:
         """Whether hits need a reflected ray: a non-zero reflectance, or one being
         differentiated (its gradient at 0 is the reflected radiance)."""
-        return self.reflectance.requires_grad or bool(np.any(self.reflectance.data))
+        return self.reflectance.is_differentiated() or bool(np.any(self.reflectance.data))
 
     def validate(self) -> None:
         """Re-check the current values."""

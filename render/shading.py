@@ -120,7 +120,7 @@ def appearance(material: Material, uv, k: int) -> Appearance:
 
 def _nonzero(x: md.Tensor) -> bool:
     """Whether a term is present: non-zero somewhere, or being differentiated."""
-    return x.requires_grad or bool(np.any(x.data))
+    return x.is_differentiated() or bool(np.any(x.data))
 
 
 def light_contribution(points, normals, directions, look: Appearance, light, visible=None):

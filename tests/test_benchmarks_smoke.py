@@ -49,6 +49,10 @@ EXPECTED = {
         ("memory_forward_backward", "tracemalloc_peak_mb"),
         ("memory_forward", "rss_peak_mb"),
         ("material_iteration_reuse", "median_ms"),
+        ("gradient_image", "plain", "forward", "median_ms"),
+        ("gradient_image", "antialias", "vertices_x", "median_ms"),
+        ("gradient_image", "plain", "ratio_light_x"),
+        ("gradient_image", "antialias", "ratio_camera_x"),
     ],
     "bench_mitsuba": [  # ours only: Mitsuba is optional
         ("results", name, "ours", "median_ms")
