@@ -81,6 +81,20 @@ def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
     return homogeneous @ md.stack([right, up, forward])
 
 
+@numba.njit(cache=True, inline="always")
+def pixel_ray(px, py, ox, oy, width, height, forward, right, up):
+    """The direction (dx, dy, dz) of the camera ray through sub-pixel (ox, oy) of pixel
+    (px, py): the module docstring's formula, in the one order of operations every kernel
+    uses (so that all of them produce the same bits)."""
+    x = 2.0 * (px + ox) / width - 1.0
+    y = 1.0 - 2.0 * (py + oy) / height
+    return (
+        forward[0] + x * right[0] + y * up[0],
+        forward[1] + x * right[1] + y * up[1],
+        forward[2] + x * right[2] + y * up[2],
+    )
+
+
 @numba.njit(parallel=True, cache=True)
 def _primary_directions(width, height, offsets, forward, right, up):
     spp = offsets.shape[0]
@@ -88,12 +102,40 @@ def _primary_directions(width, height, offsets, forward, right, up):
     for py in numba.prange(height):
         for px in range(width):
             for s in range(spp):
-                x = 2.0 * (px + offsets[s, 0]) / width - 1.0
-                y = 1.0 - 2.0 * (py + offsets[s, 1]) / height
                 r = (py * width + px) * spp + s
-                for c in range(3):
-                    out[r, c] = forward[c] + x * right[c] + y * up[c]
+                d = pixel_ray(
+                    px, py, offsets[s, 0], offsets[s, 1], width, height, forward, right, up
+                )
+                out[r, 0], out[r, 1], out[r, 2] = d
     return out
+
+
+@numba.njit(cache=True)
+def _ray_directions(ray_ids, width, spp, height, offsets, forward, right, up):
+    out = np.empty((ray_ids.shape[0], 3))
+    for i in range(ray_ids.shape[0]):
+        pixel, s = divmod(ray_ids[i], spp)
+        py, px = divmod(pixel, width)
+        d = pixel_ray(px, py, offsets[s, 0], offsets[s, 1], width, height, forward, right, up)
+        out[i, 0], out[i, 1], out[i, 2] = d
+    return out
+
+
+def plain_frame(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The camera frame of ``camera_frame`` as plain float64 arrays (forward, right, up,
+    eye), for the visibility kernels."""
+    with md.no_grad():
+        frame = camera_frame(camera)
+    return tuple(t.data.astype(np.float64) for t in frame)
+
+
+def some_ray_directions(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.ndarray:
+    """(k, 3) the directions of the camera rays ``ray_ids`` (k,), bit for bit the rows of
+    ``primary_rays``' directions."""
+    forward, right, up, _ = plain_frame(camera)
+    ids = np.ascontiguousarray(ray_ids, dtype=np.int64)
+    offsets = subpixel_offsets(spp)
+    return _ray_directions(ids, camera.width, spp, camera.height, offsets, forward, right, up)
 
 
 def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:
@@ -101,14 +143,7 @@ def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:
 
     Ray r goes through pixel r // spp at sub-pixel sample r % spp (see ``subpixel_offsets``).
     """
-    with md.no_grad():
-        forward, right, up, eye = camera_frame(camera)
-    directions = _primary_directions(
-        camera.width,
-        camera.height,
-        subpixel_offsets(spp),
-        forward.data.astype(np.float64),
-        right.data.astype(np.float64),
-        up.data.astype(np.float64),
-    )
-    return eye.data.astype(np.float64), directions
+    forward, right, up, eye = plain_frame(camera)
+    offsets = subpixel_offsets(spp)
+    directions = _primary_directions(camera.width, camera.height, offsets, forward, right, up)
+    return eye, directions

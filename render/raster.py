@@ -27,8 +27,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
-from render.camera import subpixel_offsets
+from render.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.intersect import intersect_prim, pack_primitives
+from render.scene import Camera
 
 #: Side of a binning tile, in pixels.
 TILE = 16
@@ -121,14 +122,17 @@ def bin_to_tiles(boxes, tiles_x, tiles_y):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _raster_closest_hit(
-    prim_data, n_tri, boxes, start, ids, tiles_x, width, height, spp, eye, directions,
-    out_id, out_t, out_u, out_v,
+    prim_data, n_tri, boxes, start, ids, tiles_x, width, height, offsets, eye, forward, right,
+    up, out_id, out_t, out_u, out_v, with_uv,
 ):  # fmt: skip
-    """Step 3 of the module docstring; ray r = (py * width + px) * spp + sample."""
+    """Step 3 of the module docstring; ray r = (py * width + px) * spp + sample, its
+    direction made on the spot (``render.camera.pixel_ray``, the tracer's very bits)."""
+    spp = offsets.shape[0]
     out_id[:] = -1
     out_t[:] = np.inf
-    out_u[:] = 0.0
-    out_v[:] = 0.0
+    if with_uv:
+        out_u[:] = 0.0
+        out_v[:] = 0.0
     ox, oy, oz = eye[0], eye[1], eye[2]
     n_tiles = start.shape[0] - 1
     # Tiles dealt round-robin to jobs: prange splits its range in contiguous parts, which
@@ -148,7 +152,10 @@ def _raster_closest_hit(
                     for px in range(x0, x1 + 1):
                         for s in range(spp):
                             r = (py * width + px) * spp + s
-                            dx, dy, dz = directions[r, 0], directions[r, 1], directions[r, 2]
+                            dx, dy, dz = pixel_ray(
+                                px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
+                                right, up,
+                            )  # fmt: skip
                             dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
                             t, u, v = intersect_prim(
                                 prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0
@@ -158,30 +165,29 @@ def _raster_closest_hit(
                             if t < best or (t == best and pid < out_id[r]):
                                 out_id[r] = pid
                                 out_t[r] = t
-                                out_u[r] = u
-                                out_v[r] = v
+                                if with_uv:
+                                    out_u[r] = u
+                                    out_v[r] = v
 
 
 def raster_closest_hit(
     triangles: np.ndarray,
     centers: np.ndarray,
     radii: np.ndarray,
-    eye: np.ndarray,
-    frame: tuple[np.ndarray, np.ndarray, np.ndarray],
-    directions: np.ndarray,
-    width: int,
-    height: int,
-    spp: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The nearest hit of every camera ray, like ``Accelerator.closest_hit(eye,
-    directions)``: (prim_id, t, u, v), each (H * W * spp,).
+    camera: Camera,
+    spp: int = 1,
+    with_uv: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """The nearest hit of every camera ray of ``camera`` (``spp`` per pixel), like
+    ``Accelerator.closest_hit`` of ``render.camera.primary_rays``: (prim_id, t, u, v),
+    each (H * W * spp,); u and v are None with ``with_uv=False`` (the renderer does not
+    need them).
 
     triangles (T, 3, 3), centers (S, 3), radii (S,): the scene's primitives
-    (``render.visibility.scene_primitives``); eye (3,); frame: the camera's (forward,
-    right, up) as ``render.camera.camera_frame`` gives them (right and up pre-scaled);
-    directions (H * W * spp, 3): the camera rays (``render.camera.primary_rays``).
+    (``render.visibility.scene_primitives``).
     """
-    forward, right, up = (np.asarray(v, np.float64) for v in frame)
+    forward, right, up, eye = plain_frame(camera)
+    width, height = camera.width, camera.height
     offsets = subpixel_offsets(spp)
     boxes = screen_boxes(triangles, centers, radii, eye, forward, right, up, width, height, offsets)
     tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
@@ -193,9 +199,11 @@ def raster_closest_hit(
     )
     n = width * height * spp
     out_id, out_t = np.empty(n, np.int64), np.empty(n)
-    out_u, out_v = np.empty(n), np.empty(n)
+    out_u, out_v = (np.empty(n), np.empty(n)) if with_uv else (np.empty(1), np.empty(1))
     _raster_closest_hit(
-        prim_data, len(triangles), boxes, start, ids, tiles_x, width, height, spp,
-        np.asarray(eye, np.float64), directions, out_id, out_t, out_u, out_v,
+        prim_data, len(triangles), boxes, start, ids, tiles_x, width, height, offsets, eye,
+        forward, right, up, out_id, out_t, out_u, out_v, with_uv,
     )  # fmt: skip
+    if not with_uv:
+        return out_id, out_t, None, None
     return out_id, out_t, out_u, out_v

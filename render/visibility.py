@@ -19,10 +19,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-import minidiff as md
 from render.accel import Accelerator
 from render.cache import RenderCache, camera_key, light_key
-from render.camera import camera_frame, image_plane_coords, primary_rays
+from render.camera import image_plane_coords, plain_frame, primary_rays, some_ray_directions
 from render.edges import EdgePairs, edge_pairs
 from render.raster import raster_closest_hit
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
@@ -89,20 +88,20 @@ def trace_primary(
 ) -> PrimaryHits:
     """Trace every camera ray (``spp`` per pixel) through ``accel``, or with ``raster``
     find the same hits by rasterising ``primitives`` (``render.raster``: bit-identical,
-    faster for a pinhole camera)."""
-    eye, directions = primary_rays(camera, spp)
+    faster while there are many rays per primitive)."""
     if raster:
-        with md.no_grad():
-            forward, right, up, _ = camera_frame(camera)
-        frame = (forward.data, right.data, up.data)
-        width, height = camera.width, camera.height
-        found = raster_closest_hit(*primitives, eye, frame, directions, width, height, spp)
-        prim_id, t = found[0], found[1]
+        prim_id, t, _, _ = raster_closest_hit(*primitives, camera, spp, with_uv=False)
+        hit_rays = np.flatnonzero(prim_id >= 0)
+        eye = plain_frame(camera)[3]
+        directions = some_ray_directions(camera, hit_rays, spp)
     else:
-        origins = np.broadcast_to(eye, directions.shape)
-        prim_id, t, _, _ = accel.closest_hit(origins, directions)
-    hit_rays = np.flatnonzero(prim_id >= 0)
-    points = eye + t[hit_rays, None] * directions[hit_rays]
+        eye, all_directions = primary_rays(camera, spp)
+        prim_id, t, _, _ = accel.closest_hit(
+            np.broadcast_to(eye, all_directions.shape), all_directions
+        )
+        hit_rays = np.flatnonzero(prim_id >= 0)
+        directions = all_directions[hit_rays]
+    points = eye + t[hit_rays, None] * directions
     # The camera directions have unit component along the view axis: t is the depth.
     coords = image_plane_coords(camera, hit_rays, spp)
     return PrimaryHits(prim_id, hit_rays, t, points, coords)

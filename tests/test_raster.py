@@ -9,10 +9,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_accel import grid_triangles
 
-import minidiff as md
 import render
 from render.accel import Accelerator
-from render.camera import camera_frame, primary_rays
+from render.camera import primary_rays, some_ray_directions
 from render.raster import raster_closest_hit
 from render.visibility import scene_primitives
 
@@ -21,12 +20,7 @@ SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[Healt
 
 def assert_raster_equals_bvh(triangles, centers, radii, camera: render.Camera, spp: int = 1):
     eye, directions = primary_rays(camera, spp)
-    with md.no_grad():
-        forward, right, up, _ = camera_frame(camera)
-    frame = (forward.data, right.data, up.data)
-    raster = raster_closest_hit(
-        triangles, centers, radii, eye, frame, directions, camera.width, camera.height, spp
-    )
+    raster = raster_closest_hit(triangles, centers, radii, camera, spp)
     bvh = Accelerator(triangles, centers, radii).closest_hit(
         np.broadcast_to(eye, directions.shape), directions
     )
@@ -91,3 +85,17 @@ def test_render_uses_either_and_gets_the_same_image():
 def test_bad_primary_is_refused():
     with pytest.raises(ValueError, match="primary must be"):
         render.render(render.paper_scene(8, 8), primary="zbuffer")
+
+
+def test_some_ray_directions_are_the_rows_of_primary_rays():
+    camera = render.Camera((0.3, 1.0, 4.0), (0.0, 0.2, 0.0), fov=47.0, width=13, height=9)
+    for spp in (1, 4):
+        _, directions = primary_rays(camera, spp)
+        rays = np.random.default_rng(spp).choice(len(directions), 40, replace=False)
+        np.testing.assert_array_equal(some_ray_directions(camera, rays, spp), directions[rays])
+    ids, t, u, v = raster_closest_hit(*scene_primitives(render.paper_scene(16, 12)), camera)
+    assert u is not None
+    _, _, u, v = raster_closest_hit(
+        *scene_primitives(render.paper_scene(16, 12)), camera, with_uv=False
+    )
+    assert u is None and v is None
