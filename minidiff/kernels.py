@@ -103,6 +103,13 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
     ``np.add.at`` on a float64 array, then ``astype``), because ``np.bincount``, several
     times faster than ``np.add.at`` (which is unbuffered), works in float64.
     """
+    if _all_distinct(index, n):
+        # Each row receives one value: a sum from zero is that value, except that
+        # 0.0 + (-0.0) = +0.0, which adding 0 reproduces. One write instead of a bincount
+        # per column (a renderer putting each hit's colour into its pixel: ~3x faster).
+        out = np.zeros((n,) + values.shape[1:], dtype=values.dtype)
+        out[index] = values + values.dtype.type(0)
+        return out
     # An explicit column count, not -1: reshape cannot infer -1 when there are no rows.
     rows = values.reshape(len(index), int(np.prod(values.shape[1:], dtype=np.int64)))
     cols = rows.shape[1]
@@ -114,6 +121,13 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
         flat = (index[:, None] * cols + np.arange(cols)).ravel()
         out[:] = np.bincount(flat, weights=rows.ravel(), minlength=n * cols).reshape(n, cols)
     return out.reshape((n,) + values.shape[1:])
+
+
+def _all_distinct(index: np.ndarray, n: int) -> bool:
+    """Whether no value repeats in ``index`` (k,), all in [0, n): one pass over n flags."""
+    seen = np.zeros(n, dtype=np.bool_)
+    seen[index] = True
+    return int(np.count_nonzero(seen)) == len(index)
 
 
 def sum_rows(rows: np.ndarray) -> np.ndarray:

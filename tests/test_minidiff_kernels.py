@@ -162,6 +162,29 @@ def test_scatter_add_rows_equals_add_at_in_float64(n, trailing, k, dtype, seed):
     assert_identical(kernels.scatter_add_rows(index, v, n), expected.astype(dtype))
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(1, 300),
+    trailing=hnp.array_shapes(min_dims=0, max_dims=2, max_side=4),
+    fraction=st.floats(0.0, 1.0),
+    dtype=DTYPES,
+    seed=st.integers(0, 2**16),
+)
+def test_scatter_add_rows_with_distinct_indices_is_add_at_bit_for_bit(
+    n, trailing, fraction, dtype, seed
+):
+    """The one-write path (no index repeats): the same bits as np.add.at from zeros, sign
+    of zero included (0.0 + -0.0 = +0.0)."""
+    rng = np.random.default_rng(seed)
+    index = rng.permutation(n)[: int(fraction * n)]
+    v = values(rng, (len(index), *trailing), dtype)
+    expected = np.zeros((n, *trailing))
+    np.add.at(expected, index, v.astype(np.float64))
+    got = kernels.scatter_add_rows(index, v, n)
+    assert_identical(got, expected.astype(dtype))
+    np.testing.assert_array_equal(np.signbit(got), np.signbit(expected.astype(dtype)))
+
+
 # ---------------------------------------------------------------------------------------------
 # The sums behind unbroadcast
 # ---------------------------------------------------------------------------------------------
