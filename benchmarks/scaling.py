@@ -14,6 +14,10 @@ camera, all vertices; ``bench_render.forward_backward``), medians after a warm-u
 peak memory of one forward+backward (tracemalloc: the NumPy arrays alive at once, i.e. the
 tape and its temporaries; and the process's peak RSS).
 
+And one large mesh (not with --quick): the teapot tessellated 80 x 200 cells per patch,
+1,024,000 triangles: BVH build time (target <= 1 s), a forward render at 512x512, and the
+memory per triangle (the accelerator's arrays; the process's peak RSS growth).
+
 Fitted: the exponent b of t = a n^b (least squares on log-log) over all points and over
 the upper half (where fixed per-render costs matter less). b = 1 is linear scaling; for
 triangles, a BVH should give b well below 1 for ray casting (logarithmic traversal), while
@@ -22,12 +26,16 @@ the build (n log n) and the per-vertex work of the backward pass grow about line
 
 from __future__ import annotations
 
+import resource
+
 import timing
 from bench_render import forward_backward, loss_problem
 
 from render import render
+from render.accel import Accelerator
 from render.plot import line_plot
-from render.teapot import paper_scene
+from render.teapot import paper_scene, teapot
+from render.visibility import scene_primitives
 
 
 def point(size: int, nu: int, nv: int, repeats: int) -> dict:
@@ -64,6 +72,48 @@ def exponents(points: list[dict], key: str) -> dict:
     return out
 
 
+def million(repeats: int = 3) -> dict:
+    """The 1,024,000-triangle teapot: BVH build, forward render, memory per triangle."""
+    rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    scene = paper_scene(512, 512)
+    scene.objects[0] = teapot(80, 200)
+    primitives = scene_primitives(scene)
+    n = scene.meshes[0].num_faces
+    build = timing.measure(lambda: Accelerator(*primitives), repeats, warmup=1)
+    accel = Accelerator(*primitives)
+    arrays = (accel.prim_data, accel.leaf_prim, accel.node_bounds, accel.node_first)
+    arrays += (accel.node_count, accel.leaf_ids)
+    accel_bytes = sum(a.nbytes for a in arrays)
+    forward = timing.measure(lambda: render(scene, reuse_visibility=False), repeats, warmup=1)
+    rss_after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return {
+        "triangles": n,
+        "build": build,
+        "forward": forward,
+        "accelerator_bytes_per_triangle": accel_bytes / n,
+        "peak_rss_growth_bytes_per_triangle": (rss_after - rss_before) * 2**20 / n,
+    }
+
+
+def million_rows(m: dict) -> list:
+    return [
+        timing.row(
+            f"BVH build, {m['triangles']:,} triangles",
+            timing.ms(m["build"]),
+            "target <= 1 s",
+            timing.target_status(m["build"]["median_ms"], 1000.0),
+        ),
+        timing.row(
+            f"forward render at 512x512, {m['triangles']:,} triangles", timing.ms(m["forward"])
+        ),
+        timing.row(
+            "memory per triangle: accelerator arrays / peak RSS growth of the process",
+            f"{m['accelerator_bytes_per_triangle']:.0f} / "
+            f"{m['peak_rss_growth_bytes_per_triangle']:.0f} bytes",
+        ),
+    ]
+
+
 def main(argv=None) -> dict:
     parser = timing.make_parser(__doc__)
     args = parser.parse_args(argv)
@@ -92,6 +142,7 @@ def main(argv=None) -> dict:
             f"f+b {timing.ms(p['forward_backward'])}",
             flush=True,
         )
+    big = None if args.quick else million()
     fit_px = exponents(pixels, "pixels")
     fit_tri = exponents(triangles, "triangles")
 
@@ -157,6 +208,8 @@ def main(argv=None) -> dict:
                 f"{p['forward_backward']['page_faults_per_pass']:.0f}",
             )
         )
+    if big is not None:
+        rows += million_rows(big)
     notes = [
         f"Medians of {repeats} runs after a warm-up. Exponent b of t ~ n^b by least squares "
         "on log-log; 'upper half' fits the larger half of the points only.",
@@ -172,6 +225,7 @@ def main(argv=None) -> dict:
         "triangle_series_size": size_tri,
         "exponents_pixels": fit_px,
         "exponents_triangles": fit_tri,
+        "million": big,
         "report": section,
     }
     path = timing.write_json(args.out, "scaling", result)
