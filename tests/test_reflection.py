@@ -225,3 +225,19 @@ def test_mirror_example_quick(tmp_path, monkeypatch):
     figure = render.load_image(folder / "teapot_mirror_floor.png")
     assert figure.shape == (48, 96, 3)
     assert np.abs(figure[:, :48] - figure[:, 48:]).max() > 0.1  # the reflections show
+
+
+def test_gradient_images_see_through_mirrors():
+    """Forward mode (``render.gradient_image``) through reflections equals reverse mode."""
+    scene = facing_mirrors(2)
+    weights = np.random.default_rng(0).standard_normal((30, 36, 3))
+    named = scene.named_parameters()
+    for name in ("lights[0].position", "objects[3].vertices", "objects[2].center"):
+        tensor = named[name]  # a mirror's vertices, the reflective sphere's centre
+        direction = np.random.default_rng(1).standard_normal(tensor.shape)
+        forward = float(np.sum(weights * render.gradient_image(scene, tensor, direction)))
+        tensor.requires_grad, tensor.grad = True, None
+        (render.render(scene) * md.tensor(weights)).sum().backward()
+        reverse = float(np.sum(tensor.grad * direction))
+        tensor.requires_grad = False
+        assert forward == pytest.approx(reverse, rel=1e-9), name
