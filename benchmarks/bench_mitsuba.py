@@ -16,8 +16,9 @@ a warm-up, in turns (blocks of ours, blocks of theirs):
   shadows, shading; the default allocator: ``keep_freed_memory()`` is never called);
   Mitsuba ``mi.render`` + evaluation of the image;
 * a light-estimation iteration: the light moved a little every time (so shadows are traced
-  again), render + MSE against a target + the gradient w.r.t. the light's position (ours:
-  and intensity);
+  again), render + MSE against a target (the same loss in both: the mean of the squared
+  difference, no clipping) + the gradient w.r.t. the light's position (ours: and
+  intensity);
 * a shape iteration: all 4,608 vertex coordinates (3,360 unique in the paper's count)
   differentiated, the vertices moved every time (both rebuild their BVH); Mitsuba's
   ``direct`` gradient ignores visibility changes, like ours with ``antialias=False``.
@@ -35,7 +36,7 @@ import numpy as np
 import timing
 
 import minidiff as md
-from render import image_loss, paper_scene, render
+from render import mse, paper_scene, render
 
 THREADS = 2
 
@@ -52,7 +53,7 @@ def our_problems(size: int):
     def light_step():
         light.data = light.data + 1e-4  # moved: shadows traced again
         light.grad = intensity.grad = None
-        image_loss(render(lit), target).backward()
+        mse(render(lit), target).backward()
 
     shape = paper_scene(size, size)
     vertices = shape.meshes[0].vertices
@@ -61,7 +62,7 @@ def our_problems(size: int):
     def shape_step():
         vertices.data = vertices.data * (1.0 + 1e-6)  # moved: the BVH is rebuilt
         vertices.grad = None
-        image_loss(render(shape), target).backward()
+        mse(render(shape), target).backward()
 
     return {
         "forward": lambda: render(plain, reuse_visibility=False),
