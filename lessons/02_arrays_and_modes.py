@@ -216,8 +216,11 @@ rounding_slope = float(np.polyfit(np.log10(steps[small]), np.log10(errors[small]
 line_plot(
     {
         "|D_h - exact| / |exact|": (steps, errors),
-        "h^2 (truncation)": (steps, errors[-1] * (steps / steps[-1]) ** 2),
-        "eps / h (rounding)": (steps, 2.2e-16 / steps),
+        "h^2 (truncation)": (
+            steps[steps > 1e-6],
+            errors[-1] * (steps[steps > 1e-6] / steps[-1]) ** 2,
+        ),
+        "eps / h (rounding)": (steps[steps < 1e-3], 2.2e-16 / steps[steps < 1e-3]),
     },
     OUT / "fd_step.png",
     title="Central differences of L along v: error against the step h",
