@@ -288,7 +288,8 @@ teapot_G = [
     for a in (False, True)
 ]
 render.write_gradient_png(np.concatenate(teapot_G, axis=1), OUT / "teapot_camera_dx.png",
-                          label="d image / d camera x: antialias False | True")  # fmt: skip
+                          label="d image / d camera x: antialias False | True",
+                          min_width=512)  # fmt: skip
 silhouette_share = float(np.abs(teapot_G[1] - teapot_G[0]).sum() / np.abs(teapot_G[1]).sum())
 print(f"share of |dI/dx| that the edge term adds: {silhouette_share:.2f}")
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
