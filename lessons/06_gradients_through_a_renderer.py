@@ -104,7 +104,7 @@ print(f"|100 dI/dintensity - I| = {intensity_linearity:.1e}; "
 # `d_light_x.png`: moving the light towards +x brightens the faces turned that way and
 # darkens the others; the shadow is white (zero), as the light's position enters only
 # through shading terms the shadowed points do not have. `d_albedo_red.png` is the teapot's
-# red shading itself (`I` is linear in the albedo), exactly `0` <!-- check:
+# red channel divided by its red albedo (`I` is linear in the albedo), exactly `0` <!-- check:
 # albedo_outside_teapot --> on the ground. The image is linear in the light's intensity too:
 # `100 · dI/dI₀` equals the image to within `1e-15` <!-- check: intensity_linearity < -->.
 # `d_camera_x.png` is non-zero across the ground although nothing but the camera moves:
