@@ -220,7 +220,7 @@ for s0, e in zip(starts, ends, strict=True):
 
 # %% [markdown]
 # Of these starts, `4` <!-- check: converged_starts --> converge, the farthest at
-# `t_x = 0.9` <!-- check: largest_converged -->; the two that start beyond one square
+# `t_x` = `0.9` <!-- check: largest_converged -->; the two that start beyond one square
 # width do not move. Real problems have the same shape of failure, less sharply.
 #
 # ## The paper's camera calibration
