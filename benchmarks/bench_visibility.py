@@ -29,6 +29,7 @@ import timing
 
 from render.accel import Accelerator
 from render.camera import primary_rays
+from render.raster import raster_closest_hit
 from render.teapot import paper_scene
 from render.visibility import scene_primitives, scene_size, shadow_rays
 
@@ -63,10 +64,12 @@ def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
 
 
 def _occluded(accel: Accelerator, w: dict, rays=slice(None)) -> np.ndarray:
+    # tmax is one value per ray (point light: the distance to it), so it is sliced too.
+    tmax = w["shadow_tmax"]
     return accel.occluded(
         w["shadow_origins"][rays],
         w["shadow_directions"][rays],
-        w["shadow_tmax"],
+        tmax[rays] if np.ndim(tmax) else tmax,
         tmin=w["shadow_tmin"],
         ignore_prim=w["shadow_ignore"][rays],
     )
@@ -106,6 +109,12 @@ def time_bvh_visibility(w: dict, repeats: int) -> dict:
             lambda: accel.closest_hit(w["origins"], w["directions"]), repeats
         ),
         "closest_hit_1_thread": closest_hit_one_thread(w, repeats),
+        # The same hits by rasterisation (render.raster; the renderer's choice while there
+        # are >= 16 camera rays per primitive), camera rays made inside.
+        "closest_hit_raster": timing.measure(
+            lambda: raster_closest_hit(*scene_primitives(w["scene"]), camera, with_uv=False),
+            repeats,
+        ),
         "occluded": timing.measure(lambda: _occluded(accel, w), repeats),
     }
 
@@ -175,6 +184,10 @@ def main(argv=None) -> dict:
                 f"{label}: closest hit, 1 thread",
                 timing.ms(r["closest_hit_1_thread"]),
                 "Embree 1 thread: 10 ms" if r is coarse else "",
+            ),
+            timing.row(
+                f"{label}: closest hit by rasterisation (camera rays included)",
+                timing.ms(r["closest_hit_raster"]),
             ),
             timing.row(
                 f"{label}: any hit, {r['shadow_rays']:,} shadow rays", timing.ms(r["occluded"])

@@ -137,3 +137,13 @@ def test_run_all_writes_report(tmp_path):
     assert "# Benchmark report" in report
     assert "Visibility only" in report
     assert "| quantity | ours | paper / target | status |" in report
+
+
+def test_brute_force_on_a_subsample_of_rays_matches_the_bvh(monkeypatch):
+    """fig2_bvh times brute force on every n-th ray: each ray keeps its own shadow limit."""
+    monkeypatch.syspath_prepend(str(BENCH))
+    import bench_visibility
+
+    w = bench_visibility.visibility_workload(24)
+    result = bench_visibility.time_brute_visibility(w, 1, stride=3, warmup=0)
+    assert result["extrapolated"] and result["identical_to_bvh"]
