@@ -36,6 +36,7 @@ from minidiff.primitives import (
     max,
     maximum,
     mean,
+    mean_squared_error,
     minimum,
     multiply,
     negative,
@@ -71,6 +72,7 @@ __all__ = [
     "jvp", "tangents",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul",
     "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
-    "where", "sum", "mean", "max", "dot", "cross", "norm", "normalize", "reshape",
+    "where", "sum", "mean", "mean_squared_error", "max", "dot", "cross", "norm", "normalize",
+    "reshape",
     "transpose", "broadcast_to", "stack", "concatenate", "getitem", "scatter_add",
 ]  # fmt: skip

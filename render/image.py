@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from PIL import Image, ImageDraw, UnidentifiedImageError
 
-from minidiff import Tensor
+from minidiff import Tensor, mean_squared_error
 
 __all__ = [
     "save_image",
@@ -158,8 +158,7 @@ def mse(image: Any, target: Any) -> Tensor | float:
         # either order: the difference is a Tensor whichever side the array is on.
         image = image if isinstance(image, Tensor) else _as_array(image)
         target = target if isinstance(target, Tensor) else _as_array(target)
-        d = image - target
-        return (d * d).mean()
+        return mean_squared_error(image, target)
     d = _as_array(image) - _as_array(target)
     return float(np.mean(d * d))
 

@@ -173,6 +173,12 @@ def dot_case(draw):
 
 
 @st.composite
+def mean_squared_error_case(draw):
+    shape = draw(hnp.array_shapes(min_dims=1, max_dims=3, max_side=4))
+    return md.mean_squared_error, [draw(arrays(shape)), draw(arrays(shape))]
+
+
+@st.composite
 def cross_case(draw):
     batch = draw(hnp.mutually_broadcastable_shapes(num_shapes=2, max_dims=2))
     shape_a, shape_b = (s + (3,) for s in batch.input_shapes)
@@ -293,6 +299,7 @@ CASES.update(
         "mean": [reduction_case("mean")],
         "max": [reduction_case("max")],
         "dot": [dot_case()],
+        "mean_squared_error": [mean_squared_error_case()],
         "cross": [cross_case()],
         "norm": [norm_case()],
         "normalize": [normalize_case()],

@@ -380,6 +380,29 @@ def test_dot(data, batch, n):
 
 
 @SETTINGS
+@given(data=st.data(), shape=hnp.array_shapes(min_dims=1, max_dims=3, max_side=5))
+def test_mean_squared_error(data, shape):
+    """The fused loss: the same bits as mean((a - b) * (a - b)) in value and gradient, and
+    the gradient against central differences."""
+    a, b = data.draw(arrays(shape)), data.draw(arrays(shape))
+    x, y = md.tensor(a, requires_grad=True), md.tensor(a, requires_grad=True)
+    fused = md.mean_squared_error(x, b)
+    composed = ((y - b) * (y - b)).mean()
+    fused.backward()
+    composed.backward()
+    assert fused.item() == composed.item()
+    np.testing.assert_array_equal(x.grad, y.grad)
+    assert_grad_matches(md.mean_squared_error, a, b, argnums=(0, 1))
+
+
+def test_mean_squared_error_refuses_mismatched_or_empty_arrays():
+    with pytest.raises(ValueError, match="shapes differ"):
+        md.mean_squared_error(np.zeros((2, 3)), np.zeros(3))
+    with pytest.raises(ValueError, match="no elements"):
+        md.mean_squared_error(np.zeros(0), np.zeros(0))
+
+
+@SETTINGS
 @given(data=st.data(), batch=hnp.mutually_broadcastable_shapes(num_shapes=2, max_dims=2))
 def test_cross(data, batch):
     shape_a, shape_b = (s + (3,) for s in batch.input_shapes)
