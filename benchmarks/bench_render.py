@@ -317,13 +317,14 @@ def gradient_image_rows(g: dict) -> list:
             ("vertices_x", "all vertices along x"),
         ):
             rows.append(
-                timing.row(
+                ratio_row(
                     f"gradient image ({text}) / forward render{label}",
-                    f"{timing.ms(row[key])} / {timing.ms(row['forward'])} "
-                    f"= {row[f'ratio_{key}']:.2f}x",
+                    row[key],
+                    row["forward"],
+                    row[f"ratio_{key}"],
+                    3.0,
                     "target <= ~3x",
-                    timing.target_status(row[f"ratio_{key}"], 3.0),
-                )
+                )  # fmt: skip
             )
     return rows
 
@@ -410,19 +411,30 @@ def main(argv=None) -> dict:
     return r
 
 
+def ratio_row(quantity: str, num: dict, den: dict, ratio: float, limit: float, target: str):
+    """A report row for a ratio of two timings, checked against ``limit``."""
+    return timing.row(
+        quantity,
+        f"{timing.ms(num)} / {timing.ms(den)} = {ratio:.2f}x",
+        target,
+        timing.target_status(ratio, limit),
+    )
+
+
 def antialias_rows(aa: dict) -> list:
     rows = []
     for name, label in (("paper", "paper scene"), ("ground", "teapot on a ground plane")):
         a = aa[name]
         for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
             rows.append(
-                timing.row(
+                ratio_row(
                     f"{text} with antialias=True / without, {label}",
-                    f"{timing.ms(a[f'{kind}_antialias'])} / {timing.ms(a[f'{kind}_plain'])} "
-                    f"= {a[f'ratio_{kind}']:.2f}x",
+                    a[f"{kind}_antialias"],
+                    a[f"{kind}_plain"],
+                    a[f"ratio_{kind}"],
+                    1.25,
                     "target <= 1.25x",
-                    timing.target_status(a[f"ratio_{kind}"], 1.25),
-                )
+                )  # fmt: skip
             )
     return rows
 
