@@ -194,10 +194,15 @@ def make_report(r: dict) -> dict:
         else:
             ours, status = f"{timing.ms(m['ours'])} (Mitsuba not installed)", "not measured"
         rows.append(timing.row(label, ours, f"target <= {TARGETS[name]}x Mitsuba", status))
+    if r["mitsuba_version"] is None:
+        who = "ours only (Mitsuba 3 is not installed: pip install mitsuba)"
+    else:
+        who = (
+            f"ours and Mitsuba {r['mitsuba_version']} (llvm_ad_rgb, direct, {THREADS} "
+            "threads) timed in turns (blocks of calls)"
+        )
     notes = [
-        f"{r['size']}x{r['size']}, medians of {r['repeats']}, ours and Mitsuba "
-        f"{r['mitsuba_version']} (llvm_ad_rgb, direct, {THREADS} threads) timed in turns "
-        "(blocks of calls).",
+        f"{r['size']}x{r['size']}, medians of {r['repeats']}, {who}.",
         "Ours with the default allocator (keep_freed_memory() not called).",
     ]
     return timing.report_section("Ours vs Mitsuba 3 (bench_mitsuba.py)", rows, notes, [])
