@@ -32,6 +32,7 @@ from numba import njit
 
 from render.bvh import N_BINS, build_bvh, primitive_bounds
 from render.intersect import (
+    PRIM_WIDTH,
     FlatBVH,
     closest_hit_brute,
     closest_hit_bvh,
@@ -236,9 +237,6 @@ class Accelerator:
         self.n_triangles = tri.shape[0]
         self.n_spheres = centers.shape[0]
         self.n_prims = self.n_triangles + self.n_spheres
-        # Rows of the primitive table in id order (brute force reads this directly).
-        self.prim_data = pack_primitives(tri, centers, radii)
-
         if self.use_bvh:
             prim_min, prim_max = primitive_bounds(tri, centers, radii)
             bounds, first, count, order, depth = build_bvh(prim_min, prim_max, int(n_bins))
@@ -247,13 +245,16 @@ class Accelerator:
             self.node_count = count
             # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
             self.leaf_ids = order
-            self.leaf_prim = np.ascontiguousarray(self.prim_data[order])
+            self.leaf_prim = pack_primitives(tri, centers, radii, order)
             self.depth = int(depth)
+            self.prim_data = np.zeros((0, PRIM_WIDTH))
         else:
             self.node_bounds = np.zeros((0, 6))
             self.node_first = self.node_count = self.leaf_ids = np.zeros(0, np.int64)
-            self.leaf_prim = np.zeros((0, self.prim_data.shape[1]))
+            self.leaf_prim = np.zeros((0, PRIM_WIDTH))
             self.depth = 0
+            # The primitive table in id order, which brute force reads directly.
+            self.prim_data = pack_primitives(tri, centers, radii)
         self.n_nodes = int(self.node_bounds.shape[0])
         self.n_leaves = int(np.count_nonzero(self.node_count))
         self.build_seconds = time.perf_counter() - t0

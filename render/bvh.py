@@ -23,12 +23,17 @@ primitive test (C_isect = 1).  Evaluating every possible split is
 expensive; *binning* evaluates only ``n_bins - 1`` candidate planes per axis, evenly spaced
 over the bounds of the primitive centroids (Wald 2007), which gives nearly the same trees in
 O(n) per node.
+
+Large builds use both cores: the subtrees below the top of the tree own disjoint ranges of
+``order`` and disjoint regions of the node arrays, so once the top is split they are built
+side by side (:func:`build_bvh`).  The tree is the one the serial loop makes, node for node.
 """
 
 from __future__ import annotations
 
+import numba
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 #: Cost of one node visit (two box tests) relative to one primitive test (the SAH unit).
 C_TRAV = 1.0
@@ -37,6 +42,12 @@ C_TRAV = 1.0
 MAX_LEAF_SIZE = 8
 #: Default number of SAH bins per axis.
 N_BINS = 12
+#: Builds of at least this many primitives build the subtrees below the top of the tree on
+#: all threads (see :func:`build_bvh`); the tree is the same either way.
+PARALLEL_MIN_PRIMS = 65536
+#: ... the top being split until every pending subtree has fewer than P / TASKS_PER_BUILD
+#: primitives (enough tasks to share out evenly among the threads).
+TASKS_PER_BUILD = 64
 #: Boxes are padded by this fraction of the scene size (see :func:`primitive_bounds`).
 PAD_RELATIVE = 1e-5
 
@@ -237,48 +248,60 @@ def _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bi
 
 
 @njit(cache=True, error_model="numpy")
-def build_bvh(prim_min, prim_max, n_bins=N_BINS, max_leaf_size=MAX_LEAF_SIZE, c_trav=C_TRAV):
-    """Build a binned-SAH BVH over P primitive boxes ``prim_min``, ``prim_max`` (P, 3).
+def _subdivide(
+    root,
+    level,
+    next_free,
+    node_bounds,
+    node_first,
+    node_count,
+    order,
+    prim_min,
+    prim_max,
+    centroid,
+    n_bins,
+    max_leaf_size,
+    c_trav,
+    defer_below,
+    deferred,
+    deferred_level,
+):
+    """Split the subtree under ``root`` (at ``level``, root = 1) until its leaves are final.
 
-    Returns ``(node_bounds (M, 6), node_first (M,), node_count (M,), order (P,), depth)``
-    with M the number of nodes (at most 2P - 1) and depth the number of levels (root = 1).
+    The node ``root`` must already hold its range of ``order`` (``node_first``/``node_count``)
+    and its box.  New nodes are allocated as pairs from ``next_free`` on.  Nodes with fewer
+    than ``defer_below`` primitives are not split but appended to ``deferred`` (with their
+    level in ``deferred_level``) for a later call; ``defer_below = 0`` builds everything.
+    Returns ``(next_free, depth, n_deferred)``.
 
-    Top-down subdivision with an explicit stack: a node is split at its cheapest binned-SAH
-    plane, unless keeping it a leaf is cheaper and it has at most ``max_leaf_size``
-    primitives.  A node whose centroids all coincide (duplicated primitives) cannot be split
-    by a plane; if it is too big it is split in the middle of its index range instead.
+    Top-down with an explicit stack: a node is split at its cheapest binned-SAH plane,
+    unless keeping it a leaf is cheaper and it has at most ``max_leaf_size`` primitives.  A
+    node whose centroids all coincide (duplicated primitives) cannot be split by a plane; if
+    it is too big it is split in the middle of its index range instead.
     """
-    P = prim_min.shape[0]
-    if P == 0:
-        empty = np.zeros(0, np.int64)
-        return np.zeros((0, 6)), empty, empty.copy(), empty.copy(), 0
-    centroid = 0.5 * (prim_min + prim_max)
-    max_nodes = 2 * P - 1
-    node_bounds = np.empty((max_nodes, 6))
-    node_first = np.zeros(max_nodes, np.int64)
-    node_count = np.zeros(max_nodes, np.int64)
-    order = np.arange(P)
     bins = np.empty((3, n_bins), np.int64)
     bin_box = np.empty((3, n_bins, 6))
-
-    node_first[0] = 0
-    node_count[0] = P
-    _set_bounds(0, 0, P, order, prim_min, prim_max, node_bounds)
-    nodes_used = 1
-    depth = 1
-    # Depth-first: at most one pending sibling per level, and there are fewer than P levels.
-    stack = np.empty(P + 2, np.int64)
-    stack_level = np.empty(P + 2, np.int64)
-    stack[0] = 0
-    stack_level[0] = 1
+    depth = level
+    n_deferred = 0
+    # Depth-first: at most one pending sibling per level, and there are fewer levels than
+    # primitives.
+    stack = np.empty(node_count[root] + 2, np.int64)
+    stack_level = np.empty(node_count[root] + 2, np.int64)
+    stack[0] = root
+    stack_level[0] = level
     sp = 1
     while sp > 0:
         sp -= 1
         node = stack[sp]
         level = stack_level[sp]
-        depth = max(depth, level)
         first = node_first[node]
         count = node_count[node]
+        if count > 1 and count < defer_below:
+            deferred[n_deferred] = node
+            deferred_level[n_deferred] = level
+            n_deferred += 1
+            continue
+        depth = max(depth, level)
         if count <= 1:
             continue
         b = node_bounds[node]
@@ -295,8 +318,8 @@ def build_bvh(prim_min, prim_max, n_bins=N_BINS, max_leaf_size=MAX_LEAF_SIZE, c_
         else:
             continue
         # Children are allocated as a pair, so the right child is always left + 1.
-        left = nodes_used
-        nodes_used += 2
+        left = next_free
+        next_free += 2
         node_first[left] = first
         node_count[left] = n_left
         node_first[left + 1] = first + n_left
@@ -312,10 +335,172 @@ def build_bvh(prim_min, prim_max, n_bins=N_BINS, max_leaf_size=MAX_LEAF_SIZE, c_
         stack[sp + 1] = left
         stack_level[sp + 1] = level + 1
         sp += 2
+    return next_free, depth, n_deferred
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _subdivide_in_parallel(
+    tasks,
+    task_level,
+    task_worker,
+    task_free,
+    task_end,
+    task_depth,
+    node_bounds,
+    node_first,
+    node_count,
+    order,
+    prim_min,
+    prim_max,
+    centroid,
+    n_bins,
+    max_leaf_size,
+    c_trav,
+):
+    """Build the subtrees under the nodes ``tasks`` at once, one ``_subdivide`` each.
+
+    They are independent: each owns its range of ``order`` and allocates its nodes from its
+    own region ``task_free[i]`` on; ``task_end[i]`` and ``task_depth[i]`` receive where the
+    region's used part ends and the subtree's depth.  Thread ``w`` builds the tasks with
+    ``task_worker == w`` (a static schedule of unequal tasks would leave a core idle).
+    """
+    unused = np.empty(0, np.int64)
+    for w in prange(task_worker.max() + 1):
+        for i in range(tasks.shape[0]):
+            if task_worker[i] == w:
+                task_end[i], task_depth[i], _ = _subdivide(
+                    tasks[i],
+                    task_level[i],
+                    task_free[i],
+                    node_bounds,
+                    node_first,
+                    node_count,
+                    order,
+                    prim_min,
+                    prim_max,
+                    centroid,
+                    n_bins,
+                    max_leaf_size,
+                    c_trav,
+                    0,
+                    unused,
+                    unused,
+                )
+
+
+@njit(cache=True, error_model="numpy")
+def _close_gaps(nodes_used, tasks, task_free, task_end, node_bounds, node_first, node_count):
+    """Move the subtrees' regions down to follow each other from ``nodes_used`` on, shifting
+    the child links of their interior nodes (and of their roots, which live above) by as much.
+    Returns the number of nodes in use."""
+    for i in range(tasks.shape[0]):
+        shift = nodes_used - task_free[i]
+        for n in range(task_free[i], task_end[i]):
+            node_bounds[n + shift] = node_bounds[n]
+            node_first[n + shift] = node_first[n] + (shift if node_count[n] == 0 else 0)
+            node_count[n + shift] = node_count[n]
+        if node_count[tasks[i]] == 0:
+            node_first[tasks[i]] += shift
+        nodes_used += task_end[i] - task_free[i]
+    return nodes_used
+
+
+def deal_out(sizes: np.ndarray, n_workers: int) -> np.ndarray:
+    """Assign jobs of the given sizes (n,) to ``n_workers``: largest first, each to the worker
+    with the least work so far (the LPT rule).  Returns each job's worker (n,) int64."""
+    load = np.zeros(n_workers, np.int64)
+    worker = np.empty(len(sizes), np.int64)
+    for job in np.argsort(-np.asarray(sizes), kind="stable"):
+        worker[job] = np.argmin(load)
+        load[worker[job]] += sizes[job]
+    return worker
+
+
+def build_bvh(
+    prim_min: np.ndarray,
+    prim_max: np.ndarray,
+    n_bins: int = N_BINS,
+    max_leaf_size: int = MAX_LEAF_SIZE,
+    c_trav: float = C_TRAV,
+    parallel_min_prims: int = PARALLEL_MIN_PRIMS,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Build a binned-SAH BVH over P primitive boxes ``prim_min``, ``prim_max`` (P, 3).
+
+    Returns ``(node_bounds (M, 6), node_first (M,), node_count (M,), order (P,), depth)``
+    with M the number of nodes (at most 2P - 1) and depth the number of levels (root = 1).
+
+    With at least ``parallel_min_prims`` primitives the top of the tree is split first, down
+    to subtrees of fewer than P / ``TASKS_PER_BUILD`` (at least ``2 * max_leaf_size``)
+    primitives, and those are then built on all threads.  Every node is split by the same
+    rule either way, so the tree is the same; only the numbering of its nodes differs (each
+    subtree's nodes are contiguous).
+    """
+    P = prim_min.shape[0]
+    if P == 0:
+        empty = np.zeros(0, np.int64)
+        return np.zeros((0, 6)), empty, empty.copy(), empty.copy(), 0
+    centroid = 0.5 * (prim_min + prim_max)
+    max_nodes = 2 * P - 1
+    node_bounds = np.empty((max_nodes, 6))
+    node_first = np.zeros(max_nodes, np.int64)
+    node_count = np.zeros(max_nodes, np.int64)
+    order = np.arange(P)
+    node_count[0] = P
+    _set_bounds(0, 0, P, order, prim_min, prim_max, node_bounds)
+    defer_below = max(P // TASKS_PER_BUILD, 2 * max_leaf_size) if P >= parallel_min_prims else 0
+    tasks = np.empty(P if defer_below else 0, np.int64)
+    task_level = np.empty_like(tasks)
+    nodes_used, depth, n_tasks = _subdivide(
+        0,
+        1,
+        1,
+        node_bounds,
+        node_first,
+        node_count,
+        order,
+        prim_min,
+        prim_max,
+        centroid,
+        n_bins,
+        max_leaf_size,
+        c_trav,
+        defer_below,
+        tasks,
+        task_level,
+    )
+    if n_tasks:
+        tasks = tasks[:n_tasks]
+        # A subtree of n primitives has at most 2n - 1 nodes, its root already allocated.
+        region = 2 * node_count[tasks] - 2
+        task_free = nodes_used + np.cumsum(region) - region
+        task_end = np.empty(n_tasks, np.int64)
+        task_depth = np.empty(n_tasks, np.int64)
+        _subdivide_in_parallel(
+            tasks,
+            task_level[:n_tasks],
+            deal_out(node_count[tasks], numba.get_num_threads()),
+            task_free,
+            task_end,
+            task_depth,
+            node_bounds,
+            node_first,
+            node_count,
+            order,
+            prim_min,
+            prim_max,
+            centroid,
+            n_bins,
+            max_leaf_size,
+            c_trav,
+        )
+        depth = max(depth, int(task_depth.max()))
+        nodes_used = _close_gaps(
+            nodes_used, tasks, task_free, task_end, node_bounds, node_first, node_count
+        )
     return (
         node_bounds[:nodes_used].copy(),
         node_first[:nodes_used].copy(),
         node_count[:nodes_used].copy(),
         order,
-        depth,
+        int(depth),
     )

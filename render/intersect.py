@@ -78,11 +78,17 @@ class FlatBVH(NamedTuple):
 # --------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy")
-def pack_primitives(triangles, sphere_centers, sphere_radii):
+def pack_primitives(
+    triangles: np.ndarray,
+    sphere_centers: np.ndarray,
+    sphere_radii: np.ndarray,
+    order: np.ndarray | None = None,
+) -> np.ndarray:
     """Precompute the per-primitive data used by the intersection tests.
 
-    triangles (T, 3, 3), sphere_centers (S, 3), sphere_radii (S,)  ->  prim_data (T+S, 16).
+    triangles (T, 3, 3), sphere_centers (S, 3), sphere_radii (S,)  ->  prim_data (T+S, 16),
+    row ``k`` for primitive ``order[k]`` (ids: triangles ``0..T-1``, then the spheres; by
+    default in id order).  A BVH passes its leaf order, so that a leaf's rows are contiguous.
 
     Triangle row: ``v0[0:3], e1[3:6], e2[6:9], n[9:12], cut[12]`` with ``e1 = v1 - v0``,
     ``e2 = v2 - v0``, geometric normal ``n = e1 x e2`` and ``cut = DEGENERATE_TOL*|e1|*|e2|``
@@ -92,14 +98,28 @@ def pack_primitives(triangles, sphere_centers, sphere_radii):
     Storing edges and normal instead of the three vertices saves two subtractions and a cross
     product per ray-triangle test; the test itself reads one 128-byte row.
     """
+    if order is None:
+        order = np.arange(len(triangles) + len(sphere_centers))
+    return _pack_rows(triangles, sphere_centers, sphere_radii, order)
+
+
+@njit(cache=True, error_model="numpy")
+def _pack_rows(triangles, sphere_centers, sphere_radii, order):
+    """The loop of :func:`pack_primitives`."""
     T = triangles.shape[0]
-    S = sphere_centers.shape[0]
-    data = np.zeros((T + S, PRIM_WIDTH))
-    for i in range(T):
+    data = np.zeros((order.shape[0], PRIM_WIDTH))
+    for i in range(order.shape[0]):
+        p = order[i]
+        if p >= T:
+            s = p - T
+            data[i, 0:3] = sphere_centers[s]
+            data[i, 3] = sphere_radii[s]
+            data[i, 4] = sphere_radii[s] * sphere_radii[s]
+            continue
         for a in range(3):
-            data[i, a] = triangles[i, 0, a]  # v0
-            data[i, 3 + a] = triangles[i, 1, a] - triangles[i, 0, a]  # e1
-            data[i, 6 + a] = triangles[i, 2, a] - triangles[i, 0, a]  # e2
+            data[i, a] = triangles[p, 0, a]  # v0
+            data[i, 3 + a] = triangles[p, 1, a] - triangles[p, 0, a]  # e1
+            data[i, 6 + a] = triangles[p, 2, a] - triangles[p, 0, a]  # e2
         e1x, e1y, e1z = data[i, 3], data[i, 4], data[i, 5]
         e2x, e2y, e2z = data[i, 6], data[i, 7], data[i, 8]
         nx = e1y * e2z - e1z * e2y
@@ -116,10 +136,6 @@ def pack_primitives(triangles, sphere_centers, sphere_radii):
         if np.sqrt(nx * nx + ny * ny + nz * nz) <= cut:
             cut = np.inf
         data[i, 12] = cut
-    for j in range(S):
-        data[T + j, 0:3] = sphere_centers[j]
-        data[T + j, 3] = sphere_radii[j]
-        data[T + j, 4] = sphere_radii[j] * sphere_radii[j]
     return data
 
 

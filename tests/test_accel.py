@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from render.accel import Accelerator
-from render.bvh import MAX_LEAF_SIZE
+from render.bvh import MAX_LEAF_SIZE, build_bvh, primitive_bounds
 
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -419,6 +419,42 @@ def test_build_invariants(tris):
         for c in (acc.node_first[n], acc.node_first[n] + 1):
             assert np.all(acc.node_bounds[n, :3] <= acc.node_bounds[c, :3])
             assert np.all(acc.node_bounds[n, 3:] >= acc.node_bounds[c, 3:])
+
+
+def _tree_in_visit_order(bounds, first, count):
+    """The tree as a list of (box, count, leaf range start) in depth-first order from the
+    root: equal for two builds that made the same splits, however their nodes are numbered."""
+    out, stack = [], [0]
+    while stack:
+        n = stack.pop()
+        out.append((tuple(bounds[n]), int(count[n]), int(first[n]) if count[n] else -1))
+        if count[n] == 0:
+            stack += [first[n] + 1, first[n]]
+    return out
+
+
+@SETTINGS
+@given(tris=soups(min_size=1, max_size=120), copies=st.integers(1, 20))
+def test_parallel_build_makes_the_serial_tree(tris, copies):
+    # Forcing the parallel path on small inputs: the top is split serially, the subtrees of
+    # fewer than 2 * MAX_LEAF_SIZE primitives on the threads; duplicates (coincident
+    # centroids, split by index) included.
+    tris = np.concatenate([tris, np.repeat(tris[:1], copies, axis=0)])
+    lo, hi = primitive_bounds(tris, np.zeros((0, 3)), np.zeros(0))
+    serial = build_bvh(lo, hi, parallel_min_prims=10**9)
+    parallel = build_bvh(lo, hi, parallel_min_prims=1)
+    assert parallel[0].shape == serial[0].shape
+    assert _tree_in_visit_order(*parallel[:3]) == _tree_in_visit_order(*serial[:3])
+    assert np.array_equal(parallel[3], serial[3]) and parallel[4] == serial[4]
+
+
+def test_parallel_build_of_a_mesh_makes_the_serial_tree():
+    tris = sphere_mesh(60, 90)  # 10,800 triangles: ~100 subtrees on the threads
+    lo, hi = primitive_bounds(tris, np.zeros((0, 3)), np.zeros(0))
+    serial = build_bvh(lo, hi, parallel_min_prims=10**9)
+    parallel = build_bvh(lo, hi, parallel_min_prims=1)
+    assert _tree_in_visit_order(*parallel[:3]) == _tree_in_visit_order(*serial[:3])
+    assert np.array_equal(parallel[3], serial[3]) and parallel[4] == serial[4]
 
 
 def test_build_statistics_and_repr():
