@@ -141,52 +141,75 @@ def _bin_index(c, cmin, scale, n_bins):
 
 
 @njit(cache=True, error_model="numpy")
-def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav, bins, bin_box):
+def split_scratch(n_bins):
+    """The scratch arrays of :func:`_find_split`, allocated once per build, not per node:
+    bin counts (3, n_bins) int64, bin boxes (3, n_bins, 6), the left sweep's counts and
+    areas (n_bins,), the centroid bounds and bin scale per axis (3,) each, and the best
+    split's two child boxes (2, 6)."""
+    return (
+        np.empty((3, n_bins), np.int64),
+        np.empty((3, n_bins, 6)),
+        np.empty(n_bins, np.int64),
+        np.empty(n_bins),
+        np.empty(3),
+        np.empty(3),
+        np.empty(3),
+        np.empty((2, 6)),
+    )
+
+
+@njit(cache=True, error_model="numpy")
+def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav, scratch):
     """Binned SAH split search for the primitives ``order[first:first+count]``.
 
-    ``bins`` (3, n_bins) int64 and ``bin_box`` (3, n_bins, 6) float64 are scratch arrays
-    (allocated once per build, not per node).  Returns ``(axis, split_bin, cmin, scale,
+    ``scratch`` comes from :func:`split_scratch`.  Returns ``(axis, split_bin, cmin, scale,
     cost)``: primitives whose centroid bin ``_bin_index(c[axis], cmin, scale)`` is
     ``< split_bin`` go left; ``cost`` is the SAH cost of that split in units of one primitive
-    test.  ``axis = -1`` if no plane separates the centroids (all coincide).
+    test; the two children's boxes are left in ``scratch[-1]``.  ``axis = -1`` if no plane
+    separates the centroids (all coincide).
     """
+    bins, bin_box, left_count, left_area, cmin, cmax, scale, child_box = scratch
     n_bins = bins.shape[1]
     # Centroid bounds: the bins are spread over where the centroids are, not over the node's
     # box, so that a few large primitives do not squeeze all small ones into one bin.
-    cmin = np.full(3, np.inf)
-    cmax = np.full(3, -np.inf)
+    cmin[:] = np.inf
+    cmax[:] = -np.inf
     for k in range(first, first + count):
         p = order[k]
         for a in range(3):
             cmin[a] = min(cmin[a], centroid[p, a])
             cmax[a] = max(cmax[a], centroid[p, a])
-    scale = np.zeros(3)
     for a in range(3):
+        scale[a] = 0.0
         if cmax[a] > cmin[a]:
             s = n_bins / (cmax[a] - cmin[a])
             if s < np.inf:  # an extent of a few denormals would give inf and then NaN bins
                 scale[a] = s
 
-    # One pass over the primitives fills the bins of all three axes: count and box.
+    # One pass over the primitives fills the bins of all three axes: count and box.  A bin's
+    # box is set by its first primitive, so empty bins are never initialised (most nodes are
+    # small: resetting every box of every bin would cost more than filling them); the sweeps
+    # below skip them.
     bins[:] = 0
-    bin_box[:, :, 0:3] = np.inf
-    bin_box[:, :, 3:6] = -np.inf
     for k in range(first, first + count):
         p = order[k]
         for a in range(3):
             if scale[a] == 0.0:
                 continue
             b = _bin_index(centroid[p, a], cmin[a], scale[a], n_bins)
+            if bins[a, b] == 0:
+                for c in range(3):
+                    bin_box[a, b, c] = prim_min[p, c]
+                    bin_box[a, b, 3 + c] = prim_max[p, c]
+            else:
+                for c in range(3):
+                    bin_box[a, b, c] = min(bin_box[a, b, c], prim_min[p, c])
+                    bin_box[a, b, 3 + c] = max(bin_box[a, b, 3 + c], prim_max[p, c])
             bins[a, b] += 1
-            for c in range(3):
-                bin_box[a, b, c] = min(bin_box[a, b, c], prim_min[p, c])
-                bin_box[a, b, 3 + c] = max(bin_box[a, b, 3 + c], prim_max[p, c])
 
     best_axis = -1
     best_bin = 0
     best_cost = np.inf
-    left_area = np.empty(n_bins)
-    left_count = np.empty(n_bins, np.int64)
     for a in range(3):
         if scale[a] == 0.0:
             continue
@@ -196,13 +219,14 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav,
         hx = hy = hz = -np.inf
         n = 0
         for i in range(1, n_bins):
-            n += bins[a, i - 1]
-            lx = min(lx, bin_box[a, i - 1, 0])
-            ly = min(ly, bin_box[a, i - 1, 1])
-            lz = min(lz, bin_box[a, i - 1, 2])
-            hx = max(hx, bin_box[a, i - 1, 3])
-            hy = max(hy, bin_box[a, i - 1, 4])
-            hz = max(hz, bin_box[a, i - 1, 5])
+            if bins[a, i - 1] > 0:
+                n += bins[a, i - 1]
+                lx = min(lx, bin_box[a, i - 1, 0])
+                ly = min(ly, bin_box[a, i - 1, 1])
+                lz = min(lz, bin_box[a, i - 1, 2])
+                hx = max(hx, bin_box[a, i - 1, 3])
+                hy = max(hy, bin_box[a, i - 1, 4])
+                hz = max(hz, bin_box[a, i - 1, 5])
             left_count[i] = n
             left_area[i] = _half_area(lx, ly, lz, hx, hy, hz)
         # Sweep right to left, growing the right side, and evaluate each plane.
@@ -210,13 +234,14 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav,
         hx = hy = hz = -np.inf
         n = 0
         for i in range(n_bins - 1, 0, -1):
-            n += bins[a, i]
-            lx = min(lx, bin_box[a, i, 0])
-            ly = min(ly, bin_box[a, i, 1])
-            lz = min(lz, bin_box[a, i, 2])
-            hx = max(hx, bin_box[a, i, 3])
-            hy = max(hy, bin_box[a, i, 4])
-            hz = max(hz, bin_box[a, i, 5])
+            if bins[a, i] > 0:
+                n += bins[a, i]
+                lx = min(lx, bin_box[a, i, 0])
+                ly = min(ly, bin_box[a, i, 1])
+                lz = min(lz, bin_box[a, i, 2])
+                hx = max(hx, bin_box[a, i, 3])
+                hy = max(hy, bin_box[a, i, 4])
+                hz = max(hz, bin_box[a, i, 5])
             if n == 0 or left_count[i] == 0:
                 continue  # not a split: one side would be empty
             # SAH: the cost of visiting this node plus testing each child's primitives,
@@ -229,6 +254,16 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav,
                 best_bin = i
     if best_axis < 0:
         return -1, 0, 0.0, 0.0, np.inf
+    # The children's boxes are the unions of their bins' boxes (exact: min and max do not
+    # round), which saves a pass over the primitives per child.
+    child_box[:, 0:3] = np.inf
+    child_box[:, 3:6] = -np.inf
+    for i in range(n_bins):
+        if bins[best_axis, i] > 0:
+            side = 0 if i < best_bin else 1
+            for c in range(3):
+                child_box[side, c] = min(child_box[side, c], bin_box[best_axis, i, c])
+                child_box[side, 3 + c] = max(child_box[side, 3 + c], bin_box[best_axis, i, 3 + c])
     return best_axis, best_bin, cmin[best_axis], scale[best_axis], best_cost
 
 
@@ -279,8 +314,7 @@ def _subdivide(
     node whose centroids all coincide (duplicated primitives) cannot be split by a plane; if
     it is too big it is split in the middle of its index range instead.
     """
-    bins = np.empty((3, n_bins), np.int64)
-    bin_box = np.empty((3, n_bins, 6))
+    scratch = split_scratch(n_bins)
     depth = level
     n_deferred = 0
     # Depth-first: at most one pending sibling per level, and there are fewer levels than
@@ -307,7 +341,7 @@ def _subdivide(
         b = node_bounds[node]
         area = max(_half_area(b[0], b[1], b[2], b[3], b[4], b[5]), 1e-300)
         axis, split_bin, cmin, scale, cost = _find_split(
-            first, count, order, prim_min, prim_max, centroid, area, c_trav, bins, bin_box
+            first, count, order, prim_min, prim_max, centroid, area, c_trav, scratch
         )
         if axis >= 0:
             if cost >= count and count <= max_leaf_size:
@@ -324,10 +358,14 @@ def _subdivide(
         node_count[left] = n_left
         node_first[left + 1] = first + n_left
         node_count[left + 1] = count - n_left
-        _set_bounds(left, first, n_left, order, prim_min, prim_max, node_bounds)
-        _set_bounds(
-            left + 1, first + n_left, count - n_left, order, prim_min, prim_max, node_bounds
-        )
+        if axis >= 0:
+            node_bounds[left] = scratch[-1][0]  # the boxes _find_split made from its bins
+            node_bounds[left + 1] = scratch[-1][1]
+        else:
+            _set_bounds(left, first, n_left, order, prim_min, prim_max, node_bounds)
+            _set_bounds(
+                left + 1, first + n_left, count - n_left, order, prim_min, prim_max, node_bounds
+            )
         node_first[node] = left
         node_count[node] = 0
         stack[sp] = left + 1
