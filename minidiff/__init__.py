@@ -4,7 +4,8 @@ Read in this order: ``tensor.py`` (the Tensor, the tape, backward, and forward m
 tangents), ``primitives.py`` (each primitive's forward, vector-Jacobian product and
 Jacobian-vector product side by side), ``functional.py`` (grad, value_and_grad, jvp,
 check_grad), ``optim.py`` (SGD, Adam). ``kernels.py`` holds the NumPy kernels that make the
-primitives fast on tall, thin arrays; each equals a plain NumPy expression.
+primitives fast on tall, thin arrays; each equals a plain NumPy expression. ``buffers.py``
+gives the kernels' large outputs memory that earlier passes used and no longer refer to.
 
     >>> import numpy as np
     >>> import minidiff as md
@@ -17,7 +18,7 @@ primitives fast on tall, thin arrays; each equals a plain NumPy expression.
     array(12.)
 """
 
-from minidiff import kernels, optim
+from minidiff import buffers, kernels, optim
 from minidiff.functional import check_grad, grad, jvp, numerical_grad, value_and_grad
 from minidiff.primitives import (
     abs,

@@ -13,6 +13,10 @@ long axis pays a loop set-up per row of 3, and runs 3-15x slower than the same a
 arithmetic on long rows. The kernels below rearrange the work into long loops (one column
 at a time) or write a length-3 loop out by hand.
 
+Large outputs are written into arrays from ``buffers.py`` (memory an earlier pass used and
+nothing refers to any more) instead of fresh ones: the values are the same, the page faults
+of touching new memory on every pass are gone.
+
 One trick is deliberately *not* used: BLAS products such as ``ones @ rows`` for column
 sums are faster in isolation, but OpenBLAS runs them on several threads whose idle
 spinning afterwards halves the speed of the renderer's Numba kernels (measured: a
@@ -24,6 +28,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+
+from minidiff import buffers
 
 # Below this many elements (both operands together) NumPy's own broadcasting is fast enough:
 # the column-at-a-time loop only pays off on large arrays.
@@ -39,15 +45,21 @@ def elementwise(op: Callable, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     than a plain (k, 3) * (k, 3) (measured for k = 41k), so we apply ``op`` to one output
     column at a time, which gives NumPy long inner loops again.
     """
-    if x.shape == y.shape or x.size == 1 or y.size == 1 or x.size + y.size < _SMALL:
-        return op(x, y)  # NumPy is fast here, or the array is too small to matter
+    if x.size + y.size < _SMALL or op not in _FLOAT_TO_FLOAT or x.dtype != y.dtype:
+        return op(x, y)  # too small to matter, or a result dtype we do not predict
     shape = np.broadcast_shapes(x.shape, y.shape)
+    out = buffers.empty(shape, x.dtype)
+    if x.shape == y.shape or x.size == 1 or y.size == 1:
+        return op(x, y, out=out)  # NumPy's own loop is fast here
     if len(shape) < 2 or not 1 < shape[-1] <= 4:
-        return op(x, y)
-    out = np.empty(shape, dtype=np.result_type(x, y))
+        return op(x, y, out=out)
     for j in range(shape[-1]):
         op(_last_axis_column(x, j), _last_axis_column(y, j), out=out[..., j])
     return out
+
+
+# The ufuncs whose result has the dtype of two equal float operands (``out`` can be given).
+_FLOAT_TO_FLOAT = {np.add, np.subtract, np.multiply, np.divide, np.maximum, np.minimum, np.power}
 
 
 def _last_axis_column(x: np.ndarray, j: int) -> np.ndarray:
@@ -66,7 +78,13 @@ def dot_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ``np.einsum``, whose summation order may differ in the last bit.
     """
     if a.shape[-1] == 3 and b.shape[-1] == 3:
-        return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
+        # (a0 b0 + a1 b1) + a2 b2, into reused buffers.
+        shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+        out = buffers.empty(shape, np.result_type(a, b))
+        term = buffers.empty(shape, out.dtype)
+        np.multiply(a[..., 0], b[..., 0], out=out)
+        np.add(out, np.multiply(a[..., 1], b[..., 1], out=term), out=out)
+        return np.add(out, np.multiply(a[..., 2], b[..., 2], out=term), out=out)
     return np.einsum("...i,...i->...", *np.broadcast_arrays(a, b))
 
 
@@ -78,10 +96,12 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
-    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
-    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
-    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
+    out = buffers.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    term = buffers.empty(out.shape[:-1], out.dtype)
+    for j, (p, q, r, s) in enumerate(((a1, b2, a2, b1), (a2, b0, a0, b2), (a0, b1, a1, b0))):
+        # out_j = p q - r s, the products formed into reused buffers
+        np.multiply(p, q, out=out[..., j])
+        np.subtract(out[..., j], np.multiply(r, s, out=term), out=out[..., j])
     return out
 
 
@@ -107,7 +127,7 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
         # Each row receives one value: a sum from zero is that value, except that
         # 0.0 + (-0.0) = +0.0, which adding 0 reproduces. One write instead of a bincount
         # per column (a renderer putting each hit's colour into its pixel: ~3x faster).
-        out = np.zeros((n,) + values.shape[1:], dtype=values.dtype)
+        out = buffers.zeros((n,) + values.shape[1:], values.dtype)
         out[index] = values + values.dtype.type(0)
         return out
     # An explicit column count, not -1: reshape cannot infer -1 when there are no rows.

@@ -6,6 +6,9 @@ page fault for every 4 KiB page it touches again. Measured on the paper scene, t
 large share of the wall time (see benchmarks/bench_minidiff.py, which reports page faults per
 pass). Raising the mmap and trim thresholds keeps freed memory in the process for reuse.
 
+minidiff's kernels avoid most of this on their own (``minidiff.buffers`` reuses their
+outputs); this switch remains for other code.
+
 The same effect without code: start Python with e.g.
 ``MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=1073741824``.
 """

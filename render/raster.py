@@ -27,6 +27,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from minidiff import buffers
 from render.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.intersect import intersect_prim, pack_primitives
 from render.scene import Camera
@@ -198,7 +199,8 @@ def raster_closest_hit(
         np.ascontiguousarray(radii, np.float64).reshape(-1),
     )
     n = width * height * spp
-    out_id, out_t = np.empty(n, np.int64), np.empty(n)
+    # Reused memory (minidiff.buffers): fresh 2 MB arrays per render cost page faults.
+    out_id, out_t = buffers.empty((n,), np.int64), buffers.empty((n,), np.float64)
     out_u, out_v = (np.empty(n), np.empty(n)) if with_uv else (np.empty(1), np.empty(1))
     _raster_closest_hit(
         prim_data, len(triangles), boxes, start, ids, tiles_x, width, height, offsets, eye,

@@ -1,0 +1,104 @@
+"""Output arrays that are used again: how minidiff avoids fresh memory on every pass.
+
+Why: one render and its backward pass allocate hundreds of arrays of a few hundred KB to a
+few MB, and free them all when the pass ends.  glibc's allocator gives memory that large
+back to the kernel when it is freed (it unmaps the block, or trims the top of the heap), so
+the next pass touches brand-new pages: one page fault per 4 KiB, a third of the time of a
+forward render measured on the paper scene (``benchmarks/bench_render.py``).
+
+What this does instead: the kernels (``kernels.py``) take their large outputs from here.
+``empty(shape, dtype)`` hands out an array of that shape and dtype that was made for an
+earlier call and that *nothing refers to any more* -- the pool's own reference is the only
+one left, which Python's reference count tells exactly (a view keeps its base alive, so a
+result that a user still holds, or a view of it, is never handed out again).  The memory
+stays in the process, so the second pass of the same shapes allocates nothing.
+
+This is local to minidiff (``minidiff.memory.keep_freed_memory`` gets the same effect for
+the whole process by changing glibc's thresholds).  The pool holds at most ``max_bytes``
+(default 512 MiB); when a new shape would exceed that, the shapes used least recently are
+dropped from it (arrays in use live on, they are just not reused).  ``clear()`` drops
+everything; ``set_max_bytes(0)`` turns reuse off.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections import OrderedDict
+
+import numpy as np
+
+#: Arrays smaller than this come from NumPy directly: glibc keeps small blocks in the
+#: process anyway (its mmap threshold starts at 128 KiB), so reusing them would gain nothing.
+MIN_BYTES = 128 * 1024
+
+_lock = threading.Lock()
+_pool: OrderedDict[tuple, list[np.ndarray]] = OrderedDict()  # (shape, dtype) -> arrays
+_held_bytes = 0
+_max_bytes = 512 * 2**20
+
+# sys.getrefcount(array) while the array sits in a pool list and in the loop variable that
+# looks at it (plus getrefcount's own argument): nobody else holds it.
+_UNUSED = 3
+
+
+def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
+    """Equals ``np.empty(shape, dtype)``: an array of that shape and dtype, contents arbitrary.
+
+    Large arrays are reused from earlier calls once nothing else refers to them.
+    """
+    dtype = np.dtype(dtype)
+    nbytes = dtype.itemsize * int(np.prod(shape, dtype=np.int64))
+    if nbytes < MIN_BYTES or nbytes > _max_bytes:
+        return np.empty(shape, dtype)
+    key = (tuple(shape), dtype)
+    global _held_bytes
+    with _lock:
+        arrays = _pool.get(key)
+        if arrays is None:
+            arrays = _pool[key] = []
+        else:
+            _pool.move_to_end(key)  # most recently used last
+            for a in arrays:
+                if sys.getrefcount(a) == _UNUSED:
+                    return a
+        while _held_bytes + nbytes > _max_bytes and len(_pool) > 1:
+            old_key, old = next(iter(_pool.items()))
+            if old_key == key:
+                break
+            _held_bytes -= sum(a.nbytes for a in old)
+            del _pool[old_key]
+        a = np.empty(shape, dtype)
+        if _held_bytes + nbytes <= _max_bytes:
+            arrays.append(a)
+            _held_bytes += nbytes
+        return a
+
+
+def zeros(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
+    """Equals ``np.zeros(shape, dtype)``, reusing memory as :func:`empty` does."""
+    out = empty(shape, dtype)
+    out.fill(0)
+    return out
+
+
+def held_bytes() -> int:
+    """Bytes of the arrays the pool keeps (in use or free)."""
+    return _held_bytes
+
+
+def set_max_bytes(n: int) -> None:
+    """Keep at most ``n`` bytes of arrays for reuse (0 turns reuse off); drops the pool."""
+    global _max_bytes
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise ValueError(f"n must be an integer >= 0 (bytes), got {n!r}")
+    clear()
+    _max_bytes = n
+
+
+def clear() -> None:
+    """Forget every array kept for reuse (their memory is freed once nothing uses them)."""
+    global _held_bytes
+    with _lock:
+        _pool.clear()
+        _held_bytes = 0

@@ -1,0 +1,112 @@
+"""minidiff.buffers: arrays are reused only when nothing else refers to them, and reuse
+changes no value anywhere (kernels, renders, gradients)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import minidiff as md
+from minidiff import buffers, kernels
+from render import render
+from render.teapot import paper_scene
+
+BIG = (50_000, 3)  # 1.2 MB of float64: above buffers.MIN_BYTES
+
+
+@pytest.fixture(autouse=True)
+def fresh_pool():
+    buffers.set_max_bytes(512 * 2**20)
+    yield
+    buffers.set_max_bytes(512 * 2**20)
+
+
+def test_an_array_in_use_is_never_handed_out_again():
+    a = buffers.empty(BIG, np.float64)
+    b = buffers.empty(BIG, np.float64)
+    assert a is not b and a.shape == BIG and a.dtype == np.float64
+    view = b[10:20]
+    del b
+    c = buffers.empty(BIG, np.float64)  # b's memory is still seen through `view`
+    assert c is not a and c.base is None and not np.shares_memory(c, view)
+    assert not np.shares_memory(c, a)
+
+
+def test_an_array_nobody_holds_is_reused():
+    a = buffers.empty(BIG, np.float64)
+    address = a.__array_interface__["data"][0]
+    del a
+    b = buffers.empty(BIG, np.float64)
+    assert b.__array_interface__["data"][0] == address
+    assert buffers.empty(BIG, np.float32).dtype == np.float32  # another key: another array
+
+
+def test_small_arrays_and_zeros():
+    small = buffers.empty((10, 3), np.float64)
+    assert small.shape == (10, 3)
+    a = buffers.empty(BIG, np.float64)
+    a.fill(7.0)
+    del a
+    z = buffers.zeros(BIG, np.float64)
+    assert not z.any()
+
+
+def test_the_pool_stays_within_its_limit():
+    buffers.set_max_bytes(3 * 50_000 * 3 * 8)
+    held = [buffers.empty((50_000 + i, 3), np.float64) for i in range(10)]
+    assert buffers.held_bytes() <= 3 * 50_000 * 3 * 8
+    assert all(h.shape == (50_000 + i, 3) for i, h in enumerate(held))
+    buffers.set_max_bytes(0)
+    assert buffers.held_bytes() == 0
+    a = buffers.empty(BIG, np.float64)
+    assert buffers.held_bytes() == 0 and a.shape == BIG
+
+
+@pytest.mark.parametrize("bad", [-1, 1.5, True, "1"])
+def test_bad_limit_raises(bad):
+    with pytest.raises(ValueError, match="n must be an integer >= 0"):
+        buffers.set_max_bytes(bad)
+
+
+def test_kernel_results_survive_later_calls():
+    rng = np.random.default_rng(0)
+    a, b, c, d = (rng.normal(size=BIG) for _ in range(4))
+    first = [kernels.cross3(a, b), kernels.dot_last(a, b), kernels.elementwise(np.add, a, b)]
+    saved = [x.copy() for x in first]
+    for _ in range(3):  # later calls with other inputs, dropping their results
+        kernels.cross3(c, d), kernels.dot_last(c, d), kernels.elementwise(np.add, c, d)
+    for x, y in zip(first, saved, strict=True):
+        np.testing.assert_array_equal(x, y)
+    np.testing.assert_array_equal(kernels.cross3(a, b), np.cross(a, b))
+    np.testing.assert_array_equal(kernels.dot_last(a, b), np.sum(a * b, axis=-1))
+
+
+def _pass(scene, vertices):
+    vertices.grad = None
+    image = render(scene)
+    md.mean_squared_error(image, md.tensor(np.zeros(image.shape))).backward()
+    return image.data, vertices.grad
+
+
+def test_renders_reuse_memory_and_change_nothing():
+    scene = paper_scene(96, 96)
+    vertices = scene.meshes[0].vertices
+    vertices.requires_grad = True
+    _pass(scene, vertices)  # results dropped: their arrays go back to the pool
+    held = buffers.held_bytes()
+    assert held > 0
+    image_1, grad_1 = _pass(scene, vertices)
+    saved = image_1.copy(), grad_1.copy()
+    # The second pass of the same shapes took every large array from the pool ...
+    assert buffers.held_bytes() == held
+    image_2, grad_2 = _pass(scene, vertices)
+    # ... the third too, except those that the second pass's results (still held here)
+    # live in ...
+    np.testing.assert_array_equal(image_1, saved[0])
+    np.testing.assert_array_equal(grad_1, saved[1])
+    assert not np.shares_memory(image_1, image_2) and not np.shares_memory(grad_1, grad_2)
+    # ... and the values are those of a render without reuse, bit for bit.
+    buffers.set_max_bytes(0)
+    image_3, grad_3 = _pass(scene, vertices)
+    np.testing.assert_array_equal(image_2, image_3)
+    np.testing.assert_array_equal(grad_2, grad_3)
