@@ -69,7 +69,7 @@ from minidiff.tensor import (
 
 __all__ = [
     "Tensor", "tensor", "as_tensor", "no_grad", "detect_anomaly", "is_grad_enabled",
-    "unbroadcast", "kernels", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
+    "unbroadcast", "kernels", "buffers", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
     "jvp", "tangents",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul",
     "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
