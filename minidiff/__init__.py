@@ -69,8 +69,8 @@ from minidiff.tensor import (
 
 __all__ = [
     "Tensor", "tensor", "as_tensor", "no_grad", "detect_anomaly", "is_grad_enabled",
-    "unbroadcast", "kernels", "buffers", "grad", "value_and_grad", "check_grad", "numerical_grad", "optim",
-    "jvp", "tangents",
+    "unbroadcast", "kernels", "buffers", "grad", "value_and_grad", "check_grad",
+    "numerical_grad", "optim", "jvp", "tangents",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul",
     "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
     "where", "sum", "mean", "mean_squared_error", "max", "dot", "cross", "norm", "normalize",
