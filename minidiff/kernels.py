@@ -111,7 +111,21 @@ def gather_rows(x: np.ndarray, index: np.ndarray) -> np.ndarray:
     Shapes: x (n, ...), index (k,) with values in [-n, n); the result is (k, ...).
     ``np.take`` is ~4x faster than fancy indexing for rows (measured: 41k rows of 3).
     """
-    return np.take(x, index, axis=0)
+    n = x.shape[0]
+    if index.size and (index.min() < -n or index.max() >= n):
+        bad = index.max() if index.max() >= n else index.min()
+        raise IndexError(f"index {bad} is out of bounds for axis 0 with size {n}")
+    out = buffers.empty(index.shape + x.shape[1:], x.dtype)
+    # mode="wrap" maps [-n, 0) as Python does; it lets np.take write straight into ``out``
+    # (with the default mode="raise" it buffers the result first).
+    return np.take(x, index, axis=0, out=out, mode="wrap")
+
+
+def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Equals ``a @ b`` bit for bit (NumPy's matmul, into a reused array for 2-D operands)."""
+    if a.ndim != 2 or b.ndim != 2 or a.shape[1] != b.shape[0]:
+        return a @ b
+    return np.matmul(a, b, out=buffers.empty((a.shape[0], b.shape[1]), np.result_type(a, b)))
 
 
 def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:

@@ -220,7 +220,7 @@ def matmul(a: Any, b: Any) -> Tensor:
     """
     a, b = _pair(a, b)
     try:
-        out = a._data @ b._data
+        out = kernels.matmul(a._data, b._data)
     except ValueError:
         raise ValueError(f"matmul: shapes {a.shape} and {b.shape} are not aligned") from None
 
@@ -725,9 +725,9 @@ def getitem(x: Any, index: Any) -> Tensor:
         raise IndexError(f"getitem: {error} (indexing a tensor of shape {x.shape})") from None
 
     if row_gather:
-        rows = np.where(index < 0, index + x.shape[0], index) if index.size else index
 
         def vjp(g):
+            rows = np.where(index < 0, index + x.shape[0], index) if index.size else index
             return (kernels.scatter_add_rows(rows, g, x.shape[0]),)
 
     elif _has_integer_array(index):

@@ -140,6 +140,29 @@ def test_gather_rows_equals_fancy_indexing(n, trailing, k, seed):
     assert_identical(kernels.gather_rows(x, index), x[index])
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_large_gathers_and_products_equal_numpy(dtype):
+    # Large enough for reused output arrays (minidiff.buffers); two calls, the first result
+    # kept, so the second cannot write into it.
+    rng = np.random.default_rng(3)
+    x = values(rng, (30_000, 3), dtype)
+    m = values(rng, (3, 3), dtype)
+    index = rng.integers(-30_000, 30_000, size=40_000)
+    first = kernels.gather_rows(x, index)
+    assert_identical(kernels.gather_rows(x, index[::-1]), x[index[::-1]])
+    assert_identical(first, x[index])
+    first = kernels.matmul(x, m)
+    assert_identical(kernels.matmul(x[::-1], m), x[::-1] @ m)
+    assert_identical(first, x @ m)
+    assert_identical(kernels.matmul(m[0], m), m[0] @ m)  # 1-D: NumPy's own product
+
+
+@pytest.mark.parametrize("bad", [5, -6, 100])
+def test_gather_rows_out_of_range_raises(bad):
+    with pytest.raises(IndexError, match=f"index {bad} is out of bounds for axis 0 with size 5"):
+        kernels.gather_rows(np.zeros((5, 3)), np.array([0, bad]))
+
+
 # ---------------------------------------------------------------------------------------------
 # scatter_add_rows: equals np.add.at in float64, rounded once
 # ---------------------------------------------------------------------------------------------
