@@ -148,13 +148,13 @@ def make_leaves(w: dict) -> dict:
 
 def minidiff_forward(w: dict, leaves: dict) -> md.Tensor:
     """The renderer's own per-hit code on the tape (``render.renderer.shade_mesh``, exactly
-    what ``render.render`` runs for a mesh) and the MSE loss."""
+    what ``render.render`` runs for a mesh) and the MSE loss (``md.mean_squared_error``, as
+    ``render.mse``)."""
     d = md.Tensor(w["directions"])  # constant here (the renderer derives it from the camera)
     radiance, _ = shade_mesh(
         leaves["mesh"], w["faces_hit"], leaves["eye"], d, [leaves["light"]], [w["lit"]]
     )
-    diff = radiance - w["target"]
-    return md.mean(diff * diff)
+    return md.mean_squared_error(radiance, w["target"])  # the loss render.mse uses
 
 
 # --------------------------------------------------------------------------------------

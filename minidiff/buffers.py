@@ -22,6 +22,7 @@ everything; ``set_max_bytes(0)`` turns reuse off.
 
 from __future__ import annotations
 
+import math
 import sys
 import threading
 from collections import OrderedDict
@@ -48,10 +49,11 @@ def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     Large arrays are reused from earlier calls once nothing else refers to them.
     """
     dtype = np.dtype(dtype)
-    nbytes = dtype.itemsize * int(np.prod(shape, dtype=np.int64))
+    shape = tuple(int(n) for n in shape)
+    nbytes = dtype.itemsize * math.prod(shape)
     if nbytes < MIN_BYTES or nbytes > _max_bytes:
         return np.empty(shape, dtype)
-    key = (tuple(shape), dtype)
+    key = (shape, dtype)
     global _held_bytes
     with _lock:
         arrays = _pool.get(key)
