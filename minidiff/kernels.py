@@ -27,6 +27,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+import numba
 import numpy as np
 
 from minidiff import buffers
@@ -81,6 +82,9 @@ def dot_last(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         # (a0 b0 + a1 b1) + a2 b2, into reused buffers.
         shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
         out = buffers.empty(shape, np.result_type(a, b))
+        if _rows_of_three(a, b):
+            _dot_rows(a, b, out)  # the same operations in one pass over the rows
+            return out
         term = buffers.empty(shape, out.dtype)
         np.multiply(a[..., 0], b[..., 0], out=out)
         np.add(out, np.multiply(a[..., 1], b[..., 1], out=term), out=out)
@@ -94,15 +98,53 @@ def cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     Shapes: (..., 3) and (..., 3), broadcast; the result is their broadcast shape. Written
     out because ``np.cross`` first copies (and moves the axes of) its inputs.
     """
+    out = buffers.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    if _rows_of_three(a, b):
+        _cross_rows(a, b, out)  # the same operations in one pass over the rows
+        return out
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = buffers.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
     term = buffers.empty(out.shape[:-1], out.dtype)
     for j, (p, q, r, s) in enumerate(((a1, b2, a2, b1), (a2, b0, a0, b2), (a0, b1, a1, b0))):
         # out_j = p q - r s, the products formed into reused buffers
         np.multiply(p, q, out=out[..., j])
         np.subtract(out[..., j], np.multiply(r, s, out=term), out=out[..., j])
     return out
+
+
+def _rows_of_three(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether a and b are both (k, 3) float arrays of one dtype, with k large enough for the
+    compiled loops below to pay off (the renderer's hit points, normals and directions)."""
+    return (
+        a.ndim == 2
+        and a.shape == b.shape
+        and a.shape[1] == 3
+        and a.shape[0] >= _SMALL // 6
+        and a.dtype == b.dtype
+        and a.dtype in (np.float32, np.float64)
+    )
+
+
+# NumPy applies each operation of dot_last and cross3 to a whole column of a (k, 3) array, a
+# strided pass over memory per operation (5 for a dot product, 9 for a cross product). These
+# loops do the same operations, in the same order and precision (no fused multiply-add:
+# Numba does not contract without fastmath), row by row in one pass: 3-5x faster for k = 41k.
+
+
+@numba.njit(cache=True)
+def _dot_rows(a, b, out):
+    for i in range(a.shape[0]):
+        out[i] = a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
+
+
+@numba.njit(cache=True)
+def _cross_rows(a, b, out):
+    for i in range(a.shape[0]):
+        a0, a1, a2 = a[i, 0], a[i, 1], a[i, 2]
+        b0, b1, b2 = b[i, 0], b[i, 1], b[i, 2]
+        out[i, 0] = a1 * b2 - a2 * b1
+        out[i, 1] = a2 * b0 - a0 * b2
+        out[i, 2] = a0 * b1 - a1 * b0
 
 
 def gather_rows(x: np.ndarray, index: np.ndarray) -> np.ndarray:

@@ -140,6 +140,19 @@ def test_gather_rows_equals_fancy_indexing(n, trailing, k, seed):
     assert_identical(kernels.gather_rows(x, index), x[index])
 
 
+@pytest.mark.parametrize(
+    "dtypes", [(np.float32, np.float32), (np.float64, np.float64), (np.float32, np.float64)]
+)
+def test_dot_and_cross_of_strided_rows_equal_numpy(dtypes):
+    # Views with row and column strides (the compiled row loops take any strides) and a
+    # mixed pair (NumPy's column path).
+    rng = np.random.default_rng(5)
+    a = values(rng, (8000, 5), dtypes[0])[::2, 1:4]
+    b = values(rng, (4000, 3), dtypes[1])[::-1]
+    assert_identical(kernels.dot_last(a, b), np.sum(a * b, axis=-1))
+    assert_identical(kernels.cross3(a, b), np.cross(a, b))
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_large_gathers_and_products_equal_numpy(dtype):
     # Large enough for reused output arrays (minidiff.buffers); two calls, the first result
