@@ -13,9 +13,9 @@ cosine max(0, n.l), the radiance, and finally a mean-squared loss against a fixe
 Two implementations of exactly that math:
 
 * ``numpy_forward``: plain NumPy, no tape: the *floor* that a tape-based forward pass
-  cannot beat. It uses the same NumPy kernels as minidiff's primitives
-  (``minidiff.kernels``: the written-out dot and cross products, the column-at-a-time
-  broadcasting), so the ratio isolates the tape's overhead.
+  cannot beat. It uses the same kernels as minidiff's primitives (``minidiff.kernels``:
+  the dot and cross products of (k, 3) rows in one compiled pass, the column-at-a-time
+  broadcasting, outputs in reused memory), so the ratio isolates the tape's overhead.
 * ``minidiff_forward``: the renderer's own on-tape functions (``render.geometry.
   shade_mesh``, which calls ``render.geometry`` and ``render.shading``), with the
   vertices, the camera position, the light position and intensity and the albedo as leaves
@@ -100,7 +100,7 @@ def _normalize(x):
 def numpy_forward(w: dict, return_radiance: bool = False):
     """The floor: the same math as ``render.renderer.shade_mesh`` (flat-shaded mesh, one
     point light, Lambert) and the loss, in plain NumPy with the same fast building blocks
-    (np.take gathers and ``minidiff.kernels``: the unrolled dot and cross, the
+    (np.take gathers and ``minidiff.kernels``: the compiled dot and cross, the
     column-at-a-time broadcasting ``elementwise`` for (k, 3) op (3,) and (k, 1) op (k, 3)),
     no tape."""
     v, d, eye = w["vertices"], w["directions"], w["eye"]

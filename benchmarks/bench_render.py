@@ -573,9 +573,9 @@ def make_report(r: dict, out) -> dict:
         "Breakdown of a full forward: "
         + ", ".join(f"{k} {val:.1f} ms" for k, val in parts.items())
         + f"; full forward - their sum = {rest:.1f} ms: what the parts leave out, chiefly "
-        "the hits' surfaces recomputed (the cached-visibility row reuses them; cProfile of a "
-        "forward render put them at ~9 ms), the set-up of the shadow rays and the hits' "
-        "image coordinates, composing the image and page faults.",
+        "the hits' surfaces recomputed on the tape (the cached-visibility row reuses them), "
+        "the set-up of the shadow rays and the hits' image coordinates, and composing the "
+        "image.",
         "Largest own times in cProfile of one forward+backward: "
         + "; ".join(f"{p['function']} {p['own_ms']:.1f} ms ({100 * p['share']:.0f}%)" for p in top),
         "Memory: tracemalloc = NumPy/Python allocations alive at the peak of the call; RSS = "

@@ -184,7 +184,8 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
         # 0.0 + (-0.0) = +0.0, which adding 0 reproduces. One write instead of a bincount
         # per column (a renderer putting each hit's colour into its pixel: ~3x faster).
         out = buffers.zeros((n,) + values.shape[1:], values.dtype)
-        out[index] = values + values.dtype.type(0)
+        plus_zero = buffers.empty(values.shape, values.dtype)
+        out[index] = np.add(values, values.dtype.type(0), out=plus_zero)
         return out
     # An explicit column count, not -1: reshape cannot infer -1 when there are no rows.
     rows = values.reshape(len(index), int(np.prod(values.shape[1:], dtype=np.int64)))

@@ -23,6 +23,7 @@ import numba
 import numpy as np
 
 import minidiff as md
+from minidiff import buffers
 from render.scene import Camera
 
 
@@ -63,11 +64,25 @@ def image_plane_coords(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.ndar
     Ray r belongs to pixel r // spp (row-major, row 0 at the top) and sample r % spp.
     """
     offsets = subpixel_offsets(spp)
-    pixel, sample = np.divmod(ray_ids, spp)
-    py, px = np.divmod(pixel, camera.width)
-    x = 2.0 * (px + offsets[sample, 0]) / camera.width - 1.0
-    y = 1.0 - 2.0 * (py + offsets[sample, 1]) / camera.height
-    return np.stack([x, y], axis=1)
+    ids = np.ascontiguousarray(ray_ids, dtype=np.int64)
+    out = buffers.empty((len(ids), 2), np.float64)
+    _image_plane_coords(ids, camera.width, camera.height, spp, offsets, out)
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def pixel_xy(px, py, ox, oy, width, height):
+    """Image-plane (x, y) of sub-pixel (ox, oy) of pixel (px, py), in the one order of
+    operations every kernel uses."""
+    return 2.0 * (px + ox) / width - 1.0, 1.0 - 2.0 * (py + oy) / height
+
+
+@numba.njit(cache=True)
+def _image_plane_coords(ray_ids, width, height, spp, offsets, out):
+    for i in range(ray_ids.shape[0]):
+        pixel, s = divmod(ray_ids[i], spp)
+        py, px = divmod(pixel, width)
+        out[i, 0], out[i, 1] = pixel_xy(px, py, offsets[s, 0], offsets[s, 1], width, height)
 
 
 def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
@@ -77,7 +92,9 @@ def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
     forward]: one BLAS call and one tape node instead of four (k, 3) operations.
     """
     forward, right, up, _ = frame
-    homogeneous = np.concatenate([coords, np.ones((len(coords), 1), coords.dtype)], axis=1)
+    homogeneous = buffers.empty((len(coords), 3), coords.dtype)  # [x, y, 1] per row
+    homogeneous[:, :2] = coords
+    homogeneous[:, 2] = 1
     return homogeneous @ md.stack([right, up, forward])
 
 
@@ -86,8 +103,7 @@ def pixel_ray(px, py, ox, oy, width, height, forward, right, up):
     """The direction (dx, dy, dz) of the camera ray through sub-pixel (ox, oy) of pixel
     (px, py): the module docstring's formula, in the one order of operations every kernel
     uses (so that all of them produce the same bits)."""
-    x = 2.0 * (px + ox) / width - 1.0
-    y = 1.0 - 2.0 * (py + oy) / height
+    x, y = pixel_xy(px, py, ox, oy, width, height)
     return (
         forward[0] + x * right[0] + y * up[0],
         forward[1] + x * right[1] + y * up[1],
@@ -111,8 +127,7 @@ def _primary_directions(width, height, offsets, forward, right, up):
 
 
 @numba.njit(cache=True)
-def _ray_directions(ray_ids, width, spp, height, offsets, forward, right, up):
-    out = np.empty((ray_ids.shape[0], 3))
+def _ray_directions(ray_ids, width, spp, height, offsets, forward, right, up, out):
     for i in range(ray_ids.shape[0]):
         pixel, s = divmod(ray_ids[i], spp)
         py, px = divmod(pixel, width)
@@ -135,7 +150,9 @@ def some_ray_directions(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.nda
     forward, right, up, _ = plain_frame(camera)
     ids = np.ascontiguousarray(ray_ids, dtype=np.int64)
     offsets = subpixel_offsets(spp)
-    return _ray_directions(ids, camera.width, spp, camera.height, offsets, forward, right, up)
+    out = buffers.empty((len(ids), 3), np.float64)
+    _ray_directions(ids, camera.width, spp, camera.height, offsets, forward, right, up, out)
+    return out
 
 
 def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import minidiff as md
+from minidiff import buffers
 from render.cache import RenderCache, cache_for, surface_key
 from render.camera import camera_frame, ray_directions, subpixel_offsets
 from render.edges import EdgePairs, add_to_samples, crossings, edge_updates, in_order
@@ -177,7 +178,8 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
     coords = primary.coords.astype(dtype, copy=False)
     hit_prims = primary.prim_id[primary.hit_rays]
 
-    texel = np.full(primary.prim_id.size, -1, dtype=np.int64)
+    texel = buffers.empty((primary.prim_id.size,), np.int64)  # reused memory (no faults)
+    texel.fill(-1)
     colours, rays, shaded = [], [], {}
     for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
         in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))

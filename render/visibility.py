@@ -17,8 +17,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
+from minidiff import buffers
 from render.accel import Accelerator
 from render.cache import RenderCache, camera_key, light_key
 from render.camera import image_plane_coords, plain_frame, primary_rays, some_ray_directions
@@ -101,7 +103,9 @@ def trace_primary(
         )
         hit_rays = np.flatnonzero(prim_id >= 0)
         directions = all_directions[hit_rays]
-    points = eye + t[hit_rays, None] * directions
+    # eye + t d, written into reused memory (fresh pages on every render cost page faults)
+    points = buffers.empty(directions.shape, np.float64)
+    points = np.add(eye, np.multiply(t[hit_rays, None], directions, out=points), out=points)
     # The camera directions have unit component along the view axis: t is the depth.
     coords = image_plane_coords(camera, hit_rays, spp)
     return PrimaryHits(prim_id, hit_rays, t, points, coords)
@@ -121,7 +125,7 @@ class ShadowRays:
 def shadow_offset(points: np.ndarray, scene_size: float, light_position=None) -> float:
     """How far above the surface the shadow rays start (see ``SHADOW_EPSILON``): one
     distance for all of them, from the largest coordinate involved."""
-    magnitude = float(np.abs(points).max()) if len(points) else 0.0
+    magnitude = float(max(points.max(), -points.min())) if len(points) else 0.0  # max |x|
     if light_position is not None:
         magnitude = max(magnitude, float(np.abs(light_position).max()))
     return max(SHADOW_EPSILON * scene_size, SHADOW_ULPS * np.finfo(np.float64).eps * magnitude)
@@ -138,18 +142,12 @@ def shadow_rays(
     ``scene_size`` is the diagonal of the geometry's bounding box."""
     if isinstance(light, PointLight):
         position = np.asarray(light.position.data, dtype=np.float64)
-        to_light = position - points
-        distance = np.sqrt(np.einsum("ij,ij->i", to_light, to_light))
         offset = shadow_offset(points, scene_size, position)
-        # A light on (or within the offset of) the hit point: nothing can come between; its
-        # contribution is zero or nearly so (see shading), so call it lit (tmax = 0).
-        near = distance <= 2.0 * offset
-        fraction = offset / np.where(near, 1.0, distance)  # of the way to the light
-        origins = points + fraction[:, None] * to_light
-        # Unnormalised direction to the light: t = 1 is the light itself.
-        directions = position - origins
-        directions[near] = (0.0, 1.0, 0.0)
-        tmax = np.where(near, 0.0, 1.0 - fraction / (1.0 - fraction))
+        points = np.asarray(points, np.float64)
+        origins = buffers.empty(points.shape, np.float64)
+        directions = buffers.empty(points.shape, np.float64)
+        tmax = buffers.empty(points.shape[:1], np.float64)
+        _point_light_rays(position, points, offset, origins, directions, tmax)
     elif isinstance(light, DirectionalLight):
         # Unit length: the user's direction may have any length.
         towards = -np.asarray(light.direction.data, np.float64)
@@ -165,6 +163,34 @@ def shadow_rays(
     # behind the ray, and the offset removes the start point itself.
     ignore = np.where(start_prim < n_triangles, start_prim, -1)
     return ShadowRays(origins, directions, tmax, ignore)
+
+
+@numba.njit(cache=True)
+def _point_light_rays(position, points, offset, origins, directions, tmax):
+    """Shadow rays towards a point light, one pass over the points (k, 3): each starts
+    ``offset`` towards the light and ends just before it (``shadow_rays``)."""
+    for i in range(points.shape[0]):
+        tx = position[0] - points[i, 0]
+        ty = position[1] - points[i, 1]
+        tz = position[2] - points[i, 2]
+        distance = np.sqrt(tx * tx + ty * ty + tz * tz)
+        if distance <= 2.0 * offset:
+            # A light on (or within the offset of) the hit point: nothing can come between;
+            # its contribution is zero or nearly so (see shading), so call it lit (tmax = 0).
+            fraction = offset
+            directions[i, 0], directions[i, 1], directions[i, 2] = 0.0, 1.0, 0.0
+            tmax[i] = 0.0
+        else:
+            fraction = offset / distance  # of the way to the light
+            tmax[i] = 1.0 - fraction / (1.0 - fraction)
+        origins[i, 0] = points[i, 0] + fraction * tx
+        origins[i, 1] = points[i, 1] + fraction * ty
+        origins[i, 2] = points[i, 2] + fraction * tz
+        if distance > 2.0 * offset:
+            # Unnormalised direction to the light: t = 1 is the light itself.
+            directions[i, 0] = position[0] - origins[i, 0]
+            directions[i, 1] = position[1] - origins[i, 1]
+            directions[i, 2] = position[2] - origins[i, 2]
 
 
 def scene_size(primitives: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
