@@ -283,30 +283,16 @@ def _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bi
 
 
 @njit(cache=True, error_model="numpy")
-def _subdivide(
-    root,
-    level,
-    next_free,
-    node_bounds,
-    node_first,
-    node_count,
-    order,
-    prim_min,
-    prim_max,
-    centroid,
-    n_bins,
-    max_leaf_size,
-    c_trav,
-    defer_below,
-    deferred,
-    deferred_level,
-):
+def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred, deferred_level):
     """Split the subtree under ``root`` (at ``level``, root = 1) until its leaves are final.
 
-    The node ``root`` must already hold its range of ``order`` (``node_first``/``node_count``)
-    and its box.  New nodes are allocated as pairs from ``next_free`` on.  Nodes with fewer
-    than ``defer_below`` primitives are not split but appended to ``deferred`` (with their
-    level in ``deferred_level``) for a later call; ``defer_below = 0`` builds everything.
+    ``tree`` = (node_bounds, node_first, node_count, order), the arrays being built;
+    ``boxes`` = (prim_min, prim_max, centroid) of the primitives; ``rule`` = (n_bins,
+    max_leaf_size, c_trav), the split rule.  The node ``root`` must already hold its range
+    of ``order`` (``node_first``/``node_count``) and its box.  New nodes are allocated as
+    pairs from ``next_free`` on.  Nodes with fewer than ``defer_below`` primitives are not
+    split but appended to ``deferred`` (with their level in ``deferred_level``) for a later
+    call; ``defer_below = 0`` builds everything.
     Returns ``(next_free, depth, n_deferred)``.
 
     Top-down with an explicit stack: a node is split at its cheapest binned-SAH plane,
@@ -314,6 +300,9 @@ def _subdivide(
     node whose centroids all coincide (duplicated primitives) cannot be split by a plane; if
     it is too big it is split in the middle of its index range instead.
     """
+    node_bounds, node_first, node_count, order = tree
+    prim_min, prim_max, centroid = boxes
+    n_bins, max_leaf_size, c_trav = rule
     scratch = split_scratch(n_bins)
     depth = level
     n_deferred = 0
@@ -378,22 +367,7 @@ def _subdivide(
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def _subdivide_in_parallel(
-    tasks,
-    task_level,
-    task_worker,
-    task_free,
-    task_end,
-    task_depth,
-    node_bounds,
-    node_first,
-    node_count,
-    order,
-    prim_min,
-    prim_max,
-    centroid,
-    n_bins,
-    max_leaf_size,
-    c_trav,
+    tasks, task_level, task_worker, task_free, task_end, task_depth, tree, boxes, rule
 ):
     """Build the subtrees under the nodes ``tasks`` at once, one ``_subdivide`` each.
 
@@ -407,22 +381,7 @@ def _subdivide_in_parallel(
         for i in range(tasks.shape[0]):
             if task_worker[i] == w:
                 task_end[i], task_depth[i], _ = _subdivide(
-                    tasks[i],
-                    task_level[i],
-                    task_free[i],
-                    node_bounds,
-                    node_first,
-                    node_count,
-                    order,
-                    prim_min,
-                    prim_max,
-                    centroid,
-                    n_bins,
-                    max_leaf_size,
-                    c_trav,
-                    0,
-                    unused,
-                    unused,
+                    tasks[i], task_level[i], task_free[i], tree, boxes, rule, 0, unused, unused
                 )
 
 
@@ -488,23 +447,11 @@ def build_bvh(
     defer_below = max(P // TASKS_PER_BUILD, 2 * max_leaf_size) if P >= parallel_min_prims else 0
     tasks = np.empty(P if defer_below else 0, np.int64)
     task_level = np.empty_like(tasks)
+    tree = (node_bounds, node_first, node_count, order)
+    boxes = (prim_min, prim_max, centroid)
+    rule = (n_bins, max_leaf_size, float(c_trav))
     nodes_used, depth, n_tasks = _subdivide(
-        0,
-        1,
-        1,
-        node_bounds,
-        node_first,
-        node_count,
-        order,
-        prim_min,
-        prim_max,
-        centroid,
-        n_bins,
-        max_leaf_size,
-        c_trav,
-        defer_below,
-        tasks,
-        task_level,
+        0, 1, 1, tree, boxes, rule, defer_below, tasks, task_level
     )
     if n_tasks:
         tasks = tasks[:n_tasks]
@@ -513,23 +460,17 @@ def build_bvh(
         task_free = nodes_used + np.cumsum(region) - region
         task_end = np.empty(n_tasks, np.int64)
         task_depth = np.empty(n_tasks, np.int64)
+        workers = deal_out(node_count[tasks], numba.get_num_threads())
         _subdivide_in_parallel(
             tasks,
             task_level[:n_tasks],
-            deal_out(node_count[tasks], numba.get_num_threads()),
+            workers,
             task_free,
             task_end,
             task_depth,
-            node_bounds,
-            node_first,
-            node_count,
-            order,
-            prim_min,
-            prim_max,
-            centroid,
-            n_bins,
-            max_leaf_size,
-            c_trav,
+            tree,
+            boxes,
+            rule,
         )
         depth = max(depth, int(task_depth.max()))
         nodes_used = _close_gaps(
