@@ -63,6 +63,31 @@ def elementwise(op: Callable, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 _FLOAT_TO_FLOAT = {np.add, np.subtract, np.multiply, np.divide, np.maximum, np.minimum, np.power}
 
 
+def clip(x: np.ndarray, lo, hi) -> np.ndarray:
+    """Equals ``np.clip(x, lo, hi)`` bit for bit (into reused memory when lo and hi are
+    Python numbers or 0-d arrays of x's dtype: the result then has x's shape and dtype)."""
+    if x.dtype.kind != "f" or not all(_scalar_of(v, x.dtype) for v in (lo, hi)):
+        return np.clip(x, lo, hi)
+    return np.clip(x, lo, hi, out=buffers.empty(x.shape, x.dtype))
+
+
+def _scalar_of(v, dtype: np.dtype) -> bool:
+    """Whether v leaves np.clip's result dtype at ``dtype``: a Python int or float (NumPy
+    treats those as weak), or a 0-d array of that dtype."""
+    if isinstance(v, bool):
+        return False
+    if isinstance(v, int | float):
+        return True
+    return isinstance(v, np.ndarray) and v.ndim == 0 and v.dtype == dtype
+
+
+def negative(x: np.ndarray) -> np.ndarray:
+    """Equals ``-x`` bit for bit (into reused memory for large float arrays)."""
+    if x.dtype.kind != "f" or x.size < _SMALL:
+        return -x
+    return np.negative(x, out=buffers.empty(x.shape, x.dtype))
+
+
 def _last_axis_column(x: np.ndarray, j: int) -> np.ndarray:
     """Column j of x along the last axis, or its only column if x is broadcast there."""
     if x.ndim == 0:

@@ -149,7 +149,7 @@ def subtract(a: Any, b: Any) -> Tensor:
         "subtract",
         out,
         (a, b),
-        lambda g: (g, -g if b.requires_grad else None),
+        lambda g: (g, kernels.negative(g) if b.requires_grad else None),
         jvp=lambda ta, tb: _plus(ta, None if tb is None else -tb),
     )
 
@@ -372,7 +372,7 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     # int64/float64 arrays) so that NumPy treats them as weak and float32 stays float32.
     lo_v, hi_v = (v._data if isinstance(v, Tensor) else v for v in (lo, hi))
     try:
-        out = np.clip(x._data, lo_v, hi_v)
+        out = kernels.clip(x._data, lo_v, hi_v)
     except ValueError:
         raise ValueError(
             f"clip: cannot broadcast x {x.shape}, lo {np.shape(lo_v)} and hi {np.shape(hi_v)}"
@@ -461,14 +461,14 @@ def mean_squared_error(a: Any, b: Any) -> Tensor:
         raise ValueError("mean_squared_error: no elements to average (empty arrays)")
     diff = _broadcast_op("mean_squared_error", np.subtract, a, b)
     n = diff.size
-    out = np.asarray(np.mean(diff * diff))
+    out = np.asarray(np.mean(kernels.elementwise(np.multiply, diff, diff)))
 
     def vjp(g):
         # (g/n) d + (g/n) d, as multiply's VJP gives it for d * d (2x is exact), summed in
         # place: one image-sized array instead of two.
         grad = kernels.elementwise(np.multiply, diff, g / n)
         np.add(grad, grad, out=grad)
-        return grad, (-grad if b.requires_grad else None)
+        return grad, (kernels.negative(grad) if b.requires_grad else None)
 
     def jvp(ta, tb):
         dt = _plus(ta, None if tb is None else -tb)
@@ -596,7 +596,7 @@ def normalize(x: Any) -> Tensor:
 
     def project(g):  # the Jacobian (I - y y^T) / |x| is symmetric: the VJP's g and the JVP's t
         along = kernels.elementwise(np.multiply, y, kernels.dot_last(y, g)[..., None])
-        return kernels.elementwise(np.multiply, g - along, inv)
+        return kernels.elementwise(np.multiply, kernels.elementwise(np.subtract, g, along), inv)
 
     return record("normalize", y, (x,), lambda g: (project(g),), saves_output=True, jvp=project)
 

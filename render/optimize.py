@@ -30,7 +30,7 @@ def image_loss(image: md.Tensor, target: np.ndarray) -> md.Tensor:
     (what a camera or an 8-bit file would record), and the target. Saturated pixels pass
     no gradient, as in any renderer whose output is clipped. The target is clipped the same
     way, so a render of the true scene has zero loss."""
-    return mse(md.clip(image, 0.0, 1.0), np.clip(target, 0.0, 1.0))
+    return mse(md.clip(image, 0.0, 1.0), md.kernels.clip(np.asarray(target), 0.0, 1.0))
 
 
 @dataclass

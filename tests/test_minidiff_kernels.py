@@ -170,6 +170,37 @@ def test_large_gathers_and_products_equal_numpy(dtype):
     assert_identical(kernels.matmul(m[0], m), m[0] @ m)  # 1-D: NumPy's own product
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=hnp.array_shapes(min_dims=0, max_dims=3, max_side=40),
+    dtype=st.sampled_from([np.float32, np.float64, np.int64]),
+    bounds=st.sampled_from([(0.0, 1.0), (0, 1), (-0.5, 0.25), ("a0", "a1"), ("v", "v")]),
+    large=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_clip_and_negative_equal_numpy(shape, dtype, bounds, large, seed):
+    # Bounds: Python floats or ints, 0-d arrays of x's dtype ("a0", "a1"), or arrays that
+    # broadcast against x ("v"); large arrays take reused memory.
+    rng = np.random.default_rng(seed)
+    if large:
+        shape = (30_000, 3)
+    x = values(rng, shape, np.float64) * 2
+    x = x.astype(dtype) if dtype != np.int64 else np.round(x * 10).astype(np.int64)
+    if bounds == ("a0", "a1"):
+        lo, hi = np.array(-0.5, dtype=x.dtype), np.array(0.5, dtype=x.dtype)
+    elif bounds == ("v", "v"):
+        lo, hi = -np.abs(values(rng, shape[-1:], np.float64)), np.ones(shape[-1:])
+    else:
+        lo, hi = bounds
+    first = kernels.clip(x, lo, hi)
+    assert_identical(kernels.clip(x[::-1] if x.ndim else x, lo, hi),
+                     np.clip(x[::-1] if x.ndim else x, lo, hi))  # fmt: skip
+    assert_identical(first, np.clip(x, lo, hi))
+    negated = kernels.negative(x)
+    assert_identical(kernels.negative(x + 1), -(x + 1))
+    assert_identical(negated, -x)
+
+
 @pytest.mark.parametrize("bad", [5, -6, 100])
 def test_gather_rows_out_of_range_raises(bad):
     with pytest.raises(IndexError, match=f"index {bad} is out of bounds for axis 0 with size 5"):
