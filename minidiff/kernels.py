@@ -201,20 +201,19 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
     Shapes: index (k,) integers in [0, n), values (k, ...); the result is (n, ...) of
     ``values.dtype``. Repeated indices accumulate, in the order of ``index``. The sums are
     formed in float64 and rounded to ``values.dtype`` once at the end (bit for bit equal to
-    ``np.add.at`` on a float64 array, then ``astype``), because ``np.bincount``, several
-    times faster than ``np.add.at`` (which is unbuffered), works in float64.
+    ``np.add.at`` on a float64 array, then ``astype``). Float values are added by one
+    compiled loop over the rows (``np.add.at`` is unbuffered and slow; the ``np.bincount``
+    per column that other dtypes use makes one pass per column).
     """
-    if _all_distinct(index, n):
-        # Each row receives one value: a sum from zero is that value, except that
-        # 0.0 + (-0.0) = +0.0, which adding 0 reproduces. One write instead of a bincount
-        # per column (a renderer putting each hit's colour into its pixel: ~3x faster).
-        out = buffers.zeros((n,) + values.shape[1:], values.dtype)
-        plus_zero = buffers.empty(values.shape, values.dtype)
-        out[index] = np.add(values, values.dtype.type(0), out=plus_zero)
-        return out
     # An explicit column count, not -1: reshape cannot infer -1 when there are no rows.
     rows = values.reshape(len(index), int(np.prod(values.shape[1:], dtype=np.int64)))
     cols = rows.shape[1]
+    if values.dtype.kind == "f":
+        sums = buffers.zeros((n, cols), np.float64)
+        if not _add_rows_at(np.ascontiguousarray(index, np.int64), rows, sums):
+            raise IndexError(f"scatter_add_rows: an index is outside [0, {n})")
+        out = sums if values.dtype == np.float64 else sums.astype(values.dtype)
+        return out.reshape((n,) + values.shape[1:])
     out = np.empty((n, cols), dtype=values.dtype)
     if cols <= 4:
         for j in range(cols):
@@ -225,11 +224,18 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
     return out.reshape((n,) + values.shape[1:])
 
 
-def _all_distinct(index: np.ndarray, n: int) -> bool:
-    """Whether no value repeats in ``index`` (k,), all in [0, n): one pass over n flags."""
-    seen = np.zeros(n, dtype=np.bool_)
-    seen[index] = True
-    return int(np.count_nonzero(seen)) == len(index)
+@numba.njit(cache=True)
+def _add_rows_at(index, rows, sums):
+    """sums[index[i]] += rows[i] for i in order (in float64); False if an index is outside
+    sums (nothing is written past it)."""
+    n = sums.shape[0]
+    for i in range(index.shape[0]):
+        r = index[i]
+        if r < 0 or r >= n:
+            return False
+        for j in range(rows.shape[1]):
+            sums[r, j] += rows[i, j]
+    return True
 
 
 def sum_rows(rows: np.ndarray) -> np.ndarray:

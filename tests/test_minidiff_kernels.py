@@ -240,8 +240,8 @@ def test_scatter_add_rows_equals_add_at_in_float64(n, trailing, k, dtype, seed):
 def test_scatter_add_rows_with_distinct_indices_is_add_at_bit_for_bit(
     n, trailing, fraction, dtype, seed
 ):
-    """The one-write path (no index repeats): the same bits as np.add.at from zeros, sign
-    of zero included (0.0 + -0.0 = +0.0)."""
+    """No index repeats (a renderer putting each hit's colour into its pixel): the same bits
+    as np.add.at from zeros, sign of zero included (0.0 + -0.0 = +0.0)."""
     rng = np.random.default_rng(seed)
     index = rng.permutation(n)[: int(fraction * n)]
     v = values(rng, (len(index), *trailing), dtype)
@@ -250,6 +250,17 @@ def test_scatter_add_rows_with_distinct_indices_is_add_at_bit_for_bit(
     got = kernels.scatter_add_rows(index, v, n)
     assert_identical(got, expected.astype(dtype))
     np.testing.assert_array_equal(np.signbit(got), np.signbit(expected.astype(dtype)))
+
+
+def test_scatter_add_rows_of_other_dtypes_and_bad_indices():
+    index = np.array([2, 0, 2])
+    ints = np.array([[1, 2], [3, 4], [5, 6]])
+    expected = np.zeros((3, 2), np.int64)
+    np.add.at(expected, index, ints)
+    assert_identical(kernels.scatter_add_rows(index, ints, 3), expected)  # bincount path
+    for bad in ([0, 3, 1], [0, -1, 1]):
+        with pytest.raises(IndexError, match=r"outside \[0, 3\)"):
+            kernels.scatter_add_rows(np.array(bad), np.ones((3, 2)), 3)
 
 
 # ---------------------------------------------------------------------------------------------
