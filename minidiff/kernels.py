@@ -25,6 +25,7 @@ light-estimation iteration took 44 ms with it, 20 ms without).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import numba
@@ -79,6 +80,25 @@ def _scalar_of(v, dtype: np.dtype) -> bool:
     if isinstance(v, int | float):
         return True
     return isinstance(v, np.ndarray) and v.ndim == 0 and v.dtype == dtype
+
+
+def where(condition: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Equals ``np.where(condition, a, b)`` bit for bit, for arrays a and b (into reused
+    memory when the result is a large float array: b copied, then a where the condition
+    holds)."""
+    dtype = np.result_type(a, b)
+    shape = np.broadcast_shapes(condition.shape, a.shape, b.shape)
+    if dtype.kind != "f" or math.prod(shape) < _SMALL:
+        return np.where(condition, a, b)
+    out = buffers.empty(shape, dtype)
+    np.copyto(out, b)
+    np.copyto(out, a, where=condition)
+    return out
+
+
+def zeros_like(x: np.ndarray) -> np.ndarray:
+    """Equals ``np.zeros_like(x)`` (into reused memory for large arrays)."""
+    return buffers.zeros(x.shape, x.dtype)
 
 
 def negative(x: np.ndarray) -> np.ndarray:

@@ -392,7 +392,7 @@ def where(condition: Any, a: Any, b: Any) -> Tensor:
     cond = np.asarray(getattr(condition, "data", condition), dtype=bool)
     a, b = _pair(a, b)
     try:
-        out = np.where(cond, a._data, b._data)
+        out = kernels.where(cond, a._data, b._data)
     except ValueError:
         raise ValueError(
             f"where: cannot broadcast condition {cond.shape}, a {a.shape} and b {b.shape}"
@@ -590,8 +590,9 @@ def normalize(x: Any) -> Tensor:
     """
     x = as_tensor(x)
     _need_last_axis("normalize", x)
-    length = np.sqrt(kernels.dot_last(x._data, x._data))[..., None]
-    inv = np.divide(1.0, length, out=np.zeros_like(length), where=length > 0)
+    squared = kernels.dot_last(x._data, x._data)  # a fresh array: its root can go in place
+    length = np.sqrt(squared, out=squared if isinstance(squared, np.ndarray) else None)[..., None]
+    inv = np.divide(1.0, length, out=kernels.zeros_like(length), where=length > 0)
     y = kernels.elementwise(np.multiply, x._data, inv)
 
     def project(g):  # the Jacobian (I - y y^T) / |x| is symmetric: the VJP's g and the JVP's t

@@ -193,7 +193,7 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
             return sphere_surface(obj, eye, directions)
 
         hits = _reused_surface(scene, cache, visibility, index, obj, dtype, surface)
-        obj_lit = [mask[in_obj].astype(dtype) for mask in visibility.lit]
+        obj_lit = [_as_dtype(mask[in_obj], dtype) for mask in visibility.lit]
         colour, texel[primary.hit_rays[in_obj]] = shade_surface(
             hits, obj.material, scene.lights, obj_lit
         )
@@ -208,6 +208,13 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
         return None, np.zeros(0, np.int64), texel, shaded
     colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
     return colour, np.concatenate(rays), texel, shaded
+
+
+def _as_dtype(mask: np.ndarray, dtype) -> np.ndarray:
+    """``mask.astype(dtype)``, in reused memory (``minidiff.buffers``)."""
+    out = buffers.empty(mask.shape, dtype)
+    out[...] = mask
+    return out
 
 
 def _reused_surface(scene, cache, visibility, index, obj, dtype, compute) -> Surface:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from minidiff import buffers
 from render.geometry import Surface, column, mesh_surface
 from render.scene import DirectionalLight, Material, Mesh, PointLight
 
@@ -106,7 +107,8 @@ def appearance(material: Material, uv, k: int) -> Appearance:
     """The material at k hits with UVs ``uv`` (k, 2) (None when untextured): ``texture``
     replaces the albedo; ``specular_texture`` and ``ambient_texture`` multiply Ks and Ka,
     as an MTL file's map_Kd, map_Ks and map_Ka do."""
-    albedo, texel = material.albedo, np.full(k, -1, dtype=np.int64)
+    albedo, texel = material.albedo, buffers.empty((k,), np.int64)
+    texel.fill(-1)  # no texture cell
     if material.texture is not None:
         albedo = sample_texture(material.texture, uv)
         texel = texel_cell(material.texture.shape, uv.data)

@@ -201,6 +201,27 @@ def test_clip_and_negative_equal_numpy(shape, dtype, bounds, large, seed):
     assert_identical(negated, -x)
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    shapes=st.sampled_from([((30_000, 3), (30_000, 3), (30_000, 3)), ((30_000, 1), (30_000, 3),
+                            (3,)), ((30_000, 3), (), (30_000, 3)), ((5, 3), (5, 3), (3,))]),
+    dtypes=st.sampled_from([(np.float64, np.float64), (np.float32, np.float32),
+                            (np.float32, np.float64), (np.int64, np.int64)]),
+    seed=st.integers(0, 2**16),
+)  # fmt: skip
+def test_where_and_zeros_like_equal_numpy(shapes, dtypes, seed):
+    rng = np.random.default_rng(seed)
+    cond = rng.uniform(size=shapes[0]) < 0.5
+    a = values(rng, shapes[1], np.float64).astype(dtypes[0])
+    b = values(rng, shapes[2], np.float64).astype(dtypes[1])
+    first = kernels.where(cond, a, b)
+    assert_identical(kernels.where(~cond, a, b), np.where(~cond, a, b))
+    assert_identical(first, np.where(cond, a, b))
+    np.testing.assert_array_equal(np.signbit(first), np.signbit(np.where(cond, a, b)))
+    z = kernels.zeros_like(first)
+    assert_identical(z, np.zeros_like(first))
+
+
 @pytest.mark.parametrize("bad", [5, -6, 100])
 def test_gather_rows_out_of_range_raises(bad):
     with pytest.raises(IndexError, match=f"index {bad} is out of bounds for axis 0 with size 5"):
