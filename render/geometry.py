@@ -90,7 +90,10 @@ def toward_ray(normals, directions) -> np.ndarray:
     """
     normals = md.as_tensor(normals).data
     facing_away = np.einsum("ij,ij->i", normals, directions.data) > 0
-    return np.where(facing_away, -1.0, 1.0).astype(normals.dtype)[:, None]
+    signs = md.buffers.empty((len(facing_away), 1), normals.dtype)  # reused memory
+    signs.fill(1.0)
+    signs[facing_away] = -1.0
+    return signs
 
 
 # --------------------------------------------------------------------------------------
@@ -110,9 +113,10 @@ class Surface:
     uv: md.Tensor | None = None
 
 
-def _interpolate(weights, attribute, faces):
-    """Barycentric interpolation of a per-vertex attribute (V, n) at k hits: (k, n)."""
-    return sum(w * attribute[faces[:, i]] for i, w in enumerate(weights))
+def _interpolate(weights, attribute, corners):
+    """Barycentric interpolation of a per-vertex attribute (V, n) at k hits: (k, n).
+    ``corners``: the vertex ids (k,) of the hit faces' three corners."""
+    return sum(w * attribute[ids] for ids, w in zip(corners, weights, strict=True))
 
 
 def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
@@ -121,8 +125,9 @@ def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
     faces_hit (k,) local face ids from the BVH; eye (3,) or (k, 3) and directions (k, 3)
     the rays (tensors): the camera's, or reflected rays starting on another surface.
     """
-    faces = mesh.faces[faces_hit]
-    a, b, c = (mesh.vertices[faces[:, i]] for i in range(3))
+    # The vertex ids of the hit faces' corners, (k,) each (gathered into reused memory).
+    corners = [md.kernels.gather_rows(mesh.faces[:, i], faces_hit) for i in range(3)]
+    a, b, c = (mesh.vertices[ids] for ids in corners)
     e1, e2 = b - a, c - a
     # Barycentrics are needed only to interpolate vertex normals or UVs.
     textured = bool(mesh.material.textures)
@@ -135,8 +140,8 @@ def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
         weights = (column(1.0 - u - v), column(u), column(v))  # of corners a, b, c
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        normals = md.normalize(_interpolate(weights, vn, faces))
-    uv = _interpolate(weights, mesh.uvs, faces) if textured else None
+        normals = md.normalize(_interpolate(weights, vn, corners))
+    uv = _interpolate(weights, mesh.uvs, corners) if textured else None
     return Surface(points, normals * flip, directions, uv)
 
 

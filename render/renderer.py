@@ -176,7 +176,7 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
     primary, dtype = visibility.primary, working_dtype(scene)
     eye = frame[3]
     coords = primary.coords.astype(dtype, copy=False)
-    hit_prims = primary.prim_id[primary.hit_rays]
+    hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
 
     texel = buffers.empty((primary.prim_id.size,), np.int64)  # reused memory (no faults)
     texel.fill(-1)
@@ -187,7 +187,7 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
             continue
 
         def surface(obj=obj, first=first, in_obj=in_obj) -> Surface:
-            directions = ray_directions(frame, coords[in_obj])
+            directions = ray_directions(frame, md.kernels.gather_rows(coords, in_obj))
             if isinstance(obj, Mesh):
                 return mesh_surface(obj, hit_prims[in_obj] - first, eye, directions)
             return sphere_surface(obj, eye, directions)
