@@ -24,6 +24,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
+from render.cache import same
 from render.scene import Camera
 
 
@@ -126,33 +127,55 @@ def _primary_directions(width, height, offsets, forward, right, up):
     return out
 
 
-@numba.njit(cache=True)
-def _ray_directions(ray_ids, width, spp, height, offsets, forward, right, up, out):
-    for i in range(ray_ids.shape[0]):
-        pixel, s = divmod(ray_ids[i], spp)
-        py, px = divmod(pixel, width)
-        d = pixel_ray(px, py, offsets[s, 0], offsets[s, 1], width, height, forward, right, up)
-        out[i, 0], out[i, 1], out[i, 2] = d
-    return out
-
-
 def plain_frame(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The camera frame of ``camera_frame`` as plain float64 arrays (forward, right, up,
-    eye), for the visibility kernels."""
+    eye), for the visibility kernels (read-only: they may be returned again)."""
+    tensors = (camera.position, camera.look_at, camera.up, camera.fov)
+    key = [np.array(t.data) for t in tensors]  # copies: optimisers edit values in place
+    key.append(np.array([camera.width, camera.height] + [t.data.dtype.num for t in tensors]))
+    last_key, last_frame = _last_plain_frame
+    if last_key is not None and same(key, last_key):
+        return last_frame  # a render asks several times; ten tape operations each time add up
     with md.no_grad():
-        frame = camera_frame(camera)
-    return tuple(t.data.astype(np.float64) for t in frame)
+        frame = tuple(t.data.astype(np.float64) for t in camera_frame(camera))
+    for array in frame:
+        array.flags.writeable = False
+    _last_plain_frame[:] = [key, frame]
+    return frame
 
 
-def some_ray_directions(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.ndarray:
-    """(k, 3) the directions of the camera rays ``ray_ids`` (k,), bit for bit the rows of
-    ``primary_rays``' directions."""
-    forward, right, up, _ = plain_frame(camera)
+# The last camera values plain_frame was asked about, and its answer.
+_last_plain_frame: list = [None, None]
+
+
+def hits_along_rays(
+    camera: Camera, ray_ids: np.ndarray, t: np.ndarray, spp: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where the camera rays ``ray_ids`` (k,) end: points (k, 3) = eye + t[r] d_r, with the
+    directions of ``primary_rays`` and t (N,) per camera ray, and their image-plane coords
+    (k, 2) (as ``image_plane_coords``); one pass over the rays."""
+    forward, right, up, eye = plain_frame(camera)
     ids = np.ascontiguousarray(ray_ids, dtype=np.int64)
+    points = buffers.empty((len(ids), 3), np.float64)
+    coords = buffers.empty((len(ids), 2), np.float64)
     offsets = subpixel_offsets(spp)
-    out = buffers.empty((len(ids), 3), np.float64)
-    _ray_directions(ids, camera.width, spp, camera.height, offsets, forward, right, up, out)
-    return out
+    _hits_along_rays(ids, t, camera.width, camera.height, offsets, forward, right, up, eye,
+                     points, coords)  # fmt: skip
+    return points, coords
+
+
+@numba.njit(cache=True)
+def _hits_along_rays(ray_ids, t, width, height, offsets, forward, right, up, eye, points, coords):
+    spp = offsets.shape[0]
+    for i in range(ray_ids.shape[0]):
+        r = ray_ids[i]
+        pixel, s = divmod(r, spp)
+        py, px = divmod(pixel, width)
+        ox, oy = offsets[s, 0], offsets[s, 1]
+        coords[i, 0], coords[i, 1] = pixel_xy(px, py, ox, oy, width, height)
+        d = pixel_ray(px, py, ox, oy, width, height, forward, right, up)
+        for a in range(3):
+            points[i, a] = eye[a] + t[r] * d[a]
 
 
 def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:

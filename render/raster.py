@@ -7,19 +7,26 @@ primary visibility and ray tracing for secondary effects").
 
 1. Project: each primitive's bounding box on the screen, in pixels (a triangle's three
    corners; a sphere's eight box corners): the pixels with a sample inside it, widened by
-   a hundredth of a pixel (far more than rounding). A primitive reaching behind the eye's
-   plane gets the whole screen (a projection would be meaningless).
+   a hundredth of a pixel (far more than rounding), and a triangle's three edges as lines
+   on the screen. A primitive reaching behind the eye's plane gets the whole screen and no
+   edges (a projection would be meaningless).
 2. Bin: the screen is cut into TILE x TILE pixel tiles; each tile lists the primitives
-   whose box overlaps it, in increasing id (a counting pass, a prefix sum, a filling pass).
+   whose box overlaps it, nearest first (a counting pass, a prefix sum, a filling pass).
 3. Test: tiles in parallel (no two threads ever write the same sample); in each, every
-   listed primitive is tested against the rays of the samples in its box with *the same*
-   ray-primitive function the tracer uses (``render.intersect.intersect_prim``), and each
-   ray keeps the smallest (t, id), lower id first on a tie, as the BVH does.
+   listed primitive is tested against the rays of the samples in its box that lie within
+   its edges (give or take the hundredth of a pixel) and that have not already hit
+   something wholly in front of it, with *the same* ray-primitive function the tracer uses
+   (``render.intersect.intersect_prim``); each ray keeps the smallest (t, id), lower id
+   first on a tie, as the BVH does.
 
-Step 3 is the brute-force tracer restricted to candidates, and the boxes are conservative
-(a ray outside a triangle's projected box cannot hit it), so the ids, t, u and
-v are bit-identical to ``Accelerator.closest_hit`` (``tests/test_raster.py`` checks it on
+Step 3 is the brute-force tracer restricted to candidates, and the candidates are
+conservative (a ray outside a triangle's projected edges cannot hit it, nor can one that
+already hit something nearer than all of it win against that), so the ids, t, u and v
+are bit-identical to ``Accelerator.closest_hit`` (``tests/test_raster.py`` checks it on
 random triangle soups, shared edges and vertices, spheres, and the teapot).
+
+The second half of the module finds the shadow rays' answers the same way, seen from a
+point light instead of the eye (``occluded_towards_light``).
 """
 
 from __future__ import annotations
@@ -47,9 +54,16 @@ def screen_boxes(
     width: int,
     height: int,
     offsets: np.ndarray,
-) -> np.ndarray:
-    """(P, 4) int64 pixel boxes (x0, y0, x1, y1), inclusive and clipped to the image, of
-    every primitive (triangles, then spheres): the pixels whose samples' rays may hit it.
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where each primitive (triangles, then spheres) may be seen: (boxes, edges).
+
+    boxes (P, 4) int64: pixel boxes (x0, y0, x1, y1), inclusive and clipped to the image,
+    holding every pixel whose samples' rays may hit the primitive. edges (P, 3, 3): three
+    lines (a, b, c) per primitive such that a sample at continuous pixel position (X, Y)
+    (pixel px + its offset) can only see the primitive if a X + b Y + c >= -EDGE_MARGIN for
+    all three: a triangle's edges, in pixels from each edge, positive inside; (0, 0, 1),
+    always true, where that test would not be safe (spheres, triangles reaching behind the
+    eye's plane or seen edge-on).
 
     ``right`` and ``up`` are the camera frame's pre-scaled vectors (a ray is forward +
     x right + y up, x and y in [-1, 1] across the image; ``render.camera``); offsets
@@ -62,59 +76,105 @@ def screen_boxes(
     sphere_corners = np.where(pick[None], hi[:, None], lo[:, None])
     n_tri = len(tri)
     boxes = np.empty((n_tri + len(centers), 4), dtype=np.int64)
+    edges = np.zeros((n_tri + len(centers), 3, 3))
+    edges[:, :, 2] = 1.0
     for rows, corners in ((slice(0, n_tri), tri), (slice(n_tri, None), sphere_corners)):
         if len(corners):
-            boxes[rows] = _project_boxes(corners, eye, forward, right, up, width, height, offsets)
-    return boxes
+            _project(corners, eye, forward, right, up, width, height, offsets, boxes[rows],
+                     edges[rows])  # fmt: skip
+    return boxes, edges
 
 
-def _project_boxes(corners, eye, forward, right, up, width, height, offsets) -> np.ndarray:
-    """Pixel boxes of point sets (P, n, 3) (see ``screen_boxes``)."""
-    q = corners - eye
-    depth = q @ forward
-    # Image-plane x, y of a point: q = s (forward + x right + y up), right and up orthogonal
-    # to forward, so x = (q . right) / (|right|^2 depth).
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = (q @ right) / (right @ right * depth)
-        y = (q @ up) / (up @ up * depth)
+#: How far outside a triangle's projected edges (in pixels) a sample may lie and still be
+#: tested: rounding in the projection and in the ray-triangle test is many orders smaller.
+EDGE_MARGIN = 0.01
+
+
+@njit(cache=True, error_model="numpy")
+def _project(corners, eye, forward, right, up, width, height, offsets, boxes, edges):
+    """Fill ``boxes`` (and, for triangles, ``edges``) of point sets (P, n, 3) (see
+    ``screen_boxes``)."""
     # Continuous pixel coordinates: the sample at offset (ox, oy) of pixel (px, py) sits at
     # X = px + ox, Y = py + oy. A sample in [X0, X1] belongs to a pixel from
     # floor(X0 - max ox) to floor(X1 - min ox); the margin covers rounding many times over.
-    margin = 0.01
-    px, py = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
-    o_lo, o_hi = offsets.min(axis=0) - margin, offsets.max(axis=0) + margin
-    behind = (depth <= 0).any(axis=1) | ~np.isfinite(px).all(axis=1) | ~np.isfinite(py).all(axis=1)
-    with np.errstate(invalid="ignore"):
-        box = np.stack(
-            [
-                np.floor(px.min(axis=1) - o_hi[0]),
-                np.floor(py.min(axis=1) - o_hi[1]),
-                np.floor(px.max(axis=1) - o_lo[0]),
-                np.floor(py.max(axis=1) - o_lo[1]),
-            ],
-            axis=1,
-        )
-    box[behind] = (0, 0, width - 1, height - 1)
-    limit = np.array([width - 1, height - 1, width - 1, height - 1], dtype=np.float64)
-    return np.clip(np.nan_to_num(box), 0, limit).astype(np.int64)
+    margin = EDGE_MARGIN
+    lo_ox, lo_oy = offsets[:, 0].min() - margin, offsets[:, 1].min() - margin
+    hi_ox, hi_oy = offsets[:, 0].max() + margin, offsets[:, 1].max() + margin
+    rr, uu = right @ right, up @ up
+    n = corners.shape[1]
+    xs, ys = np.empty(n), np.empty(n)
+    for p in range(corners.shape[0]):
+        behind = False
+        for k in range(n):
+            qx = corners[p, k, 0] - eye[0]
+            qy = corners[p, k, 1] - eye[1]
+            qz = corners[p, k, 2] - eye[2]
+            depth = qx * forward[0] + qy * forward[1] + qz * forward[2]
+            # Image-plane x, y of a point: q = s (forward + x right + y up), right and up
+            # orthogonal to forward, so x = (q . right) / (|right|^2 depth).
+            x = (qx * right[0] + qy * right[1] + qz * right[2]) / (rr * depth)
+            y = (qx * up[0] + qy * up[1] + qz * up[2]) / (uu * depth)
+            xs[k], ys[k] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
+            if not (depth > 0.0 and np.isfinite(xs[k]) and np.isfinite(ys[k])):
+                behind = True  # a projection would be meaningless: the whole screen
+        if behind:
+            boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = 0, 0, width - 1, height - 1
+            continue
+        boxes[p, 0] = _pixel_in(np.floor(xs.min() - hi_ox), width)
+        boxes[p, 1] = _pixel_in(np.floor(ys.min() - hi_oy), height)
+        boxes[p, 2] = _pixel_in(np.floor(xs.max() - lo_ox), width)
+        boxes[p, 3] = _pixel_in(np.floor(ys.max() - lo_oy), height)
+        if n == 3:
+            _triangle_edges(xs, ys, edges[p])
+
+
+@njit(cache=True, error_model="numpy")
+def _triangle_edges(xs, ys, out):
+    """The edge lines (a, b, c) of the projected triangle (xs, ys) (3,), as signed distances
+    in pixels, positive inside (``screen_boxes``); left as they are (always true) if rounding
+    could flip a sign: the triangle is (nearly) edge-on, or its corners are so far out that
+    the distances would lose more than a thousandth of a pixel."""
+    reach = 2.0 * max(np.abs(xs).max(), np.abs(ys).max()) + 1.0  # bounds every |difference|
+    rounding = 8.0 * np.finfo(np.float64).eps * reach * reach  # of a cross product below
+    area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
+    if abs(area) <= 64.0 * rounding:
+        return
+    side = 1.0 if area > 0 else -1.0
+    for k in range(3):
+        j = (k + 1) % 3
+        dx, dy = xs[j] - xs[k], ys[j] - ys[k]
+        length = np.sqrt(dx * dx + dy * dy)
+        if rounding / length > 1e-3:
+            out[:, 0], out[:, 1], out[:, 2] = 0.0, 0.0, 1.0
+            return
+        # Distance of (X, Y) from the edge k -> j, positive on the triangle's side.
+        a, b = -dy * side / length, dx * side / length
+        out[k, 0], out[k, 1], out[k, 2] = a, b, -(a * xs[k] + b * ys[k])
+
+
+@njit(cache=True, inline="always")
+def _pixel_in(value, n):
+    """A whole number of pixels clipped to [0, n - 1] (clipped as a float: it may be huge)."""
+    return int(min(max(value, 0.0), n - 1.0))
 
 
 @njit(cache=True)
-def bin_to_tiles(boxes, tiles_x, tiles_y):
-    """Per tile (row-major), the ids of the primitives whose box overlaps it, in increasing
-    order: CSR arrays (start (n_tiles + 1,), ids)."""
+def bin_to_tiles(boxes, tiles_x, tiles_y, tile, order):
+    """Per tile of ``tile`` x ``tile`` pixels (row-major), the ids of the primitives whose
+    box overlaps it, in the order of ``order`` (a permutation of the ids): CSR arrays
+    (start (n_tiles + 1,), ids)."""
     n_tiles = tiles_x * tiles_y
     counts = np.zeros(n_tiles + 1, np.int64)
     for p in range(boxes.shape[0]):
-        for ty in range(boxes[p, 1] // TILE, boxes[p, 3] // TILE + 1):
-            for tx in range(boxes[p, 0] // TILE, boxes[p, 2] // TILE + 1):
+        for ty in range(boxes[p, 1] // tile, boxes[p, 3] // tile + 1):
+            for tx in range(boxes[p, 0] // tile, boxes[p, 2] // tile + 1):
                 counts[ty * tiles_x + tx + 1] += 1
     start = np.cumsum(counts)
     fill = start[:-1].copy()
     ids = np.empty(start[-1], np.int64)
-    for p in range(boxes.shape[0]):  # in id order, so each tile's list is sorted
-        for ty in range(boxes[p, 1] // TILE, boxes[p, 3] // TILE + 1):
-            for tx in range(boxes[p, 0] // TILE, boxes[p, 2] // TILE + 1):
+    for p in order:
+        for ty in range(boxes[p, 1] // tile, boxes[p, 3] // tile + 1):
+            for tx in range(boxes[p, 0] // tile, boxes[p, 2] // tile + 1):
                 t = ty * tiles_x + tx
                 ids[fill[t]] = p
                 fill[t] += 1
@@ -123,8 +183,8 @@ def bin_to_tiles(boxes, tiles_x, tiles_y):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _raster_closest_hit(
-    prim_data, n_tri, boxes, start, ids, tiles_x, width, height, offsets, eye, forward, right,
-    up, out_id, out_t, out_u, out_v, with_uv,
+    prim_data, n_tri, boxes, edges, near, rounding, start, ids, tiles_x, width, height, offsets,
+    eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
 ):  # fmt: skip
     """Step 3 of the module docstring; ray r = (py * width + px) * spp + sample, its
     direction made on the spot (``render.camera.pixel_ray``, the tracer's very bits)."""
@@ -152,7 +212,11 @@ def _raster_closest_hit(
                 for py in range(y0, y1 + 1):
                     for px in range(x0, x1 + 1):
                         for s in range(spp):
+                            if not _may_see(edges[pid], px + offsets[s, 0], py + offsets[s, 1]):
+                                continue
                             r = (py * width + px) * spp + s
+                            if near[pid] > out_t[r] * (1.0 + 1e-6) + rounding:
+                                continue  # wholly behind what the ray already hit
                             dx, dy, dz = pixel_ray(
                                 px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
                                 right, up,
@@ -169,6 +233,16 @@ def _raster_closest_hit(
                                 if with_uv:
                                     out_u[r] = u
                                     out_v[r] = v
+
+
+@njit(cache=True, inline="always")
+def _may_see(edges, x, y):
+    """Whether a sample at continuous pixel position (x, y) passes a primitive's three edge
+    tests (``screen_boxes``)."""
+    for k in range(3):
+        if edges[k, 0] * x + edges[k, 1] * y + edges[k, 2] < -EDGE_MARGIN:
+            return False
+    return True
 
 
 def raster_closest_hit(
@@ -190,22 +264,217 @@ def raster_closest_hit(
     forward, right, up, eye = plain_frame(camera)
     width, height = camera.width, camera.height
     offsets = subpixel_offsets(spp)
-    boxes = screen_boxes(triangles, centers, radii, eye, forward, right, up, width, height, offsets)
-    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    start, ids = bin_to_tiles(boxes, tiles_x, tiles_y)
-    prim_data = pack_primitives(
-        np.ascontiguousarray(triangles, np.float64).reshape(-1, 3, 3),
-        np.ascontiguousarray(centers, np.float64).reshape(-1, 3),
-        np.ascontiguousarray(radii, np.float64).reshape(-1),
+    boxes, edges = screen_boxes(
+        triangles, centers, radii, eye, forward, right, up, width, height, offsets
     )
+    triangles = np.ascontiguousarray(triangles, np.float64).reshape(-1, 3, 3)
+    centers = np.ascontiguousarray(centers, np.float64).reshape(-1, 3)
+    radii = np.ascontiguousarray(radii, np.float64).reshape(-1)
+    # Each tile's list nearest first: a primitive wholly behind a sample's hit so far is
+    # skipped. A hit's t is its depth (the directions have unit component along forward),
+    # never less than its primitive's nearest depth but for rounding, which ``rounding`` and
+    # a relative millionth cover many times over.
+    near = _nearest_depths(triangles, centers, radii, eye, forward)
+    extent = max(
+        np.abs(triangles).max(initial=0.0), (np.abs(centers) + radii[:, None]).max(initial=0.0)
+    )
+    rounding = 64.0 * np.finfo(np.float64).eps * (np.abs(eye).max() + extent)
+    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
+    start, ids = bin_to_tiles(boxes, tiles_x, tiles_y, TILE, np.argsort(near, kind="stable"))
+    prim_data = pack_primitives(triangles, centers, radii)
     n = width * height * spp
     # Reused memory (minidiff.buffers): fresh 2 MB arrays per render cost page faults.
     out_id, out_t = buffers.empty((n,), np.int64), buffers.empty((n,), np.float64)
     out_u, out_v = (np.empty(n), np.empty(n)) if with_uv else (np.empty(1), np.empty(1))
     _raster_closest_hit(
-        prim_data, len(triangles), boxes, start, ids, tiles_x, width, height, offsets, eye,
-        forward, right, up, out_id, out_t, out_u, out_v, with_uv,
+        prim_data, len(triangles), boxes, edges, near, rounding, start, ids, tiles_x, width,
+        height, offsets, eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
     )  # fmt: skip
     if not with_uv:
         return out_id, out_t, None, None
     return out_id, out_t, out_u, out_v
+
+
+# --------------------------------------------------------------------------------------------
+# Shadow rays towards a point light: the same idea, seen from the light
+# --------------------------------------------------------------------------------------------
+#
+# Every shadow ray towards a point light lies on a line through the light, so a primitive
+# can block it only if it covers the ray's direction *as seen from the light*. Looking from
+# the light along the rays' mean direction, with a grid of cells over the directions the
+# rays take: each primitive's projected box lists it in the cells it overlaps (``screen_
+# boxes`` and ``bin_to_tiles`` above, with the light as the eye), and each ray is tested
+# against its own cell's list with the tracer's ray-primitive function. Any-hit is a yes or
+# no, and the lists are conservative, so the answers are the BVH's (and brute force's).
+
+#: Shadow rays per cell of the light's grid: fewer cells mean longer lists per ray, more
+#: cells more binning per primitive.
+RAYS_PER_CELL = 4
+
+#: The light's view is used only if every ray leaves the light within ~70 degrees of the
+#: view axis (the cosine of their angle is at least this); wider fans go to the BVH.
+MIN_VIEW_COSINE = 0.35
+
+
+def occluded_towards_light(
+    primitives: tuple[np.ndarray, np.ndarray, np.ndarray],
+    light: np.ndarray,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    tmax: np.ndarray,
+    ignore: np.ndarray,
+) -> np.ndarray | None:
+    """(N,) bool: ``Accelerator.occluded(origins, directions, tmax, tmin=0, ignore)`` for
+    shadow rays towards the point ``light`` (3,), found by binning the primitives in the
+    light's view; None if the rays fan out too widely for one view (use the BVH then).
+
+    primitives: ``(triangles (T, 3, 3), centres (S, 3), radii (S,))``; origins and
+    directions (N, 3) with every ray's line through the light: ``directions = light -
+    origins`` and 0 <= tmax (N,) < 1, as ``render.visibility.shadow_rays`` makes them
+    (tmax = 0: the light is at the ray's start, nothing is between).
+    """
+    out = np.zeros(len(origins), np.bool_)
+    if len(origins) == 0:
+        return out
+    fits, forward, right, up, spread = _light_view(light, origins, tmax, MIN_VIEW_COSINE)
+    if not fits:
+        return None
+    # Cells: about RAYS_PER_CELL rays each, about square (right and up are the half extents).
+    n_cells = max(1, len(origins) // RAYS_PER_CELL)
+    half_x, half_y = np.sqrt(right @ right), np.sqrt(up @ up)
+    width = int(np.clip(np.sqrt(n_cells * half_x / half_y), 1, 4096))
+    height = int(np.clip(n_cells // width, 1, 4096))
+    # Directions from the light are only as exact as the points are far from it: closer
+    # than ``close``, rounding may move a point by more than half the margin of a cell.
+    # Primitives that come that close are listed in every cell, and rays that start that
+    # close are tested against every primitive.
+    cell = min(2.0 * half_x / width, 2.0 * half_y / height)  # in tangents
+    close = spread / (0.5 * EDGE_MARGIN * cell)
+    triangles, centers, radii = primitives
+    view = (light, forward, right, up, width, height)
+    boxes, _ = screen_boxes(triangles, centers, radii, *view, np.zeros((1, 2)))
+    near = _nearest_depths(triangles, centers, radii, light, forward)
+    boxes[near <= close] = (0, 0, width - 1, height - 1)
+    # Each cell's list nearest first, so that a ray can stop at the first primitive that is
+    # wholly farther from the light than the ray's start.
+    start, ids = bin_to_tiles(boxes, width, height, 1, np.argsort(near, kind="stable"))
+    prim_data = pack_primitives(triangles, centers, radii)
+    _occluded_by_cell(prim_data, len(triangles), start, ids, near, view, close, origins,
+                      directions, tmax, ignore, out)  # fmt: skip
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _light_view(light, origins, tmax, min_cosine):
+    """The light's view of the rays: (fits, forward, right, up, spread); fits is False if
+    the rays fan out wider than ``min_cosine`` allows.
+
+    forward points from the light to the middle of the rays' origins' bounding box; right
+    and up are perpendicular to it, scaled so that every origin's image-plane position
+    (``render.camera``) is within [-1, 1]: the box's corners are (a cone around forward is
+    convex, and a box's projection is that of its corners). spread / depth bounds how far
+    (in image-plane units, tangents) rounding can move the image of a point at that depth
+    from the light: the image of a ray's origin, or of the end of its segment near the
+    light (its direction is light - origin rounded).
+    """
+    lo, hi = _bounds(origins)
+    corners = np.empty((8, 3))
+    for k in range(8):
+        for a in range(3):
+            corners[k, a] = (hi[a] if k >> a & 1 else lo[a]) - light[a]
+    forward = (lo + hi) / 2.0 - light
+    forward /= np.sqrt(forward @ forward)
+    # Any unit vector perpendicular to forward, then the third axis.
+    helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    side = np.cross(forward, helper)
+    side /= np.sqrt(side @ side)
+    upward = np.cross(side, forward)
+    depth = corners @ forward
+    fits = np.isfinite(forward).all()  # False if the box's middle is the light
+    reach_x = reach_y = 0.0
+    for k in range(8):
+        fits &= depth[k] >= min_cosine * np.sqrt(corners[k] @ corners[k])
+        reach_x = max(reach_x, abs(corners[k] @ side) / depth[k])
+        reach_y = max(reach_y, abs(corners[k] @ upward) / depth[k])
+    # A little room so that the outermost rays fall inside the grid.
+    reach_x = reach_x * (1.0 + 1e-6) + 1e-12
+    reach_y = reach_y * (1.0 + 1e-6) + 1e-12
+    # A few ulps of the coordinates involved, at most, moved over the depth.
+    size = np.abs(light).max() + max(np.abs(lo).max(), np.abs(hi).max())
+    spread = 8.0 * np.finfo(np.float64).eps * size * (1.0 + reach_x + reach_y)
+    return fits, forward, side * reach_x, upward * reach_y, spread
+
+
+@njit(cache=True)
+def _bounds(points):
+    """The bounding box (lo (3,), hi (3,)) of points (N, 3), N >= 1, in one pass (NumPy's
+    min(axis=0) pays a loop set-up per row of 3)."""
+    lo, hi = points[0].copy(), points[0].copy()
+    for i in range(1, points.shape[0]):
+        for a in range(3):
+            lo[a] = min(lo[a], points[i, a])
+            hi[a] = max(hi[a], points[i, a])
+    return lo, hi
+
+
+@njit(cache=True, error_model="numpy")
+def _nearest_depths(triangles, centers, radii, light, forward):
+    """(P,) each primitive's smallest depth along ``forward`` from the light (triangles:
+    their nearest corner; spheres: centre depth - radius)."""
+    near = np.empty(triangles.shape[0] + centers.shape[0])
+    for p in range(triangles.shape[0]):
+        near[p] = np.inf
+        for k in range(3):
+            depth = 0.0
+            for a in range(3):
+                depth += (triangles[p, k, a] - light[a]) * forward[a]
+            near[p] = min(near[p], depth)
+    for s in range(centers.shape[0]):
+        depth = 0.0
+        for a in range(3):
+            depth += (centers[s, a] - light[a]) * forward[a]
+        near[triangles.shape[0] + s] = depth - radii[s]
+    return near
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _occluded_by_cell(prim_data, n_tri, start, ids, near, view, close, origins, directions,
+                      tmax, ignore, out):  # fmt: skip
+    """Any-hit of every ray against the list of its cell of the light's ``view`` (tmin = 0,
+    as the shadow rays), nearest first, up to the first primitive wholly beyond the ray's
+    start; against every primitive if the ray starts within depth ``close`` of the
+    light."""
+    light, forward, right, up, width, height = view
+    rr, uu = right @ right, up @ up
+    eps = np.finfo(np.float64).eps
+    light_size = max(abs(light[0]), abs(light[1]), abs(light[2]))
+    for i in prange(out.shape[0]):
+        if tmax[i] <= 0.0:
+            continue  # the light is at the ray's start: nothing between
+        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
+        wx, wy, wz = ox - light[0], oy - light[1], oz - light[2]
+        # The ray's cell: its origin's position as _project_boxes computes it for points.
+        depth = wx * forward[0] + wy * forward[1] + wz * forward[2]
+        x = (wx * right[0] + wy * right[1] + wz * right[2]) / (rr * depth)
+        y = (wx * up[0] + wy * up[1] + wz * up[2]) / (uu * depth)
+        cx = min(max(int(np.floor((x + 1.0) * (width / 2.0))), 0), width - 1)
+        cy = min(max(int(np.floor((1.0 - y) * (height / 2.0))), 0), height - 1)
+        c = cy * width + cx
+        # The segment's points are no deeper than its start (exactly: (1 - t) times its
+        # depth); the margin covers the rounding of both depths many times over.
+        size = light_size + max(abs(ox), abs(oy), abs(oz))
+        deepest = depth + 1e-6 * abs(depth) + 64.0 * eps * size
+        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+        dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
+        everything = depth <= close  # rounding could put the ray in the wrong cell
+        first, last = (0, near.shape[0]) if everything else (start[c], start[c + 1])
+        for j in range(first, last):
+            pid = j if everything else ids[j]
+            if near[pid] > deepest and not everything:
+                break
+            if pid == ignore[i]:
+                continue
+            t, _, _ = intersect_prim(prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0)
+            if t < tmax[i]:
+                out[i] = True
+                break

@@ -31,6 +31,7 @@ any silhouette.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,16 +54,18 @@ def reflect(directions, normals) -> md.Tensor:
 @dataclass
 class Bounces:
     """What every bounce needs: the scene, the accelerator its visibility was traced with
-    (``accel``, with its triangles (T, 3, 3) and sphere centres (S, 3) as plain arrays),
+    (``accelerator()``, built on first use; ``bvh`` False if it is brute force), the
+    primitives (``render.visibility.scene_primitives``: triangles (T, 3, 3), sphere
+    centres (S, 3), radii (S,)),
     the scene's size (for the offsets), whether shadows are traced, the number of
     reflections allowed, and the decisions made, per bounce and camera ray: the primitive
     its mirror ray hit (``hit_ids[b]`` (N,): -2 no such ray, -1 the background) and which
     lights reach that hit (``lit[b]`` (n_lights, N) bool)."""
 
     scene: Scene
-    accel: Accelerator
-    triangles: np.ndarray
-    centers: np.ndarray
+    accelerator: Callable[[], Accelerator]
+    bvh: bool
+    primitives: tuple[np.ndarray, np.ndarray, np.ndarray]
     size: float
     shadows: bool
     max_bounces: int
@@ -73,13 +76,14 @@ class Bounces:
 def geometric_normals(bounces: Bounces, prims: np.ndarray, points: np.ndarray, incoming):
     """(k, 3) plain unit normals of the primitives ``prims`` (k,) at ``points`` (k, 3),
     facing the ``incoming`` directions (k, 3): the side the mirror ray leaves from."""
-    n_tri = len(bounces.triangles)
+    triangles, centers, _ = bounces.primitives
+    n_tri = len(triangles)
     normals = np.empty_like(points)
     on_triangle = prims < n_tri
-    a, b, c = np.moveaxis(bounces.triangles[prims[on_triangle]], 1, 0)
+    a, b, c = np.moveaxis(triangles[prims[on_triangle]], 1, 0)
     normals[on_triangle] = np.cross(b - a, c - a)
     on_sphere = ~on_triangle
-    normals[on_sphere] = points[on_sphere] - bounces.centers[prims[on_sphere] - n_tri]
+    normals[on_sphere] = points[on_sphere] - centers[prims[on_sphere] - n_tri]
     normals /= np.linalg.norm(normals, axis=1, keepdims=True)
     facing_away = np.einsum("ij,ij->i", normals, incoming) > 0
     normals[facing_away] *= -1.0
@@ -92,7 +96,7 @@ def trace_bounce(bounces: Bounces, points: np.ndarray, normals: np.ndarray, dire
     each hits (k,) int64 (-1: none), the ray origins used (k, 3) and the hit points (k, 3)
     (NaN where missed)."""
     origins = points + shadow_offset(points, bounces.size) * normals
-    prim, t, _, _ = bounces.accel.closest_hit(origins, directions)
+    prim, t, _, _ = bounces.accelerator().closest_hit(origins, directions)
     hits = origins + np.where(prim >= 0, t, np.nan)[:, None] * directions
     return prim, origins, hits
 
@@ -143,5 +147,8 @@ def _lit(bounces: Bounces, points: np.ndarray, prims: np.ndarray) -> np.ndarray:
     lights = bounces.scene.lights
     if not bounces.shadows:
         return np.ones((len(lights), len(points)), dtype=bool)
-    masks = [trace_shadows(bounces.accel, light, points, prims, bounces.size) for light in lights]
+    masks = [
+        trace_shadows(bounces.accelerator, bounces.primitives, light, points, prims, bounces.bvh)
+        for light in lights
+    ]
     return np.array(masks, dtype=bool).reshape(len(lights), len(points))

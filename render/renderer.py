@@ -152,13 +152,14 @@ def _bounces(scene: Scene, visibility: Visibility, shadows: bool, max_bounces: i
     spawn one."""
     if max_bounces == 0 or not any(obj.material.reflective for obj in scene.objects):
         return None
-    triangles, centers, _ = visibility.primitives
     n_rays = visibility.primary.prim_id.size
     ids = [np.full(n_rays, -2, dtype=np.int64) for _ in range(max_bounces)]
     lit = [np.zeros((len(scene.lights), n_rays), dtype=bool) for _ in range(max_bounces)]
     size = scene_size(visibility.primitives)
-    accel = visibility.accel
-    return Bounces(scene, accel, triangles, centers, size, shadows, max_bounces, ids, lit)
+    return Bounces(
+        scene, visibility.accelerator, visibility.bvh, visibility.primitives, size, shadows,
+        max_bounces, ids, lit,
+    )  # fmt: skip
 
 
 def _check_flag(value, name: str) -> bool:

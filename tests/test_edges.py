@@ -218,7 +218,8 @@ def test_the_numba_walk_equals_the_numpy_walk(size):
     from render.visibility import primitive_ranges, scene_primitives, trace_primary
 
     scene = render.paper_scene(size, size)
-    hits = trace_primary(render.Accelerator(*scene_primitives(scene)), scene.camera, 1)
+    accel = render.Accelerator(*scene_primitives(scene))
+    hits = trace_primary(lambda: accel, scene.camera, 1)
     a, b, _ = candidate_pairs(sample_grid(scene.camera, 1), hits.prim_id)
     near_a = hits.depth[a] < hits.depth[b]
     near, far = np.where(near_a, a, b), np.where(near_a, b, a)

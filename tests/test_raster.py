@@ -11,7 +11,7 @@ from test_accel import grid_triangles
 
 import render
 from render.accel import Accelerator
-from render.camera import primary_rays, some_ray_directions
+from render.camera import hits_along_rays, image_plane_coords, primary_rays
 from render.raster import raster_closest_hit
 from render.visibility import scene_primitives
 
@@ -87,12 +87,18 @@ def test_bad_primary_is_refused():
         render.render(render.paper_scene(8, 8), primary="zbuffer")
 
 
-def test_some_ray_directions_are_the_rows_of_primary_rays():
+def test_hits_along_rays_are_eye_plus_t_times_the_rows_of_primary_rays():
+    """The hit points are eye + t d with primary_rays' directions, bit for bit (NumPy's
+    broadcast formula), and the coordinates those of image_plane_coords."""
     camera = render.Camera((0.3, 1.0, 4.0), (0.0, 0.2, 0.0), fov=47.0, width=13, height=9)
     for spp in (1, 4):
-        _, directions = primary_rays(camera, spp)
-        rays = np.random.default_rng(spp).choice(len(directions), 40, replace=False)
-        np.testing.assert_array_equal(some_ray_directions(camera, rays, spp), directions[rays])
+        eye, directions = primary_rays(camera, spp)
+        rng = np.random.default_rng(spp)
+        rays = rng.choice(len(directions), 40, replace=False)
+        t = rng.uniform(0.0, 10.0, len(directions))
+        points, coords = hits_along_rays(camera, rays, t, spp)
+        np.testing.assert_array_equal(points, eye + t[rays, None] * directions[rays])
+        np.testing.assert_array_equal(coords, image_plane_coords(camera, rays, spp))
     ids, t, u, v = raster_closest_hit(*scene_primitives(render.paper_scene(16, 12)), camera)
     assert u is not None
     _, _, u, v = raster_closest_hit(
