@@ -74,6 +74,34 @@ def test_elementwise_fast_path_equals_numpy(shapes, op, dtype, seed):
     assert_identical(kernels.elementwise(op, x, y), op(x, y))
 
 
+ROW_PATTERNS = [((9000, 3), (9000, 1)), ((9000, 1), (9000, 3)), ((3,), (9000, 3))]
+ROW_PATTERNS += [((9000, 3), (1, 3)), ((9000, 1), (3,)), ((1, 3), (9000, 1))]
+
+
+@pytest.mark.parametrize("op", [np.add, np.subtract, np.multiply])
+@pytest.mark.parametrize("shapes", ROW_PATTERNS)
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_elementwise_rows_of_three_keep_every_bit(op, shapes, dtype):
+    """The compiled (k, 3) loop on special values too: signed zeros, infinities, NaN,
+    subnormals and huge values (their overflow to inf), against NumPy bit for bit."""
+    rng = np.random.default_rng(7)
+    info = np.finfo(dtype)
+    special = np.array(
+        [0.0, -0.0, np.inf, -np.inf, np.nan, info.smallest_subnormal, info.max, -1.5], dtype
+    )
+
+    def draw(shape):
+        x = rng.uniform(-3, 3, shape).astype(dtype)
+        x.flat[rng.integers(0, x.size, x.size // 4)] = rng.choice(special, x.size // 4)
+        return x
+
+    x, y = draw(shapes[0]), draw(shapes[1])
+    with np.errstate(all="ignore"):
+        got, want = kernels.elementwise(op, x, y), op(x, y)
+    assert got.shape == want.shape and got.dtype == want.dtype
+    assert np.array_equal(got.view(np.uint8), want.view(np.uint8))  # NaN and -0.0 included
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     shapes=hnp.mutually_broadcastable_shapes(num_shapes=2, max_dims=3, max_side=5),
