@@ -22,10 +22,11 @@ Two implementations of exactly that math:
   that require gradients, i.e. what ``render.render`` does for a mesh.
 
 Reported, in float64 and float32 (float32 inputs stay float32 on the tape), medians after a
-warm-up: NumPy forward (floor), minidiff forward without recording (``no_grad``), minidiff
-forward (tape recorded), minidiff forward+backward, their ratios to the floor (targets:
-forward <= 1.2x, forward+backward <= 2.5x), minor page faults per pass and the peak of
-NumPy allocations (tracemalloc).
+warm-up, the four timed in turns (one call of each per round, so that their ratios see the
+same machine state): NumPy forward (floor), minidiff forward without recording
+(``no_grad``), minidiff forward (tape recorded), minidiff forward+backward, their ratios
+to the floor (targets: forward <= 1.2x, forward+backward <= 2.5x), minor page faults per
+pass and the peak of NumPy allocations (tracemalloc).
 
 Each (dtype, allocator) pair runs in a fresh subprocess with OMP_NUM_THREADS =
 OPENBLAS_NUM_THREADS = MKL_NUM_THREADS = 1 (single-threaded NumPy: minidiff's gradient
@@ -192,10 +193,17 @@ def worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
         "loss_dtype": str(loss.dtype),
         "grad_dtypes": sorted({str(p.grad.dtype) for p in grads}),
         "loss_relative_difference_to_floor": abs(loss.item() - floor_loss) / floor_loss,
-        "numpy_forward": timing.measure(lambda: numpy_forward(w), repeats, warmup=2),
-        "minidiff_forward_no_grad": timing.measure(no_grad_forward, repeats, warmup=2),
-        "minidiff_forward": timing.measure(tape_forward, repeats, warmup=2),
-        "minidiff_forward_backward": timing.measure(forward_backward, repeats, warmup=2),
+        # In turns, one call of each per round: the ratios below compare like with like.
+        **timing.measure_interleaved(
+            {
+                "numpy_forward": lambda: numpy_forward(w),
+                "minidiff_forward_no_grad": no_grad_forward,
+                "minidiff_forward": tape_forward,
+                "minidiff_forward_backward": forward_backward,
+            },
+            repeats,
+            warmup=2,
+        ),
         "memory_numpy_forward": timing.measure_memory(lambda: numpy_forward(w)),
         "memory_minidiff_forward_backward": timing.measure_memory(forward_backward),
         "machine": timing.machine(),

@@ -100,6 +100,34 @@ def measure(fn, repeats: int = 7, warmup: int = 1) -> dict:
     return result
 
 
+def measure_interleaved(fns: dict, repeats: int = 7, warmup: int = 1) -> dict:
+    """Time several callables in turns, one call of each per round (``repeats`` rounds),
+    so that every one of them sees the same machine state: on a shared machine the speed
+    drifts over seconds, and ratios of medians taken one after another drift with it.
+
+    Returns {name: the result ``measure`` would give}.
+    """
+    for _ in range(warmup):
+        for fn in fns.values():
+            fn()
+    gc.collect()
+    times = {name: [] for name in fns}
+    faults = {name: [] for name in fns}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            f0 = _minor_faults()
+            t0 = time.perf_counter()
+            fn()
+            t1 = time.perf_counter()
+            faults[name].append(_minor_faults() - f0)
+            times[name].append(t1 - t0)
+    out = {}
+    for name in fns:
+        out[name] = summarize(times[name])
+        out[name]["page_faults_per_pass"] = float(np.median(faults[name]))
+    return out
+
+
 def time_once(fn) -> float:
     """Wall time of one call of ``fn()`` in seconds."""
     t0 = time.perf_counter()

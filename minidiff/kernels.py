@@ -258,6 +258,30 @@ def _cross_rows(a, b, out):
         out[i, 2] = a0 * b1 - a1 * b0
 
 
+def project_out(y: np.ndarray, g: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Equals ``(g - y * dot_last(y, g)[..., None]) * scale`` bit for bit: g without its
+    component along the unit vectors y, scaled (normalize's VJP and JVP).
+
+    Shapes: y and g (..., 3), broadcast against each other; scale broadcastable to them,
+    e.g. (..., 1). For (k, 3) rows and a (k, 1) scale, one compiled pass instead of four.
+    """
+    if _rows_of_three(y, g) and scale.shape == (y.shape[0], 1) and scale.dtype == y.dtype:
+        out = buffers.empty(y.shape, y.dtype)
+        _project_out_rows(y, g, scale, out)
+        return out
+    along = elementwise(np.multiply, y, dot_last(y, g)[..., None])
+    return elementwise(np.multiply, elementwise(np.subtract, g, along), scale)
+
+
+@numba.njit(cache=True)
+def _project_out_rows(y, g, scale, out):
+    for i in range(y.shape[0]):
+        d = y[i, 0] * g[i, 0] + y[i, 1] * g[i, 1] + y[i, 2] * g[i, 2]  # dot_last's order
+        s = scale[i, 0]
+        for j in range(3):
+            out[i, j] = (g[i, j] - y[i, j] * d) * s
+
+
 def gather_rows(x: np.ndarray, index: np.ndarray) -> np.ndarray:
     """Equals ``x[index]`` bit for bit, for a 1-D integer array ``index``.
 

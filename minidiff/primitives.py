@@ -596,8 +596,7 @@ def normalize(x: Any) -> Tensor:
     y = kernels.elementwise(np.multiply, x._data, inv)
 
     def project(g):  # the Jacobian (I - y y^T) / |x| is symmetric: the VJP's g and the JVP's t
-        along = kernels.elementwise(np.multiply, y, kernels.dot_last(y, g)[..., None])
-        return kernels.elementwise(np.multiply, kernels.elementwise(np.subtract, g, along), inv)
+        return kernels.project_out(y, g, inv)
 
     return record("normalize", y, (x,), lambda g: (project(g),), saves_output=True, jvp=project)
 

@@ -147,6 +147,23 @@ def test_dot_last_of_other_lengths_equals_numpy_sum_up_to_rounding(n, rows, seed
 
 
 @settings(max_examples=40, deadline=None)
+@given(
+    rows=st.sampled_from([4000, 1500, 7]),
+    scale_shape=st.sampled_from(["column", "scalar"]),
+    dtype=DTYPES,
+    seed=st.integers(0, 2**16),
+)
+def test_project_out_equals_its_numpy_expression(rows, scale_shape, dtype, seed):
+    """The compiled pass ((k, 3) rows, (k, 1) scale) and the fallback (small k, other
+    scales) against the plain expression, bit for bit."""
+    rng = np.random.default_rng(seed)
+    y, g = values(rng, (rows, 3), dtype), values(rng, (rows, 3), dtype)
+    scale = values(rng, (rows, 1) if scale_shape == "column" else (), dtype)
+    along = y * np.sum(y * g, axis=-1)[..., None]
+    assert_identical(kernels.project_out(y, g, scale), (g - along) * scale)
+
+
+@settings(max_examples=40, deadline=None)
 @given(shapes=st.sampled_from(TALL_PAIRS), dtype=DTYPES, seed=st.integers(0, 2**16))
 def test_cross3_equals_numpy_cross(shapes, dtype, seed):
     rng = np.random.default_rng(seed)
