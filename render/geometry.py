@@ -89,10 +89,10 @@ def toward_ray(normals, directions) -> np.ndarray:
     (like visibility), so it is a constant on the tape.
     """
     normals = md.as_tensor(normals).data
-    facing_away = np.einsum("ij,ij->i", normals, directions.data) > 0
+    facing_away = md.kernels.dot_last(normals, directions.data) > 0
     signs = md.buffers.empty((len(facing_away), 1), normals.dtype)  # reused memory
     signs.fill(1.0)
-    signs[facing_away] = -1.0
+    np.copyto(signs[:, 0], -1.0, where=facing_away)
     return signs
 
 

@@ -100,7 +100,7 @@ def _project(corners, eye, forward, right, up, width, height, offsets, boxes, ed
     margin = EDGE_MARGIN
     lo_ox, lo_oy = offsets[:, 0].min() - margin, offsets[:, 1].min() - margin
     hi_ox, hi_oy = offsets[:, 0].max() + margin, offsets[:, 1].max() + margin
-    rr, uu = right @ right, up @ up
+    over_rr, over_uu = 1.0 / (right @ right), 1.0 / (up @ up)
     n = corners.shape[1]
     xs, ys = np.empty(n), np.empty(n)
     for p in range(corners.shape[0]):
@@ -112,8 +112,9 @@ def _project(corners, eye, forward, right, up, width, height, offsets, boxes, ed
             depth = qx * forward[0] + qy * forward[1] + qz * forward[2]
             # Image-plane x, y of a point: q = s (forward + x right + y up), right and up
             # orthogonal to forward, so x = (q . right) / (|right|^2 depth).
-            x = (qx * right[0] + qy * right[1] + qz * right[2]) / (rr * depth)
-            y = (qx * up[0] + qy * up[1] + qz * up[2]) / (uu * depth)
+            inverse = 1.0 / depth
+            x = (qx * right[0] + qy * right[1] + qz * right[2]) * inverse * over_rr
+            y = (qx * up[0] + qy * up[1] + qz * up[2]) * inverse * over_uu
             xs[k], ys[k] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
             if not (depth > 0.0 and np.isfinite(xs[k]) and np.isfinite(ys[k])):
                 behind = True  # a projection would be meaningless: the whole screen
@@ -134,21 +135,26 @@ def _triangle_edges(xs, ys, out):
     in pixels, positive inside (``screen_boxes``); left as they are (always true) if rounding
     could flip a sign: the triangle is (nearly) edge-on, or its corners are so far out that
     the distances would lose more than a thousandth of a pixel."""
-    reach = 2.0 * max(np.abs(xs).max(), np.abs(ys).max()) + 1.0  # bounds every |difference|
+    reach = 1.0  # bounds every |difference| below
+    for k in range(3):
+        reach = max(reach, 2.0 * abs(xs[k]) + 1.0, 2.0 * abs(ys[k]) + 1.0)
     rounding = 8.0 * np.finfo(np.float64).eps * reach * reach  # of a cross product below
     area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
     if abs(area) <= 64.0 * rounding:
+        return
+    shortest = np.inf
+    for k in range(3):
+        j = (k + 1) % 3
+        shortest = min(shortest, (xs[j] - xs[k]) ** 2 + (ys[j] - ys[k]) ** 2)
+    if rounding > 1e-3 * np.sqrt(shortest):
         return
     side = 1.0 if area > 0 else -1.0
     for k in range(3):
         j = (k + 1) % 3
         dx, dy = xs[j] - xs[k], ys[j] - ys[k]
-        length = np.sqrt(dx * dx + dy * dy)
-        if rounding / length > 1e-3:
-            out[:, 0], out[:, 1], out[:, 2] = 0.0, 0.0, 1.0
-            return
+        scale = side / np.sqrt(dx * dx + dy * dy)
         # Distance of (X, Y) from the edge k -> j, positive on the triangle's side.
-        a, b = -dy * side / length, dx * side / length
+        a, b = -dy * scale, dx * scale
         out[k, 0], out[k, 1], out[k, 2] = a, b, -(a * xs[k] + b * ys[k])
 
 
@@ -377,7 +383,7 @@ def _light_view(light, origins, tmax, min_cosine):
     from the light: the image of a ray's origin, or of the end of its segment near the
     light (its direction is light - origin rounded).
     """
-    lo, hi = _bounds(origins)
+    lo, hi = bounding_box(origins)
     corners = np.empty((8, 3))
     for k in range(8):
         for a in range(3):
@@ -406,7 +412,7 @@ def _light_view(light, origins, tmax, min_cosine):
 
 
 @njit(cache=True)
-def _bounds(points):
+def bounding_box(points):
     """The bounding box (lo (3,), hi (3,)) of points (N, 3), N >= 1, in one pass (NumPy's
     min(axis=0) pays a loop set-up per row of 3)."""
     lo, hi = points[0].copy(), points[0].copy()

@@ -26,7 +26,7 @@ from render.accel import Accelerator
 from render.cache import RenderCache, camera_key, light_key
 from render.camera import hits_along_rays, primary_rays
 from render.edges import EdgePairs, edge_pairs
-from render.raster import occluded_towards_light, raster_closest_hit
+from render.raster import bounding_box, occluded_towards_light, raster_closest_hit
 from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
 from render.shadow_edges import ShadowPairs, shadow_pairs
 from render.topology import mesh_edges
@@ -194,8 +194,10 @@ def _point_light_rays(position, points, offset, origins, directions, tmax):
 def scene_size(primitives: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
     """The diagonal of the bounding box of ``scene_primitives`` (0 for an empty scene)."""
     triangles, centers, radii = primitives
-    lo = [triangles.reshape(-1, 3).min(axis=0)] if len(triangles) else []
-    hi = [triangles.reshape(-1, 3).max(axis=0)] if len(triangles) else []
+    lo, hi = [], []
+    if len(triangles):
+        corners_lo, corners_hi = bounding_box(triangles.reshape(-1, 3))
+        lo, hi = [corners_lo], [corners_hi]
     if len(centers):
         lo.append((centers - radii[:, None]).min(axis=0))
         hi.append((centers + radii[:, None]).max(axis=0))
