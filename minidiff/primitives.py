@@ -727,7 +727,8 @@ def getitem(x: Any, index: Any) -> Tensor:
     if row_gather:
 
         def vjp(g):
-            rows = np.where(index < 0, index + x.shape[0], index) if index.size else index
+            negative = index.size and index.min() < 0  # one pass; mapping them takes three
+            rows = np.where(index < 0, index + x.shape[0], index) if negative else index
             return (kernels.scatter_add_rows(rows, g, x.shape[0]),)
 
     elif _has_integer_array(index):

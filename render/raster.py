@@ -358,14 +358,15 @@ def occluded_towards_light(
     close = spread / (0.5 * EDGE_MARGIN * cell)
     triangles, centers, radii = primitives
     view = (light, forward, right, up, width, height)
-    boxes, _ = screen_boxes(triangles, centers, radii, *view, np.zeros((1, 2)))
+    boxes, edges = screen_boxes(triangles, centers, radii, *view, np.zeros((1, 2)))
     near = _nearest_depths(triangles, centers, radii, light, forward)
     boxes[near <= close] = (0, 0, width - 1, height - 1)
+    edges[near <= close] = ((0.0, 0.0, 1.0),) * 3  # no edge test for them either
     # Each cell's list nearest first, so that a ray can stop at the first primitive that is
     # wholly farther from the light than the ray's start.
     start, ids = bin_to_tiles(boxes, width, height, 1, np.argsort(near, kind="stable"))
     prim_data = pack_primitives(triangles, centers, radii)
-    _occluded_by_cell(prim_data, len(triangles), start, ids, near, view, close, origins,
+    _occluded_by_cell(prim_data, len(triangles), start, ids, near, edges, view, close, origins,
                       directions, tmax, ignore, out)  # fmt: skip
     return out
 
@@ -444,12 +445,12 @@ def _nearest_depths(triangles, centers, radii, light, forward):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _occluded_by_cell(prim_data, n_tri, start, ids, near, view, close, origins, directions,
-                      tmax, ignore, out):  # fmt: skip
+def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, origins,
+                      directions, tmax, ignore, out):  # fmt: skip
     """Any-hit of every ray against the list of its cell of the light's ``view`` (tmin = 0,
     as the shadow rays), nearest first, up to the first primitive wholly beyond the ray's
-    start; against every primitive if the ray starts within depth ``close`` of the
-    light."""
+    start, skipping those whose ``edges`` rule it out; against every primitive if the ray
+    starts within depth ``close`` of the light."""
     light, forward, right, up, width, height = view
     rr, uu = right @ right, up @ up
     eps = np.finfo(np.float64).eps
@@ -463,8 +464,9 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, view, close, origins, 
         depth = wx * forward[0] + wy * forward[1] + wz * forward[2]
         x = (wx * right[0] + wy * right[1] + wz * right[2]) / (rr * depth)
         y = (wx * up[0] + wy * up[1] + wz * up[2]) / (uu * depth)
-        cx = min(max(int(np.floor((x + 1.0) * (width / 2.0))), 0), width - 1)
-        cy = min(max(int(np.floor((1.0 - y) * (height / 2.0))), 0), height - 1)
+        px, py = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)  # in cells
+        cx = min(max(int(np.floor(px)), 0), width - 1)
+        cy = min(max(int(np.floor(py)), 0), height - 1)
         c = cy * width + cx
         # The segment's points are no deeper than its start (exactly: (1 - t) times its
         # depth); the margin covers the rounding of both depths many times over.
@@ -478,7 +480,7 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, view, close, origins, 
             pid = j if everything else ids[j]
             if near[pid] > deepest and not everything:
                 break
-            if pid == ignore[i]:
+            if pid == ignore[i] or not (everything or _may_see(edges[pid], px, py)):
                 continue
             t, _, _ = intersect_prim(prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0)
             if t < tmax[i]:
