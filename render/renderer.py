@@ -170,17 +170,16 @@ def _check_flag(value, name: str) -> bool:
 
 def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCache, bounces):
     """Steps 2 and 3 for every object: the colours (k, 3) of all hit rays, object by object,
-    the ray each colour belongs to (k,), the texture cell of every ray (N,) (-1: none), and
-    per object index (in ``primitive_ranges`` order) its hit rays and ``Surface``. With
-    ``bounces`` (``render.reflection.Bounces``), reflective objects add what their mirror
-    rays see."""
+    the ray each colour belongs to (k,), the texture cell of every ray (N,) (-1: none; None
+    if no ray hit a textured object), and per object index (in ``primitive_ranges`` order)
+    its hit rays and ``Surface``. With ``bounces`` (``render.reflection.Bounces``),
+    reflective objects add what their mirror rays see."""
     primary, dtype = visibility.primary, working_dtype(scene)
     eye = frame[3]
     coords = primary.coords.astype(dtype, copy=False)
     hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
 
-    texel = buffers.empty((primary.prim_id.size,), np.int64)  # reused memory (no faults)
-    texel.fill(-1)
+    texel = None  # made when a textured object is hit (filling it costs a pass)
     colours, rays, shaded = [], [], {}
     for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
         in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
@@ -195,9 +194,12 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
 
         hits = _reused_surface(scene, cache, visibility, index, obj, dtype, surface)
         obj_lit = [_as_dtype(mask[in_obj], dtype) for mask in visibility.lit]
-        colour, texel[primary.hit_rays[in_obj]] = shade_surface(
-            hits, obj.material, scene.lights, obj_lit
-        )
+        colour, cells = shade_surface(hits, obj.material, scene.lights, obj_lit)
+        if obj.material.texture is not None:
+            if texel is None:
+                texel = buffers.empty((primary.prim_id.size,), np.int64)  # reused memory
+                texel.fill(-1)
+            texel[primary.hit_rays[in_obj]] = cells
         if bounces is not None and obj.material.reflective:
             rays_in_obj = primary.hit_rays[in_obj]
             seen = reflected_radiance(bounces, hits, hit_prims[in_obj], rays_in_obj, 1)
@@ -353,9 +355,12 @@ class RenderInfo:
     bounce_lit: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
-    def of(cls, scene: Scene, visibility: Visibility, texel: np.ndarray, spp: int, bounces):
-        """The per-ray arrays of one render, shaped (H, W, spp)."""
+    def of(cls, scene: Scene, visibility: Visibility, texel: np.ndarray | None, spp: int, bounces):
+        """The per-ray arrays of one render, shaped (H, W, spp); texel None: no ray hit a
+        textured surface."""
         camera, primary = scene.camera, visibility.primary
+        if texel is None:
+            texel = np.full(primary.prim_id.size, -1, dtype=np.int64)
         shape = (camera.height, camera.width, spp)
         lit = np.zeros((len(visibility.lit), primary.prim_id.size), dtype=bool)
         for j, mask in enumerate(visibility.lit):
