@@ -29,7 +29,7 @@ import timing
 
 from render.accel import Accelerator
 from render.camera import primary_rays
-from render.raster import raster_closest_hit
+from render.raster import occluded_towards_light, raster_closest_hit
 from render.teapot import paper_scene
 from render.visibility import scene_primitives, scene_size, shadow_rays
 
@@ -116,7 +116,19 @@ def time_bvh_visibility(w: dict, repeats: int) -> dict:
             repeats,
         ),
         "occluded": timing.measure(lambda: _occluded(accel, w), repeats),
+        # The same answers in the light's view (render.raster; the renderer's choice from 4
+        # shadow rays per primitive on), primitives binned inside.
+        "occluded_light_view": timing.measure(lambda: _occluded_in_light_view(w), repeats),
+        "light_view_identical": bool(np.array_equal(_occluded_in_light_view(w), occluded)),
     }
+
+
+def _occluded_in_light_view(w: dict) -> np.ndarray:
+    light = np.asarray(w["scene"].lights[0].position.data, np.float64)
+    return occluded_towards_light(
+        scene_primitives(w["scene"]), light, w["shadow_origins"], w["shadow_directions"],
+        w["shadow_tmax"], w["shadow_ignore"],
+    )  # fmt: skip
 
 
 def time_brute_visibility(w: dict, repeats: int, stride: int = 1, warmup: int = 1) -> dict:
@@ -192,6 +204,10 @@ def main(argv=None) -> dict:
             timing.row(
                 f"{label}: any hit, {r['shadow_rays']:,} shadow rays", timing.ms(r["occluded"])
             ),
+            timing.row(
+                f"{label}: any hit in the light's view (binning included)",
+                timing.ms(r["occluded_light_view"]),
+            ),
         ]
     if "brute" in coarse:
         b = coarse["brute"]
@@ -208,6 +224,10 @@ def main(argv=None) -> dict:
         notes.append(
             "Brute force gives identical answers: " + str(coarse["brute"]["identical_to_bvh"])
         )
+    notes.append(
+        "The light's view gives the BVH's shadow answers: "
+        + str(coarse["light_view_identical"] and finer["light_view_identical"])
+    )
     section = timing.report_section("Visibility only (bench_visibility.py)", rows, notes, [])
     result = {
         "size": size,

@@ -1,8 +1,10 @@
 """``render(scene)``: the pipeline, one step per module.
 
-1. Visibility (``render.visibility``, plain arrays, constants on the tape): build the BVH
-   over all primitives, trace one ray per pixel sample (which primitive does it hit?) and a
-   shadow ray from every hit to every light (is the light visible?).
+1. Visibility (``render.visibility``, plain arrays, constants on the tape): which primitive
+   does the ray of every pixel sample hit, and does each hit see each light? Camera rays are
+   rasterised or traced through the BVH, shadow rays towards a point light answered in the
+   light's view or by the BVH (``render.raster``: the same answers, bit for bit); the BVH
+   is built only if some ray needs it.
 2. Surfaces (``render.geometry``, on the tape): for the rays that hit, *recompute* the hit
    point, normal and UV differentiably from the camera and the primitive, object by object.
 3. Shading (``render.shading``, on the tape): lights and materials give each hit a colour;

@@ -1,16 +1,20 @@
 """Visibility: which primitive each camera ray hits, and which lights each hit point sees.
 
-These are the renderer's discrete decisions. They are computed on plain arrays with the
-BVH (``render.accel``) and are constants on the tape: the image is differentiable for fixed
+These are the renderer's discrete decisions. They are computed on plain arrays, with the
+BVH (``render.accel``) or, where that is faster and gives the same answers, by projection
+(``render.raster``), and are constants on the tape: the image is differentiable for fixed
 visibility (``render.geometry`` recomputes *where* each ray hits, differentiably).
 
 * ``scene_primitives``: the scene's geometry as one list of primitives (all mesh triangles,
   then all spheres), the accelerator's input and its primitive ids.
-* ``trace_primary``: one ray per pixel sample through the BVH: the primitive it hits.
+* ``trace_primary``: one ray per pixel sample, traced through the BVH or rasterised: the
+  primitive it hits.
 * ``shadow_rays`` / ``trace_shadows``: a ray from every hit point to a light: is it blocked?
+  (Many rays towards a point light: answered in the light's view; else by the BVH.)
 
 ``trace_visibility`` runs the three, reusing earlier results from a ``render.cache``
-``RenderCache`` when the values they depend on are unchanged.
+``RenderCache`` when the values they depend on are unchanged; the BVH is built (and kept)
+only when a ray first needs it.
 """
 
 from __future__ import annotations
