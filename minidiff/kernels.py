@@ -282,6 +282,53 @@ def _project_out_rows(y, g, scale, out):
             out[i, j] = (g[i, j] - y[i, j] * d) * s
 
 
+def dot_vjp(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Equals ``(g[..., None] * b, g[..., None] * a)`` bit for bit: both gradients of a dot
+    product a . b along the last axis, for the upstream gradient g (...).
+
+    For (k,) g and (k, 3) rows a and b, one compiled pass makes both.
+    """
+    if _rows_of_three(a, b) and g.shape == a.shape[:1] and g.dtype == a.dtype:
+        out_a, out_b = buffers.empty(a.shape, a.dtype), buffers.empty(a.shape, a.dtype)
+        _dot_vjp_rows(g, a, b, out_a, out_b)
+        return out_a, out_b
+    g = g[..., None]
+    return elementwise(np.multiply, g, b), elementwise(np.multiply, g, a)
+
+
+@numba.njit(cache=True)
+def _dot_vjp_rows(g, a, b, out_a, out_b):
+    for i in range(g.shape[0]):
+        c = g[i]
+        for j in range(3):
+            out_a[i, j] = c * b[i, j]
+            out_b[i, j] = c * a[i, j]
+
+
+def cross_vjp(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Equals ``(cross3(b, g), cross3(g, a))`` bit for bit: both gradients of a x b for the
+    upstream gradient g (..., 3). For (k, 3) rows, one compiled pass makes both."""
+    if _rows_of_three(a, b) and g.shape == a.shape and g.dtype == a.dtype:
+        out_a, out_b = buffers.empty(a.shape, a.dtype), buffers.empty(a.shape, a.dtype)
+        _cross_vjp_rows(g, a, b, out_a, out_b)
+        return out_a, out_b
+    return cross3(b, g), cross3(g, a)
+
+
+@numba.njit(cache=True)
+def _cross_vjp_rows(g, a, b, out_a, out_b):
+    for i in range(g.shape[0]):
+        a0, a1, a2 = a[i, 0], a[i, 1], a[i, 2]
+        b0, b1, b2 = b[i, 0], b[i, 1], b[i, 2]
+        g0, g1, g2 = g[i, 0], g[i, 1], g[i, 2]
+        out_a[i, 0] = b1 * g2 - b2 * g1  # b x g
+        out_a[i, 1] = b2 * g0 - b0 * g2
+        out_a[i, 2] = b0 * g1 - b1 * g0
+        out_b[i, 0] = g1 * a2 - g2 * a1  # g x a
+        out_b[i, 1] = g2 * a0 - g0 * a2
+        out_b[i, 2] = g0 * a1 - g1 * a0
+
+
 def gather_rows(x: np.ndarray, index: np.ndarray) -> np.ndarray:
     """Equals ``x[index]`` bit for bit, for a 1-D integer array ``index``.
 

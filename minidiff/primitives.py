@@ -517,6 +517,8 @@ def dot(a: Any, b: Any) -> Tensor:
         raise ValueError(f"dot: cannot broadcast shapes {a.shape} and {b.shape}") from None
 
     def vjp(g):
+        if a.requires_grad and b.requires_grad:
+            return kernels.dot_vjp(g, a._data, b._data)  # both in one pass
         g = g[..., None]
         return (
             kernels.elementwise(np.multiply, g, b._data) if a.requires_grad else None,
@@ -546,6 +548,8 @@ def cross(a: Any, b: Any) -> Tensor:
         raise ValueError(f"cross: cannot broadcast shapes {a.shape} and {b.shape}") from None
 
     def vjp(g):
+        if a.requires_grad and b.requires_grad:
+            return kernels.cross_vjp(g, a._data, b._data)  # both in one pass
         return (
             kernels.cross3(b._data, g) if a.requires_grad else None,
             kernels.cross3(g, a._data) if b.requires_grad else None,

@@ -148,6 +148,28 @@ def test_dot_last_of_other_lengths_equals_numpy_sum_up_to_rounding(n, rows, seed
 
 @settings(max_examples=40, deadline=None)
 @given(
+    shapes=st.sampled_from([((4000, 3), (4000, 3)), ((7, 3), (7, 3)), ((4000, 3), (3,))]),
+    dtype=DTYPES,
+    seed=st.integers(0, 2**16),
+)
+def test_dot_and_cross_vjps_equal_their_expressions(shapes, dtype, seed):
+    """Both gradients in one compiled pass ((k, 3) rows) or by the fallback (small k,
+    broadcast operands), bit for bit the expressions they stand for."""
+    rng = np.random.default_rng(seed)
+    a, b = values(rng, shapes[0], dtype), values(rng, shapes[1], dtype)
+    lead = np.broadcast_shapes(a.shape, b.shape)[:-1]
+    g = values(rng, lead, dtype)
+    got_a, got_b = kernels.dot_vjp(g, a, b)
+    assert_identical(got_a, g[..., None] * b)
+    assert_identical(got_b, g[..., None] * a)
+    g3 = values(rng, lead + (3,), dtype)
+    got_a, got_b = kernels.cross_vjp(g3, a, b)
+    assert_identical(got_a, np.cross(np.broadcast_to(b, g3.shape), g3))
+    assert_identical(got_b, np.cross(g3, np.broadcast_to(a, g3.shape)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
     rows=st.sampled_from([4000, 1500, 7]),
     scale_shape=st.sampled_from(["column", "scalar"]),
     dtype=DTYPES,
