@@ -476,10 +476,10 @@ def build_bvh(
         nodes_used = _close_gaps(
             nodes_used, tasks, task_free, task_end, node_bounds, node_first, node_count
         )
-    return (
-        node_bounds[:nodes_used].copy(),
-        node_first[:nodes_used].copy(),
-        node_count[:nodes_used].copy(),
-        order,
-        int(depth),
-    )
+    # Cut the arrays to the nodes used in place (realloc: no copy of what is kept; a copy
+    # of the 1M-triangle tree's nodes took ~55 ms). Nothing else refers to them: ``tree``
+    # holds these very arrays, not views.
+    node_bounds.resize((nodes_used, 6), refcheck=False)
+    node_first.resize(nodes_used, refcheck=False)
+    node_count.resize(nodes_used, refcheck=False)
+    return node_bounds, node_first, node_count, order, int(depth)

@@ -103,12 +103,12 @@ def pack_primitives(
     return _pack_rows(triangles, sphere_centers, sphere_radii, order)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _pack_rows(triangles, sphere_centers, sphere_radii, order):
-    """The loop of :func:`pack_primitives`."""
+    """The loop of :func:`pack_primitives` (rows are independent: on all threads)."""
     T = triangles.shape[0]
     data = np.zeros((order.shape[0], PRIM_WIDTH))
-    for i in range(order.shape[0]):
+    for i in prange(order.shape[0]):
         p = order[i]
         if p >= T:
             s = p - T
