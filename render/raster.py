@@ -307,11 +307,14 @@ def raster_closest_hit(
 #
 # Every shadow ray towards a point light lies on a line through the light, so a primitive
 # can block it only if it covers the ray's direction *as seen from the light*. Looking from
-# the light along the rays' mean direction, with a grid of cells over the directions the
-# rays take: each primitive's projected box lists it in the cells it overlaps (``screen_
-# boxes`` and ``bin_to_tiles`` above, with the light as the eye), and each ray is tested
-# against its own cell's list with the tracer's ray-primitive function. Any-hit is a yes or
-# no, and the lists are conservative, so the answers are the BVH's (and brute force's).
+# the light towards the middle of the rays' origins, with a grid of cells over the
+# directions the rays take: each primitive's projected box lists it in the cells it
+# overlaps, nearest first (``screen_boxes`` and ``bin_to_tiles`` above, with the light as
+# the eye), and each ray is tested against its own cell's list with the tracer's
+# ray-primitive function, skipping primitives whose projected edges rule it out and
+# stopping at the first one wholly farther from the light than the ray's start. Any-hit is
+# a yes or no, and the lists are conservative, so the answers are the BVH's (and brute
+# force's).
 
 #: Shadow rays per cell of the light's grid: fewer cells mean longer lists per ray, more
 #: cells more binning per primitive.
@@ -342,7 +345,7 @@ def occluded_towards_light(
     out = np.zeros(len(origins), np.bool_)
     if len(origins) == 0:
         return out
-    fits, forward, right, up, spread = _light_view(light, origins, tmax, MIN_VIEW_COSINE)
+    fits, forward, right, up, spread = _light_view(light, origins, MIN_VIEW_COSINE)
     if not fits:
         return None
     # Cells: about RAYS_PER_CELL rays each, about square (right and up are the half extents).
@@ -372,7 +375,7 @@ def occluded_towards_light(
 
 
 @njit(cache=True, error_model="numpy")
-def _light_view(light, origins, tmax, min_cosine):
+def _light_view(light, origins, min_cosine):
     """The light's view of the rays: (fits, forward, right, up, spread); fits is False if
     the rays fan out wider than ``min_cosine`` allows.
 
