@@ -178,7 +178,7 @@ def measure_in_turns(ours, theirs, repeats: int, rounds: int = 3) -> dict:
 
 TARGETS = {"forward": 3.0, "light_iteration": 1.0, "shape_iteration": 1.5}
 LABELS = {
-    "forward": "forward render (BVH build, visibility, shadows, shading)",
+    "forward": "forward render (visibility, shadows, shading; a BVH only if a ray needs it)",
     "light_iteration": "light-estimation iteration (render + MSE + backward)",
     "shape_iteration": "shape iteration, all vertices (render + MSE + backward)",
 }
