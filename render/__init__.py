@@ -7,10 +7,11 @@ Read in this order: ``renderer.py`` (the pipeline on one screen), then each step
 tape), ``shading.py`` (lights and materials), ``cache.py`` (reuse between renders),
 ``edges.py`` / ``topology.py`` / ``shadow_edges.py`` (the motion of silhouettes and shadow
 edges, ``antialias=True``), ``reflection.py`` (mirror rays), ``raster.py`` (camera-ray
-hits by rasterisation), ``gradient_image.py`` (forward mode: where in the picture a
-parameter acts), ``image.py`` / ``meshio.py`` / ``jsonio.py`` (files), ``optimize.py``
-(inverse rendering), ``experiments.py`` (the paper's experiments, as functions returning
-numbers and images) and ``plot.py`` (a dependency-free line plot for loss curves).
+hits by rasterisation, shadow rays seen from the light), ``gradient_image.py`` (forward
+mode: where in the picture a parameter acts), ``image.py`` / ``meshio.py`` / ``jsonio.py``
+(files), ``optimize.py`` (inverse rendering), ``experiments.py`` (the paper's experiments,
+as functions returning numbers and images) and ``plot.py`` (a dependency-free line plot
+for loss curves).
 Command lines and output writing belong to the scripts: ``examples/script_support.py``.
 """
 
