@@ -221,7 +221,7 @@ def _raster_closest_hit(
                             if not _may_see(edges[pid], px + offsets[s, 0], py + offsets[s, 1]):
                                 continue
                             r = (py * width + px) * spp + s
-                            if near[pid] > out_t[r] * (1.0 + 1e-6) + rounding:
+                            if _wholly_beyond(near[pid], out_t[r], rounding):
                                 continue  # wholly behind what the ray already hit
                             dx, dy, dz = pixel_ray(
                                 px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
@@ -239,6 +239,14 @@ def _raster_closest_hit(
                                 if with_uv:
                                     out_u[r] = u
                                     out_v[r] = v
+
+
+@njit(cache=True, inline="always")
+def _wholly_beyond(near, depth, rounding):
+    """Whether a primitive whose nearest depth (along the view axis) is ``near`` lies wholly
+    beyond ``depth`` >= 0, with room for the rounding of both: a relative millionth plus
+    ``rounding`` (absolute), many times what either can be off by."""
+    return near > depth * (1.0 + 1e-6) + rounding
 
 
 @njit(cache=True, inline="always")
@@ -270,16 +278,15 @@ def raster_closest_hit(
     forward, right, up, eye = plain_frame(camera)
     width, height = camera.width, camera.height
     offsets = subpixel_offsets(spp)
-    boxes, edges = screen_boxes(
-        triangles, centers, radii, eye, forward, right, up, width, height, offsets
-    )
     triangles = np.ascontiguousarray(triangles, np.float64).reshape(-1, 3, 3)
     centers = np.ascontiguousarray(centers, np.float64).reshape(-1, 3)
     radii = np.ascontiguousarray(radii, np.float64).reshape(-1)
+    boxes, edges = screen_boxes(
+        triangles, centers, radii, eye, forward, right, up, width, height, offsets
+    )
     # Each tile's list nearest first: a primitive wholly behind a sample's hit so far is
     # skipped. A hit's t is its depth (the directions have unit component along forward),
-    # never less than its primitive's nearest depth but for rounding, which ``rounding`` and
-    # a relative millionth cover many times over.
+    # never less than its primitive's nearest depth but for rounding (``_wholly_beyond``).
     near = _nearest_depths(triangles, centers, radii, eye, forward)
     extent = max(
         np.abs(triangles).max(initial=0.0), (np.abs(centers) + radii[:, None]).max(initial=0.0)
@@ -463,7 +470,7 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, or
             continue  # the light is at the ray's start: nothing between
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         wx, wy, wz = ox - light[0], oy - light[1], oz - light[2]
-        # The ray's cell: its origin's position as _project_boxes computes it for points.
+        # The ray's cell: its origin's position as _project computes it for points.
         depth = wx * forward[0] + wy * forward[1] + wz * forward[2]
         x = (wx * right[0] + wy * right[1] + wz * right[2]) / (rr * depth)
         y = (wx * up[0] + wy * up[1] + wz * up[2]) / (uu * depth)
@@ -472,16 +479,15 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, or
         cy = min(max(int(np.floor(py)), 0), height - 1)
         c = cy * width + cx
         # The segment's points are no deeper than its start (exactly: (1 - t) times its
-        # depth); the margin covers the rounding of both depths many times over.
-        size = light_size + max(abs(ox), abs(oy), abs(oz))
-        deepest = depth + 1e-6 * abs(depth) + 64.0 * eps * size
+        # depth), so primitives wholly beyond that depth cannot block it.
+        rounding = 64.0 * eps * (light_size + max(abs(ox), abs(oy), abs(oz)))
         dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
         dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
         everything = depth <= close  # rounding could put the ray in the wrong cell
         first, last = (0, near.shape[0]) if everything else (start[c], start[c + 1])
         for j in range(first, last):
             pid = j if everything else ids[j]
-            if near[pid] > deepest and not everything:
+            if not everything and _wholly_beyond(near[pid], depth, rounding):
                 break
             if pid == ignore[i] or not (everything or _may_see(edges[pid], px, py)):
                 continue

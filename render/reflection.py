@@ -148,7 +148,15 @@ def _lit(bounces: Bounces, points: np.ndarray, prims: np.ndarray) -> np.ndarray:
     if not bounces.shadows:
         return np.ones((len(lights), len(points)), dtype=bool)
     masks = [
-        trace_shadows(bounces.accelerator, bounces.primitives, light, points, prims, bounces.bvh)
+        trace_shadows(
+            bounces.accelerator,
+            bounces.primitives,
+            light,
+            points,
+            prims,
+            bounces.size,
+            bounces.bvh,
+        )
         for light in lights
     ]
     return np.array(masks, dtype=bool).reshape(len(lights), len(points))

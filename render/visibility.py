@@ -224,11 +224,13 @@ def trace_shadows(
     light: PointLight | DirectionalLight,
     points: np.ndarray,
     start_prim: np.ndarray,
+    size: float,
     bvh: bool = True,
 ) -> np.ndarray:
     """(k,) bool: True where ``light`` reaches the hit point (no primitive in between).
 
-    points (k, 3) on primitives start_prim (k,) of ``primitives`` (``scene_primitives``).
+    points (k, 3) on primitives start_prim (k,) of ``primitives`` (``scene_primitives``),
+    whose bounding box has the diagonal ``size`` (``scene_size``).
     With ``bvh`` and many rays towards a point light, the rays are answered in the light's
     view (``render.raster.occluded_towards_light``, the same answers), else by
     ``accelerator()`` (which builds the scene's accelerator on first use).
@@ -236,7 +238,7 @@ def trace_shadows(
     if len(points) == 0:
         return np.zeros(0, dtype=bool)
     n_prims = len(primitives[0]) + len(primitives[1])
-    rays = shadow_rays(light, points, start_prim, len(primitives[0]), scene_size(primitives))
+    rays = shadow_rays(light, points, start_prim, len(primitives[0]), size)
     if bvh and isinstance(light, PointLight):
         if len(points) >= LIGHT_VIEW_RAYS_PER_PRIMITIVE * n_prims:
             position = np.asarray(light.position.data, dtype=np.float64)
@@ -310,7 +312,13 @@ def trace_visibility(
             ("shadows", j),
             light_key(light) + [traced],
             lambda light=light: trace_shadows(
-                accelerator, primitives, light, primary.points, start_prim, bvh
+                accelerator,
+                primitives,
+                light,
+                primary.points,
+                start_prim,
+                scene_size(primitives),
+                bvh,
             ),
         )
         lit.append(mask)

@@ -56,20 +56,37 @@ def points_on(triangles: np.ndarray, rng: np.random.Generator, n: int):
     corners=st.integers(1, 40).flatmap(lambda n: points(3 * n, -2.0, 2.0)),
     spheres=st.integers(0, 3).flatmap(lambda n: points(n, -1.5, 1.5)),
     radius=st.floats(0.05, 1.0),
-    light=points(1, -3.0, 3.0),
-    height=st.floats(2.5, 8.0),
+    light=points(1, -1.0, 1.0),
+    height=st.floats(5.0, 12.0),
     seed=st.integers(0, 2**16),
 )
 def test_random_soups_and_spheres_agree_with_the_bvh(corners, spheres, radius, light, height, seed):
-    """Hit points on random triangles (every ray skips its own), lights above the soup at
-    random places: where one view holds the rays, its answers are the BVH's."""
+    """Hit points on random triangles in [-2, 2]^3 (every ray skips its own), spheres, and a
+    light at least 5 above the soup's top, so that the rays always fit one view (within 60
+    degrees of its axis): its answers are the BVH's."""
     triangles = corners.reshape(-1, 3, 3)
     radii = np.full(len(spheres), radius)
-    light = light[0] + np.array([0.0, height, 0.0])
+    light = light[0] + np.array([0.0, 2.0 + height, 0.0])
     hit_points, start = points_on(triangles, np.random.default_rng(seed), 200)
     view, bvh = shadow_answers(triangles, spheres.reshape(-1, 3), radii, light, hit_points, start)
-    if view is not None:
-        np.testing.assert_array_equal(view, bvh)
+    assert view is not None
+    np.testing.assert_array_equal(view, bvh)
+
+
+def test_primitives_next_to_the_light_far_from_the_origin():
+    """1e8 from the origin, directions from the light are exact only to ~1e-8 of a unit:
+    tiny triangles a ten-thousandth below the light (within the distance where rounding
+    could move their image by a cell margin, so listed in every cell) must still block
+    exactly the rays the BVH says they block (a patch of the ground below the light)."""
+    shift = np.array([1e8, 0.0, 1e8])
+    ground = grid_triangles(8, 8, z=0.0, size=0.25)[:, :, [0, 2, 1]] + shift  # y = 0
+    light = shift + np.array([1.0, 1.0, 1.0])
+    near_light = 1e-5 * np.array([[[-2.0, -10.0, -2.0], [3.0, -10.0, -1.0], [0.0, -10.0, 3.0]]])
+    triangles = np.concatenate([ground, near_light + light + [1e-5, 0.0, 0.0], near_light + light])
+    hit_points, start = points_on(ground, np.random.default_rng(5), 4000)
+    view, bvh = shadow_answers(triangles, np.zeros((0, 3)), np.zeros(0), light, hit_points, start)
+    assert view is not None and 0 < bvh.sum() < len(bvh)
+    np.testing.assert_array_equal(view, bvh)
 
 
 def test_a_light_above_the_soup_always_gets_a_view():
