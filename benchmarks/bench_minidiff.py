@@ -16,8 +16,8 @@ Two implementations of exactly that math:
   cannot beat. It uses the same kernels as minidiff's primitives (``minidiff.kernels``:
   the dot and cross products of (k, 3) rows in one compiled pass, the column-at-a-time
   broadcasting, outputs in reused memory), so the ratio isolates the tape's overhead.
-* ``minidiff_forward``: the renderer's own on-tape functions (``render.geometry.
-  shade_mesh``, which calls ``render.geometry`` and ``render.shading``), with the
+* ``minidiff_forward``: the renderer's own on-tape functions (``render.shade.surface.
+  shade_mesh``, which calls ``render.shade.surface`` and ``render.shade.lighting``), with the
   vertices, the camera position, the light position and intensity and the albedo as leaves
   that require gradients, i.e. what ``render.render`` does for a mesh.
 
@@ -51,11 +51,11 @@ import minidiff as md
 from minidiff.kernels import cross3, dot_last, elementwise  # plain NumPy, as minidiff uses it
 from minidiff.memory import keep_freed_memory
 from render import render
-from render.camera import primary_rays
-from render.plot import line_plot
+from render.scene.camera import primary_rays
+from render.inverse.plot import line_plot
 from render.renderer import shade_mesh
-from render.scene import Material, Mesh, PointLight
-from render.teapot import paper_scene
+from render.scene.scene import Material, Mesh, PointLight
+from render.scene.teapot import paper_scene
 
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
@@ -107,7 +107,7 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     v, d, eye = w["vertices"], w["directions"], w["eye"]
     faces = w["faces"][w["faces_hit"]]
     a, b, c = (np.take(v, faces[:, i], axis=0) for i in range(3))
-    # Moller-Trumbore (render.geometry.intersect_edges)
+    # Moller-Trumbore (render.shade.surface.intersect_edges)
     e1, e2 = b - a, c - a
     p = cross3(d, e2)
     inv_det = 1.0 / dot_last(e1, p)
@@ -119,7 +119,7 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     normals = _normalize(cross3(e1, e2))
     flip = np.where(dot_last(normals, d) > 0, -1.0, 1.0).astype(d.dtype)[:, None]
     normals = _mul(normals, flip)
-    # Point light, Lambert (render.shading.shade / light_incidence)
+    # Point light, Lambert (render.shade.lighting.shade / light_incidence)
     offset = elementwise(np.subtract, w["light_position"], points)
     distance_sq = np.maximum(dot_last(offset, offset), 1e-12)
     to_light = _normalize(offset)

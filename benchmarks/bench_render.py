@@ -14,7 +14,7 @@ Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/pa
   parameter requires a gradient, so no tape is recorded: what a user's render costs), and
   of the scene whose parameters all require gradients (the tape is recorded);
 * forward+backward: the paper's loss (Eq. 1, MSE of the clipped image,
-  ``render.optimize.image_loss``) against a target rendered at the true parameters, from a
+  ``render.inverse.optimize.image_loss``) against a target rendered at the true parameters, from a
   start with the light moved by 0.1, differentiated w.r.t. ALL parameters: light position
   and intensity, albedo, camera position, look_at and fov, and all 1,120 vertices;
 * mirror reflection: forward and forward+backward of the teapot on a mirror floor at
@@ -58,9 +58,9 @@ from bench_visibility import time_brute_visibility, time_bvh_visibility, visibil
 
 import minidiff as md
 from render import gradient_image, render
-from render.optimize import image_loss
-from render.plot import line_plot
-from render.teapot import paper_scene
+from render.inverse.optimize import image_loss
+from render.inverse.plot import line_plot
+from render.scene.teapot import paper_scene
 
 PARAMETERS = (
     # (name, object path, attribute): every continuous parameter of the paper scene
@@ -250,7 +250,7 @@ def time_reflection(size: int, repeats: int) -> dict:
     """The teapot on a mirror floor (``paper_scene(ground=True)`` with reflectance 0.8):
     forward render and forward+backward (all parameters, reflectance included) at
     max_bounces = 0, 1, 2, and what each bounce adds."""
-    from render.scene import Material
+    from render.scene.scene import Material
 
     def floor():
         return Material((0.05, 0.05, 0.05), reflectance=0.8)

@@ -4,9 +4,9 @@ Run:  python benchmarks/bench_visibility.py [--out DIR] [--quick] [--repeats 15]
 
 Workload (``docs/paper_scene.md``): the Newell teapot tessellated into 1,536 triangles
 (``render.teapot``), the 512x512 pinhole camera at (3, 2, 5) looking at the origin, one ray
-per pixel centre (``render.camera.primary_rays``), and shadow rays from the camera hits to
+per pixel centre (``render.scene.camera.primary_rays``), and shadow rays from the camera hits to
 the point light at (2, 5, 3), built exactly as the renderer builds them
-(``render.visibility.shadow_rays``: started off the surface by the scale-relative
+(``render.trace.visibility.shadow_rays``: started off the surface by the scale-relative
 ``SHADOW_EPSILON`` offset, tmin = 0, the start triangle ignored).
 A finer tessellation (26 x 60 cells per patch: 99,840 triangles) measures build time and
 ray casting on a bigger mesh.
@@ -27,11 +27,11 @@ import numba
 import numpy as np
 import timing
 
-from render.accel import Accelerator
-from render.camera import primary_rays
-from render.raster import occluded_towards_light, raster_closest_hit
-from render.teapot import paper_scene
-from render.visibility import scene_primitives, scene_size, shadow_rays
+from render.trace.accel import Accelerator
+from render.scene.camera import primary_rays
+from render.trace.raster import occluded_towards_light, raster_closest_hit
+from render.scene.teapot import paper_scene
+from render.trace.visibility import scene_primitives, scene_size, shadow_rays
 
 
 def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
@@ -57,7 +57,7 @@ def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
         "prim_id": prim_id,
         "shadow_origins": shadows.origins,
         "shadow_directions": shadows.directions,  # unnormalised: the light is at t = 1
-        "shadow_tmin": 0.0,  # the rays start off the surface (render.visibility)
+        "shadow_tmin": 0.0,  # the rays start off the surface (render.trace.visibility)
         "shadow_tmax": shadows.tmax,
         "shadow_ignore": shadows.ignore_prim,
     }
@@ -109,14 +109,14 @@ def time_bvh_visibility(w: dict, repeats: int) -> dict:
             lambda: accel.closest_hit(w["origins"], w["directions"]), repeats
         ),
         "closest_hit_1_thread": closest_hit_one_thread(w, repeats),
-        # The same hits by rasterisation (render.raster; the renderer's choice while there
+        # The same hits by rasterisation (render.trace.raster; the renderer's choice while there
         # are >= 16 camera rays per primitive), camera rays made inside.
         "closest_hit_raster": timing.measure(
             lambda: raster_closest_hit(*scene_primitives(w["scene"]), camera, with_uv=False),
             repeats,
         ),
         "occluded": timing.measure(lambda: _occluded(accel, w), repeats),
-        # The same answers in the light's view (render.raster; the renderer's choice from 4
+        # The same answers in the light's view (render.trace.raster; the renderer's choice from 4
         # shadow rays per primitive on), primitives binned inside.
         "occluded_light_view": timing.measure(lambda: _occluded_in_light_view(w), repeats),
         "light_view_identical": bool(np.array_equal(_occluded_in_light_view(w), occluded)),

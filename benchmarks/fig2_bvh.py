@@ -29,8 +29,8 @@ import timing
 from bench_visibility import time_brute_visibility, time_bvh_visibility, visibility_workload
 
 from render import render
-from render.plot import line_plot
-from render.teapot import paper_scene
+from render.inverse.plot import line_plot
+from render.scene.teapot import paper_scene
 
 PAPER_512 = {"bvh_ms": 52.3, "no_bvh_ms": 85.6, "bvh_mb": 124.5, "no_bvh_mb": 207.3}
 

@@ -48,8 +48,8 @@ import timing
 
 import minidiff as md
 from render import render
-from render.plot import line_plot
-from render.teapot import paper_scene
+from render.inverse.plot import line_plot
+from render.scene.teapot import paper_scene
 
 PAPER_TABLE1 = {
     "ad_ms": 12.4,

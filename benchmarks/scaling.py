@@ -32,10 +32,10 @@ import timing
 from bench_render import forward_backward, loss_problem
 
 from render import render
-from render.accel import Accelerator
-from render.plot import line_plot
-from render.teapot import paper_scene, teapot
-from render.visibility import scene_primitives
+from render.trace.accel import Accelerator
+from render.inverse.plot import line_plot
+from render.scene.teapot import paper_scene, teapot
+from render.trace.visibility import scene_primitives
 
 
 def point(size: int, nu: int, nv: int, repeats: int) -> dict:

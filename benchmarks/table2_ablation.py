@@ -2,12 +2,12 @@
 
 Run:  python benchmarks/table2_ablation.py [--out DIR] [--quick] [--fd-iters 500]
 
-The camera-calibration experiment of ``render.experiments.run_camera_calibration``
+The camera-calibration experiment of ``render.inverse.experiments.run_camera_calibration``
 (section 5.6; scene and start built exactly as there: the paper scene at 512x512, camera
 moved by 0.5 along x and y, the viewing direction rotated by 10 degrees about a seeded
 random axis, seed 42; Adam with lr 0.03 on the camera position and look_at point, the
 paper's Eq. 1 loss). ``run_camera_calibration`` has no switch for the BVH, so the loop is
-run here with ``render.optimize.optimize(..., render_kwargs={"bvh": ...})``, for exactly
+run here with ``render.inverse.optimize.optimize(..., render_kwargs={"bvh": ...})``, for exactly
 500 iterations (tolerance 0), in four configurations:
 
 * AD + BVH: the full 500 iterations (render on the tape + backward + Adam step each).
@@ -37,9 +37,9 @@ import timing
 
 import minidiff as md
 from render import render
-from render.experiments import TRUE_CAMERA, camera_calibration_problem, relative_error_pct
-from render.optimize import image_loss, optimize
-from render.plot import line_plot
+from render.inverse.experiments import TRUE_CAMERA, camera_calibration_problem, relative_error_pct
+from render.inverse.optimize import image_loss, optimize
+from render.inverse.plot import line_plot
 
 PAPER = {
     "AD + BVH": (8.7, 0.20),

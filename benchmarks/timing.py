@@ -48,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from render.jsonio import write_json as write_strict_json
+from render.inverse.jsonio import write_json as write_strict_json
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_OUT = ROOT / "out" / "benchmarks"  # out/ is git-ignored
@@ -258,7 +258,7 @@ def write_json(out: Path, name: str, payload: dict) -> Path:
     payload["machine"] = machine()
     payload["argv"] = sys.argv
     # Strict JSON (NaN and infinities become null), which every parser reads: see
-    # render.jsonio.
+    # render.inverse.jsonio.
     return write_strict_json(out / f"{name}.json", payload, indent=2)
 
 

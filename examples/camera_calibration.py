@@ -6,13 +6,13 @@ Run: python examples/camera_calibration.py [--size 512] [--iters 500] [--seed 42
 
 from script_support import run_example
 
-from render.experiments import run_camera_calibration
+from render.inverse.experiments import run_camera_calibration
 
 ANGLE = {"--angle": {"type": float, "default": 10.0, "help": "initial view error (degrees)"}}
 
 
 def main(argv=None) -> dict:
-    """Run the experiment (``render.experiments.run_camera_calibration``) from the command line."""
+    """Run the experiment (``render.inverse.experiments.run_camera_calibration``) from the command line."""
     return run_example(run_camera_calibration, __doc__.splitlines()[0], 500, argv, extra=ANGLE)
 
 

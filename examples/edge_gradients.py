@@ -29,13 +29,13 @@ from PIL import Image
 from script_support import command_line
 
 import minidiff as md
-from render.experiments import TRUE_CAMERA, camera_calibration_problem
-from render.image import linear_to_srgb
-from render.jsonio import write_json
-from render.optimize import optimize
-from render.plot import line_plot
+from render.inverse.experiments import TRUE_CAMERA, camera_calibration_problem
+from render.scene.image import linear_to_srgb
+from render.inverse.jsonio import write_json
+from render.inverse.optimize import optimize
+from render.inverse.plot import line_plot
 from render.renderer import render
-from render.teapot import paper_scene
+from render.scene.teapot import paper_scene
 
 SUCCESS = 0.5  # per cent position error that counts as converged in the basin
 QUICK = {"--quick": {"action": "store_true", "help": "a few small runs (not results)"}}

@@ -26,7 +26,7 @@ import numpy as np
 
 import minidiff as md
 from render import gradient_image, render, save_image, write_gradient_png
-from render.teapot import paper_scene
+from render.scene.teapot import paper_scene
 
 
 def directions(scene) -> dict[str, tuple[str, np.ndarray]]:

@@ -5,11 +5,11 @@ Run: python examples/light_estimation.py [--size 512] [--iters 500] [--seed 42] 
 
 from script_support import run_example
 
-from render.experiments import run_light_estimation
+from render.inverse.experiments import run_light_estimation
 
 
 def main(argv=None) -> dict:
-    """Run the experiment (``render.experiments.run_light_estimation``) from the command line."""
+    """Run the experiment (``render.inverse.experiments.run_light_estimation``) from the command line."""
     return run_example(run_light_estimation, __doc__.splitlines()[0], 500, argv)
 
 

@@ -5,11 +5,11 @@ Run: python examples/material_recovery.py [--size 512] [--iters 100] [--seed 42]
 
 from script_support import run_example
 
-from render.experiments import run_material_recovery
+from render.inverse.experiments import run_material_recovery
 
 
 def main(argv=None) -> dict:
-    """Run the experiment (``render.experiments.run_material_recovery``) from the command line."""
+    """Run the experiment (``render.inverse.experiments.run_material_recovery``) from the command line."""
     return run_example(run_material_recovery, __doc__.splitlines()[0], 100, argv)
 
 

@@ -25,18 +25,18 @@ import numpy as np
 from script_support import command_line
 
 import minidiff as md
-from render.experiments import (
+from render.inverse.experiments import (
     TRUE_INTENSITY,
     TRUE_LIGHT,
     light_estimation_start,
     relative_error_pct,
 )
-from render.image import save_image
-from render.jsonio import write_json
-from render.optimize import optimize
+from render.scene.image import save_image
+from render.inverse.jsonio import write_json
+from render.inverse.optimize import optimize
 from render.renderer import render
-from render.scene import Camera, Material, Mesh, PointLight, Scene
-from render.teapot import paper_scene, teapot
+from render.scene.scene import Camera, Material, Mesh, PointLight, Scene
+from render.scene.teapot import paper_scene, teapot
 
 QUICK = {"--quick": {"action": "store_true", "help": "one small run (not results)"}}
 MIRROR_FLOOR = Material((0.05, 0.05, 0.05), reflectance=0.8)

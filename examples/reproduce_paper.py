@@ -19,12 +19,12 @@ import numpy as np
 from script_support import command_line, run_with_outputs
 
 from minidiff.memory import keep_freed_memory
-from render.experiments import (
+from render.inverse.experiments import (
     run_camera_calibration,
     run_light_estimation,
     run_material_recovery,
 )
-from render.jsonio import write_json
+from render.inverse.jsonio import write_json
 
 # The paper's section 6 claims (mean, std over 10 runs), quoted for comparison only.
 PAPER = {
@@ -50,7 +50,7 @@ PAPER = {
 }
 PAPER["camera_calibration_30deg"] = PAPER["camera_calibration"]
 
-# What each metric means in the table (ours, as measured by render.experiments).
+# What each metric means in the table (ours, as measured by render.inverse.experiments).
 LABELS = {
     "iterations": "updates made (stops at loss < tol or the budget)",
     "iterations_to_tol": "iterations until loss < tol",

@@ -1,6 +1,6 @@
 """What the example scripts share: their command line and the files they write.
 
-Not part of the library: ``render.experiments`` runs the paper's experiments and returns
+Not part of the library: ``render.inverse.experiments`` runs the paper's experiments and returns
 their numbers and images; this module turns that into a command-line program that prints
 JSON and writes PNGs, a loss plot and an animated GIF. Scripts in this folder import it as
 ``script_support`` (Python puts a script's own folder on the import path).
@@ -15,9 +15,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from render.experiments import ExperimentRun
-from render.image import save_image
-from render.plot import line_plot
+from render.inverse.experiments import ExperimentRun
+from render.scene.image import save_image
+from render.inverse.plot import line_plot
 
 
 def command_line(
@@ -99,7 +99,7 @@ def write_outputs(run: ExperimentRun, out: Path, frames: list | None = None) -> 
 
 
 def run_with_outputs(experiment, out: Path | None, iters: int | None = None, **options) -> dict:
-    """Run ``experiment`` (a ``render.experiments.run_*``) and, if ``out`` is given, write
+    """Run ``experiment`` (a ``render.inverse.experiments.run_*``) and, if ``out`` is given, write
     its images with frames for the GIF (about 40 of them); the metrics are returned, with
     the output folder under "outputs"."""
     budget = {} if iters is None else {"iters": iters}

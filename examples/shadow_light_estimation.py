@@ -21,16 +21,16 @@ import numpy as np
 from script_support import command_line
 
 import minidiff as md
-from render.experiments import (
+from render.inverse.experiments import (
     TRUE_INTENSITY,
     TRUE_LIGHT,
     light_estimation_start,
     relative_error_pct,
 )
-from render.jsonio import write_json
-from render.optimize import optimize
+from render.inverse.jsonio import write_json
+from render.inverse.optimize import optimize
 from render.renderer import render
-from render.teapot import paper_scene
+from render.scene.teapot import paper_scene
 
 QUICK = {"--quick": {"action": "store_true", "help": "a few small runs (not results)"}}
 

@@ -39,7 +39,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.tensor import as_tensor, record
-from render.plot import line_plot
+from render.inverse.plot import line_plot
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "01_tape"
 OUT.mkdir(parents=True, exist_ok=True)

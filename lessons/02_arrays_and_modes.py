@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import minidiff as md
-from render.plot import line_plot
+from render.inverse.plot import line_plot
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "02_arrays_and_modes"
 OUT.mkdir(parents=True, exist_ok=True)

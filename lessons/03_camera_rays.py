@@ -43,7 +43,7 @@ from PIL import Image, ImageDraw
 
 import minidiff as md
 import render
-from render.camera import (
+from render.scene.camera import (
     camera_frame,
     image_plane_coords,
     primary_rays,

@@ -28,10 +28,10 @@
 #
 # The ray hits the triangle if `u ≥ 0`, `v ≥ 0`, `u + v ≤ 1` and `t > t_min`; the hit is
 # `(1 − u − v)·a + u·b + v·c`. If `det ≈ 0` the ray is parallel to the plane (or the
-# triangle has no area): a miss. `render.intersect.intersect_triangle` computes the same
+# triangle has no area): a miss. `render.trace.intersect.intersect_triangle` computes the same
 # numbers in an equivalent arrangement (the normal `n = e1 × e2` is precomputed per
 # triangle, `det = d·n`, one cross product per test), and
-# `render.geometry.intersect_edges` computes the arrangement above on the minidiff tape.
+# `render.shade.surface.intersect_edges` computes the arrangement above on the minidiff tape.
 
 # %%
 import os
@@ -43,10 +43,10 @@ from PIL import Image, ImageDraw
 
 import minidiff as md
 import render
-from render.accel import Accelerator
-from render.camera import primary_rays
-from render.geometry import intersect_edges
-from render.intersect import intersect_triangle, pack_primitives
+from render.trace.accel import Accelerator
+from render.scene.camera import primary_rays
+from render.shade.surface import intersect_edges
+from render.trace.intersect import intersect_triangle, pack_primitives
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "04_bvh"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -133,7 +133,7 @@ print(f"leaf sizes: mean {leaf_sizes.mean():.2f}, largest {leaf_sizes.max()}")
 #
 # ## Traversal, counted
 #
-# `render.intersect.closest_hit_ray` walks the tree for one ray: at an interior node it
+# `render.trace.intersect.closest_hit_ray` walks the tree for one ray: at an interior node it
 # tests both children's boxes (the slab test: intersect the ray's `t` intervals between
 # the pairs of planes of the box), descends into the nearer one and pushes the farther
 # one with its entry distance; a popped node whose entry distance is beyond the best hit

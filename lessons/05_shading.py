@@ -45,9 +45,9 @@ from pathlib import Path
 import numpy as np
 
 import render
-from render.camera import primary_rays
-from render.plot import line_plot
-from render.teapot import PAPER_ALBEDO
+from render.scene.camera import primary_rays
+from render.inverse.plot import line_plot
+from render.scene.teapot import PAPER_ALBEDO
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "05_shading"
 OUT.mkdir(parents=True, exist_ok=True)

@@ -37,8 +37,8 @@ import numpy as np
 
 import minidiff as md
 import render
-from render import experiments
-from render.plot import line_plot
+from render.inverse import experiments
+from render.inverse.plot import line_plot
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "07_inverse_rendering"
 OUT.mkdir(parents=True, exist_ok=True)

@@ -1,16 +1,16 @@
 """``render(scene)``: the pipeline, one step per module.
 
-1. Visibility (``render.visibility``, plain arrays, constants on the tape): which primitive
+1. Visibility (``render.trace.visibility``, plain arrays, constants on the tape): which primitive
    does the ray of every pixel sample hit, and does each hit see each light? Camera rays are
    rasterised or traced through the BVH, shadow rays towards a point light answered in the
-   light's view or by the BVH (``render.raster``: the same answers, bit for bit); the BVH
+   light's view or by the BVH (``render.trace.raster``: the same answers, bit for bit); the BVH
    is built only if some ray needs it.
-2. Surfaces (``render.geometry``, on the tape): for the rays that hit, *recompute* the hit
+2. Surfaces (``render.shade.surface``, on the tape): for the rays that hit, *recompute* the hit
    point, normal and UV differentiably from the camera and the primitive, object by object.
-3. Shading (``render.shading``, on the tape): lights and materials give each hit a colour;
-   a reflective material adds what its mirror ray sees (``render.reflection``: traced like
+3. Shading (``render.shade.lighting``, on the tape): lights and materials give each hit a colour;
+   a reflective material adds what its mirror ray sees (``render.shade.mirrors``: traced like
    step 1, recomputed like step 2, shaded like step 3, up to ``max_bounces`` times).
-4. Edges (``render.edges`` and ``render.shadow_edges``, with ``antialias=True``): where a
+4. Edges (``render.edges.silhouettes`` and ``render.edges.shadows``, with ``antialias=True``): where a
    silhouette, a crease or a shadow edge passes between two adjacent samples, blend them
    by how much of each one's box the edge covers, with the crossing computed on the tape:
    gradients then see occlusion and shadow boundaries move.
@@ -19,7 +19,7 @@
 Gradients reach every continuous parameter through steps 2-5; step 1's decisions (and
 which primitive each mirror ray hits) are constants. With ``reuse_visibility=True`` (the
 default), step 1 and the surfaces of step 2 are reused from the previous render of the
-same scene when the values they depend on are unchanged (``render.cache``), e.g. while
+same scene when the values they depend on are unchanged (``render.scene.cache``), e.g. while
 only a material is optimised; mirror rays are traced anew on every render.
 """
 
@@ -31,15 +31,15 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from render.cache import RenderCache, cache_for, surface_key
-from render.camera import camera_frame, ray_directions, subpixel_offsets
-from render.edges import EdgePairs, add_to_samples, crossings, edge_updates, in_order
-from render.geometry import Surface, mesh_surface, moves_surface, sphere_surface
-from render.reflection import Bounces, reflected_radiance
-from render.scene import Mesh, Scene, check_ray_count
-from render.shading import appearance, light_contribution, shade_mesh, shade_surface
-from render.shadow_edges import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
-from render.visibility import Visibility, primitive_ranges, scene_size, trace_visibility
+from render.scene.cache import RenderCache, cache_for, surface_key
+from render.scene.camera import camera_frame, ray_directions, subpixel_offsets
+from render.edges.silhouettes import EdgePairs, add_to_samples, crossings, edge_updates, in_order
+from render.shade.surface import Surface, mesh_surface, moves_surface, sphere_surface
+from render.shade.mirrors import Bounces, reflected_radiance
+from render.scene.scene import Mesh, Scene, check_ray_count
+from render.shade.lighting import appearance, light_contribution, shade_mesh, shade_surface
+from render.edges.shadows import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
+from render.trace.visibility import Visibility, primitive_ranges, scene_size, trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]
 
@@ -65,7 +65,7 @@ def render(
         lights have the same values (see the module docstring).
     return_info: also return a ``RenderInfo`` with the discrete decisions.
     antialias: blend adjacent samples across silhouettes, creases and shadow edges by
-        their coverage, on the tape (``render.edges``, ``render.shadow_edges``), so that
+        their coverage, on the tape (``render.edges.silhouettes``, ``render.edges.shadows``), so that
         moving edges have gradients. False (the
         default, the paper's renderer): every sample shows the primitive at its centre, the
         image is a step function at edges and their motion has no gradient. See the README
@@ -74,7 +74,7 @@ def render(
         the camera hit plus two reflections); 0 turns reflection off. Only hits on a
         material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.
     primary: how the camera rays' hits are found: "bvh" traces them through the BVH,
-        "raster" rasterises the primitives (``render.raster``; the same hits bit for bit,
+        "raster" rasterises the primitives (``render.trace.raster``; the same hits bit for bit,
         faster while there are many rays per primitive), "auto" (default) rasterises when
         there are at least 16 camera rays per primitive (``RASTER_RAYS_PER_PRIMITIVE``).
         With ``bvh=False`` both are brute force (the ablation).
@@ -150,7 +150,7 @@ def _check_bounces(value) -> int:
 
 
 def _bounces(scene: Scene, visibility: Visibility, shadows: bool, max_bounces: int):
-    """What the mirror rays need (``render.reflection.Bounces``), or None if no hit can
+    """What the mirror rays need (``render.shade.mirrors.Bounces``), or None if no hit can
     spawn one."""
     if max_bounces == 0 or not any(obj.material.reflective for obj in scene.objects):
         return None
@@ -174,7 +174,7 @@ def _shade_objects(scene: Scene, visibility: Visibility, frame, cache: RenderCac
     """Steps 2 and 3 for every object: the colours (k, 3) of all hit rays, object by object,
     the ray each colour belongs to (k,), the texture cell of every ray (N,) (-1: none; None
     if no ray hit a textured object), and per object index (in ``primitive_ranges`` order)
-    its hit rays and ``Surface``. With ``bounces`` (``render.reflection.Bounces``),
+    its hit rays and ``Surface``. With ``bounces`` (``render.shade.mirrors.Bounces``),
     reflective objects add what their mirror rays see."""
     primary, dtype = visibility.primary, working_dtype(scene)
     eye = frame[3]
@@ -262,7 +262,7 @@ def _compose_image(scene: Scene, visibility: Visibility, colour, ray_of_colour, 
 
 def _shadow_updates(scene, visibility, shaded, frame, spp):
     """Step 4 for shadows: what blending each shadow pair's light contribution across its
-    edge adds to the samples (``render.shadow_edges.shadow_updates``), or None. The
+    edge adds to the samples (``render.edges.shadows.shadow_updates``), or None. The
     unoccluded contribution of the pair's light is shaded again at both samples, from
     their object's Surface."""
     pairs = visibility.shadow_pairs
@@ -330,11 +330,11 @@ class RenderInfo:
     prim_id (H, W, spp) int64: the primitive each ray hit (-1: background).
     lit (n_lights, H, W, spp) bool: light j reaches the ray's hit point unoccluded.
     texel (H, W, spp) int64: the cell of the bilinear texture lookup at the hit
-        (``render.shading.texel_cell``; -1 where the hit surface is untextured or missed).
+        (``render.shade.lighting.texel_cell``; -1 where the hit surface is untextured or missed).
     pairs: with ``antialias=True``, the pairs of adjacent samples across a silhouette and
-        the edge each one uses (``render.edges.EdgePairs``, ray ids r = pixel * spp +
+        the edge each one uses (``render.edges.silhouettes.EdgePairs``, ray ids r = pixel * spp +
         sample); None without.
-    shadow_pairs: likewise across shadow edges (``render.shadow_edges.ShadowPairs``);
+    shadow_pairs: likewise across shadow edges (``render.edges.shadows.ShadowPairs``);
         None without antialiasing or without shadows.
     bounces: per mirror reflection b = 1, 2, ..., an (H, W, spp) int64 array: the
         primitive the ray's b-th mirror ray hit (-1: the background; -2: no such ray).

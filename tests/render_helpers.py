@@ -1,6 +1,6 @@
 """Shared helpers for the renderer tests (``test_render_*.py``).
 
-* ``pinhole_rays``: camera rays computed independently of ``render.camera``, straight from
+* ``pinhole_rays``: camera rays computed independently of ``render.scene.camera``, straight from
   the documented camera model, for closed-form checks.
 * ``random_scene``: a small random scene (ground quad, a floating pyramid, a sphere, one
   light) whose parameters are all stored as Tensors in the scene.
@@ -27,7 +27,7 @@ import render
 def pinhole_rays(position, look_at, up, fov_degrees, width, height, spp_offset=(0.5, 0.5)):
     """(H, W, 3) unit directions of the rays through the pixel centres, row 0 at the top.
 
-    Written from the documentation, not from ``render.camera``: ``fov`` is the horizontal
+    Written from the documentation, not from ``render.scene.camera``: ``fov`` is the horizontal
     field of view, pixels are square, the image plane at distance 1 spans
     [-tan(fov/2), tan(fov/2)] horizontally.
     """

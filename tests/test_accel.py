@@ -1,4 +1,4 @@
-"""Tests of the visibility module (render.bvh, render.intersect, render.accel).
+"""Tests of the visibility module (render.trace.bvh, render.trace.intersect, render.trace.accel).
 
 The brute-force Accelerator (use_bvh=False) is the oracle: the BVH must return *exactly* the
 same ids, t, u, v (same per-primitive arithmetic, (t, id) tie order, conservative culling).
@@ -12,8 +12,8 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from render.accel import Accelerator
-from render.bvh import MAX_LEAF_SIZE, build_bvh, primitive_bounds
+from render.trace.accel import Accelerator
+from render.trace.bvh import MAX_LEAF_SIZE, build_bvh, primitive_bounds
 
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

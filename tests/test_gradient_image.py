@@ -27,7 +27,7 @@ from render_helpers import _same_visibility, random_scene
 
 import minidiff as md
 import render
-from render.image import diverging_colours
+from render.scene.image import diverging_colours
 
 SIZE = 24
 FD_TOLERANCE = 1e-5

@@ -11,13 +11,13 @@ import pytest
 
 import minidiff as md
 import render
-from render.experiments import (
+from render.inverse.experiments import (
     TRUE_CAMERA,
     run_camera_calibration,
     run_light_estimation,
     run_material_recovery,
 )
-from render.optimize import FlatParameters, image_loss, optimize
+from render.inverse.optimize import FlatParameters, image_loss, optimize
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 SIZE = 48

@@ -1,4 +1,4 @@
-"""Tests for render.image (files, mse, psnr) and render.meshio (mesh files)."""
+"""Tests for render.scene.image (files, mse, psnr) and render.scene.meshio (mesh files)."""
 
 import math
 import shutil
@@ -13,9 +13,9 @@ from hypothesis import strategies as st
 from PIL import Image
 
 import minidiff
-from render.image import linear_to_srgb, load_image, mse, psnr, save_image, srgb_to_linear
-from render.meshio import load_mesh
-from render.scene import Material, Mesh
+from render.scene.image import linear_to_srgb, load_image, mse, psnr, save_image, srgb_to_linear
+from render.scene.meshio import load_mesh
+from render.scene.scene import Material, Mesh
 
 MESHES = Path(__file__).parent / "data" / "raytracerjl" / "meshes"
 TEXTURES = Path(__file__).parent / "data" / "raytracerjl" / "textures"

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from render.jsonio import to_json, write_json
+from render.inverse.jsonio import to_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from render.meshio import load_mesh
+from render.scene.meshio import load_mesh
 
 GOOD = "v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
 

@@ -9,7 +9,7 @@ import pytest
 import minidiff as md
 from minidiff import buffers, kernels
 from render import render
-from render.teapot import paper_scene
+from render.scene.teapot import paper_scene
 
 BIG = (50_000, 3)  # 1.2 MB of float64: above buffers.MIN_BYTES
 

@@ -1,4 +1,4 @@
-"""Rasterised camera-ray visibility (``render.raster``) against the BVH: bit-identical ids,
+"""Rasterised camera-ray visibility (``render.trace.raster``) against the BVH: bit-identical ids,
 t, u, v, ties included (the lower id wins), and the renderer's choice between them."""
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from hypothesis import strategies as st
 from test_accel import grid_triangles
 
 import render
-from render.accel import Accelerator
-from render.camera import hits_along_rays, image_plane_coords, primary_rays
-from render.raster import raster_closest_hit
-from render.visibility import scene_primitives
+from render.trace.accel import Accelerator
+from render.scene.camera import hits_along_rays, image_plane_coords, primary_rays
+from render.trace.raster import raster_closest_hit
+from render.trace.visibility import scene_primitives
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

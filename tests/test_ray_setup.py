@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import render
-from render.camera import image_plane_coords, subpixel_offsets
-from render.visibility import shadow_offset, shadow_rays
+from render.scene.camera import image_plane_coords, subpixel_offsets
+from render.trace.visibility import shadow_offset, shadow_rays
 
 
 def plain_image_plane_coords(camera: render.Camera, ray_ids: np.ndarray, spp: int):

@@ -1,4 +1,4 @@
-"""Mirror reflection (``render.reflection``): a closed form, gradients through bounces, the
+"""Mirror reflection (``render.shade.mirrors``): a closed form, gradients through bounces, the
 decisions in ``RenderInfo``, and bad input."""
 
 from __future__ import annotations

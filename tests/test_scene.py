@@ -1,4 +1,4 @@
-"""Tests for render.scene: tensor storage convention and validation."""
+"""Tests for render.scene.scene: tensor storage convention and validation."""
 
 import math
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minidiff
-from render.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
+from render.scene.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
 
 TRI_V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 TRI_F = np.array([[0, 1, 2]])

@@ -1,4 +1,4 @@
-"""Shadow-edge antialiasing (``render.shadow_edges``): hard shadows whose boundaries move.
+"""Shadow-edge antialiasing (``render.edges.shadows``): hard shadows whose boundaries move.
 
 The set-up of the closed forms: a camera looking straight down at a ground plane y = 0
 from below an occluder, so that the occluder is out of view and every pixel covers the

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 
 import minidiff
-from render.scene import Mesh, PointLight, Scene
-from render.teapot import paper_scene, teapot, teapot_geometry
+from render.scene.scene import Mesh, PointLight, Scene
+from render.scene.teapot import paper_scene, teapot, teapot_geometry
 
-DATA = Path(__file__).parents[1] / "render" / "data" / "newell_teapot.json"
+DATA = Path(__file__).parents[1] / "render" / "scene" / "data" / "newell_teapot.json"
 
 
 def place(p: np.ndarray) -> np.ndarray:

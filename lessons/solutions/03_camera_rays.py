@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 import render
-from render.camera import camera_frame, ray_directions
+from render.scene.camera import camera_frame, ray_directions
 
 # %% [markdown]
 # ## Exercise 1: the vertical field of view from two rays

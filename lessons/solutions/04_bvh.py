@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 import render
-from render.accel import Accelerator
-from render.camera import primary_rays
-from render.intersect import intersect_triangle, pack_primitives
+from render.trace.accel import Accelerator
+from render.scene.camera import primary_rays
+from render.trace.intersect import intersect_triangle, pack_primitives
 
 with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
     # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.

@@ -16,7 +16,7 @@ import math
 import numpy as np
 
 import render
-from render.camera import primary_rays
+from render.scene.camera import primary_rays
 
 ALBEDO, N = 0.6, 33
 camera = render.Camera(position=(0, 3, 0), look_at=(0, 0, 0), up=(0, 0, -1), fov=60.0,

@@ -15,7 +15,7 @@ import numpy as np
 
 import minidiff as md
 import render
-from render import experiments
+from render.inverse import experiments
 
 SIZE = 48
 truth = render.paper_scene(SIZE, SIZE, light_position=experiments.TRUE_LIGHT,

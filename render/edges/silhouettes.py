@@ -10,7 +10,7 @@ Primitives for High-Performance Differentiable Rendering"), reformulated for ray
    * a *silhouette* of the nearer surface: a mesh boundary edge, or an edge whose two faces
      face opposite ways as seen from the eye (a sphere's outline always is). When the face
      hit at the near sample is not the one on the silhouette (faces smaller than pixels),
-     ``render.topology.walk_to_silhouette`` walks across the mesh, on *welded* adjacency
+     ``render.trace.topology.walk_to_silhouette`` walks across the mesh, on *welded* adjacency
      (the teapot's patches share positions but not vertex ids), to the face that is;
    * else a *crease*: an edge across which the colour jumps (flat shading, or a seam of
      vertex ids for smooth normals and UVs);
@@ -34,7 +34,7 @@ the colours, every shading parameter, with no hand-written backward pass.
 
 With ``spp = n^2`` samples per pixel the samples form a regular grid n times finer than
 the pixels; pairs are taken on that grid and the pixel is the mean of its blended samples.
-Shadow edges reuse all of this (``render.shadow_edges``).
+Shadow edges reuse all of this (``render.edges.shadows``).
 """
 
 from __future__ import annotations
@@ -44,9 +44,9 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.camera import camera_frame, image_plane_coords, ray_directions
-from render.scene import Camera, Scene, Sphere
-from render.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
+from render.scene.camera import camera_frame, image_plane_coords, ray_directions
+from render.scene.scene import Camera, Scene, Sphere
+from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
 
 # --------------------------------------------------------------------------------------
 # Pairs of samples across a silhouette (constants)
@@ -59,7 +59,7 @@ class EdgePairs:
 
     near, far (n,) int64: ray ids of the sample on the nearer surface and of the other one.
     prim (n,) int64: the primitive whose outline passes between them (global id,
-        ``render.visibility.scene_primitives``): a sphere, or the triangle owning the
+        ``render.trace.visibility.scene_primitives``): a sphere, or the triangle owning the
         silhouette edge (on the nearer surface, not always the face hit at the sample).
     edge (n,) int64: its edge 0..2 (corners k, k + 1) for a triangle; -1 for a sphere; 3
         for the line where triangle ``prim`` passes behind triangle ``other`` (two surfaces
@@ -80,7 +80,7 @@ def sample_grid(camera: Camera, spp: int) -> np.ndarray:
     """(H n, W n) int64: the ray id at each position of the regular sample grid."""
     n = int(round(spp**0.5))
     rays = np.arange(camera.height * camera.width * spp).reshape(camera.height, camera.width, n, n)
-    # ray = pixel * spp + sy * n + sx (``render.camera.subpixel_offsets``); grid row py n + sy
+    # ray = pixel * spp + sy * n + sx (``render.scene.camera.subpixel_offsets``); grid row py n + sy
     return rays.transpose(0, 2, 1, 3).reshape(camera.height * n, camera.width * n)
 
 

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 import minidiff as md
-from render.image import load_image, mse
+from render.scene.image import load_image, mse
 from render.renderer import render
-from render.scene import Scene
+from render.scene.scene import Scene
 
 
 def image_loss(image: md.Tensor, target: np.ndarray) -> md.Tensor:

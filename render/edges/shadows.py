@@ -4,11 +4,11 @@ receiver, on the tape.
 A shadow boundary is where the plane through an occluder's silhouette edge (as seen from
 the light) cuts the receiving surface. Between two adjacent samples on the same object,
 one lit by a light and one not, it is found and blended exactly like a silhouette between
-two samples (``render.edges``), but only the light's own contribution is blended:
+two samples (``render.edges.silhouettes``), but only the light's own contribution is blended:
 
 1. Constants (``shadow_pairs``): the pairs; the occluder (the primitive that blocks the
    dark sample's shadow ray: ``Accelerator.closest_hit`` along it); its silhouette edge
-   *as seen from the light* between the two shadow rays (``render.topology``'s walk, with
+   *as seen from the light* between the two shadow rays (``render.trace.topology``'s walk, with
    the light as the viewer: for a directional light the viewer is at infinity).
 2. On the tape (``shadow_crossings``): the shadow plane of edge (v_i, v_j) has normal
    m = (v_i - L) x (v_j - L) for a point light L and m = (v_j - v_i) x w for a directional
@@ -18,12 +18,12 @@ two samples (``render.edges``), but only the light's own contribution is blended
        M . d = 0  with  M = (m . (C - v_i)) n + (n . (a - C)) m,
    and d is affine along the pair: the crossing is s* = M.d_lit / (M.d_lit - M.d_dark),
    the same closed form as a silhouette. A sphere occluder (point lights): the light's
-   ray to P(d) grazes it where a quadratic in s vanishes (``render.edges``'s sphere
+   ray to P(d) grazes it where a quadratic in s vanishes (``render.edges.silhouettes``'s sphere
    crossing, with the light as the eye and u(d) = (n.d)(P(d) - L), linear in d, as the
    directions).
 3. Blend (``shadow_updates``): the lit sample's box loses, and the dark sample's box
    gains, the light's unoccluded contribution times the area of the box on the other side
-   of the shadow edge (``render.edges.box_coverage``).
+   of the shadow edge (``render.edges.silhouettes.box_coverage``).
 
 Approximations (measured in ``tests/test_shadow_edges.py``): the receiver is taken to be
 the plane of the lit sample's face (its tangent plane on a sphere), so a curved receiver
@@ -39,9 +39,9 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.accel import Accelerator
-from render.camera import image_plane_coords, ray_directions
-from render.edges import (
+from render.trace.accel import Accelerator
+from render.scene.camera import image_plane_coords, ray_directions
+from render.edges.silhouettes import (
     as_column,
     axis_ok,
     dot_last,
@@ -58,8 +58,8 @@ from render.edges import (
     sphere_crossing_plain,
     triangle_corners,
 )
-from render.scene import PointLight, Scene
-from render.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
+from render.scene.scene import PointLight, Scene
+from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
 
 
 @dataclass
@@ -164,10 +164,10 @@ def shadow_pairs(
 ) -> ShadowPairs:
     """Every pair of adjacent samples on one object across a shadow edge of some light.
 
-    primary: ``render.visibility.PrimaryHits``; lit[j] (k,) bool per hit ray; topology:
+    primary: ``render.trace.visibility.PrimaryHits``; lit[j] (k,) bool per hit ray; topology:
     ``mesh_edges`` per mesh; size: the scene's size (for the shadow rays' start offset).
     """
-    from render.visibility import shadow_rays  # the same rays as the shadows themselves
+    from render.trace.visibility import shadow_rays  # the same rays as the shadows themselves
 
     camera, prim_id = scene.camera, primary.prim_id
     grid = sample_grid(camera, spp)

@@ -1,7 +1,7 @@
 """The Newell (Utah) teapot and the paper's reference scene.
 
 The teapot is Newell's 32 bicubic Bezier patches (public-domain data shipped in
-``render/data/newell_teapot.json``), tessellated exactly as described in
+``render/scene/data/newell_teapot.json``), tessellated exactly as described in
 ``docs/paper_scene.md`` so that every part of the project renders the same triangles:
 
 * each patch is evaluated with cubic Bernstein polynomials on a regular
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from render.scene import ArrayLike, Camera, Material, Mesh, PointLight, Scene
+from render.scene.scene import ArrayLike, Camera, Material, Mesh, PointLight, Scene
 
 __all__ = ["teapot_geometry", "teapot", "paper_scene", "PAPER_ALBEDO"]
 

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.image import psnr
-from render.optimize import History, optimize
+from render.scene.image import psnr
+from render.inverse.optimize import History, optimize
 from render.renderer import render
-from render.teapot import paper_scene
+from render.scene.teapot import paper_scene
 
 # The true parameters of the reference scene (docs/paper_scene.md).
 TRUE_CAMERA = np.array([3.0, 2.0, 5.0])

@@ -1,9 +1,9 @@
 """Visibility: which primitive each camera ray hits, and which lights each hit point sees.
 
 These are the renderer's discrete decisions. They are computed on plain arrays, with the
-BVH (``render.accel``) or, where that is faster and gives the same answers, by projection
-(``render.raster``), and are constants on the tape: the image is differentiable for fixed
-visibility (``render.geometry`` recomputes *where* each ray hits, differentiably).
+BVH (``render.trace.accel``) or, where that is faster and gives the same answers, by projection
+(``render.trace.raster``), and are constants on the tape: the image is differentiable for fixed
+visibility (``render.shade.surface`` recomputes *where* each ray hits, differentiably).
 
 * ``scene_primitives``: the scene's geometry as one list of primitives (all mesh triangles,
   then all spheres), the accelerator's input and its primitive ids.
@@ -12,7 +12,7 @@ visibility (``render.geometry`` recomputes *where* each ray hits, differentiably
 * ``shadow_rays`` / ``trace_shadows``: a ray from every hit point to a light: is it blocked?
   (Many rays towards a point light: answered in the light's view; else by the BVH.)
 
-``trace_visibility`` runs the three, reusing earlier results from a ``render.cache``
+``trace_visibility`` runs the three, reusing earlier results from a ``render.scene.cache``
 ``RenderCache`` when the values they depend on are unchanged; the BVH is built (and kept)
 only when a ray first needs it.
 """
@@ -26,14 +26,14 @@ import numba
 import numpy as np
 
 from minidiff import buffers
-from render.accel import Accelerator
-from render.cache import RenderCache, camera_key, light_key
-from render.camera import hits_along_rays, primary_rays
-from render.edges import EdgePairs, edge_pairs
-from render.raster import bounding_box, occluded_towards_light, raster_closest_hit
-from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
-from render.shadow_edges import ShadowPairs, shadow_pairs
-from render.topology import mesh_edges
+from render.trace.accel import Accelerator
+from render.scene.cache import RenderCache, camera_key, light_key
+from render.scene.camera import hits_along_rays, primary_rays
+from render.edges.silhouettes import EdgePairs, edge_pairs
+from render.trace.raster import bounding_box, occluded_towards_light, raster_closest_hit
+from render.scene.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.edges.shadows import ShadowPairs, shadow_pairs
+from render.trace.topology import mesh_edges
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
 #: the light, so that rounding in the hit point cannot make a neighbouring triangle at a
@@ -98,7 +98,7 @@ def trace_primary(
     raster: bool = False,
 ) -> PrimaryHits:
     """Trace every camera ray (``spp`` per pixel) through ``accelerator()``, or with ``raster``
-    find the same hits by rasterising ``primitives`` (``render.raster``: bit-identical,
+    find the same hits by rasterising ``primitives`` (``render.trace.raster``: bit-identical,
     faster while there are many rays per primitive)."""
     if raster:
         prim_id, t, _, _ = raster_closest_hit(*primitives, camera, spp, with_uv=False)
@@ -210,7 +210,7 @@ def scene_size(primitives: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
     return float(np.linalg.norm(np.max(hi, axis=0) - np.min(lo, axis=0)))
 
 
-#: Shadow rays towards a point light are answered in the light's view (``render.raster``)
+#: Shadow rays towards a point light are answered in the light's view (``render.trace.raster``)
 #: when there are at least this many per primitive, otherwise by the BVH. Measured on the
 #: teapot (1,536 triangles), BVH already built, medians of 30: 2,500 rays BVH 0.43 / view
 #: 0.58 ms, 10,000: 1.26 / 1.19 ms, 41,000: 4.2-6.0 / 2.3-2.7 ms; without the light's
@@ -232,7 +232,7 @@ def trace_shadows(
     points (k, 3) on primitives start_prim (k,) of ``primitives`` (``scene_primitives``),
     whose bounding box has the diagonal ``size`` (``scene_size``).
     With ``bvh`` and many rays towards a point light, the rays are answered in the light's
-    view (``render.raster.occluded_towards_light``, the same answers), else by
+    view (``render.trace.raster.occluded_towards_light``, the same answers), else by
     ``accelerator()`` (which builds the scene's accelerator on first use).
     """
     if len(points) == 0:
@@ -263,7 +263,7 @@ class Visibility:
     ``primitives`` (``scene_primitives``) are what they were traced with and
     ``accelerator()`` gives their accelerator (built on its first call: a render whose
     camera rays are rasterised and whose shadows are found in the light's view needs none),
-    for the mirror rays that follow (``render.reflection``); ``bvh`` says whether it is a
+    for the mirror rays that follow (``render.shade.mirrors``); ``bvh`` says whether it is a
     BVH (False: brute force, the ablation)."""
 
     primary: PrimaryHits

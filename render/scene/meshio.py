@@ -1,4 +1,4 @@
-"""Loading triangle meshes (OBJ + MTL, PLY, STL, OFF, GLB) into ``render.scene.Mesh`` objects.
+"""Loading triangle meshes (OBJ + MTL, PLY, STL, OFF, GLB) into ``render.scene.scene.Mesh`` objects.
 
 trimesh parses the geometry (and triangulates polygons); this module turns what it returns
 into our ``Mesh``/``Material`` classes:
@@ -52,8 +52,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from render.image import load_image
-from render.scene import Material, Mesh
+from render.scene.image import load_image
+from render.scene.scene import Material, Mesh
 
 __all__ = ["load_mesh", "SUPPORTED_MESH_EXTENSIONS", "DEFAULT_ALBEDO"]
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.scene import Mesh, Sphere
+from render.scene.scene import Mesh, Sphere
 
 
 def column(x) -> md.Tensor:

@@ -132,7 +132,7 @@ def walk_to_silhouette(
     the face hit at the near sample is often not the one on the silhouette: this walk finds
     the one that is (nvdiffrast only looks at the face in the pixel).
 
-    Also returns, for the crease test (``render.edges.edge_pairs``), the crossing of an
+    Also returns, for the crease test (``render.edges.silhouettes.edge_pairs``), the crossing of an
     edge where ``jumps`` (F, 3) bool says the colour jumps (flat shading, seams) that lies
     closest to the middle of the segment: its face, edge and s, (n,) each (edge -1: none).
 

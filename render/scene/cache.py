@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from render.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.scene.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
 
 
 def same(key_a: list[np.ndarray] | None, key_b: list[np.ndarray]) -> bool:
@@ -90,7 +90,7 @@ def light_key(light: PointLight | DirectionalLight) -> list[np.ndarray]:
 
 def surface_key(obj: Mesh | Sphere, owned: list, dtype) -> list[np.ndarray]:
     """What an object's hit points, normals and UVs depend on besides the camera rays'
-    hits: its parameters ``owned`` (``render.geometry.moves_surface``), its switches and
+    hits: its parameters ``owned`` (``render.shade.surface.moves_surface``), its switches and
     the working dtype."""
     switches = [id(obj), np.dtype(dtype).num]
     if isinstance(obj, Mesh):

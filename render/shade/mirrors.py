@@ -15,12 +15,12 @@ As for camera rays, the decisions are constants and the rest is on the tape:
 
 * which primitive the mirror ray hits, and which lights reach that hit, are traced on
   plain arrays with the scene's accelerator (``trace_bounce``);
-* where it hits is recomputed on the tape (``render.geometry``) from the differentiable
+* where it hits is recomputed on the tape (``render.shade.surface``) from the differentiable
   hit point and mirror direction, so gradients reach the mirror's geometry and the camera
   (through p and n), the reflected object and its material, the lights, and rho.
 
 Self-intersection: the traced ray starts a little off the mirror, along its geometric
-normal, by the shadow rays' scale-relative offset (``render.visibility.shadow_offset``), so
+normal, by the shadow rays' scale-relative offset (``render.trace.visibility.shadow_offset``), so
 rounding cannot make it hit the face it leaves, even at grazing angles. The tape starts it
 at p itself (the offset is not part of the model).
 
@@ -37,12 +37,12 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.accel import Accelerator
-from render.edges import in_order
-from render.geometry import Surface, mesh_surface, sphere_surface
-from render.scene import Mesh, Scene
-from render.shading import shade_surface
-from render.visibility import primitive_ranges, shadow_offset, trace_shadows
+from render.trace.accel import Accelerator
+from render.edges.silhouettes import in_order
+from render.shade.surface import Surface, mesh_surface, sphere_surface
+from render.scene.scene import Mesh, Scene
+from render.shade.lighting import shade_surface
+from render.trace.visibility import primitive_ranges, shadow_offset, trace_shadows
 
 
 def reflect(directions, normals) -> md.Tensor:
@@ -55,7 +55,7 @@ def reflect(directions, normals) -> md.Tensor:
 class Bounces:
     """What every bounce needs: the scene, the accelerator its visibility was traced with
     (``accelerator()``, built on first use; ``bvh`` False if it is brute force), the
-    primitives (``render.visibility.scene_primitives``: triangles (T, 3, 3), sphere
+    primitives (``render.trace.visibility.scene_primitives``: triangles (T, 3, 3), sphere
     centres (S, 3), radii (S,)),
     the scene's size (for the offsets), whether shadows are traced, the number of
     reflections allowed, and the decisions made, per bounce and camera ray: the primitive

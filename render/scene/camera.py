@@ -24,8 +24,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from render.cache import same
-from render.scene import Camera
+from render.scene.cache import same
+from render.scene.scene import Camera
 
 
 def subpixel_offsets(spp: int) -> np.ndarray:

@@ -16,7 +16,7 @@ primary visibility and ray tracing for secondary effects").
    listed primitive is tested against the rays of the samples in its box that lie within
    its edges (give or take the hundredth of a pixel) and that have not already hit
    something wholly in front of it, with *the same* ray-primitive function the tracer uses
-   (``render.intersect.intersect_prim``); each ray keeps the smallest (t, id), lower id
+   (``render.trace.intersect.intersect_prim``); each ray keeps the smallest (t, id), lower id
    first on a tie, as the BVH does.
 
 Step 3 is the brute-force tracer restricted to candidates, and the candidates are
@@ -35,9 +35,9 @@ import numpy as np
 from numba import njit, prange
 
 from minidiff import buffers
-from render.camera import pixel_ray, plain_frame, subpixel_offsets
-from render.intersect import intersect_prim, pack_primitives
-from render.scene import Camera
+from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
+from render.trace.intersect import intersect_prim, pack_primitives
+from render.scene.scene import Camera
 
 #: Side of a binning tile, in pixels.
 TILE = 16
@@ -66,8 +66,8 @@ def screen_boxes(
     eye's plane or seen edge-on).
 
     ``right`` and ``up`` are the camera frame's pre-scaled vectors (a ray is forward +
-    x right + y up, x and y in [-1, 1] across the image; ``render.camera``); offsets
-    (spp, 2) the samples' positions in their pixel (``render.camera.subpixel_offsets``).
+    x right + y up, x and y in [-1, 1] across the image; ``render.scene.camera``); offsets
+    (spp, 2) the samples' positions in their pixel (``render.scene.camera.subpixel_offsets``).
     """
     # The corners whose projections bound each primitive's: (P, n, 3).
     tri = triangles.reshape(-1, 3, 3)
@@ -193,7 +193,7 @@ def _raster_closest_hit(
     eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
 ):  # fmt: skip
     """Step 3 of the module docstring; ray r = (py * width + px) * spp + sample, its
-    direction made on the spot (``render.camera.pixel_ray``, the tracer's very bits)."""
+    direction made on the spot (``render.scene.camera.pixel_ray``, the tracer's very bits)."""
     spp = offsets.shape[0]
     out_id[:] = -1
     out_t[:] = np.inf
@@ -268,12 +268,12 @@ def raster_closest_hit(
     with_uv: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The nearest hit of every camera ray of ``camera`` (``spp`` per pixel), like
-    ``Accelerator.closest_hit`` of ``render.camera.primary_rays``: (prim_id, t, u, v),
+    ``Accelerator.closest_hit`` of ``render.scene.camera.primary_rays``: (prim_id, t, u, v),
     each (H * W * spp,); u and v are None with ``with_uv=False`` (the renderer does not
     need them).
 
     triangles (T, 3, 3), centers (S, 3), radii (S,): the scene's primitives
-    (``render.visibility.scene_primitives``).
+    (``render.trace.visibility.scene_primitives``).
     """
     forward, right, up, eye = plain_frame(camera)
     width, height = camera.width, camera.height
@@ -346,7 +346,7 @@ def occluded_towards_light(
 
     primitives: ``(triangles (T, 3, 3), centres (S, 3), radii (S,))``; origins and
     directions (N, 3) with every ray's line through the light: ``directions = light -
-    origins`` and 0 <= tmax (N,) < 1, as ``render.visibility.shadow_rays`` makes them
+    origins`` and 0 <= tmax (N,) < 1, as ``render.trace.visibility.shadow_rays`` makes them
     (tmax = 0: the light is at the ray's start, nothing is between).
     """
     out = np.zeros(len(origins), np.bool_)
@@ -388,7 +388,7 @@ def _light_view(light, origins, min_cosine):
 
     forward points from the light to the middle of the rays' origins' bounding box; right
     and up are perpendicular to it, scaled so that every origin's image-plane position
-    (``render.camera``) is within [-1, 1]: the box's corners are (a cone around forward is
+    (``render.scene.camera``) is within [-1, 1]: the box's corners are (a cone around forward is
     convex, and a box's projection is that of its corners). spread / depth bounds how far
     (in image-plane units, tangents) rounding can move the image of a point at that depth
     from the light: the image of a ray's origin, or of the end of its segment near the

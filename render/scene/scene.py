@@ -420,11 +420,11 @@ class Material(_HasFields):
     Args:
         albedo: (3,) diffuse reflectance (linear RGB); the diffuse BRDF is ``albedo / pi``.
         specular: scalar or (3,) specular coefficient Ks of the renderer's (Blinn-)Phong
-            lobe, see ``render.shading`` (0 = none).
+            lobe, see ``render.shade.lighting`` (0 = none).
         shininess: scalar (Blinn-)Phong exponent, > 0.
         ambient: scalar or (3,) ambient radiance **added to the pixel** where this
             material is seen, *not* multiplied by the albedo: the classic Phong ``Ka * Ia``
-            term (``render.meshio`` sets it to ``Ka * ambient_light`` from an MTL file).
+            term (``render.scene.meshio`` sets it to ``Ka * ambient_light`` from an MTL file).
         texture: optional (H, W, 3) image, values usually in [0, 1], that replaces
             ``albedo`` at each hit, sampled at the hit's interpolated UV. Row 0 is the
             *top* row of the image file; UV (0, 0) is the *bottom-left* corner of the image
@@ -433,7 +433,7 @@ class Material(_HasFields):
             (repeat), as OBJ files assume. Only meshes with UVs can use a textured
             material. Values are used as stored (no sRGB decoding).
         reflectance: scalar or (3,) mirror coefficient: the radiance arriving along the
-            mirror direction, times this, is added at every hit (``render.reflection``;
+            mirror direction, times this, is added at every hit (``render.shade.mirrors``;
             ``render(..., max_bounces=)`` bounds the recursion). 0 = not a mirror.
         specular_texture: optional (H, W, 3) image multiplying ``specular`` at each hit
             (an MTL file's ``map_Ks``), sampled like ``texture``.

@@ -21,7 +21,7 @@ import numpy as np
 import minidiff as md
 from minidiff.tensor import as_tangent
 from render.renderer import render
-from render.scene import Scene
+from render.scene.scene import Scene
 
 __all__ = ["gradient_image", "find_parameter"]
 

@@ -8,7 +8,7 @@ Usage::
                             ignore_prim=prim_id)                 # shadow rays
 
 ``Accelerator(..., use_bvh=False)`` tests every ray against every primitive.  It answers
-exactly the same (bit for bit, see ``render.intersect``): it is the ablation baseline and the
+exactly the same (bit for bit, see ``render.trace.intersect``): it is the ablation baseline and the
 test oracle.
 
 Design notes
@@ -30,8 +30,8 @@ import time
 import numpy as np
 from numba import njit
 
-from render.bvh import N_BINS, build_bvh, primitive_bounds
-from render.intersect import (
+from render.trace.bvh import N_BINS, build_bvh, primitive_bounds
+from render.trace.intersect import (
     PRIM_WIDTH,
     FlatBVH,
     closest_hit_brute,
@@ -51,7 +51,7 @@ MIN_DIRECTION = 1e-60
 #: Default ``tmin`` of ``occluded``, in units of the direction vector.  With the usual
 #: unnormalised direction ``light - point`` this is a millionth of the light distance; together
 #: with ``ignore_prim`` it removes shadow acne.  (The renderer starts its shadow rays off the
-#: surface instead and passes tmin=0: see ``render.visibility.shadow_rays``.)
+#: surface instead and passes tmin=0: see ``render.trace.visibility.shadow_rays``.)
 SHADOW_TMIN = 1e-6
 
 

@@ -20,7 +20,7 @@ results to the brute-force kernels.  This needs three ingredients:
    two triangles may hit both at exactly the same t; brute force would keep whichever it saw
    first, the BVH whichever leaf it opened first.  With the order, both keep the lower id.
 3. Conservative node culling: a node is skipped only if it *cannot* contain an accepted hit.
-   The BVH boxes are padded (see ``render.bvh``) by far more than the rounding error of a hit
+   The BVH boxes are padded (see ``render.trace.bvh``) by far more than the rounding error of a hit
    point, and a node whose entry distance *equals* the current best t is still opened,
    because it may hold an equal-t hit with a lower id.
 
@@ -29,7 +29,7 @@ test with origins up to 1e8 scene sizes away still found no difference.)
 
 All functions are compiled with ``error_model="numpy"``: a division by zero gives inf/NaN
 instead of raising, so no exception can be raised inside a parallel loop.  The inputs are
-validated in ``render.accel`` so that it does not happen in the first place.
+validated in ``render.trace.accel`` so that it does not happen in the first place.
 """
 
 from __future__ import annotations

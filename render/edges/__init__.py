@@ -1,0 +1,1 @@
+"""Step 4, moving edges: silhouettes and shadow edges blended on the tape."""
