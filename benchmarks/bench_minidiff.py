@@ -51,9 +51,9 @@ import minidiff as md
 from minidiff.kernels import cross3, dot_last, elementwise  # plain NumPy, as minidiff uses it
 from minidiff.memory import keep_freed_memory
 from render import render
-from render.scene.camera import primary_rays
 from render.inverse.plot import line_plot
 from render.renderer import shade_mesh
+from render.scene.camera import primary_rays
 from render.scene.scene import Material, Mesh, PointLight
 from render.scene.teapot import paper_scene
 

@@ -27,10 +27,10 @@ import numba
 import numpy as np
 import timing
 
-from render.trace.accel import Accelerator
 from render.scene.camera import primary_rays
-from render.trace.raster import occluded_towards_light, raster_closest_hit
 from render.scene.teapot import paper_scene
+from render.trace.accel import Accelerator
+from render.trace.raster import occluded_towards_light, raster_closest_hit
 from render.trace.visibility import scene_primitives, scene_size, shadow_rays
 
 

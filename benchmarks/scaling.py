@@ -32,9 +32,9 @@ import timing
 from bench_render import forward_backward, loss_problem
 
 from render import render
-from render.trace.accel import Accelerator
 from render.inverse.plot import line_plot
 from render.scene.teapot import paper_scene, teapot
+from render.trace.accel import Accelerator
 from render.trace.visibility import scene_primitives
 
 

@@ -12,7 +12,7 @@ ANGLE = {"--angle": {"type": float, "default": 10.0, "help": "initial view error
 
 
 def main(argv=None) -> dict:
-    """Run the experiment (``render.inverse.experiments.run_camera_calibration``) from the command line."""
+    """The command line of ``render.inverse.experiments.run_camera_calibration``."""
     return run_example(run_camera_calibration, __doc__.splitlines()[0], 500, argv, extra=ANGLE)
 
 

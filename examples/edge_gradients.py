@@ -30,11 +30,11 @@ from script_support import command_line
 
 import minidiff as md
 from render.inverse.experiments import TRUE_CAMERA, camera_calibration_problem
-from render.scene.image import linear_to_srgb
 from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
 from render.inverse.plot import line_plot
 from render.renderer import render
+from render.scene.image import linear_to_srgb
 from render.scene.teapot import paper_scene
 
 SUCCESS = 0.5  # per cent position error that counts as converged in the basin

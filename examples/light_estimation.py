@@ -9,7 +9,7 @@ from render.inverse.experiments import run_light_estimation
 
 
 def main(argv=None) -> dict:
-    """Run the experiment (``render.inverse.experiments.run_light_estimation``) from the command line."""
+    """The command line of ``render.inverse.experiments.run_light_estimation``."""
     return run_example(run_light_estimation, __doc__.splitlines()[0], 500, argv)
 
 

@@ -9,7 +9,7 @@ from render.inverse.experiments import run_material_recovery
 
 
 def main(argv=None) -> dict:
-    """Run the experiment (``render.inverse.experiments.run_material_recovery``) from the command line."""
+    """The command line of ``render.inverse.experiments.run_material_recovery``."""
     return run_example(run_material_recovery, __doc__.splitlines()[0], 100, argv)
 
 

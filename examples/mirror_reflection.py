@@ -31,10 +31,10 @@ from render.inverse.experiments import (
     light_estimation_start,
     relative_error_pct,
 )
-from render.scene.image import save_image
 from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
 from render.renderer import render
+from render.scene.image import save_image
 from render.scene.scene import Camera, Material, Mesh, PointLight, Scene
 from render.scene.teapot import paper_scene, teapot
 

@@ -16,8 +16,8 @@ import numpy as np
 from PIL import Image
 
 from render.inverse.experiments import ExperimentRun
-from render.scene.image import save_image
 from render.inverse.plot import line_plot
+from render.scene.image import save_image
 
 
 def command_line(

@@ -43,9 +43,9 @@ from PIL import Image, ImageDraw
 
 import minidiff as md
 import render
-from render.trace.accel import Accelerator
 from render.scene.camera import primary_rays
 from render.shade.surface import intersect_edges
+from render.trace.accel import Accelerator
 from render.trace.intersect import intersect_triangle, pack_primitives
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "04_bvh"

@@ -45,8 +45,8 @@ from pathlib import Path
 import numpy as np
 
 import render
-from render.scene.camera import primary_rays
 from render.inverse.plot import line_plot
+from render.scene.camera import primary_rays
 from render.scene.teapot import PAPER_ALBEDO
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "05_shading"

@@ -15,14 +15,14 @@ for loss curves).
 Command lines and output writing belong to the scripts: ``examples/script_support.py``.
 """
 
-from render.trace.accel import Accelerator
 from render.inverse.gradient_image import gradient_image
-from render.scene.image import load_image, mse, psnr, save_image, write_gradient_png
-from render.scene.meshio import load_mesh
 from render.inverse.optimize import FlatParameters, History, OptimizationError, image_loss, optimize
 from render.renderer import RenderInfo, render
+from render.scene.image import load_image, mse, psnr, save_image, write_gradient_png
+from render.scene.meshio import load_mesh
 from render.scene.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
 from render.scene.teapot import paper_scene, teapot, teapot_geometry
+from render.trace.accel import Accelerator
 
 __all__ = [
     "Accelerator", "Camera", "DirectionalLight", "Material", "Mesh", "PointLight", "Scene",

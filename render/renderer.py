@@ -31,14 +31,14 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
+from render.edges.shadows import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
+from render.edges.silhouettes import EdgePairs, add_to_samples, crossings, edge_updates, in_order
 from render.scene.cache import RenderCache, cache_for, surface_key
 from render.scene.camera import camera_frame, ray_directions, subpixel_offsets
-from render.edges.silhouettes import EdgePairs, add_to_samples, crossings, edge_updates, in_order
-from render.shade.surface import Surface, mesh_surface, moves_surface, sphere_surface
-from render.shade.mirrors import Bounces, reflected_radiance
 from render.scene.scene import Mesh, Scene, check_ray_count
 from render.shade.lighting import appearance, light_contribution, shade_mesh, shade_surface
-from render.edges.shadows import ShadowPairs, object_index_of, shadow_crossings, shadow_updates
+from render.shade.mirrors import Bounces, reflected_radiance
+from render.shade.surface import Surface, mesh_surface, moves_surface, sphere_surface
 from render.trace.visibility import Visibility, primitive_ranges, scene_size, trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]

@@ -10,8 +10,8 @@ from hypothesis import strategies as st
 from test_accel import grid_triangles
 
 import render
-from render.trace.accel import Accelerator
 from render.scene.camera import hits_along_rays, image_plane_coords, primary_rays
+from render.trace.accel import Accelerator
 from render.trace.raster import raster_closest_hit
 from render.trace.visibility import scene_primitives
 

@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 
 import render
-from render.trace.accel import Accelerator
 from render.scene.camera import primary_rays
+from render.trace.accel import Accelerator
 from render.trace.intersect import intersect_triangle, pack_primitives
 
 with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed

@@ -39,8 +39,6 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.trace.accel import Accelerator
-from render.scene.camera import image_plane_coords, ray_directions
 from render.edges.silhouettes import (
     as_column,
     axis_ok,
@@ -58,7 +56,9 @@ from render.edges.silhouettes import (
     sphere_crossing_plain,
     triangle_corners,
 )
+from render.scene.camera import image_plane_coords, ray_directions
 from render.scene.scene import PointLight, Scene
+from render.trace.accel import Accelerator
 from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
 
 

@@ -19,9 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.scene.image import psnr
 from render.inverse.optimize import History, optimize
 from render.renderer import render
+from render.scene.image import psnr
 from render.scene.teapot import paper_scene
 
 # The true parameters of the reference scene (docs/paper_scene.md).

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 import minidiff as md
-from render.scene.image import load_image, mse
 from render.renderer import render
+from render.scene.image import load_image, mse
 from render.scene.scene import Scene
 
 

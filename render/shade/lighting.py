@@ -18,8 +18,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from render.shade.surface import Surface, column, mesh_surface
 from render.scene.scene import DirectionalLight, Material, Mesh, PointLight
+from render.shade.surface import Surface, column, mesh_surface
 
 
 def light_incidence(light, points):

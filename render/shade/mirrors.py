@@ -37,11 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.trace.accel import Accelerator
 from render.edges.silhouettes import in_order
-from render.shade.surface import Surface, mesh_surface, sphere_surface
 from render.scene.scene import Mesh, Scene
 from render.shade.lighting import shade_surface
+from render.shade.surface import Surface, mesh_surface, sphere_surface
+from render.trace.accel import Accelerator
 from render.trace.visibility import primitive_ranges, shadow_offset, trace_shadows
 
 

@@ -36,8 +36,8 @@ from numba import njit, prange
 
 from minidiff import buffers
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
-from render.trace.intersect import intersect_prim, pack_primitives
 from render.scene.scene import Camera
+from render.trace.intersect import intersect_prim, pack_primitives
 
 #: Side of a binning tile, in pixels.
 TILE = 16

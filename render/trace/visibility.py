@@ -26,13 +26,13 @@ import numba
 import numpy as np
 
 from minidiff import buffers
-from render.trace.accel import Accelerator
+from render.edges.shadows import ShadowPairs, shadow_pairs
+from render.edges.silhouettes import EdgePairs, edge_pairs
 from render.scene.cache import RenderCache, camera_key, light_key
 from render.scene.camera import hits_along_rays, primary_rays
-from render.edges.silhouettes import EdgePairs, edge_pairs
-from render.trace.raster import bounding_box, occluded_towards_light, raster_closest_hit
 from render.scene.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
-from render.edges.shadows import ShadowPairs, shadow_pairs
+from render.trace.accel import Accelerator
+from render.trace.raster import bounding_box, occluded_towards_light, raster_closest_hit
 from render.trace.topology import mesh_edges
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
