@@ -30,8 +30,9 @@ import timing
 from render.scene.camera import primary_rays
 from render.scene.teapot import paper_scene
 from render.trace.accel import Accelerator
+from render.trace.primitives import scene_primitives
 from render.trace.raster import occluded_towards_light, raster_closest_hit
-from render.trace.visibility import scene_primitives, scene_size, shadow_rays
+from render.trace.visibility import scene_size, shadow_rays
 
 
 def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:

@@ -35,7 +35,7 @@ from render import render
 from render.inverse.plot import line_plot
 from render.scene.teapot import paper_scene, teapot
 from render.trace.accel import Accelerator
-from render.trace.visibility import scene_primitives
+from render.trace.primitives import scene_primitives
 
 
 def point(size: int, nu: int, nv: int, repeats: int) -> dict:

@@ -21,7 +21,7 @@ from render_helpers import masked_gradient_check, random_scene
 
 import minidiff as md
 import render
-from render.edges.silhouettes import box_coverage
+from render.edges.geometry import box_coverage
 from render.trace.topology import mesh_edges, silhouette_edges
 
 WIDTH, HEIGHT, FOV = 40, 32, 40.0
@@ -213,9 +213,11 @@ def test_sphere_translation_gradient_estimates_the_supersampled_derivative():
 def test_the_numba_walk_equals_the_numpy_walk(size):
     """``walk_to_silhouette_fast`` (what the renderer runs) against the NumPy version, on
     every pair of adjacent pixels with different hits of the teapot."""
-    from render.edges.silhouettes import candidate_pairs, plain_rays, sample_grid
+    from render.edges.geometry import plain_rays, sample_grid
+    from render.edges.silhouettes import candidate_pairs
+    from render.trace.primitives import primitive_ranges, scene_primitives
     from render.trace.topology import walk_to_silhouette, walk_to_silhouette_fast
-    from render.trace.visibility import primitive_ranges, scene_primitives, trace_primary
+    from render.trace.visibility import trace_primary
 
     scene = render.paper_scene(size, size)
     accel = render.Accelerator(*scene_primitives(scene))

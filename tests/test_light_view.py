@@ -14,8 +14,9 @@ from test_raster import points
 import render
 import render.trace.visibility as visibility
 from render.trace.accel import Accelerator
+from render.trace.primitives import scene_primitives
 from render.trace.raster import occluded_towards_light
-from render.trace.visibility import scene_primitives, scene_size, shadow_rays
+from render.trace.visibility import scene_size, shadow_rays
 
 SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

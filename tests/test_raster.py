@@ -12,8 +12,8 @@ from test_accel import grid_triangles
 import render
 from render.scene.camera import hits_along_rays, image_plane_coords, primary_rays
 from render.trace.accel import Accelerator
+from render.trace.primitives import scene_primitives
 from render.trace.raster import raster_closest_hit
-from render.trace.visibility import scene_primitives
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -23,7 +23,7 @@ two samples (``render.edges.silhouettes``), but only the light's own contributio
    directions).
 3. Blend (``shadow_updates``): the lit sample's box loses, and the dark sample's box
    gains, the light's unoccluded contribution times the area of the box on the other side
-   of the shadow edge (``render.edges.silhouettes.box_coverage``).
+   of the shadow edge (``render.edges.geometry.box_coverage``).
 
 Approximations (measured in ``tests/test_shadow_edges.py``): the receiver is taken to be
 the plane of the lit sample's face (its tangent plane on a sphere), so a curved receiver
@@ -39,12 +39,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.edges.silhouettes import (
+from render.edges.geometry import (
     as_column,
     axis_ok,
     dot_last,
-    first_sphere_id,
-    in_order,
     outline_normal,
     pair_coverages,
     plain_rays,
@@ -58,8 +56,13 @@ from render.edges.silhouettes import (
 )
 from render.scene.camera import image_plane_coords, ray_directions
 from render.scene.scene import PointLight, Scene
+from render.shade.hits import working_dtype
+from render.shade.lighting import appearance, light_contribution
+from render.shade.surface import Hits, Surface, in_order
 from render.trace.accel import Accelerator
+from render.trace.primitives import first_sphere_id, object_index_of, primitive_ranges
 from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
+from render.trace.visibility import shadow_rays
 
 
 @dataclass
@@ -90,14 +93,6 @@ class ShadowPairs:
             return cls.empty()
         columns = zip(*(vars(p).values() for p in parts), strict=True)
         return cls(*(np.concatenate(x) for x in columns))
-
-
-def object_index_of(scene: Scene, prim: np.ndarray) -> np.ndarray:
-    """(n,) the index in ``scene.meshes + scene.spheres`` of the object owning each
-    primitive id (-1 for -1)."""
-    counts = [m.num_faces for m in scene.meshes] + [1] * len(scene.spheres)
-    starts = np.cumsum([0] + counts)
-    return np.where(prim >= 0, np.searchsorted(starts, prim, side="right") - 1, -1)
 
 
 def _receiver_planes(scene: Scene, prim: np.ndarray, points: np.ndarray):
@@ -167,8 +162,6 @@ def shadow_pairs(
     primary: ``render.trace.visibility.PrimaryHits``; lit[j] (k,) bool per hit ray; topology:
     ``mesh_edges`` per mesh; size: the scene's size (for the shadow rays' start offset).
     """
-    from render.trace.visibility import shadow_rays  # the same rays as the shadows themselves
-
     camera, prim_id = scene.camera, primary.prim_id
     grid = sample_grid(camera, spp)
     hit_index = np.full(prim_id.size, -1, dtype=np.int64)
@@ -350,6 +343,46 @@ def shadow_crossings(
     slope = slope_across(in_order(normals, order), frame, pairs.horizontal,
                          sample_steps(camera, spp, dtype))  # fmt: skip
     return md.clip(s, 0.0, 1.0), slope
+
+
+def shadow_terms(scene: Scene, pairs: ShadowPairs, prim_id, shaded: dict[int, Hits], frame, spp):
+    """What blending each shadow pair's light contribution across its edge adds to the
+    samples (``shadow_updates``), or None without pairs. The unoccluded contribution of the
+    pair's light is shaded again at both samples, from their object's ``Hits`` (``shaded``,
+    per object index: ``render.shade.hits.CameraShading.hits``). prim_id (N,): each camera
+    ray's primitive."""
+    if len(pairs.lit) == 0:
+        return None
+    objects = [obj for obj, _, _ in primitive_ranges(scene)]
+    owner = object_index_of(scene, prim_id[pairs.lit])  # both samples are on this object
+    lit_light, dark_light, lit_points, order = [], [], [], []
+    for index, hits in shaded.items():
+        obj, surface = objects[index], hits.surface
+        row_of_ray = np.full(prim_id.size, -1, dtype=np.int64)
+        row_of_ray[hits.rays] = np.arange(len(hits.rays))
+        for j, light in enumerate(scene.lights):
+            rows = np.flatnonzero((owner == index) & (pairs.light == j))
+            if len(rows) == 0:
+                continue
+            lit_rows, dark_rows = row_of_ray[pairs.lit[rows]], row_of_ray[pairs.dark[rows]]
+            lit_light.append(_unoccluded(surface, lit_rows, obj.material, light))
+            dark_light.append(_unoccluded(surface, dark_rows, obj.material, light))
+            lit_points.append(surface.points[lit_rows])
+            order.append(rows)
+    dtype = working_dtype(scene)
+    s, slope = shadow_crossings(
+        scene, pairs, prim_id[pairs.lit], in_order(lit_points, order), frame, spp, dtype
+    )
+    return shadow_updates(pairs, s, slope, in_order(lit_light, order), in_order(dark_light, order))
+
+
+def _unoccluded(surface: Surface, rows: np.ndarray, material, light) -> md.Tensor:
+    """One light's unoccluded contribution (k, 3) at some rows of a Surface."""
+    uv = surface.uv[rows] if surface.uv is not None else None
+    look = appearance(material, uv, len(rows))
+    return light_contribution(
+        surface.points[rows], surface.normals[rows], surface.directions[rows], look, light
+    )
 
 
 def shadow_updates(pairs: ShadowPairs, s, slope, light_lit, light_dark):

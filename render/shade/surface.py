@@ -113,6 +113,30 @@ class Surface:
     uv: md.Tensor | None = None
 
 
+@dataclass
+class Hits:
+    """k rays' hits on one object, ready to shade: the object (``obj``, at ``index`` in
+    ``render.trace.primitives.primitive_ranges``), the hits' ``Surface`` on the tape, the
+    global primitive ids ``prims`` (k,) int64, the camera ray each belongs to ``rays`` (k,)
+    int64, where they stand among the rays of their batch ``rows`` (k,) int64, and per light
+    ``lit[j]`` (k,) float: 1 where light j reaches the hit (a constant)."""
+
+    obj: Mesh | Sphere
+    index: int
+    surface: Surface
+    prims: np.ndarray
+    rays: np.ndarray
+    rows: np.ndarray
+    lit: list[np.ndarray]
+
+
+def in_order(parts: list[md.Tensor], order: list[np.ndarray]) -> md.Tensor:
+    """The rows of ``parts`` (computed group by group) put back in the original order:
+    part i holds the rows ``order[i]`` (together a permutation of 0..n-1)."""
+    joined = parts[0] if len(parts) == 1 else md.concatenate(parts)
+    return joined[np.argsort(np.concatenate(order))]
+
+
 def _interpolate(weights, attribute, corners):
     """Barycentric interpolation of a per-vertex attribute (V, n) at k hits: (k, n).
     ``corners``: the vertex ids (k,) of the hit faces' three corners."""

@@ -1,20 +1,20 @@
-"""Visibility: which primitive each camera ray hits, and which lights each hit point sees.
+"""Step 1, visibility: which primitive each camera ray hits, which lights each hit sees.
 
 These are the renderer's discrete decisions. They are computed on plain arrays, with the
-BVH (``render.trace.accel``) or, where that is faster and gives the same answers, by projection
-(``render.trace.raster``), and are constants on the tape: the image is differentiable for fixed
-visibility (``render.shade.surface`` recomputes *where* each ray hits, differentiably).
+BVH (``render.trace.accel``) or, where that is faster and gives the same answers, by
+projection (``render.trace.raster``, ``render.trace.light_view``), and are constants on the
+tape: the image is differentiable for fixed visibility (``render.shade.surface`` recomputes
+*where* each ray hits, differentiably).
 
-* ``scene_primitives``: the scene's geometry as one list of primitives (all mesh triangles,
-  then all spheres), the accelerator's input and its primitive ids.
 * ``trace_primary``: one ray per pixel sample, traced through the BVH or rasterised: the
-  primitive it hits.
+  primitive it hits (ids of ``render.trace.primitives``).
 * ``shadow_rays`` / ``trace_shadows``: a ray from every hit point to a light: is it blocked?
   (Many rays towards a point light: answered in the light's view; else by the BVH.)
 
-``trace_visibility`` runs the three, reusing earlier results from a ``render.scene.cache``
+``trace_visibility`` runs them, reusing earlier results from a ``render.scene.cache``
 ``RenderCache`` when the values they depend on are unchanged; the BVH is built (and kept)
-only when a ray first needs it.
+only when a ray first needs it. The ``Visibility`` it returns also answers shadow rays for
+the stages that trace more rays later (mirror bounces, shadow edges).
 """
 
 from __future__ import annotations
@@ -26,14 +26,12 @@ import numba
 import numpy as np
 
 from minidiff import buffers
-from render.edges.shadows import ShadowPairs, shadow_pairs
-from render.edges.silhouettes import EdgePairs, edge_pairs
 from render.scene.cache import RenderCache, camera_key, light_key
 from render.scene.camera import hits_along_rays, primary_rays
-from render.scene.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.scene.scene import Camera, DirectionalLight, PointLight, Scene
 from render.trace.accel import Accelerator
+from render.trace.primitives import Primitives, scene_primitives
 from render.trace.raster import bounding_box, occluded_towards_light, raster_closest_hit
-from render.trace.topology import mesh_edges
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
 #: the light, so that rounding in the hit point cannot make a neighbouring triangle at a
@@ -43,32 +41,6 @@ from render.trace.topology import mesh_edges
 #: larger (far from the origin, where coordinates carry fewer digits).
 SHADOW_EPSILON = 1e-9
 SHADOW_ULPS = 1024
-
-
-def scene_primitives(scene: Scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The current primitives as plain float64 arrays: triangles (T, 3, 3) of every mesh in
-    scene order, then sphere centres (S, 3) and radii (S,). Primitive id = row, spheres
-    numbered after the triangles (see ``primitive_ranges``)."""
-    meshes, spheres = scene.meshes, scene.spheres
-    triangles = (
-        np.concatenate([m.triangles() for m in meshes]).astype(np.float64)
-        if meshes
-        else np.zeros((0, 3, 3))
-    )
-    centers = np.array([s.center.data for s in spheres], dtype=np.float64).reshape(-1, 3)
-    radii = np.array([s.radius.data for s in spheres], dtype=np.float64).reshape(-1)
-    return triangles, centers, radii
-
-
-def primitive_ranges(scene: Scene) -> list[tuple[Mesh | Sphere, int, int]]:
-    """(object, first primitive id, primitive count) per object, in the order of
-    ``scene_primitives``: the triangles of every mesh, then the spheres."""
-    ranges, first = [], 0
-    for obj in scene.meshes + scene.spheres:
-        count = obj.num_faces if isinstance(obj, Mesh) else 1
-        ranges.append((obj, first, count))
-        first += count
-    return ranges
 
 
 @dataclass
@@ -195,7 +167,7 @@ def _point_light_rays(position, points, offset, origins, directions, tmax):
             directions[i, 2] = position[2] - origins[i, 2]
 
 
-def scene_size(primitives: tuple[np.ndarray, np.ndarray, np.ndarray]) -> float:
+def scene_size(primitives: Primitives) -> float:
     """The diagonal of the bounding box of ``scene_primitives`` (0 for an empty scene)."""
     triangles, centers, radii = primitives
     lo, hi = [], []
@@ -220,7 +192,7 @@ LIGHT_VIEW_RAYS_PER_PRIMITIVE = 4
 
 def trace_shadows(
     accelerator: Callable[[], Accelerator],
-    primitives: tuple[np.ndarray, np.ndarray, np.ndarray],
+    primitives: Primitives,
     light: PointLight | DirectionalLight,
     points: np.ndarray,
     start_prim: np.ndarray,
@@ -256,40 +228,48 @@ def trace_shadows(
 @dataclass
 class Visibility:
     """Every discrete decision of one render about camera rays: their hits and, per light,
-    a lit mask (k,) bool over the hit rays (all True with ``shadows=False``), and the pairs
-    of adjacent samples across a silhouette or a shadow edge (None without antialiasing; no
-    shadow pairs with ``shadows=False``). ``stamp`` (1,) identifies the computation of
-    ``primary``: equal stamps, equal hits (for the keys of the caches that build on them).
-    ``primitives`` (``scene_primitives``) are what they were traced with and
-    ``accelerator()`` gives their accelerator (built on its first call: a render whose
-    camera rays are rasterised and whose shadows are found in the light's view needs none),
-    for the mirror rays that follow (``render.shade.mirrors``); ``bvh`` says whether it is a
-    BVH (False: brute force, the ablation)."""
+    a lit mask (k,) bool over the hit rays (all True with ``shadows=False``).
+
+    ``stamp`` (1,) identifies the computation of ``primary``: equal stamps, equal hits (for
+    the keys of the caches that build on them; ``geometry`` likewise for the primitives).
+    ``primitives`` (``render.trace.primitives.scene_primitives``) are what they were traced
+    with, ``size`` their bounding box's diagonal, and ``accelerator()`` gives their
+    accelerator (built on its first call: a render whose camera rays are rasterised and
+    whose shadows are found in the light's view needs none), for the rays that come later
+    (mirror rays, the shadow edges' occluders); ``bvh`` says whether it is a BVH (False:
+    brute force, the ablation) and ``shadows`` whether shadow rays are traced.
+    """
 
     primary: PrimaryHits
     lit: list[np.ndarray]
     stamp: np.ndarray
+    geometry: np.ndarray
     accelerator: Callable[[], Accelerator]
     bvh: bool
-    primitives: tuple[np.ndarray, np.ndarray, np.ndarray]
-    pairs: EdgePairs | None = None
-    shadow_pairs: ShadowPairs | None = None
+    shadows: bool
+    primitives: Primitives
+    size: float
+
+    def lit_towards(self, light: PointLight | DirectionalLight, points, start_prim) -> np.ndarray:
+        """(k,) bool: True where ``light`` reaches the points (k, 3) on primitives
+        ``start_prim`` (k,) (all True without shadows); ``trace_shadows`` with this
+        render's primitives and accelerator."""
+        if not self.shadows:
+            return np.ones(len(points), dtype=bool)
+        return trace_shadows(
+            self.accelerator, self.primitives, light, points, start_prim, self.size, self.bvh
+        )
 
 
 def trace_visibility(
-    scene: Scene,
-    cache: RenderCache,
-    bvh: bool,
-    spp: int,
-    shadows: bool,
-    antialias: bool = False,
-    raster: bool = False,
+    scene: Scene, cache: RenderCache, bvh: bool, spp: int, shadows: bool, raster: bool = False
 ) -> Visibility:
-    """Accelerator, camera rays (traced, or with ``raster`` rasterised), shadow rays and
-    (with ``antialias``) the silhouette pairs of ``scene``, each reused from ``cache``
-    while the values it depends on are unchanged (a later stage depends on the earlier)."""
+    """Step 1: camera rays (traced, or with ``raster`` rasterised) and shadow rays of
+    ``scene``, each reused from ``cache`` while the values it depends on are unchanged (a
+    later stage depends on the earlier). The accelerator is built only when a ray needs it."""
     primitives = scene_primitives(scene)
     _, geometry = cache.get("geometry", list(primitives), lambda: None)  # its stamp
+    size = scene_size(primitives)
 
     def accelerator() -> Accelerator:
         """The scene's accelerator, built when first needed, kept while the geometry is."""
@@ -302,46 +282,18 @@ def trace_visibility(
         camera_key(scene.camera, spp, bvh) + [geometry, np.array([raster])],
         lambda: trace_primary(accelerator, scene.camera, spp, primitives, raster),
     )
+    visibility = Visibility(
+        primary, [], traced, geometry, accelerator, bvh, shadows, primitives, size
+    )
     start_prim = primary.prim_id[primary.hit_rays]
-    lit = []
     for j, light in enumerate(scene.lights):
         if not shadows:
-            lit.append(np.ones(len(primary.hit_rays), dtype=bool))
+            visibility.lit.append(np.ones(len(primary.hit_rays), dtype=bool))
             continue
         mask, _ = cache.get(
             ("shadows", j),
             light_key(light) + [traced],
-            lambda light=light: trace_shadows(
-                accelerator,
-                primitives,
-                light,
-                primary.points,
-                start_prim,
-                scene_size(primitives),
-                bvh,
-            ),
+            lambda light=light: visibility.lit_towards(light, primary.points, start_prim),
         )
-        lit.append(mask)
-    if not antialias:
-        return Visibility(primary, lit, traced, accelerator, bvh, primitives)
-    topology, _ = cache.get(
-        "topology",
-        [geometry],
-        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
-    )
-    pairs, _ = cache.get(
-        "pairs",
-        [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
-        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
-    )
-    shadow = None
-    if shadows:
-        light_keys = [k for light in scene.lights for k in light_key(light)]
-        shadow, _ = cache.get(
-            "shadow pairs",
-            light_keys + [traced],
-            lambda: shadow_pairs(
-                scene, accelerator(), primary, lit, spp, topology, scene_size(primitives)
-            ),
-        )
-    return Visibility(primary, lit, traced, accelerator, bvh, primitives, pairs, shadow)
+        visibility.lit.append(mask)
+    return visibility

@@ -1,0 +1,90 @@
+"""Step 4 in one call: the pairs of samples across moving edges, and what blending them adds.
+
+``add_edge_terms`` is what the renderer calls with ``antialias=True``. It finds, on plain
+arrays, the pairs of adjacent samples across a silhouette or crease
+(``render.edges.silhouettes.edge_pairs``) and across a shadow edge
+(``render.edges.shadows.shadow_pairs``), each reused from the render cache while the
+visibility they come from is unchanged; then, on the tape, where each edge crosses its
+pair and how much of each sample's box lies beyond it, and adds the blends to the
+samples' colours.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import minidiff as md
+from render.edges.geometry import add_to_samples
+from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
+from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
+from render.scene.cache import RenderCache, light_key
+from render.scene.scene import Scene
+from render.shade.hits import CameraShading, working_dtype
+from render.trace.topology import mesh_edges
+from render.trace.visibility import Visibility
+
+
+@dataclass
+class EdgeDecisions:
+    """The pairs one render blended (constants): across silhouettes and creases
+    (``EdgePairs``), across shadow edges (``ShadowPairs``, None without shadows)."""
+
+    silhouettes: EdgePairs
+    shadows: ShadowPairs | None
+
+
+def find_pairs(scene: Scene, visibility: Visibility, cache: RenderCache, spp: int):
+    """The pairs of adjacent samples across moving edges (``EdgeDecisions``), from the
+    camera rays' hits and lit masks of step 1, reused from ``cache`` while those are."""
+    primary, traced = visibility.primary, visibility.stamp
+    topology, _ = cache.get(
+        "topology",
+        [visibility.geometry],
+        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
+    )
+    pairs, _ = cache.get(
+        "pairs",
+        [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
+        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
+    )
+    if not visibility.shadows:
+        return EdgeDecisions(pairs, None)
+    light_keys = [k for light in scene.lights for k in light_key(light)]
+    shadow, _ = cache.get(
+        "shadow pairs",
+        light_keys + [traced],
+        lambda: shadow_pairs(
+            scene,
+            visibility.accelerator(),
+            primary,
+            visibility.lit,
+            spp,
+            topology,
+            visibility.size,
+        ),  # fmt: skip
+    )
+    return EdgeDecisions(pairs, shadow)
+
+
+def add_edge_terms(
+    scene: Scene,
+    visibility: Visibility,
+    cache: RenderCache,
+    samples: md.Tensor,
+    shading: CameraShading,
+    frame,
+    spp: int,
+) -> tuple[md.Tensor, EdgeDecisions]:
+    """The samples' colours (N, 3) with every silhouette, crease and shadow edge between
+    adjacent samples blended by coverage (on the tape), and the pairs that were blended.
+    ``shading``: the camera hits' colours of steps 2-3; ``frame``: the camera frame."""
+    found = find_pairs(scene, visibility, cache, spp)
+    s, slope = crossings(scene, found.silhouettes, frame, spp, working_dtype(scene))
+    silhouettes = edge_updates(samples, found.silhouettes, s, slope)
+    shadows = None
+    if found.shadows is not None:
+        prim_id = visibility.primary.prim_id
+        shadows = shadow_terms(scene, found.shadows, prim_id, shading.hits, frame, spp)
+    return add_to_samples(samples, [silhouettes, shadows]), found

@@ -1,0 +1,161 @@
+"""Steps 2 and 3 for every hit: its surface recomputed on the tape, then shaded.
+
+One function shades hits, whoever traced them: ``shade_hits`` gives k hits on one object
+(``render.shade.surface.Hits``) their colour from the lights and the material
+(``render.shade.lighting``) and, on a reflective material, adds what the mirror rays see
+(``render.shade.mirrors`` traces them; what they hit is shaded by ``shade_hits`` again, up
+to ``max_bounces`` reflections).
+
+``shade_camera_hits`` feeds it the camera rays' hits, object by object: each object's
+Surface is recomputed from the camera frame and the primitive ids of step 1, or reused
+from the render cache when nothing that moves it is differentiated and its values are
+unchanged (e.g. while only a light or a material is optimised).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+import minidiff as md
+from minidiff import buffers
+from render.scene.cache import RenderCache, surface_key
+from render.scene.camera import ray_directions
+from render.scene.scene import Mesh, Scene
+from render.shade.lighting import shade_surface
+from render.shade.mirrors import Mirrors
+from render.shade.surface import (
+    Hits,
+    Surface,
+    in_order,
+    mesh_surface,
+    moves_surface,
+    sphere_surface,
+)
+from render.trace.primitives import primitive_ranges
+from render.trace.visibility import Visibility
+
+
+def working_dtype(scene: Scene) -> np.dtype:
+    """float32 only if every parameter is float32 (constants such as pixel coordinates are
+    cast to it, so that they do not promote the tape to float64)."""
+    return np.result_type(*[t.dtype for t in scene.parameters()])
+
+
+def shade_hits(
+    scene: Scene, hits: Hits, mirrors: Mirrors | None, bounce: int
+) -> tuple[md.Tensor, np.ndarray]:
+    """The radiance (k, 3) leaving k ``hits`` towards their rays, and each hit's texture
+    cell (k,) int64 (-1: untextured). ``bounce`` counts the mirror reflections before these
+    hits (0 for camera hits); a reflective material adds ``reflectance`` times what its
+    mirror rays see while ``bounce < mirrors.max_bounces``."""
+    material = hits.obj.material
+    colour, cells = shade_surface(hits.surface, material, scene.lights, hits.lit)
+    if mirrors is not None and material.reflective and bounce < mirrors.max_bounces:
+        colour = colour + material.reflectance * mirror_radiance(scene, hits, mirrors, bounce + 1)
+    return colour, cells
+
+
+def mirror_radiance(scene: Scene, hits: Hits, mirrors: Mirrors, bounce: int) -> md.Tensor:
+    """The radiance (k, 3) arriving at k ``hits`` along their mirror directions (the
+    ``bounce``-th reflection): what each mirror ray hits, shaded by ``shade_hits``, or the
+    background."""
+    groups, missed = mirrors.trace(hits, bounce)
+    parts, order = [], []
+    for group in groups:
+        parts.append(shade_hits(scene, group, mirrors, bounce)[0])
+        order.append(group.rows)
+    if len(missed):
+        parts.append(md.broadcast_to(scene.background, (len(missed), 3)))
+        order.append(missed)
+    return in_order(parts, order)
+
+
+@dataclass
+class CameraShading:
+    """The colours of the camera rays' hits: ``colour`` (k, 3) object by object (None if
+    no ray hit anything), the ray each row belongs to ``rays`` (k,) int64, the texture cell
+    of every ray ``texel`` (N,) int64 (-1: none; None if no ray hit a textured object), and
+    per object index the ``Hits`` that were shaded (the edge terms shade some again)."""
+
+    colour: md.Tensor | None
+    rays: np.ndarray
+    texel: np.ndarray | None
+    hits: dict[int, Hits]
+
+
+def shade_camera_hits(
+    scene: Scene, visibility: Visibility, frame, cache: RenderCache, mirrors: Mirrors | None
+) -> CameraShading:
+    """Steps 2 and 3 for the camera rays: every object's hits recomputed from the camera
+    ``frame`` (``render.scene.camera.camera_frame``) and shaded by ``shade_hits``."""
+    n_rays = visibility.primary.prim_id.size
+    texel = None  # made when a textured object is hit (filling it costs a pass)
+    colours, rays, shaded = [], [], {}
+    for hits in camera_hits(scene, visibility, frame, cache):
+        colour, cells = shade_hits(scene, hits, mirrors, 0)
+        if hits.obj.material.texture is not None:
+            if texel is None:
+                texel = buffers.empty((n_rays,), np.int64)  # reused memory
+                texel.fill(-1)
+            texel[hits.rays] = cells
+        colours.append(colour)
+        rays.append(hits.rays)
+        shaded[hits.index] = hits
+    if not colours:
+        return CameraShading(None, np.zeros(0, np.int64), texel, shaded)
+    colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
+    return CameraShading(colour, np.concatenate(rays), texel, shaded)
+
+
+def camera_hits(scene: Scene, visibility: Visibility, frame, cache: RenderCache) -> Iterator[Hits]:
+    """The camera rays' hits, object by object (in ``primitive_ranges`` order; objects no
+    ray hits are skipped), each Surface computed when the iterator reaches it."""
+    primary, dtype = visibility.primary, working_dtype(scene)
+    eye = frame[3]
+    coords = primary.coords.astype(dtype, copy=False)
+    hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
+    for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
+        in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
+        if len(in_obj) == 0:
+            continue
+
+        def surface(obj=obj, first=first, in_obj=in_obj) -> Surface:
+            directions = ray_directions(frame, md.kernels.gather_rows(coords, in_obj))
+            if isinstance(obj, Mesh):
+                return mesh_surface(obj, hit_prims[in_obj] - first, eye, directions)
+            return sphere_surface(obj, eye, directions)
+
+        found = _reused_surface(scene, cache, visibility, index, obj, dtype, surface)
+        lit = [_as_dtype(mask[in_obj], dtype) for mask in visibility.lit]
+        rays = primary.hit_rays[in_obj]
+        yield Hits(obj, index, found, hit_prims[in_obj], rays, in_obj, lit)
+
+
+def _as_dtype(mask: np.ndarray, dtype) -> np.ndarray:
+    """``mask.astype(dtype)``, in reused memory (``minidiff.buffers``)."""
+    out = buffers.empty(mask.shape, dtype)
+    out[...] = mask
+    return out
+
+
+def _reused_surface(scene, cache, visibility, index, obj, dtype, compute) -> Surface:
+    """The object's Surface from ``cache`` when nothing that moves it is differentiated
+    (requires grad or carries a tangent) and its values are unchanged (e.g. while a light
+    or a material is optimised): saves the hit recomputation (gathers, cross and dot
+    products on every hit). Otherwise ``compute()`` on the tape."""
+    camera = scene.camera
+    owned = moves_surface(obj)
+    movers = [camera.position, camera.look_at, camera.up, camera.fov] + owned
+    if md.is_grad_enabled() and any(t.is_differentiated() for t in movers):
+        return compute()
+
+    def untaped() -> Surface:
+        with md.no_grad():
+            return compute()
+
+    key = surface_key(obj, owned, dtype) + [visibility.stamp]
+    surface, _ = cache.get(("surface", index), key, untaped)
+    return surface
