@@ -11,7 +11,7 @@
 # # Lesson 3 — Camera rays
 #
 # A ray tracer starts by asking, for every pixel, *which ray does this pixel see?* The
-# renderer's answer is a look-at pinhole camera (`render/camera.py`, `render.Camera`):
+# renderer's answer is a look-at pinhole camera (`render/scene/camera.py`, `render.Camera`):
 #
 # * an **eye** `C` (`position`), a point it looks at (`look_at`) and an approximate `up`;
 # * an orthonormal **frame**: `f = normalize(look_at − C)` (forward),

@@ -13,9 +13,9 @@
 # Visibility is the renderer's one discrete question: *which primitive does this ray hit
 # first?* This lesson answers it for one ray and one triangle (Möller–Trumbore), then for
 # many rays and the teapot's 1,536 triangles, with a bounding volume hierarchy (BVH) built by
-# the surface area heuristic (SAH). Read along: `render/intersect.py` (the Numba kernels),
-# `render/bvh.py` (the builder), `render/accel.py` (the `Accelerator` that ties them
-# together) and `render/geometry.py` (the same intersection on the tape).
+# the surface area heuristic (SAH). Read along: `render/trace/intersect.py` (the Numba kernels),
+# `render/trace/bvh.py` (the builder), `render/trace/accel.py` (the `Accelerator` that ties them
+# together) and `render/shade/surface.py` (the same intersection on the tape).
 #
 # ## Möller–Trumbore
 #
@@ -94,7 +94,7 @@ print("o + t d =", hit_point, "  (1-u-v) a + u b + v c =", barycentric_point)
 #
 #     C_split = C_trav + (A(L)·n_L + A(R)·n_R) / A(P),    against    C_leaf = n_P,
 #
-# in units of one triangle test (`render/bvh.py` uses `C_trav = 1`). The builder evaluates
+# in units of one triangle test (`render/trace/bvh.py` uses `C_trav = 1`). The builder evaluates
 # 11 candidate planes per axis (12 bins over the triangles' centroids), takes the cheapest
 # and stops when a leaf is cheaper (and holds at most 8 triangles).
 

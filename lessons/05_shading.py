@@ -12,7 +12,7 @@
 #
 # Once visibility has said which surface a camera ray hits, shading says what colour the
 # pixel gets: the radiance `L` that leaves the hit point towards the eye. The renderer does
-# direct illumination only (`render/shading.py`, called from `render/renderer.py`): for
+# direct illumination only (`render/shade/lighting.py`, called from `render/renderer.py`): for
 # each light it adds
 #
 #     L = f · E · max(0, n·l)       with   E = I / r²   (point light of intensity I at
@@ -30,7 +30,7 @@
 #
 # plus a constant `ambient` radiance added where the material is seen. **Shadows** multiply
 # each light's term by 0 or 1: a shadow ray from the hit point towards the light either
-# reaches it or is blocked (`render/visibility.py`, on the BVH of lesson 4). Like the choice
+# reaches it or is blocked (`render/trace/visibility.py`, on the BVH of lesson 4). Like the choice
 # of primitive, that answer is a constant on the tape.
 #
 # We check the formulas on a case with a closed form, then render a small scene.
@@ -215,7 +215,7 @@ print(f"share of the visible ground in the teapot's shadow: {teapot_shadow_share
 # ## Mirror reflection
 #
 # A material with `reflectance = ρ` adds, at each hit, `ρ` times the radiance arriving
-# along the mirror direction (`render/reflection.py`). For a camera ray of unit direction
+# along the mirror direction (`render/shade/mirrors.py`). For a camera ray of unit direction
 # `d` hitting a surface of unit normal `n`, the mirror ray leaves the hit point along
 #
 #     r = d − 2 (d·n) n ,

@@ -18,7 +18,7 @@
 #    on plain arrays; a small move of a parameter either leaves them alone or flips them.
 # 2. **Surfaces** (on the tape): for the primitive that was hit, the hit point, normal and
 #    UV are *recomputed* with minidiff from the camera and the vertices
-#    (`render/geometry.py`, lesson 4's Möller–Trumbore again, on tensors).
+#    (`render/shade/surface.py`, lesson 4's Möller–Trumbore again, on tensors).
 # 3. **Shading** (on the tape): lesson 5's formulas, on those tensors.
 #
 # So the image `I(θ)` is, for fixed decisions, a smooth function of every continuous
@@ -81,7 +81,7 @@ print("parameters:", ", ".join(scene.named_parameters()))
 # the change of every pixel when `p` moves along `v`. It is one column of the Jacobian
 # `∂I/∂p`, so lesson 2 says: one forward-mode pass. `render.gradient_image(scene, name,
 # direction)` runs `render.render` inside `md.tangents({p: v})`
-# (`render/gradient_image.py`), and `render.write_gradient_png` draws it in diverging
+# (`render/inverse/gradient_image.py`), and `render.write_gradient_png` draws it in diverging
 # colours (red: the pixel brightens, blue: it darkens, with a scale bar).
 
 # %%

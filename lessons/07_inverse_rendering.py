@@ -125,12 +125,12 @@ print(f"render.optimize: {history.iterations} updates, largest loss difference t
 #
 # ## A material, and briefly a camera
 #
-# `render/experiments.py` holds the paper's problems as functions returning an
+# `render/inverse/experiments.py` holds the paper's problems as functions returning an
 # `ExperimentRun` (`.metrics`, `.history`, `.target`, `.initial`, `.final`).
 # `run_material_recovery` recovers the teapot's albedo (a random colour, seeded) from a
 # random start, projected onto `[0, 1]³`. The image is linear in the albedo and nothing
 # else moves, so the renderer reuses its visibility and surfaces from one iteration to the
-# next (`render/cache.py`) and the problem is easy.
+# next (`render/scene/cache.py`) and the problem is easy.
 #
 # A camera is harder: moving it moves every silhouette, and silhouettes are exactly what
 # the plain renderer's gradient ignores (lesson 8). Here we move only its position,

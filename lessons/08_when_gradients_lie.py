@@ -22,7 +22,7 @@
 # and when an edge moves across the box, the covered area changes continuously. Its
 # derivative is a line integral along the edge (the Reynolds transport term) that point
 # sampling never sees. `render.render(scene, antialias=True)` adds that term
-# (`render/edges.py`, `render/shadow_edges.py`); this lesson shows what goes wrong
+# (`render/edges/silhouettes.py`, `render/edges/shadows.py`); this lesson shows what goes wrong
 # without it, and how it is computed.
 
 # %%
@@ -127,7 +127,7 @@ print(f"antialiased: {disagreeing_pixels} pixels disagree, at rows/columns "
 # (or bottom) edge comes from a vertical pair, and that pair exists only while the
 # sample below (or above) is inside the square, so the pixel's value jumps when the
 # moving vertical edge crosses that sample. Each edge is handled along one axis only
-# (`render/edges.py`), an approximation that is exact along an edge and off at corners,
+# (`render/edges/silhouettes.py`), an approximation that is exact along an edge and off at corners,
 # where two edges share a pixel. The coverage of
 # a box is linear in a straight edge's position only while the edge stays inside the box:
 # it has a kink where the edge crosses a pixel border (the area stops growing), as the
@@ -138,7 +138,7 @@ print(f"antialiased: {disagreeing_pixels} pixels disagree, at rows/columns "
 #
 # ## How the edge term is computed
 #
-# `render/edges.py`, in three steps (its module docstring has the details):
+# `render/edges/silhouettes.py`, in three steps (its module docstring has the details):
 #
 # 1. **Pairs (constants).** Every pair of horizontally or vertically adjacent samples whose
 #    primary hits differ, and the edge between them: a silhouette (a mesh boundary, or an
@@ -158,7 +158,7 @@ print(f"antialiased: {disagreeing_pixels} pixels disagree, at rows/columns "
 #    derivative of the blended colour with respect to `s*` is the colour difference across
 #    the edge, which is the line integral above, discretised per pair.
 #
-# Shadow edges are the same construction on shadow rays (`render/shadow_edges.py`).
+# Shadow edges are the same construction on shadow rays (`render/edges/shadows.py`).
 
 # %%
 _, square_info = square_at(t, True, return_info=True)

@@ -187,7 +187,7 @@ render.save_image(strip(shape_target, shape_start, shape_final), OUT / "shape.pn
 # the centres of a 16 × 16 texel grid and hands the result to the material as its texture
 # (a computed tensor again); the renderer samples it bilinearly at each hit's UV. The
 # network's weights are the only parameters. Geometry and visibility never change, so
-# every render reuses them (`render/cache.py`).
+# every render reuses them (`render/scene/cache.py`).
 
 # %%
 rng = np.random.default_rng(9)

@@ -1,18 +1,15 @@
 """render: a differentiable ray tracer built on minidiff.
 
-Read in this order: ``renderer.py`` (the pipeline on one screen), then each step's module:
-``scene.py`` (what a scene is), ``teapot.py`` (the reference scene), ``camera.py`` (rays),
-``visibility.py`` (which primitive each ray hits, which lights each hit sees; built on
-``bvh.py`` / ``intersect.py`` / ``accel.py``), ``geometry.py`` (hits recomputed on the
-tape), ``shading.py`` (lights and materials), ``cache.py`` (reuse between renders),
-``edges.py`` / ``topology.py`` / ``shadow_edges.py`` (the motion of silhouettes and shadow
-edges, ``antialias=True``), ``reflection.py`` (mirror rays), ``raster.py`` (camera-ray
-hits by rasterisation, shadow rays seen from the light), ``gradient_image.py`` (forward
-mode: where in the picture a parameter acts), ``image.py`` / ``meshio.py`` / ``jsonio.py``
-(files), ``optimize.py`` (inverse rendering), ``experiments.py`` (the paper's experiments,
-as functions returning numbers and images) and ``plot.py`` (a dependency-free line plot
-for loss curves).
-Command lines and output writing belong to the scripts: ``examples/script_support.py``.
+The folders are the pipeline, in order (``docs/architecture.md``): ``scene/`` (what a
+scene is: objects, materials, lights, the camera model, mesh and image files, the teapot,
+the cache of results computed from a scene's values), ``trace/`` (step 1, plain arrays:
+which primitive each ray hits, which lights each hit sees), ``shade/`` (steps 2-3, on the
+tape: surfaces recomputed from the hits, lights and materials, mirror bounces),
+``edges/`` (step 4: silhouettes and shadow edges blended on the tape), ``film.py`` (step
+5: pixels from samples); ``renderer.py`` calls them top to bottom. ``inverse/`` uses the
+renderer: optimisation, gradient images (forward mode), the paper's experiments, and the
+plots and JSON they write. Command lines belong to the scripts
+(``examples/script_support.py``).
 """
 
 from render.inverse.gradient_image import gradient_image

@@ -39,21 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.edges.geometry import (
-    as_column,
-    axis_ok,
-    dot_last,
-    outline_normal,
-    pair_coverages,
-    plain_rays,
-    plane_normal,
-    sample_grid,
-    sample_steps,
-    slope_across,
-    sphere_crossing,
-    sphere_crossing_plain,
-    triangle_corners,
-)
+from render.edges import geometry
+from render.edges.geometry import as_column, dot_last
 from render.scene.camera import image_plane_coords, ray_directions
 from render.scene.scene import PointLight, Scene
 from render.shade.hits import working_dtype
@@ -104,7 +91,7 @@ def _receiver_planes(scene: Scene, prim: np.ndarray, points: np.ndarray):
         tri = np.concatenate([m.triangles() for m in scene.meshes]).astype(np.float64)
         on_tri = prim < n_tri
         corners = tri[prim[on_tri]]
-        normal[on_tri] = plane_normal(corners)
+        normal[on_tri] = geometry.plane_normal(corners)
         anchor[on_tri] = corners[:, 0]
     for index, sphere in enumerate(scene.spheres):
         on = prim == n_tri + index
@@ -163,7 +150,7 @@ def shadow_pairs(
     ``mesh_edges`` per mesh; size: the scene's size (for the shadow rays' start offset).
     """
     camera, prim_id = scene.camera, primary.prim_id
-    grid = sample_grid(camera, spp)
+    grid = geometry.sample_grid(camera, spp)
     hit_index = np.full(prim_id.size, -1, dtype=np.int64)
     hit_index[primary.hit_rays] = np.arange(len(primary.hit_rays))
     n_tri = first_sphere_id(scene)
@@ -206,7 +193,7 @@ def _edges_of_blockers(
     viewer, directional = _light_viewer(light)
     lit_points = primary.points[hit_index[lit_id]]
     dark_points = primary.points[hit_index[dark_id]]
-    eye, d_lit, d_dark, to_pixels = plain_rays(scene.camera, lit_id, dark_id, spp)
+    eye, d_lit, d_dark, to_pixels = geometry.plain_rays(scene.camera, lit_id, dark_id, spp)
     normal, anchor = _receiver_planes(scene, primary.prim_id[lit_id], lit_points)
     occluder = blocker.copy()
     edge = np.full(len(lit_id), -2, dtype=np.int64)
@@ -246,8 +233,8 @@ def _edges_of_blockers(
             continue
         u_dark = _homogeneous_points(d_dark[rows], normal[rows], anchor[rows], eye, viewer)
         u_lit = _homogeneous_points(d_lit[rows], normal[rows], anchor[rows], eye, viewer)
-        s_dark = sphere_crossing_plain(sphere, viewer, u_dark, u_lit)
-        g = outline_normal(sphere.center.data, sphere.radius.data, viewer, u_dark, u_lit,
+        s_dark = geometry.sphere_crossing_plain(sphere, viewer, u_dark, u_lit)
+        g = geometry.outline_normal(sphere.center.data, sphere.radius.data, viewer, u_dark, u_lit,
                             np.nan_to_num(s_dark))  # fmt: skip
         image_normal[rows] = _chain_to_directions(g, normal[rows], anchor[rows], eye, viewer)
         s[rows] = 1.0 - s_dark
@@ -257,7 +244,7 @@ def _edges_of_blockers(
     # are kept and their crossing clamped to [0, 1] on the tape (``shadow_crossings``):
     # dropping them would make the image jump when the crossing re-enters the pair.
     keep = (edge >= -1) & np.isfinite(s)
-    keep &= axis_ok(image_normal, horizontal, to_pixels)
+    keep &= geometry.axis_ok(image_normal, horizontal, to_pixels)
     return ShadowPairs(
         lit_id[keep], dark_id[keep], np.full(keep.sum(), j, np.int64), occluder[keep],
         edge[keep], horizontal[keep],
@@ -285,8 +272,8 @@ def _receiver_planes_tape(scene: Scene, prim: np.ndarray, points: md.Tensor):
     normals, anchors, order = [], [], []
     on_tri = np.flatnonzero(prim < n_tri)
     if len(on_tri):
-        corners = triangle_corners(scene, prim[on_tri])
-        normals.append(plane_normal(corners))
+        corners = geometry.triangle_corners(scene, prim[on_tri])
+        normals.append(geometry.plane_normal(corners))
         anchors.append(corners[0])
         order.append(on_tri)
     for index, sphere in enumerate(scene.spheres):
@@ -316,7 +303,7 @@ def shadow_crossings(
     for j, light in enumerate(scene.lights):
         rows = np.flatnonzero((pairs.light == j) & (pairs.edge >= 0))
         if len(rows):
-            corners = md.stack(triangle_corners(scene, pairs.occluder[rows]), axis=1)
+            corners = md.stack(geometry.triangle_corners(scene, pairs.occluder[rows]), axis=1)
             r, k = np.arange(len(rows)), pairs.edge[rows]
             v_i, v_j = corners[r, k], corners[r, (k + 1) % 3]
             m = _shadow_plane_normal(v_i, v_j, light)
@@ -334,14 +321,16 @@ def shadow_crossings(
             position = light.position
             u_dark = _homogeneous_points(d_dark[rows], normal[rows], anchor[rows], eye, position)
             u_lit = _homogeneous_points(d_lit[rows], normal[rows], anchor[rows], eye, position)
-            s_dark = sphere_crossing(sphere, position, u_dark, u_lit)
-            g = outline_normal(sphere.center, sphere.radius, position, u_dark, u_lit, s_dark)
+            s_dark = geometry.sphere_crossing(sphere, position, u_dark, u_lit)
+            g = geometry.outline_normal(
+                sphere.center, sphere.radius, position, u_dark, u_lit, s_dark
+            )
             s_parts.append(1.0 - s_dark)
             normals.append(_chain_to_directions(g, normal[rows], anchor[rows], eye, position))
             order.append(rows)
     s = in_order(s_parts, order)
-    slope = slope_across(in_order(normals, order), frame, pairs.horizontal,
-                         sample_steps(camera, spp, dtype))  # fmt: skip
+    slope = geometry.slope_across(in_order(normals, order), frame, pairs.horizontal,
+                         geometry.sample_steps(camera, spp, dtype))  # fmt: skip
     return md.clip(s, 0.0, 1.0), slope
 
 
@@ -390,6 +379,6 @@ def shadow_updates(pairs: ShadowPairs, s, slope, light_lit, light_dark):
     samples' colours: (ray ids (2n,), additions (2n, 3)). The lit sample loses its
     unoccluded contribution light_lit (n, 3) times the area of its box in the shadow, the
     dark sample gains light_dark (n, 3) times the area of its box in the light."""
-    shadowed, lighted = pair_coverages(s, slope)
+    shadowed, lighted = geometry.pair_coverages(s, slope)
     rays = np.concatenate([pairs.lit, pairs.dark])
     return rays, md.concatenate([-(shadowed * light_lit), lighted * light_dark])

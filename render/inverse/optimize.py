@@ -50,10 +50,6 @@ class History:
     stalled: bool = False
     iterations: int = 0
 
-    @property
-    def total_seconds(self) -> float:
-        return float(np.sum(self.seconds))
-
 
 class _Progress:
     """One status line, refreshed at most every ``every`` seconds (quiet: nothing)."""

@@ -220,11 +220,18 @@ class _HasFields:
         fields = {f.name: getattr(self, f.name) for f in self.FIELDS}
         return {prefix + name: t for name, t in fields.items() if t is not None}
 
+    def validate(self) -> None:
+        """Re-check the current values."""
+        self._check_fields()
+
     def _fields_repr(self) -> str:
         return ", ".join(
             f"{f.name}={'None' if getattr(self, f.name) is None else _fmt(getattr(self, f.name))}"
             for f in self.FIELDS
         )
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self._fields_repr()})"
 
 
 # --------------------------------------------------------------------------------------
@@ -290,11 +297,6 @@ class Camera(_HasFields):
         fov = math.degrees(2.0 * math.atan(sensor / 2.0 / focal))
         return cls(fov=fov, **kwargs)
 
-    @property
-    def aspect(self) -> float:
-        """Image aspect ratio ``width / height``."""
-        return self.width / self.height
-
     def validate(self) -> None:
         """Re-check the current values (shapes, finiteness, fov range, a usable view frame)."""
         fields = self._check_fields()
@@ -345,6 +347,15 @@ def _positive_float(value: Any, name: str) -> float:
 # --------------------------------------------------------------------------------------
 
 
+def _strength(name: str) -> Field:
+    """A light's scalar strength field (intensity or irradiance), >= 0."""
+    return Field(name, ((),), (lambda x: x >= 0.0, ">= 0"))
+
+
+#: A light's (3,) linear RGB colour, multiplying its strength.
+_LIGHT_COLOR = Field("color", ((3,),))
+
+
 class PointLight(_HasFields):
     """An isotropic point light.
 
@@ -355,24 +366,13 @@ class PointLight(_HasFields):
         color: (3,) linear RGB multiplier of the intensity (white by default).
     """
 
-    FIELDS = (
-        Field("position", ((3,),)),
-        Field("intensity", ((),), (lambda x: x >= 0.0, ">= 0")),
-        Field("color", ((3,),)),
-    )
+    FIELDS = (Field("position", ((3,),)), _strength("intensity"), _LIGHT_COLOR)
 
     def __init__(
         self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = (1, 1, 1)
     ) -> None:
         self._set_fields(position=position, intensity=intensity, color=color)
         self.validate()
-
-    def validate(self) -> None:
-        """Re-check the current values."""
-        self._check_fields()
-
-    def __repr__(self) -> str:
-        return f"PointLight({self._fields_repr()})"
 
 
 class DirectionalLight(_HasFields):
@@ -388,25 +388,15 @@ class DirectionalLight(_HasFields):
         color: (3,) linear RGB multiplier of the irradiance (white by default).
     """
 
-    FIELDS = (
-        # Shading and shadow rays divide by its length: it must not underflow.
-        Field("direction", ((3,),), (_normalisable, "a non-zero vector (length > 1e-150)")),
-        Field("irradiance", ((),), (lambda x: x >= 0.0, ">= 0")),
-        Field("color", ((3,),)),
-    )
+    # Shading and shadow rays divide by the direction's length: it must not underflow.
+    _DIRECTION = Field("direction", ((3,),), (_normalisable, "a non-zero vector (length > 1e-150)"))
+    FIELDS = (_DIRECTION, _strength("irradiance"), _LIGHT_COLOR)
 
     def __init__(
         self, direction: ArrayLike, irradiance: ArrayLike, color: ArrayLike = (1, 1, 1)
     ) -> None:
         self._set_fields(direction=direction, irradiance=irradiance, color=color)
         self.validate()
-
-    def validate(self) -> None:
-        """Re-check the current values."""
-        self._check_fields()
-
-    def __repr__(self) -> str:
-        return f"DirectionalLight({self._fields_repr()})"
 
 
 # --------------------------------------------------------------------------------------
@@ -484,13 +474,6 @@ class Material(_HasFields):
         """Whether hits need a reflected ray: a non-zero reflectance, or one being
         differentiated (its gradient at 0 is the reflected radiance)."""
         return self.reflectance.is_differentiated() or bool(np.any(self.reflectance.data))
-
-    def validate(self) -> None:
-        """Re-check the current values."""
-        self._check_fields()
-
-    def __repr__(self) -> str:
-        return f"Material({self._fields_repr()})"
 
 
 # --------------------------------------------------------------------------------------
