@@ -132,6 +132,10 @@ def test_script_quick(name, tmp_path):
     for plot in section["plots"]:
         assert (tmp_path / plot).stat().st_size > 0
     assert data["machine"]["usable_cores"] >= 1
+    if name == "bench_minidiff":  # each allocator setting reached its worker processes
+        for dtype in ("float64", "float32"):
+            assert data["keep_freed"][dtype]["keep_freed_memory"]
+            assert not data["default"][dtype]["keep_freed_memory"]
 
 
 def test_run_all_writes_report(tmp_path):
