@@ -1,6 +1,6 @@
 """What the tape costs: the renderer's shading math with minidiff vs the same math in NumPy.
 
-Run:  python benchmarks/bench_minidiff.py [--out DIR] [--quick] [--repeats 21]
+Run:  python benchmarks/bench_minidiff.py [--out DIR] [--quick] [--repeats 21] [--size 512]
 
 Workload: the paper scene at 512x512 (``docs/paper_scene.md``), ~41,000 pixels that hit the
 teapot. Which triangle each pixel sees, and whether the light reaches it, is computed once
@@ -30,34 +30,47 @@ pass and the peak of NumPy allocations (tracemalloc).
 
 Each (dtype, allocator) pair runs in a fresh subprocess with OMP_NUM_THREADS =
 OPENBLAS_NUM_THREADS = MKL_NUM_THREADS = 1 (single-threaded NumPy: minidiff's gradient
-reductions use BLAS), once with the default allocator and once after
-``minidiff.memory.keep_freed_memory()`` (glibc keeps freed memory instead of unmapping it),
-so neither contaminates the other.
+reductions use BLAS), once with glibc's default allocator settings and once with glibc told
+to keep freed memory instead of unmapping it (``MALLOC_MMAP_THRESHOLD_`` and
+``MALLOC_TRIM_THRESHOLD_`` in the environment, ``timing.KEEP_FREED_MEMORY``: what page
+faults per pass remain for the allocator to save), so neither contaminates the other.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
-import os
-import subprocess
-import sys
 
 import numpy as np
 import timing
 
 import minidiff as md
 from minidiff.kernels import cross3, dot_last, elementwise  # plain NumPy, as minidiff uses it
-from minidiff.memory import keep_freed_memory
 from render import render
-from render.inverse.plot import line_plot
 from render.renderer import shade_mesh
 from render.scene.camera import primary_rays
 from render.scene.scene import Material, Mesh, PointLight
 from render.scene.teapot import paper_scene
 
+# Single-threaded NumPy in the workers: the floor is single-threaded NumPy code, and
+# minidiff's gradient reductions use BLAS, which would otherwise take both cores.
 THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+DTYPES = ("float64", "float32")
+
+
+def main(argv=None) -> dict:
+    return timing.main("bench_minidiff", __doc__, run, argv, repeats=21, size=(512, 64))
+
+
+def run(args) -> dict:
+    """Every (allocator setting, dtype) pair measured in its own process, and the report."""
+    size, repeats = args.size, args.repeats
+    # One fresh process per pair: glibc adapts its mmap threshold as a process runs, so a
+    # measurement must not inherit another one's allocator state.
+    result = {"size": size, "repeats": repeats}
+    for variant, keep_freed in (("default", False), ("keep_freed", True)):
+        result[variant] = {dt: run_worker(size, repeats, keep_freed, dt) for dt in DTYPES}
+    result["report"] = report(result, args.out)
+    return result
 
 
 # --------------------------------------------------------------------------------------
@@ -163,9 +176,8 @@ def minidiff_forward(w: dict, leaves: dict) -> md.Tensor:
 # --------------------------------------------------------------------------------------
 
 
-def worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
-    """Measure everything for one dtype and one allocator setting, in this process."""
-    applied = keep_freed_memory() if keep_freed else False
+def worker(size: int, repeats: int, dtype: str) -> dict:
+    """Measure everything for one dtype with this process's allocator setting."""
     w = make_workload(size, np.dtype(dtype).type)
     leaves = make_leaves(w)
     grads = [leaves[k] for k in ("vertices", "eye", "light_position", "intensity", "albedo")]
@@ -187,8 +199,7 @@ def worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
     loss.backward()
     r = {
         "dtype": dtype,
-        "keep_freed_memory": keep_freed,
-        "keep_freed_applied": applied,
+        **timing.allocator_setting(),
         "hits": int(len(w["faces_hit"])),
         "loss_dtype": str(loss.dtype),
         "grad_dtypes": sorted({str(p.grad.dtype) for p in grads}),
@@ -216,25 +227,11 @@ def worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
 
 
 def run_worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
-    """Run ``worker`` in a fresh single-threaded-NumPy subprocess; returns its results."""
-    cmd = [
-        sys.executable,
-        os.path.abspath(__file__),
-        "--worker",
-        "--size",
-        str(size),
-        "--repeats",
-        str(repeats),
-        "--dtype",
-        dtype,
-    ]
-    if keep_freed:
-        cmd.append("--keep-freed")
-    env = dict(os.environ, **THREAD_ENV)
-    proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        raise RuntimeError(f"bench_minidiff worker failed:\n{proc.stderr}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
+    """``worker`` in a fresh single-threaded-NumPy process, with glibc keeping freed memory
+    or at its defaults (the variables removed, should the parent have them)."""
+    allocator = timing.KEEP_FREED_MEMORY if keep_freed else dict.fromkeys(timing.KEEP_FREED_MEMORY)
+    env = THREAD_ENV | allocator
+    return timing.in_fresh_process(worker, env, size=size, repeats=repeats, dtype=dtype)
 
 
 # --------------------------------------------------------------------------------------
@@ -242,86 +239,40 @@ def run_worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    parser.add_argument("--repeats", type=int, default=21)
-    parser.add_argument("--size", type=int, default=None, help="image side (default 512)")
-    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--keep-freed", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--dtype", default="float64", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    size = args.size or (64 if args.quick else 512)
-    repeats = 3 if args.quick else args.repeats
-    if args.worker:
-        print(json.dumps(worker(size, repeats, args.keep_freed, args.dtype), default=float))
-        return {}
-
-    # One fresh process per (allocator setting, dtype): glibc adapts its mmap threshold as
-    # a process runs, so a measurement must not inherit another one's allocator state.
-    default = {dt: run_worker(size, repeats, False, dt) for dt in ("float64", "float32")}
-    tuned = {dt: run_worker(size, repeats, True, dt) for dt in ("float64", "float32")}
-
-    rows, notes = [], []
-    for dt in ("float64", "float32"):
-        r, k = default[dt], tuned[dt]
-        f = r["numpy_forward"]
+def report(r: dict, out) -> dict:
+    """Rows per dtype: the four times, the ratios to the floor against their targets, page
+    faults and peak memory; then the ratios and page faults with glibc keeping freed memory."""
+    default, tuned = r["default"], r["keep_freed"]
+    rows = []
+    for dt in DTYPES:
+        d = default[dt]
         rows += [
-            timing.row(f"{dt}: NumPy forward (floor)", timing.ms(f)),
+            timing.row(f"{dt}: NumPy forward (floor)", timing.ms(d["numpy_forward"])),
             timing.row(
-                f"{dt}: minidiff forward, no_grad", timing.ms(r["minidiff_forward_no_grad"])
+                f"{dt}: minidiff forward, no_grad", timing.ms(d["minidiff_forward_no_grad"])
             ),
-            timing.row(f"{dt}: minidiff forward (tape)", timing.ms(r["minidiff_forward"])),
+            timing.row(f"{dt}: minidiff forward (tape)", timing.ms(d["minidiff_forward"])),
             timing.row(
-                f"{dt}: minidiff forward+backward", timing.ms(r["minidiff_forward_backward"])
+                f"{dt}: minidiff forward+backward", timing.ms(d["minidiff_forward_backward"])
             ),
-            timing.row(
-                f"{dt}: forward / floor",
-                f"{r['ratio_forward']:.2f}x",
-                "<= 1.2x",
-                timing.target_status(r["ratio_forward"], 1.2),
-            ),
-            timing.row(
-                f"{dt}: forward+backward / floor",
-                f"{r['ratio_forward_backward']:.2f}x",
-                "<= 2.5x",
-                timing.target_status(r["ratio_forward_backward"], 2.5),
-            ),
-            timing.row(
-                f"{dt}: page faults per pass (floor / fwd / f+b)",
-                f"{f['page_faults_per_pass']:.0f} / "
-                f"{r['minidiff_forward']['page_faults_per_pass']:.0f} / "
-                f"{r['minidiff_forward_backward']['page_faults_per_pass']:.0f}",
-            ),
+            *ratio_rows(dt, d),
             timing.row(
                 f"{dt}: peak NumPy memory (floor / f+b)",
-                f"{r['memory_numpy_forward']['tracemalloc_peak_mb']:.1f} / "
-                f"{r['memory_minidiff_forward_backward']['tracemalloc_peak_mb']:.1f} MB",
+                f"{d['memory_numpy_forward']['tracemalloc_peak_mb']:.1f} / "
+                f"{d['memory_minidiff_forward_backward']['tracemalloc_peak_mb']:.1f} MB",
             ),
-            timing.row(
-                f"{dt} + keep_freed_memory(): forward / floor",
-                f"{k['ratio_forward']:.2f}x ({timing.ms(k['minidiff_forward'])})",
-                "<= 1.2x",
-                timing.target_status(k["ratio_forward"], 1.2),
-            ),
-            timing.row(
-                f"{dt} + keep_freed_memory(): forward+backward / floor",
-                f"{k['ratio_forward_backward']:.2f}x ({timing.ms(k['minidiff_forward_backward'])})",
-                "<= 2.5x",
-                timing.target_status(k["ratio_forward_backward"], 2.5),
-            ),
-            timing.row(
-                f"{dt} + keep_freed_memory(): page faults per pass (floor / fwd / f+b)",
-                f"{k['numpy_forward']['page_faults_per_pass']:.0f} / "
-                f"{k['minidiff_forward']['page_faults_per_pass']:.0f} / "
-                f"{k['minidiff_forward_backward']['page_faults_per_pass']:.0f}",
-            ),
+            *ratio_rows(f"{dt}, keep freed memory", tuned[dt]),
         ]
-    notes += [
-        f"{size}x{size}, {default['float64']['hits']:,} hit pixels; medians of {repeats} runs "
-        "[interquartile range] after 2 warm-ups; NumPy single-threaded (OMP/OPENBLAS/MKL_NUM_"
-        "THREADS=1); each (dtype, allocator) pair in its own fresh process.",
-        "Ratios use the floor measured in the same process (the keep_freed rows divide by the "
-        "floor measured with keep_freed_memory() too).",
+    keep = " ".join(f"{k}={v}" for k, v in timing.KEEP_FREED_MEMORY.items())
+    notes = [
+        f"{r['size']}x{r['size']}, {default['float64']['hits']:,} hit pixels; medians of "
+        f"{r['repeats']} runs [interquartile range] after 2 warm-ups, the four timed in turns; "
+        "NumPy single-threaded (OMP/OPENBLAS/MKL_NUM_THREADS=1); each (dtype, allocator) pair "
+        "in its own fresh process.",
+        f"'keep freed memory': the process started with {keep} (glibc then serves allocations "
+        "up to 32 MiB from its heap and keeps freed memory instead of unmapping it; applied: "
+        f"{tuned['float64']['keep_freed_applied']}). Its ratios divide by the floor measured "
+        "in the same process.",
         "Loss dtypes: float64 -> "
         + default["float64"]["loss_dtype"]
         + ", float32 -> "
@@ -333,50 +284,55 @@ def main(argv=None) -> dict:
         f"{default['float64']['loss_relative_difference_to_floor']:.1e}, float32 "
         f"{default['float32']['loss_relative_difference_to_floor']:.1e}.",
         "Peak memory is tracemalloc's (NumPy buffers and Python objects alive at once).",
-        f"keep_freed_memory() applied: {tuned['float64']['keep_freed_applied']}.",
     ]
-
-    names = ["NumPy fwd", "md fwd no_grad", "md fwd", "md fwd+bwd"]
     keys = [
         "numpy_forward",
         "minidiff_forward_no_grad",
         "minidiff_forward",
         "minidiff_forward_backward",
     ]
-    series = {}
-    for label, res in (
-        ("float64", default),
-        ("float32", default),
-        ("float64 keep_freed", tuned),
-        ("float32 keep_freed", tuned),
-    ):
-        dt = label.split()[0]
-        series[label] = (list(range(1, 5)), [res[dt][k]["median_ms"] for k in keys])
-    plot = line_plot(
-        series,
-        args.out / "bench_minidiff.png",
-        title="Shading math on ~41k hits: "
-        + " | ".join(f"{i + 1}={n}" for i, n in enumerate(names)),
-        xlabel="1 NumPy floor, 2 minidiff no_grad, 3 minidiff forward, 4 forward+backward",
-        ylabel="ms",
+    plot = timing.steps_plot(
+        out / "bench_minidiff.png",
+        "Shading math on ~41k hits",
+        ["NumPy floor", "minidiff no_grad", "minidiff forward", "forward+backward"],
+        {
+            f"{dt}{label}": [res[dt][k]["median_ms"] for k in keys]
+            for label, res in (("", default), (" keep_freed", tuned))
+            for dt in DTYPES
+        },
     )
-    section = timing.report_section(
+    return timing.report_section(
         "Tape cost (bench_minidiff.py): the paper scene's shading math, ~41k hits",
         rows,
         notes,
         [plot.name],
     )
-    result = {
-        "size": size,
-        "repeats": repeats,
-        "default": default,
-        "keep_freed": tuned,
-        "report": section,
-    }
-    path = timing.write_json(args.out, "bench_minidiff", result)
-    timing.print_report(section, default["float64"]["machine"])
-    print(f"wrote {path}")
-    return result
+
+
+def ratio_rows(label: str, r: dict) -> list:
+    """The tape's cost against the floor measured in the same process (forward <= 1.2x,
+    forward+backward <= 2.5x) and the page faults per pass."""
+    faults = " / ".join(
+        f"{r[k]['page_faults_per_pass']:.0f}"
+        for k in ("numpy_forward", "minidiff_forward", "minidiff_forward_backward")
+    )
+    return [
+        timing.target_row(
+            f"{label}: forward / floor",
+            f"{r['ratio_forward']:.2f}x ({timing.ms(r['minidiff_forward'])})",
+            r["ratio_forward"],
+            1.2,
+            "<= 1.2x",
+        ),
+        timing.target_row(
+            f"{label}: forward+backward / floor",
+            f"{r['ratio_forward_backward']:.2f}x ({timing.ms(r['minidiff_forward_backward'])})",
+            r["ratio_forward_backward"],
+            2.5,
+            "<= 2.5x",
+        ),
+        timing.row(f"{label}: page faults per pass (floor / fwd / f+b)", faults),
+    ]
 
 
 if __name__ == "__main__":

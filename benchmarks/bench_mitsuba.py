@@ -1,6 +1,6 @@
 """Ours next to Mitsuba 3 in the same run: the paper scene at 512x512 (issue 14's targets).
 
-Run:  python benchmarks/bench_mitsuba.py [--out DIR] [--quick] [--repeats 21]
+Run:  python benchmarks/bench_mitsuba.py [--out DIR] [--quick] [--repeats 21] [--size 512]
 Needs Mitsuba 3 for its half (``pip install mitsuba``; not a dependency of this project:
 without it only our numbers are measured and the ratios are reported as missing).
 
@@ -13,7 +13,7 @@ seed would make Dr.Jit compile its kernels again on every call). Measured, media
 a warm-up, in turns (blocks of ours, blocks of theirs):
 
 * forward render: ours ``render(scene, reuse_visibility=False)`` (BVH build, camera rays,
-  shadows, shading; the default allocator: ``keep_freed_memory()`` is never called);
+  shadows, shading; glibc's default allocator settings, not ``timing.KEEP_FREED_MEMORY``);
   Mitsuba ``mi.render`` + evaluation of the image;
 * a light-estimation iteration: the light moved a little every time (so shadows are traced
   again), render + MSE against a target (the same loss in both: the mean of the squared
@@ -29,9 +29,6 @@ Targets (issue 14): forward <= 3x Mitsuba's; light iteration <= 1.0x; shape iter
 
 from __future__ import annotations
 
-import gc
-import time
-
 import numpy as np
 import timing
 
@@ -39,6 +36,32 @@ import minidiff as md
 from render import mse, paper_scene, render
 
 THREADS = 2
+# Issue 14's targets: the most our time may be, in multiples of Mitsuba's.
+TARGETS = {"forward": 3.0, "light_iteration": 1.0, "shape_iteration": 1.5}
+LABELS = {
+    "forward": "forward render (visibility, shadows, shading; a BVH only if a ray needs it)",
+    "light_iteration": "light-estimation iteration (render + MSE + backward)",
+    "shape_iteration": "shape iteration, all vertices (render + MSE + backward)",
+}
+
+
+def main(argv=None) -> dict:
+    return timing.main("bench_mitsuba", __doc__, run, argv, repeats=21, size=(512, 64))
+
+
+def run(args) -> dict:
+    """Our three workloads and Mitsuba's (if installed) in turns, and the report."""
+    size, repeats = args.size, args.repeats
+    ours, theirs = our_problems(size), mitsuba_problems(size)
+    version = None
+    if theirs is not None:
+        import mitsuba
+
+        version = mitsuba.__version__
+    r = {"size": size, "repeats": repeats, "mitsuba_version": version}
+    r["results"] = measure_in_turns(ours, theirs, repeats)
+    r["report"] = make_report(r)
+    return r
 
 
 def our_problems(size: int):
@@ -154,44 +177,27 @@ def mitsuba_problems(size: int):
 def measure_in_turns(ours, theirs, repeats: int, rounds: int = 3) -> dict:
     """Each workload timed in turns, ``rounds`` blocks of ours then theirs (blocks rather
     than single calls, so that one library's idle threads do not slow the other's next
-    call), so that both see the same machine state; medians of ``repeats`` calls each."""
+    call), so that both see the same machine state; medians of ``repeats`` calls each,
+    after two warm-up calls (compilation, caches)."""
     out = {}
-    per_round = max(1, repeats // rounds)
     for name, fn in ours.items():
         fns = {"ours": fn} | ({"mitsuba": theirs[name]} if theirs else {})
-        for f in fns.values():  # warm-up (compilation, caches)
-            f()
-            f()
-        times = {who: [] for who in fns}
-        gc.collect()
-        for _ in range(rounds):
-            for who, f in fns.items():
-                for _ in range(per_round):
-                    t0 = time.perf_counter()
-                    f()
-                    times[who].append(time.perf_counter() - t0)
-        out[name] = {who: timing.summarize(t) for who, t in times.items()}
+        block = max(1, repeats // rounds)
+        out[name] = timing.measure_interleaved(fns, repeats, warmup=2, block=block)
         if theirs:
             out[name]["ratio"] = out[name]["ours"]["median_ms"] / out[name]["mitsuba"]["median_ms"]
     return out
 
 
-TARGETS = {"forward": 3.0, "light_iteration": 1.0, "shape_iteration": 1.5}
-LABELS = {
-    "forward": "forward render (visibility, shadows, shading; a BVH only if a ray needs it)",
-    "light_iteration": "light-estimation iteration (render + MSE + backward)",
-    "shape_iteration": "shape iteration, all vertices (render + MSE + backward)",
-}
-
-
 def make_report(r: dict) -> dict:
+    """One row per workload: our time against Mitsuba's and the ratio's target."""
     rows = []
     for name, label in LABELS.items():
         m = r["results"][name]
         if "mitsuba" in m:
             ours = f"{timing.ms(m['ours'])} vs {timing.ms(m['mitsuba'])}: {m['ratio']:.2f}x"
             status = timing.target_status(m["ratio"], TARGETS[name])
-        else:
+        else:  # no ratio to hold against the target
             ours, status = f"{timing.ms(m['ours'])} (Mitsuba not installed)", "not measured"
         rows.append(timing.row(label, ours, f"target <= {TARGETS[name]}x Mitsuba", status))
     if r["mitsuba_version"] is None:
@@ -203,30 +209,10 @@ def make_report(r: dict) -> dict:
         )
     notes = [
         f"{r['size']}x{r['size']}, medians of {r['repeats']}, {who}.",
-        "Ours with the default allocator (keep_freed_memory() not called).",
+        "Ours with glibc's default allocator settings (no MALLOC_MMAP_THRESHOLD_ / "
+        "MALLOC_TRIM_THRESHOLD_ set by the benchmark).",
     ]
     return timing.report_section("Ours vs Mitsuba 3 (bench_mitsuba.py)", rows, notes, [])
-
-
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    parser.add_argument("--repeats", type=int, default=21)
-    args = parser.parse_args(argv)
-    size, repeats = (64, 3) if args.quick else (512, args.repeats)
-    ours, theirs = our_problems(size), mitsuba_problems(size)
-    version = None
-    if theirs is not None:
-        import mitsuba
-
-        version = mitsuba.__version__
-    r = {"size": size, "repeats": repeats, "mitsuba_version": version}
-    r["results"] = measure_in_turns(ours, theirs, repeats)
-    section = make_report(r)
-    r["report"] = section
-    path = timing.write_json(args.out, "bench_mitsuba", r)
-    timing.print_report(section, timing.machine())
-    print(f"wrote {path}")
-    return r
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """The renderer at 512x512 on the paper scene: where the time goes, forward and backward.
 
-Run:  python benchmarks/bench_render.py [--out DIR] [--quick] [--repeats 15]
+Run:  python benchmarks/bench_render.py [--out DIR] [--quick] [--repeats 15] [--size 512]
 
 Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/paper_scene.md``:
 
@@ -31,9 +31,14 @@ Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/pa
   forward+backward (cProfile adds overhead per call; the shares are indicative);
 * configurations: forward and forward+backward in fresh processes with different
   Numba/OpenMP settings (the default OpenMP layer whose idle threads spin, OMP_WAIT_POLICY=
-  passive, the workqueue layer, one thread) and with glibc told to keep freed memory (the
-  environment-variable form of ``minidiff.memory.keep_freed_memory()``), plus the cost of
-  launching an empty parallel kernel, which the renderer does ~5 times per render.
+  passive, the workqueue layer, one thread) and with glibc told to keep freed memory
+  (``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_``: ``timing.KEEP_FREED_MEMORY``),
+  plus the cost of launching an empty parallel kernel, which the renderer does ~5 times per
+  render.
+
+Where rows are compared with each other (forward against forward+backward, with and without
+antialiasing or visibility reuse, 0, 1 or 2 bounces, gradient images against a render), the
+variants are timed in turns (``timing.measure_interleaved``).
 
 Numbers to compare with (from the project brief): targets full forward < 25 ms (stretch
 12 ms), primary visibility < 10 ms, forward+backward < 4x forward; Mitsuba 3 on this
@@ -44,13 +49,9 @@ on a 6-core Xeon (85 ms without BVH).
 
 from __future__ import annotations
 
-import argparse
 import cProfile
-import json
 import os
 import pstats
-import subprocess
-import sys
 
 import numpy as np
 import timing
@@ -59,8 +60,192 @@ from bench_visibility import time_brute_visibility, time_bvh_visibility, visibil
 import minidiff as md
 from render import gradient_image, render
 from render.inverse.optimize import image_loss
-from render.inverse.plot import line_plot
 from render.scene.teapot import paper_scene
+
+
+def main(argv=None) -> dict:
+    return timing.main("bench_render", __doc__, run, argv, repeats=15, size=(512, 64))
+
+
+def run(args) -> dict:
+    """Every measurement of the module docstring, in its order, and the report."""
+    size, repeats = args.size, args.repeats
+    brute_repeats = 2 if args.quick else 3
+    r = {"size": size, "repeats": repeats}
+    w = visibility_workload(size)
+    r["visibility"] = time_bvh_visibility(w, repeats)
+    r |= time_forward(size, repeats)
+    # Edge antialiasing (silhouettes, creases and, on the teapot and its ground, shadows)
+    r["antialias"] = time_antialias(size, repeats)
+    r["reflection"] = time_reflection(size, repeats)
+    r["gradient_image"] = time_gradient_image(size, repeats)
+    r |= time_without_bvh(size, brute_repeats)
+    r["brute_visibility"] = time_brute_visibility(w, brute_repeats, warmup=0)
+    r |= time_material_iteration(size, repeats)
+    variants = list(THREADING_VARIANTS)[:2] if args.quick else list(THREADING_VARIANTS)
+    r["threading"] = {
+        label: timing.in_fresh_process(
+            threading_worker, THREADING_VARIANTS[label], size=size, repeats=repeats
+        )
+        for label in variants
+    }
+    r["report"] = make_report(r, args.out)
+    return r
+
+
+def time_forward(size: int, repeats: int) -> dict:
+    """Forward renders of the plain scene and of the scene on the tape, each with and
+    without the visibility cache, and forward+backward, in turns; their ratios, the peak
+    memory of a forward and a forward+backward, and a profile of the latter."""
+    plain = paper_scene(size, size)
+    scene, params, target = loss_problem(size)
+    r = timing.measure_interleaved(
+        {
+            "forward": lambda: render(plain, reuse_visibility=False),
+            # The warm-up call fills the scene's visibility cache for the timed ones.
+            "shading_forward_cached_visibility": lambda: render(plain),
+            "forward_tape": lambda: render(scene, reuse_visibility=False),
+            "forward_tape_cached_visibility": lambda: render(scene),
+            "forward_backward": lambda: forward_backward(scene, params, target),
+        },
+        repeats,
+    )
+    fb = r["forward_backward"]["median_ms"]
+    r["ratio_forward_backward_to_forward"] = fb / r["forward"]["median_ms"]
+    r["ratio_forward_backward_to_forward_tape"] = fb / r["forward_tape"]["median_ms"]
+    r["memory_forward"] = timing.measure_memory(lambda: render(plain, reuse_visibility=False))
+    r["memory_forward_backward"] = timing.measure_memory(
+        lambda: forward_backward(scene, params, target)
+    )
+    r["profile_forward_backward"] = profile_top(lambda: forward_backward(scene, params, target))
+    return r
+
+
+def time_antialias(size: int, repeats: int) -> dict:
+    """Forward render and forward+backward (all parameters) with and without
+    ``antialias=True``, in turns, on the paper scene and on the teapot standing on a ground
+    plane (where shadow edges appear), and the ratios (the target: at most 1.25)."""
+    out = {}
+    for name, ground in (("paper", False), ("ground", True)):
+        plain = paper_scene(size, size, ground=ground)
+        problem = loss_problem(size, ground=ground)
+        fns = {}
+        for antialias in (False, True):
+            key = "antialias" if antialias else "plain"
+            fns[f"forward_{key}"] = lambda a=antialias, sc=plain: render(
+                sc, reuse_visibility=False, antialias=a
+            )
+            fns[f"forward_backward_{key}"] = lambda a=antialias, pr=problem: forward_backward(
+                *pr, antialias=a
+            )
+        row = timing.measure_interleaved(fns, repeats)
+        for kind in ("forward", "forward_backward"):
+            row[f"ratio_{kind}"] = (
+                row[f"{kind}_antialias"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
+            )
+        out[name] = row
+    return out
+
+
+def time_reflection(size: int, repeats: int) -> dict:
+    """The teapot on a mirror floor (``paper_scene(ground=True)`` with reflectance 0.8):
+    forward render and forward+backward (all parameters, reflectance included) at
+    max_bounces = 0, 1, 2, in turns."""
+    from render.scene.scene import Material
+
+    def floor():
+        return Material((0.05, 0.05, 0.05), reflectance=0.8)
+
+    plain = paper_scene(size, size, ground=True, ground_material=floor())
+    target = render(plain).data.copy()
+    scene, params = differentiable_scene(size, names=None, ground=True)
+    scene.objects[1].material = floor()
+    reflectance = scene.objects[1].material.reflectance
+    reflectance.requires_grad = True
+    params = {**params, "reflectance": reflectance}
+    scene.lights[0].position.data[0] += 0.1
+
+    def step(b):
+        for p in params.values():
+            p.grad = None
+        image_loss(render(scene, reuse_visibility=False, max_bounces=b), target).backward()
+
+    fns = {}
+    for bounces in (0, 1, 2):
+        fns[f"forward_{bounces}"] = lambda b=bounces: render(
+            plain, reuse_visibility=False, max_bounces=b
+        )
+        fns[f"forward_backward_{bounces}"] = lambda b=bounces: step(b)
+    return timing.measure_interleaved(fns, repeats)
+
+
+def time_gradient_image(size: int, repeats: int) -> dict:
+    """One forward-mode pass (a gradient image along one direction) against a plain forward
+    render of the paper scene, in turns, both with ``reuse_visibility=False`` (each pass
+    traces its own rays), with and without antialiasing, and the ratios (the target: at
+    most ~3)."""
+    scene = paper_scene(size, size)
+    along_x = np.zeros(scene.meshes[0].vertices.shape)
+    along_x[:, 0] = 1.0
+    directions = {
+        "light_x": ("lights[0].position", np.array([1.0, 0.0, 0.0])),
+        "camera_x": ("camera.position", np.array([1.0, 0.0, 0.0])),
+        "vertices_x": ("objects[0].vertices", along_x),
+    }
+    out = {}
+    for antialias in (False, True):
+        fns = {"forward": lambda a=antialias: render(scene, reuse_visibility=False, antialias=a)}
+        for key, (name, d) in directions.items():
+            fns[key] = lambda a=antialias, n=name, d=d: gradient_image(
+                scene, n, d, reuse_visibility=False, antialias=a
+            )
+        row = timing.measure_interleaved(fns, repeats)
+        for key in directions:
+            row[f"ratio_{key}"] = row[key]["median_ms"] / row["forward"]["median_ms"]
+        out["antialias" if antialias else "plain"] = row
+    return out
+
+
+def time_without_bvh(size: int, repeats: int) -> dict:
+    """Forward render and forward+backward with brute-force visibility, in turns, and the
+    peak memory of a forward render."""
+    plain = paper_scene(size, size)
+    problem = loss_problem(size)
+    r = timing.measure_interleaved(
+        {
+            "forward_no_bvh": lambda: render(plain, bvh=False, reuse_visibility=False),
+            "forward_backward_no_bvh": lambda: forward_backward(*problem, bvh=False),
+        },
+        repeats,
+    )
+    r["memory_forward_no_bvh"] = timing.measure_memory(
+        lambda: render(plain, bvh=False, reuse_visibility=False)
+    )
+    return r
+
+
+def time_material_iteration(size: int, repeats: int) -> dict:
+    """One iteration of a material-only optimisation (the albedo changes, then render, loss
+    and backward) with and without visibility reuse, in turns."""
+    scene, params, target = loss_problem(size, names=("albedo",))
+    albedo = params["albedo"]
+
+    def material_iteration(reuse: bool):
+        albedo.data *= 0.999  # what an optimiser step does: only the material changes
+        forward_backward(scene, params, target, reuse=reuse)
+
+    return timing.measure_interleaved(
+        {
+            "material_iteration_reuse": lambda: material_iteration(True),
+            "material_iteration_no_reuse": lambda: material_iteration(False),
+        },
+        repeats,
+    )
+
+
+# --------------------------------------------------------------------------------------
+# The problems
+# --------------------------------------------------------------------------------------
 
 PARAMETERS = (
     # (name, object path, attribute): every continuous parameter of the paper scene
@@ -143,25 +328,27 @@ def profile_top(fn, n: int = 10) -> list[dict]:
 # first parallel kernel launch, and OMP_WAIT_POLICY at libgomp's load)
 # --------------------------------------------------------------------------------------
 
+# Every variable a variant may set; a variant removes the others (run_all.py sets
+# OMP_WAIT_POLICY=passive for the suite; the "default" variant must not inherit it).
 THREADING_SETTINGS = (
-    "MALLOC_MMAP_THRESHOLD_",
-    "MALLOC_TRIM_THRESHOLD_",
     "OMP_WAIT_POLICY",
     "NUMBA_THREADING_LAYER",
     "NUMBA_NUM_THREADS",
     "GOMP_SPINCOUNT",
+    *timing.KEEP_FREED_MEMORY,
 )
 THREADING_VARIANTS = {
-    "default (OpenMP layer, spin-waiting)": {},
-    "OMP_WAIT_POLICY=passive": {"OMP_WAIT_POLICY": "passive"},
-    "NUMBA_THREADING_LAYER=workqueue": {"NUMBA_THREADING_LAYER": "workqueue"},
-    "NUMBA_NUM_THREADS=1": {"NUMBA_NUM_THREADS": "1"},
-    # What minidiff.memory.keep_freed_memory() sets, through glibc's environment variables.
-    "OMP_WAIT_POLICY=passive + keep freed memory": {
-        "OMP_WAIT_POLICY": "passive",
-        "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
-        "MALLOC_TRIM_THRESHOLD_": str(1 << 30),
-    },
+    label: dict.fromkeys(THREADING_SETTINGS) | settings
+    for label, settings in {
+        "default (OpenMP layer, spin-waiting)": {},
+        "OMP_WAIT_POLICY=passive": {"OMP_WAIT_POLICY": "passive"},
+        "NUMBA_THREADING_LAYER=workqueue": {"NUMBA_THREADING_LAYER": "workqueue"},
+        "NUMBA_NUM_THREADS=1": {"NUMBA_NUM_THREADS": "1"},
+        "OMP_WAIT_POLICY=passive + keep freed memory": {
+            "OMP_WAIT_POLICY": "passive",
+            **timing.KEEP_FREED_MEMORY,
+        },
+    }.items()
 }
 
 
@@ -188,128 +375,55 @@ def threading_worker(size: int, repeats: int) -> dict:
             lambda: forward_backward(grad_scene, params, target), repeats, 2
         ),
         "machine": timing.machine(),
+        **timing.allocator_setting(),
     }
-
-
-def run_threading_variants(size: int, repeats: int, variants) -> dict:
-    results = {}
-    # Start from the environment without any of the settings compared here (run_all.py sets
-    # OMP_WAIT_POLICY=passive for the suite; the "default" variant must not inherit it).
-    clean = {k: v for k, v in os.environ.items() if k not in THREADING_SETTINGS}
-    for label in variants:
-        env = dict(clean, **THREADING_VARIANTS[label])
-        cmd = [
-            sys.executable,
-            os.path.abspath(__file__),
-            "--threading-worker",
-            "--size",
-            str(size),
-            "--repeats",
-            str(repeats),
-        ]
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
-        if proc.returncode != 0:
-            raise RuntimeError(f"threading worker ({label}) failed:\n{proc.stderr}")
-        results[label] = json.loads(proc.stdout.strip().splitlines()[-1])
-    return results
 
 
 # --------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------
 
 
-def time_antialias(size: int, repeats: int) -> dict:
-    """Forward render and forward+backward (all parameters) with and without
-    ``antialias=True``, on the paper scene and on the teapot standing on a ground plane
-    (where shadow edges appear), and the ratios (the target: at most 1.25)."""
-    out = {}
-    for name, ground in (("paper", False), ("ground", True)):
-        plain = paper_scene(size, size, ground=ground)
-        scene, params, target = loss_problem(size, ground=ground)
-        row = {}
-        for antialias in (False, True):
-            key = "antialias" if antialias else "plain"
-            row[f"forward_{key}"] = timing.measure(
-                lambda a=antialias, sc=plain: render(sc, reuse_visibility=False, antialias=a),
-                repeats,
+def ratio_row(quantity: str, num: dict, den: dict, ratio: float, limit: float, target: str):
+    """A report row for a ratio of two timings, checked against ``limit``."""
+    ours = f"{timing.ms(num)} / {timing.ms(den)} = {ratio:.2f}x"
+    return timing.target_row(quantity, ours, ratio, limit, target)
+
+
+def antialias_rows(aa: dict) -> list:
+    """With antialias=True / without, forward and forward+backward, on both scenes."""
+    rows = []
+    for name, label in (("paper", "paper scene"), ("ground", "teapot on a ground plane")):
+        a = aa[name]
+        for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
+            rows.append(
+                ratio_row(
+                    f"{text} with antialias=True / without, {label}",
+                    a[f"{kind}_antialias"],
+                    a[f"{kind}_plain"],
+                    a[f"ratio_{kind}"],
+                    1.25,
+                    "target <= 1.25x",
+                )  # fmt: skip
             )
-            row[f"forward_backward_{key}"] = timing.measure(
-                lambda a=antialias, problem=(scene, params, target): forward_backward(
-                    *problem, antialias=a
-                ),
-                repeats,
-            )
-        for kind in ("forward", "forward_backward"):
-            row[f"ratio_{kind}"] = (
-                row[f"{kind}_antialias"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
-            )
-        out[name] = row
-    return out
+    return rows
 
 
-def time_reflection(size: int, repeats: int) -> dict:
-    """The teapot on a mirror floor (``paper_scene(ground=True)`` with reflectance 0.8):
-    forward render and forward+backward (all parameters, reflectance included) at
-    max_bounces = 0, 1, 2, and what each bounce adds."""
-    from render.scene.scene import Material
-
-    def floor():
-        return Material((0.05, 0.05, 0.05), reflectance=0.8)
-
-    plain = paper_scene(size, size, ground=True, ground_material=floor())
-    target = render(plain).data.copy()
-    scene, params = differentiable_scene(size, names=None, ground=True)
-    scene.objects[1].material = floor()
-    reflectance = scene.objects[1].material.reflectance
-    reflectance.requires_grad = True
-    params = {**params, "reflectance": reflectance}
-    scene.lights[0].position.data[0] += 0.1
-    out = {}
-    for bounces in (0, 1, 2):
-        out[f"forward_{bounces}"] = timing.measure(
-            lambda b=bounces: render(plain, reuse_visibility=False, max_bounces=b), repeats
+def reflection_rows(refl: dict) -> list:
+    """Forward and forward+backward at 0, 1, 2 bounces, and what each bounce adds."""
+    rows = []
+    for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
+        times = [refl[f"{kind}_{b}"]["median_ms"] for b in (0, 1, 2)]
+        each = " / ".join(timing.ms(refl[f"{kind}_{b}"]) for b in (0, 1, 2))
+        added = f"first bounce +{times[1] - times[0]:.1f} ms, second +{times[2] - times[1]:.1f} ms"
+        rows.append(
+            timing.row(f"{text}, teapot on a mirror floor, max_bounces 0 / 1 / 2", each, added)
         )
-
-        def step(b=bounces):
-            for p in params.values():
-                p.grad = None
-            image_loss(render(scene, reuse_visibility=False, max_bounces=b), target).backward()
-
-        out[f"forward_backward_{bounces}"] = timing.measure(step, repeats)
-    return out
-
-
-def time_gradient_image(size: int, repeats: int) -> dict:
-    """One forward-mode pass (a gradient image along one direction) against a plain forward
-    render of the paper scene, both with ``reuse_visibility=False`` (each pass traces its
-    own rays), with and without antialiasing, and the ratios (the target: at most ~3)."""
-    scene = paper_scene(size, size)
-    along_x = np.zeros(scene.meshes[0].vertices.shape)
-    along_x[:, 0] = 1.0
-    directions = {
-        "light_x": ("lights[0].position", np.array([1.0, 0.0, 0.0])),
-        "camera_x": ("camera.position", np.array([1.0, 0.0, 0.0])),
-        "vertices_x": ("objects[0].vertices", along_x),
-    }
-    out = {}
-    for antialias in (False, True):
-        row = {
-            "forward": timing.measure(
-                lambda a=antialias: render(scene, reuse_visibility=False, antialias=a), repeats
-            )
-        }
-        for key, (name, d) in directions.items():
-            row[key] = timing.measure(
-                lambda a=antialias, n=name, d=d: gradient_image(
-                    scene, n, d, reuse_visibility=False, antialias=a
-                ),
-                repeats,
-            )
-            row[f"ratio_{key}"] = row[key]["median_ms"] / row["forward"]["median_ms"]
-        out["antialias" if antialias else "plain"] = row
-    return out
+    return rows
 
 
 def gradient_image_rows(g: dict) -> list:
+    """Each gradient image against the forward render, without and with antialiasing."""
     rows = []
     for mode, label in (("plain", ""), ("antialias", ", antialias=True")):
         row = g[mode]
@@ -331,129 +445,9 @@ def gradient_image_rows(g: dict) -> list:
     return rows
 
 
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--size", type=int, default=None, help="image side (default 512)")
-    parser.add_argument("--threading-worker", action="store_true", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
-    size = args.size or (64 if args.quick else 512)
-    repeats = 3 if args.quick else args.repeats
-    brute_repeats = 2 if args.quick else 3
-    if args.threading_worker:
-        print(json.dumps(threading_worker(size, repeats), default=float))
-        return {}
-
-    r = {"size": size, "repeats": repeats}
-    # Visibility on its own
-    w = visibility_workload(size)
-    r["visibility"] = time_bvh_visibility(w, repeats)
-
-    # Forward renders
-    plain = paper_scene(size, size)
-    r["forward"] = timing.measure(lambda: render(plain, reuse_visibility=False), repeats)
-    render(plain)  # fill the visibility cache
-    r["shading_forward_cached_visibility"] = timing.measure(lambda: render(plain), repeats)
-    scene, params, target = loss_problem(size)
-    r["forward_tape"] = timing.measure(lambda: render(scene, reuse_visibility=False), repeats)
-    r["forward_tape_cached_visibility"] = timing.measure(lambda: render(scene), repeats)
-    r["forward_backward"] = timing.measure(lambda: forward_backward(scene, params, target), repeats)
-    r["ratio_forward_backward_to_forward"] = (
-        r["forward_backward"]["median_ms"] / r["forward"]["median_ms"]
-    )
-    r["ratio_forward_backward_to_forward_tape"] = (
-        r["forward_backward"]["median_ms"] / r["forward_tape"]["median_ms"]
-    )
-    r["memory_forward"] = timing.measure_memory(lambda: render(plain, reuse_visibility=False))
-    r["memory_forward_backward"] = timing.measure_memory(
-        lambda: forward_backward(scene, params, target)
-    )
-    r["profile_forward_backward"] = profile_top(lambda: forward_backward(scene, params, target))
-
-    # Edge antialiasing (silhouettes, creases and, on the teapot and its ground, shadows)
-    r["antialias"] = time_antialias(size, repeats)
-
-    # Mirror reflection: the cost of each bounce
-    r["reflection"] = time_reflection(size, repeats)
-    # Forward mode: gradient images
-    r["gradient_image"] = time_gradient_image(size, repeats)
-
-    # Without the BVH
-    r["forward_no_bvh"] = timing.measure(
-        lambda: render(plain, bvh=False, reuse_visibility=False), brute_repeats
-    )
-    r["forward_backward_no_bvh"] = timing.measure(
-        lambda: forward_backward(scene, params, target, bvh=False), brute_repeats
-    )
-    r["memory_forward_no_bvh"] = timing.measure_memory(
-        lambda: render(plain, bvh=False, reuse_visibility=False)
-    )
-    r["brute_visibility"] = time_brute_visibility(w, brute_repeats, warmup=0)
-
-    # Visibility reuse in a material-only optimisation
-    mat_scene, mat_params, mat_target = loss_problem(size, names=("albedo",))
-    albedo = mat_params["albedo"]
-
-    def material_iteration(reuse: bool):
-        albedo.data *= 0.999  # what an optimiser step does: only the material changes
-        forward_backward(mat_scene, mat_params, mat_target, reuse=reuse)
-
-    r["material_iteration_reuse"] = timing.measure(lambda: material_iteration(True), repeats)
-    r["material_iteration_no_reuse"] = timing.measure(lambda: material_iteration(False), repeats)
-
-    # Threading configurations
-    variants = list(THREADING_VARIANTS)[:2] if args.quick else list(THREADING_VARIANTS)
-    r["threading"] = run_threading_variants(size, repeats, variants)
-
-    section = make_report(r, args.out)
-    r["report"] = section
-    path = timing.write_json(args.out, "bench_render", r)
-    timing.print_report(section, timing.machine())
-    print(f"wrote {path}")
-    return r
-
-
-def ratio_row(quantity: str, num: dict, den: dict, ratio: float, limit: float, target: str):
-    """A report row for a ratio of two timings, checked against ``limit``."""
-    return timing.row(
-        quantity,
-        f"{timing.ms(num)} / {timing.ms(den)} = {ratio:.2f}x",
-        target,
-        timing.target_status(ratio, limit),
-    )
-
-
-def antialias_rows(aa: dict) -> list:
-    rows = []
-    for name, label in (("paper", "paper scene"), ("ground", "teapot on a ground plane")):
-        a = aa[name]
-        for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
-            rows.append(
-                ratio_row(
-                    f"{text} with antialias=True / without, {label}",
-                    a[f"{kind}_antialias"],
-                    a[f"{kind}_plain"],
-                    a[f"ratio_{kind}"],
-                    1.25,
-                    "target <= 1.25x",
-                )  # fmt: skip
-            )
-    return rows
-
-
-def reflection_rows(refl: dict) -> list:
-    rows = []
-    for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
-        times = [refl[f"{kind}_{b}"]["median_ms"] for b in (0, 1, 2)]
-        each = " / ".join(timing.ms(refl[f"{kind}_{b}"]) for b in (0, 1, 2))
-        added = f"first bounce +{times[1] - times[0]:.1f} ms, second +{times[2] - times[1]:.1f} ms"
-        rows.append(
-            timing.row(f"{text}, teapot on a mirror floor, max_bounces 0 / 1 / 2", each, added)
-        )
-    return rows
-
-
 def make_report(r: dict, out) -> dict:
+    """Rows in the order of the module docstring; notes: the forward's breakdown, the
+    profile, how memory and configurations were measured; a plot of the breakdown."""
     v = r["visibility"]
     fwd = r["forward"]["median_ms"]
     # The renderer rasterises this scene's camera rays (render(primary="auto")) and answers
@@ -467,35 +461,41 @@ def make_report(r: dict, out) -> dict:
     rest = fwd - sum(parts.values())
     size = r["size"]
     rows = [
-        timing.row("BVH build (1,536 triangles)", timing.ms(v["build"])),
-        timing.row(
-            f"camera-ray generation ({v['camera_rays']:,} rays)", timing.ms(v["ray_generation"])
+        *timing.time_rows(
+            v,
+            {
+                "build": "BVH build (1,536 triangles)",
+                "ray_generation": f"camera-ray generation ({v['camera_rays']:,} rays)",
+                "closest_hit": "closest hit, BVH",
+            },
         ),
-        timing.row("closest hit, BVH", timing.ms(v["closest_hit"])),
         timing.row(
             "closest hit, BVH, 1 thread",
             timing.ms(v["closest_hit_1_thread"]),
             "Embree 1 thread: 10 ms",
         ),
         timing.row("closest hit by rasterisation, camera rays included", f"{primary:.1f} ms"),
-        timing.row(
+        timing.target_row(
             "primary visibility (the renderer's choice here: rasterisation)",
             f"{primary:.1f} ms",
+            primary,
+            10.0,
             "target < 10 ms",
-            timing.target_status(primary, 10.0),
         ),
-        timing.row(f"shadow rays ({v['shadow_rays']:,}), BVH", timing.ms(v["occluded"])),
-        timing.row(
-            "shadow rays in the light's view (the renderer's choice here), binning included",
-            timing.ms(v["occluded_light_view"]),
+        *timing.time_rows(
+            v,
+            {
+                "occluded": f"shadow rays ({v['shadow_rays']:,}), BVH",
+                "occluded_light_view": "shadow rays in the light's view (the renderer's choice "
+                "here), binning included",
+            },
         ),
-        timing.row(
-            "shading forward (visibility cached, no tape)",
-            timing.ms(r["shading_forward_cached_visibility"]),
-        ),
-        timing.row(
-            "shading forward (visibility cached, tape)",
-            timing.ms(r["forward_tape_cached_visibility"]),
+        *timing.time_rows(
+            r,
+            {
+                "shading_forward_cached_visibility": "shading forward (visibility cached, no tape)",
+                "forward_tape_cached_visibility": "shading forward (visibility cached, tape)",
+            },
         ),
         timing.row("full forward - sum of the parts above (timed separately)", f"{rest:.1f} ms"),
         timing.row(
@@ -512,11 +512,12 @@ def make_report(r: dict, out) -> dict:
             timing.ms(r["forward_backward"]),
             "Mitsuba render+loss+backward 11-14 ms",
         ),
-        timing.row(
+        timing.target_row(
             "forward+backward / forward",
             f"{r['ratio_forward_backward_to_forward']:.2f}x",
+            r["ratio_forward_backward_to_forward"],
+            4.0,
             "target < 4x",
-            timing.target_status(r["ratio_forward_backward_to_forward"], 4.0),
         ),
         timing.row(
             "forward+backward / forward with tape",
@@ -532,32 +533,24 @@ def make_report(r: dict, out) -> dict:
             f"{r['forward']['page_faults_per_pass']:.0f} / "
             f"{r['forward_backward']['page_faults_per_pass']:.0f}",
         ),
-        timing.row(
-            "peak memory forward: tracemalloc / process RSS",
-            f"{r['memory_forward']['tracemalloc_peak_mb']:.1f} / "
-            f"{r['memory_forward']['rss_peak_mb']:.0f} MB",
-            "paper 124.5 MB (resident)",
-        ),
-        timing.row(
-            "peak memory forward, no BVH: tracemalloc / RSS",
-            f"{r['memory_forward_no_bvh']['tracemalloc_peak_mb']:.1f} / "
-            f"{r['memory_forward_no_bvh']['rss_peak_mb']:.0f} MB",
+    ]
+    for key, label, paper in (
+        ("memory_forward", "forward: tracemalloc / process RSS", "paper 124.5 MB (resident)"),
+        (
+            "memory_forward_no_bvh",
+            "forward, no BVH: tracemalloc / RSS",
             "paper 207.3 MB (resident)",
         ),
-        timing.row(
-            "peak memory forward+backward: tracemalloc / RSS",
-            f"{r['memory_forward_backward']['tracemalloc_peak_mb']:.1f} / "
-            f"{r['memory_forward_backward']['rss_peak_mb']:.0f} MB",
-        ),
-        timing.row(
-            "material-only iteration, reuse_visibility=True",
-            timing.ms(r["material_iteration_reuse"]),
-        ),
-        timing.row(
-            "material-only iteration, reuse_visibility=False",
-            timing.ms(r["material_iteration_no_reuse"]),
-        ),
-    ]
+        ("memory_forward_backward", "forward+backward: tracemalloc / RSS", ""),
+    ):
+        rows.append(timing.row(f"peak memory {label}", timing.mb(r[key]), paper))
+    rows += timing.time_rows(
+        r,
+        {
+            "material_iteration_reuse": "material-only iteration, reuse_visibility=True",
+            "material_iteration_no_reuse": "material-only iteration, reuse_visibility=False",
+        },
+    )
     saved = (
         r["material_iteration_no_reuse"]["median_ms"] - r["material_iteration_reuse"]["median_ms"]
     )
@@ -575,7 +568,10 @@ def make_report(r: dict, out) -> dict:
     top = r["profile_forward_backward"][:6]
     notes = [
         f"{size}x{size}; medians of {r['repeats']} runs [interquartile range] after a warm-up "
-        "(no-BVH rows: fewer runs); NumPy and Numba use their default threads (2 cores).",
+        "(no-BVH rows: fewer runs); NumPy and Numba use their default threads (2 cores). "
+        "Rows compared with each other (the forward renders and forward+backward; antialias "
+        "on and off; 0, 1, 2 bounces; gradient images and their forward render; reuse on and "
+        "off; with and without BVH) were timed in turns, one call of each per round.",
         "Breakdown of a full forward (no BVH is built: the camera rays are rasterised, the "
         "shadow rays answered in the light's view): "
         + ", ".join(f"{k} {val:.1f} ms" for k, val in parts.items())
@@ -592,14 +588,11 @@ def make_report(r: dict, out) -> dict:
         "median time of launching a Numba prange loop over 16 elements; 'keep freed memory' "
         "= MALLOC_MMAP_THRESHOLD_=32 MiB, MALLOC_TRIM_THRESHOLD_=1 GiB.",
     ]
-    labels = list(parts) + ["full - sum"]
-    plot = line_plot(
-        {"forward breakdown (ms)": (np.arange(1, len(labels) + 1), list(parts.values()) + [rest])},
+    plot = timing.steps_plot(
         out / "bench_render_breakdown.png",
-        title="Forward render breakdown: "
-        + ", ".join(f"{i + 1} {n}" for i, n in enumerate(labels)),
-        xlabel="step (see title)",
-        ylabel="ms",
+        "Forward render breakdown",
+        [*parts, "full - sum"],
+        {"forward breakdown (ms)": [*parts.values(), rest]},
     )
     return timing.report_section(
         f"Renderer at {size}x{size} (bench_render.py)", rows, notes, [plot.name]

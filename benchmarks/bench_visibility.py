@@ -1,6 +1,7 @@
 """Visibility benchmark: BVH vs brute force on the paper's teapot scene (no shading, no tape).
 
-Run:  python benchmarks/bench_visibility.py [--out DIR] [--quick] [--repeats 15] [--no-brute]
+Run:  python benchmarks/bench_visibility.py [--out DIR] [--quick] [--repeats 15] [--size 512]
+      [--no-brute]
 
 Workload (``docs/paper_scene.md``): the Newell teapot tessellated into 1,536 triangles
 (``render.teapot``), the 512x512 pinhole camera at (3, 2, 5) looking at the origin, one ray
@@ -33,6 +34,28 @@ from render.trace.accel import Accelerator
 from render.trace.primitives import scene_primitives
 from render.trace.raster import occluded_towards_light, raster_closest_hit
 from render.trace.visibility import scene_size, shadow_rays
+
+
+def main(argv=None) -> dict:
+    options = {"--no-brute": {"action": "store_true", "help": "skip the brute-force runs"}}
+    return timing.main("bench_visibility", __doc__, run, argv, options, repeats=15, size=(512, 64))
+
+
+def run(args) -> dict:
+    """Visibility timed on the 1,536-triangle teapot (with brute force, unless
+    ``--no-brute``) and on a finer tessellation; the results and their report."""
+    size, repeats = args.size, args.repeats
+    fine = (8, 13) if args.quick else (26, 60)
+
+    w = visibility_workload(size)
+    coarse = time_bvh_visibility(w, repeats)
+    if not args.no_brute:
+        coarse["brute"] = time_brute_visibility(w, max(1, repeats // 5))
+    wf = visibility_workload(size, *fine)
+    finer = time_bvh_visibility(wf, max(3, repeats // 3))
+    result = {"size": size, "repeats": repeats, "teapot_1536": coarse, "teapot_fine": finer}
+    result["report"] = report(result)
+    return result
 
 
 def visibility_workload(size: int = 512, nu: int = 4, nv: int = 6) -> dict:
@@ -165,49 +188,34 @@ def time_brute_visibility(w: dict, repeats: int, stride: int = 1, warmup: int = 
     }
 
 
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    parser.add_argument("--repeats", type=int, default=15)
-    parser.add_argument("--no-brute", action="store_true", help="skip the brute-force runs")
-    args = parser.parse_args(argv)
-    size = 64 if args.quick else 512
-    repeats = 3 if args.quick else args.repeats
-    fine = (8, 13) if args.quick else (26, 60)
-
-    w = visibility_workload(size)
-    coarse = time_bvh_visibility(w, repeats)
-    if not args.no_brute:
-        coarse["brute"] = time_brute_visibility(w, max(1, repeats // 5))
-    wf = visibility_workload(size, *fine)
-    finer = time_bvh_visibility(wf, max(3, repeats // 3))
-
+def report(r: dict) -> dict:
+    """The report section: one block of rows per mesh, brute force last."""
+    coarse, finer, size = r["teapot_1536"], r["teapot_fine"], r["size"]
     rows = []
-    for label, r in (
-        (f"{coarse['triangles']:,} tri", coarse),
-        (f"{finer['triangles']:,} tri", finer),
-    ):
+    for m in (coarse, finer):
+        label = f"{m['triangles']:,} tri"
         rows += [
-            timing.row(f"{label}: BVH build", timing.ms(r["build"])),
-            timing.row(f"{label}: camera rays generation", timing.ms(r["ray_generation"])),
+            timing.row(f"{label}: BVH build", timing.ms(m["build"])),
+            timing.row(f"{label}: camera rays generation", timing.ms(m["ray_generation"])),
             timing.row(
-                f"{label}: closest hit, {r['camera_rays']:,} camera rays",
-                timing.ms(r["closest_hit"]),
+                f"{label}: closest hit, {m['camera_rays']:,} camera rays",
+                timing.ms(m["closest_hit"]),
             ),
             timing.row(
                 f"{label}: closest hit, 1 thread",
-                timing.ms(r["closest_hit_1_thread"]),
-                "Embree 1 thread: 10 ms" if r is coarse else "",
+                timing.ms(m["closest_hit_1_thread"]),
+                "Embree 1 thread: 10 ms" if m is coarse else "",
             ),
             timing.row(
                 f"{label}: closest hit by rasterisation (camera rays included)",
-                timing.ms(r["closest_hit_raster"]),
+                timing.ms(m["closest_hit_raster"]),
             ),
             timing.row(
-                f"{label}: any hit, {r['shadow_rays']:,} shadow rays", timing.ms(r["occluded"])
+                f"{label}: any hit, {m['shadow_rays']:,} shadow rays", timing.ms(m["occluded"])
             ),
             timing.row(
                 f"{label}: any hit in the light's view (binning included)",
-                timing.ms(r["occluded_light_view"]),
+                timing.ms(m["occluded_light_view"]),
             ),
         ]
     if "brute" in coarse:
@@ -217,7 +225,8 @@ def main(argv=None) -> dict:
             timing.row("1,536 tri: any hit, brute force", f"{b['occluded_ms']:.1f} ms"),
         ]
     notes = [
-        f"{size}x{size} image; medians of {repeats} runs [interquartile range] after a warm-up.",
+        f"{size}x{size} image; medians of {r['repeats']} runs [interquartile range] after a "
+        "warm-up.",
         f"BVH: {coarse['bvh_nodes']} nodes, depth {coarse['bvh_depth']} (1,536 triangles); "
         f"{finer['bvh_nodes']} nodes, depth {finer['bvh_depth']} ({finer['triangles']:,}).",
     ]
@@ -229,18 +238,7 @@ def main(argv=None) -> dict:
         "The light's view gives the BVH's shadow answers: "
         + str(coarse["light_view_identical"] and finer["light_view_identical"])
     )
-    section = timing.report_section("Visibility only (bench_visibility.py)", rows, notes, [])
-    result = {
-        "size": size,
-        "repeats": repeats,
-        "teapot_1536": coarse,
-        "teapot_fine": finer,
-        "report": section,
-    }
-    path = timing.write_json(args.out, "bench_visibility", result)
-    timing.print_report(section, timing.machine())
-    print(f"wrote {path}")
-    return result
+    return timing.report_section("Visibility only (bench_visibility.py)", rows, notes, [])
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """Figure 3 / Table 1: reverse-mode AD vs central finite differences for vertex gradients.
 
-Run:  python benchmarks/fig3_ad_vs_fd.py [--out DIR] [--quick] [--size 128] [--fd-budget 90]
+Run:  python benchmarks/fig3_ad_vs_fd.py [--out DIR] [--quick] [--size 128] [--repeats 7]
+      [--fd-budget 90]
 
 Problem: the paper scene (``docs/paper_scene.md``) at ``--size`` x ``--size`` pixels (128 by
 default: a full finite-difference gradient costs 6,720 renders, see below). The target is
@@ -41,7 +42,6 @@ parameters (all 3 coordinates of randomly chosen vertices that the camera sees):
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import timing
@@ -63,6 +63,57 @@ PAPER_TABLE1 = {
 FD_STEP = 1e-5  # the paper's relative step
 REF_STEP = 5e-5  # reference: Richardson of D(h) and D(2h)
 NOISE = 0.005  # start: vertices moved by N(0, NOISE^2)
+
+
+def main(argv=None) -> dict:
+    options = {
+        "--fd-budget": {
+            "type": float,
+            "default": 90.0,
+            "help": "seconds of finite differences to time in full (default 90)",
+        },
+    }
+    return timing.main("fig3_ad_vs_fd", __doc__, run, argv, options, repeats=7, size=(128, 32))
+
+
+def run(args) -> dict:
+    """The timing series, the accuracy on the reference subset, the costs at full size, the
+    crossover, the plots and the report."""
+    size, repeats = args.size, args.repeats
+    if args.quick:
+        counts, n_ref, budget = [1, 4, 16], 2, 0.5
+    else:
+        counts, n_ref, budget = [1, 4, 16, 64, 256, 1120], 30, args.fd_budget
+    rng = np.random.default_rng(42)
+    scene, start, target = problem(size)
+
+    series = timing_series(scene, start, target, counts, repeats, budget, rng)
+    acc = accuracy(scene, start, target, n_ref, rng)
+    big = at_size(64, 3, 3) if args.quick else at_size(512, repeats, 12)
+
+    # Crossover: AD time (all vertices; it hardly depends on the count) / FD cost per param.
+    crossover = series[-1]["ad"]["median_ms"] / series[-1]["fd_ms_per_parameter"]
+    if not math.isfinite(crossover):
+        raise RuntimeError("fig3: crossover is not finite")
+    result = {
+        "size": size,
+        "repeats": repeats,
+        "fd_budget_s": budget,
+        "noise": NOISE,
+        "fd_step": FD_STEP,
+        "reference_step": REF_STEP,
+        "series": series,
+        "crossover_parameters": crossover,
+        "first_count_ad_faster": next(
+            (s["parameters"] for s in series if s["ad"]["median_ms"] < s["fd_ms"]), None
+        ),
+        "accuracy": acc,
+        "at_full_size": big,
+        "paper_table1": PAPER_TABLE1,
+        "paper_fd_ms_per_render_implied": PAPER_TABLE1["fd_ms"] / PAPER_TABLE1["fd_forward_passes"],
+    }
+    result["report"] = report(result, plots(result, args.out))
+    return result
 
 
 def problem(size: int, seed: int = 42):
@@ -145,6 +196,8 @@ def params_of(vertex_ids) -> list[tuple[int, int]]:
 
 
 def timing_series(scene, start, target, counts, repeats, fd_budget, rng) -> list[dict]:
+    """AD and FD time of one gradient w.r.t. ``counts`` vertices (seeded random order); FD
+    timed in full while it fits in ``fd_budget`` seconds, extrapolated beyond."""
     order = rng.permutation(len(start))
     series, per_param = [], None
     spent = 0.0
@@ -154,9 +207,9 @@ def timing_series(scene, start, target, counts, repeats, fd_budget, rng) -> list
         n_params = 3 * n_vertices
         predicted = n_params * per_param if per_param else 0.0
         if spent + predicted <= fd_budget:
-            t0 = time.perf_counter()
-            fd_gradient(scene, start, target, params_of(ids))
-            fd_s = time.perf_counter() - t0
+            fd_s = timing.time_once(
+                lambda ids=ids: fd_gradient(scene, start, target, params_of(ids))
+            )
             spent += fd_s
             per_param = fd_s / n_params
             measured = True
@@ -188,9 +241,8 @@ def at_size(size: int, repeats: int, n_fd: int) -> dict:
     ids = np.arange(len(start))
     ad = timing.measure(lambda: ad_gradient(scene, start, target, ids), repeats)
     params = params_of(np.arange(n_fd // 3 + 1))[:n_fd]
-    t0 = time.perf_counter()
-    fd_gradient(scene, start, target, params)
-    per_param_ms = (time.perf_counter() - t0) / len(params) * 1e3
+    fd_s = timing.time_once(lambda: fd_gradient(scene, start, target, params))
+    per_param_ms = fd_s / len(params) * 1e3
     n = 3 * len(start)
     return {
         "size": size,
@@ -286,71 +338,50 @@ def accuracy(scene, start, target, n_ref_vertices: int, rng) -> dict:
 
 
 # --------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------
 
 
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    parser.add_argument("--size", type=int, default=None, help="image side (default 128)")
-    parser.add_argument(
-        "--fd-budget",
-        type=float,
-        default=90.0,
-        help="seconds of finite differences to time in full (default 90)",
-    )
-    args = parser.parse_args(argv)
-    if args.quick:
-        size, counts, repeats, n_ref, budget = args.size or 32, [1, 4, 16], 3, 2, 0.5
-    else:
-        size, counts, repeats, n_ref = args.size or 128, [1, 4, 16, 64, 256, 1120], 7, 30
-        budget = args.fd_budget
-    rng = np.random.default_rng(42)
-    scene, start, target = problem(size)
-
-    series = timing_series(scene, start, target, counts, repeats, budget, rng)
-    acc = accuracy(scene, start, target, n_ref, rng)
-    big = at_size(64, 3, 3) if args.quick else at_size(512, repeats, 12)
-
-    # Crossover: AD time (all vertices; it hardly depends on the count) / FD cost per param.
-    fd_per_param = series[-1]["fd_ms_per_parameter"]
-    crossover = series[-1]["ad"]["median_ms"] / fd_per_param
-    first_faster = next(
-        (s["parameters"] for s in series if s["ad"]["median_ms"] < s["fd_ms"]), None
-    )
-
-    x = [s["parameters"] for s in series]
-    plots = [
+def plots(r: dict, out) -> list:
+    """Fig. 3a: time of one gradient against the parameter count; 3b: the errors."""
+    log = {"logx": True, "logy": True}
+    return [
         line_plot(
-            {
-                "AD (forward+backward)": (x, [s["ad"]["median_ms"] for s in series]),
-                "central FD (2 renders/parameter)": (x, [s["fd_ms"] for s in series]),
-            },
-            args.out / "fig3a_time.png",
-            title=f"Fig. 3a: one gradient w.r.t. vertex positions, {size}x{size}",
+            timing.series(
+                r["series"],
+                "parameters",
+                {
+                    "AD (forward+backward)": lambda s: s["ad"]["median_ms"],
+                    "central FD (2 renders/parameter)": lambda s: s["fd_ms"],
+                },
+            ),
+            out / "fig3a_time.png",
+            title=f"Fig. 3a: one gradient w.r.t. vertex positions, {r['size']}x{r['size']}",
             xlabel="parameters",
             ylabel="ms",
-            logx=True,
-            logy=True,
+            **log,
         ),
         line_plot(
-            {
-                "AD": (
-                    [e["parameters"] for e in acc["error_vs_parameters"]],
-                    [e["ad_error"] for e in acc["error_vs_parameters"]],
-                ),
-                "FD h=1e-5": (
-                    [e["parameters"] for e in acc["error_vs_parameters"]],
-                    [e["fd_error"] for e in acc["error_vs_parameters"]],
-                ),
-            },
-            args.out / "fig3b_error.png",
+            timing.series(
+                r["accuracy"]["error_vs_parameters"],
+                "parameters",
+                {"AD": lambda e: e["ad_error"], "FD h=1e-5": lambda e: e["fd_error"]},
+            ),
+            out / "fig3b_error.png",
             title="Fig. 3b: relative l2 error vs Richardson reference (stable pixels)",
             xlabel="parameters",
             ylabel="relative error",
-            logx=True,
-            logy=True,
+            **log,
         ),
     ]
 
+
+def report(r: dict, plots: list) -> dict:
+    """Rows: Table 1's times and errors next to ours, the crossover; notes: the set-up and
+    the paper's inconsistencies."""
+    series, acc, big, size = r["series"], r["accuracy"], r["at_full_size"], r["size"]
+    crossover, first_faster = r["crossover_parameters"], r["first_count_ad_faster"]
+    repeats, budget = r["repeats"], r["fd_budget_s"]
     full = series[-1]
     p = PAPER_TABLE1
     rows = [
@@ -364,7 +395,7 @@ def main(argv=None) -> dict:
             f"{full['fd_ms'] / 1e3:.1f} s" + ("" if full["fd_measured"] else " (extrap.)"),
             f"paper {p['fd_ms']} ms",
         ),
-        timing.row("FD cost per parameter (2 renders)", f"{fd_per_param:.1f} ms"),
+        timing.row("FD cost per parameter (2 renders)", f"{full['fd_ms_per_parameter']:.1f} ms"),
         timing.row("crossover: AD faster from (parameters)", f"{crossover:.1f}", "paper: ~50"),
         timing.row("smallest count measured where AD was faster", str(first_faster)),
         timing.row(
@@ -411,32 +442,12 @@ def main(argv=None) -> dict:
         f"Crossover = t_AD / FD cost per parameter, with t_AD for all {full['parameters']:,} "
         "parameters (AD's cost barely depends on the count).",
     ]
-    section = timing.report_section(
+    return timing.report_section(
         "Figure 3 / Table 1: AD vs finite differences (fig3_ad_vs_fd.py)",
         rows,
         notes,
         [pl.name for pl in plots],
     )
-    result = {
-        "size": size,
-        "noise": NOISE,
-        "fd_step": FD_STEP,
-        "reference_step": REF_STEP,
-        "series": series,
-        "crossover_parameters": crossover,
-        "first_count_ad_faster": first_faster,
-        "accuracy": acc,
-        "at_full_size": big,
-        "paper_table1": PAPER_TABLE1,
-        "paper_fd_ms_per_render_implied": p["fd_ms"] / p["fd_forward_passes"],
-        "report": section,
-    }
-    if not math.isfinite(crossover):
-        raise RuntimeError("fig3: crossover is not finite")
-    path = timing.write_json(args.out, "fig3_ad_vs_fd", result)
-    timing.print_report(section, timing.machine())
-    print(f"wrote {path}")
-    return result
 
 
 if __name__ == "__main__":

@@ -37,11 +37,48 @@ from render.scene.teapot import paper_scene, teapot
 from render.trace.accel import Accelerator
 from render.trace.primitives import scene_primitives
 
+# The quantities fitted (and plotted) per point.
+FITTED = {
+    "forward": lambda p: p["forward"]["median_ms"],
+    "forward_backward": lambda p: p["forward_backward"]["median_ms"],
+    "tape_memory": lambda p: p["memory_forward_backward"]["tracemalloc_peak_mb"],
+}
+
+
+def main(argv=None) -> dict:
+    return timing.main("scaling", __doc__, run, argv)
+
+
+def run(args) -> dict:
+    """Both series, the fitted exponents, the million-triangle mesh (not with --quick), the
+    plots and the report."""
+    if args.quick:
+        sizes, tess, size_tri, repeats = [16, 32, 64], [(2, 3), (4, 6), (8, 13)], 64, 2
+    else:
+        sizes = [64, 128, 256, 512, 1024]
+        tess = [(4, 6), (8, 13), (12, 20), (18, 40), (26, 60)]
+        size_tri, repeats = 512, 7
+    # Fewer runs at 1024^2, where one forward+backward takes seconds.
+    pixels = [point(size, 4, 6, repeats if size < 1024 else max(2, repeats - 2)) for size in sizes]
+    triangles = [point(size_tri, nu, nv, repeats) for nu, nv in tess]
+    result = {
+        "pixels": pixels,
+        "triangles": triangles,
+        "triangle_series_size": size_tri,
+        "repeats": repeats,
+        "exponents_pixels": exponents(pixels, "pixels"),
+        "exponents_triangles": exponents(triangles, "triangles"),
+        "million": None if args.quick else million(),
+    }
+    result["report"] = report(result, plots(result, args.out))
+    return result
+
 
 def point(size: int, nu: int, nv: int, repeats: int) -> dict:
+    """One point of a series: the teapot tessellated nu x nv at ``size``^2."""
     plain = paper_scene(size, size, nu=nu, nv=nv)
     scene, params, target = loss_problem(size, nu, nv)
-    return {
+    p = {
         "size": size,
         "pixels": size * size,
         "triangles": plain.meshes[0].num_faces,
@@ -54,6 +91,12 @@ def point(size: int, nu: int, nv: int, repeats: int) -> dict:
             lambda: forward_backward(scene, params, target)
         ),
     }
+    print(
+        f"{size:5d}^2 {p['triangles']:7,d} tri  forward {timing.ms(p['forward'])}  "
+        f"f+b {timing.ms(p['forward_backward'])}",
+        flush=True,
+    )
+    return p
 
 
 def exponents(points: list[dict], key: str) -> dict:
@@ -62,11 +105,7 @@ def exponents(points: list[dict], key: str) -> dict:
     upper = points[len(points) // 2 :]
     xu = [p[key] for p in upper]
     out = {}
-    for name, get in (
-        ("forward", lambda p: p["forward"]["median_ms"]),
-        ("forward_backward", lambda p: p["forward_backward"]["median_ms"]),
-        ("tape_memory", lambda p: p["memory_forward_backward"]["tracemalloc_peak_mb"]),
-    ):
+    for name, get in FITTED.items():
         out[name] = timing.fit_power_law(x, [get(p) for p in points])
         out[name + "_upper"] = timing.fit_power_law(xu, [get(p) for p in upper])
     return out
@@ -95,13 +134,75 @@ def million(repeats: int = 3) -> dict:
     }
 
 
-def million_rows(m: dict) -> list:
+def plots(r: dict, out) -> list:
+    """Times (and the tape's memory) against pixels and against triangles, log-log."""
+    times = {"forward": FITTED["forward"], "forward+backward": FITTED["forward_backward"]}
+    tape = {"tape peak MB (tracemalloc)": FITTED["tape_memory"]}
+    log = {"logx": True, "logy": True}
     return [
-        timing.row(
+        line_plot(
+            timing.series(r["pixels"], "pixels", times | tape),
+            out / "scaling_pixels.png",
+            title="Scaling with pixels (1,536 triangles): ms, and MB for the tape",
+            xlabel="pixels",
+            ylabel="ms / MB",
+            **log,
+        ),
+        line_plot(
+            timing.series(r["triangles"], "triangles", times),
+            out / "scaling_triangles.png",
+            title=f"Scaling with triangles at {r['triangle_series_size']}^2 (BVH)",
+            xlabel="triangles",
+            ylabel="ms",
+            **log,
+        ),
+    ]
+
+
+def report(r: dict, plots: list) -> dict:
+    """Rows: the fitted exponents, every point, the million-triangle mesh."""
+    rows = []
+    for label in ("pixels", "triangles"):
+        fit = r[f"exponents_{label}"]
+        for name in FITTED:
+            rows.append(
+                timing.row(
+                    f"exponent of {name.replace('_', ' ')} vs {label} (all / upper half)",
+                    f"{fit[name]:.2f} / {fit[name + '_upper']:.2f}",
+                )
+            )
+    for p in r["pixels"] + r["triangles"]:
+        rows.append(
+            timing.row(
+                f"{p['size']}^2, {p['triangles']:,} tri: forward / f+b / tape peak / "
+                "page faults per f+b",
+                f"{p['forward']['median_ms']:.1f} / {p['forward_backward']['median_ms']:.1f} ms / "
+                f"{p['memory_forward_backward']['tracemalloc_peak_mb']:.0f} MB / "
+                f"{p['forward_backward']['page_faults_per_pass']:.0f}",
+            )
+        )
+    if r["million"] is not None:
+        rows += million_rows(r["million"])
+    notes = [
+        f"Medians of {r['repeats']} runs after a warm-up. Exponent b of t ~ n^b by least "
+        "squares on log-log; 'upper half' fits the larger half of the points only.",
+        "Tape peak = tracemalloc peak of one forward+backward (NumPy arrays alive at once). "
+        "Page faults: minor faults per forward+backward (fresh 4 KiB pages): with glibc's "
+        "default allocator, arrays above its mmap threshold (128 KiB at first, adapted as the "
+        "process runs) are mapped and unmapped on every pass.",
+    ]
+    return timing.report_section("Scaling (scaling.py)", rows, notes, [p.name for p in plots])
+
+
+def million_rows(m: dict) -> list:
+    """Report rows of ``million()``."""
+    return [
+        timing.target_row(
             f"BVH build, {m['triangles']:,} triangles",
             timing.ms(m["build"]),
+            m["build"]["median_ms"],
+            1000.0,
             "target <= 1 s",
-            timing.target_status(m["build"]["median_ms"], 1000.0),
         ),
         timing.row(
             f"forward render at 512x512, {m['triangles']:,} triangles", timing.ms(m["forward"])
@@ -112,126 +213,6 @@ def million_rows(m: dict) -> list:
             f"{m['peak_rss_growth_bytes_per_triangle']:.0f} bytes",
         ),
     ]
-
-
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    args = parser.parse_args(argv)
-    if args.quick:
-        sizes, tess, size_tri, repeats = [16, 32, 64], [(2, 3), (4, 6), (8, 13)], 64, 2
-    else:
-        sizes = [64, 128, 256, 512, 1024]
-        tess = [(4, 6), (8, 13), (12, 20), (18, 40), (26, 60)]
-        size_tri, repeats = 512, 7
-
-    pixels = []
-    for size in sizes:
-        pixels.append(point(size, 4, 6, repeats if size < 1024 else max(2, repeats - 2)))
-        p = pixels[-1]
-        print(
-            f"{size:5d}^2  forward {timing.ms(p['forward'])}  "
-            f"f+b {timing.ms(p['forward_backward'])}",
-            flush=True,
-        )
-    triangles = []
-    for nu, nv in tess:
-        triangles.append(point(size_tri, nu, nv, repeats))
-        p = triangles[-1]
-        print(
-            f"{p['triangles']:7,d} tri  forward {timing.ms(p['forward'])}  "
-            f"f+b {timing.ms(p['forward_backward'])}",
-            flush=True,
-        )
-    big = None if args.quick else million()
-    fit_px = exponents(pixels, "pixels")
-    fit_tri = exponents(triangles, "triangles")
-
-    plots = [
-        line_plot(
-            {
-                "forward": (
-                    [p["pixels"] for p in pixels],
-                    [p["forward"]["median_ms"] for p in pixels],
-                ),
-                "forward+backward": (
-                    [p["pixels"] for p in pixels],
-                    [p["forward_backward"]["median_ms"] for p in pixels],
-                ),
-                "tape peak MB (tracemalloc)": (
-                    [p["pixels"] for p in pixels],
-                    [p["memory_forward_backward"]["tracemalloc_peak_mb"] for p in pixels],
-                ),
-            },
-            args.out / "scaling_pixels.png",
-            title="Scaling with pixels (1,536 triangles): ms, and MB for the tape",
-            xlabel="pixels",
-            ylabel="ms / MB",
-            logx=True,
-            logy=True,
-        ),
-        line_plot(
-            {
-                "forward": (
-                    [p["triangles"] for p in triangles],
-                    [p["forward"]["median_ms"] for p in triangles],
-                ),
-                "forward+backward": (
-                    [p["triangles"] for p in triangles],
-                    [p["forward_backward"]["median_ms"] for p in triangles],
-                ),
-            },
-            args.out / "scaling_triangles.png",
-            title=f"Scaling with triangles at {size_tri}^2 (BVH)",
-            xlabel="triangles",
-            ylabel="ms",
-            logx=True,
-            logy=True,
-        ),
-    ]
-
-    rows = []
-    for label, fit in (("pixels", fit_px), ("triangles", fit_tri)):
-        for name in ("forward", "forward_backward", "tape_memory"):
-            rows.append(
-                timing.row(
-                    f"exponent of {name.replace('_', ' ')} vs {label} (all / upper half)",
-                    f"{fit[name]:.2f} / {fit[name + '_upper']:.2f}",
-                )
-            )
-    for p in pixels + triangles:
-        rows.append(
-            timing.row(
-                f"{p['size']}^2, {p['triangles']:,} tri: forward / f+b / tape peak / "
-                "page faults per f+b",
-                f"{p['forward']['median_ms']:.1f} / {p['forward_backward']['median_ms']:.1f} ms / "
-                f"{p['memory_forward_backward']['tracemalloc_peak_mb']:.0f} MB / "
-                f"{p['forward_backward']['page_faults_per_pass']:.0f}",
-            )
-        )
-    if big is not None:
-        rows += million_rows(big)
-    notes = [
-        f"Medians of {repeats} runs after a warm-up. Exponent b of t ~ n^b by least squares "
-        "on log-log; 'upper half' fits the larger half of the points only.",
-        "Tape peak = tracemalloc peak of one forward+backward (NumPy arrays alive at once). "
-        "Page faults: minor faults per forward+backward (fresh 4 KiB pages): with glibc's "
-        "default allocator, arrays above its mmap threshold (128 KiB at first, adapted as the "
-        "process runs) are mapped and unmapped on every pass.",
-    ]
-    section = timing.report_section("Scaling (scaling.py)", rows, notes, [p.name for p in plots])
-    result = {
-        "pixels": pixels,
-        "triangles": triangles,
-        "triangle_series_size": size_tri,
-        "exponents_pixels": fit_px,
-        "exponents_triangles": fit_tri,
-        "million": big,
-        "report": section,
-    }
-    path = timing.write_json(args.out, "scaling", result)
-    timing.print_report(section, timing.machine())
-    print(f"wrote {path}")
-    return result
 
 
 if __name__ == "__main__":

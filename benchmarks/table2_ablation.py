@@ -52,6 +52,53 @@ LR = 0.03
 FD_STEP = 1e-5
 
 
+def main(argv=None) -> dict:
+    options = {
+        "--fd-iters": {
+            "type": int,
+            "default": ITERATIONS,
+            "help": "iterations of FD + BVH actually run (default 500)",
+        }
+    }
+    return timing.main("table2_ablation", __doc__, run, argv, options)
+
+
+def run(args) -> dict:
+    """The four configurations, the gradients at the start, the plot and the report."""
+    if args.quick:
+        size, iters, ad_brute_iters, fd_iters, fd_brute_iters = 32, 10, 2, 3, 1
+    else:
+        size, iters, ad_brute_iters, fd_iters, fd_brute_iters = 512, ITERATIONS, 5, args.fd_iters, 1
+
+    runs = {}
+    runs["AD + BVH"] = run_ad(size, iters, bvh=True)
+    print(f"AD + BVH: {runs['AD + BVH']['seconds_total']:.1f} s", flush=True)
+    runs["AD, no BVH"] = run_ad(size, ad_brute_iters, bvh=False)
+    runs["FD + BVH"] = run_fd(size, min(fd_iters, iters), bvh=True)
+    print(f"FD + BVH: {runs['FD + BVH']['seconds_total']:.1f} s", flush=True)
+    runs["FD, no BVH"] = run_fd(size, fd_brute_iters, bvh=False)
+    for name in ("AD, no BVH", "FD, no BVH"):  # bit-identical visibility -> same trajectory
+        ref = runs["AD + BVH"] if name.startswith("AD") else runs["FD + BVH"]
+        k = len(runs[name]["positions"])
+        runs[name]["same_trajectory_as_bvh"] = runs[name]["positions"] == ref["positions"][:k]
+    for r in runs.values():  # the times for all 500 iterations, measured or extrapolated
+        per_it = r["seconds_per_iteration"]["median_ms"] / 1e3
+        r["seconds_for_500"] = r["seconds_total"] if r["iterations"] == iters else per_it * iters
+        r["extrapolated"] = r["iterations"] != iters
+
+    result = {
+        "size": size,
+        "iterations": iters,
+        "runs": runs,
+        "start_gradients": start_gradients(size),
+        "paper": PAPER,
+    }
+    result["report"] = report(result, plot(runs, args.out))
+    for r in runs.values():  # keep the JSON small: no per-iteration positions
+        r.pop("positions")
+    return result
+
+
 def calibration_problem(size: int, seed: int = 42, angle: float = 10.0):
     """The scene, its two camera parameters and the target, exactly as
     ``run_camera_calibration`` builds them (the target clipped as the loss sees it)."""
@@ -141,45 +188,14 @@ def start_gradients(size: int) -> dict:
     }
 
 
-def main(argv=None) -> dict:
-    parser = timing.make_parser(__doc__)
-    parser.add_argument(
-        "--fd-iters",
-        type=int,
-        default=500,
-        help="iterations of FD + BVH actually run (default 500)",
-    )
-    args = parser.parse_args(argv)
-    if args.quick:
-        size, iters, ad_brute_iters, fd_iters, fd_brute_iters = 32, 10, 2, 3, 1
-    else:
-        size, iters, ad_brute_iters, fd_iters, fd_brute_iters = 512, ITERATIONS, 5, args.fd_iters, 1
-
-    runs = {}
-    runs["AD + BVH"] = run_ad(size, iters, bvh=True)
-    print(f"AD + BVH: {runs['AD + BVH']['seconds_total']:.1f} s", flush=True)
-    runs["AD, no BVH"] = run_ad(size, ad_brute_iters, bvh=False)
-    runs["FD + BVH"] = run_fd(size, min(fd_iters, iters), bvh=True)
-    print(f"FD + BVH: {runs['FD + BVH']['seconds_total']:.1f} s", flush=True)
-    runs["FD, no BVH"] = run_fd(size, fd_brute_iters, bvh=False)
-
-    start = start_gradients(size)
-    ad = runs["AD + BVH"]
-    for name in ("AD, no BVH", "FD, no BVH"):  # bit-identical visibility -> same trajectory
-        ref = ad if name.startswith("AD") else runs["FD + BVH"]
-        k = len(runs[name]["positions"])
-        runs[name]["same_trajectory_as_bvh"] = runs[name]["positions"] == ref["positions"][:k]
-
+def report(result: dict, plot) -> dict:
+    """Rows per configuration: total time, time per iteration, final position error."""
+    size, iters, runs = result["size"], result["iterations"], result["runs"]
+    ad, start = runs["AD + BVH"], result["start_gradients"]
     rows = []
     for name, r in runs.items():
-        per_it = r["seconds_per_iteration"]["median_ms"] / 1e3
-        total = r["seconds_total"] if r["iterations"] == iters else per_it * iters
-        r["seconds_for_500"] = total
-        r["extrapolated"] = r["iterations"] != iters
-        k = r["iterations"]
-        if name == "AD + BVH":
-            err = f"{r['position_errors'][-1]:.3f} %"
-        elif name == "FD + BVH" and k == iters:
+        total, k = r["seconds_for_500"], r["iterations"]
+        if name == "AD + BVH" or (name == "FD + BVH" and k == iters):
             err = f"{r['position_errors'][-1]:.3f} %"
         elif name == "FD + BVH":
             err = (
@@ -218,37 +234,24 @@ def main(argv=None) -> dict:
             "differences divide by the tiny step: FD's gradient is dominated by these jumps "
             "(AD's is that of the image with visibility held fixed), hence FD's erratic path."
         )
-    plot = line_plot(
+    return timing.report_section(
+        "Table 2: ablation, camera calibration (table2_ablation.py)", rows, notes, [plot.name]
+    )
+
+
+def plot(runs: dict, out):
+    """The position error per iteration of AD + BVH and FD + BVH."""
+    return line_plot(
         {
-            "AD + BVH": (np.arange(len(ad["position_errors"])), ad["position_errors"]),
-            "FD + BVH": (
-                np.arange(len(runs["FD + BVH"]["position_errors"])),
-                runs["FD + BVH"]["position_errors"],
-            ),
+            name: (np.arange(len(runs[name]["position_errors"])), runs[name]["position_errors"])
+            for name in ("AD + BVH", "FD + BVH")
         },
-        args.out / "table2_position_error.png",
+        out / "table2_position_error.png",
         title="Camera calibration: position error (Eq. 4) per iteration",
         xlabel="iteration",
         ylabel="error (%)",
         logy=True,
     )
-    section = timing.report_section(
-        "Table 2: ablation, camera calibration (table2_ablation.py)", rows, notes, [plot.name]
-    )
-    for r in runs.values():  # keep the JSON small: no per-iteration positions
-        r.pop("positions")
-    result = {
-        "size": size,
-        "iterations": iters,
-        "runs": runs,
-        "start_gradients": start,
-        "paper": PAPER,
-        "report": section,
-    }
-    path = timing.write_json(args.out, "table2_ablation", result)
-    timing.print_report(section, timing.machine())
-    print(f"wrote {path}")
-    return result
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
-"""The benchmark suite's shared helper: timing, memory, page faults, machine, JSON, plots.
+"""The benchmark harness every script in ``benchmarks/`` uses: timing, memory, fresh
+processes, the machine description, the command line, JSON and report rows.
 
-Every script in ``benchmarks/`` measures the same way:
+Timing:
 
 * ``measure(fn, repeats, warmup)``: ``warmup`` untimed calls first (Numba loads or compiles
   its kernels on the first call, NumPy/glibc warm their caches), then ``repeats`` timed
@@ -9,6 +10,10 @@ Every script in ``benchmarks/`` measures the same way:
   is a fresh 4 KiB page the kernel had to map, i.e. memory the process gave back and took
   again). Medians, because this machine is small (2 cores) and shared: single calls can be
   slowed several-fold by other processes.
+* ``measure_interleaved({name: fn}, repeats, warmup, block)``: the same for several
+  variants that a script compares, timed in turns (``block`` calls of each per round), so
+  that every variant sees the same machine state and their ratios do not drift with the
+  machine's load. ``measure`` is this with a single variant.
 * ``measure_memory(fn)``: one separate, *untimed* call (tracemalloc slows allocation), with
   two numbers:
 
@@ -23,25 +28,35 @@ Every script in ``benchmarks/`` measures the same way:
     paper's "resident memory" would count it. ``rss_increase_mb`` is that peak minus the
     resident size just before the call.
 
-* ``machine()``: cores, CPU model, library versions, thread settings and the load average
-  (timings from a loaded machine are slower; the load is recorded so readers can tell).
-* ``write_json(out, name, payload)``: ``OUT/name.json`` with the machine description added.
-* ``make_parser(doc)``: the common command line, ``--out DIR`` and ``--quick``.
+* ``in_fresh_process(fn, env, **kwargs)``: ``fn(**kwargs)`` in a new Python process with
+  some environment variables changed, for settings fixed when a process starts (glibc's
+  allocator thresholds, the OpenMP wait policy, Numba's threading layer) and so that one
+  measurement does not inherit another's allocator state.
 
-Each script also puts a ``report`` entry in its JSON (``report_section``): a title, rows of
-(quantity, ours, paper or target, status) and notes; ``run_all.py`` turns those into
-``report.md``.
+Output:
+
+* ``main(name, doc, run, argv, options)``: the common ``main()``: the command line
+  (``--out DIR``, ``--quick`` and the script's own options), ``run(args)``, then the result
+  written to ``OUT/name.json`` with the machine description (``machine()``: cores, CPU
+  model, library versions, thread settings and the load average, since timings from a
+  loaded machine are slower) and the report section printed.
+* A script's result holds a ``report`` entry (``report_section``): a title, rows of
+  (quantity, ours, paper or target, status; ``row`` and ``target_row``) and notes;
+  ``run_all.py`` turns those into ``report.md``.
 """
 
 from __future__ import annotations
 
 import argparse
 import gc
-import math
+import importlib
+import json
 import os
 import platform
 import resource
+import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
 from pathlib import Path
@@ -49,9 +64,19 @@ from pathlib import Path
 import numpy as np
 
 from render.inverse.jsonio import write_json as write_strict_json
+from render.inverse.plot import line_plot
 
-ROOT = Path(__file__).resolve().parents[1]
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
 DEFAULT_OUT = ROOT / "out" / "benchmarks"  # out/ is git-ignored
+
+# glibc's "keep freed memory" setting in its environment-variable form: allocations up to
+# 32 MiB (glibc's cap on 64-bit) come from the heap instead of mmap, and the heap is not
+# given back to the kernel until 1 GiB of it is free. Read once, when the process starts.
+KEEP_FREED_MEMORY = {
+    "MALLOC_MMAP_THRESHOLD_": str(32 << 20),
+    "MALLOC_TRIM_THRESHOLD_": str(1 << 30),
+}
 
 
 # --------------------------------------------------------------------------------------
@@ -77,35 +102,13 @@ def summarize(seconds) -> dict:
     }
 
 
-def measure(fn, repeats: int = 7, warmup: int = 1) -> dict:
-    """Time ``fn()``: ``warmup`` untimed calls, then ``repeats`` timed ones.
+def measure_interleaved(fns: dict, repeats: int = 7, warmup: int = 1, block: int = 1) -> dict:
+    """Time several callables in turns: per round, ``block`` calls of each, until each has
+    had at least ``repeats`` timed calls; before that, ``warmup`` untimed calls of each.
 
-    Returns ``summarize`` of the times plus ``page_faults_per_pass`` (median minor page
-    faults per call). The garbage collector is left on (it is part of the real cost) but
-    run once before the timed calls so earlier garbage is not charged to them.
-    """
-    for _ in range(warmup):
-        fn()
-    gc.collect()
-    times, faults = [], []
-    for _ in range(repeats):
-        f0 = _minor_faults()
-        t0 = time.perf_counter()
-        fn()
-        t1 = time.perf_counter()
-        faults.append(_minor_faults() - f0)
-        times.append(t1 - t0)
-    result = summarize(times)
-    result["page_faults_per_pass"] = float(np.median(faults))
-    return result
-
-
-def measure_interleaved(fns: dict, repeats: int = 7, warmup: int = 1) -> dict:
-    """Time several callables in turns, one call of each per round (``repeats`` rounds),
-    so that every one of them sees the same machine state: on a shared machine the speed
-    drifts over seconds, and ratios of medians taken one after another drift with it.
-
-    Returns {name: the result ``measure`` would give}.
+    Returns {name: ``summarize`` of its times plus ``page_faults_per_pass``, the median
+    minor page faults per call}. The garbage collector is left on (it is part of the real
+    cost) but run once before the timed calls so earlier garbage is not charged to them.
     """
     for _ in range(warmup):
         for fn in fns.values():
@@ -113,14 +116,15 @@ def measure_interleaved(fns: dict, repeats: int = 7, warmup: int = 1) -> dict:
     gc.collect()
     times = {name: [] for name in fns}
     faults = {name: [] for name in fns}
-    for _ in range(repeats):
+    for _ in range(-(-repeats // block)):
         for name, fn in fns.items():
-            f0 = _minor_faults()
-            t0 = time.perf_counter()
-            fn()
-            t1 = time.perf_counter()
-            faults[name].append(_minor_faults() - f0)
-            times[name].append(t1 - t0)
+            for _ in range(block):
+                f0 = _minor_faults()
+                t0 = time.perf_counter()
+                fn()
+                t1 = time.perf_counter()
+                faults[name].append(_minor_faults() - f0)
+                times[name].append(t1 - t0)
     out = {}
     for name in fns:
         out[name] = summarize(times[name])
@@ -128,8 +132,14 @@ def measure_interleaved(fns: dict, repeats: int = 7, warmup: int = 1) -> dict:
     return out
 
 
+def measure(fn, repeats: int = 7, warmup: int = 1) -> dict:
+    """Time ``fn()``: ``warmup`` untimed calls, then ``repeats`` timed ones (the result of
+    ``measure_interleaved`` for this one callable)."""
+    return measure_interleaved({"fn": fn}, repeats, warmup)["fn"]
+
+
 def time_once(fn) -> float:
-    """Wall time of one call of ``fn()`` in seconds."""
+    """Wall time of one call of ``fn()`` in seconds (for work too long to repeat)."""
     t0 = time.perf_counter()
     fn()
     return time.perf_counter() - t0
@@ -180,6 +190,54 @@ def measure_memory(fn) -> dict:
         "rss_increase_mb": rss_peak - rss_before,
         "rss_peak_reset": reset_ok,
     }
+
+
+def allocator_setting() -> dict:
+    """Whether this process started with ``KEEP_FREED_MEMORY`` in its environment
+    (``keep_freed_memory``) and whether its C library is glibc, which reads those variables
+    (``keep_freed_applied``: both)."""
+    requested = all(os.environ.get(k) == v for k, v in KEEP_FREED_MEMORY.items())
+    glibc = platform.libc_ver()[0] == "glibc"
+    return {"keep_freed_memory": requested, "keep_freed_applied": requested and glibc}
+
+
+# --------------------------------------------------------------------------------------
+# Fresh processes
+# --------------------------------------------------------------------------------------
+
+# What the child process runs: import the function's module from benchmarks/, call it with
+# the keyword arguments and write its (JSON) result to a file (stdout may carry warnings).
+_CHILD = "import sys; sys.path.insert(0, sys.argv[1]); import timing; timing._child(*sys.argv[2:])"
+
+
+def _child(module: str, function: str, kwargs: str, result_path: str) -> None:
+    fn = getattr(importlib.import_module(module), function)
+    write_strict_json(result_path, fn(**json.loads(kwargs)))
+
+
+def in_fresh_process(fn, env: dict | None = None, **kwargs) -> dict:
+    """``fn(**kwargs)`` run in a new Python process and its result (a JSON-able dict).
+
+    ``fn`` is a module-level function of a script in ``benchmarks/``. ``env`` changes the
+    child's environment: name -> value, or name -> None to remove a variable the parent
+    has (e.g. one run_all.py sets, which a variant must not inherit).
+    """
+    child_env = dict(os.environ)
+    for name, value in (env or {}).items():
+        if value is None:
+            child_env.pop(name, None)
+        else:
+            child_env[name] = value
+    # A script run as ``python benchmarks/x.py`` is module __main__: import it by file name.
+    module = Path(sys.modules[fn.__module__].__file__).stem
+    with tempfile.TemporaryDirectory() as tmp:
+        result_path = Path(tmp) / "result.json"
+        cmd = [sys.executable, "-c", _CHILD, str(HERE), module, fn.__name__]
+        cmd += [json.dumps(kwargs), str(result_path)]
+        proc = subprocess.run(cmd, env=child_env, capture_output=True, text=True, check=False)
+        if proc.returncode != 0:
+            raise RuntimeError(f"{module}.{fn.__name__} failed in its process:\n{proc.stderr}")
+        return json.loads(result_path.read_text(encoding="utf-8"))
 
 
 # --------------------------------------------------------------------------------------
@@ -245,7 +303,7 @@ def machine_line(m: dict) -> str:
 
 
 # --------------------------------------------------------------------------------------
-# Output
+# Command line and output
 # --------------------------------------------------------------------------------------
 
 
@@ -276,6 +334,57 @@ def make_parser(doc: str) -> argparse.ArgumentParser:
     return parser
 
 
+QUICK_REPEATS = 3  # timed calls per measurement with --quick
+
+
+def main(
+    name: str,
+    doc: str,
+    run,
+    argv=None,
+    options: dict | None = None,
+    repeats: int | None = None,
+    size: tuple[int, int] | None = None,
+) -> dict:
+    """A script's ``main()``: parse the command line, compute ``result = run(args)`` (a dict
+    with its ``report`` section), write it to ``OUT/name.json``, print the report; returns
+    the result.
+
+    The command line: ``--out`` and ``--quick``; ``--repeats`` if ``repeats`` is given (its
+    default; ``QUICK_REPEATS`` with ``--quick``); ``--size`` if ``size`` = (default, default
+    with ``--quick``) is given, the image side; and the script's own ``options``, {flag:
+    keyword arguments of ``add_argument``}.
+    """
+    parser = make_parser(doc)
+    if repeats is not None:
+        parser.add_argument(
+            "--repeats",
+            type=int,
+            help=f"timed calls per measurement (default {repeats}, {QUICK_REPEATS} with --quick)",
+        )
+    if size is not None:
+        parser.add_argument(
+            "--size", type=int, help=f"image side (default {size[0]}, {size[1]} with --quick)"
+        )
+    for flag, kwargs in (options or {}).items():
+        parser.add_argument(flag, **kwargs)
+    args = parser.parse_args(argv)
+    if repeats is not None:
+        args.repeats = args.repeats or (QUICK_REPEATS if args.quick else repeats)
+    if size is not None:
+        args.size = args.size or (size[1] if args.quick else size[0])
+    result = run(args)
+    path = write_json(args.out, name, result)
+    print_report(result["report"], machine())
+    print(f"wrote {path}")
+    return result
+
+
+# --------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------
+
+
 def row(quantity: str, ours: str, reference: str = "", status: str = "") -> dict:
     """One line of a report table: what, our value, the paper's value or the target, and
     for targets whether ours meets it ("met" / "not met")."""
@@ -285,6 +394,17 @@ def row(quantity: str, ours: str, reference: str = "", status: str = "") -> dict
 def target_status(value: float, limit: float) -> str:
     """'met' if value <= limit (a time or ratio budget), else 'not met'."""
     return "met" if value <= limit else "not met"
+
+
+def target_row(quantity: str, ours: str, value: float, limit: float, target: str) -> dict:
+    """A report line for a quantity with a budget: ``value`` (shown as ``ours``) against
+    ``limit`` (described by ``target``)."""
+    return row(quantity, ours, target, target_status(value, limit))
+
+
+def time_rows(results: dict, labels: dict) -> list[dict]:
+    """A report line ``label: ms(results[key])`` for every ``key: label`` of ``labels``."""
+    return [row(label, ms(results[key])) for key, label in labels.items()]
 
 
 def report_section(title: str, rows: list[dict], notes: list[str], plots: list) -> dict:
@@ -318,6 +438,31 @@ def ms(stats: dict) -> str:
     return f"{stats['median_ms']:.1f} ms [{stats['q1_ms']:.1f}-{stats['q3_ms']:.1f}]"
 
 
+def mb(memory: dict) -> str:
+    """'18.0 / 268 MB': tracemalloc peak / process peak RSS of a ``measure_memory`` result."""
+    return f"{memory['tracemalloc_peak_mb']:.1f} / {memory['rss_peak_mb']:.0f} MB"
+
+
+def series(points: list[dict], x: str, ys: dict) -> dict:
+    """Plot series over ``points``: {label: (the points' ``x`` values, ``get(point)`` for
+    each)} for every ``label: get`` of ``ys``."""
+    xs = [p[x] for p in points]
+    return {label: (xs, [get(p) for p in points]) for label, get in ys.items()}
+
+
+def steps_plot(path: Path, title: str, steps: list[str], values: dict, ylabel: str = "ms"):
+    """A line plot of ``values`` ({label: one value per step}) against the step numbers
+    1, 2, ..., the steps named in the title; returns the PNG's path."""
+    x = list(range(1, len(steps) + 1))
+    return line_plot(
+        {label: (x, v) for label, v in values.items()},
+        path,
+        title=f"{title}: " + ", ".join(f"{i} {name}" for i, name in enumerate(steps, 1)),
+        xlabel="step (see title)",
+        ylabel=ylabel,
+    )
+
+
 def fit_power_law(x, y) -> float:
     """Exponent b of y = a x^b by least squares on log-log (NaN with fewer than 2 points)."""
     x, y = np.asarray(x, float), np.asarray(y, float)
@@ -326,8 +471,3 @@ def fit_power_law(x, y) -> float:
         return float("nan")
     slope, _ = np.polyfit(np.log(x[keep]), np.log(y[keep]), 1)
     return float(slope)
-
-
-def finite_positive(x) -> bool:
-    """True for a finite number > 0 (used by the smoke test's checks too)."""
-    return isinstance(x, int | float) and math.isfinite(x) and x > 0

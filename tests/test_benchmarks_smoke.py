@@ -132,6 +132,10 @@ def test_script_quick(name, tmp_path):
     for plot in section["plots"]:
         assert (tmp_path / plot).stat().st_size > 0
     assert data["machine"]["usable_cores"] >= 1
+    if name == "bench_minidiff":  # each allocator setting reached its worker processes
+        for dtype in ("float64", "float32"):
+            assert data["keep_freed"][dtype]["keep_freed_memory"]
+            assert not data["default"][dtype]["keep_freed_memory"]
 
 
 def test_run_all_writes_report(tmp_path):
@@ -140,6 +144,39 @@ def test_run_all_writes_report(tmp_path):
     assert "# Benchmark report" in report
     assert "Visibility only" in report
     assert "| quantity | ours | paper / target | status |" in report
+
+
+def _timing(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCH))
+    import timing
+
+    return timing
+
+
+def test_variants_are_timed_in_turns(monkeypatch):
+    """measure_interleaved: the warm-up calls, then blocks of calls of each variant in
+    turns, until each has its repeats (rounded up to whole blocks)."""
+    timing = _timing(monkeypatch)
+    calls = []
+    fns = {name: (lambda name=name: calls.append(name)) for name in ("a", "b")}
+    result = timing.measure_interleaved(fns, repeats=3, warmup=1, block=2)
+    assert calls == ["a", "b"] + ["a", "a", "b", "b"] * 2
+    assert result["a"]["repeats"] == result["b"]["repeats"] == 4
+    assert result["a"]["min_ms"] <= result["a"]["median_ms"] <= result["a"]["max_ms"]
+
+
+def test_fresh_process_environment(monkeypatch):
+    """in_fresh_process sets the variables asked for and removes those mapped to None, even
+    when this process has them."""
+    timing = _timing(monkeypatch)
+    for name, value in timing.KEEP_FREED_MEMORY.items():
+        monkeypatch.setenv(name, value)
+    unset = dict.fromkeys(timing.KEEP_FREED_MEMORY)
+    assert timing.in_fresh_process(timing.allocator_setting, unset)["keep_freed_memory"] is False
+    for name in timing.KEEP_FREED_MEMORY:
+        monkeypatch.delenv(name)
+    kept = timing.in_fresh_process(timing.allocator_setting, timing.KEEP_FREED_MEMORY)
+    assert kept["keep_freed_memory"] is True
 
 
 def test_brute_force_on_a_subsample_of_rays_matches_the_bvh(monkeypatch):
