@@ -28,8 +28,8 @@ import minidiff as md
 from render.inverse.experiments import (
     TRUE_INTENSITY,
     TRUE_LIGHT,
-    light_estimation_start,
-    relative_error_pct,
+    light_errors_pct,
+    light_estimation_problem,
 )
 from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
@@ -38,6 +38,8 @@ from render.scene.image import save_image
 from render.scene.scene import Camera, Material, Mesh, PointLight, Scene
 from render.scene.teapot import paper_scene, teapot
 
+INITIAL_ERRORS = ("initial_position_error_pct", "initial_intensity_error_pct")
+ERRORS = ("position_error_pct", "intensity_error_pct")
 QUICK = {"--quick": {"action": "store_true", "help": "one small run (not results)"}}
 MIRROR_FLOOR = Material((0.05, 0.05, 0.05), reflectance=0.8)
 
@@ -78,13 +80,13 @@ def seen_only_in_the_mirror(scene: Scene) -> dict:
 
 def estimate_light(size: int, seed: int, iters: int, tol: float) -> dict:
     """The paper's light estimation, from the image of the teapot in the mirror."""
-    truth = teapot_behind_the_camera(size, TRUE_LIGHT, TRUE_INTENSITY)
-    with md.no_grad():
-        target = np.clip(render(truth).data, 0.0, 1.0)
-    light, intensity = light_estimation_start(seed)
-    position = md.tensor(light, requires_grad=True)
-    strength = md.tensor(intensity, requires_grad=True)
-    scene = teapot_behind_the_camera(size, position, strength)
+    scene, (position, strength), target = light_estimation_problem(
+        size, seed, lambda light_position, light_intensity: teapot_behind_the_camera(
+            size, light_position, light_intensity
+        ),
+    )  # fmt: skip
+    target = np.clip(target, 0.0, 1.0)
+    initial = light_errors_pct(position.data.copy(), strength.item())
     start = time.perf_counter()
     _, history = optimize(
         scene, [position, strength], target, lr=[0.3, 20.0], max_iters=iters, tol=tol,
@@ -95,10 +97,8 @@ def estimate_light(size: int, seed: int, iters: int, tol: float) -> dict:
     return {
         "seed": seed,
         **seen_only_in_the_mirror(scene),
-        "initial_position_error_pct": relative_error_pct(light, TRUE_LIGHT),
-        "position_error_pct": relative_error_pct(position.data, TRUE_LIGHT),
-        "initial_intensity_error_pct": 100 * abs(intensity - TRUE_INTENSITY) / TRUE_INTENSITY,
-        "intensity_error_pct": 100 * abs(strength.item() - TRUE_INTENSITY) / TRUE_INTENSITY,
+        **dict(zip(INITIAL_ERRORS, initial, strict=True)),
+        **dict(zip(ERRORS, light_errors_pct(position, strength), strict=True)),
         "iterations": len(history.loss),
         "iterations_to_tol": below[0] if below else None,
         "seconds": seconds,

@@ -20,34 +20,21 @@ from __future__ import annotations
 import numpy as np
 from script_support import command_line
 
-import minidiff as md
-from render.inverse.experiments import (
-    TRUE_INTENSITY,
-    TRUE_LIGHT,
-    light_estimation_start,
-    relative_error_pct,
-)
+from render.inverse.experiments import light_errors_pct, light_estimation_problem
 from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
-from render.renderer import render
 from render.scene.teapot import paper_scene
 
+ERRORS = ("position_error_pct", "intensity_error_pct")
 QUICK = {"--quick": {"action": "store_true", "help": "a few small runs (not results)"}}
 
 
 def estimate(size, seed, ground: bool, antialias: bool, iters: int, tol: float) -> dict:
     """One light estimation run."""
-    truth = paper_scene(
-        size, size, light_position=TRUE_LIGHT, light_intensity=TRUE_INTENSITY, ground=ground
-    )
-    with md.no_grad():
-        target = render(truth, antialias=antialias).data.copy()
-    light, intensity = light_estimation_start(seed)
-    position = md.tensor(light, requires_grad=True)
-    strength = md.tensor(intensity, requires_grad=True)
-    scene = paper_scene(
-        size, size, light_position=position, light_intensity=strength, ground=ground
-    )
+    scene, (position, strength), target = light_estimation_problem(
+        size, seed, lambda **light: paper_scene(size, size, ground=ground, **light),
+        antialias=antialias,
+    )  # fmt: skip
     _, history = optimize(
         scene, [position, strength], np.clip(target, 0, 1), lr=[0.3, 20.0], max_iters=iters,
         tol=tol, quiet=True, render_kwargs={"antialias": antialias},
@@ -57,8 +44,7 @@ def estimate(size, seed, ground: bool, antialias: bool, iters: int, tol: float) 
         "seed": seed,
         "ground": ground,
         "antialias": antialias,
-        "position_error_pct": relative_error_pct(position.data, TRUE_LIGHT),
-        "intensity_error_pct": 100 * abs(strength.item() - TRUE_INTENSITY) / TRUE_INTENSITY,
+        **dict(zip(ERRORS, light_errors_pct(position, strength), strict=True)),
         "iterations_to_tol": below[0] if below else None,
         "final_loss": history.loss[-1],
     }

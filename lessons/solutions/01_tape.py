@@ -10,70 +10,58 @@
 # %% [markdown]
 # # Solutions to lesson 1 (a tape from scratch)
 #
-# The lesson's `Value`, repeated so that this file runs on its own, with the additions of
-# exercise 1 (`tanh`, `__pow__`) and a switch for exercise 2.
+# The lesson's `Value` (run from the lesson's file), with the additions of exercise 1
+# (`tanh`, `__pow__`) and a switch for exercise 2.
 
 # %%
+import contextlib
+import io
 import math
+import runpy
+from pathlib import Path
 
 import numpy as np
 
 import minidiff as md
 from minidiff.tensor import as_tensor, record
 
+with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
+    # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+    here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+    Value = runpy.run_path(str(here.parent / "01_tape.py"))["Value"]
 
-class Value:
-    def __init__(self, data, parents=(), local_grads=()):
-        self.data, self.grad, self.parents = float(data), 0.0, parents
 
-        def _backward():  # the chain rule: add grad · ∂self/∂parent to each parent
-            for parent, local in zip(parents, local_grads, strict=True):
-                parent.grad += self.grad * local
+# Exercise 1: two more operations, each a value and its local derivative. They are added to
+# the lesson's class itself, so that the values its own operations build have them too.
+def tanh(self):
+    t = math.tanh(self.data)
+    return Value(t, (self,), (1.0 - t * t,))
 
-        self._backward = _backward
 
-    def __add__(self, other):  # ∂(a + b)/∂a = 1, ∂(a + b)/∂b = 1
-        other = other if isinstance(other, Value) else Value(other)
-        return Value(self.data + other.data, (self, other), (1.0, 1.0))
+def power(self, k):  # a constant exponent
+    return Value(self.data**k, (self,), (k * self.data ** (k - 1),))
 
-    def __mul__(self, other):  # ∂(ab)/∂a = b, ∂(ab)/∂b = a
-        other = other if isinstance(other, Value) else Value(other)
-        return Value(self.data * other.data, (self, other), (other.data, self.data))
 
-    __radd__, __rmul__ = __add__, __mul__
+def backward(self, dedupe=True):
+    """As in the lesson; dedupe=False forgets `seen` (exercise 2). Returns the number of
+    _backward calls."""
+    order, seen = [], set()
 
-    def sin(self):
-        return Value(math.sin(self.data), (self,), (math.cos(self.data),))
+    def visit(v):  # depth first: a value is appended after all its parents
+        if not dedupe or id(v) not in seen:
+            seen.add(id(v))
+            for p in v.parents:
+                visit(p)
+            order.append(v)
 
-    def exp(self):
-        e = math.exp(self.data)
-        return Value(e, (self,), (e,))
+    visit(self)
+    self.grad = 1.0  # df/df
+    for v in reversed(order):  # every user before the values it uses
+        v._backward()
+    return len(order)
 
-    # Exercise 1: two more operations, each a value and its local derivative.
-    def tanh(self):
-        t = math.tanh(self.data)
-        return Value(t, (self,), (1.0 - t * t,))
 
-    def __pow__(self, k):  # a constant exponent
-        return Value(self.data**k, (self,), (k * self.data ** (k - 1),))
-
-    def backward(self, dedupe=True):
-        """As in the lesson; dedupe=False forgets `seen` (exercise 2). Returns the number
-        of _backward calls."""
-        order, seen = [], set()
-
-        def visit(v):  # depth first: a value is appended after all its parents
-            if not dedupe or id(v) not in seen:
-                seen.add(id(v))
-                for p in v.parents:
-                    visit(p)
-                order.append(v)
-
-        visit(self)
-        self.grad = 1.0  # df/df
-        for v in reversed(order):  # every user before the values it uses
-            v._backward()
-        return len(order)
+Value.tanh, Value.__pow__, Value.backward = tanh, power, backward
 
 
 # %% [markdown]

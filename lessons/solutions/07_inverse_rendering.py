@@ -18,13 +18,9 @@ import render
 from render.inverse import experiments
 
 SIZE = 48
-truth = render.paper_scene(SIZE, SIZE, light_position=experiments.TRUE_LIGHT,
-                           light_intensity=experiments.TRUE_INTENSITY)  # fmt: skip
-target = render.render(truth).data
-start_position, start_intensity = experiments.light_estimation_start(42)
-position = md.tensor(start_position, requires_grad=True)
-intensity = md.tensor(start_intensity, requires_grad=True)
-scene = render.paper_scene(SIZE, SIZE, light_position=position, light_intensity=intensity)
+# The lesson's problem, as render.inverse.experiments sets it up.
+scene, (position, intensity), target = experiments.light_estimation_problem(SIZE, 42)
+start_position, start_intensity = position.data.copy(), intensity.item()
 
 
 def restart():

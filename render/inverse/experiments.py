@@ -187,6 +187,38 @@ def light_estimation_start(seed: int) -> tuple[np.ndarray, float]:
     return position, TRUE_INTENSITY * rng.uniform(0.3, 1.7)
 
 
+def light_estimation_problem(size: int, seed: int = 42, scene_of=None, **render_kwargs):
+    """The light-estimation problem: (scene, [position, intensity], target).
+
+    ``scene_of(light_position=..., light_intensity=...)`` builds the scene around a point
+    light (default: the reference scene, ``size`` x ``size``). The target is its render
+    (with ``render_kwargs``) with the light at ``TRUE_LIGHT`` and intensity
+    ``TRUE_INTENSITY``; the scene returned starts from ``light_estimation_start(seed)``,
+    its light's position and intensity require grad.
+    """
+    if scene_of is None:
+        scene_of = lambda **light: paper_scene(width=size, height=size, **light)  # noqa: E731
+    with md.no_grad():
+        truth = scene_of(light_position=TRUE_LIGHT, light_intensity=TRUE_INTENSITY)
+        target = render(truth, **render_kwargs).data.copy()
+    start_light, start_intensity = light_estimation_start(seed)
+    position = md.tensor(start_light, requires_grad=True)
+    intensity = md.tensor(start_intensity, requires_grad=True)
+    scene = scene_of(light_position=position, light_intensity=intensity)
+    return scene, [position, intensity], target
+
+
+def light_errors_pct(position, intensity) -> tuple[float, float]:
+    """The paper's Eq. 5 and Eq. 6: the light's position and intensity errors, in percent
+    (position (3,), intensity a scalar: arrays, tensors or numbers)."""
+    position = np.asarray(getattr(position, "data", position), dtype=np.float64)
+    intensity = float(np.asarray(getattr(intensity, "data", intensity)))
+    return (
+        relative_error_pct(position, TRUE_LIGHT),
+        100 * abs(intensity - TRUE_INTENSITY) / TRUE_INTENSITY,
+    )
+
+
 def run_light_estimation(
     size: int = 512,
     iters: int = 500,
@@ -201,26 +233,24 @@ def run_light_estimation(
     Truth: light at (1, 4, 2) with I = 150. Start: ``light_estimation_start(seed)``.
     Reported: Eq. 5 (position) and Eq. 6 (intensity) errors.
     """
-    truth = paper_scene(
-        width=size, height=size, light_position=TRUE_LIGHT, light_intensity=TRUE_INTENSITY
-    )
-    target = render(truth).data.copy()
-    start_light, start_intensity = light_estimation_start(seed)
-    position = md.tensor(start_light, requires_grad=True)
-    intensity = md.tensor(start_intensity, requires_grad=True)
-    scene = paper_scene(width=size, height=size, light_position=position, light_intensity=intensity)
+    scene, (position, intensity), target = light_estimation_problem(size, seed)
+    start_light, start_intensity = position.data.copy(), intensity.item()
 
     run = _run(
         scene, [position, intensity], target, lr=list(lr), iters=iters, tol=tol, callback=callback,
         name=f"light_estimation_seed{seed}", quiet=quiet,
     )  # fmt: skip
+    initial_errors, final_errors = (
+        light_errors_pct(start_light, start_intensity),
+        light_errors_pct(position, intensity),
+    )
     run.metrics.update(
         experiment="light_estimation",
         seed=seed,
-        initial_position_error_pct=relative_error_pct(start_light, TRUE_LIGHT),
-        final_position_error_pct=relative_error_pct(position.data, TRUE_LIGHT),
-        initial_intensity_error_pct=100 * abs(start_intensity - TRUE_INTENSITY) / TRUE_INTENSITY,
-        final_intensity_error_pct=100 * abs(intensity.item() - TRUE_INTENSITY) / TRUE_INTENSITY,
+        initial_position_error_pct=initial_errors[0],
+        final_position_error_pct=final_errors[0],
+        initial_intensity_error_pct=initial_errors[1],
+        final_intensity_error_pct=final_errors[1],
         final_light=position.data.tolist(),
         final_intensity=intensity.item(),
         iterations_to_tol=_first_below(run.history.loss, tol),
