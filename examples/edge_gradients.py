@@ -26,11 +26,10 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-from script_support import command_line
+from script_support import command_line, write_results
 
 import minidiff as md
 from render.inverse.experiments import TRUE_CAMERA, camera_calibration_problem
-from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
 from render.inverse.plot import line_plot
 from render.renderer import render
@@ -124,10 +123,7 @@ def main(argv=None) -> dict:
         {"seed": s, "fraction": coverage_at_start(basin_size, s, 30.0)} for s in seeds
     ]
     silhouette_figure(out / "silhouette_zoom.png")
-    write_json(out / "edge_gradients.json", result)
-    (out / "edge_gradients.md").write_text(report(result))
-    print(report(result))
-    return result
+    return write_results(out, "edge_gradients", result, report(result))
 
 
 def report(result: dict) -> str:

@@ -22,7 +22,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from script_support import command_line
+from script_support import command_line, write_results
 
 import minidiff as md
 from render.inverse.experiments import (
@@ -31,7 +31,6 @@ from render.inverse.experiments import (
     light_errors_pct,
     light_estimation_problem,
 )
-from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
 from render.renderer import render
 from render.scene.image import save_image
@@ -141,10 +140,7 @@ def main(argv=None) -> dict:
         result["runs"].append(estimate_light(size, seed, iters, 1e-9))
         if not args.quiet:
             print(result["runs"][-1], flush=True)
-    write_json(out / "mirror_reflection.json", result)
-    (out / "mirror_reflection.md").write_text(report(result))
-    print(report(result))
-    return result
+    return write_results(out, "mirror_reflection", result, report(result))
 
 
 if __name__ == "__main__":

@@ -16,6 +16,7 @@ import numpy as np
 from PIL import Image
 
 from render.inverse.experiments import ExperimentRun
+from render.inverse.jsonio import write_json
 from render.inverse.plot import line_plot
 from render.scene.image import save_image
 
@@ -127,3 +128,12 @@ def run_example(run, description: str, default_iters: int, argv=None, extra=None
     )  # fmt: skip
     print(json.dumps(metrics, indent=2))
     return metrics
+
+
+def write_results(out: Path, name: str, result: dict, report: str) -> dict:
+    """Write ``out/name.json`` (the result, strict JSON) and ``out/name.md`` (the report),
+    print the report, and return the result."""
+    write_json(out / f"{name}.json", result)
+    (out / f"{name}.md").write_text(report)
+    print(report)
+    return result

@@ -18,10 +18,9 @@ the iterations until the loss fell below the tolerance (None: never). Results go
 from __future__ import annotations
 
 import numpy as np
-from script_support import command_line
+from script_support import command_line, write_results
 
 from render.inverse.experiments import light_errors_pct, light_estimation_problem
-from render.inverse.jsonio import write_json
 from render.inverse.optimize import optimize
 from render.scene.teapot import paper_scene
 
@@ -93,10 +92,7 @@ def main(argv=None) -> dict:
         result["paper"].append(estimate(size, seed, False, True, iters, tol))
         if not args.quiet:
             print(result["paper"][-1], flush=True)
-    write_json(out / "shadow_light_estimation.json", result)
-    (out / "shadow_light_estimation.md").write_text(report(result))
-    print(report(result))
-    return result
+    return write_results(out, "shadow_light_estimation", result, report(result))
 
 
 if __name__ == "__main__":

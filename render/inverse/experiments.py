@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,10 +66,10 @@ class ExperimentRun:
     final: np.ndarray
 
 
-def _run(
-    scene, params, target, *, lr, iters, tol, project=None, callback=None, name="", quiet=True
-):
-    """Shared driver: initial render, optimisation, final render, timings."""
+def _run(scene, params, target, *, lr, iters, tol, name, **options):
+    """Shared driver: initial render, optimisation (``options`` go to ``optimize``: e.g.
+    ``callback``, ``quiet``, ``project``), final render, timings."""
+    options.setdefault("quiet", True)
     target = np.clip(target, 0.0, 1.0)  # what the paper's Eq. 1 compares against
     initial = render(scene).data.copy()
     start = time.perf_counter()
@@ -81,9 +80,7 @@ def _run(
         lr=lr,
         max_iters=iters,
         tol=tol,
-        project=project,
-        callback=callback,
-        quiet=quiet,
+        **options,
     )
     total = time.perf_counter() - start
     final = render(scene).data.copy()
@@ -127,8 +124,7 @@ def run_camera_calibration(
     angle: float = 10.0,
     lr: float = 0.03,
     tol: float = 1e-6,
-    callback: Callable | None = None,
-    quiet: bool = True,
+    **options,
 ) -> ExperimentRun:
     """Section 5.6: recover the camera position and look-at point from a target render.
 
@@ -143,8 +139,8 @@ def run_camera_calibration(
     initial_view = object_in_view_pct(scene, truth)
 
     run = _run(
-        scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, callback=callback,
-        name=f"camera_calibration_{angle:g}deg_seed{seed}", quiet=quiet,
+        scene, [position, look_at], target, lr=lr, iters=iters, tol=tol,
+        name=f"camera_calibration_{angle:g}deg_seed{seed}", **options,
     )  # fmt: skip
     run.metrics.update(
         experiment="camera_calibration",
@@ -225,8 +221,7 @@ def run_light_estimation(
     seed: int = 42,
     lr: tuple[float, float] = (0.3, 20.0),
     tol: float = 1e-9,
-    callback: Callable | None = None,
-    quiet: bool = True,
+    **options,
 ) -> ExperimentRun:
     """Section 5.7: recover a point light's position and intensity from a random start.
 
@@ -237,8 +232,8 @@ def run_light_estimation(
     start_light, start_intensity = position.data.copy(), intensity.item()
 
     run = _run(
-        scene, [position, intensity], target, lr=list(lr), iters=iters, tol=tol, callback=callback,
-        name=f"light_estimation_seed{seed}", quiet=quiet,
+        scene, [position, intensity], target, lr=list(lr), iters=iters, tol=tol,
+        name=f"light_estimation_seed{seed}", **options,
     )  # fmt: skip
     initial_errors, final_errors = (
         light_errors_pct(start_light, start_intensity),
@@ -264,8 +259,7 @@ def run_material_recovery(
     seed: int = 42,
     lr: float = 0.05,
     tol: float = 1e-10,
-    callback: Callable | None = None,
-    quiet: bool = True,
+    **options,
 ) -> ExperimentRun:
     """Section 5.8: recover the teapot's albedo, projected onto [0, 1]^3 after every step.
 
@@ -281,7 +275,7 @@ def run_material_recovery(
 
     run = _run(
         scene, [albedo], target, lr=lr, iters=iters, tol=tol, project=md.optim.box(0.0, 1.0),
-        callback=callback, name=f"material_recovery_seed{seed}", quiet=quiet,
+        name=f"material_recovery_seed{seed}", **options,
     )  # fmt: skip
     errors = [float(np.linalg.norm(p[0] - true_albedo)) for p in run.history.params]
     errors.append(float(np.linalg.norm(albedo.data - true_albedo)))
