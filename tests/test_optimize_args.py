@@ -62,3 +62,30 @@ def test_a_nan_gradient_stops_with_the_history_kept():
     history = caught.value.history
     assert history.iterations == 2 and len(history.loss) == 3
     assert np.isnan(history.loss[-1])
+
+
+def test_an_integer_target_is_refused_with_its_dtype_named():
+    """An 8-bit image compared as it is with a rendering in [0, 1] would be 255 times too
+    bright (it was used unscaled): refused, with the way out named."""
+    scene = render.paper_scene(width=8, height=8)
+    light = scene.lights[0].position
+    light.requires_grad = True
+    for dtype in (np.uint8, np.uint16, np.int64, bool):
+        with pytest.raises(TypeError, match=f"integer pixels \\({np.dtype(dtype)}\\)"):
+            render.optimize(scene, [light], np.zeros((8, 8, 3), dtype), max_iters=1)
+    _, history = render.optimize(scene, [light], np.zeros((8, 8, 3), np.float32), max_iters=1)
+    assert history.iterations == 1
+
+
+def test_a_callback_that_makes_a_parameter_nan_keeps_the_history():
+    """The next render refuses the NaN parameter: that failure, like a NaN gradient, is an
+    OptimizationError carrying the iterations made so far."""
+    scene, position, target = small_problem()
+
+    def poison(it, loss, image, history):
+        if it == 1:
+            position.data[0] = np.nan
+
+    with pytest.raises(render.OptimizationError, match="iteration 2") as caught:
+        render.optimize(scene, [position], target, lr=0.05, max_iters=5, callback=poison)
+    assert caught.value.history.iterations == 2 and len(caught.value.history.loss) == 2

@@ -25,6 +25,21 @@ from render.scene.image import load_image, mse
 from render.scene.scene import Scene
 
 
+def _as_target(target) -> np.ndarray:
+    """The target image as float64. Integer pixels (an 8-bit image read with PIL, say) are
+    refused: compared as they are with a rendering in [0, 1] they would be 255 times too
+    bright, and guessing their scale would be wrong for 16-bit files."""
+    array = np.asarray(target.data if isinstance(target, md.Tensor) else target)
+    if array.dtype.kind in "iub":
+        raise TypeError(
+            f"optimize: target has integer pixels ({array.dtype}); pass linear radiance as "
+            "floats, e.g. render.load_image(path) or target / 255.0 for 8-bit values"
+        )
+    if array.dtype.kind not in "f":
+        raise TypeError(f"optimize: target must be a float image array, got dtype {array.dtype}")
+    return array.astype(np.float64)
+
+
 def image_loss(image: md.Tensor, target: np.ndarray) -> md.Tensor:
     """The paper's Eq. 1: mean squared error between the rendered image, clipped to [0, 1]
     (what a camera or an 8-bit file would record), and the target. Saturated pixels pass
@@ -106,7 +121,7 @@ def optimize(
     """
     if isinstance(target, str | Path):  # a file: read as stored (no sRGB decoding)
         target = load_image(target)
-    target = np.asarray(target, dtype=np.float64)
+    target = _as_target(target)
     if isinstance(scene, Scene):
         known = {id(t) for t in scene.parameters()}
         for i, p in enumerate(params):
@@ -135,33 +150,41 @@ def optimize(
     progress = _Progress(max_iters, quiet)
     for it in range(max_iters + 1):
         start = time.perf_counter()
-        opt.zero_grad()
-        image = render_image()
-        loss = loss_fn(image, target)
-        value = loss.item()
-        history.loss.append(value)
-        history.params.append([p.data.copy() for p in params])
-        if value < tol:
-            history.converged = True
-        if not loss.requires_grad:
-            # Nothing in view depends on the parameters (e.g. the object left the image):
-            # there is no gradient to follow.
-            history.stalled = True
-        stop = history.converged or history.stalled or it == max_iters
-        if not stop:
-            loss.backward()
-            try:
-                opt.step()
-            except (ValueError, FloatingPointError) as err:  # e.g. a NaN gradient
-                raise OptimizationError(f"optimize: iteration {it}: {err}", history) from err
-            history.iterations += 1
+        try:  # a failure at any step of an iteration keeps the history so far
+            stop, image = _iteration(it, render_image, loss_fn, target, params, opt, tol,
+                                     max_iters, history)  # fmt: skip
+        except (ValueError, FloatingPointError) as err:  # e.g. a NaN gradient or parameter
+            raise OptimizationError(f"optimize: iteration {it}: {err}", history) from err
         history.seconds.append(time.perf_counter() - start)
-        progress.update(it, value, final=stop)
-        if callback is not None and callback(it, value, image.data, history):
+        progress.update(it, history.loss[-1], final=stop)
+        if callback is not None and callback(it, history.loss[-1], image, history):
             break
         if stop:
             break
     return params, history
+
+
+def _iteration(it, render_image, loss_fn, target, params, opt, tol, max_iters, history):
+    """One iteration of ``optimize``: render, record the loss and the parameters, and (unless
+    it is the last) step. Returns whether to stop, and the rendered image (an ndarray)."""
+    opt.zero_grad()
+    image = render_image()
+    loss = loss_fn(image, target)
+    value = loss.item()
+    history.loss.append(value)
+    history.params.append([p.data.copy() for p in params])
+    if value < tol:
+        history.converged = True
+    if not loss.requires_grad:
+        # Nothing in view depends on the parameters (e.g. the object left the image):
+        # there is no gradient to follow.
+        history.stalled = True
+    stop = history.converged or history.stalled or it == max_iters
+    if not stop:
+        loss.backward()
+        opt.step()
+        history.iterations += 1
+    return stop, image.data
 
 
 class OptimizationError(RuntimeError):

@@ -16,6 +16,7 @@ changes whenever that stage is recomputed.
 
 from __future__ import annotations
 
+import threading
 import weakref
 from collections.abc import Callable, Hashable
 from typing import Any
@@ -37,11 +38,18 @@ def same(key_a: list[np.ndarray] | None, key_b: list[np.ndarray]) -> bool:
 
 
 class RenderCache:
-    """Stage results of earlier renders of one scene: slot -> (key, value, stamp)."""
+    """Stage results of earlier renders of one scene: slot -> (key, value, stamp).
+
+    Guarded: one lock per cache, held while a stage is looked up and, if need be, computed
+    (a stage's computation may look up the stages it builds on: the lock is re-entrant).
+    Two threads rendering the same scene therefore take turns in its cache, and neither
+    sees the other's half-stored entry; renders of different scenes do not wait for each
+    other. The values are shared read-only: no stage writes into a value it got here."""
 
     def __init__(self) -> None:
         self._entries: dict[Hashable, tuple[list[np.ndarray], Any, np.ndarray]] = {}
         self._computed = 0
+        self._lock = threading.RLock()
 
     def get(
         self, slot: Hashable, key: list[np.ndarray], compute: Callable[[], Any]
@@ -49,15 +57,18 @@ class RenderCache:
         """The value in ``slot`` if it was computed for an equal ``key``, else ``compute()``
         (stored for next time). Also returns the value's stamp, (1,) int64, for the keys of
         the stages that build on it."""
-        entry = self._entries.get(slot)
-        if entry is None or not same(entry[0], key):
-            self._computed += 1
-            entry = (key, compute(), np.array([self._computed]))
-            self._entries[slot] = entry
-        return entry[1], entry[2]
+        with self._lock:
+            entry = self._entries.get(slot)
+            if entry is None or not same(entry[0], key):
+                self._computed += 1
+                entry = (key, compute(), np.array([self._computed]))
+                self._entries[slot] = entry
+            return entry[1], entry[2]
 
 
+# One cache per scene, dropped with the scene; the dictionary itself is guarded.
 _CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_CACHES_LOCK = threading.Lock()
 
 
 def cache_for(scene: Scene, reuse: bool) -> RenderCache:
@@ -65,9 +76,11 @@ def cache_for(scene: Scene, reuse: bool) -> RenderCache:
     empty one that nobody keeps if ``reuse`` is False."""
     if not reuse:
         return RenderCache()
-    if scene not in _CACHES:
-        _CACHES[scene] = RenderCache()
-    return _CACHES[scene]
+    with _CACHES_LOCK:
+        cache = _CACHES.get(scene)
+        if cache is None:
+            cache = _CACHES[scene] = RenderCache()
+        return cache
 
 
 def _copies(tensors) -> list[np.ndarray]:

@@ -18,6 +18,7 @@ Two versions of this formula live here, for two jobs:
 from __future__ import annotations
 
 import math
+import threading
 
 import numba
 import numpy as np
@@ -133,19 +134,21 @@ def plain_frame(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     tensors = (camera.position, camera.look_at, camera.up, camera.fov)
     key = [np.array(t.data) for t in tensors]  # copies: optimisers edit values in place
     key.append(np.array([camera.width, camera.height] + [t.data.dtype.num for t in tensors]))
-    last_key, last_frame = _last_plain_frame
+    last_key, last_frame = getattr(_last_plain_frame, "entry", (None, None))
     if last_key is not None and same(key, last_key):
         return last_frame  # a render asks several times; ten tape operations each time add up
     with md.no_grad():
         frame = tuple(t.data.astype(np.float64) for t in camera_frame(camera))
     for array in frame:
         array.flags.writeable = False
-    _last_plain_frame[:] = [key, frame]
+    _last_plain_frame.entry = (key, frame)
     return frame
 
 
 # The last camera values plain_frame was asked about, and its answer.
-_last_plain_frame: list = [None, None]
+# Per thread (each thread remembers its own last camera): a thread never reads another's
+# entry half-written, and two threads rendering different cameras do not evict each other.
+_last_plain_frame = threading.local()
 
 
 def hits_along_rays(
