@@ -265,7 +265,8 @@ def test_quad_textured_with_degenerate_uvs():
 @pytest.mark.parametrize(
     "width, height, spp",
     [(2**32, 2**32, 1), (2**62 + 1, 4, 1), (2**31, 2**31, 4), (2**33, 2**31, 1), (65536, 65536, 1),
-     (100_000, 100_000, 1), (32768, 32768, 4)],
+     (100_000, 100_000, 1), (32768, 32768, 4), (30_000, 30_000, 1), (8, 8, 2**62),
+     (8192, 8193, 1), (4096, 4096, 9)],
 )  # fmt: skip
 def test_image_sizes_that_cannot_fit_fail_before_allocating(width, height, spp):
     """They crashed the interpreter (int64 overflow in a Numba kernel) or failed inside an

@@ -26,7 +26,7 @@ import numpy as np
 import minidiff as md
 from minidiff import buffers
 from render.scene.cache import same
-from render.scene.scene import Camera
+from render.scene.scene import Camera, check_ray_count
 
 
 def subpixel_offsets(spp: int) -> np.ndarray:
@@ -40,6 +40,7 @@ def subpixel_offsets(spp: int) -> np.ndarray:
     n = math.isqrt(spp) if valid else 0
     if not valid or n * n != spp:
         raise ValueError(f"render: spp must be a perfect square (1, 4, 9, 16, ...), got {spp!r}")
+    check_ray_count(1, 1, spp)  # before the n x n grid below is allocated
     cells = (np.arange(n) + 0.5) / n
     sx, sy = np.meshgrid(cells, cells)
     return np.stack([sx.ravel(), sy.ravel()], axis=1)

@@ -130,10 +130,12 @@ def _check_int(value: Any, owner: str, name: str) -> int:
     return int(value)
 
 
-#: The most rays (width * height * spp) one render may trace. Every per-ray array is
-#: indexed with 64-bit integers, but 2**31 rays already need 50 GB for their directions
-#: alone; beyond it an image could only fail later, inside an allocation or a kernel.
-MAX_RAYS = 2**31
+#: The most rays (width * height * spp) one render may trace: 2**26, e.g. 8192 x 8192
+#: pixels at 1 sample or 4096 x 4096 at 4. Every camera ray costs a few hundred bytes over a
+#: render and its backward pass (directions, hits, the tape's per-hit arrays), so this is
+#: already tens of GB; a larger image could only fail later, inside an allocation or with
+#: the machine out of memory, after gigabytes had been taken.
+MAX_RAYS = 2**26
 
 
 def check_ray_count(width: int, height: int, spp: int) -> None:
@@ -142,7 +144,8 @@ def check_ray_count(width: int, height: int, spp: int) -> None:
     if width * height * spp > MAX_RAYS:
         raise ValueError(
             f"render: width x height x spp = {width} x {height} x {spp} = "
-            f"{width * height * spp:,} rays is more than the limit of {MAX_RAYS:,} (2**31)"
+            f"{width * height * spp:,} rays is more than the limit of {MAX_RAYS:,} (2**26, "
+            "e.g. 8192 x 8192 at spp=1): render tiles of the image, or fewer samples"
         )
 
 
