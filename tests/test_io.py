@@ -333,3 +333,40 @@ def test_load_image_bad_inputs_say_what_is_wrong(tmp_path):
             load_image(big)
     finally:
         Image.MAX_IMAGE_PIXELS = limit
+
+
+PLY_HEADER = """ply
+format ascii 1.0
+element vertex {n}
+property float x
+property float y
+property float z
+element face 1
+property list uchar int vertex_indices
+end_header
+"""
+
+
+@pytest.mark.parametrize("declared", [2, 4, 5])
+def test_an_ascii_ply_whose_counts_do_not_match_its_data_says_so(tmp_path, declared):
+    """trimesh read a wrong vertex count as a file with "no triangles"."""
+    path = tmp_path / "bad.ply"
+    path.write_text(PLY_HEADER.format(n=declared) + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    with pytest.raises(ValueError, match=f"declares {declared} vertex, 1 face .* but 4 follow"):
+        load_mesh(path)
+    path.write_text(PLY_HEADER.format(n=3) + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+    assert load_mesh(path)[0].num_faces == 1
+
+
+@pytest.mark.parametrize("path", [None, 42, b"mesh.obj", ["a.obj"]])
+def test_load_mesh_names_a_path_of_the_wrong_type(path):
+    with pytest.raises(TypeError, match="load_mesh: path must be a str or pathlib.Path"):
+        load_mesh(path)
+
+
+@pytest.mark.parametrize("ext", [".stl", ".off"])
+def test_garbage_stl_and_off_files_are_a_clear_error(tmp_path, ext):
+    path = tmp_path / f"garbage{ext}"
+    path.write_bytes(b"garbage\x00\x01 not a mesh\n" * 3)
+    with pytest.raises(ValueError, match=f"load_mesh: (cannot parse )?{path}"):
+        load_mesh(path)

@@ -84,6 +84,8 @@ def load_mesh(
         FileNotFoundError: no file at ``path``.
         ValueError: unsupported extension, unparsable content, or no triangles in the file.
     """
+    if not isinstance(path, str | Path):
+        raise TypeError(f"load_mesh: path must be a str or pathlib.Path, got {type(path).__name__}")
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"load_mesh: no such file: {path}")
@@ -108,6 +110,8 @@ def load_mesh(
     if ext == ".obj":
         text = check_obj(path)  # clear errors for what trimesh would misread or crash on
         source, resolver = io.StringIO(text), trimesh.resolvers.FilePathResolver(str(path))
+    elif ext == ".ply":
+        check_ascii_ply(path)  # trimesh reads a wrong count as "no triangles"
     try:
         loaded = trimesh.load_scene(
             source, file_type=ext[1:], resolver=resolver, process=False, group_material=True
@@ -144,6 +148,36 @@ def load_mesh(
     if not meshes:
         raise ValueError(f"load_mesh: {path} contains no triangles")
     return meshes
+
+
+def check_ascii_ply(path: Path) -> None:
+    """For an ASCII PLY file: ValueError if the header's element counts (vertices, faces,
+    ...) do not add up to the data lines that follow it. Binary PLY files are left to
+    trimesh, which checks their sizes itself."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if not head.startswith(b"ply") or b"format ascii" not in head.split(b"end_header")[0]:
+        return
+    text = read_text(path)
+    header, _, body = text.partition("end_header")
+    counts = {}
+    for line in header.splitlines():
+        words = line.split()
+        if len(words) == 3 and words[0] == "element":
+            try:
+                counts[words[1]] = int(words[2])
+            except ValueError:
+                raise ValueError(
+                    f"load_mesh: {path}: the header's count of {words[1]!r} is not an integer: "
+                    f"{words[2]!r}"
+                ) from None
+    rows = sum(1 for line in body.splitlines() if line.strip())
+    if rows != sum(counts.values()):
+        declared = ", ".join(f"{n} {name}" for name, n in counts.items())
+        raise ValueError(
+            f"load_mesh: {path}: the header declares {declared} ({sum(counts.values())} data "
+            f"lines) but {rows} follow it"
+        )
 
 
 def read_text(path: Path) -> str:
