@@ -150,8 +150,11 @@ def check_ray_count(width: int, height: int, spp: int) -> None:
 
 
 def _normalisable(v: np.ndarray) -> bool:
-    """True if ``v / |v|`` is a finite unit vector (|v| is no denormal or zero)."""
-    return bool(np.linalg.norm(v) > 1e-150)
+    """True if ``v / |v|`` is a finite unit vector: |v| is neither zero nor so small that
+    its square underflows, nor so large that it overflows (1e-150 < |v| < 1e150)."""
+    with np.errstate(over="ignore", under="ignore"):
+        length = np.sqrt(np.sum(np.square(v, dtype=np.float64)))
+    return bool(1e-150 < length < 1e150)
 
 
 def _check_instance(value: Any, owner: str, name: str, cls: type) -> None:
@@ -392,7 +395,7 @@ class DirectionalLight(_HasFields):
     """
 
     # Shading and shadow rays divide by the direction's length: it must not underflow.
-    _DIRECTION = Field("direction", ((3,),), (_normalisable, "a non-zero vector (length > 1e-150)"))
+    _DIRECTION = Field("direction", ((3,),), (_normalisable, "a vector of length 1e-150 to 1e150"))
     FIELDS = (_DIRECTION, _strength("irradiance"), _LIGHT_COLOR)
 
     def __init__(
