@@ -64,7 +64,14 @@ def texel_cell(shape, uv: np.ndarray) -> np.ndarray:
     """
     x, y = _texel_position(shape, np.asarray(uv))
     height, width = shape[0], shape[1]
-    return (np.floor(y).astype(np.int64) % height) * width + np.floor(x).astype(np.int64) % width
+    return _wrapped(np.floor(y), height) * width + _wrapped(np.floor(x), width)
+
+
+def _wrapped(index: np.ndarray, n: int) -> np.ndarray:
+    """Integer-valued float texel indices (k,) wrapped into [0, n), as int64. Wrapped while
+    still floats: a UV as large as 1e300 would overflow the cast to int64 first (the
+    remainder of an integer-valued float is exact at any size)."""
+    return np.mod(index, n).astype(np.int64)
 
 
 def sample_texture(texture, uv) -> md.Tensor:
@@ -80,8 +87,8 @@ def sample_texture(texture, uv) -> md.Tensor:
     y0 = np.floor(y.data)
     fx = column(x - x0)  # the blend weights are differentiable in uv
     fy = column(y - y0)
-    ix0 = x0.astype(np.int64) % width
-    iy0 = y0.astype(np.int64) % height
+    ix0 = _wrapped(x0, width)
+    iy0 = _wrapped(y0, height)
     ix1 = (ix0 + 1) % width
     iy1 = (iy0 + 1) % height
     texels = md.reshape(texture, (height * width, texture.shape[2]))
