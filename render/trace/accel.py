@@ -7,9 +7,10 @@ Usage::
     shadowed = acc.occluded(points, light - points, tmax=1 - 1e-6,
                             ignore_prim=prim_id)                 # shadow rays
 
-``Accelerator(..., use_bvh=False)`` tests every ray against every primitive.  It answers
-exactly the same (bit for bit, see ``render.trace.intersect``): it is the ablation baseline and the
-test oracle.
+``Accelerator(..., use_bvh=False)`` tests every ray against every primitive: the same
+traversal on a tree of one leaf that holds them all (``render.trace.bvh.one_leaf``).  It
+answers exactly the same (bit for bit, see ``render.trace.intersect``): it is the ablation
+baseline and the test oracle.
 
 Design notes
 
@@ -30,13 +31,12 @@ import time
 import numpy as np
 from numba import njit
 
-from render.trace.bvh import N_BINS, build_bvh, primitive_bounds
+from render.trace.bvh import N_BINS, build_bvh, one_leaf, primitive_bounds
 from render.trace.intersect import (
     PRIM_WIDTH,
     FlatBVH,
-    closest_hit_brute,
+    Rays,
     closest_hit_bvh,
-    occluded_brute,
     occluded_bvh,
     pack_primitives,
 )
@@ -131,9 +131,10 @@ def _count_bad_rays(origins, directions):
     return bad_o, bad_d, short_d
 
 
-def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray, int, int, int]:
-    """Validate and convert the ray arrays: (N, 3) each, finite, moderate, directions nonzero.
-    Returns ``(origins, directions, o_step, d_step, N)`` as the kernels take them."""
+def _check_rays(origins, directions, tmin, tmax) -> tuple[Rays, int]:
+    """Validate and convert the rays: origins and directions (N, 3) each, finite, moderate,
+    directions nonzero; tmin a finite scalar; tmax a scalar or (N,), not NaN.  Returns
+    ``(rays, N)``, the rays as the kernels take them (a ``Rays`` record)."""
     o, o_step, n = _as_ray_array("origins", origins)
     d, d_step, n_d = _as_ray_array("directions", directions)
     if n != n_d:
@@ -157,7 +158,18 @@ def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray, int, int, 
                 f"directions must be nonzero (some component >= {MIN_DIRECTION:g} in "
                 f"magnitude); {short_d * (n if d_step == 0 else 1)} rays are zero or too short"
             )
-    return o, d, o_step, d_step, n
+    tmin = _check_scalar("tmin", tmin, allow_inf=False)
+    if np.ndim(tmax) == 0:
+        tmax_arr = np.array([_check_scalar("tmax", tmax, allow_inf=True)])
+        t_step = 0
+    else:
+        tmax_arr = _as_float_array("tmax", tmax, f"(N,) = ({n},)", 1, ())
+        if tmax_arr.shape[0] != n:
+            raise ValueError(f"tmax must have shape (N,) = ({n},), got {tmax_arr.shape}")
+        if np.isnan(tmax_arr).any():
+            raise ValueError("tmax must not contain NaN")
+        t_step = 1
+    return Rays(o, d, o_step, d_step, tmin, tmax_arr, t_step), n
 
 
 def _check_coordinates(name: str, a: np.ndarray) -> None:
@@ -197,7 +209,7 @@ class Accelerator:
     ``n_bins`` is the number of SAH bins per axis used by the builder.
 
     Build statistics (attributes): ``n_triangles``, ``n_spheres``, ``n_prims``,
-    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 without a tree),
+    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 for an empty scene),
     ``build_seconds`` (wall time of ``__init__``; the first build in a process also loads the
     compiled kernels), ``use_bvh``.
     """
@@ -239,22 +251,17 @@ class Accelerator:
         self.n_prims = self.n_triangles + self.n_spheres
         if self.use_bvh:
             prim_min, prim_max = primitive_bounds(tri, centers, radii)
-            bounds, first, count, order, depth = build_bvh(prim_min, prim_max, int(n_bins))
-            self.node_bounds = bounds
-            self.node_first = first
-            self.node_count = count
-            # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
-            self.leaf_ids = order
-            self.leaf_prim = pack_primitives(tri, centers, radii, order)
-            self.depth = int(depth)
-            self.prim_data = np.zeros((0, PRIM_WIDTH))
+            tree = build_bvh(prim_min, prim_max, int(n_bins))
         else:
-            self.node_bounds = np.zeros((0, 6))
-            self.node_first = self.node_count = self.leaf_ids = np.zeros(0, np.int64)
-            self.leaf_prim = np.zeros((0, PRIM_WIDTH))
-            self.depth = 0
-            # The primitive table in id order, which brute force reads directly.
-            self.prim_data = pack_primitives(tri, centers, radii)
+            tree = one_leaf(self.n_prims)
+        self.node_bounds, self.node_first, self.node_count, order, depth = tree
+        # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
+        self.leaf_ids = order
+        self.leaf_prim = pack_primitives(tri, centers, radii, order)
+        self.depth = int(depth)
+        # Always empty since brute force reads leaf_prim too; kept for the byte count of
+        # benchmarks/scaling.py.
+        self.prim_data = np.zeros((0, PRIM_WIDTH))
         self.n_nodes = int(self.node_bounds.shape[0])
         self.n_leaves = int(np.count_nonzero(self.node_count))
         self.build_seconds = time.perf_counter() - t0
@@ -289,56 +296,26 @@ class Accelerator:
         origins: np.ndarray,
         directions: np.ndarray,
         tmin: float = 0.0,
-        tmax: float = np.inf,
+        tmax: np.ndarray | float = np.inf,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Closest hit along each ray ``origins[i] + t * directions[i]``, ``tmin < t < tmax``.
 
         origins, directions: (N, 3); directions need not be unit length (t is in units of the
-        direction vector).  Returns ``prim_id`` (N,) int64 (-1 for a miss), ``t`` (N,) float64
-        (inf for a miss), ``u``, ``v`` (N,) float64 barycentrics: for triangle ``(a, b, c)`` the
-        hit is ``(1-u-v)*a + u*b + v*c``; for spheres and misses ``u = v = 0``.
+        direction vector); tmax a scalar or (N,).  Returns ``prim_id`` (N,) int64 (-1 for a
+        miss), ``t`` (N,) float64 (inf for a miss), ``u``, ``v`` (N,) float64 barycentrics:
+        for triangle ``(a, b, c)`` the hit is ``(1-u-v)*a + u*b + v*c``; for spheres and
+        misses ``u = v = 0``.
 
         Ties are broken by the order (t, prim_id): of two hits at exactly the same t (a ray
         through a shared edge or vertex) the lower id wins, with or without the BVH.
         """
-        o, d, o_step, d_step, n = _check_rays(origins, directions)
-        tmin = _check_scalar("tmin", tmin, allow_inf=False)
-        tmax = _check_scalar("tmax", tmax, allow_inf=True)
+        rays, n = _check_rays(origins, directions, tmin, tmax)
         out_id = np.empty(n, np.int64)
         out_t = np.empty(n)
         out_u = np.empty(n)
         out_v = np.empty(n)
-        if n == 0:
-            return out_id, out_t, out_u, out_v
-        if self.use_bvh:
-            closest_hit_bvh(
-                self._tree(),
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax,
-                out_id,
-                out_t,
-                out_u,
-                out_v,
-            )
-        else:
-            closest_hit_brute(
-                self.prim_data,
-                self.n_triangles,
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax,
-                out_id,
-                out_t,
-                out_u,
-                out_v,
-            )
+        if n:
+            closest_hit_bvh(self._tree(), rays, out_id, out_t, out_u, out_v)
         return out_id, out_t, out_u, out_v
 
     def occluded(
@@ -357,18 +334,7 @@ class Accelerator:
         (typically the ``prim_id`` the shadow ray starts on: a flat triangle cannot shadow
         itself, so skipping it removes self-intersection acne).
         """
-        o, d, o_step, d_step, n = _check_rays(origins, directions)
-        tmin = _check_scalar("tmin", tmin, allow_inf=False)
-        if np.ndim(tmax) == 0:
-            tmax_arr = np.array([_check_scalar("tmax", tmax, allow_inf=True)])
-            t_step = 0
-        else:
-            tmax_arr = _as_float_array("tmax", tmax, f"(N,) = ({n},)", 1, ())
-            if tmax_arr.shape[0] != n:
-                raise ValueError(f"tmax must have shape (N,) = ({n},), got {tmax_arr.shape}")
-            if np.isnan(tmax_arr).any():
-                raise ValueError("tmax must not contain NaN")
-            t_step = 1
+        rays, n = _check_rays(origins, directions, tmin, tmax)
         if ignore_prim is None:
             ignore = np.full(n, -1, np.int64)
         else:
@@ -384,33 +350,6 @@ class Accelerator:
                     f"[0, {self.n_prims - 1}]"
                 )
         out = np.empty(n, np.bool_)
-        if n == 0:
-            return out
-        if self.use_bvh:
-            occluded_bvh(
-                self._tree(),
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax_arr,
-                t_step,
-                ignore,
-                out,
-            )
-        else:
-            occluded_brute(
-                self.prim_data,
-                self.n_triangles,
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax_arr,
-                t_step,
-                ignore,
-                out,
-            )
+        if n:
+            occluded_bvh(self._tree(), rays, ignore, out)
         return out

@@ -37,7 +37,7 @@ from numba import njit, prange
 from minidiff import buffers
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.scene.scene import Camera
-from render.trace.intersect import intersect_prim, pack_primitives
+from render.trace.intersect import intersect_prim, make_ray, pack_primitives
 
 #: Side of a binning tile, in pixels.
 TILE = 16
@@ -200,7 +200,6 @@ def _raster_closest_hit(
     if with_uv:
         out_u[:] = 0.0
         out_v[:] = 0.0
-    ox, oy, oz = eye[0], eye[1], eye[2]
     n_tiles = start.shape[0] - 1
     # Tiles dealt round-robin to jobs: prange splits its range in contiguous parts, which
     # would give one thread the sky and the other the object.
@@ -223,14 +222,12 @@ def _raster_closest_hit(
                             r = (py * width + px) * spp + s
                             if _wholly_beyond(near[pid], out_t[r], rounding):
                                 continue  # wholly behind what the ray already hit
-                            dx, dy, dz = pixel_ray(
+                            direction = pixel_ray(
                                 px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
                                 right, up,
                             )  # fmt: skip
-                            dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
-                            t, u, v = intersect_prim(
-                                prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0
-                            )
+                            ray = make_ray(eye, direction, 0.0, np.inf)
+                            t, u, v = intersect_prim(prim_data, pid, pid, n_tri, ray)
                             # The BVH's order: (t, id); a miss is t = inf and never accepted.
                             best = out_t[r]
                             if t < best or (t == best and pid < out_id[r]):
@@ -481,8 +478,7 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, or
         # The segment's points are no deeper than its start (exactly: (1 - t) times its
         # depth), so primitives wholly beyond that depth cannot block it.
         rounding = 64.0 * eps * (light_size + max(abs(ox), abs(oy), abs(oz)))
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
+        ray = make_ray(origins[i], directions[i], 0.0, tmax[i])
         everything = depth <= close  # rounding could put the ray in the wrong cell
         first, last = (0, near.shape[0]) if everything else (start[c], start[c + 1])
         for j in range(first, last):
@@ -491,7 +487,7 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, or
                 break
             if pid == ignore[i] or not (everything or _may_see(edges[pid], px, py)):
                 continue
-            t, _, _ = intersect_prim(prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0)
-            if t < tmax[i]:
+            t, _, _ = intersect_prim(prim_data, pid, pid, n_tri, ray)
+            if t < ray.tmax:
                 out[i] = True
                 break
