@@ -32,7 +32,8 @@ from render.scene.cache import RenderCache, camera_key, light_key
 from render.scene.camera import hits_along_rays, primary_rays
 from render.scene.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
 from render.trace.accel import Accelerator
-from render.trace.raster import bounding_box, occluded_towards_light, raster_closest_hit
+from render.trace.light_view import bounding_box, occluded_towards_light
+from render.trace.raster import raster_closest_hit
 from render.trace.topology import mesh_edges
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
