@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 
+import numba
 import numpy as np
 from numba import njit
 
@@ -105,30 +106,22 @@ def _as_ray_array(name: str, x) -> tuple[np.ndarray, int, int]:
 
 
 @njit(cache=True)
-def _count_bad_rays(origins, directions):
-    """Counts of (bad origins, bad directions, too short directions) over (N, 3) arrays, one
-    pass instead of several NumPy temporaries.  "Bad" means NaN, inf or larger than
-    MAX_COORD in magnitude (the comparisons are written so that NaN fails them).  Serial:
-    the pass takes well under a millisecond, and a parallel region costs more than that to
-    start on a busy machine (profiled: 13 ms per call on the 41k shadow rays, load 1.5)."""
-    bad_o = 0
-    for i in range(origins.shape[0]):
-        ox = abs(origins[i, 0])
-        oy = abs(origins[i, 1])
-        oz = abs(origins[i, 2])
-        if not (ox <= MAX_COORD and oy <= MAX_COORD and oz <= MAX_COORD):
-            bad_o += 1
-    bad_d = 0
-    short_d = 0
-    for i in range(directions.shape[0]):
-        dx = abs(directions[i, 0])
-        dy = abs(directions[i, 1])
-        dz = abs(directions[i, 2])
-        if not (dx <= MAX_COORD and dy <= MAX_COORD and dz <= MAX_COORD):
-            bad_d += 1
-        elif dx < MIN_DIRECTION and dy < MIN_DIRECTION and dz < MIN_DIRECTION:
-            short_d += 1
-    return bad_o, bad_d, short_d
+def _count_bad_rows(a):
+    """Of the rows of ``a`` (N, 3): how many are bad (NaN, inf or larger than MAX_COORD in
+    magnitude; the comparisons are written so that NaN fails them), and how many of the
+    others are too short to be a direction (every component below MIN_DIRECTION).  One
+    pass instead of several NumPy temporaries.  Serial: the pass takes well under a
+    millisecond, and a parallel region costs more than that to start on a busy machine
+    (profiled: 13 ms per call on the 41k shadow rays, load 1.5)."""
+    bad = 0
+    short = 0
+    for i in range(a.shape[0]):
+        x, y, z = abs(a[i, 0]), abs(a[i, 1]), abs(a[i, 2])
+        if not (x <= MAX_COORD and y <= MAX_COORD and z <= MAX_COORD):
+            bad += 1
+        elif x < MIN_DIRECTION and y < MIN_DIRECTION and z < MIN_DIRECTION:
+            short += 1
+    return bad, short
 
 
 def _check_rays(origins, directions, tmin, tmax) -> tuple[Rays, int]:
@@ -142,7 +135,8 @@ def _check_rays(origins, directions, tmin, tmax) -> tuple[Rays, int]:
             f"origins and directions must have the same number of rays N, got {n} and {n_d}"
         )
     if n > 0:
-        bad_o, bad_d, short_d = _count_bad_rays(o, d)
+        bad_o = _count_bad_rows(o)[0]
+        bad_d, short_d = _count_bad_rows(d)
         if bad_o:
             raise ValueError(
                 f"origins must be finite and at most {MAX_COORD:g} in magnitude; "
@@ -315,7 +309,9 @@ class Accelerator:
         out_u = np.empty(n)
         out_v = np.empty(n)
         if n:
-            closest_hit_bvh(self._tree(), rays, out_id, out_t, out_u, out_v)
+            closest_hit_bvh(
+                self._tree(), rays, numba.get_num_threads(), out_id, out_t, out_u, out_v
+            )
         return out_id, out_t, out_u, out_v
 
     def occluded(
@@ -351,5 +347,5 @@ class Accelerator:
                 )
         out = np.empty(n, np.bool_)
         if n:
-            occluded_bvh(self._tree(), rays, ignore, out)
+            occluded_bvh(self._tree(), rays, numba.get_num_threads(), ignore, out)
         return out
