@@ -199,11 +199,14 @@ class Accelerator:
 
     Primitive ids: triangles are 0..T-1 in the given order, spheres are T..T+S-1.
 
-    ``use_bvh=False`` gives the brute-force baseline (same results, bit for bit).
-    ``n_bins`` is the number of SAH bins per axis used by the builder.
+    ``use_bvh=False`` gives the brute-force baseline (same results, bit for bit): a tree of
+    one leaf holding every primitive, which every ray enters.  ``n_bins`` is the number of
+    SAH bins per axis used by the builder.
 
-    Build statistics (attributes): ``n_triangles``, ``n_spheres``, ``n_prims``,
-    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 for an empty scene),
+    The tree (attributes): ``node_bounds``, ``node_first``, ``node_count``, ``leaf_ids`` and
+    ``leaf_prim`` (see ``render.trace.intersect``).  Build statistics: ``n_triangles``,
+    ``n_spheres``, ``n_prims``, ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 for
+    an empty scene),
     ``build_seconds`` (wall time of ``__init__``; the first build in a process also loads the
     compiled kernels), ``use_bvh``.
     """

@@ -497,4 +497,5 @@ def one_leaf(n_prims: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarr
     if n_prims == 0:
         return build_bvh(np.zeros((0, 3)), np.zeros((0, 3)))
     space = np.array([[-np.inf, -np.inf, -np.inf, np.inf, np.inf, np.inf]])
-    return space, np.zeros(1, np.int64), np.array([n_prims]), np.arange(n_prims), 1
+    count = np.array([n_prims], np.int64)
+    return space, np.zeros(1, np.int64), count, np.arange(n_prims, dtype=np.int64), 1
