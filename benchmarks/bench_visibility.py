@@ -31,8 +31,9 @@ import timing
 from render.scene.camera import primary_rays
 from render.scene.teapot import paper_scene
 from render.trace.accel import Accelerator
+from render.trace.light_view import occluded_towards_light
 from render.trace.primitives import scene_primitives
-from render.trace.raster import occluded_towards_light, raster_closest_hit
+from render.trace.raster import raster_closest_hit
 from render.trace.visibility import scene_size, shadow_rays
 
 

@@ -120,7 +120,7 @@ def million(repeats: int = 3) -> dict:
     n = scene.meshes[0].num_faces
     build = timing.measure(lambda: Accelerator(*primitives), repeats, warmup=1)
     accel = Accelerator(*primitives)
-    arrays = (accel.prim_data, accel.leaf_prim, accel.node_bounds, accel.node_first)
+    arrays = (accel.leaf_prim, accel.node_bounds, accel.node_first)
     arrays += (accel.node_count, accel.leaf_ids)
     accel_bytes = sum(a.nbytes for a in arrays)
     forward = timing.measure(lambda: render(scene, reuse_visibility=False), repeats, warmup=1)

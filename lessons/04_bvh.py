@@ -46,7 +46,7 @@ import render
 from render.scene.camera import primary_rays
 from render.shade.surface import intersect_edges
 from render.trace.accel import Accelerator
-from render.trace.intersect import intersect_triangle, pack_primitives
+from render.trace.intersect import intersect_triangle, make_ray, pack_primitives
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "04_bvh"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -57,8 +57,8 @@ origin, direction = np.array([0.5, 0.25, 3.0]), np.array([0.1, 0.05, -1.0])
 
 # The Numba kernel reads a packed row per triangle: v0, e1, e2, normal, degeneracy cut.
 table = pack_primitives(np.stack([a, b, c])[None], np.zeros((0, 3)), np.zeros(0))
-dlen = float(np.linalg.norm(direction))
-t_numba, u_numba, v_numba = intersect_triangle(table, 0, *origin, *direction, dlen, 0.0)
+ray = make_ray(origin, direction, 0.0, np.inf)  # o + t d for 0 < t < inf
+t_numba, u_numba, v_numba = intersect_triangle(table, 0, ray)
 
 # The same on the tape (arrays of k = 1 ray).
 t_tape, u_tape, v_tape = intersect_edges(
@@ -155,7 +155,7 @@ def closest_hit_counted(acc, o, d):
     """(triangle id or -1, box tests, triangle tests) for one ray."""
     bounds, first, count = acc.node_bounds, acc.node_first, acc.node_count
     inverse = 1.0 / np.where(d == 0, 1e-300, d)
-    dlen = float(np.linalg.norm(d))
+    ray = make_ray(o, d, 0.0, np.inf)
     best, best_t, boxes, tests = -1, np.inf, 1, 0
     if box_entry(bounds[0], o, inverse, best_t) == np.inf:
         return best, boxes, tests
@@ -167,7 +167,7 @@ def closest_hit_counted(acc, o, d):
         if count[node] > 0:  # a leaf: test its triangles
             for k in range(first[node], first[node] + count[node]):
                 tests += 1
-                t, _, _ = intersect_triangle(acc.leaf_prim, k, *o, *d, dlen, 0.0)
+                t, _, _ = intersect_triangle(acc.leaf_prim, k, ray)
                 pid = acc.leaf_ids[k]
                 if t < best_t or (t == best_t and pid < best):  # ties: the lower id wins
                     best, best_t = pid, t

@@ -2,7 +2,9 @@
 
 The brute-force Accelerator (use_bvh=False) is the oracle: the BVH must return *exactly* the
 same ids, t, u, v (same per-primitive arithmetic, (t, id) tie order, conservative culling).
-The brute force itself is checked against closed forms.
+That brute force is the BVH's own traversal on a tree of one leaf, so it is checked in turn
+against closed forms and against ``brute_force_reference``, a plain Python loop over every
+primitive that shares nothing with the traversal but the per-primitive test.
 """
 
 from __future__ import annotations
@@ -14,7 +16,9 @@ from hypothesis import strategies as st
 
 from render.trace.accel import Accelerator
 from render.trace.bvh import MAX_LEAF_SIZE, build_bvh, primitive_bounds
+from render.trace.intersect import intersect_prim, make_ray, pack_primitives
 
+NO_SPHERES = (np.zeros((0, 3)), np.zeros(0))
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
@@ -27,6 +31,28 @@ def assert_same_hits(a, b):
     """Bit-identical closest_hit results."""
     for name, x, y in zip(("prim_id", "t", "u", "v"), a, b, strict=True):
         np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+def brute_force_reference(tris, centers, radii, o, d, tmin=0.0, tmax=np.inf, ignore=None):
+    """Closest hits ``(prim_id, t, u, v)`` and any-hits (N,) bool of N rays ``o + t d``,
+    ``tmin < t < tmax`` (a scalar or (N,)), against every primitive in id order, in plain
+    Python over the library's per-primitive test: the nearest hit, the lowest id of equal
+    ones (a later id replaces it only if strictly nearer); blocked if any primitive other
+    than ``ignore[i]`` (N,) is hit."""
+    table = pack_primitives(tris, centers, radii)
+    tmax = np.broadcast_to(np.asarray(tmax, float), len(o))
+    ignore = np.full(len(o), -1) if ignore is None else ignore
+    hits = np.zeros((len(o), 4))
+    hits[:, :2] = (-1, np.inf)
+    blocked = np.zeros(len(o), bool)
+    for i in range(len(o)):
+        ray = make_ray(o[i], d[i], float(tmin), float(tmax[i]))
+        for p in range(len(table)):
+            t, u, v = intersect_prim(table, p, p, len(tris), ray)
+            if t < min(hits[i, 1], ray.tmax):
+                hits[i] = (p, t, u, v)
+            blocked[i] |= t < ray.tmax and p != ignore[i]
+    return (hits[:, 0].astype(np.int64), *hits[:, 1:].T), blocked
 
 
 def grid_triangles(nx: int, ny: int, z: float = 0.0, size: float = 1.0) -> np.ndarray:
@@ -317,6 +343,7 @@ def test_closest_hit_bvh_equals_brute_force(data, tris):
     got = bvh.closest_hit(o, d, tmin, tmax)
     want = ref.closest_hit(o, d, tmin, tmax)
     assert_same_hits(got, want)
+    assert_same_hits(want, brute_force_reference(tris, *NO_SPHERES, o, d, tmin, tmax)[0])
     pid, t, u, v = got
     hit = pid >= 0
     assert np.all((t[hit] > tmin) & (t[hit] < tmax)) and np.all(np.isinf(t[~hit]))
@@ -347,6 +374,7 @@ def test_mixed_scene_and_shadows_bvh_equals_brute_force(data, tris, spheres):
     ref = Accelerator(tris, centers, radii, use_bvh=False)
     o, d = data.draw(rays_for(tris, centers, 150))
     assert_same_hits(bvh.closest_hit(o, d), ref.closest_hit(o, d))
+    assert_same_hits(ref.closest_hit(o, d), brute_force_reference(tris, centers, radii, o, d)[0])
 
     n = len(o)
     rng = np.random.default_rng(data.draw(st.integers(0, 2**32 - 1)))
@@ -354,10 +382,10 @@ def test_mixed_scene_and_shadows_bvh_equals_brute_force(data, tris, spheres):
     n_prims = len(tris) + len(centers)
     ignore = rng.integers(-1, max(n_prims, 1), size=n) if n_prims else np.full(n, -1)
     tmin = data.draw(st.sampled_from([0.0, 1e-6]))
-    np.testing.assert_array_equal(
-        bvh.occluded(o, d, tmax, tmin=tmin, ignore_prim=ignore),
-        ref.occluded(o, d, tmax, tmin=tmin, ignore_prim=ignore),
-    )
+    blocked = ref.occluded(o, d, tmax, tmin=tmin, ignore_prim=ignore)
+    np.testing.assert_array_equal(bvh.occluded(o, d, tmax, tmin=tmin, ignore_prim=ignore), blocked)
+    reference = brute_force_reference(tris, centers, radii, o, d, tmin, tmax, ignore)[1]
+    np.testing.assert_array_equal(blocked, reference)
     # Shadow rays from the hits: consistent with closest_hit along the same segment.
     pid, t, _, _ = bvh.closest_hit(o, d)
     hit = pid >= 0
@@ -464,6 +492,28 @@ def test_build_statistics_and_repr():
     assert acc.build_seconds >= 0
     assert "BVH" in repr(acc)
     assert "brute force" in repr(Accelerator(sphere_mesh(2, 3), use_bvh=False))
+
+
+def test_brute_force_is_one_leaf_of_any_size_holding_every_primitive_in_id_order():
+    # Far more primitives than MAX_LEAF_SIZE (and than any stack or block size) in one leaf
+    # whose box is all of space: every ray tests every primitive, the ids in order.
+    rng = np.random.default_rng(7)
+    tris = sphere_mesh(30, 40)
+    centers, radii = rng.uniform(-1.5, 1.5, (5, 3)), rng.uniform(0.1, 0.5, 5)
+    brute = Accelerator(tris, centers, radii, use_bvh=False)
+    P = brute.n_prims
+    assert (brute.n_nodes, brute.n_leaves, brute.depth) == (1, 1, 1) and P > 100 * MAX_LEAF_SIZE
+    assert brute.node_count[0] == P and brute.node_first[0] == 0
+    np.testing.assert_array_equal(brute.leaf_ids, np.arange(P))
+    np.testing.assert_array_equal(brute.node_bounds[0], [-np.inf] * 3 + [np.inf] * 3)
+    o = rng.normal(size=(40, 3)) * 4
+    d = tris[rng.integers(0, len(tris), 40), 0] - o
+    d[::4] = centers[rng.integers(0, 5, 10)] - o[::4]
+    want, blocked = brute_force_reference(tris, centers, radii, o, d, ignore=np.arange(40))
+    assert_same_hits(brute.closest_hit(o, d), want)
+    assert_same_hits(Accelerator(tris, centers, radii).closest_hit(o, d), want)
+    np.testing.assert_array_equal(brute.occluded(o, d, np.inf, 0.0, np.arange(40)), blocked)
+    assert (want[0] >= len(tris)).any() and 0 < blocked.sum() and (want[0] >= 0).all()
 
 
 # --------------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Shadow rays answered in the light's view (``render.trace.raster.occluded_towards_light``)
+"""Shadow rays answered in the light's view (``render.trace.light_view.occluded_towards_light``)
 against the BVH: the same yes or no for every ray, on random soups and spheres, at shared
 edges and vertices, far from the origin, and in rendered images."""
 
@@ -14,8 +14,8 @@ from test_raster import points
 import render
 import render.trace.visibility as visibility
 from render.trace.accel import Accelerator
+from render.trace.light_view import occluded_towards_light
 from render.trace.primitives import scene_primitives
-from render.trace.raster import occluded_towards_light
 from render.trace.visibility import scene_size, shadow_rays
 
 SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -24,7 +24,7 @@ import numpy as np
 import render
 from render.scene.camera import primary_rays
 from render.trace.accel import Accelerator
-from render.trace.intersect import intersect_triangle, pack_primitives
+from render.trace.intersect import intersect_triangle, make_ray, pack_primitives
 
 with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
     # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
@@ -74,7 +74,7 @@ p0, p1, p2, p3 = (0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (1.0, 1.0, 0.0), (0.0, 1.0, 0
 square = np.array([[p0, p1, p2], [p0, p2, p3]])
 o, d = np.array([0.5, 0.5, 1.0]), np.array([0.0, 0.0, -1.0])
 table = pack_primitives(square, np.zeros((0, 3)), np.zeros(0))
-both = [intersect_triangle(table, k, *o, *d, 1.0, 0.0) for k in range(2)]
+both = [intersect_triangle(table, k, make_ray(o, d, 0.0, np.inf)) for k in range(2)]
 print("each triangle's (t, u, v):", both)
 assert both[0][0] == both[1][0] == 1.0
 for order in ([0, 1], [1, 0]):

@@ -7,9 +7,10 @@ Usage::
     shadowed = acc.occluded(points, light - points, tmax=1 - 1e-6,
                             ignore_prim=prim_id)                 # shadow rays
 
-``Accelerator(..., use_bvh=False)`` tests every ray against every primitive.  It answers
-exactly the same (bit for bit, see ``render.trace.intersect``): it is the ablation baseline and the
-test oracle.
+``Accelerator(..., use_bvh=False)`` tests every ray against every primitive: the same
+traversal on a tree of one leaf that holds them all (``render.trace.bvh.one_leaf``).  It
+answers exactly the same (bit for bit, see ``render.trace.intersect``): it is the ablation
+baseline and the test oracle.
 
 Design notes
 
@@ -27,16 +28,15 @@ from __future__ import annotations
 
 import time
 
+import numba
 import numpy as np
 from numba import njit
 
-from render.trace.bvh import N_BINS, build_bvh, primitive_bounds
+from render.trace.bvh import N_BINS, build_bvh, one_leaf, primitive_bounds
 from render.trace.intersect import (
-    PRIM_WIDTH,
     FlatBVH,
-    closest_hit_brute,
+    Rays,
     closest_hit_bvh,
-    occluded_brute,
     occluded_bvh,
     pack_primitives,
 )
@@ -105,35 +105,28 @@ def _as_ray_array(name: str, x) -> tuple[np.ndarray, int, int]:
 
 
 @njit(cache=True)
-def _count_bad_rays(origins, directions):
-    """Counts of (bad origins, bad directions, too short directions) over (N, 3) arrays, one
-    pass instead of several NumPy temporaries.  "Bad" means NaN, inf or larger than
-    MAX_COORD in magnitude (the comparisons are written so that NaN fails them).  Serial:
-    the pass takes well under a millisecond, and a parallel region costs more than that to
-    start on a busy machine (profiled: 13 ms per call on the 41k shadow rays, load 1.5)."""
-    bad_o = 0
-    for i in range(origins.shape[0]):
-        ox = abs(origins[i, 0])
-        oy = abs(origins[i, 1])
-        oz = abs(origins[i, 2])
-        if not (ox <= MAX_COORD and oy <= MAX_COORD and oz <= MAX_COORD):
-            bad_o += 1
-    bad_d = 0
-    short_d = 0
-    for i in range(directions.shape[0]):
-        dx = abs(directions[i, 0])
-        dy = abs(directions[i, 1])
-        dz = abs(directions[i, 2])
-        if not (dx <= MAX_COORD and dy <= MAX_COORD and dz <= MAX_COORD):
-            bad_d += 1
-        elif dx < MIN_DIRECTION and dy < MIN_DIRECTION and dz < MIN_DIRECTION:
-            short_d += 1
-    return bad_o, bad_d, short_d
+def _count_bad_rows(a):
+    """Of the rows of ``a`` (N, 3): how many are bad (NaN, inf or larger than MAX_COORD in
+    magnitude; the comparisons are written so that NaN fails them), and how many of the
+    others are too short to be a direction (every component below MIN_DIRECTION).  One
+    pass instead of several NumPy temporaries.  Serial: the pass takes well under a
+    millisecond, and a parallel region costs more than that to start on a busy machine
+    (profiled: 13 ms per call on the 41k shadow rays, load 1.5)."""
+    bad = 0
+    short = 0
+    for i in range(a.shape[0]):
+        x, y, z = abs(a[i, 0]), abs(a[i, 1]), abs(a[i, 2])
+        if not (x <= MAX_COORD and y <= MAX_COORD and z <= MAX_COORD):
+            bad += 1
+        elif x < MIN_DIRECTION and y < MIN_DIRECTION and z < MIN_DIRECTION:
+            short += 1
+    return bad, short
 
 
-def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray, int, int, int]:
-    """Validate and convert the ray arrays: (N, 3) each, finite, moderate, directions nonzero.
-    Returns ``(origins, directions, o_step, d_step, N)`` as the kernels take them."""
+def _check_rays(origins, directions, tmin, tmax) -> tuple[Rays, int]:
+    """Validate and convert the rays: origins and directions (N, 3) each, finite, moderate,
+    directions nonzero; tmin a finite scalar; tmax a scalar or (N,), not NaN.  Returns
+    ``(rays, N)``, the rays as the kernels take them (a ``Rays`` record)."""
     o, o_step, n = _as_ray_array("origins", origins)
     d, d_step, n_d = _as_ray_array("directions", directions)
     if n != n_d:
@@ -141,7 +134,8 @@ def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray, int, int, 
             f"origins and directions must have the same number of rays N, got {n} and {n_d}"
         )
     if n > 0:
-        bad_o, bad_d, short_d = _count_bad_rays(o, d)
+        bad_o = _count_bad_rows(o)[0]
+        bad_d, short_d = _count_bad_rows(d)
         if bad_o:
             raise ValueError(
                 f"origins must be finite and at most {MAX_COORD:g} in magnitude; "
@@ -157,7 +151,18 @@ def _check_rays(origins, directions) -> tuple[np.ndarray, np.ndarray, int, int, 
                 f"directions must be nonzero (some component >= {MIN_DIRECTION:g} in "
                 f"magnitude); {short_d * (n if d_step == 0 else 1)} rays are zero or too short"
             )
-    return o, d, o_step, d_step, n
+    tmin = _check_scalar("tmin", tmin, allow_inf=False)
+    if np.ndim(tmax) == 0:
+        tmax_arr = np.array([_check_scalar("tmax", tmax, allow_inf=True)])
+        t_step = 0
+    else:
+        tmax_arr = _as_float_array("tmax", tmax, f"(N,) = ({n},)", 1, ())
+        if tmax_arr.shape[0] != n:
+            raise ValueError(f"tmax must have shape (N,) = ({n},), got {tmax_arr.shape}")
+        if np.isnan(tmax_arr).any():
+            raise ValueError("tmax must not contain NaN")
+        t_step = 1
+    return Rays(o, d, o_step, d_step, tmin, tmax_arr, t_step), n
 
 
 def _check_coordinates(name: str, a: np.ndarray) -> None:
@@ -193,11 +198,14 @@ class Accelerator:
 
     Primitive ids: triangles are 0..T-1 in the given order, spheres are T..T+S-1.
 
-    ``use_bvh=False`` gives the brute-force baseline (same results, bit for bit).
-    ``n_bins`` is the number of SAH bins per axis used by the builder.
+    ``use_bvh=False`` gives the brute-force baseline (same results, bit for bit): a tree of
+    one leaf holding every primitive, which every ray enters.  ``n_bins`` is the number of
+    SAH bins per axis used by the builder.
 
-    Build statistics (attributes): ``n_triangles``, ``n_spheres``, ``n_prims``,
-    ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 without a tree),
+    The tree (attributes): ``node_bounds``, ``node_first``, ``node_count``, ``leaf_ids`` and
+    ``leaf_prim`` (see ``render.trace.intersect``).  Build statistics: ``n_triangles``,
+    ``n_spheres``, ``n_prims``, ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 for
+    an empty scene),
     ``build_seconds`` (wall time of ``__init__``; the first build in a process also loads the
     compiled kernels), ``use_bvh``.
     """
@@ -239,22 +247,14 @@ class Accelerator:
         self.n_prims = self.n_triangles + self.n_spheres
         if self.use_bvh:
             prim_min, prim_max = primitive_bounds(tri, centers, radii)
-            bounds, first, count, order, depth = build_bvh(prim_min, prim_max, int(n_bins))
-            self.node_bounds = bounds
-            self.node_first = first
-            self.node_count = count
-            # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
-            self.leaf_ids = order
-            self.leaf_prim = pack_primitives(tri, centers, radii, order)
-            self.depth = int(depth)
-            self.prim_data = np.zeros((0, PRIM_WIDTH))
+            tree = build_bvh(prim_min, prim_max, int(n_bins))
         else:
-            self.node_bounds = np.zeros((0, 6))
-            self.node_first = self.node_count = self.leaf_ids = np.zeros(0, np.int64)
-            self.leaf_prim = np.zeros((0, PRIM_WIDTH))
-            self.depth = 0
-            # The primitive table in id order, which brute force reads directly.
-            self.prim_data = pack_primitives(tri, centers, radii)
+            tree = one_leaf(self.n_prims)
+        self.node_bounds, self.node_first, self.node_count, order, depth = tree
+        # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
+        self.leaf_ids = order
+        self.leaf_prim = pack_primitives(tri, centers, radii, order)
+        self.depth = int(depth)
         self.n_nodes = int(self.node_bounds.shape[0])
         self.n_leaves = int(np.count_nonzero(self.node_count))
         self.build_seconds = time.perf_counter() - t0
@@ -289,55 +289,27 @@ class Accelerator:
         origins: np.ndarray,
         directions: np.ndarray,
         tmin: float = 0.0,
-        tmax: float = np.inf,
+        tmax: np.ndarray | float = np.inf,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Closest hit along each ray ``origins[i] + t * directions[i]``, ``tmin < t < tmax``.
 
         origins, directions: (N, 3); directions need not be unit length (t is in units of the
-        direction vector).  Returns ``prim_id`` (N,) int64 (-1 for a miss), ``t`` (N,) float64
-        (inf for a miss), ``u``, ``v`` (N,) float64 barycentrics: for triangle ``(a, b, c)`` the
-        hit is ``(1-u-v)*a + u*b + v*c``; for spheres and misses ``u = v = 0``.
+        direction vector); tmax a scalar or (N,).  Returns ``prim_id`` (N,) int64 (-1 for a
+        miss), ``t`` (N,) float64 (inf for a miss), ``u``, ``v`` (N,) float64 barycentrics:
+        for triangle ``(a, b, c)`` the hit is ``(1-u-v)*a + u*b + v*c``; for spheres and
+        misses ``u = v = 0``.
 
         Ties are broken by the order (t, prim_id): of two hits at exactly the same t (a ray
         through a shared edge or vertex) the lower id wins, with or without the BVH.
         """
-        o, d, o_step, d_step, n = _check_rays(origins, directions)
-        tmin = _check_scalar("tmin", tmin, allow_inf=False)
-        tmax = _check_scalar("tmax", tmax, allow_inf=True)
+        rays, n = _check_rays(origins, directions, tmin, tmax)
         out_id = np.empty(n, np.int64)
         out_t = np.empty(n)
         out_u = np.empty(n)
         out_v = np.empty(n)
-        if n == 0:
-            return out_id, out_t, out_u, out_v
-        if self.use_bvh:
+        if n:
             closest_hit_bvh(
-                self._tree(),
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax,
-                out_id,
-                out_t,
-                out_u,
-                out_v,
-            )
-        else:
-            closest_hit_brute(
-                self.prim_data,
-                self.n_triangles,
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax,
-                out_id,
-                out_t,
-                out_u,
-                out_v,
+                self._tree(), rays, numba.get_num_threads(), out_id, out_t, out_u, out_v
             )
         return out_id, out_t, out_u, out_v
 
@@ -357,18 +329,7 @@ class Accelerator:
         (typically the ``prim_id`` the shadow ray starts on: a flat triangle cannot shadow
         itself, so skipping it removes self-intersection acne).
         """
-        o, d, o_step, d_step, n = _check_rays(origins, directions)
-        tmin = _check_scalar("tmin", tmin, allow_inf=False)
-        if np.ndim(tmax) == 0:
-            tmax_arr = np.array([_check_scalar("tmax", tmax, allow_inf=True)])
-            t_step = 0
-        else:
-            tmax_arr = _as_float_array("tmax", tmax, f"(N,) = ({n},)", 1, ())
-            if tmax_arr.shape[0] != n:
-                raise ValueError(f"tmax must have shape (N,) = ({n},), got {tmax_arr.shape}")
-            if np.isnan(tmax_arr).any():
-                raise ValueError("tmax must not contain NaN")
-            t_step = 1
+        rays, n = _check_rays(origins, directions, tmin, tmax)
         if ignore_prim is None:
             ignore = np.full(n, -1, np.int64)
         else:
@@ -384,33 +345,6 @@ class Accelerator:
                     f"[0, {self.n_prims - 1}]"
                 )
         out = np.empty(n, np.bool_)
-        if n == 0:
-            return out
-        if self.use_bvh:
-            occluded_bvh(
-                self._tree(),
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax_arr,
-                t_step,
-                ignore,
-                out,
-            )
-        else:
-            occluded_brute(
-                self.prim_data,
-                self.n_triangles,
-                o,
-                d,
-                o_step,
-                d_step,
-                tmin,
-                tmax_arr,
-                t_step,
-                ignore,
-                out,
-            )
+        if n:
+            occluded_bvh(self._tree(), rays, numba.get_num_threads(), ignore, out)
         return out

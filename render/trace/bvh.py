@@ -483,3 +483,19 @@ def build_bvh(
     node_first.resize(nodes_used, refcheck=False)
     node_count.resize(nodes_used, refcheck=False)
     return node_bounds, node_first, node_count, order, int(depth)
+
+
+def one_leaf(n_prims: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """Brute force as a tree: a single leaf holding all ``n_prims`` primitives in id order,
+    under a box of all space, in the form :func:`build_bvh` returns.
+
+    The traversal's slab test passes every ray through an infinite box (its slab distances
+    are -inf and +inf, never NaN: an inverse direction is never 0), so every ray whose
+    interval ``tmin <= tmax`` is not empty tests every primitive, in id order.  No primitive
+    (``n_prims = 0``): no node, as ``build_bvh`` gives.
+    """
+    if n_prims == 0:
+        return build_bvh(np.zeros((0, 3)), np.zeros((0, 3)))
+    space = np.array([[-np.inf, -np.inf, -np.inf, np.inf, np.inf, np.inf]])
+    count = np.array([n_prims], np.int64)
+    return space, np.zeros(1, np.int64), count, np.arange(n_prims, dtype=np.int64), 1

@@ -25,8 +25,9 @@ already hit something nearer than all of it win against that), so the ids, t, u 
 are bit-identical to ``Accelerator.closest_hit`` (``tests/test_raster.py`` checks it on
 random triangle soups, shared edges and vertices, spheres, and the teapot).
 
-The second half of the module finds the shadow rays' answers the same way, seen from a
-point light instead of the eye (``occluded_towards_light``).
+The shadow rays towards a point light are answered the same way, seen from the light:
+``render.trace.light_view`` (it shares ``screen_boxes``, ``bin_to_tiles``, ``nearest_depths``,
+``may_see`` and ``wholly_beyond`` with this module).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from numba import njit, prange
 from minidiff import buffers
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.scene.scene import Camera
-from render.trace.intersect import intersect_prim, pack_primitives
+from render.trace.intersect import intersect_prim, make_ray, pack_primitives
 
 #: Side of a binning tile, in pixels.
 TILE = 16
@@ -200,7 +201,6 @@ def _raster_closest_hit(
     if with_uv:
         out_u[:] = 0.0
         out_v[:] = 0.0
-    ox, oy, oz = eye[0], eye[1], eye[2]
     n_tiles = start.shape[0] - 1
     # Tiles dealt round-robin to jobs: prange splits its range in contiguous parts, which
     # would give one thread the sky and the other the object.
@@ -218,19 +218,17 @@ def _raster_closest_hit(
                 for py in range(y0, y1 + 1):
                     for px in range(x0, x1 + 1):
                         for s in range(spp):
-                            if not _may_see(edges[pid], px + offsets[s, 0], py + offsets[s, 1]):
+                            if not may_see(edges[pid], px + offsets[s, 0], py + offsets[s, 1]):
                                 continue
                             r = (py * width + px) * spp + s
-                            if _wholly_beyond(near[pid], out_t[r], rounding):
+                            if wholly_beyond(near[pid], out_t[r], rounding):
                                 continue  # wholly behind what the ray already hit
-                            dx, dy, dz = pixel_ray(
+                            direction = pixel_ray(
                                 px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
                                 right, up,
                             )  # fmt: skip
-                            dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
-                            t, u, v = intersect_prim(
-                                prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0
-                            )
+                            ray = make_ray(eye, direction, 0.0, np.inf)
+                            t, u, v = intersect_prim(prim_data, pid, pid, n_tri, ray)
                             # The BVH's order: (t, id); a miss is t = inf and never accepted.
                             best = out_t[r]
                             if t < best or (t == best and pid < out_id[r]):
@@ -242,7 +240,7 @@ def _raster_closest_hit(
 
 
 @njit(cache=True, inline="always")
-def _wholly_beyond(near, depth, rounding):
+def wholly_beyond(near, depth, rounding):
     """Whether a primitive whose nearest depth (along the view axis) is ``near`` lies wholly
     beyond ``depth`` >= 0, with room for the rounding of both: a relative millionth plus
     ``rounding`` (absolute), many times what either can be off by."""
@@ -250,7 +248,7 @@ def _wholly_beyond(near, depth, rounding):
 
 
 @njit(cache=True, inline="always")
-def _may_see(edges, x, y):
+def may_see(edges, x, y):
     """Whether a sample at continuous pixel position (x, y) passes a primitive's three edge
     tests (``screen_boxes``)."""
     for k in range(3):
@@ -286,8 +284,8 @@ def raster_closest_hit(
     )
     # Each tile's list nearest first: a primitive wholly behind a sample's hit so far is
     # skipped. A hit's t is its depth (the directions have unit component along forward),
-    # never less than its primitive's nearest depth but for rounding (``_wholly_beyond``).
-    near = _nearest_depths(triangles, centers, radii, eye, forward)
+    # never less than its primitive's nearest depth but for rounding (``wholly_beyond``).
+    near = nearest_depths(triangles, centers, radii, eye, forward)
     extent = max(
         np.abs(triangles).max(initial=0.0), (np.abs(centers) + radii[:, None]).max(initial=0.0)
     )
@@ -308,190 +306,21 @@ def raster_closest_hit(
     return out_id, out_t, out_u, out_v
 
 
-# --------------------------------------------------------------------------------------------
-# Shadow rays towards a point light: the same idea, seen from the light
-# --------------------------------------------------------------------------------------------
-#
-# Every shadow ray towards a point light lies on a line through the light, so a primitive
-# can block it only if it covers the ray's direction *as seen from the light*. Looking from
-# the light towards the middle of the rays' origins, with a grid of cells over the
-# directions the rays take: each primitive's projected box lists it in the cells it
-# overlaps, nearest first (``screen_boxes`` and ``bin_to_tiles`` above, with the light as
-# the eye), and each ray is tested against its own cell's list with the tracer's
-# ray-primitive function, skipping primitives whose projected edges rule it out and
-# stopping at the first one wholly farther from the light than the ray's start. Any-hit is
-# a yes or no, and the lists are conservative, so the answers are the BVH's (and brute
-# force's).
-
-#: Shadow rays per cell of the light's grid: fewer cells mean longer lists per ray, more
-#: cells more binning per primitive.
-RAYS_PER_CELL = 4
-
-#: The light's view is used only if every ray leaves the light within ~70 degrees of the
-#: view axis (the cosine of their angle is at least this); wider fans go to the BVH.
-MIN_VIEW_COSINE = 0.35
-
-
-def occluded_towards_light(
-    primitives: tuple[np.ndarray, np.ndarray, np.ndarray],
-    light: np.ndarray,
-    origins: np.ndarray,
-    directions: np.ndarray,
-    tmax: np.ndarray,
-    ignore: np.ndarray,
-) -> np.ndarray | None:
-    """(N,) bool: ``Accelerator.occluded(origins, directions, tmax, tmin=0, ignore)`` for
-    shadow rays towards the point ``light`` (3,), found by binning the primitives in the
-    light's view; None if the rays fan out too widely for one view (use the BVH then).
-
-    primitives: ``(triangles (T, 3, 3), centres (S, 3), radii (S,))``; origins and
-    directions (N, 3) with every ray's line through the light: ``directions = light -
-    origins`` and 0 <= tmax (N,) < 1, as ``render.trace.visibility.shadow_rays`` makes them
-    (tmax = 0: the light is at the ray's start, nothing is between).
-    """
-    out = np.zeros(len(origins), np.bool_)
-    if len(origins) == 0:
-        return out
-    fits, forward, right, up, spread = _light_view(light, origins, MIN_VIEW_COSINE)
-    if not fits:
-        return None
-    # Cells: about RAYS_PER_CELL rays each, about square (right and up are the half extents).
-    n_cells = max(1, len(origins) // RAYS_PER_CELL)
-    half_x, half_y = np.sqrt(right @ right), np.sqrt(up @ up)
-    width = int(np.clip(np.sqrt(n_cells * half_x / half_y), 1, 4096))
-    height = int(np.clip(n_cells // width, 1, 4096))
-    # Directions from the light are only as exact as the points are far from it: closer
-    # than ``close``, rounding may move a point by more than half the margin of a cell.
-    # Primitives that come that close are listed in every cell, and rays that start that
-    # close are tested against every primitive.
-    cell = min(2.0 * half_x / width, 2.0 * half_y / height)  # in tangents
-    close = spread / (0.5 * EDGE_MARGIN * cell)
-    triangles, centers, radii = primitives
-    view = (light, forward, right, up, width, height)
-    boxes, edges = screen_boxes(triangles, centers, radii, *view, np.zeros((1, 2)))
-    near = _nearest_depths(triangles, centers, radii, light, forward)
-    boxes[near <= close] = (0, 0, width - 1, height - 1)
-    edges[near <= close] = ((0.0, 0.0, 1.0),) * 3  # no edge test for them either
-    # Each cell's list nearest first, so that a ray can stop at the first primitive that is
-    # wholly farther from the light than the ray's start.
-    start, ids = bin_to_tiles(boxes, width, height, 1, np.argsort(near, kind="stable"))
-    prim_data = pack_primitives(triangles, centers, radii)
-    _occluded_by_cell(prim_data, len(triangles), start, ids, near, edges, view, close, origins,
-                      directions, tmax, ignore, out)  # fmt: skip
-    return out
-
-
 @njit(cache=True, error_model="numpy")
-def _light_view(light, origins, min_cosine):
-    """The light's view of the rays: (fits, forward, right, up, spread); fits is False if
-    the rays fan out wider than ``min_cosine`` allows.
-
-    forward points from the light to the middle of the rays' origins' bounding box; right
-    and up are perpendicular to it, scaled so that every origin's image-plane position
-    (``render.scene.camera``) is within [-1, 1]: the box's corners are (a cone around forward is
-    convex, and a box's projection is that of its corners). spread / depth bounds how far
-    (in image-plane units, tangents) rounding can move the image of a point at that depth
-    from the light: the image of a ray's origin, or of the end of its segment near the
-    light (its direction is light - origin rounded).
-    """
-    lo, hi = bounding_box(origins)
-    corners = np.empty((8, 3))
-    for k in range(8):
-        for a in range(3):
-            corners[k, a] = (hi[a] if k >> a & 1 else lo[a]) - light[a]
-    forward = (lo + hi) / 2.0 - light
-    forward /= np.sqrt(forward @ forward)
-    # Any unit vector perpendicular to forward, then the third axis.
-    helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    side = np.cross(forward, helper)
-    side /= np.sqrt(side @ side)
-    upward = np.cross(side, forward)
-    depth = corners @ forward
-    fits = np.isfinite(forward).all()  # False if the box's middle is the light
-    reach_x = reach_y = 0.0
-    for k in range(8):
-        fits &= depth[k] >= min_cosine * np.sqrt(corners[k] @ corners[k])
-        reach_x = max(reach_x, abs(corners[k] @ side) / depth[k])
-        reach_y = max(reach_y, abs(corners[k] @ upward) / depth[k])
-    # A little room so that the outermost rays fall inside the grid.
-    reach_x = reach_x * (1.0 + 1e-6) + 1e-12
-    reach_y = reach_y * (1.0 + 1e-6) + 1e-12
-    # A few ulps of the coordinates involved, at most, moved over the depth.
-    size = np.abs(light).max() + max(np.abs(lo).max(), np.abs(hi).max())
-    spread = 8.0 * np.finfo(np.float64).eps * size * (1.0 + reach_x + reach_y)
-    return fits, forward, side * reach_x, upward * reach_y, spread
-
-
-@njit(cache=True)
-def bounding_box(points):
-    """The bounding box (lo (3,), hi (3,)) of points (N, 3), N >= 1, in one pass (NumPy's
-    min(axis=0) pays a loop set-up per row of 3)."""
-    lo, hi = points[0].copy(), points[0].copy()
-    for i in range(1, points.shape[0]):
-        for a in range(3):
-            lo[a] = min(lo[a], points[i, a])
-            hi[a] = max(hi[a], points[i, a])
-    return lo, hi
-
-
-@njit(cache=True, error_model="numpy")
-def _nearest_depths(triangles, centers, radii, light, forward):
-    """(P,) each primitive's smallest depth along ``forward`` from the light (triangles:
-    their nearest corner; spheres: centre depth - radius)."""
+def nearest_depths(triangles, centers, radii, eye, forward):
+    """(P,) each primitive's smallest depth along ``forward`` from the point ``eye`` (a camera's
+    eye or a light; triangles: their nearest corner; spheres: centre depth - radius)."""
     near = np.empty(triangles.shape[0] + centers.shape[0])
     for p in range(triangles.shape[0]):
         near[p] = np.inf
         for k in range(3):
             depth = 0.0
             for a in range(3):
-                depth += (triangles[p, k, a] - light[a]) * forward[a]
+                depth += (triangles[p, k, a] - eye[a]) * forward[a]
             near[p] = min(near[p], depth)
     for s in range(centers.shape[0]):
         depth = 0.0
         for a in range(3):
-            depth += (centers[s, a] - light[a]) * forward[a]
+            depth += (centers[s, a] - eye[a]) * forward[a]
         near[triangles.shape[0] + s] = depth - radii[s]
     return near
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, origins,
-                      directions, tmax, ignore, out):  # fmt: skip
-    """Any-hit of every ray against the list of its cell of the light's ``view`` (tmin = 0,
-    as the shadow rays), nearest first, up to the first primitive wholly beyond the ray's
-    start, skipping those whose ``edges`` rule it out; against every primitive if the ray
-    starts within depth ``close`` of the light."""
-    light, forward, right, up, width, height = view
-    rr, uu = right @ right, up @ up
-    eps = np.finfo(np.float64).eps
-    light_size = max(abs(light[0]), abs(light[1]), abs(light[2]))
-    for i in prange(out.shape[0]):
-        if tmax[i] <= 0.0:
-            continue  # the light is at the ray's start: nothing between
-        ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
-        wx, wy, wz = ox - light[0], oy - light[1], oz - light[2]
-        # The ray's cell: its origin's position as _project computes it for points.
-        depth = wx * forward[0] + wy * forward[1] + wz * forward[2]
-        x = (wx * right[0] + wy * right[1] + wz * right[2]) / (rr * depth)
-        y = (wx * up[0] + wy * up[1] + wz * up[2]) / (uu * depth)
-        px, py = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)  # in cells
-        cx = min(max(int(np.floor(px)), 0), width - 1)
-        cy = min(max(int(np.floor(py)), 0), height - 1)
-        c = cy * width + cx
-        # The segment's points are no deeper than its start (exactly: (1 - t) times its
-        # depth), so primitives wholly beyond that depth cannot block it.
-        rounding = 64.0 * eps * (light_size + max(abs(ox), abs(oy), abs(oz)))
-        dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
-        dlen = np.sqrt(dx * dx + dy * dy + dz * dz)
-        everything = depth <= close  # rounding could put the ray in the wrong cell
-        first, last = (0, near.shape[0]) if everything else (start[c], start[c + 1])
-        for j in range(first, last):
-            pid = j if everything else ids[j]
-            if not everything and _wholly_beyond(near[pid], depth, rounding):
-                break
-            if pid == ignore[i] or not (everything or _may_see(edges[pid], px, py)):
-                continue
-            t, _, _ = intersect_prim(prim_data, pid, pid, n_tri, ox, oy, oz, dx, dy, dz, dlen, 0.0)
-            if t < tmax[i]:
-                out[i] = True
-                break

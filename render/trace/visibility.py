@@ -30,8 +30,9 @@ from render.scene.cache import RenderCache, camera_key, light_key
 from render.scene.camera import hits_along_rays, primary_rays
 from render.scene.scene import Camera, DirectionalLight, PointLight, Scene
 from render.trace.accel import Accelerator
+from render.trace.light_view import bounding_box, occluded_towards_light
 from render.trace.primitives import Primitives, scene_primitives
-from render.trace.raster import bounding_box, occluded_towards_light, raster_closest_hit
+from render.trace.raster import raster_closest_hit
 
 #: Shadow rays skip the triangle they start on and start a little off the surface, towards
 #: the light, so that rounding in the hit point cannot make a neighbouring triangle at a
@@ -182,7 +183,7 @@ def scene_size(primitives: Primitives) -> float:
     return float(np.linalg.norm(np.max(hi, axis=0) - np.min(lo, axis=0)))
 
 
-#: Shadow rays towards a point light are answered in the light's view (``render.trace.raster``)
+#: Shadow rays towards a point light are answered in the light's view (``render.trace.light_view``)
 #: when there are at least this many per primitive, otherwise by the BVH. Measured on the
 #: teapot (1,536 triangles), BVH already built, medians of 30: 2,500 rays BVH 0.43 / view
 #: 0.58 ms, 10,000: 1.26 / 1.19 ms, 41,000: 4.2-6.0 / 2.3-2.7 ms; without the light's
@@ -204,7 +205,7 @@ def trace_shadows(
     points (k, 3) on primitives start_prim (k,) of ``primitives`` (``scene_primitives``),
     whose bounding box has the diagonal ``size`` (``scene_size``).
     With ``bvh`` and many rays towards a point light, the rays are answered in the light's
-    view (``render.trace.raster.occluded_towards_light``, the same answers), else by
+    view (``render.trace.light_view.occluded_towards_light``, the same answers), else by
     ``accelerator()`` (which builds the scene's accelerator on first use).
     """
     if len(points) == 0:
