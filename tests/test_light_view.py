@@ -9,7 +9,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from test_accel import grid_triangles
-from test_raster import points
+from test_raster import points, soups
 
 import render
 import render.trace.visibility as visibility
@@ -21,9 +21,11 @@ from render.trace.visibility import scene_size, shadow_rays
 SETTINGS = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
-def shadow_answers(triangles, centers, radii, light, hit_points, start_prim):
+def shadow_answers(triangles, light, hit_points, start_prim, centers=None, radii=None):
     """(light view, BVH) answers for shadow rays from hit points on primitives start_prim
-    to a point light, made as the renderer makes them."""
+    to a point light, made as the renderer makes them (no spheres by default)."""
+    if centers is None:
+        centers, radii = np.zeros((0, 3)), np.zeros(0)
     primitives = (triangles, centers, radii)
     rays = shadow_rays(
         render.PointLight(light, 1.0),
@@ -54,22 +56,19 @@ def points_on(triangles: np.ndarray, rng: np.random.Generator, n: int):
 
 @SETTINGS
 @given(
-    corners=st.integers(1, 40).flatmap(lambda n: points(3 * n, -2.0, 2.0)),
-    spheres=st.integers(0, 3).flatmap(lambda n: points(n, -1.5, 1.5)),
-    radius=st.floats(0.05, 1.0),
+    soup=soups(2.0, 3, 1.5, 1.0),
     light=points(1, -1.0, 1.0),
     height=st.floats(5.0, 12.0),
     seed=st.integers(0, 2**16),
 )
-def test_random_soups_and_spheres_agree_with_the_bvh(corners, spheres, radius, light, height, seed):
+def test_random_soups_and_spheres_agree_with_the_bvh(soup, light, height, seed):
     """Hit points on random triangles in [-2, 2]^3 (every ray skips its own), spheres, and a
     light at least 5 above the soup's top, so that the rays always fit one view (within 60
     degrees of its axis): its answers are the BVH's."""
-    triangles = corners.reshape(-1, 3, 3)
-    radii = np.full(len(spheres), radius)
+    triangles, centers, radii = soup
     light = light[0] + np.array([0.0, 2.0 + height, 0.0])
     hit_points, start = points_on(triangles, np.random.default_rng(seed), 200)
-    view, bvh = shadow_answers(triangles, spheres.reshape(-1, 3), radii, light, hit_points, start)
+    view, bvh = shadow_answers(triangles, light, hit_points, start, centers, radii)
     assert view is not None
     np.testing.assert_array_equal(view, bvh)
 
@@ -85,7 +84,7 @@ def test_primitives_next_to_the_light_far_from_the_origin():
     near_light = 1e-5 * np.array([[[-2.0, -10.0, -2.0], [3.0, -10.0, -1.0], [0.0, -10.0, 3.0]]])
     triangles = np.concatenate([ground, near_light + light + [1e-5, 0.0, 0.0], near_light + light])
     hit_points, start = points_on(ground, np.random.default_rng(5), 4000)
-    view, bvh = shadow_answers(triangles, np.zeros((0, 3)), np.zeros(0), light, hit_points, start)
+    view, bvh = shadow_answers(triangles, light, hit_points, start)
     assert view is not None and 0 < bvh.sum() < len(bvh)
     np.testing.assert_array_equal(view, bvh)
 
@@ -94,9 +93,7 @@ def test_a_light_above_the_soup_always_gets_a_view():
     rng = np.random.default_rng(3)
     triangles = rng.uniform(-1, 1, (300, 3, 3))
     hit_points, start = points_on(triangles, rng, 5000)
-    view, bvh = shadow_answers(
-        triangles, np.zeros((0, 3)), np.zeros(0), (0.2, 6.0, 0.1), hit_points, start
-    )
+    view, bvh = shadow_answers(triangles, (0.2, 6.0, 0.1), hit_points, start)
     assert view is not None and 0 < bvh.sum() < len(bvh)  # some blocked, some not
     np.testing.assert_array_equal(view, bvh)
 
@@ -111,9 +108,7 @@ def test_rays_through_shared_edges_and_vertices():
     hit_points = np.concatenate([corners, lower.mean(axis=1)])
     start = np.concatenate([np.repeat(np.arange(len(lower)), 3), np.arange(len(lower))])
     for light in ((1.0, 1.0, 3.0), (0.5, 1.25, 2.0), (1.0, 1.0, 1e6)):
-        view, bvh = shadow_answers(
-            triangles, np.zeros((0, 3)), np.zeros(0), light, hit_points, start
-        )
+        view, bvh = shadow_answers(triangles, light, hit_points, start)
         assert view is not None
         assert 0 < bvh.sum() < len(bvh)
         np.testing.assert_array_equal(view, bvh)
@@ -135,7 +130,7 @@ def test_the_teapot_on_its_ground_anywhere_at_any_scale(shift, scale):
 
     light = move(np.asarray(scene.lights[0].position.data, float))
     view, bvh = shadow_answers(
-        move(triangles), move(centers), radii * scale, light, move(primary.points), start
+        move(triangles), light, move(primary.points), start, move(centers), radii * scale
     )
     assert view is not None and 0 < bvh.sum() < len(bvh)
     np.testing.assert_array_equal(view, bvh)
@@ -146,7 +141,7 @@ def test_rays_from_the_light_itself_are_lit():
     triangles = grid_triangles(4, 4, z=0.0, size=0.5)
     hit_points, start = triangles.mean(axis=1), np.arange(len(triangles))
     light = hit_points[5]
-    view, bvh = shadow_answers(triangles, np.zeros((0, 3)), np.zeros(0), light, hit_points, start)
+    view, bvh = shadow_answers(triangles, light, hit_points, start)
     assert view is None or np.array_equal(view, bvh)
     assert not bvh[5]
 
@@ -156,9 +151,7 @@ def test_a_light_inside_the_geometry_is_left_to_the_bvh():
     rng = np.random.default_rng(0)
     triangles = rng.uniform(-1, 1, (100, 3, 3))
     hit_points, start = points_on(triangles, rng, 500)
-    view, _ = shadow_answers(
-        triangles, np.zeros((0, 3)), np.zeros(0), (0.0, 0.0, 0.0), hit_points, start
-    )
+    view, _ = shadow_answers(triangles, (0.0, 0.0, 0.0), hit_points, start)
     assert view is None
 
 

@@ -37,23 +37,34 @@ def points(n: int, lo: float, hi: float):
     ).map(np.array)
 
 
+def soups(extent: float, max_spheres: int, sphere_extent: float, max_radius: float):
+    """Strategy: (triangles (T, 3, 3) with corners in [-extent, extent]^3, 1 <= T <= 40;
+    sphere centres (S, 3) in [-sphere_extent, sphere_extent]^3, S <= max_spheres; their
+    common radius (S,), from 0.05 to max_radius)."""
+    corners = st.integers(1, 40).flatmap(lambda n: points(3 * n, -extent, extent))
+    centers = st.integers(0, max_spheres).flatmap(
+        lambda n: points(n, -sphere_extent, sphere_extent)
+    )
+    radius = st.floats(0.05, max_radius)
+    return st.tuples(corners, centers, radius).map(
+        lambda p: (p[0].reshape(-1, 3, 3), p[1].reshape(-1, 3), np.full(len(p[1]), p[2]))
+    )
+
+
 @SETTINGS
 @given(
-    corners=st.integers(1, 40).flatmap(lambda n: points(3 * n, -3.0, 3.0)),
-    spheres=st.integers(0, 4).flatmap(lambda n: points(n, -2.0, 2.0)),
-    radius=st.floats(0.05, 1.5),
+    soup=soups(3.0, 4, 2.0, 1.5),
     eye=points(1, -4.0, 4.0),
     fov=st.floats(20.0, 100.0),
     spp=st.sampled_from([1, 4]),
 )
-def test_random_soups_and_spheres_match_the_bvh(corners, spheres, radius, eye, fov, spp):
+def test_random_soups_and_spheres_match_the_bvh(soup, eye, fov, spp):
     """Random triangles around the eye (some behind it, some crossing its plane) and
     spheres (the eye may be inside one)."""
     eye = eye[0]
     look_at = eye + np.array([0.3, -0.2, -1.0])
     camera = render.Camera(eye, look_at, fov=fov, width=23, height=17)
-    radii = np.full(len(spheres), radius)
-    assert_raster_equals_bvh(corners.reshape(-1, 3, 3), spheres.reshape(-1, 3), radii, camera, spp)
+    assert_raster_equals_bvh(*soup, camera, spp)
 
 
 @pytest.mark.parametrize("spp", [1, 4, 9])
