@@ -10,10 +10,10 @@
 3. Shading (``render.shade.lighting``, on the tape): lights and materials give each hit a colour;
    a reflective material adds what its mirror ray sees (``render.shade.mirrors``: traced like
    step 1, recomputed like step 2, shaded like step 3, up to ``max_bounces`` times).
-4. Edges (``render.edges.silhouettes`` and ``render.edges.shadows``, with ``antialias=True``): where a
-   silhouette, a crease or a shadow edge passes between two adjacent samples, blend them
-   by how much of each one's box the edge covers, with the crossing computed on the tape:
-   gradients then see occlusion and shadow boundaries move.
+4. Edges (``render.edges.silhouettes`` and ``render.edges.shadows``, with
+   ``antialias=True``): where a silhouette, a crease or a shadow edge passes between two
+   adjacent samples, blend them by how much of each one's box the edge covers, with the
+   crossing computed on the tape: gradients then see occlusion and shadow boundaries move.
 5. Image: each pixel the mean of its samples, misses showing the background.
 
 Gradients reach every continuous parameter through steps 2-5; step 1's decisions (and
@@ -65,8 +65,8 @@ def render(
         lights have the same values (see the module docstring).
     return_info: also return a ``RenderInfo`` with the discrete decisions.
     antialias: blend adjacent samples across silhouettes, creases and shadow edges by
-        their coverage, on the tape (``render.edges.silhouettes``, ``render.edges.shadows``), so that
-        moving edges have gradients. False (the
+        their coverage, on the tape (``render.edges.silhouettes``,
+        ``render.edges.shadows``), so that moving edges have gradients. False (the
         default, the paper's renderer): every sample shows the primitive at its centre, the
         image is a step function at edges and their motion has no gradient. See the README
         for why False is the default and when to switch it on.
