@@ -329,7 +329,7 @@ class Tensor:
                     elif x._node.grad is None:
                         x._node.grad = gx
                     else:
-                        x._node.grad = kernels.elementwise(np.add, x._node.grad, gx)
+                        x._node.grad = x._node.grad + gx
             node.free()
 
     # -- operators (each is a primitive from primitives.py) -------------------------------

@@ -778,7 +778,7 @@ def test_composite_broadcast_back_to_size_one_axes(data, rows, cols):
 
 
 # ---------------------------------------------------------------------------------------------
-# Tall, thin arrays: gradients through the column-at-a-time kernels (minidiff.kernels; their
+# Tall, thin arrays: gradients through the compiled row loops (minidiff.kernels; their
 # values are compared with NumPy in test_minidiff_kernels.py)
 # ---------------------------------------------------------------------------------------------
 
