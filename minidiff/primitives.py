@@ -72,9 +72,12 @@ def _plus(*terms: np.ndarray | None) -> np.ndarray | None:
     return total
 
 
-def _or_zeros(t: np.ndarray | None, x: Tensor) -> np.ndarray:
-    """A tangent as an array: None (zero) becomes zeros of x's shape."""
-    return np.zeros(x.shape, dtype=x.dtype) if t is None else t
+def _or_zeros(ts: tuple, tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
+    """The tangents ``ts`` of ``tensors`` as arrays: None (zero) becomes zeros of that
+    tensor's shape."""
+    return [
+        np.zeros(x.shape, x.dtype) if t is None else t for t, x in zip(ts, tensors, strict=True)
+    ]
 
 
 def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
@@ -105,6 +108,29 @@ def _each_reads_the_other(a: Tensor, b: Tensor) -> tuple[Tensor, ...]:
     return tuple(t for t, needed in ((b, a.requires_grad), (a, b.requires_grad)) if needed)
 
 
+def _each_times_the_other(g: np.ndarray, a: Tensor, b: Tensor) -> tuple:
+    """The VJP of a * b: ``g * b`` for a and ``g * a`` for b (None for an operand that
+    needs no gradient)."""
+    return (
+        kernels.multiply(g, b._data) if a.requires_grad else None,
+        kernels.multiply(g, a._data) if b.requires_grad else None,
+    )
+
+
+def _product_rule(product, a: Tensor, b: Tensor):
+    """The JVP of a product that is linear in each operand (multiply, matmul, dot, cross):
+    the tangent of ``product(a, b)`` is ``product(ta, b) + product(a, tb)``, a missing
+    tangent (None) adding nothing."""
+
+    def jvp(ta, tb):
+        return _plus(
+            None if ta is None else product(ta, b._data),
+            None if tb is None else product(a._data, tb),
+        )
+
+    return jvp
+
+
 def _expand_reduced(g: np.ndarray, shape: tuple[int, ...], axis, keepdims: bool) -> np.ndarray:
     """Give a reduction's output gradient back the reduced axes (as size 1), then broadcast."""
     if axis is not None and not keepdims:
@@ -127,10 +153,18 @@ def _need_last_axis(name: str, *tensors: Tensor) -> None:
         raise ValueError(f"{name}: needs vectors, shape (..., n), not 0-d; got shape {shapes}")
 
 
-def _need_some(name: str, tensors: tuple[Tensor, ...]) -> None:
-    """stack/concatenate of nothing has no shape or dtype to give the result."""
-    if not tensors:
+def _join(name: str, join, tensors, axis: int, mismatch: str) -> tuple[tuple, np.ndarray]:
+    """stack's and concatenate's forward: the inputs as tensors, and ``join`` (np.stack or
+    np.concatenate) of their arrays along ``axis``. ``mismatch`` says what is wrong if the
+    shapes do not fit (formatted with ``shapes``)."""
+    tensors = tuple(as_tensor(t) for t in tensors)
+    if not tensors:  # nothing has no shape or dtype to give the result
         raise ValueError(f"{name}: needs at least one tensor, got an empty sequence")
+    try:
+        return tensors, join([t._data for t in tensors], axis=axis)
+    except ValueError:
+        shapes = [t.shape for t in tensors]
+        raise ValueError(f"{name}: " + mismatch.format(shapes=shapes)) from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -162,17 +196,14 @@ def multiply(a: Any, b: Any) -> Tensor:
     """a * b with broadcasting.  d/da = b, d/db = a."""
     a, b = _pair(a, b)
     out = _broadcast_op("multiply", kernels.multiply, a, b)  # a * b
-
-    def vjp(g):  # g * b and g * a
-        return (
-            kernels.multiply(g, b._data) if a.requires_grad else None,
-            kernels.multiply(g, a._data) if b.requires_grad else None,
-        )
-
-    def jvp(ta, tb):
-        return _plus(_scaled(ta, b._data), _scaled(tb, a._data))
-
-    return record("multiply", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
+    return record(
+        "multiply",
+        out,
+        (a, b),
+        lambda g: _each_times_the_other(g, a, b),
+        saves=_each_reads_the_other(a, b),
+        jvp=_product_rule(kernels.multiply, a, b),  # ta * b + a * tb
+    )
 
 
 def divide(a: Any, b: Any) -> Tensor:
@@ -247,9 +278,8 @@ def matmul(a: Any, b: Any) -> Tensor:
             gb = gb[..., 0] if b.ndim == 1 else gb
         return ga, gb
 
-    def jvp(ta, tb):  # (a + ta) @ (b + tb) to first order; vectors need no special case
-        return _plus(None if ta is None else ta @ b._data, None if tb is None else a._data @ tb)
-
+    # JVP: ta @ b + a @ tb, (a + ta) @ (b + tb) to first order; vectors need no special case.
+    jvp = _product_rule(np.matmul, a, b)
     return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
@@ -265,69 +295,61 @@ def exp(x: Any) -> Tensor:
     return record("exp", y, (x,), lambda g: (g * y,), saves_output=True, jvp=lambda t: t * y)
 
 
+def _elementwise(name: str, x: Tensor, y: np.ndarray, times_slope, reads: str) -> Tensor:
+    """Record y = f(x) for an elementwise f, as ``exp`` above does written out.
+
+    The Jacobian of an elementwise function is diagonal, f'(x), so the VJP and the JVP are
+    the same map: ``times_slope(d)`` multiplies by f'(x) (d is the gradient g, or the
+    tangent t). ``reads`` says what it reads at backward time: "x" or "y" (the output)."""
+    return record(
+        name, y, (x,), lambda g: (times_slope(g),), saves=(x,) if reads == "x" else (),
+        saves_output=reads == "y", jvp=times_slope,
+    )  # fmt: skip
+
+
 def log(x: Any) -> Tensor:
     """Natural log (x > 0).  d/dx = 1/x."""
     x = as_tensor(x)
-    return record(
-        "log", np.log(x._data), (x,), lambda g: (g / x._data,), saves=(x,),
-        jvp=lambda t: t / x._data,
-    )  # fmt: skip
+    return _elementwise("log", x, np.log(x._data), lambda d: d / x._data, reads="x")
 
 
 def sqrt(x: Any) -> Tensor:
     """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)); infinite at 0, so keep inputs positive."""
     x = as_tensor(x)
     y = np.sqrt(x._data)
-    return record(
-        "sqrt", y, (x,), lambda g: (g * 0.5 / y,), saves_output=True, jvp=lambda t: t * 0.5 / y
-    )
+    return _elementwise("sqrt", x, y, lambda d: d * 0.5 / y, reads="y")
 
 
 def sin(x: Any) -> Tensor:
     """sin x.  d/dx = cos x."""
     x = as_tensor(x)
-    return record(
-        "sin", np.sin(x._data), (x,), lambda g: (g * np.cos(x._data),), saves=(x,),
-        jvp=lambda t: t * np.cos(x._data),
-    )  # fmt: skip
+    return _elementwise("sin", x, np.sin(x._data), lambda d: d * np.cos(x._data), reads="x")
 
 
 def cos(x: Any) -> Tensor:
     """cos x.  d/dx = -sin x."""
     x = as_tensor(x)
-    return record(
-        "cos", np.cos(x._data), (x,), lambda g: (-g * np.sin(x._data),), saves=(x,),
-        jvp=lambda t: -t * np.sin(x._data),
-    )  # fmt: skip
+    return _elementwise("cos", x, np.cos(x._data), lambda d: -d * np.sin(x._data), reads="x")
 
 
 def tan(x: Any) -> Tensor:
     """tan x.  d/dx = 1 + tan^2 x."""
     x = as_tensor(x)
     y = np.tan(x._data)
-    return record(
-        "tan", y, (x,), lambda g: (g * (1.0 + y * y),), saves_output=True,
-        jvp=lambda t: t * (1.0 + y * y),
-    )  # fmt: skip
+    return _elementwise("tan", x, y, lambda d: d * (1.0 + y * y), reads="y")
 
 
 def tanh(x: Any) -> Tensor:
     """tanh x.  d/dx = 1 - tanh^2 x."""
     x = as_tensor(x)
     y = np.tanh(x._data)
-    return record(
-        "tanh", y, (x,), lambda g: (g * (1.0 - y * y),), saves_output=True,
-        jvp=lambda t: t * (1.0 - y * y),
-    )  # fmt: skip
+    return _elementwise("tanh", x, y, lambda d: d * (1.0 - y * y), reads="y")
 
 
 def abs(x: Any) -> Tensor:
     """|x|.  d/dx = sign(x); at x = 0 we use the subgradient 0."""
     x = as_tensor(x)
-    return record(
-        "abs", np.abs(x._data), (x,), lambda g: (g * np.sign(x._data),), saves=(x,),
-        jvp=lambda t: t * np.sign(x._data),
-    )  # fmt: skip
+    return _elementwise("abs", x, np.abs(x._data), lambda d: d * np.sign(x._data), reads="x")
 
 
 def maximum(a: Any, b: Any) -> Tensor:
@@ -517,25 +539,15 @@ def dot(a: Any, b: Any) -> Tensor:
     _need_last_axis("dot", a, b)
     if a.shape[-1:] != b.shape[-1:]:
         raise ValueError(f"dot: last axes differ: {a.shape} and {b.shape}")
-    try:
-        out = kernels.dot_last(a._data, b._data)
-    except ValueError:
-        raise ValueError(f"dot: cannot broadcast shapes {a.shape} and {b.shape}") from None
-
-    def vjp(g):  # g[..., None] * b and g[..., None] * a
-        g = g[..., None]
-        return (
-            kernels.multiply(g, b._data) if a.requires_grad else None,
-            kernels.multiply(g, a._data) if b.requires_grad else None,
-        )
-
-    def jvp(ta, tb):
-        return _plus(
-            None if ta is None else kernels.dot_last(ta, b._data),
-            None if tb is None else kernels.dot_last(a._data, tb),
-        )
-
-    return record("dot", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
+    out = _broadcast_op("dot", kernels.dot_last, a, b)  # np.sum(a * b, axis=-1)
+    return record(
+        "dot",
+        out,
+        (a, b),
+        lambda g: _each_times_the_other(g[..., None], a, b),  # multiply's, g along the last axis
+        saves=_each_reads_the_other(a, b),
+        jvp=_product_rule(kernels.dot_last, a, b),
+    )
 
 
 def cross(a: Any, b: Any) -> Tensor:
@@ -546,10 +558,7 @@ def cross(a: Any, b: Any) -> Tensor:
     a, b = _pair(a, b)
     if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
         raise ValueError(f"cross: both inputs need a last axis of size 3, got {a.shape}, {b.shape}")
-    try:
-        out = kernels.cross3(a._data, b._data)
-    except ValueError:
-        raise ValueError(f"cross: cannot broadcast shapes {a.shape} and {b.shape}") from None
+    out = _broadcast_op("cross", kernels.cross3, a, b)  # np.cross(a, b)
 
     def vjp(g):  # b x g and g x a
         return (
@@ -557,12 +566,7 @@ def cross(a: Any, b: Any) -> Tensor:
             kernels.cross3(g, a._data) if b.requires_grad else None,
         )
 
-    def jvp(ta, tb):
-        return _plus(
-            None if ta is None else kernels.cross3(ta, b._data),
-            None if tb is None else kernels.cross3(a._data, tb),
-        )
-
+    jvp = _product_rule(kernels.cross3, a, b)
     return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
@@ -655,40 +659,29 @@ def broadcast_to(x: Any, shape) -> Tensor:
 
 def stack(tensors, axis: int = 0) -> Tensor:
     """Stack equal-shaped tensors along a new axis; the gradient is split back into slices."""
-    tensors = tuple(as_tensor(t) for t in tensors)
-    _need_some("stack", tensors)
-    try:
-        out = np.stack([t._data for t in tensors], axis=axis)
-    except ValueError:
-        shapes = [t.shape for t in tensors]
-        raise ValueError(f"stack: all inputs need the same shape, got {shapes}") from None
+    mismatch = "all inputs need the same shape, got {shapes}"
+    tensors, out = _join("stack", np.stack, tensors, axis, mismatch)
 
     def vjp(g):
         return tuple(np.moveaxis(g, axis, 0))
 
-    def jvp(*ts):
-        return np.stack([_or_zeros(t, x) for t, x in zip(ts, tensors, strict=True)], axis=axis)
+    def jvp(*ts):  # the tangents stacked as the values were
+        return np.stack(_or_zeros(ts, tensors), axis=axis)
 
     return record("stack", out, tensors, vjp, jvp=jvp)
 
 
 def concatenate(tensors, axis: int = 0) -> Tensor:
     """Join tensors along an existing axis; the gradient is cut back into the pieces."""
-    tensors = tuple(as_tensor(t) for t in tensors)
-    _need_some("concatenate", tensors)
-    try:
-        out = np.concatenate([t._data for t in tensors], axis=axis)
-    except ValueError:
-        shapes = [t.shape for t in tensors]
-        raise ValueError(f"concatenate: shapes {shapes} do not match off axis {axis}") from None
+    mismatch = "shapes {shapes} do not match off axis " + str(axis)
+    tensors, out = _join("concatenate", np.concatenate, tensors, axis, mismatch)
     cuts = np.cumsum([t.shape[axis] for t in tensors])[:-1]
 
     def vjp(g):
         return tuple(np.split(g, cuts, axis=axis))
 
-    def jvp(*ts):
-        pieces = [_or_zeros(t, x) for t, x in zip(ts, tensors, strict=True)]
-        return np.concatenate(pieces, axis=axis)
+    def jvp(*ts):  # the tangents joined as the values were
+        return np.concatenate(_or_zeros(ts, tensors), axis=axis)
 
     return record("concatenate", out, tensors, vjp, jvp=jvp)
 
