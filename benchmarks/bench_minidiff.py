@@ -44,7 +44,7 @@ import numpy as np
 import timing
 
 import minidiff as md
-from minidiff.kernels import cross3, dot_last, elementwise  # plain NumPy, as minidiff uses it
+from minidiff.kernels import add, cross3, dot_last, multiply, subtract  # as minidiff uses them
 from render import render
 from render.renderer import shade_mesh
 from render.scene.camera import primary_rays
@@ -104,7 +104,7 @@ def make_workload(size: int, dtype) -> dict:
 
 
 def _mul(x, y):
-    return elementwise(np.multiply, x, y)
+    return multiply(x, y)
 
 
 def _normalize(x):
@@ -115,7 +115,8 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     """The floor: the same math as ``render.renderer.shade_mesh`` (flat-shaded mesh, one
     point light, Lambert) and the loss, in plain NumPy with the same fast building blocks
     (np.take gathers and ``minidiff.kernels``: the compiled dot and cross, the
-    column-at-a-time broadcasting ``elementwise`` for (k, 3) op (3,) and (k, 1) op (k, 3)),
+    broadcasting ``kernels.add``, ``subtract`` and ``multiply`` for (k, 3) op (3,) and
+    (k, 1) op (k, 3)),
     no tape."""
     v, d, eye = w["vertices"], w["directions"], w["eye"]
     faces = w["faces"][w["faces_hit"]]
@@ -124,16 +125,16 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     e1, e2 = b - a, c - a
     p = cross3(d, e2)
     inv_det = 1.0 / dot_last(e1, p)
-    s = elementwise(np.subtract, eye, a)
+    s = subtract(eye, a)
     q = cross3(s, e1)
     t = dot_last(e2, q) * inv_det  # no barycentrics: a flat, untextured mesh needs none
-    points = elementwise(np.add, eye, _mul(t[:, None], d))
+    points = add(eye, _mul(t[:, None], d))
     # Flat normal facing the ray (render.renderer.shade_mesh)
     normals = _normalize(cross3(e1, e2))
     flip = np.where(dot_last(normals, d) > 0, -1.0, 1.0).astype(d.dtype)[:, None]
     normals = _mul(normals, flip)
     # Point light, Lambert (render.shade.lighting.shade / light_incidence)
-    offset = elementwise(np.subtract, w["light_position"], points)
+    offset = subtract(w["light_position"], points)
     distance_sq = np.maximum(dot_last(offset, offset), 1e-12)
     to_light = _normalize(offset)
     irradiance = w["intensity"] / distance_sq

@@ -8,7 +8,6 @@ import time
 from script_support import command_line
 
 import render
-from minidiff.memory import keep_freed_memory
 
 # (camera position, look-at point): the reference view, a view from the left, a high view.
 VIEWPOINTS = {
@@ -19,9 +18,6 @@ VIEWPOINTS = {
 
 
 def main(argv=None) -> None:
-    # Opt-in allocator tuning: keep freed arrays for reuse instead of page-faulting them
-    # back in every iteration (measured ~2x faster here; see minidiff/memory.py).
-    keep_freed_memory()
     args = command_line(__doc__.splitlines()[0], default_iters=None, argv=argv, iterative=False)
     for name, (position, look_at) in VIEWPOINTS.items():
         scene = render.paper_scene(

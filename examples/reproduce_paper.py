@@ -18,7 +18,6 @@ import time
 import numpy as np
 from script_support import command_line, run_with_outputs
 
-from minidiff.memory import keep_freed_memory
 from render.inverse.experiments import (
     run_camera_calibration,
     run_light_estimation,
@@ -114,9 +113,6 @@ def table(results: dict) -> str:
 
 
 def main(argv=None) -> None:
-    # Opt-in allocator tuning: keep freed arrays for reuse instead of page-faulting them
-    # back in every iteration (measured ~2x faster here; see minidiff/memory.py).
-    keep_freed_memory()
     extra = {"--quick": {"action": "store_true", "help": "128x128 and 3 seeds (smoke run)"}}
     args = command_line(
         __doc__.splitlines()[0], default_iters=None, argv=argv, extra=extra, default_size=None

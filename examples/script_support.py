@@ -112,13 +112,9 @@ def run_with_outputs(experiment, out: Path | None, iters: int | None = None, **o
 
 
 def run_example(run, description: str, default_iters: int, argv=None, extra=None) -> dict:
-    """What each paper-experiment script does: keep freed memory for reuse (an opt-in
-    allocator tuning, see ``minidiff.memory``), read the shared command line (plus
-    ``extra`` options, passed on to ``run`` by name), run, write the images, print the
-    metrics as JSON."""
-    from minidiff.memory import keep_freed_memory
-
-    keep_freed_memory()
+    """What each paper-experiment script does: read the shared command line (plus ``extra``
+    options, passed on to ``run`` by name), run, write the images, print the metrics as
+    JSON."""
     args = command_line(description, default_iters=default_iters, argv=argv, extra=extra)
     options = {name.lstrip("-").replace("-", "_"): None for name in (extra or {})}
     options = {name: getattr(args, name) for name in options}

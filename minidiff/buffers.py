@@ -13,8 +13,8 @@ one left, which Python's reference count tells exactly (a view keeps its base al
 result that a user still holds, or a view of it, is never handed out again).  The memory
 stays in the process, so the second pass of the same shapes allocates nothing.
 
-This is local to minidiff (``minidiff.memory.keep_freed_memory`` gets the same effect for
-the whole process by changing glibc's thresholds).  The pool holds at most ``max_bytes``
+This is local to minidiff: no allocator setting of the process is changed, and only the
+arrays that come from here are kept.  The pool holds at most ``max_bytes``
 (default 512 MiB); when a new shape would exceed that, the shapes used least recently are
 dropped from it (arrays in use live on, they are just not reused).  ``clear()`` drops
 everything; ``set_max_bytes(0)`` turns reuse off.

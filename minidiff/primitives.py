@@ -35,9 +35,12 @@ additionally watches for in-place edits by the user, which we do not need here.
 A few primitives (``dot``, ``cross``, ``norm``, ``normalize``, ``scatter_add``) could be
 composed from the others, but are written fused with hand-derived VJPs: renderers call them
 on every pixel, and the fused versions allocate fewer temporaries and record fewer nodes.
-How the NumPy work itself is done fast is not this file's business: ``kernels.py`` holds
-those functions (each equal to a plain NumPy expression, e.g. ``cross3(a, b)`` equals
-``np.cross(a, b)``).
+
+The mathematics is written as NumPy expressions. Where a function of ``kernels.py`` stands
+in for one, it equals that expression bit for bit and its name says which:
+``kernels.multiply(g, b)`` is ``g * b``, ``kernels.cross3(a, b)`` is ``np.cross(a, b)``.
+It is there because it was measured to be faster on a renderer's arrays (rows of three,
+image-sized results); how it is made fast is not this file's business.
 """
 
 from __future__ import annotations
@@ -55,8 +58,9 @@ from minidiff.tensor import Tensor, as_tensor, record
 
 
 def _scaled(t: np.ndarray | None, factor: Any) -> np.ndarray | None:
-    """A tangent times ``factor`` (broadcasting); a zero tangent (None) stays None."""
-    return None if t is None else kernels.elementwise(np.multiply, t, factor)
+    """A tangent times ``factor``, ``t * factor`` (broadcasting); a zero tangent (None)
+    stays None."""
+    return None if t is None else kernels.multiply(t, factor)
 
 
 def _plus(*terms: np.ndarray | None) -> np.ndarray | None:
@@ -64,13 +68,16 @@ def _plus(*terms: np.ndarray | None) -> np.ndarray | None:
     total = None
     for t in terms:
         if t is not None:
-            total = t if total is None else kernels.elementwise(np.add, total, t)
+            total = t if total is None else total + t
     return total
 
 
-def _or_zeros(t: np.ndarray | None, x: Tensor) -> np.ndarray:
-    """A tangent as an array: None (zero) becomes zeros of x's shape."""
-    return np.zeros(x.shape, dtype=x.dtype) if t is None else t
+def _or_zeros(ts: tuple, tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
+    """The tangents ``ts`` of ``tensors`` as arrays: None (zero) becomes zeros of that
+    tensor's shape."""
+    return [
+        np.zeros(x.shape, x.dtype) if t is None else t for t, x in zip(ts, tensors, strict=True)
+    ]
 
 
 def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
@@ -84,10 +91,10 @@ def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
 
 
 def _broadcast_op(name: str, op, a: Tensor, b: Tensor) -> np.ndarray:
-    """``op(a, b)`` for a NumPy binary ufunc, turning a broadcasting failure into a clear
-    message."""
+    """``op(a, b)`` on the arrays (a NumPy function, or a kernel equal to one), turning a
+    broadcasting failure into a clear message."""
     try:
-        return kernels.elementwise(op, a._data, b._data)
+        return op(a._data, b._data)
     except ValueError:
         raise ValueError(
             f"{name}: cannot broadcast shapes {a.shape} and {b.shape} together"
@@ -99,6 +106,29 @@ def _each_reads_the_other(a: Tensor, b: Tensor) -> tuple[Tensor, ...]:
     operand is made from the *other* one, so b is needed if a requires grad, and a if b
     does."""
     return tuple(t for t, needed in ((b, a.requires_grad), (a, b.requires_grad)) if needed)
+
+
+def _each_times_the_other(g: np.ndarray, a: Tensor, b: Tensor) -> tuple:
+    """The VJP of a * b: ``g * b`` for a and ``g * a`` for b (None for an operand that
+    needs no gradient)."""
+    return (
+        kernels.multiply(g, b._data) if a.requires_grad else None,
+        kernels.multiply(g, a._data) if b.requires_grad else None,
+    )
+
+
+def _product_rule(product, a: Tensor, b: Tensor):
+    """The JVP of a product that is linear in each operand (multiply, matmul, dot, cross):
+    the tangent of ``product(a, b)`` is ``product(ta, b) + product(a, tb)``, a missing
+    tangent (None) adding nothing."""
+
+    def jvp(ta, tb):
+        return _plus(
+            None if ta is None else product(ta, b._data),
+            None if tb is None else product(a._data, tb),
+        )
+
+    return jvp
 
 
 def _expand_reduced(g: np.ndarray, shape: tuple[int, ...], axis, keepdims: bool) -> np.ndarray:
@@ -123,10 +153,18 @@ def _need_last_axis(name: str, *tensors: Tensor) -> None:
         raise ValueError(f"{name}: needs vectors, shape (..., n), not 0-d; got shape {shapes}")
 
 
-def _need_some(name: str, tensors: tuple[Tensor, ...]) -> None:
-    """stack/concatenate of nothing has no shape or dtype to give the result."""
-    if not tensors:
+def _join(name: str, join, tensors, axis: int, mismatch: str) -> tuple[tuple, np.ndarray]:
+    """stack's and concatenate's forward: the inputs as tensors, and ``join`` (np.stack or
+    np.concatenate) of their arrays along ``axis``. ``mismatch`` says what is wrong if the
+    shapes do not fit (formatted with ``shapes``)."""
+    tensors = tuple(as_tensor(t) for t in tensors)
+    if not tensors:  # nothing has no shape or dtype to give the result
         raise ValueError(f"{name}: needs at least one tensor, got an empty sequence")
+    try:
+        return tensors, join([t._data for t in tensors], axis=axis)
+    except ValueError:
+        shapes = [t.shape for t in tensors]
+        raise ValueError(f"{name}: " + mismatch.format(shapes=shapes)) from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -137,19 +175,19 @@ def _need_some(name: str, tensors: tuple[Tensor, ...]) -> None:
 def add(a: Any, b: Any) -> Tensor:
     """a + b with broadcasting.  d/da = 1, d/db = 1."""
     a, b = _pair(a, b)
-    out = _broadcast_op("add", np.add, a, b)
+    out = _broadcast_op("add", kernels.add, a, b)  # a + b
     return record("add", out, (a, b), lambda g: (g, g), jvp=_plus)
 
 
 def subtract(a: Any, b: Any) -> Tensor:
     """a - b with broadcasting.  d/da = 1, d/db = -1."""
     a, b = _pair(a, b)
-    out = _broadcast_op("subtract", np.subtract, a, b)
+    out = _broadcast_op("subtract", kernels.subtract, a, b)  # a - b
     return record(
         "subtract",
         out,
         (a, b),
-        lambda g: (g, kernels.negative(g) if b.requires_grad else None),
+        lambda g: (g, -g if b.requires_grad else None),
         jvp=lambda ta, tb: _plus(ta, None if tb is None else -tb),
     )
 
@@ -157,18 +195,15 @@ def subtract(a: Any, b: Any) -> Tensor:
 def multiply(a: Any, b: Any) -> Tensor:
     """a * b with broadcasting.  d/da = b, d/db = a."""
     a, b = _pair(a, b)
-    out = _broadcast_op("multiply", np.multiply, a, b)
-
-    def vjp(g):
-        return (
-            kernels.elementwise(np.multiply, g, b._data) if a.requires_grad else None,
-            kernels.elementwise(np.multiply, g, a._data) if b.requires_grad else None,
-        )
-
-    def jvp(ta, tb):
-        return _plus(_scaled(ta, b._data), _scaled(tb, a._data))
-
-    return record("multiply", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
+    out = _broadcast_op("multiply", kernels.multiply, a, b)  # a * b
+    return record(
+        "multiply",
+        out,
+        (a, b),
+        lambda g: _each_times_the_other(g, a, b),
+        saves=_each_reads_the_other(a, b),
+        jvp=_product_rule(kernels.multiply, a, b),  # ta * b + a * tb
+    )
 
 
 def divide(a: Any, b: Any) -> Tensor:
@@ -177,11 +212,11 @@ def divide(a: Any, b: Any) -> Tensor:
     out = _broadcast_op("divide", np.divide, a, b)
 
     def vjp(g):
-        ga = kernels.elementwise(np.divide, g, b._data)
+        ga = g / b._data
         return (ga if a.requires_grad else None, -ga * out if b.requires_grad else None)
 
     def jvp(ta, tb):  # (ta - out tb) / b
-        return kernels.elementwise(np.divide, _plus(ta, _scaled(tb, -out)), b._data)
+        return _plus(ta, _scaled(tb, -out)) / b._data
 
     return record("divide", out, (a, b), vjp, saves=(b,), saves_output=b.requires_grad, jvp=jvp)
 
@@ -220,7 +255,7 @@ def matmul(a: Any, b: Any) -> Tensor:
     """
     a, b = _pair(a, b)
     try:
-        out = kernels.matmul(a._data, b._data)
+        out = a._data @ b._data
     except ValueError:
         raise ValueError(f"matmul: shapes {a.shape} and {b.shape} are not aligned") from None
 
@@ -243,9 +278,8 @@ def matmul(a: Any, b: Any) -> Tensor:
             gb = gb[..., 0] if b.ndim == 1 else gb
         return ga, gb
 
-    def jvp(ta, tb):  # (a + ta) @ (b + tb) to first order; vectors need no special case
-        return _plus(None if ta is None else ta @ b._data, None if tb is None else a._data @ tb)
-
+    # JVP: ta @ b + a @ tb, (a + ta) @ (b + tb) to first order; vectors need no special case.
+    jvp = _product_rule(np.matmul, a, b)
     return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
@@ -261,69 +295,61 @@ def exp(x: Any) -> Tensor:
     return record("exp", y, (x,), lambda g: (g * y,), saves_output=True, jvp=lambda t: t * y)
 
 
+def _elementwise(name: str, x: Tensor, y: np.ndarray, times_slope, reads: str) -> Tensor:
+    """Record y = f(x) for an elementwise f, as ``exp`` above does written out.
+
+    The Jacobian of an elementwise function is diagonal, f'(x), so the VJP and the JVP are
+    the same map: ``times_slope(d)`` multiplies by f'(x) (d is the gradient g, or the
+    tangent t). ``reads`` says what it reads at backward time: "x" or "y" (the output)."""
+    return record(
+        name, y, (x,), lambda g: (times_slope(g),), saves=(x,) if reads == "x" else (),
+        saves_output=reads == "y", jvp=times_slope,
+    )  # fmt: skip
+
+
 def log(x: Any) -> Tensor:
     """Natural log (x > 0).  d/dx = 1/x."""
     x = as_tensor(x)
-    return record(
-        "log", np.log(x._data), (x,), lambda g: (g / x._data,), saves=(x,),
-        jvp=lambda t: t / x._data,
-    )  # fmt: skip
+    return _elementwise("log", x, np.log(x._data), lambda d: d / x._data, reads="x")
 
 
 def sqrt(x: Any) -> Tensor:
     """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)); infinite at 0, so keep inputs positive."""
     x = as_tensor(x)
     y = np.sqrt(x._data)
-    return record(
-        "sqrt", y, (x,), lambda g: (g * 0.5 / y,), saves_output=True, jvp=lambda t: t * 0.5 / y
-    )
+    return _elementwise("sqrt", x, y, lambda d: d * 0.5 / y, reads="y")
 
 
 def sin(x: Any) -> Tensor:
     """sin x.  d/dx = cos x."""
     x = as_tensor(x)
-    return record(
-        "sin", np.sin(x._data), (x,), lambda g: (g * np.cos(x._data),), saves=(x,),
-        jvp=lambda t: t * np.cos(x._data),
-    )  # fmt: skip
+    return _elementwise("sin", x, np.sin(x._data), lambda d: d * np.cos(x._data), reads="x")
 
 
 def cos(x: Any) -> Tensor:
     """cos x.  d/dx = -sin x."""
     x = as_tensor(x)
-    return record(
-        "cos", np.cos(x._data), (x,), lambda g: (-g * np.sin(x._data),), saves=(x,),
-        jvp=lambda t: -t * np.sin(x._data),
-    )  # fmt: skip
+    return _elementwise("cos", x, np.cos(x._data), lambda d: -d * np.sin(x._data), reads="x")
 
 
 def tan(x: Any) -> Tensor:
     """tan x.  d/dx = 1 + tan^2 x."""
     x = as_tensor(x)
     y = np.tan(x._data)
-    return record(
-        "tan", y, (x,), lambda g: (g * (1.0 + y * y),), saves_output=True,
-        jvp=lambda t: t * (1.0 + y * y),
-    )  # fmt: skip
+    return _elementwise("tan", x, y, lambda d: d * (1.0 + y * y), reads="y")
 
 
 def tanh(x: Any) -> Tensor:
     """tanh x.  d/dx = 1 - tanh^2 x."""
     x = as_tensor(x)
     y = np.tanh(x._data)
-    return record(
-        "tanh", y, (x,), lambda g: (g * (1.0 - y * y),), saves_output=True,
-        jvp=lambda t: t * (1.0 - y * y),
-    )  # fmt: skip
+    return _elementwise("tanh", x, y, lambda d: d * (1.0 - y * y), reads="y")
 
 
 def abs(x: Any) -> Tensor:
     """|x|.  d/dx = sign(x); at x = 0 we use the subgradient 0."""
     x = as_tensor(x)
-    return record(
-        "abs", np.abs(x._data), (x,), lambda g: (g * np.sign(x._data),), saves=(x,),
-        jvp=lambda t: t * np.sign(x._data),
-    )  # fmt: skip
+    return _elementwise("abs", x, np.abs(x._data), lambda d: d * np.sign(x._data), reads="x")
 
 
 def maximum(a: Any, b: Any) -> Tensor:
@@ -372,7 +398,7 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     # int64/float64 arrays) so that NumPy treats them as weak and float32 stays float32.
     lo_v, hi_v = (v._data if isinstance(v, Tensor) else v for v in (lo, hi))
     try:
-        out = kernels.clip(x._data, lo_v, hi_v)
+        out = kernels.clip(x._data, lo_v, hi_v)  # np.clip(x, lo, hi)
     except ValueError:
         raise ValueError(
             f"clip: cannot broadcast x {x.shape}, lo {np.shape(lo_v)} and hi {np.shape(hi_v)}"
@@ -392,7 +418,7 @@ def where(condition: Any, a: Any, b: Any) -> Tensor:
     cond = np.asarray(getattr(condition, "data", condition), dtype=bool)
     a, b = _pair(a, b)
     try:
-        out = kernels.where(cond, a._data, b._data)
+        out = np.where(cond, a._data, b._data)
     except ValueError:
         raise ValueError(
             f"where: cannot broadcast condition {cond.shape}, a {a.shape} and b {b.shape}"
@@ -453,22 +479,24 @@ def mean_squared_error(a: Any, b: Any) -> Tensor:
 
     The same numbers, bit for bit, as ``mean((a - b) * (a - b))`` built from subtract,
     multiply and mean, fused: on a 512x512 image those allocate five image-sized arrays
-    per forward+backward pass, this two (the difference, kept, and the gradient)."""
+    per forward+backward pass, this two (the difference, kept, and the gradient). They
+    come from ``kernels`` in reused memory: fresh, image-sized arrays would be page-faulted
+    in again on every pass (measured: ~1,800 faults per light-estimation iteration)."""
     a, b = _pair(a, b)
     if a.shape != b.shape:
         raise ValueError(f"mean_squared_error: shapes differ, {a.shape} and {b.shape}")
     if a.size == 0:
         raise ValueError("mean_squared_error: no elements to average (empty arrays)")
-    diff = _broadcast_op("mean_squared_error", np.subtract, a, b)
+    diff = kernels.subtract(a._data, b._data)  # a - b
     n = diff.size
-    out = np.asarray(np.mean(kernels.elementwise(np.multiply, diff, diff)))
+    out = np.asarray(np.mean(kernels.multiply(diff, diff)))  # mean(diff * diff)
 
     def vjp(g):
         # (g/n) d + (g/n) d, as multiply's VJP gives it for d * d (2x is exact), summed in
         # place: one image-sized array instead of two.
-        grad = kernels.elementwise(np.multiply, diff, g / n)
+        grad = kernels.multiply(diff, g / n)  # diff * (g / n)
         np.add(grad, grad, out=grad)
-        return grad, (kernels.negative(grad) if b.requires_grad else None)
+        return grad, (-grad if b.requires_grad else None)
 
     def jvp(ta, tb):
         dt = _plus(ta, None if tb is None else -tb)
@@ -511,27 +539,15 @@ def dot(a: Any, b: Any) -> Tensor:
     _need_last_axis("dot", a, b)
     if a.shape[-1:] != b.shape[-1:]:
         raise ValueError(f"dot: last axes differ: {a.shape} and {b.shape}")
-    try:
-        out = kernels.dot_last(a._data, b._data)
-    except ValueError:
-        raise ValueError(f"dot: cannot broadcast shapes {a.shape} and {b.shape}") from None
-
-    def vjp(g):
-        if a.requires_grad and b.requires_grad:
-            return kernels.dot_vjp(g, a._data, b._data)  # both in one pass
-        g = g[..., None]
-        return (
-            kernels.elementwise(np.multiply, g, b._data) if a.requires_grad else None,
-            kernels.elementwise(np.multiply, g, a._data) if b.requires_grad else None,
-        )
-
-    def jvp(ta, tb):
-        return _plus(
-            None if ta is None else kernels.dot_last(ta, b._data),
-            None if tb is None else kernels.dot_last(a._data, tb),
-        )
-
-    return record("dot", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
+    out = _broadcast_op("dot", kernels.dot_last, a, b)  # np.sum(a * b, axis=-1)
+    return record(
+        "dot",
+        out,
+        (a, b),
+        lambda g: _each_times_the_other(g[..., None], a, b),  # multiply's, g along the last axis
+        saves=_each_reads_the_other(a, b),
+        jvp=_product_rule(kernels.dot_last, a, b),
+    )
 
 
 def cross(a: Any, b: Any) -> Tensor:
@@ -542,25 +558,15 @@ def cross(a: Any, b: Any) -> Tensor:
     a, b = _pair(a, b)
     if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
         raise ValueError(f"cross: both inputs need a last axis of size 3, got {a.shape}, {b.shape}")
-    try:
-        out = kernels.cross3(a._data, b._data)
-    except ValueError:
-        raise ValueError(f"cross: cannot broadcast shapes {a.shape} and {b.shape}") from None
+    out = _broadcast_op("cross", kernels.cross3, a, b)  # np.cross(a, b)
 
-    def vjp(g):
-        if a.requires_grad and b.requires_grad:
-            return kernels.cross_vjp(g, a._data, b._data)  # both in one pass
+    def vjp(g):  # b x g and g x a
         return (
             kernels.cross3(b._data, g) if a.requires_grad else None,
             kernels.cross3(g, a._data) if b.requires_grad else None,
         )
 
-    def jvp(ta, tb):
-        return _plus(
-            None if ta is None else kernels.cross3(ta, b._data),
-            None if tb is None else kernels.cross3(a._data, tb),
-        )
-
+    jvp = _product_rule(kernels.cross3, a, b)
     return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
@@ -594,13 +600,14 @@ def normalize(x: Any) -> Tensor:
     """
     x = as_tensor(x)
     _need_last_axis("normalize", x)
-    squared = kernels.dot_last(x._data, x._data)  # a fresh array: its root can go in place
+    # x . x, np.sum(x * x, axis=-1): a fresh array, so its root can go in place
+    squared = kernels.dot_last(x._data, x._data)
     length = np.sqrt(squared, out=squared if isinstance(squared, np.ndarray) else None)[..., None]
-    inv = np.divide(1.0, length, out=kernels.zeros_like(length), where=length > 0)
-    y = kernels.elementwise(np.multiply, x._data, inv)
+    inv = np.divide(1.0, length, out=np.zeros_like(length), where=length > 0)
+    y = kernels.multiply(x._data, inv)  # x * inv
 
     def project(g):  # the Jacobian (I - y y^T) / |x| is symmetric: the VJP's g and the JVP's t
-        return kernels.project_out(y, g, inv)
+        return kernels.project_out(y, g, inv)  # (g - y * (y . g)) * inv
 
     return record("normalize", y, (x,), lambda g: (project(g),), saves_output=True, jvp=project)
 
@@ -652,40 +659,29 @@ def broadcast_to(x: Any, shape) -> Tensor:
 
 def stack(tensors, axis: int = 0) -> Tensor:
     """Stack equal-shaped tensors along a new axis; the gradient is split back into slices."""
-    tensors = tuple(as_tensor(t) for t in tensors)
-    _need_some("stack", tensors)
-    try:
-        out = np.stack([t._data for t in tensors], axis=axis)
-    except ValueError:
-        shapes = [t.shape for t in tensors]
-        raise ValueError(f"stack: all inputs need the same shape, got {shapes}") from None
+    mismatch = "all inputs need the same shape, got {shapes}"
+    tensors, out = _join("stack", np.stack, tensors, axis, mismatch)
 
     def vjp(g):
         return tuple(np.moveaxis(g, axis, 0))
 
-    def jvp(*ts):
-        return np.stack([_or_zeros(t, x) for t, x in zip(ts, tensors, strict=True)], axis=axis)
+    def jvp(*ts):  # the tangents stacked as the values were
+        return np.stack(_or_zeros(ts, tensors), axis=axis)
 
     return record("stack", out, tensors, vjp, jvp=jvp)
 
 
 def concatenate(tensors, axis: int = 0) -> Tensor:
     """Join tensors along an existing axis; the gradient is cut back into the pieces."""
-    tensors = tuple(as_tensor(t) for t in tensors)
-    _need_some("concatenate", tensors)
-    try:
-        out = np.concatenate([t._data for t in tensors], axis=axis)
-    except ValueError:
-        shapes = [t.shape for t in tensors]
-        raise ValueError(f"concatenate: shapes {shapes} do not match off axis {axis}") from None
+    mismatch = "shapes {shapes} do not match off axis " + str(axis)
+    tensors, out = _join("concatenate", np.concatenate, tensors, axis, mismatch)
     cuts = np.cumsum([t.shape[axis] for t in tensors])[:-1]
 
     def vjp(g):
         return tuple(np.split(g, cuts, axis=axis))
 
-    def jvp(*ts):
-        pieces = [_or_zeros(t, x) for t, x in zip(ts, tensors, strict=True)]
-        return np.concatenate(pieces, axis=axis)
+    def jvp(*ts):  # the tangents joined as the values were
+        return np.concatenate(_or_zeros(ts, tensors), axis=axis)
 
     return record("concatenate", out, tensors, vjp, jvp=jvp)
 
@@ -733,7 +729,7 @@ def getitem(x: Any, index: Any) -> Tensor:
         def vjp(g):
             negative = index.size and index.min() < 0  # one pass; mapping them takes three
             rows = np.where(index < 0, index + x.shape[0], index) if negative else index
-            return (kernels.scatter_add_rows(rows, g, x.shape[0]),)
+            return (kernels.scatter_add_rows(rows, g, x.shape[0]),)  # np.add.at into zeros
 
     elif _has_integer_array(index):
 

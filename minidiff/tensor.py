@@ -42,6 +42,7 @@ flows, so that <u, J v> from forward mode equals <J^T u, v> from reverse mode ev
 from __future__ import annotations
 
 import itertools
+import operator
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -107,6 +108,28 @@ class Node:
         if self.output_version is not None and output.version != self.output_version:
             what = f"output ({_describe(output)})"
             raise RuntimeError(_CHANGED_MESSAGE.format(name=self.name, what=what))
+
+
+def _operator(name: str) -> tuple[Callable, Callable]:
+    """The two Tensor methods behind a binary operator: ``t op x`` and the reflected
+    ``x op t``, both the primitive ``name`` of primitives.py."""
+
+    def method(self, other):
+        return getattr(_p, name)(self, other)
+
+    def reflected(self, other):
+        return getattr(_p, name)(other, self)
+
+    return method, reflected
+
+
+def _comparison(compare: Callable) -> Callable:
+    """A Tensor comparison method: ``compare(t.data, x)``, a boolean array."""
+
+    def method(self, other):
+        return compare(self._data, _values(other))
+
+    return method
 
 
 class Tensor:
@@ -329,70 +352,32 @@ class Tensor:
                     elif x._node.grad is None:
                         x._node.grad = gx
                     else:
-                        x._node.grad = kernels.elementwise(np.add, x._node.grad, gx)
+                        x._node.grad = x._node.grad + gx
             node.free()
 
     # -- operators (each is a primitive from primitives.py) -------------------------------
-    def __add__(self, other):
-        return _p.add(self, other)
-
-    def __radd__(self, other):
-        return _p.add(other, self)
-
-    def __sub__(self, other):
-        return _p.subtract(self, other)
-
-    def __rsub__(self, other):
-        return _p.subtract(other, self)
-
-    def __mul__(self, other):
-        return _p.multiply(self, other)
-
-    def __rmul__(self, other):
-        return _p.multiply(other, self)
-
-    def __truediv__(self, other):
-        return _p.divide(self, other)
-
-    def __rtruediv__(self, other):
-        return _p.divide(other, self)
-
-    def __pow__(self, other):
-        return _p.power(self, other)
-
-    def __rpow__(self, other):
-        return _p.power(other, self)
+    # ``t + x`` calls ``t.__add__(x)``; ``x + t``, when x is a number or an array, calls the
+    # reflected ``t.__radd__(x)``, which must keep the order: x - t is subtract(x, t).
+    __add__, __radd__ = _operator("add")
+    __sub__, __rsub__ = _operator("subtract")
+    __mul__, __rmul__ = _operator("multiply")
+    __truediv__, __rtruediv__ = _operator("divide")
+    __pow__, __rpow__ = _operator("power")
+    __matmul__, __rmatmul__ = _operator("matmul")
 
     def __neg__(self):
         return _p.negative(self)
-
-    def __matmul__(self, other):
-        return _p.matmul(self, other)
-
-    def __rmatmul__(self, other):
-        return _p.matmul(other, self)
 
     def __getitem__(self, index):
         return _p.getitem(self, index)
 
     # Comparisons are not differentiable: they return plain boolean arrays.
-    def __lt__(self, other):
-        return self._data < _values(other)
-
-    def __le__(self, other):
-        return self._data <= _values(other)
-
-    def __gt__(self, other):
-        return self._data > _values(other)
-
-    def __ge__(self, other):
-        return self._data >= _values(other)
-
-    def __eq__(self, other):
-        return self._data == _values(other)
-
-    def __ne__(self, other):
-        return self._data != _values(other)
+    __lt__ = _comparison(operator.lt)
+    __le__ = _comparison(operator.le)
+    __gt__ = _comparison(operator.gt)
+    __ge__ = _comparison(operator.ge)
+    __eq__ = _comparison(operator.eq)
+    __ne__ = _comparison(operator.ne)
 
     # -- methods that forward to primitives -----------------------------------------------
     def sum(self, axis=None, keepdims: bool = False) -> Tensor:
