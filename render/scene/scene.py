@@ -358,8 +358,9 @@ def _strength(name: str) -> Field:
     return Field(name, ((),), (lambda x: x >= 0.0, ">= 0"))
 
 
-#: A light's (3,) linear RGB colour, multiplying its strength.
+#: A light's (3,) linear RGB colour, multiplying its strength; white unless given.
 _LIGHT_COLOR = Field("color", ((3,),))
+WHITE = (1.0, 1.0, 1.0)
 
 
 class PointLight(_HasFields):
@@ -374,9 +375,7 @@ class PointLight(_HasFields):
 
     FIELDS = (Field("position", ((3,),)), _strength("intensity"), _LIGHT_COLOR)
 
-    def __init__(
-        self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = (1, 1, 1)
-    ) -> None:
+    def __init__(self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = WHITE):
         self._set_fields(position=position, intensity=intensity, color=color)
         self.validate()
 
@@ -398,9 +397,7 @@ class DirectionalLight(_HasFields):
     _DIRECTION = Field("direction", ((3,),), (_normalisable, "a vector of length 1e-150 to 1e150"))
     FIELDS = (_DIRECTION, _strength("irradiance"), _LIGHT_COLOR)
 
-    def __init__(
-        self, direction: ArrayLike, irradiance: ArrayLike, color: ArrayLike = (1, 1, 1)
-    ) -> None:
+    def __init__(self, direction: ArrayLike, irradiance: ArrayLike, color: ArrayLike = WHITE):
         self._set_fields(direction=direction, irradiance=irradiance, color=color)
         self.validate()
 
