@@ -13,6 +13,16 @@ one left, which Python's reference count tells exactly (a view keeps its base al
 result that a user still holds, or a view of it, is never handed out again).  The memory
 stays in the process, so the second pass of the same shapes allocates nothing.
 
+Reference counts are how CPython manages memory, not a promise of the language: another
+interpreter, a free-threaded build, or a new CPython whose bytecode borrows references
+(3.14's ``LOAD_FAST_BORROW``) may count differently, and one count too low would hand an
+array someone still holds to the next kernel: a silently wrong image or gradient.  So the
+module proves at import, on the running interpreter and through ``empty`` itself, that
+held arrays are never handed out (held by a variable, a view, a container, a closure, a
+tensor on the tape, another thread) and that an unheld one is; if any of that fails, reuse
+is turned off (``REUSE`` says whether it is on and ``REUSE_CHECK`` why).  Only CPython
+with its GIL is trusted at all.
+
 This is local to minidiff: no allocator setting of the process is changed, and only the
 arrays that come from here are kept.  The pool holds at most ``max_bytes``
 (default 512 MiB); when a new shape would exceed that, the shapes used least recently are
@@ -77,6 +87,58 @@ def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
         return a
 
 
+def _proof() -> str | None:
+    """None if ``empty`` provably reuses exactly the arrays nobody holds on this
+    interpreter; else what went wrong. Runs ``empty`` on a shape of its own and drops it."""
+    if sys.implementation.name != "cpython":
+        return f"not CPython ({sys.implementation.name}): reference counts are not exact"
+    if not getattr(sys, "_is_gil_enabled", lambda: True)():
+        return "free-threaded CPython: another thread's references are counted lazily"
+    global _held_bytes
+    shape, dtype = (MIN_BYTES // 8 + 1,), np.dtype(np.float64)
+    key = (shape, dtype)
+    try:
+
+        class Owner:  # e.g. a Tensor holding its data, or a cache entry
+            def __init__(self, array):
+                self.array = array
+
+        def in_thread(array):
+            kept = []
+            worker = threading.Thread(target=kept.append, args=(array,))
+            worker.start()
+            worker.join()
+            return kept
+
+        # How a user, the tape or a cache may hold an array: (holder of a, a from holder).
+        ways = {
+            "a variable": (lambda a: a, lambda h: h),
+            "a view": (lambda a: a[1:], lambda h: h),
+            "a list": (lambda a: [a], lambda h: h[0]),
+            "a closure": (lambda a: lambda: a, lambda h: h()),
+            "an object": (Owner, lambda h: h.array),
+            "another thread": (in_thread, lambda h: h[0]),
+        }
+        for how, (hold, get) in ways.items():
+            holder = hold(empty(shape, dtype))
+            fresh = empty(shape, dtype)
+            if np.shares_memory(fresh, get(holder)):
+                return f"an array held by {how} was handed out again"
+            del holder, fresh
+        first = empty(shape, dtype)
+        address = first.ctypes.data
+        del first
+        again = empty(shape, dtype)
+        if again.ctypes.data != address:
+            return "an array nobody held was not reused"
+        del again
+        return None
+    finally:
+        with _lock:
+            arrays = _pool.pop(key, [])
+            _held_bytes -= sum(a.nbytes for a in arrays)
+
+
 def zeros(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     """Equals ``np.zeros(shape, dtype)``, reusing memory as :func:`empty` does."""
     out = empty(shape, dtype)
@@ -104,3 +166,11 @@ def clear() -> None:
     with _lock:
         _pool.clear()
         _held_bytes = 0
+
+
+#: Why reuse is on or off on this interpreter (see the module docstring): None if proven.
+REUSE_CHECK = _proof()
+#: Whether ``empty`` reuses arrays at all.
+REUSE = REUSE_CHECK is None
+if not REUSE:
+    _max_bytes = 0

@@ -41,8 +41,10 @@ flows, so that <u, J v> from forward mode equals <J^T u, v> from reverse mode ev
 
 from __future__ import annotations
 
+import contextvars
 import itertools
 import operator
+import threading
 from collections.abc import Callable, Sequence
 from contextlib import contextmanager
 from typing import Any
@@ -51,11 +53,23 @@ import numpy as np
 
 from minidiff import kernels
 
-# Global switches. They are module state (like a tape recorder's record button), changed only
-# through the context managers below.
-_GRAD_ENABLED = True
-_ANOMALY_MODE = False
-_SEQUENCE = itertools.count()  # the position of the next node on the tape
+# The switches, per context: each thread (and each asyncio task) has its own, like PyTorch's
+# grad mode, so that ``no_grad()`` in one thread never turns the tape off in another. A new
+# thread starts with gradients on and anomaly detection off. Changed only through the
+# context managers below.
+_grad_enabled: contextvars.ContextVar[bool] = contextvars.ContextVar("grad", default=True)
+_anomaly_mode: contextvars.ContextVar[bool] = contextvars.ContextVar("anomaly", default=False)
+
+# The position of the next node on the tape: one counter for all threads (a node's seq
+# orders it among the nodes its backward pass visits), guarded so that no two nodes share
+# a position whatever the interpreter does with the GIL.
+_SEQUENCE = itertools.count()
+_SEQUENCE_LOCK = threading.Lock()
+
+
+def _next_seq() -> int:
+    with _SEQUENCE_LOCK:
+        return next(_SEQUENCE)
 
 
 class Node:
@@ -82,7 +96,7 @@ class Node:
         self.name = name
         self.inputs = inputs
         self.vjp = vjp
-        self.seq = next(_SEQUENCE)
+        self.seq = _next_seq()
         self.grad: np.ndarray | None = None
         self.freed = False
         self.saved = saved
@@ -342,7 +356,7 @@ class Tensor:
                     # A gradient has its input's dtype: a float32 leaf used with a float64
                     # constant still gets a float32 .grad (also after accumulating).
                     gx = unbroadcast(gx, x.shape).astype(x.dtype, copy=False)
-                    if _ANOMALY_MODE and not np.isfinite(gx).all():
+                    if _anomaly_mode.get() and not np.isfinite(gx).all():
                         raise FloatingPointError(
                             f"anomaly: the VJP of '{node.name}' produced NaN/inf in the "
                             f"gradient of an input of shape {x.shape}"
@@ -554,9 +568,9 @@ def record(
     and returns the output's tangent, of ``out``'s shape or broadcastable to it (or None
     for zero). A primitive without a JVP refuses inputs with tangents.
     """
-    if _ANOMALY_MODE and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
+    if _anomaly_mode.get() and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
         raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
-    if _GRAD_ENABLED and any(x.requires_grad for x in inputs):
+    if _grad_enabled.get() and any(x.requires_grad for x in inputs):
         for t in saves:
             t.mark_saved()
         node = Node(name, tuple(inputs), vjp, tuple(saves))
@@ -570,7 +584,7 @@ def record(
     if node is not None and saves_output:
         result.mark_saved()
         node.output_version = result.version
-    if _GRAD_ENABLED and any(x._tangent is not None for x in inputs):
+    if _grad_enabled.get() and any(x._tangent is not None for x in inputs):
         result._tangent = _output_tangent(name, out, inputs, jvp)
     return result
 
@@ -589,7 +603,7 @@ def _output_tangent(name: str, out: np.ndarray, inputs: Sequence[Tensor], jvp) -
         t = np.broadcast_to(t, out.shape)
     if t.dtype != out.dtype:
         t = t.astype(out.dtype)
-    if _ANOMALY_MODE and not np.isfinite(t).all():
+    if _anomaly_mode.get() and not np.isfinite(t).all():
         raise FloatingPointError(f"anomaly: the JVP of '{name}' produced NaN/inf")
     return t
 
@@ -597,27 +611,24 @@ def _output_tangent(name: str, out: np.ndarray, inputs: Sequence[Tensor], jvp) -
 @contextmanager
 def no_grad():
     """Within this block nothing is differentiated: results are constants, with no node on
-    the tape and no tangent (faster, no memory)."""
-    global _GRAD_ENABLED
-    previous = _GRAD_ENABLED
-    _GRAD_ENABLED = False
+    the tape and no tangent (faster, no memory). It applies to the current thread (context)
+    only: other threads keep recording."""
+    token = _grad_enabled.set(False)
     try:
         yield
     finally:
-        _GRAD_ENABLED = previous
+        _grad_enabled.reset(token)
 
 
 @contextmanager
 def detect_anomaly():
     """Opt-in checking: raise at the first primitive whose forward value or backward
     gradient contains NaN or inf, naming it. Costs one ``isfinite`` scan per array."""
-    global _ANOMALY_MODE
-    previous = _ANOMALY_MODE
-    _ANOMALY_MODE = True
+    token = _anomaly_mode.set(True)
     try:
         yield
     finally:
-        _ANOMALY_MODE = previous
+        _anomaly_mode.reset(token)
 
 
 def as_tangent(where: str, what: str, primal: Tensor, direction: Any) -> np.ndarray:
@@ -674,8 +685,8 @@ def tangents(directions: dict[Tensor, Any]):
 
 
 def is_grad_enabled() -> bool:
-    """True unless inside ``no_grad()``."""
-    return _GRAD_ENABLED
+    """True unless inside ``no_grad()`` (in this thread or context)."""
+    return _grad_enabled.get()
 
 
 from minidiff import primitives as _p  # noqa: E402  (primitives import Tensor from here)

@@ -110,3 +110,69 @@ def test_renders_reuse_memory_and_change_nothing():
     image_3, grad_3 = _pass(scene, vertices)
     np.testing.assert_array_equal(image_2, image_3)
     np.testing.assert_array_equal(grad_2, grad_3)
+
+
+def test_the_import_time_proof_holds_here_and_can_fail():
+    """On this interpreter the proof passed (reuse is on); with a wrong idea of what an
+    unheld array's count is (one higher), it catches a held array being handed out."""
+    assert buffers.REUSE and buffers.REUSE_CHECK is None
+    right = buffers._UNUSED
+    try:
+        buffers._UNUSED = right + 1
+        assert "was handed out again" in buffers._proof()
+    finally:
+        buffers._UNUSED = right
+    assert buffers._proof() is None
+
+
+def test_no_held_array_is_ever_handed_out_during_renders():
+    """Run renders and their backward passes while arrays from the pool are held by a user,
+    a view, the tape (a tensor), a render cache and another thread: no array that came out
+    of the pool afterwards shares memory with one that is held."""
+    import threading
+
+    from render.scene.cache import RenderCache
+
+    scene = paper_scene(width=128, height=96)  # 12,288 rays: arrays above MIN_BYTES
+    vertices = scene.objects[0].vertices
+    vertices.requires_grad = True
+    image = render(scene, antialias=True)
+    (image * image).sum().backward()
+    held = [buffers.empty((20_000, 3), np.float64) for _ in range(6)]
+    user, view_base, tape_array, cache_array, thread_array, _ = held
+    view = view_base[5:]
+    tensor = md.as_tensor(tape_array)  # a tensor holds its array, as the tape does
+    cache = RenderCache()
+    cache.get("slot", [np.zeros(1)], lambda a=cache_array: a)
+    release, ready = threading.Event(), threading.Event()
+
+    def holder(array=thread_array):
+        ready.set()
+        release.wait(timeout=30)
+
+    worker = threading.Thread(target=holder)
+    worker.start()
+    ready.wait(timeout=30)
+    del view_base, tape_array, cache_array, thread_array
+    handed_out = []
+    original_empty = buffers.empty
+
+    def watched(shape, dtype):
+        out = original_empty(shape, dtype)
+        handed_out.append(out)
+        return out
+
+    buffers.empty = watched
+    try:
+        for _ in range(2):
+            image = render(scene, antialias=True, reuse_visibility=False)
+            (image * image).sum().backward()
+        handed_out += [original_empty((20_000, 3), np.float64) for _ in range(6)]
+    finally:
+        buffers.empty = original_empty
+        release.set()
+        worker.join()
+    kept = [user, view, tensor.data, cache.get("slot", [np.zeros(1)], None)[0], held[4]]
+    assert handed_out
+    for out in handed_out:
+        assert not any(np.shares_memory(out, k) for k in kept)
