@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 
+import numba
 import numpy as np
 from render_helpers import random_scene
 
@@ -95,6 +96,9 @@ def test_threads_rendering_different_scenes_with_backward_match_the_work_done_al
         assert_identical(together[job], expected)
     assert modes == {i: True for i in range(N_THREADS)}
     assert md.is_grad_enabled()
+    # Numba's thread-safe layers (its fallback, workqueue, aborts on concurrent launches:
+    # docs/architecture.md).
+    assert numba.threading_layer() in ("omp", "tbb")
 
 
 def test_threads_rendering_one_shared_scene_read_only_match_a_render_alone():
