@@ -35,9 +35,8 @@ def value_and_grad(f: Callable[..., Any], argnums: int | Sequence[int] = 0) -> C
             args[i] = leaf
             leaves.append(leaf)
         out = f(*args)
+        _check_scalar("value_and_grad", out)
         if isinstance(out, Tensor):
-            if out.size != 1:
-                raise ValueError(f"value_and_grad: f must return a scalar, got shape {out.shape}")
             if out.requires_grad:
                 out.backward()
             value = out.item()
@@ -49,6 +48,26 @@ def value_and_grad(f: Callable[..., Any], argnums: int | Sequence[int] = 0) -> C
         return value, (grads[0] if isinstance(argnums, int) else grads)
 
     return wrapped
+
+
+def _check_scalar(where: str, out: Any) -> None:
+    """A gradient is of a scalar function: refuse anything but one real number, naming
+    what f returned (a vector's gradient is a Jacobian: use ``jvp`` or ``backward(seed)``)."""
+    try:
+        array = np.asarray(out._data if isinstance(out, Tensor) else out)
+    except Exception:  # noqa: BLE001 - whatever it was, it is not a number
+        array = np.asarray(None)
+    if array.dtype.kind not in "biuf":
+        raise TypeError(
+            f"{where}: f must return a scalar (a one-element Tensor or a real number), "
+            f"got {type(out).__name__}"
+        )
+    if array.size != 1:
+        raise ValueError(
+            f"{where}: f must return a scalar (a one-element Tensor or a real number), got "
+            f"{type(out).__name__} of shape {array.shape}; for a vector-valued f use jvp, "
+            "or backward(seed) with a seed of that shape"
+        )
 
 
 def grad(f: Callable[..., Any], argnums: int | Sequence[int] = 0) -> Callable:
@@ -114,9 +133,11 @@ def numerical_grad(f: Callable[..., Any], args: Sequence[Any], argnum: int, eps:
         for k in range(flat.size):
             saved = flat[k]
             flat[k] = saved + eps
-            f_plus = float(np.asarray(f(*args[:argnum], Tensor(x.copy()), *args[argnum + 1 :])))
+            f_plus = f(*args[:argnum], Tensor(x.copy()), *args[argnum + 1 :])
+            _check_scalar("numerical_grad", f_plus)
             flat[k] = saved - eps
-            f_minus = float(np.asarray(f(*args[:argnum], Tensor(x.copy()), *args[argnum + 1 :])))
+            f_minus = f(*args[:argnum], Tensor(x.copy()), *args[argnum + 1 :])
+            f_plus, f_minus = float(np.asarray(f_plus)), float(np.asarray(f_minus))
             flat[k] = saved
             gflat[k] = (f_plus - f_minus) / (2 * eps)
     return g

@@ -21,7 +21,19 @@ Projection = Callable[[np.ndarray], np.ndarray]
 
 
 def box(lo: float | np.ndarray, hi: float | np.ndarray) -> Projection:
-    """The Euclidean projection onto the box [lo, hi] (component-wise clamp)."""
+    """The Euclidean projection onto the box [lo, hi] (component-wise clamp).
+
+    lo > hi in any component is refused (ValueError naming both): the box is empty, and
+    np.clip would silently give hi everywhere there."""
+    lo_a, hi_a = np.asarray(lo), np.asarray(hi)
+    try:
+        empty = np.any(lo_a > hi_a)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"box: lo and hi must be numbers or arrays, got {lo!r} and {hi!r}"
+        ) from None
+    if empty:
+        raise ValueError(f"box: lo must be <= hi in every component, got lo={lo!r} and hi={hi!r}")
     return lambda x: np.clip(x, lo, hi)
 
 
@@ -75,6 +87,11 @@ class Optimizer:
         for i, p in enumerate(self.params):
             if p.grad is None:
                 continue
+            if np.shape(p.grad) != p.shape:
+                raise ValueError(
+                    f"{type(self).__name__}.step: gradient of params[{i}] has shape "
+                    f"{np.shape(p.grad)}, but the parameter has shape {p.shape}"
+                )
             if not np.isfinite(p.grad).all():
                 raise ValueError(
                     f"{type(self).__name__}.step: gradient of params[{i}] contains NaN/inf"
@@ -167,6 +184,13 @@ class Adam(Optimizer):
 
     ``lr`` may be one number or one per parameter (parameters of different scales, e.g.
     a light position in metres and an intensity in hundreds, want different step sizes).
+
+    Huge gradients: g^2 overflows float64 for |g| > 1.3e154, and v = inf would stop the
+    parameter for good (m / sqrt(inf) = 0 at every later step). So v is kept divided by
+    ``scale[i]**2``, where ``scale[i]`` is a power of two (1 until a gradient above 2^500
+    ~ 3e150 arrives, then raised so that g / scale stays below it): the update reads
+    ``m^ / (sqrt(v^) * scale + eps)``. Powers of two rescale exactly, and with scale 1
+    the arithmetic is the plain formula above, bit for bit.
     """
 
     def __init__(
@@ -190,6 +214,7 @@ class Adam(Optimizer):
         self.m = [np.zeros_like(p.data) for p in self.params]
         self.v = [np.zeros_like(p.data) for p in self.params]
         self.t = [0] * len(self.params)  # per parameter: a parameter may skip steps
+        self.scale = [1.0] * len(self.params)  # v is stored divided by scale^2
 
     def step(self) -> None:
         """One Adam update of every parameter that has a gradient, then its projection."""
@@ -198,8 +223,26 @@ class Adam(Optimizer):
             self.t[i] += 1
             t = self.t[i]
             self.m[i] = b1 * self.m[i] + (1 - b1) * g
-            self.v[i] = b2 * self.v[i] + (1 - b2) * g * g
+            scale = self._rescale(i, g)
+            gs = g if scale == 1.0 else g / scale
+            self.v[i] = b2 * self.v[i] + (1 - b2) * gs * gs
             m_hat = self.m[i] / (1 - b1**t)
             v_hat = self.v[i] / (1 - b2**t)
-            p.data -= self.lr[i] * m_hat / (np.sqrt(v_hat) + self.eps)
+            root = np.sqrt(v_hat) if scale == 1.0 else np.sqrt(v_hat) * scale
+            p.data -= self.lr[i] * m_hat / (root + self.eps)
             self._apply_projection(i, p)
+
+    def _rescale(self, i: int, g: np.ndarray) -> float:
+        """The scale of v for params[i] after seeing g: raised (by a power of two, and v
+        rescaled with it, exactly) if |g| / scale would exceed 2^500, so that the squares
+        of g / scale stay far from overflow. Never lowered."""
+        largest = float(np.max(np.abs(g))) if np.size(g) else 0.0
+        scale = self.scale[i]
+        if largest > scale * _ADAM_LIMIT:
+            new = 2.0 ** (math.frexp(largest / _ADAM_LIMIT)[1])  # >= largest / limit
+            self.v[i] = self.v[i] * ((scale / new) ** 2)
+            self.scale[i] = scale = new
+        return scale
+
+
+_ADAM_LIMIT = 2.0**500  # |g / scale| stays below this: its square (2^1000) is finite

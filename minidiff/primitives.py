@@ -228,20 +228,50 @@ def negative(x: Any) -> Tensor:
 
 
 def power(a: Any, b: Any) -> Tensor:
-    """a ** b.  d/da = b a^(b-1);  d/db = a^b log(a) (needs a > 0 where b is differentiated)."""
+    """a ** b.  d/da = b a^(b-1);  d/db = a^b log(a).
+
+    Values are NumPy's: a negative base gives a real number for an integer-valued b and
+    NaN otherwise (with NumPy's "invalid value" warning); 0 ** b is 0 for b > 0, 1 for
+    b = 0 and inf for b < 0.
+
+    d/da is b a^(b-1), finite wherever the value has a finite slope: at a = 0 it is 1 for
+    b = 1 and 0 for b > 1; for b = 0 it is 0 everywhere (a^0 = 1 is constant; the formula
+    would give 0 * 0^-1 = NaN at a = 0); for a < 0 it is real for integer-valued b, NaN
+    otherwise (like the value). At a = 0 with 0 < b < 1 it is inf, as in the mathematics.
+
+    d/db is a^b log(a). Where a = 0 and b >= 0 it is defined as 0, as PyTorch does: there
+    the weight a^b of log(a) = -inf is 0 (or, for b = 0, the one-sided limit is taken as
+    0), and the product would be NaN. For a < 0 it is NaN: log(a) is not real (a^b of a
+    negative base is not differentiable in b).
+    """
     a, b = _pair(a, b)
     out = _broadcast_op("power", np.power, a, b)
 
+    def zero_where_b_is_0(d):  # a^0 = 1 is constant: 0, where b a^(b-1) may be 0 * inf
+        zero_b = b._data == 0
+        return np.where(zero_b, 0.0, d) if zero_b.any() else d
+
+    def zero_where_a_is_0(d):  # 0 where a = 0 and b >= 0, where a^b log(a) may be 0 * -inf
+        zero_a = (a._data == 0) & (b._data >= 0)
+        return np.where(zero_a, 0.0, d) if zero_a.any() else d
+
     def vjp(g):
-        ga = g * b._data * np.power(a._data, b._data - 1) if a.requires_grad else None
-        gb = g * out * np.log(a._data) if b.requires_grad else None
+        ga = gb = None
+        with np.errstate(divide="ignore", invalid="ignore"):  # 0 * inf there: replaced by 0
+            if a.requires_grad:
+                ga = zero_where_b_is_0(g * b._data * np.power(a._data, b._data - 1))
+            if b.requires_grad:
+                gb = zero_where_a_is_0(g * out * np.log(a._data))
         return ga, gb
 
     def jvp(ta, tb):
-        return _plus(
-            None if ta is None else ta * b._data * np.power(a._data, b._data - 1),
-            None if tb is None else tb * out * np.log(a._data),
-        )
+        with np.errstate(divide="ignore", invalid="ignore"):  # as in the VJP
+            slope_a = None if ta is None else ta * b._data * np.power(a._data, b._data - 1)
+            slope_b = None if tb is None else tb * out * np.log(a._data)
+            return _plus(
+                None if ta is None else zero_where_b_is_0(slope_a),
+                None if tb is None else zero_where_a_is_0(slope_b),
+            )
 
     saves = (a, b) if a.requires_grad else (a,)
     return record("power", out, (a, b), vjp, saves=saves, saves_output=b.requires_grad, jvp=jvp)
@@ -314,7 +344,13 @@ def log(x: Any) -> Tensor:
 
 
 def sqrt(x: Any) -> Tensor:
-    """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)); infinite at 0, so keep inputs positive."""
+    """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)).
+
+    At x = 0 the derivative is inf, kept as in PyTorch (no clamping: a clamp would hide a
+    real singularity). So a gradient g != 0 arriving at sqrt(0) gives x the gradient
+    +-inf, and g = 0 gives 0 * inf = NaN (PyTorch: the same). For x < 0 the value is NaN
+    (NumPy's warning) and so is the gradient. To take the root of something that may be 0,
+    use ``norm`` (subgradient 0 at 0) or the "double where" of ``where``."""
     x = as_tensor(x)
     y = np.sqrt(x._data)
     return _elementwise("sqrt", x, y, lambda d: d * 0.5 / y, reads="y")
@@ -353,38 +389,44 @@ def abs(x: Any) -> Tensor:
 
 
 def maximum(a: Any, b: Any) -> Tensor:
-    """Elementwise max(a, b). Subgradient at a tie (a == b): all of it goes to ``a``."""
+    """Elementwise max(a, b). Subgradient at a tie (a == b): all of it goes to ``a`` (one
+    side, not split: PyTorch splits, JAX too; one side keeps the renderer's clamps
+    ``maximum(x, 0)`` passing the whole gradient at x = 0).
+
+    NaN propagates as in NumPy (``np.maximum``: the NaN is the result) and the gradient
+    goes to the NaN input (to ``a`` if both are NaN), the input the result came from."""
     a, b = _pair(a, b)
     out = _broadcast_op("maximum", np.maximum, a, b)
 
     def vjp(g):
-        a_wins = a._data >= b._data
+        a_wins = (a._data >= b._data) | (a._data != a._data)  # a tie, or a is NaN
         return (
             np.where(a_wins, g, 0.0) if a.requires_grad else None,
             np.where(a_wins, 0.0, g) if b.requires_grad else None,
         )
 
     def jvp(ta, tb):  # the same choice as the VJP: a tie takes a's tangent
-        a_wins = a._data >= b._data
+        a_wins = (a._data >= b._data) | (a._data != a._data)  # a tie, or a is NaN
         return np.where(a_wins, 0.0 if ta is None else ta, 0.0 if tb is None else tb)
 
     return record("maximum", out, (a, b), vjp, saves=(a, b), jvp=jvp)
 
 
 def minimum(a: Any, b: Any) -> Tensor:
-    """Elementwise min(a, b). Subgradient at a tie (a == b): all of it goes to ``a``."""
+    """Elementwise min(a, b). Subgradient at a tie (a == b): all of it goes to ``a``. NaN
+    propagates, and its gradient goes to the NaN input, as for ``maximum``."""
     a, b = _pair(a, b)
     out = _broadcast_op("minimum", np.minimum, a, b)
 
     def vjp(g):
-        a_wins = a._data <= b._data
+        a_wins = (a._data <= b._data) | (a._data != a._data)  # a tie, or a is NaN
         return (
             np.where(a_wins, g, 0.0) if a.requires_grad else None,
             np.where(a_wins, 0.0, g) if b.requires_grad else None,
         )
 
     def jvp(ta, tb):  # the same choice as the VJP: a tie takes a's tangent
-        a_wins = a._data <= b._data
+        a_wins = (a._data <= b._data) | (a._data != a._data)  # a tie, or a is NaN
         return np.where(a_wins, 0.0 if ta is None else ta, 0.0 if tb is None else tb)
 
     return record("minimum", out, (a, b), vjp, saves=(a, b), jvp=jvp)
@@ -414,7 +456,21 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
 
 
 def where(condition: Any, a: Any, b: Any) -> Tensor:
-    """Pick a where ``condition`` (a boolean array, not differentiable) is true, else b."""
+    """Pick a where ``condition`` (a boolean array, not differentiable) is true, else b.
+
+    d/da = g where the condition holds, exactly 0 elsewhere; d/db the other way round. The
+    gradient is *selected* with ``np.where``, not multiplied by a 0/1 mask, so a NaN or
+    inf in the unselected branch (or in g there) never leaks: 0 * inf would be NaN.
+
+    The trap that remains (as in JAX and PyTorch): ``where(x > 0, sqrt(x), 0.0)`` at
+    x < 0 still gives x a NaN gradient. where's VJP hands sqrt a 0, but sqrt's own VJP
+    computes 0 * 0.5 / sqrt(x) = 0 * NaN = NaN: the unselected computation was done, and
+    its derivative is NaN. The cure is the "double where": make the unselected branch
+    compute on a safe value, so that its derivative is finite, then select::
+
+        safe = md.where(x > 0, x, 1.0)              # any value where sqrt is smooth
+        y = md.where(x > 0, md.sqrt(safe), 0.0)     # gradient: 0.5/sqrt(x) or exactly 0
+    """
     cond = np.asarray(getattr(condition, "data", condition), dtype=bool)
     a, b = _pair(a, b)
     try:
@@ -507,18 +563,20 @@ def mean_squared_error(a: Any, b: Any) -> Tensor:
 
 def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Maximum over ``axis``. Subgradient: when several elements tie for the maximum, the
-    gradient is split equally among them (so the total is preserved)."""
+    gradient is split equally among them (so the total is preserved; PyTorch's ``amax``
+    and JAX do the same). A NaN in a slice makes its maximum NaN (as ``np.max``), and that
+    slice's gradient goes to its NaN elements (split among them if several)."""
     x = as_tensor(x)
     out = np.max(x._data, axis=axis, keepdims=keepdims)
 
     def vjp(g):
         peak = _expand_reduced(out, x.shape, axis, keepdims)
-        winners = (x._data == peak).astype(x.dtype)
+        winners = ((x._data == peak) | (x._data != x._data)).astype(x.dtype)  # NaN wins
         ties = np.sum(winners, axis=axis, keepdims=True)
         return (winners * _expand_reduced(g, x.shape, axis, keepdims) / ties,)
 
     def jvp(t):  # the mean of the tied maxima's tangents: the transpose of the equal split
-        winners = x._data == _expand_reduced(out, x.shape, axis, keepdims)
+        winners = (x._data == _expand_reduced(out, x.shape, axis, keepdims)) | (x._data != x._data)
         ties = np.sum(winners, axis=axis, keepdims=keepdims)
         return np.sum(np.where(winners, t, 0.0), axis=axis, keepdims=keepdims) / ties
 
@@ -594,7 +652,9 @@ def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
 
 
 def normalize(x: Any) -> Tensor:
-    """x / |x| along the last axis. The zero vector maps to zero, with zero gradient.
+    """x / |x| along the last axis. The zero vector maps to the zero vector, with zero
+    gradient (and zero tangent): never NaN. (x / |x| is undefined at 0; PyTorch's
+    ``F.normalize`` makes the same choice by dividing by max(|x|, eps).)
 
     With y = x/|x|:  d/dx = (g - y (y . g)) / |x|  (the part of g orthogonal to y, scaled).
     """
