@@ -68,10 +68,12 @@ def as_column(x):
 
 
 def plane_normal(corners):
-    """Unnormalised normals (n, 3) of triangles (n, 3, 3): (b - a) x (c - a)."""
-    if isinstance(corners[0], md.Tensor):
-        return md.cross(corners[1] - corners[0], corners[2] - corners[0])
-    return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    """Unnormalised normals (n, 3) of triangles: (b - a) x (c - a). ``corners`` is an
+    (n, 3, 3) array (n may be 0), or the tensors (a, b, c), (n, 3) each, on the tape."""
+    if isinstance(corners, np.ndarray):
+        return np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    a, b, c = corners
+    return md.cross(b - a, c - a)
 
 
 def grid_gradient(normal, right, up, to_samples):
