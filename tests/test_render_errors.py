@@ -284,3 +284,38 @@ def test_image_sizes_that_cannot_fit_fail_before_allocating(width, height, spp):
         assert tracemalloc.get_traced_memory()[1] < 50e6  # peak bytes
     finally:
         tracemalloc.stop()
+
+
+@pytest.mark.parametrize("primary", ["raster", "bvh"])
+@pytest.mark.parametrize(
+    "change, owner",
+    [
+        (lambda s: s.objects[0].vertices.data.__setitem__((7, 1), 1e61), "Mesh: vertices"),
+        (lambda s: s.objects[-1].radius.data.__setitem__((), 1e200), "Sphere: radius"),
+        (lambda s: s.objects[-1].center.data.__setitem__(0, -1e61), "Sphere: center"),
+        (lambda s: s.camera.position.data.__setitem__(2, 1e61), "Camera: position"),
+        (lambda s: s.camera.look_at.data.__setitem__(0, 1e61), "Camera: look_at"),
+        (lambda s: s.lights[0].position.data.__setitem__(1, 1e61), "PointLight: position"),
+    ],
+)
+def test_coordinates_beyond_the_supported_range_are_refused_on_every_path(change, owner, primary):
+    """A vertex at 1e61 rendered black on the rasterised path while the BVH refused it, and
+    a sphere of radius 1e200 had no hits: the scene's validation now refuses both, the same
+    on every path, naming the parameter and the range."""
+    scene = render.paper_scene(width=16, height=12)
+    scene.objects.append(render.Sphere((1.5, 0.5, 1.0), 0.5, render.Material((0.5,) * 3)))
+    render.render(scene, primary=primary)  # fine before the change
+    change(scene)
+    with pytest.raises(ValueError, match=f"{owner} must be .*at most 1e60"):
+        render.render(scene, primary=primary)
+
+
+def test_the_largest_supported_coordinates_give_the_same_hits_on_both_paths():
+    scene = render.paper_scene(width=24, height=16)
+    for t in (scene.objects[0].vertices, scene.camera.position, scene.camera.look_at):
+        t.data[...] = t.data * 1e59
+    scene.lights[0].position.data[...] = scene.lights[0].position.data * 1e59
+    _, raster = render.render(scene, primary="raster", return_info=True)
+    _, bvh = render.render(scene, primary="bvh", return_info=True)
+    assert (raster.prim_id >= 0).any()
+    np.testing.assert_array_equal(raster.prim_id, bvh.prim_id)

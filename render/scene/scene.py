@@ -149,6 +149,27 @@ def check_ray_count(width: int, height: int, spp: int) -> None:
         )
 
 
+#: The supported range of positions and sizes (vertices, sphere centres and radii, the
+#: camera's position and look-at point, point lights): magnitudes up to 1e60. Products of
+#: up to four coordinates appear in the intersection tests and the shading; this keeps them
+#: far from float64 overflow (1.8e308), so that no test meets inf - inf = NaN. Checked here,
+#: once, when a scene is validated, so that every tracing path (rasterised, BVH, brute
+#: force, the light's view) refuses the same scenes; ``render.trace.accel`` checks its own
+#: inputs against the same bound.
+MAX_COORD = 1e60
+
+
+def _in_range(x: np.ndarray) -> bool:
+    return bool(np.all(np.abs(x.astype(np.float64)) <= MAX_COORD))
+
+
+#: The constraint of a position or size field (besides being finite).
+IN_RANGE = (
+    _in_range,
+    "at most 1e60 in magnitude (the supported range, render.scene.scene.MAX_COORD)",
+)
+
+
 def _normalisable(v: np.ndarray) -> bool:
     """True if ``v / |v|`` is a finite unit vector: |v| is neither zero nor so small that
     its square underflows, nor so large that it overflows (1e-150 < |v| < 1e150)."""
@@ -265,8 +286,8 @@ class Camera(_HasFields):
     """
 
     FIELDS = (
-        Field("position", ((3,),)),
-        Field("look_at", ((3,),)),
+        Field("position", ((3,),), IN_RANGE),
+        Field("look_at", ((3,),), IN_RANGE),
         Field("up", ((3,),)),
         Field("fov", ((),), (lambda x: 0.0 < x < 180.0, "in (0, 180) degrees")),
     )
@@ -373,7 +394,7 @@ class PointLight(_HasFields):
         color: (3,) linear RGB multiplier of the intensity (white by default).
     """
 
-    FIELDS = (Field("position", ((3,),)), _strength("intensity"), _LIGHT_COLOR)
+    FIELDS = (Field("position", ((3,),), IN_RANGE), _strength("intensity"), _LIGHT_COLOR)
 
     def __init__(self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = WHITE):
         self._set_fields(position=position, intensity=intensity, color=color)
@@ -526,7 +547,7 @@ class Mesh(_HasFields):
     """
 
     FIELDS = (
-        Field("vertices", (("V", 3),)),
+        Field("vertices", (("V", 3),), IN_RANGE),
         Field("normals", (("V", 3),), optional=True),
         Field("uvs", (("V", 2),), optional=True),
     )
@@ -617,8 +638,8 @@ class Sphere(_HasFields):
     """
 
     FIELDS = (
-        Field("center", ((3,),)),
-        Field("radius", ((),), (lambda x: x > 0.0, "> 0")),
+        Field("center", ((3,),), IN_RANGE),
+        Field("radius", ((),), (lambda x: 0.0 < x <= MAX_COORD, "> 0 and at most 1e60")),
     )
 
     def __init__(self, center: ArrayLike, radius: ArrayLike, material: Material) -> None:

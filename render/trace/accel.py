@@ -32,6 +32,7 @@ import numba
 import numpy as np
 from numba import njit
 
+from render.scene.scene import MAX_COORD
 from render.trace.bvh import N_BINS, build_bvh, one_leaf, primitive_bounds
 from render.trace.intersect import (
     FlatBVH,
@@ -41,10 +42,8 @@ from render.trace.intersect import (
     pack_primitives,
 )
 
-#: Largest accepted magnitude of any coordinate, radius or direction component.  Products of
-#: up to four such numbers appear in the intersection tests; this keeps them far from
-#: float64 overflow (1.8e308), so the tests never produce inf - inf = NaN.
-MAX_COORD = 1e60
+#: Largest accepted magnitude of any coordinate, radius or direction component: the scene's
+#: supported range (``render.scene.scene.MAX_COORD``), checked again for direct users.
 #: A direction needs some component at least this large (so that |d|^2 does not underflow).
 MIN_DIRECTION = 1e-60
 
