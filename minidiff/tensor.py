@@ -22,7 +22,7 @@ tensor counts the changes to its data (``version``), each node remembers the ver
 the tensors it saved, and ``backward`` refuses to run a VJP whose saved tensors have
 changed, naming the primitive and the tensor. Assigning ``t.data = ...`` (and ``t.data
 -= ...``) counts as a change. An in-place write ``t.data[...] = ...`` cannot be seen by
-NumPy, so a tensor that a node has saved (parameter, constant or computed) hands out its
+NumPy, so a leaf (parameter or constant) that a node has saved hands out its
 array only after keeping a copy, and changes are found by comparing with that copy (see
 ``Tensor.data`` for what is and is not seen).
 
@@ -181,21 +181,23 @@ class Tensor:
 
         Edits after ``backward()`` are fine (optimizers make them). Edits between the
         forward pass and ``backward()`` of a tensor that a VJP needs make ``backward``
-        raise: assignments ``t.data = ...`` and in-place writes ``t.data[...] = ...``, of
-        any tensor a node saved (a parameter, a constant such as ``c`` in ``x * c``, or a
-        tensor computed on the tape). For in-place writes, the first time a saved tensor
-        hands out its array we keep a copy; ``version`` compares the two. A view
-        (``x[1:]``, ``x.reshape``, ``x.detach()``) shares memory with its base, so an edit
-        of either counts for both. Cost: one copy per saved tensor whose ``.data`` is read
-        before backward (primitives read ``_data``, so a renderer makes a handful; measured:
-        no difference on a 10 ms paper-scene forward+backward, medians of 37 runs).
+        raise: assignments ``t.data = ...`` of any tensor a node saved, and in-place writes
+        ``t.data[...] = ...`` of a saved *leaf* (a parameter, or a constant such as ``c`` in
+        ``x * c``). For in-place writes, the first time a saved leaf hands out its array we
+        keep a copy; ``version`` compares the two. A view (``x[1:]``, ``x.reshape``,
+        ``x.detach()``) shares memory with its base, so an edit of either counts for both.
+        Cost: one copy per saved leaf whose ``.data`` is read before backward (a scene's
+        parameters: small).
 
-        Not seen: writes through an ndarray obtained before the forward pass (nothing was
-        handed out after the save, so nothing was copied to compare with).
+        Not seen: in-place writes into tensors computed on the tape (a renderer reads the
+        ``.data`` of many of its per-hit arrays; copying and comparing each cost ~5 ms of a
+        10 ms light-estimation step at 512x512), and writes through an ndarray obtained
+        before the forward pass (nothing was handed out after the save, so nothing was
+        copied to compare with).
         """
         t = self
         while t is not None:
-            if t._saved and t._copy is None:
+            if t._saved and t._copy is None and t._node is None:  # a saved leaf
                 t._copy = t._data.copy()
             t = t._base
         return self._data
