@@ -212,6 +212,7 @@ def trace_shadows(
         return np.zeros(0, dtype=bool)
     n_prims = len(primitives[0]) + len(primitives[1])
     rays = shadow_rays(light, points, start_prim, len(primitives[0]), size)
+    _ignore_spheres_facing(rays.ignore_prim, light, points, start_prim, primitives)
     if bvh and isinstance(light, PointLight):
         if len(points) >= LIGHT_VIEW_RAYS_PER_PRIMITIVE * n_prims:
             position = np.asarray(light.position.data, dtype=np.float64)
@@ -224,6 +225,27 @@ def trace_shadows(
         rays.origins, rays.directions, rays.tmax, tmin=0.0, ignore_prim=rays.ignore_prim
     )
     return ~blocked
+
+
+def _ignore_spheres_facing(ignore, light, points, start_prim, primitives) -> None:
+    """Let the shadow rays that start on a sphere facing the light skip that sphere (in place
+    in ``ignore``). A sphere is convex: a ray leaving its surface outwards, (p - c) . l > 0
+    for the direction l to the light, never meets it again. Near the terminator the offset
+    along l moves the start point only offset * cos(angle) off the surface, less than the
+    rounding of the hit point far from the origin; without this the ray could meet the
+    sphere at t ~ 0 and shadow the point (tests/test_scale_invariance.py, seed 315)."""
+    triangles, centers, _ = primitives
+    on_sphere = np.flatnonzero(start_prim >= len(triangles))
+    if len(on_sphere) == 0:
+        return
+    p = points[on_sphere]
+    outward = p - centers[start_prim[on_sphere] - len(triangles)]
+    if isinstance(light, PointLight):
+        towards = np.asarray(light.position.data, np.float64) - p
+    else:
+        towards = np.broadcast_to(-np.asarray(light.direction.data, np.float64), p.shape)
+    facing = np.einsum("ij,ij->i", outward, towards) > 0.0
+    ignore[on_sphere[facing]] = start_prim[on_sphere[facing]]
 
 
 @dataclass
