@@ -104,11 +104,17 @@ def _proof() -> str | None:
                 self.array = array
 
         def in_thread(array):
-            kept = []
-            worker = threading.Thread(target=kept.append, args=(array,))
+            """A thread that holds ``array`` (in its frame) until released: (thread, event)."""
+            held, release = threading.Event(), threading.Event()
+
+            def hold(a=array):
+                held.set()
+                release.wait()
+
+            worker = threading.Thread(target=hold, daemon=True)
             worker.start()
-            worker.join()
-            return kept
+            held.wait()
+            return worker, release, array
 
         # How a user, the tape or a cache may hold an array: (holder of a, a from holder).
         ways = {
@@ -117,12 +123,22 @@ def _proof() -> str | None:
             "a list": (lambda a: [a], lambda h: h[0]),
             "a closure": (lambda a: lambda: a, lambda h: h()),
             "an object": (Owner, lambda h: h.array),
-            "another thread": (in_thread, lambda h: h[0]),
+            "another thread": (in_thread, lambda h: h[2]),
         }
         for how, (hold, get) in ways.items():
             holder = hold(empty(shape, dtype))
-            fresh = empty(shape, dtype)
-            if np.shares_memory(fresh, get(holder)):
+            if how == "another thread":  # only the thread holds it while we ask
+                worker, release, array = holder
+                address, holder = array.ctypes.data, None
+                del array
+                fresh = empty(shape, dtype)
+                reused = fresh.ctypes.data == address
+                release.set()
+                worker.join()
+            else:
+                fresh = empty(shape, dtype)
+                reused = np.shares_memory(fresh, get(holder))
+            if reused:
                 return f"an array held by {how} was handed out again"
             del holder, fresh
         first = empty(shape, dtype)
