@@ -376,6 +376,31 @@ def clip(x: np.ndarray, lo, hi) -> np.ndarray:
     return np.clip(x, lo, hi, out=buffers.empty(x.shape, x.dtype))
 
 
+def pass_where_equal(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Equals ``np.where(a == b, g, 0.0)`` bit for bit (into reused memory when g, a and b
+    are large float arrays of one shape and dtype): the gradient of clip, maximum and
+    minimum passed where the input is what came out.
+
+    ``np.where`` with a scalar branch runs a slow broadcast loop: on a 512x512 RGB image
+    it took 1.4 ms, a third of a light-estimation step; one compiled pass takes ~0.2 ms."""
+    if not (
+        g.shape == a.shape == b.shape
+        and g.size >= _SMALL
+        and g.dtype == a.dtype == b.dtype
+        and g.dtype.type in _FLOATS
+    ):
+        return np.where(a == b, g, 0.0)
+    out = buffers.empty(g.shape, g.dtype)
+    _pass_where_equal(g.reshape(-1), a.reshape(-1), b.reshape(-1), out.reshape(-1))
+    return out
+
+
+@numba.njit(cache=True)
+def _pass_where_equal(g, a, b, out):
+    for i in range(g.shape[0]):
+        out[i] = g[i] if a[i] == b[i] else 0.0
+
+
 def _scalar_of(v, dtype: np.dtype) -> bool:
     """Whether v leaves np.clip's result dtype at ``dtype``: a Python int or float (NumPy
     treats those as weak), or a 0-d array of that dtype."""

@@ -250,6 +250,33 @@ def test_clip_equals_numpy(shape, dtype, bounds, large, seed):
     assert_identical(first, np.clip(x, lo, hi))
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=hnp.array_shapes(min_dims=0, max_dims=3, max_side=40),
+    dtype=st.sampled_from([np.float32, np.float64]),
+    large=st.booleans(),
+    strided=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_pass_where_equal_equals_numpy(shape, dtype, large, strided, seed):
+    # a == b where a is b clipped (the clip VJP), with NaN (never equal) and -0.0 == 0.0
+    # among the values; large arrays take the compiled loop and reused memory.
+    rng = np.random.default_rng(seed)
+    if large:
+        shape = (30_000, 3)
+    b = (values(rng, shape, np.float64) * 2).astype(dtype)
+    if b.size:
+        b.reshape(-1)[:: max(1, b.size // 7)] = np.nan
+        b.reshape(-1)[1 :: max(1, b.size // 5)] = -0.0
+    a = np.clip(b, np.asarray(-0.5, dtype), np.asarray(0.5, dtype))
+    g = (values(rng, shape, np.float64) * 3).astype(dtype)
+    if strided and b.ndim:
+        a, b, g = a[::-1], b[::-1], g[::-1]
+    first = kernels.pass_where_equal(g, a, b)
+    assert_identical(kernels.pass_where_equal(g, a, b), np.where(a == b, g, 0.0))
+    assert_identical(first, np.where(a == b, g, 0.0))
+
+
 @pytest.mark.parametrize("bad", [5, -6, 100])
 def test_gather_rows_out_of_range_raises(bad):
     with pytest.raises(IndexError, match=f"index {bad} is out of bounds for axis 0 with size 5"):
