@@ -34,7 +34,7 @@ import numpy as np
 import minidiff as md
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
-from render.edges.terms import EdgeDecisions, add_edge_terms
+from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms
 from render.film import image_from_hits, pixel_means, sample_colours
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame, subpixel_offsets
@@ -90,7 +90,7 @@ def render(
     scene.validate()
     subpixel_offsets(spp)  # a clear error for a bad spp before anything else
     check_ray_count(scene.camera.width, scene.camera.height, spp)
-    antialias = _check_flag(antialias, "antialias")
+    antialias = _check_antialias(antialias)
     max_bounces = _check_bounces(max_bounces)
     raster = _rasterise(scene, _check_primary(primary), spp) and bool(bvh)
     cache = cache_for(scene, reuse_visibility)
@@ -100,7 +100,10 @@ def render(
     mirrors = Mirrors.of(scene, visibility, max_bounces)
     shading = shade_camera_hits(scene, visibility, frame, cache, mirrors)  # 2, 3
     prim_id, edges = visibility.primary.prim_id, None
-    if antialias:
+    if antialias == "boundary":
+        image = image_from_hits(scene, prim_id, shading.colour, shading.rays, spp)  # 5
+        image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)  # 4
+    elif antialias == "pairs":
         samples = sample_colours(scene, prim_id, shading.colour, shading.rays)
         samples, edges = add_edge_terms(  # 4
             scene, visibility, cache, samples, shading, frame, spp
@@ -114,10 +117,15 @@ def render(
     return image, RenderInfo.of(scene, visibility, shading.texel, spp, mirrors, edges)
 
 
-def _check_flag(value, name: str) -> bool:
-    if not isinstance(value, bool | np.bool_):
-        raise TypeError(f"render: {name} must be True or False, got {value!r}")
-    return bool(value)
+def _check_antialias(value) -> str | None:
+    """None (no edge terms), "pairs" or "boundary"; True means "pairs"."""
+    if isinstance(value, bool | np.bool_):
+        return "pairs" if value else None
+    if value in ("pairs", "boundary"):
+        return value
+    raise ValueError(
+        f'render: antialias must be True, False, "pairs" or "boundary", got {value!r}'
+    )
 
 
 def _check_bounces(value) -> int:

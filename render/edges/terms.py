@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from render.edges.boundary import boundary_points, boundary_term
 from render.edges.geometry import add_to_samples
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
@@ -88,3 +89,23 @@ def add_edge_terms(
         prim_id = visibility.primary.prim_id
         shadows = shadow_terms(scene, found.shadows, prim_id, shading.hits, frame, spp)
     return add_to_samples(samples, [silhouettes, shadows]), found
+
+
+def add_boundary_term(
+    scene: Scene,
+    visibility: Visibility,
+    cache: RenderCache,
+    image: md.Tensor,
+    frame,
+    max_bounces: int,
+) -> md.Tensor:
+    """The image (H, W, 3) plus the boundary term of every silhouette, crease and sphere
+    outline (``render.edges.boundary``): the same values, the exact edge derivative."""
+    topology, _ = cache.get(
+        "topology",
+        [visibility.geometry],
+        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
+    )
+    points = boundary_points(scene, visibility, frame, topology, max_bounces)
+    term = boundary_term(scene, points, frame)
+    return image if term is None else image + term

@@ -1,0 +1,598 @@
+"""Edge gradients by the boundary integral: the exact derivative of box-filtered pixels.
+
+A pixel's value is the mean of the radiance f over its box, I = integral_pixel f(x) dx (a
+pixel has area 1 in pixel units). Where f jumps along a curve that moves with a parameter
+theta (an object's outline, a crease of a flat-shaded mesh), the derivative has two parts
+(Reynolds transport):
+
+    dI/dtheta = integral_pixel df/dtheta dx  +  integral_(curves in pixel) (f_- - f_+) v_n ds
+
+The first, the *interior* term, is what the tape already gives (shading differentiated at
+fixed visibility, one sample standing for its share of the pixel). The second, the
+*boundary* term, is computed here: v_n is the curve's velocity along its unit normal n,
+f_+ the radiance just on the side n points to, f_- just on the other.
+
+Every discontinuity curve of primary visibility lies on the image of a mesh edge (a
+silhouette, an open boundary, a crease or a seam across which the shading jumps) or of a
+sphere's outline. Each is written as the zero set of a function e(x; theta) of the image
+position that is smooth in theta:
+
+* a mesh edge (v_i, v_j) seen from the eye C: e = d(x) . ((v_i - C) x (v_j - C)), zero on
+  the plane through the eye and the edge, linear in the camera direction d(x);
+* a sphere (centre c, radius r): e = (oc . d)^2 - |d|^2 (|oc|^2 - r^2), oc = C - c, the
+  discriminant of the ray, zero on the outline, positive inside it.
+
+On the zero set, v_n = -(de/dtheta) / |grad_x e|, with n = grad_x e / |grad_x e|. So the
+boundary term of a pixel is a sum over quadrature points x_g on the curve's piece inside it:
+
+    sum_g w_g (f_+ - f_-)(x_g) / |grad_x e(x_g)| * de(x_g; theta)/dtheta
+
+and the renderer adds to the image the term ``c_g * (e(x_g; theta) - detach(e(x_g;
+theta)))`` (c_g the constant factor): its value is exactly zero, its derivative is the
+boundary term, and the tape takes it to every parameter e depends on (vertices, sphere
+centres and radii, the camera's position, look-at, up and field of view) in one backward.
+
+Which parts of an edge are visible, and what lies on either side, is not decided here by
+geometry: f_+ and f_- are the radiance seen by two camera rays through x_g +- epsilon n,
+shaded as any camera ray (``radiance_at``). Where the edge is hidden behind another surface
+both rays see that surface and f_+ - f_- vanishes; where a flat-shaded mesh folds, the two
+faces' colours differ; where the shading is smooth across an edge the difference is zero.
+Every edge of every mesh is therefore a candidate; only the points of edges seen from
+behind their own closed surface cost rays they did not need.
+
+The curves are cut at pixel borders (``pixel_pieces``): within a pixel a mesh edge's image
+is a straight segment and f_+ - f_- varies smoothly along it, so a fixed Gauss-Legendre rule
+integrates it (``GAUSS_POINTS`` per piece). A sphere's outline is a conic: it is followed as
+a polyline of short chords, and each quadrature point is moved onto the conic.
+
+What is not a discontinuity of this kind is not included: the line where two surfaces
+intersect (the teapot's spout entering its body), edges seen in mirrors, and shadow
+boundaries (secondary visibility; ``render.edges.shadows`` handles those).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numba
+import numpy as np
+
+import minidiff as md
+from render.scene.cache import RenderCache
+from render.scene.camera import ray_directions
+from render.scene.scene import Scene
+from render.shade.hits import shade_camera_hits, working_dtype
+from render.shade.mirrors import Mirrors
+from render.trace.visibility import PrimaryHits, Visibility
+
+#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]).
+GAUSS_POINTS = 2
+#: How far, in pixels, the two rays that see either side of a curve pass from it.
+EPSILON = 1e-3
+#: A sphere's outline is followed by chords at most this long, in pixels.
+CHORD = 0.5
+#: Points closer to the eye's plane than this fraction of the scene's size are clipped.
+NEAR = 1e-7
+
+
+@dataclass
+class BoundaryPoints:
+    """The quadrature points of one render's boundary term (constants, off the tape).
+
+    coords (G, 2) float64: image-plane (x, y) of each point, on its curve.
+    pixel (G,) int64: the pixel (row * W + column) whose piece of the curve it lies on.
+    weight (G, 3): w_g (f_+ - f_-) / |grad_x e|, the factor of de/dtheta in the boundary term.
+    mesh_edges: (mesh index, G_k rows, vertex ids i (G_k,), j (G_k,)) per mesh with points.
+    sphere_points: (sphere index, G_k rows) per sphere with points.
+    """
+
+    coords: np.ndarray
+    pixel: np.ndarray
+    weight: np.ndarray
+    mesh_edges: list
+    sphere_points: list
+
+
+# ---------------------------------------------------------------------------------------
+# Off the tape: curves, pieces, quadrature points
+# ---------------------------------------------------------------------------------------
+
+
+def plain_camera(frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(forward, right, up, eye) of a ``camera_frame`` as float64 arrays."""
+    return tuple(np.asarray(t.data, np.float64) for t in frame)
+
+
+def project(points: np.ndarray, frame, width: int, height: int):
+    """Pixel coordinates (k, 2) (column, row; continuous, the image spans [0, W] x [0, H])
+    and depth along the view axis (k,) of world points (k, 3)."""
+    forward, right, up, eye = frame
+    rel = points - eye
+    depth = rel @ forward
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (rel @ right) / (depth * (right @ right))
+        y = (rel @ up) / (depth * (up @ up))
+    return np.stack([(x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)], axis=1), depth
+
+
+def to_image_plane(px: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Image-plane (x, y) in [-1, 1] of pixel coordinates (k, 2)."""
+    return np.stack([2.0 * px[:, 0] / width - 1.0, 1.0 - 2.0 * px[:, 1] / height], axis=1)
+
+
+def clip_to_near(p0: np.ndarray, p1: np.ndarray, frame, near: float):
+    """The parts of 3-D segments p0 -> p1 (k, 3) in front of the plane at distance ``near``
+    ahead of the eye: new endpoints (k, 3) each, and which segments keep a part (k,)."""
+    forward, _, _, eye = frame
+    z0, z1 = (p0 - eye) @ forward, (p1 - eye) @ forward
+    keep = (z0 > near) | (z1 > near)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (near - z0) / (z1 - z0)
+    cut = ((z0 <= near) | (z1 <= near)) & keep
+    q = p0 + t[:, None] * (p1 - p0)
+    p0 = np.where((cut & (z0 <= near))[:, None], q, p0)
+    p1 = np.where((cut & (z1 <= near))[:, None], q, p1)
+    return p0, p1, keep
+
+
+@numba.njit(cache=True)
+def _clip_box(x0, y0, x1, y1, width, height):
+    """Liang-Barsky: the parameter range [t0, t1] of the segment inside [0, W] x [0, H]
+    (t0 > t1: none of it)."""
+    t0, t1 = 0.0, 1.0
+    dx, dy = x1 - x0, y1 - y0
+    for p, q in ((-dx, x0), (dx, width - x0), (-dy, y0), (dy, height - y0)):
+        if p == 0.0:
+            if q < 0.0:
+                return 1.0, 0.0
+        else:
+            r = q / p
+            if p < 0.0:
+                t0 = max(t0, r)
+            else:
+                t1 = min(t1, r)
+    return t0, t1
+
+
+@numba.njit(cache=True)
+def _crossings(a0, a1, t0, t1, out):
+    """The parameters t in (t0, t1) where a0 + t (a1 - a0) crosses an integer, in
+    increasing order, written to ``out``; returns how many."""
+    n = 0
+    d = a1 - a0
+    if d == 0.0:
+        return 0
+    lo, hi = a0 + t0 * d, a0 + t1 * d
+    step = 1 if hi > lo else -1
+    k = math.floor(lo) + 1 if step > 0 else math.ceil(lo) - 1
+    while (k < hi) if step > 0 else (k > hi):
+        out[n] = (k - a0) / d
+        n += 1
+        k += step
+    return n
+
+
+@numba.njit(cache=True)
+def _count_pieces(p0, p1, width, height):
+    n = 0
+    for s in range(p0.shape[0]):
+        t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
+        if t0 >= t1:
+            continue
+        ax, ay = p0[s, 0] + t0 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t0 * (p1[s, 1] - p0[s, 1])
+        bx, by = p0[s, 0] + t1 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t1 * (p1[s, 1] - p0[s, 1])
+        n += abs(math.floor(bx) - math.floor(ax)) + abs(math.floor(by) - math.floor(ay)) + 1
+    return n
+
+
+@numba.njit(cache=True)
+def _fill_pieces(p0, p1, width, height, segment, start, end, pixel):
+    xs = np.empty(width + 2)
+    ys = np.empty(height + 2)
+    n = 0
+    for s in range(p0.shape[0]):
+        t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
+        if t0 >= t1:
+            continue
+        nx = _crossings(p0[s, 0], p1[s, 0], t0, t1, xs)
+        ny = _crossings(p0[s, 1], p1[s, 1], t0, t1, ys)
+        i = j = 0
+        a = t0
+        while True:  # merge the two sorted lists of crossings
+            if i < nx and (j >= ny or xs[i] <= ys[j]):
+                b = xs[i]
+                i += 1
+            elif j < ny:
+                b = ys[j]
+                j += 1
+            else:
+                b = t1
+            if b > a:
+                m = 0.5 * (a + b)
+                cx = p0[s, 0] + m * (p1[s, 0] - p0[s, 0])
+                cy = p0[s, 1] + m * (p1[s, 1] - p0[s, 1])
+                col, row = math.floor(cx), math.floor(cy)
+                if 0 <= col < width and 0 <= row < height:
+                    segment[n], start[n], end[n] = s, a, b
+                    pixel[n] = row * width + col
+                    n += 1
+            a = b
+            if b >= t1:
+                break
+    return n
+
+
+def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
+    """Cut 2-D segments p0 -> p1 (k, 2), in pixel coordinates, at pixel borders and at the
+    image's border: per piece its segment (m,) int64, parameter range [start, end] (m,)
+    each along the segment, and pixel (m,) int64 (row * W + column)."""
+    p0, p1 = np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64)
+    bound = _count_pieces(p0, p1, width, height)
+    segment, pixel = np.empty(bound, np.int64), np.empty(bound, np.int64)
+    start, end = np.empty(bound), np.empty(bound)
+    n = _fill_pieces(p0, p1, width, height, segment, start, end, pixel)
+    return segment[:n], start[:n], end[:n], pixel[:n]
+
+
+def quadrature(p0, p1, segment, start, end):
+    """Gauss-Legendre points on the pieces: positions (m * GAUSS_POINTS, 2), their segment,
+    and weights (the rule's weight times the piece's length, in pixels)."""
+    nodes, weights = np.polynomial.legendre.leggauss(GAUSS_POINTS)
+    nodes, weights = (nodes + 1.0) / 2.0, weights / 2.0
+    t = start[:, None] + (end - start)[:, None] * nodes[None, :]  # (m, g)
+    delta = p1[segment] - p0[segment]
+    length = np.linalg.norm(delta, axis=1) * (end - start)
+    points = p0[segment][:, None, :] + t[..., None] * delta[:, None, :]
+    return (
+        points.reshape(-1, 2),
+        np.repeat(segment, GAUSS_POINTS),
+        (length[:, None] * weights[None, :]).reshape(-1),
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# The radiance on either side
+# ---------------------------------------------------------------------------------------
+
+
+def shade_seen(
+    scene: Scene,
+    visibility: Visibility,
+    frame,
+    coords: np.ndarray,
+    prim_id: np.ndarray,
+    depth: np.ndarray,
+    max_bounces: int,
+) -> np.ndarray:
+    """(k, 3) float64, off the tape: the radiance of k camera rays through image-plane
+    points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the background) at
+    ``depth`` (k,) along the view axis, shaded as camera hits of the render are (shadows
+    and mirror reflections included, by ``shade_camera_hits``)."""
+    forward, right, up, eye = plain_camera(frame)
+    hit = np.flatnonzero(prim_id >= 0)
+    directions = coords[hit, :1] * right + coords[hit, 1:] * up + forward
+    points = eye + depth[hit, None] * directions
+    primary = PrimaryHits(prim_id, hit, depth, points, coords[hit])
+    lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
+    seen = replace(visibility, primary=primary, lit=lit)
+    out = np.empty((len(coords), 3))
+    out[:] = np.asarray(scene.background.data, np.float64)
+    with md.no_grad():
+        shading = shade_camera_hits(
+            scene, seen, frame, RenderCache(), Mirrors.of(scene, seen, max_bounces)
+        )
+    if shading.colour is not None:
+        out[shading.rays] = shading.colour.data
+    return out
+
+
+def radiance_at(
+    scene: Scene, visibility: Visibility, frame, coords: np.ndarray, max_bounces: int
+) -> np.ndarray:
+    """(k, 3) float64, off the tape: the radiance the camera sees through image-plane
+    points (k, 2): each ray traced with the render's accelerator, then ``shade_seen``."""
+    forward, right, up, eye = plain_camera(frame)
+    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    prim_id, t, _, _ = visibility.accelerator().closest_hit(
+        np.broadcast_to(eye, directions.shape), directions
+    )
+    return shade_seen(scene, visibility, frame, coords, prim_id, t, max_bounces)
+
+
+# ---------------------------------------------------------------------------------------
+# Candidates: mesh edges across which the image can jump, every sphere's outline
+# ---------------------------------------------------------------------------------------
+
+
+@dataclass
+class EdgeTable:
+    """The welded edges of one mesh across which the image can jump, one row per edge.
+
+    i, j (E,) int64: the edge's vertex ids (as the face ``face`` has them).
+    face, other (E,) int64: the faces on either side (local ids; other = -1 on an open
+    boundary or a non-manifold edge).
+    third, other_third (E,) int64: each face's vertex off the edge (-1 where no face).
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    face: np.ndarray
+    other: np.ndarray
+    third: np.ndarray
+    other_third: np.ndarray
+
+
+def edge_table(mesh, topology) -> EdgeTable:
+    """Every welded edge of ``mesh`` that can carry a jump: all of them on a flat-shaded
+    mesh (every fold of the surface is a crease), else those that can be silhouettes
+    (any edge, seen from the right side) or seams where the per-vertex normals or UVs do
+    not continue. An edge between two faces that share its vertex ids on a smooth mesh is
+    a jump only when it is a silhouette: kept, since the eye decides that."""
+    faces = mesh.faces
+    group = topology.edge_group.reshape(-1)
+    slots = np.flatnonzero(group >= 0)
+    _, first = np.unique(group[slots], return_index=True)
+    slots = slots[first]
+    f, k = slots // 3, slots % 3
+    other = topology.neighbour[f, k]
+    other_k = topology.neighbour_edge[f, k]
+    other_third = faces[np.maximum(other, 0), (np.maximum(other_k, 0) + 2) % 3]
+    other_third = np.where(other >= 0, other_third, -1)
+    return EdgeTable(
+        faces[f, k], faces[f, (k + 1) % 3], f, other, faces[f, (k + 2) % 3], other_third
+    )
+
+
+def _edge_curves(scene: Scene, frame, tables: list[EdgeTable], size: float):
+    """2-D segments (pixel coordinates) of every candidate edge in front of the eye, and
+    per mesh the rows of its table that were kept."""
+    camera = scene.camera
+    starts, ends, kept = [], [], []
+    for mesh, table in zip(scene.meshes, tables, strict=True):
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * size)
+        starts.append(project(a[keep], frame, camera.width, camera.height)[0])
+        ends.append(project(b[keep], frame, camera.width, camera.height)[0])
+        kept.append(np.flatnonzero(keep))
+    return starts, ends, kept
+
+
+def _edge_points(eye, directions, a, b):
+    """Depth t (k,) along rays eye + t d (d with unit view-axis component) of the points
+    where they pass closest to the lines through a and b (k, 3): the edge point each
+    quadrature point stands for."""
+    u = b - a
+    w0 = eye - a
+    dd = np.einsum("ij,ij->i", directions, directions)
+    du = np.einsum("ij,ij->i", directions, u)
+    uu = np.einsum("ij,ij->i", u, u)
+    dw = np.einsum("ij,ij->i", directions, w0)
+    uw = np.einsum("ij,ij->i", u, w0)
+    det = dd * uu - du * du
+    return (du * uw - uu * dw) / np.where(det > 0, det, 1.0)
+
+
+def _outline_polyline(sphere, frame, width: int, height: int, size: float):
+    """The sphere's outline as a closed polyline in pixel coordinates (n, 2): the circle of
+    points where rays from the eye touch it, sampled so that chords are at most ``CHORD``
+    pixels (None: the eye is inside the sphere, or no part of it is in front)."""
+    eye = frame[3]
+    centre = np.asarray(sphere.center.data, np.float64)
+    r = float(sphere.radius.data)
+    w = centre - eye
+    dist2 = float(w @ w)
+    if dist2 <= r * r:
+        return None
+    touch = eye + w * (1.0 - r * r / dist2)  # centre of the circle of tangency
+    rho = r * math.sqrt(1.0 - r * r / dist2)
+    u1 = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 * math.sqrt(dist2) else [0.0, 1.0, 0.0])
+    u1 /= np.linalg.norm(u1)
+    u2 = np.cross(w, u1) / math.sqrt(dist2)
+
+    def circle(n):
+        phi = np.linspace(0.0, 2.0 * math.pi, n + 1)
+        pts = touch + rho * (np.cos(phi)[:, None] * u1 + np.sin(phi)[:, None] * u2)
+        return project(pts, frame, width, height)
+
+    px, depth = circle(64)
+    if not np.all(depth > NEAR * size):
+        return None  # part of the outline behind the eye: not supported (documented)
+    perimeter = float(np.sum(np.linalg.norm(np.diff(px, axis=0), axis=1)))
+    n = int(min(max(64, math.ceil(perimeter / CHORD)), 1 << 16))
+    px, _ = circle(n)
+    return px
+
+
+def _onto_outline(coords, sphere, frame, steps: int = 3):
+    """Image-plane points (k, 2) moved onto the sphere's outline (Newton steps on the
+    discriminant along its gradient); and that gradient (k, 2) at the result."""
+    forward, right, up, eye = frame
+    oc = eye - np.asarray(sphere.center.data, np.float64)
+    kappa = float(oc @ oc) - float(sphere.radius.data) ** 2
+    for _ in range(steps + 1):
+        d = forward + coords[:, :1] * right + coords[:, 1:] * up
+        b = d @ oc
+        disc = b * b - np.einsum("ij,ij->i", d, d) * kappa
+        grad_d = 2.0 * b[:, None] * oc - 2.0 * kappa * d
+        grad = np.stack([grad_d @ right, grad_d @ up], axis=1)
+        if _ == steps:
+            return coords, grad
+        coords = coords - (disc / np.einsum("ij,ij->i", grad, grad))[:, None] * grad
+
+
+# ---------------------------------------------------------------------------------------
+# The boundary term
+# ---------------------------------------------------------------------------------------
+
+
+def boundary_points(
+    scene: Scene, visibility: Visibility, frame, topology, max_bounces: int
+) -> BoundaryPoints:
+    """Every quadrature point of the boundary term, with its constant factor (see the
+    module docstring), for one render."""
+    camera = scene.camera
+    width, height = camera.width, camera.height
+    plain = plain_camera(frame)
+    size = max(visibility.size, 1e-300)
+    tables = [edge_table(mesh, topology[k]) for k, mesh in enumerate(scene.meshes)]
+    starts, ends, kept = _edge_curves(scene, plain, tables, size)
+    n_edges = [len(s) for s in starts]
+    outlines = []
+    for index, sphere in enumerate(scene.spheres):
+        poly = _outline_polyline(sphere, plain, width, height, size)
+        if poly is not None:
+            starts.append(poly[:-1])
+            ends.append(poly[1:])
+            outlines.append((index, len(poly) - 1))
+    p0 = np.concatenate(starts) if starts else np.zeros((0, 2))
+    p1 = np.concatenate(ends) if ends else np.zeros((0, 2))
+    segment, start, end, pixel = pixel_pieces(p0, p1, width, height)
+    points, segment, weight = quadrature(p0, p1, segment, start, end)
+    pixel = np.repeat(pixel, GAUSS_POINTS)
+    coords = to_image_plane(points, width, height)
+    factor = np.zeros((len(coords), 3))
+    first, mesh_edges, sphere_points = 0, [], []
+    firsts = np.cumsum([0] + [m.num_faces for m in scene.meshes])
+    for index, count in enumerate(n_edges):
+        rows = np.flatnonzero((segment >= first) & (segment < first + count))
+        edges = kept[index][segment[rows] - first]
+        table = tables[index]
+        factor[rows] = _mesh_edge_factors(
+            scene, visibility, frame, index, firsts[index], table, edges, coords[rows],
+            weight[rows], max_bounces,
+        )  # fmt: skip
+        mesh_edges.append((index, rows, table.i[edges], table.j[edges]))
+        first += count
+    for index, count in outlines:
+        rows = np.flatnonzero((segment >= first) & (segment < first + count))
+        factor[rows], coords[rows] = _outline_factors(
+            scene, visibility, frame, scene.spheres[index], coords[rows], weight[rows],
+            max_bounces,
+        )  # fmt: skip
+        sphere_points.append((index, rows))
+        first += count
+    nonzero = np.any(factor != 0.0, axis=1)
+    keep = np.flatnonzero(nonzero)
+    remap = np.full(len(coords), -1)
+    remap[keep] = np.arange(len(keep))
+    mesh_edges = [
+        (k, remap[r[nonzero[r]]], i[nonzero[r]], j[nonzero[r]]) for k, r, i, j in mesh_edges
+    ]
+    sphere_points = [(k, remap[r[nonzero[r]]]) for k, r in sphere_points]
+    return BoundaryPoints(coords[keep], pixel[keep], factor[keep], mesh_edges, sphere_points)
+
+
+def _pixel_gradient(grad: np.ndarray, width: int, height: int):
+    """A gradient (k, 2) with respect to the image-plane (x, y) in pixel units (x = 2 px /
+    W - 1, y = 1 - 2 py / H): the gradient (k, 2), its length (k,), and the image-plane step
+    (k, 2) that moves a point one pixel along it."""
+    grad_px = grad * np.array([2.0 / width, -2.0 / height])
+    norm = np.linalg.norm(grad_px, axis=1)
+    unit = grad_px / np.where(norm > 0, norm, 1.0)[:, None]
+    return grad_px, norm, unit * np.array([2.0 / width, -2.0 / height])
+
+
+def _mesh_edge_factors(
+    scene, visibility, frame, index, first_prim, table, edges, coords, weight, max_bounces
+) -> np.ndarray:
+    """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the edges ``edges``
+    (rows of ``table``) of mesh ``index``, zero where the edge point is hidden.
+
+    The edge point is where the camera ray through the quadrature point meets the edge.
+    It is visible if nothing lies in front of it (an any-hit ray that ends just short of
+    it). Each face on the edge is shaded there, as a camera hit on that face would be. The
+    faces' third vertices tell on which side of the edge's image each face lies: on
+    opposite sides the edge is a crease and f_+, f_- are the two faces; on the same side
+    (a fold: a silhouette) or with one face (an open boundary) the face gives one side and
+    the other side is what a ray just beyond the edge sees."""
+    forward, right, up, eye = plain_camera(frame)
+    width, height = scene.camera.width, scene.camera.height
+    vertices = np.asarray(scene.meshes[index].vertices.data, np.float64)
+    a, b = vertices[table.i[edges]], vertices[table.j[edges]]
+    m = np.cross(a - eye, b - eye)
+    _, norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
+    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    depth = _edge_points(eye, directions, a, b)
+    face = table.face[edges] + first_prim
+    hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
+        np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
+        tmin=0.0, ignore_prim=face,
+    )  # fmt: skip
+    seen = np.flatnonzero(~hidden)
+    edges, coords, depth, m = edges[seen], coords[seen], depth[seen], m[seen]
+    other = table.other[edges]
+    side = np.sign(np.einsum("ij,ij->i", vertices[table.third[edges]] - eye, m))
+    other_side = np.where(
+        other >= 0,
+        np.sign(np.einsum("ij,ij->i", vertices[np.maximum(table.other_third[edges], 0)] - eye, m)),
+        side,
+    )
+    fold = other_side == side  # a silhouette (or an open boundary)
+    # The far side: the other face on a crease, else what a ray just beyond the edge sees.
+    beyond = coords[fold] - (side[fold, None] * EPSILON) * step[seen][fold]
+    n = len(seen)
+    colours = shade_seen(
+        scene, visibility, frame,
+        np.concatenate([coords, coords[~fold]]),
+        np.concatenate([face[seen], other[~fold] + first_prim]),
+        np.concatenate([depth, depth[~fold]]),
+        max_bounces,
+    )  # fmt: skip
+    near, far = colours[:n], np.empty((n, 3))
+    far[~fold] = colours[n:]
+    far[fold] = radiance_at(scene, visibility, frame, beyond, max_bounces)
+    out = np.zeros((len(hidden), 3))
+    out[seen] = (side * weight[seen] / norm[seen])[:, None] * (near - far)
+    return out
+
+
+def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounces):
+    """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on a sphere's outline, and
+    the points moved onto the outline (k, 2). The outline of a sphere is smooth: f_+ and f_-
+    are what two rays just inside and just outside it see."""
+    camera = scene.camera
+    coords, grad = _onto_outline(coords, sphere, plain_camera(frame))
+    _, norm, step = _pixel_gradient(grad, camera.width, camera.height)
+    both = np.concatenate([coords + EPSILON * step, coords - EPSILON * step])
+    f = radiance_at(scene, visibility, frame, both, max_bounces)
+    jump = f[: len(coords)] - f[len(coords) :]
+    factor = np.where(norm > 0, weight / np.where(norm > 0, norm, 1.0), 0.0)
+    return factor[:, None] * jump, coords
+
+
+def boundary_term(scene: Scene, points: BoundaryPoints, frame) -> md.Tensor | None:
+    """(H, W, 3) on the tape: zero in value, the boundary term in derivative (None when
+    there are no points)."""
+    if len(points.pixel) == 0:
+        return None
+    dtype = working_dtype(scene)
+    eye = frame[3]
+    parts, order = [], []
+    for index, rows, i, j in points.mesh_edges:
+        if len(rows) == 0:
+            continue
+        vertices = scene.meshes[index].vertices
+        m = md.cross(vertices[i] - eye, vertices[j] - eye)
+        d = ray_directions(frame, points.coords[rows].astype(dtype))
+        parts.append(md.dot(d, m))
+        order.append(rows)
+    for index, rows in points.sphere_points:
+        if len(rows) == 0:
+            continue
+        sphere = scene.spheres[index]
+        oc = eye - sphere.center
+        kappa = md.dot(oc, oc) - sphere.radius * sphere.radius
+        d = ray_directions(frame, points.coords[rows].astype(dtype))
+        b = md.dot(d, oc)
+        parts.append(b * b - md.dot(d, d) * kappa)
+        order.append(rows)
+    if not parts:
+        return None
+    e = md.concatenate(parts) if len(parts) > 1 else parts[0]
+    rows = np.concatenate(order)
+    moving = e - md.tensor(e.data)  # zero, with the derivative of e
+    values = md.reshape(moving, (-1, 1)) * points.weight[rows].astype(dtype)
+    camera = scene.camera
+    image = md.scatter_add(values, points.pixel[rows], camera.width * camera.height)
+    return md.reshape(image, (camera.height, camera.width, 3))
