@@ -529,13 +529,22 @@ def _mesh_edge_factors(
         side,
     )
     fold = other_side == side  # a silhouette (or an open boundary)
+    # On a fold both faces lie on one side; the nearer of them just inside the edge is seen.
+    inner = side[:, None] * step[seen]  # image-plane step towards the faces
+    towards = inner[:, :1] * right + inner[:, 1:] * up
+    directions = directions[seen]
+    nearer = _nearer_face(
+        vertices, table, edges, np.flatnonzero(fold & (other >= 0)), directions, towards
+    )
+    face = face[seen]
+    face[nearer] = other[nearer] + first_prim
     # The far side: the other face on a crease, else what a ray just beyond the edge sees.
     beyond = coords[fold] - (side[fold, None] * EPSILON) * step[seen][fold]
     n = len(seen)
     colours = shade_seen(
         scene, visibility, frame,
         np.concatenate([coords, coords[~fold]]),
-        np.concatenate([face[seen], other[~fold] + first_prim]),
+        np.concatenate([face, other[~fold] + first_prim]),
         np.concatenate([depth, depth[~fold]]),
         max_bounces,
     )  # fmt: skip
@@ -545,6 +554,24 @@ def _mesh_edge_factors(
     out = np.zeros((len(hidden), 3))
     out[seen] = (side * weight[seen] / norm[seen])[:, None] * (near - far)
     return out
+
+
+def _nearer_face(vertices, table, edges, rows, directions, towards) -> np.ndarray:
+    """Of ``rows`` (folds), those where the table's ``other`` face, not ``face``, is the
+    nearer just inside the edge, i.e. the one the camera sees there. A plane through the
+    edge point X at depth t has depth t (n . d) / (n . (d + s g)) along the ray moved by s
+    towards the faces (g = ``towards``): the face with the larger (n . g) / (n . d) comes
+    nearer faster."""
+    a, b = vertices[table.i[edges[rows]]], vertices[table.j[edges[rows]]]
+
+    def rate(third):
+        n = np.cross(b - a, vertices[third] - a)
+        nd = np.einsum("ij,ij->i", n, directions[rows])
+        ng = np.einsum("ij,ij->i", n, towards[rows])
+        return ng / np.where(nd != 0, nd, np.inf)
+
+    mine, theirs = rate(table.third[edges[rows]]), rate(table.other_third[edges[rows]])
+    return rows[theirs > mine]
 
 
 def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounces):
