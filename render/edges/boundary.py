@@ -59,6 +59,7 @@ import numba
 import numpy as np
 
 import minidiff as md
+from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
 from render.scene.cache import RenderCache
 from render.scene.camera import ray_directions
 from render.scene.scene import Scene
@@ -85,6 +86,8 @@ class BoundaryPoints:
     weight (G, 3): w_g (f_+ - f_-) / |grad_x e|, the factor of de/dtheta in the boundary term.
     mesh_edges: (mesh index, G_k rows, vertex ids i (G_k,), j (G_k,)) per mesh with points.
     sphere_points: (sphere index, G_k rows) per sphere with points.
+    crossings: (rows, first (G_k,), second (G_k,)) the pairs of triangles (global ids)
+        whose intersection the points lie on.
     """
 
     coords: np.ndarray
@@ -92,6 +95,7 @@ class BoundaryPoints:
     weight: np.ndarray
     mesh_edges: list
     sphere_points: list
+    crossings: tuple = ()
 
 
 # ---------------------------------------------------------------------------------------
@@ -307,41 +311,42 @@ def radiance_at(
 
 @dataclass
 class EdgeTable:
-    """The welded edges of one mesh across which the image can jump, one row per edge.
+    """The welded edges of one mesh, one row per edge, with every face on it.
 
-    i, j (E,) int64: the edge's vertex ids (as the face ``face`` has them).
-    face, other (E,) int64: the faces on either side (local ids; other = -1 on an open
-    boundary or a non-manifold edge).
-    third, other_third (E,) int64: each face's vertex off the edge (-1 where no face).
+    i, j (E,) int64: the edge's vertex ids (as its first face has them).
+    faces (E, K) int64: the faces on the edge (local ids), -1 padding: one on an open
+        boundary, two on a manifold edge, more where surfaces meet along it (a knob
+        standing on a lid).
+    thirds (E, K) int64: each face's vertex off the edge (-1 padding).
     """
 
     i: np.ndarray
     j: np.ndarray
-    face: np.ndarray
-    other: np.ndarray
-    third: np.ndarray
-    other_third: np.ndarray
+    faces: np.ndarray
+    thirds: np.ndarray
 
 
 def edge_table(mesh, topology) -> EdgeTable:
-    """Every welded edge of ``mesh`` that can carry a jump: all of them on a flat-shaded
-    mesh (every fold of the surface is a crease), else those that can be silhouettes
-    (any edge, seen from the right side) or seams where the per-vertex normals or UVs do
-    not continue. An edge between two faces that share its vertex ids on a smooth mesh is
-    a jump only when it is a silhouette: kept, since the eye decides that."""
+    """Every welded edge of ``mesh`` with the faces on it (degenerate faces left out).
+    All of them are candidates: on a flat-shaded mesh every fold is a crease, and any edge
+    may be a silhouette, seen from the right side."""
     faces = mesh.faces
     group = topology.edge_group.reshape(-1)
     slots = np.flatnonzero(group >= 0)
-    _, first = np.unique(group[slots], return_index=True)
-    slots = slots[first]
+    slots = slots[np.argsort(group[slots], kind="stable")]
+    g = group[slots]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    count = np.diff(np.r_[starts, len(g)])
+    rank = np.arange(len(g)) - np.repeat(starts, count)
+    row = np.repeat(np.arange(len(starts)), count)
     f, k = slots // 3, slots % 3
-    other = topology.neighbour[f, k]
-    other_k = topology.neighbour_edge[f, k]
-    other_third = faces[np.maximum(other, 0), (np.maximum(other_k, 0) + 2) % 3]
-    other_third = np.where(other >= 0, other_third, -1)
-    return EdgeTable(
-        faces[f, k], faces[f, (k + 1) % 3], f, other, faces[f, (k + 2) % 3], other_third
-    )
+    table_faces = np.full((len(starts), int(count.max(initial=1))), -1, np.int64)
+    thirds = np.full_like(table_faces, -1)
+    table_faces[row, rank] = f
+    thirds[row, rank] = faces[f, (k + 2) % 3]
+    first = slots[starts]
+    return EdgeTable(faces[first // 3, first % 3], faces[first // 3, (first % 3 + 1) % 3],
+                     table_faces, thirds)  # fmt: skip
 
 
 def _edge_curves(scene: Scene, frame, tables: list[EdgeTable], size: float):
@@ -371,6 +376,105 @@ def _edge_points(eye, directions, a, b):
     uw = np.einsum("ij,ij->i", u, w0)
     det = dd * uu - du * du
     return (du * uw - uu * dw) / np.where(det > 0, det, 1.0)
+
+
+# Intersection curves: where two triangles pass through each other (the teapot's lid sits
+# in its rim, its spout and handle enter its body), the visible surface switches from one
+# to the other along the segment the two share.
+
+
+@numba.njit(cache=True)
+def _segment_of(t1, t2):
+    """The segment (2, 3) where triangles t1 and t2 (3, 3) cross, and whether they do
+    (coplanar or touching triangles do not count)."""
+    out = np.zeros((2, 3))
+    n1 = np.cross(t1[1] - t1[0], t1[2] - t1[0])
+    n2 = np.cross(t2[1] - t2[0], t2[2] - t2[0])
+    d2 = np.array([np.dot(n1, t2[k] - t1[0]) for k in range(3)])  # t2's corners vs plane 1
+    d1 = np.array([np.dot(n2, t1[k] - t2[0]) for k in range(3)])
+    if (d2.min() >= 0 or d2.max() <= 0) or (d1.min() >= 0 or d1.max() <= 0):
+        return out, False
+    u = np.cross(n1, n2)
+    ends = np.zeros((2, 2))  # each triangle's interval along u
+    points = np.zeros((2, 2, 3))
+    for which in range(2):
+        tri, d = (t1, d1) if which == 0 else (t2, d2)
+        m = 0
+        for k in range(3):
+            a, b = k, (k + 1) % 3
+            if (d[a] > 0) != (d[b] > 0) and m < 2:
+                p = tri[a] + (tri[b] - tri[a]) * (d[a] / (d[a] - d[b]))
+                points[which, m] = p
+                ends[which, m] = np.dot(p, u)
+                m += 1
+        if m < 2:
+            return out, False
+        if ends[which, 0] > ends[which, 1]:
+            ends[which, 0], ends[which, 1] = ends[which, 1], ends[which, 0]
+            tmp = points[which, 0].copy()
+            points[which, 0] = points[which, 1]
+            points[which, 1] = tmp
+    lo = 0 if ends[0, 0] >= ends[1, 0] else 1
+    hi = 0 if ends[0, 1] <= ends[1, 1] else 1
+    if ends[lo, 0] >= ends[hi, 1]:
+        return out, False
+    out[0], out[1] = points[lo, 0], points[hi, 1]
+    return out, True
+
+
+@numba.njit(cache=True)
+def _crossing_pairs(triangles, welded, order, low, high):
+    """Every pair of triangles that cross, by a sweep along x over their bounding boxes
+    (``order`` sorts them by low x); pairs sharing a (welded) corner are neighbours, not
+    crossings. Returns the pairs (m, 2) and their segments (m, 2, 3)."""
+    pairs, segments = [], []
+    n = len(order)
+    for a in range(n):
+        i = order[a]
+        for b in range(a + 1, n):
+            j = order[b]
+            if low[j, 0] > high[i, 0]:
+                break
+            if (low[j, 1] > high[i, 1] or low[i, 1] > high[j, 1]
+                    or low[j, 2] > high[i, 2] or low[i, 2] > high[j, 2]):
+                continue
+            shared = False
+            for p in range(3):
+                for q in range(3):
+                    if welded[i, p] == welded[j, q]:
+                        shared = True
+            if shared:
+                continue
+            seg, ok = _segment_of(triangles[i], triangles[j])
+            if ok:
+                pairs.append((min(i, j), max(i, j)))
+                segments.append(seg)
+    out_pairs = np.empty((len(pairs), 2), np.int64)
+    out_segments = np.empty((len(pairs), 2, 3))
+    for k in range(len(pairs)):
+        out_pairs[k, 0], out_pairs[k, 1] = pairs[k]
+        out_segments[k] = segments[k]
+    return out_pairs, out_segments
+
+
+def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
+    """Pairs of triangles (m, 2) (global ids) that pass through each other and the segment
+    (m, 2, 3) they share: triangles (N, 3, 3), welded (N, 3) global welded vertex ids."""
+    if len(triangles) < 2:
+        return np.zeros((0, 2), np.int64), np.zeros((0, 2, 3))
+    low, high = triangles.min(axis=1), triangles.max(axis=1)
+    order = np.argsort(low[:, 0], kind="stable")
+    return _crossing_pairs(triangles, welded, order, low, high)
+
+
+def _global_welded(scene: Scene, topology) -> np.ndarray:
+    """(N, 3) welded vertex ids of every triangle, distinct between meshes."""
+    parts, offset = [], 0
+    for k, _ in enumerate(scene.meshes):
+        welded = topology[k].welded
+        parts.append(welded + offset)
+        offset += int(welded.max()) + 1 if welded.size else 0
+    return np.concatenate(parts) if parts else np.zeros((0, 3), np.int64)
 
 
 def _outline_polyline(sphere, frame, width: int, height: int, size: float):
@@ -438,6 +542,11 @@ def boundary_points(
     tables = [edge_table(mesh, topology[k]) for k, mesh in enumerate(scene.meshes)]
     starts, ends, kept = _edge_curves(scene, plain, tables, size)
     n_edges = [len(s) for s in starts]
+    pairs, segments = crossing_segments(visibility.primitives[0], _global_welded(scene, topology))
+    a, b, keep = clip_to_near(segments[:, 0], segments[:, 1], plain, NEAR * size)
+    pairs = pairs[keep]
+    starts.append(project(a[keep], plain, width, height)[0])
+    ends.append(project(b[keep], plain, width, height)[0])
     outlines = []
     for index, sphere in enumerate(scene.spheres):
         poly = _outline_polyline(sphere, plain, width, height, size)
@@ -464,6 +573,13 @@ def boundary_points(
         )  # fmt: skip
         mesh_edges.append((index, rows, table.i[edges], table.j[edges]))
         first += count
+    rows = np.flatnonzero((segment >= first) & (segment < first + len(pairs)))
+    crossing_pairs = pairs[segment[rows] - first]
+    factor[rows] = _crossing_factors(
+        scene, visibility, frame, crossing_pairs, coords[rows], weight[rows], max_bounces
+    )
+    crossings = (rows, crossing_pairs)
+    first += len(pairs)
     for index, count in outlines:
         rows = np.flatnonzero((segment >= first) & (segment < first + count))
         factor[rows], coords[rows] = _outline_factors(
@@ -480,7 +596,11 @@ def boundary_points(
         (k, remap[r[nonzero[r]]], i[nonzero[r]], j[nonzero[r]]) for k, r, i, j in mesh_edges
     ]
     sphere_points = [(k, remap[r[nonzero[r]]]) for k, r in sphere_points]
-    return BoundaryPoints(coords[keep], pixel[keep], factor[keep], mesh_edges, sphere_points)
+    rows, crossing_pairs = crossings
+    crossings = (remap[rows[nonzero[rows]]], crossing_pairs[nonzero[rows]])
+    return BoundaryPoints(
+        coords[keep], pixel[keep], factor[keep], mesh_edges, sphere_points, crossings
+    )
 
 
 def _pixel_gradient(grad: np.ndarray, width: int, height: int):
@@ -501,11 +621,11 @@ def _mesh_edge_factors(
 
     The edge point is where the camera ray through the quadrature point meets the edge.
     It is visible if nothing lies in front of it (an any-hit ray that ends just short of
-    it). Each face on the edge is shaded there, as a camera hit on that face would be. The
-    faces' third vertices tell on which side of the edge's image each face lies: on
-    opposite sides the edge is a crease and f_+, f_- are the two faces; on the same side
-    (a fold: a silhouette) or with one face (an open boundary) the face gives one side and
-    the other side is what a ray just beyond the edge sees."""
+    it). Each face's third vertex tells on which side of the edge's image it lies. On each
+    side, the face seen just beside the edge is the nearest there of the faces on that
+    side (``_approach``), shaded at the edge point as a camera hit on it would be; a side
+    with no face (a silhouette's outside, an open boundary) is what a ray just beyond the
+    edge sees. A crease has one face on each side, a silhouette both on one."""
     forward, right, up, eye = plain_camera(frame)
     width, height = scene.camera.width, scene.camera.height
     vertices = np.asarray(scene.meshes[index].vertices.data, np.float64)
@@ -514,64 +634,106 @@ def _mesh_edge_factors(
     _, norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
     directions = coords[:, :1] * right + coords[:, 1:] * up + forward
     depth = _edge_points(eye, directions, a, b)
-    face = table.face[edges] + first_prim
     hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
         np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
-        tmin=0.0, ignore_prim=face,
+        tmin=0.0, ignore_prim=table.faces[edges, 0] + first_prim,
     )  # fmt: skip
     seen = np.flatnonzero(~hidden)
-    edges, coords, depth, m = edges[seen], coords[seen], depth[seen], m[seen]
-    other = table.other[edges]
-    side = np.sign(np.einsum("ij,ij->i", vertices[table.third[edges]] - eye, m))
-    other_side = np.where(
-        other >= 0,
-        np.sign(np.einsum("ij,ij->i", vertices[np.maximum(table.other_third[edges], 0)] - eye, m)),
-        side,
-    )
-    fold = other_side == side  # a silhouette (or an open boundary)
-    # On a fold both faces lie on one side; the nearer of them just inside the edge is seen.
-    inner = side[:, None] * step[seen]  # image-plane step towards the faces
-    towards = inner[:, :1] * right + inner[:, 1:] * up
-    directions = directions[seen]
-    nearer = _nearer_face(
-        vertices, table, edges, np.flatnonzero(fold & (other >= 0)), directions, towards
-    )
-    face = face[seen]
-    face[nearer] = other[nearer] + first_prim
-    # The far side: the other face on a crease, else what a ray just beyond the edge sees.
-    beyond = coords[fold] - (side[fold, None] * EPSILON) * step[seen][fold]
+    edges, coords, depth, m, step = edges[seen], coords[seen], depth[seen], m[seen], step[seen]
+    faces, thirds = table.faces[edges], table.thirds[edges]  # (n, K)
+    valid = faces >= 0
+    side = np.sign(np.einsum("nkj,nj->nk", vertices[np.maximum(thirds, 0)] - eye[None], m))
+    towards = step[:, :1] * right + step[:, 1:] * up  # the image step to the + side
+    a, b = a[seen, None], b[seen, None]
+    normals = np.cross(b - a, vertices[np.maximum(thirds, 0)] - a)  # (n, K, 3)
+    rate = _approach(normals, directions[seen, None], towards[:, None])  # (n, K)
     n = len(seen)
-    colours = shade_seen(
-        scene, visibility, frame,
-        np.concatenate([coords, coords[~fold]]),
-        np.concatenate([face, other[~fold] + first_prim]),
-        np.concatenate([depth, depth[~fold]]),
-        max_bounces,
-    )  # fmt: skip
-    near, far = colours[:n], np.empty((n, 3))
-    far[~fold] = colours[n:]
-    far[fold] = radiance_at(scene, visibility, frame, beyond, max_bounces)
+    colour = {}
+    for sign in (1.0, -1.0):
+        on_side = valid & (side == sign)
+        score = np.where(on_side, sign * rate, -np.inf)
+        best = np.argmax(score, axis=1)
+        has = on_side.any(axis=1)
+        colour[sign] = np.empty((n, 3))
+        rows = np.flatnonzero(has)
+        colour[sign][rows] = shade_seen(
+            scene, visibility, frame, coords[rows], faces[rows, best[rows]] + first_prim,
+            depth[rows], max_bounces,
+        )  # fmt: skip
+        rows = np.flatnonzero(~has)
+        colour[sign][rows] = radiance_at(
+            scene, visibility, frame, coords[rows] + sign * EPSILON * step[rows], max_bounces
+        )
     out = np.zeros((len(hidden), 3))
-    out[seen] = (side * weight[seen] / norm[seen])[:, None] * (near - far)
+    out[seen] = (weight[seen] / norm[seen])[:, None] * (colour[1.0] - colour[-1.0])
     return out
 
 
-def _nearer_face(vertices, table, edges, rows, directions, towards) -> np.ndarray:
-    """Of ``rows`` (folds), those where the table's ``other`` face, not ``face``, is the
-    nearer just inside the edge, i.e. the one the camera sees there. A plane through the
-    edge point X at depth t has depth t (n . d) / (n . (d + s g)) along the ray moved by s
-    towards the faces (g = ``towards``): the face with the larger (n . g) / (n . d) comes
-    nearer faster."""
-    a, b = vertices[table.i[edges[rows]]], vertices[table.j[edges[rows]]]
+def _approach(normals, directions, towards):
+    """How fast planes through a point come nearer as the ray moves into one side: a plane
+    with normal n through the point at depth t has depth t (n . d) / (n . (d + s g)) along
+    the ray moved by s towards g, so the larger (n . g) / (n . d), the nearer it comes.
+    Arrays broadcast over leading axes; the last is xyz."""
+    nd = np.sum(normals * directions, axis=-1)
+    ng = np.sum(normals * towards, axis=-1)
+    return ng / np.where(nd != 0, nd, np.inf)
 
-    def rate(third):
-        n = np.cross(b - a, vertices[third] - a)
-        nd = np.einsum("ij,ij->i", n, directions[rows])
-        ng = np.einsum("ij,ij->i", n, towards[rows])
-        return ng / np.where(nd != 0, nd, np.inf)
 
-    mine, theirs = rate(table.third[edges[rows]]), rate(table.other_third[edges[rows]])
-    return rows[theirs > mine]
+def _plane_line(t1, t2, eye):
+    """For triangles t1, t2 (k, 3, 3) (arrays, or tuples of (k, 3) tensors (a, b, c)): the
+    normals n1, n2 (k, 3), and m = (P - eye) x u (k, 3) of the line where their planes meet
+    (u = n1 x n2, P on the line): the line's edge function is d . m, as for a mesh edge."""
+    n1, n2 = plane_normal(t1), plane_normal(t2)
+    if isinstance(t1, np.ndarray):
+        t1, t2 = (t1[:, 0], t1[:, 1], t1[:, 2]), (t2[:, 0], t2[:, 1], t2[:, 2])
+    h1, h2 = dot_last(n1, t1[0]), dot_last(n2, t2[0])
+    a11, a22, a12 = dot_last(n1, n1), dot_last(n2, n2), dot_last(n1, n2)
+    det = a11 * a22 - a12 * a12
+    # P = alpha n1 + beta n2 with n1 . P = h1, n2 . P = h2 (the point nearest the origin).
+    alpha, beta = (h1 * a22 - h2 * a12) / det, (h2 * a11 - h1 * a12) / det
+    point = as_column(alpha) * n1 + as_column(beta) * n2
+    cross = md.cross if isinstance(point, md.Tensor) else np.cross
+    return n1, n2, cross(point - eye, cross(n1, n2))
+
+
+def _crossing_factors(scene, visibility, frame, pairs, coords, weight, max_bounces):
+    """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the segments where the
+    triangle pairs ``pairs`` (k, 2) cross, zero where hidden. Near the segment each side
+    sees the triangle that is nearer there, shaded at the point."""
+    forward, right, up, eye = plain_camera(frame)
+    camera = scene.camera
+    triangles = visibility.primitives[0]
+    t1, t2 = triangles[pairs[:, 0]], triangles[pairs[:, 1]]
+    n1, n2, m = _plane_line(t1, t2, eye)
+    _, norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
+    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    # Depth of the point: where the ray meets plane 1 (the point is on both planes).
+    nd = np.einsum("ij,ij->i", n1, directions)
+    depth = np.einsum("ij,ij->i", n1, t1[:, 0] - eye) / np.where(nd != 0, nd, np.inf)
+    hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
+        np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
+        tmin=0.0, ignore_prim=pairs[:, 0],
+    )  # fmt: skip
+    seen = np.flatnonzero(~hidden)
+    towards = step[seen, :1] * right + step[seen, 1:] * up  # towards the + side
+    d = directions[seen]
+
+    # Triangle 1 is the nearer on the + side if it comes nearer faster (``_approach``).
+    plus_first = _approach(n1[seen], d, towards) > _approach(n2[seen], d, towards)
+    plus = np.where(plus_first, pairs[seen, 0], pairs[seen, 1])
+    minus = np.where(plus_first, pairs[seen, 1], pairs[seen, 0])
+    k = len(seen)
+    colours = shade_seen(
+        scene, visibility, frame, np.concatenate([coords[seen], coords[seen]]),
+        np.concatenate([plus, minus]), np.concatenate([depth[seen], depth[seen]]), max_bounces,
+    )  # fmt: skip
+    out = np.zeros((len(coords), 3))
+    out[seen] = (weight[seen] / norm[seen])[:, None] * (colours[:k] - colours[k:])
+    return out
+
+
+def _size(camera) -> tuple[int, int]:
+    return camera.width, camera.height
 
 
 def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounces):
@@ -613,6 +775,14 @@ def boundary_term(scene: Scene, points: BoundaryPoints, frame) -> md.Tensor | No
         d = ray_directions(frame, points.coords[rows].astype(dtype))
         b = md.dot(d, oc)
         parts.append(b * b - md.dot(d, d) * kappa)
+        order.append(rows)
+    rows, pairs = points.crossings if points.crossings else ((), ())
+    if len(rows):
+        first = triangle_corners(scene, pairs[:, 0])
+        second = triangle_corners(scene, pairs[:, 1])
+        _, _, m = _plane_line(first, second, eye)
+        d = ray_directions(frame, points.coords[rows].astype(dtype))
+        parts.append(md.dot(d, m))
         order.append(rows)
     if not parts:
         return None
