@@ -131,9 +131,8 @@ def clip_to_near(p0: np.ndarray, p1: np.ndarray, frame, near: float):
     forward, _, _, eye = frame
     z0, z1 = (p0 - eye) @ forward, (p1 - eye) @ forward
     keep = (z0 > near) | (z1 > near)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (near - z0) / (z1 - z0)
-    cut = ((z0 <= near) | (z1 <= near)) & keep
+    cut = ((z0 <= near) | (z1 <= near)) & keep  # then z0 != z1
+    t = np.where(cut, near - z0, 0.0) / np.where(cut, z1 - z0, 1.0)
     q = p0 + t[:, None] * (p1 - p0)
     p0 = np.where((cut & (z0 <= near))[:, None], q, p0)
     p1 = np.where((cut & (z1 <= near))[:, None], q, p1)
