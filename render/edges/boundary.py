@@ -434,8 +434,12 @@ def _crossing_pairs(triangles, welded, order, low, high):
             j = order[b]
             if low[j, 0] > high[i, 0]:
                 break
-            if (low[j, 1] > high[i, 1] or low[i, 1] > high[j, 1]
-                    or low[j, 2] > high[i, 2] or low[i, 2] > high[j, 2]):
+            if (
+                low[j, 1] > high[i, 1]
+                or low[i, 1] > high[j, 1]
+                or low[j, 2] > high[i, 2]
+                or low[i, 2] > high[j, 2]
+            ):
                 continue
             shared = False
             for p in range(3):
