@@ -123,9 +123,7 @@ def _check_antialias(value) -> str | None:
         return "pairs" if value else None
     if value in ("pairs", "boundary"):
         return value
-    raise ValueError(
-        f'render: antialias must be True, False, "pairs" or "boundary", got {value!r}'
-    )
+    raise ValueError(f'render: antialias must be True, False, "pairs" or "boundary", got {value!r}')
 
 
 def _check_bounces(value) -> int:
