@@ -100,15 +100,14 @@ def render(
     mirrors = Mirrors.of(scene, visibility, max_bounces)
     shading = shade_camera_hits(scene, visibility, frame, cache, mirrors)  # 2, 3
     prim_id, edges = visibility.primary.prim_id, None
-    if antialias == "boundary":
-        image = image_from_hits(scene, prim_id, shading.colour, shading.rays, spp)  # 5
-        image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)  # 4
-    elif antialias == "pairs":
+    if antialias is not None:
         samples = sample_colours(scene, prim_id, shading.colour, shading.rays)
         samples, edges = add_edge_terms(  # 4
-            scene, visibility, cache, samples, shading, frame, spp
+            scene, visibility, cache, samples, shading, frame, spp, antialias == "boundary"
         )
         image = pixel_means(scene, samples, spp)  # 5
+        if antialias == "boundary":  # 4': silhouettes, creases and intersections
+            image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)
     else:
         image = image_from_hits(scene, prim_id, shading.colour, shading.rays, spp)  # 5
 

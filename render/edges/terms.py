@@ -77,13 +77,17 @@ def add_edge_terms(
     shading: CameraShading,
     frame,
     spp: int,
+    shadows_only: bool = False,
 ) -> tuple[md.Tensor, EdgeDecisions]:
     """The samples' colours (N, 3) with every silhouette, crease and shadow edge between
     adjacent samples blended by coverage (on the tape), and the pairs that were blended.
-    ``shading``: the camera hits' colours of steps 2-3; ``frame``: the camera frame."""
+    ``shading``: the camera hits' colours of steps 2-3; ``frame``: the camera frame. With
+    ``shadows_only`` the silhouettes and creases are left to the boundary integral."""
     found = find_pairs(scene, visibility, cache, spp)
-    s, slope = crossings(scene, found.silhouettes, frame, spp, working_dtype(scene))
-    silhouettes = edge_updates(samples, found.silhouettes, s, slope)
+    silhouettes = None
+    if not shadows_only:
+        s, slope = crossings(scene, found.silhouettes, frame, spp, working_dtype(scene))
+        silhouettes = edge_updates(samples, found.silhouettes, s, slope)
     shadows = None
     if found.shadows is not None:
         prim_id = visibility.primary.prim_id
