@@ -67,8 +67,11 @@ from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
 
-#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]).
-GAUSS_POINTS = 2
+#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). One
+#: (the midpoint) is exact while the jump varies linearly along the piece; two changed the
+#: paper teapot's translation gradient by less than a point of relative error at 64 and
+#: 128 pixels and cost 40 ms more at 512x512.
+GAUSS_POINTS = 1
 #: How far, in pixels, the two rays that see either side of a curve pass from it.
 EPSILON = 1e-3
 #: A sphere's outline is followed by chords at most this long, in pixels.
