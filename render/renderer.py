@@ -54,7 +54,7 @@ def render(
     spp: int = 1,
     reuse_visibility: bool = True,
     return_info: bool = False,
-    antialias: bool = False,
+    antialias: bool | str = False,
     max_bounces: int = 2,
     primary: str = "auto",
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
@@ -73,6 +73,10 @@ def render(
         primitive at its centre, the image is a step function at edges and their motion
         has no gradient. See the README for why False is the default and when to switch
         it on.
+        True or "pairs": as just said. "boundary": silhouettes, creases and the lines
+        where surfaces intersect get the exact edge derivative of box-filtered pixels
+        instead (``render.edges.boundary``: the boundary integral, the image unchanged);
+        shadow edges are still blended by pairs.
     max_bounces: how many mirror reflections a camera ray may take (RayTracer.jl's depth:
         the camera hit plus two reflections); 0 turns reflection off. Only hits on a
         material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.
@@ -162,7 +166,7 @@ class RenderInfo:
         (``render.shade.lighting.texel_cell``; -1 where the hit surface is untextured or missed).
     pairs: with ``antialias=True``, the pairs of adjacent samples across a silhouette and
         the edge each one uses (``render.edges.silhouettes.EdgePairs``, ray ids r = pixel * spp +
-        sample); None without.
+        sample); None without (and with ``antialias="boundary"``, which integrates them).
     shadow_pairs: likewise across shadow edges (``render.edges.shadows.ShadowPairs``);
         None without antialiasing or without shadows.
     bounces: per mirror reflection b = 1, 2, ..., an (H, W, spp) int64 array: the

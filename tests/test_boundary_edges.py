@@ -117,8 +117,9 @@ def test_boundary_term_leaves_the_image_unchanged():
     with md.no_grad():
         plain = render(scene, reuse_visibility=False, shadows=False).data
     scene.objects[0].vertices.requires_grad = True
-    image = render(scene, antialias="boundary", shadows=False)
+    image, info = render(scene, antialias="boundary", shadows=False, return_info=True)
     np.testing.assert_array_equal(image.data, plain)
+    assert info.pairs is None  # no silhouette pairs were blended: the integral took them
 
 
 def test_pixel_pieces_cover_a_segment_once():

@@ -30,26 +30,33 @@ from render.trace.visibility import Visibility
 @dataclass
 class EdgeDecisions:
     """The pairs one render blended (constants): across silhouettes and creases
-    (``EdgePairs``), across shadow edges (``ShadowPairs``, None without shadows)."""
+    (``EdgePairs``; None when the boundary integral handles those), across shadow edges
+    (``ShadowPairs``, None without shadows)."""
 
-    silhouettes: EdgePairs
+    silhouettes: EdgePairs | None
     shadows: ShadowPairs | None
 
 
-def find_pairs(scene: Scene, visibility: Visibility, cache: RenderCache, spp: int):
+def find_pairs(
+    scene: Scene, visibility: Visibility, cache: RenderCache, spp: int, silhouettes: bool = True
+):
     """The pairs of adjacent samples across moving edges (``EdgeDecisions``), from the
-    camera rays' hits and lit masks of step 1, reused from ``cache`` while those are."""
+    camera rays' hits and lit masks of step 1, reused from ``cache`` while those are.
+    Without ``silhouettes`` only the shadow edges' pairs (``EdgeDecisions.silhouettes`` is
+    None)."""
     primary, traced = visibility.primary, visibility.stamp
     topology, _ = cache.get(
         "topology",
         [visibility.geometry],
         lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
     )
-    pairs, _ = cache.get(
-        "pairs",
-        [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
-        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
-    )
+    pairs = None
+    if silhouettes:
+        pairs, _ = cache.get(
+            "pairs",
+            [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
+            lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
+        )
     if not visibility.shadows:
         return EdgeDecisions(pairs, None)
     light_keys = [k for light in scene.lights for k in light_key(light)]
@@ -83,7 +90,7 @@ def add_edge_terms(
     adjacent samples blended by coverage (on the tape), and the pairs that were blended.
     ``shading``: the camera hits' colours of steps 2-3; ``frame``: the camera frame. With
     ``shadows_only`` the silhouettes and creases are left to the boundary integral."""
-    found = find_pairs(scene, visibility, cache, spp)
+    found = find_pairs(scene, visibility, cache, spp, silhouettes=not shadows_only)
     silhouettes = None
     if not shadows_only:
         s, slope = crossings(scene, found.silhouettes, frame, spp, working_dtype(scene))
