@@ -35,3 +35,18 @@ def test_shadow_light_estimation_example_quick(tmp_path, monkeypatch):
     assert len(result["ground"]) == 4 and len(result["paper"]) == 2
     assert {r["antialias"] for r in result["ground"]} == {False, True}
     assert all(np.isfinite(r["position_error_pct"]) for r in result["ground"])
+
+
+BOUNDARY_EXAMPLE = EXAMPLE.parent / "boundary_gradients.py"
+
+
+def test_boundary_gradients_example_quick(tmp_path, monkeypatch):
+    monkeypatch.syspath_prepend(str(EXAMPLE.parent))
+    monkeypatch.setattr(sys, "argv", [str(BOUNDARY_EXAMPLE), "--quick", "--out", str(tmp_path)])
+    runpy.run_path(str(BOUNDARY_EXAMPLE), run_name="__main__")
+    result = json.loads((tmp_path / "boundary.json").read_text())
+    assert [(r["size"], r["shadows"]) for r in result["rows"]] == [(32, True), (32, False)]
+    for row in result["rows"]:
+        errors = [row[m] for m in ("pixel centres", "pixel pairs", "boundary integral")]
+        assert all(np.isfinite(e) and e >= 0 for e in errors)
+    assert "| 32 | yes |" in (tmp_path / "boundary.md").read_text()
