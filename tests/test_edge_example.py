@@ -12,11 +12,16 @@ import numpy as np
 EXAMPLE = Path(__file__).resolve().parents[1] / "examples" / "edge_gradients.py"
 
 
+def run_quick(script: Path, tmp_path: Path, monkeypatch, result: str) -> dict:
+    """Run ``script --quick --out tmp_path`` as ``python examples/...`` would; its JSON."""
+    monkeypatch.syspath_prepend(str(script.parent))
+    monkeypatch.setattr(sys, "argv", [str(script), "--quick", "--out", str(tmp_path)])
+    runpy.run_path(str(script), run_name="__main__")
+    return json.loads((tmp_path / result).read_text())
+
+
 def test_edge_gradients_example_quick(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(EXAMPLE.parent))  # as `python examples/...` would
-    monkeypatch.setattr(sys, "argv", [str(EXAMPLE), "--quick", "--out", str(tmp_path)])
-    runpy.run_path(str(EXAMPLE), run_name="__main__")
-    result = json.loads((tmp_path / "edge_gradients.json").read_text())
+    result = run_quick(EXAMPLE, tmp_path, monkeypatch, "edge_gradients.json")
     assert len(result["calibration"]) == 2
     assert set(result["basin"]) == {"pixel centres", "edges"}
     assert all(0.0 <= c["fraction"] <= 1.0 for c in result["coverage_30deg"])
@@ -28,10 +33,7 @@ SHADOW_EXAMPLE = EXAMPLE.parent / "shadow_light_estimation.py"
 
 
 def test_shadow_light_estimation_example_quick(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(EXAMPLE.parent))
-    monkeypatch.setattr(sys, "argv", [str(SHADOW_EXAMPLE), "--quick", "--out", str(tmp_path)])
-    runpy.run_path(str(SHADOW_EXAMPLE), run_name="__main__")
-    result = json.loads((tmp_path / "shadow_light_estimation.json").read_text())
+    result = run_quick(SHADOW_EXAMPLE, tmp_path, monkeypatch, "shadow_light_estimation.json")
     assert len(result["ground"]) == 4 and len(result["paper"]) == 2
     assert {r["antialias"] for r in result["ground"]} == {False, True}
     assert all(np.isfinite(r["position_error_pct"]) for r in result["ground"])
@@ -41,10 +43,7 @@ BOUNDARY_EXAMPLE = EXAMPLE.parent / "boundary_gradients.py"
 
 
 def test_boundary_gradients_example_quick(tmp_path, monkeypatch):
-    monkeypatch.syspath_prepend(str(EXAMPLE.parent))
-    monkeypatch.setattr(sys, "argv", [str(BOUNDARY_EXAMPLE), "--quick", "--out", str(tmp_path)])
-    runpy.run_path(str(BOUNDARY_EXAMPLE), run_name="__main__")
-    result = json.loads((tmp_path / "boundary.json").read_text())
+    result = run_quick(BOUNDARY_EXAMPLE, tmp_path, monkeypatch, "boundary.json")
     assert [(r["size"], r["shadows"]) for r in result["rows"]] == [(32, True), (32, False)]
     for row in result["rows"]:
         errors = [row[m] for m in ("pixel centres", "pixel pairs", "boundary integral")]
