@@ -98,7 +98,7 @@ class BoundaryPoints:
     weight: np.ndarray
     mesh_edges: list
     sphere_points: list
-    crossings: tuple = ()
+    crossings: tuple
 
 
 # ---------------------------------------------------------------------------------------
@@ -473,7 +473,7 @@ def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
     return _crossing_pairs(triangles, welded, order, low, high)
 
 
-def _global_welded(scene: Scene, topology) -> np.ndarray:
+def global_welded(scene: Scene, topology) -> np.ndarray:
     """(N, 3) welded vertex ids of every triangle, distinct between meshes."""
     parts, offset = [], 0
     for k, _ in enumerate(scene.meshes):
@@ -537,10 +537,12 @@ def _onto_outline(coords, sphere, frame, steps: int = 3):
 
 
 def boundary_points(
-    scene: Scene, visibility: Visibility, frame, topology, max_bounces: int
+    scene: Scene, visibility: Visibility, frame, topology, crossings, max_bounces: int
 ) -> BoundaryPoints:
     """Every quadrature point of the boundary term, with its constant factor (see the
-    module docstring), for one render."""
+    module docstring), for one render. ``topology``: ``mesh_edges`` per mesh index;
+    ``crossings``: ``crossing_segments`` of the scene's triangles (both depend on the
+    geometry alone, so the caller may reuse them)."""
     camera = scene.camera
     width, height = camera.width, camera.height
     plain = plain_camera(frame)
@@ -548,7 +550,7 @@ def boundary_points(
     tables = [edge_table(mesh, topology[k]) for k, mesh in enumerate(scene.meshes)]
     starts, ends, kept = _edge_curves(scene, plain, tables, size)
     n_edges = [len(s) for s in starts]
-    pairs, segments = crossing_segments(visibility.primitives[0], _global_welded(scene, topology))
+    pairs, segments = crossings
     a, b, keep = clip_to_near(segments[:, 0], segments[:, 1], plain, NEAR * size)
     pairs = pairs[keep]
     starts.append(project(a[keep], plain, width, height)[0])
@@ -560,8 +562,7 @@ def boundary_points(
             starts.append(poly[:-1])
             ends.append(poly[1:])
             outlines.append((index, len(poly) - 1))
-    p0 = np.concatenate(starts) if starts else np.zeros((0, 2))
-    p1 = np.concatenate(ends) if ends else np.zeros((0, 2))
+    p0, p1 = np.concatenate(starts), np.concatenate(ends)  # never empty: crossings come too
     segment, start, end, pixel = pixel_pieces(p0, p1, width, height)
     points, segment, weight = quadrature(p0, p1, segment, start, end)
     pixel = np.repeat(pixel, GAUSS_POINTS)
@@ -611,12 +612,28 @@ def boundary_points(
 
 def _pixel_gradient(grad: np.ndarray, width: int, height: int):
     """A gradient (k, 2) with respect to the image-plane (x, y) in pixel units (x = 2 px /
-    W - 1, y = 1 - 2 py / H): the gradient (k, 2), its length (k,), and the image-plane step
-    (k, 2) that moves a point one pixel along it."""
+    W - 1, y = 1 - 2 py / H): its length in pixel units (k,), and the image-plane step (k, 2)
+    that moves a point one pixel along it."""
     grad_px = grad * np.array([2.0 / width, -2.0 / height])
     norm = np.linalg.norm(grad_px, axis=1)
     unit = grad_px / np.where(norm > 0, norm, 1.0)[:, None]
-    return grad_px, norm, unit * np.array([2.0 / width, -2.0 / height])
+    return norm, unit * np.array([2.0 / width, -2.0 / height])
+
+
+def _line_points(visibility, frame, camera, m, directions, depth, ignore):
+    """For k points on lines with the edge function e = d . m (m (k, 3), the plane through
+    the eye and the line), seen along camera directions (k, 3) at ``depth`` (k,): |grad e|
+    in pixel units (k,), the image-plane step one pixel along grad e (k, 2), and which
+    points are hidden (k,) bool: something other than primitive ``ignore`` (k,) lies in
+    front (an any-hit ray that ends just short of the point), or the line is seen edge-on
+    or from behind."""
+    forward, right, up, eye = frame
+    norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
+    hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
+        np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
+        tmin=0.0, ignore_prim=ignore,
+    )  # fmt: skip
+    return norm, step, hidden
 
 
 def _mesh_edge_factors(
@@ -633,16 +650,14 @@ def _mesh_edge_factors(
     with no face (a silhouette's outside, an open boundary) is what a ray just beyond the
     edge sees. A crease has one face on each side, a silhouette both on one."""
     forward, right, up, eye = plain_camera(frame)
-    width, height = scene.camera.width, scene.camera.height
     vertices = np.asarray(scene.meshes[index].vertices.data, np.float64)
     a, b = vertices[table.i[edges]], vertices[table.j[edges]]
     m = np.cross(a - eye, b - eye)
-    _, norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
     directions = coords[:, :1] * right + coords[:, 1:] * up + forward
     depth = _edge_points(eye, directions, a, b)
-    hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
-        np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
-        tmin=0.0, ignore_prim=table.faces[edges, 0] + first_prim,
+    norm, step, hidden = _line_points(
+        visibility, (forward, right, up, eye), scene.camera, m, directions, depth,
+        table.faces[edges, 0] + first_prim,
     )  # fmt: skip
     seen = np.flatnonzero(~hidden)
     edges, coords, depth, m, step = edges[seen], coords[seen], depth[seen], m[seen], step[seen]
@@ -711,15 +726,13 @@ def _crossing_factors(scene, visibility, frame, pairs, coords, weight, max_bounc
     triangles = visibility.primitives[0]
     t1, t2 = triangles[pairs[:, 0]], triangles[pairs[:, 1]]
     n1, n2, m = _plane_line(t1, t2, eye)
-    _, norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
     directions = coords[:, :1] * right + coords[:, 1:] * up + forward
     # Depth of the point: where the ray meets plane 1 (the point is on both planes).
     nd = np.einsum("ij,ij->i", n1, directions)
     depth = np.einsum("ij,ij->i", n1, t1[:, 0] - eye) / np.where(nd != 0, nd, np.inf)
-    hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
-        np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
-        tmin=0.0, ignore_prim=pairs[:, 0],
-    )  # fmt: skip
+    norm, step, hidden = _line_points(
+        visibility, (forward, right, up, eye), camera, m, directions, depth, pairs[:, 0]
+    )
     seen = np.flatnonzero(~hidden)
     towards = step[seen, :1] * right + step[seen, 1:] * up  # towards the + side
     d = directions[seen]
@@ -739,6 +752,7 @@ def _crossing_factors(scene, visibility, frame, pairs, coords, weight, max_bounc
 
 
 def _size(camera) -> tuple[int, int]:
+    """(width, height) of the camera's image, in pixels."""
     return camera.width, camera.height
 
 
@@ -748,7 +762,7 @@ def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounc
     are what two rays just inside and just outside it see."""
     camera = scene.camera
     coords, grad = _onto_outline(coords, sphere, plain_camera(frame))
-    _, norm, step = _pixel_gradient(grad, camera.width, camera.height)
+    norm, step = _pixel_gradient(grad, *_size(camera))
     both = np.concatenate([coords + EPSILON * step, coords - EPSILON * step])
     f = radiance_at(scene, visibility, frame, both, max_bounces)
     jump = f[: len(coords)] - f[len(coords) :]
@@ -782,7 +796,7 @@ def boundary_term(scene: Scene, points: BoundaryPoints, frame) -> md.Tensor | No
         b = md.dot(d, oc)
         parts.append(b * b - md.dot(d, d) * kappa)
         order.append(rows)
-    rows, pairs = points.crossings if points.crossings else ((), ())
+    rows, pairs = points.crossings
     if len(rows):
         first = triangle_corners(scene, pairs[:, 0])
         second = triangle_corners(scene, pairs[:, 1])

@@ -6,7 +6,8 @@ arrays, the pairs of adjacent samples across a silhouette or crease
 (``render.edges.shadows.shadow_pairs``), each reused from the render cache while the
 visibility they come from is unchanged; then, on the tape, where each edge crosses its
 pair and how much of each sample's box lies beyond it, and adds the blends to the
-samples' colours.
+samples' colours. With ``antialias="boundary"`` only the shadow edges are blended so, and
+``add_boundary_term`` adds the exact term of the other edges to the image.
 """
 
 from __future__ import annotations
@@ -16,7 +17,12 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import boundary_points, boundary_term
+from render.edges.boundary import (
+    boundary_points,
+    boundary_term,
+    crossing_segments,
+    global_welded,
+)
 from render.edges.geometry import add_to_samples
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
@@ -37,6 +43,17 @@ class EdgeDecisions:
     shadows: ShadowPairs | None
 
 
+def mesh_topology(scene: Scene, visibility: Visibility, cache: RenderCache) -> dict:
+    """``mesh_edges`` per mesh index in ``scene.meshes``, reused from ``cache`` while the
+    geometry is unchanged."""
+    topology, _ = cache.get(
+        "topology",
+        [visibility.geometry],
+        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
+    )
+    return topology
+
+
 def find_pairs(
     scene: Scene, visibility: Visibility, cache: RenderCache, spp: int, silhouettes: bool = True
 ):
@@ -45,11 +62,7 @@ def find_pairs(
     Without ``silhouettes`` only the shadow edges' pairs (``EdgeDecisions.silhouettes`` is
     None)."""
     primary, traced = visibility.primary, visibility.stamp
-    topology, _ = cache.get(
-        "topology",
-        [visibility.geometry],
-        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
-    )
+    topology = mesh_topology(scene, visibility, cache)
     pairs = None
     if silhouettes:
         pairs, _ = cache.get(
@@ -110,13 +123,15 @@ def add_boundary_term(
     frame,
     max_bounces: int,
 ) -> md.Tensor:
-    """The image (H, W, 3) plus the boundary term of every silhouette, crease and sphere
-    outline (``render.edges.boundary``): the same values, the exact edge derivative."""
-    topology, _ = cache.get(
-        "topology",
+    """The image (H, W, 3) plus the boundary term of every silhouette, crease, sphere
+    outline and intersection of surfaces (``render.edges.boundary``): the same values, the
+    exact edge derivative."""
+    topology = mesh_topology(scene, visibility, cache)
+    crossings, _ = cache.get(
+        "crossings",
         [visibility.geometry],
-        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
+        lambda: crossing_segments(visibility.primitives[0], global_welded(scene, topology)),
     )
-    points = boundary_points(scene, visibility, frame, topology, max_bounces)
+    points = boundary_points(scene, visibility, frame, topology, crossings, max_bounces)
     term = boundary_term(scene, points, frame)
     return image if term is None else image + term
