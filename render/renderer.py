@@ -73,10 +73,11 @@ def render(
         primitive at its centre, the image is a step function at edges and their motion
         has no gradient. See the README for why False is the default and when to switch
         it on.
-        True or "pairs": as just said. "boundary": silhouettes, creases and the lines
-        where surfaces intersect get the exact edge derivative of box-filtered pixels
-        instead (``render.edges.boundary``: the boundary integral, the image unchanged);
-        shadow edges are still blended by pairs.
+        True or "pairs": as just said. "boundary": silhouettes, creases, the lines where
+        surfaces intersect and shadow borders get the exact edge derivative of
+        box-filtered pixels instead (``render.edges.boundary`` and
+        ``render.edges.shadow_boundary``: the boundary integral; the image is the plain
+        one, unchanged).
     max_bounces: how many mirror reflections a camera ray may take (RayTracer.jl's depth:
         the camera hit plus two reflections); 0 turns reflection off. Only hits on a
         material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.
@@ -104,16 +105,14 @@ def render(
     mirrors = Mirrors.of(scene, visibility, max_bounces)
     shading = shade_camera_hits(scene, visibility, frame, cache, mirrors)  # 2, 3
     prim_id, edges = visibility.primary.prim_id, None
-    if antialias is not None:
+    if antialias == "pairs":
         samples = sample_colours(scene, prim_id, shading.colour, shading.rays)
-        samples, edges = add_edge_terms(  # 4
-            scene, visibility, cache, samples, shading, frame, spp, antialias == "boundary"
-        )
+        samples, edges = add_edge_terms(scene, visibility, cache, samples, shading, frame, spp)  # 4
         image = pixel_means(scene, samples, spp)  # 5
-        if antialias == "boundary":  # 4': silhouettes, creases and intersections
-            image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)
     else:
         image = image_from_hits(scene, prim_id, shading.colour, shading.rays, spp)  # 5
+        if antialias == "boundary":  # 4': every edge and shadow border, the exact derivative
+            image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
         return image

@@ -770,11 +770,12 @@ def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounc
     return factor[:, None] * jump, coords
 
 
-def boundary_term(scene: Scene, points: BoundaryPoints, frame) -> md.Tensor | None:
+def boundary_term(
+    scene: Scene, points: BoundaryPoints, frame, shadows: tuple | None = None
+) -> md.Tensor | None:
     """(H, W, 3) on the tape: zero in value, the boundary term in derivative (None when
-    there are no points)."""
-    if len(points.pixel) == 0:
-        return None
+    there are no points). ``shadows``: the shadow borders' (e (G',) on the tape, weight
+    (G', 3), pixel (G',)) (``render.edges.shadow_boundary.shadow_term``), or None."""
     dtype = working_dtype(scene)
     eye = frame[3]
     parts, order = [], []
@@ -804,12 +805,17 @@ def boundary_term(scene: Scene, points: BoundaryPoints, frame) -> md.Tensor | No
         d = ray_directions(frame, points.coords[rows].astype(dtype))
         parts.append(md.dot(d, m))
         order.append(rows)
+    weight = [points.weight[np.concatenate(order)]] if order else []
+    pixel = [points.pixel[np.concatenate(order)]] if order else []
+    if shadows is not None:
+        parts.append(shadows[0])
+        weight.append(shadows[1])
+        pixel.append(shadows[2])
     if not parts:
         return None
     e = md.concatenate(parts) if len(parts) > 1 else parts[0]
-    rows = np.concatenate(order)
     moving = e - md.tensor(e.data)  # zero, with the derivative of e
-    values = md.reshape(moving, (-1, 1)) * points.weight[rows].astype(dtype)
+    values = md.reshape(moving, (-1, 1)) * np.concatenate(weight).astype(dtype)
     camera = scene.camera
-    image = md.scatter_add(values, points.pixel[rows], camera.width * camera.height)
+    image = md.scatter_add(values, np.concatenate(pixel), camera.width * camera.height)
     return md.reshape(image, (camera.height, camera.width, 3))

@@ -24,6 +24,7 @@ from render.edges.boundary import (
     global_welded,
 )
 from render.edges.geometry import add_to_samples
+from render.edges.shadow_boundary import shadow_points, shadow_term
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
 from render.scene.cache import RenderCache, light_key
@@ -54,22 +55,16 @@ def mesh_topology(scene: Scene, visibility: Visibility, cache: RenderCache) -> d
     return topology
 
 
-def find_pairs(
-    scene: Scene, visibility: Visibility, cache: RenderCache, spp: int, silhouettes: bool = True
-):
+def find_pairs(scene: Scene, visibility: Visibility, cache: RenderCache, spp: int):
     """The pairs of adjacent samples across moving edges (``EdgeDecisions``), from the
-    camera rays' hits and lit masks of step 1, reused from ``cache`` while those are.
-    Without ``silhouettes`` only the shadow edges' pairs (``EdgeDecisions.silhouettes`` is
-    None)."""
+    camera rays' hits and lit masks of step 1, reused from ``cache`` while those are."""
     primary, traced = visibility.primary, visibility.stamp
     topology = mesh_topology(scene, visibility, cache)
-    pairs = None
-    if silhouettes:
-        pairs, _ = cache.get(
-            "pairs",
-            [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
-            lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
-        )
+    pairs, _ = cache.get(
+        "pairs",
+        [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
+        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
+    )
     if not visibility.shadows:
         return EdgeDecisions(pairs, None)
     light_keys = [k for light in scene.lights for k in light_key(light)]
@@ -97,17 +92,13 @@ def add_edge_terms(
     shading: CameraShading,
     frame,
     spp: int,
-    shadows_only: bool = False,
 ) -> tuple[md.Tensor, EdgeDecisions]:
     """The samples' colours (N, 3) with every silhouette, crease and shadow edge between
     adjacent samples blended by coverage (on the tape), and the pairs that were blended.
-    ``shading``: the camera hits' colours of steps 2-3; ``frame``: the camera frame. With
-    ``shadows_only`` the silhouettes and creases are left to the boundary integral."""
-    found = find_pairs(scene, visibility, cache, spp, silhouettes=not shadows_only)
-    silhouettes = None
-    if not shadows_only:
-        s, slope = crossings(scene, found.silhouettes, frame, spp, working_dtype(scene))
-        silhouettes = edge_updates(samples, found.silhouettes, s, slope)
+    ``shading``: the camera hits' colours of steps 2-3; ``frame``: the camera frame."""
+    found = find_pairs(scene, visibility, cache, spp)
+    s, slope = crossings(scene, found.silhouettes, frame, spp, working_dtype(scene))
+    silhouettes = edge_updates(samples, found.silhouettes, s, slope)
     shadows = None
     if found.shadows is not None:
         prim_id = visibility.primary.prim_id
@@ -133,5 +124,12 @@ def add_boundary_term(
         lambda: crossing_segments(visibility.primitives[0], global_welded(scene, topology)),
     )
     points = boundary_points(scene, visibility, frame, topology, crossings, max_bounces)
-    term = boundary_term(scene, points, frame)
+    shadows = None
+    if visibility.shadows:
+        borders = shadow_points(scene, visibility, frame, topology, max_bounces)
+        found = shadow_term(scene, borders, frame)
+        if found is not None:
+            e, rows = found
+            shadows = (e, borders.weight[rows], borders.pixel[rows])
+    term = boundary_term(scene, points, frame, shadows)
     return image if term is None else image + term

@@ -1,0 +1,450 @@
+"""Shadow edges by the boundary integral: the exact derivative where a hard shadow's border
+moves (``render(antialias="boundary")``).
+
+A shadow boundary is a discontinuity of the image like an outline (``render.edges.boundary``
+explains the boundary term; this module supplies its curves of secondary visibility). A
+point light L casts past an occluder's silhouette *as seen from the light* a shadow whose
+border, on the receiving surface, is where the light's ray to the receiver point P grazes
+the occluder. With P(x) the point the camera ray through image position x meets on the
+receiver, the border in the image is the zero set of
+
+* an occluder edge (v_i, v_j): e = m . (P(x) - L), m = (v_i - L) x (v_j - L) (the plane
+  through the light and the edge; for a directional light travelling along w, m = (v_j -
+  v_i) x w and e = m . (P(x) - v_i));
+* an occluder sphere (c, r): e = (oc . u)^2 - |u|^2 (|oc|^2 - r^2), the discriminant of the
+  light's ray: oc = L - c, u = P(x) - L (directional: oc = P(x) - c, u = w);
+
+smooth in every parameter: the receiver's vertices or sphere (through P), the camera (through
+the ray), the occluder and the light. The boundary term of a pixel is then, as for outlines,
+the sum over quadrature points on the border's pieces inside it of w (f_+ - f_-) / |grad_x
+e| de/dtheta, and ``shadow_term`` adds c (e - detach(e)) to the image.
+
+Finding the border (off the tape): each silhouette curve of each occluder seen from the
+light (mesh edges whose faces do not all face the light, open edges, a sphere's circle of
+tangency) is followed by rays from the light that graze it; where such a ray goes on to hit
+a receiver, it marks a point of the border. Consecutive points on one receiver triangle are
+joined by a chord, exact while the occluder is an edge and the receiver a triangle (the
+border is then straight), and at most ``CHORD`` pixels long otherwise; where the receiver
+changes, the curve parameter is bisected until the gap is below ``GAP`` pixels. The chords
+are cut at pixel borders like outlines (``pixel_pieces``), each quadrature point moved onto
+the exact border (Newton on e), and f_+ and f_- are the radiance seen by two camera rays
+just either side (``radiance_at``): a border hidden from the camera, or lying in another
+shadow of the same light, has f_+ = f_- there and adds nothing.
+
+Not included: shadow borders seen in mirrors, and features of a receiver narrower than the
+spacing of the grazing rays (at most ``SPACING`` pixels apart in the image).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+import minidiff as md
+from render.edges.boundary import (
+    EPSILON,
+    GAUSS_POINTS,
+    _pixel_gradient,
+    edge_table,
+    pixel_pieces,
+    plain_camera,
+    project,
+    quadrature,
+    radiance_at,
+    to_image_plane,
+)
+from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
+from render.scene.camera import ray_directions
+from render.scene.scene import PointLight, Scene
+from render.shade.hits import working_dtype
+from render.shade.surface import in_order
+from render.trace.primitives import first_sphere_id
+from render.trace.visibility import Visibility
+
+#: Where the border is curved (a sphere casts it or receives it), chords at most this long.
+CHORD = 0.5
+#: Grazing rays along a silhouette are at most this far apart, in image pixels, while they
+#: hit the same receiver (so that a small receiver between two of them is rarely missed).
+SPACING = 2.0
+#: Where the receiver changes between two grazing rays, bisect until they are this close.
+GAP = 1e-3
+#: Bisection rounds at most (a silhouette parameter halved this often is ~1e-9 of it).
+ROUNDS = 30
+#: Grazing rays start this fraction of the way beyond the occluder (off its own surface).
+START = 1e-7
+
+
+@dataclass
+class ShadowPoints:
+    """The quadrature points of one render's shadow-border term (constants, off the tape).
+
+    coords (G, 2), pixel (G,), weight (G, 3): as in ``BoundaryPoints``.
+    light (G,) int64: the light's index in ``scene.lights``.
+    receiver (G,) int64: the primitive (global id) the border lies on.
+    occluder (G, 3) int64: (mesh index, v_i, v_j) of an occluder edge, or (-1, sphere
+        index, -1) of an occluder sphere.
+    """
+
+    coords: np.ndarray
+    pixel: np.ndarray
+    weight: np.ndarray
+    light: np.ndarray
+    receiver: np.ndarray
+    occluder: np.ndarray
+
+
+# ---------------------------------------------------------------------------------------
+# The silhouettes as seen from the light, as curves S(u), u in [0, 1]
+# ---------------------------------------------------------------------------------------
+
+
+def _light_silhouettes(scene: Scene, topology, light):
+    """Occluder curves of one light: (occluder (c, 3) int64 as in ``ShadowPoints``, curve
+    kind per row: 0 a segment from ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius
+    vector ``b`` and second axis ``axis`` (c, 3))."""
+    rows, a, b, axis = [], [], [], []
+    point = isinstance(light, PointLight)
+    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
+    for k, mesh in enumerate(scene.meshes):
+        table = edge_table(mesh, topology[k])
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        faces = np.maximum(table.faces, 0)
+        tri = vertices[mesh.faces[faces]]  # (E, K, 3, 3)
+        normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
+        towards = (where - tri[..., 0, :]) if point else -where
+        facing = np.sign(np.sum(normal * towards, axis=-1))
+        valid = table.faces >= 0
+        lit = np.any(valid & (facing > 0), axis=1)
+        dark = np.any(valid & (facing < 0), axis=1)
+        keep = np.flatnonzero((lit & dark) | (valid.sum(axis=1) == 1))
+        rows.append(np.stack([np.full(len(keep), k), table.i[keep], table.j[keep]], axis=1))
+        a.append(vertices[table.i[keep]])
+        b.append(vertices[table.j[keep]])
+        axis.append(np.zeros((len(keep), 3)))
+    for index, sphere in enumerate(scene.spheres):
+        centre, r = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
+        view = (centre - where) if point else where
+        dist2 = float(view @ view)
+        if point and dist2 <= r * r:
+            continue  # the light inside the sphere: everything outside is dark
+        shrink = r * r / dist2 if point else 0.0
+        rho = r * math.sqrt(1.0 - shrink)
+        u1 = np.cross(view, [1.0, 0, 0] if abs(view[0]) < 0.9 * math.sqrt(dist2) else [0, 1.0, 0])
+        u1 *= rho / np.linalg.norm(u1)
+        u2 = np.cross(view, u1) / math.sqrt(dist2)
+        rows.append(np.array([[-1, index, -1]]))
+        a.append((centre - shrink * view)[None])
+        b.append(u1[None])
+        axis.append(u2[None])
+    occluder = np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
+    kind = (occluder[:, 0] < 0).astype(np.int64)
+    cat = (lambda x: np.concatenate(x)) if rows else (lambda x: np.zeros((0, 3)))
+    return occluder, kind, cat(a), cat(b), cat(axis)
+
+
+def _curve_points(kind, a, b, axis, u):
+    """Points S(u) (k, 3) of curves (rows of kind, a, b, axis) at parameters u (k,)."""
+    phi = 2.0 * math.pi * u[:, None]
+    circle = a + np.cos(phi) * b + np.sin(phi) * axis
+    return np.where(kind[:, None] == 1, circle, a + u[:, None] * (b - a))
+
+
+# ---------------------------------------------------------------------------------------
+# Following the border: grazing rays, bisection, chords
+# ---------------------------------------------------------------------------------------
+
+
+def _graze(visibility, light, frame, size, camera, s, own):
+    """Where the light's rays grazing the points s (k, 3) go on to hit: receiver (k,)
+    (-1: nothing, behind the camera, or ``own`` (k,), the sphere grazed, which a ray
+    touching it meets again only by rounding), its image position (k, 2) in pixels."""
+    if isinstance(light, PointLight):
+        origin = np.asarray(light.position.data, np.float64)
+        prim, t, _, _ = visibility.accelerator().closest_hit(
+            np.broadcast_to(origin, s.shape), s - origin, tmin=1.0 + START
+        )
+        hit = origin + np.where(prim >= 0, t, 0.0)[:, None] * (s - origin)
+    else:
+        w = np.asarray(light.direction.data, np.float64)
+        prim, t, _, _ = visibility.accelerator().closest_hit(
+            s, np.broadcast_to(w, s.shape), tmin=START * size / np.linalg.norm(w)
+        )
+        hit = s + np.where(prim >= 0, t, 0.0)[:, None] * w
+    px, depth = project(np.where(prim[:, None] >= 0, hit, s), frame, camera.width, camera.height)
+    prim = np.where((prim >= 0) & (depth > 1e-7 * size) & (prim != own), prim, -1)
+    return prim, np.where(prim[:, None] >= 0, px, 0.0)
+
+
+def _border_chords(scene, visibility, frame, size, light, curves):
+    """Chords of the border in the image: start, end (m, 2) pixels, and per chord its curve
+    (m,) and receiver (m,)."""
+    occluder, kind, a, b, axis = curves
+    camera = scene.camera
+    # Start: each curve at 2 points plus one per SPACING pixels of its image from the camera.
+    ends = np.concatenate([a, np.where(kind[:, None] == 1, a + b, b)])
+    px, depth = project(ends, frame, camera.width, camera.height)
+    ok = (depth[: len(a)] > 0) & (depth[len(a) :] > 0)
+    span = np.where(ok, np.linalg.norm(px[: len(a)] - px[len(a) :], axis=1), 0.0)
+    span = np.where(kind == 1, 2.0 * math.pi * span, span)
+    count = np.clip(np.ceil(span / SPACING), 4 * kind + 1, 4096).astype(np.int64)
+    curve = np.repeat(np.arange(len(a)), count)
+    first = np.repeat(np.cumsum(count) - count, count)
+    u0 = (np.arange(len(curve)) - first) / count[curve]
+    u1 = u0 + 1.0 / count[curve]
+
+    own = np.where(kind == 1, first_sphere_id(scene) + occluder[:, 1], -2)
+
+    def sample(c, u):
+        s = _curve_points(kind[c], a[c], b[c], axis[c], u)
+        return _graze(visibility, light, frame, size, camera, s, own[c])
+
+    p0, x0 = sample(curve, u0)
+    p1, x1 = sample(curve, u1)
+    limit = np.where(kind == 1, CHORD, SPACING)
+    chords = []
+    for _ in range(ROUNDS + 1):
+        both = (p0 >= 0) & (p1 >= 0)
+        length = np.where(both, np.linalg.norm(x1 - x0, axis=1), 0.0)
+        curved = (kind[curve] == 1) | (p0 >= first_sphere_id(scene))
+        long = (p0 == p1) & both & (length > np.where(curved, CHORD, limit[curve]))
+        change = (p0 != p1) & ~(both & (length < GAP))
+        split = long | change
+        if _ == ROUNDS:
+            split[:] = False
+        done = ~split & (p0 == p1) & (p0 >= 0)
+        chords.append((x0[done], x1[done], curve[done], p0[done]))
+        if not split.any():
+            break
+        c, lo, hi = curve[split], u0[split], u1[split]
+        mid = 0.5 * (lo + hi)
+        pm, xm = sample(c, mid)
+        curve = np.concatenate([c, c])
+        u0, u1 = np.concatenate([lo, mid]), np.concatenate([mid, hi])
+        p0, p1 = np.concatenate([p0[split], pm]), np.concatenate([pm, p1[split]])
+        x0, x1 = np.concatenate([x0[split], xm]), np.concatenate([xm, x1[split]])
+    return tuple(np.concatenate(part) for part in zip(*chords, strict=True))
+
+
+# ---------------------------------------------------------------------------------------
+# The edge function e(x) and its image gradient, off the tape
+# ---------------------------------------------------------------------------------------
+
+
+def _receiver_hits(scene, visibility, directions, eye, receiver):
+    """Depth t (k,), point P (k, 3) and surface normal n (k, 3) where rays eye + t d meet
+    the planes of triangle receivers, or the near side of sphere receivers."""
+    triangles, centres, radii = visibility.primitives
+    n_tri = first_sphere_id(scene)
+    t = np.full(len(receiver), np.nan)
+    normal = np.zeros((len(receiver), 3))
+    tri = np.flatnonzero(receiver < n_tri)
+    corners = triangles[receiver[tri]]
+    normal[tri] = plane_normal(corners)
+    nd = np.einsum("ij,ij->i", normal[tri], directions[tri])
+    t[tri] = np.einsum("ij,ij->i", normal[tri], corners[:, 0] - eye) / np.where(nd != 0, nd, np.nan)
+    sph = np.flatnonzero(receiver >= n_tri)
+    centre, r = centres[receiver[sph] - n_tri], radii[receiver[sph] - n_tri]
+    oc = eye - centre
+    d = directions[sph]
+    dd, bb = np.einsum("ij,ij->i", d, d), np.einsum("ij,ij->i", d, oc)
+    disc = bb * bb - dd * (np.einsum("ij,ij->i", oc, oc) - r * r)
+    t[sph] = np.where(disc >= 0, -bb - np.sqrt(np.maximum(disc, 0.0)), np.nan) / dd
+    points = eye + t[:, None] * directions
+    normal[sph] = points[sph] - centre
+    return t, points, normal
+
+
+def _border_function(scene, light, occluder, points):
+    """e (k,) and de/dP (k, 3) of the border (module docstring) at receiver points (k, 3)."""
+    point = isinstance(light, PointLight)
+    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
+    e, grad = np.zeros(len(points)), np.zeros((len(points), 3))
+    for k, mesh in enumerate(scene.meshes):
+        rows = np.flatnonzero(occluder[:, 0] == k)
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        vi, vj = vertices[occluder[rows, 1]], vertices[occluder[rows, 2]]
+        m = np.cross(vi - where, vj - where) if point else np.cross(vj - vi, where)
+        e[rows] = np.einsum("ij,ij->i", m, points[rows] - (where if point else vi))
+        grad[rows] = m
+    for index, sphere in enumerate(scene.spheres):
+        rows = np.flatnonzero((occluder[:, 0] < 0) & (occluder[:, 1] == index))
+        c, r = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
+        if point:
+            oc, u = where - c, points[rows] - where
+            kappa = float(oc @ oc) - r * r
+            ou = u @ oc
+            e[rows] = ou * ou - np.einsum("ij,ij->i", u, u) * kappa
+            grad[rows] = 2.0 * ou[:, None] * oc - 2.0 * kappa * u
+        else:
+            oc = points[rows] - c
+            ow = oc @ where
+            e[rows] = ow * ow - float(where @ where) * (np.einsum("ij,ij->i", oc, oc) - r * r)
+            grad[rows] = 2.0 * ow[:, None] * where - 2.0 * float(where @ where) * oc
+    return e, grad
+
+
+def _border_gradient(scene, visibility, frame, light, occluder, receiver, coords):
+    """e (k,), its gradient with respect to image-plane (x, y) (k, 2), and the receiver
+    points P (k, 3) and their depths (k,), at image-plane points (k, 2).
+    P(d) = C + t(d) d on a surface with normal n at P has dP/dd = t (I - d n^T / (n . d))."""
+    forward, right, up, eye = frame
+    d = forward + coords[:, :1] * right + coords[:, 1:] * up
+    t, points, normal = _receiver_hits(scene, visibility, d, eye, receiver)
+    e, g = _border_function(scene, light, occluder, points)
+    nd = np.einsum("ij,ij->i", normal, d)
+    gd = t[:, None] * (g - (np.einsum("ij,ij->i", g, d) / nd)[:, None] * normal)
+    return e, np.stack([gd @ right, gd @ up], axis=1), points, t
+
+
+def _onto_border(scene, visibility, frame, light, occluder, receiver, coords, steps=3):
+    """Image-plane points (k, 2) moved onto the border by Newton steps along grad e."""
+    for _ in range(steps):
+        e, grad = _border_gradient(scene, visibility, frame, light, occluder, receiver, coords)[:2]
+        norm2 = np.einsum("ij,ij->i", grad, grad)
+        step = np.where(norm2 > 0, e / np.where(norm2 > 0, norm2, 1.0), 0.0)
+        coords = coords - step[:, None] * grad
+    return coords
+
+
+# ---------------------------------------------------------------------------------------
+# The points and the term
+# ---------------------------------------------------------------------------------------
+
+
+def shadow_points(
+    scene: Scene, visibility: Visibility, frame, topology, max_bounces: int
+) -> ShadowPoints:
+    """Every quadrature point of the shadow borders of every light, with its constant
+    factor (``BoundaryPoints``), for one render. ``topology``: ``mesh_edges`` per mesh."""
+    camera = scene.camera
+    plain = plain_camera(frame)
+    size = max(visibility.size, 1e-300)
+    parts = []
+    for j, light in enumerate(scene.lights):
+        if not visibility.shadows:
+            break
+        curves = _light_silhouettes(scene, topology, light)
+        if len(curves[0]) == 0:
+            continue
+        x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, light, curves)
+        segment, start, end, pixel = pixel_pieces(x0, x1, camera.width, camera.height)
+        points, segment, weight = quadrature(x0, x1, segment, start, end)
+        pixel = np.repeat(pixel, GAUSS_POINTS)
+        occluder, receiver = curves[0][curve[segment]], receiver[segment]
+        coords = to_image_plane(points, camera.width, camera.height)
+        coords = _onto_border(scene, visibility, plain, light, occluder, receiver, coords)
+        factor = _border_factors(
+            scene, visibility, plain, light, occluder, receiver, coords, weight, max_bounces
+        )
+        keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
+        parts.append((coords[keep], pixel[keep], factor[keep], np.full(len(keep), j),
+                      receiver[keep], occluder[keep]))  # fmt: skip
+    if not parts:
+        empty = np.zeros(0, np.int64)
+        return ShadowPoints(np.zeros((0, 2)), empty, np.zeros((0, 3)), empty, empty,
+                            np.zeros((0, 3), np.int64))  # fmt: skip
+    return ShadowPoints(*(np.concatenate(p) for p in zip(*parts, strict=True)))
+
+
+def _border_factors(
+    scene, visibility, frame, light, occluder, receiver, coords, weight, max_bounces
+) -> np.ndarray:
+    """(k, 3): w (f_+ - f_-) / |grad e| at k points on the border; zero where the camera
+    does not see the receiver there or the border is degenerate."""
+    forward, right, up, eye = frame
+    e, grad, points, t = _border_gradient(
+        scene, visibility, frame, light, occluder, receiver, coords
+    )
+    norm, step = _pixel_gradient(grad, scene.camera.width, scene.camera.height)
+    d = forward + coords[:, :1] * right + coords[:, 1:] * up
+    seen = np.isfinite(t) & (t > 0) & (norm > 0)
+    rows = np.flatnonzero(seen)
+    hidden = visibility.accelerator().occluded(
+        np.broadcast_to(eye, (len(rows), 3)), d[rows], t[rows] * (1.0 - 1e-6),
+        tmin=0.0, ignore_prim=receiver[rows],
+    )  # fmt: skip
+    rows = rows[~hidden]
+    shift = EPSILON * step[rows]
+    both = np.concatenate([coords[rows] + shift, coords[rows] - shift])
+    f = radiance_at(scene, visibility, frame, both, max_bounces)
+    out = np.zeros((len(coords), 3))
+    out[rows] = (weight[rows] / norm[rows])[:, None] * (f[: len(rows)] - f[len(rows) :])
+    return out
+
+
+def _receiver_points_tape(scene: Scene, d: md.Tensor, eye, receiver: np.ndarray) -> md.Tensor:
+    """P (k, 3) on the tape: where rays eye + t d meet their receivers (the triangle's
+    plane, or a sphere's near side)."""
+    n_tri = first_sphere_id(scene)
+    parts, order = [], []
+    tri = np.flatnonzero(receiver < n_tri)
+    if len(tri):
+        a, b, c = triangle_corners(scene, receiver[tri])
+        n = md.cross(b - a, c - a)
+        dt = d[tri]
+        t = dot_last(n, a - eye) / dot_last(n, dt)
+        parts.append(eye + as_column(t) * dt)
+        order.append(tri)
+    for index, sphere in enumerate(scene.spheres):
+        rows = np.flatnonzero(receiver == n_tri + index)
+        if len(rows) == 0:
+            continue
+        dt = d[rows]
+        oc = eye - sphere.center
+        dd, bb = dot_last(dt, dt), dot_last(dt, oc)
+        kappa = md.dot(oc, oc) - sphere.radius * sphere.radius
+        t = (-bb - md.sqrt(bb * bb - dd * kappa)) / dd
+        parts.append(eye + as_column(t) * dt)
+        order.append(rows)
+    return in_order(parts, order)
+
+
+def shadow_term(scene: Scene, points: ShadowPoints, frame) -> tuple[md.Tensor, np.ndarray] | None:
+    """e(x_g; theta) (G',) on the tape for the points that have one, and those rows (G',):
+    the caller adds weight * (e - detach(e)) to the image (None: no points)."""
+    if len(points.pixel) == 0:
+        return None
+    eye = frame[3]
+    d = ray_directions(frame, points.coords.astype(working_dtype(scene)))
+    parts, order = [], []
+    for j, light in enumerate(scene.lights):
+        mine = points.light == j
+        if not mine.any():
+            continue
+        point = isinstance(light, PointLight)
+        where = light.position if point else light.direction
+        for k, mesh in enumerate(scene.meshes):
+            rows = np.flatnonzero(mine & (points.occluder[:, 0] == k))
+            if len(rows) == 0:
+                continue
+            p = _receiver_points_tape(scene, d[rows], eye, points.receiver[rows])
+            vi = mesh.vertices[points.occluder[rows, 1]]
+            vj = mesh.vertices[points.occluder[rows, 2]]
+            if point:
+                m = md.cross(vi - where, vj - where)
+                parts.append(md.dot(m, p - where))
+            else:
+                m = md.cross(vj - vi, where)
+                parts.append(md.dot(m, p - vi))
+            order.append(rows)
+        for index, sphere in enumerate(scene.spheres):
+            on = (points.occluder[:, 0] < 0) & (points.occluder[:, 1] == index)
+            rows = np.flatnonzero(mine & on)
+            if len(rows) == 0:
+                continue
+            p = _receiver_points_tape(scene, d[rows], eye, points.receiver[rows])
+            r2 = sphere.radius * sphere.radius
+            if point:
+                oc, u = where - sphere.center, p - where
+                ou = md.dot(u, oc)
+                parts.append(ou * ou - md.dot(u, u) * (md.dot(oc, oc) - r2))
+            else:
+                oc = p - sphere.center
+                ow = md.dot(oc, where)
+                parts.append(ow * ow - md.dot(where, where) * (md.dot(oc, oc) - r2))
+            order.append(rows)
+    if not parts:
+        return None
+    return (md.concatenate(parts) if len(parts) > 1 else parts[0]), np.concatenate(order)
