@@ -121,17 +121,22 @@ def time_forward(size: int, repeats: int) -> dict:
     return r
 
 
+#: The edge methods timed against no edges: pixel pairs (``antialias=True``) and the
+#: boundary integral.
+EDGE_METHODS = {"antialias": True, "boundary": "boundary"}
+
+
 def time_antialias(size: int, repeats: int) -> dict:
-    """Forward render and forward+backward (all parameters) with and without
-    ``antialias=True``, in turns, on the paper scene and on the teapot standing on a ground
-    plane (where shadow edges appear), and the ratios (the target: at most 1.25)."""
+    """Forward render and forward+backward (all parameters) without edges, with pixel
+    pairs (``antialias=True``) and with the boundary integral, in turns, on the paper
+    scene and on the teapot standing on a ground plane (where shadow edges appear), and
+    the ratios to no edges (``ratio_{kind}`` for pairs, ``ratio_{kind}_boundary``)."""
     out = {}
     for name, ground in (("paper", False), ("ground", True)):
         plain = paper_scene(size, size, ground=ground)
         problem = loss_problem(size, ground=ground)
         fns = {}
-        for antialias in (False, True):
-            key = "antialias" if antialias else "plain"
+        for key, antialias in {"plain": False, **EDGE_METHODS}.items():
             fns[f"forward_{key}"] = lambda a=antialias, sc=plain: render(
                 sc, reuse_visibility=False, antialias=a
             )
@@ -140,9 +145,11 @@ def time_antialias(size: int, repeats: int) -> dict:
             )
         row = timing.measure_interleaved(fns, repeats)
         for kind in ("forward", "forward_backward"):
-            row[f"ratio_{kind}"] = (
-                row[f"{kind}_antialias"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
-            )
+            for key in EDGE_METHODS:
+                suffix = "" if key == "antialias" else f"_{key}"
+                row[f"ratio_{kind}{suffix}"] = (
+                    row[f"{kind}_{key}"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
+                )
         out[name] = row
     return out
 
@@ -391,21 +398,26 @@ def ratio_row(quantity: str, num: dict, den: dict, ratio: float, limit: float, t
 
 
 def antialias_rows(aa: dict) -> list:
-    """With antialias=True / without, forward and forward+backward, on both scenes."""
+    """Each edge method / no edges, forward and forward+backward, on both scenes."""
     rows = []
+    methods = (
+        ("antialias", "", "antialias=True (pixel pairs)", 1.25, "target <= 1.25x"),
+        ("boundary", "_boundary", 'antialias="boundary"', 1.5, "target <= 1.5x"),
+    )
     for name, label in (("paper", "paper scene"), ("ground", "teapot on a ground plane")):
         a = aa[name]
-        for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
-            rows.append(
-                ratio_row(
-                    f"{text} with antialias=True / without, {label}",
-                    a[f"{kind}_antialias"],
-                    a[f"{kind}_plain"],
-                    a[f"ratio_{kind}"],
-                    1.25,
-                    "target <= 1.25x",
-                )  # fmt: skip
-            )
+        for key, suffix, method, limit, target in methods:
+            for kind, text in (("forward", "forward"), ("forward_backward", "forward+backward")):
+                rows.append(
+                    ratio_row(
+                        f"{text} with {method} / without, {label}",
+                        a[f"{kind}_{key}"],
+                        a[f"{kind}_plain"],
+                        a[f"ratio_{kind}{suffix}"],
+                        limit,
+                        target,
+                    )  # fmt: skip
+                )
     return rows
 
 

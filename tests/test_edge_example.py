@@ -44,8 +44,11 @@ BOUNDARY_EXAMPLE = EXAMPLE.parent / "boundary_gradients.py"
 
 def test_boundary_gradients_example_quick(tmp_path, monkeypatch):
     result = run_quick(BOUNDARY_EXAMPLE, tmp_path, monkeypatch, "boundary.json")
-    assert [(r["size"], r["shadows"]) for r in result["rows"]] == [(32, True), (32, False)]
-    for row in result["rows"]:
+    rows = result["teapot translation"]
+    assert [(r["size"], r["shadows"]) for r in rows] == [(24, True)]
+    assert [r["parameter"] for r in result["parameters"]] == ["field of view", "sphere radius"]
+    for row in rows + result["parameters"]:
         errors = [row[m] for m in ("pixel centres", "pixel pairs", "boundary integral")]
         assert all(np.isfinite(e) and e >= 0 for e in errors)
-    assert "| 32 | yes |" in (tmp_path / "boundary.md").read_text()
+    report = (tmp_path / "boundary.md").read_text()
+    assert "| 24 | yes |" in report and "| sphere radius |" in report

@@ -45,9 +45,11 @@ is a straight segment and f_+ - f_- varies smoothly along it, so a fixed Gauss-L
 integrates it (``GAUSS_POINTS`` per piece). A sphere's outline is a conic: it is followed as
 a polyline of short chords, and each quadrature point is moved onto the conic.
 
-What is not a discontinuity of this kind is not included: the line where two surfaces
-intersect (the teapot's spout entering its body), edges seen in mirrors, and shadow
-boundaries (secondary visibility; ``render.edges.shadows`` handles those).
+The lines where two surfaces pass through each other (the teapot's spout entering its
+body) are curves too: the segment two crossing triangles share, with the edge function of
+the line where their planes meet (``crossing_segments``). Shadow borders (secondary
+visibility) are found in ``render.edges.shadow_boundary`` and added by the same term.
+Edges seen in mirrors are not included.
 """
 
 from __future__ import annotations
@@ -67,10 +69,14 @@ from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
 
-#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). One
-#: (the midpoint) is exact while the jump varies linearly along the piece; two changed the
-#: paper teapot's translation gradient by less than a point of relative error at 64 and
-#: 128 pixels and cost 40 ms more at 512x512.
+#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
+#: pieces are first cut wherever another curve crosses them in the pixel
+#: (``split_at_crossings``), so that along a part nothing is hidden or uncovered and no
+#: shadow begins: then the midpoint is exact while the jump varies linearly along it.
+#: Without the cuts, a piece partly hidden by another surface's outline or partly in
+#: shadow counted all or nothing: on the paper teapot at 64x64 (translation, window check
+#: against 4,096-spp renders) one uncut point per piece left 1.8 % (3.2 % with shadows),
+#: two 0.35 % (0.7 %).
 GAUSS_POINTS = 1
 #: How far, in pixels, the two rays that see either side of a curve pass from it.
 EPSILON = 1e-3
@@ -241,6 +247,86 @@ def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
     return segment[:n], start[:n], end[:n], pixel[:n]
 
 
+@numba.njit(cache=True)
+def _split_group(p0, p1, segment, start, end, pixel, order, lo, hi, out, n, ts):
+    """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
+    touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
+    (``ts``: scratch, at least hi - lo long). Returns the new row count."""
+    for x in range(lo, hi):
+        i = order[x]
+        s = segment[i]
+        dx, dy = p1[s, 0] - p0[s, 0], p1[s, 1] - p0[s, 1]
+        ax, ay = p0[s, 0] + start[i] * dx, p0[s, 1] + start[i] * dy
+        bx, by = p0[s, 0] + end[i] * dx - ax, p0[s, 1] + end[i] * dy - ay  # the piece a -> a + b
+        m = 0
+        for y in range(lo, hi):
+            j = order[y]
+            if y == x:
+                continue
+            r = segment[j]
+            ex, ey = p1[r, 0] - p0[r, 0], p1[r, 1] - p0[r, 1]
+            cx, cy = p0[r, 0] + start[j] * ex, p0[r, 1] + start[j] * ey
+            fx, fy = p0[r, 0] + end[j] * ex - cx, p0[r, 1] + end[j] * ey - cy
+            den = bx * fy - by * fx
+            if den == 0.0:
+                continue
+            t = ((cx - ax) * fy - (cy - ay) * fx) / den
+            u = ((cx - ax) * by - (cy - ay) * bx) / den
+            if 1e-9 < t < 1.0 - 1e-9 and -1e-12 <= u <= 1.0 + 1e-12:
+                ts[m] = t
+                m += 1
+        for k in range(1, m):  # insertion sort: m is small
+            v, q = ts[k], k - 1
+            while q >= 0 and ts[q] > v:
+                ts[q + 1] = ts[q]
+                q -= 1
+            ts[q + 1] = v
+        previous = 0.0
+        for k in range(m + 1):
+            t = ts[k] if k < m else 1.0
+            if t > previous:
+                out[n, 0] = s
+                out[n, 1] = start[i] + previous * (end[i] - start[i])
+                out[n, 2] = start[i] + t * (end[i] - start[i])
+                out[n, 3] = pixel[i]
+                n += 1
+            previous = t
+    return n
+
+
+@numba.njit(cache=True)
+def _split_all(p0, p1, segment, start, end, pixel, order, bounds, out):
+    n = 0
+    ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)
+    for g in range(len(bounds) - 1):
+        lo, hi = bounds[g], bounds[g + 1]
+        if hi - lo == 1:  # nothing to cut: the common case
+            i = order[lo]
+            out[n, 0], out[n, 1], out[n, 2], out[n, 3] = segment[i], start[i], end[i], pixel[i]
+            n += 1
+            continue
+        n = _split_group(p0, p1, segment, start, end, pixel, order, lo, hi, out, n, ts)
+    return n
+
+
+def split_at_crossings(p0, p1, segment, start, end, pixel):
+    """The pieces (``pixel_pieces``' arrays) cut where two pieces in the same pixel cross,
+    or where one ends on another (a T-junction): along each part the set of curves beside
+    it does not change, so what is seen on either side changes smoothly, and one
+    quadrature point stands for the part. Same arrays, more rows."""
+    order = np.argsort(pixel, kind="stable")
+    ordered = pixel[order]
+    bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
+    sizes = np.diff(bounds)
+    out = np.empty((int(np.sum(sizes * sizes)), 4))
+    n = _split_all(
+        np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
+        start, end, pixel, order, bounds, out,
+    )  # fmt: skip
+    out = out[:n]
+    return out[:, 0].astype(np.int64), out[:, 1], out[:, 2], out[:, 3].astype(np.int64)
+
+
 def quadrature(p0, p1, segment, start, end):
     """Gauss-Legendre points on the pieces: positions (m * GAUSS_POINTS, 2), their segment,
     and weights (the rule's weight times the piece's length, in pixels)."""
@@ -284,6 +370,9 @@ def shade_seen(
     seen = replace(visibility, primary=primary, lit=lit)
     out = np.empty((len(coords), 3))
     out[:] = np.asarray(scene.background.data, np.float64)
+    # Values only: a reflectance that is zero adds nothing, even while it is differentiated.
+    if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
+        max_bounces = 0
     with md.no_grad():
         shading = shade_camera_hits(
             scene, seen, frame, RenderCache(), Mirrors.of(scene, seen, max_bounces)
@@ -537,12 +626,24 @@ def _onto_outline(coords, sphere, frame, steps: int = 3):
 
 
 def boundary_points(
-    scene: Scene, visibility: Visibility, frame, topology, crossings, max_bounces: int
-) -> BoundaryPoints:
-    """Every quadrature point of the boundary term, with its constant factor (see the
-    module docstring), for one render. ``topology``: ``mesh_edges`` per mesh index;
-    ``crossings``: ``crossing_segments`` of the scene's triangles (both depend on the
-    geometry alone, so the caller may reuse them)."""
+    scene: Scene,
+    visibility: Visibility,
+    frame,
+    topology,
+    crossings,
+    max_bounces: int,
+    extra: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[BoundaryPoints, tuple]:
+    """Every quadrature point of the boundary term of edges, intersections and outlines,
+    with its constant factor (see the module docstring), for one render. ``topology``:
+    ``mesh_edges`` per mesh index; ``crossings``: ``crossing_segments`` of the scene's
+    triangles (both depend on the geometry alone, so the caller may reuse them).
+
+    extra: more curves as segments (start (k, 2), end (k, 2), pixel coordinates): the
+    shadow borders, cut together with the rest (``split_at_crossings``). Their quadrature
+    points are returned as (segment (m,) into ``extra``, image-plane coords (m, 2),
+    weight (m,), pixel (m,)) for the caller to finish.
+    """
     camera = scene.camera
     width, height = camera.width, camera.height
     plain = plain_camera(frame)
@@ -562,11 +663,17 @@ def boundary_points(
             starts.append(poly[:-1])
             ends.append(poly[1:])
             outlines.append((index, len(poly) - 1))
+    n_own = sum(len(s) for s in starts)
+    if extra is not None:
+        starts.append(extra[0])
+        ends.append(extra[1])
     p0, p1 = np.concatenate(starts), np.concatenate(ends)  # never empty: crossings come too
-    segment, start, end, pixel = pixel_pieces(p0, p1, width, height)
-    points, segment, weight = quadrature(p0, p1, segment, start, end)
-    pixel = np.repeat(pixel, GAUSS_POINTS)
+    pieces = split_at_crossings(p0, p1, *pixel_pieces(p0, p1, width, height))
+    points, segment, weight = quadrature(p0, p1, *pieces[:3])
+    pixel = np.repeat(pieces[3], GAUSS_POINTS)
     coords = to_image_plane(points, width, height)
+    rows = np.flatnonzero(segment >= n_own)
+    others = (segment[rows] - n_own, coords[rows], weight[rows], pixel[rows])
     factor = np.zeros((len(coords), 3))
     first, mesh_edges, sphere_points = 0, [], []
     firsts = np.cumsum([0] + [m.num_faces for m in scene.meshes])
@@ -605,9 +712,10 @@ def boundary_points(
     sphere_points = [(k, remap[r[nonzero[r]]]) for k, r in sphere_points]
     rows, crossing_pairs = crossings
     crossings = (remap[rows[nonzero[rows]]], crossing_pairs[nonzero[rows]])
-    return BoundaryPoints(
+    points = BoundaryPoints(
         coords[keep], pixel[keep], factor[keep], mesh_edges, sphere_points, crossings
     )
+    return points, others
 
 
 def _pixel_gradient(grad: np.ndarray, width: int, height: int):

@@ -45,15 +45,11 @@ import numpy as np
 import minidiff as md
 from render.edges.boundary import (
     EPSILON,
-    GAUSS_POINTS,
     _pixel_gradient,
     edge_table,
-    pixel_pieces,
     plain_camera,
     project,
-    quadrature,
     radiance_at,
-    to_image_plane,
 )
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
 from render.scene.camera import ray_directions
@@ -313,33 +309,58 @@ def _onto_border(scene, visibility, frame, light, occluder, receiver, coords, st
 # ---------------------------------------------------------------------------------------
 
 
-def shadow_points(
-    scene: Scene, visibility: Visibility, frame, topology, max_bounces: int
-) -> ShadowPoints:
-    """Every quadrature point of the shadow borders of every light, with its constant
-    factor (``BoundaryPoints``), for one render. ``topology``: ``mesh_edges`` per mesh."""
-    camera = scene.camera
+@dataclass
+class BorderChords:
+    """The shadow borders of one render as image segments (off the tape): start, end (k, 2)
+    pixel coordinates; per chord its light (k,), occluder (k, 3) (as in ``ShadowPoints``)
+    and receiver (k,)."""
+
+    start: np.ndarray
+    end: np.ndarray
+    light: np.ndarray
+    occluder: np.ndarray
+    receiver: np.ndarray
+
+
+def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> BorderChords:
+    """The chords of every light's shadow borders (module docstring); ``topology``:
+    ``mesh_edges`` per mesh. None of them without shadows."""
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
     parts = []
     for j, light in enumerate(scene.lights):
-        if not visibility.shadows:
-            break
-        curves = _light_silhouettes(scene, topology, light)
+        curves = _light_silhouettes(scene, topology, light) if visibility.shadows else ([],)
         if len(curves[0]) == 0:
             continue
         x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, light, curves)
-        segment, start, end, pixel = pixel_pieces(x0, x1, camera.width, camera.height)
-        points, segment, weight = quadrature(x0, x1, segment, start, end)
-        pixel = np.repeat(pixel, GAUSS_POINTS)
-        occluder, receiver = curves[0][curve[segment]], receiver[segment]
-        coords = to_image_plane(points, camera.width, camera.height)
-        coords = _onto_border(scene, visibility, plain, light, occluder, receiver, coords)
+        parts.append((x0, x1, np.full(len(x0), j), curves[0][curve], receiver))
+    if not parts:
+        empty = np.zeros(0, np.int64)
+        return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
+                            np.zeros((0, 3), np.int64), empty)  # fmt: skip
+    return BorderChords(*(np.concatenate(p) for p in zip(*parts, strict=True)))
+
+
+def shadow_points(
+    scene: Scene, visibility: Visibility, frame, chords: BorderChords, pieces, max_bounces: int
+) -> ShadowPoints:
+    """The quadrature points of the shadow borders with their constant factors
+    (``BoundaryPoints``): ``pieces`` = (chord (m,), image-plane coords (m, 2), weight (m,),
+    pixel (m,)) of the points on ``chords`` (``boundary_points``' extra curves)."""
+    plain = plain_camera(frame)
+    chord, coords, weight, pixel = pieces
+    parts = []
+    for j, light in enumerate(scene.lights):
+        rows = np.flatnonzero(chords.light[chord] == j)
+        if len(rows) == 0:
+            continue
+        occluder, receiver = chords.occluder[chord[rows]], chords.receiver[chord[rows]]
+        moved = _onto_border(scene, visibility, plain, light, occluder, receiver, coords[rows])
         factor = _border_factors(
-            scene, visibility, plain, light, occluder, receiver, coords, weight, max_bounces
+            scene, visibility, plain, light, occluder, receiver, moved, weight[rows], max_bounces
         )
         keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
-        parts.append((coords[keep], pixel[keep], factor[keep], np.full(len(keep), j),
+        parts.append((moved[keep], pixel[rows][keep], factor[keep], np.full(len(keep), j),
                       receiver[keep], occluder[keep]))  # fmt: skip
     if not parts:
         empty = np.zeros(0, np.int64)

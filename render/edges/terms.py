@@ -6,8 +6,8 @@ arrays, the pairs of adjacent samples across a silhouette or crease
 (``render.edges.shadows.shadow_pairs``), each reused from the render cache while the
 visibility they come from is unchanged; then, on the tape, where each edge crosses its
 pair and how much of each sample's box lies beyond it, and adds the blends to the
-samples' colours. With ``antialias="boundary"`` only the shadow edges are blended so, and
-``add_boundary_term`` adds the exact term of the other edges to the image.
+samples' colours. With ``antialias="boundary"`` nothing is blended: ``add_boundary_term``
+adds the exact term of every edge and shadow border to the image instead.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from render.edges.boundary import (
     global_welded,
 )
 from render.edges.geometry import add_to_samples
-from render.edges.shadow_boundary import shadow_points, shadow_term
+from render.edges.shadow_boundary import border_chords, shadow_points, shadow_term
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
 from render.scene.cache import RenderCache, light_key
@@ -123,13 +123,14 @@ def add_boundary_term(
         [visibility.geometry],
         lambda: crossing_segments(visibility.primitives[0], global_welded(scene, topology)),
     )
-    points = boundary_points(scene, visibility, frame, topology, crossings, max_bounces)
-    shadows = None
-    if visibility.shadows:
-        borders = shadow_points(scene, visibility, frame, topology, max_bounces)
-        found = shadow_term(scene, borders, frame)
-        if found is not None:
-            e, rows = found
-            shadows = (e, borders.weight[rows], borders.pixel[rows])
+    chords = border_chords(scene, visibility, frame, topology)
+    points, on_chords = boundary_points(
+        scene, visibility, frame, topology, crossings, max_bounces, (chords.start, chords.end)
+    )
+    borders = shadow_points(scene, visibility, frame, chords, on_chords, max_bounces)
+    found, shadows = shadow_term(scene, borders, frame), None
+    if found is not None:
+        e, rows = found
+        shadows = (e, borders.weight[rows], borders.pixel[rows])
     term = boundary_term(scene, points, frame, shadows)
     return image if term is None else image + term

@@ -100,12 +100,16 @@ def window_difference(
     spp: int = 1024,
     seed: int = 0,
     shadows: bool = True,
+    pixels: np.ndarray | None = None,
 ) -> float:
     """(L(h) - L(-h)) / 2h for L(s) = sum(weights * image(s)), the supersampled image of
     ``make_scene(s)``: the scene moved by s along a direction, with the tensor moved and
-    the direction (only the scene is used here)."""
+    the direction (only the scene is used here). ``pixels``: flat indices of the only
+    pixels that can change (the caller's claim, e.g. around a lone object on a black
+    background); the others are left out of both sides."""
+    w = weights if pixels is None else weights.reshape(-1, weights.shape[-1])[pixels]
     values = [
-        float(np.sum(weights * supersampled_image(make_scene(s)[0], spp, seed, shadows)))
+        float(np.sum(w * supersampled_image(make_scene(s)[0], spp, seed, shadows, pixels=pixels)))
         for s in (h, -h)
     ]
     return (values[0] - values[1]) / (2.0 * h)
@@ -130,6 +134,7 @@ def window_mean_gradient(
         scene, tensor, direction = make_scene(-h + (k + 0.5) * 2.0 * h / points)
         tensor.requires_grad, tensor.grad = True, None
         image = render(scene, spp=spp, shadows=shadows, antialias=antialias, reuse_visibility=False)
-        (image * weights).sum().backward()
-        total += float(np.sum(tensor.grad * direction))
+        if image.requires_grad:  # else nothing seen depends on the tensor here: dL/ds = 0
+            (image * weights).sum().backward()
+            total += float(np.sum(tensor.grad * direction))
     return total / points
