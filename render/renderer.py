@@ -111,12 +111,20 @@ def render(
         image = pixel_means(scene, samples, spp)  # 5
     else:
         image = image_from_hits(scene, prim_id, shading.colour, shading.rays, spp)  # 5
-        if antialias == "boundary":  # 4': every edge and shadow border, the exact derivative
+        if antialias == "boundary" and _differentiated(scene):  # 4': zero in value
             image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
         return image
     return image, RenderInfo.of(scene, visibility, shading.texel, spp, mirrors, edges)
+
+
+def _differentiated(scene: Scene) -> bool:
+    """Whether a derivative can flow from some scene parameter into the image (reverse mode
+    with grad enabled, or forward mode): the boundary term is zero in value, so without
+    one it would change nothing."""
+    tangents = any(p.tangent is not None for p in scene.parameters())
+    return tangents or (md.is_grad_enabled() and any(p.requires_grad for p in scene.parameters()))
 
 
 def _check_antialias(value) -> str | None:

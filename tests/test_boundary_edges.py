@@ -121,7 +121,7 @@ def _moved(scene: Scene) -> md.Tensor:
      ("overlap", FLAT), ("overlap", LIT)],
 )  # fmt: skip
 def test_translation_gradient_matches_supersampled_differences(kind, material):
-    """Measured: 0.1-1.5 % (boundary); pixel centres 30-100 %."""
+    """Measured: 0.1-1.8 % (boundary); pixel pairs 2.6-12.6 %; pixel centres 79-100 %."""
     errors = window_error(
         lambda: _scene(kind, material), _moved, _weights(), h=0.04, methods=["boundary", False]
     )
@@ -147,7 +147,7 @@ def test_shadow_borders_and_every_parameter_type(name):
     """Ground, floating pyramid and sphere casting shadows (``random_scene``), 48x40:
     each parameter type against the supersampled window difference. Rendered at 4
     samples per pixel so that the interior term's one-sample error stays out of the
-    comparison of edges."""
+    comparison of edges. Measured: 0.2-1.4 % (pixel pairs 0.6-20 %)."""
     lights, tensor_of = SHADOW_CASES[name]
     errors = window_error(
         lambda: random_scene(4, lights=lights, width=48, height=40), tensor_of,
@@ -171,8 +171,13 @@ def soups(draw):
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
     count = int(rng.integers(1, 5))
     triangles = rng.uniform([-1, -1, -0.6], [1, 1, 0.6], (count, 3, 3))
-    flat = rng.random(count) < 0.3  # some nearly edge-on: one coordinate almost shared
-    triangles[flat, :, 0] = triangles[flat, :1, 0] + rng.normal(0, 0.02, (int(flat.sum()), 3))
+    # Some nearly edge-on: x almost shared, in a plane x = c the camera (at x = 0.4) sees
+    # at a few degrees. Not at c near 0.4: there the window's motion turns the sliver
+    # through exactly edge-on, where its derivative flips sign, and the window mean then
+    # samples a jump (one such soup: 16 %, with the reference uncertain by 3.6 %).
+    flat = rng.random(count) < 0.3
+    plane = rng.choice([-1.0, 1.0], count) * rng.uniform(0.25, 0.6, count) + 0.4
+    triangles[flat, :, 0] = plane[flat, None] + rng.normal(0, 0.02, (count, 3))[flat]
     area = np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
                                    triangles[:, 2] - triangles[:, 0]), axis=1)  # fmt: skip
     triangles = triangles[area > 0.05]  # slivers move no edge measurably

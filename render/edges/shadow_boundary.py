@@ -31,8 +31,10 @@ the exact border (Newton on e), and f_+ and f_- are the radiance seen by two cam
 just either side (``radiance_at``): a border hidden from the camera, or lying in another
 shadow of the same light, has f_+ = f_- there and adds nothing.
 
-Not included: shadow borders seen in mirrors, and features of a receiver narrower than the
-spacing of the grazing rays (at most ``SPACING`` pixels apart in the image).
+Not included: shadow borders seen in mirrors, and a receiver narrower than the spacing of
+the grazing rays: they start ``SPACING`` pixels apart along the occluder's image and are
+refined where the border they draw is longer than that, but a small receiver between two
+rays that both miss it, or both hit the same other one, is not seen.
 """
 
 from __future__ import annotations
@@ -198,17 +200,14 @@ def _border_chords(scene, visibility, frame, size, light, curves):
 
     p0, x0 = sample(curve, u0)
     p1, x1 = sample(curve, u1)
-    limit = np.where(kind == 1, CHORD, SPACING)
     chords = []
-    for _ in range(ROUNDS + 1):
+    for rounds in range(ROUNDS + 1):
         both = (p0 >= 0) & (p1 >= 0)
         length = np.where(both, np.linalg.norm(x1 - x0, axis=1), 0.0)
-        curved = (kind[curve] == 1) | (p0 >= first_sphere_id(scene))
-        long = (p0 == p1) & both & (length > np.where(curved, CHORD, limit[curve]))
-        change = (p0 != p1) & ~(both & (length < GAP))
-        split = long | change
-        if _ == ROUNDS:
-            split[:] = False
+        curved = (kind[curve] == 1) | (p0 >= first_sphere_id(scene))  # a sphere casts or receives
+        long = (p0 == p1) & both & (length > np.where(curved, CHORD, SPACING))
+        change = (p0 != p1) & ~(both & (length < GAP))  # bisect towards where it changes
+        split = (long | change) & (rounds < ROUNDS)
         done = ~split & (p0 == p1) & (p0 >= 0)
         chords.append((x0[done], x1[done], curve[done], p0[done]))
         if not split.any():
