@@ -152,7 +152,6 @@ def test_shadow_borders_and_every_parameter_type(name):
     errors = window_error(
         lambda: random_scene(4, lights=lights, width=48, height=40), tensor_of,
         _weights(40, 48), h=0.4 if name == "field of view" else 0.05, render_spp=4,
-        methods=["boundary", "pairs"],
     )  # fmt: skip
     assert errors["boundary"] < 0.05, errors
 
