@@ -31,9 +31,13 @@ import numpy as np
 from scipy.ndimage import binary_dilation
 from script_support import command_line, write_results
 
-import minidiff as md
 from render.inverse.gradient_image import gradient_image
-from render.inverse.reference import supersampled_image, window_difference, window_mean_gradient
+from render.inverse.reference import (
+    moved_along,
+    supersampled_image,
+    window_difference,
+    window_mean_gradient,
+)
 from render.renderer import render
 from render.scene.scene import Material, Scene, Sphere
 from render.scene.teapot import paper_scene
@@ -64,14 +68,7 @@ def window_errors(
     (antialias, samples per pixel)."""
     truth, ours = [], {name: [] for name in methods}
     for direction in directions:
-
-        def make(s, direction=direction):
-            scene = build()
-            tensor = tensor_of(scene)
-            with md.no_grad():
-                tensor.data[...] = tensor.data + s * direction
-            return scene, tensor, direction
-
+        make = moved_along(build, tensor_of, direction)
         truth.append(window_difference(make, weights, h, spp, shadows=shadows, pixels=pixels))
         for name, method in methods.items():
             antialias, samples = method if isinstance(method, tuple) else (method, 1)
@@ -190,19 +187,16 @@ def figure(path: Path, size: int, spp: int) -> None:
     direction = np.zeros(scene.meshes[0].vertices.shape)
     direction[:, 1] = 1.0
 
-    def make(s):
-        moved = paper_scene(width=size, height=size)
-        with md.no_grad():
-            moved.meshes[0].vertices.data[...] += s * direction
-        return moved
-
-    truth = (supersampled_image(make(h), spp) - supersampled_image(make(-h), spp)) / (2 * h)
+    make = moved_along(
+        lambda: paper_scene(width=size, height=size), lambda s: s.meshes[0].vertices, direction
+    )
+    truth = (supersampled_image(make(h)[0], spp) - supersampled_image(make(-h)[0], spp)) / (2 * h)
     panels = {f"truth ({spp:,} jittered spp, across the window)": truth[..., 0]}
     for name, antialias in METHODS.items():
         mean = 0.0
         for k in range(POINTS):
-            moved = make(-h + (k + 0.5) * 2 * h / POINTS)
-            grad = gradient_image(moved, moved.meshes[0].vertices, direction, antialias=antialias)
+            moved, vertices, _ = make(-h + (k + 0.5) * 2 * h / POINTS)
+            grad = gradient_image(moved, vertices, direction, antialias=antialias)
             mean = mean + grad[..., 0] / POINTS
         panels[name] = mean
     crop = (slice(size // 8, size * 7 // 8), slice(size // 8, size * 15 // 16))
@@ -216,6 +210,15 @@ def figure(path: Path, size: int, spp: int) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def _table(keys: list[str], methods, rows: list[dict], label) -> list[str]:
+    """Markdown lines: columns ``keys`` (each row's ``label(row)``) then one error per
+    method."""
+    lines = ["| " + " | ".join([*keys, *methods]) + " |", "|" + "---|" * (len(keys) + len(methods))]
+    for row in rows:
+        lines.append("| " + " | ".join([*label(row), *(f"{row[m]:.3f}" for m in methods)]) + " |")
+    return lines
 
 
 def main() -> None:
@@ -240,12 +243,13 @@ def main() -> None:
         "",
         "Rigid translation of the paper teapot:",
         "",
-        "| size | shadows | " + " | ".join(METHODS) + " |",
-        "|---|---|" + "---|" * len(METHODS),
+        *_table(
+            ["size", "shadows"],
+            METHODS,
+            rows,
+            lambda r: [str(r["size"]), "yes" if r["shadows"] else "no"],
+        ),  # fmt: skip
     ]
-    for row in rows:
-        cells = " | ".join(f"{row[name]:.3f}" for name in METHODS)
-        lines.append(f"| {row['size']} | {'yes' if row['shadows'] else 'no'} | {cells} |")
     lines += [
         "",
         "For context, Mitsuba 3.9 `direct_projective` on a translation check of this "
@@ -254,12 +258,8 @@ def main() -> None:
         f"Every kind of parameter, {size_params}x{size_params}, the teapot on its ground "
         f"beside a sphere casting a shadow ({spp_params} samples per pixel in the truth):",
         "",
-        "| parameter | " + " | ".join(PARAMETER_METHODS) + " |",
-        "|---|" + "---|" * len(PARAMETER_METHODS),
+        *_table(["parameter"], PARAMETER_METHODS, params, lambda r: [r["parameter"]]),
     ]
-    for row in params:
-        cells = " | ".join(f"{row[name]:.3f}" for name in PARAMETER_METHODS)
-        lines.append(f"| {row['parameter']} | {cells} |")
     lines += ["", "![gradient images](boundary_gradient_images.png)"]
     if not args.quick:
         figure(out / "boundary_gradient_images.png", 128, spp)

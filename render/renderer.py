@@ -123,8 +123,8 @@ def _differentiated(scene: Scene) -> bool:
     """Whether a derivative can flow from some scene parameter into the image (reverse mode
     with grad enabled, or forward mode): the boundary term is zero in value, so without
     one it would change nothing."""
-    tangents = any(p.tangent is not None for p in scene.parameters())
-    return tangents or (md.is_grad_enabled() and any(p.requires_grad for p in scene.parameters()))
+    grad = md.is_grad_enabled()
+    return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
 
 
 def _check_antialias(value) -> str | None:

@@ -26,7 +26,7 @@ from render_helpers import random_scene
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
 from render.edges.boundary import pixel_pieces
-from render.inverse.reference import window_difference, window_mean_gradient
+from render.inverse.reference import moved_along, window_difference, window_mean_gradient
 
 SIZE = 32
 FLAT = Material(albedo=(0.0, 0.0, 0.0), ambient=1.0)  # one colour: the edges alone
@@ -91,13 +91,7 @@ def window_error(
         direction = np.zeros(shape)
         direction.reshape(-1, 3 if shape else 1)[:, axis] = 1.0
 
-        def make(s, direction=direction):
-            scene = build()
-            tensor = tensor_of(scene)
-            with md.no_grad():
-                tensor.data[...] = tensor.data + s * direction
-            return scene, tensor, direction
-
+        make = moved_along(build, tensor_of, direction)
         values = [window_difference(make, weights, h, spp, seed) for seed in seeds]
         truth.append(np.mean(values))
         spread.append(values[-1] - values[0])

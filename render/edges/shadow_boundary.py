@@ -327,8 +327,8 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
     parts = []
-    for j, light in enumerate(scene.lights):
-        curves = _light_silhouettes(scene, topology, light) if visibility.shadows else ([],)
+    for j, light in enumerate(scene.lights if visibility.shadows else []):
+        curves = _light_silhouettes(scene, topology, light)
         if len(curves[0]) == 0:
             continue
         x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, light, curves)

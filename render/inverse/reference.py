@@ -93,6 +93,23 @@ def _jitter(seed: int, rows: np.ndarray, cols: np.ndarray, width: int, spp: int)
     return out
 
 
+def moved_along(
+    build: Callable[[], Scene], tensor_of: Callable[[Scene], md.Tensor], direction: np.ndarray
+) -> Callable[[float], tuple[Scene, md.Tensor, np.ndarray]]:
+    """``make_scene`` for ``window_difference`` and ``window_mean_gradient``: s -> (a fresh
+    scene from ``build()`` with the tensor ``tensor_of(scene)`` moved by s * direction,
+    that tensor, the direction)."""
+
+    def make(s: float):
+        scene = build()
+        tensor = tensor_of(scene)
+        with md.no_grad():
+            tensor.data[...] = tensor.data + s * direction
+        return scene, tensor, direction
+
+    return make
+
+
 def window_difference(
     make_scene: Callable[[float], tuple[Scene, md.Tensor, np.ndarray]],
     weights: np.ndarray,
