@@ -17,13 +17,23 @@ from render.inverse.optimize import FlatParameters, History, OptimizationError, 
 from render.renderer import RenderInfo, render
 from render.scene.image import load_image, mse, psnr, save_image, write_gradient_png
 from render.scene.meshio import load_mesh
-from render.scene.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
+from render.scene.scene import (
+    Camera,
+    DirectionalLight,
+    Material,
+    Mesh,
+    PointLight,
+    Scene,
+    Sphere,
+    Transform,
+)
 from render.scene.teapot import paper_scene, teapot, teapot_geometry
 from render.trace.accel import Accelerator
 
 __all__ = [
     "Accelerator", "Camera", "DirectionalLight", "Material", "Mesh", "PointLight", "Scene",
-    "Sphere", "RenderInfo", "render", "load_image", "save_image", "mse", "psnr", "load_mesh",
+    "Sphere", "Transform", "RenderInfo", "render", "load_image", "save_image", "mse", "psnr",
+    "load_mesh",
     "paper_scene", "teapot", "teapot_geometry", "optimize", "FlatParameters", "History",
     "OptimizationError", "image_loss", "gradient_image", "write_gradient_png",
 ]  # fmt: skip

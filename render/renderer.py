@@ -1,5 +1,7 @@
 """``render(scene)``: the pipeline, one step per folder, called top to bottom here.
 
+0. Placement (``render/scene/placement.py``, on the tape): objects with a ``Transform``
+   get their world-space geometry; the steps below see only world space.
 1. Visibility (``render/trace/``, plain arrays, constants on the tape): which primitive
    does the ray of every pixel sample hit, and does each hit see each light? Camera rays
    are rasterised or traced through the BVH, shadow rays towards a point light answered in
@@ -38,6 +40,7 @@ from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms
 from render.film import image_from_hits, pixel_means, sample_colours
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame, subpixel_offsets
+from render.scene.placement import placed
 from render.scene.scene import Scene, check_ray_count
 from render.shade.hits import shade_camera_hits
 from render.shade.lighting import shade_mesh, shade_surface
@@ -99,24 +102,25 @@ def render(
     max_bounces = _check_bounces(max_bounces)
     raster = _rasterise(scene, _check_primary(primary), spp) and bool(bvh)
     cache = cache_for(scene, reuse_visibility)
+    world = placed(scene)  # 0: transformed objects in world space, on the tape
 
-    visibility = trace_visibility(scene, cache, bool(bvh), spp, bool(shadows), raster)  # 1
-    frame = camera_frame(scene.camera)
-    mirrors = Mirrors.of(scene, visibility, max_bounces)
-    shading = shade_camera_hits(scene, visibility, frame, cache, mirrors)  # 2, 3
+    visibility = trace_visibility(world, cache, bool(bvh), spp, bool(shadows), raster)  # 1
+    frame = camera_frame(world.camera)
+    mirrors = Mirrors.of(world, visibility, max_bounces)
+    shading = shade_camera_hits(world, visibility, frame, cache, mirrors)  # 2, 3
     prim_id, edges = visibility.primary.prim_id, None
     if antialias == "pairs":
-        samples = sample_colours(scene, prim_id, shading.colour, shading.rays)
-        samples, edges = add_edge_terms(scene, visibility, cache, samples, shading, frame, spp)  # 4
-        image = pixel_means(scene, samples, spp)  # 5
+        samples = sample_colours(world, prim_id, shading.colour, shading.rays)
+        samples, edges = add_edge_terms(world, visibility, cache, samples, shading, frame, spp)  # 4
+        image = pixel_means(world, samples, spp)  # 5
     else:
-        image = image_from_hits(scene, prim_id, shading.colour, shading.rays, spp)  # 5
+        image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
         if antialias == "boundary" and _differentiated(scene):  # 4': zero in value
-            image = add_boundary_term(scene, visibility, cache, image, frame, max_bounces)
+            image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
         return image
-    return image, RenderInfo.of(scene, visibility, shading.texel, spp, mirrors, edges)
+    return image, RenderInfo.of(world, visibility, shading.texel, spp, mirrors, edges)
 
 
 def _differentiated(scene: Scene) -> bool:

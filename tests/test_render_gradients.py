@@ -139,6 +139,26 @@ def specular_and_ambient_maps(scene):
     return [m.specular_texture, m.ambient_texture, m.specular, m.ambient]
 
 
+def placed(obj, scene, quaternion=False):
+    """Give ``obj`` a random Transform close to the identity (pivot near its centre), drawn
+    from the scene's own random values, and return its four fields."""
+    rng = np.random.default_rng(int(scene.camera.fov.data * 1e6))
+    if quaternion:
+        rotation = np.array([1.0, 0.0, 0.0, 0.0]) + rng.uniform(-0.2, 0.2, 4)
+        rotation *= rng.uniform(0.5, 2.0)  # any non-zero length
+    else:
+        rotation = rng.uniform(-20.0, 20.0, 3)  # degrees
+    centre = obj.vertices.data.mean(0) if isinstance(obj, render.Mesh) else obj.center.data
+    obj.transform = render.Transform(
+        rotation,
+        rng.uniform(-0.15, 0.15, 3),
+        rng.uniform(0.9, 1.1),
+        centre + rng.uniform(-0.2, 0.2, 3),
+    )
+    t = obj.transform
+    return [t.rotation, t.translation, t.scale, t.pivot]
+
+
 POINT, DIRECTIONAL, BOTH = ("point",), ("directional",), ("point", "directional")
 
 CASES = {
@@ -178,6 +198,16 @@ CASES = {
     "camera_up": ({"lights": POINT}, lambda s: [s.camera.up]),
     "camera_fov": ({"lights": POINT}, lambda s: [s.camera.fov]),
     "background": ({"lights": POINT}, lambda s: [s.background]),
+    "transform_rotation_vector": ({"lights": BOTH}, lambda s: placed(pyramid(s), s)),
+    "transform_quaternion_smooth": (
+        {"lights": POINT, "smooth": True},
+        lambda s: placed(pyramid(s), s, quaternion=True),
+    ),
+    "transform_with_vertices_and_normals": (
+        {"lights": POINT, "smooth": True},
+        lambda s: [*explicit_normals(s), pyramid(s).vertices, *placed(pyramid(s), s)[:2]],
+    ),
+    "transform_sphere": ({"lights": BOTH}, lambda s: placed(sphere(s), s)),
 }
 
 

@@ -105,7 +105,8 @@ def surface_key(obj: Mesh | Sphere, owned: list, dtype) -> list[np.ndarray]:
     """What an object's hit points, normals and UVs depend on besides the camera rays'
     hits: its parameters ``owned`` (``render.shade.surface.moves_surface``), its switches and
     the working dtype."""
-    switches = [id(obj), np.dtype(dtype).num]
+    # A world-space copy made for a render (``render.scene.placement``) stands for its source.
+    switches = [getattr(obj, "source_id", id(obj)), np.dtype(dtype).num]
     if isinstance(obj, Mesh):
         switches += [obj.smooth, bool(obj.material.textures), obj.normals is not None]
     return _copies(owned) + [np.array(switches, dtype=np.int64)]

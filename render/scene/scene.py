@@ -51,6 +51,7 @@ __all__ = [
     "Mesh",
     "Sphere",
     "Scene",
+    "Transform",
 ]
 
 # Anything we accept where a continuous parameter is expected.
@@ -535,6 +536,68 @@ class Material(_HasFields):
 
 
 # --------------------------------------------------------------------------------------
+# Placement
+# --------------------------------------------------------------------------------------
+
+
+def _rotation_ok(x: np.ndarray) -> bool:
+    """A rotation vector of any length, or a quaternion far enough from zero to normalise."""
+    return x.shape == (3,) or _normalisable(x)
+
+
+_ROTATION = (_rotation_ok, "a rotation vector or a non-zero quaternion")
+
+
+class Transform(_HasFields):
+    """A similarity transform placing an object in the world: rotate and scale about
+    ``pivot``, then translate. A point p of the object is drawn at
+
+        world(p) = pivot + translation + scale * R (p - pivot),
+
+    applied on the tape inside ``render`` (``render.scene.placement``), so that every field
+    is a parameter like any other (``objects[i].transform.rotation``, ...), composable with
+    the object's own vertex positions (the shape, in object space).
+
+    Args:
+        rotation: (3,) a rotation vector in **degrees** (the axis times the angle, like the
+            scene's other angles; (0, 0, 0) is no rotation), or (4,) a quaternion
+            (w, x, y, z), normalised on use (any non-zero length). Rotation vectors give an
+            optimiser three unconstrained coordinates; quaternions have no singular angle.
+        translation: (3,) added after rotating and scaling.
+        scale: scalar uniform scale, > 0.
+        pivot: (3,) the point the rotation and the scale keep fixed (the object's centre,
+            say, so that rotating does not also move it). Default: the origin.
+
+    Shading normals given with a mesh (``Mesh.normals``) are rotated with it.
+    """
+
+    FIELDS = (
+        Field(
+            "rotation", ((3,), (4,)), (_rotation_ok, "a rotation vector or a non-zero quaternion")
+        ),
+        Field("translation", ((3,),), IN_RANGE),
+        Field("scale", ((),), (lambda x: 0.0 < x <= MAX_COORD, "> 0 and at most 1e60")),
+        Field("pivot", ((3,),), IN_RANGE),
+    )
+
+    def __init__(
+        self,
+        rotation: ArrayLike = (0.0, 0.0, 0.0),
+        translation: ArrayLike = (0.0, 0.0, 0.0),
+        scale: ArrayLike = 1.0,
+        pivot: ArrayLike = (0.0, 0.0, 0.0),
+    ) -> None:
+        self._set_fields(rotation=rotation, translation=translation, scale=scale, pivot=pivot)
+        self.validate()
+
+
+def _check_transform(obj: Any, owner: str) -> None:
+    if obj.transform is not None:
+        _check_instance(obj.transform, owner, "transform", Transform)
+        obj.transform.validate()
+
+
+# --------------------------------------------------------------------------------------
 # Geometry
 # --------------------------------------------------------------------------------------
 
@@ -578,6 +641,8 @@ class Mesh(_HasFields):
         smooth: if True the renderer shades with the barycentric interpolation of the
             vertex normals (``normals``, or if None normals it computes from the current
             vertices); if False with the flat geometric normal (the paper's convention).
+        transform: optional ``Transform`` placing the mesh in the world (its vertices are
+            then in object space); None: the vertices are world positions.
     """
 
     FIELDS = (
@@ -594,11 +659,13 @@ class Mesh(_HasFields):
         normals: ArrayLike | None = None,
         uvs: ArrayLike | None = None,
         smooth: bool = False,
+        transform: Transform | None = None,
     ) -> None:
         self._set_fields(vertices=vertices, normals=normals, uvs=uvs)
         self.faces = _as_faces(faces)
         self.material = material
         self.smooth = smooth
+        self.transform = transform
         self.validate()
 
     @property
@@ -645,6 +712,7 @@ class Mesh(_HasFields):
             raise TypeError(f"Mesh: smooth must be a bool, got {type(self.smooth).__name__}")
         if self.material.textures and self.uvs is None:
             raise ValueError("Mesh: the material has a texture but the mesh has no uvs")
+        _check_transform(self, "Mesh")
         if self.smooth and self.normals is not None:
             # All zero would shade every hit black without a word (one zero normal among
             # others is fine: the interpolation is still defined near the others).
@@ -655,7 +723,7 @@ class Mesh(_HasFields):
                 )
 
     def __repr__(self) -> str:
-        extras = [name for name in ("normals", "uvs") if getattr(self, name) is not None]
+        extras = [n for n in ("normals", "uvs", "transform") if getattr(self, n) is not None]
         return (
             f"Mesh({self.num_vertices} vertices, {self.num_faces} faces"
             f"{''.join(', ' + e for e in extras)}, smooth={self.smooth}, {self.material!r})"
@@ -669,6 +737,8 @@ class Sphere(_HasFields):
         center: (3,) centre in world space.
         radius: scalar radius, > 0.
         material: its ``Material`` (untextured: spheres carry no UVs).
+        transform: optional ``Transform`` placing the sphere in the world (the centre moves
+            with it, the radius scales with it); None: ``center`` is a world position.
     """
 
     FIELDS = (
@@ -676,9 +746,16 @@ class Sphere(_HasFields):
         Field("radius", ((),), (lambda x: 0.0 < x <= MAX_COORD, "> 0 and at most 1e60")),
     )
 
-    def __init__(self, center: ArrayLike, radius: ArrayLike, material: Material) -> None:
+    def __init__(
+        self,
+        center: ArrayLike,
+        radius: ArrayLike,
+        material: Material,
+        transform: Transform | None = None,
+    ) -> None:
         self._set_fields(center=center, radius=radius)
         self.material = material
+        self.transform = transform
         self.validate()
 
     def validate(self) -> None:
@@ -688,6 +765,7 @@ class Sphere(_HasFields):
         self.material.validate()
         if self.material.textures:
             raise ValueError("Sphere: textured materials are not supported (spheres have no UVs)")
+        _check_transform(self, "Sphere")
 
     def __repr__(self) -> str:
         return f"Sphere(center={_fmt(self.center)}, radius={_fmt(self.radius)}, {self.material!r})"
@@ -738,7 +816,8 @@ class Scene:
     def named_parameters(self) -> dict[str, Tensor]:
         """Every continuous parameter tensor of the scene by a readable name, in a fixed
         order: ``{"camera.position": ..., "lights[0].position": ...,
-        "objects[0].vertices": ..., "objects[0].material.albedo": ..., "background": ...}``.
+        "objects[0].vertices": ..., "objects[0].transform.rotation": ...,
+        "objects[0].material.albedo": ..., "background": ...}``.
         A tensor shared by several owners (e.g. one Material on two meshes) appears once,
         under its first name."""
         named = self.camera.named_parameters("camera.")
@@ -746,6 +825,8 @@ class Scene:
             named.update(light.named_parameters(f"lights[{i}]."))
         for i, obj in enumerate(self.objects):
             named.update(obj.named_parameters(f"objects[{i}]."))
+            if obj.transform is not None:
+                named.update(obj.transform.named_parameters(f"objects[{i}].transform."))
             named.update(obj.material.named_parameters(f"objects[{i}].material."))
         named["background"] = self.background
         unique, seen = {}, set()
@@ -778,9 +859,9 @@ class Scene:
         _check_instance(self.camera, "Scene", "camera", Camera)
         self.camera.validate()
         _check_tensor(self.background, "Scene", "background", [(3,)])
-        self._check_relative_range()
+        self.check_relative_range()
 
-    def _check_relative_range(self) -> None:
+    def check_relative_range(self) -> None:
         """The coordinates and the geometry's extent within MAX_COORD_RELATIVE and
         MAX_EXTENT_RELATIVE view distances, else a ValueError naming the parameter, the value
         and the range. A min and a max per array: this runs before every render."""
@@ -793,7 +874,9 @@ class Scene:
                 points[f"lights[{i}].position"] = light.position.data
         boxes = {}  # per object the two corners (2, 3) of its bounding box
         for i, obj in enumerate(self.objects):
-            if isinstance(obj, Mesh):
+            if obj.transform is not None:
+                boxes[i] = points[f"objects[{i}] (placed by its transform)"] = _placed_box(obj)
+            elif isinstance(obj, Mesh):
                 # The box's corners have the vertices' largest |coordinate|.
                 boxes[i] = points[f"objects[{i}].vertices"] = _box(obj.vertices.data)
             else:
@@ -825,6 +908,20 @@ class Scene:
             f"Scene({len(self.meshes)} meshes, {len(self.spheres)} spheres, "
             f"{len(self.lights)} lights, {self.camera!r})"
         )
+
+
+def _placed_box(obj: Mesh | Sphere) -> np.ndarray:
+    """(2, 3) a box holding the object where its transform places it: a rotation about the
+    pivot keeps distances to it, so the ball of radius scale * (the farthest point from the
+    pivot) around pivot + translation holds it (at most sqrt(3) times larger than the
+    tightest box: enough for a range check, and no rotation computed twice)."""
+    t = obj.transform
+    if isinstance(obj, Mesh):
+        reach = float(np.sqrt(np.max(np.sum((obj.vertices.data - t.pivot.data) ** 2, axis=1))))
+    else:
+        reach = float(np.linalg.norm(obj.center.data - t.pivot.data) + obj.radius.data)
+    centre = t.pivot.data + t.translation.data
+    return np.array([centre - t.scale.data * reach, centre + t.scale.data * reach])
 
 
 def _as_list(items: Any, name: str) -> list:
