@@ -14,6 +14,7 @@ treatment of visibility (constant, or blended across edges with ``antialias=True
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -54,11 +55,11 @@ def find_parameter(scene: Scene, parameter: md.Tensor | str) -> tuple[str, md.Te
 
 
 def gradient_image(
-    scene: Scene,
+    scene: Scene | Sequence[Scene],
     parameter: md.Tensor | str,
     direction: Any = None,
     **render_kwargs: Any,
-) -> np.ndarray:
+) -> np.ndarray | list[np.ndarray]:
     """The derivative of ``render(scene, **render_kwargs)`` along ``direction`` in the space
     of one ``parameter`` (a Tensor of the scene, or a name such as ``"camera.position"``).
 
@@ -73,7 +74,14 @@ def gradient_image(
     The parameter is not changed and need not require grad. Pixels whose visibility a
     move would change show the renderer's derivative for fixed decisions, as reverse mode
     does (see ``render.render``). The dtype is the image's.
+
+    Many views (a list of scenes sharing the parameter, ``Scene.with_camera``): the list of
+    their gradient images, one per view.
     """
+    if isinstance(scene, list | tuple):
+        if not scene:
+            raise ValueError("gradient_image: the list of views is empty")
+        return [gradient_image(view, parameter, direction, **render_kwargs) for view in scene]
     if not isinstance(scene, Scene):
         raise TypeError(f"gradient_image: scene must be a render.Scene, got {type(scene).__name__}")
     if "return_info" in render_kwargs:

@@ -14,6 +14,7 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,10 +53,11 @@ def image_loss(image: md.Tensor, target: np.ndarray) -> md.Tensor:
 class History:
     """What happened during ``optimize``, one entry per iteration (per loss evaluation).
 
-    loss[i] is the loss at the parameters params[i] (before update i); seconds[i] the wall
-    time of iteration i (render + backward + update). ``converged`` is True if the loss
-    fell below the tolerance; ``stalled`` if the loss stopped depending on the parameters
-    (no gradient, e.g. nothing visible); ``iterations`` counts the updates made.
+        loss[i] is the loss at the parameters params[i] (before update i); seconds[i] the wall
+        time of iteration i (render + backward + update). ``converged`` is True if the loss
+        fell below the tolerance; ``stalled`` if the loss stopped depending on the parameters
+        (no gradient, e.g. nothing visible); ``iterations`` counts the updates made. With many
+    views, ``views[i]`` lists the views rendered in iteration i (empty for one scene).
     """
 
     loss: list[float] = field(default_factory=list)
@@ -64,6 +66,7 @@ class History:
     converged: bool = False
     stalled: bool = False
     iterations: int = 0
+    views: list[list[int]] = field(default_factory=list)
 
 
 class _Progress:
@@ -91,9 +94,9 @@ class _Progress:
 
 
 def optimize(
-    scene: Scene | Callable[[], md.Tensor],
+    scene: Scene | Callable[[], md.Tensor] | Sequence[tuple[Scene, np.ndarray]],
     params: Sequence[md.Tensor],
-    target: np.ndarray,
+    target: np.ndarray | str | Path | None = None,
     *,
     loss_fn: Callable[[md.Tensor, np.ndarray], md.Tensor] = image_loss,
     optimizer: md.optim.Optimizer | None = None,
@@ -104,72 +107,170 @@ def optimize(
     callback: Callable[[int, float, np.ndarray, History], bool | None] | None = None,
     quiet: bool = False,
     render_kwargs: dict | None = None,
+    batch: int | None = None,
+    seed: int = 0,
+    jobs: int = 1,
 ) -> tuple[list[md.Tensor], History]:
     """Fit ``params`` so that the rendered image matches ``target`` (Algorithm 1).
 
-    scene: the scene holding the parameters, or any zero-argument function returning an
-        (H, W, 3) image tensor (for custom pipelines).
-    params: leaf tensors with ``requires_grad=True`` used by the scene; updated in place.
+    scene: the scene holding the parameters; or any zero-argument function returning an
+        (H, W, 3) image tensor (for custom pipelines); or **many views** of one problem: a
+        list of (scene, target) pairs whose scenes share the parameters (e.g.
+        ``scene.with_camera(camera)`` for each camera: the same objects and lights), with
+        ``target`` left out. The loss is then the mean of ``loss_fn`` over the views.
+    params: leaf tensors with ``requires_grad=True`` used by the scene(s); updated in place.
     target: (H, W, 3) array of the target image, or the path of an image file (read with
         ``render.load_image``, values as stored).
     optimizer: defaults to ``Adam(params, lr, project=project)``.
     max_iters, tol: stop after ``max_iters`` updates, or as soon as the loss is < ``tol``.
     callback(it, loss, image, history): called every iteration with the rendered image
-        (an ndarray, before the update); returning True stops early.
+        (an ndarray, before the update; with views, the list of the images rendered in that
+        iteration, in the order of ``history.views[it]``); returning True stops early.
+    batch: with views, how many to render per iteration, drawn at random without
+        replacement (stochastic gradient: the loss and gradient of that batch; the draws
+        come from ``seed``, so a run repeats exactly). None: every view, every iteration.
+    jobs: with views, how many threads render the views of one iteration (1: one after
+        the other; the backward pass is one, over the sum, in the calling thread). The
+        result is the same for any ``jobs``.
     Returns (params, history). Raises ``OptimizationError`` (with ``.history``) if a step
-    fails, e.g. on a NaN gradient; ValueError if a parameter is not in the scene.
+    fails, e.g. on a NaN gradient; ValueError if a parameter is in no scene, or a target
+    does not have its view's image size.
     """
-    if isinstance(target, str | Path):  # a file: read as stored (no sRGB decoding)
-        target = load_image(target)
-    target = _as_target(target)
-    if isinstance(scene, Scene):
-        known = {id(t) for t in scene.parameters()}
-        for i, p in enumerate(params):
-            if id(p) not in known:
-                raise ValueError(
-                    f"optimize: params[{i}] (shape {getattr(p, 'shape', '?')}) is not a "
-                    "parameter of the scene: optimising it would change nothing"
-                )
-        kwargs = render_kwargs or {}
-        scene_obj = scene
-
-        def render_image() -> md.Tensor:
-            return render(scene_obj, **kwargs)
-    elif callable(scene):
-        render_image = scene
-    else:
-        raise TypeError(f"optimize: scene must be a Scene or a callable, got {type(scene)}")
+    views = _views(scene, target, render_kwargs or {})
+    known = {id(t) for view in views if view.scene is not None for t in view.scene.parameters()}
+    for i, p in enumerate(params):
+        if known and id(p) not in known:
+            raise ValueError(
+                f"optimize: params[{i}] (shape {getattr(p, 'shape', '?')}) is not a "
+                "parameter of the scene: optimising it would change nothing"
+            )
     if isinstance(max_iters, bool) or not isinstance(max_iters, int) or max_iters < 0:
         raise ValueError(f"optimize: max_iters must be an int >= 0, got {max_iters!r}")
-    if not np.isfinite(target).all():
-        raise ValueError("optimize: target contains NaN or inf")
+    draw = _batches(len(views), batch, seed)
+    jobs = _check_jobs(jobs)
     params = list(params)
     opt = optimizer if optimizer is not None else md.optim.Adam(params, lr=lr, project=project)
 
     history = History()
     progress = _Progress(max_iters, quiet)
+    single = isinstance(scene, Scene) or callable(scene)
     for it in range(max_iters + 1):
         start = time.perf_counter()
+        chosen = draw()
         try:  # a failure at any step of an iteration keeps the history so far
-            stop, image = _iteration(it, render_image, loss_fn, target, params, opt, tol,
-                                     max_iters, history)  # fmt: skip
+            opt.zero_grad()
+            loss, images = _mean_loss([views[i] for i in chosen], loss_fn, jobs)
+            stop = _iteration(it, loss, params, opt, tol, max_iters, history)
         except (ValueError, FloatingPointError) as err:  # e.g. a NaN gradient or parameter
             raise OptimizationError(f"optimize: iteration {it}: {err}", history) from err
+        if not single:
+            history.views.append(chosen)
         history.seconds.append(time.perf_counter() - start)
         progress.update(it, history.loss[-1], final=stop)
-        if callback is not None and callback(it, history.loss[-1], image, history):
+        shown = images[0] if single else images
+        if callback is not None and callback(it, history.loss[-1], shown, history):
             break
         if stop:
             break
     return params, history
 
 
-def _iteration(it, render_image, loss_fn, target, params, opt, tol, max_iters, history):
-    """One iteration of ``optimize``: render, record the loss and the parameters, and (unless
-    it is the last) step. Returns whether to stop, and the rendered image (an ndarray)."""
-    opt.zero_grad()
-    image = render_image()
-    loss = loss_fn(image, target)
+@dataclass
+class _View:
+    """One image of an inverse problem: how to render it, and what it should look like."""
+
+    render: Callable[[], md.Tensor]
+    target: np.ndarray
+    scene: Scene | None  # None for a custom pipeline
+
+
+def _views(scene, target, kwargs: dict) -> list[_View]:
+    """The views of an ``optimize`` problem, each target read and checked."""
+    if isinstance(scene, Scene):
+        return [_scene_view(scene, target, kwargs, "target")]
+    if callable(scene):
+        return [_View(scene, _checked_target(target, "target"), None)]
+    if isinstance(scene, list | tuple) and not isinstance(scene, str):
+        if target is not None:
+            raise TypeError(
+                "optimize: with a list of (scene, target) views, leave target out (each "
+                "view carries its own)"
+            )
+        if len(scene) == 0:
+            raise ValueError("optimize: the list of views is empty")
+        views = []
+        for i, pair in enumerate(scene):
+            if not (
+                isinstance(pair, tuple | list) and len(pair) == 2 and isinstance(pair[0], Scene)
+            ):
+                raise TypeError(
+                    f"optimize: views[{i}] must be a (render.Scene, target) pair, got "
+                    f"{type(pair).__name__}"
+                )
+            views.append(_scene_view(pair[0], pair[1], kwargs, f"views[{i}] target"))
+        return views
+    raise TypeError(
+        "optimize: scene must be a Scene, a callable or a list of (Scene, target) views, "
+        f"got {type(scene).__name__}"
+    )
+
+
+def _scene_view(scene: Scene, target, kwargs: dict, name: str) -> _View:
+    target = _checked_target(target, name)
+    size = (scene.camera.height, scene.camera.width, 3)
+    if target.shape != size:
+        raise ValueError(
+            f"optimize: {name} has shape {target.shape} but its scene renders {size} "
+            "(height, width, 3)"
+        )
+    return _View(lambda: render(scene, **kwargs), target, scene)
+
+
+def _checked_target(target, name: str) -> np.ndarray:
+    if target is None:
+        raise TypeError(f"optimize: {name} is missing")
+    if isinstance(target, str | Path):  # a file: read as stored (no sRGB decoding)
+        target = load_image(target)
+    target = _as_target(target)
+    if not np.isfinite(target).all():
+        raise ValueError(f"optimize: {name} contains NaN or inf")
+    return target
+
+
+def _batches(n: int, batch: int | None, seed: int) -> Callable[[], list[int]]:
+    """A function giving the view indices of each iteration: all of them, or ``batch`` of
+    them drawn without replacement from a generator seeded with ``seed``."""
+    if batch is None:
+        return lambda: list(range(n))
+    if isinstance(batch, bool) or not isinstance(batch, int | np.integer) or not 1 <= batch <= n:
+        raise ValueError(f"optimize: batch must be an int in [1, {n}] (the views), got {batch!r}")
+    rng = np.random.default_rng(seed)
+    return lambda: sorted(int(i) for i in rng.choice(n, size=int(batch), replace=False))
+
+
+def _check_jobs(jobs) -> int:
+    if isinstance(jobs, bool) or not isinstance(jobs, int | np.integer) or jobs < 1:
+        raise ValueError(f"optimize: jobs must be an int >= 1, got {jobs!r}")
+    return int(jobs)
+
+
+def _mean_loss(views: list[_View], loss_fn, jobs: int) -> tuple[md.Tensor, list[np.ndarray]]:
+    """The mean loss over ``views`` (the loss itself for one) and their images. With jobs
+    > 1 the views are rendered in threads (the tape is safe to record from several); the
+    sum is formed in view order, so the result does not depend on ``jobs``."""
+    if jobs > 1 and len(views) > 1:
+        with ThreadPoolExecutor(min(jobs, len(views))) as pool:
+            images = list(pool.map(lambda v: v.render(), views))
+    else:
+        images = [v.render() for v in views]
+    losses = [loss_fn(image, v.target) for image, v in zip(images, views, strict=True)]
+    loss = losses[0] if len(losses) == 1 else sum(losses[1:], losses[0]) * (1.0 / len(losses))
+    return loss, [image.data for image in images]
+
+
+def _iteration(it, loss, params, opt, tol, max_iters, history) -> bool:
+    """The bookkeeping and update of one iteration of ``optimize``: record the loss and the
+    parameters and (unless it is the last) step. Returns whether to stop."""
     value = loss.item()
     history.loss.append(value)
     history.params.append([p.data.copy() for p in params])
@@ -184,7 +285,7 @@ def _iteration(it, render_image, loss_fn, target, params, opt, tol, max_iters, h
         loss.backward()
         opt.step()
         history.iterations += 1
-    return stop, image.data
+    return stop
 
 
 class OptimizationError(RuntimeError):

@@ -841,6 +841,14 @@ class Scene:
         ``named_parameters``."""
         return list(self.named_parameters().values())
 
+    def with_camera(self, camera: Camera) -> Scene:
+        """Another view of this scene: a Scene with ``camera`` and the *same* objects,
+        lights and background (shared, not copied, so that a parameter optimised through
+        one view is the parameter of every view; ``render.optimize`` takes a list of
+        (view, target) pairs). Later edits to the objects or lights show in both; the
+        lists themselves are copied."""
+        return Scene(self.objects, self.lights, camera, self.background)
+
     def validate(self) -> None:
         """Re-check every object, light, the camera and the background (cheap)."""
         for i, obj in enumerate(self.objects):
