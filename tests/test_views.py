@@ -73,8 +73,9 @@ def test_batches_are_drawn_from_the_seed_and_threads_change_nothing():
     for jobs in (1, 2, 1):
         views, targets, translation = two_views()
         pairs = list(zip(views, targets, strict=True)) * 2  # four views, two distinct
+        seed = 7 if len(runs) < 2 else 8
         _, history = render.optimize(pairs, [translation], lr=0.02, max_iters=6, quiet=True,
-                                     batch=2, seed=7 if len(runs) < 2 else 8, jobs=jobs)  # fmt: skip
+                                     batch=2, seed=seed, jobs=jobs)  # fmt: skip
         runs.append(history)
     assert all(len(v) == 2 and len(set(v)) == 2 for v in runs[0].views)
     assert runs[0].views == runs[1].views and runs[0].loss == runs[1].loss  # bit for bit
