@@ -185,6 +185,12 @@ class Adam(Optimizer):
     ``lr`` may be one number or one per parameter (parameters of different scales, e.g.
     a light position in metres and an intensity in hundreds, want different step sizes).
 
+    ``uniform=True``: the denominator is the *largest* sqrt(v^) over the parameter's
+    entries instead of each entry's own (Nicolet et al. 2021, "Large Steps in Inverse
+    Rendering of Geometry", their uniform Adam): every entry of the parameter moves with
+    the same scale, so a smooth gradient field gives a smooth update (per-entry scaling
+    would re-weight the vertices of a mesh one by one and undo a smooth parameterisation).
+
     Huge gradients: g^2 overflows float64 for |g| > 1.3e154, and v = inf would stop the
     parameter for good (m / sqrt(inf) = 0 at every later step). So v is kept divided by
     ``scale[i]**2``, where ``scale[i]`` is a power of two (1 until a gradient above 2^500
@@ -200,9 +206,13 @@ class Adam(Optimizer):
         betas: tuple[float, float] = (0.9, 0.999),
         eps: float = 1e-8,
         project=None,
+        uniform: bool = False,
     ):
         super().__init__(params, project)
         self.lr = self._per_param_lr(lr)
+        if not isinstance(uniform, bool):
+            raise TypeError(f"Adam: uniform must be a bool, got {type(uniform).__name__}")
+        self.uniform = uniform
         try:
             b1, b2 = betas
         except (TypeError, ValueError):
@@ -229,6 +239,8 @@ class Adam(Optimizer):
             m_hat = self.m[i] / (1 - b1**t)
             v_hat = self.v[i] / (1 - b2**t)
             root = np.sqrt(v_hat) if scale == 1.0 else np.sqrt(v_hat) * scale
+            if self.uniform:
+                root = np.max(root)
             p.data -= self.lr[i] * m_hat / (root + self.eps)
             self._apply_projection(i, p)
 

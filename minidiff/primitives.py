@@ -313,6 +313,21 @@ def matmul(a: Any, b: Any) -> Tensor:
     return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
+def linear(apply, adjoint, x: Any) -> Tensor:
+    """y = A x for a constant linear map A given as two functions of arrays: ``apply``
+    (x -> A x) and ``adjoint`` (g -> A^T g). A may be anything a function can apply: a
+    sparse matrix (``lambda x: L @ x``, ``lambda g: L.T @ g``), or the inverse of a
+    prefactored one (``lu.solve`` and ``lambda g: lu.solve(g, trans="T")``), which is how
+    a mesh's Large Steps parameterisation solves for its vertices.
+
+    VJP: d/dx = A^T g. JVP: A t (the map is its own derivative).
+    """
+    x = as_tensor(x)
+    y = np.asarray(apply(x._data))
+    return record("linear", y, (x,), lambda g: (np.asarray(adjoint(g)),),
+                  jvp=lambda t: np.asarray(apply(t)))  # fmt: skip
+
+
 # ---------------------------------------------------------------------------------------------
 # Elementwise functions
 # ---------------------------------------------------------------------------------------------

@@ -279,6 +279,16 @@ def scatter_add_case(draw):
     return (lambda v: md.scatter_add(v, index, size)), [draw(arrays((k,) + trailing))]
 
 
+@st.composite
+def linear_case(draw):
+    """A dense matrix, or the inverse of a prefactored sparse one (``linear``'s two uses)."""
+    from test_minidiff_primitives import linear_operator
+
+    apply, adjoint, n_in = draw(linear_operator())
+    columns = draw(st.sampled_from([(), (1,), (3,)]))
+    return (lambda x: md.linear(apply, adjoint, x)), [draw(arrays((n_in,) + columns))]
+
+
 UNARY_PRIMITIVES = ["negative", "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs"]
 BINARY_PRIMITIVES = ["add", "subtract", "multiply", "divide", "power", "maximum", "minimum"]
 
@@ -293,6 +303,7 @@ CASES["power"].append(binary_case("pow_operator"))
 CASES.update(
     {
         "matmul": [matmul_case()],
+        "linear": [linear_case()],
         "clip": [clip_case()],
         "where": [where_case()],
         "sum": [reduction_case("sum")],
