@@ -26,6 +26,7 @@ from render_helpers import random_scene
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
 from render.edges.boundary import pixel_pieces
+from render.scene.teapot import paper_scene
 from render.inverse.reference import moved_along, window_difference, window_mean_gradient
 
 SIZE = 32
@@ -272,3 +273,12 @@ def test_boundary_term_leaves_the_image_unchanged():
     image, info = render(scene, antialias="boundary", return_info=True)
     np.testing.assert_array_equal(image.data, plain)
     assert info.pairs is None and info.shadow_pairs is None
+
+
+def test_nothing_in_view_gives_no_boundary_term():
+    """The camera looking away from everything: no curve in the image (this crashed in
+    ``split_at_crossings``, which assumed one piece at least)."""
+    position = md.tensor([3.0, 2.0, 5.0], requires_grad=True)
+    scene = paper_scene(16, 16, camera_position=position, look_at=(3.0, 2.0, 10.0))
+    image = render(scene, antialias="boundary")
+    assert not image.requires_grad and np.array_equal(image.data, render(scene).data)

@@ -314,6 +314,8 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     or where one ends on another (a T-junction): along each part the set of curves beside
     it does not change, so what is seen on either side changes smoothly, and one
     quadrature point stands for the part. Same arrays, more rows."""
+    if len(pixel) == 0:  # nothing in view (the group bounds below assume one piece at least)
+        return segment, start, end, pixel
     order = np.argsort(pixel, kind="stable")
     ordered = pixel[order]
     bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
