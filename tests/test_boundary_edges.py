@@ -26,8 +26,8 @@ from render_helpers import random_scene
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
 from render.edges.boundary import pixel_pieces
-from render.scene.teapot import paper_scene
 from render.inverse.reference import moved_along, window_difference, window_mean_gradient
+from render.scene.teapot import paper_scene
 
 SIZE = 32
 FLAT = Material(albedo=(0.0, 0.0, 0.0), ambient=1.0)  # one colour: the edges alone

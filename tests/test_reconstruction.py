@@ -1,0 +1,99 @@
+"""The basin tools (``render.inverse.basin``: block-mean pyramids, coarse to fine, greedy
+search) and the reconstruction experiments (``render.inverse.reconstruction``), at tiny
+sizes: the loss drops and the metrics are computed right."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import minidiff as md
+import render
+from render.inverse.basin import coarse_to_fine, downsample, greedy_search, resized
+from render.inverse.experiments import run_camera_calibration
+from render.inverse.reconstruction import pose_problem, rotation_error_degrees, run_pose
+
+
+def test_downsample_is_the_block_mean():
+    image = np.arange(4 * 6 * 3, dtype=float).reshape(4, 6, 3)
+    small = downsample(image, 2)
+    assert small.shape == (2, 3, 3)
+    assert np.array_equal(small[1, 2], image[2:4, 4:6].mean(axis=(0, 1)))
+    with pytest.raises(ValueError, match="factor 4 does not divide the image size 4x6"):
+        downsample(image, 4)
+    with pytest.raises(ValueError, match="factor must be an int >= 1"):
+        downsample(image, 0)
+
+
+def test_resized_shares_the_camera_tensors():
+    scene = render.paper_scene(32, 32)
+    small = resized(scene, 8, 8)
+    assert (small.camera.width, small.camera.height) == (8, 8)
+    assert small.camera.position is scene.camera.position and small.objects == scene.objects
+
+
+def test_rotation_error_is_the_angle_between_rotations():
+    truth = np.array([0.0, 30.0, 0.0])
+    turned = np.degrees((Rotation.from_rotvec(np.radians([10.0, 0, 0])) *
+                         Rotation.from_rotvec(np.radians(truth))).as_rotvec())  # fmt: skip
+    assert rotation_error_degrees(turned, truth) == pytest.approx(10.0, abs=1e-9)
+    assert rotation_error_degrees(np.array([0.0, 0.0, 350.0])) == pytest.approx(10.0, abs=1e-9)
+
+
+def test_pose_problem_starts_where_it_says():
+    scene, (rotation, translation), target, extent = pose_problem(16, 45.0, 3)
+    assert rotation_error_degrees(rotation.data) == pytest.approx(45.0, abs=1e-9)
+    assert np.linalg.norm(translation.data) == pytest.approx(0.1 * extent, rel=1e-12)
+    assert target.shape == (16, 16, 3)
+
+
+def test_greedy_search_keeps_the_best_and_counts_its_renders():
+    scene, params, target, extent = pose_problem(32, 30.0, 1)
+
+    def propose(rng, best, progress):  # random steps around the best
+        return [best[0] + rng.normal(size=3) * 10.0, best[1] + rng.normal(size=3) * 0.1]
+
+    runs = [greedy_search(scene, params, target, propose, renders=12, factor=2, seed=5)
+            for _ in range(1)]  # fmt: skip
+    result = runs[0]
+    assert result.renders == 13  # the start and 12 proposals
+    assert result.loss <= result.start_loss
+    losses = [loss for _, loss in result.accepted]
+    assert losses == sorted(losses, reverse=True)  # each accepted one lowered the loss
+    with md.no_grad():  # the parameters hold the best: its loss, rendered again
+        again = render.image_loss(render.render(resized(scene, 16, 16)), downsample(target, 2))
+    assert again.item() == pytest.approx(result.loss, rel=1e-12)
+    with pytest.raises(ValueError, match="renders must be an int >= 0"):
+        greedy_search(scene, params, target, propose, renders=-1)
+
+
+def test_coarse_to_fine_runs_each_stage_at_its_size():
+    scene, params, target, _ = pose_problem(32, 10.0, 2)
+    sizes = []
+    histories = coarse_to_fine(scene, params, target, factors=(4, 1), iters=(3, 2), lr=[1.0, 0.02],
+                               quiet=True, callback=lambda it, loss, image, h: sizes.append(
+                                   image.shape[0]))  # fmt: skip
+    assert [h.iterations for h in histories] == [3, 2]
+    assert sizes == [8] * 4 + [32] * 3
+    with pytest.raises(ValueError, match="factors and iters"):
+        coarse_to_fine(scene, params, target, factors=(2,), iters=(1, 2))
+
+
+def test_pose_run_lowers_the_loss_and_reports_its_errors():
+    result = run_pose(size=32, angle=10.0, seed=0, iters=12, antialias=True)
+    assert result["final_loss"] < 0.7 * result["initial_loss"]
+    assert result["rotation_error_after_search"] == pytest.approx(10.0, abs=1e-9)
+    assert result["rotation_error_degrees"] == rotation_error_degrees(np.array(result["rotation"]))
+    moved = np.linalg.norm(result["translation"]) / result["extent"] * 100
+    assert result["translation_error_percent"] == pytest.approx(moved, rel=1e-12)
+    assert result["success"] == (result["rotation_error_degrees"] < 1.0
+                                 and result["translation_error_percent"] < 1.0)  # fmt: skip
+
+
+def test_camera_search_counts_its_renders_in_the_time():
+    run = run_camera_calibration(size=32, iters=3, seed=42, angle=30.0, search=6, antialias=True)
+    metrics = run.metrics
+    assert metrics["search_renders"] == 7
+    assert metrics["seconds_total"] >= metrics["search_seconds"] > 0
+    assert run.initial.shape == (32, 32, 3)
