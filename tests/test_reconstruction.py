@@ -97,3 +97,20 @@ def test_camera_search_counts_its_renders_in_the_time():
     assert metrics["search_renders"] == 7
     assert metrics["seconds_total"] >= metrics["search_seconds"] > 0
     assert run.initial.shape == (32, 32, 3)
+
+
+def test_shape_runs_lower_the_loss_and_measure_the_surface():
+    from render.inverse.reconstruction import dented_blob, run_shape
+    from render.inverse.shape import icosphere, surface_distances
+
+    blob = dented_blob(2)
+    start = run_shape(blob, views=2, size=24, iters=0, start_subdivisions=1, held_out=1)
+    expected = surface_distances(*icosphere(1), *blob)
+    assert start["chamfer_percent"] == expected.chamfer
+    assert start["hausdorff_percent"] == expected.hausdorff
+    for method in ("large_steps", "laplacian"):
+        run = run_shape(blob, views=2, size=24, iters=4, method=method, start_subdivisions=1,
+                        held_out=1, antialias=True, lr=0.02)  # fmt: skip
+        assert run["final_loss"] < 0.9 * run["initial_loss"], method
+    with pytest.raises(ValueError, match="method must be"):
+        run_shape(blob, method="smooth")
