@@ -114,3 +114,15 @@ def test_shape_runs_lower_the_loss_and_measure_the_surface():
         assert run["final_loss"] < 0.9 * run["initial_loss"], method
     with pytest.raises(ValueError, match="method must be"):
         run_shape(blob, method="smooth")
+
+
+def test_joint_run_lowers_the_loss_and_reports_every_parameter():
+    from render.inverse.reconstruction import run_joint
+
+    run = run_joint(views=2, size=24, iters=6, antialias=True)
+    assert run["final_loss"] < run["initial_loss"]
+    for key in ("camera_position_error_percent", "light_position_error_percent",
+                "intensity_error_percent", "albedo_error_percent",
+                "albedo_times_intensity_error_percent", "shape_chamfer_percent"):  # fmt: skip
+        assert np.isfinite(run[key]) and run[key] >= 0, key
+    assert run["shape_chamfer_at_start_percent"] > 0  # the bumps are there to recover
