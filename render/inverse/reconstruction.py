@@ -218,13 +218,15 @@ def run_shape(
     held_out: int = 8,
     seed: int = 0,
     quiet: bool = True,
+    samples: int = 20_000,
 ) -> dict:
     """Shape from ``views`` images of ``target_shape`` (vertices, faces), known cameras
     and lights, starting from an icosphere of radius 1: ``method`` "large_steps"
     (``LargeStepsAdam``, lam), "laplacian" (Adam on the vertices, loss + weight * the
     Laplacian term) or "none" (Adam on the vertices). ``batch`` views per iteration (all
     if fewer). Returns Chamfer and Hausdorff distances (% of the target's bounding-box
-    diagonal), the PSNR of ``held_out`` other views, and the times."""
+    diagonal, from ``samples`` points per surface), the PSNR of ``held_out`` other views,
+    and the times."""
     if method not in ("large_steps", "laplacian", "none"):
         raise ValueError(f'run_shape: method must be "large_steps", "laplacian" or "none", '
                          f"got {method!r}")  # fmt: skip
@@ -249,7 +251,7 @@ def run_shape(
                           max_iters=iters, batch=min(batch, views), seed=seed, quiet=quiet,
                           render_kwargs={"antialias": antialias})  # fmt: skip
     seconds = time.perf_counter() - start
-    distances = surface_distances(vertices.data, f0, *target_shape)
+    distances = surface_distances(vertices.data, f0, *target_shape, samples=samples)
     with md.no_grad():
         held = [psnr(np.clip(render(scene.with_camera(c)).data, 0, 1), np.clip(t, 0, 1))
                 for c, t in zip(unseen, targets[views:], strict=True)]  # fmt: skip
@@ -293,6 +295,7 @@ def run_joint(
     antialias: bool | str = "boundary",
     weight: float = 0.1,
     quiet: bool = True,
+    samples: int = 20_000,
 ) -> dict:
     """Camera pose (the first camera's position and look-at point; the others are known
     and fix the frame), the light's position and intensity, the albedo and per-vertex
@@ -301,7 +304,8 @@ def run_joint(
     reported with their product). The truth: the paper scene with the teapot bent by
     ``_bumps``; the start: each parameter perturbed (seeded), the offsets zero. One Adam,
     a learning rate per parameter, the Laplacian of the offsets (``weight``) as the
-    regulariser. Returns each parameter's error."""
+    regulariser. Returns each parameter's error (the shape's from ``samples`` points per
+    surface)."""
     rng = np.random.default_rng(seed)
     truth = paper_scene(size, size)
     teapot = truth.objects[0]
