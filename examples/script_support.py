@@ -54,6 +54,25 @@ def command_line(
     return args
 
 
+def edge_method(text: str) -> bool | str:
+    """The --antialias option's value as ``render(antialias=...)`` takes it: "none" (the
+    paper's renderer), "pairs" or "boundary"."""
+    methods = {"none": False, "pairs": True, "boundary": "boundary"}
+    if text not in methods:
+        raise argparse.ArgumentTypeError(f"choose one of {', '.join(methods)}, got {text!r}")
+    return methods[text]
+
+
+#: the --antialias option of the experiment scripts
+EDGES = {
+    "--antialias": {
+        "type": edge_method,
+        "default": "none",
+        "help": "edge gradients: none (the paper's renderer), pairs or boundary",
+    }
+}
+
+
 class FrameRecorder:
     """An ``optimize`` callback that keeps a downsampled frame every ``every`` iterations,
     for the animation."""

@@ -67,10 +67,12 @@ class ExperimentRun:
     final: np.ndarray
 
 
-def _run(scene, params, target, *, lr, iters, tol, name, **options):
+def _run(scene, params, target, *, lr, iters, tol, name, antialias=False, **options):
     """Shared driver: initial render, optimisation (``options`` go to ``optimize``: e.g.
-    ``callback``, ``quiet``, ``project``), final render, timings."""
+    ``callback``, ``quiet``, ``project``; ``antialias`` is the edge method of the renders
+    optimised, False the paper's renderer), final render, timings."""
     options.setdefault("quiet", True)
+    options["render_kwargs"] = {**options.get("render_kwargs", {}), "antialias": antialias}
     target = np.clip(target, 0.0, 1.0)  # what the paper's Eq. 1 compares against
     initial = render(scene).data.copy()
     start = time.perf_counter()
@@ -150,9 +152,8 @@ def run_camera_calibration(
         searched = greedy_search(scene, [position, look_at], np.clip(target, 0.0, 1.0),
                                  camera_proposal(), renders=search,
                                  factor=max(1, size // SEARCH_SIZE), seed=seed)  # fmt: skip
-    options["render_kwargs"] = {**options.get("render_kwargs", {}), "antialias": antialias}
     run = _run(
-        scene, [position, look_at], target, lr=lr, iters=iters, tol=tol,
+        scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, antialias=antialias,
         name=f"camera_calibration_{angle:g}deg_seed{seed}", **options,
     )  # fmt: skip
     if searched is not None:  # the run starts where the search started, and pays for it
