@@ -105,25 +105,31 @@ def greedy_search(
     factor: int = 4,
     seed: int = 0,
     render_kwargs: dict | None = None,
+    pool: int = 1,
 ) -> SearchResult:
     """Greedy random search: ``renders`` proposals, each rendered at 1/``factor`` of the
     image size without a tape and compared with the block-mean target by the image loss
     (``image_loss``); a proposal that lowers the loss becomes the new best. The best values
     are written into ``params`` at the end. ``propose(rng, best, progress)`` draws a
     proposal (a list of arrays, one per parameter) around ``best``; ``progress`` runs from
-    0 to 1 over the budget, so that steps can shrink. Deterministic for a given ``seed``."""
+    0 to 1 over the budget, so that steps can shrink. Deterministic for a given ``seed``.
+    ``pool`` > 1 compares block means of ``pool`` x ``pool`` rendered pixels instead (a
+    blurred loss: an object in the wrong place still overlaps the target's blurred object
+    and scores better than nothing in view, which a sharp MSE does not)."""
     if isinstance(renders, bool) or not isinstance(renders, int) or renders < 0:
         raise ValueError(f"greedy_search: renders must be an int >= 0, got {renders!r}")
     params = list(params)
     small = downsample(target, factor)
     view = resized(scene, small.shape[1], small.shape[0])
+    small = downsample(small, pool)
     kwargs = {k: v for k, v in (render_kwargs or {}).items() if k != "antialias"}
     rng = np.random.default_rng(seed)
     start = time.perf_counter()
 
     def loss_now() -> float:
         with md.no_grad():
-            return float(image_loss(render(view, **kwargs), small).item())
+            image = downsample(np.clip(render(view, **kwargs).data, 0.0, 1.0), pool)
+            return float(image_loss(md.tensor(image), small).item())
 
     best = [p.data.copy() for p in params]
     best_loss = start_loss = loss_now()
