@@ -150,7 +150,8 @@ def run_camera_calibration(
         with md.no_grad():
             before = render(scene).data.copy()
         searched = greedy_search(scene, [position, look_at], np.clip(target, 0.0, 1.0),
-                                 camera_proposal(), renders=search, pool=SEARCH_POOL,
+                                 camera_proposal([start_position, look_at.data]),
+                                 renders=search, pool=SEARCH_POOL,
                                  factor=max(1, size // SEARCH_SIZE), seed=seed)  # fmt: skip
     run = _run(
         scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, antialias=antialias,
@@ -184,16 +185,19 @@ SEARCH_SIZE = 64
 SEARCH_POOL = 4
 
 
-def camera_proposal(cone: float = 45.0, local: float = 5.0):
-    """The search stage's proposals for a look-at camera. First half of the budget: the
-    viewing direction drawn uniformly from the cone of half-angle ``cone`` degrees around
-    the best one (wide jumps: the loss has a barrier between a view showing nothing and
-    the true one, so only a proposal that lands past it is ever accepted); second half:
-    the best direction turned by a normally distributed angle of scale ``local`` degrees.
-    The position moves by 0.1 units (normal, per axis) throughout."""
+def camera_proposal(start: list[np.ndarray], cone: float = 45.0, local: float = 5.0):
+    """The search stage's proposals for a look-at camera starting at ``start`` (position,
+    look-at point). First half of the budget: the viewing direction drawn uniformly from
+    the cone of half-angle ``cone`` degrees around the *start's* (wide jumps: the loss has
+    a barrier between a view showing nothing and the true one, so only a proposal that
+    lands past it is accepted; centred on the start, not on the best so far, because the
+    best may be a view showing nothing that points further away); second half: the best
+    direction turned by a normally distributed angle of scale ``local`` degrees. The
+    position moves by 0.1 units (normal, per axis) throughout."""
+    start = [np.array(v, dtype=np.float64) for v in start]
 
     def propose(rng, best, progress):
-        position, look_at = best
+        position, look_at = start if progress < 0.5 else best
         view = look_at - position
         axis = np.cross(view, rng.normal(size=3))  # a random axis perpendicular to the view
         if progress < 0.5:  # uniform on the cap: cos(angle) uniform in [cos(cone), 1]
