@@ -120,7 +120,7 @@ def test_shape_runs_lower_the_loss_and_measure_the_surface():
 def test_joint_run_lowers_the_loss_and_reports_every_parameter():
     from render.inverse.reconstruction import run_joint
 
-    run = run_joint(views=2, size=24, iters=6, antialias=True, samples=2000)
+    run = run_joint(views=2, size=16, iters=5, antialias=True, samples=1000)
     assert run["final_loss"] < run["initial_loss"]
     for key in ("camera_position_error_percent", "light_position_error_percent",
                 "intensity_error_percent", "albedo_error_percent",
