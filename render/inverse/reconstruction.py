@@ -124,8 +124,8 @@ def run_pose(
         # race the start and the search's best for a fraction ``race`` of the iterations
         # (with a fifth, 4 of 10 runs at 30-45 degrees failed where gradients alone failed
         # once: a start in the right basin had not yet passed a wrong minimum's loss after
-        # 40 iterations), go on from the one with
-        # the lower loss. Both races count in the time.
+        # 40 iterations), go on from the one with the lower loss. Both races count in the
+        # time.
         raced = int(iters * race)
         finishes = []
         for values in (begin, [p.data.copy() for p in params]):
