@@ -8,6 +8,7 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.sparse.csgraph import connected_components
 
 import minidiff as md
 from render.inverse.shape import (
@@ -20,6 +21,7 @@ from render.inverse.shape import (
     mesh_laplacian,
     subdivide,
     surface_distances,
+    weld,
 )
 
 FEW = settings(max_examples=15, deadline=None)
@@ -134,3 +136,28 @@ def test_surface_distances_of_a_scaled_sphere():
     assert 0.99 * 100 * 0.01 / diagonal <= result.hausdorff <= (1 + 1e-9) * 100 * 0.01 / diagonal
     same = surface_distances(*subdivide(v, f), v, f, samples=4000)
     assert same.chamfer < 1e-12 and same.hausdorff < 1e-12
+
+
+def test_weld_joins_the_teapots_seams_and_drops_collapsed_faces():
+    from render.scene.teapot import teapot_geometry
+
+    vertices, faces = (np.asarray(a) for a in teapot_geometry()[:2])
+    welded, welded_faces, index = weld(vertices, faces)
+    assert len(welded) < len(vertices)  # the patches repeat their seams' vertices
+    np.testing.assert_allclose(welded[index], vertices, atol=1e-9)
+
+    # Same triangles, less the collapsed ones (the poles): their corners are unchanged.
+    def area(corners):
+        a, b, c = corners[:, 0], corners[:, 1], corners[:, 2]
+        return np.linalg.norm(np.cross(b - a, c - a), axis=1).sum()
+
+    np.testing.assert_allclose(area(welded[welded_faces]), area(vertices[faces]), rtol=1e-12)
+    assert np.all(welded_faces[:, 0] != welded_faces[:, 1])
+
+    # Unwelded, the Laplacian couples nothing across a seam: 32 separate patches.
+    # Welded, the teapot is a manifold (a Laplacian accepts it) of a few connected parts.
+    def parts(f, n):
+        return connected_components(mesh_laplacian(f, n) != 0)[0]
+
+    assert parts(faces, len(vertices)) == 32
+    assert parts(welded_faces, len(welded)) < 8

@@ -165,6 +165,7 @@ def run_camera_calibration(
         experiment="camera_calibration",
         seed=seed,
         angle_degrees=angle,
+        antialias=antialias,
         initial_position_error_pct=relative_error_pct(start_position, TRUE_CAMERA),
         final_position_error_pct=relative_error_pct(position.data, TRUE_CAMERA),
         final_position=position.data.tolist(),

@@ -10,6 +10,8 @@
   ``LargeStepsAdam`` is the optimiser they pair it with (uniform Adam on u), written as an
   optimiser of the mesh's own ``vertices`` tensor, so that ``render.optimize`` runs it
   unchanged.
+* ``weld``: one vertex per distinct position (a mesh made of patches, like the teapot,
+  repeats its seams' vertices; moved apart, they open cracks).
 * ``subdivide`` (between coarse-to-fine stages), ``icosphere`` (the usual start), and the
   field's error measures: ``surface_distances`` (symmetric Chamfer and Hausdorff distances
   between surface samples, as a percentage of the bounding-box diagonal).
@@ -32,6 +34,7 @@ __all__ = [
     "laplacian_loss",
     "LargeSteps",
     "LargeStepsAdam",
+    "weld",
     "subdivide",
     "icosphere",
     "SurfaceDistances",
@@ -139,6 +142,22 @@ class LargeStepsAdam(md.optim.Optimizer):
         self.u.grad = self.steps.adjoint(self.vertices.grad)
         self.adam.step()
         self.vertices.data[...] = self.steps.to_vertices(self.u.data)
+
+
+def weld(vertices: np.ndarray, faces: np.ndarray, decimals: int = 9):
+    """One vertex per distinct position (positions equal after rounding to ``decimals``):
+    the welded (U, 3) vertices; the faces renumbered onto them (F', 3), without those that
+    welding collapses (two corners on one vertex: they had zero area, and their edges would
+    be shared by many faces); and ``index`` (V,), the welded vertex of each original one
+    (``welded[index]`` equals ``vertices`` up to the rounding). The vertices of a welded
+    mesh move a patch mesh's seams together instead of tearing them open."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    _, first, index = np.unique(np.round(vertices, decimals), axis=0, return_index=True,
+                                return_inverse=True)  # fmt: skip
+    index = index.reshape(-1)
+    f = index[np.asarray(faces)]
+    kept = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
+    return vertices[first], f[kept], index
 
 
 def subdivide(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
