@@ -14,9 +14,11 @@ only their product reaches the image), in ``<out>/joint/joint.json`` and ``joint
 
 from __future__ import annotations
 
+import numpy as np
 from script_support import EDGES, command_line, write_results
 
 from render.inverse.reconstruction import run_joint
+from render.scene.image import save_image
 
 EXTRA = {
     "--views": {"default": "1,4", "help": "numbers of views, comma-separated (at most 4)"},
@@ -42,7 +44,7 @@ def main(argv=None) -> dict:
     views = [int(v) for v in args.views.split(",")]
     size, iters = (24, 5) if args.quick else (args.size, args.iters)
     if args.quick:
-        views = views[-1:]
+        views = [2]
     runs = [run_joint(n, size, iters, args.seed, args.antialias, quiet=args.quiet,
                       samples=2000 if args.quick else 20_000) for n in views]  # fmt: skip
     lines = [
@@ -55,6 +57,9 @@ def main(argv=None) -> dict:
         lines.append(f"| {label} | " + " | ".join(f"{r[key]:.4g}" for r in runs) + " |")
     out = args.out / "joint"
     out.mkdir(parents=True, exist_ok=True)
+    for r in runs:  # the first view: target | start | result
+        save_image(np.concatenate(list(r.pop("images")), axis=1),
+                   out / f"joint_{r['views']}views.png")  # fmt: skip
     result = {"size": size, "iters": iters, "runs": runs}
     return write_results(out, "joint", result, "\n".join(lines) + "\n")
 

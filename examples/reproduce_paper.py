@@ -191,6 +191,7 @@ def main(argv=None) -> None:
     joint.update({"iters": given_iters} if given_iters else {})
     r = run_joint(**joint, seed=seeds[0], antialias=edges)
     r["seconds_total"] = r["seconds"]
+    r.pop("images")
     results["joint_reconstruction"] = [r]
     print(f"{'joint_reconstruction':30s} seed {seeds[0]}: {r['iterations']:4d} iterations, "
           f"{r['seconds']:6.1f} s, final loss {r['final_loss']:.2e}", flush=True)  # fmt: skip

@@ -52,3 +52,28 @@ def test_boundary_gradients_example_quick(tmp_path, monkeypatch):
         assert all(np.isfinite(e) and e >= 0 for e in errors)
     report = (tmp_path / "boundary.md").read_text()
     assert "| 24 | yes |" in report and "| sphere radius |" in report
+
+
+RECONSTRUCTION = EXAMPLE.parent
+
+
+def test_shape_from_views_example_quick(tmp_path, monkeypatch):
+    """The teapot's run reports the handle's share of the error and writes its images."""
+    script = RECONSTRUCTION / "shape_from_views.py"
+    monkeypatch.syspath_prepend(str(script.parent))
+    monkeypatch.setattr(sys, "argv", [str(script), "--quick", "--shape", "teapot", "--out",
+                                      str(tmp_path)])  # fmt: skip
+    runpy.run_path(str(script), run_name="__main__")
+    (run,) = json.loads((tmp_path / "shape" / "teapot.json").read_text())["runs"]
+    assert 0.0 < run["region_share_percent"] < 100.0
+    assert run["chamfer_outside_region_percent"] > 0.0
+    assert (tmp_path / "shape" / "teapot_2views_large_steps.png").stat().st_size > 0
+    assert "handle's share" in (tmp_path / "shape" / "teapot.md").read_text()
+
+
+def test_joint_reconstruction_example_quick(tmp_path, monkeypatch):
+    result = run_quick(RECONSTRUCTION / "joint_reconstruction.py", tmp_path, monkeypatch,
+                       "joint/joint.json")  # fmt: skip
+    (run,) = result["runs"]
+    assert run["final_loss"] < run["initial_loss"]
+    assert (tmp_path / "joint" / f"joint_{run['views']}views.png").stat().st_size > 0

@@ -161,3 +161,17 @@ def test_weld_joins_the_teapots_seams_and_drops_collapsed_faces():
 
     assert parts(faces, len(vertices)) == 32
     assert parts(welded_faces, len(welded)) < 8
+
+
+def test_a_regions_share_of_the_chamfer_distance():
+    """A sphere grown by 1 % against the unit sphere: every sample is 0.01 off, so the
+    upper half-space holds half the Chamfer sum, and outside it the Chamfer is the same."""
+    v, f = icosphere(4)
+    upper = (np.array([-2.0, -2.0, 0.0]), np.array([2.0, 2.0, 2.0]))
+    result = surface_distances(v * 1.01, f, v, f, samples=4000, region=upper)
+    assert result.region_share == pytest.approx(50.0, abs=3.0)
+    assert result.chamfer_outside == pytest.approx(result.chamfer, rel=0.02)
+    assert np.linalg.norm(result.worst) == pytest.approx(1.0, abs=0.011)
+    everything = surface_distances(v * 1.01, f, v, f, samples=4000, region=(-upper[1], upper[1]))
+    assert everything.region_share == pytest.approx(100.0) and np.isnan(everything.chamfer_outside)
+    assert np.isnan(surface_distances(v * 1.01, f, v, f, samples=500).region_share)
