@@ -198,12 +198,24 @@ def view_cameras(count: int, size: int, distance: float = 4.0, seed: int = 0) ->
     return cameras
 
 
+#: The shape experiment's lights: four directional lights from the corners of a
+#: tetrahedron (every surface normal faces at least one of them at up to 71 degrees), red,
+#: green, blue and a dimmer white, so that a pixel's colour tells the lights apart (as in
+#: coloured photometric stereo). With two lights from opposite sides, a dent facing
+#: neither was lit by ambient light only and stayed a third unrecovered.
+SHAPE_LIGHTS = (
+    ((-1.0, -1.0, -1.0), (1.0, 0.25, 0.25), 2.0),
+    ((1.0, 1.0, -1.0), (0.25, 1.0, 0.25), 2.0),
+    ((1.0, -1.0, 1.0), (0.25, 0.25, 1.0), 2.0),
+    ((-1.0, 1.0, 1.0), (1.0, 1.0, 1.0), 1.0),
+)
+
+
 def shape_scene(vertices, faces) -> Scene:
-    """The shape experiment's scene: the mesh (grey, smooth shading) lit by two
-    directional lights from opposite sides and a little ambient light, so that every view
-    shows shading."""
+    """The shape experiment's scene: the mesh (grey, smooth shading) lit by
+    ``SHAPE_LIGHTS`` and a little ambient light, so that every view shows shading."""
     material = Material((0.7, 0.7, 0.7), ambient=0.05)
-    lights = [DirectionalLight((-1.0, -1.0, -0.6), 2.5), DirectionalLight((0.8, 0.4, 1.0), 1.2)]
+    lights = [DirectionalLight(d, e, color=c) for d, c, e in SHAPE_LIGHTS]
     mesh = Mesh(vertices, faces, material, smooth=True)
     return Scene([mesh], lights, view_cameras(1, 8)[0])
 
