@@ -27,14 +27,13 @@ EXTRA = {
 }
 COLUMNS = {
     "camera_position_error_percent": "camera position (%)",
-    "look_at_error": "look-at point (units)",
+    "view_direction_error_degrees": "view direction (degrees)",
+    "look_at_error": "look-at point (units; its distance along the view is not observable)",
     "light_position_error_percent": "light position (%)",
     "intensity_error_percent": "intensity (%)",
     "albedo_error_percent": "albedo (%)",
     "albedo_times_intensity_error_percent": "albedo x intensity (%)",
-    "shape_chamfer_at_start_percent": "shape Chamfer at the start (%)",
-    "shape_chamfer_percent": "shape Chamfer (%)",
-    "seconds_per_iteration": "seconds per iteration",
+    "shape_chamfer_percent": "shape Chamfer (% of the diagonal)",
 }
 
 
@@ -50,11 +49,15 @@ def main(argv=None) -> dict:
     lines = [
         f"# Joint reconstruction, {size}x{size}, {iters} iterations, edges: {args.antialias}",
         "",
-        "| error of | " + " | ".join(f"{r['views']} view(s)" for r in runs) + " |",
+        "| error of (start -> end) | " + " | ".join(f"{r['views']} view(s)" for r in runs) + " |",
         "|---|" + "---|" * len(runs),
     ]
     for key, label in COLUMNS.items():
-        lines.append(f"| {label} | " + " | ".join(f"{r[key]:.4g}" for r in runs) + " |")
+        start = "shape_chamfer_at_start_percent" if key.startswith("shape") else f"initial_{key}"
+        lines.append(f"| {label} | " + " | ".join(f"{r[start]:.4g} -> {r[key]:.4g}" for r in runs)
+                     + " |")  # fmt: skip
+    times = " | ".join(f"{r['seconds_per_iteration']:.3f}" for r in runs)
+    lines.append(f"| seconds per iteration | {times} |")
     out = args.out / "joint"
     out.mkdir(parents=True, exist_ok=True)
     for r in runs:  # the first view: target | start | result

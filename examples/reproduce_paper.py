@@ -80,6 +80,7 @@ LABELS = {
     "stalled": "runs whose loss stopped depending on the parameters (no gradient left)",
     "search_renders": "renders of the search stage (64x64)",
     "camera_position_error_percent": "camera position error (%)",
+    "view_direction_error_degrees": "camera view direction error (degrees)",
     "light_position_error_percent": "light position error (%)",
     "intensity_error_percent": "light intensity error (%)",
     "albedo_error_percent": "albedo error (%)",

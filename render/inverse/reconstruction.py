@@ -372,6 +372,25 @@ def run_joint(
         return image_loss(image, target) + weight * laplacian_loss(lap, vertices - base)
 
     params = [position, look_at, light, intensity, albedo, vertices]
+
+    def errors(prefix: str) -> dict:
+        """Each parameter's error now, the keys prefixed with ``prefix``."""
+        product, true_product = albedo.data * intensity.data, true["albedo"] * true["intensity"]
+        values = {
+            "camera_position_error_percent": _pct(position.data, true["position"]),
+            "look_at_error": float(np.linalg.norm(look_at.data)),
+            # Only the direction to the look-at point reaches an image, not its distance.
+            "view_direction_error_degrees": _angle_degrees(
+                look_at.data - position.data, -true["position"]
+            ),  # fmt: skip
+            "light_position_error_percent": _pct(light.data, true["light"]),
+            "intensity_error_percent": _pct(intensity.data, true["intensity"]),
+            "albedo_error_percent": _pct(albedo.data, true["albedo"]),
+            "albedo_times_intensity_error_percent": _pct(product, true_product),
+        }
+        return {prefix + key: value for key, value in values.items()}
+
+    initial = errors("initial_")
     with md.no_grad():
         before = render(scene).data.copy()
     start = time.perf_counter()
@@ -381,16 +400,11 @@ def run_joint(
     seconds = time.perf_counter() - start
     with md.no_grad():
         after = render(scene).data.copy()
-    product, true_product = albedo.data * intensity.data, true["albedo"] * true["intensity"]
     return {
         "views": views,
         "size": size,
-        "camera_position_error_percent": _pct(position.data, true["position"]),
-        "look_at_error": float(np.linalg.norm(look_at.data)),
-        "light_position_error_percent": _pct(light.data, true["light"]),
-        "intensity_error_percent": _pct(intensity.data, true["intensity"]),
-        "albedo_error_percent": _pct(albedo.data, true["albedo"]),
-        "albedo_times_intensity_error_percent": _pct(product, true_product),
+        **errors(""),
+        **initial,
         "shape_chamfer_percent": surface_distances(
             vertices.data, faces, true_vertices, faces
         ).chamfer,  # fmt: skip
@@ -404,6 +418,11 @@ def run_joint(
         "seconds_per_iteration": seconds / max(1, len(history.loss)),
         "images": np.clip(np.stack([targets[0], before, after]), 0.0, 1.0),
     }
+
+
+def _angle_degrees(a: np.ndarray, b: np.ndarray) -> float:
+    cos = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
 
 
 def _pct(estimate, truth) -> float:
