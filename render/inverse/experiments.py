@@ -155,7 +155,7 @@ def run_camera_calibration(
                                  factor=max(1, size // SEARCH_SIZE), seed=seed)  # fmt: skip
     run = _run(
         scene, [position, look_at], target, lr=lr, iters=iters, tol=tol, antialias=antialias,
-        name=f"camera_calibration_{angle:g}deg_seed{seed}", **options,
+        name=f"camera_calibration_{angle:g}deg{_edges_suffix(antialias)}_seed{seed}", **options,
     )  # fmt: skip
     if searched is not None:  # the run starts where the search started, and pays for it
         run.initial = before
@@ -177,6 +177,12 @@ def run_camera_calibration(
         final_object_in_view_pct=object_in_view_pct(scene, truth),
     )
     return run
+
+
+def _edges_suffix(antialias: bool | str) -> str:
+    """The output folder's mark of the edge method: none for the paper's renderer, so that
+    a reproduction's edge and plain runs of one seed do not write over each other."""
+    return {False: "", True: "_pairs"}.get(antialias, f"_{antialias}")
 
 
 #: the search stage's image width for camera calibration (64: an eighth of 512), and the
