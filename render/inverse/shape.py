@@ -28,6 +28,7 @@ from scipy.sparse.linalg import splu
 from scipy.spatial import cKDTree
 
 import minidiff as md
+from render.trace.topology import welded_ids
 
 __all__ = [
     "mesh_laplacian",
@@ -144,17 +145,17 @@ class LargeStepsAdam(md.optim.Optimizer):
         self.vertices.data[...] = self.steps.to_vertices(self.u.data)
 
 
-def weld(vertices: np.ndarray, faces: np.ndarray, decimals: int = 9):
-    """One vertex per distinct position (positions equal after rounding to ``decimals``):
-    the welded (U, 3) vertices; the faces renumbered onto them (F', 3), without those that
-    welding collapses (two corners on one vertex: they had zero area, and their edges would
-    be shared by many faces); and ``index`` (V,), the welded vertex of each original one
-    (``welded[index]`` equals ``vertices`` up to the rounding). The vertices of a welded
-    mesh move a patch mesh's seams together instead of tearing them open."""
+def weld(vertices: np.ndarray, faces: np.ndarray):
+    """One vertex per distinct position (the renderer's own welding rule,
+    ``render.trace.topology.welded_ids``): the welded (U, 3) vertices; the faces renumbered
+    onto them (F', 3), without those that welding collapses (two corners on one vertex:
+    they had zero area, and their edges would be shared by many faces); and ``index`` (V,),
+    the welded vertex of each original one (``welded[index]`` equals ``vertices`` up to the
+    welding tolerance). The vertices of a welded mesh move a patch mesh's seams together
+    instead of tearing them open."""
     vertices = np.asarray(vertices, dtype=np.float64)
-    _, first, index = np.unique(np.round(vertices, decimals), axis=0, return_index=True,
-                                return_inverse=True)  # fmt: skip
-    index = index.reshape(-1)
+    index = welded_ids(vertices)
+    _, first = np.unique(index, return_index=True)
     f = index[np.asarray(faces)]
     kept = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 2] != f[:, 0])
     return vertices[first], f[kept], index

@@ -50,15 +50,27 @@ class MeshEdges:
     welded: np.ndarray
 
 
-def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
-    """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3)."""
+def welded_ids(vertices: np.ndarray) -> np.ndarray:
+    """(V,) int64: each vertex's welded id, equal for vertices at the same position (within
+    ``_WELD_TOLERANCE`` of the mesh's bounding-box diagonal), numbered 0..U-1."""
     # Relative to the mesh's own size and corner, so that welding does not depend on where
     # the mesh is or how large it is.
     low = vertices.min(axis=0)
-    scale = max(float(np.linalg.norm(vertices.max(axis=0) - low)), np.finfo(float).tiny)
-    keys = np.round((vertices - low) / (scale * _WELD_TOLERANCE))
+    keys = np.round((vertices - low) / (_scale(vertices) * _WELD_TOLERANCE))
     _, welded = np.unique(keys, axis=0, return_inverse=True)
-    ids = welded.reshape(-1)[faces]  # (F, 3) welded vertex ids
+    return welded.reshape(-1).astype(np.int64)
+
+
+def _scale(vertices: np.ndarray) -> float:
+    """The length of the mesh's bounding-box diagonal (never zero)."""
+    extent = vertices.max(axis=0) - vertices.min(axis=0)
+    return max(float(np.linalg.norm(extent)), np.finfo(float).tiny)
+
+
+def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
+    """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3)."""
+    scale = _scale(vertices)
+    ids = welded_ids(vertices)[faces]  # (F, 3) welded vertex ids
     corners = vertices[faces]
     area = np.linalg.norm(
         np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1
