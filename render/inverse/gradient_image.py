@@ -27,15 +27,18 @@ from render.scene.scene import Scene
 __all__ = ["gradient_image", "find_parameter"]
 
 
-def find_parameter(scene: Scene, parameter: md.Tensor | str) -> tuple[str, md.Tensor]:
+def find_parameter(
+    scene: Scene, parameter: md.Tensor | str, where: str = "gradient_image"
+) -> tuple[str, md.Tensor]:
     """The (name, tensor) of one of ``scene``'s parameters, given as a Tensor of the scene
     (the very object) or as a name from ``scene.named_parameters()`` such as
-    ``"lights[0].position"``. Anything else is a ValueError listing the names."""
+    ``"lights[0].position"``. Anything else is a ValueError listing the names; errors
+    start with ``where``."""
     named = scene.named_parameters()
     if isinstance(parameter, str):
         if parameter not in named:
             raise ValueError(
-                f"gradient_image: the scene has no parameter {parameter!r}; its parameters "
+                f"{where}: the scene has no parameter {parameter!r}; its parameters "
                 f"are {', '.join(named)}"
             )
         return parameter, named[parameter]
@@ -44,12 +47,12 @@ def find_parameter(scene: Scene, parameter: md.Tensor | str) -> tuple[str, md.Te
             if t is parameter:
                 return name, t
         raise ValueError(
-            f"gradient_image: parameter is a Tensor of shape {parameter.shape} that is not "
+            f"{where}: parameter is a Tensor of shape {parameter.shape} that is not "
             f"one of the scene's parameters (pass the scene's own tensor, or one of the "
             f"names {', '.join(named)})"
         )
     raise TypeError(
-        "gradient_image: parameter must be a minidiff Tensor of the scene or a parameter "
+        f"{where}: parameter must be a minidiff Tensor of the scene or a parameter "
         f"name (str), got {type(parameter).__name__}"
     )
 

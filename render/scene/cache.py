@@ -83,6 +83,14 @@ def cache_for(scene: Scene, reuse: bool) -> RenderCache:
         return cache
 
 
+def share_cache(scene: Scene, cache: RenderCache) -> None:
+    """Let ``scene`` use ``cache`` from now on (e.g. a copy of a scene with some tensors
+    replaced, rendered by ``render.inverse.function``, uses its source's cache). Safe
+    because every stage is keyed by values, never by which tensor holds them."""
+    with _CACHES_LOCK:
+        _CACHES[scene] = cache
+
+
 def _copies(tensors) -> list[np.ndarray]:
     return [np.array(t.data) for t in tensors]
 

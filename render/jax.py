@@ -1,0 +1,170 @@
+"""``render.jax``: the renderer as a JAX function (optional extra ``jax``).
+
+    import jax, jax.numpy as jnp, render, render.jax
+    jax.config.update("jax_enable_x64", True)     # the scene computes in float64
+    f = render.jax.function(render.paper_scene(64, 64), ["lights[0].position"])
+    loss = lambda p: jnp.mean((f(p) - target) ** 2)
+    jax.jit(jax.grad(loss))(jnp.array([2.0, 5.0, 3.0]))
+
+How two autodiff systems meet: JAX cannot trace NumPy code, so the render runs in a
+``jax.pure_callback`` (JAX calls back into Python with concrete arrays, also under ``jit``)
+and its derivative is declared with ``jax.custom_vjp``: the backward rule is another
+callback, ``render.inverse.function.RenderFunction.vjp`` (one render recorded on minidiff's
+tape and one ``backward``). JAX residuals must be arrays, so the backward renders again
+rather than keeping the forward's tape: a gradient costs two renders and one backward.
+
+* ``mode="reverse"`` (default): ``jax.grad``, ``jax.vjp``, ``jax.jacrev``. ``mode="forward"``:
+  the derivative declared with ``jax.custom_jvp`` instead (minidiff's forward mode: one
+  render with tangents, and one without for the image): ``jax.jvp``, ``jax.jacfwd``. JAX
+  cannot transpose a callback, so each mode supports only its own direction.
+* ``jax.vmap`` works through ``vmap_method="sequential"``: the callback is called once per
+  batch element, one render after the other.
+* **dtypes**: values come and go in the function's dtype (``f.dtype``, float64 unless the
+  scene is float32). float64 needs ``jax_enable_x64`` (JAX would otherwise turn every
+  float64 array into float32): the call says so if it is off. A floating-point value of
+  another dtype is an error naming its parameter, never a silent cast; integer and boolean
+  values are constants (their cotangent is JAX's ``float0`` zero).
+* Arrays are computed on the CPU (the renderer is NumPy and Numba).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import minidiff as md
+from render.inverse.function import RenderFunction
+from render.scene.scene import Scene
+
+__all__ = ["function", "JaxRenderFunction"]
+
+
+def function(
+    scene: Scene | Sequence[Scene],
+    parameters: str | md.Tensor | Sequence[str | md.Tensor],
+    mode: str = "reverse",
+    **render_kwargs: Any,
+) -> JaxRenderFunction:
+    """``render(scene, **render_kwargs)`` as a JAX function of the ``parameters`` (names
+    such as ``"camera.position"``, or the scene's tensors), in that order, differentiable
+    in ``mode`` "reverse" or "forward"; see ``render.inverse.function.RenderFunction`` for
+    views and ``render_kwargs``."""
+    return JaxRenderFunction(RenderFunction(scene, parameters, **render_kwargs), mode)
+
+
+class JaxRenderFunction:
+    """Call with one array per parameter (under ``jit``, ``grad``, ``vmap`` as any JAX
+    function); returns the image, (H, W, 3) or (V, H, W, 3) for views. ``core`` is the
+    ``RenderFunction``; ``names``, ``shapes``, ``dtype`` are its."""
+
+    def __init__(self, core: RenderFunction, mode: str = "reverse") -> None:
+        if mode not in ("reverse", "forward"):
+            raise ValueError(f'render.jax: mode must be "reverse" or "forward", got {mode!r}')
+        self.core, self.mode = core, mode
+        self.names, self.shapes, self.dtype = core.names, core.shapes, np.dtype(core.dtype)
+        self._image = jax.ShapeDtypeStruct(core.image_shape, self.dtype)
+        self._call = self._reverse() if mode == "reverse" else self._forward()
+
+    def __repr__(self) -> str:
+        return f"render.jax.{self.core!r} ({self.mode} mode)"
+
+    def __call__(self, *values: Any) -> jax.Array:
+        where = "render.jax"
+        if self.dtype == np.float64 and not jax.config.read("jax_enable_x64"):
+            raise TypeError(
+                f"{where}: this function computes in float64 (the scene's parameters are "
+                "float64) but jax_enable_x64 is off, so JAX would pass and return float32; "
+                'run jax.config.update("jax_enable_x64", True) first (or build the scene '
+                "in float32)"
+            )
+        if len(values) != len(self.names):
+            raise TypeError(
+                f"{where}: expected {len(self.names)} arrays ({', '.join(self.names)}), got "
+                f"{len(values)}"
+            )
+        values = tuple(jnp.asarray(v) if not isinstance(v, jax.Array) else v for v in values)
+        for name, shape, value in zip(self.names, self.shapes, values, strict=True):
+            kind = np.dtype(value.dtype).kind
+            if kind == "f" and value.dtype != self.dtype:
+                raise TypeError(
+                    f"{where}: {name} is {value.dtype} but this function computes in "
+                    f"{self.dtype}; convert it explicitly (e.g. x.astype(jnp.{self.dtype}))"
+                )
+            if kind not in "fiub":
+                raise TypeError(f"{where}: {name} must be real numbers, got {value.dtype}")
+            if tuple(value.shape) != shape:
+                raise ValueError(
+                    f"{where}: {name} must have shape {shape}, got {tuple(value.shape)} "
+                    "(batch with jax.vmap)"
+                )
+        return self._call(*values)
+
+    def _primal(self, *values: jax.Array) -> jax.Array:
+        """The image, by a callback into the renderer (no tape)."""
+        return jax.pure_callback(
+            lambda *arrays: self.core(*map(np.asarray, arrays)),
+            self._image,
+            *values,
+            vmap_method="sequential",
+        )
+
+    def _reverse(self) -> Callable[..., jax.Array]:
+        core = self.core
+
+        @jax.custom_vjp
+        def f(*values):
+            return self._primal(*values)
+
+        def fwd(*values):
+            return self._primal(*values), values
+
+        def bwd(values, d_image):
+            floats = [np.dtype(v.dtype).kind == "f" for v in values]
+            shapes = tuple(
+                jax.ShapeDtypeStruct(v.shape, v.dtype) for v, fl in zip(values, floats, strict=True)
+                if fl
+            )  # fmt: skip
+
+            def pullback(*arrays):
+                grads = core.vjp([np.asarray(a) for a in arrays[:-1]], np.asarray(arrays[-1]))
+                return tuple(g for g, fl in zip(grads, floats, strict=True) if fl)
+
+            grads = iter(
+                jax.pure_callback(pullback, shapes, *values, d_image, vmap_method="sequential")
+            )
+            return tuple(
+                next(grads) if fl else np.zeros(v.shape, dtype=jax.dtypes.float0)
+                for v, fl in zip(values, floats, strict=True)
+            )
+
+        f.defvjp(fwd, bwd)
+        return f
+
+    def _forward(self) -> Callable[..., jax.Array]:
+        core, image = self.core, self._image
+
+        @jax.custom_jvp
+        def f(*values):
+            return self._primal(*values)
+
+        @f.defjvp
+        def f_jvp(primals, tangents):
+            n = len(primals)
+            floats = [np.dtype(v.dtype).kind == "f" for v in primals]
+            moving = [t for t, fl in zip(tangents, floats, strict=True) if fl]
+
+            def push(*arrays):
+                moves = iter(arrays[n:])
+                directions = [np.asarray(next(moves)) if fl else None for fl in floats]
+                return core.jvp([np.asarray(a) for a in arrays[:n]], directions)[1]
+
+            # The image by its own callback: under jax.jacfwd the tangents are batched and
+            # the primals are not, and JAX needs an image that is not batched with them.
+            d_image = jax.pure_callback(push, image, *primals, *moving, vmap_method="sequential")
+            return self._primal(*primals), d_image
+
+        return f
