@@ -29,7 +29,7 @@ import numpy as np
 
 from render.scene.scene import ArrayLike, Camera, Material, Mesh, PointLight, Scene
 
-__all__ = ["teapot_geometry", "teapot", "paper_scene", "PAPER_ALBEDO"]
+__all__ = ["teapot_geometry", "teapot", "teapot_atlas", "paper_scene", "PAPER_ALBEDO"]
 
 _DATA = Path(__file__).parent / "data" / "newell_teapot.json"
 
@@ -54,10 +54,22 @@ def _control_points() -> np.ndarray:
 
 def _bernstein(n: int) -> np.ndarray:
     """(n + 1, 4) cubic Bernstein basis at t = 0, 1/n, ..., 1: ``B[i, k] = B_k(i / n)``."""
-    t = np.linspace(0.0, 1.0, n + 1)[:, None]
+    return _bernstein_at(np.linspace(0.0, 1.0, n + 1))
+
+
+def _bernstein_at(t: np.ndarray) -> np.ndarray:
+    """(len(t), 4) cubic Bernstein basis at the parameters t: ``B[i, k] = B_k(t[i])``."""
+    t = np.asarray(t, dtype=np.float64)[:, None]
     k = np.arange(4)
     binomial = np.array([1.0, 3.0, 3.0, 1.0])
     return binomial * t**k * (1.0 - t) ** (3 - k)
+
+
+def _to_world(points: np.ndarray) -> np.ndarray:
+    """(n, 3) points of the z-up file frame -> the y-up world frame, scaled and lowered to
+    sit around the origin."""
+    x, y, z = points[:, 0], points[:, 1], points[:, 2]
+    return 0.5 * np.stack([x, z, -y], axis=1) + np.array([0.0, -0.5, 0.0])
 
 
 def _grid_faces(nu: int, nv: int) -> np.ndarray:
@@ -98,16 +110,55 @@ def teapot_geometry(nu: int = 4, nv: int = 6) -> tuple[np.ndarray, np.ndarray]:
     # P[p, i, j] = sum_a sum_b Bu[i, a] Bv[j, b] C[p, a, b]: all patches at once.
     grid = np.einsum("ia,jb,pabk->pijk", bu, bv, control, optimize=True)
     n_patches = grid.shape[0]
-    points = grid.reshape(-1, 3)
-
-    # z-up file frame -> y-up world frame, scaled and lowered to sit around the origin.
-    x, y, z = points[:, 0], points[:, 1], points[:, 2]
-    vertices = 0.5 * np.stack([x, z, -y], axis=1) + np.array([0.0, -0.5, 0.0])
+    vertices = _to_world(grid.reshape(-1, 3))
 
     per_patch = (nu + 1) * (nv + 1)
     offsets = np.arange(n_patches, dtype=np.int64)[:, None, None] * per_patch
     faces = (_grid_faces(nu, nv)[None, :, :] + offsets).reshape(-1, 3)
     return np.ascontiguousarray(vertices), faces.astype(np.int64)
+
+
+#: The texture atlas of ``teapot_atlas``: the 32 patches in 4 rows of 8 tiles.
+ATLAS_TILES = (4, 8)
+
+
+def teapot_atlas(tile: int = 16, nu: int = 4, nv: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """A texture atlas for the teapot: every Bezier patch gets its own ``tile`` x ``tile``
+    block of an (4 tile, 8 tile, 3) texture, patch p in block row p // 8, column p % 8.
+
+    Returns:
+        uvs: (V, 2) texture coordinates for the vertices of ``teapot_geometry(nu, nv)``:
+            the patch parameters (u, v) in [0, 1]^2 mapped linearly onto the block's texel
+            centres, u along the columns, v down the rows, so that bilinear lookups stay
+            inside the block (no colour bleeds from a neighbouring patch).
+        points: (4 tile, 8 tile, 3) the world position on the exact Bezier surface of every
+            texel centre: a function of 3-D position (a neural field, a procedural pattern)
+            evaluated here is a texture the renderer samples at the hits.
+    """
+    if isinstance(tile, bool) or not isinstance(tile, int | np.integer) or tile < 2:
+        raise ValueError(f"teapot_atlas: tile must be an int >= 2, got {tile!r}")
+    vertices, _ = teapot_geometry(nu, nv)  # checks nu and nv
+    rows, columns = ATLAS_TILES
+    height, width = rows * tile, columns * tile
+    patch = np.arange(32)
+    ty, tx = patch // columns, patch % columns
+    u = np.linspace(0.0, 1.0, nu + 1)
+    v = np.linspace(0.0, 1.0, nv + 1)
+    # Continuous texel coordinates (centres at integers, ``render.shade.lighting``).
+    x = tx[:, None, None] * tile + u[None, :, None] * (tile - 1) + 0.0 * v[None, None, :]
+    y = ty[:, None, None] * tile + v[None, None, :] * (tile - 1) + 0.0 * u[None, :, None]
+    uvs = np.stack([(x + 0.5) / width, 1.0 - (y + 0.5) / height], axis=-1).reshape(-1, 2)
+    assert len(uvs) == len(vertices)
+
+    t = _bernstein_at(np.arange(tile) / (tile - 1))  # texel centres of a block: (tile, 4)
+    grid = np.einsum("ia,jb,pabk->pijk", t, t, _control_points(), optimize=True)  # [p, u, v]
+    points = np.empty((height, width, 3))
+    for p in range(32):  # block rows follow v, block columns u
+        block = _to_world(grid[p].reshape(-1, 3)).reshape(tile, tile, 3)
+        points[ty[p] * tile : (ty[p] + 1) * tile, tx[p] * tile : (tx[p] + 1) * tile] = (
+            block.transpose(1, 0, 2)
+        )
+    return uvs, points
 
 
 def teapot(nu: int = 4, nv: int = 6, material: Material | None = None) -> Mesh:
