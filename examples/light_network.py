@@ -6,14 +6,16 @@ Run:  python examples/light_network.py [--out out] [--size 32] [--iters 1500] [-
 A PyTorch MLP maps an image of the paper scene to the position of its light. It never
 sees a position label: each step draws 8 random light positions, renders them (the
 targets), predicts a position from each target, renders the predictions through
-``render.torch`` and minimises the image difference (``render.inverse.neural``). Reported
+``render.torch`` and minimises the image difference (``render.networks``). Reported
 on 50 held-out targets: the distance from the predicted to the true position, and after 30
 Adam steps of inverse rendering started from the prediction, or from the centre of the
 light's box instead. Writes ``<out>/light_network/``: ``light_network.json`` and ``.md``,
-``loss.png`` and ``light_network.png`` (held-out targets, then the renders with the light
-at the box centre, at the network's prediction and after refinement).
+``loss.png`` and ``light_network.png`` (rows: held-out targets; the renders with the light
+at the box centre, and 4 |render - target|; at the network's prediction, and 4 |render -
+target|).
 
-``--quick`` trains for 20 steps at 16x16 (for tests; its numbers are not results).
+``--quick`` trains for 10 steps at 16x16 and tests on 6 targets (for tests; its numbers
+are not results).
 """
 
 from __future__ import annotations
@@ -22,8 +24,8 @@ import numpy as np
 from script_support import command_line, write_results
 
 import minidiff as md
-from render.inverse.neural import LIGHT_BOX, train_light_network
 from render.inverse.plot import line_plot
+from render.networks import LIGHT_BOX, train_light_network
 from render.renderer import render
 from render.scene.image import save_image
 from render.scene.teapot import paper_scene
@@ -41,8 +43,9 @@ def _stats(errors: np.ndarray) -> dict:
 
 def main(argv=None) -> dict:
     args = command_line(__doc__.splitlines()[0], 1500, argv, EXTRA, default_size=32)
-    size, iters = (16, 20) if args.quick else (args.size, args.iters)
-    run = train_light_network(size=size, iters=iters, lr=args.lr, seed=args.seed)
+    size, iters = (16, 10) if args.quick else (args.size, args.iters)
+    small = {"held_out": 6, "refine": 3} if args.quick else {}
+    run = train_light_network(size=size, iters=iters, lr=args.lr, seed=args.seed, **small)
     centre = (LIGHT_BOX[0] + LIGHT_BOX[1]) / 2
     result = {
         "size": size, "iterations": iters, "lr": args.lr, "parameters": run["parameters"],
@@ -60,14 +63,16 @@ def main(argv=None) -> dict:
     out.mkdir(parents=True, exist_ok=True)
     shown = range(min(4, len(run["true"])))
 
-    def images(positions) -> np.ndarray:
+    def images(positions) -> np.ndarray:  # the teapot's rows of a 128x128 render
         with md.no_grad():
-            row = [render(paper_scene(96, 96, light_position=p)).data for p in positions]
+            row = [render(paper_scene(128, 128, light_position=p)).data[32:96] for p in positions]
         return np.concatenate(row, axis=1)
 
-    grid = np.concatenate([images([run["true"][k] for k in shown]),
-                           images([centre for _ in shown]),
-                           images([run["predicted"][k] for k in shown])], axis=0)  # fmt: skip
+    target = images([run["true"][k] for k in shown])
+    at_centre = images([centre for _ in shown])
+    predicted = images([run["predicted"][k] for k in shown])
+    grid = np.concatenate([target, at_centre, 4.0 * np.abs(at_centre - target), predicted,
+                           4.0 * np.abs(predicted - target)], axis=0)  # fmt: skip
     save_image(np.clip(grid, 0.0, 1.0), out / "light_network.png")
     line_plot({"image MSE": (np.arange(len(run["loss"])), run["loss"])}, out / "loss.png",
               title="light network: training loss (batch of 8)", xlabel="step",
@@ -75,8 +80,8 @@ def main(argv=None) -> dict:
     rows = [
         ("the box centre (no network)", "error_predicting_the_box_centre"),
         ("the network's prediction", "error_network"),
-        ("30 Adam steps from the centre", "error_refined_from_centre"),
-        ("30 Adam steps from the prediction", "error_refined_from_network"),
+        (f"{run['refine_steps']} Adam steps from the centre", "error_refined_from_centre"),
+        (f"{run['refine_steps']} Adam steps from the prediction", "error_refined_from_network"),
     ]
     table = "\n".join(
         f"| {label} | {result[key]['median']:.3f} | {result[key]['mean']:.3f} | "

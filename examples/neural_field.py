@@ -4,7 +4,7 @@ PyTorch.
 Run:  python examples/neural_field.py [--out out] [--size 64] [--iters 500] [--lr 0.005]
       [--quick]
 
-An MLP on Fourier features of 3-D position (``render.inverse.neural``) gives the albedo at
+An MLP on Fourier features of 3-D position (``render.networks``) gives the albedo at
 every texel centre of the teapot's atlas; 8 views rendered with that texture are compared
 with targets painted by a 3-D pattern. The same training runs twice from the same initial
 weights: in minidiff (network, renderer and Adam on one tape) and in PyTorch (network and
@@ -14,7 +14,7 @@ difference, held-out-view PSNR, parameter count, time per iteration), ``neural_f
 (held-out views: target, start, minidiff's result, PyTorch's result), ``loss.png`` and
 ``training.gif`` (a held-out view during training, beside its target).
 
-``--quick`` trains for 20 iterations at 32x32 (for tests; its numbers are not results).
+``--quick`` trains for 5 iterations at 16x16 (for tests; its numbers are not results).
 """
 
 from __future__ import annotations
@@ -24,14 +24,14 @@ from PIL import Image
 from script_support import command_line, write_results
 
 import minidiff as md
-from render.inverse.neural import (
+from render.inverse.plot import line_plot
+from render.networks import (
     field_setup,
     field_texture,
     init_mlp,
     train_field_minidiff,
     train_field_torch,
 )
-from render.inverse.plot import line_plot
 from render.renderer import render
 from render.scene.image import save_image
 
@@ -55,7 +55,7 @@ def _renders(setup, texture: np.ndarray) -> list[np.ndarray]:
 
 def main(argv=None) -> dict:
     args = command_line(__doc__.splitlines()[0], 500, argv, EXTRA, default_size=64)
-    size, iters = (32, 20) if args.quick else (args.size, args.iters)
+    size, iters = (16, 5) if args.quick else (args.size, args.iters)
     setup = field_setup(views=args.views, size=size)
     weights = init_mlp(setup.sizes, seed=args.seed)
     count = sum(w.size for w in weights)

@@ -10,7 +10,10 @@ from pathlib import Path
 RENDER = Path(__file__).resolve().parents[1] / "render"
 
 #: The stages in pipeline order; a module may import from its own stage and earlier ones.
-STAGES = ["scene", "trace", "shade", "edges", "film", "renderer", "inverse", "render"]
+STAGES = [
+    "scene", "trace", "shade", "edges", "film", "renderer", "inverse", "torch", "jax", "networks",
+    "render",
+]  # fmt: skip
 
 
 def module_name(path: Path) -> str:

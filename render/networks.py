@@ -1,4 +1,5 @@
-"""Networks trained through the renderer: the paper's "end-to-end training experiments in
+"""Networks trained through the renderer (after the bridges in the pipeline's order: the
+PyTorch versions use ``render.torch``): the paper's "end-to-end training experiments in
 which neural network weights and scene parameters are jointly optimized through the
 differentiable renderer", measured (``examples/neural_field.py``,
 ``examples/light_network.py``, README "From PyTorch / JAX").
@@ -336,6 +337,7 @@ def train_light_network(
         "centre_error": distances(np.broadcast_to(centre.numpy(), test_positions.shape)),
         "refined_error": distances(from_network), "refined_from_centre_error":
         distances(from_centre), "renders": renders, "refine_renders": refine * held_out,
+        "refine_steps": refine,
         "seconds": seconds, "refine_seconds": refine_seconds, "predicted": guess,
         "true": test_positions, "parameters": sum(p.numel() for p in net.parameters()),
     }  # fmt: skip
