@@ -96,14 +96,16 @@ class TorchRenderFunction:
                     f"{where}: {name} must have shape {shape} (or (B, *{shape}) for a batch), "
                     f"got {tuple(value.shape)}"
                 )
+        # Record minidiff's tape only if PyTorch will ask for a backward pass.
+        record = torch.is_grad_enabled() and any(v.requires_grad for v in values)
         if batch is None:
-            return _Render.apply(self.core, *values)[0]
+            return _Render.apply(self.core, record, *values)[0]
         images = []
         for b in range(batch):  # a loop: the renderer draws one scene at a time
             one = [
                 v[b] if tuple(v.shape) != s else v for v, s in zip(values, self.shapes, strict=True)
             ]
-            images.append(_Render.apply(self.core, *one)[0])
+            images.append(_Render.apply(self.core, record, *one)[0])
         return torch.stack(images)
 
 
@@ -123,13 +125,14 @@ class _Pullback:
 
 
 class _Render(torch.autograd.Function):
-    """One render: inputs (core, *values), outputs (image, _Pullback)."""
+    """One render: inputs (core, record, *values), outputs (image, _Pullback); ``record``
+    says whether to keep minidiff's tape for a backward pass."""
 
     @staticmethod
-    def forward(core: RenderFunction, *values: torch.Tensor):
+    def forward(core: RenderFunction, record: bool, *values: torch.Tensor):
         arrays = [_numpy(v) for v in values]
         device = values[0].device
-        if any(v.requires_grad for v in values) and any(a.dtype.kind == "f" for a in arrays):
+        if record and any(a.dtype.kind == "f" for a in arrays):
             # Keep this render's tape for the backward pass: no second render.
             image, pullback = core.forward(*arrays)
             return torch.from_numpy(image).to(device), _Pullback(pullback)
@@ -139,7 +142,7 @@ class _Render(torch.autograd.Function):
 
     @staticmethod
     def setup_context(ctx, inputs, output) -> None:
-        core, *values = inputs
+        core, _, *values = inputs
         ctx.core, ctx.pullback = core, output[1].pullback
         ctx.save_for_backward(*values)
         ctx.save_for_forward(*values)
@@ -152,21 +155,23 @@ class _Render(torch.autograd.Function):
         holder, ctx.pullback = _Pullback(ctx.pullback), None  # the tape is used once
         grads = _Pull.apply(ctx.core, holder, d_image, *values)
         differentiable = [v.dtype.is_floating_point for v in values]
-        return (None,) + tuple(g if d else None for g, d in zip(grads, differentiable, strict=True))
+        return (None, None) + tuple(
+            g if d else None for g, d in zip(grads, differentiable, strict=True)
+        )
 
     @staticmethod
-    def jvp(ctx, _d_core: Any, *tangents: torch.Tensor | None):
+    def jvp(ctx, _d_core: Any, _d_record: Any, *tangents: torch.Tensor | None):
         return _Push.apply(ctx.core, len(tangents), *ctx.saved_tensors, *tangents), None
 
     @staticmethod
-    def vmap(info, in_dims, core: RenderFunction, *values: torch.Tensor):
+    def vmap(info, in_dims, core: RenderFunction, record: bool, *values: torch.Tensor):
         """``torch.func.vmap``: one render per batch element, stacked."""
         images = []
         for b in range(info.batch_size):
             one = [
-                v if d is None else v.select(d, b) for v, d in zip(values, in_dims[1:], strict=True)
+                v if d is None else v.select(d, b) for v, d in zip(values, in_dims[2:], strict=True)
             ]
-            images.append(_Render.apply(core, *one)[0])
+            images.append(_Render.apply(core, record, *one)[0])
         return (torch.stack(images), _Pullback()), (0, None)
 
 
