@@ -2,7 +2,7 @@
 
 Run:  python examples/pose_estimation.py [--out out] [--size 128] [--iters 250]
       [--seeds 10] [--angles 15,30,45,90,180] [--search 300] [--antialias boundary]
-      [--quick]
+      [--quick] [--jobs N]
 
 For each start angle and seed (42, 43, ...): the teapot turned by that angle about a random
 axis and shifted by 10 % of its size (``render.inverse.reconstruction.pose_problem``), then
@@ -12,13 +12,17 @@ run), ``pose.md`` (success per start angle: rotation error < 1 degree and transl
 < 1 % of the size; median errors; times, the search's renders included) and ``basin.png``.
 
 ``--quick`` runs two angles and two seeds at 48x48 (for tests; its numbers are not results).
+``--jobs N`` runs the runs in N processes (default: one per core), with the same results.
 """
 
 from __future__ import annotations
 
-import numpy as np
-from script_support import command_line, write_results
+from functools import partial
 
+import numpy as np
+from script_support import JOBS, command_line, write_results
+
+from render.inverse.parallel import check_jobs, process_pool, run_ordered
 from render.inverse.plot import line_plot
 from render.inverse.reconstruction import run_pose
 
@@ -28,6 +32,7 @@ EXTRA = {
     "--search": {"type": int, "default": 300, "help": "renders of the search stage"},
     "--antialias": {"default": "boundary", "help": "edge method: boundary, pairs or none"},
     "--quick": {"action": "store_true", "help": "a few small runs (not results)"},
+    "--jobs": JOBS,
 }
 
 
@@ -39,16 +44,22 @@ def main(argv=None) -> dict:
     if args.quick:
         angles, seeds, size, iters = [15.0, 90.0], seeds[:2], 48, 30
     antialias = {"none": False, "pairs": True}.get(args.antialias, args.antialias)
-    runs = []
-    for angle in angles:
-        for seed in seeds:
-            for search in (0, args.search):
-                runs.append(run_pose(size, angle, seed, iters, search, antialias,
-                                     quiet=args.quiet))  # fmt: skip
-                r = runs[-1]
-                print(f"angle {angle:5.0f} seed {seed} search {search:4d}: rotation "
-                      f"{r['rotation_error_degrees']:8.3f} deg, translation "
-                      f"{r['translation_error_percent']:7.3f} %, {r['seconds']:.1f} s")  # fmt: skip
+    jobs = check_jobs(args.jobs, "--jobs")
+    calls = [partial(run_pose, size, angle, seed, iters, search, antialias,
+                     quiet=args.quiet or jobs > 1)
+             for angle in angles for seed in seeds for search in (0, args.search)]  # fmt: skip
+
+    def report(i: int, r: dict) -> None:
+        print(f"angle {r['angle']:5.0f} seed {r['seed']} search {r['search_renders']:4d}: "
+              f"rotation {r['rotation_error_degrees']:8.3f} deg, translation "
+              f"{r['translation_error_percent']:7.3f} %, {r['seconds']:.1f} s")  # fmt: skip
+
+    pool = process_pool(jobs) if jobs > 1 else None
+    try:
+        runs = run_ordered(calls, pool, on_result=report)
+    finally:
+        if pool is not None:
+            pool.shutdown()
     out = args.out / "pose"
     out.mkdir(parents=True, exist_ok=True)
     rows, basin = [], {"gradients alone": ([], []), f"search ({args.search} renders)": ([], [])}

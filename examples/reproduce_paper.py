@@ -3,7 +3,7 @@
 could not fill: camera calibration from its 30 degree start, and a joint reconstruction.
 
 Run: python examples/reproduce_paper.py [--quick] [--size 512] [--iters N] [--seed 42]
-     [--out out] [--antialias boundary|pairs|none]
+     [--out out] [--antialias boundary|pairs|none] [--jobs N]
 
 The camera rows optimise renders with edge gradients (``--antialias``, default the exact
 boundary integral), the 30 degree row after a greedy search stage of 500 renders at 64x64
@@ -16,16 +16,18 @@ Writes OUT/results.json (every run) and OUT/results.md (the table), plus the ima
 curves and GIFs of the first seed of each experiment. --quick: 64x64 images, 2 seeds, 40
 iterations and a tiny joint run (20), a smoke run of well under a minute (its numbers are not
 results). --seed S runs seeds S..S+9 (S..S+1 with --quick); --iters N replaces every
-experiment's iteration budget.
+experiment's iteration budget. --jobs N runs the runs in N processes (default: one per
+core; ``render.inverse.parallel``): the same results, in the same order, as --jobs 1.
 """
 
 from __future__ import annotations
 
 import platform
 import time
+from functools import partial
 
 import numpy as np
-from script_support import EDGES, command_line, run_with_outputs
+from script_support import EDGES, JOBS, command_line, run_with_outputs
 
 from render.inverse.experiments import (
     run_camera_calibration,
@@ -33,6 +35,7 @@ from render.inverse.experiments import (
     run_material_recovery,
 )
 from render.inverse.jsonio import write_json
+from render.inverse.parallel import check_jobs, process_pool, run_ordered
 from render.inverse.reconstruction import run_joint
 
 # The paper's section 6 claims (mean, std over 10 runs), quoted for comparison only.
@@ -152,11 +155,12 @@ def main(argv=None) -> None:
     edges = {**EDGES["--antialias"], "default": "boundary",
              "help": "the camera rows' edge gradients: boundary, pairs or none"}  # fmt: skip
     extra = {"--quick": {"action": "store_true", "help": "64x64, 2 seeds (a smoke run)"},
-             "--antialias": edges}  # fmt: skip
+             "--antialias": edges, "--jobs": JOBS}  # fmt: skip
     args = command_line(
         __doc__.splitlines()[0], default_iters=None, argv=argv, extra=extra, default_size=None
     )
     given_size, given_iters = args.size, args.iters
+    args.jobs = check_jobs(args.jobs, "--jobs")
     size = args.size or (64 if args.quick else 512)
     seeds = range(args.seed, args.seed + (2 if args.quick else 10))
     edges, search = args.antialias, (50 if args.quick else 500)
@@ -164,44 +168,57 @@ def main(argv=None) -> None:
         args.iters = 40  # a smoke run: every path taken, nothing converged
     # --iters overrides every experiment's own budget (500, 500 and 100 iterations).
     experiments = {
-        "camera_calibration": lambda **kw: run_camera_calibration(
-            angle=10.0, antialias=edges, **kw),
-        "camera_calibration_plain": lambda **kw: run_camera_calibration(angle=10.0, **kw),
-        "camera_calibration_30deg": lambda **kw: run_camera_calibration(
-            angle=30.0, antialias=edges, search=search, **kw),
-        "camera_calibration_30deg_plain": lambda **kw: run_camera_calibration(angle=30.0, **kw),
+        "camera_calibration": partial(run_camera_calibration, angle=10.0, antialias=edges),
+        "camera_calibration_plain": partial(run_camera_calibration, angle=10.0),
+        "camera_calibration_30deg": partial(
+            run_camera_calibration, angle=30.0, antialias=edges, search=search),
+        "camera_calibration_30deg_plain": partial(run_camera_calibration, angle=30.0),
         "light_estimation": run_light_estimation,
         "material_recovery": run_material_recovery,
     }  # fmt: skip
-    results: dict[str, list[dict]] = {}
-    start = time.perf_counter()
+    # Every run is independent: one call each (picklable, for the worker processes), in
+    # the order of the table; the joint reconstruction (one seed, minutes, 4 views at
+    # 128x128) is the last.
+    names, calls = [], []
     for name, run in experiments.items():
-        results[name] = []
         for seed in seeds:
             out = args.out if seed == seeds[0] else None
-            r = run_with_outputs(run, out, args.iters, size=size, seed=seed, quiet=args.quiet)
-            results[name].append(r)
-            print(
-                f"{name:30s} seed {seed}: {r['iterations']:4d} iterations, "
-                f"{r['seconds_total']:6.1f} s, final loss {r['final_loss']:.2e}",
-                flush=True,
-            )
-    # The joint reconstruction: one seed (minutes per run), 4 views at 128x128.
+            names.append((name, seed))
+            calls.append(partial(run_with_outputs, run, out, args.iters, size=size, seed=seed,
+                                 quiet=args.quiet or args.jobs > 1))  # fmt: skip
     joint = {"views": 2, "size": 32, "iters": 20} if args.quick else {"views": 4, "size": 128}
     joint.update({"size": given_size} if given_size else {})
     joint.update({"iters": given_iters} if given_iters else {})
-    r = run_joint(**joint, seed=seeds[0], antialias=edges)
-    r["seconds_total"] = r["seconds"]
-    r.pop("images")
-    results["joint_reconstruction"] = [r]
-    print(f"{'joint_reconstruction':30s} seed {seeds[0]}: {r['iterations']:4d} iterations, "
-          f"{r['seconds']:6.1f} s, final loss {r['final_loss']:.2e}", flush=True)  # fmt: skip
+    names.append(("joint_reconstruction", seeds[0]))
+    calls.append(partial(run_joint, **joint, seed=seeds[0], antialias=edges,
+                         quiet=args.quiet or args.jobs > 1))  # fmt: skip
+
+    def report(i: int, r: dict) -> None:
+        name, seed = names[i]
+        seconds = r.get("seconds_total", r.get("seconds"))
+        print(f"{name:30s} seed {seed}: {r['iterations']:4d} iterations, {seconds:6.1f} s, "
+              f"final loss {r['final_loss']:.2e}", flush=True)  # fmt: skip
+
+    start = time.perf_counter()
+    executor = process_pool(args.jobs) if args.jobs > 1 else None
+    try:
+        runs = run_ordered(calls, executor, on_result=report)
+    finally:
+        if executor is not None:
+            executor.shutdown()
+    results: dict[str, list[dict]] = {}
+    for (name, _), r in zip(names, runs, strict=True):
+        results.setdefault(name, []).append(r)
+    joint_run = results["joint_reconstruction"][0]
+    joint_run["seconds_total"] = joint_run["seconds"]
+    joint_run.pop("images")
     elapsed = time.perf_counter() - start
 
     header = (
         f"# Paper reproduction ({size}x{size}, seeds {seeds[0]}..{seeds[-1]})\n\n"
         f"Machine: {platform.processor() or platform.machine()}, "
-        f"{__import__('os').cpu_count()} cores; total wall time {elapsed:.0f} s.\n"
+        f"{__import__('os').cpu_count()} cores; total wall time {elapsed:.0f} s with --jobs "
+        f"{args.jobs}.\n"
         "Paper numbers: section 6 of the paper (6-core Xeon, Julia/Zygote). The paper's loss "
         "values are on another scale and are not compared.\n"
     )

@@ -73,6 +73,14 @@ EDGES = {
 }
 
 
+#: the --jobs option of the scripts whose runs are independent (``render.inverse.parallel``)
+JOBS = {
+    "type": int,
+    "default": None,
+    "help": "worker processes for the independent runs (default: one per core; 1: serial)",
+}
+
+
 class FrameRecorder:
     """An ``optimize`` callback that keeps a downsampled frame every ``every`` iterations,
     for the animation."""

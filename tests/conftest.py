@@ -16,6 +16,12 @@ import os
 
 from hypothesis import HealthCheck, settings
 
+# Under pytest-xdist (``pytest -n 2``, the README's command) each worker process is one of
+# the cores: Numba's parallel kernels get one thread each instead of all of them twice over
+# (set before anything imports Numba; results do not depend on the thread count).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
+
 _COMMON = {"deadline": None, "suppress_health_check": [HealthCheck.too_slow]}
 settings.register_profile("dev", **_COMMON)
 settings.register_profile("ci", derandomize=True, **_COMMON)
