@@ -14,8 +14,11 @@ sees one operation with a hand-written derivative, like any of its own. Its ``jv
 minidiff's forward mode, so ``torch.func.jvp`` and ``torch.autograd.forward_ad`` work too;
 ``forward`` and ``setup_context`` are kept apart, as ``torch.func`` requires.
 
-* **Not twice differentiable** (``once_differentiable``): the backward is NumPy code,
-  invisible to PyTorch; a Hessian through the renderer is not available.
+* **Differentiable once**: the backward is NumPy code, invisible to PyTorch, so a second
+  derivative raises an error (``_FirstOrder``). This is stated by the pullback being an
+  ``autograd.Function`` whose own backward raises, not by ``@once_differentiable``: under
+  ``torch.func.grad(torch.func.grad(f))`` that decorator turns the second derivative into
+  a silent zero (measured with PyTorch 2.13), while the explicit error reaches both.
 * **dtypes**: tensors come and go in the function's dtype (``f.dtype``, float64 unless the
   scene is float32); a floating-point tensor of another dtype is an error naming its
   parameter, never a silent cast. Integer and boolean tensors are constants (no gradient).
@@ -34,7 +37,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from torch.autograd.function import once_differentiable
 
 import minidiff as md
 from render.inverse.function import RenderFunction
@@ -149,7 +151,6 @@ class _Render(torch.autograd.Function):
         ctx.set_materialize_grads(True)
 
     @staticmethod
-    @once_differentiable
     def backward(ctx, d_image: torch.Tensor, _d_pullback: Any):
         values = ctx.saved_tensors
         holder, ctx.pullback = _Pullback(ctx.pullback), None  # the tape is used once
@@ -175,7 +176,23 @@ class _Render(torch.autograd.Function):
         return (torch.stack(images), _Pullback()), (0, None)
 
 
-class _Pull(torch.autograd.Function):
+class _FirstOrder(torch.autograd.Function):
+    """What ``_Pull`` and ``_Push`` share: nothing to save, and no derivative of their own
+    (the renderer is differentiated once, by minidiff)."""
+
+    @staticmethod
+    def setup_context(ctx, inputs, output) -> None:
+        pass
+
+    @staticmethod
+    def backward(ctx, *_grads):
+        raise RuntimeError(
+            "render.torch: the renderer's derivative is not differentiable again (it is "
+            "minidiff's tape, which PyTorch cannot see): no second derivatives"
+        )
+
+
+class _Pull(_FirstOrder):
     """The pullback as a PyTorch operation, (core, holder, d_image, *values) -> one
     gradient per value (zeros for integer values): its NumPy work must run inside a
     ``forward``, where ``torch.func`` hands over plain tensors."""
@@ -191,19 +208,8 @@ class _Pull(torch.autograd.Function):
             for g, v in zip(grads, values, strict=True)
         )  # fmt: skip
 
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        pass
 
-    @staticmethod
-    def backward(ctx, *_grads):
-        raise RuntimeError(
-            "render.torch: the renderer's derivative is not differentiable again (its "
-            "backward is minidiff's tape, which PyTorch cannot see): no second derivatives"
-        )
-
-
-class _Push(torch.autograd.Function):
+class _Push(_FirstOrder):
     """The Jacobian-vector product as a PyTorch operation, (core, n, *values, *tangents) ->
     the image's tangent (minidiff's forward mode)."""
 
@@ -213,14 +219,3 @@ class _Push(torch.autograd.Function):
         moves = [None if t is None else _numpy(t) for t in tangents]
         _, d_image = core.jvp([_numpy(v) for v in values], moves)
         return torch.from_numpy(d_image).to(values[0].device)
-
-    @staticmethod
-    def setup_context(ctx, inputs, output) -> None:
-        pass
-
-    @staticmethod
-    def backward(ctx, *_grads):
-        raise RuntimeError(
-            "render.torch: the renderer's forward-mode derivative is not differentiable "
-            "again: no second derivatives"
-        )

@@ -269,10 +269,16 @@ def test_torch_conversions_are_explicit():
     assert image.dtype == torch.float64
     image.sum().backward()
     assert albedo.grad is not None
-    # once_differentiable: a second derivative is refused, not silently zero
+    # differentiable once: a second derivative is refused, never silently zero
     (g,) = torch.autograd.grad((f(position, albedo) ** 2).sum(), [albedo], create_graph=True)
-    with pytest.raises(RuntimeError, match="marked with @once_differentiable"):
+    with pytest.raises(RuntimeError, match="not differentiable again"):
         g.sum().backward()
+
+    def loss(p):
+        return (f(p, albedo.detach()) ** 2).sum()
+
+    with pytest.raises(RuntimeError, match="not differentiable again"):
+        torch.func.grad(lambda p: torch.func.grad(loss)(p).sum())(position.detach())
 
 
 # -- JAX --------------------------------------------------------------------------------
