@@ -282,3 +282,41 @@ def test_nothing_in_view_gives_no_boundary_term():
     scene = paper_scene(16, 16, camera_position=position, look_at=(3.0, 2.0, 10.0))
     image = render(scene, antialias="boundary")
     assert not image.requires_grad and np.array_equal(image.data, render(scene).data)
+
+
+def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
+    """Dropping the smooth mesh's non-silhouette edges (``continuous_creases``) changes the
+    boundary term by rounding only: their two sides were shaded alike. Flat-shaded meshes
+    and meshes whose faces do not share the edge's vertex ids keep every edge."""
+    from render.edges import boundary
+    from render.inverse.shape import icosphere
+    from render.trace.topology import mesh_edges
+
+    vertices, faces = icosphere(2)
+    mesh = Mesh(md.tensor(vertices, requires_grad=True), faces,
+                       Material((0.6, 0.5, 0.4), specular=0.3), smooth=True)  # fmt: skip
+    camera = Camera((0.3, 0.8, 3.0), (0, 0, 0), (0, 1, 0), fov=40.0, width=40, height=40)
+    scene = Scene([mesh], [PointLight((2, 3, 2), 10.0)], camera)
+
+    def grad():
+        mesh.vertices.grad = None
+        image = render(scene, antialias="boundary", reuse_visibility=False)
+        (image * np.linspace(0.0, 1.0, image.size).reshape(image.shape)).sum().backward()
+        return mesh.vertices.grad
+
+    culled = grad()
+    eye = np.asarray(camera.position.data)
+    table = boundary.edge_table(mesh, mesh_edges(vertices, faces))
+    dropped = boundary.continuous_creases(mesh, table, eye)
+    assert dropped.mean() > 0.7  # most edges of a smooth sphere are no silhouette
+    monkeypatch.setattr(boundary, "continuous_creases", lambda m, t, e: np.zeros(len(t.i), bool))
+    full = grad()
+    assert np.abs(culled - full).max() <= 1e-9 * np.abs(full).max()
+    monkeypatch.undo()
+    mesh.smooth = False
+    assert not boundary.continuous_creases(mesh, table, eye).any()
+    mesh.smooth = True
+    unwelded = Mesh(vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3),
+                           mesh.material, smooth=True)  # fmt: skip
+    table = boundary.edge_table(unwelded, mesh_edges(unwelded.vertices.data, unwelded.faces))
+    assert not boundary.continuous_creases(unwelded, table, eye).any()

@@ -439,14 +439,38 @@ def edge_table(mesh, topology) -> EdgeTable:
                      table_faces, thirds)  # fmt: skip
 
 
+def continuous_creases(mesh, table: EdgeTable, eye: np.ndarray) -> np.ndarray:
+    """(E,) bool: the edges of a smooth-shaded mesh across which the image cannot jump, so
+    that they need no quadrature points: manifold edges whose two faces share the edge's
+    vertex ids, wind consistently (one i -> j, the other j -> i) and lie on either side of
+    the plane through the eye and the edge (not a silhouette from this eye). Normals and
+    UVs are per vertex id, so both faces interpolate the same values along the edge and
+    their shading agrees there exactly; both face the eye alike, so neither is flipped
+    alone. (Their f_+ - f_- was zero up to rounding: dropping them changes the term by
+    rounding only, and saves the rays and shading of most points of a smooth mesh.)"""
+    if not mesh.smooth or table.faces.shape[1] < 2:
+        return np.zeros(len(table.i), dtype=bool)
+    two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
+    second = mesh.faces[np.maximum(table.faces[:, 1], 0)]  # (E, 3) vertex ids
+    following = np.roll(second, -1, axis=1)  # each corner's next corner
+    reversed_edge = np.any((second == table.j[:, None]) & (following == table.i[:, None]), axis=1)
+    vertices = np.asarray(mesh.vertices.data, np.float64)
+    a, b = vertices[table.i], vertices[table.j]
+    m = np.cross(a - eye, b - eye)
+    thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
+    side = np.einsum("ekj,ej->ek", thirds - eye, m)
+    return two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
+
+
 def _edge_curves(scene: Scene, frame, tables: list[EdgeTable], size: float):
     """2-D segments (pixel coordinates) of every candidate edge in front of the eye, and
-    per mesh the rows of its table that were kept."""
+    per mesh the rows of its table that were kept (``continuous_creases`` are left out)."""
     camera = scene.camera
     starts, ends, kept = [], [], []
     for mesh, table in zip(scene.meshes, tables, strict=True):
         vertices = np.asarray(mesh.vertices.data, np.float64)
         a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * size)
+        keep = keep & ~continuous_creases(mesh, table, frame[3])
         starts.append(project(a[keep], frame, camera.width, camera.height)[0])
         ends.append(project(b[keep], frame, camera.width, camera.height)[0])
         kept.append(np.flatnonzero(keep))
