@@ -82,7 +82,7 @@ def run(args) -> dict:
     r |= time_without_bvh(size, brute_repeats)
     r["brute_visibility"] = time_brute_visibility(w, brute_repeats, warmup=0)
     r |= time_material_iteration(size, repeats)
-    variants = list(THREADING_VARIANTS)[:2] if args.quick else list(THREADING_VARIANTS)
+    variants = list(THREADING_VARIANTS)[:1] if args.quick else list(THREADING_VARIANTS)
     r["threading"] = {
         label: timing.in_fresh_process(
             threading_worker, THREADING_VARIANTS[label], size=size, repeats=repeats
