@@ -243,3 +243,28 @@ def test_the_numba_walk_equals_the_numpy_walk(size):
             np.testing.assert_allclose(x, y, rtol=0, atol=1e-12)
     assert (slow[1] >= 0).sum() > 50  # silhouettes were found
     assert (slow[3][1] >= 0).sum() > 50  # and creases
+
+
+def test_topology_is_reused_while_the_welding_holds():
+    """``mesh_topology`` recomputes only the welding when vertices move; the edge structure
+    it returns always equals ``mesh_edges`` of the current vertices (also after two vertices
+    merge, which changes the welding)."""
+    from types import SimpleNamespace
+
+    from render.edges.terms import mesh_topology
+    from render.scene.cache import RenderCache
+
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [2, 0, 0]], float)
+    faces = np.array([[0, 1, 2], [1, 3, 2], [1, 4, 3]])
+    mesh = render.Mesh(vertices, faces, render.Material((0.5, 0.5, 0.5)))
+    scene = render.Scene(
+        [mesh], [], render.Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), fov=40.0, width=8, height=8)
+    )
+    cache = RenderCache()
+    for step, moved in enumerate([vertices, vertices * 1.1, np.r_[vertices[:4], vertices[[3]]]]):
+        mesh.vertices.data = moved
+        got = mesh_topology(scene, SimpleNamespace(geometry=np.array([step])), cache)[0]
+        want = mesh_edges(moved, faces)
+        for name in ("edge_group", "neighbour", "neighbour_edge", "shared_ids", "welded"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
+        assert got.n_groups == want.n_groups

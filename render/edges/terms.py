@@ -30,7 +30,7 @@ from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_upda
 from render.scene.cache import RenderCache, light_key
 from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
-from render.trace.topology import mesh_edges
+from render.trace.topology import edge_structure, welding
 from render.trace.visibility import Visibility
 
 
@@ -46,12 +46,22 @@ class EdgeDecisions:
 
 def mesh_topology(scene: Scene, visibility: Visibility, cache: RenderCache) -> dict:
     """``mesh_edges`` per mesh index in ``scene.meshes``, reused from ``cache`` while the
-    geometry is unchanged."""
-    topology, _ = cache.get(
-        "topology",
-        [visibility.geometry],
-        lambda: {i: mesh_edges(m.vertices.data, m.faces) for i, m in enumerate(scene.meshes)},
-    )
+    geometry is unchanged, and while a mesh's faces and their ``welding`` are (vertices
+    that move without merging or collapsing a face, as in a shape optimisation: only the
+    welding is computed again)."""
+
+    def per_mesh() -> dict:
+        out = {}
+        for i, mesh in enumerate(scene.meshes):
+            ids, degenerate = welding(mesh.vertices.data, mesh.faces)
+            out[i], _ = cache.get(
+                ("topology", i),
+                [mesh.faces, ids, degenerate],
+                lambda f=mesh.faces, w=ids, d=degenerate: edge_structure(f, w, d),
+            )
+        return out
+
+    topology, _ = cache.get("topology", [visibility.geometry], per_mesh)
     return topology
 
 

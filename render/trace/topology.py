@@ -69,6 +69,14 @@ def _scale(vertices: np.ndarray) -> float:
 
 def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
     """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3)."""
+    return edge_structure(faces, *welding(vertices, faces))
+
+
+def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """All that ``mesh_edges`` needs from the vertex positions: each corner's welded vertex
+    id (F, 3) int64 and which faces are degenerate (F,) bool (a welded edge, or an area
+    below ``_DEGENERATE_AREA`` of the mesh's squared size). While a shape moves, these
+    rarely change, so the rest (``edge_structure``) can be reused."""
     scale = _scale(vertices)
     ids = welded_ids(vertices)[faces]  # (F, 3) welded vertex ids
     corners = vertices[faces]
@@ -78,6 +86,11 @@ def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
     degenerate = (
         (ids[:, 0] == ids[:, 1]) | (ids[:, 1] == ids[:, 2]) | (ids[:, 2] == ids[:, 0])
     ) | (area <= _DEGENERATE_AREA * scale * scale)
+    return ids, degenerate
+
+
+def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -> MeshEdges:
+    """``MeshEdges`` from the faces (F, 3) and their ``welding``."""
     a, b = ids, np.roll(ids, -1, axis=1)  # edge k joins corner k and corner k + 1
     pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=-1).reshape(-1, 2)
     _, group = np.unique(pairs, axis=0, return_inverse=True)
