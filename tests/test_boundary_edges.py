@@ -306,7 +306,7 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
 
     culled = grad()
     eye = np.asarray(camera.position.data)
-    table = boundary.edge_table(mesh, mesh_edges(vertices, faces))
+    table = mesh_edges(vertices, faces).table
     dropped = boundary.continuous_creases(mesh, table, eye)
     assert dropped.mean() > 0.7  # most edges of a smooth sphere are no silhouette
     monkeypatch.setattr(boundary, "continuous_creases", lambda m, t, e: np.zeros(len(t.i), bool))
@@ -318,5 +318,5 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
     mesh.smooth = True
     unwelded = Mesh(vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3),
                            mesh.material, smooth=True)  # fmt: skip
-    table = boundary.edge_table(unwelded, mesh_edges(unwelded.vertices.data, unwelded.faces))
+    table = mesh_edges(unwelded.vertices.data, unwelded.faces).table
     assert not boundary.continuous_creases(unwelded, table, eye).any()

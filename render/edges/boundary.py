@@ -67,6 +67,7 @@ from render.scene.camera import ray_directions
 from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
+from render.trace.topology import EdgeTable
 from render.trace.visibility import PrimaryHits, Visibility
 
 #: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
@@ -399,46 +400,6 @@ def radiance_at(
 # ---------------------------------------------------------------------------------------
 
 
-@dataclass
-class EdgeTable:
-    """The welded edges of one mesh, one row per edge, with every face on it.
-
-    i, j (E,) int64: the edge's vertex ids (as its first face has them).
-    faces (E, K) int64: the faces on the edge (local ids), -1 padding: one on an open
-        boundary, two on a manifold edge, more where surfaces meet along it (a knob
-        standing on a lid).
-    thirds (E, K) int64: each face's vertex off the edge (-1 padding).
-    """
-
-    i: np.ndarray
-    j: np.ndarray
-    faces: np.ndarray
-    thirds: np.ndarray
-
-
-def edge_table(mesh, topology) -> EdgeTable:
-    """Every welded edge of ``mesh`` with the faces on it (degenerate faces left out).
-    All of them are candidates: on a flat-shaded mesh every fold is a crease, and any edge
-    may be a silhouette, seen from the right side."""
-    faces = mesh.faces
-    group = topology.edge_group.reshape(-1)
-    slots = np.flatnonzero(group >= 0)
-    slots = slots[np.argsort(group[slots], kind="stable")]
-    g = group[slots]
-    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
-    count = np.diff(np.r_[starts, len(g)])
-    rank = np.arange(len(g)) - np.repeat(starts, count)
-    row = np.repeat(np.arange(len(starts)), count)
-    f, k = slots // 3, slots % 3
-    table_faces = np.full((len(starts), int(count.max(initial=1))), -1, np.int64)
-    thirds = np.full_like(table_faces, -1)
-    table_faces[row, rank] = f
-    thirds[row, rank] = faces[f, (k + 2) % 3]
-    first = slots[starts]
-    return EdgeTable(faces[first // 3, first % 3], faces[first // 3, (first % 3 + 1) % 3],
-                     table_faces, thirds)  # fmt: skip
-
-
 def continuous_creases(mesh, table: EdgeTable, eye: np.ndarray) -> np.ndarray:
     """(E,) bool: the edges of a smooth-shaded mesh across which the image cannot jump, so
     that they need no quadrature points: manifold edges whose two faces share the edge's
@@ -671,7 +632,7 @@ def boundary_points(
     width, height = camera.width, camera.height
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
-    tables = [edge_table(mesh, topology[k]) for k, mesh in enumerate(scene.meshes)]
+    tables = [topology[k].table for k in range(len(scene.meshes))]
     starts, ends, kept = _edge_curves(scene, plain, tables, size)
     n_edges = [len(s) for s in starts]
     pairs, segments = crossings

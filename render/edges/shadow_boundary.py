@@ -48,7 +48,6 @@ import minidiff as md
 from render.edges.boundary import (
     EPSILON,
     _pixel_gradient,
-    edge_table,
     plain_camera,
     project,
     radiance_at,
@@ -106,7 +105,7 @@ def _light_silhouettes(scene: Scene, topology, light):
     point = isinstance(light, PointLight)
     where = np.asarray(light.position.data if point else light.direction.data, np.float64)
     for k, mesh in enumerate(scene.meshes):
-        table = edge_table(mesh, topology[k])
+        table = topology[k].table
         vertices = np.asarray(mesh.vertices.data, np.float64)
         faces = np.maximum(table.faces, 0)
         tri = vertices[mesh.faces[faces]]  # (E, K, 3, 3)

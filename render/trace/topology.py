@@ -40,6 +40,8 @@ class MeshEdges:
     shared_ids (F, 3) bool: the neighbour uses the same two vertex ids on that edge, so
         per-vertex attributes (smooth normals, UVs) are continuous across it.
     welded (F, 3) int64: each corner's welded vertex id.
+    table: the same edges seen from the other side: one row per welded edge, with every
+        face on it (``EdgeTable``; the boundary integral's candidates).
     """
 
     edge_group: np.ndarray
@@ -48,6 +50,46 @@ class MeshEdges:
     neighbour_edge: np.ndarray
     shared_ids: np.ndarray
     welded: np.ndarray
+    table: EdgeTable
+
+
+@dataclass
+class EdgeTable:
+    """The welded edges of one mesh, one row per edge, with every face on it (degenerate
+    faces left out).
+
+    i, j (E,) int64: the edge's vertex ids (as its first face has them).
+    faces (E, K) int64: the faces on the edge (local ids), -1 padding: one on an open
+        boundary, two on a manifold edge, more where surfaces meet along it (a knob
+        standing on a lid).
+    thirds (E, K) int64: each face's vertex off the edge (-1 padding).
+    """
+
+    i: np.ndarray
+    j: np.ndarray
+    faces: np.ndarray
+    thirds: np.ndarray
+
+
+def edge_table(faces: np.ndarray, edge_group: np.ndarray) -> EdgeTable:
+    """The ``EdgeTable`` of faces (F, 3) whose edges lie on welded edges ``edge_group``
+    (F, 3) (-1: a degenerate face's)."""
+    group = edge_group.reshape(-1)
+    slots = np.flatnonzero(group >= 0)
+    slots = slots[np.argsort(group[slots], kind="stable")]
+    g = group[slots]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    count = np.diff(np.r_[starts, len(g)])
+    rank = np.arange(len(g)) - np.repeat(starts, count)
+    row = np.repeat(np.arange(len(starts)), count)
+    f, k = slots // 3, slots % 3
+    table_faces = np.full((len(starts), int(count.max(initial=1))), -1, np.int64)
+    thirds = np.full_like(table_faces, -1)
+    table_faces[row, rank] = f
+    thirds[row, rank] = faces[f, (k + 2) % 3]
+    first = slots[starts]
+    return EdgeTable(faces[first // 3, first % 3], faces[first // 3, (first % 3 + 1) % 3],
+                     table_faces, thirds)  # fmt: skip
 
 
 def welded_ids(vertices: np.ndarray) -> np.ndarray:
@@ -116,7 +158,9 @@ def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -
     f, k = np.maximum(neighbour, 0), np.maximum(neighbour_edge, 0)
     na, nb = a_ids[f, k], b_ids[f, k]
     shared = (neighbour >= 0) & (((na == b_ids) & (nb == a_ids)) | ((na == a_ids) & (nb == b_ids)))
-    return MeshEdges(group, n_groups, neighbour, neighbour_edge, shared, ids)
+    return MeshEdges(
+        group, n_groups, neighbour, neighbour_edge, shared, ids, edge_table(faces, group)
+    )
 
 
 def silhouette_edges(
