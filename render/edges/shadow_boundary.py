@@ -97,20 +97,31 @@ class ShadowPoints:
 # ---------------------------------------------------------------------------------------
 
 
-def _light_silhouettes(scene: Scene, topology, light):
+def _edge_faces(scene: Scene, topology) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per mesh, for every face on every welded edge (``EdgeTable.faces``, (E, K)): its
+    normal (E, K, 3) and first corner (E, K, 3); the same for every light, so computed once
+    per render."""
+    out = []
+    for k, mesh in enumerate(scene.meshes):
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        tri = vertices[mesh.faces[np.maximum(topology[k].table.faces, 0)]]  # (E, K, 3, 3)
+        normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
+        out.append((normal, tri[..., 0, :]))
+    return out
+
+
+def _light_silhouettes(scene: Scene, topology, light, edge_faces):
     """Occluder curves of one light: (occluder (c, 3) int64 as in ``ShadowPoints``, curve
     kind per row: 0 a segment from ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius
-    vector ``b`` and second axis ``axis`` (c, 3))."""
+    vector ``b`` and second axis ``axis`` (c, 3)). ``edge_faces``: ``_edge_faces``."""
     rows, a, b, axis = [], [], [], []
     point = isinstance(light, PointLight)
     where = np.asarray(light.position.data if point else light.direction.data, np.float64)
     for k, mesh in enumerate(scene.meshes):
         table = topology[k].table
         vertices = np.asarray(mesh.vertices.data, np.float64)
-        faces = np.maximum(table.faces, 0)
-        tri = vertices[mesh.faces[faces]]  # (E, K, 3, 3)
-        normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
-        towards = (where - tri[..., 0, :]) if point else -where
+        normal, corner = edge_faces[k]
+        towards = (where - corner) if point else -where
         facing = np.sign(np.sum(normal * towards, axis=-1))
         valid = table.faces >= 0
         lit = np.any(valid & (facing > 0), axis=1)
@@ -326,8 +337,9 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
     parts = []
+    edge_faces = _edge_faces(scene, topology) if visibility.shadows and scene.lights else None
     for j, light in enumerate(scene.lights if visibility.shadows else []):
-        curves = _light_silhouettes(scene, topology, light)
+        curves = _light_silhouettes(scene, topology, light, edge_faces)
         if len(curves[0]) == 0:
             continue
         x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, light, curves)
