@@ -185,7 +185,7 @@ def test_core_errors_name_the_parameter():
         f.vjp(VALUES[:2], np.ones((3, 3, 3)))
 
 
-def test_core_float32_scene_computes_in_float32():
+def _float32_scene() -> render.Scene:
     leaves = {
         k: md.tensor(np.asarray(v, np.float32))
         for k, v in dict(light_position=(2, 5, 3), light_intensity=100.0, albedo=(0.7, 0.3, 0.3),
@@ -194,7 +194,11 @@ def test_core_float32_scene_computes_in_float32():
     scene = render.paper_scene(SIZE, SIZE, **leaves)
     for t in scene.parameters():  # the camera's up and fov, the background
         t.data = t.data.astype(np.float32)
-    f = RenderFunction(scene, NAMES[:1])
+    return scene
+
+
+def test_core_float32_scene_computes_in_float32():
+    f = RenderFunction(_float32_scene(), NAMES[:1])
     assert f.dtype == np.float32
     image = f(VALUES[0].astype(np.float32))
     assert image.dtype == np.float32
@@ -252,6 +256,21 @@ def test_torch_gradcheck_and_torch_func():
     assert torch.equal(mapped, looped)
     batched = f(positions, plain[1])  # a leading batch dimension loops the same way
     assert torch.equal(batched, looped)
+
+
+def test_torch_float32_scene_takes_and_gives_float32():
+    f = rtorch.function(_float32_scene(), NAMES[:1], antialias="boundary")
+    position = torch.tensor([2.0, 5.0, 3.0], requires_grad=True)  # float32
+    image = f(position)
+    assert image.dtype == torch.float32 and f.dtype == torch.float32
+    image.sum().backward()
+    assert position.grad.dtype == torch.float32 and torch.isfinite(position.grad).all()
+    (want,) = RenderFunction(_float32_scene(), NAMES[:1], antialias="boundary").vjp(
+        [VALUES[0].astype(np.float32)], np.ones((SIZE, SIZE, 3), np.float32)
+    )
+    np.testing.assert_array_equal(position.grad.numpy(), want)
+    with pytest.raises(TypeError, match="is torch.float64 but this function computes in"):
+        f(position.double())
 
 
 def test_torch_conversions_are_explicit():
