@@ -760,25 +760,28 @@ def _mesh_edge_factors(
     a, b = a[seen, None], b[seen, None]
     normals = np.cross(b - a, vertices[np.maximum(thirds, 0)] - a)  # (n, K, 3)
     rate = _approach(normals, directions[seen, None], towards[:, None])  # (n, K)
-    n = len(seen)
-    colour = {}
+    # Both sides at once: one shading pass for the sides with a face (shaded at the edge
+    # point), one for the sides without (what a ray just beyond the edge sees).
+    faced, beyond = [], []  # (side rows into 2n, ...) for the two kinds
     for sign in (1.0, -1.0):
         on_side = valid & (side == sign)
-        score = np.where(on_side, sign * rate, -np.inf)
-        best = np.argmax(score, axis=1)
+        best = np.argmax(np.where(on_side, sign * rate, -np.inf), axis=1)
         has = on_side.any(axis=1)
-        colour[sign] = np.empty((n, 3))
+        offset = 0 if sign > 0 else len(seen)
         rows = np.flatnonzero(has)
-        colour[sign][rows] = shade_seen(
-            scene, visibility, frame, coords[rows], faces[rows, best[rows]] + first_prim,
-            depth[rows], max_bounces,
-        )  # fmt: skip
-        rows = np.flatnonzero(~has)
-        colour[sign][rows] = radiance_at(
-            scene, visibility, frame, coords[rows] + sign * EPSILON * step[rows], max_bounces
+        faced.append(
+            (rows + offset, coords[rows], faces[rows, best[rows]] + first_prim, depth[rows])
         )
+        rows = np.flatnonzero(~has)
+        beyond.append((rows + offset, coords[rows] + sign * EPSILON * step[rows]))
+    colour = np.empty((2 * len(seen), 3))
+    rows, at, prims, depths = (np.concatenate(x) for x in zip(*faced, strict=True))
+    colour[rows] = shade_seen(scene, visibility, frame, at, prims, depths, max_bounces)
+    rows, at = (np.concatenate(x) for x in zip(*beyond, strict=True))
+    colour[rows] = radiance_at(scene, visibility, frame, at, max_bounces)
     out = np.zeros((len(hidden), 3))
-    out[seen] = (weight[seen] / norm[seen])[:, None] * (colour[1.0] - colour[-1.0])
+    jump = colour[: len(seen)] - colour[len(seen) :]
+    out[seen] = (weight[seen] / norm[seen])[:, None] * jump
     return out
 
 
