@@ -23,16 +23,15 @@ import numpy as np
 from PIL import Image
 from script_support import command_line, write_results
 
-import minidiff as md
 from render.inverse.plot import line_plot
 from render.networks import (
     field_setup,
     field_texture,
+    held_out_renders,
     init_mlp,
     train_field_minidiff,
     train_field_torch,
 )
-from render.renderer import render
 from render.scene.image import save_image
 
 EXTRA = {
@@ -40,17 +39,6 @@ EXTRA = {
     "--views": {"type": int, "default": 8, "help": "training views"},
     "--quick": {"action": "store_true", "help": "a short small run (not results)"},
 }
-
-
-def _renders(setup, texture: np.ndarray) -> list[np.ndarray]:
-    """The held-out views with ``texture`` on the teapot."""
-    material = setup.mesh.material
-    kept, material.texture = material.texture, md.tensor(texture)
-    try:
-        with md.no_grad():
-            return [render(s).data for s in setup.held_out]
-    finally:
-        material.texture = kept
 
 
 def main(argv=None) -> dict:
@@ -76,9 +64,9 @@ def main(argv=None) -> dict:
     }  # fmt: skip
     out = args.out / "neural_field"
     out.mkdir(parents=True, exist_ok=True)
-    start = _renders(setup, field_texture(setup, weights))
-    rows = [setup.held_out_targets, start, _renders(setup, mine["texture"])]
-    rows.append(_renders(setup, field_texture(setup, theirs["weights"])))
+    start = held_out_renders(setup, field_texture(setup, weights))
+    rows = [setup.held_out_targets, start, held_out_renders(setup, mine["texture"])]
+    rows.append(held_out_renders(setup, field_texture(setup, theirs["weights"])))
     grid = np.concatenate([np.concatenate(list(r), axis=1) for r in rows], axis=0)
     save_image(np.clip(grid, 0.0, 1.0), out / "neural_field.png")
     steps = np.arange(len(a))

@@ -35,8 +35,8 @@ from render.scene.teapot import paper_scene, teapot_atlas, teapot_geometry
 
 __all__ = [
     "pattern", "fourier_features", "init_mlp", "mlp", "FieldSetup", "field_setup",
-    "field_texture", "train_field_minidiff", "train_field_torch", "train_light_network",
-    "FIELD_LIGHTS", "LIGHT_BOX",
+    "field_texture", "held_out_renders", "train_field_minidiff", "train_field_torch",
+    "train_light_network", "FIELD_LIGHTS", "LIGHT_BOX",
 ]  # fmt: skip
 
 
@@ -141,16 +141,24 @@ def field_setup(
     return FieldSetup(train, targets, other, other_targets, features, points.shape, mesh, sizes)
 
 
-def _held_out_psnr(setup: FieldSetup, texture: np.ndarray) -> float:
-    """Mean PSNR (dB) of the held-out views rendered with ``texture``."""
+def held_out_renders(
+    setup: FieldSetup, texture: np.ndarray, views: list[Scene] | None = None
+) -> list[np.ndarray]:
+    """The held-out views (or ``views``) rendered with ``texture`` on the teapot, without a
+    tape; the material's own texture is put back afterwards."""
     material = setup.mesh.material
     kept = material.texture
     material.texture = md.tensor(texture)
     try:
         with md.no_grad():
-            images = [render(s).data for s in setup.held_out]
+            return [render(s).data for s in (setup.held_out if views is None else views)]
     finally:
         material.texture = kept
+
+
+def _held_out_psnr(setup: FieldSetup, texture: np.ndarray) -> float:
+    """Mean PSNR (dB) of the held-out views rendered with ``texture``."""
+    images = held_out_renders(setup, texture)
     return float(np.mean([psnr(i, t) for i, t in zip(images, setup.held_out_targets, strict=True)]))
 
 
@@ -188,14 +196,9 @@ def train_field_minidiff(
     finally:
         material.texture = kept
     final = [p.data.copy() for p in params]
-    with md.no_grad():
-        texture = md.reshape(mlp([md.tensor(w) for w in final], features), setup.atlas_shape).data
-    frames_out = []
-    for snap in snapshots:
-        material.texture = md.tensor(snap)
-        with md.no_grad():
-            frames_out.append(render(setup.held_out[0]).data)
-    material.texture = kept
+    texture = field_texture(setup, final)
+    first_view = setup.held_out[:1]
+    frames_out = [held_out_renders(setup, snap, first_view)[0] for snap in snapshots]
     return {
         "loss": losses, "seconds": seconds, "weights": final, "texture": texture,
         "held_out_psnr_start": _held_out_psnr(setup, field_texture(setup, weights)),

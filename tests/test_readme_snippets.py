@@ -52,6 +52,11 @@ def test_readme_jax_snippet_runs():
     _run(README[1])
 
 
-@pytest.mark.parametrize("k", range(len(BRIDGES)))
-def test_docs_bridges_blocks_run(k):
-    _run(BRIDGES[k])
+#: What each block of docs/bridges.md prints last, as its comments say.
+BRIDGES_PRINT = ["True", "tensor([2., 4., 6.]", "[ 0.  3. 12.]"]
+
+
+@pytest.mark.parametrize("k", range(len(BRIDGES_PRINT)))
+def test_docs_bridges_blocks_print_what_they_say(k):
+    assert len(BRIDGES) == len(BRIDGES_PRINT), "a block of docs/bridges.md without its check"
+    assert BRIDGES_PRINT[k] in _run(BRIDGES[k]).strip().splitlines()[-1]

@@ -113,11 +113,6 @@ class RenderFunction:
 
     # -- checking values -------------------------------------------------------------------
 
-    def differentiable(self, values: Sequence[Any]) -> tuple[bool, ...]:
-        """For each value, whether it gets a derivative: floating-point values do, integer
-        and boolean ones (constants) do not."""
-        return tuple(np.asarray(v).dtype.kind == "f" for v in self.check_values(values))
-
     def check_values(self, values: Sequence[Any], where: str = "RenderFunction") -> list:
         """The values as ndarrays, checked: one per parameter, each of its parameter's shape,
         floating-point of ``dtype`` or integer/boolean; errors name the parameter."""
@@ -241,7 +236,7 @@ class RenderFunction:
 
     def _image_array(self, value: Any, what: str, where: str) -> np.ndarray:
         array = np.asarray(value)
-        if array.dtype.kind != "f" or array.dtype != self.dtype:
+        if array.dtype != self.dtype:
             raise TypeError(f"{where}: {what} must be {self.dtype}, got {array.dtype}")
         if array.shape != self.image_shape:
             raise ValueError(

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 import minidiff as md
+from render.inverse.parallel import check_jobs
 from render.renderer import render
 from render.scene.image import load_image, mse
 from render.scene.scene import Scene
@@ -109,7 +110,7 @@ def optimize(
     render_kwargs: dict | None = None,
     batch: int | None = None,
     seed: int = 0,
-    jobs: int = 1,
+    jobs: int | None = 1,
 ) -> tuple[list[md.Tensor], History]:
     """Fit ``params`` so that the rendered image matches ``target`` (Algorithm 1).
 
@@ -130,8 +131,8 @@ def optimize(
         replacement (stochastic gradient: the loss and gradient of that batch; the draws
         come from ``seed``, so a run repeats exactly). None: every view, every iteration.
     jobs: with views, how many threads render the views of one iteration (1: one after
-        the other; the backward pass is one, over the sum, in the calling thread). The
-        result is the same for any ``jobs``.
+        the other; None: one per core; the backward pass is one, over the sum, in the
+        calling thread). The result is the same for any ``jobs``.
     Returns (params, history). Raises ``OptimizationError`` (with ``.history``) if a step
     fails, e.g. on a NaN gradient; ValueError if a parameter is in no scene, or a target
     does not have its view's image size.
@@ -147,7 +148,7 @@ def optimize(
     if isinstance(max_iters, bool) or not isinstance(max_iters, int) or max_iters < 0:
         raise ValueError(f"optimize: max_iters must be an int >= 0, got {max_iters!r}")
     draw = _batches(len(views), batch, seed)
-    jobs = _check_jobs(jobs)
+    jobs = check_jobs(jobs, "optimize: jobs")
     params = list(params)
     opt = optimizer if optimizer is not None else md.optim.Adam(params, lr=lr, project=project)
 
@@ -246,12 +247,6 @@ def _batches(n: int, batch: int | None, seed: int) -> Callable[[], list[int]]:
         raise ValueError(f"optimize: batch must be an int in [1, {n}] (the views), got {batch!r}")
     rng = np.random.default_rng(seed)
     return lambda: sorted(int(i) for i in rng.choice(n, size=int(batch), replace=False))
-
-
-def _check_jobs(jobs) -> int:
-    if isinstance(jobs, bool) or not isinstance(jobs, int | np.integer) or jobs < 1:
-        raise ValueError(f"optimize: jobs must be an int >= 1, got {jobs!r}")
-    return int(jobs)
 
 
 def _mean_loss(views: list[_View], loss_fn, jobs: int) -> tuple[md.Tensor, list[np.ndarray]]:

@@ -26,6 +26,8 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, ProcessPoolExecutor
 from typing import TypeVar
 
+import numpy as np
+
 T = TypeVar("T")
 
 __all__ = ["run_ordered", "process_pool", "check_jobs"]
@@ -72,9 +74,9 @@ def check_jobs(jobs, where: str = "jobs") -> int:
     """``jobs`` as an int >= 1 (None: the number of cores)."""
     if jobs is None:
         return os.cpu_count() or 1
-    if isinstance(jobs, bool) or not isinstance(jobs, int) or jobs < 1:
+    if isinstance(jobs, bool) or not isinstance(jobs, int | np.integer) or jobs < 1:
         raise ValueError(f"{where} must be an int >= 1, got {jobs!r}")
-    return jobs
+    return int(jobs)
 
 
 def process_pool(jobs: int | None = None) -> ProcessPoolExecutor:

@@ -71,13 +71,17 @@ class EdgeTable:
     thirds: np.ndarray
 
 
-def edge_table(faces: np.ndarray, edge_group: np.ndarray) -> EdgeTable:
-    """The ``EdgeTable`` of faces (F, 3) whose edges lie on welded edges ``edge_group``
-    (F, 3) (-1: a degenerate face's)."""
+def _sorted_slots(edge_group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The (face, edge) slots f * 3 + k of the non-degenerate edges, sorted by welded edge
+    (stable), and their welded edge ids."""
     group = edge_group.reshape(-1)
     slots = np.flatnonzero(group >= 0)
     slots = slots[np.argsort(group[slots], kind="stable")]
-    g = group[slots]
+    return slots, group[slots]
+
+
+def _edge_table(faces: np.ndarray, slots: np.ndarray, g: np.ndarray) -> EdgeTable:
+    """The ``EdgeTable`` of faces (F, 3) from their ``_sorted_slots``."""
     starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
     count = np.diff(np.r_[starts, len(g)])
     rank = np.arange(len(g)) - np.repeat(starts, count)
@@ -141,9 +145,7 @@ def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -
     n_groups = int(group.max()) + 1 if group.size else 0
 
     # Pair up the two (face, edge) slots of each manifold welded edge.
-    slots = np.flatnonzero(group.reshape(-1) >= 0)
-    slots = slots[np.argsort(group.reshape(-1)[slots], kind="stable")]
-    g = group.reshape(-1)[slots]
+    slots, g = _sorted_slots(group)
     count = np.bincount(g, minlength=n_groups)
     first = slots[:-1][(g[:-1] == g[1:]) & (count[g[:-1]] == 2)]
     second = slots[1:][(g[:-1] == g[1:]) & (count[g[1:]] == 2)]
@@ -159,7 +161,7 @@ def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -
     na, nb = a_ids[f, k], b_ids[f, k]
     shared = (neighbour >= 0) & (((na == b_ids) & (nb == a_ids)) | ((na == a_ids) & (nb == b_ids)))
     return MeshEdges(
-        group, n_groups, neighbour, neighbour_edge, shared, ids, edge_table(faces, group)
+        group, n_groups, neighbour, neighbour_edge, shared, ids, _edge_table(faces, slots, g)
     )
 
 
