@@ -148,7 +148,6 @@ class _Render(torch.autograd.Function):
         ctx.core, ctx.pullback = core, output[1].pullback
         ctx.save_for_backward(*values)
         ctx.save_for_forward(*values)
-        ctx.set_materialize_grads(True)
 
     @staticmethod
     def backward(ctx, d_image: torch.Tensor, _d_pullback: Any):
