@@ -38,6 +38,7 @@ from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
 from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms
 from render.film import image_from_hits, pixel_means, sample_colours
+from render.path.integrator import render_path
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame, subpixel_offsets
 from render.scene.placement import placed
@@ -60,6 +61,8 @@ def render(
     antialias: bool | str = False,
     max_bounces: int = 2,
     primary: str = "auto",
+    integrator: str = "direct",
+    **path_options,
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
 
@@ -90,11 +93,27 @@ def render(
         when there are at least 16 camera rays per primitive
         (``RASTER_RAYS_PER_PRIMITIVE``). With ``bvh=False`` both are brute force.
 
+    integrator: "direct" (default): the renderer above, the paper's; "path": a Monte Carlo
+        path tracer with area lights (emissive materials), indirect light and the
+        background as a constant environment (``render.path.render_path``: ``spp`` paths
+        per pixel, any integer >= 1, and its options ``max_depth``, ``seed``,
+        ``rr_depth``, ``batch_spp`` as keywords; the options above that belong to the
+        direct renderer must keep their defaults).
+
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
     when the caller runs ``backward`` on a loss computed from the image.
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
+    if integrator == "path":
+        _check_direct_defaults(bvh, shadows, return_info, antialias, max_bounces, primary)
+        return render_path(scene, spp, **path_options)
+    if integrator != "direct":
+        raise ValueError(f'render: integrator must be "direct" or "path", got {integrator!r}')
+    if path_options:
+        raise TypeError(
+            f"render: {', '.join(sorted(path_options))} only apply to integrator=\"path\""
+        )
     scene.validate()
     subpixel_offsets(spp)  # a clear error for a bad spp before anything else
     check_ray_count(scene.camera.width, scene.camera.height, spp)
@@ -129,6 +148,20 @@ def _differentiated(scene: Scene) -> bool:
     one it would change nothing."""
     grad = md.is_grad_enabled()
     return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
+
+
+def _check_direct_defaults(bvh, shadows, return_info, antialias, max_bounces, primary) -> None:
+    """The path integrator has its own answers to these: refuse rather than ignore them."""
+    given = {"bvh": bvh is not True, "shadows": shadows is not True,
+             "return_info": return_info is not False, "antialias": antialias is not False,
+             "max_bounces": max_bounces != 2, "primary": primary != "auto"}  # fmt: skip
+    changed = [name for name, differs in given.items() if differs]
+    if changed:
+        raise ValueError(
+            f'render: {", ".join(changed)} belong to integrator="direct"; the path integrator '
+            "traces with the BVH, always shadows, and has no edge term yet (see "
+            "docs/path_tracing.md)"
+        )
 
 
 def _check_antialias(value) -> str | None:

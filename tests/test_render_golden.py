@@ -45,9 +45,10 @@ def golden_arrays() -> dict[str, np.ndarray]:
     out = {}
     for name, scene in _scenes().items():
         # Material.reflectance came later (issue 12): differentiating it traces mirror rays,
-        # so it is left out here to keep the saved renders' meaning (tests/test_reflection.py).
+        # so it is left out here to keep the saved renders' meaning (tests/test_reflection.py);
+        # Material.emission (issue 27) likewise, so that the gradients keep their numbering.
         named = scene.named_parameters().items()
-        params = [t for key, t in named if not key.endswith(".reflectance")]
+        params = [t for key, t in named if not key.endswith((".reflectance", ".emission"))]
         for p in params:
             p.requires_grad = True
         image = render.render(scene, reuse_visibility=False, antialias=False)

@@ -488,6 +488,11 @@ class Material(_HasFields):
             (an MTL file's ``map_Ks``), sampled like ``texture``.
         ambient_texture: optional (H, W, 3) image multiplying ``ambient`` at each hit (an
             MTL file's ``map_Ka``), sampled like ``texture``.
+        emission: scalar or (3,) radiance >= 0 emitted from the front of the surface (the
+            side a triangle's normal ``(b - a) x (c - a)`` points to; a sphere's outside):
+            the object is an area light. The path integrator (``render(...,
+            integrator="path")``, ``render.path``) lights the scene with it; the direct
+            renderer shows it where it is seen, like ``ambient``, but lights nothing with it.
 
     Values are not clamped to [0, 1]: an optimiser may overshoot while fitting an albedo.
     """
@@ -502,6 +507,7 @@ class Material(_HasFields):
         # Own size names: the three textures need not have the same resolution.
         Field("specular_texture", (("Hs", "Ws", 3),), optional=True),
         Field("ambient_texture", (("Ha", "Wa", 3),), optional=True),
+        Field("emission", ((), (3,)), (lambda x: np.all(x >= 0.0), ">= 0 (a radiance)")),
     )
 
     def __init__(
@@ -514,11 +520,12 @@ class Material(_HasFields):
         reflectance: ArrayLike = 0.0,
         specular_texture: ArrayLike | None = None,
         ambient_texture: ArrayLike | None = None,
+        emission: ArrayLike = 0.0,
     ) -> None:
         self._set_fields(
             albedo=albedo, specular=specular, shininess=shininess, ambient=ambient,
             texture=texture, reflectance=reflectance, specular_texture=specular_texture,
-            ambient_texture=ambient_texture,
+            ambient_texture=ambient_texture, emission=emission,
         )  # fmt: skip
         self.validate()
 
@@ -533,6 +540,11 @@ class Material(_HasFields):
         """Whether hits need a reflected ray: a non-zero reflectance, or one being
         differentiated (its gradient at 0 is the reflected radiance)."""
         return self.reflectance.is_differentiated() or bool(np.any(self.reflectance.data))
+
+    @property
+    def emissive(self) -> bool:
+        """Whether the surface emits: a non-zero emission, or one being differentiated."""
+        return self.emission.is_differentiated() or bool(np.any(self.emission.data))
 
 
 # --------------------------------------------------------------------------------------

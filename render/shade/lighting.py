@@ -145,22 +145,29 @@ def light_contribution(points, normals, directions, look: Appearance, light, vis
     return _light_term(points, normals, view, look.albedo * (1.0 / math.pi), look, light, visible)
 
 
+def brdf(normals, view, to_light, diffuse_brdf, look: Appearance):
+    """The BRDF (k, 3) (or (3,)) for light arriving from unit directions ``to_light`` (k, 3)
+    and leaving towards unit ``view`` (k, 3; None when there is no specular lobe), at unit
+    ``normals`` (k, 3): ``diffuse_brdf`` (albedo / pi) plus the energy-normalised Blinn-Phong
+    lobe  f_s = specular (n + 8) / (8 pi) max(0, n.h)^n. The cosine is the caller's."""
+    if view is None:
+        return diffuse_brdf
+    half = md.normalize(to_light + view)
+    # Clamp before the power: 0^n has an infinite log, which d/dn would need.
+    n_dot_h = md.maximum(md.dot(normals, half), 1e-12)
+    lobe = n_dot_h**look.shininess * ((look.shininess + 8.0) / (8.0 * math.pi))
+    return diffuse_brdf + column(lobe) * look.specular
+
+
 def _light_term(points, normals, view, diffuse_brdf, look: Appearance, light, visible):
     """``light_contribution`` with the per-hit terms that do not depend on the light (the
-    unit direction to the eye, the diffuse BRDF) computed once by the caller. The specular
-    lobe is the energy-normalised Blinn-Phong  f_s = specular (n + 8) / (8 pi) max(0, n.h)^n."""
+    unit direction to the eye, the diffuse BRDF) computed once by the caller."""
     to_light, irradiance = light_incidence(light, points)
     cos_theta = md.maximum(md.dot(normals, to_light), 0.0)
-    brdf = diffuse_brdf
-    if view is not None:
-        half = md.normalize(to_light + view)
-        # Clamp before the power: 0^n has an infinite log, which d/dn would need.
-        n_dot_h = md.maximum(md.dot(normals, half), 1e-12)
-        lobe = n_dot_h**look.shininess * ((look.shininess + 8.0) / (8.0 * math.pi))
-        brdf = brdf + column(lobe) * look.specular
+    f = brdf(normals, view, to_light, diffuse_brdf, look)
     # Per-hit scalars first, then a single (k, 3) product with the colours.
     scalar = irradiance * cos_theta if visible is None else irradiance * cos_theta * visible
-    return column(scalar) * (brdf * light.color)
+    return column(scalar) * (f * light.color)
 
 
 def shade(points, normals, directions, look: Appearance, lights, lit) -> md.Tensor:
@@ -183,9 +190,13 @@ def shade_surface(
     surface: Surface, material: Material, lights, lit
 ) -> tuple[md.Tensor, np.ndarray]:
     """Shade k hits: the radiance (k, 3) and the texture cell of each hit (k,) int64 (-1
-    when untextured). lit[j] (k,) float visibility of light j."""
+    when untextured). lit[j] (k,) float visibility of light j. An emissive material adds
+    its emission where the ray meets its front (it lights nothing here: that takes the
+    path integrator, ``render.path``)."""
     look = appearance(material, surface.uv, surface.points.shape[0])
     radiance = shade(surface.points, surface.normals, surface.directions, look, lights, lit)
+    if material.emissive:
+        radiance = radiance + column(surface.front.astype(radiance.dtype)) * material.emission
     return radiance, look.texel
 
 

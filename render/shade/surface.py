@@ -104,13 +104,16 @@ def toward_ray(normals, directions) -> np.ndarray:
 @dataclass
 class Surface:
     """What shading needs to know about k hits on one object (tensors, on the tape):
-    points (k, 3), unit normals facing the ray (k, 3), the incoming rays' directions (k, 3)
-    and, for a textured mesh, the interpolated UVs (k, 2) (else None)."""
+    points (k, 3), unit normals facing the ray (k, 3), the incoming rays' directions (k, 3),
+    for a textured mesh the interpolated UVs (k, 2) (else None), and ``front`` (k,) bool:
+    whether the ray meets the front of the surface (the side the geometric normal points
+    to), the side an emissive material emits from."""
 
     points: md.Tensor
     normals: md.Tensor
     directions: md.Tensor
     uv: md.Tensor | None = None
+    front: np.ndarray | None = None
 
 
 @dataclass
@@ -166,7 +169,7 @@ def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
         normals = md.normalize(_interpolate(weights, vn, corners))
     uv = _interpolate(weights, mesh.uvs, corners) if textured else None
-    return Surface(points, normals * flip, directions, uv)
+    return Surface(points, normals * flip, directions, uv, flip[:, 0] > 0)
 
 
 def sphere_surface(sphere: Sphere, eye, directions, inside: np.ndarray | None = None) -> Surface:
@@ -184,7 +187,8 @@ def sphere_surface(sphere: Sphere, eye, directions, inside: np.ndarray | None = 
     t = intersect_spheres(eye, directions, sphere.center, sphere.radius, far_root)
     points = eye + column(t) * directions
     normals = md.normalize(points - sphere.center)
-    return Surface(points, normals * toward_ray(normals, directions), directions)
+    flip = toward_ray(normals, directions)
+    return Surface(points, normals * flip, directions, None, flip[:, 0] > 0)
 
 
 def moves_surface(obj: Mesh | Sphere) -> list[md.Tensor]:

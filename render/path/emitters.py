@@ -1,0 +1,105 @@
+"""Area lights: the emissive triangles and spheres of a scene, and how to pick a point on them.
+
+Next-event estimation picks one emissive primitive with probability proportional to its
+area, then a uniform point on it: the density of a point is P(primitive) / area in area
+measure (``pdf_area``), the same everywhere on the emitters, which keeps the weights of
+multiple importance sampling simple. The point is recorded by its coordinates on its
+primitive (barycentrics (u, v) on a triangle, the unit direction from a sphere's centre),
+so that on the tape it moves with the primitive (``render.path.transport``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from render.path.sampling import sphere_direction, triangle_point
+from render.scene.scene import Mesh, Scene
+from render.trace.primitives import primitive_ranges
+
+
+@dataclass
+class Emitters:
+    """The emissive primitives of a scene (plain arrays, off the tape).
+
+    prims (E,) int64: their global primitive ids (``render.trace.primitives``);
+    probability (E,): the chance next-event estimation picks each (area / total area);
+    cdf (E,): its running sum; row_of (P,) int64: the row of each primitive id in
+    ``prims`` (-1: not emissive); area (E,): each one's area."""
+
+    prims: np.ndarray
+    probability: np.ndarray
+    cdf: np.ndarray
+    row_of: np.ndarray
+    area: np.ndarray
+
+    @classmethod
+    def of(cls, scene: Scene, primitives) -> Emitters:
+        """The emitters of a scene in world space, with its ``scene_primitives``. An
+        emissive object whose area is zero is an error (it cannot emit)."""
+        triangles, centers, radii = primitives
+        n_prims = len(triangles) + len(centers)
+        prims, areas = [], []
+        for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
+            if not obj.material.emissive:
+                continue
+            if isinstance(obj, Mesh):
+                tri = triangles[first : first + count]
+                area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+            else:
+                area = np.array([4.0 * math.pi * radii[first - len(triangles)] ** 2])
+            if not area.sum() > 0:
+                name = scene.objects.index(obj) if obj in scene.objects else index
+                raise ValueError(
+                    f"render: objects[{name}] is emissive but has zero area, so it cannot emit"
+                )
+            prims.append(np.arange(first, first + count)[area > 0])
+            areas.append(area[area > 0])
+        prims = np.concatenate(prims) if prims else np.zeros(0, np.int64)
+        area = np.concatenate(areas) if areas else np.zeros(0)
+        probability = area / area.sum() if len(area) else area
+        row_of = np.full(n_prims, -1, np.int64)
+        row_of[prims] = np.arange(len(prims))
+        return cls(prims, probability, np.cumsum(probability), row_of, area)
+
+    def __len__(self) -> int:
+        return len(self.prims)
+
+    def pick(self, u: np.ndarray) -> np.ndarray:
+        """(k,) rows into ``prims`` for uniform numbers u (k,): by area."""
+        return np.minimum(np.searchsorted(self.cdf, u * self.cdf[-1], side="right"), len(self) - 1)
+
+    def pdf_area(self, prims: np.ndarray) -> np.ndarray:
+        """(k,) the area density of next-event estimation at a point on primitives ``prims``
+        (k,): P(primitive) / its area, 0 for primitives that do not emit."""
+        rows = self.row_of[np.maximum(prims, 0)]
+        ok = (prims >= 0) & (rows >= 0)
+        safe = np.maximum(rows, 0)
+        return np.where(ok, self.probability[safe] / self.area[safe], 0.0)
+
+
+def point_on(primitives, prims: np.ndarray, u1: np.ndarray, u2: np.ndarray):
+    """Uniform points on primitives ``prims`` (k,): their coordinates on the primitive
+    ``local`` (k, 3) ((u, v, 0) on a triangle, a unit direction on a sphere), the points
+    (k, 3) and the unit outward normals (k, 3) (a triangle's (b - a) x (c - a))."""
+    triangles, centers, radii = primitives
+    n_tri = len(triangles)
+    local = np.zeros((len(prims), 3))
+    points, normals = np.empty((len(prims), 3)), np.empty((len(prims), 3))
+    on_tri = prims < n_tri
+    uv = triangle_point(u1[on_tri], u2[on_tri])
+    local[on_tri, :2] = uv
+    tri = triangles[prims[on_tri]]
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    points[on_tri] = tri[:, 0] + uv[:, :1] * e1 + uv[:, 1:] * e2
+    n = np.cross(e1, e2)
+    normals[on_tri] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    on_sphere = ~on_tri
+    d = sphere_direction(u1[on_sphere], u2[on_sphere])
+    s = prims[on_sphere] - n_tri
+    local[on_sphere] = d
+    points[on_sphere] = centers[s] + radii[s, None] * d
+    normals[on_sphere] = d
+    return local, points, normals

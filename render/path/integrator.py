@@ -1,0 +1,113 @@
+"""The path integrator: an image from sampled paths, and its gradient two ways.
+
+``render_path`` renders ``spp`` paths per pixel in batches of ``batch_spp`` samples. With
+gradients enabled every batch stays on the tape until the caller's ``backward``: memory
+grows with spp x depth (way 1, plain reverse mode).
+
+``replay_gradient`` is the adjoint by replay (the structure of radiative backpropagation,
+Nimier-David et al. 2020): a primal pass without a tape gives the image and dL/dimage; then
+each batch of samples is rendered again on its own short tape, with the same random numbers
+(the same path ids under ``seed_grad``), and ``backward`` takes its share of dL/dimage into
+the parameters before the tape is dropped. Memory is that of one batch, whatever spp is.
+Each batch's tape still holds its paths' every vertex, so memory grows with max_depth (path
+replay, Vicini et al. 2021, would also make it constant in depth; not done here).
+
+With ``seed_grad == seed`` both ways compute the same gradient to float rounding. For an
+unbiased gradient of a non-linear loss, pass a different ``seed_grad`` (as Mitsuba 3's
+``seed_grad``): dL/dimage then comes from samples independent of those the derivative of
+the image is estimated with, and E[dL/dI * dI/dtheta] is the product of the expectations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+import minidiff as md
+from render.path.random import check_seed
+from render.path.tracer import PathSampler, check_path_options
+from render.path.transport import path_radiance
+from render.scene.camera import camera_frame
+from render.scene.placement import placed
+from render.scene.scene import Scene, check_ray_count
+
+#: Default samples per pixel in one batch (one tape, for ``replay_gradient``).
+BATCH_SPP = 16
+#: Default number of vertices before Russian roulette may end a path (Mitsuba's rr_depth).
+RR_DEPTH = 5
+
+
+def render_path(
+    scene: Scene,
+    spp: int = 16,
+    max_depth: int = 5,
+    seed: int = 0,
+    rr_depth: int = RR_DEPTH,
+    batch_spp: int = BATCH_SPP,
+) -> md.Tensor:
+    """The (H, W, 3) image of ``scene`` by the path integrator: the mean of ``spp`` paths
+    per pixel, each at most ``max_depth`` segments long (1: emitters seen directly; 2:
+    direct light; 3: one indirect bounce; ...). The same seed gives the same image bit for
+    bit, whatever ``batch_spp`` and the number of threads."""
+    spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
+    seed = check_seed(seed)
+    batch_spp = check_path_options(batch_spp, 1, 1)[0]
+    scene.validate()
+    check_ray_count(scene.camera.width, scene.camera.height, spp)
+    image = None
+    world = placed(scene)
+    sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
+    frame = camera_frame(world.camera)
+    for first in range(0, spp, batch_spp):
+        part = _batch_image(world, frame, sampler, first, min(first + batch_spp, spp))
+        image = part if image is None else image + part
+    return image
+
+
+def _batch_image(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
+    """Samples first..last-1 of every pixel: their sum over ``spp``, (H, W, 3)."""
+    camera = world.camera
+    pixels = np.arange(camera.width * camera.height, dtype=np.int64)
+    paths = (pixels[:, None] * sampler.spp + np.arange(first, last)[None, :]).ravel()
+    radiance = path_radiance(world, frame, sampler, sampler.sample(paths))
+    per_pixel = md.reshape(radiance, (camera.height, camera.width, last - first, 3))
+    return md.sum(per_pixel, axis=2) * (1.0 / sampler.spp)
+
+
+def replay_gradient(
+    scene: Scene,
+    loss: Callable[[md.Tensor], md.Tensor],
+    spp: int = 16,
+    max_depth: int = 5,
+    seed: int = 0,
+    seed_grad: int | None = None,
+    rr_depth: int = RR_DEPTH,
+    batch_spp: int = BATCH_SPP,
+) -> tuple[float, np.ndarray]:
+    """Differentiate ``loss(image)`` by replay: adds d loss / d p to ``p.grad`` of every
+    scene parameter that requires it (as ``backward`` would) and returns (the loss's value,
+    the primal image (H, W, 3)). ``loss`` maps an (H, W, 3) tensor to a scalar tensor.
+    ``seed_grad``: the seed of the gradient pass (None: ``seed + 1``, decorrelated; pass
+    ``seed`` to reproduce the tape's gradient exactly). Peak memory is one batch's tape."""
+    spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
+    seed = check_seed(seed)
+    seed_grad = check_seed(seed + 1 if seed_grad is None else seed_grad, "seed_grad")
+    with md.no_grad():
+        image = render_path(scene, spp, max_depth, seed, rr_depth, batch_spp).data
+    pixels = md.tensor(image, requires_grad=True)
+    value = loss(pixels)
+    if not isinstance(value, md.Tensor) or value.data.size != 1:
+        raise TypeError("replay_gradient: loss must return a scalar minidiff tensor")
+    value.backward()
+    adjoint = pixels.grad
+    world = None
+    for first in range(0, spp, batch_spp):
+        world = placed(scene)  # a fresh tape per batch: placement is on it too
+        if first == 0:
+            sampler = PathSampler(world, spp, max_depth, rr_depth, seed_grad)
+        else:
+            sampler.scene = world
+        part = _batch_image(world, camera_frame(world.camera), sampler, first, min(first + batch_spp, spp))
+        md.sum(part * adjoint).backward()
+    return float(value.data), image

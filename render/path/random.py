@@ -1,0 +1,63 @@
+"""Random numbers that depend on nothing but (seed, path, dimension).
+
+A Monte Carlo renderer whose random numbers came from a generator's running state would
+give a different image on a different number of threads, or when its samples were split
+into batches. Here every number is a hash of three integers: the seed, the path's id
+(``pixel * spp + sample``, the same in every batch) and the dimension (which decision of
+the path it drives, ``DIMENSIONS_PER_BOUNCE`` per bounce). The same seed gives the same
+image bit for bit however the work is split, and a replay of a batch of samples (the
+adjoint pass of ``render.path.integrator``) draws exactly the numbers of the primal pass.
+
+The hash is SplitMix64's finaliser (Steele, Lea and Flood 2014), applied three times to
+fold in the three integers; its outputs pass BigCrush, far more than a renderer needs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Dimensions 0 and 1 place the camera ray in its pixel; bounce k (k = 1, 2, ...) uses
+#: dimensions ``2 + DIMENSIONS_PER_BOUNCE * (k - 1) + j`` (``BOUNCE_DIMENSIONS``).
+DIMENSIONS_PER_BOUNCE = 8
+#: The meaning of j inside a bounce's block of dimensions.
+BOUNCE_DIMENSIONS = {
+    "lobe": 0,  # diffuse, glossy or mirror
+    "direction": 1,  # and 2: the sampled direction
+    "roulette": 3,
+    "emitter": 4,  # which emissive primitive next-event estimation picks
+    "emitter_point": 5,  # and 6: where on it
+}
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+
+
+def _mix(z: np.ndarray) -> np.ndarray:
+    """SplitMix64's step on uint64 arrays (wrapping arithmetic, as intended)."""
+    z = z + _GOLDEN
+    z = (z ^ (z >> np.uint64(30))) * _M1
+    z = (z ^ (z >> np.uint64(27))) * _M2
+    return z ^ (z >> np.uint64(31))
+
+
+def uniform(seed: int, paths: np.ndarray, dimension: int) -> np.ndarray:
+    """(n,) float64 in [0, 1): the random number of each path id in ``paths`` (n,) for one
+    ``dimension``, under ``seed``. 53 random bits each (the float64 mantissa)."""
+    with np.errstate(over="ignore"):
+        key = _mix(np.full(1, seed, np.uint64))
+        key = _mix(key ^ np.asarray(paths, np.uint64))
+        key = _mix(key ^ np.uint64(dimension))
+    return (key >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+
+
+def bounce_dimension(bounce: int, name: str) -> int:
+    """The dimension of decision ``name`` (see ``BOUNCE_DIMENSIONS``) at bounce k >= 1."""
+    return 2 + DIMENSIONS_PER_BOUNCE * (bounce - 1) + BOUNCE_DIMENSIONS[name]
+
+
+def check_seed(seed, name: str = "seed") -> int:
+    """A seed is an integer in [0, 2**64)."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or not 0 <= seed < 2**64:
+        raise ValueError(f"render: {name} must be an integer in [0, 2**64), got {seed!r}")
+    return int(seed)

@@ -1,0 +1,377 @@
+"""Sampling paths, off the tape: where each path goes and with what probability.
+
+A path starts at a random point of its pixel and bounces through the scene. At each vertex
+it gets light three ways, each recorded here as discrete choices and constant weights
+(``render.path.transport`` then computes the radiance they carry on the tape):
+
+* **emission** of the surface it reached (seen directly, or reached by a sampled direction:
+  then weighted by multiple importance sampling (MIS) against next-event estimation);
+* **next-event estimation** (NEE): a point picked on an area light (``Emitters``), its
+  shadow ray, and its MIS weight; and every point or directional light, with its shadow ray;
+* **continuation**: a lobe of the material picked (diffuse, Blinn-Phong, mirror), a
+  direction sampled from it, Russian roulette after ``rr_depth`` vertices, the ray traced
+  with the BVH. It ends on a new vertex, leaves the scene (it then sees the environment,
+  the scene's ``background``), or stops.
+
+``max_depth`` counts segments as Mitsuba 3 does: 1 shows the emitters seen directly, 2 adds
+direct lighting, 3 one bounce of indirect light, and so on.
+
+Vertices are reached in one of three forms, which say how the tape recomputes them:
+``CAMERA`` and ``MIRROR`` vertices are where a ray meets the recorded primitive (the ray
+moves with the camera or the mirror, as in the direct renderer); ``AREA`` vertices, reached
+by a sampled direction, are the recorded point *on* the primitive (its barycentrics), so
+they move with it, and the sampled density is converted to area measure (see
+``render.path.transport`` for why this keeps the derivative of area lights and of moving
+geometry right).
+
+Every random number is ``render.path.random.uniform(seed, path id, dimension)``: the paths
+of a batch do not depend on which other paths are in it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import minidiff as md
+from render.edges.boundary import to_image_plane
+from render.path.emitters import Emitters, point_on
+from render.path.random import bounce_dimension, uniform
+from render.path.sampling import (
+    blinn_phong_lobe,
+    blinn_phong_pdf,
+    cosine_hemisphere,
+    cosine_pdf,
+    dot,
+    power_heuristic,
+    unit,
+)
+from render.scene.camera import plain_frame
+from render.scene.scene import DirectionalLight, Mesh, PointLight, Scene
+from render.shade.surface import vertex_normals
+from render.trace.accel import Accelerator
+from render.trace.primitives import object_index_of, primitive_ranges, scene_primitives
+from render.trace.visibility import scene_size, shadow_offset, shadow_rays
+
+#: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
+CAMERA, AREA, MIRROR = 0, 1, 2
+STOP = 0
+#: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
+#: at least MIN_SURVIVAL.
+MIN_SURVIVAL, MAX_SURVIVAL = 0.05, 0.95
+
+
+@dataclass
+class Vertices:
+    """The n paths of a batch that reach their k-th vertex, and what they do there.
+
+    rows (n,) int64: which paths of the batch (indices into ``PathBatch.paths``);
+    prim (n,) int64 the primitive hit; local (n, 3) the point's coordinates on it ((u, v, 0)
+    barycentrics, or the unit direction from a sphere's centre); form (n,) int8 ``CAMERA``,
+    ``AREA`` or ``MIRROR``; emit_weight (n,): the MIS weight of the emission seen here.
+    NEE: nee_prim (n,) the emissive primitive picked (-1: none), nee_local (n, 3) the point
+    on it, nee_weight (n,): visible * MIS weight / P(primitive) (0 if occluded or behind);
+    lit (L, n) bool: which point and directional lights reach the vertex.
+    Continuation: next (n,) int8 ``STOP``, ``AREA`` (diffuse or glossy) or ``MIRROR``;
+    next_pdf (n,): the direction's density per steradian (``AREA``) or the lobe's
+    probability (``MIRROR``); survive (n,): Russian roulette's survival probability (1
+    before ``rr_depth``); escape (n,) bool: the ray left the scene; escape_dir (n, 3) its
+    direction (unit)."""
+
+    rows: np.ndarray
+    prim: np.ndarray
+    local: np.ndarray
+    form: np.ndarray
+    emit_weight: np.ndarray
+    nee_prim: np.ndarray
+    nee_local: np.ndarray
+    nee_weight: np.ndarray
+    lit: np.ndarray
+    next: np.ndarray
+    next_pdf: np.ndarray
+    survive: np.ndarray
+    escape: np.ndarray
+    escape_dir: np.ndarray
+
+
+@dataclass
+class PathBatch:
+    """A batch of N paths: their ids (N,) (``pixel * spp + sample``), the image-plane
+    coordinates of their camera rays (N, 2), which camera rays miss everything (N,) bool
+    (they see the environment), and their vertices, one ``Vertices`` per depth."""
+
+    paths: np.ndarray
+    coords: np.ndarray
+    missed: np.ndarray
+    vertices: list[Vertices]
+
+
+@dataclass
+class _Lobes:
+    """Per object (in ``primitive_ranges`` order): the probabilities of picking the
+    diffuse, glossy and mirror lobes (O, 3) (each lobe's mean reflectance, normalised), the
+    sum of those reflectances (O,) (at most 1: Russian roulette's throughput estimate) and
+    the Blinn-Phong exponent (O,)."""
+
+    probability: np.ndarray
+    reflectance: np.ndarray
+    shininess: np.ndarray
+
+    @classmethod
+    def of(cls, objects) -> _Lobes:
+        weights, shininess = [], []
+        for obj in objects:
+            m = obj.material
+            albedo = m.texture.data.mean() if m.texture is not None else m.albedo.data.mean()
+            specular = float(np.mean(m.specular.data))
+            if m.specular_texture is not None:
+                specular *= float(m.specular_texture.data.mean())
+            weights.append([albedo, specular, float(np.mean(m.reflectance.data))])
+            shininess.append(float(m.shininess.data))
+        w = np.maximum(np.array(weights, np.float64).reshape(-1, 3), 0.0)
+        total = w.sum(axis=1)
+        probability = w / np.where(total > 0, total, 1.0)[:, None]
+        return cls(probability, np.minimum(total, 1.0), np.array(shininess))
+
+
+class PathSampler:
+    """Samples batches of paths in one scene (world space, ``render.scene.placement``):
+    its primitives, BVH, emitters and materials' lobes, read once as plain arrays."""
+
+    def __init__(self, world: Scene, spp: int, max_depth: int, rr_depth: int, seed: int):
+        self.scene, self.spp, self.max_depth, self.rr_depth, self.seed = (
+            world, spp, max_depth, rr_depth, seed,
+        )  # fmt: skip
+        self.primitives = scene_primitives(world)
+        self.n_triangles = len(self.primitives[0])
+        self.size = max(scene_size(self.primitives), 1e-300)
+        self.accelerator = Accelerator(*self.primitives)
+        ranges = primitive_ranges(world)
+        self.objects = [obj for obj, _, _ in ranges]
+        self.first = np.array([first for _, first, _ in ranges], np.int64)
+        self.lobes = _Lobes.of(self.objects)
+        self.emitters = Emitters.of(world, self.primitives)
+        with md.no_grad():  # plain shading normals of smooth meshes, per object index
+            self.normals = {
+                o: (obj.normals.data if obj.normals is not None
+                    else vertex_normals(md.tensor(obj.vertices.data), obj.faces).data)
+                for o, obj in enumerate(self.objects) if isinstance(obj, Mesh) and obj.smooth
+            }  # fmt: skip
+        self.frame = plain_frame(world.camera)
+
+    def sample(self, paths: np.ndarray) -> PathBatch:
+        """The ``PathBatch`` of path ids ``paths`` (N,) int64."""
+        camera = self.scene.camera
+        width, height = camera.width, camera.height
+        pixel = paths // self.spp
+        film = np.stack(
+            [pixel % width + uniform(self.seed, paths, 0), pixel // width + uniform(self.seed, paths, 1)],
+            axis=1,
+        )
+        coords = to_image_plane(film, width, height)
+        forward, right, up, eye = self.frame
+        directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+        prim, t, u, v = self.accelerator.closest_hit(np.broadcast_to(eye, directions.shape), directions)
+        rows = np.flatnonzero(prim >= 0)
+        points = eye + t[rows, None] * directions[rows]
+        state = _State(rows, prim[rows], self._local(prim[rows], points, u[rows], v[rows]),
+                       points, unit(directions[rows]), np.full(len(rows), CAMERA, np.int8),
+                       np.zeros(len(rows)), points, np.ones(len(rows)))  # fmt: skip
+        vertices = []
+        for depth in range(1, self.max_depth + 1):
+            record, state = self._vertex(paths, depth, state)
+            vertices.append(record)
+            if state is None:
+                break
+        return PathBatch(paths, coords, prim < 0, vertices)
+
+    # --- one depth ------------------------------------------------------------------------
+
+    def _vertex(self, paths, depth: int, s: _State):
+        """Everything that happens at the paths' ``depth``-th vertex: a ``Vertices`` record
+        and the state at the next vertex (None when no path goes on)."""
+        n = len(s.rows)
+        ids = paths[s.rows]
+        ng, ns = self._normals(s.prim, s.points, s.local)
+        wo = -s.incoming
+        side = np.where(dot(ng, wo) < 0, -1.0, 1.0)[:, None]  # two-sided: face the viewer
+        ng, ns = side * ng, side * ns
+        emit_weight = self._emission_weight(s, ng)
+        obj = object_index_of(self.scene, s.prim)
+        record = Vertices(
+            s.rows, s.prim, s.local, s.form, emit_weight,
+            np.full(n, -1, np.int64), np.zeros((n, 3)), np.zeros(n),
+            np.zeros((len(self.scene.lights), n), bool), np.full(n, STOP, np.int8),
+            np.ones(n), np.ones(n), np.zeros(n, bool), np.zeros((n, 3)),
+        )  # fmt: skip
+        if depth == self.max_depth or n == 0:
+            return record, None
+        probability = self.lobes.probability[obj]
+        shininess = self.lobes.shininess[obj]
+        offset = shadow_offset(s.points, self.size)
+        self._next_event(record, ids, depth, s, ng, ns, wo, probability, shininess, offset)
+        self._lights(record, s, ng)
+        return record, self._continue(record, ids, depth, s, ng, ns, wo, obj, offset)
+
+    def _emission_weight(self, s: _State, ng: np.ndarray) -> np.ndarray:
+        """MIS weight of the emission at vertices reached by a sampled direction (``AREA``)
+        against NEE's density of the same point, both in area measure; 1 elsewhere."""
+        weight = np.ones(len(s.rows))
+        if len(self.emitters) == 0:
+            return weight
+        area = np.flatnonzero(s.form == AREA)
+        p_nee = self.emitters.pdf_area(s.prim[area])
+        to = s.points[area] - s.previous[area]
+        d2 = dot(to, to)
+        cos = np.abs(dot(ng[area], to)) / np.sqrt(np.where(d2 > 0, d2, 1.0))
+        p_bsdf = s.pdf[area] * cos / np.where(d2 > 0, d2, 1.0)
+        weight[area] = np.where(p_nee > 0, power_heuristic(p_bsdf, p_nee), 1.0)
+        return weight
+
+    def _next_event(self, record, ids, depth, s, ng, ns, wo, probability, shininess, offset):
+        """One point on the area lights per vertex: its shadow ray and MIS weight."""
+        if len(self.emitters) == 0:
+            return
+        pick = self.emitters.pick(uniform(self.seed, ids, bounce_dimension(depth, "emitter")))
+        prims = self.emitters.prims[pick]
+        u1 = uniform(self.seed, ids, bounce_dimension(depth, "emitter_point"))
+        u2 = uniform(self.seed, ids, bounce_dimension(depth, "emitter_point") + 1)
+        local, z, nz = point_on(self.primitives, prims, u1, u2)
+        to = z - s.points
+        d2 = dot(to, to)
+        wi = to / np.sqrt(np.where(d2 > 0, d2, 1.0))[:, None]
+        cos_z = -dot(nz, wi)
+        ok = (probability[:, 0] + probability[:, 1] > 0) & (cos_z > 0) & (dot(ng, wi) > 0)
+        ok &= (d2 > 0) & (prims != s.prim)
+        origins = s.points + offset * ng
+        ignore = np.where(s.prim < self.n_triangles, s.prim, -1)
+        blocked = self.accelerator.occluded(
+            origins, z - origins, 1.0 - 1e-7, tmin=0.0, ignore_prim=ignore
+        )
+        p_nee = self.emitters.probability[pick] / self.emitters.area[pick]
+        p_bsdf = self._pdf(probability, shininess, ns, wo, wi) * cos_z / np.where(d2 > 0, d2, 1.0)
+        weight = power_heuristic(p_nee, p_bsdf) / self.emitters.probability[pick]
+        visible = ok & ~blocked
+        record.nee_prim[:] = np.where(visible, prims, -1)
+        record.nee_local[:] = local
+        record.nee_weight[:] = np.where(visible, weight, 0.0)
+
+    def _lights(self, record, s: _State, ng: np.ndarray) -> None:
+        """Which point and directional lights reach each vertex (from its front side)."""
+        for j, light in enumerate(self.scene.lights):
+            if isinstance(light, PointLight):
+                towards = np.asarray(light.position.data, np.float64) - s.points
+            elif isinstance(light, DirectionalLight):
+                towards = np.broadcast_to(-np.asarray(light.direction.data, np.float64), ng.shape)
+            else:
+                raise TypeError(f"render: unsupported light type {type(light).__name__}")
+            rays = shadow_rays(light, s.points, s.prim, self.n_triangles, self.size)
+            blocked = self.accelerator.occluded(
+                rays.origins, rays.directions, rays.tmax, tmin=0.0, ignore_prim=rays.ignore_prim
+            )
+            record.lit[j] = ~blocked & (dot(ng, towards) > 0)
+
+    def _pdf(self, probability, shininess, ns, wo, wi) -> np.ndarray:
+        """(n,) density per steradian of the diffuse-or-glossy choice at directions wi."""
+        return probability[:, 0] * cosine_pdf(ns, wi) + probability[:, 1] * blinn_phong_pdf(
+            ns, wo, wi, shininess
+        )
+
+    def _continue(self, record, ids, depth, s, ng, ns, wo, obj, offset):
+        """Pick a lobe and a direction, play Russian roulette, trace: the next state."""
+        probability, shininess = self.lobes.probability[obj], self.lobes.shininess[obj]
+        n = len(s.rows)
+        dim = bounce_dimension(depth, "direction")
+        u1, u2 = uniform(self.seed, ids, dim), uniform(self.seed, ids, dim + 1)
+        pick = uniform(self.seed, ids, bounce_dimension(depth, "lobe"))
+        glossy = (pick >= probability[:, 0]) & (pick < probability[:, 0] + probability[:, 1])
+        mirror = pick >= probability[:, 0] + probability[:, 1]
+        wi = cosine_hemisphere(u1, u2, ns)
+        if glossy.any():
+            wi[glossy] = blinn_phong_lobe(u1[glossy], u2[glossy], ns[glossy], wo[glossy], shininess[glossy])
+        wi[mirror] = 2.0 * dot(wo[mirror], ns[mirror])[:, None] * ns[mirror] - wo[mirror]
+        pdf = np.where(mirror, probability[:, 2], self._pdf(probability, shininess, ns, wo, wi))
+        lobe_sum = probability.sum(axis=1)
+        go = (lobe_sum > 0) & (pdf > 0) & (dot(ng, wi) > 0)
+        throughput = s.throughput * self.lobes.reflectance[obj]
+        survive = np.ones(n)
+        if depth >= self.rr_depth:
+            survive = np.clip(throughput, MIN_SURVIVAL, MAX_SURVIVAL)
+            go &= uniform(self.seed, ids, bounce_dimension(depth, "roulette")) < survive
+        wi = unit(wi)
+        origins = s.points + offset * ng
+        prim, t, u, v = self.accelerator.closest_hit(origins, wi)
+        record.next[:] = np.where(go, np.where(mirror, MIRROR, AREA), STOP)
+        record.next_pdf[:] = np.where(go, pdf, 1.0)
+        record.survive[:] = survive
+        record.escape[:] = go & (prim < 0)
+        record.escape_dir[:] = wi
+        on = np.flatnonzero(go & (prim >= 0))
+        if len(on) == 0:
+            return None
+        points = origins[on] + t[on, None] * wi[on]
+        return _State(
+            s.rows[on], prim[on], self._local(prim[on], points, u[on], v[on]), points, wi[on],
+            np.where(mirror[on], MIRROR, AREA).astype(np.int8), pdf[on], s.points[on],
+            throughput[on],
+        )  # fmt: skip
+
+    # --- plain geometry --------------------------------------------------------------------
+
+    def _local(self, prim, points, u, v) -> np.ndarray:
+        """(k, 3) coordinates of hit points on their primitives (``Vertices.local``)."""
+        local = np.zeros((len(prim), 3))
+        on_tri = prim < self.n_triangles
+        local[on_tri, 0], local[on_tri, 1] = u[on_tri], v[on_tri]
+        spheres = prim[~on_tri] - self.n_triangles
+        local[~on_tri] = unit(points[~on_tri] - self.primitives[1][spheres])
+        return local
+
+    def _normals(self, prim, points, local) -> tuple[np.ndarray, np.ndarray]:
+        """Unit geometric and shading normals (k, 3) at hit points (not yet facing the
+        viewer): a smooth mesh's shading normal interpolates its vertex normals."""
+        triangles = self.primitives[0]
+        ng = np.empty((len(prim), 3))
+        on_tri = prim < self.n_triangles
+        tri = triangles[prim[on_tri]]
+        ng[on_tri] = unit(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
+        ng[~on_tri] = local[~on_tri]
+        ns = ng.copy()
+        obj = object_index_of(self.scene, prim)
+        for o, normals in self.normals.items():
+            rows = np.flatnonzero(obj == o)
+            faces = self.objects[o].faces[prim[rows] - self.first[o]]
+            u, v = local[rows, :1], local[rows, 1:2]
+            mixed = (1 - u - v) * normals[faces[:, 0]] + u * normals[faces[:, 1]] + v * normals[faces[:, 2]]
+            ns[rows] = unit(mixed)
+        return ng, ns
+
+
+@dataclass
+class _State:
+    """The paths at their current vertex (k of them): rows into the batch, primitive,
+    local coordinates, point (k, 3), the unit direction they arrived along (k, 3), the
+    form, the density of the direction that led here (``AREA``; per steradian), the
+    previous vertex (k, 3) and Russian roulette's throughput estimate (k,)."""
+
+    rows: np.ndarray
+    prim: np.ndarray
+    local: np.ndarray
+    points: np.ndarray
+    incoming: np.ndarray
+    form: np.ndarray
+    pdf: np.ndarray
+    previous: np.ndarray
+    throughput: np.ndarray
+
+
+def check_path_options(spp, max_depth, rr_depth) -> tuple[int, int, int]:
+    """spp >= 1, max_depth >= 1 and rr_depth >= 1, as ints, or a clear error."""
+    out = []
+    for name, value in (("spp", spp), ("max_depth", max_depth), ("rr_depth", rr_depth)):
+        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+            raise ValueError(f"render: {name} must be an integer >= 1, got {value!r}")
+        out.append(int(value))
+    return tuple(out)
+
