@@ -112,7 +112,7 @@ def render(
         raise ValueError(f'render: integrator must be "direct" or "path", got {integrator!r}')
     if path_options:
         raise TypeError(
-            f"render: {', '.join(sorted(path_options))} only apply to integrator=\"path\""
+            f'render: {", ".join(sorted(path_options))} only apply to integrator="path"'
         )
     scene.validate()
     subpixel_offsets(spp)  # a clear error for a bad spp before anything else

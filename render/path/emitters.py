@@ -47,7 +47,9 @@ class Emitters:
                 continue
             if isinstance(obj, Mesh):
                 tri = triangles[first : first + count]
-                area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+                area = 0.5 * np.linalg.norm(
+                    np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1
+                )
             else:
                 area = np.array([4.0 * math.pi * radii[first - len(triangles)] ** 2])
             if not area.sum() > 0:

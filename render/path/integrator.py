@@ -108,6 +108,8 @@ def replay_gradient(
             sampler = PathSampler(world, spp, max_depth, rr_depth, seed_grad)
         else:
             sampler.scene = world
-        part = _batch_image(world, camera_frame(world.camera), sampler, first, min(first + batch_spp, spp))
+        part = _batch_image(
+            world, camera_frame(world.camera), sampler, first, min(first + batch_spp, spp)
+        )
         md.sum(part * adjoint).backward()
     return float(value.data), image

@@ -166,13 +166,18 @@ class PathSampler:
         width, height = camera.width, camera.height
         pixel = paths // self.spp
         film = np.stack(
-            [pixel % width + uniform(self.seed, paths, 0), pixel // width + uniform(self.seed, paths, 1)],
+            [
+                pixel % width + uniform(self.seed, paths, 0),
+                pixel // width + uniform(self.seed, paths, 1),
+            ],
             axis=1,
         )
         coords = to_image_plane(film, width, height)
         forward, right, up, eye = self.frame
         directions = coords[:, :1] * right + coords[:, 1:] * up + forward
-        prim, t, u, v = self.accelerator.closest_hit(np.broadcast_to(eye, directions.shape), directions)
+        prim, t, u, v = self.accelerator.closest_hit(
+            np.broadcast_to(eye, directions.shape), directions
+        )
         rows = np.flatnonzero(prim >= 0)
         points = eye + t[rows, None] * directions[rows]
         state = _State(rows, prim[rows], self._local(prim[rows], points, u[rows], v[rows]),
@@ -289,7 +294,9 @@ class PathSampler:
         mirror = pick >= probability[:, 0] + probability[:, 1]
         wi = cosine_hemisphere(u1, u2, ns)
         if glossy.any():
-            wi[glossy] = blinn_phong_lobe(u1[glossy], u2[glossy], ns[glossy], wo[glossy], shininess[glossy])
+            wi[glossy] = blinn_phong_lobe(
+                u1[glossy], u2[glossy], ns[glossy], wo[glossy], shininess[glossy]
+            )
         wi[mirror] = 2.0 * dot(wo[mirror], ns[mirror])[:, None] * ns[mirror] - wo[mirror]
         pdf = np.where(mirror, probability[:, 2], self._pdf(probability, shininess, ns, wo, wi))
         lobe_sum = probability.sum(axis=1)
@@ -343,7 +350,11 @@ class PathSampler:
             rows = np.flatnonzero(obj == o)
             faces = self.objects[o].faces[prim[rows] - self.first[o]]
             u, v = local[rows, :1], local[rows, 1:2]
-            mixed = (1 - u - v) * normals[faces[:, 0]] + u * normals[faces[:, 1]] + v * normals[faces[:, 2]]
+            mixed = (
+                (1 - u - v) * normals[faces[:, 0]]
+                + u * normals[faces[:, 1]]
+                + v * normals[faces[:, 2]]
+            )
             ns[rows] = unit(mixed)
         return ng, ns
 
@@ -374,4 +385,3 @@ def check_path_options(spp, max_depth, rr_depth) -> tuple[int, int, int]:
             raise ValueError(f"render: {name} must be an integer >= 1, got {value!r}")
         out.append(int(value))
     return tuple(out)
-

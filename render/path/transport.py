@@ -48,6 +48,7 @@ from render.shade.lighting import Appearance, appearance, brdf, light_contributi
 from render.shade.surface import (
     column,
     in_order,
+    interpolate,
     intersect_edges,
     intersect_spheres,
     vertex_normals,
@@ -96,7 +97,9 @@ def path_radiance(world, frame, sampler: PathSampler, batch: PathBatch) -> md.Te
         first = vertices[0]
         directions = ray_directions(frame, batch.coords[first.rows].astype(dtype))
         origins = md.broadcast_to(frame[3], (len(first.rows), 3))
-        vertex = vertex_on_tape(world, sampler, first.prim, first.local, first.form, origins, directions)
+        vertex = vertex_on_tape(
+            world, sampler, first.prim, first.local, first.form, origins, directions
+        )
         throughput = None
         for depth, record in enumerate(vertices):
             following = vertices[depth + 1] if depth + 1 < len(vertices) else None
@@ -122,7 +125,7 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
     ``Vertex`` of the paths that go on (None, None when none does)."""
     side = np.where(md.kernels.dot_last(v.ng.data, v.wo.data) < 0, -1.0, 1.0).astype(dtype)
     side = side[:, None]
-    ng, ns = v.ng * side, v.ns * side  # two-sided: both face the viewer
+    ns = v.ns * side  # two-sided: the shading normal faces the viewer
     look = v.look
     diffuse = look.albedo * (1.0 / math.pi)
     specular = look.specular.is_differentiated() or bool(np.any(look.specular.data))
@@ -138,7 +141,9 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
     for j, light in enumerate(world.lights):
         lit = record.lit[j].astype(dtype)
         if lit.any():
-            parts.append(_times(throughput, light_contribution(v.points, ns, -v.wo, look, light, lit)))
+            parts.append(
+                _times(throughput, light_contribution(v.points, ns, -v.wo, look, light, lit))
+            )
             rows_of.append(rows)
     # Next-event estimation on the area lights.
     nee = np.flatnonzero(record.nee_weight > 0)
@@ -155,7 +160,11 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
         # / r^2 * r^2 on a sphere) is on the tape; P is in nee_weight.
         area = light.jacobian * _area_factor(sampler, record.nee_prim[nee], dtype)
         scale = cos_x * cos_z / d2 * area * record.nee_weight[nee].astype(dtype)
-        parts.append(_times(None if throughput is None else throughput[nee], f * column(scale) * light.emission))
+        parts.append(
+            _times(
+                None if throughput is None else throughput[nee], f * column(scale) * light.emission
+            )
+        )
         rows_of.append(rows[nee])
 
     # How the paths go on: a factor per path for its next segment.
@@ -234,7 +243,9 @@ def vertex_on_tape(world, sampler: PathSampler, prims, local, form, origins, dir
             ray = None if is_area else (origins[rows], directions[rows])
             previous = origins[rows] if is_area and origins is not None else None
             if isinstance(obj, Mesh):
-                group = _on_mesh(obj, o, sampler, prims[rows] - sampler.first[o], local[rows], ray, previous)
+                group = _on_mesh(
+                    obj, o, sampler, prims[rows] - sampler.first[o], local[rows], ray, previous
+                )
             else:
                 group = _on_sphere(obj, local[rows], ray, previous)
             parts.append(group)
@@ -295,9 +306,15 @@ def _on_mesh(mesh: Mesh, o: int, sampler: PathSampler, faces, local, ray, previo
     ns = ng
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        ns = md.normalize(sum(w * vn[ids] for ids, w in zip(corners, weights, strict=True)))
-    uv = sum(w * mesh.uvs[ids] for ids, w in zip(corners, weights, strict=True)) if textured else None
-    out = {"points": points, "ng": ng, "ns": ns, "jacobian": jacobian, "wo": _back(points, previous, ray)}
+        ns = md.normalize(interpolate(weights, vn, corners))
+    uv = interpolate(weights, mesh.uvs, corners) if textured else None
+    out = {
+        "points": points,
+        "ng": ng,
+        "ns": ns,
+        "jacobian": jacobian,
+        "wo": _back(points, previous, ray),
+    }
     return out | _material(mesh.material, uv, len(faces))
 
 
@@ -316,5 +333,11 @@ def _on_sphere(sphere, local, ray, previous) -> dict:
         points = ray[0] + column(t) * ray[1]
         ng = md.normalize(points - sphere.center)
         jacobian = md.tensor(np.ones(k, points.dtype))
-    out = {"points": points, "ng": ng, "ns": ng, "jacobian": jacobian, "wo": _back(points, previous, ray)}
+    out = {
+        "points": points,
+        "ng": ng,
+        "ns": ng,
+        "jacobian": jacobian,
+        "wo": _back(points, previous, ray),
+    }
     return out | _material(sphere.material, None, k)

@@ -140,7 +140,7 @@ def in_order(parts: list[md.Tensor], order: list[np.ndarray]) -> md.Tensor:
     return joined[np.argsort(np.concatenate(order))]
 
 
-def _interpolate(weights, attribute, corners):
+def interpolate(weights, attribute, corners):
     """Barycentric interpolation of a per-vertex attribute (V, n) at k hits: (k, n).
     ``corners``: the vertex ids (k,) of the hit faces' three corners."""
     return sum(w * attribute[ids] for ids, w in zip(corners, weights, strict=True))
@@ -167,8 +167,8 @@ def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
         weights = (column(1.0 - u - v), column(u), column(v))  # of corners a, b, c
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        normals = md.normalize(_interpolate(weights, vn, corners))
-    uv = _interpolate(weights, mesh.uvs, corners) if textured else None
+        normals = md.normalize(interpolate(weights, vn, corners))
+    uv = interpolate(weights, mesh.uvs, corners) if textured else None
     return Surface(points, normals * flip, directions, uv, flip[:, 0] > 0)
 
 
