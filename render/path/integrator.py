@@ -55,24 +55,26 @@ def render_path(
     batch_spp = check_path_options(batch_spp, 1, 1)[0]
     scene.validate()
     check_ray_count(scene.camera.width, scene.camera.height, spp)
-    image = None
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
     frame = camera_frame(world.camera)
+    total = None
     for first in range(0, spp, batch_spp):
-        part = _batch_image(world, frame, sampler, first, min(first + batch_spp, spp))
-        image = part if image is None else image + part
-    return image
+        samples = _batch_samples(world, frame, sampler, first, min(first + batch_spp, spp))
+        # One sample after the other, so that the sum's rounding does not depend on the
+        # batches (the same seed, the same image bit for bit, whatever batch_spp).
+        for s in range(samples.shape[2]):
+            total = samples[:, :, s] if total is None else total + samples[:, :, s]
+    return total * (1.0 / spp)
 
 
-def _batch_image(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
-    """Samples first..last-1 of every pixel: their sum over ``spp``, (H, W, 3)."""
+def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
+    """The radiance of samples first..last-1 of every pixel, (H, W, last - first, 3)."""
     camera = world.camera
     pixels = np.arange(camera.width * camera.height, dtype=np.int64)
     paths = (pixels[:, None] * sampler.spp + np.arange(first, last)[None, :]).ravel()
     radiance = path_radiance(world, frame, sampler, sampler.sample(paths))
-    per_pixel = md.reshape(radiance, (camera.height, camera.width, last - first, 3))
-    return md.sum(per_pixel, axis=2) * (1.0 / sampler.spp)
+    return md.reshape(radiance, (camera.height, camera.width, last - first, 3))
 
 
 def replay_gradient(
@@ -100,16 +102,14 @@ def replay_gradient(
     if not isinstance(value, md.Tensor) or value.data.size != 1:
         raise TypeError("replay_gradient: loss must return a scalar minidiff tensor")
     value.backward()
-    adjoint = pixels.grad
-    world = None
+    adjoint = pixels.grad / spp
+    sampler = None
     for first in range(0, spp, batch_spp):
         world = placed(scene)  # a fresh tape per batch: placement is on it too
-        if first == 0:
+        if sampler is None:  # plain arrays: the same for every batch
             sampler = PathSampler(world, spp, max_depth, rr_depth, seed_grad)
-        else:
-            sampler.scene = world
-        part = _batch_image(
-            world, camera_frame(world.camera), sampler, first, min(first + batch_spp, spp)
-        )
-        md.sum(part * adjoint).backward()
+        last = min(first + batch_spp, spp)
+        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last)
+        # This batch's share of the image is sum_s samples / spp; its share of dL/dtheta:
+        md.sum(samples * adjoint[:, :, None, :]).backward()  # (adjoint already / spp)
     return float(value.data), image

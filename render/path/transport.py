@@ -53,6 +53,7 @@ from render.shade.surface import (
     intersect_spheres,
     vertex_normals,
 )
+from render.trace.primitives import primitive_ranges
 
 
 @dataclass
@@ -233,9 +234,10 @@ def vertex_on_tape(world, sampler: PathSampler, prims, local, form, origins, dir
     (``origins``, ``directions``: (k, 3) tensors) meet it. ``wo`` points back along the
     ray, or to ``origins`` for ``AREA`` vertices (None: no previous vertex, NEE points)."""
     objects = object_of(sampler, prims)
+    owners = [obj for obj, _, _ in primitive_ranges(world)]  # this render's tensors
     parts, order = [], []
     for o in np.unique(objects):
-        obj = sampler.objects[o]
+        obj = owners[o]
         for is_area in (True, False):
             rows = np.flatnonzero((objects == o) & ((form == AREA) == is_area))
             if len(rows) == 0:
