@@ -1,0 +1,165 @@
+"""The path integrator's gradients in the Cornell box against central differences, and what
+the missing boundary terms cost.
+
+Run:  python benchmarks/path_gradients.py [--out docs/path_tracing] [--quick]
+
+For each parameter (the light's emission, the red wall's albedo with the wall out of view,
+the light's position, an interior vertex of the back wall) and each scene (the empty room,
+and the room with its two blocks, which cast soft shadows), over independent seeds:
+
+* our gradient of a fixed random linear functional of the image, ``sum(W * image)`` with
+  W = 1 + 0.5 N(0, 1) per pixel and channel (mostly the brightness), one render +
+  backward per seed;
+* central differences of the same functional, same seed on both sides (common random
+  numbers), step ``h`` along a fixed direction.
+
+Both are unbiased estimates of the true derivative *if nothing is missing from ours*; the
+table gives their means over seeds with standard errors, and the difference in units of the
+combined error. Emission and albedo leave every sampling decision unchanged, so the two
+agree seed by seed to rounding. The light's position and the wall's vertex move edges: the
+shadows' (secondary visibility) in the room with blocks; where the light is in view, its
+outline (primary visibility). Those boundary terms are not in our gradient; the differences
+measure them. The camera looks at the lower part of the room unless ``light_in_view``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import minidiff as md
+import render
+from render.inverse.jsonio import write_json
+from render.path import render_path
+from render.scene.cornell import cornell_box
+
+SIZE = 20
+DEPTH = 4
+DIRECTIONS = {
+    "emission": np.array([1.0, 0.5, 0.2]),
+    "bleeding_albedo": np.array([0.2, 1.0, 0.3]),
+    "light_position": np.array([0.3, 0.1, 0.2]),
+    "interior_vertex": np.array([0.1, 0.2, 0.5]),
+}
+
+
+def scene_for(blocks: bool, light_in_view: bool) -> render.Scene:
+    """The room (3 x 3 grid walls, so the back wall has interior vertices), seen whole
+    (``light_in_view``) or from a camera that sees neither the light nor the red wall."""
+    scene = cornell_box(SIZE, SIZE, blocks=blocks, subdivisions=3)
+    if not light_in_view:
+        scene.camera = render.Camera(
+            (0.45, -0.2, 3.9), (0.45, -0.6, 0.0), (0, 1, 0), 28.0, SIZE, SIZE
+        )
+    return scene
+
+
+def parameter(scene: render.Scene, name: str) -> md.Tensor:
+    """The tensor varied for ``name`` (for the vertex: the whole vertex array)."""
+    return {
+        "emission": lambda: scene.objects[5].material.emission,
+        "bleeding_albedo": lambda: scene.objects[3].material.albedo,
+        "light_position": lambda: scene.objects[5].transform.translation,
+        "interior_vertex": lambda: scene.objects[2].vertices,
+    }[name]()
+
+
+def step(name: str, value: np.ndarray, h: float) -> np.ndarray:
+    """``value`` moved by h along the parameter's direction (for the vertex: vertex 5, an
+    interior vertex of the back wall's 4 x 4 grid of vertices)."""
+    if name == "interior_vertex":
+        out = value.copy()
+        out[5] += h * DIRECTIONS[name]
+        return out
+    return value + h * DIRECTIONS[name]
+
+
+def one_seed(name, blocks, light_in_view, weights, seed, spp, h):
+    """(our directional derivative, the same-seed central difference) for one seed."""
+
+    def functional(delta, grad):
+        scene = scene_for(blocks, light_in_view)
+        p = parameter(scene, name)
+        p.data = step(name, p.data, delta)
+        p.requires_grad = grad
+        image = render_path(scene, spp=spp, max_depth=DEPTH, seed=seed, rr_depth=100)
+        return (image * md.tensor(weights)).sum(), p
+
+    value, p = functional(0.0, True)
+    value.backward()
+    ours = float(np.sum(step(name, np.zeros_like(p.grad), 1.0) * p.grad))
+    with md.no_grad():
+        fd = (functional(h, False)[0].item() - functional(-h, False)[0].item()) / (2 * h)
+    return ours, fd
+
+
+def run(seeds: int, spp: int, h: float) -> list[dict]:
+    weights = 1.0 + 0.5 * np.random.default_rng(5).standard_normal((SIZE, SIZE, 3))
+    rows = []
+    cases = [(n, b, False) for n in DIRECTIONS for b in (False, True)]
+    cases += [("light_position", False, True), ("light_position", True, True)]
+    for name, blocks, in_view in cases:
+        start = time.perf_counter()
+        pairs = np.array(
+            [one_seed(name, blocks, in_view, weights, s, spp, h) for s in range(seeds)]
+        )
+        ours, fd = pairs[:, 0], pairs[:, 1]
+        err_ours, err_fd = ours.std(ddof=1) / np.sqrt(seeds), fd.std(ddof=1) / np.sqrt(seeds)
+        row = {
+            "parameter": name, "blocks": blocks, "light_in_view": in_view,
+            "ours": ours.mean(), "ours_error": err_ours, "fd": fd.mean(), "fd_error": err_fd,
+            "difference_in_errors": (ours.mean() - fd.mean()) / np.hypot(err_ours, err_fd),
+            "missing_fraction": 1.0 - ours.mean() / fd.mean(),
+            "max_seed_relative_difference": float(np.max(np.abs(ours - fd)) / np.mean(np.abs(fd))),
+            "seconds": time.perf_counter() - start,
+        }  # fmt: skip
+        rows.append(row)
+        print(
+            f"{name:16s} blocks={blocks!s:5s} in_view={in_view!s:5s} ours {row['ours']:+.4f} "
+            f"± {err_ours:.4f}  FD {row['fd']:+.4f} ± {err_fd:.4f}  "
+            f"({row['difference_in_errors']:+.1f} errors, {row['seconds']:.0f} s)",
+            flush=True,
+        )
+    return rows
+
+
+def markdown(rows: list[dict], seeds: int, spp: int, h: float) -> str:
+    lines = [
+        f"Cornell box {SIZE}x{SIZE}, max_depth {DEPTH}, {spp} spp per seed, {seeds} seeds, "
+        f"central differences with step {h} (same seed both sides).",
+        "",
+        "| parameter | blocks | light in view | ours | central differences | difference "
+        "(errors) | missing fraction |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['parameter']} | {r['blocks']} | {r['light_in_view']} | "
+            f"{r['ours']:+.4f} ± {r['ours_error']:.4f} | {r['fd']:+.4f} ± {r['fd_error']:.4f} | "
+            f"{r['difference_in_errors']:+.1f} | {r['missing_fraction']:+.1%} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", default="docs/path_tracing")
+    parser.add_argument("--quick", action="store_true", help="4 seeds at 4 spp")
+    parser.add_argument("--seeds", type=int, default=48)
+    parser.add_argument("--spp", type=int, default=32)
+    parser.add_argument("--h", type=float, default=0.02)
+    args = parser.parse_args(argv)
+    seeds, spp = (4, 4) if args.quick else (args.seeds, args.spp)
+    rows = run(seeds, spp, args.h)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "gradients.json", {"seeds": seeds, "spp": spp, "h": args.h, "rows": rows})
+    (out / "gradients.md").write_text(markdown(rows, seeds, spp, args.h))
+    print(markdown(rows, seeds, spp, args.h))
+
+
+if __name__ == "__main__":
+    main()
