@@ -9,7 +9,8 @@ render of the true room, with the path integrator's replay gradient (max_depth 4
 samples every iteration, decorrelated gradient seeds), once per spp in ``--spp``. Writes
 ``results.json`` and ``results.md`` (the albedo error per spp after every 10 iterations),
 ``error.png`` (error against iterations, one line per spp) and ``images.png`` (target,
-start, final: the final image is the highest-spp run's, each rendered at 1,024 spp).
+start, final, each rendered at 1,024 spp, the final one the highest-spp run's, and 10x
+|target - start|; shown with 2x exposure and gamma 1/2.2).
 ``--quick``: 16x16, 20 iterations, spp 1 and 4 (a smoke run, not results).
 """
 
@@ -66,12 +67,21 @@ def main(argv=None) -> dict:
               f"{run.seconds / args.iters:.2f} s/iteration", flush=True)  # fmt: skip
     line_plot(curves, out / "error.png", "Hidden wall's albedo: relative error",
               "iteration", "|albedo - true| / |true|", logy=True)  # fmt: skip
-    strip = np.concatenate([last.images[k] for k in ("target", "start", "final")], axis=1)
-    save_image(np.clip(strip, 0.0, 1.0), out / "images.png")
+    images = [last.images[k] for k in ("target", "start", "final")]
+    # What the wall's colour changes: 10x the difference the start's grey wall makes.
+    images.append(10.0 * np.abs(last.images["target"] - last.images["start"]))
+    strip = np.concatenate([display(im) for im in images], axis=1)
+    save_image(strip, out / "images.png")
     write_json(out / "results.json", result)
     (out / "results.md").write_text(report(result))
     print(report(result))
     return result
+
+
+def display(image: np.ndarray) -> np.ndarray:
+    """Linear radiance made viewable: 2x exposure, clipped, gamma 1/2.2 (the saved PNG
+    stores values as they are)."""
+    return np.clip(2.0 * image, 0.0, 1.0) ** (1.0 / 2.2)
 
 
 def report(result: dict) -> str:

@@ -36,7 +36,7 @@ import numpy as np
 import minidiff as md
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
-from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms
+from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
 from render.film import image_from_hits, pixel_means, sample_colours
 from render.path.integrator import render_path
 from render.scene.cache import cache_for
@@ -106,8 +106,8 @@ def render(
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
     if integrator == "path":
-        _check_direct_defaults(bvh, shadows, return_info, antialias, max_bounces, primary)
-        return render_path(scene, spp, **path_options)
+        _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary)
+        return render_path(scene, spp, antialias=antialias, **path_options)
     if integrator != "direct":
         raise ValueError(f'render: integrator must be "direct" or "path", got {integrator!r}')
     if path_options:
@@ -134,7 +134,7 @@ def render(
         image = pixel_means(world, samples, spp)  # 5
     else:
         image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
-        if antialias == "boundary" and _differentiated(scene):  # 4': zero in value
+        if antialias == "boundary" and differentiated(scene):  # 4': zero in value
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
@@ -142,24 +142,16 @@ def render(
     return image, RenderInfo.of(world, visibility, shading.texel, spp, mirrors, edges)
 
 
-def _differentiated(scene: Scene) -> bool:
-    """Whether a derivative can flow from some scene parameter into the image (reverse mode
-    with grad enabled, or forward mode): the boundary term is zero in value, so without
-    one it would change nothing."""
-    grad = md.is_grad_enabled()
-    return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
-
-
-def _check_direct_defaults(bvh, shadows, return_info, antialias, max_bounces, primary) -> None:
+def _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary) -> None:
     """The path integrator has its own answers to these: refuse rather than ignore them."""
     given = {"bvh": bvh is not True, "shadows": shadows is not True,
-             "return_info": return_info is not False, "antialias": antialias is not False,
-             "max_bounces": max_bounces != 2, "primary": primary != "auto"}  # fmt: skip
+             "return_info": return_info is not False, "max_bounces": max_bounces != 2,
+             "primary": primary != "auto"}  # fmt: skip
     changed = [name for name, differs in given.items() if differs]
     if changed:
         raise ValueError(
             f'render: {", ".join(changed)} belong to integrator="direct"; the path integrator '
-            "traces with the BVH, always shadows, and has no edge term yet (see "
+            "traces with the BVH, always shadows, and bounces up to its max_depth (see "
             "docs/path_tracing.md)"
         )
 

@@ -395,6 +395,34 @@ def radiance_at(
     return shade_seen(scene, visibility, frame, coords, prim_id, t, max_bounces)
 
 
+class DirectRadiance:
+    """What the camera sees through image-plane points, for f_+ and f_-: the direct
+    renderer's shading (``shade_seen``, ``radiance_at``). Another integrator supplies its
+    own object with the same two methods (``render.path.edges.PathRadiance``).
+
+    ``key`` (k,) int64 names the quadrature point each ray belongs to: the two sides of a
+    point share it. A deterministic renderer ignores it; a Monte Carlo one draws both
+    sides' random numbers from it, so that f_+ - f_- is estimated with common random
+    numbers (far less noise than two independent estimates)."""
+
+    def __init__(self, scene: Scene, visibility: Visibility, frame, max_bounces: int) -> None:
+        self.scene, self.visibility, self.frame = scene, visibility, frame
+        self.max_bounces = max_bounces
+
+    def seen(
+        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
+    ) -> np.ndarray:
+        """(k, 3): the radiance of camera rays through ``coords`` (k, 2) that meet
+        primitives ``prim_id`` (k,) (-1: none) at ``depth`` (k,) along the view axis."""
+        return shade_seen(
+            self.scene, self.visibility, self.frame, coords, prim_id, depth, self.max_bounces
+        )
+
+    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """(k, 3): the radiance of the camera rays through ``coords`` (k, 2), traced."""
+        return radiance_at(self.scene, self.visibility, self.frame, coords, self.max_bounces)
+
+
 # ---------------------------------------------------------------------------------------
 # Candidates: mesh edges across which the image can jump, every sphere's outline
 # ---------------------------------------------------------------------------------------
@@ -615,13 +643,14 @@ def boundary_points(
     frame,
     topology,
     crossings,
-    max_bounces: int,
+    radiance,
     extra: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[BoundaryPoints, tuple]:
     """Every quadrature point of the boundary term of edges, intersections and outlines,
     with its constant factor (see the module docstring), for one render. ``topology``:
     ``mesh_edges`` per mesh index; ``crossings``: ``crossing_segments`` of the scene's
-    triangles (both depend on the geometry alone, so the caller may reuse them).
+    triangles (both depend on the geometry alone, so the caller may reuse them);
+    ``radiance``: what the camera sees on either side (``DirectRadiance``).
 
     extra: more curves as segments (start (k, 2), end (k, 2), pixel coordinates): the
     shadow borders, cut together with the rest (``split_at_crossings``). Their quadrature
@@ -667,14 +696,14 @@ def boundary_points(
         table = tables[index]
         factor[rows] = _mesh_edge_factors(
             scene, visibility, frame, index, firsts[index], table, edges, coords[rows],
-            weight[rows], max_bounces,
+            weight[rows], radiance, rows,
         )  # fmt: skip
         mesh_edges.append((index, rows, table.i[edges], table.j[edges]))
         first += count
     rows = np.flatnonzero((segment >= first) & (segment < first + len(pairs)))
     crossing_pairs = pairs[segment[rows] - first]
     factor[rows] = _crossing_factors(
-        scene, visibility, frame, crossing_pairs, coords[rows], weight[rows], max_bounces
+        scene, visibility, frame, crossing_pairs, coords[rows], weight[rows], radiance, rows
     )
     crossings = (rows, crossing_pairs)
     first += len(pairs)
@@ -682,7 +711,7 @@ def boundary_points(
         rows = np.flatnonzero((segment >= first) & (segment < first + count))
         factor[rows], coords[rows] = _outline_factors(
             scene, visibility, frame, scene.spheres[index], coords[rows], weight[rows],
-            max_bounces,
+            radiance, rows,
         )  # fmt: skip
         sphere_points.append((index, rows))
         first += count
@@ -729,10 +758,11 @@ def _line_points(visibility, frame, camera, m, directions, depth, ignore):
 
 
 def _mesh_edge_factors(
-    scene, visibility, frame, index, first_prim, table, edges, coords, weight, max_bounces
+    scene, visibility, frame, index, first_prim, table, edges, coords, weight, radiance, keys
 ) -> np.ndarray:
     """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the edges ``edges``
-    (rows of ``table``) of mesh ``index``, zero where the edge point is hidden.
+    (rows of ``table``) of mesh ``index``, zero where the edge point is hidden; ``keys``
+    (k,): the points' names for ``radiance`` (``DirectRadiance``).
 
     The edge point is where the camera ray through the quadrature point meets the edge.
     It is visible if nothing lies in front of it (an any-hit ray that ends just short of
@@ -753,6 +783,7 @@ def _mesh_edge_factors(
     )  # fmt: skip
     seen = np.flatnonzero(~hidden)
     edges, coords, depth, m, step = edges[seen], coords[seen], depth[seen], m[seen], step[seen]
+    keys = np.concatenate([keys[seen], keys[seen]])  # per row of ``colour`` below
     faces, thirds = table.faces[edges], table.thirds[edges]  # (n, K)
     valid = faces >= 0
     side = np.sign(np.einsum("nkj,nj->nk", vertices[np.maximum(thirds, 0)] - eye[None], m))
@@ -776,9 +807,9 @@ def _mesh_edge_factors(
         beyond.append((rows + offset, coords[rows] + sign * EPSILON * step[rows]))
     colour = np.empty((2 * len(seen), 3))
     rows, at, prims, depths = (np.concatenate(x) for x in zip(*faced, strict=True))
-    colour[rows] = shade_seen(scene, visibility, frame, at, prims, depths, max_bounces)
+    colour[rows] = radiance.seen(at, prims, depths, keys[rows])
     rows, at = (np.concatenate(x) for x in zip(*beyond, strict=True))
-    colour[rows] = radiance_at(scene, visibility, frame, at, max_bounces)
+    colour[rows] = radiance.along(at, keys[rows])
     out = np.zeros((len(hidden), 3))
     jump = colour[: len(seen)] - colour[len(seen) :]
     out[seen] = (weight[seen] / norm[seen])[:, None] * jump
@@ -812,7 +843,7 @@ def _plane_line(t1, t2, eye):
     return n1, n2, cross(point - eye, cross(n1, n2))
 
 
-def _crossing_factors(scene, visibility, frame, pairs, coords, weight, max_bounces):
+def _crossing_factors(scene, visibility, frame, pairs, coords, weight, radiance, keys):
     """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the segments where the
     triangle pairs ``pairs`` (k, 2) cross, zero where hidden. Near the segment each side
     sees the triangle that is nearer there, shaded at the point."""
@@ -837,10 +868,12 @@ def _crossing_factors(scene, visibility, frame, pairs, coords, weight, max_bounc
     plus = np.where(plus_first, pairs[seen, 0], pairs[seen, 1])
     minus = np.where(plus_first, pairs[seen, 1], pairs[seen, 0])
     k = len(seen)
-    colours = shade_seen(
-        scene, visibility, frame, np.concatenate([coords[seen], coords[seen]]),
-        np.concatenate([plus, minus]), np.concatenate([depth[seen], depth[seen]]), max_bounces,
-    )  # fmt: skip
+    colours = radiance.seen(
+        np.concatenate([coords[seen], coords[seen]]),
+        np.concatenate([plus, minus]),
+        np.concatenate([depth[seen], depth[seen]]),
+        np.concatenate([keys[seen], keys[seen]]),
+    )
     out = np.zeros((len(coords), 3))
     out[seen] = (weight[seen] / norm[seen])[:, None] * (colours[:k] - colours[k:])
     return out
@@ -851,7 +884,7 @@ def _size(camera) -> tuple[int, int]:
     return camera.width, camera.height
 
 
-def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounces):
+def _outline_factors(scene, visibility, frame, sphere, coords, weight, radiance, keys):
     """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on a sphere's outline, and
     the points moved onto the outline (k, 2). The outline of a sphere is smooth: f_+ and f_-
     are what two rays just inside and just outside it see."""
@@ -859,7 +892,7 @@ def _outline_factors(scene, visibility, frame, sphere, coords, weight, max_bounc
     coords, grad = _onto_outline(coords, sphere, plain_camera(frame))
     norm, step = _pixel_gradient(grad, *_size(camera))
     both = np.concatenate([coords + EPSILON * step, coords - EPSILON * step])
-    f = radiance_at(scene, visibility, frame, both, max_bounces)
+    f = radiance.along(both, np.concatenate([keys, keys]))
     jump = f[: len(coords)] - f[len(coords) :]
     factor = np.where(norm > 0, weight / np.where(norm > 0, norm, 1.0), 0.0)
     return factor[:, None] * jump, coords

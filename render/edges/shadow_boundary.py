@@ -50,7 +50,6 @@ from render.edges.boundary import (
     _pixel_gradient,
     plain_camera,
     project,
-    radiance_at,
 )
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
 from render.scene.camera import ray_directions
@@ -352,11 +351,12 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
 
 
 def shadow_points(
-    scene: Scene, visibility: Visibility, frame, chords: BorderChords, pieces, max_bounces: int
+    scene: Scene, visibility: Visibility, frame, chords: BorderChords, pieces, radiance
 ) -> ShadowPoints:
     """The quadrature points of the shadow borders with their constant factors
     (``BoundaryPoints``): ``pieces`` = (chord (m,), image-plane coords (m, 2), weight (m,),
-    pixel (m,)) of the points on ``chords`` (``boundary_points``' extra curves)."""
+    pixel (m,)) of the points on ``chords`` (``boundary_points``' extra curves);
+    ``radiance``: what the camera sees either side (``boundary.DirectRadiance``)."""
     plain = plain_camera(frame)
     chord, coords, weight, pixel = pieces
     parts = []
@@ -367,7 +367,7 @@ def shadow_points(
         occluder, receiver = chords.occluder[chord[rows]], chords.receiver[chord[rows]]
         moved = _onto_border(scene, visibility, plain, light, occluder, receiver, coords[rows])
         factor = _border_factors(
-            scene, visibility, plain, light, occluder, receiver, moved, weight[rows], max_bounces
+            scene, visibility, plain, light, occluder, receiver, moved, weight[rows], radiance
         )
         keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
         parts.append((moved[keep], pixel[rows][keep], factor[keep], np.full(len(keep), j),
@@ -380,7 +380,7 @@ def shadow_points(
 
 
 def _border_factors(
-    scene, visibility, frame, light, occluder, receiver, coords, weight, max_bounces
+    scene, visibility, frame, light, occluder, receiver, coords, weight, radiance
 ) -> np.ndarray:
     """(k, 3): w (f_+ - f_-) / |grad e| at k points on the border; zero where the camera
     does not see the receiver there or the border is degenerate."""
@@ -399,7 +399,7 @@ def _border_factors(
     rows = rows[~hidden]
     shift = EPSILON * step[rows]
     both = np.concatenate([coords[rows] + shift, coords[rows] - shift])
-    f = radiance_at(scene, visibility, frame, both, max_bounces)
+    f = radiance.along(both, np.concatenate([rows, rows]))
     out = np.zeros((len(coords), 3))
     out[rows] = (weight[rows] / norm[rows])[:, None] * (f[: len(rows)] - f[len(rows) :])
     return out

@@ -18,6 +18,7 @@ import numpy as np
 
 import minidiff as md
 from render.edges.boundary import (
+    DirectRadiance,
     boundary_points,
     boundary_term,
     crossing_segments,
@@ -116,6 +117,14 @@ def add_edge_terms(
     return add_to_samples(samples, [silhouettes, shadows]), found
 
 
+def differentiated(scene: Scene) -> bool:
+    """Whether a derivative can flow from some scene parameter into the image (reverse mode
+    with grad enabled, or forward mode): the boundary term is zero in value, so without
+    one it would change nothing."""
+    grad = md.is_grad_enabled()
+    return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
+
+
 def add_boundary_term(
     scene: Scene,
     visibility: Visibility,
@@ -123,24 +132,33 @@ def add_boundary_term(
     image: md.Tensor,
     frame,
     max_bounces: int,
+    radiance=None,
 ) -> md.Tensor:
     """The image (H, W, 3) plus the boundary term of every silhouette, crease, sphere
     outline and intersection of surfaces (``render.edges.boundary``): the same values, the
-    exact edge derivative."""
+    exact edge derivative. ``radiance``: what the camera sees either side of an edge (None:
+    the direct renderer's, ``DirectRadiance``, and the shadow borders of its lights are
+    included; another integrator's object: primary visibility only)."""
     topology = mesh_topology(scene, visibility, cache)
     crossings, _ = cache.get(
         "crossings",
         [visibility.geometry],
         lambda: crossing_segments(visibility.primitives[0], global_welded(scene, topology)),
     )
-    chords = border_chords(scene, visibility, frame, topology)
+    direct = radiance is None
+    if direct:
+        radiance = DirectRadiance(scene, visibility, frame, max_bounces)
+    chords = border_chords(scene, visibility, frame, topology) if direct else None
+    extra = (chords.start, chords.end) if direct else None
     points, on_chords = boundary_points(
-        scene, visibility, frame, topology, crossings, max_bounces, (chords.start, chords.end)
+        scene, visibility, frame, topology, crossings, radiance, extra
     )
-    borders = shadow_points(scene, visibility, frame, chords, on_chords, max_bounces)
-    found, shadows = shadow_term(scene, borders, frame), None
-    if found is not None:
-        e, rows = found
-        shadows = (e, borders.weight[rows], borders.pixel[rows])
+    shadows = None
+    if direct:
+        borders = shadow_points(scene, visibility, frame, chords, on_chords, radiance)
+        found = shadow_term(scene, borders, frame)
+        if found is not None:
+            e, rows = found
+            shadows = (e, borders.weight[rows], borders.pixel[rows])
     term = boundary_term(scene, points, frame, shadows)
     return image if term is None else image + term

@@ -25,6 +25,8 @@ from collections.abc import Callable
 import numpy as np
 
 import minidiff as md
+from render.edges.terms import differentiated
+from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
 from render.path.tracer import PathSampler, check_path_options
 from render.path.transport import path_radiance
@@ -45,14 +47,22 @@ def render_path(
     seed: int = 0,
     rr_depth: int = RR_DEPTH,
     batch_spp: int = BATCH_SPP,
+    antialias: bool | str = False,
+    edge_spp: int | None = None,
 ) -> md.Tensor:
     """The (H, W, 3) image of ``scene`` by the path integrator: the mean of ``spp`` paths
     per pixel, each at most ``max_depth`` segments long (1: emitters seen directly; 2:
     direct light; 3: one indirect bounce; ...). The same seed gives the same image bit for
-    bit, whatever ``batch_spp`` and the number of threads."""
+    bit, whatever ``batch_spp`` and the number of threads.
+
+    antialias: False (default): no edge term, the motion of silhouettes has no gradient;
+    "boundary": add primary visibility's boundary term (``render.path.edges``; zero in
+    value), its jumps estimated with ``edge_spp`` paths per side of each edge point (None:
+    ``spp``)."""
     spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
     seed = check_seed(seed)
     batch_spp = check_path_options(batch_spp, 1, 1)[0]
+    edges, edge_spp = check_path_edges(antialias, edge_spp, spp)
     scene.validate()
     check_ray_count(scene.camera.width, scene.camera.height, spp)
     world = placed(scene)
@@ -65,7 +75,29 @@ def render_path(
         # batches (the same seed, the same image bit for bit, whatever batch_spp).
         for s in range(samples.shape[2]):
             total = samples[:, :, s] if total is None else total + samples[:, :, s]
-    return total * (1.0 / spp)
+    image = total * (1.0 / spp)
+    if edges and differentiated(scene):
+        image = add_path_boundary_term(scene, world, image, frame, sampler, edge_spp)
+    return image
+
+
+def check_path_edges(antialias, edge_spp, spp: int) -> tuple[bool, int]:
+    """(whether to add the boundary term, paths per side of an edge point), or a clear
+    error: the path integrator's edge term is the boundary integral only."""
+    if antialias is False or antialias is None:
+        edges = False
+    elif antialias == "boundary":
+        edges = True
+    else:
+        raise ValueError(
+            'render: the path integrator takes antialias=False or "boundary" (the boundary '
+            f"integral of primary visibility), got {antialias!r}"
+        )
+    if edge_spp is None:
+        return edges, spp
+    if isinstance(edge_spp, bool) or not isinstance(edge_spp, int | np.integer) or edge_spp < 1:
+        raise ValueError(f"render: edge_spp must be an integer >= 1 or None, got {edge_spp!r}")
+    return edges, int(edge_spp)
 
 
 def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
@@ -86,14 +118,19 @@ def replay_gradient(
     seed_grad: int | None = None,
     rr_depth: int = RR_DEPTH,
     batch_spp: int = BATCH_SPP,
+    antialias: bool | str = False,
+    edge_spp: int | None = None,
 ) -> tuple[float, np.ndarray]:
     """Differentiate ``loss(image)`` by replay: adds d loss / d p to ``p.grad`` of every
     scene parameter that requires it (as ``backward`` would) and returns (the loss's value,
     the primal image (H, W, 3)). ``loss`` maps an (H, W, 3) tensor to a scalar tensor.
     ``seed_grad``: the seed of the gradient pass (None: ``seed + 1``, decorrelated; pass
-    ``seed`` to reproduce the tape's gradient exactly). Peak memory is one batch's tape."""
+    ``seed`` to reproduce the tape's gradient exactly). Peak memory is one batch's tape.
+    ``antialias``, ``edge_spp``: as ``render_path``; the boundary term is computed once,
+    after the batches, with ``seed_grad``'s random numbers."""
     spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
     seed = check_seed(seed)
+    edges, edge_spp = check_path_edges(antialias, edge_spp, spp)
     seed_grad = check_seed(seed + 1 if seed_grad is None else seed_grad, "seed_grad")
     with md.no_grad():
         image = render_path(scene, spp, max_depth, seed, rr_depth, batch_spp).data
@@ -112,4 +149,11 @@ def replay_gradient(
         samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last)
         # This batch's share of the image is sum_s samples / spp; its share of dL/dtheta:
         md.sum(samples * adjoint[:, :, None, :]).backward()  # (adjoint already / spp)
+    if edges and differentiated(scene):
+        world = placed(scene)
+        zero = md.tensor(np.zeros_like(image))
+        term = add_path_boundary_term(
+            scene, world, zero, camera_frame(world.camera), sampler, edge_spp
+        )
+        md.sum(term * pixels.grad).backward()
     return float(value.data), image

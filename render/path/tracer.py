@@ -172,20 +172,38 @@ class PathSampler:
             ],
             axis=1,
         )
-        coords = to_image_plane(film, width, height)
+        return self.start(paths, to_image_plane(film, width, height))
+
+    def start(
+        self,
+        paths: np.ndarray,
+        coords: np.ndarray,
+        prim: np.ndarray | None = None,
+        depth: np.ndarray | None = None,
+    ) -> PathBatch:
+        """The ``PathBatch`` of paths ``paths`` (N,) whose camera rays pass through the
+        image-plane points ``coords`` (N, 2): traced (``prim`` None), or given their first
+        hit, primitive ``prim`` (N,) (-1: none) at ``depth`` (N,) along the view axis (the
+        sides of an edge, ``render.path.edges``)."""
         forward, right, up, eye = self.frame
         directions = coords[:, :1] * right + coords[:, 1:] * up + forward
-        prim, t, u, v = self.accelerator.closest_hit(
-            np.broadcast_to(eye, directions.shape), directions
-        )
-        rows = np.flatnonzero(prim >= 0)
-        points = eye + t[rows, None] * directions[rows]
-        state = _State(rows, prim[rows], self._local(prim[rows], points, u[rows], v[rows]),
-                       points, unit(directions[rows]), np.full(len(rows), CAMERA, np.int8),
-                       np.zeros(len(rows)), points, np.ones(len(rows)))  # fmt: skip
+        if prim is None:
+            prim, t, u, v = self.accelerator.closest_hit(
+                np.broadcast_to(eye, directions.shape), directions
+            )
+            rows = np.flatnonzero(prim >= 0)
+            points = eye + t[rows, None] * directions[rows]
+            local = self._local(prim[rows], points, u[rows], v[rows])
+        else:
+            rows = np.flatnonzero(prim >= 0)
+            points = eye + depth[rows, None] * directions[rows]
+            local = self._local(prim[rows], points, *self._barycentric(prim[rows], points))
+        state = _State(rows, prim[rows], local, points, unit(directions[rows]),
+                       np.full(len(rows), CAMERA, np.int8), np.zeros(len(rows)), points,
+                       np.ones(len(rows)))  # fmt: skip
         vertices = []
-        for depth in range(1, self.max_depth + 1):
-            record, state = self._vertex(paths, depth, state)
+        for k in range(1, self.max_depth + 1):
+            record, state = self._vertex(paths, k, state)
             vertices.append(record)
             if state is None:
                 break
@@ -334,6 +352,20 @@ class PathSampler:
         spheres = prim[~on_tri] - self.n_triangles
         local[~on_tri] = unit(points[~on_tri] - self.primitives[1][spheres])
         return local
+
+    def _barycentric(self, prim, points) -> tuple[np.ndarray, np.ndarray]:
+        """(u, v) (k,) each: the barycentrics of ``points`` (k, 3) in the planes of their
+        triangles ``prim`` (k,) (anything for spheres' rows: ``_local`` ignores them)."""
+        u, v = np.zeros(len(prim)), np.zeros(len(prim))
+        on_tri = np.flatnonzero(prim < self.n_triangles)
+        tri = self.primitives[0][prim[on_tri]]
+        e1, e2, p = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], points[on_tri] - tri[:, 0]
+        d11, d12, d22 = dot(e1, e1), dot(e1, e2), dot(e2, e2)
+        p1, p2 = dot(p, e1), dot(p, e2)
+        det = d11 * d22 - d12 * d12
+        det = np.where(det != 0, det, 1.0)
+        u[on_tri], v[on_tri] = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
+        return u, v
 
     def _normals(self, prim, points, local) -> tuple[np.ndarray, np.ndarray]:
         """Unit geometric and shading normals (k, 3) at hit points (not yet facing the

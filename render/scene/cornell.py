@@ -41,7 +41,8 @@ def box_mesh(center, half, material: Material) -> Mesh:
     """An axis-aligned box (12 triangles, normals outward)."""
     c, h = np.asarray(center, float), np.asarray(half, float)
     x, y, z = np.eye(3) * h[:, None]
-    sides = [(c + y, x, -z), (c - y, x, z), (c + x, z, y), (c - x, y, z), (c + z, x, y),
+    # (centre, u, v) per side, u x v along the outward normal.
+    sides = [(c + y, x, -z), (c - y, x, z), (c + x, y, z), (c - x, z, y), (c + z, x, y),
              (c - z, y, x)]  # fmt: skip
     vertices, faces = [], []
     for centre, u, v in sides:

@@ -1,0 +1,112 @@
+"""Primary visibility's boundary term for the path integrator.
+
+The camera's silhouettes, creases, the outlines of spheres and the lines where surfaces
+cross move with the geometry and the camera; a pixel's integral over them has a boundary
+term (``render.edges.boundary``: for every point x on an edge, the jump f_+(x) - f_-(x)
+of what the camera sees on either side, times how fast the edge moves across x). The
+direct renderer's jump is its own shading on either side; here it is the path-traced
+radiance of the camera rays through the two sides, estimated with ``samples`` paths each.
+
+Both sides of one quadrature point draw the same random numbers (common random numbers:
+their difference has far less noise than two independent estimates), and the path ids come
+after those of the image (pixel x spp + sample), so that the jumps are independent of the
+image's own samples. The estimate of each jump is unbiased, so the boundary term is; it is
+added to the image with value zero, as the direct renderer's is.
+
+Not included: the boundary terms of secondary visibility (soft shadows' and indirect
+occlusion's edges, ``docs/path_tracing.md`` measures what they leave out).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import minidiff as md
+from render.edges.boundary import project, to_image_plane
+from render.edges.terms import add_boundary_term
+from render.path.tracer import PathSampler
+from render.path.transport import path_radiance
+from render.scene.cache import cache_for
+from render.scene.scene import Scene
+from render.trace.visibility import trace_visibility
+
+#: Paths traced at once when estimating jumps (bounds the memory of one estimate).
+CHUNK_PATHS = 1 << 17
+#: How far towards its triangle's centroid an edge point's path starts (a fraction).
+INSIDE = 1e-6
+
+
+class PathRadiance:
+    """What the camera sees through image-plane points, by path tracing: the
+    ``render.edges.boundary.DirectRadiance`` interface for the path integrator.
+
+    world: the scene in world space; frame: its camera frame; sampler: the render's
+    ``PathSampler`` (its BVH, emitters, seed, max_depth); samples: paths per side of each
+    point; first_id: the path id of key 0's first sample (ids ``first_id + key * samples +
+    s``, s < samples)."""
+
+    def __init__(self, world: Scene, frame, sampler: PathSampler, samples: int, first_id: int):
+        self.world, self.frame, self.sampler = world, frame, sampler
+        self.samples, self.first_id = samples, first_id
+
+    def seen(
+        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
+    ) -> np.ndarray:
+        """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
+        (k, 2) that first meets primitive ``prim_id`` (k,) (-1: none) at ``depth`` (k,)."""
+        return self._estimate(*self._inside(coords, prim_id, depth), key, prim_id)
+
+    def _inside(self, coords, prim, depth) -> tuple[np.ndarray, np.ndarray]:
+        """The image-plane points (k, 2) and depths (k,) of the edge points moved
+        ``INSIDE`` of the way towards their triangles' centroids. An edge point is exactly on
+        its triangle's border: where two walls meet, a path bouncing off it would start on
+        the other wall (a zero-length segment); just inside, it is the limit f_+ or f_- is."""
+        forward, right, up, eye = self.sampler.frame
+        coords, depth = coords.copy(), depth.copy()
+        rows = np.flatnonzero((prim >= 0) & (prim < self.sampler.n_triangles))
+        points = eye + depth[rows, None] * (
+            coords[rows, :1] * right + coords[rows, 1:] * up + forward
+        )
+        centroid = self.sampler.primitives[0][prim[rows]].mean(axis=1)
+        camera = self.world.camera
+        px, depth[rows] = project(
+            points + INSIDE * (centroid - points), (forward, right, up, eye), camera.width,
+            camera.height,
+        )  # fmt: skip
+        coords[rows] = to_image_plane(px, camera.width, camera.height)
+        return coords, depth
+
+    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
+        (k, 2), its first hit traced."""
+        return self._estimate(coords, None, key)
+
+    def _estimate(self, coords, depth, key, prim=None) -> np.ndarray:
+        n = self.samples
+        out = np.zeros((len(coords), 3))
+        step = max(1, CHUNK_PATHS // n)
+        for start in range(0, len(coords), step):
+            rows = slice(start, start + step)
+            k = len(coords[rows])
+            paths = (self.first_id + key[rows, None] * n + np.arange(n)[None, :]).ravel()
+            given = () if prim is None else (np.repeat(prim[rows], n), np.repeat(depth[rows], n))
+            batch = self.sampler.start(paths, np.repeat(coords[rows], n, axis=0), *given)
+            with md.no_grad():
+                radiance = path_radiance(self.world, self.frame, self.sampler, batch).data
+            out[rows] = radiance.reshape(k, n, 3).mean(axis=1)
+        return out
+
+
+def add_path_boundary_term(
+    scene: Scene, world: Scene, image: md.Tensor, frame, sampler: PathSampler, samples: int
+) -> md.Tensor:
+    """The image (H, W, 3) plus the boundary term of primary visibility (zero in value),
+    its jumps estimated with ``samples`` paths per side. ``scene``: the user's scene (its
+    render cache keeps the mesh topology); ``world``: it placed in world space, on the tape,
+    with ``frame`` its camera frame; ``sampler``: the render's."""
+    cache = cache_for(scene, True)
+    visibility = trace_visibility(world, cache, True, 1, False)
+    camera = world.camera
+    first_id = camera.width * camera.height * sampler.spp  # after the image's path ids
+    radiance = PathRadiance(world, frame, sampler, samples, first_id)
+    return add_boundary_term(world, visibility, cache, image, frame, 0, radiance)
