@@ -1,6 +1,6 @@
 """The path integrator: memory of its two gradients against spp, and its time per sample.
 
-Run:  python benchmarks/bench_path.py [--out docs/path_tracing] [--quick]
+Run:  python benchmarks/bench_path.py [--out docs/path_tracing] [--quick] [--part memory|speed]
 
 * Memory: the peak of Python's traced allocations (``tracemalloc``; NumPy reports its
   arrays to it) during one gradient of an image loss on the Cornell box at 32x32, max_depth
@@ -16,6 +16,7 @@ Run:  python benchmarks/bench_path.py [--out docs/path_tracing] [--quick]
 from __future__ import annotations
 
 import argparse
+import json
 import time
 import tracemalloc
 from pathlib import Path
@@ -23,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 import minidiff as md
+from minidiff import buffers
 from render.inverse.jsonio import write_json
 from render.path import render_path, replay_gradient
 from render.scene.cornell import cornell_box
@@ -49,7 +51,9 @@ def _problem(size: int):
 
 
 def peak_mb(fn) -> float:
-    """Peak traced allocation during ``fn()``, in MB (above what was allocated before)."""
+    """Peak traced allocation during ``fn()``, in MB (above what was allocated before), with
+    minidiff's pool of reusable buffers emptied first."""
+    buffers.clear()
     tracemalloc.start()
     tracemalloc.reset_peak()
     base = tracemalloc.get_traced_memory()[0]
@@ -72,17 +76,31 @@ def memory(size: int, tape_spps, replay_spps) -> dict:
             p.grad = None
         replay_gradient(scene, loss, spp=spp, max_depth=DEPTH, seed=0, batch_spp=16)
 
-    out = {"tape": {}, "replay": {}}
-    for spp in tape_spps:
-        out["tape"][spp] = peak_mb(lambda s=spp: tape(s))
-        print(f"tape   {spp:5d} spp: {out['tape'][spp]:8.1f} MB", flush=True)
-    for spp in replay_spps:
-        out["replay"][spp] = peak_mb(lambda s=spp: replay(s))
-        print(f"replay {spp:5d} spp: {out['replay'][spp]:8.1f} MB", flush=True)
-    spps = sorted(out["tape"])
-    out["tape_mb_per_spp"] = (out["tape"][spps[-1]] - out["tape"][spps[0]]) / (spps[-1] - spps[0])
-    values = list(out["replay"].values())
-    out["replay_max_over_min"] = max(values) / min(values)
+    out = {}
+    # With minidiff's pool of reusable buffers (default, at most 512 MiB: a cache whose
+    # arrays outlive the pass) and without it (what the gradient itself needs). A path
+    # tracer's arrays change shape from batch to batch, so the pool fills with shapes that
+    # are not asked for again until it reaches its cap.
+    default_max = buffers.max_bytes()
+    for pool, max_bytes in (("pool", default_max), ("no_pool", 0)):
+        buffers.set_max_bytes(max_bytes)
+        try:
+            row = {"tape": {}, "replay": {}}
+            for spp in tape_spps:
+                row["tape"][spp] = peak_mb(lambda s=spp: tape(s))
+                print(f"{pool:8s} tape   {spp:5d} spp: {row['tape'][spp]:8.1f} MB", flush=True)
+            for spp in replay_spps:
+                row["replay"][spp] = peak_mb(lambda s=spp: replay(s))
+                print(f"{pool:8s} replay {spp:5d} spp: {row['replay'][spp]:8.1f} MB", flush=True)
+        finally:
+            buffers.set_max_bytes(default_max)
+        spps = sorted(row["tape"])
+        row["tape_mb_per_spp"] = (row["tape"][spps[-1]] - row["tape"][spps[0]]) / (
+            spps[-1] - spps[0]
+        )
+        values = list(row["replay"].values())
+        row["replay_max_over_min"] = max(values) / min(values)
+        out[pool] = row
     return out
 
 
@@ -119,17 +137,24 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="docs/path_tracing")
     parser.add_argument("--quick", action="store_true")
+    parser.add_argument(
+        "--part", choices=("both", "memory", "speed"), default="both",
+        help="measure one part only, keeping the other's results from bench_path.json",
+    )  # fmt: skip
     args = parser.parse_args(argv)
-    if args.quick:
-        result = {"memory": memory(16, (4, 8), (4, 8, 16)), "speed": speed(32, 4, 2)}
-    else:
-        result = {
-            "memory": memory(32, (16, 64, 256), (16, 64, 256, 1024)),
-            "speed": speed(128, 16, 5),
-        }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "bench_path.json", result)
+    path = out / "bench_path.json"
+    result = json.loads(path.read_text()) if path.exists() and args.part != "both" else {}
+    if args.part in ("both", "memory"):
+        result["memory"] = (
+            memory(16, (4, 8), (4, 8, 16))
+            if args.quick
+            else memory(32, (16, 64, 256), (16, 64, 256, 1024))
+        )
+    if args.part in ("both", "speed"):
+        result["speed"] = speed(32, 4, 2) if args.quick else speed(128, 16, 5)
+    write_json(path, result)
 
 
 if __name__ == "__main__":

@@ -28,14 +28,23 @@ arrays that come from here are kept.  The pool holds at most ``max_bytes``
 (default 512 MiB); when a new shape would exceed that, the shapes used least recently are
 dropped from it (arrays in use live on, they are just not reused).  ``clear()`` drops
 everything; ``set_max_bytes(0)`` turns reuse off.
+
+Reuse pays when the same shapes come back pass after pass (the direct renderer: one image,
+the same rays). A Monte Carlo pass asks for new shapes every batch (how many paths are
+still alive at each depth), which only fills the pool with arrays nobody asks for again;
+code like that runs inside ``with fresh():``, which makes ``empty`` plain ``np.empty`` for
+the current thread (or asyncio task) only: a context variable, not a process-wide switch.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 import sys
 import threading
 from collections import OrderedDict
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -52,6 +61,20 @@ _max_bytes = 512 * 2**20
 # looks at it (plus getrefcount's own argument): nobody else holds it.
 _UNUSED = 3
 
+#: True inside ``with fresh():`` (this thread or task only): no reuse.
+_fresh: contextvars.ContextVar[bool] = contextvars.ContextVar("minidiff_fresh", default=False)
+
+
+@contextlib.contextmanager
+def fresh() -> Iterator[None]:
+    """Within the block, on this thread (or asyncio task) only, ``empty`` neither reuses
+    nor keeps arrays: for passes whose shapes will not come back."""
+    token = _fresh.set(True)
+    try:
+        yield
+    finally:
+        _fresh.reset(token)
+
 
 def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     """Equals ``np.empty(shape, dtype)``: an array of that shape and dtype, contents arbitrary.
@@ -61,7 +84,7 @@ def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     dtype = np.dtype(dtype)
     shape = tuple(int(n) for n in shape)
     nbytes = dtype.itemsize * math.prod(shape)
-    if nbytes < MIN_BYTES or nbytes > _max_bytes:
+    if nbytes < MIN_BYTES or nbytes > _max_bytes or _fresh.get():
         return np.empty(shape, dtype)
     key = (shape, dtype)
     global _held_bytes
@@ -165,6 +188,11 @@ def zeros(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
 def held_bytes() -> int:
     """Bytes of the arrays the pool keeps (in use or free)."""
     return _held_bytes
+
+
+def max_bytes() -> int:
+    """The most bytes of arrays the pool keeps for reuse (``set_max_bytes``)."""
+    return _max_bytes
 
 
 def set_max_bytes(n: int) -> None:

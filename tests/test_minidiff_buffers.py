@@ -176,3 +176,47 @@ def test_no_held_array_is_ever_handed_out_during_renders():
     assert handed_out
     for out in handed_out:
         assert not any(np.shares_memory(out, k) for k in kept)
+
+
+def test_fresh_keeps_nothing_and_is_local_to_its_thread():
+    """Inside ``fresh()`` the pool neither grows nor hands out its arrays; another thread
+    at the same time still reuses, and outside the block reuse is back."""
+    import threading
+
+    a = buffers.empty(BIG, np.float64)
+    address = a.__array_interface__["data"][0]
+    del a
+    seen = {}
+
+    def other():
+        b = buffers.empty(BIG, np.float64)
+        seen["reused"] = b.__array_interface__["data"][0] == address
+
+    with buffers.fresh():
+        held = buffers.held_bytes()
+        arrays = [buffers.empty((60_000 + i, 3), np.float64) for i in range(5)]
+        assert buffers.held_bytes() == held  # nothing new kept
+        c = buffers.empty(BIG, np.float64)
+        assert c.__array_interface__["data"][0] != address  # the free array not handed out
+        del c
+        worker = threading.Thread(target=other)
+        worker.start()
+        worker.join()
+    assert seen["reused"]  # the other thread was not inside fresh()
+    d = buffers.empty(BIG, np.float64)
+    assert d.__array_interface__["data"][0] == address
+    assert len(arrays) == 5
+
+
+def test_a_path_tracer_pass_leaves_the_pool_as_it_was():
+    """The path integrator's shapes change with every batch: it runs inside ``fresh()``."""
+    from render.path import render_path
+    from render.scene.cornell import cornell_box
+
+    buffers.clear()
+    scene = cornell_box(24, 24)
+    scene.objects[3].material.albedo.requires_grad = True
+    image = render_path(scene, spp=8, max_depth=3, batch_spp=2)
+    assert buffers.held_bytes() == 0
+    image.sum().backward()
+    assert np.abs(scene.objects[3].material.albedo.grad).max() > 0

@@ -25,6 +25,7 @@ from collections.abc import Callable
 import numpy as np
 
 import minidiff as md
+from minidiff import buffers
 from render.edges.terms import differentiated
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
@@ -65,6 +66,13 @@ def render_path(
     edges, edge_spp = check_path_edges(antialias, edge_spp, spp)
     scene.validate()
     check_ray_count(scene.camera.width, scene.camera.height, spp)
+    # Every batch has arrays of new shapes (the paths alive at each depth): reusing
+    # minidiff's buffers would only fill its pool with arrays nobody asks for again.
+    with buffers.fresh():
+        return _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
+
+
+def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
     frame = camera_frame(world.camera)
@@ -134,6 +142,12 @@ def replay_gradient(
     seed_grad = check_seed(seed + 1 if seed_grad is None else seed_grad, "seed_grad")
     with md.no_grad():
         image = render_path(scene, spp, max_depth, seed, rr_depth, batch_spp).data
+    with buffers.fresh():  # as in render_path
+        return _replay(scene, loss, image, spp, max_depth, seed_grad, rr_depth, batch_spp,
+                       edges, edge_spp)  # fmt: skip
+
+
+def _replay(scene, loss, image, spp, max_depth, seed_grad, rr_depth, batch_spp, edges, edge_spp):
     pixels = md.tensor(image, requires_grad=True)
     value = loss(pixels)
     if not isinstance(value, md.Tensor) or value.data.size != 1:
