@@ -18,8 +18,11 @@ table gives their means over seeds with standard errors, and the difference in u
 combined error. Emission and albedo leave every sampling decision unchanged, so the two
 agree seed by seed to rounding. The light's position and the wall's vertex move edges: the
 shadows' (secondary visibility) in the room with blocks; where the light is in view, its
-outline (primary visibility). Those boundary terms are not in our gradient; the differences
-measure them. The camera looks at the lower part of the room unless ``light_in_view``.
+outline (primary visibility). The camera's position and the sphere's centre move
+silhouettes (primary visibility), the sphere its shadow too. Rows with ``antialias`` =
+boundary add primary visibility's boundary term (``render.path.edges``); what no row
+includes is secondary visibility's (shadows, indirect occlusion), and the differences
+measure it. The camera looks at the lower part of the room unless ``light_in_view``.
 """
 
 from __future__ import annotations
@@ -43,7 +46,13 @@ DIRECTIONS = {
     "bleeding_albedo": np.array([0.2, 1.0, 0.3]),
     "light_position": np.array([0.3, 0.1, 0.2]),
     "interior_vertex": np.array([0.1, 0.2, 0.5]),
+    "camera_position": np.array([0.2, 0.3, -0.4]),
+    "sphere_centre": np.array([0.3, 0.1, 0.2]),
 }
+
+
+#: The step's multiple for the parameters that move a primary edge.
+LONGER_STEP = {"camera_position": 5.0, "sphere_centre": 5.0}
 
 
 def scene_for(blocks: bool, light_in_view: bool) -> render.Scene:
@@ -64,6 +73,8 @@ def parameter(scene: render.Scene, name: str) -> md.Tensor:
         "bleeding_albedo": lambda: scene.objects[3].material.albedo,
         "light_position": lambda: scene.objects[5].transform.translation,
         "interior_vertex": lambda: scene.objects[2].vertices,
+        "camera_position": lambda: scene.camera.position,
+        "sphere_centre": lambda: scene.objects[7].center,
     }[name]()
 
 
@@ -77,7 +88,7 @@ def step(name: str, value: np.ndarray, h: float) -> np.ndarray:
     return value + h * DIRECTIONS[name]
 
 
-def one_seed(name, blocks, light_in_view, weights, seed, spp, h):
+def one_seed(name, blocks, light_in_view, antialias, weights, seed, spp, h):
     """(our directional derivative, the same-seed central difference) for one seed."""
 
     def functional(delta, grad):
@@ -85,7 +96,9 @@ def one_seed(name, blocks, light_in_view, weights, seed, spp, h):
         p = parameter(scene, name)
         p.data = step(name, p.data, delta)
         p.requires_grad = grad
-        image = render_path(scene, spp=spp, max_depth=DEPTH, seed=seed, rr_depth=100)
+        image = render_path(
+            scene, spp=spp, max_depth=DEPTH, seed=seed, rr_depth=100, antialias=antialias
+        )
         return (image * md.tensor(weights)).sum(), p
 
     value, p = functional(0.0, True)
@@ -99,17 +112,29 @@ def one_seed(name, blocks, light_in_view, weights, seed, spp, h):
 def run(seeds: int, spp: int, h: float) -> list[dict]:
     weights = 1.0 + 0.5 * np.random.default_rng(5).standard_normal((SIZE, SIZE, 3))
     rows = []
-    cases = [(n, b, False) for n in DIRECTIONS for b in (False, True)]
-    cases += [("light_position", False, True), ("light_position", True, True)]
-    for name, blocks, in_view in cases:
+    plain = ("emission", "bleeding_albedo", "light_position", "interior_vertex")
+    cases = [(n, b, False, False) for n in plain for b in (False, True)]
+    cases += [("light_position", b, True, a) for a in (False, "boundary") for b in (False, True)]
+    cases += [("camera_position", True, True, a) for a in (False, "boundary")]
+    cases += [("sphere_centre", True, False, a) for a in (False, "boundary")]
+    for name, blocks, in_view, antialias in cases:
         start = time.perf_counter()
+        # Where an outline moves across the pixels' samples (the light in view, the camera,
+        # the sphere), a same-seed difference is a count of flipped samples: its noise falls
+        # as 1/sqrt(h), so those rows take a longer step (the light's 2.5x: at 5x it would
+        # reach the ceiling, 0.01 above it).
+        h_case = h * LONGER_STEP.get(name, 2.5 if in_view else 1.0)
         pairs = np.array(
-            [one_seed(name, blocks, in_view, weights, s, spp, h) for s in range(seeds)]
+            [
+                one_seed(name, blocks, in_view, antialias, weights, s, spp, h_case)
+                for s in range(seeds)
+            ]
         )
         ours, fd = pairs[:, 0], pairs[:, 1]
         err_ours, err_fd = ours.std(ddof=1) / np.sqrt(seeds), fd.std(ddof=1) / np.sqrt(seeds)
         row = {
             "parameter": name, "blocks": blocks, "light_in_view": in_view,
+            "antialias": antialias or "none", "h": h_case,
             "ours": ours.mean(), "ours_error": err_ours, "fd": fd.mean(), "fd_error": err_fd,
             "difference_in_errors": (ours.mean() - fd.mean()) / np.hypot(err_ours, err_fd),
             "missing_fraction": 1.0 - ours.mean() / fd.mean(),
@@ -118,7 +143,8 @@ def run(seeds: int, spp: int, h: float) -> list[dict]:
         }  # fmt: skip
         rows.append(row)
         print(
-            f"{name:16s} blocks={blocks!s:5s} in_view={in_view!s:5s} ours {row['ours']:+.4f} "
+            f"{name:16s} blocks={blocks!s:5s} in_view={in_view!s:5s} "
+            f"edges={row['antialias']:8s} ours {row['ours']:+.4f} "
             f"± {err_ours:.4f}  FD {row['fd']:+.4f} ± {err_fd:.4f}  "
             f"({row['difference_in_errors']:+.1f} errors, {row['seconds']:.0f} s)",
             flush=True,
@@ -129,15 +155,16 @@ def run(seeds: int, spp: int, h: float) -> list[dict]:
 def markdown(rows: list[dict], seeds: int, spp: int, h: float) -> str:
     lines = [
         f"Cornell box {SIZE}x{SIZE}, max_depth {DEPTH}, {spp} spp per seed, {seeds} seeds, "
-        f"central differences with step {h} (same seed both sides).",
+        f"central differences with step {h} (where a primary edge moves, longer: 2.5x for "
+        "the light in view, 5x for the camera and the sphere), the same seed on both sides.",
         "",
-        "| parameter | blocks | light in view | ours | central differences | difference "
-        "(errors) | missing fraction |",
-        "|---|---|---|---|---|---|---|",
+        "| parameter | blocks | light in view | edge term | ours | central differences | "
+        "difference (errors) | missing fraction |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['parameter']} | {r['blocks']} | {r['light_in_view']} | "
+            f"| {r['parameter']} | {r['blocks']} | {r['light_in_view']} | {r['antialias']} | "
             f"{r['ours']:+.4f} ± {r['ours_error']:.4f} | {r['fd']:+.4f} ± {r['fd_error']:.4f} | "
             f"{r['difference_in_errors']:+.1f} | {r['missing_fraction']:+.1%} |"
         )
