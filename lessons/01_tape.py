@@ -39,7 +39,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.tensor import as_tensor, record
-from render.inverse.plot import line_plot
+from render.inverse.plot import line_figure, show
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "01_tape"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -143,15 +143,16 @@ def f_float(x, y):
 errors = [abs((f_float(0.5 + h, -1.2) - f_float(0.5 - h, -1.2)) / (2 * h) - grad_x) for h in steps]
 for h, e in zip(steps, errors, strict=True):
     print(f"h = {h:.0e}   |central difference - tape| = {e:.1e}")
-line_plot(
+figure = line_figure(
     {"|central difference - tape|": (steps, errors)},
-    OUT / "fd_error.png",
     title="Central differences against the tape, df/dx at (0.5, -1.2)",
     xlabel="step h",
     ylabel="error",
     logx=True,
     logy=True,
 )
+figure.savefig(OUT / "fd_error.png")
+show(figure)
 fd_error_at_1e5 = errors[4]
 fd_error_at_1e1 = errors[0]
 

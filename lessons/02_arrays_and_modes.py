@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 import minidiff as md
-from render.inverse.plot import line_plot
+from render.inverse.plot import line_figure, show
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "02_arrays_and_modes"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -213,7 +213,7 @@ best_error = float(errors.min())
 big, small = steps > 1e-3, steps < 1e-8
 truncation_slope = float(np.polyfit(np.log10(steps[big]), np.log10(errors[big]), 1)[0])
 rounding_slope = float(np.polyfit(np.log10(steps[small]), np.log10(errors[small]), 1)[0])
-line_plot(
+figure = line_figure(
     {
         "|D_h - exact| / |exact|": (steps, errors),
         "h^2 (truncation)": (
@@ -222,13 +222,15 @@ line_plot(
         ),
         "eps / h (rounding)": (steps[steps < 1e-3], 2.2e-16 / steps[steps < 1e-3]),
     },
-    OUT / "fd_step.png",
     title="Central differences of L along v: error against the step h",
     xlabel="step h",
     ylabel="relative error",
     logx=True,
     logy=True,
+    references=("h^2 (truncation)", "eps / h (rounding)"),  # guides: dashed, beneath the data
 )
+figure.savefig(OUT / "fd_step.png")
+show(figure)
 print(f"best step {best_h:.1e} with relative error {best_error:.1e}; "
       f"slopes {truncation_slope:.2f} (large h), {rounding_slope:.2f} (small h)")  # fmt: skip
 

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 import render
-from render.inverse.plot import line_plot
+from render.inverse.plot import line_figure, show
 from render.scene.camera import primary_rays
 from render.scene.teapot import PAPER_ALBEDO
 
@@ -105,18 +105,19 @@ print(f"corner / centre: {corner_to_centre:.4f}")
 # %%
 middle = N // 2
 x_row = points.reshape(N, N, 3)[middle, :, 0]
-line_plot(
+figure = line_figure(
     {
         "rendered (middle row)": (x_row, lambert[middle, :, 0]),
         "(albedo/pi) I h / r^3": (np.linspace(x_row[0], x_row[-1], 200),
             ALBEDO / math.pi * INTENSITY * LIGHT_HEIGHT
             / np.hypot(np.linspace(x_row[0], x_row[-1], 200), LIGHT_HEIGHT) ** 3),
     },
-    OUT / "falloff.png",
     title="A plane under a point light: the cos^3 fall-off",
     xlabel="x on the plane",
     ylabel="radiance",
 )  # fmt: skip
+figure.savefig(OUT / "falloff.png")
+show(figure)
 
 # %% [markdown]
 # ## Adding a Blinn-Phong lobe

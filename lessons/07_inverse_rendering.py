@@ -38,7 +38,7 @@ import numpy as np
 import minidiff as md
 import render
 from render.inverse import experiments
-from render.inverse.plot import line_plot
+from render.inverse.plot import line_figure, show
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "07_inverse_rendering"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -177,18 +177,19 @@ print(f"camera: {camera_position.data.round(4)}, error {camera_start_error:.2f} 
 # camera (sRGB).
 
 # %%
-line_plot(
+figure = line_figure(
     {
         "light (position + intensity)": (np.arange(ITERS), losses),
         "albedo": (np.arange(len(material.history.loss)), material.history.loss),
         "camera position": (np.arange(len(camera_history.loss)), camera_history.loss),
     },
-    OUT / "loss_curves.png",
     title="Algorithm 1 on three problems (48 x 48)",
     xlabel="iteration",
     ylabel="loss (Eq. 1)",
     logy=True,
 )
+figure.savefig(OUT / "loss_curves.png")
+show(figure)
 rows = [
     [target, initial_image, final_image],
     [material.target, material.initial, material.final],

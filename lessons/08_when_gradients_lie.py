@@ -36,7 +36,7 @@ import numpy as np
 import minidiff as md
 import render
 from render.inverse import experiments
-from render.inverse.plot import line_plot
+from render.inverse.plot import line_figure, show
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "08_when_gradients_lie"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -256,14 +256,15 @@ for antialias in (False, True):
     print(f"antialias={antialias}: position error {errors[0]:.2f} % -> {final_error:.3f} %; "
           f"{only_target} pixels show the teapot only in the target")  # fmt: skip
 camera_plain_error, camera_aa_error = runs[False][1], runs[True][1]
-line_plot(
+figure = line_figure(
     {f"antialias={a}": (np.arange(len(runs[a][0])), runs[a][0]) for a in (False, True)},
-    OUT / "camera_calibration_error.png",
     title="Camera calibration, 64 x 64, seed 42: position error",
     xlabel="iteration",
     ylabel="position error (%)",
     logy=True,
 )
+figure.savefig(OUT / "camera_calibration_error.png")
+show(figure)
 
 # %% [markdown]
 # At this size and budget the antialiased run ends below `1.5`

@@ -1,27 +1,67 @@
-"""Tiny line plots with Pillow (no plotting library needed): loss curves and benchmark charts."""
+"""Line plots with matplotlib: loss curves, error curves and benchmark charts.
+
+``line_figure`` builds a matplotlib ``Figure`` (shown inline when it ends a notebook cell,
+and yours to change: ``figure.axes[0]`` is the plot); ``line_plot`` saves one as a PNG.
+Neither touches ``matplotlib.pyplot``'s global state (no current figure, no backend
+switch), so plots can be drawn from several threads and inside any program.
+"""
 
 from __future__ import annotations
 
-import math
-from collections.abc import Sequence
+import io
+from collections.abc import Collection, Sequence
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-_COLOURS = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (255, 127, 14), (148, 103, 189)]
 
-
-def _ticks(lo: float, hi: float, log: bool) -> list[float]:
-    """Round tick positions covering [lo, hi] (in data units; powers of ten on log axes)."""
-    if log:
-        return [10.0**e for e in range(math.floor(lo), math.ceil(hi) + 1)]
-    step = 10 ** math.floor(math.log10(max(hi - lo, 1e-300)))
-    for mult in (1, 2, 5, 10):
-        if (hi - lo) / (step * mult) <= 6:
-            step *= mult
-            break
-    return list(np.arange(math.floor(lo / step) * step, hi + step * 0.5, step))
+def line_figure(
+    series: dict[str, tuple[Sequence[float], Sequence[float]]],
+    title: str = "",
+    xlabel: str = "",
+    ylabel: str = "",
+    logx: bool = False,
+    logy: bool = False,
+    size: tuple[int, int] = (640, 420),
+    references: Collection[str] = (),
+) -> Figure:
+    """One or more (x, y) series as lines (with markers when short) on one axes, with a
+    legend; non-finite points, and non-positive ones on log axes, are left out.
+    ``references``: names of series that are guides rather than data (e.g. a slope): drawn
+    thin, grey, dashed (each its own dash) and beneath the data. ``size``: pixels at 100
+    dpi."""
+    figure = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100, layout="constrained")
+    FigureCanvasAgg(figure)  # lets the figure render to PNG without pyplot
+    ax = figure.add_subplot()
+    drawn, dashes = 0, iter(["--", ":", "-.", (0, (5, 5))] * len(series))
+    for name, (x, y) in series.items():
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        keep = np.isfinite(x) & np.isfinite(y)
+        keep &= (x > 0) if logx else True
+        keep &= (y > 0) if logy else True
+        if not keep.any():
+            continue
+        drawn += 1
+        if name in references:
+            ax.plot(x[keep], y[keep], linestyle=next(dashes), color="0.45", linewidth=1,
+                    label=name, zorder=1)  # fmt: skip
+        else:
+            marker = "o" if keep.sum() <= 40 else None
+            ax.plot(x[keep], y[keep], marker=marker, markersize=4, linewidth=1.5, label=name,
+                    zorder=2)  # fmt: skip
+    if drawn == 0:
+        raise ValueError("line_plot: no finite points to draw")
+    ax.set_xscale("log" if logx else "linear")
+    ax.set_yscale("log" if logy else "linear")
+    ax.set_title(title, fontsize=10, loc="left")
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="major", color="0.9")
+    if len(series) > 1:
+        ax.legend(fontsize=8, frameon=False)
+    return figure
 
 
 def line_plot(
@@ -33,76 +73,25 @@ def line_plot(
     logx: bool = False,
     logy: bool = False,
     size: tuple[int, int] = (640, 420),
+    references: Collection[str] = (),
 ) -> Path:
-    """Draw one or more (x, y) series as lines with markers and save a PNG; returns its path.
-
-    Non-positive values are dropped on log axes. Axis ticks are labelled in data units.
-    """
-    width, height = size
-    left, right, top, bottom = 70, 20, 30, 50
-    img = Image.new("RGB", size, "white")
-    draw = ImageDraw.Draw(img)
-
-    def transform(v: np.ndarray, log: bool) -> np.ndarray:
-        return np.log10(v) if log else v
-
-    cleaned = {}
-    for name, (x, y) in series.items():
-        x, y = np.asarray(x, float), np.asarray(y, float)
-        keep = np.isfinite(x) & np.isfinite(y)
-        keep &= (x > 0) if logx else True
-        keep &= (y > 0) if logy else True
-        if keep.any():
-            cleaned[name] = (transform(x[keep], logx), transform(y[keep], logy))
-    if not cleaned:
-        raise ValueError("line_plot: no finite points to draw")
-    xs = np.concatenate([x for x, _ in cleaned.values()])
-    ys = np.concatenate([y for _, y in cleaned.values()])
-    x0, x1 = float(xs.min()), float(xs.max())
-    y0, y1 = float(ys.min()), float(ys.max())
-    if x1 == x0:
-        x0, x1 = x0 - 1, x1 + 1
-    if y1 == y0:
-        y0, y1 = y0 - 1, y1 + 1
-    pad = 0.05 * (y1 - y0)
-    y0, y1 = y0 - pad, y1 + pad
-
-    def px(x, y):
-        u = left + (x - x0) / (x1 - x0) * (width - left - right)
-        v = height - bottom - (y - y0) / (y1 - y0) * (height - top - bottom)
-        return u, v
-
-    draw.rectangle([left, top, width - right, height - bottom], outline="black")
-    for axis, (lo, hi, log) in enumerate(((x0, x1, logx), (y0, y1, logy))):
-        for tick in _ticks(lo, hi, log):
-            t = math.log10(tick) if log else tick
-            if not lo <= t <= hi:
-                continue
-            label = f"{tick:g}"
-            if axis == 0:
-                u, _ = px(t, y0)
-                draw.line([u, height - bottom, u, height - bottom + 4], fill="black")
-                draw.text((u - 3 * len(label), height - bottom + 6), label, fill="black")
-            else:
-                _, v = px(x0, t)
-                draw.line([left - 4, v, left, v], fill="black")
-                draw.line([left, v, width - right, v], fill=(230, 230, 230))
-                draw.text((left - 8 - 6 * len(label), v - 5), label, fill="black")
-    for i, (name, (x, y)) in enumerate(cleaned.items()):
-        colour = _COLOURS[i % len(_COLOURS)]
-        points = [px(a, b) for a, b in zip(x, y, strict=True)]
-        if len(points) > 1:
-            draw.line(points, fill=colour, width=2)
-        if len(points) <= 40:
-            for u, v in points:
-                draw.ellipse([u - 3, v - 3, u + 3, v + 3], fill=colour)
-        draw.text((left + 10, top + 8 + 14 * i), name, fill=colour)
-    draw.text((left, 8), title, fill="black")
-    draw.text(((width - 6 * len(xlabel)) / 2, height - 20), xlabel, fill="black")
-    draw.text((4, 8), ylabel if len(ylabel) < 12 else "", fill="black")
-    if len(ylabel) >= 12:
-        draw.text((width - right - 6 * len(ylabel), height - 20), ylabel, fill="black")
+    """``line_figure`` saved as a PNG at ``path`` (folders created); returns the path."""
+    figure = line_figure(series, title, xlabel, ylabel, logx, logy, size, references)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    img.save(path)
+    figure.savefig(path)
     return path
+
+
+def show(figure: Figure) -> None:
+    """Display ``figure`` inline when this runs in Jupyter (an IPython kernel); nothing in
+    a plain script (which saves its figures instead)."""
+    try:
+        from IPython import get_ipython
+        from IPython.display import Image, display
+    except ImportError:
+        return
+    if get_ipython() is not None:
+        png = io.BytesIO()
+        figure.savefig(png, format="png")
+        display(Image(data=png.getvalue(), format="png"))
