@@ -238,8 +238,13 @@ print(f"figures in {OUT}")
 # 2. Write `project(camera, p)`, the pixel `(px, py)` that a world point `p` falls in (invert
 #    the formula for `d`: divide the components of `p − C` along `r` and `u` by the
 #    component along `f`). Check it with the renderer: render a small sphere at
-#    `p = (0.7, −0.4, 1.0)` with a 64 × 48 camera and compare with the pixel at the centre of
-#    the sphere's hit pixels (`render.render(scene, return_info=True)`).
+#    `p = (0.7, −0.4, 1.0)` with a 64 × 48 camera and compare with the centre of the
+#    sphere's hit pixels. The scene and the render (lessons 5 and 6 explain them):
+#    `scene = render.Scene([render.Sphere(p, 0.08, render.Material((0.8, 0.8, 0.8)))],
+#    [render.PointLight((0, 0, 5), 10.0)], camera)`, then
+#    `_, info = render.render(scene, return_info=True)`: `info.prim_id` is an
+#    `(H, W, spp)` array, per pixel and sample the primitive its ray hits (−1: none), so
+#    `np.nonzero(info.prim_id[..., 0] >= 0)` gives the rows and columns of the hit pixels.
 # 3. A 35 mm lens on a 36 mm wide sensor (`render.Camera.from_focal_length`): what is its
 #    horizontal field of view, and how far apart are neighbouring pixel centres on the image
 #    plane at distance 1 for a 640 × 480 image, horizontally and vertically?

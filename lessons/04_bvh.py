@@ -79,8 +79,15 @@ print("o + t d =", hit_point, "  (1-u-v) a + u b + v c =", barycentric_point)
 # at `t = 3` <!-- check: hit_t --> (three steps of `d`, whose `z` component is −1), at
 # `(0.8, 0.4, 0)`: `u = 0.4` <!-- check: hit_u -->, `v = 0.4` <!-- check: hit_v -->. The
 # Numba kernel and the tape agree to `1e-15` <!-- check: mt_agreement < -->. (The renderer
-# asks the BVH *which* triangle, then recomputes *where* on the tape, so that gradients
-# reach the camera and the vertices: the BVH's `t, u, v` would be constants.)
+# finds *which* triangle without the tape, then recomputes *where* on the tape, so that
+# gradients reach the camera and the vertices: the tracer's `t, u, v` would be constants.
+# Which triangle: by default camera rays are not traced through the BVH at all but
+# *rasterised* — each triangle lists the pixels its screen box covers and tests only their
+# rays, with this same intersection function (`render/trace/raster.py`; the same hits bit
+# for bit, faster while there are many rays per triangle) — and shadow rays towards a point
+# light are answered the same way from the light's side (`render/trace/light_view.py`).
+# The BVH below answers every other ray: mirror and path-traced rays, edge and shadow
+# border rays, and everything when `render(..., primary="bvh")`.)
 #
 # ## A BVH over the teapot
 #

@@ -30,8 +30,11 @@
 #
 # plus a constant `ambient` radiance added where the material is seen. **Shadows** multiply
 # each light's term by 0 or 1: a shadow ray from the hit point towards the light either
-# reaches it or is blocked (`render/trace/visibility.py`, on the BVH of lesson 4). Like the choice
-# of primitive, that answer is a constant on the tape.
+# reaches it or is blocked (`render/trace/visibility.py`: for a point light answered from
+# the light's side, rasterising the scene as seen from the light
+# (`render/trace/light_view.py`); for directional lights and rays the light's view cannot
+# take, on the BVH of lesson 4; both give the same answers). Like the choice of primitive,
+# that answer is a constant on the tape.
 #
 # We check the formulas on a case with a closed form, then render a small scene.
 # (`tests/test_render_closed_form.py` holds the renderer to closed forms the same way, for

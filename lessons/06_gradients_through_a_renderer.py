@@ -188,8 +188,10 @@ print(f"elapsed {time.perf_counter() - start:.1f} s; figures in {OUT}")
 # 1. Make the gradient image of the *ground's* albedo (`objects[1].material.albedo`) along
 #    `(1, 1, 1)`. Which pixels are zero, and why is the teapot's shadow zero too?
 # 2. Repeat the masked check for the camera position along `x` with `h = 1e-3`. How many
-#    pixels change their decisions now, and where are they? (Silhouettes: a moving camera
-#    moves every edge.) What is the masked error?
+#    pixels change their decisions now, and where are they? (A moving camera moves every
+#    edge in the image: the teapot's outline, but also the edges between its triangles.
+#    Compare the primitive each flipped pixel sees before and after.) What is the masked
+#    error?
 # 3. Compute `∂L/∂(light position)` for `L = mean((I − T)²)` with `T` the render of the
 #    light at `(2.5, 5, 3)`, by reverse mode, and check its x component against
 #    `Σ (∂L/∂I) ⊙ G` with one gradient image.

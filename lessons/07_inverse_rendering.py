@@ -85,6 +85,8 @@ intensity_error = 100 * abs(intensity.item() - 150.0) / 150.0
 print(f"after {ITERS} steps: light {position.data.round(4)}, intensity {intensity.item():.3f}")
 print(f"loss {losses[0]:.2e} -> {losses[-1]:.2e}; position error {position_error:.3f} %, "
       f"intensity error {intensity_error:.3f} %")  # fmt: skip
+start_error_pct = experiments.relative_error_pct(start_position, experiments.TRUE_LIGHT)
+loss_drop = losses[0] / losses[-1]
 
 # %% [markdown]
 # Five lines in the loop. The light starts `83.7` <!-- check: start_error_pct --> % of
@@ -93,9 +95,6 @@ print(f"loss {losses[0]:.2e} -> {losses[-1]:.2e}; position error {position_error
 # <!-- check: intensity_error < --> % (the printout has the digits), and the loss fell
 # by more than a factor `1e5` <!-- check: loss_drop > -->.
 
-# %%
-start_error_pct = experiments.relative_error_pct(start_position, experiments.TRUE_LIGHT)
-loss_drop = losses[0] / losses[-1]
 
 # %% [markdown]
 # ## The same with `render.optimize`
@@ -116,12 +115,62 @@ _, history = render.optimize(scene_b, [position_b, intensity_b], target, lr=[0.3
 # history.loss[i] is the loss before update i; it has one more entry (the final loss).
 same_trajectory = float(np.abs(np.array(history.loss[:ITERS]) - losses).max())
 same_light = float(np.abs(position_b.data - position.data).max())
+history_iterations = history.iterations
 print(f"render.optimize: {history.iterations} updates, largest loss difference to the "
       f"hand-written loop {same_trajectory}, light difference {same_light}")  # fmt: skip
 
 # %% [markdown]
 # It made `300` <!-- check: history_iterations --> updates and its losses differ from ours
 # by exactly `0` <!-- check: same_trajectory -->: the same computation.
+#
+# ## A plateau, and what it is made of
+#
+# The light's loss falls fast, then sits near `2e-4` for about a hundred iterations, then
+# drops by a factor of twenty in one step. That is not Adam being slow. `history.params`
+# holds the parameters at every iteration: render them with `return_info=True` and compare
+# each pixel's *shadow decision* (`info.lit`, lesson 6: a constant on the tape) with the
+# target's, on the pixels that see the same primitive in both.
+
+# %%
+_, target_info = render.render(truth, return_info=True)
+
+
+def shadow_mismatch(iteration):
+    """Pixels whose shadow decision differs from the target's at ``iteration``, and their
+    share of the squared error."""
+    light_at, intensity_at = history.params[iteration]
+    at = render.paper_scene(SIZE, SIZE, light_position=light_at, light_intensity=intensity_at)
+    rendered, info = render.render(at, return_info=True)
+    same_surface = info.prim_id[..., 0] == target_info.prim_id[..., 0]
+    differ = (info.lit != target_info.lit).any(axis=0)[..., 0] & same_surface
+    error = ((rendered.data - target) ** 2).sum(-1)
+    return int(differ.sum()), float(error[differ].sum() / error.sum())
+
+
+loss_history = np.array(history.loss)
+step_drop = loss_history[:-1] / loss_history[1:]  # update i takes loss[i] to loss[i + 1]
+flip_update = int(np.argmax(step_drop))
+flip_drop = float(step_drop[flip_update])
+plateau_pixels, plateau_share = shadow_mismatch(flip_update - 40)
+before_pixels, before_share = shadow_mismatch(flip_update)
+after_pixels, _ = shadow_mismatch(flip_update + 1)
+print(f"largest drop: update {flip_update}, loss / {flip_drop:.1f}; pixels in the wrong "
+      f"shadow: {plateau_pixels} at iteration {flip_update - 40} ({plateau_share:.0%} of the "
+      f"loss), {before_pixels} just before ({before_share:.0%}), {after_pixels} after")  # fmt: skip
+
+# %% [markdown]
+# The largest one-step drop is update `146` <!-- check: flip_update -->, by a factor of
+# `20.6` <!-- check: flip_drop -->. Forty iterations before it exactly `1`
+# <!-- check: plateau_pixels --> pixel is in shadow in one image and lit in the other, and
+# that single pixel holds more than `0.75` <!-- check: plateau_share > --> of the loss (just
+# before the flip, more than `0.85` <!-- check: before_share > -->); after it, `0`
+# <!-- check: after_pixels --> pixels differ. The gradient cannot see that pixel's problem:
+# its shadow decision is a constant on the tape, so the pixel's derivative is that of its
+# shading with the decision held (zero where it is in shadow: nothing there depends on the
+# light), never "move the shadow's edge across it". The light drifts, pulled by the other
+# pixels, until the shadow ray happens to change its answer, and the loss collapses. A
+# visibility decision that matters to the loss but has no gradient is the subject of
+# lesson 8.
 #
 # ## A material, and briefly a camera
 #
@@ -137,7 +186,6 @@ print(f"render.optimize: {history.iterations} updates, largest loss difference t
 # `0.3` along x and y, and keep it looking at the teapot.
 
 # %%
-history_iterations = history.iterations
 material = experiments.run_material_recovery(size=SIZE, iters=100)
 albedo_error = material.metrics["final_rgb_error"]
 albedo_start_error = material.metrics["initial_rgb_error"]
@@ -170,9 +218,9 @@ print(f"camera: {camera_position.data.round(4)}, error {camera_start_error:.2f} 
 #
 # `loss_curves.png`: the three losses on a log scale. They are not monotone: the dips and
 # bumps are Adam overshooting and turning round (its step does not shrink with the
-# gradient, only with the gradient's running mean). The light's loss sits on a plateau
-# for a hundred iterations before it drops; lesson 7's exercises and lesson 8 show how
-# much a loss curve's shape depends on the start and on what the gradient can see.
+# gradient, only with the gradient's running mean). The light's plateau and its cliff are
+# the one pixel in the wrong shadow above; the exercises and lesson 8 show how much a loss
+# curve's shape depends on the start and on what the gradient can see.
 # `before_after.png`: per row target, start, result, for the light, the material and the
 # camera (sRGB).
 
