@@ -1,0 +1,416 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+# ---
+
+# %% [markdown]
+# # Lesson 10 — Monte Carlo: light that bounces, and gradients of noisy images
+#
+# Lessons 5-9 rendered *direct* light from point lights: one shadow ray per light, no
+# randomness. Real light comes from areas (a window, a lamp shade) and bounces (a red wall
+# tints the floor). The radiance leaving a point x towards ω_o is then an integral, the
+# rendering equation:
+#
+#     L(x, ω_o) = L_e(x, ω_o) + ∫ f(x, ω_i, ω_o) L(y(x, ω_i), −ω_i) cos θ_i dω_i ,
+#
+# over the hemisphere of incoming directions ω_i, with y the surface the ray from x along
+# ω_i meets and f the material (Lambert: albedo/π). L appears on both sides: light arriving
+# at x left another surface, where it arrived from a third. No closed form exists for a
+# real scene; a **Monte Carlo estimator** draws random directions and averages
+# f L cos / p, where p is the density they were drawn with. Its expectation is the
+# integral, whatever p is (as long as p > 0 where the integrand is not zero); its *noise*
+# depends on p. This lesson measures that noise, shows three ways of choosing p for light
+# from an area, renders a room with `render(..., integrator="path")`
+# (`docs/path_tracing.md`) and differentiates it, and shows two traps of differentiating a
+# noisy estimate: correlated samples and memory.
+
+# %%
+import math
+import os
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+
+import minidiff as md
+import render
+from render.inverse.plot import line_figure, show
+from render.path import render_path, replay_gradient
+from render.path.random import uniform
+from render.path.sampling import cosine_hemisphere
+from render.scene.cornell import cornell_box
+
+OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "10_monte_carlo"
+OUT.mkdir(parents=True, exist_ok=True)
+lesson_start = time.perf_counter()
+
+# %% [markdown]
+# ## An integral by random numbers
+#
+# The irradiance at a point with normal `n = z` under a sky of radiance `L(ω) = cos θ`
+# (bright at the zenith) is `E = ∫ L cos θ dω = ∫ cos² θ dω = 2π/3`. Two estimators, each
+# the mean of `N` samples:
+#
+# * **uniform** directions on the hemisphere, `p = 1/(2π)`: each sample is
+#   `2π cos² θ`;
+# * **cosine-weighted** directions, `p = cos θ / π` (`render/path/sampling.py`'s
+#   `cosine_hemisphere`, Malley's method): each sample is `π cos θ`, smoother.
+#
+# The random numbers come from `render.path.random.uniform(seed, ids, dimension)`, a hash
+# of three integers: the same (seed, id, dimension) gives the same number wherever and in
+# whatever order it is computed. That is how the path tracer makes the same image with any
+# number of threads, and how its gradient pass can *replay* a sample exactly (below).
+
+# %%
+n_z = np.array([[0.0, 0.0, 1.0]])
+exact_E = 2 * math.pi / 3
+
+
+def irradiance_estimates(kind: str, n: int, repeats: int) -> np.ndarray:
+    """``repeats`` independent estimates of E, each the mean of ``n`` samples."""
+    ids = np.arange(n * repeats)
+    u1, u2 = uniform(7, ids, 0), uniform(7, ids, 1)
+    if kind == "uniform":  # z = cos(theta) uniform in [0, 1]: uniform on the hemisphere
+        cos = u1
+        values = 2 * math.pi * cos**2
+    else:
+        cos = cosine_hemisphere(u1, u2, np.repeat(n_z, len(ids), axis=0))[:, 2]
+        values = math.pi * cos
+    return values.reshape(repeats, n).mean(axis=1)
+
+
+sample_counts = np.array([4, 16, 64, 256, 1024])
+rms = {kind: [] for kind in ("uniform", "cosine")}
+for kind in rms:
+    for n in sample_counts:
+        estimates = irradiance_estimates(kind, int(n), 400)
+        rms[kind].append(float(np.sqrt(np.mean((estimates - exact_E) ** 2)) / exact_E))
+rms = {kind: np.array(v) for kind, v in rms.items()}
+slope_uniform = float(np.polyfit(np.log(sample_counts), np.log(rms["uniform"]), 1)[0])
+variance_ratio = float((rms["uniform"] / rms["cosine"]).mean() ** 2)
+mean_of_estimates = float(irradiance_estimates("cosine", 64, 400).mean())
+mean_relative_error = abs(mean_of_estimates / exact_E - 1)
+figure = line_figure(
+    {
+        "uniform directions": (sample_counts, rms["uniform"]),
+        "cosine-weighted directions": (sample_counts, rms["cosine"]),
+        "1 / sqrt(N)": (sample_counts, rms["uniform"][0] * np.sqrt(4 / sample_counts)),
+    },
+    title="Irradiance under a cos-theta sky: relative RMS error of the mean of N samples",
+    xlabel="samples N",
+    ylabel="relative RMS error",
+    logx=True,
+    logy=True,
+    references=("1 / sqrt(N)",),
+)
+figure.savefig(OUT / "error_vs_samples.png")
+show(figure)
+print(f"E = {exact_E:.6f}; mean of 400 cosine estimates {mean_of_estimates:.6f}")
+for kind, values in rms.items():
+    print(kind, " ".join(f"{v:.4f}" for v in values))
+
+# %% [markdown]
+# Both estimators are right on average (400 cosine-weighted estimates of 64 samples average
+# `2.086` <!-- check: mean_of_estimates -->, within `0.005` <!-- check: mean_relative_error < -->
+# of `2π/3 = 2.0944`, relative: two of their standard errors), and the error of either
+# falls as `1/√N`: the fitted slope of the uniform one on log-log axes is `-0.5`
+# <!-- check: slope_uniform --> (`error_vs_samples.png`). Four times the samples halve the
+# noise; that is the price of Monte Carlo. What p changes is the constant: the uniform
+# estimator's variance is `6.4` <!-- check: variance_ratio --> times the cosine one's,
+# because cosine-weighted samples already follow one of the integrand's two cosines. **Importance
+# sampling**: draw where the integrand is large.
+#
+# ## Light from an area: three ways to choose p
+#
+# A square lamp of side `2a` at height 1 above our point, facing down, radiance 1. Its
+# irradiance has a closed form (Lambert's polygon formula: `E = ½ Σ γ_k n·(v_k × v_k+1)
+# / |v_k × v_k+1|`, γ_k the angle the edge k subtends, v the unit vectors to the corners).
+# Three estimators of one sample each:
+#
+# * **BSDF sampling**: a cosine-weighted direction; it counts `π L_e` if it hits the lamp,
+#   else 0. For a small lamp almost every sample misses: huge variance.
+# * **Light sampling** (next-event estimation, NEE): a uniform point on the lamp, density
+#   `1/A` per area; converted to directions, the sample is `L_e cos θ cos θ' A / r²`.
+#   Excellent for a small lamp; for a large, near lamp `cos θ'/r²` varies wildly.
+# * **Multiple importance sampling** (MIS, Veach 1995): one sample of each, each weighted
+#   by `w_i = p_i² / (p_1² + p_2²)` (the power heuristic), both densities expressed in the
+#   same measure. The weights sum to one for every direction, so the sum is unbiased, and
+#   each sample is trusted where its own technique is the likelier one.
+
+# %%
+
+
+def polygon_irradiance(corners: np.ndarray) -> float:
+    """Irradiance at the origin (normal +z) from a polygon of radiance 1 (Lambert)."""
+    v = corners / np.linalg.norm(corners, axis=1, keepdims=True)
+    total = 0.0
+    for k in range(len(v)):
+        a, b = v[k], v[(k + 1) % len(v)]
+        cross = np.cross(a, b)
+        total += math.acos(np.clip(a @ b, -1, 1)) * cross[2] / np.linalg.norm(cross)
+    return abs(total) / 2
+
+
+def lamp_estimates(half: float, n: int, technique: str) -> np.ndarray:
+    """``n`` one-sample estimates of the lamp's irradiance by ``technique``."""
+    ids = np.arange(n)
+    area = (2 * half) ** 2
+    # Light sampling: a uniform point on the lamp (at height 1, facing down).
+    point = np.stack([half * (2 * uniform(3, ids, 0) - 1), half * (2 * uniform(3, ids, 1) - 1),
+                      np.ones(n)], axis=1)  # fmt: skip
+    r2 = (point**2).sum(axis=1)
+    cos_here = point[:, 2] / np.sqrt(r2)  # at the point, and at the lamp (parallel planes)
+    p_light = r2 / (cos_here * area)  # 1/A per area, as a density per steradian
+    light_value = cos_here / p_light  # L_e cos / p, L_e = 1
+    # BSDF sampling: a cosine-weighted direction; does it reach the lamp's plane inside it?
+    w = cosine_hemisphere(uniform(3, ids, 2), uniform(3, ids, 3), np.repeat(n_z, n, axis=0))
+    t = 1.0 / np.maximum(w[:, 2], 1e-300)
+    hits = (np.abs(w[:, 0] * t) < half) & (np.abs(w[:, 1] * t) < half)
+    p_bsdf = w[:, 2] / math.pi
+    bsdf_value = np.where(hits, w[:, 2] / p_bsdf, 0.0)
+    if technique == "light":
+        return light_value
+    if technique == "bsdf":
+        return bsdf_value
+    # MIS: each sample weighted by its technique's share of the two densities there.
+    p_bsdf_at_light = cos_here / math.pi
+    p_light_at_bsdf = np.where(hits, (t**2 * (w**2).sum(1)) / (w[:, 2] * area), 0.0)
+    w_light = p_light**2 / (p_light**2 + p_bsdf_at_light**2)
+    w_bsdf = np.where(hits, p_bsdf**2 / (p_bsdf**2 + p_light_at_bsdf**2), 0.0)
+    return w_light * light_value + w_bsdf * bsdf_value
+
+
+lamp_errors = {}
+for half in (0.05, 2.0):
+    corners = np.array([[-half, -half, 1], [half, -half, 1], [half, half, 1], [-half, half, 1.0]])
+    exact = polygon_irradiance(corners)
+    for technique in ("bsdf", "light", "mis"):
+        samples = lamp_estimates(half, 200_000, technique)
+        lamp_errors[half, technique] = (float(samples.mean() / exact - 1),
+                                        float(samples.std() / exact))  # fmt: skip
+    print(f"lamp half-side {half}: E = {exact:.6f}; relative bias, relative std of one sample:")
+    for technique in ("bsdf", "light", "mis"):
+        bias, std = lamp_errors[half, technique]
+        print(f"   {technique:5s} {bias:+.4f}  {std:.3f}")
+small_bsdf_std = lamp_errors[0.05, "bsdf"][1]
+small_light_std = lamp_errors[0.05, "light"][1]
+large_bsdf_std = lamp_errors[2.0, "bsdf"][1]
+large_light_std = lamp_errors[2.0, "light"][1]
+large_mis_std = lamp_errors[2.0, "mis"][1]
+small_mis_std = lamp_errors[0.05, "mis"][1]
+largest_bias = max(abs(b) for b, _ in lamp_errors.values())
+
+# %% [markdown]
+# All six estimators are unbiased: over 200,000 samples each mean is within `0.02`
+# <!-- check: largest_bias < --> of the closed form (relative; the worst is BSDF sampling
+# of the small lamp, whose mean rests on a few hundred hits). Their noise is another
+# matter (the relative standard deviation of *one* sample; N samples divide it by √N):
+#
+# * small lamp (half-side 0.05): BSDF sampling `17.6` <!-- check: small_bsdf_std --> (about
+#   one direction in 300 hits it), light sampling `0.002` <!-- check: small_light_std -->;
+# * large lamp (half-side 2): BSDF sampling `0.45` <!-- check: large_bsdf_std -->, light
+#   sampling `1.21` <!-- check: large_light_std --> (points far out on the lamp are seen at
+#   a grazing angle from far away: tiny contributions, drawn as often as the bright middle);
+# * MIS is close to the better one in both: `0.002` <!-- check: small_mis_std --> and
+#   `0.48` <!-- check: large_mis_std -->.
+#
+# The path tracer (`render/path/tracer.py`) does exactly this at every bounce: one NEE
+# point on the area lights and one BSDF direction, MIS-weighted with the power heuristic;
+# point and directional lights, which no direction can hit, by NEE alone.
+#
+# ## A room rendered by paths
+#
+# `render.render(scene, integrator="path", spp=..., max_depth=..., seed=...)` traces `spp`
+# paths per pixel: from the camera through a random point of the pixel, at every vertex NEE
+# plus a BSDF direction, until `max_depth` segments (1: lamps seen directly, 2: direct
+# light, 3: one bounce of indirect light, ...) or Russian roulette ends it. The Cornell box
+# (`render.scene.cornell.cornell_box`): a white room, a red and a green wall, a lamp in
+# the ceiling, a box and a sphere. The pixel noise, measured over independent seeds,
+# follows the same `1/√N`.
+
+# %%
+room = cornell_box(12, 12)
+noise = []
+path_spps = np.array([4, 16, 64])
+for spp in path_spps:
+    with md.no_grad():
+        images = np.stack([render_path(room, spp=int(spp), max_depth=4, seed=s).data
+                           for s in range(6)])  # fmt: skip
+    noise.append(float((images.std(axis=0, ddof=1) / images.mean(axis=0).clip(1e-3)).mean()))
+noise = np.array(noise)
+path_noise_slope = float(np.polyfit(np.log(path_spps), np.log(noise), 1)[0])
+with md.no_grad():
+    pretty = render_path(cornell_box(48, 48), spp=64, max_depth=5, seed=1).data
+    direct_only = render_path(cornell_box(48, 48), spp=64, max_depth=2, seed=1).data
+indirect_share = float(1 - direct_only.mean() / pretty.mean())
+strip = np.concatenate([direct_only, pretty], axis=1)
+render.save_image(np.repeat(np.repeat(np.clip(2 * strip, 0, 1) ** (1 / 2.2), 4, 0), 4, 1),
+                  OUT / "cornell_box.png")  # fmt: skip
+print(
+    "relative pixel noise at",
+    list(path_spps),
+    "spp:",
+    noise.round(4),
+    f"slope {path_noise_slope:.3f}; indirect light's share of the image {indirect_share:.3f}",
+)
+
+# %% [markdown]
+# The relative pixel noise falls with slope `-0.5` <!-- check: path_noise_slope --> against
+# spp. `cornell_box.png` shows the room at 64 spp with `max_depth=2` (direct light only:
+# the ceiling is black, the shadows are black) and `max_depth=5` (indirect light: the
+# ceiling lit by the floor, the walls' colours bleeding onto the box); indirect light is
+# `0.20` <!-- check: indirect_share --> of the image's mean.
+#
+# ## Differentiating a noisy image
+#
+# The path tracer records each path's discrete choices (which surface, which lobe, lit or
+# blocked) as constants and recomputes the contributions on the tape, as the direct
+# renderer does with visibility (lesson 6). So `backward` gives the derivative of *this*
+# estimate, itself an estimate of the derivative of the expected image. For a parameter
+# that changes no choice, the emission of the lamp, the same seed on both sides of a
+# central difference makes the two agree to rounding.
+
+# %%
+lamp = room.objects[5].material
+lamp.emission.requires_grad = True
+weights = np.random.default_rng(0).random((12, 12, 3))
+md.sum(render_path(room, spp=8, max_depth=4, seed=3) * md.tensor(weights)).backward()
+tape_gradient = lamp.emission.grad.copy()
+lamp.emission.requires_grad, lamp.emission.grad = False, None
+base = lamp.emission.data.copy()
+central = np.zeros(3)
+for c in range(3):
+    values = []
+    for sign in (1, -1):
+        lamp.emission.data = base + sign * 1e-3 * np.eye(3)[c]
+        with md.no_grad():
+            values.append(
+                float((render_path(room, spp=8, max_depth=4, seed=3).data * weights).sum())
+            )
+    central[c] = (values[0] - values[1]) / 2e-3
+lamp.emission.data = base
+emission_agreement = float(np.abs(tape_gradient - central).max() / np.abs(central).max())
+print(f"d sum(W * I) / d emission: tape {tape_gradient.round(6)}, same-seed central "
+      f"differences {central.round(6)}; relative difference {emission_agreement:.1e}")  # fmt: skip
+
+# %% [markdown]
+# They agree to `1e-8` <!-- check: emission_agreement < --> (relative). A light's position
+# or a vertex would move choices too (a shadow's edge, a silhouette): lesson 8's problem
+# again, now also in the shadows of area lights; `docs/path_tracing.md` measures what the
+# missing boundary terms cost and how `antialias="boundary"` restores the camera's.
+#
+# ## Trap 1: the same samples in the image and in its gradient
+#
+# For a loss that is not linear in the image, `L = Σ (I − T)²`, the gradient is
+# `2 Σ (I − T) ∂I/∂θ`. If `I` and `∂I/∂θ` come from the *same* samples, they are
+# correlated, and the expectation of their product is not the product of expectations: for
+# an emission scale `k` (so `∂I/∂k = I/k`) the gradient's mean is off by `2 Σ Var(I) / k`,
+# always upward. `render.path.replay_gradient` therefore renders the image with `seed` and
+# the gradient with `seed_grad` (default `seed + 1`, as Mitsuba 3 does). Measured over many
+# seeds at 1 spp, with the target the expected image (so the true gradient is zero):
+
+# %%
+small = cornell_box(12, 12)
+with md.no_grad():
+    expected = render_path(small, spp=1024, max_depth=3, seed=99).data
+
+
+def seed_gradient(seed: int, seed_grad: int) -> float:
+    emission = small.objects[5].material.emission
+    emission.requires_grad, emission.grad = True, None
+    replay_gradient(small, lambda image: md.sum((image - md.tensor(expected)) ** 2), spp=1,
+                    max_depth=3, seed=seed, seed_grad=seed_grad)  # fmt: skip
+    grad = float(emission.grad.sum())
+    emission.requires_grad, emission.grad = False, None
+    return grad
+
+
+correlated = np.array([seed_gradient(s, s) for s in range(60)])
+decorrelated = np.array([seed_gradient(s, s + 1000) for s in range(60)])
+correlated_mean, correlated_error = (
+    float(correlated.mean()),
+    float(correlated.std() / math.sqrt(60)),
+)
+decorrelated_mean = float(decorrelated.mean())
+decorrelated_error = float(decorrelated.std() / math.sqrt(60))
+bias_in_errors = float((correlated_mean - decorrelated_mean)
+                       / math.hypot(correlated_error, decorrelated_error))  # fmt: skip
+print(f"correlated {correlated_mean:.3f} ± {correlated_error:.3f}; decorrelated "
+      f"{decorrelated_mean:.3f} ± {decorrelated_error:.3f}")  # fmt: skip
+
+# %% [markdown]
+# The decorrelated mean is zero within its error (`|mean|` below `3`
+# <!-- check: decorrelated_in_errors < --> standard errors); the correlated one sits more
+# than `5` <!-- check: bias_in_errors > --> standard errors above it. An optimiser fed the
+# correlated gradient would settle where the image is too dark, by an amount that shrinks
+# only as the spp grows.
+
+# %%
+decorrelated_in_errors = abs(decorrelated_mean) / decorrelated_error
+
+# %% [markdown]
+# ## Trap 2: a tape that remembers every sample
+#
+# Rendering on the tape and calling `backward` keeps every vertex of every path until the
+# backward: memory grows with spp × depth. **Replay** (`replay_gradient`; the structure of
+# radiative backpropagation, Nimier-David et al. 2020) renders the image without a tape,
+# computes `∂L/∂I` once, then renders the samples again in batches with the *same* random
+# numbers (the counter-based generator of the first section makes that exact), each batch
+# on its own short tape, and back-propagates that batch's share of `∂L/∂I` before dropping
+# it. The peak memory is one batch's.
+
+# %%
+mem_room = cornell_box(16, 16)
+mem_room.objects[3].material.albedo.requires_grad = True
+with md.no_grad():
+    mem_target = render_path(mem_room, spp=4, max_depth=3, seed=5).data
+
+
+def mem_loss(image):
+    return md.mean((image - md.tensor(mem_target)) ** 2)
+
+
+def peak_mb(fn) -> float:
+    tracemalloc.start()
+    fn()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return peak / 1e6
+
+
+memory = {}
+for spp in (16, 64):
+    memory["tape", spp] = peak_mb(
+        lambda s=spp: mem_loss(render_path(mem_room, spp=s, max_depth=3)).backward()
+    )
+    memory["replay", spp] = peak_mb(
+        lambda s=spp: replay_gradient(mem_room, mem_loss, spp=s, max_depth=3, batch_spp=16)
+    )
+tape_growth = memory["tape", 64] / memory["tape", 16]
+replay_growth = memory["replay", 64] / memory["replay", 16]
+print({f"{k[0]} {k[1]} spp": round(v, 1) for k, v in memory.items()})
+print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
+
+# %% [markdown]
+# From 16 to 64 spp the tape's peak grows `2.6` <!-- check: tape_growth --> times (4 times
+# the samples, plus a fixed part), the replay's `1.0` <!-- check: replay_growth --> times.
+# Each batch still holds all the vertices of its paths, so replay's memory still grows with
+# `max_depth`; path replay (Vicini et al. 2021) removes that too, by walking each path
+# again vertex by vertex with a running adjoint.
+#
+# ## Exercises
+#
+# 1. A *uniform* sky (`L = 1`): compute the relative standard deviation of one
+#    cosine-weighted sample of `E = π` and of one uniform sample. Why is one of them zero?
+# 2. From the room's noise at 16 spp (above), predict the spp needed for a relative pixel
+#    noise of 5 %, render it with 6 seeds, and measure.
+# 3. Replace the power heuristic in `lamp_estimates` by the *balance* heuristic
+#    `w_i = p_i / (p_1 + p_2)`. Is it still unbiased? Compare its noise with the power
+#    heuristic's for both lamps.
+#
+# Solutions: `lessons/solutions/10_monte_carlo.py`.
