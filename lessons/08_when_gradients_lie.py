@@ -133,8 +133,105 @@ print(f"antialiased: {disagreeing_pixels} pixels disagree, at rows/columns "
 # it has a kink where the edge crosses a pixel border (the area stops growing), as the
 # exact area integral does. A step across a border compares across that kink and the
 # check degrades to the accuracy of a one-sided slope, which is why the step was chosen
-# as it was (exercise 2 of lesson 2 in another guise: finite differences need smoothness
+# as it was (exercise 3 of lesson 2 in another guise: finite differences need smoothness
 # over the step).
+#
+# All of this is *consistency*: the antialiased image agrees with its own gradient. It does
+# not say that the gradient is the derivative of what a pixel should be, the integral of
+# the radiance over its area. For that we need the truth.
+#
+# ## Against the truth
+#
+# The truth is the derivative of the box-filtered pixels. Estimate it by central
+# differences of renders with so many samples per pixel that the pixels *are* their
+# integrals (a stratified grid of 32 × 32 or 64 × 64 samples, `render(..., spp=1024)`),
+# with a step small enough that the edges do not cross a pixel's corner on the way
+# (coverage has kinks there). Then compare the two edge methods of the renderer: the pairs
+# above (`antialias=True`), and the **boundary integral** (`antialias="boundary"`,
+# `render/edges/boundary.py`): the image is the plain one, and on the tape it adds, for
+# every point `x` of every edge, the jump `f₊ − f₋` across the edge times how fast the edge
+# moves across `x`, integrated along the edge inside each pixel (Li et al. 2018's edge
+# integral, evaluated by quadrature instead of sampled). Both for the lesson's square and
+# for the same square turned by 30°, where no edge is parallel to the pixel grid.
+
+# %%
+
+
+def turned(angle_deg):
+    a = math.radians(angle_deg)
+    rotation = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0],
+                         [0, 0, 1]])  # fmt: skip
+    return base @ rotation.T
+
+
+def square_gradient(corners, **kwargs):
+    """d image / d t_x of the square with ``corners`` at t, in forward mode."""
+    tt = md.tensor(t.data)
+    with md.tangents({tt: along_x}):
+        square.vertices = md.as_tensor(corners) + tt  # computed inside: it carries a tangent
+        return render.render(scene, **kwargs).tangent
+
+
+def supersampled_derivative(corners, spp, step_pixels):
+    """Central differences of spp-sample renders, step ``step_pixels`` pixels."""
+    step = step_pixels / pixels_per_unit
+    sides = []
+    with md.no_grad():
+        for sign in (1.0, -1.0):
+            square.vertices = md.as_tensor(corners) + md.tensor(t.data + sign * step * along_x)
+            sides.append(render.render(scene, spp=spp).data)
+    return (sides[0] - sides[1]) / (2 * step)
+
+
+truth_errors, truth_sums = {}, {}
+for angle, spp, step_pixels in ((0, 1024, 0.25), (30, 4096, 0.05)):
+    corners = turned(angle)
+    truth = supersampled_derivative(corners, spp, step_pixels)
+    truth_sums[angle, "truth"] = float(truth.sum())
+    truth_sums[angle, "truth |.|"] = float(np.abs(truth).sum())
+    for method, kwargs in (("pairs", {"antialias": True}), ("boundary", {"antialias": "boundary"})):
+        g = square_gradient(corners, **kwargs)
+        truth_errors[angle, method] = float(np.linalg.norm(g - truth) / np.linalg.norm(truth))
+        truth_sums[angle, method] = float(g.sum())
+    if angle == 0:  # where the pairs' error sits: the partly covered rows above and below
+        pairs_g = square_gradient(corners, antialias=True)
+        rows = np.flatnonzero(np.abs(truth).sum(axis=(1, 2)) > 0)
+        ends = [rows[0], rows[-1]]
+        squared = ((pairs_g - truth) ** 2).sum(axis=(1, 2))
+        pairs_error_in_end_rows = float(squared[ends].sum() / squared.sum())
+square.vertices = md.as_tensor(base) + t  # back to the lesson's square
+pairs_error_axis, boundary_error_axis = truth_errors[0, "pairs"], truth_errors[0, "boundary"]
+pairs_error_30, boundary_error_30 = truth_errors[30, "pairs"], truth_errors[30, "boundary"]
+pairs_sum_30 = truth_sums[30, "pairs"]
+truth_sum_share_30 = abs(truth_sums[30, "truth"]) / truth_sums[30, "truth |.|"]
+boundary_sum_share_30 = abs(truth_sums[30, "boundary"]) / truth_sums[30, "truth |.|"]
+pairs_sum_share_30 = abs(pairs_sum_30) / truth_sums[30, "truth |.|"]
+for key, value in truth_errors.items():
+    truth_sum = truth_sums[key[0], "truth"]
+    print(f"{key[0]:2d} degrees, {key[1]:8s}: relative error against the truth {value:.4f}, "
+          f"sum of the gradient image {truth_sums[key]:+.3f} (truth {truth_sum:+.1e})")  # fmt: skip
+print(f"share of the pairs' squared error in the two partly covered end rows: "
+      f"{pairs_error_in_end_rows:.2f}")  # fmt: skip
+
+# %% [markdown]
+# Against the truth, the pairs are off by `0.14` <!-- check: pairs_error_axis --> (relative,
+# over the whole gradient image) for the axis-aligned square and by `0.18`
+# <!-- check: pairs_error_30 --> turned by 30°; the boundary integral by less than `0.005`
+# <!-- check: boundary_error_axis < --> and `0.01` <!-- check: boundary_error_30 < -->
+# (and that remainder shrinks as the reference's step does: the reference is an estimate
+# too). Where the pairs go wrong: for the axis-aligned square, `0.95`
+# <!-- check: pairs_error_in_end_rows > --> of their squared error is in the two rows the
+# square's top and bottom edges cross, where a vertical pair decides a pixel's coverage all
+# or nothing as the moving side edge passes a sample, the corner effect seen above. Turned,
+# every pixel along an edge is such a corner case. A simple invariant shows it too: sliding
+# the square sideways inside the frame does not change the image's total brightness, so
+# the gradient image must sum to zero. At 30° the truth's sum is below `0.001`
+# <!-- check: truth_sum_share_30 < --> of the sum of its absolute values (zero within its
+# own error), the boundary integral's below `1e-12` <!-- check: boundary_sum_share_30 < -->
+# (rounding); the pairs' image sums to `-50.4` <!-- check: pairs_sum_30 -->, `0.017`
+# <!-- check: pairs_sum_share_30 --> of it. Pairs are
+# cheap and smooth (nvdiffrast's `antialias`, Laine et al. 2020, is the same idea), and
+# right on average along long straight edges; the boundary integral is the derivative.
 #
 # ## How the edge term is computed
 #
@@ -212,16 +309,28 @@ print(f"|t| from {np.linalg.norm(start_t):.4f}: antialias=False ends at {plain_e
 
 # %%
 starts = np.array([0.25, 0.5, 0.75, 0.9, 1.1, 1.3])
-ends = [fit_square(np.array([s0, 0.0, 0.0]), True, iters=200)[0] for s0 in starts]
+fits = [fit_square(np.array([s0, 0.0, 0.0]), True, iters=200) for s0 in starts]
+ends = [end for end, _ in fits]
 converged_starts = int(sum(e < 1e-2 for e in ends))
+far_end = float(min(ends[-2:]))  # where the two starts beyond one width end
+far_loss_start, far_loss_end = float(fits[-2][1].loss[0]), float(fits[-2][1].loss[-1])
 largest_converged = float(max(s0 for s0, e in zip(starts, ends, strict=True) if e < 1e-2))
 for s0, e in zip(starts, ends, strict=True):
     print(f"start t_x = {s0:.2f}: ends at |t| = {e:.1e}")
 
 # %% [markdown]
 # Of these starts, `4` <!-- check: converged_starts --> converge, the farthest at
-# `t_x` = `0.9` <!-- check: largest_converged -->; the two that start beyond one square
-# width do not move. Real problems have the same shape of failure, less sharply.
+# `t_x` = `0.9` <!-- check: largest_converged -->. The two that start beyond one square
+# width do not stand still: they slide *away*, to `|t|` beyond `1.5`
+# <!-- check: far_end > -->, and the loss falls on the way (from `0.182`
+# <!-- check: far_loss_start --> to `0.123` <!-- check: far_loss_end --> for the start at
+# 1.1). At `t_x = 1.1` the square's right part is already outside the frame (the frame
+# spans `±1.09` at this distance), and the MSE is lower for a square that shows less of
+# itself in the wrong place: pushing it out of view is a descent direction, and the image
+# with no square at all is a local minimum. The paper's camera calibration has the same
+# minimum at scale: from its 30° start the optimiser turns the teapot out of view (the
+# README's "black image" minimum). Real problems have the same shape of failure, less
+# sharply.
 #
 # ## The paper's camera calibration
 #
@@ -240,11 +349,13 @@ SIZE, ITERS = 64, 300
 runs = {}
 for antialias in (False, True):
     scene_c, params, target_c = experiments.camera_calibration_problem(SIZE, 42, 10.0)
-    errors = []
+    errors, camera_losses, look_at_offsets = [], [], []
 
-    def track(it, loss, image, history, errors=errors):
+    def track(it, loss, image, history, errors=errors, ls=camera_losses, la=look_at_offsets):
         errors.append(experiments.relative_error_pct(history.params[-1][0],
                                                      experiments.TRUE_CAMERA))  # fmt: skip
+        ls.append(float(loss))
+        la.append(float(np.linalg.norm(history.params[-1][1] - experiments.TRUE_LOOK_AT)))
 
     render.optimize(scene_c, params, target_c, lr=0.03, max_iters=ITERS, quiet=True,
                     render_kwargs={"antialias": antialias}, callback=track)  # fmt: skip
@@ -252,10 +363,15 @@ for antialias in (False, True):
     _, final_info = render.render(scene_c, return_info=True)
     _, target_info = render.render(experiments.paper_scene(SIZE, SIZE), return_info=True)
     only_target = int(((target_info.prim_id >= 0) & (final_info.prim_id < 0)).sum())
-    runs[antialias] = (errors, final_error, only_target)
+    runs[antialias] = (errors, final_error, only_target, camera_losses, look_at_offsets)
     print(f"antialias={antialias}: position error {errors[0]:.2f} % -> {final_error:.3f} %; "
           f"{only_target} pixels show the teapot only in the target")  # fmt: skip
 camera_plain_error, camera_aa_error = runs[False][1], runs[True][1]
+aa_errors, aa_losses, aa_look = (np.array(runs[True][k]) for k in (0, 3, 4))
+worst = int(np.argmax(aa_errors))  # the position error peaks early, then falls
+camera_start_error, camera_peak_error, camera_peak_at = aa_errors[0], aa_errors[worst], worst
+camera_loss_fall_to_peak = aa_losses[0] / aa_losses[worst]
+look_at_start, look_at_at_peak = aa_look[0], aa_look[worst]
 figure = line_figure(
     {f"antialias={a}": (np.arange(len(runs[a][0])), runs[a][0]) for a in (False, True)},
     title="Camera calibration, 64 x 64, seed 42: position error",
@@ -270,7 +386,18 @@ show(figure)
 # At this size and budget the antialiased run ends below `1.5`
 # <!-- check: camera_aa_error < --> %, the plain one above `2`
 # <!-- check: camera_plain_error > --> % (`camera_calibration_error.png`; the exact values
-# are printed). The low resolution blurs the story: at 64 × 64 a pixel is 8 times wider
+# are printed). Both curves first *rise*: with edges, from `11.5`
+# <!-- check: camera_start_error --> % to `28.9` <!-- check: camera_peak_error --> % at
+# iteration `32` <!-- check: camera_peak_at -->, while the loss falls by a factor of `6.4`
+# <!-- check: camera_loss_fall_to_peak --> and the look-at point moves from `1.15`
+# <!-- check: look_at_start --> to `0.57` <!-- check: look_at_at_peak --> units from the
+# truth. The loss is first lowered by putting the teapot where the target has it in the
+# frame, which turning the camera (the look-at point) and sliding it sideways both do;
+# Adam moves every coordinate by about its learning rate per step at first, so the
+# position wanders along that valley of near-equal images before the finer cues
+# (perspective, size, the silhouette's shape) pull it back. The error we report is the
+# position's; the image was improving all along. The low resolution blurs the story too:
+# at 64 × 64 a pixel is 8 times wider
 # than at 512, the interior shading carries relatively more of the information, and both
 # runs are still moving after 300 steps; we state what we measured, not the paper's
 # numbers.
@@ -279,11 +406,13 @@ show(figure)
 #
 # The gradient image of the camera's x position, plain and antialiased, side by side
 # (`teapot_camera_dx.png`): the plain one has only the interior's shading changes; the
-# antialiased one adds bright bands along the silhouette, where most of the information
-# about the camera's position is.
+# antialiased one adds the edge term, along the silhouette and also along the edges
+# between the teapot's flat facets (its shading jumps there, and the jumps move with the
+# camera).
 
 # %%
 teapot = experiments.paper_scene(SIZE, SIZE)
+S_T = SIZE
 teapot_G = [
     render.gradient_image(teapot, "camera.position", along_x, antialias=a).sum(-1)
     for a in (False, True)
@@ -292,12 +421,25 @@ render.write_gradient_png(np.concatenate(teapot_G, axis=1), OUT / "teapot_camera
                           label="d image / d camera x: antialias False | True",
                           min_width=512)  # fmt: skip
 silhouette_share = float(np.abs(teapot_G[1] - teapot_G[0]).sum() / np.abs(teapot_G[1]).sum())
-print(f"share of |dI/dx| that the edge term adds: {silhouette_share:.2f}")
+_, teapot_info = render.render(teapot, return_info=True)
+background = np.pad(teapot_info.prim_id[..., 0] < 0, 1, constant_values=True)
+# A pixel is on the outline if it or one of its 8 neighbours sees the background.
+near_outline = np.zeros_like(background[1:-1, 1:-1])
+for dy in (0, 1, 2):
+    for dx in (0, 1, 2):
+        near_outline |= background[dy : dy + S_T, dx : dx + S_T]
+edge_term = np.abs(teapot_G[1] - teapot_G[0])
+interior_edge_share = float(edge_term[~near_outline].sum() / edge_term.sum())
+print(f"share of |dI/dx| that the edge term adds: {silhouette_share:.2f}; of the edge term, "
+      f"{interior_edge_share:.2f} lies away from the outline (facet edges)")  # fmt: skip
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
 # %% [markdown]
 # The edge term holds more than `0.9` <!-- check: silhouette_share > --> of the
-# antialiased gradient image's total magnitude.
+# antialiased gradient image's total magnitude, and not all of it at the outline:
+# `0.38` <!-- check: interior_edge_share --> of the edge term lies in pixels at least one
+# pixel away from the background, on the facet edges inside the teapot. A flat-shaded
+# mesh is a mosaic of small jumps, and every one of them moves with the camera.
 #
 # ## Exercises
 #
