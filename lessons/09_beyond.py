@@ -32,6 +32,7 @@ import numpy as np
 
 import minidiff as md
 import render
+from render.inverse.plot import line_figure, show
 
 OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "09_beyond"
 OUT.mkdir(parents=True, exist_ok=True)
@@ -108,11 +109,14 @@ render.save_image(strip(pose_target, pose_start, pose_final), OUT / "pose.png", 
 # A flat fan of 8 triangles around a centre, seen head-on and lit evenly: only its outline
 # is visible, as in lesson 8's square. Its 8 rim vertices start on a circle of radius 0.5;
 # the target is an ellipse with semi-axes 0.75 and 0.45, one vertex pushed out further. The
-# parameters are the rim's 2-D displacements `δ` (16 numbers). A silhouette constrains the
-# outline only where it has pixels, so we add the usual regulariser, a discrete
-# Laplacian that keeps each rim vertex near the midpoint of its neighbours:
+# parameters are the rim's 2-D displacements `δ` (16 numbers). Shape fitting usually adds
+# a regulariser, here a discrete Laplacian that keeps each rim vertex near the midpoint of
+# its neighbours:
 #
-#     L(δ) = L_image + λ Σᵢ ‖pᵢ − (pᵢ₋₁ + pᵢ₊₁)/2‖²,      p = p₀ + δ,   λ = 1e-3 .
+#     L(δ) = L_image + λ Σᵢ ‖pᵢ − (pᵢ₋₁ + pᵢ₊₁)/2‖²,      p = p₀ + δ .
+#
+# We fit with `λ = 1e-3` and without (`λ = 0`), and then ask when the regulariser earns
+# its place.
 
 # %%
 K = 8
@@ -162,17 +166,107 @@ render.optimize(fan_image, [delta], shape_target, loss_fn=shape_loss, lr=0.01, m
 shape_final = fan_image().data
 rim_start_error = float(np.abs(start_rim - true_rim).max())
 rim_error = float(np.abs(start_rim + delta.data - true_rim).max())
-print(f"shape: largest rim vertex error {rim_start_error:.4f} -> {rim_error:.4f}")
 render.save_image(strip(shape_target, shape_start, shape_final), OUT / "shape.png")
+delta = md.tensor(np.zeros((K, 2)), requires_grad=True)  # again, without the regulariser
+render.optimize(fan_image, [delta], shape_target, lr=0.01, max_iters=200, quiet=True)
+rim_error_unregularised = float(np.abs(start_rim + delta.data - true_rim).max())
+print(f"shape: largest rim vertex error {rim_start_error:.4f} -> {rim_error:.4f} with "
+      f"lambda = {LAMBDA}, {rim_error_unregularised:.1e} without")  # fmt: skip
 
 # %% [markdown]
 # The largest coordinate error of a rim vertex falls from `0.2828` <!-- check:
 # rim_start_error --> to below `0.01` <!-- check: rim_error < --> (`shape.png`), under a
-# quarter of a pixel (a pixel is about 0.045 wide here). The regulariser pulls a little
-# towards a smoother outline than the target's pushed-out corner (exercise 2 measures
-# how much). Here every rim vertex is a corner of the silhouette and the image alone
-# pins it; on a finer mesh, with vertices the silhouette does not pin, the regulariser
-# is what keeps the outline from crumpling.
+# quarter of a pixel (a pixel is about 0.045 wide here). *Without* the regulariser it is
+# better still: below `1e-4` <!-- check: rim_error_unregularised < -->. Every rim vertex
+# is a corner of the silhouette, so the image alone pins it, and the Laplacian only pulls
+# the pushed-out corner towards a rounder outline than the target's. A regulariser is not
+# free: it is a prior, and here the prior is wrong.
+#
+# It earns its place when the image does *not* pin every vertex. Take the same ellipse
+# with 48 rim vertices. A vertex on a nearly straight stretch of the outline can slide
+# along it without changing a single pixel: that motion is invisible, so nothing stops it,
+# and the noise of the descent moves it freely. Vertices bunch up, overtake their
+# neighbours, and the outline folds over itself: **crumpling**. We count folds (a turn the
+# wrong way between consecutive rim edges), the ratio of the longest rim edge to the
+# shortest, and the outline's largest distance from the true ellipse (relative).
+
+# %%
+FINE = 48
+fine_angles = np.arange(FINE) * 2 * np.pi / FINE
+fine_start = 0.5 * np.stack([np.cos(fine_angles), np.sin(fine_angles)], axis=1)
+fine_true = np.stack([0.75 * np.cos(fine_angles), 0.45 * np.sin(fine_angles)], axis=1)
+fine_fan = render.Mesh(
+    md.concatenate([md.tensor(np.zeros((1, 3))), md.tensor(np.c_[fine_true, np.zeros(FINE)])]),
+    [[0, 1 + i, 1 + (i + 1) % FINE] for i in range(FINE)], render.Material((0.8, 0.8, 0.8)),
+)  # fmt: skip
+fine_scene = render.Scene([fine_fan], [render.DirectionalLight((0, 0, -1), 3.0)], flat_camera)
+fine_target = render.render(fine_scene, antialias=True).data
+before, after = np.roll(np.arange(FINE), 1), np.roll(np.arange(FINE), -1)
+
+
+def fit_fine(lam):
+    d = md.tensor(np.zeros((FINE, 2)), requires_grad=True)
+
+    def image():
+        rim3 = md.concatenate([md.as_tensor(fine_start) + d, md.tensor(np.zeros((FINE, 1)))],
+                              axis=1)  # fmt: skip
+        fine_fan.vertices = md.concatenate([md.tensor(np.zeros((1, 3))), rim3])
+        return render.render(fine_scene, antialias=True)
+
+    def loss(image_, target):
+        q = md.as_tensor(fine_start) + d
+        return (
+            render.image_loss(image_, target)
+            + lam * ((q - (q[before] + q[after]) * 0.5) ** 2).sum()
+        )
+
+    render.optimize(image, [d], fine_target, loss_fn=loss, lr=0.01, max_iters=200, quiet=True)
+    q = fine_start + d.data
+    edges = np.roll(q, -1, axis=0) - q
+    turns = (
+        edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1]
+        - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    )
+    lengths = np.linalg.norm(edges, axis=1)
+    outline = np.abs(np.hypot(q[:, 0] / 0.75, q[:, 1] / 0.45) - 1).max()
+    return q, int((turns < 0).sum()), float(lengths.max() / lengths.min()), float(outline)
+
+
+fits = {lam: fit_fine(lam) for lam in (0.0, 1e-2)}
+folds_free, spacing_free, outline_free = fits[0.0][1:]
+folds_reg, spacing_reg, outline_reg = fits[1e-2][1:]
+closed = np.r_[np.arange(FINE), 0]
+ellipse = np.linspace(0, 2 * np.pi, 200)
+figure = line_figure(
+    {
+        "target outline": (0.75 * np.cos(ellipse), 0.45 * np.sin(ellipse)),
+        "lambda = 0": (fits[0.0][0][closed, 0], fits[0.0][0][closed, 1]),
+        "lambda = 0.01": (fits[1e-2][0][closed, 0], fits[1e-2][0][closed, 1]),
+    },
+    title="48 rim vertices fitted to a silhouette, with and without a Laplacian",
+    references=("target outline",),
+    size=(640, 460),
+)
+figure.axes[0].set_aspect("equal")
+for q, colour in ((fits[0.0][0], "C0"), (fits[1e-2][0], "C1")):
+    figure.axes[0].plot(q[:, 0], q[:, 1], ".", color=colour, markersize=4)  # the vertices
+figure.savefig(OUT / "crumpling.png")
+show(figure)
+print(f"48 vertices: lambda = 0: {folds_free} folds, edge lengths {spacing_free:.1f}:1, "
+      f"outline {outline_free:.4f}; lambda = 0.01: {folds_reg} folds, {spacing_reg:.2f}:1, "
+      f"outline {outline_reg:.4f}")  # fmt: skip
+
+# %% [markdown]
+# Without the regulariser the 48-vertex rim ends with `10` <!-- check: folds_free -->
+# folds, its longest edge `43.4` <!-- check: spacing_free --> times its shortest, and its
+# outline up to `0.0245` <!-- check: outline_free --> off the ellipse; with `λ = 0.01`, `0`
+# <!-- check: folds_reg --> folds, a ratio of `1.4` <!-- check: spacing_reg -->, and
+# `0.003` <!-- check: outline_reg --> (`crumpling.png`). The image loss is about the same
+# in both (the folds are nearly invisible at this resolution): the regulariser chose among
+# shapes the image cannot tell apart. That is its job, and why 3D shape fitting
+# (`render.inverse.shape`: a Laplacian, or Large Steps, Nicolet et al. 2021, which
+# smooths the *steps* instead of penalising the shape) needs one on any mesh finer than
+# its silhouettes can pin.
 #
 # ## (c) A neural field for the albedo
 #
@@ -263,8 +357,8 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 #
 # 1. In (a), add a uniform scale `σ` of the teapot (start at 1, target 1.1) to the pose.
 #    Which of the parameters is recovered worst, and why?
-# 2. In (b), set `λ = 0` and then `λ = 1e-1`. Report the largest rim vertex error for both
-#    and explain the trade-off.
+# 2. In (b), fit the 48-vertex rim with `λ = 1e-3` and `λ = 1`. Report the folds, the
+#    spacing ratio and the outline error for both, and explain the trade-off.
 # 3. In (c), replace the network by a plain 16 × 16 texture of free parameters (768
 #    numbers) initialised at 0.5, projected to `[0, 1]` (`md.optim.box`). Compare the
 #    PSNR after 300 steps. Which texels stay at their start, and why?
