@@ -298,4 +298,18 @@ print(f"figures in {OUT}")
 #    How do the number of rays that hit, the triangle tests and the factor saved over brute
 #    force change? Why?
 #
+# Two you build yourself, checked against the library by `lessons/exercise_checks.py`
+# (`from exercise_checks import ...` works from a lesson or a notebook in `lessons/`):
+#
+# 4. **A ray-triangle intersection.** Write `my_intersect(o, d, a, b, c)` for k rays and k
+#    triangles at once, in NumPy, from the Möller–Trumbore derivation at the top of this
+#    lesson: return `(t, u, v)`, with `t = inf` where the ray misses (parallel, outside the
+#    triangle, or behind the origin). Run `check_intersection(my_intersect)`: 2,000 random
+#    rays and triangles against `intersect_triangle`.
+# 5. **A shadow ray through the BVH.** Write `my_occluded(acc, o, d, t_max)`: walk the
+#    library's tree (the layout `closest_hit_counted` above uses) and return True as soon
+#    as any triangle is hit at `0 < t < t_max`. An any-hit walk needs no ordering of the
+#    children and may stop at the first hit. Run `check_any_hit(my_occluded)`: 400 rays
+#    through the teapot against `Accelerator.occluded`.
+#
 # Solutions: `lessons/solutions/04_bvh.py`.

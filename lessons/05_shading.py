@@ -294,5 +294,13 @@ print(f"figures in {OUT}")
 # 3. How good is the normalisation `(m + 8)/(8π)`? For light and view both along the normal,
 #    compute the reflected fraction `∫ f_s cos θ dω` over the hemisphere of view directions
 #    (numerically, with `k_s = 1`) for `m = 1, 10, 100`.
+# 4. **A Lambert shader on the tape** (you build it). Write
+#    `my_lambert(points, normals, albedo, light_position, intensity)` with minidiff
+#    operations (`md.sum`, `md.maximum`, `md.sqrt`, arithmetic on tensors): the radiance
+#    `albedo/π · I · max(n·l, 0) / r²` of k points lit by a point light, `(k, 3)`. Run
+#    `check_lambert(my_lambert)` from `lessons/exercise_checks.py`: it renders a plane
+#    with the library, computes yours at the same points, and compares the values *and*
+#    the gradients of a weighted sum with respect to the light's position, the albedo and
+#    the intensity (`backward` through your code and through the renderer's).
 #
 # Solutions: `lessons/solutions/05_shading.py`.

@@ -98,3 +98,64 @@ far = count_tests(accel, render.paper_scene(width=64, height=64, camera_position
 for name, (hits, tests, saved) in (("near", near), ("far", far)):
     print(f"{name}: {hits} rays hit, {tests:,} triangle tests, {saved:.0f}x fewer than brute force")
 assert far[0] < 0.4 * near[0] and far[2] > near[2]
+
+
+# %% [markdown]
+# ## Exercise 4: a ray-triangle intersection of your own
+#
+# Möller–Trumbore, vectorised: solve `o + t d = a + u (b − a) + v (c − a)` by Cramer's rule
+# with `e1 = b − a`, `e2 = c − a`, `p = d × e2`, `det = e1 · p`; a ray parallel to the
+# triangle's plane has `det = 0`.
+
+# %%
+import sys  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # lessons/: exercise_checks
+from exercise_checks import check_any_hit, check_intersection  # noqa: E402
+
+
+def my_intersect(o, d, a, b, c):
+    e1, e2 = b - a, c - a
+    p = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    safe = np.where(det != 0, det, 1.0)
+    s = o - a
+    u = np.einsum("ij,ij->i", s, p) / safe
+    q = np.cross(s, e1)
+    v = np.einsum("ij,ij->i", d, q) / safe
+    t = np.einsum("ij,ij->i", e2, q) / safe
+    hit = (det != 0) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+    return np.where(hit, t, np.inf), np.where(hit, u, 0.0), np.where(hit, v, 0.0)
+
+
+print(check_intersection(my_intersect))
+
+# %% [markdown]
+# ## Exercise 5: an any-hit walk
+#
+# A stack of nodes; a node whose box the ray misses before `t_max` is skipped; a leaf's
+# triangles are tested until one is hit.
+
+
+# %%
+def my_occluded(acc, o, d, t_max):
+    inverse = 1.0 / np.where(d == 0, 1e-300, d)
+    ray = make_ray(o, d, 0.0, t_max)
+    stack = [0]
+    while stack:
+        node = stack.pop()
+        t1 = (acc.node_bounds[node, :3] - o) * inverse
+        t2 = (acc.node_bounds[node, 3:] - o) * inverse
+        if max(np.minimum(t1, t2).max(), 0.0) > min(np.maximum(t1, t2).min(), t_max):
+            continue  # the ray misses this box before t_max
+        first, count = acc.node_first[node], acc.node_count[node]
+        if count > 0:
+            for k in range(first, first + count):
+                if intersect_triangle(acc.leaf_prim, k, ray)[0] < t_max:
+                    return True
+        else:
+            stack += [first, first + 1]
+    return False
+
+
+print(check_any_hit(my_occluded))

@@ -74,3 +74,29 @@ for m in (1, 10, 100):
     fraction = 2 * math.pi * np.sum((integrand[1:] + integrand[:-1]) / 2 * np.diff(theta))
     print(f"m = {m:>3}: reflected fraction {fraction:.4f}")
     assert 1.0 < fraction < 1.08
+
+
+# %% [markdown]
+# ## Exercise 4: a Lambert shader on the tape
+#
+# Everything is a minidiff operation on tensors, so `backward` reaches the light's
+# position, the albedo and the intensity through it.
+
+# %%
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import minidiff as md  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # lessons/: exercise_checks
+from exercise_checks import check_lambert  # noqa: E402
+
+
+def my_lambert(points, normals, albedo, light_position, intensity):
+    to_light = light_position - points  # (k, 3)
+    r2 = md.sum(to_light * to_light, axis=1, keepdims=True)  # (k, 1)
+    cos = md.maximum(md.sum(normals * to_light, axis=1, keepdims=True) / md.sqrt(r2), 0.0)
+    return albedo * (1 / math.pi) * intensity * cos / r2
+
+
+print(check_lambert(my_lambert))
