@@ -94,6 +94,30 @@ def our_problems(size: int):
     }
 
 
+def mitsuba_sensor(mi, camera) -> dict:
+    """Our pinhole ``camera`` as a Mitsuba ``perspective`` sensor: the same fov (ours spans
+    the image's width: ``fov_axis="x"``), look-at frame and size, a ``box`` pixel filter (a
+    pixel is the plain mean over its area, as ours), linear RGB, one sample per pass."""
+    return {
+        "type": "perspective",
+        "fov": float(camera.fov.data),
+        "fov_axis": "x",
+        "to_world": mi.ScalarTransform4f().look_at(
+            origin=camera.position.data.tolist(),
+            target=camera.look_at.data.tolist(),
+            up=camera.up.data.tolist(),
+        ),
+        "film": {
+            "type": "hdrfilm",
+            "width": camera.width,
+            "height": camera.height,
+            "pixel_format": "rgb",
+            "rfilter": {"type": "box"},
+        },
+        "sampler": {"type": "independent", "sample_count": 1},
+    }
+
+
 def mitsuba_problems(size: int):
     """Mitsuba's three workloads, or None if it is not installed."""
     try:
@@ -118,23 +142,7 @@ def mitsuba_problems(size: int):
         {
             "type": "scene",
             "integrator": {"type": "direct", "emitter_samples": 1, "bsdf_samples": 0},
-            "sensor": {
-                "type": "perspective",
-                "fov": float(camera.fov.data),
-                "fov_axis": "x",
-                "to_world": mi.ScalarTransform4f().look_at(
-                    origin=camera.position.data.tolist(),
-                    target=camera.look_at.data.tolist(),
-                    up=camera.up.data.tolist(),
-                ),
-                "film": {
-                    "type": "hdrfilm",
-                    "width": size,
-                    "height": size,
-                    "rfilter": {"type": "box"},
-                },
-                "sampler": {"type": "independent", "sample_count": 1},
-            },
+            "sensor": mitsuba_sensor(mi, camera),
             "teapot": teapot,
             "light": {
                 "type": "point",

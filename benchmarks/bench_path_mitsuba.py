@@ -77,6 +77,7 @@ from typing import Any
 
 import numpy as np
 import timing
+from bench_mitsuba import mitsuba_sensor
 from scipy import stats
 
 import minidiff as md
@@ -194,24 +195,7 @@ def mitsuba_scene(scene: Scene, max_depth: int, rr_depth: int = RR_DEPTH) -> Any
     description: dict[str, Any] = {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": max_depth, "rr_depth": rr_depth},
-        "sensor": {
-            "type": "perspective",
-            "fov": float(camera.fov.data),
-            "fov_axis": "x",  # our fov spans the image's width (render.scene.camera)
-            "to_world": mi.ScalarTransform4f().look_at(
-                origin=camera.position.data.tolist(),
-                target=camera.look_at.data.tolist(),
-                up=camera.up.data.tolist(),
-            ),
-            "film": {
-                "type": "hdrfilm",
-                "width": camera.width,
-                "height": camera.height,
-                "pixel_format": "rgb",
-                "rfilter": {"type": "box"},  # the mean over the pixel's area
-            },
-            "sampler": {"type": "independent", "sample_count": 1},
-        },
+        "sensor": mitsuba_sensor(mi, camera),
     }
     if np.any(world.background.data):
         description["environment"] = {
