@@ -97,8 +97,10 @@ def render(
         path tracer with area lights (emissive materials), indirect light and the
         background as a constant environment (``render.path.render_path``: ``spp`` paths
         per pixel, any integer >= 1, and its options ``max_depth``, ``seed``,
-        ``rr_depth``, ``batch_spp`` as keywords; the options above that belong to the
-        direct renderer must keep their defaults).
+        ``rr_depth``, ``batch_spp``, ``edge_spp`` as keywords; ``antialias`` may be
+        False or "boundary" (primary visibility's boundary term, ``render.path.edges``);
+        the other options above belong to the direct renderer and must keep their
+        defaults).
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
     when the caller runs ``backward`` on a loss computed from the image.
