@@ -209,14 +209,17 @@ def test_fresh_keeps_nothing_and_is_local_to_its_thread():
 
 
 def test_a_path_tracer_pass_leaves_the_pool_as_it_was():
-    """The path integrator's shapes change with every batch: it runs inside ``fresh()``."""
+    """The path integrator's shapes change with every batch: it runs inside ``fresh()``.
+    The batches are large enough (16 samples of 32 x 32 pixels: arrays of ~400 KB, above
+    ``buffers.MIN_BYTES``) that, without ``fresh()``, the pool would keep ~45 MB here."""
     from render.path import render_path
     from render.scene.cornell import cornell_box
 
     buffers.clear()
-    scene = cornell_box(24, 24)
+    scene = cornell_box(32, 32)
     scene.objects[3].material.albedo.requires_grad = True
-    image = render_path(scene, spp=8, max_depth=3, batch_spp=2)
+    image = render_path(scene, spp=32, max_depth=3, batch_spp=16)
+    assert 32 * 32 * 16 * 3 * 8 > buffers.MIN_BYTES  # the batches' arrays would be pooled
     assert buffers.held_bytes() == 0
     image.sum().backward()
     assert np.abs(scene.objects[3].material.albedo.grad).max() > 0

@@ -129,8 +129,9 @@ def test_replay_with_the_boundary_term_equals_the_tape_with_the_same_seed():
         np.testing.assert_allclose(p.grad, g, rtol=1e-9, atol=1e-12 * np.abs(g).max())
 
 
-def test_no_derivative_no_term_and_the_image_unchanged():
-    """The term is zero in value: the image is the plain one bit for bit."""
+def test_the_boundary_term_leaves_the_image_unchanged():
+    """The term is zero in value: with a parameter differentiated (so the term is added),
+    the image is the plain one bit for bit."""
     scene = cornell_box(6, 6)
     plain = render_path(scene, spp=2, seed=1).data
     scene.camera.position.requires_grad = True

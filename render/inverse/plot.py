@@ -11,6 +11,7 @@ from __future__ import annotations
 import io
 from collections.abc import Collection, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -67,16 +68,12 @@ def line_figure(
 def line_plot(
     series: dict[str, tuple[Sequence[float], Sequence[float]]],
     path: str | Path,
-    title: str = "",
-    xlabel: str = "",
-    ylabel: str = "",
-    logx: bool = False,
-    logy: bool = False,
-    size: tuple[int, int] = (640, 420),
-    references: Collection[str] = (),
+    *args: Any,
+    **options: Any,
 ) -> Path:
-    """``line_figure`` saved as a PNG at ``path`` (folders created); returns the path."""
-    figure = line_figure(series, title, xlabel, ylabel, logx, logy, size, references)
+    """``line_figure(series, *args, **options)`` (title, labels, ...) saved as a PNG at
+    ``path`` (folders created); returns the path."""
+    figure = line_figure(series, *args, **options)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path)

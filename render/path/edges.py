@@ -28,7 +28,7 @@ from render.path.tracer import PathSampler
 from render.path.transport import path_radiance
 from render.scene.cache import cache_for
 from render.scene.scene import Scene
-from render.trace.visibility import trace_visibility
+from render.trace.visibility import Visibility, scene_size
 
 #: Paths traced at once when estimating jumps (bounds the memory of one estimate).
 CHUNK_PATHS = 1 << 17
@@ -54,7 +54,8 @@ class PathRadiance:
     ) -> np.ndarray:
         """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
         (k, 2) that first meets primitive ``prim_id`` (k,) (-1: none) at ``depth`` (k,)."""
-        return self._estimate(*self._inside(coords, prim_id, depth), key, prim_id)
+        coords, depth = self._inside(coords, prim_id, depth)
+        return self._estimate(coords, key, prim_id, depth)
 
     def _inside(self, coords, prim, depth) -> tuple[np.ndarray, np.ndarray]:
         """The image-plane points (k, 2) and depths (k,) of the edge points moved
@@ -79,9 +80,9 @@ class PathRadiance:
     def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
         """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
         (k, 2), its first hit traced."""
-        return self._estimate(coords, None, key)
+        return self._estimate(coords, key)
 
-    def _estimate(self, coords, depth, key, prim=None) -> np.ndarray:
+    def _estimate(self, coords, key, prim=None, depth=None) -> np.ndarray:
         n = self.samples
         out = np.zeros((len(coords), 3))
         step = max(1, CHUNK_PATHS // n)
@@ -105,7 +106,13 @@ def add_path_boundary_term(
     render cache keeps the mesh topology); ``world``: it placed in world space, on the tape,
     with ``frame`` its camera frame; ``sampler``: the render's."""
     cache = cache_for(scene, True)
-    visibility = trace_visibility(world, cache, True, 1, False)
+    primitives = sampler.primitives
+    _, geometry = cache.get("geometry", list(primitives), lambda: None)  # its stamp
+    # What the boundary code asks of a render's visibility: the primitives, their size and
+    # BVH (for occlusion rays), the geometry's stamp (for the caches). The sampler has them
+    # all; no camera ray is traced for it (``primary`` None: the edge code reads none).
+    visibility = Visibility(None, [], geometry, geometry, lambda: sampler.accelerator, True,
+                            False, primitives, scene_size(primitives))  # fmt: skip
     camera = world.camera
     first_id = camera.width * camera.height * sampler.spp  # after the image's path ids
     radiance = PathRadiance(world, frame, sampler, samples, first_id)
