@@ -320,3 +320,30 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
                            mesh.material, smooth=True)  # fmt: skip
     table = mesh_edges(unwelded.vertices.data, unwelded.faces).table
     assert not boundary.continuous_creases(unwelded, table, eye).any()
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), k=st.integers(0, 60), n_faces=st.integers(1, 4))
+def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_faces):
+    """The Numba loop of the mesh-edge points (``edge_sides_kernel``) against its plain
+    NumPy statement (``edge_sides``): depths, |grad e|, steps and directions to rounding,
+    and the same face chosen on either side (random edges with one to four faces and
+    some padding; no face is degenerate, as in an ``EdgeTable``)."""
+    from render.edges.boundary import edge_sides, edge_sides_kernel
+
+    rng = np.random.default_rng(seed)
+    vertices = rng.normal(0.0, 1.0, (20, 3)) + [0.0, 0.0, -4.0]
+    eye, forward = rng.normal(0.0, 0.2, 3), np.array([0.0, 0.0, -1.0])
+    right, up = np.array([0.7, 0.0, 0.0]), np.array([0.0, 0.7, 0.0])
+    i, j = rng.integers(0, 6, k), rng.integers(6, 12, k)
+    faces = rng.integers(-1, 50, (k, n_faces))
+    faces[:, 0] = np.abs(faces[:, 0])  # one face at least
+    thirds = np.where(faces >= 0, rng.integers(12, 20, (k, n_faces)), -1)
+    coords = rng.uniform(-1.0, 1.0, (k, 2))
+    args = (eye, forward, right, up, vertices, i, j, faces, thirds, coords, 40, 30)
+    plain, fast = edge_sides(*args), edge_sides_kernel(*args)
+    for name, a, b in zip(("directions", "depth", "norm", "step"), plain[:4], fast[:4]):
+        np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(initial=1.0),
+                                   err_msg=name)  # fmt: skip
+    np.testing.assert_array_equal(fast[4], plain[4])
+    assert np.all((fast[4] == -1) | np.isin(fast[4], faces))

@@ -745,16 +745,122 @@ def _line_points(visibility, frame, camera, m, directions, depth, ignore):
     """For k points on lines with the edge function e = d . m (m (k, 3), the plane through
     the eye and the line), seen along camera directions (k, 3) at ``depth`` (k,): |grad e|
     in pixel units (k,), the image-plane step one pixel along grad e (k, 2), and which
-    points are hidden (k,) bool: something other than primitive ``ignore`` (k,) lies in
-    front (an any-hit ray that ends just short of the point), or the line is seen edge-on
-    or from behind."""
+    points are ``_hidden`` (k,) bool."""
     forward, right, up, eye = frame
     norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
-    hidden = (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
+    return norm, step, _hidden(visibility, eye, directions, depth, norm, ignore)
+
+
+def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height):
+    """The geometry of k quadrature points on mesh edges (v_i, v_j), plainly in NumPy (the
+    reference of ``edge_sides_kernel``, which computes the same in one pass).
+
+    eye, forward, right, up (3,): the camera (``plain_camera``); vertices (V, 3); i, j
+    (k,) the edges' vertex ids; faces, thirds (k, K): the faces on each edge and their
+    third vertices (-1 padding, ``EdgeTable``); coords (k, 2) image-plane points.
+
+    Returns the camera directions (k, 3) through the points, the depth (k,) of the edge
+    point along them (``_edge_points``), |grad e| in pixel units (k,) and the image-plane
+    step (k, 2) one pixel along grad e (``_pixel_gradient``), and the face (k, 2) seen
+    just beside the edge on its + and - side (-1: no face on that side): the nearest
+    there of the faces on that side (``_approach``)."""
+    a, b = vertices[i], vertices[j]
+    m = np.cross(a - eye, b - eye)
+    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    depth = _edge_points(eye, directions, a, b)
+    norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
+    valid = faces >= 0
+    third = vertices[np.maximum(thirds, 0)]  # (k, K, 3)
+    side = np.sign(np.einsum("nkj,nj->nk", third - eye[None], m))
+    towards = step[:, :1] * right + step[:, 1:] * up  # the image step to the + side
+    normals = np.cross((b - a)[:, None], third - a[:, None])  # (k, K, 3)
+    rate = _approach(normals, directions[:, None], towards[:, None])  # (k, K)
+    chosen = np.full((len(coords), 2), -1, np.int64)
+    for column, sign in enumerate((1.0, -1.0)):
+        on_side = valid & (side == sign)
+        best = np.argmax(np.where(on_side, sign * rate, -np.inf), axis=1)
+        has = on_side.any(axis=1)
+        chosen[has, column] = faces[has, best[has]]
+    return directions, depth, norm, step, chosen
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _dot(x, y):
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _cross(x, y, out):
+    out[0] = x[1] * y[2] - x[2] * y[1]
+    out[1] = x[2] * y[0] - x[0] * y[2]
+    out[2] = x[0] * y[1] - x[1] * y[0]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def edge_sides_kernel(
+    eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height
+):
+    """``edge_sides`` in one pass over the points: the same arithmetic per point, in
+    scalars and four scratch 3-vectors instead of a dozen (k, 3) temporaries. The hot loop
+    of the boundary term; tests/test_boundary.py ties it to ``edge_sides``."""
+    k, n_faces = faces.shape
+    directions = np.empty((k, 3))
+    depth, norm = np.empty(k), np.empty(k)
+    step = np.empty((k, 2))
+    chosen = np.full((k, 2), -1, np.int64)
+    am, bm, m, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    w0, towards, t, normal = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    sx, sy = 2.0 / width, -2.0 / height
+    for p in range(k):
+        a, b, d = vertices[i[p]], vertices[j[p]], directions[p]
+        for c in range(3):
+            am[c], bm[c] = a[c] - eye[c], b[c] - eye[c]
+            d[c] = coords[p, 0] * right[c] + coords[p, 1] * up[c] + forward[c]
+            u[c], w0[c] = b[c] - a[c], eye[c] - a[c]
+        _cross(am, bm, m)
+        # _edge_points: the depth along d of the point nearest the line through a and b
+        dd, du, uu, dw, uw = _dot(d, d), _dot(d, u), _dot(u, u), _dot(d, w0), _dot(u, w0)
+        det = dd * uu - du * du
+        depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
+        # _pixel_gradient of grad e = (m . right, m . up)
+        gx, gy = _dot(m, right) * sx, _dot(m, up) * sy
+        length = math.sqrt(gx * gx + gy * gy)
+        scale = length if length > 0 else 1.0
+        norm[p] = length
+        step[p, 0], step[p, 1] = gx / scale * sx, gy / scale * sy
+        for c in range(3):
+            towards[c] = step[p, 0] * right[c] + step[p, 1] * up[c]
+        # the nearest face on either side (_approach; ties go to the first, as np.argmax)
+        best_plus, best_minus = -np.inf, -np.inf
+        for f in range(n_faces):
+            if faces[p, f] < 0:
+                continue
+            third = vertices[max(thirds[p, f], 0)]
+            for c in range(3):
+                t[c] = third[c] - a[c]
+            side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
+            side = side + (third[2] - eye[2]) * m[2]
+            if side == 0 or side != side:
+                continue
+            _cross(u, t, normal)
+            nd, ng = _dot(normal, d), _dot(normal, towards)
+            rate = ng / nd if nd != 0 else ng / np.inf
+            if side > 0 and (chosen[p, 0] < 0 or rate > best_plus):
+                best_plus, chosen[p, 0] = rate, faces[p, f]
+            elif side < 0 and (chosen[p, 1] < 0 or -rate > best_minus):
+                best_minus, chosen[p, 1] = -rate, faces[p, f]
+    return directions, depth, norm, step, chosen
+
+
+def _hidden(visibility, eye, directions, depth, norm, ignore):
+    """(k,) bool: which of k points seen along camera directions (k, 3) at ``depth`` (k,)
+    are hidden: something other than primitive ``ignore`` (k,) lies in front (an any-hit
+    ray that ends just short of the point), or their curve is seen edge-on (|grad e| =
+    ``norm`` zero) or from behind."""
+    return (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
         np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
         tmin=0.0, ignore_prim=ignore,
     )  # fmt: skip
-    return norm, step, hidden
 
 
 def _mesh_edge_factors(
@@ -773,46 +879,28 @@ def _mesh_edge_factors(
     edge sees. A crease has one face on each side, a silhouette both on one."""
     forward, right, up, eye = plain_camera(frame)
     vertices = np.asarray(scene.meshes[index].vertices.data, np.float64)
-    a, b = vertices[table.i[edges]], vertices[table.j[edges]]
-    m = np.cross(a - eye, b - eye)
-    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
-    depth = _edge_points(eye, directions, a, b)
-    norm, step, hidden = _line_points(
-        visibility, (forward, right, up, eye), scene.camera, m, directions, depth,
-        table.faces[edges, 0] + first_prim,
+    directions, depth, norm, step, chosen = edge_sides_kernel(
+        eye, forward, right, up, vertices, table.i[edges], table.j[edges], table.faces[edges],
+        table.thirds[edges], np.ascontiguousarray(coords), *_size(scene.camera),
     )  # fmt: skip
+    hidden = _hidden(visibility, eye, directions, depth, norm, table.faces[edges, 0] + first_prim)
     seen = np.flatnonzero(~hidden)
-    edges, coords, depth, m, step = edges[seen], coords[seen], depth[seen], m[seen], step[seen]
+    n = len(seen)
+    coords, depth, step, chosen = coords[seen], depth[seen], step[seen], chosen[seen]
     keys = np.concatenate([keys[seen], keys[seen]])  # per row of ``colour`` below
-    faces, thirds = table.faces[edges], table.thirds[edges]  # (n, K)
-    valid = faces >= 0
-    side = np.sign(np.einsum("nkj,nj->nk", vertices[np.maximum(thirds, 0)] - eye[None], m))
-    towards = step[:, :1] * right + step[:, 1:] * up  # the image step to the + side
-    a, b = a[seen, None], b[seen, None]
-    normals = np.cross(b - a, vertices[np.maximum(thirds, 0)] - a)  # (n, K, 3)
-    rate = _approach(normals, directions[seen, None], towards[:, None])  # (n, K)
     # Both sides at once: one shading pass for the sides with a face (shaded at the edge
     # point), one for the sides without (what a ray just beyond the edge sees).
-    faced, beyond = [], []  # (side rows into 2n, ...) for the two kinds
-    for sign in (1.0, -1.0):
-        on_side = valid & (side == sign)
-        best = np.argmax(np.where(on_side, sign * rate, -np.inf), axis=1)
-        has = on_side.any(axis=1)
-        offset = 0 if sign > 0 else len(seen)
-        rows = np.flatnonzero(has)
-        faced.append(
-            (rows + offset, coords[rows], faces[rows, best[rows]] + first_prim, depth[rows])
-        )
-        rows = np.flatnonzero(~has)
-        beyond.append((rows + offset, coords[rows] + sign * EPSILON * step[rows]))
-    colour = np.empty((2 * len(seen), 3))
-    rows, at, prims, depths = (np.concatenate(x) for x in zip(*faced, strict=True))
-    colour[rows] = radiance.seen(at, prims, depths, keys[rows])
-    rows, at = (np.concatenate(x) for x in zip(*beyond, strict=True))
-    colour[rows] = radiance.along(at, keys[rows])
+    face = np.concatenate([chosen[:, 0], chosen[:, 1]])  # rows: the + sides, then the -
+    both = np.concatenate([coords, coords])
+    faced, beyond = np.flatnonzero(face >= 0), np.flatnonzero(face < 0)
+    colour = np.empty((2 * n, 3))
+    colour[faced] = radiance.seen(
+        both[faced], face[faced] + first_prim, np.concatenate([depth, depth])[faced], keys[faced]
+    )
+    offset = EPSILON * np.concatenate([step, -step])
+    colour[beyond] = radiance.along(both[beyond] + offset[beyond], keys[beyond])
     out = np.zeros((len(hidden), 3))
-    jump = colour[: len(seen)] - colour[len(seen) :]
-    out[seen] = (weight[seen] / norm[seen])[:, None] * jump
+    out[seen] = (weight[seen] / norm[seen])[:, None] * (colour[:n] - colour[n:])
     return out
 
 
