@@ -342,7 +342,9 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     coords = rng.uniform(-1.0, 1.0, (k, 2))
     args = (eye, forward, right, up, vertices, i, j, faces, thirds, coords, 40, 30)
     plain, fast = edge_sides(*args), edge_sides_kernel(*args)
-    for name, a, b in zip(("directions", "depth", "norm", "step"), plain[:4], fast[:4]):
+    for name, a, b in zip(
+        ("directions", "depth", "norm", "step"), plain[:4], fast[:4], strict=True
+    ):
         np.testing.assert_allclose(b, a, rtol=1e-9, atol=1e-12 * np.abs(a).max(initial=1.0),
                                    err_msg=name)  # fmt: skip
     np.testing.assert_array_equal(fast[4], plain[4])
