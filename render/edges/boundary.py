@@ -363,9 +363,10 @@ def shade_seen(
     and mirror reflections included, by ``shade_camera_hits``)."""
     forward, right, up, eye = plain_camera(frame)
     hit = np.flatnonzero(prim_id >= 0)
-    directions = coords[hit, :1] * right + coords[hit, 1:] * up + forward
+    at = coords[hit]
+    directions = at @ np.stack([right, up]) + forward  # x right + y up + forward
     points = eye + depth[hit, None] * directions
-    primary = PrimaryHits(prim_id, hit, depth, points, coords[hit])
+    primary = PrimaryHits(prim_id, hit, depth, points, at)
     lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
     seen = replace(visibility, primary=primary, lit=lit)
     out = np.empty((len(coords), 3))
@@ -486,43 +487,76 @@ def _edge_points(eye, directions, a, b):
 # to the other along the segment the two share.
 
 
+@numba.njit(cache=True, error_model="numpy")
+def _dot(x, y):
+    """x . y of two 3-vectors, summed left to right."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _cross(x, y, out):
+    """out = x cross y, three 3-vectors."""
+    out[0] = x[1] * y[2] - x[2] * y[1]
+    out[1] = x[2] * y[0] - x[0] * y[2]
+    out[2] = x[0] * y[1] - x[1] * y[0]
+
+
 @numba.njit(cache=True)
 def _segment_of(t1, t2):
     """The segment (2, 3) where triangles t1 and t2 (3, 3) cross, and whether they do
-    (coplanar or touching triangles do not count)."""
+    (coplanar or touching triangles do not count). Scalar loops and no temporaries: the
+    same arithmetic as array expressions, compiled in a fraction of their time."""
     out = np.zeros((2, 3))
-    n1 = np.cross(t1[1] - t1[0], t1[2] - t1[0])
-    n2 = np.cross(t2[1] - t2[0], t2[2] - t2[0])
-    d2 = np.array([np.dot(n1, t2[k] - t1[0]) for k in range(3)])  # t2's corners vs plane 1
-    d1 = np.array([np.dot(n2, t1[k] - t2[0]) for k in range(3)])
-    if (d2.min() >= 0 or d2.max() <= 0) or (d1.min() >= 0 or d1.max() <= 0):
+    n1, n2, e1, e2 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    d1, d2 = np.empty(3), np.empty(3)
+    for c in range(3):
+        e1[c], e2[c] = t1[1, c] - t1[0, c], t1[2, c] - t1[0, c]
+    _cross(e1, e2, n1)
+    for c in range(3):
+        e1[c], e2[c] = t2[1, c] - t2[0, c], t2[2, c] - t2[0, c]
+    _cross(e1, e2, n2)
+    for k in range(3):  # each triangle's corners against the other's plane
+        for c in range(3):
+            e1[c], e2[c] = t2[k, c] - t1[0, c], t1[k, c] - t2[0, c]
+        d2[k], d1[k] = _dot(n1, e1), _dot(n2, e2)
+    if _one_side(d1) or _one_side(d2):
         return out, False
-    u = np.cross(n1, n2)
+    u = np.empty(3)
+    _cross(n1, n2, u)
     ends = np.zeros((2, 2))  # each triangle's interval along u
     points = np.zeros((2, 2, 3))
     for which in range(2):
-        tri, d = (t1, d1) if which == 0 else (t2, d2)
+        d = d1 if which == 0 else d2
+        tri = t1 if which == 0 else t2
         m = 0
         for k in range(3):
             a, b = k, (k + 1) % 3
             if (d[a] > 0) != (d[b] > 0) and m < 2:
-                p = tri[a] + (tri[b] - tri[a]) * (d[a] / (d[a] - d[b]))
-                points[which, m] = p
-                ends[which, m] = np.dot(p, u)
+                f = d[a] / (d[a] - d[b])
+                for c in range(3):
+                    points[which, m, c] = tri[a, c] + (tri[b, c] - tri[a, c]) * f
+                ends[which, m] = _dot(points[which, m], u)
                 m += 1
         if m < 2:
             return out, False
         if ends[which, 0] > ends[which, 1]:
             ends[which, 0], ends[which, 1] = ends[which, 1], ends[which, 0]
-            tmp = points[which, 0].copy()
-            points[which, 0] = points[which, 1]
-            points[which, 1] = tmp
+            for c in range(3):
+                points[which, 0, c], points[which, 1, c] = points[which, 1, c], points[which, 0, c]
     lo = 0 if ends[0, 0] >= ends[1, 0] else 1
     hi = 0 if ends[0, 1] <= ends[1, 1] else 1
     if ends[lo, 0] >= ends[hi, 1]:
         return out, False
-    out[0], out[1] = points[lo, 0], points[hi, 1]
+    for c in range(3):
+        out[0, c], out[1, c] = points[lo, 0, c], points[hi, 1, c]
     return out, True
+
+
+@numba.njit(cache=True)
+def _one_side(d):
+    """Whether the three signed distances d (3,) leave a plane's one side uncrossed."""
+    low, high = min(d[0], d[1], d[2]), max(d[0], d[1], d[2])
+    return low >= 0 or high <= 0
 
 
 @numba.njit(cache=True)
@@ -530,7 +564,8 @@ def _crossing_pairs(triangles, welded, order, low, high):
     """Every pair of triangles that cross, by a sweep along x over their bounding boxes
     (``order`` sorts them by low x); pairs sharing a (welded) corner are neighbours, not
     crossings. Returns the pairs (m, 2) and their segments (m, 2, 3)."""
-    pairs, segments = [], []
+    capacity, found = 64, 0
+    pairs, segments = np.empty((capacity, 2), np.int64), np.empty((capacity, 2, 3))
     n = len(order)
     for a in range(n):
         i = order[a]
@@ -553,15 +588,26 @@ def _crossing_pairs(triangles, welded, order, low, high):
             if shared:
                 continue
             seg, ok = _segment_of(triangles[i], triangles[j])
-            if ok:
-                pairs.append((min(i, j), max(i, j)))
-                segments.append(seg)
-    out_pairs = np.empty((len(pairs), 2), np.int64)
-    out_segments = np.empty((len(pairs), 2, 3))
-    for k in range(len(pairs)):
-        out_pairs[k, 0], out_pairs[k, 1] = pairs[k]
-        out_segments[k] = segments[k]
-    return out_pairs, out_segments
+            if not ok:
+                continue
+            if found == capacity:  # grow by doubling (arrays and scalar loops compile fast)
+                capacity *= 2
+                more_pairs, more_segments = (
+                    np.empty((capacity, 2), np.int64),
+                    np.empty((capacity, 2, 3)),
+                )
+                for r in range(found):
+                    more_pairs[r, 0], more_pairs[r, 1] = pairs[r, 0], pairs[r, 1]
+                    for e in range(2):
+                        for c in range(3):
+                            more_segments[r, e, c] = segments[r, e, c]
+                pairs, segments = more_pairs, more_segments
+            pairs[found, 0], pairs[found, 1] = min(i, j), max(i, j)
+            for e in range(2):
+                for c in range(3):
+                    segments[found, e, c] = seg[e, c]
+            found += 1
+    return pairs[:found].copy(), segments[:found].copy()
 
 
 def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
@@ -782,18 +828,6 @@ def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, w
         has = on_side.any(axis=1)
         chosen[has, column] = faces[has, best[has]]
     return directions, depth, norm, step, chosen
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _dot(x, y):
-    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _cross(x, y, out):
-    out[0] = x[1] * y[2] - x[2] * y[1]
-    out[1] = x[2] * y[0] - x[0] * y[2]
-    out[2] = x[0] * y[1] - x[1] * y[0]
 
 
 @numba.njit(cache=True, error_model="numpy")
