@@ -244,10 +244,10 @@ def _receiver_hits(scene, visibility, directions, eye, receiver):
     t = np.full(len(receiver), np.nan)
     normal = np.zeros((len(receiver), 3))
     tri = np.flatnonzero(receiver < n_tri)
-    corners = triangles[receiver[tri]]
-    normal[tri] = plane_normal(corners)
-    nd = np.einsum("ij,ij->i", normal[tri], directions[tri])
-    t[tri] = np.einsum("ij,ij->i", normal[tri], corners[:, 0] - eye) / np.where(nd != 0, nd, np.nan)
+    corners = np.take(triangles, receiver[tri], axis=0)  # np.take: faster than fancy indexing
+    normal[tri] = tri_normal = plane_normal(corners)
+    nd = np.einsum("ij,ij->i", tri_normal, np.take(directions, tri, axis=0))
+    t[tri] = np.einsum("ij,ij->i", tri_normal, corners[:, 0] - eye) / np.where(nd != 0, nd, np.nan)
     sph = np.flatnonzero(receiver >= n_tri)
     centre, r = centres[receiver[sph] - n_tri], radii[receiver[sph] - n_tri]
     oc = eye - centre
@@ -294,7 +294,7 @@ def _border_gradient(scene, visibility, frame, light, occluder, receiver, coords
     points P (k, 3) and their depths (k,), at image-plane points (k, 2).
     P(d) = C + t(d) d on a surface with normal n at P has dP/dd = t (I - d n^T / (n . d))."""
     forward, right, up, eye = frame
-    d = forward + coords[:, :1] * right + coords[:, 1:] * up
+    d = coords @ np.stack([right, up]) + forward  # x right + y up + forward
     t, points, normal = _receiver_hits(scene, visibility, d, eye, receiver)
     e, g = _border_function(scene, light, occluder, points)
     nd = np.einsum("ij,ij->i", normal, d)
@@ -389,16 +389,16 @@ def _border_factors(
         scene, visibility, frame, light, occluder, receiver, coords
     )
     norm, step = _pixel_gradient(grad, scene.camera.width, scene.camera.height)
-    d = forward + coords[:, :1] * right + coords[:, 1:] * up
     seen = np.isfinite(t) & (t > 0) & (norm > 0)
     rows = np.flatnonzero(seen)
+    at = np.take(coords, rows, axis=0)
     hidden = visibility.accelerator().occluded(
-        np.broadcast_to(eye, (len(rows), 3)), d[rows], t[rows] * (1.0 - 1e-6),
-        tmin=0.0, ignore_prim=receiver[rows],
+        np.broadcast_to(eye, (len(rows), 3)), at @ np.stack([right, up]) + forward,
+        t[rows] * (1.0 - 1e-6), tmin=0.0, ignore_prim=receiver[rows],
     )  # fmt: skip
-    rows = rows[~hidden]
-    shift = EPSILON * step[rows]
-    both = np.concatenate([coords[rows] + shift, coords[rows] - shift])
+    rows, at = rows[~hidden], at[~hidden]
+    shift = EPSILON * np.take(step, rows, axis=0)
+    both = np.concatenate([at + shift, at - shift])
     f = radiance.along(both, np.concatenate([rows, rows]))
     out = np.zeros((len(coords), 3))
     out[rows] = (weight[rows] / norm[rows])[:, None] * (f[: len(rows)] - f[len(rows) :])
