@@ -85,6 +85,10 @@ EPSILON = 1e-3
 CHORD = 0.5
 #: Points closer to the eye's plane than this fraction of the scene's size are clipped.
 NEAR = 1e-7
+#: Pieces' bounding boxes are widened by this many pixels before the pair test rejects
+#: pairs whose boxes are apart: far above the rounding of pixel coordinates (~1e-13), far
+#: below any piece's length that matters, so no pair the exact test accepts is rejected.
+BOX_SLACK = 1e-9
 
 
 @dataclass
@@ -249,25 +253,45 @@ def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
 
 
 @numba.njit(cache=True)
-def _split_group(p0, p1, segment, start, end, pixel, order, lo, hi, out, n, ts):
-    """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
-    touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
-    (``ts``: scratch, at least hi - lo long). Returns the new row count."""
-    for x in range(lo, hi):
+def _piece_geometry(p0, p1, segment, start, end, order):
+    """Per piece, in ``order``: its start a, its extent b (the piece is a -> a + b) and its
+    bounding box widened by BOX_SLACK: (k, 8) rows (ax, ay, bx, by, x0, x1, y0, y1), read
+    contiguously by ``_split_group``'s pair loop."""
+    out = np.empty((len(order), 8))
+    for x in range(len(order)):
         i = order[x]
         s = segment[i]
         dx, dy = p1[s, 0] - p0[s, 0], p1[s, 1] - p0[s, 1]
         ax, ay = p0[s, 0] + start[i] * dx, p0[s, 1] + start[i] * dy
-        bx, by = p0[s, 0] + end[i] * dx - ax, p0[s, 1] + end[i] * dy - ay  # the piece a -> a + b
+        bx, by = p0[s, 0] + end[i] * dx - ax, p0[s, 1] + end[i] * dy - ay
+        out[x, 0], out[x, 1], out[x, 2], out[x, 3] = ax, ay, bx, by
+        out[x, 4], out[x, 5] = min(ax, ax + bx) - BOX_SLACK, max(ax, ax + bx) + BOX_SLACK
+        out[x, 6], out[x, 7] = min(ay, ay + by) - BOX_SLACK, max(ay, ay + by) + BOX_SLACK
+    return out
+
+
+@numba.njit(cache=True)
+def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
+    """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
+    touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
+    (``geometry``: ``_piece_geometry``; ``ts``: scratch, at least hi - lo long). Returns the
+    new row count."""
+    for x in range(lo, hi):
+        i = order[x]
+        ax, ay, bx, by = geometry[x, 0], geometry[x, 1], geometry[x, 2], geometry[x, 3]
         m = 0
         for y in range(lo, hi):
-            j = order[y]
             if y == x:
                 continue
-            r = segment[j]
-            ex, ey = p1[r, 0] - p0[r, 0], p1[r, 1] - p0[r, 1]
-            cx, cy = p0[r, 0] + start[j] * ex, p0[r, 1] + start[j] * ey
-            fx, fy = p0[r, 0] + end[j] * ex - cx, p0[r, 1] + end[j] * ey - cy
+            # Pieces whose boxes are apart cannot meet (most pairs in a crowded pixel).
+            if (
+                geometry[y, 4] > geometry[x, 5]
+                or geometry[x, 4] > geometry[y, 5]
+                or geometry[y, 6] > geometry[x, 7]
+                or geometry[x, 6] > geometry[y, 7]
+            ):
+                continue
+            cx, cy, fx, fy = geometry[y, 0], geometry[y, 1], geometry[y, 2], geometry[y, 3]
             den = bx * fy - by * fx
             if den == 0.0:
                 continue
@@ -283,7 +307,7 @@ def _split_group(p0, p1, segment, start, end, pixel, order, lo, hi, out, n, ts):
         for k in range(m + 1):
             t = ts[k] if k < m else 1.0
             if t > previous:
-                out[n, 0] = s
+                out[n, 0] = segment[i]
                 out[n, 1] = start[i] + previous * (end[i] - start[i])
                 out[n, 2] = start[i] + t * (end[i] - start[i])
                 out[n, 3] = pixel[i]
@@ -296,6 +320,7 @@ def _split_group(p0, p1, segment, start, end, pixel, order, lo, hi, out, n, ts):
 def _split_all(p0, p1, segment, start, end, pixel, order, bounds, out):
     n = 0
     ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)
+    geometry = _piece_geometry(p0, p1, segment, start, end, order)
     for g in range(len(bounds) - 1):
         lo, hi = bounds[g], bounds[g + 1]
         if hi - lo == 1:  # nothing to cut: the common case
@@ -303,7 +328,7 @@ def _split_all(p0, p1, segment, start, end, pixel, order, bounds, out):
             out[n, 0], out[n, 1], out[n, 2], out[n, 3] = segment[i], start[i], end[i], pixel[i]
             n += 1
             continue
-        n = _split_group(p0, p1, segment, start, end, pixel, order, lo, hi, out, n, ts)
+        n = _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts)
     return n
 
 
