@@ -66,8 +66,13 @@ CHORD = 0.5
 SPACING = 2.0
 #: Where the receiver changes between two grazing rays, bisect until they are this close.
 GAP = 1e-3
-#: Bisection rounds at most (a silhouette parameter halved this often is ~1e-9 of it).
-ROUNDS = 30
+#: Bisection rounds at most. A chord is at most SPACING = 2 pixels long at the start, so
+#: after 20 halvings what is left of one whose receiver jumps (the border falls off one
+#: surface onto another farther away, and the two ends never come within GAP) is ~2e-6
+#: pixels of the border: dropping it changes the term by ~1e-6 of one pixel's share.
+#: (30 rounds changed gradients by < 1e-7 relative on the teapot and its ground, and cost
+#: 10 more rounds of grazing rays for the few dozen chords at such jumps.)
+ROUNDS = 20
 #: Grazing rays start this fraction of the way beyond the occluder (off its own surface).
 START = 1e-7
 
@@ -204,7 +209,8 @@ def _border_chords(scene, visibility, frame, size, light, curves):
     own = np.where(kind == 1, first_sphere_id(scene) + occluder[:, 1], -2)
 
     def sample(c, u):
-        s = _curve_points(kind[c], a[c], b[c], axis[c], u)
+        rows = (np.take(x, c, axis=0) for x in (kind, a, b, axis))  # faster than x[c]
+        s = _curve_points(*rows, u)
         return _graze(visibility, light, frame, size, camera, s, own[c])
 
     p0, x0 = sample(curve, u0)
