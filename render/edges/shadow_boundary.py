@@ -168,30 +168,45 @@ def _curve_points(kind, a, b, axis, u):
 # ---------------------------------------------------------------------------------------
 
 
-def _graze(visibility, light, frame, size, camera, s, own):
+def _graze(visibility, lights, light, frame, size, camera, s, own):
     """Where the light's rays grazing the points s (k, 3) go on to hit: receiver (k,)
     (-1: nothing, behind the camera, or ``own`` (k,), the sphere grazed, which a ray
-    touching it meets again only by rounding), its image position (k, 2) in pixels."""
-    if isinstance(light, PointLight):
-        origin = np.asarray(light.position.data, np.float64)
-        prim, t, _, _ = visibility.accelerator().closest_hit(
-            np.broadcast_to(origin, s.shape), s - origin, tmin=1.0 + START
+    touching it meets again only by rounding), its image position (k, 2) in pixels.
+    ``light`` (k,): each point's light, an index into ``lights``. The rays of all point
+    lights are traced in one call, those of all directional lights in another."""
+    prim, hit = np.full(len(s), -1), np.zeros_like(s)
+    point = np.array([isinstance(x, PointLight) for x in lights])
+    for rows in (np.flatnonzero(point[light]), np.flatnonzero(~point[light])):
+        if len(rows) == 0:
+            continue
+        at = np.take(s, rows, axis=0)
+        towards = np.stack(
+            [
+                np.asarray(
+                    (x.position if isinstance(x, PointLight) else x.direction).data, np.float64
+                )
+                for x in lights
+            ]
         )
-        hit = origin + np.where(prim >= 0, t, 0.0)[:, None] * (s - origin)
-    else:
-        w = np.asarray(light.direction.data, np.float64)
-        prim, t, _, _ = visibility.accelerator().closest_hit(
-            s, np.broadcast_to(w, s.shape), tmin=START * size / np.linalg.norm(w)
-        )
-        hit = s + np.where(prim >= 0, t, 0.0)[:, None] * w
+        where = np.take(towards, light[rows], axis=0)  # fmt: skip
+        if point[light[rows[0]]]:  # from the light through the point, on beyond it
+            p, t, _, _ = visibility.accelerator().closest_hit(where, at - where, tmin=1.0 + START)
+            hit[rows] = where + np.where(p >= 0, t, 0.0)[:, None] * (at - where)
+        else:  # from the point along the light's (unit) direction
+            where = where / np.linalg.norm(where, axis=1)[:, None]
+            p, t, _, _ = visibility.accelerator().closest_hit(at, where, tmin=START * size)
+            hit[rows] = at + np.where(p >= 0, t, 0.0)[:, None] * where
+        prim[rows] = p
     px, depth = project(np.where(prim[:, None] >= 0, hit, s), frame, camera.width, camera.height)
     prim = np.where((prim >= 0) & (depth > 1e-7 * size) & (prim != own), prim, -1)
     return prim, np.where(prim[:, None] >= 0, px, 0.0)
 
 
-def _border_chords(scene, visibility, frame, size, light, curves):
+def _border_chords(scene, visibility, frame, size, curves, light):
     """Chords of the border in the image: start, end (m, 2) pixels, and per chord its curve
-    (m,) and receiver (m,)."""
+    (m,) and receiver (m,). ``curves``: every light's (``_light_silhouettes``, joined),
+    ``light`` (c,) the light of each curve: all lights are followed together, one round of
+    grazing rays for all of them."""
     occluder, kind, a, b, axis = curves
     camera = scene.camera
     # Start: each curve at 2 points plus one per SPACING pixels of its image from the camera.
@@ -211,7 +226,7 @@ def _border_chords(scene, visibility, frame, size, light, curves):
     def sample(c, u):
         rows = (np.take(x, c, axis=0) for x in (kind, a, b, axis))  # faster than x[c]
         s = _curve_points(*rows, u)
-        return _graze(visibility, light, frame, size, camera, s, own[c])
+        return _graze(visibility, scene.lights, light[c], frame, size, camera, s, own[c])
 
     p0, x0 = sample(curve, u0)
     p1, x1 = sample(curve, u1)
@@ -345,15 +360,15 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
     edge_faces = _edge_faces(scene, topology) if visibility.shadows and scene.lights else None
     for j, light in enumerate(scene.lights if visibility.shadows else []):
         curves = _light_silhouettes(scene, topology, light, edge_faces)
-        if len(curves[0]) == 0:
-            continue
-        x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, light, curves)
-        parts.append((x0, x1, np.full(len(x0), j), curves[0][curve], receiver))
-    if not parts:
+        parts.append((*curves, np.full(len(curves[0]), j)))
+    if parts:
+        *curves, light = (np.concatenate(p) for p in zip(*parts, strict=True))
+    if not parts or len(light) == 0:
         empty = np.zeros(0, np.int64)
         return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
                             np.zeros((0, 3), np.int64), empty)  # fmt: skip
-    return BorderChords(*(np.concatenate(p) for p in zip(*parts, strict=True)))
+    x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, curves, light)
+    return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
 
 
 def shadow_points(
@@ -362,38 +377,36 @@ def shadow_points(
     """The quadrature points of the shadow borders with their constant factors
     (``BoundaryPoints``): ``pieces`` = (chord (m,), image-plane coords (m, 2), weight (m,),
     pixel (m,)) of the points on ``chords`` (``boundary_points``' extra curves);
-    ``radiance``: what the camera sees either side (``boundary.DirectRadiance``)."""
+    ``radiance``: what the camera sees either side (``boundary.DirectRadiance``). The
+    points are moved onto their light's border light by light, and the radiance on either
+    side is asked for all of them at once."""
     plain = plain_camera(frame)
     chord, coords, weight, pixel = pieces
-    parts = []
-    for j, light in enumerate(scene.lights):
-        rows = np.flatnonzero(chords.light[chord] == j)
+    light, occluder = chords.light[chord], np.take(chords.occluder, chord, axis=0)
+    receiver = chords.receiver[chord]
+    moved, t = coords.copy(), np.full(len(chord), np.nan)
+    grad = np.zeros((len(chord), 2))
+    for j, source in enumerate(scene.lights):
+        rows = np.flatnonzero(light == j)
         if len(rows) == 0:
             continue
-        occluder, receiver = chords.occluder[chord[rows]], chords.receiver[chord[rows]]
-        moved = _onto_border(scene, visibility, plain, light, occluder, receiver, coords[rows])
-        factor = _border_factors(
-            scene, visibility, plain, light, occluder, receiver, moved, weight[rows], radiance
-        )
-        keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
-        parts.append((moved[keep], pixel[rows][keep], factor[keep], np.full(len(keep), j),
-                      receiver[keep], occluder[keep]))  # fmt: skip
-    if not parts:
-        empty = np.zeros(0, np.int64)
-        return ShadowPoints(np.zeros((0, 2)), empty, np.zeros((0, 3)), empty, empty,
-                            np.zeros((0, 3), np.int64))  # fmt: skip
-    return ShadowPoints(*(np.concatenate(p) for p in zip(*parts, strict=True)))
+        part = (source, np.take(occluder, rows, axis=0), receiver[rows])
+        moved[rows] = _onto_border(scene, visibility, plain, *part, coords[rows])
+        _, grad[rows], _, t[rows] = _border_gradient(scene, visibility, plain, *part, moved[rows])
+    factor = _border_factors(scene, visibility, plain, receiver, moved, grad, t, weight, radiance)
+    keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
+    return ShadowPoints(np.take(moved, keep, axis=0), pixel[keep], np.take(factor, keep, axis=0),
+                        light[keep], receiver[keep], np.take(occluder, keep, axis=0))  # fmt: skip
 
 
 def _border_factors(
-    scene, visibility, frame, light, occluder, receiver, coords, weight, radiance
+    scene, visibility, frame, receiver, coords, grad, t, weight, radiance
 ) -> np.ndarray:
-    """(k, 3): w (f_+ - f_-) / |grad e| at k points on the border; zero where the camera
+    """(k, 3): w (f_+ - f_-) / |grad e| at k points ``coords`` (k, 2) on the borders, where
+    e has the image-plane gradient ``grad`` (k, 2) and the camera ray meets the
+    ``receiver`` (k,) at depth ``t`` (k,) (``_border_gradient``); zero where the camera
     does not see the receiver there or the border is degenerate."""
     forward, right, up, eye = frame
-    e, grad, points, t = _border_gradient(
-        scene, visibility, frame, light, occluder, receiver, coords
-    )
     norm, step = _pixel_gradient(grad, scene.camera.width, scene.camera.height)
     seen = np.isfinite(t) & (t > 0) & (norm > 0)
     rows = np.flatnonzero(seen)
