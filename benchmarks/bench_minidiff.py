@@ -65,10 +65,14 @@ def run(args) -> dict:
     """Every (allocator setting, dtype) pair measured in its own process, and the report."""
     size, repeats = args.size, args.repeats
     # One fresh process per pair: glibc adapts its mmap threshold as a process runs, so a
-    # measurement must not inherit another one's allocator state.
+    # measurement must not inherit another one's allocator state. (--quick, a smoke run
+    # whose times are not results, measures both dtypes in one process per setting.)
     result = {"size": size, "repeats": repeats}
+    groups = [DTYPES] if args.quick else [(dt,) for dt in DTYPES]
     for variant, keep_freed in (("default", False), ("keep_freed", True)):
-        result[variant] = {dt: run_worker(size, repeats, keep_freed, dt) for dt in DTYPES}
+        result[variant] = {}
+        for dtypes in groups:
+            result[variant] |= run_worker(size, repeats, keep_freed, dtypes)
     result["report"] = report(result, args.out)
     return result
 
@@ -227,12 +231,17 @@ def worker(size: int, repeats: int, dtype: str) -> dict:
     return r
 
 
-def run_worker(size: int, repeats: int, keep_freed: bool, dtype: str) -> dict:
-    """``worker`` in a fresh single-threaded-NumPy process, with glibc keeping freed memory
-    or at its defaults (the variables removed, should the parent have them)."""
+def workers(size: int, repeats: int, dtypes: list[str]) -> dict:
+    """``worker`` for each of ``dtypes`` in this process: {dtype: its measurements}."""
+    return {dt: worker(size, repeats, dt) for dt in dtypes}
+
+
+def run_worker(size: int, repeats: int, keep_freed: bool, dtypes) -> dict:
+    """``workers`` in a fresh single-threaded-NumPy process, with glibc keeping freed
+    memory or at its defaults (the variables removed, should the parent have them)."""
     allocator = timing.KEEP_FREED_MEMORY if keep_freed else dict.fromkeys(timing.KEEP_FREED_MEMORY)
     env = THREAD_ENV | allocator
-    return timing.in_fresh_process(worker, env, size=size, repeats=repeats, dtype=dtype)
+    return timing.in_fresh_process(workers, env, size=size, repeats=repeats, dtypes=list(dtypes))
 
 
 # --------------------------------------------------------------------------------------
