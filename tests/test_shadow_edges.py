@@ -214,3 +214,44 @@ def test_light_and_occluder_gradients_estimate_the_supersampled_derivative():
     assert rel_occluder[True] < 0.25, rel_occluder
     for rel in (rel_light, rel_dir, rel_occluder):
         assert rel[True] < 0.5 * rel[False]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_border_newton_kernel_computes_what_the_numpy_functions_do(seed, monkeypatch):
+    """The Numba pass over the shadow-border points (``border_newton``) against its plain
+    NumPy statement (``_onto_border``, then ``_border_gradient``), on the points a render
+    of a random scene finds: a pyramid and a sphere casting onto the ground (and the
+    sphere receiving), under a point and a directional light."""
+    from render.edges import shadow_boundary as sb
+    from render.edges import terms
+    from render.edges.boundary import plain_camera
+
+    seen = {}
+
+    def keep(scene, visibility, frame, chords, pieces, radiance):
+        seen["args"] = (scene, visibility, plain_camera(frame), chords, pieces)
+        return sb.shadow_points(scene, visibility, frame, chords, pieces, radiance)
+
+    monkeypatch.setattr(terms, "shadow_points", keep)
+    scene = random_scene(seed, lights=("point", "directional"))
+    scene.lights[0].position.requires_grad = True
+    render.render(scene, antialias="boundary").sum().backward()
+    scene, visibility, frame, chords, (chord, coords, _, _) = seen["args"]
+    kinds = set()
+    for j, light in enumerate(scene.lights):
+        rows = np.flatnonzero(chords.light[chord] == j)
+        occluder, receiver = chords.occluder[chord[rows]], chords.receiver[chord[rows]]
+        plain = sb._onto_border(scene, visibility, frame, light, occluder, receiver, coords[rows])
+        e, grad, points, t = sb._border_gradient(scene, visibility, frame, light, occluder,
+                                                 receiver, plain)  # fmt: skip
+        parts = sb._border_rows(scene, visibility, light, occluder, receiver)
+        kinds |= set(parts[1][0].tolist())
+        fast = sb.border_newton(*frame, *parts, np.ascontiguousarray(coords[rows]),
+                                sb.NEWTON_STEPS)  # fmt: skip
+        np.testing.assert_allclose(fast[0], plain, rtol=0, atol=1e-9)  # image plane, ~[-1, 1]
+        scale = np.abs(grad).max()
+        np.testing.assert_allclose(fast[1], e, rtol=0, atol=1e-9 * scale * np.abs(plain).max())
+        np.testing.assert_allclose(fast[2], grad, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_allclose(fast[3], points, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(fast[4], t, rtol=1e-9)
+    assert kinds == {0, 1}  # mesh edges and the sphere both cast borders

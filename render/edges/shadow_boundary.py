@@ -42,6 +42,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 import minidiff as md
@@ -75,6 +76,8 @@ GAP = 1e-3
 ROUNDS = 20
 #: Grazing rays start this fraction of the way beyond the occluder (off its own surface).
 START = 1e-7
+#: Newton steps that move a quadrature point from its chord onto the curved border.
+NEWTON_STEPS = 3
 
 
 @dataclass
@@ -333,6 +336,116 @@ def _onto_border(scene, visibility, frame, light, occluder, receiver, coords, st
     return coords
 
 
+def _border_rows(scene, visibility, light, occluder, receiver):
+    """Per point, what ``border_newton`` needs of its receiver and occluder (gathered once):
+    receiver (plane normal or sphere centre (k, 3), a point on the plane (k, 3), radius
+    (k,): -1 for a triangle) and occluder (kind (k,): 0 an edge, 1 a sphere; m (k, 3) and
+    base (k, 3) of an edge's e = m . (P - base); a sphere's centre (k, 3) and radius
+    (k,)), and the light (where (3,): position or direction; whether it is a point light)."""
+    triangles, centres, radii = visibility.primitives
+    n_tri = first_sphere_id(scene)
+    k = len(receiver)
+    normal, corner, radius = np.zeros((k, 3)), np.zeros((k, 3)), np.full(k, -1.0)
+    tri = np.flatnonzero(receiver < n_tri)
+    corners = np.take(triangles, receiver[tri], axis=0)
+    normal[tri], corner[tri] = plane_normal(corners), corners[:, 0]
+    sph = np.flatnonzero(receiver >= n_tri)
+    normal[sph], radius[sph] = centres[receiver[sph] - n_tri], radii[receiver[sph] - n_tri]
+    point = isinstance(light, PointLight)
+    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
+    kind, m, base, size = np.zeros(k, np.int64), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k)
+    for index, mesh in enumerate(scene.meshes):
+        rows = np.flatnonzero(occluder[:, 0] == index)
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        vi, vj = vertices[occluder[rows, 1]], vertices[occluder[rows, 2]]
+        m[rows] = np.cross(vi - where, vj - where) if point else np.cross(vj - vi, where)
+        base[rows] = where if point else vi
+    for index, sphere in enumerate(scene.spheres):
+        rows = np.flatnonzero((occluder[:, 0] < 0) & (occluder[:, 1] == index))
+        kind[rows], base[rows] = 1, np.asarray(sphere.center.data, np.float64)
+        size[rows] = float(sphere.radius.data)
+    return (normal, corner, radius), (kind, m, base, size), (where, point)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def border_newton(forward, right, up, eye, receivers, occluders, light, coords, steps):
+    """``_onto_border`` and then ``_border_gradient`` in one pass over the points (the same
+    arithmetic per point, in scalars): the points (k, 2) moved onto the border by ``steps``
+    Newton steps along grad e, and there e (k,), its image-plane gradient (k, 2), the
+    receiver points P (k, 3) and their depths t (k,). ``receivers``, ``occluders``,
+    ``light``: ``_border_rows``. tests/test_shadow_edges.py ties it to the NumPy functions."""
+    normal, corner, radius = receivers
+    kind, m, base, size = occluders
+    where, point = light
+    k = len(coords)
+    moved, grad2 = coords.copy(), np.zeros((k, 2))
+    e_out, points, depth = np.zeros(k), np.zeros((k, 3)), np.zeros(k)
+    d, p, n, g, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    ww = where[0] * where[0] + where[1] * where[1] + where[2] * where[2]
+    for i in range(k):
+        for step in range(steps + 1):
+            x, y = moved[i, 0], moved[i, 1]
+            for c in range(3):
+                d[c] = forward[c] + x * right[c] + y * up[c]
+            # _receiver_hits: the depth t, the point P and the normal n there
+            if radius[i] < 0:  # a triangle's plane
+                for c in range(3):
+                    n[c], u[c] = normal[i, c], corner[i, c] - eye[c]
+                nd = n[0] * d[0] + n[1] * d[1] + n[2] * d[2]
+                t = (n[0] * u[0] + n[1] * u[1] + n[2] * u[2]) / nd if nd != 0 else np.nan
+                for c in range(3):
+                    p[c] = eye[c] + t * d[c]
+            else:  # a sphere's near side
+                for c in range(3):
+                    u[c] = eye[c] - normal[i, c]  # oc
+                dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                bb = d[0] * u[0] + d[1] * u[1] + d[2] * u[2]
+                disc = bb * bb - dd * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2] - radius[i] ** 2)
+                t = (-bb - math.sqrt(max(disc, 0.0)) if disc >= 0 else np.nan) / dd
+                for c in range(3):
+                    p[c] = eye[c] + t * d[c]
+                    n[c] = p[c] - normal[i, c]
+            # _border_function: e and de/dP
+            if kind[i] == 0:
+                e = 0.0
+                for c in range(3):
+                    e += m[i, c] * (p[c] - base[i, c])
+                    g[c] = m[i, c]
+            elif point:
+                for c in range(3):
+                    n_oc = where[c] - base[i, c]
+                    u[c] = p[c] - where[c]
+                    g[c] = n_oc  # oc, for now
+                kappa = g[0] * g[0] + g[1] * g[1] + g[2] * g[2] - size[i] ** 2
+                ou = u[0] * g[0] + u[1] * g[1] + u[2] * g[2]
+                e = ou * ou - (u[0] * u[0] + u[1] * u[1] + u[2] * u[2]) * kappa
+                for c in range(3):
+                    g[c] = 2.0 * ou * g[c] - 2.0 * kappa * u[c]
+            else:
+                for c in range(3):
+                    u[c] = p[c] - base[i, c]  # oc
+                ow = u[0] * where[0] + u[1] * where[1] + u[2] * where[2]
+                e = ow * ow - ww * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2] - size[i] ** 2)
+                for c in range(3):
+                    g[c] = 2.0 * ow * where[c] - 2.0 * ww * u[c]
+            # the image-plane gradient: dP/dd = t (I - d n^T / (n . d))
+            nd = n[0] * d[0] + n[1] * d[1] + n[2] * d[2]
+            gd_scale = (g[0] * d[0] + g[1] * d[1] + g[2] * d[2]) / nd
+            for c in range(3):
+                u[c] = t * (g[c] - gd_scale * n[c])
+            gx = u[0] * right[0] + u[1] * right[1] + u[2] * right[2]
+            gy = u[0] * up[0] + u[1] * up[1] + u[2] * up[2]
+            if step == steps:
+                e_out[i], grad2[i, 0], grad2[i, 1], depth[i] = e, gx, gy, t
+                for c in range(3):
+                    points[i, c] = p[c]
+                break
+            norm2 = gx * gx + gy * gy
+            shift = e / norm2 if norm2 > 0 else 0.0
+            moved[i, 0], moved[i, 1] = x - shift * gx, y - shift * gy
+    return moved, e_out, grad2, points, depth
+
+
 # ---------------------------------------------------------------------------------------
 # The points and the term
 # ---------------------------------------------------------------------------------------
@@ -390,9 +503,11 @@ def shadow_points(
         rows = np.flatnonzero(light == j)
         if len(rows) == 0:
             continue
-        part = (source, np.take(occluder, rows, axis=0), receiver[rows])
-        moved[rows] = _onto_border(scene, visibility, plain, *part, coords[rows])
-        _, grad[rows], _, t[rows] = _border_gradient(scene, visibility, plain, *part, moved[rows])
+        rows_of = _border_rows(scene, visibility, source, np.take(occluder, rows, axis=0),
+                               receiver[rows])  # fmt: skip
+        moved[rows], _, grad[rows], _, t[rows] = border_newton(
+            *plain, *rows_of, np.ascontiguousarray(coords[rows]), NEWTON_STEPS
+        )
     factor = _border_factors(scene, visibility, plain, receiver, moved, grad, t, weight, radiance)
     keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
     return ShadowPoints(np.take(moved, keep, axis=0), pixel[keep], np.take(factor, keep, axis=0),
