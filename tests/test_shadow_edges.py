@@ -255,3 +255,46 @@ def test_border_newton_kernel_computes_what_the_numpy_functions_do(seed, monkeyp
         np.testing.assert_allclose(fast[3], points, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(fast[4], t, rtol=1e-9)
     assert kinds == {0, 1}  # mesh edges and the sphere both cast borders
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_bisect_chords_kernel_finds_the_chords_the_numpy_bisection_finds(seed, monkeypatch):
+    """``bisect_chords`` (depth first, one grazing ray at a time, in Numba) against its
+    plain statement ``_border_chords`` (round by round, in NumPy): the same chords — curve,
+    receiver and both ends — in another order, on a random scene's pyramid and sphere
+    under a point and a directional light."""
+    from render.edges import shadow_boundary as sb
+    from render.edges import terms
+    from render.edges.boundary import plain_camera
+
+    seen = {}
+    follow = sb.border_chords
+
+    def keep(scene, visibility, frame, topology):
+        seen["args"] = (scene, visibility, frame, topology)
+        return follow(scene, visibility, frame, topology)
+
+    monkeypatch.setattr(terms, "border_chords", keep)
+    scene = random_scene(seed, lights=("point", "directional"))
+    scene.lights[0].position.requires_grad = True
+    render.render(scene, antialias="boundary")
+    scene, visibility, frame, topology = seen["args"]
+    fast = follow(scene, visibility, frame, topology)
+    edge_faces = sb._edge_faces(scene, topology)
+    parts = [(*sb._light_silhouettes(scene, topology, light, edge_faces), j)
+             for j, light in enumerate(scene.lights)]  # fmt: skip
+    curves = [np.concatenate([p[k] for p in parts]) for k in range(5)]
+    light = np.concatenate([np.full(len(p[0]), p[5]) for p in parts])
+    x0, x1, curve, receiver = sb._border_chords(
+        scene, visibility, plain_camera(frame), visibility.size, curves, light
+    )
+
+    def rows(x0, x1, light, occluder, receiver):
+        table = np.column_stack([light, occluder, receiver, x0, x1])
+        return table[np.lexsort(table.T[::-1])]
+
+    plain = rows(x0, x1, light[curve], curves[0][curve], receiver)
+    ours = rows(fast.start, fast.end, fast.light, fast.occluder, fast.receiver)
+    assert len(plain) > 50 and set(fast.light) == {0, 1}
+    np.testing.assert_array_equal(ours[:, :5], plain[:, :5])  # light, occluder, receiver
+    np.testing.assert_allclose(ours[:, 5:], plain[:, 5:], rtol=0, atol=1e-9)  # pixels

@@ -57,6 +57,7 @@ from render.scene.camera import ray_directions
 from render.scene.scene import PointLight, Scene
 from render.shade.hits import working_dtype
 from render.shade.surface import in_order
+from render.trace.intersect import closest_hit_ray, make_ray
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
 
@@ -205,14 +206,12 @@ def _graze(visibility, lights, light, frame, size, camera, s, own):
     return prim, np.where(prim[:, None] >= 0, px, 0.0)
 
 
-def _border_chords(scene, visibility, frame, size, curves, light):
-    """Chords of the border in the image: start, end (m, 2) pixels, and per chord its curve
-    (m,) and receiver (m,). ``curves``: every light's (``_light_silhouettes``, joined),
-    ``light`` (c,) the light of each curve: all lights are followed together, one round of
-    grazing rays for all of them."""
+def _starting_chords(scene, frame, curves):
+    """Where the grazing rays start: each curve at 2 points plus one per SPACING pixels of
+    its image from the camera, as chords (curve (n,), u0 (n,), u1 (n,)); and per curve
+    the sphere a ray grazing it must not count as its receiver (``own`` (c,), -2: none)."""
     occluder, kind, a, b, axis = curves
     camera = scene.camera
-    # Start: each curve at 2 points plus one per SPACING pixels of its image from the camera.
     ends = np.concatenate([a, np.where(kind[:, None] == 1, a + b, b)])
     px, depth = project(ends, frame, camera.width, camera.height)
     ok = (depth[: len(a)] > 0) & (depth[len(a) :] > 0)
@@ -222,9 +221,19 @@ def _border_chords(scene, visibility, frame, size, curves, light):
     curve = np.repeat(np.arange(len(a)), count)
     first = np.repeat(np.cumsum(count) - count, count)
     u0 = (np.arange(len(curve)) - first) / count[curve]
-    u1 = u0 + 1.0 / count[curve]
-
     own = np.where(kind == 1, first_sphere_id(scene) + occluder[:, 1], -2)
+    return (curve, u0, u0 + 1.0 / count[curve]), own
+
+
+def _border_chords(scene, visibility, frame, size, curves, light):
+    """Chords of the border in the image: start, end (m, 2) pixels, and per chord its curve
+    (m,) and receiver (m,). ``curves``: every light's (``_light_silhouettes``, joined),
+    ``light`` (c,) the light of each curve: all lights are followed together, one round of
+    grazing rays for all of them. (The plain statement of ``bisect_chords``, which the
+    renderer runs.)"""
+    occluder, kind, a, b, axis = curves
+    camera = scene.camera
+    (curve, u0, u1), own = _starting_chords(scene, frame, curves)
 
     def sample(c, u):
         rows = (np.take(x, c, axis=0) for x in (kind, a, b, axis))  # faster than x[c]
@@ -253,6 +262,138 @@ def _border_chords(scene, visibility, frame, size, curves, light):
         p0, p1 = np.concatenate([p0[split], pm]), np.concatenate([pm, p1[split]])
         x0, x1 = np.concatenate([x0[split], xm]), np.concatenate([xm, x1[split]])
     return tuple(np.concatenate(part) for part in zip(*chords, strict=True))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _curve_point(kind, a, b, axis, u, out):
+    """``_curve_points`` of one curve at parameter u, into out (3,)."""
+    if kind == 1:
+        phi = 2.0 * math.pi * u
+        cos, sin = math.cos(phi), math.sin(phi)
+        for c in range(3):
+            out[c] = a[c] + cos * b[c] + sin * axis[c]
+    else:
+        for c in range(3):
+            out[c] = a[c] + u * (b[c] - a[c])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, stack_t, px):
+    """``_graze`` of one point s (3,) of a curve of light ``where`` (a position if
+    ``point``, else a unit direction): the receiver (-1: none) and its pixel position,
+    written to px (2,)."""
+    forward, right, up, eye = frame
+    hit = np.empty(3)
+    if point:
+        d = np.empty(3)
+        for c in range(3):
+            d[c] = s[c] - where[c]
+        prim, t, _, _ = closest_hit_ray(
+            bvh, make_ray(where, d, 1.0 + START, np.inf), stack, stack_t
+        )
+        for c in range(3):
+            hit[c] = where[c] + (t if prim >= 0 else 0.0) * d[c]
+    else:
+        ray = make_ray(s, where, START * size, np.inf)
+        prim, t, _, _ = closest_hit_ray(bvh, ray, stack, stack_t)
+        for c in range(3):
+            hit[c] = s[c] + (t if prim >= 0 else 0.0) * where[c]
+    if prim < 0:
+        px[0] = px[1] = 0.0
+        return -1
+    rel = hit - eye
+    depth = rel[0] * forward[0] + rel[1] * forward[1] + rel[2] * forward[2]
+    rr = right[0] * right[0] + right[1] * right[1] + right[2] * right[2]
+    uu = up[0] * up[0] + up[1] * up[1] + up[2] * up[2]
+    x = (rel[0] * right[0] + rel[1] * right[1] + rel[2] * right[2]) / (depth * rr)
+    y = (rel[0] * up[0] + rel[1] * up[1] + rel[2] * up[2]) / (depth * uu)
+    if not (depth > 1e-7 * size) or prim == own:
+        px[0] = px[1] = 0.0
+        return -1
+    px[0], px[1] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
+    return prim
+
+
+@numba.njit(cache=True, error_model="numpy")
+def bisect_chords(bvh, curves, where, point, own, start, frame, width, height, size, first_sphere):
+    """``_border_chords``' bisection in one pass: each starting chord (``start`` = curve
+    (n,), u0 (n,), u1 (n,)) followed depth first, the same tests and the same grazing rays
+    (traced one by one in ``bvh``). ``curves`` = (kind, a, b, axis) per curve; ``where``
+    (c, 3), ``point`` (c,) and ``own`` (c,) per curve. Returns the chords (x0 (m, 2), x1
+    (m, 2), curve (m,), receiver (m,)): the same set as ``_border_chords``, in another
+    order. tests/test_shadow_edges.py ties the two."""
+    kind, a, b, axis = curves
+    curve0, u0s, u1s = start
+    stack = np.empty(bvh.stack_size, np.int64)
+    stack_t = np.empty(bvh.stack_size)
+    capacity, m = 64, 0
+    x0s, x1s = np.empty((capacity, 2)), np.empty((capacity, 2))
+    curve_out, receiver_out = np.empty(capacity, np.int64), np.empty(capacity, np.int64)
+    # A pending interval: (u0, u1, receiver and pixel at either end, its round).
+    todo_u = np.empty((2 * ROUNDS + 4, 2))
+    todo_p = np.empty((2 * ROUNDS + 4, 2), np.int64)
+    todo_x = np.empty((2 * ROUNDS + 4, 4))
+    todo_r = np.empty(2 * ROUNDS + 4, np.int64)
+    s, px = np.empty(3), np.empty(2)
+    for k in range(len(curve0)):
+        cv = curve0[k]
+        curved_curve = kind[cv] == 1
+        _curve_point(kind[cv], a[cv], b[cv], axis[cv], u0s[k], s)
+        p_a = _graze_one(
+            bvh, where[cv], point[cv], s, own[cv], frame, width, height, size, stack, stack_t, px
+        )
+        xa0, xa1 = px[0], px[1]
+        _curve_point(kind[cv], a[cv], b[cv], axis[cv], u1s[k], s)
+        p_b = _graze_one(
+            bvh, where[cv], point[cv], s, own[cv], frame, width, height, size, stack, stack_t, px
+        )
+        todo_u[0, 0], todo_u[0, 1] = u0s[k], u1s[k]
+        todo_p[0, 0], todo_p[0, 1] = p_a, p_b
+        todo_x[0, 0], todo_x[0, 1], todo_x[0, 2], todo_x[0, 3] = xa0, xa1, px[0], px[1]
+        todo_r[0] = 0
+        n = 1
+        while n > 0:
+            n -= 1
+            lo, hi = todo_u[n, 0], todo_u[n, 1]
+            p0, p1 = todo_p[n, 0], todo_p[n, 1]
+            x00, x01, x10, x11 = todo_x[n, 0], todo_x[n, 1], todo_x[n, 2], todo_x[n, 3]
+            rounds = todo_r[n]
+            both = p0 >= 0 and p1 >= 0
+            length = math.sqrt((x10 - x00) ** 2 + (x11 - x01) ** 2) if both else 0.0
+            curved = curved_curve or p0 >= first_sphere
+            long = p0 == p1 and both and length > (CHORD if curved else SPACING)
+            change = p0 != p1 and not (both and length < GAP)
+            if (long or change) and rounds < ROUNDS:
+                mid = 0.5 * (lo + hi)
+                _curve_point(kind[cv], a[cv], b[cv], axis[cv], mid, s)
+                pm = _graze_one(bvh, where[cv], point[cv], s, own[cv], frame, width, height,
+                                size, stack, stack_t, px)  # fmt: skip
+                # the upper half first on the stack, so the lower one is taken next
+                todo_u[n, 0], todo_u[n, 1] = mid, hi
+                todo_p[n, 0], todo_p[n, 1] = pm, p1
+                todo_x[n, 0], todo_x[n, 1], todo_x[n, 2], todo_x[n, 3] = px[0], px[1], x10, x11
+                todo_r[n] = rounds + 1
+                todo_u[n + 1, 0], todo_u[n + 1, 1] = lo, mid
+                todo_p[n + 1, 0], todo_p[n + 1, 1] = p0, pm
+                todo_x[n + 1, 0], todo_x[n + 1, 1] = x00, x01
+                todo_x[n + 1, 2], todo_x[n + 1, 3] = px[0], px[1]
+                todo_r[n + 1] = rounds + 1
+                n += 2
+                continue
+            if p0 == p1 and p0 >= 0:
+                if m == capacity:  # grow by doubling, in scalar loops
+                    capacity *= 2
+                    more_x0, more_x1 = np.empty((capacity, 2)), np.empty((capacity, 2))
+                    more_c, more_r = np.empty(capacity, np.int64), np.empty(capacity, np.int64)
+                    for r in range(m):
+                        more_x0[r, 0], more_x0[r, 1] = x0s[r, 0], x0s[r, 1]
+                        more_x1[r, 0], more_x1[r, 1] = x1s[r, 0], x1s[r, 1]
+                        more_c[r], more_r[r] = curve_out[r], receiver_out[r]
+                    x0s, x1s, curve_out, receiver_out = more_x0, more_x1, more_c, more_r
+                x0s[m, 0], x0s[m, 1], x1s[m, 0], x1s[m, 1] = x00, x01, x10, x11
+                curve_out[m], receiver_out[m] = cv, p0
+                m += 1
+    return x0s[:m].copy(), x1s[:m].copy(), curve_out[:m].copy(), receiver_out[:m].copy()
 
 
 # ---------------------------------------------------------------------------------------
@@ -480,8 +621,23 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
         empty = np.zeros(0, np.int64)
         return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
                             np.zeros((0, 3), np.int64), empty)  # fmt: skip
-    x0, x1, curve, receiver = _border_chords(scene, visibility, plain, size, curves, light)
+    start, own = _starting_chords(scene, plain, curves)
+    towards = np.array([_towards(x) for x in scene.lights]).reshape(-1, 3)
+    point = np.array([isinstance(x, PointLight) for x in scene.lights])
+    camera = scene.camera
+    x0, x1, curve, receiver = bisect_chords(
+        visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
+        own, start, plain, camera.width, camera.height, size, first_sphere_id(scene),
+    )  # fmt: skip
     return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
+
+
+def _towards(light) -> np.ndarray:
+    """(3,): a point light's position, or a directional light's unit direction."""
+    if isinstance(light, PointLight):
+        return np.asarray(light.position.data, np.float64)
+    w = np.asarray(light.direction.data, np.float64)
+    return w / np.linalg.norm(w)
 
 
 def shadow_points(

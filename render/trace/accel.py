@@ -271,6 +271,11 @@ class Accelerator:
 
     # ----------------------------------------------------------------------------------------
 
+    def flat_tree(self) -> FlatBVH:
+        """The flat tree for Numba code that traces rays itself, one at a time
+        (``intersect.closest_hit_ray``): no checks, the caller's rays must be finite."""
+        return self._tree()
+
     def _tree(self) -> FlatBVH:
         """The flat tree as the traversal kernels take it (one argument)."""
         return FlatBVH(
