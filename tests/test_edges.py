@@ -17,6 +17,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from render_helpers import masked_gradient_check, random_scene
 
 import minidiff as md
@@ -268,3 +270,17 @@ def test_topology_is_reused_while_the_welding_holds():
         for name in ("edge_group", "neighbour", "neighbour_edge", "shared_ids", "welded"):
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)
         assert got.n_groups == want.n_groups
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    n=st.integers(0, 300), k=st.integers(1, 4), values=st.integers(1, 6), seed=st.integers(0, 99)
+)
+def test_row_ids_number_rows_as_numpy_unique_does(n, k, values, seed):
+    """``topology.row_ids`` (a lexsort) gives each row the index ``np.unique(axis=0)``
+    gives it: the welded vertex and edge ids of the boundary term rest on it."""
+    from render.trace.topology import row_ids
+
+    rows = np.random.default_rng(seed).integers(0, values, (n, k)).astype(float)
+    expected = np.unique(rows, axis=0, return_inverse=True)[1].reshape(-1)
+    np.testing.assert_array_equal(row_ids(rows), expected)

@@ -103,8 +103,22 @@ def welded_ids(vertices: np.ndarray) -> np.ndarray:
     # the mesh is or how large it is.
     low = vertices.min(axis=0)
     keys = np.round((vertices - low) / (_scale(vertices) * _WELD_TOLERANCE))
-    _, welded = np.unique(keys, axis=0, return_inverse=True)
-    return welded.reshape(-1).astype(np.int64)
+    return row_ids(keys)
+
+
+def row_ids(rows: np.ndarray) -> np.ndarray:
+    """(n,) int64: the rank of each row of ``rows`` (n, k) among the distinct rows in
+    lexicographic order, first column first: ``np.unique(rows, axis=0,
+    return_inverse=True)[1]``, by one ``np.lexsort`` (NumPy's unique along an axis sorts a
+    structured view of the rows, ~10 times slower on a mesh's vertices)."""
+    if len(rows) == 0:
+        return np.zeros(0, np.int64)
+    order = np.lexsort(rows.T[::-1])  # the last key given is the primary one
+    ordered = rows[order]
+    new = np.r_[True, np.any(ordered[1:] != ordered[:-1], axis=1)]
+    ids = np.empty(len(rows), np.int64)
+    ids[order] = np.cumsum(new) - 1
+    return ids
 
 
 def _scale(vertices: np.ndarray) -> float:
@@ -139,8 +153,7 @@ def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -
     """``MeshEdges`` from the faces (F, 3) and their ``welding``."""
     a, b = ids, np.roll(ids, -1, axis=1)  # edge k joins corner k and corner k + 1
     pairs = np.stack([np.minimum(a, b), np.maximum(a, b)], axis=-1).reshape(-1, 2)
-    _, group = np.unique(pairs, axis=0, return_inverse=True)
-    group = group.reshape(-1, 3).astype(np.int64)
+    group = row_ids(pairs).reshape(-1, 3)
     group[degenerate] = -1
     n_groups = int(group.max()) + 1 if group.size else 0
 
