@@ -241,10 +241,9 @@ def test_border_newton_kernel_computes_what_the_numpy_functions_do(seed, monkeyp
     for j, light in enumerate(scene.lights):
         rows = np.flatnonzero(chords.light[chord] == j)
         occluder, receiver = chords.occluder[chord[rows]], chords.receiver[chord[rows]]
-        plain = sb._onto_border(scene, visibility, frame, light, occluder, receiver, coords[rows])
-        e, grad, points, t = sb._border_gradient(scene, visibility, frame, light, occluder,
-                                                 receiver, plain)  # fmt: skip
         parts = sb._border_rows(scene, visibility, light, occluder, receiver)
+        plain = sb._onto_border(frame, *parts, coords[rows])
+        e, grad, points, t = sb._border_gradient(frame, *parts, plain)
         kinds |= set(parts[1][0].tolist())
         fast = sb.border_newton(*frame, *parts, np.ascontiguousarray(coords[rows]),
                                 sb.NEWTON_STEPS)  # fmt: skip

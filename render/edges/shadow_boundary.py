@@ -180,24 +180,16 @@ def _graze(visibility, lights, light, frame, size, camera, s, own):
     lights are traced in one call, those of all directional lights in another."""
     prim, hit = np.full(len(s), -1), np.zeros_like(s)
     point = np.array([isinstance(x, PointLight) for x in lights])
+    towards = np.array([_towards(x) for x in lights])
     for rows in (np.flatnonzero(point[light]), np.flatnonzero(~point[light])):
         if len(rows) == 0:
             continue
         at = np.take(s, rows, axis=0)
-        towards = np.stack(
-            [
-                np.asarray(
-                    (x.position if isinstance(x, PointLight) else x.direction).data, np.float64
-                )
-                for x in lights
-            ]
-        )
-        where = np.take(towards, light[rows], axis=0)  # fmt: skip
+        where = np.take(towards, light[rows], axis=0)
         if point[light[rows[0]]]:  # from the light through the point, on beyond it
             p, t, _, _ = visibility.accelerator().closest_hit(where, at - where, tmin=1.0 + START)
             hit[rows] = where + np.where(p >= 0, t, 0.0)[:, None] * (at - where)
         else:  # from the point along the light's (unit) direction
-            where = where / np.linalg.norm(where, axis=1)[:, None]
             p, t, _, _ = visibility.accelerator().closest_hit(at, where, tmin=START * size)
             hit[rows] = at + np.where(p >= 0, t, 0.0)[:, None] * where
         prim[rows] = p
@@ -401,20 +393,18 @@ def bisect_chords(bvh, curves, where, point, own, start, frame, width, height, s
 # ---------------------------------------------------------------------------------------
 
 
-def _receiver_hits(scene, visibility, directions, eye, receiver):
+def _receiver_hits(receivers, directions, eye):
     """Depth t (k,), point P (k, 3) and surface normal n (k, 3) where rays eye + t d meet
-    the planes of triangle receivers, or the near side of sphere receivers."""
-    triangles, centres, radii = visibility.primitives
-    n_tri = first_sphere_id(scene)
-    t = np.full(len(receiver), np.nan)
-    normal = np.zeros((len(receiver), 3))
-    tri = np.flatnonzero(receiver < n_tri)
-    corners = np.take(triangles, receiver[tri], axis=0)  # np.take: faster than fancy indexing
-    normal[tri] = tri_normal = plane_normal(corners)
-    nd = np.einsum("ij,ij->i", tri_normal, np.take(directions, tri, axis=0))
-    t[tri] = np.einsum("ij,ij->i", tri_normal, corners[:, 0] - eye) / np.where(nd != 0, nd, np.nan)
-    sph = np.flatnonzero(receiver >= n_tri)
-    centre, r = centres[receiver[sph] - n_tri], radii[receiver[sph] - n_tri]
+    the planes of triangle receivers, or the near side of sphere receivers (``receivers``:
+    ``_border_rows``)."""
+    normal_or_centre, corner, radius = receivers
+    t = np.full(len(radius), np.nan)
+    normal = normal_or_centre.copy()
+    tri, sph = np.flatnonzero(radius < 0), np.flatnonzero(radius >= 0)
+    n, d = normal[tri], directions[tri]
+    nd = np.einsum("ij,ij->i", n, d)
+    t[tri] = np.einsum("ij,ij->i", n, corner[tri] - eye) / np.where(nd != 0, nd, np.nan)
+    centre, r = normal_or_centre[sph], radius[sph]
     oc = eye - centre
     d = directions[sph]
     dd, bb = np.einsum("ij,ij->i", d, d), np.einsum("ij,ij->i", d, oc)
@@ -425,52 +415,47 @@ def _receiver_hits(scene, visibility, directions, eye, receiver):
     return t, points, normal
 
 
-def _border_function(scene, light, occluder, points):
-    """e (k,) and de/dP (k, 3) of the border (module docstring) at receiver points (k, 3)."""
-    point = isinstance(light, PointLight)
-    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
-    e, grad = np.zeros(len(points)), np.zeros((len(points), 3))
-    for k, mesh in enumerate(scene.meshes):
-        rows = np.flatnonzero(occluder[:, 0] == k)
-        vertices = np.asarray(mesh.vertices.data, np.float64)
-        vi, vj = vertices[occluder[rows, 1]], vertices[occluder[rows, 2]]
-        m = np.cross(vi - where, vj - where) if point else np.cross(vj - vi, where)
-        e[rows] = np.einsum("ij,ij->i", m, points[rows] - (where if point else vi))
-        grad[rows] = m
-    for index, sphere in enumerate(scene.spheres):
-        rows = np.flatnonzero((occluder[:, 0] < 0) & (occluder[:, 1] == index))
-        c, r = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
-        if point:
-            oc, u = where - c, points[rows] - where
-            kappa = float(oc @ oc) - r * r
-            ou = u @ oc
-            e[rows] = ou * ou - np.einsum("ij,ij->i", u, u) * kappa
-            grad[rows] = 2.0 * ou[:, None] * oc - 2.0 * kappa * u
-        else:
-            oc = points[rows] - c
-            ow = oc @ where
-            e[rows] = ow * ow - float(where @ where) * (np.einsum("ij,ij->i", oc, oc) - r * r)
-            grad[rows] = 2.0 * ow[:, None] * where - 2.0 * float(where @ where) * oc
+def _border_function(occluders, light, points):
+    """e (k,) and de/dP (k, 3) of the border (module docstring) at receiver points (k, 3)
+    (``occluders``, ``light``: ``_border_rows``)."""
+    kind, m, base, size = occluders
+    where, point = light
+    e, grad = np.einsum("ij,ij->i", m, points - base), m.copy()  # the edges' rows
+    rows = np.flatnonzero(kind == 1)  # the spheres'
+    c, r = base[rows], size[rows]
+    if point:
+        oc, u = where - c, points[rows] - where
+        kappa = np.einsum("ij,ij->i", oc, oc) - r * r
+        ou = np.einsum("ij,ij->i", u, oc)
+        e[rows] = ou * ou - np.einsum("ij,ij->i", u, u) * kappa
+        grad[rows] = 2.0 * ou[:, None] * oc - 2.0 * kappa[:, None] * u
+    else:
+        oc = points[rows] - c
+        ow = oc @ where
+        e[rows] = ow * ow - float(where @ where) * (np.einsum("ij,ij->i", oc, oc) - r * r)
+        grad[rows] = 2.0 * ow[:, None] * where - 2.0 * float(where @ where) * oc
     return e, grad
 
 
-def _border_gradient(scene, visibility, frame, light, occluder, receiver, coords):
+def _border_gradient(frame, receivers, occluders, light, coords):
     """e (k,), its gradient with respect to image-plane (x, y) (k, 2), and the receiver
-    points P (k, 3) and their depths (k,), at image-plane points (k, 2).
+    points P (k, 3) and their depths (k,), at image-plane points (k, 2) (``receivers``,
+    ``occluders``, ``light``: ``_border_rows``).
     P(d) = C + t(d) d on a surface with normal n at P has dP/dd = t (I - d n^T / (n . d))."""
     forward, right, up, eye = frame
     d = coords @ np.stack([right, up]) + forward  # x right + y up + forward
-    t, points, normal = _receiver_hits(scene, visibility, d, eye, receiver)
-    e, g = _border_function(scene, light, occluder, points)
+    t, points, normal = _receiver_hits(receivers, d, eye)
+    e, g = _border_function(occluders, light, points)
     nd = np.einsum("ij,ij->i", normal, d)
     gd = t[:, None] * (g - (np.einsum("ij,ij->i", g, d) / nd)[:, None] * normal)
     return e, np.stack([gd @ right, gd @ up], axis=1), points, t
 
 
-def _onto_border(scene, visibility, frame, light, occluder, receiver, coords, steps=3):
-    """Image-plane points (k, 2) moved onto the border by Newton steps along grad e."""
+def _onto_border(frame, receivers, occluders, light, coords, steps=NEWTON_STEPS):
+    """Image-plane points (k, 2) moved onto the border by Newton steps along grad e. (With
+    ``_border_gradient``, the plain statement of ``border_newton``.)"""
     for _ in range(steps):
-        e, grad = _border_gradient(scene, visibility, frame, light, occluder, receiver, coords)[:2]
+        e, grad = _border_gradient(frame, receivers, occluders, light, coords)[:2]
         norm2 = np.einsum("ij,ij->i", grad, grad)
         step = np.where(norm2 > 0, e / np.where(norm2 > 0, norm2, 1.0), 0.0)
         coords = coords - step[:, None] * grad
@@ -622,7 +607,7 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
         return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
                             np.zeros((0, 3), np.int64), empty)  # fmt: skip
     start, own = _starting_chords(scene, plain, curves)
-    towards = np.array([_towards(x) for x in scene.lights]).reshape(-1, 3)
+    towards = np.array([_towards(x) for x in scene.lights])
     point = np.array([isinstance(x, PointLight) for x in scene.lights])
     camera = scene.camera
     x0, x1, curve, receiver = bisect_chords(
