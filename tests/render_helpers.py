@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass
 
@@ -276,3 +277,13 @@ def masked_gradient_check(
             p.requires_grad, p.grad = requires_grad, grad
     rel = float(np.linalg.norm(g_ad - g_fd) / (np.linalg.norm(g_fd) + 1e-8))
     return GradientCheck(rel, g_ad, g_fd, int(same.sum()), height * width)
+
+
+def strict_load(text: str):
+    """JSON parsed strictly: NaN, Infinity and -Infinity (which Python's json writes and
+    reads, but the JSON standard does not have) are refused."""
+
+    def refuse(token):
+        raise ValueError(f"non-standard JSON token {token}")
+
+    return json.loads(text, parse_constant=refuse)

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from render_helpers import strict_load
 
 import minidiff as md
 import render
@@ -176,9 +177,5 @@ def test_example_scripts_run_end_to_end(tmp_path):
     assert "| metric | paper | ours |" in (tmp_path / "results.md").read_text()
     # Strict JSON (tests/test_json_output.py): the thresholds a 3-iteration run never
     # reaches are NaN in memory and must be written as null, not as a bare NaN token.
-    results = json.loads((tmp_path / "results.json").read_text(), parse_constant=_refuse)
+    results = strict_load((tmp_path / "results.json").read_text())
     assert any(v is None for runs in results.values() for run in runs for v in run.values())
-
-
-def _refuse(token: str):
-    raise ValueError(f"non-standard JSON token {token}")

@@ -10,17 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from render_helpers import strict_load
 
 from render.inverse.jsonio import to_json, write_json
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def strict_load(text: str):
-    def refuse(token):
-        raise ValueError(f"non-standard JSON token {token}")
-
-    return json.loads(text, parse_constant=refuse)
 
 
 def test_non_finite_values_become_null():
