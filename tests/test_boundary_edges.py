@@ -341,7 +341,7 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     thirds = np.where(faces >= 0, rng.integers(12, 20, (k, n_faces)), -1)
     coords = rng.uniform(-1.0, 1.0, (k, 2))
     args = (eye, forward, right, up, vertices, i, j, faces, thirds, coords, 40, 30)
-    plain, fast = edge_sides(*args), edge_sides_kernel(*args)
+    plain, fast = edge_sides(*args), edge_sides_kernel(*args, 1)
     for name, a, b in zip(
         ("directions", "depth", "norm", "step"), plain[:4], fast[:4], strict=True
     ):
@@ -349,3 +349,27 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
                                    err_msg=name)  # fmt: skip
     np.testing.assert_array_equal(fast[4], plain[4])
     assert np.all((fast[4] == -1) | np.isin(fast[4], faces))
+
+
+def test_the_boundary_kernels_give_the_same_gradient_on_any_number_of_threads(monkeypatch):
+    """The kernels that share their work out over Numba's threads (the mesh-edge points,
+    the cuts where curves cross, the shadow borders' bisection, the rays) give the same
+    gradient, bit for bit, when they deal it to one job or to several: each point's
+    arithmetic is the same and the blocks are put back in order."""
+    import numba
+
+    def gradients(threads: int) -> list[np.ndarray]:
+        monkeypatch.setattr(numba, "get_num_threads", lambda: threads)
+        camera = md.tensor([3.0, 2.0, 5.0], requires_grad=True)
+        light = md.tensor([2.0, 5.0, 3.0], requires_grad=True)
+        scene = paper_scene(48, 48, light, camera_position=camera, ground=True)
+        mesh = scene.meshes[0]
+        mesh.vertices = md.tensor(mesh.vertices.data, requires_grad=True)
+        image = render(scene, antialias="boundary", reuse_visibility=False)
+        md.sum(image * image).backward()
+        return [p.grad for p in (camera, light, mesh.vertices)]
+
+    one, several = gradients(1), gradients(5)
+    assert np.any(one[1] != 0) and np.any(one[2] != 0)
+    for a, b in zip(one, several, strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -67,6 +67,7 @@ from render.scene.camera import ray_directions
 from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
+from render.trace.intersect import BLOCK, _jobs
 from render.trace.topology import EdgeTable
 from render.trace.visibility import PrimaryHits, Visibility
 
@@ -316,20 +317,38 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
     return n
 
 
-@numba.njit(cache=True)
-def _split_all(p0, p1, segment, start, end, pixel, order, bounds, out):
-    n = 0
-    ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)
+@numba.njit(cache=True, parallel=True)
+def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, n_threads):
+    """Every pixel's group of pieces split (``_split_group``), the groups shared out over
+    ``n_threads`` (job j takes groups j, j + n_jobs, ...: the crowded pixels lie together
+    in pixel order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch
+    table and a compaction keeps them in group order: the same rows, in the same order, on
+    any number of threads."""
+    n_groups = len(bounds) - 1
+    out = np.empty((slots[-1], 4))
+    count = np.empty(n_groups, np.int64)
     geometry = _piece_geometry(p0, p1, segment, start, end, order)
-    for g in range(len(bounds) - 1):
-        lo, hi = bounds[g], bounds[g + 1]
-        if hi - lo == 1:  # nothing to cut: the common case
-            i = order[lo]
-            out[n, 0], out[n, 1], out[n, 2], out[n, 3] = segment[i], start[i], end[i], pixel[i]
-            n += 1
-            continue
-        n = _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts)
-    return n
+    n_jobs = max(1, min(n_groups, n_threads))
+    for job in numba.prange(n_jobs):
+        ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)  # per thread
+        for g in range(job, n_groups, n_jobs):
+            lo, hi = bounds[g], bounds[g + 1]
+            if hi - lo == 1:  # nothing to cut: the common case
+                i = order[lo]
+                row = slots[g]
+                out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
+                out[row, 3] = pixel[i]
+                count[g] = 1
+            else:
+                count[g] = _split_group(
+                    geometry, segment, start, end, pixel, order, lo, hi, out, slots[g], ts
+                ) - slots[g]  # fmt: skip
+    kept = np.empty((np.sum(count), 4))
+    n = 0
+    for g in range(n_groups):
+        kept[n : n + count[g]] = out[slots[g] : slots[g] + count[g]]
+        n += count[g]
+    return kept
 
 
 def split_at_crossings(p0, p1, segment, start, end, pixel):
@@ -343,12 +362,11 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     ordered = pixel[order]
     bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
     sizes = np.diff(bounds)
-    out = np.empty((int(np.sum(sizes * sizes)), 4))
-    n = _split_all(
+    slots = np.r_[0, np.cumsum(sizes * sizes)]  # a group of k pieces has at most k * k parts
+    out = _split_all(
         np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
-        start, end, pixel, order, bounds, out,
+        start, end, pixel, order, bounds, slots, numba.get_num_threads(),
     )  # fmt: skip
-    out = out[:n]
     return out[:, 0].astype(np.int64), out[:, 1], out[:, 2], out[:, 3].astype(np.int64)
 
 
@@ -861,59 +879,65 @@ def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, w
     return directions, depth, norm, step, chosen
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", parallel=True)
 def edge_sides_kernel(
-    eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height
+    eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height, n_threads
 ):
     """``edge_sides`` in one pass over the points: the same arithmetic per point, in
-    scalars and four scratch 3-vectors instead of a dozen (k, 3) temporaries. The hot loop
-    of the boundary term; tests/test_boundary.py ties it to ``edge_sides``."""
+    scalars and four scratch 3-vectors instead of a dozen (k, 3) temporaries, the points
+    shared out over ``n_threads`` (``numba.get_num_threads()``) as the ray kernels share
+    rays (``render.trace.intersect._jobs``: every point's result is the same on any number
+    of threads). The hot loop of the boundary term; tests/test_boundary_edges.py ties it to
+    ``edge_sides``."""
     k, n_faces = faces.shape
     directions = np.empty((k, 3))
     depth, norm = np.empty(k), np.empty(k)
     step = np.empty((k, 2))
     chosen = np.full((k, 2), -1, np.int64)
-    am, bm, m, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    w0, towards, t, normal = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    n_blocks, n_jobs = _jobs(k, n_threads)
     sx, sy = 2.0 / width, -2.0 / height
-    for p in range(k):
-        a, b, d = vertices[i[p]], vertices[j[p]], directions[p]
-        for c in range(3):
-            am[c], bm[c] = a[c] - eye[c], b[c] - eye[c]
-            d[c] = coords[p, 0] * right[c] + coords[p, 1] * up[c] + forward[c]
-            u[c], w0[c] = b[c] - a[c], eye[c] - a[c]
-        _cross(am, bm, m)
-        # _edge_points: the depth along d of the point nearest the line through a and b
-        dd, du, uu, dw, uw = _dot(d, d), _dot(d, u), _dot(u, u), _dot(d, w0), _dot(u, w0)
-        det = dd * uu - du * du
-        depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
-        # _pixel_gradient of grad e = (m . right, m . up)
-        gx, gy = _dot(m, right) * sx, _dot(m, up) * sy
-        length = math.sqrt(gx * gx + gy * gy)
-        scale = length if length > 0 else 1.0
-        norm[p] = length
-        step[p, 0], step[p, 1] = gx / scale * sx, gy / scale * sy
-        for c in range(3):
-            towards[c] = step[p, 0] * right[c] + step[p, 1] * up[c]
-        # the nearest face on either side (_approach; ties go to the first, as np.argmax)
-        best_plus, best_minus = -np.inf, -np.inf
-        for f in range(n_faces):
-            if faces[p, f] < 0:
-                continue
-            third = vertices[max(thirds[p, f], 0)]
-            for c in range(3):
-                t[c] = third[c] - a[c]
-            side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
-            side = side + (third[2] - eye[2]) * m[2]
-            if side == 0 or side != side:
-                continue
-            _cross(u, t, normal)
-            nd, ng = _dot(normal, d), _dot(normal, towards)
-            rate = ng / nd if nd != 0 else ng / np.inf
-            if side > 0 and (chosen[p, 0] < 0 or rate > best_plus):
-                best_plus, chosen[p, 0] = rate, faces[p, f]
-            elif side < 0 and (chosen[p, 1] < 0 or -rate > best_minus):
-                best_minus, chosen[p, 1] = -rate, faces[p, f]
+    for job in numba.prange(n_jobs):
+        am, bm, m, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # per thread
+        w0, towards, t, normal = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+        for block in range(job, n_blocks, n_jobs):
+            for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
+                a, b, d = vertices[i[p]], vertices[j[p]], directions[p]
+                for c in range(3):
+                    am[c], bm[c] = a[c] - eye[c], b[c] - eye[c]
+                    d[c] = coords[p, 0] * right[c] + coords[p, 1] * up[c] + forward[c]
+                    u[c], w0[c] = b[c] - a[c], eye[c] - a[c]
+                _cross(am, bm, m)
+                # _edge_points: the depth along d of the point nearest the line through a and b
+                dd, du, uu, dw, uw = _dot(d, d), _dot(d, u), _dot(u, u), _dot(d, w0), _dot(u, w0)
+                det = dd * uu - du * du
+                depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
+                # _pixel_gradient of grad e = (m . right, m . up)
+                gx, gy = _dot(m, right) * sx, _dot(m, up) * sy
+                length = math.sqrt(gx * gx + gy * gy)
+                scale = length if length > 0 else 1.0
+                norm[p] = length
+                step[p, 0], step[p, 1] = gx / scale * sx, gy / scale * sy
+                for c in range(3):
+                    towards[c] = step[p, 0] * right[c] + step[p, 1] * up[c]
+                # the nearest face on either side (_approach; ties go to the first, as np.argmax)
+                best_plus, best_minus = -np.inf, -np.inf
+                for f in range(n_faces):
+                    if faces[p, f] < 0:
+                        continue
+                    third = vertices[max(thirds[p, f], 0)]
+                    for c in range(3):
+                        t[c] = third[c] - a[c]
+                    side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
+                    side = side + (third[2] - eye[2]) * m[2]
+                    if side == 0 or side != side:
+                        continue
+                    _cross(u, t, normal)
+                    nd, ng = _dot(normal, d), _dot(normal, towards)
+                    rate = ng / nd if nd != 0 else ng / np.inf
+                    if side > 0 and (chosen[p, 0] < 0 or rate > best_plus):
+                        best_plus, chosen[p, 0] = rate, faces[p, f]
+                    elif side < 0 and (chosen[p, 1] < 0 or -rate > best_minus):
+                        best_minus, chosen[p, 1] = -rate, faces[p, f]
     return directions, depth, norm, step, chosen
 
 
@@ -947,7 +971,7 @@ def _mesh_edge_factors(
     directions, depth, norm, step, chosen = edge_sides_kernel(
         eye, forward, right, up, vertices, table.i[edges], table.j[edges],
         np.take(table.faces, edges, axis=0), np.take(table.thirds, edges, axis=0),
-        np.ascontiguousarray(coords), *_size(scene.camera),
+        np.ascontiguousarray(coords), *_size(scene.camera), numba.get_num_threads(),
     )  # fmt: skip
     hidden = _hidden(visibility, eye, directions, depth, norm, table.faces[edges, 0] + first_prim)
     seen = np.flatnonzero(~hidden)

@@ -306,14 +306,55 @@ def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, sta
     return prim
 
 
-@numba.njit(cache=True, error_model="numpy")
-def bisect_chords(bvh, curves, where, point, own, start, frame, width, height, size, first_sphere):
+#: ``bisect_chords`` deals the starting chords to threads in this many blocks per thread
+#: (the work per chord varies: a chord over a busy receiver is cut many times).
+BLOCKS_PER_THREAD = 8
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def bisect_chords(
+    bvh, curves, where, point, own, start, frame, width, height, size, first_sphere, n_threads
+):
     """``_border_chords``' bisection in one pass: each starting chord (``start`` = curve
     (n,), u0 (n,), u1 (n,)) followed depth first, the same tests and the same grazing rays
     (traced one by one in ``bvh``). ``curves`` = (kind, a, b, axis) per curve; ``where``
     (c, 3), ``point`` (c,) and ``own`` (c,) per curve. Returns the chords (x0 (m, 2), x1
     (m, 2), curve (m,), receiver (m,)): the same set as ``_border_chords``, in another
-    order. tests/test_shadow_edges.py ties the two."""
+    order. tests/test_shadow_edges.py ties the two.
+
+    The starting chords are cut into blocks, dealt to ``n_threads`` threads
+    (``numba.get_num_threads()``) in turn, and each block's chords are put back in block
+    order: the same rows in the same order on any number of threads."""
+    n = len(start[0])
+    n_blocks = max(1, min(n, BLOCKS_PER_THREAD * n_threads))
+    bounds = (np.arange(n_blocks + 1) * n) // n_blocks
+    parts = [(np.empty((0, 2)), np.empty((0, 2)), np.empty(0, np.int64), np.empty(0, np.int64))
+             for _ in range(n_blocks)]  # fmt: skip
+    n_jobs = min(n_blocks, max(1, n_threads))
+    for job in numba.prange(n_jobs):
+        for block in range(job, n_blocks, n_jobs):  # each block's slot is its own
+            parts[block] = _bisect_block(bvh, curves, where, point, own, start, bounds[block],
+                                         bounds[block + 1], frame, width, height, size,
+                                         first_sphere)  # fmt: skip
+    m = 0
+    for part in parts:
+        m += len(part[2])
+    x0s, x1s = np.empty((m, 2)), np.empty((m, 2))
+    curve_out, receiver_out = np.empty(m, np.int64), np.empty(m, np.int64)
+    m = 0
+    for x0, x1, curve, receiver in parts:
+        k = len(curve)
+        x0s[m : m + k], x1s[m : m + k] = x0, x1
+        curve_out[m : m + k], receiver_out[m : m + k] = curve, receiver
+        m += k
+    return x0s, x1s, curve_out, receiver_out
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _bisect_block(
+    bvh, curves, where, point, own, start, first, last, frame, width, height, size, first_sphere
+):
+    """``bisect_chords`` for the starting chords first..last - 1."""
     kind, a, b, axis = curves
     curve0, u0s, u1s = start
     stack = np.empty(bvh.stack_size, np.int64)
@@ -327,7 +368,7 @@ def bisect_chords(bvh, curves, where, point, own, start, frame, width, height, s
     todo_x = np.empty((2 * ROUNDS + 4, 4))
     todo_r = np.empty(2 * ROUNDS + 4, np.int64)
     s, px = np.empty(3), np.empty(2)
-    for k in range(len(curve0)):
+    for k in range(first, last):
         cv = curve0[k]
         curved_curve = kind[cv] == 1
         _curve_point(kind[cv], a[cv], b[cv], axis[cv], u0s[k], s)
@@ -613,6 +654,7 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
     x0, x1, curve, receiver = bisect_chords(
         visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
         own, start, plain, camera.width, camera.height, size, first_sphere_id(scene),
+        numba.get_num_threads(),
     )  # fmt: skip
     return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
 
