@@ -77,6 +77,7 @@ def run(args) -> dict:
     r |= time_forward(size, repeats)
     # Edge antialiasing (silhouettes, creases and, on the teapot and its ground, shadows)
     r["antialias"] = time_antialias(size, repeats)
+    r["iterations"] = time_iterations(size, max(16, size // 4), repeats)
     r["reflection"] = time_reflection(size, repeats)
     r["gradient_image"] = time_gradient_image(size, repeats)
     r |= time_without_bvh(size, brute_repeats)
@@ -152,6 +153,53 @@ def time_antialias(size: int, repeats: int) -> dict:
                 )
         out[name] = row
     return out
+
+
+def time_iterations(size: int, shape_size: int, repeats: int) -> dict:
+    """One optimisation iteration of each reconstruction kind, with the boundary integral
+    and without edges, in turns: ``camera`` — camera calibration (section 5.6, the 10
+    degree start of seed 42) at ``size``, render + loss + backward into position and
+    look-at, the camera moved a little before every call (as an optimiser step moves it,
+    so no visibility is reused); ``shape`` — the shape experiment's Large Steps step at
+    ``shape_size`` (one view of the dented blob, the 2,562-vertex icosphere, four
+    directional lights): render + loss + backward + ``LargeStepsAdam.step``."""
+    from render.inverse.experiments import camera_calibration_problem
+    from render.inverse.reconstruction import dented_blob, shape_scene, view_cameras
+    from render.inverse.shape import LargeStepsAdam, icosphere
+
+    scene, (position, look_at), target = camera_calibration_problem(size, 42, 10.0)
+    moves = [0]
+
+    def camera_step(antialias) -> None:
+        moves[0] += 1
+        position.data[0] += 1e-4 * (-1) ** moves[0]
+        position.grad = look_at.grad = None
+        image_loss(render(scene, antialias=antialias), target).backward()
+
+    camera = view_cameras(1, shape_size)[0]
+    with md.no_grad():
+        shape_target = render(shape_scene(*dented_blob()).with_camera(camera)).data.copy()
+    v0, f0 = icosphere(4)
+    vertices = md.tensor(v0, requires_grad=True)
+    blob = shape_scene(vertices, f0).with_camera(camera)
+    optimizer = LargeStepsAdam(vertices, f0, lam=4.0, lr=0.03)
+
+    def shape_step(antialias) -> None:
+        vertices.grad = None
+        image_loss(render(blob, antialias=antialias), shape_target).backward()
+        optimizer.step()
+
+    fns = {}
+    for key, antialias in (("plain", False), ("boundary", "boundary")):
+        fns[f"camera_{key}"] = lambda a=antialias: camera_step(a)
+        fns[f"shape_{key}"] = lambda a=antialias: shape_step(a)
+    row = timing.measure_interleaved(fns, repeats)
+    for kind in ("camera", "shape"):
+        row[f"ratio_{kind}"] = (
+            row[f"{kind}_boundary"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
+        )
+    row["size"], row["shape_size"], row["shape_vertices"] = size, shape_size, len(v0)
+    return row
 
 
 def time_reflection(size: int, repeats: int) -> dict:
@@ -421,6 +469,27 @@ def antialias_rows(aa: dict) -> list:
     return rows
 
 
+def iteration_rows(it: dict) -> list:
+    """One reconstruction iteration with the boundary integral against one without edges."""
+    rows = []
+    for kind, text in (
+        ("camera", f"camera-calibration iteration, {it['size']}x{it['size']}"),
+        ("shape", f"shape iteration (Large Steps, {it['shape_vertices']:,} vertices, one "
+                  f"{it['shape_size']}x{it['shape_size']} view)"),
+    ):  # fmt: skip
+        rows.append(
+            ratio_row(
+                f'{text}, antialias="boundary" / without edges',
+                it[f"{kind}_boundary"],
+                it[f"{kind}_plain"],
+                it[f"ratio_{kind}"],
+                1.5,
+                "target <= 1.5x",
+            )  # fmt: skip
+        )
+    return rows
+
+
 def reflection_rows(refl: dict) -> list:
     """Forward and forward+backward at 0, 1, 2 bounces, and what each bounce adds."""
     rows = []
@@ -537,6 +606,7 @@ def make_report(r: dict, out) -> dict:
         ),
         timing.row("full forward render, no BVH", timing.ms(r["forward_no_bvh"]), "paper 85.6 ms"),
         *antialias_rows(r["antialias"]),
+        *iteration_rows(r["iterations"]),
         *reflection_rows(r["reflection"]),
         *gradient_image_rows(r["gradient_image"]),
         timing.row("forward+backward, no BVH", timing.ms(r["forward_backward_no_bvh"])),
