@@ -61,6 +61,7 @@ import numba
 import numpy as np
 
 import minidiff as md
+from minidiff import buffers
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
 from render.scene.cache import RenderCache
 from render.scene.camera import ray_directions
@@ -318,14 +319,13 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
 
 
 @numba.njit(cache=True, parallel=True)
-def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, n_threads):
+def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_threads):
     """Every pixel's group of pieces split (``_split_group``), the groups shared out over
     ``n_threads`` (job j takes groups j, j + n_jobs, ...: the crowded pixels lie together
     in pixel order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch
     table and a compaction keeps them in group order: the same rows, in the same order, on
-    any number of threads."""
+    any number of threads. ``out``: the scratch table, slots[-1] rows at least."""
     n_groups = len(bounds) - 1
-    out = np.empty((slots[-1], 4))
     count = np.empty(n_groups, np.int64)
     geometry = _piece_geometry(p0, p1, segment, start, end, order)
     n_jobs = max(1, min(n_groups, n_threads))
@@ -363,9 +363,13 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
     sizes = np.diff(bounds)
     slots = np.r_[0, np.cumsum(sizes * sizes)]  # a group of k pieces has at most k * k parts
+    # The scratch table (~8 MB at 512x512) from minidiff's pool, its rows rounded up to a
+    # power of two so that the next render, whose count differs a little, reuses it
+    # instead of touching fresh pages.
+    scratch = buffers.empty((1 << int(slots[-1]).bit_length(), 4), np.float64)
     out = _split_all(
         np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
-        start, end, pixel, order, bounds, slots, numba.get_num_threads(),
+        start, end, pixel, order, bounds, slots, scratch, numba.get_num_threads(),
     )  # fmt: skip
     return out[:, 0].astype(np.int64), out[:, 1], out[:, 2], out[:, 3].astype(np.int64)
 
