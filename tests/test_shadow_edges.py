@@ -297,3 +297,30 @@ def test_bisect_chords_kernel_finds_the_chords_the_numpy_bisection_finds(seed, m
     assert len(plain) > 50 and set(fast.light) == {0, 1}
     np.testing.assert_array_equal(ours[:, :5], plain[:, :5])  # light, occluder, receiver
     np.testing.assert_allclose(ours[:, 5:], plain[:, 5:], rtol=0, atol=1e-9)  # pixels
+
+
+def test_bisect_chords_gives_the_same_chords_when_its_blocks_run_out_of_rows(monkeypatch):
+    """``bisect_chords`` writes each block's chords to rows set aside for it; a block that
+    needs more makes the pass run again with more. Starting with one row per block (every
+    block runs out, several times) gives the same chords in the same order, on one job and
+    on several."""
+    from render.edges import shadow_boundary as sb
+
+    seen = {}
+    bisect = sb.bisect_chords
+
+    def keep(*args):
+        seen["args"] = args
+        return bisect(*args)
+
+    monkeypatch.setattr(sb, "bisect_chords", keep)
+    scene = random_scene(0, lights=("point", "directional"))
+    scene.lights[0].position.requires_grad = True
+    render.render(scene, antialias="boundary")
+    args = seen["args"][:-1]  # all but n_threads
+    roomy = bisect(*args, 1)
+    assert len(roomy[2]) > 50
+    for threads in (1, 3):
+        tight = bisect(*args, threads, 1)
+        for a, b in zip(roomy, tight, strict=True):
+            np.testing.assert_array_equal(a, b)

@@ -309,12 +309,19 @@ def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, sta
 #: ``bisect_chords`` deals the starting chords to threads in this many blocks per thread
 #: (the work per chord varies: a chord over a busy receiver is cut many times).
 BLOCKS_PER_THREAD = 8
+#: Rows of chords each block may write at first: this many per starting chord in it, and
+#: SPARE_ROWS more (measured on the teapot and its ground, 32x32 to 512x512: at most 6.5
+#: chords per starting chord beyond 64 at 512x512, 17 at 32x32, where blocks are short).
+#: A block that needs more makes the whole pass run again with four times the room.
+CHORDS_PER_START = 8
+SPARE_ROWS = 1024
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def bisect_chords(
-    bvh, curves, where, point, own, start, frame, width, height, size, first_sphere, n_threads
-):
+    bvh, curves, where, point, own, start, frame, width, height, size, first_sphere, n_threads,
+    room=0,
+):  # fmt: skip
     """``_border_chords``' bisection in one pass: each starting chord (``start`` = curve
     (n,), u0 (n,), u1 (n,)) followed depth first, the same tests and the same grazing rays
     (traced one by one in ``bvh``). ``curves`` = (kind, a, b, axis) per curve; ``where``
@@ -323,45 +330,53 @@ def bisect_chords(
     order. tests/test_shadow_edges.py ties the two.
 
     The starting chords are cut into blocks, dealt to ``n_threads`` threads
-    (``numba.get_num_threads()``) in turn, and each block's chords are put back in block
-    order: the same rows in the same order on any number of threads."""
+    (``numba.get_num_threads()``) in turn; each block writes its chords to its own rows of
+    shared arrays (arrays, not a list of parts: Numba does not support lists written in a
+    prange), and the blocks are read back in block order: the same rows in the same order
+    on any number of threads."""
     n = len(start[0])
     n_blocks = max(1, min(n, BLOCKS_PER_THREAD * n_threads))
     bounds = (np.arange(n_blocks + 1) * n) // n_blocks
-    parts = [(np.empty((0, 2)), np.empty((0, 2)), np.empty(0, np.int64), np.empty(0, np.int64))
-             for _ in range(n_blocks)]  # fmt: skip
     n_jobs = min(n_blocks, max(1, n_threads))
-    for job in numba.prange(n_jobs):
-        for block in range(job, n_blocks, n_jobs):  # each block's slot is its own
-            parts[block] = _bisect_block(bvh, curves, where, point, own, start, bounds[block],
-                                         bounds[block + 1], frame, width, height, size,
-                                         first_sphere)  # fmt: skip
+    if room <= 0:  # rows per block at first (``room`` > 0: that many, for the tests)
+        room = CHORDS_PER_START * ((n + n_blocks - 1) // n_blocks) + SPARE_ROWS
+    while True:
+        x0s, x1s = np.empty((n_blocks * room, 2)), np.empty((n_blocks * room, 2))
+        curve_out = np.empty(n_blocks * room, np.int64)
+        receiver_out = np.empty(n_blocks * room, np.int64)
+        count = np.empty(n_blocks, np.int64)
+        for job in numba.prange(n_jobs):
+            for block in range(job, n_blocks, n_jobs):
+                count[block] = _bisect_block(
+                    bvh, curves, where, point, own, start, bounds[block], bounds[block + 1],
+                    frame, width, height, size, first_sphere,
+                    (x0s, x1s, curve_out, receiver_out), block * room, room,
+                )  # fmt: skip
+        if np.all(count >= 0):
+            break
+        room *= 4  # some block ran out of rows: again, with more (the same chords)
+    keep = np.empty(np.sum(count), np.int64)
     m = 0
-    for part in parts:
-        m += len(part[2])
-    x0s, x1s = np.empty((m, 2)), np.empty((m, 2))
-    curve_out, receiver_out = np.empty(m, np.int64), np.empty(m, np.int64)
-    m = 0
-    for x0, x1, curve, receiver in parts:
-        k = len(curve)
-        x0s[m : m + k], x1s[m : m + k] = x0, x1
-        curve_out[m : m + k], receiver_out[m : m + k] = curve, receiver
-        m += k
-    return x0s, x1s, curve_out, receiver_out
+    for block in range(n_blocks):
+        keep[m : m + count[block]] = np.arange(block * room, block * room + count[block])
+        m += count[block]
+    return x0s[keep], x1s[keep], curve_out[keep], receiver_out[keep]
 
 
 @numba.njit(cache=True, error_model="numpy")
 def _bisect_block(
-    bvh, curves, where, point, own, start, first, last, frame, width, height, size, first_sphere
-):
-    """``bisect_chords`` for the starting chords first..last - 1."""
+    bvh, curves, where, point, own, start, first, last, frame, width, height, size,
+    first_sphere, out, offset, room,
+):  # fmt: skip
+    """``bisect_chords`` for the starting chords first..last - 1: their chords written to
+    rows offset, offset + 1, ... of ``out`` = (x0, x1, curve, receiver). Returns how many,
+    or -1 if they need more than ``room`` rows."""
+    x0s, x1s, curve_out, receiver_out = out
     kind, a, b, axis = curves
     curve0, u0s, u1s = start
     stack = np.empty(bvh.stack_size, np.int64)
     stack_t = np.empty(bvh.stack_size)
-    capacity, m = 64, 0
-    x0s, x1s = np.empty((capacity, 2)), np.empty((capacity, 2))
-    curve_out, receiver_out = np.empty(capacity, np.int64), np.empty(capacity, np.int64)
+    m = 0
     # A pending interval: (u0, u1, receiver and pixel at either end, its round).
     todo_u = np.empty((2 * ROUNDS + 4, 2))
     todo_p = np.empty((2 * ROUNDS + 4, 2), np.int64)
@@ -414,19 +429,13 @@ def _bisect_block(
                 n += 2
                 continue
             if p0 == p1 and p0 >= 0:
-                if m == capacity:  # grow by doubling, in scalar loops
-                    capacity *= 2
-                    more_x0, more_x1 = np.empty((capacity, 2)), np.empty((capacity, 2))
-                    more_c, more_r = np.empty(capacity, np.int64), np.empty(capacity, np.int64)
-                    for r in range(m):
-                        more_x0[r, 0], more_x0[r, 1] = x0s[r, 0], x0s[r, 1]
-                        more_x1[r, 0], more_x1[r, 1] = x1s[r, 0], x1s[r, 1]
-                        more_c[r], more_r[r] = curve_out[r], receiver_out[r]
-                    x0s, x1s, curve_out, receiver_out = more_x0, more_x1, more_c, more_r
-                x0s[m, 0], x0s[m, 1], x1s[m, 0], x1s[m, 1] = x00, x01, x10, x11
-                curve_out[m], receiver_out[m] = cv, p0
+                if m == room:
+                    return -1
+                r = offset + m
+                x0s[r, 0], x0s[r, 1], x1s[r, 0], x1s[r, 1] = x00, x01, x10, x11
+                curve_out[r], receiver_out[r] = cv, p0
                 m += 1
-    return x0s[:m].copy(), x1s[:m].copy(), curve_out[:m].copy(), receiver_out[:m].copy()
+    return m
 
 
 # ---------------------------------------------------------------------------------------
