@@ -18,6 +18,9 @@ from pathlib import Path
 
 import pytest
 
+# Starts new Python processes: runs after the in-process tests (tests/conftest.py).
+pytestmark = pytest.mark.new_processes
+
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
 
 # Per script: key paths (tuples; "*" = every element of a list) that must be finite and > 0.

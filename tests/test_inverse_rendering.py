@@ -165,6 +165,7 @@ def test_camera_script_rejects_a_bad_angle():
     assert done.returncode != 0 and "--angle" in done.stderr
 
 
+@pytest.mark.new_processes
 def test_example_scripts_run_end_to_end(tmp_path):
     done = _run_example("render_teapot.py", "--size", "32", "--out", str(tmp_path))
     assert done.returncode == 0, done.stderr

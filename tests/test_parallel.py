@@ -12,6 +12,9 @@ import pytest
 from render.inverse.experiments import run_camera_calibration, run_light_estimation
 from render.inverse.parallel import check_jobs, process_pool, run_ordered
 
+# Starts new Python processes: runs after the in-process tests (tests/conftest.py).
+pytestmark = pytest.mark.new_processes
+
 
 def _metrics(run) -> dict:
     """A run's numbers without its wall times (the only thing allowed to differ)."""

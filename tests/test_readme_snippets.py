@@ -15,6 +15,9 @@ import pytest
 pytest.importorskip("torch")
 pytest.importorskip("jax")
 
+# Starts new Python processes: runs after the in-process tests (tests/conftest.py).
+pytestmark = pytest.mark.new_processes
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

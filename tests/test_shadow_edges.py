@@ -317,8 +317,8 @@ def test_bisect_chords_gives_the_same_chords_when_its_blocks_run_out_of_rows(mon
     scene = random_scene(0, lights=("point", "directional"))
     scene.lights[0].position.requires_grad = True
     render.render(scene, antialias="boundary")
-    args = seen["args"][:-1]  # all but n_threads
-    roomy = bisect(*args, 1)
+    args = seen["args"][:-2]  # all but n_threads and room
+    roomy = bisect(*args, 1, 0)
     assert len(roomy[2]) > 50
     for threads in (1, 3):
         tight = bisect(*args, threads, 1)

@@ -320,7 +320,7 @@ SPARE_ROWS = 1024
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def bisect_chords(
     bvh, curves, where, point, own, start, frame, width, height, size, first_sphere, n_threads,
-    room=0,
+    room,
 ):  # fmt: skip
     """``_border_chords``' bisection in one pass: each starting chord (``start`` = curve
     (n,), u0 (n,), u1 (n,)) followed depth first, the same tests and the same grazing rays
@@ -338,7 +338,10 @@ def bisect_chords(
     n_blocks = max(1, min(n, BLOCKS_PER_THREAD * n_threads))
     bounds = (np.arange(n_blocks + 1) * n) // n_blocks
     n_jobs = min(n_blocks, max(1, n_threads))
-    if room <= 0:  # rows per block at first (``room`` > 0: that many, for the tests)
+    # ``room``: rows per block at first; 0 (the renderer) sizes them from ``n``, a positive
+    # value (the tests) forces that many. A required argument: a default would make Numba
+    # compile a second signature (the call with it omitted), ~5 s more on every fresh install.
+    if room <= 0:
         room = CHORDS_PER_START * ((n + n_blocks - 1) // n_blocks) + SPARE_ROWS
     while True:
         x0s, x1s = np.empty((n_blocks * room, 2)), np.empty((n_blocks * room, 2))
@@ -663,7 +666,7 @@ def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> Bord
     x0, x1, curve, receiver = bisect_chords(
         visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
         own, start, plain, camera.width, camera.height, size, first_sphere_id(scene),
-        numba.get_num_threads(),
+        numba.get_num_threads(), 0,
     )  # fmt: skip
     return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
 
