@@ -12,7 +12,12 @@ too). Modules still choose their own ``max_examples``.
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from types import ModuleType
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -43,3 +48,29 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     in-process tests fill it as they go, so scripts started later load the kernels instead of
     each compiling them all again (about 60 s of compiling in all)."""
     items.sort(key=lambda item: item.get_closest_marker("new_processes") is not None)
+
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load_script(relative: str) -> ModuleType:
+    """The module of a script in examples/ or benchmarks/ (which import their siblings),
+    registered in ``sys.modules`` under its name as an import would (benchmarks/timing.py
+    finds a function's script there)."""
+    path = ROOT / relative
+    sys.path.insert(0, str(path.parent))
+    try:
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[path.stem] = module
+        spec.loader.exec_module(module)
+    finally:
+        sys.path.remove(str(path.parent))
+    return module
+
+
+@pytest.fixture
+def load_script() -> Callable[[str], ModuleType]:
+    """``load_script("benchmarks/x.py").main(argv)`` runs a script in this process: it reuses
+    the process' compiled kernels instead of starting Python, Numba and the cache again."""
+    return _load_script

@@ -2,8 +2,9 @@
 repeats) and writes a JSON with the expected keys holding finite positive numbers, a report
 section and its plots. No timing is asserted (the machine is shared and noisy).
 
-Each script runs in a subprocess (as run_all.py runs them), with OMP_WAIT_POLICY=passive as
-run_all sets it; together they take well under a minute.
+Each script's ``main(argv)`` runs in this process, reusing its compiled kernels (a new
+Python process costs ~1.5 s to start, import and load Numba's cache); ``run_all.py``, which
+runs the scripts in new processes with OMP_WAIT_POLICY=passive, is tested that way once.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from pathlib import Path
 
 import pytest
 
-# Starts new Python processes: runs after the in-process tests (tests/conftest.py).
+# Starts new Python processes (run_all; some scripts time settings in new processes):
+# runs after the in-process tests (tests/conftest.py).
 pytestmark = pytest.mark.new_processes
 
 BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
@@ -106,7 +108,7 @@ def _values(data, path):
     return _values(data[head], rest)
 
 
-def _run(args, out: Path) -> None:
+def _run_in_a_new_process(args, out: Path) -> None:
     env = dict(os.environ, OMP_WAIT_POLICY="passive")
     proc = subprocess.run(
         [sys.executable, *args, "--quick", "--out", str(out)],
@@ -120,8 +122,8 @@ def _run(args, out: Path) -> None:
 
 
 @pytest.mark.parametrize("name", list(EXPECTED))
-def test_script_quick(name, tmp_path):
-    _run([str(BENCH / f"{name}.py")], tmp_path)
+def test_script_quick(name, tmp_path, load_script):
+    load_script(f"benchmarks/{name}.py").main(["--quick", "--out", str(tmp_path)])
     data = json.loads((tmp_path / f"{name}.json").read_text(encoding="utf-8"))
     for path in EXPECTED[name]:
         for value in _values(data, path):
@@ -145,7 +147,7 @@ def test_script_quick(name, tmp_path):
 
 
 def test_run_all_writes_report(tmp_path):
-    _run([str(BENCH / "run_all.py"), "--only", "bench_visibility"], tmp_path)
+    _run_in_a_new_process([str(BENCH / "run_all.py"), "--only", "bench_visibility"], tmp_path)
     report = (tmp_path / "report.md").read_text(encoding="utf-8")
     assert "# Benchmark report" in report
     assert "Visibility only" in report

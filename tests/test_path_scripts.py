@@ -7,29 +7,12 @@ from __future__ import annotations
 import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
 
-
-def script(relative: str):
-    """The module of a script in examples/ or benchmarks/ (which import their siblings)."""
-    path = ROOT / relative
-    sys.path.insert(0, str(path.parent))
-    try:
-        spec = importlib.util.spec_from_file_location(path.stem, path)
-        module = importlib.util.module_from_spec(spec)
-        spec.loader.exec_module(module)
-    finally:
-        sys.path.remove(str(path.parent))
-    return module
-
-
-def test_colour_bleeding_quick(tmp_path):
-    script("examples/colour_bleeding.py").main(["--quick", "--out", str(tmp_path)])
+def test_colour_bleeding_quick(tmp_path, load_script):
+    load_script("examples/colour_bleeding.py").main(["--quick", "--out", str(tmp_path)])
     result = json.loads((tmp_path / "results.json").read_text())
     for run in result["runs"].values():
         assert math.isfinite(run["final_error"]) and run["final_error"] < 0.844  # it moved
@@ -38,8 +21,8 @@ def test_colour_bleeding_quick(tmp_path):
     assert "| spp per iteration |" in (tmp_path / "results.md").read_text()
 
 
-def test_bench_path_quick(tmp_path):
-    bench = script("benchmarks/bench_path.py")
+def test_bench_path_quick(tmp_path, load_script):
+    bench = load_script("benchmarks/bench_path.py")
     bench.main(["--quick", "--part", "memory", "--out", str(tmp_path)])
     result = json.loads((tmp_path / "bench_path.json").read_text())
     for pool in ("pool", "no_pool"):
@@ -51,8 +34,8 @@ def test_bench_path_quick(tmp_path):
     assert again["speed"]["forward"]["us_per_sample_per_pixel"] > 0
 
 
-def test_path_gradients_quick(tmp_path):
-    script("benchmarks/path_gradients.py").main(["--quick", "--out", str(tmp_path)])
+def test_path_gradients_quick(tmp_path, load_script):
+    load_script("benchmarks/path_gradients.py").main(["--quick", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "gradients.json").read_text())["rows"]
     assert {r["parameter"] for r in rows} >= {"emission", "camera_position", "sphere_centre"}
     emission = [r for r in rows if r["parameter"] == "emission"]
@@ -60,10 +43,10 @@ def test_path_gradients_quick(tmp_path):
         assert math.isclose(r["ours"], r["fd"], rel_tol=1e-6)
 
 
-def test_bench_path_mitsuba_without_mitsuba_says_so(tmp_path, capsys):
+def test_bench_path_mitsuba_without_mitsuba_says_so(tmp_path, capsys, load_script):
     if importlib.util.find_spec("mitsuba") is not None:
         pytest.skip("Mitsuba is installed here: the comparison runs as a benchmark instead")
-    bench = script("benchmarks/bench_path_mitsuba.py")
+    bench = load_script("benchmarks/bench_path_mitsuba.py")
     with pytest.raises(SystemExit) as stop:
         bench.main(["--quick", "--out", str(tmp_path)])
     message = str(stop.value.code) + capsys.readouterr().err
