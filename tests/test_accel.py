@@ -386,6 +386,15 @@ def test_mixed_scene_and_shadows_bvh_equals_brute_force(data, tris, spheres):
     np.testing.assert_array_equal(bvh.occluded(o, d, tmax, tmin=tmin, ignore_prim=ignore), blocked)
     reference = brute_force_reference(tris, centers, radii, o, d, tmin, tmax, ignore)[1]
     np.testing.assert_array_equal(blocked, reference)
+    # A primitive to try first changes nothing, whether it blocks the ray (the closest hit,
+    # the ignored one included) or not (any id, or none).
+    closest = ref.closest_hit(o, d, tmin=tmin)[0]
+    for first in (closest, rng.integers(-1, max(n_prims, 1), size=n) if n_prims else closest):
+        for acc in (bvh, ref):
+            np.testing.assert_array_equal(
+                acc.occluded(o, d, tmax, tmin=tmin, ignore_prim=ignore, first_try=first),
+                blocked,
+            )
     # Shadow rays from the hits: consistent with closest_hit along the same segment.
     pid, t, _, _ = bvh.closest_hit(o, d)
     hit = pid >= 0
@@ -601,6 +610,9 @@ def test_bad_rays_raise(use_bvh, o, d, kwargs, message):
         (dict(tmax=1.0, ignore_prim=np.zeros(2)), "ignore_prim must be an integer array"),
         (dict(tmax=1.0, ignore_prim=np.array([0, 5])), "ignore_prim values must be -1"),
         (dict(tmax=1.0, ignore_prim=np.array([0, -2])), "ignore_prim values must be -1"),
+        (dict(tmax=1.0, first_try=np.zeros(3, int)), r"first_try must have shape \(N,\)"),
+        (dict(tmax=1.0, first_try=np.zeros(2)), "first_try must be an integer array"),
+        (dict(tmax=1.0, first_try=np.array([1, 0])), "first_try values must be -1"),
     ],
 )
 def test_bad_shadow_arguments_raise(kwargs, message):

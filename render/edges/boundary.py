@@ -790,7 +790,7 @@ def boundary_points(
         table = tables[index]
         factor[rows] = _mesh_edge_factors(
             scene, visibility, frame, index, firsts[index], table, edges,
-            np.take(coords, rows, axis=0), weight[rows], radiance, rows,
+            np.take(coords, rows, axis=0), pixel[rows], weight[rows], radiance, rows,
         )  # fmt: skip
         mesh_edges.append((index, rows, table.i[edges], table.j[edges]))
         first += count
@@ -945,23 +945,39 @@ def edge_sides_kernel(
     return directions, depth, norm, step, chosen
 
 
-def _hidden(visibility, eye, directions, depth, norm, ignore):
+def _hidden(visibility, eye, directions, depth, norm, ignore, first_try=None):
     """(k,) bool: which of k points seen along camera directions (k, 3) at ``depth`` (k,)
     are hidden: something other than primitive ``ignore`` (k,) lies in front (an any-hit
     ray that ends just short of the point), or their curve is seen edge-on (|grad e| =
-    ``norm`` zero) or from behind."""
+    ``norm`` zero) or from behind. ``first_try`` (k,): a primitive likely to lie in front
+    of each point (``_seen_in``), tried before the BVH (the same answer, sooner)."""
     return (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
         np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
-        tmin=0.0, ignore_prim=ignore,
+        tmin=0.0, ignore_prim=ignore, first_try=first_try,
     )  # fmt: skip
 
 
+def _seen_in(visibility, pixel: np.ndarray, scene: Scene) -> np.ndarray | None:
+    """(k,) int64: the primitive the camera sees at the first sample of each pixel ``pixel``
+    (k,) (row * W + column), -1 for none; None if the render traced no camera rays (the
+    path integrator's edges). What hides a point in a pixel is most often what is seen
+    there: on the teapot at 512x512 it hides 24k of the 31k hidden edge points, which then
+    need no traversal of the BVH."""
+    if visibility.primary is None:
+        return None
+    prim_id = visibility.primary.prim_id  # ray r: pixel r // spp, sample r % spp
+    width, height = _size(scene.camera)
+    return np.take(prim_id, pixel * (prim_id.size // (width * height)))
+
+
 def _mesh_edge_factors(
-    scene, visibility, frame, index, first_prim, table, edges, coords, weight, radiance, keys
-) -> np.ndarray:
+    scene, visibility, frame, index, first_prim, table, edges, coords, pixel, weight, radiance,
+    keys,
+) -> np.ndarray:  # fmt: skip
     """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the edges ``edges``
-    (rows of ``table``) of mesh ``index``, zero where the edge point is hidden; ``keys``
-    (k,): the points' names for ``radiance`` (``DirectRadiance``).
+    (rows of ``table``) of mesh ``index``, zero where the edge point is hidden; ``pixel``
+    (k,): the pixel each point lies in; ``keys`` (k,): the points' names for ``radiance``
+    (``DirectRadiance``).
 
     The edge point is where the camera ray through the quadrature point meets the edge.
     It is visible if nothing lies in front of it (an any-hit ray that ends just short of
@@ -977,7 +993,10 @@ def _mesh_edge_factors(
         np.take(table.faces, edges, axis=0), np.take(table.thirds, edges, axis=0),
         np.ascontiguousarray(coords), *_size(scene.camera), numba.get_num_threads(),
     )  # fmt: skip
-    hidden = _hidden(visibility, eye, directions, depth, norm, table.faces[edges, 0] + first_prim)
+    ignore = table.faces[edges, 0] + first_prim
+    hidden = _hidden(
+        visibility, eye, directions, depth, norm, ignore, _seen_in(visibility, pixel, scene)
+    )
     seen = np.flatnonzero(~hidden)
     n = len(seen)
     coords, depth, step, chosen = (np.take(x, seen, axis=0) for x in (coords, depth, step, chosen))

@@ -317,6 +317,20 @@ class Accelerator:
             )
         return out_id, out_t, out_u, out_v
 
+    def _prim_ids(self, name: str, values, n: int) -> np.ndarray:
+        """``values`` checked as (N,) integer primitive ids or -1: an int64 copy."""
+        ids = np.asarray(values)
+        if ids.shape != (n,):
+            raise ValueError(f"{name} must have shape (N,) = ({n},), got {ids.shape}")
+        if not np.issubdtype(ids.dtype, np.integer):
+            raise ValueError(f"{name} must be an integer array, got dtype {ids.dtype}")
+        ids = np.array(ids, dtype=np.int64, order="C")  # a copy: writeable
+        if n and (ids.min() < -1 or ids.max() >= self.n_prims):
+            raise ValueError(
+                f"{name} values must be -1 (none) or primitive ids in [0, {self.n_prims - 1}]"
+            )
+        return ids
+
     def occluded(
         self,
         origins: np.ndarray,
@@ -324,6 +338,7 @@ class Accelerator:
         tmax: np.ndarray | float,
         tmin: float = SHADOW_TMIN,
         ignore_prim: np.ndarray | None = None,
+        first_try: np.ndarray | None = None,
     ) -> np.ndarray:
         """Any-hit shadow rays: (N,) bool, True if some primitive other than ``ignore_prim[i]``
         is hit with ``tmin < t < tmax[i]``.
@@ -332,23 +347,26 @@ class Accelerator:
         unnormalised direction ``light - origin``); ignore_prim (N,) integer ids, -1 = none
         (typically the ``prim_id`` the shadow ray starts on: a flat triangle cannot shadow
         itself, so skipping it removes self-intersection acne).
+
+        first_try (N,) integer ids, -1 = none: a primitive likely to block each ray, tested
+        before the traversal (e.g. the one the camera sees in front of a point). Only the
+        time changes: a ray it blocks needs no traversal, and the answer is the same.
         """
         rays, n = _check_rays(origins, directions, tmin, tmax)
-        if ignore_prim is None:
-            ignore = np.full(n, -1, np.int64)
-        else:
-            ignore = np.asarray(ignore_prim)
-            if ignore.shape != (n,):
-                raise ValueError(f"ignore_prim must have shape (N,) = ({n},), got {ignore.shape}")
-            if not np.issubdtype(ignore.dtype, np.integer):
-                raise ValueError(f"ignore_prim must be an integer array, got dtype {ignore.dtype}")
-            ignore = np.array(ignore, dtype=np.int64, order="C")  # a copy: writeable
-            if n and (ignore.min() < -1 or ignore.max() >= self.n_prims):
-                raise ValueError(
-                    f"ignore_prim values must be -1 (none) or primitive ids in "
-                    f"[0, {self.n_prims - 1}]"
-                )
+        ignore = (
+            np.full(n, -1, np.int64)
+            if ignore_prim is None
+            else self._prim_ids("ignore_prim", ignore_prim, n)
+        )
+        first_row = np.zeros(0, np.int64)
+        if first_try is not None:
+            ids = self._prim_ids("first_try", first_try, n)
+            # Primitive id -> its row in the leaf-ordered table (-1 stays -1).
+            row_of = np.empty(self.n_prims + 1, np.int64)
+            row_of[self.leaf_ids] = np.arange(len(self.leaf_ids))
+            row_of[-1] = -1
+            first_row = row_of[ids]
         out = np.empty(n, np.bool_)
         if n:
-            occluded_bvh(self._tree(), rays, numba.get_num_threads(), ignore, out)
+            occluded_bvh(self._tree(), rays, numba.get_num_threads(), ignore, first_row, out)
         return out

@@ -541,14 +541,27 @@ def closest_hit_bvh(bvh, rays, n_threads, out_id, out_t, out_u, out_v):
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
-def occluded_bvh(bvh, rays, n_threads, ignore, out):
+def occluded_bvh(bvh, rays, n_threads, ignore, first_row, out):
     """Any-hit of N shadow rays (a :class:`Rays`) in ``bvh`` (a :class:`FlatBVH`), each
     ignoring primitive ``ignore[i]`` (N,) int64 (-1: none), on ``n_threads``: written to
-    out (N,) bool (see :func:`occluded_ray`)."""
+    out (N,) bool (see :func:`occluded_ray`).
+
+    ``first_row`` (N,) int64, or empty: a row of the leaf table to test before the
+    traversal (-1: none). A ray that primitive blocks is blocked, and needs no traversal;
+    the answer is the traversal's, which would test that primitive too (its leaf's box
+    holds it)."""
     n = out.shape[0]
     n_blocks, n_jobs = _jobs(n, n_threads)
+    hinted = first_row.shape[0] > 0
     for job in prange(n_jobs):
         stack = np.empty(bvh.stack_size, np.int64)
         for b in range(job, n_blocks, n_jobs):
             for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
-                out[i] = occluded_ray(bvh, ray_at(rays, i), ignore[i], stack)
+                ray = ray_at(rays, i)
+                k = first_row[i] if hinted else -1
+                if k >= 0 and _blocked_in_leaf(
+                    bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, k, k + 1, ray, ignore[i]
+                ):
+                    out[i] = True
+                else:
+                    out[i] = occluded_ray(bvh, ray, ignore[i], stack)
