@@ -64,7 +64,7 @@ import minidiff as md
 from minidiff import buffers
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
 from render.scene.cache import RenderCache
-from render.scene.camera import ray_directions
+from render.scene.camera import camera_directions, ray_directions
 from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
@@ -437,7 +437,7 @@ def radiance_at(
     """(k, 3) float64, off the tape: the radiance the camera sees through image-plane
     points (k, 2): each ray traced with the render's accelerator, then ``shade_seen``."""
     forward, right, up, eye = plain_camera(frame)
-    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    directions = camera_directions(coords, right, up, forward)
     prim_id, t, _, _ = visibility.accelerator().closest_hit(
         np.broadcast_to(eye, directions.shape), directions
     )
@@ -865,7 +865,7 @@ def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, w
     there of the faces on that side (``_approach``)."""
     a, b = vertices[i], vertices[j]
     m = np.cross(a - eye, b - eye)
-    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    directions = camera_directions(coords, right, up, forward)
     depth = _edge_points(eye, directions, a, b)
     norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
     valid = faces >= 0
@@ -1054,7 +1054,7 @@ def _crossing_factors(scene, visibility, frame, pairs, coords, weight, radiance,
     triangles = visibility.primitives[0]
     t1, t2 = triangles[pairs[:, 0]], triangles[pairs[:, 1]]
     n1, n2, m = _plane_line(t1, t2, eye)
-    directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+    directions = camera_directions(coords, right, up, forward)
     # Depth of the point: where the ray meets plane 1 (the point is on both planes).
     nd = np.einsum("ij,ij->i", n1, directions)
     depth = np.einsum("ij,ij->i", n1, t1[:, 0] - eye) / np.where(nd != 0, nd, np.inf)

@@ -47,7 +47,7 @@ from render.path.sampling import (
     power_heuristic,
     unit,
 )
-from render.scene.camera import plain_frame
+from render.scene.camera import camera_directions, plain_frame
 from render.scene.scene import DirectionalLight, Mesh, PointLight, Scene
 from render.shade.surface import vertex_normals
 from render.trace.accel import Accelerator
@@ -186,7 +186,7 @@ class PathSampler:
         hit, primitive ``prim`` (N,) (-1: none) at ``depth`` (N,) along the view axis (the
         sides of an edge, ``render.path.edges``)."""
         forward, right, up, eye = self.frame
-        directions = coords[:, :1] * right + coords[:, 1:] * up + forward
+        directions = camera_directions(coords, right, up, forward)
         if prim is None:
             prim, t, u, v = self.accelerator.closest_hit(
                 np.broadcast_to(eye, directions.shape), directions

@@ -103,12 +103,20 @@ def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
     x, y = coords[:, :1], coords[:, 1:2]
 
     def apply(basis: np.ndarray) -> np.ndarray:
-        return x * basis[0] + y * basis[1] + basis[2]
+        return camera_directions(coords, *basis)
 
     def adjoint(g: np.ndarray) -> np.ndarray:
         return np.stack([sum_rows(x * g), sum_rows(y * g), sum_rows(g)])
 
     return md.linear(apply, adjoint, md.stack([right, up, forward]))
+
+
+def camera_directions(coords: np.ndarray, right, up, forward) -> np.ndarray:
+    """(k, 3): the unnormalised directions x right + y up + forward of the camera rays
+    through image-plane points ``coords`` (k, 2), off the tape: the one order of
+    operations of every caller (``ray_directions`` on the tape, the edge terms and the
+    path tracer off it)."""
+    return coords[:, :1] * right + coords[:, 1:] * up + forward
 
 
 @numba.njit(cache=True, inline="always")
