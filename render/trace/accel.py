@@ -252,6 +252,9 @@ class Accelerator:
         self.node_bounds, self.node_first, self.node_count, order, depth = tree
         # The primitive table in leaf order: a leaf's primitives are contiguous in memory.
         self.leaf_ids = order
+        # Primitive id -> its row in that table (``occluded``'s first_try); id -1 -> -1.
+        self._leaf_row = np.full(self.n_prims + 1, -1, np.int64)
+        self._leaf_row[order] = np.arange(len(order))
         self.leaf_prim = pack_primitives(tri, centers, radii, order)
         self.depth = int(depth)
         self.n_nodes = int(self.node_bounds.shape[0])
@@ -360,12 +363,7 @@ class Accelerator:
         )
         first_row = np.zeros(0, np.int64)
         if first_try is not None:
-            ids = self._prim_ids("first_try", first_try, n)
-            # Primitive id -> its row in the leaf-ordered table (-1 stays -1).
-            row_of = np.empty(self.n_prims + 1, np.int64)
-            row_of[self.leaf_ids] = np.arange(len(self.leaf_ids))
-            row_of[-1] = -1
-            first_row = row_of[ids]
+            first_row = self._leaf_row[self._prim_ids("first_try", first_try, n)]
         out = np.empty(n, np.bool_)
         if n:
             occluded_bvh(self._tree(), rays, numba.get_num_threads(), ignore, first_row, out)
