@@ -128,9 +128,10 @@ def render(
     visibility = trace_visibility(world, cache, bool(bvh), spp, bool(shadows), raster)  # 1
     frame = camera_frame(world.camera)
     mirrors = Mirrors.of(world, visibility, max_bounces)
-    shading = shade_camera_hits(world, visibility, frame, cache, mirrors)  # 2, 3
+    pairs = antialias == "pairs"  # the pairs' shadow terms shade the hits' surfaces again
+    shading = shade_camera_hits(world, visibility, frame, cache, mirrors, surfaces=pairs)  # 2, 3
     prim_id, edges = visibility.primary.prim_id, None
-    if antialias == "pairs":
+    if pairs:
         samples = sample_colours(world, prim_id, shading.colour, shading.rays)
         samples, edges = add_edge_terms(world, visibility, cache, samples, shading, frame, spp)  # 4
         image = pixel_means(world, samples, spp)  # 5

@@ -423,9 +423,8 @@ def shade_seen(
     if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
         max_bounces = 0
     with md.no_grad():
-        shading = shade_camera_hits(
-            scene, seen, frame, RenderCache(), Mirrors.of(scene, seen, max_bounces)
-        )
+        mirrors = Mirrors.of(scene, seen, max_bounces)
+        shading = shade_camera_hits(scene, seen, frame, RenderCache(), mirrors, surfaces=False)
     if shading.colour is not None:
         out[shading.rays] = shading.colour.data
     return out

@@ -9,12 +9,13 @@ to ``max_bounces`` reflections).
 ``shade_camera_hits`` feeds it the camera rays' hits, object by object: each object's
 Surface is recomputed from the camera frame and the primitive ids of step 1, or reused
 from the render cache when nothing that moves it is differentiated and its values are
-unchanged (e.g. while only a light or a material is optimised).
+unchanged (e.g. while only a light or a material is optimised). A mesh whose colour nothing
+differentiates is shaded off the tape instead, in one compiled pass
+(``render.shade.compiled``), when the caller does not need its Surface.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +25,7 @@ from minidiff import buffers
 from render.scene.cache import RenderCache, surface_key
 from render.scene.camera import ray_directions
 from render.scene.scene import Mesh, Scene
+from render.shade import compiled
 from render.shade.lighting import shade_surface
 from render.shade.mirrors import Mirrors
 from render.shade.surface import (
@@ -87,51 +89,73 @@ class CameraShading:
 
 
 def shade_camera_hits(
-    scene: Scene, visibility: Visibility, frame, cache: RenderCache, mirrors: Mirrors | None
+    scene: Scene,
+    visibility: Visibility,
+    frame,
+    cache: RenderCache,
+    mirrors: Mirrors | None,
+    surfaces: bool = True,
 ) -> CameraShading:
     """Steps 2 and 3 for the camera rays: every object's hits recomputed from the camera
-    ``frame`` (``render.scene.camera.camera_frame``) and shaded by ``shade_hits``."""
-    n_rays = visibility.primary.prim_id.size
+    ``frame`` (``render.scene.camera.camera_frame``) and shaded by ``shade_hits``.
+
+    surfaces: whether the caller needs every object's ``Hits`` with its Surface (the pixel
+    pairs' shadow terms shade them again). Without, a mesh whose colour nothing
+    differentiates is shaded off the tape in one compiled pass
+    (``render.shade.compiled``, the same values) and left out of ``CameraShading.hits``."""
+    primary = visibility.primary
     texel = None  # made when a textured object is hit (filling it costs a pass)
     colours, rays, shaded = [], [], {}
-    for hits in camera_hits(scene, visibility, frame, cache):
-        colour, cells = shade_hits(scene, hits, mirrors, 0)
-        if hits.obj.material.texture is not None:
+    hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
+    for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
+        in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
+        if len(in_obj) == 0:
+            continue
+        reflects = mirrors is not None and mirrors.max_bounces > 0 and obj.material.reflective
+        if not surfaces and compiled.applies(scene, obj, reflects):
+            values, cells = compiled.shade_mesh_values(
+                obj, hit_prims[in_obj] - first, [t.data for t in frame],
+                md.kernels.gather_rows(primary.coords, in_obj), scene.lights,
+                [md.kernels.gather_rows(mask, in_obj) for mask in visibility.lit],
+            )  # fmt: skip
+            colour = md.tensor(values)
+        else:
+            hits = object_hits(scene, visibility, frame, cache, index, in_obj)
+            colour, cells = shade_hits(scene, hits, mirrors, 0)
+            shaded[index] = hits
+        if obj.material.texture is not None:
             if texel is None:
-                texel = buffers.empty((n_rays,), np.int64)  # reused memory
+                texel = buffers.empty((primary.prim_id.size,), np.int64)  # reused memory
                 texel.fill(-1)
-            texel[hits.rays] = cells
+            texel[primary.hit_rays[in_obj]] = cells
         colours.append(colour)
-        rays.append(hits.rays)
-        shaded[hits.index] = hits
+        rays.append(primary.hit_rays[in_obj])
     if not colours:
         return CameraShading(None, np.zeros(0, np.int64), texel, shaded)
     colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
     return CameraShading(colour, np.concatenate(rays), texel, shaded)
 
 
-def camera_hits(scene: Scene, visibility: Visibility, frame, cache: RenderCache) -> Iterator[Hits]:
-    """The camera rays' hits, object by object (in ``primitive_ranges`` order; objects no
-    ray hits are skipped), each Surface computed when the iterator reaches it."""
+def object_hits(
+    scene: Scene, visibility: Visibility, frame, cache: RenderCache, index: int, in_obj
+) -> Hits:
+    """The camera rays' hits ``in_obj`` (k,) (rows of ``visibility.primary.hit_rays``) on
+    the object at ``index`` in ``primitive_ranges``, its Surface computed on the tape or
+    reused from ``cache`` (``_reused_surface``)."""
     primary, dtype = visibility.primary, working_dtype(scene)
-    eye = frame[3]
-    coords = primary.coords.astype(dtype, copy=False)
-    hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
-    for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
-        in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
-        if len(in_obj) == 0:
-            continue
+    obj, first, _ = primitive_ranges(scene)[index]
+    prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays[in_obj])
 
-        def surface(obj=obj, first=first, in_obj=in_obj) -> Surface:
-            directions = ray_directions(frame, md.kernels.gather_rows(coords, in_obj))
-            if isinstance(obj, Mesh):
-                return mesh_surface(obj, hit_prims[in_obj] - first, eye, directions)
-            return sphere_surface(obj, eye, directions)
+    def surface() -> Surface:
+        coords = md.kernels.gather_rows(primary.coords.astype(dtype, copy=False), in_obj)
+        directions = ray_directions(frame, coords)
+        if isinstance(obj, Mesh):
+            return mesh_surface(obj, prims - first, frame[3], directions)
+        return sphere_surface(obj, frame[3], directions)
 
-        found = _reused_surface(scene, cache, visibility, index, obj, dtype, surface)
-        lit = [_as_dtype(mask[in_obj], dtype) for mask in visibility.lit]
-        rays = primary.hit_rays[in_obj]
-        yield Hits(obj, index, found, hit_prims[in_obj], rays, in_obj, lit)
+    found = _reused_surface(scene, cache, visibility, index, obj, dtype, surface)
+    lit = [_as_dtype(mask[in_obj], dtype) for mask in visibility.lit]
+    return Hits(obj, index, found, prims, primary.hit_rays[in_obj], in_obj, lit)
 
 
 def _as_dtype(mask: np.ndarray, dtype) -> np.ndarray:

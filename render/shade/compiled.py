@@ -1,0 +1,230 @@
+"""Steps 2 and 3 off the tape, in one compiled pass: the colour of k camera hits on a mesh
+when nothing that colour depends on is differentiated.
+
+``shade_camera_hits`` recomputes each hit's surface (``mesh_surface``) and shades it
+(``shade_surface``) with minidiff operations: some forty passes over (k, 3) arrays, each
+writing a new one. When no parameter of the camera, the mesh, its material or the lights
+is differentiated, no tape is needed, and ``shade_mesh_values`` computes the same colours
+point by point in one Numba loop: the camera ray, Moller-Trumbore, the normal (flat or
+interpolated), the UV and texture lookups, every light's Lambert + Blinn-Phong term, the
+ambient and emitted radiance.
+
+The arithmetic is the tape code's, operation for operation and in the same order (Numba
+does not contract a * b + c into a fused multiply-add without fastmath), so the colours
+are the same bit for bit, except where a Blinn-Phong lobe raises n.h to the shininess:
+NumPy's vectorised ``power`` and the C library's ``pow`` that Numba calls may round the
+last bit differently. ``tests/test_compiled_shading.py`` ties the two together.
+
+Its users: a forward render that nothing differentiates, and the edge terms, which shade
+what lies on either side of an edge off the tape (``render.edges.boundary.shade_seen``).
+Spheres, float32 scenes and materials that reflect (their mirror rays are traced by
+``render.shade.mirrors``) take the tape code, values only.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+import minidiff as md
+from render.scene.scene import Mesh, PointLight, Scene
+from render.shade.surface import vertex_normals
+from render.trace.intersect import BLOCK, _jobs
+
+_NO_MAP = np.zeros((0, 0, 3))  # stands for an absent texture (Numba needs an array)
+
+
+def applies(scene: Scene, obj, reflects: bool) -> bool:
+    """Whether ``shade_mesh_values`` gives ``obj``'s camera hits their colour: a mesh in a
+    float64 scene, ``reflects`` False (no mirror ray leaves it), and, while gradients are
+    enabled, nothing its colour depends on differentiated (the camera, the mesh, its
+    material, the lights)."""
+    if not isinstance(obj, Mesh) or reflects:
+        return False
+    owners = [scene.camera, obj, obj.material, *scene.lights]
+    depends = [t for owner in owners for t in owner.named_parameters().values()]
+    if any(t.dtype != np.float64 for t in depends):
+        return False
+    return not (md.is_grad_enabled() and any(t.is_differentiated() for t in depends))
+
+
+def shade_mesh_values(
+    mesh: Mesh, faces_hit: np.ndarray, camera, coords: np.ndarray, lights, lit
+) -> tuple[np.ndarray, np.ndarray]:
+    """The radiance (k, 3) float64 and texture cell (k,) int64 (-1: untextured) of k camera
+    rays through image-plane points ``coords`` (k, 2) that hit the mesh's faces
+    ``faces_hit`` (k,) (local ids): what ``mesh_surface`` then ``shade_surface`` compute,
+    as plain values. ``camera``: (forward, right, up, eye) float64 (3,) each (the camera
+    frame's values); ``lit[j]`` (k,): 1 where light j reaches the hit."""
+    forward, right, up, eye = camera
+    material = mesh.material
+    with md.no_grad():  # the normals a smooth mesh without its own computes from its vertices
+        normals = (
+            np.zeros((0, 3))
+            if not mesh.smooth
+            else mesh.normals.data
+            if mesh.normals is not None
+            else vertex_normals(mesh.vertices, mesh.faces).data
+        )
+        # A point light's position; the unit vector towards a directional light.
+        vec = [
+            light.position.data if isinstance(light, PointLight)
+            else md.normalize(-light.direction).data
+            for light in lights
+        ]  # fmt: skip
+    vec = np.array(vec, np.float64).reshape(-1, 3)
+    textured = bool(material.textures)
+    maps = [material.texture, material.specular_texture, material.ambient_texture]
+    kinds = np.array([0 if isinstance(light, PointLight) else 1 for light in lights], np.int64)
+    strength = np.array(
+        [light.intensity.data if isinstance(light, PointLight) else light.irradiance.data
+         for light in lights], np.float64,
+    ).reshape(-1)  # fmt: skip
+    colour = np.array([light.color.data for light in lights], np.float64).reshape(-1, 3)
+    visible = np.zeros((len(lights), len(faces_hit)))
+    for j, mask in enumerate(lit):
+        visible[j] = mask
+    specular, ambient, emission = (
+        np.broadcast_to(t.data, (3,)).astype(np.float64)
+        for t in (material.specular, material.ambient, material.emission)
+    )
+    out = np.empty((len(faces_hit), 3))
+    texel = np.empty(len(faces_hit), np.int64)
+    _shade_kernel(
+        np.ascontiguousarray(coords, np.float64), eye, right, up, forward,
+        mesh.vertices.data, mesh.faces, np.ascontiguousarray(faces_hit, np.int64),
+        normals, mesh.uvs.data if textured else np.zeros((0, 2)),
+        *(_NO_MAP if m is None else m.data for m in maps),
+        material.albedo.data, specular, ambient, float(material.shininess.data), emission,
+        mesh.smooth, textured, bool(np.any(material.specular.data)),
+        bool(np.any(material.ambient.data)), material.emissive,
+        kinds, vec, strength, colour, visible, numba.get_num_threads(), out, texel,
+    )  # fmt: skip
+    return out, texel
+
+
+@numba.njit(cache=True, inline="always")
+def _sample(texture, u, v, c):
+    """Component c of the bilinear lookup of an (H, W, 3) texture at UV (u, v), repeating
+    (``render.shade.lighting.sample_texture`` for one point); and the footprint's cell."""
+    height, width = texture.shape[0], texture.shape[1]
+    x, y = u * width - 0.5, (1.0 - v) * height - 0.5
+    x0, y0 = math.floor(x), math.floor(y)
+    fx, fy = x - x0, y - y0
+    ix0, iy0 = int(x0 % width), int(y0 % height)
+    ix1, iy1 = (ix0 + 1) % width, (iy0 + 1) % height
+    top = texture[iy0, ix0, c] * (1.0 - fx) + texture[iy0, ix1, c] * fx
+    bottom = texture[iy1, ix0, c] * (1.0 - fx) + texture[iy1, ix1, c] * fx
+    return top * (1.0 - fy) + bottom * fy, iy0 * width + ix0
+
+
+@numba.njit(cache=True, inline="always")
+def _unit(x0, x1, x2):
+    """``md.normalize`` of one 3-vector: x times 1 / |x| (the zero vector stays zero)."""
+    length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    inv = 1.0 / length if length > 0 else 0.0
+    return x0 * inv, x1 * inv, x2 * inv
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _shade_kernel(
+    coords, eye, right, up, forward, vertices, faces, face, vertex_normal, uvs,
+    albedo_map, specular_map, ambient_map, albedo, specular, ambient, shininess, emission,
+    smooth, textured, specular_on, ambient_on, emissive,
+    light_kind, light_vec, light_strength, light_color, visible, n_threads, out, texel,
+):  # fmt: skip
+    """``shade_mesh_values``' loop: per hit p, in the tape code's order of operations."""
+    k = face.shape[0]
+    n_blocks, n_jobs = _jobs(k, n_threads)
+    lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
+    for job in numba.prange(n_jobs):
+        d, n, albedo_p, specular_p = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+        radiance = np.empty(3)
+        for block in range(job, n_blocks, n_jobs):
+            for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
+                # The camera ray (render.scene.camera.camera_directions).
+                x, y = coords[p, 0], coords[p, 1]
+                for c in range(3):
+                    d[c] = x * right[c] + y * up[c] + forward[c]
+                # Moller-Trumbore (render.shade.surface.intersect_edges).
+                ia, ib, ic = faces[face[p], 0], faces[face[p], 1], faces[face[p], 2]
+                a, b, cc = vertices[ia], vertices[ib], vertices[ic]
+                e10, e11, e12 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+                e20, e21, e22 = cc[0] - a[0], cc[1] - a[1], cc[2] - a[2]
+                p0, p1 = d[1] * e22 - d[2] * e21, d[2] * e20 - d[0] * e22
+                p2 = d[0] * e21 - d[1] * e20
+                inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
+                s0, s1, s2 = eye[0] - a[0], eye[1] - a[1], eye[2] - a[2]
+                q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
+                t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
+                u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
+                v = (d[0] * q0 + d[1] * q1 + d[2] * q2) * inv_det
+                # The normal, facing the ray (mesh_surface, toward_ray).
+                n[0], n[1], n[2] = _unit(
+                    e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20
+                )
+                flip = -1.0 if n[0] * d[0] + n[1] * d[1] + n[2] * d[2] > 0 else 1.0
+                w0 = 1.0 - u - v
+                if smooth:
+                    na, nb, nc = vertex_normal[ia], vertex_normal[ib], vertex_normal[ic]
+                    n[0], n[1], n[2] = _unit(
+                        0 + w0 * na[0] + u * nb[0] + v * nc[0],
+                        0 + w0 * na[1] + u * nb[1] + v * nc[1],
+                        0 + w0 * na[2] + u * nb[2] + v * nc[2],
+                    )
+                for c in range(3):
+                    n[c] = n[c] * flip
+                # The material at the hit (render.shade.lighting.appearance).
+                texel[p] = -1
+                uu = vv = 0.0
+                if textured:
+                    uu = 0 + w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0]
+                    vv = 0 + w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1]
+                for c in range(3):
+                    albedo_p[c], specular_p[c] = albedo[c], specular[c]
+                    if albedo_map.shape[0] > 0:
+                        albedo_p[c], texel[p] = _sample(albedo_map, uu, vv, c)
+                    if specular_map.shape[0] > 0:
+                        specular_p[c] = specular[c] * _sample(specular_map, uu, vv, c)[0]
+                # The lights (render.shade.lighting.shade).
+                point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
+                view = _unit(d[0], d[1], d[2])
+                for j in range(light_kind.shape[0]):
+                    if light_kind[j] == 0:  # a point light
+                        o0 = light_vec[j, 0] - point[0]
+                        o1 = light_vec[j, 1] - point[1]
+                        o2 = light_vec[j, 2] - point[2]
+                        distance_sq = o0 * o0 + o1 * o1 + o2 * o2
+                        irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
+                        l0, l1, l2 = _unit(o0, o1, o2)
+                    else:  # a directional light: light_vec holds the unit vector to it
+                        l0, l1, l2 = light_vec[j, 0], light_vec[j, 1], light_vec[j, 2]
+                        irradiance = light_strength[j]
+                    cos_theta = n[0] * l0 + n[1] * l1 + n[2] * l2
+                    cos_theta = 0.0 if cos_theta < 0.0 else cos_theta
+                    lobe = 0.0
+                    if specular_on:
+                        h0, h1, h2 = _unit(l0 + -view[0], l1 + -view[1], l2 + -view[2])
+                        n_dot_h = n[0] * h0 + n[1] * h1 + n[2] * h2
+                        n_dot_h = 1e-12 if n_dot_h < 1e-12 else n_dot_h
+                        lobe = n_dot_h**shininess * lobe_scale
+                    scalar = irradiance * cos_theta * visible[j, p]
+                    for c in range(3):
+                        f = albedo_p[c] * (1.0 / math.pi)
+                        if specular_on:
+                            f = f + lobe * specular_p[c]
+                        term = scalar * (f * light_color[j, c])
+                        radiance[c] = term if j == 0 else radiance[c] + term
+                for c in range(3):
+                    if light_kind.shape[0] == 0:
+                        radiance[c] = 0.0
+                    if ambient_on:
+                        a_c = ambient[c]
+                        if ambient_map.shape[0] > 0:
+                            a_c = ambient[c] * _sample(ambient_map, uu, vv, c)[0]
+                        radiance[c] = radiance[c] + a_c
+                    if emissive:
+                        radiance[c] = radiance[c] + (1.0 if flip > 0 else 0.0) * emission[c]
+                    out[p, c] = radiance[c]
