@@ -10,10 +10,16 @@ from hypothesis import strategies as st
 from test_accel import grid_triangles
 
 import render
-from render.scene.camera import hits_along_rays, image_plane_coords, primary_rays
+from render.scene.camera import (
+    camera_directions,
+    hits_along_rays,
+    image_plane_coords,
+    plain_frame,
+    primary_rays,
+)
 from render.trace.accel import Accelerator
 from render.trace.primitives import scene_primitives
-from render.trace.raster import raster_closest_hit
+from render.trace.raster import raster_closest_hit, raster_occluded
 
 SETTINGS = settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -116,3 +122,66 @@ def test_hits_along_rays_are_eye_plus_t_times_the_rows_of_primary_rays():
         *scene_primitives(render.paper_scene(16, 12)), camera, with_uv=False
     )
     assert u is None and v is None
+
+
+def assert_occluded_equals_bvh(triangles, centers, radii, camera, coords, rng):
+    """``raster_occluded`` against the BVH's any-hit for camera rays through ``coords``
+    (k, 2), their ends just before, at and beyond what they hit first, and beyond
+    everything, ignoring nothing, a random primitive or the one they hit first."""
+    frame = plain_frame(camera)
+    forward, right, up, eye = frame
+    directions = camera_directions(coords, right, up, forward)
+    accel = Accelerator(triangles, centers, radii)
+    origins = np.broadcast_to(eye, directions.shape)
+    first, t, _, _ = accel.closest_hit(origins, directions)
+    n_prims = len(triangles) + len(centers)
+    k = len(coords)
+    ends = np.where(np.isfinite(t), t, 1.0)
+    tmax = ends * rng.choice([1.0 - 1e-6, 1.0, 1.0 + 1e-6, 2.0, 1e3], k)
+    ignore = np.where(rng.uniform(size=k) < 0.5, first, rng.integers(-1, n_prims, k))
+    raster = raster_occluded(
+        (triangles, centers, radii), frame, camera.width, camera.height, coords, directions,
+        tmax, ignore,
+    )  # fmt: skip
+    bvh = accel.occluded(origins, directions, tmax, tmin=0.0, ignore_prim=ignore)
+    np.testing.assert_array_equal(raster, bvh)
+    return raster
+
+
+@SETTINGS
+@given(
+    soup=soups(3.0, 4, 2.0, 1.5),
+    eye=points(1, -4.0, 4.0),
+    fov=st.floats(20.0, 100.0),
+    seed=st.integers(0, 2**31),
+)
+def test_occluded_camera_rays_match_the_bvh(soup, eye, fov, seed):
+    """Rays through any image-plane point, a few outside the image (they are tested
+    against every primitive), to every kind of end."""
+    eye = eye[0]
+    camera = render.Camera(eye, eye + np.array([0.3, -0.2, -1.0]), fov=fov, width=23, height=17)
+    rng = np.random.default_rng(seed)
+    assert_occluded_equals_bvh(*soup, camera, rng.uniform(-1.1, 1.1, (200, 2)), rng)
+
+
+def test_occluded_rays_through_shared_edges_and_vertices():
+    """Rays exactly through a grid's vertices and edges (pixel corners and borders), where
+    a tile's list must hold every triangle the BVH would find."""
+    triangles = grid_triangles(16, 16, size=0.125) - np.array([1.0, 1.0, 0.0])
+    camera = render.Camera((0.0, 0.0, 1.0), (0.0, 0.0, 0.0), fov=90.0, width=16, height=16)
+    corners = np.stack(np.meshgrid(np.arange(17) / 8.0 - 1.0, np.arange(17) / 8.0 - 1.0), -1)
+    coords = np.concatenate([corners.reshape(-1, 2), corners.reshape(-1, 2)[:, ::-1] * 0.999])
+    blocked = assert_occluded_equals_bvh(
+        triangles, np.zeros((0, 3)), np.zeros(0), camera, coords, np.random.default_rng(3)
+    )
+    assert blocked.any() and not blocked.all()
+
+
+def test_occluded_rays_to_the_teapots_edges():
+    """The boundary term's use: rays to points on the teapot and its ground, at 256x192."""
+    scene = render.paper_scene(256, 192, ground=True)
+    scene.objects.append(render.Sphere((1.5, 0.5, 1.0), 0.6, render.Material((0.5, 0.5, 0.5))))
+    rng = np.random.default_rng(0)
+    assert_occluded_equals_bvh(
+        *scene_primitives(scene), scene.camera, rng.uniform(-1.0, 1.0, (20000, 2)), rng
+    )

@@ -69,6 +69,7 @@ from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
 from render.trace.intersect import BLOCK, _jobs
+from render.trace.raster import OCCLUSION_RAYS_PER_PRIMITIVE, raster_occluded
 from render.trace.topology import EdgeTable
 from render.trace.visibility import PrimaryHits, Visibility
 
@@ -839,14 +840,15 @@ def _pixel_gradient(grad: np.ndarray, width: int, height: int):
     return norm, unit * np.array([2.0 / width, -2.0 / height])
 
 
-def _line_points(visibility, frame, camera, m, directions, depth, ignore):
+def _line_points(visibility, frame, camera, m, coords, directions, depth, ignore):
     """For k points on lines with the edge function e = d . m (m (k, 3), the plane through
     the eye and the line), seen along camera directions (k, 3) at ``depth`` (k,): |grad e|
     in pixel units (k,), the image-plane step one pixel along grad e (k, 2), and which
     points are ``_hidden`` (k,) bool."""
     forward, right, up, eye = frame
     norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
-    return norm, step, _hidden(visibility, eye, directions, depth, norm, ignore)
+    hidden = _hidden(visibility, frame, camera, coords, directions, depth, norm, ignore)
+    return norm, step, hidden
 
 
 def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height):
@@ -944,16 +946,28 @@ def edge_sides_kernel(
     return directions, depth, norm, step, chosen
 
 
-def _hidden(visibility, eye, directions, depth, norm, ignore, first_try=None):
-    """(k,) bool: which of k points seen along camera directions (k, 3) at ``depth`` (k,)
-    are hidden: something other than primitive ``ignore`` (k,) lies in front (an any-hit
-    ray that ends just short of the point), or their curve is seen edge-on (|grad e| =
-    ``norm`` zero) or from behind. ``first_try`` (k,): a primitive likely to lie in front
-    of each point (``_seen_in``), tried before the BVH (the same answer, sooner)."""
-    return (norm <= 0) | ~(depth > 0) | visibility.accelerator().occluded(
-        np.broadcast_to(eye, directions.shape), directions, depth * (1.0 - 1e-6),
-        tmin=0.0, ignore_prim=ignore, first_try=first_try,
-    )  # fmt: skip
+def _hidden(visibility, frame, camera, coords, directions, depth, norm, ignore, first_try=None):
+    """(k,) bool: which of k points seen along camera directions (k, 3) through image-plane
+    points ``coords`` (k, 2) at ``depth`` (k,) are hidden: something other than primitive
+    ``ignore`` (k,) lies in front (an any-hit ray that ends just short of the point), or
+    their curve is seen edge-on (|grad e| = ``norm`` zero) or from behind. ``frame``: the
+    plain camera (``plain_camera``). With many rays per primitive the rays are answered by
+    the rasteriser's tiles (``raster_occluded``), else by the BVH, which tries
+    ``first_try`` (k,), a primitive likely to lie in front of each point (``_seen_in``),
+    before its traversal: the same answers either way."""
+    tmax = depth * (1.0 - 1e-6)
+    primitives = visibility.primitives
+    n_prims = len(primitives[0]) + len(primitives[1])
+    if visibility.bvh and len(coords) >= OCCLUSION_RAYS_PER_PRIMITIVE * n_prims:
+        blocked = raster_occluded(
+            primitives, frame, *_size(camera), coords, directions, tmax, ignore
+        )
+    else:
+        blocked = visibility.accelerator().occluded(
+            np.broadcast_to(frame[3], directions.shape), directions, tmax,
+            tmin=0.0, ignore_prim=ignore, first_try=first_try,
+        )  # fmt: skip
+    return (norm <= 0) | ~(depth > 0) | blocked
 
 
 def _seen_in(visibility, pixel: np.ndarray, scene: Scene) -> np.ndarray | None:
@@ -994,8 +1008,9 @@ def _mesh_edge_factors(
     )  # fmt: skip
     ignore = table.faces[edges, 0] + first_prim
     hidden = _hidden(
-        visibility, eye, directions, depth, norm, ignore, _seen_in(visibility, pixel, scene)
-    )
+        visibility, (forward, right, up, eye), scene.camera, coords, directions, depth, norm,
+        ignore, _seen_in(visibility, pixel, scene),
+    )  # fmt: skip
     seen = np.flatnonzero(~hidden)
     n = len(seen)
     coords, depth, step, chosen = (np.take(x, seen, axis=0) for x in (coords, depth, step, chosen))
@@ -1058,7 +1073,7 @@ def _crossing_factors(scene, visibility, frame, pairs, coords, weight, radiance,
     nd = np.einsum("ij,ij->i", n1, directions)
     depth = np.einsum("ij,ij->i", n1, t1[:, 0] - eye) / np.where(nd != 0, nd, np.inf)
     norm, step, hidden = _line_points(
-        visibility, (forward, right, up, eye), camera, m, directions, depth, pairs[:, 0]
+        visibility, (forward, right, up, eye), camera, m, coords, directions, depth, pairs[:, 0]
     )
     seen = np.flatnonzero(~hidden)
     towards = step[seen, :1] * right + step[seen, 1:] * up  # towards the + side

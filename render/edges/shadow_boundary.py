@@ -48,12 +48,13 @@ import numpy as np
 import minidiff as md
 from render.edges.boundary import (
     EPSILON,
+    _hidden,
     _pixel_gradient,
     plain_camera,
     project,
 )
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
-from render.scene.camera import ray_directions
+from render.scene.camera import camera_directions, ray_directions
 from render.scene.scene import PointLight, Scene
 from render.shade.hits import working_dtype
 from render.shade.surface import in_order
@@ -721,9 +722,9 @@ def _border_factors(
     seen = np.isfinite(t) & (t > 0) & (norm > 0)
     rows = np.flatnonzero(seen)
     at = np.take(coords, rows, axis=0)
-    hidden = visibility.accelerator().occluded(
-        np.broadcast_to(eye, (len(rows), 3)), at @ np.stack([right, up]) + forward,
-        t[rows] * (1.0 - 1e-6), tmin=0.0, ignore_prim=receiver[rows],
+    hidden = _hidden(
+        visibility, frame, scene.camera, at, camera_directions(at, right, up, forward), t[rows],
+        norm[rows], receiver[rows],
     )  # fmt: skip
     rows, at = rows[~hidden], at[~hidden]
     shift = EPSILON * np.take(step, rows, axis=0)
