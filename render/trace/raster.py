@@ -293,19 +293,10 @@ def raster_closest_hit(
     triangles = np.ascontiguousarray(triangles, np.float64).reshape(-1, 3, 3)
     centers = np.ascontiguousarray(centers, np.float64).reshape(-1, 3)
     radii = np.ascontiguousarray(radii, np.float64).reshape(-1)
-    boxes, edges = screen_boxes(
-        triangles, centers, radii, eye, forward, right, up, width, height, offsets
+    primitives = (triangles, centers, radii)
+    boxes, edges, near, rounding, start, ids, tiles_x = _binned(
+        primitives, (forward, right, up, eye), width, height, offsets, TILE
     )
-    # Each tile's list nearest first: a primitive wholly behind a sample's hit so far is
-    # skipped. A hit's t is its depth (the directions have unit component along forward),
-    # never less than its primitive's nearest depth but for rounding (``wholly_beyond``).
-    near = nearest_depths(triangles, centers, radii, eye, forward)
-    extent = max(
-        np.abs(triangles).max(initial=0.0), (np.abs(centers) + radii[:, None]).max(initial=0.0)
-    )
-    rounding = 64.0 * np.finfo(np.float64).eps * (np.abs(eye).max() + extent)
-    tiles_x, tiles_y = -(-width // TILE), -(-height // TILE)
-    start, ids = bin_to_tiles(boxes, tiles_x, tiles_y, TILE, np.argsort(near, kind="stable"))
     prim_data = pack_primitives(triangles, centers, radii)
     n = width * height * spp
     # Reused memory (minidiff.buffers): fresh 2 MB arrays per render cost page faults.
@@ -318,6 +309,29 @@ def raster_closest_hit(
     if not with_uv:
         return out_id, out_t, None, None
     return out_id, out_t, out_u, out_v
+
+
+def _binned(primitives, frame, width: int, height: int, offsets: np.ndarray, tile: int):
+    """Steps 1 and 2 of the module docstring for samples at ``offsets`` (n, 2) in their
+    pixels and tiles of ``tile`` pixels: (boxes, edges, near, rounding, start, ids,
+    tiles_x), each tile's list (CSR ``start``, ``ids``) nearest first."""
+    triangles, centers, radii = primitives
+    forward, right, up, eye = frame
+    boxes, edges = screen_boxes(
+        triangles, centers, radii, eye, forward, right, up, width, height, offsets
+    )
+    # Each tile's list nearest first: a primitive wholly behind a sample's hit so far (or
+    # a ray's end) is skipped. A hit's t is its depth (the directions have unit component
+    # along forward), never less than its primitive's nearest depth but for rounding
+    # (``wholly_beyond``).
+    near = nearest_depths(triangles, centers, radii, eye, forward)
+    extent = max(
+        np.abs(triangles).max(initial=0.0), (np.abs(centers) + radii[:, None]).max(initial=0.0)
+    )
+    rounding = 64.0 * np.finfo(np.float64).eps * (np.abs(eye).max() + extent)
+    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
+    start, ids = bin_to_tiles(boxes, tiles_x, tiles_y, tile, np.argsort(near, kind="stable"))
+    return boxes, edges, near, rounding, start, ids, tiles_x
 
 
 def raster_occluded(
@@ -344,17 +358,10 @@ def raster_occluded(
     triangles, centers, radii = primitives
     # A point may lie anywhere in its pixel: boxes for offsets from 0 to 1.
     anywhere = np.array([[0.0, 0.0], [1.0, 1.0]])
-    boxes, edges = screen_boxes(
-        triangles, centers, radii, eye, forward, right, up, width, height, anywhere
-    )
-    near = nearest_depths(triangles, centers, radii, eye, forward)
-    extent = max(
-        np.abs(triangles).max(initial=0.0), (np.abs(centers) + radii[:, None]).max(initial=0.0)
-    )
-    rounding = 64.0 * np.finfo(np.float64).eps * (np.abs(eye).max() + extent)
     tile = OCCLUSION_TILE
-    tiles_x, tiles_y = -(-width // tile), -(-height // tile)
-    start, ids = bin_to_tiles(boxes, tiles_x, tiles_y, tile, np.argsort(near, kind="stable"))
+    _, edges, near, rounding, start, ids, tiles_x = _binned(
+        primitives, frame, width, height, anywhere, tile
+    )
     out = np.zeros(len(coords), np.bool_)
     _raster_occluded(
         pack_primitives(triangles, centers, radii), len(triangles), edges, near, rounding,
