@@ -25,7 +25,7 @@ from render_helpers import random_scene
 
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
-from render.edges.boundary import pixel_pieces
+from render.edges.boundary import pixel_order, pixel_pieces
 from render.inverse.reference import moved_along, window_difference, window_mean_gradient
 from render.scene.teapot import paper_scene
 
@@ -373,3 +373,14 @@ def test_the_boundary_kernels_give_the_same_gradient_on_any_number_of_threads(mo
     assert np.any(one[1] != 0) and np.any(one[2] != 0)
     for a, b in zip(one, several, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    pixel=st.lists(st.integers(0, 2**31 - 1) | st.integers(0, 20), max_size=300),
+    big=st.booleans(),
+)
+def test_pixel_order_is_the_stable_argsort(pixel, big):
+    """Ties kept in order; ids too large to pack (big) take the fallback."""
+    pixel = np.array(pixel + ([2**40] if big else []), np.int64)
+    np.testing.assert_array_equal(pixel_order(pixel), np.argsort(pixel, kind="stable"))

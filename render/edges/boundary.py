@@ -352,6 +352,17 @@ def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_
     return kept
 
 
+def pixel_order(pixel: np.ndarray) -> np.ndarray:
+    """``np.argsort(pixel, kind="stable")`` for pixel ids (k,) int64 >= 0: each pair (id,
+    position) packed into one int64 and sorted by NumPy's fastest sort (vectorised on x86;
+    the stable argsort takes ~6x as long on the teapot's 52k pieces at 512x512). Unique
+    keys, so the order is the stable one; ids or positions too large to pack fall back."""
+    n = len(pixel)
+    if n == 0 or n >= 1 << 32 or pixel.max() >= 1 << 31:
+        return np.argsort(pixel, kind="stable")
+    return np.sort((pixel << 32) | np.arange(n)) & 0xFFFFFFFF
+
+
 def split_at_crossings(p0, p1, segment, start, end, pixel):
     """The pieces (``pixel_pieces``' arrays) cut where two pieces in the same pixel cross,
     or where one ends on another (a T-junction): along each part the set of curves beside
@@ -359,7 +370,7 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     quadrature point stands for the part. Same arrays, more rows."""
     if len(pixel) == 0:  # nothing in view (the group bounds below assume one piece at least)
         return segment, start, end, pixel
-    order = np.argsort(pixel, kind="stable")
+    order = pixel_order(pixel)
     ordered = pixel[order]
     bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
     sizes = np.diff(bounds)
