@@ -424,7 +424,7 @@ def shade_seen(
     forward, right, up, eye = plain_camera(frame)
     hit = np.flatnonzero(prim_id >= 0)
     at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
-    directions = at @ np.stack([right, up]) + forward  # x right + y up + forward
+    directions = camera_directions(at, right, up, forward)
     points = eye + depth[hit][:, None] * directions
     primary = PrimaryHits(prim_id, hit, depth, points, at)
     lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
