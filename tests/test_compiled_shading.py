@@ -129,6 +129,22 @@ def test_a_render_nothing_differentiates_equals_the_same_render_on_the_tape(
     np.testing.assert_array_equal(info.texel, taped_info.texel)
 
 
+def test_a_mirror_takes_the_tape_code_and_what_it_shows_the_compiled_pass():
+    """A reflective ground (its mirror rays need the tape code's Hits) beside meshes the
+    compiled pass shades, under no_grad: the same image as on the tape, bit for bit."""
+    scene = random_scene(4, lights=("point", "directional"))
+    scene.objects[0].material.reflectance = md.tensor(0.6)
+    for obj in scene.objects:
+        obj.material.specular.data[...] = 0.0
+    with md.no_grad():
+        plain = render.render(scene, reuse_visibility=False)
+    for p in scene.parameters():
+        p.requires_grad = True
+    taped = render.render(scene, reuse_visibility=False)
+    assert taped.node is not None
+    np.testing.assert_array_equal(plain.data, taped.data)
+
+
 def test_applies_only_where_nothing_needs_the_tape():
     scene = random_scene(0)  # a ground quad, a pyramid, a sphere
     quad, _, sphere = scene.objects
