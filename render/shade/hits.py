@@ -111,25 +111,26 @@ def shade_camera_hits(
         in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
         if len(in_obj) == 0:
             continue
+        prims, obj_rays = hit_prims[in_obj], primary.hit_rays[in_obj]
         reflects = mirrors is not None and mirrors.max_bounces > 0 and obj.material.reflective
         if not surfaces and compiled.applies(scene, obj, reflects):
             values, cells = compiled.shade_mesh_values(
-                obj, hit_prims[in_obj] - first, [t.data for t in frame],
+                obj, prims - first, [t.data for t in frame],
                 md.kernels.gather_rows(primary.coords, in_obj), scene.lights,
                 [md.kernels.gather_rows(mask, in_obj) for mask in visibility.lit],
             )  # fmt: skip
             colour = md.tensor(values)
         else:
-            hits = object_hits(scene, visibility, frame, cache, index, in_obj)
+            hits = object_hits(scene, visibility, frame, cache, index, in_obj, prims)
             colour, cells = shade_hits(scene, hits, mirrors, 0)
             shaded[index] = hits
         if obj.material.texture is not None:
             if texel is None:
                 texel = buffers.empty((primary.prim_id.size,), np.int64)  # reused memory
                 texel.fill(-1)
-            texel[primary.hit_rays[in_obj]] = cells
+            texel[obj_rays] = cells
         colours.append(colour)
-        rays.append(primary.hit_rays[in_obj])
+        rays.append(obj_rays)
     if not colours:
         return CameraShading(None, np.zeros(0, np.int64), texel, shaded)
     colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
@@ -137,14 +138,14 @@ def shade_camera_hits(
 
 
 def object_hits(
-    scene: Scene, visibility: Visibility, frame, cache: RenderCache, index: int, in_obj
+    scene: Scene, visibility: Visibility, frame, cache: RenderCache, index: int, in_obj, prims
 ) -> Hits:
     """The camera rays' hits ``in_obj`` (k,) (rows of ``visibility.primary.hit_rays``) on
-    the object at ``index`` in ``primitive_ranges``, its Surface computed on the tape or
-    reused from ``cache`` (``_reused_surface``)."""
+    primitives ``prims`` (k,) (global ids) of the object at ``index`` in
+    ``primitive_ranges``, its Surface computed on the tape or reused from ``cache``
+    (``_reused_surface``)."""
     primary, dtype = visibility.primary, working_dtype(scene)
     obj, first, _ = primitive_ranges(scene)[index]
-    prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays[in_obj])
 
     def surface() -> Surface:
         coords = md.kernels.gather_rows(primary.coords.astype(dtype, copy=False), in_obj)
