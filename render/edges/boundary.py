@@ -692,13 +692,20 @@ def global_welded(scene: Scene, topology) -> np.ndarray:
 def _outline_polyline(sphere, frame, width: int, height: int, size: float):
     """The sphere's outline as a closed polyline in pixel coordinates (n, 2): the circle of
     points where rays from the eye touch it, sampled so that chords are at most ``CHORD``
-    pixels (None: the eye is inside the sphere, or no part of it is in front)."""
+    pixels (None: the eye is inside the sphere, no part of it is in front, or it is too
+    small, seen from the eye, for its outline to be found in double precision)."""
     eye = frame[3]
     centre = np.asarray(sphere.center.data, np.float64)
     r = float(sphere.radius.data)
     w = centre - eye
     dist2 = float(w @ w)
     if dist2 <= r * r:
+        return None
+    if r * r <= np.finfo(np.float64).eps * dist2:
+        # The outline is where b^2 = |d|^2 (dist2 - r^2) (``_onto_outline``): with r^2
+        # below dist2's rounding that discriminant is noise (and with r * r underflowing
+        # the circle collapses to a point, Newton divides by zero). Such a sphere subtends
+        # under 1.5e-8 radians: its outline's contribution (its length) is nil.
         return None
     touch = eye + w * (1.0 - r * r / dist2)  # centre of the circle of tangency
     rho = r * math.sqrt(1.0 - r * r / dist2)

@@ -1,0 +1,52 @@
+"""Issue 41: inputs that crashed deep inside the renderer or gave an unclear error.
+
+Each legal but extreme input (all-degenerate meshes, a sphere too small to resolve) now
+renders; each illegal one is refused at the call that is wrong, by an error that names the
+argument and says what was expected.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from render_helpers import QUAD_FACES
+
+import render
+
+# --------------------------------------------------------------------------------------
+# A sphere too small for its outline to be found
+# --------------------------------------------------------------------------------------
+
+
+def quad_and_sphere(radius):
+    """A quad behind a sphere of ``radius`` whose centre projects exactly onto a pixel
+    corner (the image centre of an even-sized image), where the outline's quadrature
+    points land on pixel borders."""
+    camera = render.Camera((0, 0, 4.0), (0, 0, 0), fov=40, width=16, height=12)
+    quad = render.Mesh(
+        [(-1, -1, -1), (1, -1, -1), (1, 1, -1), (-1, 1, -1)], QUAD_FACES,
+        render.Material((0.1, 0.1, 0.1)),
+    )  # fmt: skip
+    objects = [quad]
+    if radius is not None:
+        objects.append(render.Sphere((0, 0, 0), radius, render.Material((0.9, 0.9, 0.9))))
+    scene = render.Scene(objects, [render.PointLight((0, 1, 3), 10.0)], camera)
+    quad.vertices.requires_grad = True
+    return scene
+
+
+@pytest.mark.parametrize("radius", [1e-16, 1e-100, 1e-160, 1e-300])
+def test_a_sphere_too_small_to_resolve_adds_no_outline(radius):
+    """Its outline's Newton steps divided by a zero gradient ("directions must be finite"
+    from deep inside the boundary term) once r^2 fell below dist^2's rounding: the sphere
+    subtends under 1.5e-8 radians, its outline has no length to speak of, and it is
+    skipped. The image and the quad's gradient are those of the scene without it."""
+    scene, alone = quad_and_sphere(radius), quad_and_sphere(None)
+    image = render.render(scene, antialias="boundary")
+    image.sum().backward()
+    reference = render.render(alone, antialias="boundary")
+    reference.sum().backward()
+    np.testing.assert_array_equal(image.data, reference.data)
+    grad, expected = scene.objects[0].vertices.grad, alone.objects[0].vertices.grad
+    assert np.isfinite(grad).all() and np.abs(expected).max() > 0
+    np.testing.assert_allclose(grad, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
