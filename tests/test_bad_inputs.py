@@ -50,3 +50,27 @@ def test_a_sphere_too_small_to_resolve_adds_no_outline(radius):
     grad, expected = scene.objects[0].vertices.grad, alone.objects[0].vertices.grad
     assert np.isfinite(grad).all() and np.abs(expected).max() > 0
     np.testing.assert_allclose(grad, expected, rtol=1e-12, atol=1e-12 * np.abs(expected).max())
+
+
+# --------------------------------------------------------------------------------------
+# Transform: a rotation angle too large to mean anything
+# --------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("angle", [1e200, 1e20, 1.0000001e6])
+def test_a_rotation_angle_beyond_1e6_degrees_is_refused_by_name(angle):
+    """(0, 0, 1e200) was accepted and the render failed later with "triangles must be
+    finite" (theta^2 overflowed); 1e20 degrees gave a rotation decided by rounding."""
+    with pytest.raises(ValueError, match=r"Transform: rotation must be .*at most 1e6 degrees"):
+        render.Transform(rotation=(0.0, 0.0, angle))
+    with pytest.raises(ValueError, match=r"Transform: rotation must be .*at most 1e6 degrees"):
+        render.Transform(rotation=(angle / np.sqrt(3),) * 3)  # the length is the angle
+
+
+def test_a_rotation_angle_grown_too_large_in_place_is_refused_at_render():
+    scene = quad_and_sphere(None)
+    scene.objects[0].transform = render.Transform(rotation=(0.0, 0.0, 1e6))  # the largest
+    render.render(scene)
+    scene.objects[0].transform.rotation.data[2] = 1e200  # an optimiser ran away
+    with pytest.raises(ValueError, match=r"Transform: rotation must be .*at most 1e6 degrees"):
+        render.render(scene)

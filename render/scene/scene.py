@@ -552,12 +552,29 @@ class Material(_HasFields):
 # --------------------------------------------------------------------------------------
 
 
+#: The largest angle (degrees) of a rotation vector: 2,778 turns. The rotation is made of
+#: sin and cos of the angle in radians, which are only as good as that angle's own
+#: rounding, |theta| * 1.1e-16: 2e-12 rad here, a whole radian by 1e18 degrees (the result
+#: is then meaningless), and theta^2 overflows to inf beyond ~1e156 degrees (a NaN matrix,
+#: refused only later as "triangles must be finite"). No placement needs more: an angle
+#: may be reduced mod 360.
+MAX_ROTATION_DEGREES = 1e6
+
+
 def _rotation_ok(x: np.ndarray) -> bool:
-    """A rotation vector of any length, or a quaternion far enough from zero to normalise."""
-    return x.shape == (3,) or _normalisable(x)
+    """A rotation vector of at most ``MAX_ROTATION_DEGREES``, or a quaternion far enough
+    from zero to normalise."""
+    if x.shape == (3,):
+        with np.errstate(over="ignore"):
+            return bool(np.sqrt(np.sum(np.square(x, dtype=np.float64))) <= MAX_ROTATION_DEGREES)
+    return _normalisable(x)
 
 
-_ROTATION = (_rotation_ok, "a rotation vector or a non-zero quaternion")
+_ROTATION = (
+    _rotation_ok,
+    "a rotation vector or a non-zero quaternion (a rotation vector's length, its angle, "
+    "at most 1e6 degrees)",
+)
 
 
 class Transform(_HasFields):
@@ -572,7 +589,8 @@ class Transform(_HasFields):
 
     Args:
         rotation: (3,) a rotation vector in **degrees** (the axis times the angle, like the
-            scene's other angles; (0, 0, 0) is no rotation), or (4,) a quaternion
+            scene's other angles; (0, 0, 0) is no rotation; an angle of at most 1e6
+            degrees, ``MAX_ROTATION_DEGREES``), or (4,) a quaternion
             (w, x, y, z), normalised on use (any non-zero length). Rotation vectors give an
             optimiser three unconstrained coordinates; quaternions have no singular angle.
         translation: (3,) added after rotating and scaling.
@@ -584,9 +602,7 @@ class Transform(_HasFields):
     """
 
     FIELDS = (
-        Field(
-            "rotation", ((3,), (4,)), (_rotation_ok, "a rotation vector or a non-zero quaternion")
-        ),
+        Field("rotation", ((3,), (4,)), _ROTATION),
         Field("translation", ((3,),), IN_RANGE),
         Field("scale", ((),), (lambda x: 0.0 < x <= MAX_COORD, "> 0 and at most 1e60")),
         Field("pivot", ((3,),), IN_RANGE),
