@@ -53,6 +53,70 @@ def test_a_sphere_too_small_to_resolve_adds_no_outline(radius):
 
 
 # --------------------------------------------------------------------------------------
+# Meshes whose faces are all degenerate
+# --------------------------------------------------------------------------------------
+
+DEGENERATE = {
+    "zero-area": ([(0.2, 0.1, 0.0)] * 3, None),
+    "collinear": ([(-0.5, 0.0, 0.0), (0.1, 0.2, 0.0), (0.4, 0.3, 0.0)], None),
+    "sliver": ([(-2.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 1e-12, 0.0)], None),  # 4 x 1e-12
+    "scaled-away": ([(-0.5, -0.5, 0), (0.5, -0.5, 0), (0, 0.5, 0)], 1e-300),
+}
+
+
+def degenerate_scene(case, beside):
+    """The degenerate mesh of ``case`` (vertices requiring grad), alone or in front of the
+    quad of ``quad_and_sphere`` (``beside``); None: the quad alone. The background requires
+    grad too, so that the image is on the tape even where nothing is hit."""
+    scene = quad_and_sphere(None)
+    scene.background.requires_grad = True
+    if not beside:
+        scene.objects = []
+    if case is not None:
+        vertices, scale = DEGENERATE[case]
+        transform = None if scale is None else render.Transform(scale=scale)
+        mesh = render.Mesh(
+            vertices, [[0, 1, 2]], render.Material((0.5, 0.5, 0.5)), transform=transform
+        )
+        mesh.vertices.requires_grad = True
+        scene.objects.append(mesh)
+    return scene
+
+
+def image_and_grads(scene, antialias):
+    """The image and the gradients of a fixed weighting of it with respect to every
+    parameter that requires grad (None: not reached)."""
+    image = render.render(scene, antialias=antialias)
+    weights = np.random.default_rng(0).standard_normal(image.shape)
+    (image * weights).sum().backward()
+    grads = [scene.background.grad] + [o.vertices.grad for o in scene.objects]
+    return image.data, grads
+
+
+@pytest.mark.parametrize("antialias", ["pairs", "boundary"])
+@pytest.mark.parametrize("beside", [False, True], ids=["alone", "beside-a-quad"])
+@pytest.mark.parametrize("case", DEGENERATE)
+def test_a_mesh_of_degenerate_faces_only_adds_no_edge_term(case, beside, antialias):
+    """Its edge table was built from no edges and indexed out of bounds (an IndexError in
+    ``render.trace.topology``). It now has no edges: the image and the gradients are those
+    of the scene without it, the degenerate vertices get no (or a zero) gradient, and with
+    ``antialias="boundary"`` the image is the plain one."""
+    image, grads = image_and_grads(degenerate_scene(case, beside), antialias)
+    without, expected = image_and_grads(degenerate_scene(None, beside), antialias)
+    np.testing.assert_array_equal(image, without)
+    if antialias == "boundary":
+        plain = render.render(degenerate_scene(case, beside), antialias=False)
+        np.testing.assert_array_equal(image, plain.data)
+    *grads, degenerate = grads
+    assert degenerate is None or not degenerate.any()
+    for grad, reference in zip(grads, expected, strict=True):
+        assert np.isfinite(grad).all()
+        np.testing.assert_allclose(
+            grad, reference, rtol=1e-12, atol=1e-12 * np.abs(reference).max()
+        )
+
+
+# --------------------------------------------------------------------------------------
 # Transform: a rotation angle too large to mean anything
 # --------------------------------------------------------------------------------------
 

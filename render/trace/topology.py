@@ -81,8 +81,11 @@ def _sorted_slots(edge_group: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _edge_table(faces: np.ndarray, slots: np.ndarray, g: np.ndarray) -> EdgeTable:
-    """The ``EdgeTable`` of faces (F, 3) from their ``_sorted_slots``."""
-    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    """The ``EdgeTable`` of faces (F, 3) from their ``_sorted_slots`` (no rows when every
+    face is degenerate)."""
+    # Each run of equal welded edge ids starts a row; with no slots there is no run (the
+    # leading True alone would make a row out of nothing).
+    starts = np.flatnonzero(np.r_[len(g) > 0, g[1:] != g[:-1]])
     count = np.diff(np.r_[starts, len(g)])
     rank = np.arange(len(g)) - np.repeat(starts, count)
     row = np.repeat(np.arange(len(starts)), count)
