@@ -138,3 +138,29 @@ def test_a_rotation_angle_grown_too_large_in_place_is_refused_at_render():
     scene.objects[0].transform.rotation.data[2] = 1e200  # an optimiser ran away
     with pytest.raises(ValueError, match=r"Transform: rotation must be .*at most 1e6 degrees"):
         render.render(scene)
+
+
+# --------------------------------------------------------------------------------------
+# The path integrator's options
+# --------------------------------------------------------------------------------------
+
+
+def empty_scene():
+    return render.Scene([], [], render.Camera((0, 0, 5), (0, 0, 0), width=4, height=4))
+
+
+@pytest.mark.parametrize("batch_spp", [0, -1, 2.0, True, None])
+def test_a_bad_batch_spp_is_named(batch_spp):
+    """It was reported as "spp must be an integer >= 1", with spp itself fine."""
+    with pytest.raises(ValueError, match=r"render: batch_spp must be an integer >= 1, got"):
+        render.render(empty_scene(), integrator="path", spp=4, batch_spp=batch_spp)
+
+
+def test_an_edge_spp_beyond_the_ray_limit_is_refused_before_tracing():
+    """edge_spp=2**40 failed with a MemoryError for 8 TiB: the paths of one side of one
+    edge point are traced together, so edge_spp meets the limit of width x height x spp."""
+    with pytest.raises(ValueError, match=r"render: edge_spp = 1,099,511,627,776 .* limit of"):
+        render.render(empty_scene(), integrator="path", antialias="boundary", edge_spp=2**40)
+    with pytest.raises(ValueError, match=r"render: edge_spp = 67,108,865 .* limit of"):
+        render.render(empty_scene(), integrator="path", antialias="boundary", edge_spp=2**26 + 1)
+    render.render(empty_scene(), integrator="path", antialias="boundary", edge_spp=2**26)

@@ -33,7 +33,7 @@ from render.path.tracer import PathSampler, check_path_options
 from render.path.transport import path_radiance
 from render.scene.camera import camera_frame
 from render.scene.placement import placed
-from render.scene.scene import Scene, check_ray_count
+from render.scene.scene import MAX_RAYS, Scene, check_ray_count
 
 #: Default samples per pixel in one batch (one tape, for ``replay_gradient``).
 BATCH_SPP = 16
@@ -62,7 +62,7 @@ def render_path(
     ``spp``)."""
     spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
     seed = check_seed(seed)
-    batch_spp = check_path_options(batch_spp, 1, 1)[0]
+    batch_spp = check_count("batch_spp", batch_spp)
     edges, edge_spp = check_path_edges(antialias, edge_spp, spp)
     scene.validate()
     check_ray_count(scene.camera.width, scene.camera.height, spp)
@@ -105,7 +105,20 @@ def check_path_edges(antialias, edge_spp, spp: int) -> tuple[bool, int]:
         return edges, spp
     if isinstance(edge_spp, bool) or not isinstance(edge_spp, int | np.integer) or edge_spp < 1:
         raise ValueError(f"render: edge_spp must be an integer >= 1 or None, got {edge_spp!r}")
+    if edge_spp > MAX_RAYS:  # one edge point's paths are traced together: already too many
+        raise ValueError(
+            f"render: edge_spp = {edge_spp:,} paths per side of an edge point is more than "
+            f"the limit of {MAX_RAYS:,} rays traced at once (2**26, the limit of width x "
+            "height x spp)"
+        )
     return edges, int(edge_spp)
+
+
+def check_count(name: str, value) -> int:
+    """``value`` as an int if it is an integer >= 1, else a ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"render: {name} must be an integer >= 1, got {value!r}")
+    return int(value)
 
 
 def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
