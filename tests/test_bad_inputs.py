@@ -164,3 +164,62 @@ def test_an_edge_spp_beyond_the_ray_limit_is_refused_before_tracing():
     with pytest.raises(ValueError, match=r"render: edge_spp = 67,108,865 .* limit of"):
         render.render(empty_scene(), integrator="path", antialias="boundary", edge_spp=2**26 + 1)
     render.render(empty_scene(), integrator="path", antialias="boundary", edge_spp=2**26)
+
+
+# --------------------------------------------------------------------------------------
+# Large Steps
+# --------------------------------------------------------------------------------------
+
+
+def test_a_face_repeating_a_vertex_index_is_named_as_degenerate():
+    """It was reported as an edge "shared by 4 faces (non-manifold)"."""
+    import minidiff as md
+    from render.inverse.shape import LargeSteps, LargeStepsAdam, icosphere
+
+    v, f = icosphere(1)
+    faces = np.concatenate([f, [[5, 5, 7]]])
+    vertices = md.tensor(v, requires_grad=True)
+    match = rf"faces: face {len(f)} \[5, 5, 7\] repeats a vertex index \(a degenerate face"
+    with pytest.raises(ValueError, match=match):
+        LargeStepsAdam(vertices, faces)
+    with pytest.raises(ValueError, match=r"faces: face 1 \[0, 2, 0\] repeats a vertex index"):
+        LargeSteps(np.array([[0, 1, 2], [0, 2, 0]]), 3)
+
+
+@pytest.mark.parametrize("lam", [np.inf, np.nan, -1.0, 1e9, 1e16, 1e300])
+def test_lam_must_be_finite_positive_and_keep_the_solves_accurate(lam):
+    """lam=inf passed the check and SciPy said "Factor is exactly singular"; lam=1e16 gave
+    v = M^-1 M v off by 80% of the mesh's size, silently."""
+    from render.inverse.shape import LargeSteps, icosphere
+
+    v, f = icosphere(2)  # largest vertex degree 6: lam at most 1e10 / 12
+    with pytest.raises(ValueError, match=r"LargeSteps: lam must be"):
+        LargeSteps(f, len(v), lam)
+    steps = LargeSteps(f, len(v), 8e8)  # the largest accepted: 6 digits kept
+    np.testing.assert_allclose(steps.to_vertices(steps.to_u(v)), v, rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(5, 3), (42,), (42, 2), (42, 3, 1)])
+def test_a_gradient_of_the_wrong_shape_is_named(shape):
+    """SciPy said "b is of incompatible size" (or solved a (42,) vector as if it were
+    one coordinate of every vertex)."""
+    import minidiff as md
+    from render.inverse.shape import LargeSteps, LargeStepsAdam, icosphere
+
+    v, f = icosphere(1)  # 42 vertices
+    steps = LargeSteps(f, len(v))
+    shown = str(shape).replace("(", r"\(").replace(")", r"\)")
+    with pytest.raises(
+        ValueError, match=rf"LargeSteps.adjoint: grad_vertices .*\(42, 3\).*{shown}"
+    ):
+        steps.adjoint(np.ones(shape))
+    with pytest.raises(ValueError, match=rf"LargeSteps.to_vertices: u .*\(42, 3\).*{shown}"):
+        steps.to_vertices(np.ones(shape))
+    with pytest.raises(ValueError, match=rf"LargeSteps.to_u: vertices .*\(42, 3\).*{shown}"):
+        steps.to_u(np.ones(shape))
+    vertices = md.tensor(v.copy(), requires_grad=True)
+    optimizer = LargeStepsAdam(vertices, f)
+    vertices.grad = np.ones(shape)
+    with pytest.raises(ValueError, match=rf"LargeStepsAdam: vertices.grad .*\(42, 3\).*{shown}"):
+        optimizer.step()
+    np.testing.assert_array_equal(vertices.data, v)  # nothing moved

@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,13 +46,23 @@ __all__ = [
 
 def mesh_edges(faces: np.ndarray, n_vertices: int) -> np.ndarray:
     """(E, 2) the mesh's undirected edges (i < j), each once. ValueError naming ``faces`` if
-    an index is out of range, or if an edge is shared by more than two faces (a non-manifold
-    edge: the Laplacian and Large Steps assume a surface)."""
+    an index is out of range, if a face repeats a vertex index (a degenerate face: its
+    "edge" (i, i) is no edge, and its other two are one edge counted twice), or if an edge
+    is shared by more than two faces (a non-manifold edge: the Laplacian and Large Steps
+    assume a surface)."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu" or not len(faces):
         raise ValueError(f"faces must be a non-empty (F, 3) integer array, got {faces.shape}")
     if faces.min() < 0 or faces.max() >= n_vertices:
         raise ValueError(f"faces: indices must lie in [0, {n_vertices}) (the vertices)")
+    repeats = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2])
+    repeats |= faces[:, 2] == faces[:, 0]
+    if repeats.any():
+        k = int(np.argmax(repeats))
+        raise ValueError(
+            f"faces: face {k} {faces[k].tolist()} repeats a vertex index (a degenerate face; "
+            f"{int(repeats.sum())} such faces): remove them (``weld`` does)"
+        )
     pairs = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     edges, counts = np.unique(pairs, axis=0, return_counts=True)
     if counts.max() > 2:
@@ -82,35 +93,65 @@ def laplacian_loss(laplacian: sp.spmatrix, vertices: md.Tensor) -> md.Tensor:
     return md.sum(lv * lv) * (1.0 / vertices.shape[0])
 
 
+#: The largest condition number of ``LargeSteps``' M = I + lam L that it accepts: solves
+#: with M then lose at most ~1e10 * 2.2e-16 ~ 2e-6 of u's size (6 digits kept).
+MAX_CONDITION = 1e10
+
+
 class LargeSteps:
     """The Large Steps parameterisation of a mesh's vertices: u = M v, M = I + lam L.
 
     faces (F, 3) and n_vertices fix L (``mesh_laplacian``); ``lam`` > 0 the smoothing
-    (the paper uses 10-100; larger is smoother). M is symmetric positive definite, and is
+    (the paper uses 10-100; larger is smoother), finite and small enough that M's condition
+    number stays below ``MAX_CONDITION`` (lam <= 1e10 / (2 x the largest vertex degree),
+    8e8 on an icosphere). M is symmetric positive definite, and is
     factorised once (``scipy.sparse.linalg.splu``); v = M^-1 u is then two triangular
     solves per step.
     """
 
     def __init__(self, faces: np.ndarray, n_vertices: int, lam: float = 20.0):
-        if isinstance(lam, bool) or not isinstance(lam, int | float) or not lam > 0:
-            raise ValueError(f"LargeSteps: lam must be a number > 0, got {lam!r}")
+        if isinstance(lam, bool) or not isinstance(lam, int | float) or not 0 < lam < math.inf:
+            raise ValueError(f"LargeSteps: lam must be a number > 0 (and finite), got {lam!r}")
         self.lam = float(lam)
         self.laplacian = mesh_laplacian(faces, n_vertices)
+        # cond(M) <= 1 + lam * 2 * (the largest degree) (Gershgorin; L's smallest
+        # eigenvalue is 0): a solve with M keeps about -log10(cond(M) * eps) digits. Past
+        # MAX_CONDITION, v = M^-1 u would be wrong in its 6th digit, and by lam = 1e16 (on
+        # an icosphere) not even its first: refused rather than silently wrong.
+        largest = MAX_CONDITION / (2.0 * max(float(self.laplacian.diagonal().max()), 1.0))
+        if self.lam > largest:
+            raise ValueError(
+                f"LargeSteps: lam must be at most {largest:.3g} for these faces (M = I + lam "
+                f"L's condition number at most {MAX_CONDITION:.0e}: solves keep 6 digits), "
+                f"got {lam!r}"
+            )
+        self.n_vertices = int(n_vertices)
         self.matrix = sp.csc_matrix(sp.identity(n_vertices) + self.lam * self.laplacian)
         self._lu = splu(self.matrix)
 
     def to_u(self, vertices: np.ndarray) -> np.ndarray:
         """u = M v for vertex positions (V, 3)."""
-        return np.asarray(self.matrix @ np.asarray(vertices, dtype=np.float64))
+        return np.asarray(self.matrix @ self._per_vertex(vertices, "to_u", "vertices"))
 
     def to_vertices(self, u: np.ndarray) -> np.ndarray:
         """v = M^-1 u (V, 3)."""
-        return self._lu.solve(np.asarray(u, dtype=np.float64))
+        return self._lu.solve(self._per_vertex(u, "to_vertices", "u"))
 
     def adjoint(self, grad_vertices: np.ndarray) -> np.ndarray:
         """dL/du = M^-T dL/dv: the gradient with respect to u of a loss whose gradient with
         respect to the vertices is ``grad_vertices`` (V, 3)."""
-        return self._lu.solve(np.asarray(grad_vertices, dtype=np.float64), trans="T")
+        grad = self._per_vertex(grad_vertices, "adjoint", "grad_vertices")
+        return self._lu.solve(grad, trans="T")
+
+    def _per_vertex(self, x, method: str, name: str) -> np.ndarray:
+        """``x`` as a float64 (V, 3) array, or a ValueError naming ``name``."""
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.n_vertices, 3):
+            raise ValueError(
+                f"LargeSteps.{method}: {name} must have shape (V, 3) = ({self.n_vertices}, 3) "
+                f"(one row per vertex), got {x.shape}"
+            )
+        return x
 
     def vertices(self, u: md.Tensor) -> md.Tensor:
         """v = M^-1 u on the tape, for pipelines that hold u as their parameter."""
@@ -140,6 +181,11 @@ class LargeStepsAdam(md.optim.Optimizer):
     def step(self) -> None:
         if self.vertices.grad is None:
             return
+        if np.shape(self.vertices.grad) != self.vertices.shape:
+            raise ValueError(
+                f"LargeStepsAdam: vertices.grad must have the shape of vertices "
+                f"{self.vertices.shape}, got {np.shape(self.vertices.grad)}"
+            )
         self.u.grad = self.steps.adjoint(self.vertices.grad)
         self.adam.step()
         self.vertices.data[...] = self.steps.to_vertices(self.u.data)
