@@ -1,6 +1,6 @@
 """The path integrator: memory of its two gradients against spp, and its time per sample.
 
-Run:  python benchmarks/bench_path.py [--out docs/path_tracing] [--quick] [--part memory|speed]
+Run:  python benchmarks/bench_path.py [--out out/bench_path] [--quick] [--part memory|speed]
 
 * Memory: the peak of Python's traced allocations (``tracemalloc``; NumPy reports its
   arrays to it) during one gradient of an image loss on the Cornell box at 32x32, max_depth
@@ -11,6 +11,9 @@ Run:  python benchmarks/bench_path.py [--out docs/path_tracing] [--quick] [--par
 * Time: one render of the Cornell box at 128x128, max_depth 4, 16 spp, without a tape, and
   one tape gradient; medians of 5 after a warm-up, as microseconds per sample per pixel.
   The comparison with Mitsuba 3 is ``benchmarks/bench_path_mitsuba.py``.
+
+Writes ``bench_path.json`` to ``out/bench_path/`` (git-ignored scratch) unless ``--out`` is
+given; the committed results are regenerated with ``--out docs/path_tracing``.
 """
 
 from __future__ import annotations
@@ -135,7 +138,12 @@ def speed(size: int, spp: int, repeats: int) -> dict:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="docs/path_tracing")
+    parser.add_argument(
+        "--out",
+        default="out/bench_path",
+        help="output folder (default out/bench_path; the committed results were made with "
+        "--out docs/path_tracing)",
+    )
     parser.add_argument("--quick", action="store_true")
     parser.add_argument(
         "--part", choices=("both", "memory", "speed"), default="both",

@@ -1,7 +1,7 @@
 """Our path integrator against Mitsuba 3's ``path`` integrator in the Cornell box: do both
 estimate the same image, and how long does a sample take?
 
-Run:  python benchmarks/bench_path_mitsuba.py [--out docs/path_tracing/mitsuba] [--quick]
+Run:  python benchmarks/bench_path_mitsuba.py [--out out/bench_path_mitsuba] [--quick]
           [--skip-timing | --skip-correctness] [--size 32] [--seeds 16] [--spp 256]
           [--depths 1,2,5,8] [--repeats 7]
 
@@ -13,8 +13,11 @@ without it). Install it next to the project, not into the project's environment,
     .venv-mitsuba/bin/python benchmarks/bench_path_mitsuba.py
 
 Its LLVM backend needs a libLLVM (on Debian ``apt-get install libllvm19``); if Dr.Jit finds
-none, or an older one that aborts, set ``DRJIT_LIBLLVM_PATH=libLLVM-19.so``. ``--quick`` (a
-smoke run, seconds) writes to a temporary folder unless ``--out`` is given. With
+none, or an older one that aborts, set ``DRJIT_LIBLLVM_PATH=libLLVM-19.so``.
+
+Writes to ``out/bench_path_mitsuba/`` (git-ignored scratch) unless ``--out`` is given; the
+committed results are regenerated with ``--out docs/path_tracing/mitsuba``. ``--quick`` is a
+smoke run (seconds), marked so in ``results.md``. With
 ``--skip-timing`` or ``--skip-correctness`` the other part's results are kept from an
 existing ``results.json`` in the output folder (``results.md`` is written from both).
 
@@ -70,7 +73,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 import argparse
 import json
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -88,7 +90,8 @@ from render.scene.image import save_image
 from render.scene.placement import placed
 from render.scene.scene import Material, Mesh, Scene, Sphere
 
-DEFAULT_OUT = Path("docs/path_tracing/mitsuba")
+#: Scratch output (git-ignored); the committed results: --out docs/path_tracing/mitsuba.
+DEFAULT_OUT = Path("out/bench_path_mitsuba")
 VARIANT = "llvm_ad_rgb"
 THREADS = 2
 #: The speed workload: image side, max_depth, our spp and Mitsuba's per call.
@@ -534,7 +537,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__.splitlines()[0], formatter_class=argparse.RawTextHelpFormatter
     )
-    parser.add_argument("--out", type=Path, help=f"output folder (default {DEFAULT_OUT})")
+    parser.add_argument(
+        "--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})"
+    )
     parser.add_argument("--quick", action="store_true", help="a smoke run (under a minute)")
     parser.add_argument("--skip-timing", action="store_true", help="correctness only")
     parser.add_argument("--skip-correctness", action="store_true", help="speed only")
@@ -545,8 +550,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--repeats", type=int, help="timed calls per renderer (7)")
     args = parser.parse_args(argv)
     quick = args.quick
-    out = args.out or (Path(tempfile.gettempdir()) / "bench_path_mitsuba" if quick
-                       else DEFAULT_OUT)  # fmt: skip
+    out = args.out
     size = args.size or (16 if quick else 32)
     seeds = args.seeds or (4 if quick else 16)
     spp = args.spp or (64 if quick else 256)

@@ -1,7 +1,7 @@
 """The path integrator's gradients in the Cornell box against central differences, and what
 the missing boundary terms cost.
 
-Run:  python benchmarks/path_gradients.py [--out docs/path_tracing] [--quick]
+Run:  python benchmarks/path_gradients.py [--out out/path_gradients] [--quick]
 
 For each parameter (the light's emission, the red wall's albedo with the wall out of view,
 the light's position, an interior vertex of the back wall) and each scene (the empty room,
@@ -173,7 +173,12 @@ def markdown(rows: list[dict], seeds: int, spp: int, h: float) -> str:
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="docs/path_tracing")
+    parser.add_argument(
+        "--out",
+        default="out/path_gradients",
+        help="output folder (default out/path_gradients; the committed results were made "
+        "with --out docs/path_tracing)",
+    )
     parser.add_argument("--quick", action="store_true", help="2 seeds at 2 spp")
     parser.add_argument("--seeds", type=int, default=48)
     parser.add_argument("--spp", type=int, default=32)

@@ -1,6 +1,6 @@
 """Recover the albedo of a wall the camera does not see, from the light it bleeds.
 
-Run:  python examples/colour_bleeding.py [--out docs/path_tracing/bleeding] [--size 32]
+Run:  python examples/colour_bleeding.py [--out out/colour_bleeding] [--size 32]
       [--iters 150] [--spp 1 4 16 64] [--quick]
 
 The Cornell box seen without its red wall (``render.inverse.bleeding``): the wall's albedo
@@ -11,7 +11,9 @@ samples every iteration, decorrelated gradient seeds), once per spp in ``--spp``
 ``error.png`` (error against iterations, one line per spp) and ``images.png`` (target,
 start, final, each rendered at 1,024 spp, the final one the highest-spp run's, and 10x
 |target - start|; shown with 2x exposure and gamma 1/2.2, enlarged 4x).
-``--quick``: 16x16, 20 iterations, spp 1 and 4 (a smoke run, not results).
+``--quick``: 16x16, 20 iterations, spp 1 and 4 (a smoke run, not results). The default
+``--out`` is scratch (``out/`` is git-ignored); the README's figures are regenerated with
+``--out docs/path_tracing/bleeding``.
 """
 
 from __future__ import annotations
@@ -31,7 +33,12 @@ from render.scene.image import save_image
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", default="docs/path_tracing/bleeding")
+    parser.add_argument(
+        "--out",
+        default="out/colour_bleeding",
+        help="output folder (default out/colour_bleeding; the README's figures were made "
+        "with --out docs/path_tracing/bleeding)",
+    )
     parser.add_argument("--size", type=int, default=32)
     parser.add_argument("--iters", type=int, default=150)
     parser.add_argument("--spp", type=int, nargs="+", default=[1, 4, 16, 64])
