@@ -223,3 +223,42 @@ def test_a_gradient_of_the_wrong_shape_is_named(shape):
     with pytest.raises(ValueError, match=rf"LargeStepsAdam: vertices.grad .*\(42, 3\).*{shown}"):
         optimizer.step()
     np.testing.assert_array_equal(vertices.data, v)  # nothing moved
+
+
+# --------------------------------------------------------------------------------------
+# optimize's render_kwargs
+# --------------------------------------------------------------------------------------
+
+
+def optimize_problem():
+    scene = quad_and_sphere(None)
+    albedo = scene.objects[0].material.albedo
+    albedo.requires_grad = True
+    target = np.zeros((scene.camera.height, scene.camera.width, 3))
+    return scene, albedo, target
+
+
+@pytest.mark.parametrize("views", [False, True], ids=["scene", "views"])
+def test_render_kwargs_asking_for_render_info_are_refused(views):
+    """render would return an (image, info) pair: optimize failed inside the loss with
+    NumPy's "inhomogeneous shape"."""
+    scene, albedo, target = optimize_problem()
+    problem = ([(scene, target)], None) if views else (scene, target)
+    with pytest.raises(ValueError, match=r"optimize: render_kwargs must not set return_info"):
+        render.optimize(*problem, [albedo], max_iters=1, quiet=True,
+                        render_kwargs={"return_info": True})  # fmt: skip
+    np.testing.assert_array_equal(albedo.data, [0.1, 0.1, 0.1])  # refused before any step
+
+
+def test_render_kwargs_that_would_be_ignored_or_clash_are_refused():
+    scene, albedo, target = optimize_problem()
+    with pytest.raises(ValueError, match=r"optimize: render_kwargs must not set scene"):
+        render.optimize(scene, [albedo], target, max_iters=1, render_kwargs={"scene": scene})
+    with pytest.raises(TypeError, match=r"optimize: render_kwargs must be a dict"):
+        render.optimize(scene, [albedo], target, max_iters=1, render_kwargs=[("spp", 4)])
+    with pytest.raises(ValueError, match=r"optimize: render_kwargs apply to scenes"):
+        render.optimize(lambda: render.render(scene), [albedo], target, max_iters=1,
+                        render_kwargs={"spp": 4})  # fmt: skip
+    _, history = render.optimize(scene, [albedo], target, max_iters=1, quiet=True,
+                                 render_kwargs={"return_info": False, "spp": 4})  # fmt: skip
+    assert history.iterations == 1

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -130,6 +130,8 @@ def optimize(
     batch: with views, how many to render per iteration, drawn at random without
         replacement (stochastic gradient: the loss and gradient of that batch; the draws
         come from ``seed``, so a run repeats exactly). None: every view, every iteration.
+    render_kwargs: keywords passed to every ``render`` of a scene (``antialias``, ``spp``,
+        ...); not return_info (the loss takes the image alone) nor scene.
     jobs: with views, how many threads render the views of one iteration (1: one after
         the other; None: one per core; the backward pass is one, over the sum, in the
         calling thread). The result is the same for any ``jobs``.
@@ -137,7 +139,7 @@ def optimize(
     fails, e.g. on a NaN gradient; ValueError if a parameter is in no scene, or a target
     does not have its view's image size.
     """
-    views = _views(scene, target, render_kwargs or {})
+    views = _views(scene, target, _checked_render_kwargs(render_kwargs))
     known = {id(t) for view in views if view.scene is not None for t in view.scene.parameters()}
     for i, p in enumerate(params):
         if known and id(p) not in known:
@@ -185,11 +187,37 @@ class _View:
     scene: Scene | None  # None for a custom pipeline
 
 
+def _checked_render_kwargs(kwargs) -> dict:
+    """``optimize``'s render_kwargs as a dict (None: empty), or a clear error for keywords
+    that would make ``render`` return something other than the image tensor the loss takes
+    (return_info: an (image, info) pair) or that ``optimize`` sets itself (scene)."""
+    if kwargs is None:
+        return {}
+    if not isinstance(kwargs, Mapping):
+        raise TypeError(
+            f"optimize: render_kwargs must be a dict of render's keywords, got "
+            f"{type(kwargs).__name__}"
+        )
+    if kwargs.get("return_info"):
+        raise ValueError(
+            "optimize: render_kwargs must not set return_info (render would return an "
+            "(image, info) pair instead of the image the loss compares with the target)"
+        )
+    if "scene" in kwargs:
+        raise ValueError("optimize: render_kwargs must not set scene (optimize passes each view's)")
+    return dict(kwargs)
+
+
 def _views(scene, target, kwargs: dict) -> list[_View]:
     """The views of an ``optimize`` problem, each target read and checked."""
     if isinstance(scene, Scene):
         return [_scene_view(scene, target, kwargs, "target")]
     if callable(scene):
+        if kwargs:
+            raise ValueError(
+                "optimize: render_kwargs apply to scenes that optimize renders; a callable "
+                "renders its own image (pass the keywords to render inside it)"
+            )
         return [_View(scene, _checked_target(target, "target"), None)]
     if isinstance(scene, list | tuple) and not isinstance(scene, str):
         if target is not None:
