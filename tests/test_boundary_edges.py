@@ -338,7 +338,7 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     i, j = rng.integers(0, 6, k), rng.integers(6, 12, k)
     faces = rng.integers(-1, 50, (k, n_faces))
     faces[:, 0] = np.abs(faces[:, 0])  # one face at least
-    thirds = np.where(faces >= 0, rng.integers(12, 20, (k, n_faces)), -1)
+    thirds = vertices[rng.integers(12, 20, (k, n_faces))]  # (k, K, 3) positions
     coords = rng.uniform(-1.0, 1.0, (k, 2))
     args = (eye, forward, right, up, vertices, i, j, faces, thirds, coords, 40, 30)
     plain, fast = edge_sides(*args), edge_sides_kernel(*args, 1)

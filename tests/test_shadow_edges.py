@@ -269,9 +269,9 @@ def test_bisect_chords_kernel_finds_the_chords_the_numpy_bisection_finds(seed, m
     seen = {}
     follow = sb.border_chords
 
-    def keep(scene, visibility, frame, topology):
+    def keep(scene, visibility, frame, topology, shared=None):
         seen["args"] = (scene, visibility, frame, topology)
-        return follow(scene, visibility, frame, topology)
+        return follow(scene, visibility, frame, topology, shared)
 
     monkeypatch.setattr(terms, "border_chords", keep)
     scene = random_scene(seed, lights=("point", "directional"))

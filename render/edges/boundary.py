@@ -511,15 +511,20 @@ def continuous_creases(mesh, table: EdgeTable, eye: np.ndarray) -> np.ndarray:
     return two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
 
 
-def _edge_curves(scene: Scene, frame, tables: list[EdgeTable], size: float):
+def _edge_curves(scene: Scene, frame, tables: list[EdgeTable], size: float, shared=None):
     """2-D segments (pixel coordinates) of every candidate edge in front of the eye, and
-    per mesh the rows of its table that were kept (``continuous_creases`` are left out)."""
+    per mesh the rows of its table that were kept (``continuous_creases`` are left out, and
+    the rows another mesh counts: ``shared``, ``render.trace.seams.shared_edges``)."""
     camera = scene.camera
     starts, ends, kept = [], [], []
-    for mesh, table in zip(scene.meshes, tables, strict=True):
+    for k, (mesh, table) in enumerate(zip(scene.meshes, tables, strict=True)):
         vertices = np.asarray(mesh.vertices.data, np.float64)
         a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * size)
-        keep = keep & ~continuous_creases(mesh, table, frame[3])
+        if shared is None:
+            keep = keep & ~continuous_creases(mesh, table, frame[3])
+        else:  # a row that other meshes' faces join is no continuous crease of this one
+            alone = ~np.any(shared[k].faces >= 0, axis=1)
+            keep = keep & shared[k].owned & ~(continuous_creases(mesh, table, frame[3]) & alone)
         starts.append(project(a[keep], frame, camera.width, camera.height)[0])
         ends.append(project(b[keep], frame, camera.width, camera.height)[0])
         kept.append(np.flatnonzero(keep))
@@ -757,6 +762,7 @@ def boundary_points(
     crossings,
     radiance,
     extra: tuple[np.ndarray, np.ndarray] | None = None,
+    shared=None,
 ) -> tuple[BoundaryPoints, tuple]:
     """Every quadrature point of the boundary term of edges, intersections and outlines,
     with its constant factor (see the module docstring), for one render. ``topology``:
@@ -768,13 +774,16 @@ def boundary_points(
     shadow borders, cut together with the rest (``split_at_crossings``). Their quadrature
     points are returned as (segment (m,) into ``extra``, image-plane coords (m, 2),
     weight (m,), pixel (m,)) for the caller to finish.
+
+    shared: the edges meshes share (``render.trace.seams.shared_edges``; None: none), each
+    counted once, its sides chosen among every mesh's faces on it.
     """
     camera = scene.camera
     width, height = camera.width, camera.height
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
     tables = [topology[k].table for k in range(len(scene.meshes))]
-    starts, ends, kept = _edge_curves(scene, plain, tables, size)
+    starts, ends, kept = _edge_curves(scene, plain, tables, size, shared)
     n_edges = [len(s) for s in starts]
     pairs, segments = crossings
     a, b, keep = clip_to_near(segments[:, 0], segments[:, 1], plain, NEAR * size)
@@ -809,6 +818,7 @@ def boundary_points(
         factor[rows] = _mesh_edge_factors(
             scene, visibility, frame, index, firsts[index], table, edges,
             np.take(coords, rows, axis=0), pixel[rows], weight[rows], radiance, rows,
+            None if shared is None else shared[index],
         )  # fmt: skip
         mesh_edges.append((index, rows, table.i[edges], table.j[edges]))
         first += count
@@ -874,8 +884,9 @@ def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, w
     reference of ``edge_sides_kernel``, which computes the same in one pass).
 
     eye, forward, right, up (3,): the camera (``plain_camera``); vertices (V, 3); i, j
-    (k,) the edges' vertex ids; faces, thirds (k, K): the faces on each edge and their
-    third vertices (-1 padding, ``EdgeTable``); coords (k, 2) image-plane points.
+    (k,) the edges' vertex ids; faces (k, K): the faces on each edge (ids, -1 padding, as
+    ``EdgeTable.faces``); thirds (k, K, 3): their corners off the edge (positions: a face
+    may belong to another mesh, ``render.trace.seams``); coords (k, 2) image-plane points.
 
     Returns the camera directions (k, 3) through the points, the depth (k,) of the edge
     point along them (``_edge_points``), |grad e| in pixel units (k,) and the image-plane
@@ -888,7 +899,7 @@ def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, w
     depth = _edge_points(eye, directions, a, b)
     norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
     valid = faces >= 0
-    third = vertices[np.maximum(thirds, 0)]  # (k, K, 3)
+    third = thirds  # (k, K, 3)
     side = np.sign(np.einsum("nkj,nj->nk", third - eye[None], m))
     towards = step[:, :1] * right + step[:, 1:] * up  # the image step to the + side
     normals = np.cross((b - a)[:, None], third - a[:, None])  # (k, K, 3)
@@ -947,7 +958,7 @@ def edge_sides_kernel(
                 for f in range(n_faces):
                     if faces[p, f] < 0:
                         continue
-                    third = vertices[max(thirds[p, f], 0)]
+                    third = thirds[p, f]
                     for c in range(3):
                         t[c] = third[c] - a[c]
                     side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
@@ -1003,7 +1014,7 @@ def _seen_in(visibility, pixel: np.ndarray, scene: Scene) -> np.ndarray | None:
 
 def _mesh_edge_factors(
     scene, visibility, frame, index, first_prim, table, edges, coords, pixel, weight, radiance,
-    keys,
+    keys, shared=None,
 ) -> np.ndarray:  # fmt: skip
     """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the edges ``edges``
     (rows of ``table``) of mesh ``index``, zero where the edge point is hidden; ``pixel``
@@ -1016,12 +1027,19 @@ def _mesh_edge_factors(
     side, the face seen just beside the edge is the nearest there of the faces on that
     side (``_approach``), shaded at the edge point as a camera hit on it would be; a side
     with no face (a silhouette's outside, an open boundary) is what a ray just beyond the
-    edge sees. A crease has one face on each side, a silhouette both on one."""
+    edge sees. A crease has one face on each side, a silhouette both on one. ``shared``:
+    the faces other meshes have on these edges (``render.trace.seams.SharedEdges``),
+    candidates on either side as the mesh's own are; None: no other mesh's."""
     forward, right, up, eye = plain_camera(frame)
     vertices = np.asarray(scene.meshes[index].vertices.data, np.float64)
+    own = np.take(table.faces, edges, axis=0)
+    faces = np.where(own >= 0, own + first_prim, -1)  # global primitive ids
+    thirds = np.take(vertices, np.maximum(np.take(table.thirds, edges, axis=0), 0), axis=0)
+    if shared is not None and shared.faces.shape[1]:
+        faces = np.concatenate([faces, np.take(shared.faces, edges, axis=0)], axis=1)
+        thirds = np.concatenate([thirds, np.take(shared.thirds, edges, axis=0)], axis=1)
     directions, depth, norm, step, chosen = edge_sides_kernel(
-        eye, forward, right, up, vertices, table.i[edges], table.j[edges],
-        np.take(table.faces, edges, axis=0), np.take(table.thirds, edges, axis=0),
+        eye, forward, right, up, vertices, table.i[edges], table.j[edges], faces, thirds,
         np.ascontiguousarray(coords), *_size(scene.camera), numba.get_num_threads(),
     )  # fmt: skip
     ignore = table.faces[edges, 0] + first_prim
@@ -1040,7 +1058,7 @@ def _mesh_edge_factors(
     faced, beyond = np.flatnonzero(face >= 0), np.flatnonzero(face < 0)
     colour = np.empty((2 * n, 3))
     colour[faced] = radiance.seen(
-        np.take(both, faced, axis=0), face[faced] + first_prim,
+        np.take(both, faced, axis=0), face[faced],
         np.concatenate([depth, depth])[faced], keys[faced],
     )  # fmt: skip
     offset = EPSILON * np.concatenate([step, -step])

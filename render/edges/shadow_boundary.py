@@ -106,36 +106,58 @@ class ShadowPoints:
 # ---------------------------------------------------------------------------------------
 
 
-def _edge_faces(scene: Scene, topology) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per mesh, for every face on every welded edge (``EdgeTable.faces``, (E, K)): its
-    normal (E, K, 3) and first corner (E, K, 3); the same for every light, so computed once
-    per render."""
+def _edge_faces(scene: Scene, topology, shared=None) -> list[tuple]:
+    """Per mesh, for every face on every welded edge (``EdgeTable.faces``, (E, K), then the
+    faces other meshes have on it, ``render.trace.seams.SharedEdges.faces``, when
+    ``shared`` is given): its normal (E, K', 3), first corner (E, K', 3) and whether the
+    slot holds a face (E, K') bool; the same for every light, so computed once per
+    render."""
     out = []
+    if shared is not None:
+        every = [np.asarray(m.vertices.data, np.float64)[m.faces] for m in scene.meshes]
+        triangles = np.concatenate(every)  # (N, 3, 3), by global primitive id
     for k, mesh in enumerate(scene.meshes):
         vertices = np.asarray(mesh.vertices.data, np.float64)
-        tri = vertices[mesh.faces[np.maximum(topology[k].table.faces, 0)]]  # (E, K, 3, 3)
+        faces = topology[k].table.faces
+        tri = vertices[mesh.faces[np.maximum(faces, 0)]]  # (E, K, 3, 3)
+        valid = faces >= 0
+        if shared is not None:
+            tri = np.concatenate([tri, triangles[np.maximum(shared[k].faces, 0)]], axis=1)
+            valid = np.concatenate([valid, shared[k].faces >= 0], axis=1)
         normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
-        out.append((normal, tri[..., 0, :]))
+        out.append((normal, tri[..., 0, :], valid))
     return out
 
 
-def _light_silhouettes(scene: Scene, topology, light, edge_faces):
+def _light_silhouettes(scene: Scene, topology, light, edge_faces, shared=None):
     """Occluder curves of one light: (occluder (c, 3) int64 as in ``ShadowPoints``, curve
     kind per row: 0 a segment from ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius
-    vector ``b`` and second axis ``axis`` (c, 3)). ``edge_faces``: ``_edge_faces``."""
+    vector ``b`` and second axis ``axis`` (c, 3)). ``edge_faces``: ``_edge_faces``;
+    ``shared``: the edges meshes share (``render.trace.seams.shared_edges``, None: none),
+    each an occluder's silhouette once, judged by every mesh's faces on it."""
     rows, a, b, axis = [], [], [], []
     point = isinstance(light, PointLight)
     where = np.asarray(light.position.data if point else light.direction.data, np.float64)
     for k, mesh in enumerate(scene.meshes):
         table = topology[k].table
         vertices = np.asarray(mesh.vertices.data, np.float64)
-        normal, corner = edge_faces[k]
+        normal, corner, valid = edge_faces[k]
         towards = (where - corner) if point else -where
         facing = np.sign(np.sum(normal * towards, axis=-1))
-        valid = table.faces >= 0
         lit = np.any(valid & (facing > 0), axis=1)
         dark = np.any(valid & (facing < 0), axis=1)
-        keep = np.flatnonzero((lit & dark) | (valid.sum(axis=1) == 1))
+        keep = (lit & dark) | (valid.sum(axis=1) == 1)
+        if shared is not None:
+            joined = np.any(shared[k].faces >= 0, axis=1)
+            own = vertices[np.maximum(table.thirds, 0)]
+            thirds = np.concatenate([own, shared[k].thirds], axis=1)
+            one_side = _one_sided(vertices[table.i], vertices[table.j], thirds, valid, where, point)
+            # Where faces of several meshes meet, their windings need not agree (two
+            # coincident copies, a seam between differently wound parts): the edge is an
+            # outline seen from the light where all their third corners lie on one side
+            # of the plane through the light and the edge.
+            keep = np.where(joined, one_side, keep) & shared[k].owned
+        keep = np.flatnonzero(keep)
         rows.append(np.stack([np.full(len(keep), k), table.i[keep], table.j[keep]], axis=1))
         a.append(vertices[table.i[keep]])
         b.append(vertices[table.j[keep]])
@@ -159,6 +181,17 @@ def _light_silhouettes(scene: Scene, topology, light, edge_faces):
     kind = (occluder[:, 0] < 0).astype(np.int64)
     cat = (lambda x: np.concatenate(x)) if rows else (lambda x: np.zeros((0, 3)))
     return occluder, kind, cat(a), cat(b), cat(axis)
+
+
+def _one_sided(a, b, thirds, valid, where, point: bool) -> np.ndarray:
+    """(E,) bool: edges (a, b) (E, 3) whose faces' third corners ``thirds`` (E, K, 3) (where
+    ``valid`` (E, K)) all lie on one side of the plane through the light and the edge
+    (``where``: a point light's position, or a directional light's direction)."""
+    m = np.cross(a - where, b - where) if point else np.cross(b - a, where)
+    side = np.einsum("ekj,ej->ek", thirds - a[:, None], m)
+    plus = np.any(valid & (side > 0), axis=1)
+    minus = np.any(valid & (side < 0), axis=1)
+    return ~(plus & minus)
 
 
 def _curve_points(kind, a, b, axis, u):
@@ -644,15 +677,20 @@ class BorderChords:
     receiver: np.ndarray
 
 
-def border_chords(scene: Scene, visibility: Visibility, frame, topology) -> BorderChords:
+def border_chords(
+    scene: Scene, visibility: Visibility, frame, topology, shared=None
+) -> BorderChords:
     """The chords of every light's shadow borders (module docstring); ``topology``:
-    ``mesh_edges`` per mesh. None of them without shadows."""
+    ``mesh_edges`` per mesh; ``shared``: the edges meshes share
+    (``render.trace.seams.shared_edges``, None: none). None of them without shadows."""
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
     parts = []
-    edge_faces = _edge_faces(scene, topology) if visibility.shadows and scene.lights else None
+    edge_faces = (
+        _edge_faces(scene, topology, shared) if visibility.shadows and scene.lights else None
+    )
     for j, light in enumerate(scene.lights if visibility.shadows else []):
-        curves = _light_silhouettes(scene, topology, light, edge_faces)
+        curves = _light_silhouettes(scene, topology, light, edge_faces, shared)
         parts.append((*curves, np.full(len(curves[0]), j)))
     if parts:
         *curves, light = (np.concatenate(p) for p in zip(*parts, strict=True))

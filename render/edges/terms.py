@@ -31,6 +31,7 @@ from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_upda
 from render.scene.cache import RenderCache, light_key
 from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
+from render.trace.seams import shared_edges
 from render.trace.topology import edge_structure, welding
 from render.trace.visibility import Visibility
 
@@ -145,13 +146,17 @@ def add_boundary_term(
         [visibility.geometry],
         lambda: crossing_segments(visibility.primitives[0], global_welded(scene, topology)),
     )
+    # Edges that meshes share (a multi-material file's seams) are counted once.
+    shared, _ = cache.get(
+        "shared edges", [visibility.geometry], lambda: shared_edges(scene, topology)
+    )
     direct = radiance is None
     if direct:
         radiance = DirectRadiance(scene, visibility, frame, max_bounces)
-    chords = border_chords(scene, visibility, frame, topology) if direct else None
+    chords = border_chords(scene, visibility, frame, topology, shared) if direct else None
     extra = (chords.start, chords.end) if direct else None
     points, on_chords = boundary_points(
-        scene, visibility, frame, topology, crossings, radiance, extra
+        scene, visibility, frame, topology, crossings, radiance, extra, shared
     )
     shadows = None
     if direct:

@@ -26,6 +26,7 @@ from render.edges.boundary import radiance_at, to_image_plane
 from render.renderer import render
 from render.scene.cache import RenderCache
 from render.scene.camera import camera_frame, subpixel_offsets
+from render.scene.placement import placed
 from render.scene.scene import Scene
 from render.trace.visibility import trace_visibility
 
@@ -51,6 +52,8 @@ def supersampled_image(
     if not isinstance(scene, Scene):
         raise TypeError(f"supersampled_image: scene must be a render.Scene, got {scene!r}")
     scene.validate()
+    with md.no_grad():  # objects with a Transform drawn where render draws them
+        scene = placed(scene)
     cells = subpixel_offsets(spp)  # (spp, 2) stratum centres; a clear error for a bad spp
     n = int(round(np.sqrt(spp)))
     camera = scene.camera
