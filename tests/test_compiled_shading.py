@@ -161,3 +161,24 @@ def test_applies_only_where_nothing_needs_the_tape():
     single = random_scene(0)
     single.objects[0].vertices = md.tensor(single.objects[0].vertices.data.astype(np.float32))
     assert not compiled.applies(single, single.objects[0], reflects=False)
+
+
+@pytest.mark.parametrize("scale", [1e100, -1e300, 1e15 + 0.25])
+def test_huge_texture_coordinates_give_the_tape_codes_image(scale):
+    """UVs far beyond [0, 1] repeat the texture on both paths. The compiled lookup took
+    Numba's math.floor, an int64, which 1e100 overflowed: the image's maximum was 1.2e201
+    where the tape gave 0.76."""
+    quad = np.array([[-1.0, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]])
+    uvs = np.array([[0.0, 0.0], [1, 0], [1, 1], [0, 1]]) * scale
+    texture = np.random.default_rng(2).uniform(0.0, 1.0, (4, 5, 3))
+    material = render.Material(albedo=(1.0, 1.0, 1.0), texture=texture)
+    mesh = render.Mesh(quad, [[0, 1, 2], [0, 2, 3]], material, uvs=uvs)
+    camera = render.Camera((0.2, 0.1, 3.0), (0, 0, 0), width=12, height=10)
+    scene = render.Scene([mesh], [render.PointLight((1.0, 2.0, 4.0), 20.0)], camera)
+    with md.no_grad():
+        plain = render.render(scene, reuse_visibility=False)
+    mesh.vertices.requires_grad = True
+    taped = render.render(scene, reuse_visibility=False)
+    assert taped.node is not None
+    assert np.all(np.isfinite(plain.data)) and plain.data.max() < 10.0
+    np.testing.assert_allclose(plain.data, taped.data, rtol=1e-12, atol=0)

@@ -111,7 +111,9 @@ def _sample(texture, u, v, c):
     (``render.shade.lighting.sample_texture`` for one point); and the footprint's cell."""
     height, width = texture.shape[0], texture.shape[1]
     x, y = u * width - 0.5, (1.0 - v) * height - 0.5
-    x0, y0 = math.floor(x), math.floor(y)
+    # Floors kept as floats and wrapped before the cast (``lighting._wrapped``): Numba's
+    # math.floor returns int64, which a UV of 1e100 overflows.
+    x0, y0 = np.floor(x), np.floor(y)
     fx, fy = x - x0, y - y0
     ix0, iy0 = int(x0 % width), int(y0 % height)
     ix1, iy1 = (ix0 + 1) % width, (iy0 + 1) % height
