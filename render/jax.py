@@ -16,7 +16,8 @@ rather than keeping the forward's tape: a gradient costs two renders and one bac
 * ``mode="reverse"`` (default): ``jax.grad``, ``jax.vjp``, ``jax.jacrev``. ``mode="forward"``:
   the derivative declared with ``jax.custom_jvp`` instead (minidiff's forward mode: one
   render with tangents, and one without for the image): ``jax.jvp``, ``jax.jacfwd``. JAX
-  cannot transpose a callback, so each mode supports only its own direction.
+  cannot transpose a callback, so each mode supports only its own direction (reverse mode
+  of a "forward" function raises an error naming ``mode``).
 * ``jax.vmap`` works through ``vmap_method="sequential"``: the callback is called once per
   batch element, one render after the other.
 * **dtypes**: values come and go in the function's dtype (``f.dtype``, float64 unless the
@@ -35,6 +36,9 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import ShapedArray
+from jax.extend.core import Primitive
+from jax.interpreters import ad, batching, mlir
 
 import minidiff as md
 from render.inverse.function import RenderFunction
@@ -162,9 +166,54 @@ class JaxRenderFunction:
                 directions = [np.asarray(next(moves)) if fl else None for fl in floats]
                 return core.jvp([np.asarray(a) for a in arrays[:n]], directions)[1]
 
+            # Not a bare callback: reverse mode would transpose it, and JAX's own error
+            # ("Pure callbacks do not support transpose") names neither mode nor the fix.
+            d_image = _tangent_p.bind(*primals, *moving, push=push, image=image)
             # The image by its own callback: under jax.jacfwd the tangents are batched and
             # the primals are not, and JAX needs an image that is not batched with them.
-            d_image = jax.pure_callback(push, image, *primals, *moving, vmap_method="sequential")
             return self._primal(*primals), d_image
 
         return f
+
+
+# The tangent of a mode="forward" function as a primitive of its own, linear in the
+# tangents: its value is the callback ``push`` (the primals and the tangents in, the image's
+# tangent ``image`` out); vmap maps it one batch element after the other (``lax.map``, as
+# the callback's "sequential"); its transpose, which reverse mode asks for, is an error
+# naming ``mode`` (JAX has no public hook to give a callback a transpose that batches).
+_tangent_p = Primitive("render_jax_forward_tangent")
+
+
+def _tangent_impl(*arrays, push, image):
+    return jax.pure_callback(push, image, *arrays, vmap_method="sequential")
+
+
+def _tangent_batch(args, dims, *, push, image):
+    """vmap: ``lax.map`` over the batched arguments (batch axis first), the rest shared."""
+    batched = [d is not None for d in dims]  # None: not mapped
+    moved = [jnp.moveaxis(a, d, 0) if b else a for a, d, b in zip(args, dims, batched, strict=True)]
+
+    def one(sliced):
+        parts = iter(sliced)
+        full = [next(parts) if b else a for a, b in zip(moved, batched, strict=True)]
+        return _tangent_p.bind(*full, push=push, image=image)
+
+    return jax.lax.map(one, [a for a, b in zip(moved, batched, strict=True) if b]), 0
+
+
+def _no_reverse_mode(cotangent, *args, push, image):
+    """The transpose of a ``mode="forward"`` function's tangent, which reverse mode
+    (``jax.grad``, ``jax.vjp``, ``jax.jacrev``) asks for: a clear error."""
+    raise ValueError(
+        'render.jax: this function was made with mode="forward", which supports forward '
+        "mode only (jax.jvp, jax.jacfwd, jax.linearize); for reverse mode (jax.grad, "
+        'jax.vjp, jax.jacrev) make it with mode="reverse" (the default): '
+        'render.jax.function(scene, parameters, mode="reverse")'
+    )
+
+
+_tangent_p.def_impl(_tangent_impl)
+_tangent_p.def_abstract_eval(lambda *_, push, image: ShapedArray(image.shape, image.dtype))
+mlir.register_lowering(_tangent_p, mlir.lower_fun(_tangent_impl, multiple_results=False))
+batching.primitive_batchers[_tangent_p] = _tangent_batch
+ad.primitive_transposes[_tangent_p] = _no_reverse_mode

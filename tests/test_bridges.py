@@ -344,6 +344,30 @@ def test_jax_forward_mode():
         _close(np.asarray(jac_fwd), np.asarray(jac_rev))
 
 
+def test_jax_reverse_mode_of_a_forward_function_names_mode():
+    """JAX said "Pure callbacks do not support transpose" without naming mode or the fix;
+    forward mode (jvp, jacfwd, also jitted and under vmap) is unchanged."""
+    with jax.enable_x64(True):
+        forward = rjax.function(_scene(), NAMES[:2], mode="forward")
+        p, a = (jnp.asarray(v) for v in VALUES[:2])
+
+        def loss(p):
+            return jnp.mean(forward(p, a))
+
+        match = r'mode="forward", which supports forward mode only.*mode="reverse"'
+        for reverse in (jax.grad, jax.jacrev, lambda g: jax.jit(jax.grad(g))):
+            with pytest.raises(ValueError, match=match):
+                reverse(loss)(p)
+        with pytest.raises(ValueError, match=match):
+            jax.vjp(lambda p: forward(p, a), p)[1](jnp.ones((SIZE, SIZE, 3)))
+        with pytest.raises(ValueError, match=match):
+            jax.vmap(jax.grad(loss))(jnp.stack([p, p + 0.1]))
+        directions = jnp.eye(3)
+        mapped = jax.jit(jax.vmap(lambda d: jax.jvp(lambda p: forward(p, a), (p,), (d,))[1]))
+        looped = [jax.jvp(lambda p: forward(p, a), (p,), (d,))[1] for d in directions]
+        np.testing.assert_array_equal(mapped(directions), jnp.stack(looped))
+
+
 def test_jax_conversions_are_explicit():
     f = rjax.function(_scene(), NAMES[:2])
     with jax.enable_x64(False), pytest.raises(TypeError, match="jax_enable_x64 is off"):
