@@ -24,8 +24,10 @@ minidiff's forward mode, so ``torch.func.jvp`` and ``torch.autograd.forward_ad``
   parameter, never a silent cast. Integer and boolean tensors are constants (no gradient).
 * **Batches loop**: a value with one leading dimension more than its parameter is a batch
   of B values; the scene is rendered B times, one after the other, and the images stacked
-  (B, ...). Unbatched values are shared by the whole batch. ``torch.func.vmap`` does the
-  same loop.
+  (B, ...). Unbatched values are shared by the whole batch. A scalar parameter given shape
+  (1,) is refused: one value, or a batch of one? ``torch.func.vmap`` does the same loop,
+  and so do the derivatives' own operations under it: ``torch.func.jacrev``, ``jacfwd``
+  and ``vmap(grad(f))`` work (one pullback, or one forward-mode render, per row).
 * **CPU**: tensors on another device are copied to the CPU and the image is returned on
   the device of the first value.
 """
@@ -88,6 +90,13 @@ class TorchRenderFunction:
                     f"{self.dtype}; convert it explicitly (e.g. .to({self.dtype}))"
                 )
             if value.dim() == len(shape) + 1 and tuple(value.shape[1:]) == shape:
+                if shape == () and value.shape[0] == 1:
+                    raise ValueError(
+                        f"{where}: {name} is a scalar parameter but was given shape (1,): one "
+                        "value (pass a 0-d tensor, x.reshape(())) or a batch of one (its "
+                        "image would get a leading 1)? Ambiguous, so refused; for a batch of "
+                        "one use torch.func.vmap"
+                    )
                 if batch is not None and value.shape[0] != batch:
                     raise ValueError(
                         f"{where}: {name} has a batch of {value.shape[0]}, another value {batch}"
@@ -207,6 +216,22 @@ class _Pull(_FirstOrder):
             for g, v in zip(grads, values, strict=True)
         )  # fmt: skip
 
+    @staticmethod
+    def vmap(info, in_dims, core: RenderFunction, holder: _Pullback, d_image, *values):
+        """``torch.func.vmap`` (``jacrev``, ``vmap(grad(f))``): one pullback per batch
+        element, stacked. The forward's tape (``holder``) serves the first element when
+        the values are not batched (then it was recorded for them); every other element
+        renders again on a tape of its own (a tape is used once)."""
+        shared = all(d is None for d in in_dims[3:])
+        per_element = []
+        for b in range(info.batch_size):
+            d = d_image if in_dims[2] is None else d_image.select(in_dims[2], b)
+            one = _element(values, in_dims[3:], b)
+            tape = holder if b == 0 and shared else _Pullback()
+            per_element.append(_Pull.apply(core, tape, d, *one))
+        grads = tuple(torch.stack(g) for g in zip(*per_element, strict=True))
+        return grads, (0,) * len(grads)
+
 
 class _Push(_FirstOrder):
     """The Jacobian-vector product as a PyTorch operation, (core, n, *values, *tangents) ->
@@ -218,3 +243,21 @@ class _Push(_FirstOrder):
         moves = [None if t is None else _numpy(t) for t in tangents]
         _, d_image = core.jvp([_numpy(v) for v in values], moves)
         return torch.from_numpy(d_image).to(values[0].device)
+
+    @staticmethod
+    def vmap(info, in_dims, core: RenderFunction, n: int, *values_and_tangents):
+        """``torch.func.vmap`` (``jacfwd``, ``vmap(jvp(f))``): one Jacobian-vector product
+        per batch element, stacked."""
+        tangents = [
+            _Push.apply(core, n, *_element(values_and_tangents, in_dims[2:], b))
+            for b in range(info.batch_size)
+        ]
+        return torch.stack(tangents), 0
+
+
+def _element(values, dims, b: int) -> list:
+    """Element ``b`` of a vmapped batch: each value at index b along its batch dimension
+    (``dims``: one per value, None where the value is shared by the whole batch)."""
+    return [
+        v if d is None or v is None else v.select(d, b) for v, d in zip(values, dims, strict=True)
+    ]

@@ -257,6 +257,53 @@ def test_torch_gradcheck_and_torch_func():
     assert torch.equal(batched, looped)
 
 
+def test_torch_func_jacobians_and_batched_gradients_equal_loops():
+    """jacrev, jacfwd and vmap(grad(f)) raised "You tried to vmap over _Pull (_Push), but
+    it does not have vmap support": the derivatives' operations now loop under vmap, and
+    give what plain loops of torch.autograd.grad give."""
+    f = rtorch.function(_scene(8), NAMES[:2])
+    p, a = (v.detach() for v in _torch_values()[:2])
+
+    def pixels(p, a):  # a few outputs: a Jacobian costs a render per row
+        return f(p, a)[::3, ::3, 0].reshape(-1)
+
+    def loss(p, a):
+        return (f(p, a) ** 2).mean()
+
+    rows = []
+    for k in range(9):
+        leaves = [p.clone().requires_grad_(), a.clone().requires_grad_()]
+        rows.append(torch.autograd.grad(pixels(*leaves)[k], leaves))
+    looped = [torch.stack([row[i] for row in rows]) for i in range(2)]
+    for got, want in zip(torch.func.jacrev(pixels, argnums=(0, 1))(p, a), looped, strict=True):
+        assert got.shape == (9, 3) and np.abs(want.numpy()).max() > 0
+        _close(got.numpy(), want.numpy())
+    for got, want in zip(torch.func.jacfwd(pixels, argnums=(0, 1))(p, a), looped, strict=True):
+        _close(got.numpy(), want.numpy(), rel=1e-10)  # forward vs reverse mode: rounding
+
+    positions = torch.tensor([[2.0, 5.0, 3.0], [2.5, 5.0, 3.0], [1.0, 4.0, 3.0]], dtype=p.dtype)
+    mapped = torch.func.vmap(torch.func.grad(loss), in_dims=(0, None))(positions, a)
+    for row, position in zip(mapped, positions, strict=True):
+        leaf = position.clone().requires_grad_()
+        (want,) = torch.autograd.grad(loss(leaf, a), [leaf])
+        _close(row.numpy(), want.numpy())
+
+
+def test_torch_scalar_parameter_of_shape_1_is_refused_as_ambiguous():
+    """A (1,) value of a scalar parameter was read as a batch of one: the image got a
+    leading 1 (and broadcast silently against an (H, W, 3) target)."""
+    f = rtorch.function(_scene(8), ["lights[0].intensity"])
+    with pytest.raises(ValueError, match=r"lights\[0\].intensity is a scalar parameter but was "
+                       r"given shape \(1,\)"):  # fmt: skip
+        f(torch.tensor([10.0], dtype=torch.float64))
+    one = f(torch.tensor(10.0, dtype=torch.float64))
+    assert one.shape == (8, 8, 3)
+    two = f(torch.tensor([10.0, 20.0], dtype=torch.float64))  # unambiguous: a batch
+    assert two.shape == (2, 8, 8, 3) and torch.equal(two[0], one)
+    mapped = torch.func.vmap(f)(torch.tensor([10.0], dtype=torch.float64))  # a batch of one
+    assert torch.equal(mapped, one[None])
+
+
 def test_torch_float32_scene_takes_and_gives_float32():
     f = rtorch.function(_float32_scene(), NAMES[:1], antialias="boundary")
     position = torch.tensor([2.0, 5.0, 3.0], requires_grad=True)  # float32
