@@ -34,7 +34,11 @@ import numpy as np
 import minidiff as md
 from render.inverse.plot import line_figure, show
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "02_arrays_and_modes"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "02_arrays_and_modes"
 OUT.mkdir(parents=True, exist_ok=True)
 rng = np.random.default_rng(2)
 

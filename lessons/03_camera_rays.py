@@ -51,7 +51,11 @@ from render.scene.camera import (
     subpixel_offsets,
 )
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "03_camera_rays"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "03_camera_rays"
 OUT.mkdir(parents=True, exist_ok=True)
 
 # %% [markdown]

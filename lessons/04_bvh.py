@@ -48,7 +48,11 @@ from render.shade.surface import intersect_edges
 from render.trace.accel import Accelerator
 from render.trace.intersect import intersect_triangle, make_ray, pack_primitives
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "04_bvh"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "04_bvh"
 OUT.mkdir(parents=True, exist_ok=True)
 
 # %%

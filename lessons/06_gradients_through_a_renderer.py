@@ -37,7 +37,11 @@ import numpy as np
 import minidiff as md
 import render
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "06_gradients_through_a_renderer"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "06_gradients_through_a_renderer"
 OUT.mkdir(parents=True, exist_ok=True)
 SIZE = 64
 

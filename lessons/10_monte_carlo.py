@@ -45,7 +45,11 @@ from render.path.random import uniform
 from render.path.sampling import cosine_hemisphere
 from render.scene.cornell import cornell_box
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "10_monte_carlo"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "10_monte_carlo"
 OUT.mkdir(parents=True, exist_ok=True)
 lesson_start = time.perf_counter()
 

@@ -38,7 +38,11 @@ import render
 from render.inverse.function import RenderFunction
 from render.inverse.plot import line_figure, show
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "12_connecting_autodiff"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "12_connecting_autodiff"
 OUT.mkdir(parents=True, exist_ok=True)
 lesson_start = time.perf_counter()
 S = 32

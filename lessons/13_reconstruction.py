@@ -50,7 +50,11 @@ from render.inverse.reconstruction import (
 from render.scene.placement import rotation_matrix
 from render.scene.teapot import paper_scene
 
-OUT = Path(os.environ.get("LESSONS_OUT", "out/lessons")) / "13_reconstruction"
+# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
+# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
+LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
+COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
+OUT = Path(COURSE_OUT) / "13_reconstruction"
 OUT.mkdir(parents=True, exist_ok=True)
 lesson_start = time.perf_counter()
 
