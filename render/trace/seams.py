@@ -54,8 +54,13 @@ def shared_edges(scene: Scene, topology) -> list[SharedEdges] | None:
     tables = [topology[k].table for k in range(len(meshes))]
     # Welded positions across meshes: no coarser than any one mesh's own welding, so that
     # no two vertices a mesh keeps apart are merged here.
-    tolerance = min(_scale(v) for v in vertices) * _WELD_TOLERANCE
     every = np.concatenate(vertices)
+    tolerance = min(_scale(v) for v in vertices) * _WELD_TOLERANCE
+    # Never below the coordinates' own rounding (a mesh collapsed to a point has size ~0):
+    # positions closer than that are one position anyway, and the keys stay finite.
+    tolerance = max(tolerance, 4 * np.finfo(np.float64).eps * float(np.abs(every).max()))
+    if tolerance == 0.0:  # every vertex at the origin
+        return None
     keys = np.round((every - every.min(axis=0)) / tolerance)
     welded = row_ids(keys)
     starts = np.cumsum([0] + [len(v) for v in vertices])
