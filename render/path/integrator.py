@@ -1,8 +1,11 @@
 """The path integrator: an image from sampled paths, and its gradient two ways.
 
 ``render_path`` renders ``spp`` paths per pixel in batches of ``batch_spp`` samples. With
-gradients enabled every batch stays on the tape until the caller's ``backward``: memory
-grows with spp x depth (way 1, plain reverse mode).
+``gradient="tape"`` every batch stays on the tape until the caller's ``backward``: memory
+grows with spp x depth (way 1, plain reverse mode, the readable reference). By default
+(``gradient="replay"``) the image is one node on the tape whose VJP is way 2 below, run
+with the caller's dL/dimage: ``backward`` gives the tape's gradient (to rounding) and no
+path is kept between the render and the ``backward``.
 
 ``replay_gradient`` is the adjoint by replay (the structure of radiative backpropagation,
 Nimier-David et al. 2020): a primal pass without a tape gives the image and dL/dimage; then
@@ -16,16 +19,19 @@ With ``seed_grad == seed`` both ways compute the same gradient to float rounding
 unbiased gradient of a non-linear loss, pass a different ``seed_grad`` (as Mitsuba 3's
 ``seed_grad``): dL/dimage then comes from samples independent of those the derivative of
 the image is estimated with, and E[dL/dI * dI/dtheta] is the product of the expectations.
+``render_path``'s own replay uses the image's seed (it reproduces the tape's gradient).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
 import minidiff as md
 from minidiff import buffers
+from minidiff.tensor import _grad_enabled, record
 from render.edges.terms import differentiated
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
@@ -39,6 +45,8 @@ from render.scene.scene import MAX_RAYS, Scene, check_ray_count
 BATCH_SPP = 16
 #: Default number of vertices before Russian roulette may end a path (Mitsuba's rr_depth).
 RR_DEPTH = 5
+#: How ``render_path``'s image is differentiated (its ``gradient`` argument).
+GRADIENTS = ("replay", "tape")
 
 
 def render_path(
@@ -50,6 +58,7 @@ def render_path(
     batch_spp: int = BATCH_SPP,
     antialias: bool | str = False,
     edge_spp: int | None = None,
+    gradient: str = "replay",
 ) -> md.Tensor:
     """The (H, W, 3) image of ``scene`` by the path integrator: the mean of ``spp`` paths
     per pixel, each at most ``max_depth`` segments long (1: emitters seen directly; 2:
@@ -59,7 +68,16 @@ def render_path(
     antialias: False (default): no edge term, the motion of silhouettes has no gradient;
     "boundary": add primary visibility's boundary term (``render.path.edges``; zero in
     value), its jumps estimated with ``edge_spp`` paths per side of each edge point (None:
-    ``spp``)."""
+    ``spp``).
+
+    gradient: how ``backward`` reaches the parameters (reverse mode; forward mode needs no
+    tape either way). "replay" (default): the image is one node on the tape; its VJP
+    renders the samples again, ``batch_spp`` at a time, each batch on its own tape dropped
+    before the next (``_backpropagate``): memory of one batch whatever ``spp``, the tape's
+    gradient to rounding, at the cost of one more render without a tape. "tape": every
+    batch stays on the tape until ``backward``: memory grows with spp x depth (~3 MB per
+    sample per pixel at 32x32, depth 4). With ``spp <= batch_spp`` both are the same one
+    batch, so the tape is used."""
     spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
     seed = check_seed(seed)
     batch_spp = check_count("batch_spp", batch_spp)
@@ -69,7 +87,10 @@ def render_path(
     # Every batch has arrays of new shapes (the paths alive at each depth): reusing
     # minidiff's buffers would only fill its pool with arrays nobody asks for again.
     with buffers.fresh():
-        return _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
+        options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
+        if _replays(scene, gradient, spp, batch_spp):
+            return _replayed_image(scene, *options)
+        return _render_path(scene, *options)
 
 
 def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
@@ -130,6 +151,104 @@ def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) ->
     return md.reshape(radiance, (camera.height, camera.width, last - first, 3))
 
 
+def _replays(scene: Scene, gradient: str, spp: int, batch_spp: int) -> bool:
+    """Whether ``render_path`` returns the image as one node differentiated by replay: a
+    parameter requires grad (with gradients enabled) and there is more than one batch."""
+    if gradient not in GRADIENTS:
+        raise ValueError(f'render: gradient must be "replay" or "tape", got {gradient!r}')
+    if gradient == "tape" or spp <= batch_spp or not md.is_grad_enabled():
+        return False
+    return any(p.requires_grad for p in scene.parameters())
+
+
+def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
+    """The image of ``_render_path`` as one node on the tape, rendered without a tape.
+
+    Its inputs are the scene's parameters that require grad or carry a tangent; its VJP
+    takes dL/dimage (H, W, 3) back to them by replay (``_backpropagate``), with the
+    image's own seed, so it is the tape's gradient to rounding. The render and the replay
+    both use a copy of the scene holding copies of the parameters' values at the time of
+    the render (``frozen``): a parameter edited between the render and ``backward`` does
+    not change the gradient of the image that was rendered.
+
+    The copies of the moving parameters must look differentiated in the render as the
+    originals do on the tape: some choices of the sampler depend on it (an emission being
+    differentiated makes its surface an area light that NEE samples, ``Material.emissive``).
+    Reverse mode alone: they require grad and the render runs under ``no_grad()``. With
+    forward mode: each carries its parameter's tangent (zero if it has none) and nothing
+    requires grad, so the tangents flow and nothing is recorded; the image's tangent is
+    the tape's."""
+    from render.inverse.function import _substituted  # it imports render, which imports us
+
+    parameters = scene.parameters()
+    copies = {id(p): md.tensor(p.data) for p in parameters}
+    frozen = _substituted(scene, copies, {})
+    moving = [p for p in parameters if p.requires_grad or p.tangent is not None]
+    leaves = [copies[id(p)] for p in moving]
+    options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
+    if all(p.tangent is None for p in moving):
+        for leaf in leaves:
+            leaf.requires_grad = True
+        with md.no_grad():
+            image = _render_path(frozen, *options)
+    else:
+        directions = {
+            leaf: np.zeros(p.shape, p.dtype) if p.tangent is None else p.tangent
+            for p, leaf in zip(moving, leaves, strict=True)
+        }
+        with md.tangents(directions):
+            image = _render_path(frozen, *options)
+    tangent = image.tangent
+
+    def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
+        for leaf in leaves:  # every moving copy, as differentiated as on the tape
+            leaf.requires_grad, leaf.grad = True, None
+        with _recording(), buffers.fresh():
+            _backpropagate(frozen, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges,
+                           edge_spp)  # fmt: skip
+        return tuple(leaf.grad for leaf in leaves)  # None: the image does not depend on it
+
+    return record("path_image", image.data, moving, vjp, jvp=lambda *_: tangent)
+
+
+@contextlib.contextmanager
+def _recording() -> Iterator[None]:
+    """Gradients enabled in this thread (or task) within the block: a replay's batches must
+    be recorded even when the caller's ``backward`` runs under ``no_grad()``."""
+    token = _grad_enabled.set(True)
+    try:
+        yield
+    finally:
+        _grad_enabled.reset(token)
+
+
+def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
+    """Add d_image . d image / d p (``d_image`` (H, W, 3): dL/dimage) to ``p.grad`` of every
+    parameter of ``scene`` that requires grad, as ``backward`` through ``_render_path``'s
+    tape would, by rendering the samples again in batches of ``batch_spp`` (the same path
+    ids and random numbers under ``seed``), each on its own tape that its ``backward``
+    frees before the next batch is rendered."""
+    adjoint = d_image * (1.0 / spp)  # the tape's image is total * (1 / spp): the same seed
+    sampler = None
+    for first in range(0, spp, batch_spp):
+        world = placed(scene)  # a fresh tape per batch: placement is on it too
+        if sampler is None:  # plain arrays: the same for every batch
+            sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
+        last = min(first + batch_spp, spp)
+        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last)
+        if samples.requires_grad:  # else no parameter that requires grad moves the image
+            # This batch's share of the image is sum_s samples / spp; its share of dL/dp:
+            md.sum(samples * adjoint[:, :, None, :]).backward()
+    if edges and differentiated(scene):
+        world = placed(scene)
+        zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
+        term = add_path_boundary_term(
+            scene, world, zero, camera_frame(world.camera), sampler, edge_spp
+        )
+        if term.requires_grad:
+            md.sum(term * d_image).backward()
+
+
 def replay_gradient(
     scene: Scene,
     loss: Callable[[md.Tensor], md.Tensor],
@@ -166,21 +285,6 @@ def _replay(scene, loss, image, spp, max_depth, seed_grad, rr_depth, batch_spp, 
     if not isinstance(value, md.Tensor) or value.data.size != 1:
         raise TypeError("replay_gradient: loss must return a scalar minidiff tensor")
     value.backward()
-    adjoint = pixels.grad / spp
-    sampler = None
-    for first in range(0, spp, batch_spp):
-        world = placed(scene)  # a fresh tape per batch: placement is on it too
-        if sampler is None:  # plain arrays: the same for every batch
-            sampler = PathSampler(world, spp, max_depth, rr_depth, seed_grad)
-        last = min(first + batch_spp, spp)
-        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last)
-        # This batch's share of the image is sum_s samples / spp; its share of dL/dtheta:
-        md.sum(samples * adjoint[:, :, None, :]).backward()  # (adjoint already / spp)
-    if edges and differentiated(scene):
-        world = placed(scene)
-        zero = md.tensor(np.zeros_like(image))
-        term = add_path_boundary_term(
-            scene, world, zero, camera_frame(world.camera), sampler, edge_spp
-        )
-        md.sum(term * pixels.grad).backward()
+    _backpropagate(scene, pixels.grad, spp, max_depth, seed_grad, rr_depth, batch_spp, edges,
+                   edge_spp)  # fmt: skip
     return float(value.data), image
