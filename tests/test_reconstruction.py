@@ -10,9 +10,15 @@ from scipy.spatial.transform import Rotation
 
 import minidiff as md
 import render
-from render.inverse.basin import coarse_to_fine, downsample, greedy_search, resized
+from render.inverse import reconstruction
+from render.inverse.basin import coarse_to_fine, downsample, greedy_search, multi_start, resized
 from render.inverse.experiments import run_camera_calibration
-from render.inverse.reconstruction import pose_problem, rotation_error_degrees, run_pose
+from render.inverse.reconstruction import (
+    pose_problem,
+    pose_starts,
+    rotation_error_degrees,
+    run_pose,
+)
 
 
 def test_downsample_is_the_block_mean():
@@ -80,8 +86,67 @@ def test_coarse_to_fine_runs_each_stage_at_its_size():
         coarse_to_fine(scene, params, target, factors=(2,), iters=(1, 2))
 
 
+def test_pose_starts_turn_the_start_about_six_axes():
+    rotation, translation = np.array([10.0, -20.0, 5.0]), np.array([0.1, 0.2, 0.3])
+    starts = pose_starts(rotation, translation, 6, turn=30.0)
+    assert len(starts) == 7 and np.array_equal(starts[0][0], rotation)
+    for k, (turned, shift) in enumerate(starts[1:]):
+        assert rotation_error_degrees(turned, rotation) == pytest.approx(30.0, abs=1e-9)
+        axis = np.vstack([np.eye(3), -np.eye(3)])[k]  # turned = R(30 deg about axis) * start
+        step = Rotation.from_rotvec(np.radians(turned)) * Rotation.from_rotvec(
+            np.radians(rotation)).inv()  # fmt: skip
+        assert np.allclose(step.as_rotvec(), np.radians(30.0) * axis, atol=1e-12)
+        assert np.array_equal(shift, translation)
+    assert len(pose_starts(rotation, translation, 0)) == 1
+    with pytest.raises(ValueError, match="count must be an int in 0..6"):
+        pose_starts(rotation, translation, 7)
+
+
+def test_multi_start_runs_each_start_small_and_keeps_the_lowest_loss():
+    scene, params, target, _ = pose_problem(32, 30.0, 1)
+    starts = pose_starts(params[0].data, params[1].data, 2)
+    sizes = []
+    kwargs = {"lr": [1.0, 0.02], "quiet": True, "render_kwargs": {"antialias": True}}
+    kwargs["callback"] = lambda it, loss, image, h: sizes.append(image.shape[0])
+    result = multi_start(scene, params, target, starts, iters=3, factor=2, **kwargs)
+    assert sizes == [16] * (3 * 4)  # three starts, 3 updates and a last evaluation each
+    assert result.renders == 12 and len(result.losses) == 3
+    assert result.best == int(np.argmin(result.losses))
+    with md.no_grad():  # the parameters hold where the best start ended
+        again = render.image_loss(render.render(resized(scene, 16, 16), antialias=True),
+                                  downsample(target, 2))  # fmt: skip
+    assert again.item() == pytest.approx(result.losses[result.best], rel=1e-9)
+    with pytest.raises(ValueError, match="at least one start"):
+        multi_start(scene, params, target, [])
+
+
+def test_default_pose_run_starts_small_then_goes_on_at_full_size(monkeypatch):
+    # the default multi-start's mechanics, with 2 iterations per start instead of 40: the
+    # stage runs at POSE_START_SIZE pixels, then the full-size gradients go on from the
+    # start with the lowest loss
+    monkeypatch.setattr(reconstruction, "POSE_START_ITERS", 2)
+    monkeypatch.setattr(reconstruction, "POSE_START_SIZE", 16)
+    seen = []
+    original = reconstruction.optimize
+
+    def recording(scene, params, target, **kwargs):
+        seen.append((target.shape[0], kwargs["render_kwargs"]["antialias"], kwargs["max_iters"]))
+        return original(scene, params, target, **kwargs)
+
+    monkeypatch.setattr("render.inverse.basin.optimize", recording)
+    monkeypatch.setattr(reconstruction, "optimize", recording)
+    result = run_pose(size=32, angle=30.0, seed=100, iters=3, antialias=True)
+    assert seen == [(16, True, 2)] * 7 + [(32, True, 3)]
+    assert result["starts"] == 6 and len(result["start_losses"]) == 7
+    assert result["start_renders"] == 7 * 3 and result["search_renders"] == 0
+    assert result["start_kept"] == int(np.argmin(result["start_losses"]))
+    assert result["seconds"] >= result["start_seconds"] > 0
+    with pytest.raises(ValueError, match="starts and search are alternatives"):
+        run_pose(size=32, iters=1, search=2, starts=6)
+
+
 def test_pose_run_lowers_the_loss_and_reports_its_errors():
-    result = run_pose(size=32, angle=10.0, seed=0, iters=12, antialias=True)
+    result = run_pose(size=32, angle=10.0, seed=0, iters=12, antialias=True, starts=0)
     assert result["final_loss"] < 0.7 * result["initial_loss"]
     assert result["rotation_error_after_search"] == pytest.approx(10.0, abs=1e-9)
     assert result["rotation_error_degrees"] == rotation_error_degrees(np.array(result["rotation"]))

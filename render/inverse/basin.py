@@ -13,6 +13,11 @@ silhouettes overlap best. Two standard remedies, both explicit options here:
   nvdiffrast pose sample spends the first half of its iterations this way). Its cost is
   stated, not hidden: ``SearchResult.renders`` counts the renders, ``seconds`` their time,
   and the experiments add both to what they report.
+* ``multi_start``: a few short, cheap runs of the gradients from several starts (the given
+  one and turned copies of it), each at a low resolution with a cheaper edge method, and
+  keep the one whose loss ends lowest. Unlike the greedy search, every candidate has
+  descended before it is judged, so that a start in the right basin is compared at (near)
+  its minimum, not at a proposal's raw loss.
 """
 
 from __future__ import annotations
@@ -147,3 +152,56 @@ def greedy_search(
         p.data[...] = value
     result.loss, result.seconds = best_loss, time.perf_counter() - start
     return result
+
+
+@dataclass
+class MultiStartResult:
+    """What ``multi_start`` did: each start's loss after its short run (at the low
+    resolution), the index of the kept one, the renders made (every iteration of every
+    start, plus the evaluation after the last update) and their wall time."""
+
+    losses: list[float]
+    best: int
+    renders: int
+    seconds: float
+
+
+def multi_start(
+    scene: Scene,
+    params: Sequence[md.Tensor],
+    target: np.ndarray,
+    starts: Sequence[Sequence[np.ndarray]],
+    iters: int = 40,
+    factor: int = 2,
+    **optimize_kwargs,
+) -> MultiStartResult:
+    """From each of ``starts`` (a list of values, one array per parameter), ``iters``
+    iterations of ``optimize`` at 1/``factor`` of the image size against the block-mean
+    target (each start with its own optimiser); the parameters end at the values the start
+    with the lowest final loss reached. ``optimize_kwargs`` go to every run (``lr``,
+    ``render_kwargs``: e.g. the cheaper ``antialias=True`` for this stage, ...)."""
+    if isinstance(iters, bool) or not isinstance(iters, int) or iters < 0:
+        raise ValueError(f"multi_start: iters must be an int >= 0, got {iters!r}")
+    if not starts:
+        raise ValueError("multi_start: give at least one start")
+    if "optimizer" in optimize_kwargs:
+        raise TypeError("multi_start: each start makes its own optimiser; pass lr instead")
+    params = list(params)
+    small = downsample(np.asarray(target, dtype=np.float64), factor)
+    view = scene if factor == 1 else resized(scene, small.shape[1], small.shape[0])
+    begin = time.perf_counter()
+    losses, ends, renders = [], [], 0
+    for values in starts:
+        if len(values) != len(params):
+            raise ValueError(f"multi_start: a start has {len(values)} values for {len(params)} "
+                             "parameters")  # fmt: skip
+        for p, value in zip(params, values, strict=True):
+            p.data[...] = value
+        _, history = optimize(view, params, small, max_iters=iters, **optimize_kwargs)
+        losses.append(float(history.loss[-1]))
+        ends.append([p.data.copy() for p in params])
+        renders += len(history.loss)
+    best = int(np.argmin(losses))
+    for p, value in zip(params, ends[best], strict=True):
+        p.data[...] = value
+    return MultiStartResult(losses, best, renders, time.perf_counter() - begin)

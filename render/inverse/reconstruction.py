@@ -4,9 +4,11 @@ returns a dict of metrics (JSON-ready), the way the field reports them.
 
 * ``run_pose``: the teapot's 6-DoF pose (a ``Transform``'s rotation and translation) from
   one view, from a random rotation of a given angle about a random axis plus a translation
-  of 10 % of its size; gradients alone, or after a greedy search stage
-  (``render.inverse.basin``). Success: rotation error < 1 degree and translation error
-  < 1 % of the teapot's size (its bounding-box diagonal).
+  of 10 % of its size. By default a multi-start stage first (``POSE_STARTS`` turned copies
+  of the start and the start itself, 40 cheap iterations each at 64 px; the lowest loss
+  goes on to the full-size gradients); or gradients alone (``starts=0``), or a greedy
+  search stage and a race (``search``; ``render.inverse.basin``). Success: rotation error
+  < 1 degree and translation error < 1 % of the teapot's size (its bounding-box diagonal).
 * ``run_shape``: a mesh's shape from many views with known cameras and lights, starting
   from an icosphere, with Large Steps, a Laplacian term or neither; Chamfer and Hausdorff
   distances to the true surface and the PSNR of held-out views.
@@ -20,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 import minidiff as md
-from render.inverse.basin import greedy_search
+from render.inverse.basin import greedy_search, multi_start
 from render.inverse.optimize import image_loss, optimize
 from render.inverse.shape import (
     LargeStepsAdam,
@@ -41,6 +43,17 @@ POSE_TRANSLATION_OK = 1.0
 #: the search stage's image width: 64 pixels (half of 128), never fewer (at 32 pixels
 #: teapots turned 95-170 degrees matched better than the start turned 15)
 SEARCH_SIZE = 64
+#: the default multi-start stage (``run_pose``): the start and the start turned by
+#: ``POSE_START_TURN`` degrees about each of the six directions +-x, +-y, +-z (world axes),
+#: ``POSE_START_ITERS`` iterations each at ``POSE_START_SIZE`` pixels with the cheaper
+#: pair-wise edges (``antialias=True``: about 25 ms per iteration at 64 px where the
+#: boundary integral costs ~100 ms at any size). Chosen on seeds 100-109 from 30 degrees
+#: (docs/reconstruction/pose_seeds.md), where it took the gradients alone from 8 of 10
+#: successes to 10 of 10.
+POSE_STARTS = 6
+POSE_START_TURN = 30.0
+POSE_START_ITERS = 40
+POSE_START_SIZE = 64
 
 
 def rotation_error_degrees(rotation: np.ndarray, truth: np.ndarray | None = None) -> float:
@@ -93,6 +106,26 @@ def pose_proposal(extent: float):
     return propose
 
 
+def pose_starts(
+    rotation: np.ndarray,
+    translation: np.ndarray,
+    count: int = POSE_STARTS,
+    turn: float = POSE_START_TURN,
+) -> list[list[np.ndarray]]:
+    """The multi-start stage's starts: the given pose, then ``count`` (0-6) copies of it
+    turned by ``turn`` degrees about +x, +y, +z, -x, -y, -z (in that order; a turn in world
+    space, applied after the rotation), all with the given translation. Rotations are
+    rotation vectors in degrees, as ``Transform.rotation`` holds them."""
+    if isinstance(count, bool) or not isinstance(count, int) or not 0 <= count <= 6:
+        raise ValueError(f"pose_starts: count must be an int in 0..6, got {count!r}")
+    start = Rotation.from_rotvec(np.radians(rotation))
+    axes = np.vstack([np.eye(3), -np.eye(3)])[:count]
+    turned = [Rotation.from_rotvec(np.radians(turn) * axis) * start for axis in axes]
+    values = [np.array(rotation, dtype=np.float64)]
+    values += [np.degrees(r.as_rotvec()) for r in turned]
+    return [[v, np.array(translation, dtype=np.float64)] for v in values]
+
+
 def run_pose(
     size: int = 128,
     angle: float = 30.0,
@@ -103,18 +136,33 @@ def run_pose(
     lr: tuple[float, float] = (1.0, 0.02),
     quiet: bool = True,
     race: float = 0.5,
+    starts: int | None = None,
 ) -> dict:
     """One pose run: ``iters`` Adam iterations (learning rates: degrees and scene units per
-    step) with the edge method ``antialias``. ``search`` > 0: first ``greedy_search`` with
-    that many renders (``SEARCH_SIZE`` wide), then a race of ``race`` x iters iterations
-    from the start and from the search's best each, and the rest from the winner.
+    step) with the edge method ``antialias``, at full size, after one of two optional
+    stages. ``starts`` (default ``POSE_STARTS`` when there is no search, else 0) > 0: first
+    ``multi_start`` from ``pose_starts`` (the start and ``starts`` turned copies),
+    ``POSE_START_ITERS`` iterations each at ``POSE_START_SIZE`` pixels (or the full size if
+    smaller) with ``antialias=True``, and the full-size run goes on from the lowest loss.
+    ``search`` > 0: first ``greedy_search`` with that many renders (``SEARCH_SIZE``
+    wide), then a race of ``race`` x iters iterations from the start and from the search's
+    best each, and the rest from the winner (not with ``starts`` > 0).
     Returns the metrics: the rotation error (degrees), the translation error (% of the
-    size), success, the loss, and the time spent (search and race included in
+    size), success, the loss, and the time spent (search, race and starts included in
     ``seconds``)."""
+    if starts is None:
+        starts = 0 if search else POSE_STARTS
+    if starts and search:
+        raise ValueError("run_pose: starts and search are alternatives; pass one of them")
     scene, params, target, extent = pose_problem(size, angle, seed)
     start = time.perf_counter()
     fit = {"lr": list(lr), "quiet": quiet, "render_kwargs": {"antialias": antialias}}
-    searched, raced = None, 0
+    searched, raced, started = None, 0, None
+    if starts:
+        factor = max(f for f in range(1, max(1, size // POSE_START_SIZE) + 1) if size % f == 0)
+        started = multi_start(scene, params, target, pose_starts(*(p.data for p in params), starts),
+                              iters=POSE_START_ITERS, factor=factor, lr=list(lr), quiet=True,
+                              render_kwargs={"antialias": True})  # fmt: skip
     if search:
         begin = [p.data.copy() for p in params]
         factor = max(1, size // SEARCH_SIZE)
@@ -146,6 +194,11 @@ def run_pose(
         "size": size,
         "search_renders": 0 if searched is None else searched.renders,
         "search_seconds": 0.0 if searched is None else searched.seconds,
+        "starts": starts,
+        "start_renders": 0 if started is None else started.renders,
+        "start_seconds": 0.0 if started is None else started.seconds,
+        "start_losses": [] if started is None else started.losses,
+        "start_kept": None if started is None else started.best,
         "rotation_error_after_search": after_search,
         "rotation_error_degrees": rotation,
         "translation_error_percent": translation,
