@@ -24,10 +24,21 @@ is turned off (``REUSE`` says whether it is on and ``REUSE_CHECK`` why).  Only C
 with its GIL is trusted at all.
 
 This is local to minidiff: no allocator setting of the process is changed, and only the
-arrays that come from here are kept.  The pool holds at most ``max_bytes``
-(default 512 MiB); when a new shape would exceed that, the shapes used least recently are
-dropped from it (arrays in use live on, they are just not reused).  ``clear()`` drops
-everything; ``set_max_bytes(0)`` turns reuse off.
+arrays that come from here are kept.  Arrays in use live on when the pool drops them; they
+are just not reused.  The pool drops a shape (with its arrays) when:
+
+* it is old: it has not been asked for in the last ``MAX_AGE`` (256) requests of large
+  arrays.  Shapes that come back pass after pass are asked for far more often (a render of
+  the paper scene and its backward pass ask for 62 large arrays at 512 x 512, 83 with the
+  boundary term), but a shape that a pass made once and that never comes back (a boundary
+  term has as many points as its edges cover pixels, a new count in every iteration of an
+  optimisation) would otherwise be kept until the cap below; now it is gone after 256
+  more requests, so what the pool holds no longer grows with the number of iterations;
+* the pool would exceed ``max_bytes`` (default 512 MiB): the shapes used least recently go
+  first.
+
+Age is counted in requests, not in time or reference counts: the same calls drop the same
+shapes on every run.  ``clear()`` drops everything; ``set_max_bytes(0)`` turns reuse off.
 
 Reuse pays when the same shapes come back pass after pass (the direct renderer: one image,
 the same rays). A Monte Carlo pass asks for new shapes every batch (how many paths are
@@ -52,10 +63,28 @@ import numpy as np
 #: process anyway (its mmap threshold starts at 128 KiB), so reusing them would gain nothing.
 MIN_BYTES = 128 * 1024
 
+#: A shape not asked for in this many requests of large arrays (outside ``fresh()``) is
+#: dropped from the pool (see the module docstring).
+MAX_AGE = 256
+
+
+class _Shape:
+    """The pool's arrays of one (shape, dtype), and the request (``_requests``) that last
+    asked for that shape."""
+
+    __slots__ = ("arrays", "last")
+
+    def __init__(self, last: int) -> None:
+        self.arrays: list[np.ndarray] = []
+        self.last = last
+
+
 _lock = threading.Lock()
-_pool: OrderedDict[tuple, list[np.ndarray]] = OrderedDict()  # (shape, dtype) -> arrays
+# (shape, dtype) -> _Shape, the least recently asked for first (so also the oldest first).
+_pool: OrderedDict[tuple, _Shape] = OrderedDict()
 _held_bytes = 0
 _max_bytes = 512 * 2**20
+_requests = 0  # requests of large arrays that the pool has seen: its clock for ages
 
 # sys.getrefcount(array) while the array sits in a pool list and in the loop variable that
 # looks at it (plus getrefcount's own argument): nobody else holds it.
@@ -87,27 +116,46 @@ def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:
     if nbytes < MIN_BYTES or nbytes > _max_bytes or _fresh.get():
         return np.empty(shape, dtype)
     key = (shape, dtype)
-    global _held_bytes
+    global _held_bytes, _requests
     with _lock:
-        arrays = _pool.get(key)
-        if arrays is None:
-            arrays = _pool[key] = []
+        _requests += 1
+        _drop_old(_requests - MAX_AGE)
+        entry = _pool.get(key)
+        if entry is None:
+            entry = _pool[key] = _Shape(_requests)
         else:
             _pool.move_to_end(key)  # most recently used last
+            entry.last = _requests
+            arrays = entry.arrays
             for a in arrays:
                 if sys.getrefcount(a) == _UNUSED:
                     return a
         while _held_bytes + nbytes > _max_bytes and len(_pool) > 1:
-            old_key, old = next(iter(_pool.items()))
+            old_key = next(iter(_pool))
             if old_key == key:
                 break
-            _held_bytes -= sum(a.nbytes for a in old)
-            del _pool[old_key]
+            _drop(old_key)
         a = np.empty(shape, dtype)
         if _held_bytes + nbytes <= _max_bytes:
-            arrays.append(a)
+            entry.arrays.append(a)
             _held_bytes += nbytes
         return a
+
+
+def _drop_old(oldest: int) -> None:
+    """Drop the shapes last asked for before request ``oldest`` (holding ``_lock``). The
+    pool is in the order of last requests, so they are at its front."""
+    while _pool:
+        key, entry = next(iter(_pool.items()))
+        if entry.last >= oldest:
+            return
+        _drop(key)
+
+
+def _drop(key: tuple) -> None:
+    """Forget the pool's arrays of ``key`` (holding ``_lock``)."""
+    global _held_bytes
+    _held_bytes -= sum(a.nbytes for a in _pool.pop(key).arrays)
 
 
 def _proof() -> str | None:
@@ -117,7 +165,6 @@ def _proof() -> str | None:
         return f"not CPython ({sys.implementation.name}): reference counts are not exact"
     if not getattr(sys, "_is_gil_enabled", lambda: True)():
         return "free-threaded CPython: another thread's references are counted lazily"
-    global _held_bytes
     shape, dtype = (MIN_BYTES // 8 + 1,), np.dtype(np.float64)
     key = (shape, dtype)
     try:
@@ -174,8 +221,8 @@ def _proof() -> str | None:
         return None
     finally:
         with _lock:
-            arrays = _pool.pop(key, [])
-            _held_bytes -= sum(a.nbytes for a in arrays)
+            if key in _pool:
+                _drop(key)
 
 
 def zeros(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:

@@ -3,6 +3,8 @@ changes no value anywhere (kernels, renders, gradients)."""
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 import pytest
 
@@ -223,3 +225,48 @@ def test_a_path_tracer_pass_leaves_the_pool_as_it_was():
     assert buffers.held_bytes() == 0
     image.sum().backward()
     assert np.abs(scene.objects[3].material.albedo.grad).max() > 0
+
+
+def test_shapes_that_never_come_back_are_dropped_and_recurring_ones_reused():
+    """A shape not asked for in ``MAX_AGE`` requests is dropped: 10 * MAX_AGE shapes asked
+    for once each (as a boundary term's point counts, new every iteration) leave at most
+    MAX_AGE of them in the pool, while a shape asked for every 50 requests keeps its array
+    (the same array every time) and an array in use when its shape is dropped is never
+    handed out again."""
+    n = 10 * buffers.MAX_AGE
+    largest_one_off = (16_400 + n) * 8
+    assert 16_400 * 8 >= buffers.MIN_BYTES and 50 < buffers.MAX_AGE
+    recurring = weakref.ref(buffers.empty(BIG, np.float64))  # the pool's array, unheld
+    kept = buffers.empty((16_400 - 1,), np.float64)  # in use while its shape ages out
+    kept.fill(3.0)
+    most = 0
+    for i in range(n):
+        buffers.empty((16_400 + i,), np.float64)  # dropped by the caller at once
+        if i % 50 == 0:
+            assert buffers.empty(BIG, np.float64) is recurring()
+        most = max(most, buffers.held_bytes())
+    assert most <= (buffers.MAX_AGE + 1) * largest_one_off + BIG[0] * BIG[1] * 8
+    late = buffers.empty((16_400 - 1,), np.float64)  # its shape was dropped: a new array
+    assert not np.shares_memory(late, kept) and (kept == 3.0).all()
+
+
+def test_a_shape_is_dropped_after_exactly_max_age_other_requests(monkeypatch):
+    """The age is counted in requests of large arrays (not time, not reference counts): a
+    shape asked for again after MAX_AGE - 1 other requests is reused, after MAX_AGE it is
+    not. Requests inside ``fresh()`` and small arrays do not count."""
+    monkeypatch.setattr(buffers, "MAX_AGE", 8)
+
+    def reused_after(others: int, counted: bool = True) -> bool:
+        buffers.clear()
+        first = weakref.ref(buffers.empty(BIG, np.float64))  # kept by the pool alone
+        for i in range(others):
+            if counted:
+                buffers.empty((20_000 + i,), np.float64)
+            else:
+                buffers.empty((10 + i,), np.float64)  # small: not from the pool
+                with buffers.fresh():
+                    buffers.empty((20_000 + i,), np.float64)
+        return buffers.empty(BIG, np.float64) is first()
+
+    assert reused_after(7) and not reused_after(8)
+    assert reused_after(100, counted=False)
