@@ -72,7 +72,7 @@ def memory(size: int, tape_spps, replay_spps) -> dict:
     def tape(spp):
         for p in params:
             p.grad = None
-        loss(render_path(scene, spp=spp, max_depth=DEPTH, seed=0)).backward()
+        loss(render_path(scene, spp=spp, max_depth=DEPTH, seed=0, gradient="tape")).backward()
 
     def replay(spp):
         for p in params:
@@ -117,7 +117,7 @@ def speed(size: int, spp: int, repeats: int) -> dict:
     def gradient():
         for p in params:
             p.grad = None
-        loss(render_path(scene, spp=spp, max_depth=DEPTH, seed=0)).backward()
+        loss(render_path(scene, spp=spp, max_depth=DEPTH, seed=0, gradient="tape")).backward()
 
     out = {}
     for name, fn in (("forward", forward), ("tape_gradient", gradient)):

@@ -366,7 +366,10 @@ decorrelated_in_errors = abs(decorrelated_mean) / decorrelated_error
 # computes `∂L/∂I` once, then renders the samples again in batches with the *same* random
 # numbers (the counter-based generator of the first section makes that exact), each batch
 # on its own short tape, and back-propagates that batch's share of `∂L/∂I` before dropping
-# it. The peak memory is one batch's.
+# it. The peak memory is one batch's. `render_path` does this by itself when a parameter
+# requires grad (its default `gradient="replay"`): the image it returns is one tape node
+# whose backward replays the batches. Below, `gradient="tape"` keeps every path on the tape
+# instead, to show what replay saves.
 
 # %%
 mem_room = cornell_box(16, 16)
@@ -390,7 +393,9 @@ def peak_mb(fn) -> float:
 memory = {}
 for spp in (16, 64):
     memory["tape", spp] = peak_mb(
-        lambda s=spp: mem_loss(render_path(mem_room, spp=s, max_depth=3)).backward()
+        lambda s=spp: mem_loss(
+            render_path(mem_room, spp=s, max_depth=3, gradient="tape")
+        ).backward()
     )
     memory["replay", spp] = peak_mb(
         lambda s=spp: replay_gradient(mem_room, mem_loss, spp=s, max_depth=3, batch_spp=16)
