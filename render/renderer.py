@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import minidiff as md
+from render.edges.interior import add_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
 from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
@@ -138,6 +139,7 @@ def render(
     else:
         image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
         if antialias == "boundary" and differentiated(scene):  # 4': zero in value
+            image = add_interior_samples(world, visibility, image, frame, spp, max_bounces)
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:

@@ -408,6 +408,28 @@ def quadrature(p0, p1, segment, start, end):
 # ---------------------------------------------------------------------------------------
 
 
+def seen_through(
+    scene: Scene,
+    visibility: Visibility,
+    frame,
+    coords: np.ndarray,
+    prim_id: np.ndarray,
+    depth: np.ndarray,
+) -> Visibility:
+    """The render's ``visibility`` with its camera rays replaced by k rays through
+    image-plane points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the
+    background) at ``depth`` (k,) along the view axis: their hit points and, per light,
+    which of them it reaches (shadow rays traced as the render's are)."""
+    forward, right, up, eye = plain_camera(frame)
+    hit = np.flatnonzero(prim_id >= 0)
+    at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
+    directions = camera_directions(at, right, up, forward)
+    points = eye + depth[hit][:, None] * directions
+    primary = PrimaryHits(prim_id, hit, depth, points, at)
+    lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
+    return replace(visibility, primary=primary, lit=lit)
+
+
 def shade_seen(
     scene: Scene,
     visibility: Visibility,
@@ -421,14 +443,7 @@ def shade_seen(
     points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the background) at
     ``depth`` (k,) along the view axis, shaded as camera hits of the render are (shadows
     and mirror reflections included, by ``shade_camera_hits``)."""
-    forward, right, up, eye = plain_camera(frame)
-    hit = np.flatnonzero(prim_id >= 0)
-    at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
-    directions = camera_directions(at, right, up, forward)
-    points = eye + depth[hit][:, None] * directions
-    primary = PrimaryHits(prim_id, hit, depth, points, at)
-    lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
-    seen = replace(visibility, primary=primary, lit=lit)
+    seen = seen_through(scene, visibility, frame, coords, prim_id, depth)
     out = np.empty((len(coords), 3))
     out[:] = np.asarray(scene.background.data, np.float64)
     # Values only: a reflectance that is zero adds nothing, even while it is differentiated.
