@@ -4,7 +4,8 @@ Ray r belongs to pixel r // spp; a pixel is the mean of its ``spp`` samples, and
 that hit nothing shows the scene's background. Two builders, for the two shapes the colours
 arrive in: ``image_from_hits`` takes the colours of the rays that hit (k, 3), as steps 2-3
 give them, and adds them straight into pixels; with edge terms the colours of all samples
-(N, 3) are needed first (``sample_colours``: the edge terms blend neighbouring samples),
+(N, 3) are needed first (``render.shade.hits.sample_colours``, kept there because the
+boundary mode's interior samples need it too; the edge terms blend neighbouring samples),
 then ``pixel_means``.
 """
 
@@ -34,19 +35,6 @@ def image_from_hits(scene: Scene, prim_id: np.ndarray, colour, rays: np.ndarray,
         fill = (misses / spp).astype(working_dtype(scene))[:, None] * background
         image = fill if image is None else image + fill
     return md.reshape(image, (camera.height, camera.width, 3))
-
-
-def sample_colours(scene: Scene, prim_id: np.ndarray, colour, rays: np.ndarray) -> md.Tensor:
-    """(N, 3) the colour of every ray: its hit's (``colour`` (k, 3) of the rays ``rays``
-    (k,)), or the background where prim_id (N,) is -1."""
-    n_rays = prim_id.size
-    samples = None if colour is None else md.scatter_add(colour, rays, n_rays)
-    background = scene.background
-    if samples is None or background.is_differentiated() or np.any(background.data):
-        misses = (prim_id < 0).astype(working_dtype(scene))[:, None]
-        fill = misses * background
-        samples = fill if samples is None else samples + fill
-    return samples
 
 
 def pixel_means(scene: Scene, samples: md.Tensor, spp: int) -> md.Tensor:

@@ -38,13 +38,13 @@ from render.edges.interior import add_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
 from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
-from render.film import image_from_hits, pixel_means, sample_colours
+from render.film import image_from_hits, pixel_means
 from render.path.integrator import render_path
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame, subpixel_offsets
 from render.scene.placement import placed
 from render.scene.scene import Scene, check_ray_count
-from render.shade.hits import shade_camera_hits
+from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.lighting import shade_mesh, shade_surface
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import trace_visibility

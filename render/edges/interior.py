@@ -36,11 +36,10 @@ import numpy as np
 
 import minidiff as md
 from render.edges.boundary import plain_camera, seen_through, to_image_plane
-from render.film import sample_colours
 from render.scene.cache import RenderCache
 from render.scene.camera import camera_directions, subpixel_offsets
 from render.scene.scene import Scene
-from render.shade.hits import shade_camera_hits
+from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
 

@@ -30,7 +30,6 @@ get no derivative (their pullback entry is None, their tangent must be None).
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -40,8 +39,8 @@ import minidiff as md
 from minidiff.tensor import as_tangent
 from render.inverse.gradient_image import find_parameter
 from render.renderer import render
-from render.scene.cache import cache_for, share_cache
 from render.scene.scene import Scene
+from render.scene.substitute import substituted
 
 __all__ = ["RenderFunction"]
 
@@ -229,9 +228,7 @@ class RenderFunction:
         """Render the views with the exposed parameters replaced by ``leaves``."""
         new = {id(t): leaf for t, leaf in zip(self._tensors, leaves, strict=True)}
         memo: dict[int, Any] = {}
-        images = [
-            render(_substituted(view, new, memo), **self.render_kwargs) for view in self.views
-        ]
+        images = [render(substituted(view, new, memo), **self.render_kwargs) for view in self.views]
         return md.stack(images) if self.stacked else images[0]
 
     def _image_array(self, value: Any, what: str, where: str) -> np.ndarray:
@@ -261,38 +258,3 @@ def _as_views(scene: Any, where: str) -> tuple[list[Scene], bool]:
     raise TypeError(
         f"{where}: scene must be a render.Scene or a list of them, got {type(scene).__name__}"
     )
-
-
-def _substituted(scene: Scene, new: dict[int, md.Tensor], memo: dict[int, Any]) -> Scene:
-    """A copy of ``scene`` in which every tensor whose id is a key of ``new`` is replaced by
-    its value, wherever it occurs (a tensor shared by two owners stays shared). Owners
-    (camera, lights, objects, materials, transforms) are shallow copies, memoised in
-    ``memo`` so that views sharing an object share its copy; the copy uses the scene's
-    render cache."""
-
-    def owner(obj):
-        if obj is None:
-            return None
-        if id(obj) not in memo:
-            out = copy.copy(obj)
-            for f in obj.FIELDS:
-                t = getattr(obj, f.name)
-                if t is not None and id(t) in new:
-                    setattr(out, f.name, new[id(t)])
-            for part in ("material", "transform"):
-                if hasattr(obj, part):
-                    setattr(out, part, owner(getattr(obj, part)))
-            if hasattr(obj, "material"):  # an object: caches keyed on it know the copy
-                out.source_id = getattr(obj, "source_id", id(obj))
-            memo[id(obj)] = out
-        return memo[id(obj)]
-
-    background = new.get(id(scene.background), scene.background)
-    out = Scene(
-        [owner(o) for o in scene.objects],
-        [owner(light) for light in scene.lights],
-        owner(scene.camera),
-        background,
-    )
-    share_cache(out, cache_for(scene, True))
-    return out

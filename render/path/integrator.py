@@ -40,6 +40,7 @@ from render.path.transport import path_radiance
 from render.scene.camera import camera_frame
 from render.scene.placement import placed
 from render.scene.scene import MAX_RAYS, Scene, check_ray_count
+from render.scene.substitute import substituted
 
 #: Default samples per pixel in one batch (one tape, for ``replay_gradient``).
 BATCH_SPP = 16
@@ -178,11 +179,9 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
     forward mode: each carries its parameter's tangent (zero if it has none) and nothing
     requires grad, so the tangents flow and nothing is recorded; the image's tangent is
     the tape's."""
-    from render.inverse.function import _substituted  # it imports render, which imports us
-
     parameters = scene.parameters()
     copies = {id(p): md.tensor(p.data) for p in parameters}
-    frozen = _substituted(scene, copies, {})
+    frozen = substituted(scene, copies, {})
     moving = [p for p in parameters if p.requires_grad or p.tangent is not None]
     leaves = [copies[id(p)] for p in moving]
     options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)

@@ -184,3 +184,16 @@ def _reused_surface(scene, cache, visibility, index, obj, dtype, compute) -> Sur
     key = surface_key(obj, owned, dtype) + [visibility.stamp]
     surface, _ = cache.get(("surface", index), key, untaped)
     return surface
+
+
+def sample_colours(scene: Scene, prim_id: np.ndarray, colour, rays: np.ndarray) -> md.Tensor:
+    """(N, 3) the colour of every ray: its hit's (``colour`` (k, 3) of the rays ``rays``
+    (k,)), or the background where prim_id (N,) is -1."""
+    n_rays = prim_id.size
+    samples = None if colour is None else md.scatter_add(colour, rays, n_rays)
+    background = scene.background
+    if samples is None or background.is_differentiated() or np.any(background.data):
+        misses = (prim_id < 0).astype(working_dtype(scene))[:, None]
+        fill = misses * background
+        samples = fill if samples is None else samples + fill
+    return samples

@@ -1,0 +1,52 @@
+"""A scene with some of its tensors replaced: the same scene graph, other values.
+
+Used where a render must see parameters other than the scene's own tensors: the bridges to
+other frameworks (``render.inverse.function``: the framework's arrays in place of the
+parameters) and the path integrator's replayed backward (``render.path.integrator``: the
+values at the time of the render, copied, so that an edit before ``backward`` does not
+change the gradient of the image that was rendered).
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any
+
+import minidiff as md
+from render.scene.cache import cache_for, share_cache
+from render.scene.scene import Scene
+
+
+def substituted(scene: Scene, new: dict[int, md.Tensor], memo: dict[int, Any]) -> Scene:
+    """A copy of ``scene`` in which every tensor whose id is a key of ``new`` is replaced by
+    its value, wherever it occurs (a tensor shared by two owners stays shared). Owners
+    (camera, lights, objects, materials, transforms) are shallow copies, memoised in
+    ``memo`` so that views sharing an object share its copy; the copy uses the scene's
+    render cache."""
+
+    def owner(obj):
+        if obj is None:
+            return None
+        if id(obj) not in memo:
+            out = copy.copy(obj)
+            for f in obj.FIELDS:
+                t = getattr(obj, f.name)
+                if t is not None and id(t) in new:
+                    setattr(out, f.name, new[id(t)])
+            for part in ("material", "transform"):
+                if hasattr(obj, part):
+                    setattr(out, part, owner(getattr(obj, part)))
+            if hasattr(obj, "material"):  # an object: caches keyed on it know the copy
+                out.source_id = getattr(obj, "source_id", id(obj))
+            memo[id(obj)] = out
+        return memo[id(obj)]
+
+    background = new.get(id(scene.background), scene.background)
+    out = Scene(
+        [owner(o) for o in scene.objects],
+        [owner(light) for light in scene.lights],
+        owner(scene.camera),
+        background,
+    )
+    share_cache(out, cache_for(scene, True))
+    return out
