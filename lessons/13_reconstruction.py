@@ -341,10 +341,13 @@ print(f"search: best of {len(grid)} turns is {search_best:.0f}° ({search_second
 # steps from there end `0.5` <!-- check: searched_error --> degrees off. In three
 # dimensions a grid is 24³ renders; `render.inverse.basin.greedy_search` draws random
 # proposals around the best so far instead (`reconstruction.pose_proposal`: early on a
-# uniformly random rotation half the time, later small turns), and `run_pose` races the
-# start and the search's best before committing. The reconstruction experiments
-# (`examples/pose_estimation.py`, docs/reconstruction/) measure how far that widens the
-# basin for random axes.
+# uniformly random rotation half the time, later small turns), and `run_pose` with a
+# `search` races the start and the search's best before committing. By default
+# `run_pose` does something cheaper that works better from 30-45°: a multi-start stage
+# (`basin.multi_start`) runs the start and six copies turned 30° about ±x, ±y, ±z for 40
+# low-resolution iterations each and goes on from the lowest loss. The reconstruction
+# experiments (`examples/pose_estimation.py`, docs/reconstruction/) measure how far each
+# widens the basin for random axes.
 #
 # ## 3. Shape from views: crumpling, a Laplacian, Large Steps
 #
