@@ -4,21 +4,26 @@ Not part of the library: ``render.inverse.experiments`` runs the paper's experim
 their numbers and images; this module turns that into a command-line program that prints
 JSON and writes PNGs, a loss plot and an animated GIF. Scripts in this folder import it as
 ``script_support`` (Python puts a script's own folder on the import path).
+
+Importing it is cheap (the standard library and NumPy): the renderer, Pillow and
+Matplotlib are imported where they are used, so that a script can parse its command line
+and say what it is about to do before the seconds those imports take.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
+from hashlib import sha1
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from PIL import Image
 
-from render.inverse.experiments import ExperimentRun
-from render.inverse.jsonio import write_json
-from render.inverse.plot import line_plot
-from render.scene.image import save_image
+if TYPE_CHECKING:
+    from render.inverse.experiments import ExperimentRun
 
 
 def command_line(
@@ -81,6 +86,64 @@ JOBS = {
 }
 
 
+#: Seconds of compiling before the first result on a fresh clone (an empty Numba cache), one
+#: process: the renderer's kernels with the pair-sampled edge gradients (tracing, shading,
+#: edges), and with the boundary integral's kernels too (measured on a shared 2-core machine:
+#: 31 s and 61 s of CPU time; see README "Run it").
+COMPILE_SECONDS = {"pairs": 30, "boundary": 60}
+
+
+def numba_cache_folder(source: Path) -> Path:
+    """Where Numba caches the kernels of the module file ``source``: under
+    ``NUMBA_CACHE_DIR`` if set (a folder named after the source's folder and a hash of its
+    path, as ``numba.core.caching`` names it), else the ``__pycache__`` beside it."""
+    folder = os.path.dirname(os.path.abspath(source))
+    root = os.environ.get("NUMBA_CACHE_DIR", "")
+    if root:
+        return Path(root) / f"{os.path.basename(folder)}_{sha1(folder.encode()).hexdigest()}"
+    return Path(folder) / "__pycache__"
+
+
+def kernels_cached(modules: dict[str, str]) -> bool:
+    """Whether Numba's cache holds a compiled kernel of each module, newer than its source:
+    ``modules`` maps a module ("render.trace.intersect") to the name of one of its kernels
+    ("closest_hit_bvh"). Found without importing the renderer or Numba (a guess for a
+    notice: a kernel whose types changed still compiles)."""
+    spec = importlib.util.find_spec("render")
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    root = Path(next(iter(spec.submodule_search_locations))).parent
+    for module, kernel in modules.items():
+        source = root / (module.replace(".", "/") + ".py")
+        name = f"{module.rsplit('.', 1)[-1]}.{kernel}-"
+        folder = numba_cache_folder(source)
+        try:
+            index = [p for p in folder.iterdir() if p.name.startswith(name) and p.suffix == ".nbi"]
+            if not index or max(p.stat().st_mtime for p in index) < source.stat().st_mtime:
+                return False
+        except OSError:
+            return False
+    return True
+
+
+def kernel_notice(edges) -> str:
+    """One line on the compiling to come: which kernels, about how long on a fresh clone,
+    or that they are in Numba's cache. ``edges``: the camera rows' ``antialias``."""
+    boundary = edges == "boundary"
+    modules = {
+        "render.trace.intersect": "closest_hit_bvh",
+        "render.shade.compiled": "_shade_kernel",
+    }
+    if boundary:
+        modules["render.edges.boundary"] = "_split_all"
+    what = "ray tracing, shading" + (", boundary-integral edges" if boundary else ", edges")
+    if kernels_cached(modules):
+        return f"The renderer's Numba kernels ({what}) are in Numba's cache: no compiling."
+    seconds = COMPILE_SECONDS["boundary" if boundary else "pairs"]
+    return (f"Compiling the renderer's Numba kernels ({what}) first: about {seconds} s on a "
+            "fresh clone (2 cores), once; cached for later runs.")  # fmt: skip
+
+
 class FrameRecorder:
     """An ``optimize`` callback that keeps a downsampled frame every ``every`` iterations,
     for the animation."""
@@ -90,6 +153,8 @@ class FrameRecorder:
 
     def __call__(self, it, loss, image, history):
         if it % self.every == 0:
+            from PIL import Image
+
             frame = Image.fromarray((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8))
             if max(frame.size) > self.max_side:
                 frame.thumbnail((self.max_side, self.max_side))
@@ -99,6 +164,9 @@ class FrameRecorder:
 def write_outputs(run: ExperimentRun, out: Path, frames: list | None = None) -> Path:
     """Write ``out/<run.name>/``: target, initial and final PNGs, the |final - target|
     difference (scaled to its maximum), the loss curve and, given ``frames``, the GIF."""
+    from render.inverse.plot import line_plot
+    from render.scene.image import save_image
+
     folder = Path(out) / run.name
     save_image(run.target, folder / "target.png")
     save_image(run.initial, folder / "initial.png")
@@ -156,6 +224,8 @@ def run_example(run, description: str, default_iters: int, argv=None, extra=None
 def write_results(out: Path, name: str, result: dict, report: str) -> dict:
     """Write ``out/name.json`` (the result, strict JSON) and ``out/name.md`` (the report),
     print the report, and return the result."""
+    from render.inverse.jsonio import write_json
+
     write_json(out / f"{name}.json", result)
     (out / f"{name}.md").write_text(report)
     print(report)

@@ -426,6 +426,14 @@ def _blocked_in_leaf(table, ids, n_tri, start, stop, ray, ignore):
     return False
 
 
+@njit(cache=True, error_model="numpy")
+def _blocked_by_row(table, ids, n_tri, k, ray, ignore):
+    """``_blocked_in_leaf`` of the one row ``k``: a function of its own, not inlined (the
+    hint is tested once per ray; a second inlined copy of the primitive tests doubled the
+    compile time of ``occluded_bvh``)."""
+    return _blocked_in_leaf(table, ids, n_tri, k, k + 1, ray, ignore)
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def closest_hit_ray(bvh, ray, stack, stack_t):
     """Closest hit of ``ray`` (a :class:`Ray`) in ``bvh`` (a :class:`FlatBVH`): returns
@@ -438,7 +446,9 @@ def closest_hit_ray(bvh, ray, stack, stack_t):
     Visiting near boxes first finds a close hit early, which shrinks ``best_t`` and lets us
     skip the far boxes when they are popped (their entry distance is then > best_t).
     """
-    best = (-1, ray.tmax, 0.0, 0.0)
+    # -1 as an int64, not the literal -1: the leaf loop compiles for one type of ``best``
+    # (the literal gave it a second signature, a second compile of the same code).
+    best = (np.int64(-1), ray.tmax, 0.0, 0.0)
     if _misses_tree(bvh, ray, ray.tmax):
         return -1, np.inf, 0.0, 0.0
     node = 0
@@ -559,8 +569,8 @@ def occluded_bvh(bvh, rays, n_threads, ignore, first_row, out):
             for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
                 ray = ray_at(rays, i)
                 k = first_row[i] if hinted else -1
-                if k >= 0 and _blocked_in_leaf(
-                    bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, k, k + 1, ray, ignore[i]
+                if k >= 0 and _blocked_by_row(
+                    bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, k, ray, ignore[i]
                 ):
                     out[i] = True
                 else:
