@@ -16,8 +16,9 @@ Writes OUT/results.json (every run) and OUT/results.md (the table), plus the ima
 curves and GIFs of the first seed of each experiment. --quick: a smoke run (``QUICK``: 64x64
 images, 2 seeds, the camera rows with pair-sampled edges and 80-120 iterations, no joint
 row) that shows every method at work, each row's error from start to end; its numbers are
-not results. It took 45-70 s on a shared 2-core machine with an empty Numba cache, about
-half of it compiling (see README). --seed S runs seeds S..S+9 (S..S+1 with --quick);
+not results. With an empty Numba cache it took 35-43 s on a 2-core machine shared with
+other work (63 s while that work kept both cores busy), 27-45 s of it compiling; 8 s once
+Numba's cache holds the kernels. --seed S runs seeds S..S+9 (S..S+1 with --quick);
 --iters N replaces every experiment's iteration budget. --jobs N runs the runs in N
 processes (default: one per core; ``render.inverse.parallel``): the same results, in the
 same order, as --jobs 1; the kernels are compiled once, here, before the workers start.

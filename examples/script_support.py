@@ -89,7 +89,7 @@ JOBS = {
 #: Seconds of compiling before the first result on a fresh clone (an empty Numba cache), one
 #: process: the renderer's kernels with the pair-sampled edge gradients (tracing, shading,
 #: edges), and with the boundary integral's kernels too (measured on a shared 2-core machine:
-#: 31 s and 61 s of CPU time; see README "Run it").
+#: 31 s and 61 s of CPU time; the quick run's compile stage took 27-45 s of wall time).
 COMPILE_SECONDS = {"pairs": 30, "boundary": 60}
 
 
