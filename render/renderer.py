@@ -29,12 +29,13 @@ anew on every render. ``docs/architecture.md`` walks through the folders.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 import minidiff as md
-from render.edges.interior import add_interior_samples
+from render.edges.interior import INTERIOR_SAMPLES, add_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
 from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
@@ -63,6 +64,7 @@ def render(
     max_bounces: int = 2,
     primary: str = "auto",
     integrator: str = "direct",
+    interior_samples: int = INTERIOR_SAMPLES,
     **path_options,
 ) -> md.Tensor | tuple[md.Tensor, RenderInfo]:
     """Render ``scene`` to linear radiance, an (H, W, 3) ``minidiff.Tensor``.
@@ -93,6 +95,13 @@ def render(
         bit, faster while there are many rays per primitive), "auto" (default) rasterises
         when there are at least 16 camera rays per primitive
         (``RASTER_RAYS_PER_PRIMITIVE``). With ``bvh=False`` both are brute force.
+    interior_samples: with ``antialias="boundary"``, the samples (a perfect square) whose
+        mean gives the interior term (the shading's own derivative) of pixels whose box is
+        mixed: where a silhouette, crease, shadow border or faces smaller than the pixel
+        cross it (``render.edges.interior``; the image is unchanged). 16 (default): right
+        to a few per cent where one sample per pixel was 27 % off and more; at most
+        ``spp``: the render's own samples, as before (faster: on the paper teapot at
+        512x512 a forward+backward takes ~3x less).
 
     integrator: "direct" (default): the renderer above, the paper's; "path": a Monte Carlo
         path tracer with area lights (emissive materials), indirect light and the
@@ -109,7 +118,7 @@ def render(
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
     if integrator == "path":
-        _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary)
+        _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary, interior_samples)
         return render_path(scene, spp, antialias=antialias, **path_options)
     if integrator != "direct":
         raise ValueError(f'render: integrator must be "direct" or "path", got {integrator!r}')
@@ -121,6 +130,7 @@ def render(
     subpixel_offsets(spp)  # a clear error for a bad spp before anything else
     check_ray_count(scene.camera.width, scene.camera.height, spp)
     antialias = _check_antialias(antialias)
+    interior_samples = _check_interior(interior_samples)
     max_bounces = _check_bounces(max_bounces)
     raster = _rasterise(scene, _check_primary(primary), spp) and bool(bvh)
     cache = cache_for(scene, reuse_visibility)
@@ -139,7 +149,9 @@ def render(
     else:
         image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
         if antialias == "boundary" and differentiated(scene):  # 4': zero in value
-            image = add_interior_samples(world, visibility, image, frame, spp, max_bounces)
+            image = add_interior_samples(
+                world, visibility, image, frame, spp, max_bounces, interior_samples
+            )
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
@@ -147,11 +159,12 @@ def render(
     return image, RenderInfo.of(world, visibility, shading.texel, spp, mirrors, edges)
 
 
-def _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary) -> None:
+def _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary, interior) -> None:
     """The path integrator has its own answers to these: refuse rather than ignore them."""
     given = {"bvh": bvh is not True, "shadows": shadows is not True,
              "return_info": return_info is not False, "max_bounces": max_bounces != 2,
-             "primary": primary != "auto"}  # fmt: skip
+             "primary": primary != "auto",
+             "interior_samples": interior != INTERIOR_SAMPLES}  # fmt: skip
     changed = [name for name, differs in given.items() if differs]
     if changed:
         raise ValueError(
@@ -168,6 +181,19 @@ def _check_antialias(value) -> str | None:
     if value in ("pairs", "boundary"):
         return value
     raise ValueError(f'render: antialias must be True, False, "pairs" or "boundary", got {value!r}')
+
+
+def _check_interior(value) -> int:
+    """The interior samples per mixed pixel: a perfect square >= 1."""
+    root = 0
+    if not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1:
+        root = math.isqrt(int(value))
+    if root * root != value or root == 0:
+        raise ValueError(
+            f"render: interior_samples must be a perfect square (1, 4, 9, 16, ...), got {value!r}"
+        )
+    check_ray_count(1, 1, int(value))
+    return int(value)
 
 
 def _check_bounces(value) -> int:

@@ -53,6 +53,7 @@ def test_the_image_is_unchanged_and_mixed_pixels_get_their_samples_derivative():
     np.testing.assert_array_equal(image.data, plain)
     # At 16 samples per pixel the render's own samples are the grid's: nothing is added.
     dense = render.render(scene, antialias="boundary", spp=16, reuse_visibility=False)
+    assert interior.INTERIOR_SAMPLES == 16
     image.sum().backward()
     one = scene.lights[0].position.grad.copy()
     scene.lights[0].position.grad = None
@@ -83,3 +84,25 @@ def test_one_sample_gradient_of_a_lit_sphere_matches_supersampled_differences():
     error = np.linalg.norm(np.subtract(ours, truth)) / np.linalg.norm(truth)
     noise = np.linalg.norm(spread) / np.linalg.norm(truth) / 2
     assert error < 0.05 + 3 * noise, (ours, truth, noise)
+
+
+def test_interior_samples_at_most_spp_is_the_render_own_samples_and_bad_values_are_refused():
+    """``interior_samples=1`` adds nothing: the gradient of the samples' centres, as before
+    the interior samples; a value that is no perfect square is refused by name, and so
+    is any other value with the path integrator (which has its own samples)."""
+    scene = _sphere_scene(16)
+    weights = np.random.default_rng(3).uniform(0.0, 1.0, (16, 16, 3))
+
+    def gradient(**kwargs) -> np.ndarray:
+        scene.objects[1].center.grad = None
+        (render.render(scene, antialias="boundary", **kwargs) * weights).sum().backward()
+        return scene.objects[1].center.grad.copy()
+
+    own, default = gradient(interior_samples=1), gradient()
+    # The default's interior samples change the gradient; 1 (= spp) leaves the centres'.
+    assert np.abs(default - own).max() > 1e-3 * np.abs(own).max()
+    for bad in (0, 2, 8, -4, 2.0, True, "16"):
+        with pytest.raises(ValueError, match="interior_samples"):
+            render.render(scene, antialias="boundary", interior_samples=bad)
+    with pytest.raises(ValueError, match="interior_samples"):
+        render.render(scene, integrator="path", interior_samples=4)

@@ -17,15 +17,15 @@ the image:
 1. Candidates: pixels whose own samples, or whose neighbours' first samples, do not all
    see the same primitive lit by the same lights (where a pixel's box is mixed, a
    neighbour's centre almost always sees the other surface).
-2. Each candidate gets ``GRID`` x ``GRID`` stratified samples (the renderer's own pattern
-   for spp = GRID**2), traced and shadow-tested like camera rays; it is *mixed* if they do
-   not all see what its own first sample sees.
+2. Each candidate gets ``render(interior_samples=...)`` stratified samples (the
+   renderer's own pattern for that spp; 4 x 4 by default), traced and shadow-tested like
+   camera rays; it is *mixed* if they do not all see what its own first sample sees.
 3. The mixed pixels' samples are shaded on the tape, and the image gets
 
        (mean of the samples' colours - its value) - (the pixel's colour - its value),
 
-   zero in value; in derivative, the pixel's interior term becomes the mean over its
-   ``GRID**2`` samples. Everywhere else the render's own samples stand.
+   zero in value; in derivative, the pixel's interior term becomes the mean over those
+   samples. Everywhere else the render's own samples stand.
 """
 
 from __future__ import annotations
@@ -43,8 +43,9 @@ from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
 
-#: A mixed pixel's interior term is the mean over GRID x GRID stratified samples.
-GRID = 4
+#: ``render``'s default: a mixed pixel's interior term is the mean over 4 x 4 stratified
+#: samples.
+INTERIOR_SAMPLES = 16
 
 
 def _what_is_seen(visibility: Visibility, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
@@ -91,11 +92,12 @@ def add_interior_samples(
     frame,
     spp: int,
     max_bounces: int,
+    grid_spp: int = INTERIOR_SAMPLES,
 ) -> md.Tensor:
-    """``image`` (H, W, 3) with the interior term of its mixed pixels taken from ``GRID``
-    x ``GRID`` samples each (module docstring): the same values. ``visibility``: the
-    render's step 1 (``spp`` samples per pixel); ``frame``: its camera frame."""
-    grid_spp = GRID * GRID
+    """``image`` (H, W, 3) with the interior term of its mixed pixels taken from
+    ``grid_spp`` (a perfect square) stratified samples each (module docstring): the same
+    values. ``visibility``: the render's step 1 (``spp`` samples per pixel); ``frame``:
+    its camera frame. Nothing is added where ``grid_spp`` <= ``spp``."""
     camera = scene.camera
     width, height = camera.width, camera.height
     if spp >= grid_spp:
