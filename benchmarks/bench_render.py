@@ -124,7 +124,13 @@ def time_forward(size: int, repeats: int) -> dict:
 
 #: The edge methods timed against no edges: pixel pairs (``antialias=True``) and the
 #: boundary integral.
-EDGE_METHODS = {"antialias": True, "boundary": "boundary"}
+#: name -> (antialias, render's interior_samples); "boundary_centres": the boundary integral
+#: with the interior term of the pixels' own samples (as before the mixed pixels' 4x4).
+EDGE_METHODS = {
+    "antialias": (True, 16),
+    "boundary": ("boundary", 16),
+    "boundary_centres": ("boundary", 1),
+}
 
 
 def time_antialias(size: int, repeats: int) -> dict:
@@ -137,12 +143,12 @@ def time_antialias(size: int, repeats: int) -> dict:
         plain = paper_scene(size, size, ground=ground)
         problem = loss_problem(size, ground=ground)
         fns = {}
-        for key, antialias in {"plain": False, **EDGE_METHODS}.items():
-            fns[f"forward_{key}"] = lambda a=antialias, sc=plain: render(
-                sc, reuse_visibility=False, antialias=a
+        for key, (antialias, interior) in {"plain": (False, 16), **EDGE_METHODS}.items():
+            fns[f"forward_{key}"] = lambda a=antialias, i=interior, sc=plain: render(
+                sc, reuse_visibility=False, antialias=a, interior_samples=i
             )
-            fns[f"forward_backward_{key}"] = lambda a=antialias, pr=problem: forward_backward(
-                *pr, antialias=a
+            fns[f"forward_backward_{key}"] = lambda a=antialias, i=interior, pr=problem: (
+                forward_backward(*pr, antialias=a, interior_samples=i)
             )
         row = timing.measure_interleaved(fns, repeats)
         for kind in ("forward", "forward_backward"):
@@ -170,11 +176,12 @@ def time_iterations(size: int, shape_size: int, repeats: int) -> dict:
     scene, (position, look_at), target = camera_calibration_problem(size, 42, 10.0)
     moves = [0]
 
-    def camera_step(antialias) -> None:
+    def camera_step(antialias, interior) -> None:
         moves[0] += 1
         position.data[0] += 1e-4 * (-1) ** moves[0]
         position.grad = look_at.grad = None
-        image_loss(render(scene, antialias=antialias), target).backward()
+        image = render(scene, antialias=antialias, interior_samples=interior)
+        image_loss(image, target).backward()
 
     camera = view_cameras(1, shape_size)[0]
     with md.no_grad():
@@ -184,20 +191,25 @@ def time_iterations(size: int, shape_size: int, repeats: int) -> dict:
     blob = shape_scene(vertices, f0).with_camera(camera)
     optimizer = LargeStepsAdam(vertices, f0, lam=4.0, lr=0.03)
 
-    def shape_step(antialias) -> None:
+    def shape_step(antialias, interior) -> None:
         vertices.grad = None
-        image_loss(render(blob, antialias=antialias), shape_target).backward()
+        image = render(blob, antialias=antialias, interior_samples=interior)
+        image_loss(image, shape_target).backward()
         optimizer.step()
 
     fns = {}
-    for key, antialias in (("plain", False), ("boundary", "boundary")):
-        fns[f"camera_{key}"] = lambda a=antialias: camera_step(a)
-        fns[f"shape_{key}"] = lambda a=antialias: shape_step(a)
+    methods = {"plain": (False, 16), "boundary": ("boundary", 16),
+               "boundary_centres": ("boundary", 1)}  # fmt: skip
+    for key, (antialias, interior) in methods.items():
+        fns[f"camera_{key}"] = lambda a=antialias, i=interior: camera_step(a, i)
+        fns[f"shape_{key}"] = lambda a=antialias, i=interior: shape_step(a, i)
     row = timing.measure_interleaved(fns, repeats)
     for kind in ("camera", "shape"):
-        row[f"ratio_{kind}"] = (
-            row[f"{kind}_boundary"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
-        )
+        for key in ("boundary", "boundary_centres"):
+            suffix = "" if key == "boundary" else "_centres"
+            row[f"ratio_{kind}{suffix}"] = (
+                row[f"{kind}_{key}"]["median_ms"] / row[f"{kind}_plain"]["median_ms"]
+            )
     row["size"], row["shape_size"], row["shape_vertices"] = size, shape_size, len(v0)
     return row
 
@@ -344,12 +356,14 @@ def loss_problem(size: int, nu: int = 4, nv: int = 6, names=None, ground=False):
 
 
 def forward_backward(
-    scene, params, target, bvh: bool = True, reuse: bool = False, antialias: bool = False
-) -> float:
+    scene, params, target, bvh: bool = True, reuse: bool = False, antialias: bool = False,
+    interior_samples: int = 16,
+) -> float:  # fmt: skip
     """One gradient evaluation: render, Eq. 1 loss, backward into every parameter."""
     for p in params.values():
         p.grad = None
-    image = render(scene, bvh=bvh, reuse_visibility=reuse, antialias=antialias)
+    image = render(scene, bvh=bvh, reuse_visibility=reuse, antialias=antialias,
+                   interior_samples=interior_samples)  # fmt: skip
     loss = image_loss(image, target)
     loss.backward()
     return loss.item()
