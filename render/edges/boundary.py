@@ -55,7 +55,7 @@ Edges seen in mirrors are not included.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numba
 import numpy as np
@@ -69,6 +69,7 @@ from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
 from render.trace.intersect import BLOCK, _jobs
+from render.trace.primitives import first_sphere_id
 from render.trace.raster import OCCLUSION_RAYS_PER_PRIMITIVE, raster_occluded
 from render.trace.topology import EdgeTable
 from render.trace.visibility import PrimaryHits, Visibility
@@ -105,6 +106,8 @@ class BoundaryPoints:
     sphere_points: (sphere index, G_k rows) per sphere with points.
     crossings: (rows, first (G_k,), second (G_k,)) the pairs of triangles (global ids)
         whose intersection the points lie on.
+    sphere_cuts: (sphere index, G_k rows, triangle ids (G_k,)) per sphere with points on
+        the curves where triangles pass through it (``sphere_cut_curves``).
     """
 
     coords: np.ndarray
@@ -113,6 +116,7 @@ class BoundaryPoints:
     mesh_edges: list
     sphere_points: list
     crossings: tuple
+    sphere_cuts: list = field(default_factory=list)
 
 
 # ---------------------------------------------------------------------------------------
@@ -764,6 +768,120 @@ def _onto_outline(coords, sphere, frame, steps: int = 3):
         coords = coords - (disc / np.einsum("ij,ij->i", grad, grad))[:, None] * grad
 
 
+# Where a triangle passes through a sphere the visible surface switches from one to the
+# other along the circle in which the triangle's plane cuts the sphere (the part of it
+# inside the triangle). Seen from the eye the circle is a conic; a ray with direction d
+# meets the plane (normal n through a) at eye + (n . (a - eye) / n . d) d, and that point
+# lies on the sphere (centre c, radius r) where
+#     e = |(n . d) (eye - c) + (n . (a - eye)) d|^2 - r^2 (n . d)^2
+# is zero (the condition times (n . d)^2: no division, smooth in every parameter).
+
+
+def sphere_cut_function(a, n, centre, radius, eye, d):
+    """The edge function e (k,) of the curves where triangles (a corner a (k, 3), normal n
+    (k, 3)) cut a sphere (centre (3,), radius), at camera directions d (k, 3); arrays, or
+    tensors on the tape."""
+    nd = dot_last(n, d)
+    g = as_column(nd) * (eye - centre) + as_column(dot_last(n, a - eye)) * d
+    return dot_last(g, g) - radius * radius * nd * nd
+
+
+def _onto_sphere_cut(coords, corners, centre, radius, frame, steps: int = 3):
+    """Image-plane points (k, 2) moved onto the images of the curves where triangles
+    ``corners`` (k, 3, 3) cut a sphere (Newton steps on ``sphere_cut_function`` along its
+    gradient); and that gradient (k, 2) at the result."""
+    forward, right, up, eye = frame
+    a = corners[:, 0]
+    n = np.cross(corners[:, 1] - a, corners[:, 2] - a)
+    w = eye - centre
+    k = np.einsum("ij,ij->i", n, a - eye)
+    for step in range(steps + 1):
+        d = forward + coords[:, :1] * right + coords[:, 1:] * up
+        nd = np.einsum("ij,ij->i", n, d)
+        g = nd[:, None] * w + k[:, None] * d
+        e = np.einsum("ij,ij->i", g, g) - radius * radius * nd * nd
+        # d e / d d = 2 (n (w . g) + k g - r^2 (n . d) n)
+        grad_d = 2.0 * ((g @ w - radius * radius * nd)[:, None] * n + k[:, None] * g)
+        grad = np.stack([grad_d @ right, grad_d @ up], axis=1)
+        if step == steps:
+            return coords, grad
+        length2 = np.einsum("ij,ij->i", grad, grad)
+        coords = coords - (e / np.where(length2 > 0, length2, np.inf))[:, None] * grad
+
+
+def sphere_cut_curves(spheres, triangles: np.ndarray, frame, width: int, height: int, size):
+    """The curves where triangles pass through spheres, as 2-D chords in pixel coordinates:
+    start (k, 2), end (k, 2), the sphere's index (k,) and the triangle's global id (k,).
+    ``spheres``: (centre (3,), radius) per sphere; ``triangles`` (N, 3, 3). Each curve is
+    the circle in which the triangle's plane cuts the sphere, followed by chords of at most
+    ``CHORD`` pixels and clipped to the triangle and to the eye's near plane."""
+    starts, ends, which, ids = [np.zeros((0, 2))], [np.zeros((0, 2))], [], []
+    if len(triangles) == 0:
+        return starts[0], ends[0], np.zeros(0, np.int64), np.zeros(0, np.int64)
+    a = triangles[:, 0]
+    normal = np.cross(triangles[:, 1] - a, triangles[:, 2] - a)
+    area2 = np.linalg.norm(normal, axis=1)
+    unit = normal / np.where(area2 > 0, area2, 1.0)[:, None]
+    low, high = triangles.min(axis=1), triangles.max(axis=1)
+    for index, (centre, radius) in enumerate(spheres):
+        dist = np.einsum("ij,ij->i", unit, centre - a)
+        near = (
+            (area2 > 0)
+            & (np.abs(dist) < radius)
+            & np.all(low <= centre + radius, axis=1)
+            & np.all(high >= centre - radius, axis=1)
+        )
+        for t in np.flatnonzero(near):
+            rho2 = radius * radius - dist[t] * dist[t]
+            if rho2 <= np.finfo(np.float64).eps * radius * radius:
+                continue  # the plane touches the sphere: no curve of any length
+            n = unit[t]
+            u1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+            u1 /= np.linalg.norm(u1)
+            u2 = np.cross(n, u1)
+            middle, rho = centre - dist[t] * n, math.sqrt(rho2)
+
+            def circle(m, middle=middle, rho=rho, u1=u1, u2=u2):
+                phi = np.linspace(0.0, 2.0 * math.pi, m + 1)
+                return middle + rho * (np.cos(phi)[:, None] * u1 + np.sin(phi)[:, None] * u2)
+
+            rough = circle(64)
+            px, depth = project(rough, frame, width, height)
+            if np.all(depth > NEAR * size):
+                perimeter = float(np.sum(np.linalg.norm(np.diff(px, axis=0), axis=1)))
+                m = int(min(max(64, math.ceil(perimeter / CHORD)), 1 << 16))
+            else:  # partly behind the eye: the chords are clipped below
+                m = 1 << 10
+            points = circle(m)
+            p0, p1 = points[:-1], points[1:]
+            t0, t1 = np.zeros(m), np.ones(m)
+            corners = triangles[t]
+            for i in range(3):  # clip each chord to the triangle's three half-planes
+                v, w, third = corners[i], corners[(i + 1) % 3], corners[(i + 2) % 3]
+                inward = np.cross(n, w - v)
+                inward = inward if inward @ (third - v) >= 0 else -inward
+                s0, s1 = (p0 - v) @ inward, (p1 - v) @ inward
+                cut = np.where(s0 != s1, s0 / np.where(s0 != s1, s0 - s1, 1.0), 0.0)
+                t0 = np.where(s0 < 0, np.where(s1 > s0, np.maximum(t0, cut), 2.0), t0)
+                t1 = np.where(s1 < 0, np.where(s0 > s1, np.minimum(t1, cut), -1.0), t1)
+            keep = np.flatnonzero(t0 < t1)
+            if len(keep) == 0:
+                continue
+            delta = p1[keep] - p0[keep]
+            q0, q1 = p0[keep] + t0[keep, None] * delta, p0[keep] + t1[keep, None] * delta
+            q0, q1, front = clip_to_near(q0, q1, frame, NEAR * size)
+            starts.append(project(q0[front], frame, width, height)[0])
+            ends.append(project(q1[front], frame, width, height)[0])
+            which.append(np.full(int(front.sum()), index))
+            ids.append(np.full(int(front.sum()), t))
+    return (
+        np.concatenate(starts),
+        np.concatenate(ends),
+        np.concatenate(which or [np.zeros(0, np.int64)]).astype(np.int64),
+        np.concatenate(ids or [np.zeros(0, np.int64)]).astype(np.int64),
+    )
+
+
 # ---------------------------------------------------------------------------------------
 # The boundary term
 # ---------------------------------------------------------------------------------------
@@ -812,6 +930,14 @@ def boundary_points(
             starts.append(poly[:-1])
             ends.append(poly[1:])
             outlines.append((index, len(poly) - 1))
+    spheres = [
+        (np.asarray(sp.center.data, np.float64), float(sp.radius.data)) for sp in scene.spheres
+    ]
+    cut_start, cut_end, cut_sphere, cut_triangle = sphere_cut_curves(
+        spheres, visibility.primitives[0], plain, width, height, size
+    )
+    starts.append(cut_start)
+    ends.append(cut_end)
     n_own = sum(len(s) for s in starts)
     if extra is not None:
         starts.append(extra[0])
@@ -847,11 +973,20 @@ def boundary_points(
     for index, count in outlines:
         rows = np.flatnonzero((segment >= first) & (segment < first + count))
         factor[rows], coords[rows] = _outline_factors(
-            scene, visibility, frame, scene.spheres[index], coords[rows], weight[rows],
-            radiance, rows,
-        )  # fmt: skip
+            scene, visibility, frame, index, coords[rows], weight[rows], radiance, rows
+        )
         sphere_points.append((index, rows))
         first += count
+    rows = np.flatnonzero((segment >= first) & (segment < first + len(cut_sphere)))
+    on_sphere, on_triangle = cut_sphere[segment[rows] - first], cut_triangle[segment[rows] - first]
+    sphere_cuts = []
+    for index in np.unique(on_sphere):
+        mine = rows[on_sphere == index]
+        ids = on_triangle[on_sphere == index]
+        factor[mine], coords[mine] = _sphere_cut_factors(
+            scene, visibility, frame, index, ids, coords[mine], weight[mine], radiance, mine
+        )
+        sphere_cuts.append((int(index), mine, ids))
     nonzero = np.any(factor != 0.0, axis=1)
     keep = np.flatnonzero(nonzero)
     remap = np.full(len(coords), -1)
@@ -860,6 +995,7 @@ def boundary_points(
         (k, remap[r[nonzero[r]]], i[nonzero[r]], j[nonzero[r]]) for k, r, i, j in mesh_edges
     ]
     sphere_points = [(k, remap[r[nonzero[r]]]) for k, r in sphere_points]
+    sphere_cuts = [(k, remap[r[nonzero[r]]], t[nonzero[r]]) for k, r, t in sphere_cuts]
     rows, crossing_pairs = crossings
     crossings = (remap[rows[nonzero[rows]]], crossing_pairs[nonzero[rows]])
     points = BoundaryPoints(
@@ -869,6 +1005,7 @@ def boundary_points(
         mesh_edges,
         sphere_points,
         crossings,
+        sphere_cuts,
     )
     return points, others
 
@@ -1151,16 +1288,72 @@ def _size(camera) -> tuple[int, int]:
     return camera.width, camera.height
 
 
-def _outline_factors(scene, visibility, frame, sphere, coords, weight, radiance, keys):
-    """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on a sphere's outline, and
-    the points moved onto the outline (k, 2). The outline of a sphere is smooth: f_+ and f_-
-    are what two rays just inside and just outside it see."""
-    camera = scene.camera
-    coords, grad = _onto_outline(coords, sphere, plain_camera(frame))
+def _outline_factors(scene, visibility, frame, index, coords, weight, radiance, keys):
+    """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on the outline of sphere
+    ``index``, and the points moved onto the outline (k, 2). The outline of a sphere is
+    smooth: f_+ and f_- are what two rays just inside and just outside it see, where the
+    point at which the ray touches the sphere is visible (``_hidden``, the sphere itself
+    ignored). The test matters where another curve runs within the rays' EPSILON of the
+    outline: where a triangle passing through the sphere seems to emerge from it, the
+    curve of the cut is tangent to the outline, and there the rays alone saw the same
+    jump across both (counting it twice)."""
+    plain = plain_camera(frame)
+    sphere = scene.spheres[index]
+    coords, grad = _onto_outline(coords, sphere, plain)
+    forward, right, up, eye = plain
+    directions = camera_directions(coords, right, up, forward)
+    dd = np.einsum("ij,ij->i", directions, directions)
+    depth = (directions @ (np.asarray(sphere.center.data, np.float64) - eye)) / dd
+    ignore = np.full(len(coords), first_sphere_id(scene) + index)
+    return _traced_factors(
+        scene.camera, visibility, plain, coords, directions, depth, grad, weight, radiance,
+        keys, ignore, np.zeros(len(coords), dtype=bool),
+    )  # fmt: skip
+
+
+def _sphere_cut_factors(scene, visibility, frame, index, ids, coords, weight, radiance, keys):
+    """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on the curves where the
+    triangles ``ids`` (k,) (global ids) cut sphere ``index``, and the points moved onto
+    those curves (k, 2). A point is hidden where it lies on the sphere's far half (the
+    sphere itself is in front) or something else is in front of it (``_hidden``); where
+    it is visible f_+ and f_- are what two rays either side see (the triangle on one, the
+    sphere on the other)."""
+    plain = plain_camera(frame)
+    forward, right, up, eye = plain
+    sphere = scene.spheres[index]
+    centre, radius = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
+    corners = visibility.primitives[0][ids]
+    coords, grad = _onto_sphere_cut(coords, corners, centre, radius, plain)
+    directions = camera_directions(coords, right, up, forward)
+    n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    nd = np.einsum("ij,ij->i", n, directions)
+    depth = np.einsum("ij,ij->i", n, corners[:, 0] - eye) / np.where(nd != 0, nd, np.inf)
+    point = eye + depth[:, None] * directions
+    far = np.einsum("ij,ij->i", point - centre, eye - point) <= 0
+    ignore = np.full(len(coords), first_sphere_id(scene) + index)
+    return _traced_factors(
+        scene.camera, visibility, plain, coords, directions, depth, grad, weight, radiance,
+        keys, ignore, far,
+    )  # fmt: skip
+
+
+def _traced_factors(
+    camera, visibility, frame, coords, directions, depth, grad, weight, radiance, keys, ignore,
+    hidden,
+):  # fmt: skip
+    """(k, 3) w (f_+ - f_-) / |grad e| for k points ``coords`` (k, 2) on a curve whose edge
+    function has image-plane gradient ``grad`` (k, 2) there, zero where the curve's point
+    (along camera ``directions`` (k, 3) at ``depth`` (k,)) is ``hidden`` (k,) already or
+    ``_hidden`` (primitive ``ignore`` (k,) not counted), else f_+ and f_- traced by rays
+    ``EPSILON`` pixels either side; and the points."""
     norm, step = _pixel_gradient(grad, *_size(camera))
-    both = np.concatenate([coords + EPSILON * step, coords - EPSILON * step])
+    hidden = hidden | _hidden(visibility, frame, camera, coords, directions, depth, norm, ignore)
+    seen = np.flatnonzero(~hidden)
+    at, step, keys = coords[seen], step[seen], keys[seen]
+    both = np.concatenate([at + EPSILON * step, at - EPSILON * step])
     f = radiance.along(both, np.concatenate([keys, keys]))
-    jump = f[: len(coords)] - f[len(coords) :]
+    jump = np.zeros((len(coords), 3))
+    jump[seen] = f[: len(seen)] - f[len(seen) :]
     factor = np.where(norm > 0, weight / np.where(norm > 0, norm, 1.0), 0.0)
     return factor[:, None] * jump, coords
 
@@ -1191,6 +1384,16 @@ def boundary_term(
         d = ray_directions(frame, points.coords[rows].astype(dtype))
         b = md.dot(d, oc)
         parts.append(b * b - md.dot(d, d) * kappa)
+        order.append(rows)
+    for index, rows, ids in points.sphere_cuts:
+        if len(rows) == 0:
+            continue
+        sphere = scene.spheres[index]
+        a, b, c = triangle_corners(scene, ids)
+        d = ray_directions(frame, points.coords[rows].astype(dtype))
+        parts.append(
+            sphere_cut_function(a, md.cross(b - a, c - a), sphere.center, sphere.radius, eye, d)
+        )
         order.append(rows)
     rows, pairs = points.crossings
     if len(rows):
