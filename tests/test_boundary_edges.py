@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from render_helpers import random_scene
 
@@ -161,9 +161,34 @@ def soups(draw):
     among them, in front of a wall that receives their shadows from a point light; and
     which object is moved. Drawn from a seed, so in general position: hypothesis' own
     floats shrink to exact zeros, i.e. to edges of different objects lying exactly on
-    each other, a degenerate case this test does not claim."""
+    each other, a degenerate case this test does not claim.
+
+    Half the soups are drawn from the family of issue 41 (item 3) on purpose: the first
+    triangle a sliver seen nearly edge-on in a plane x = c, c in [-0.24, -0.16], across the
+    point of that plane nearest the sphere and just clear of it, casting its shadow on the
+    lit wall; the sphere is moved, and the window carries it into the sliver: the curve
+    where they cut (``sphere_cut_curves``), tangent to the sphere's outline where it ends.
+    (The family with the sliver moved instead is not drawn: its shadow borders still miss
+    on some soups, 3 of 16 above the bound, an open item.)"""
+    family = draw(st.booleans())
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
-    count = int(rng.integers(1, 5))
+    for _ in range(1000):  # the family: until its sliver survives the filters below
+        triangles, sphere, sliver = _soup_triangles(rng, family)
+        if sliver or not family:
+            break
+    if len(triangles) == 0 and not sphere:
+        triangles = np.array([[[-0.8, -0.6, 0.0], [0.7, -0.4, 0.1], [0.0, 0.8, -0.2]]])
+    if family and sliver:
+        moved = len(triangles)  # the sphere
+    else:
+        moved = int(rng.integers(0, len(triangles) + (1 if sphere else 0)))
+    return triangles, sphere, moved
+
+
+def _soup_triangles(rng, family: bool):
+    """A soup's triangles (n, 3, 3), whether it has the sphere, and whether its first
+    triangle is the family's sliver (``soups``)."""
+    count = int(rng.integers(2 if family else 1, 5))
     triangles = rng.uniform([-1, -1, -0.6], [1, 1, 0.6], (count, 3, 3))
     # Some nearly edge-on: x almost shared, in a plane x = c the camera (at x = 0.4) sees
     # at a few degrees. Not at c near 0.4: there the window's motion turns the sliver
@@ -171,17 +196,41 @@ def soups(draw):
     # samples a jump (one such soup: 16 %, with the reference uncertain by 3.6 %).
     flat = rng.random(count) < 0.3
     plane = rng.choice([-1.0, 1.0], count) * rng.uniform(0.25, 0.6, count) + 0.4
+    if family:  # around the point of the plane nearest the sphere's centre, y-z in ~0.8
+        flat[0], plane[0] = True, rng.uniform(-0.24, -0.16)
+        angle = rng.uniform(0, 2 * np.pi) + np.array([0, 2, 4]) * np.pi / 3 + rng.normal(0, 0.3, 3)
+        spread = rng.uniform(0.5, 1.0, 3)
+        triangles[0, :, 1] = SPHERE[0][1] + spread * np.cos(angle)
+        triangles[0, :, 2] = SPHERE[0][2] + spread * np.sin(angle)
     triangles[flat, :, 0] = plane[flat, None] + rng.normal(0, 0.02, (count, 3))[flat]
     area = np.linalg.norm(np.cross(triangles[:, 1] - triangles[:, 0],
                                    triangles[:, 2] - triangles[:, 0]), axis=1)  # fmt: skip
-    triangles = triangles[area > 0.05]  # slivers move no edge measurably
-    sphere = bool(rng.random() < 0.5)
-    if sphere:  # where a triangle passes through the sphere: not a curve we follow (yet)
-        triangles = triangles[_sphere_distance(triangles) > SPHERE[1] + 0.02]
-    if len(triangles) == 0 and not sphere:
-        triangles = np.array([[[-0.8, -0.6, 0.0], [0.7, -0.4, 0.1], [0.0, 0.8, -0.2]]])
-    moved = int(rng.integers(0, len(triangles) + (1 if sphere else 0)))
-    return triangles, sphere, moved
+    keep = area > 0.05  # slivers move no edge measurably
+    sphere = bool(rng.random() < 0.5) or family
+    if sphere:  # clear of the sphere at rest (the window may still carry one into it)
+        distance = _sphere_distance(triangles)
+        keep &= distance > SPHERE[1] + 0.02
+    # The family's sliver within the window's reach of the sphere (moved by up to 0.08).
+    sliver = family and keep[0] and distance[0] < SPHERE[1] + 0.08
+    return triangles[keep], sphere, bool(sliver)
+
+
+#: Issue 41, item 3: the sphere, moved along x, enters the nearly edge-on sliver (the
+#: second triangle, x = -0.14..-0.22) in the window's lower third. Without the curve of
+#: the cut x was 20 % low (9 % with shadows off; 10.5 % over the three axes); with it,
+#: but with its points and the outline's judged by the rays EPSILON either side alone,
+#: the window's lower third was 10 % high (the cut is tangent to the outline where it
+#: ends, and both saw the same jump along a stretch).
+SLIVER_SOUP = (
+    np.array([
+        [[-0.54387941, 0.64616975, -0.37153116], [-0.16238759, -0.72956387, -0.04489183],
+         [-0.81166475, -0.23001251, 0.56100924]],
+        [[-0.14024741, 0.21539235, -0.05956397], [-0.16680248, 0.79960305, 0.52833319],
+         [-0.21725044, -0.50297145, 0.1724353]],
+    ]),
+    True,
+    2,
+)  # fmt: skip
 
 
 SPHERE = ((0.3, -0.2, 0.1), 0.45)  # the soup's sphere: centre, radius
@@ -214,6 +263,7 @@ def _soup_scene(triangles, sphere: bool) -> Scene:
 
 @settings(max_examples=2)  # ~2.6 s each: the suite's time budget
 @given(soups())
+@example(SLIVER_SOUP)
 def test_random_soups_match_supersampled_differences(soup):
     """Bound 5 % plus three standard errors of the reference, measured here from two
     seeds of 1,024 samples per pixel: on a 16x16 image a small triangle or an edge-on
