@@ -47,9 +47,16 @@ a polyline of short chords, and each quadrature point is moved onto the conic.
 
 The lines where two surfaces pass through each other (the teapot's spout entering its
 body) are curves too: the segment two crossing triangles share, with the edge function of
-the line where their planes meet (``crossing_segments``). Shadow borders (secondary
-visibility) are found in ``render.edges.shadow_boundary`` and added by the same term.
-Edges seen in mirrors are not included.
+the line where their planes meet (``crossing_segments``); and where a triangle passes
+through a sphere, the arc of the circle its plane cuts from the sphere that lies inside
+the triangle (``sphere_cut_curves``, followed by chords as an outline is). The points of
+outlines and of these arcs are tested for visibility as mesh edges' are (an occlusion ray
+to the point where the curve lies; for an arc, also the sphere's far half), before the
+rays either side are compared: where a triangle seems to emerge from a sphere the arc is
+tangent to the outline, and within EPSILON of each other the rays alone cannot tell which
+of the two is seen. Shadow borders (secondary visibility) are found in
+``render.edges.shadow_boundary`` and added by the same term. Edges seen in mirrors are not
+included.
 """
 
 from __future__ import annotations

@@ -549,12 +549,10 @@ def _onto_border(frame, receivers, occluders, light, coords, steps=NEWTON_STEPS)
     return coords
 
 
-def _border_rows(scene, visibility, light, occluder, receiver):
-    """Per point, what ``border_newton`` needs of its receiver and occluder (gathered once):
-    receiver (plane normal or sphere centre (k, 3), a point on the plane (k, 3), radius
-    (k,): -1 for a triangle) and occluder (kind (k,): 0 an edge, 1 a sphere; m (k, 3) and
-    base (k, 3) of an edge's e = m . (P - base); a sphere's centre (k, 3) and radius
-    (k,)), and the light (where (3,): position or direction; whether it is a point light)."""
+def _receiver_rows(scene, visibility, receiver):
+    """The receivers ``receiver`` (k,) (global primitive ids) as ``_receiver_hits`` takes
+    them: plane normal or sphere centre (k, 3), a point on the plane (k, 3), radius (k,)
+    (-1 for a triangle)."""
     triangles, centres, radii = visibility.primitives
     n_tri = first_sphere_id(scene)
     k = len(receiver)
@@ -564,6 +562,17 @@ def _border_rows(scene, visibility, light, occluder, receiver):
     normal[tri], corner[tri] = plane_normal(corners), corners[:, 0]
     sph = np.flatnonzero(receiver >= n_tri)
     normal[sph], radius[sph] = centres[receiver[sph] - n_tri], radii[receiver[sph] - n_tri]
+    return normal, corner, radius
+
+
+def _border_rows(scene, visibility, light, occluder, receiver):
+    """Per point, what ``border_newton`` needs of its receiver and occluder (gathered once):
+    receiver (plane normal or sphere centre (k, 3), a point on the plane (k, 3), radius
+    (k,): -1 for a triangle) and occluder (kind (k,): 0 an edge, 1 a sphere; m (k, 3) and
+    base (k, 3) of an edge's e = m . (P - base); a sphere's centre (k, 3) and radius
+    (k,)), and the light (where (3,): position or direction; whether it is a point light)."""
+    k = len(receiver)
+    normal, corner, radius = _receiver_rows(scene, visibility, receiver)
     point = isinstance(light, PointLight)
     where = np.asarray(light.position.data if point else light.direction.data, np.float64)
     kind, m, base, size = np.zeros(k, np.int64), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k)
@@ -767,7 +776,24 @@ def _border_factors(
     rows, at = rows[~hidden], at[~hidden]
     shift = EPSILON * np.take(step, rows, axis=0)
     both = np.concatenate([at + shift, at - shift])
-    f = radiance.along(both, np.concatenate([rows, rows]))
+    keys = np.concatenate([rows, rows])
+    # Both sides shaded on the receiver itself (the border point is seen on it): rays
+    # traced there would cross any curve of primary visibility within EPSILON of the
+    # border and add its jump. Where a triangle passes through a sphere, the sphere's
+    # shadow border on it is tangent to the curve of the cut, and along a stretch the
+    # traced rays saw the triangle on one side and the sphere on the other.
+    on = np.concatenate([receiver[rows], receiver[rows]])
+    depth, _, _ = _receiver_hits(
+        _receiver_rows(scene, visibility, on), camera_directions(both, right, up, forward), eye
+    )
+    found = np.isfinite(depth) & (depth > 0)
+    f = np.empty((len(both), 3))
+    inside, outside = np.flatnonzero(found), np.flatnonzero(~found)
+    f[inside] = radiance.seen(
+        np.take(both, inside, axis=0), on[inside], depth[inside], keys[inside]
+    )
+    if len(outside):  # a side ray beside a sphere receiver's outline: what is seen there
+        f[outside] = radiance.along(np.take(both, outside, axis=0), keys[outside])
     out = np.zeros((len(coords), 3))
     out[rows] = (weight[rows] / norm[rows])[:, None] * (f[: len(rows)] - f[len(rows) :])
     return out
