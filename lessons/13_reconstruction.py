@@ -314,9 +314,9 @@ print(f"from 30° about a tilted axis: {near_error:.2f}° off after 50 steps ({n
 print(f"from 120° about the vertical: {far_error:.1f}° off after 30 steps ({far_seconds:.1f} s)")
 
 # %% [markdown]
-# Started 30° away (about a tilted axis), the fit ends `1.4` <!-- check: near_error -->
+# Started 30° away (about a tilted axis), the fit ends `1.5` <!-- check: near_error -->
 # degrees from the truth after 50 steps (40 × 40 pixels); started 120° away it stops
-# `117.5` <!-- check: far_error --> degrees off, in the local minimum the landscape
+# `120.8` <!-- check: far_error --> degrees off, in the local minimum the landscape
 # showed. Gradients cannot cross a ridge.
 #
 # **Search** can: before any gradient, try the candidates the landscape suggests and
@@ -338,7 +338,9 @@ print(f"search: best of {len(grid)} turns is {search_best:.0f}° ({search_second
 
 # %% [markdown]
 # The grid's best turn is `0` <!-- check: search_best --> degrees, and twenty gradient
-# steps from there end `0.5` <!-- check: searched_error --> degrees off. In three
+# steps from there end `1.5` <!-- check: searched_error --> degrees off (Adam's 2° steps
+# keep circling the minimum, which at one sample per pixel against a 16-sample target is
+# not exactly the truth; fewer or smaller steps settle closer). In three
 # dimensions a grid is 24³ renders; `render.inverse.basin.greedy_search` draws random
 # proposals around the best so far instead (`reconstruction.pose_proposal`: early on a
 # uniformly random rotation half the time, later small turns), and `run_pose` with a

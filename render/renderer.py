@@ -29,13 +29,12 @@ anew on every render. ``docs/architecture.md`` walks through the folders.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 import minidiff as md
-from render.edges.interior import INTERIOR_SAMPLES, add_interior_samples
+from render.edges.interior import INTERIOR_SAMPLES, add_interior_samples, check_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
 from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
@@ -95,13 +94,8 @@ def render(
         bit, faster while there are many rays per primitive), "auto" (default) rasterises
         when there are at least 16 camera rays per primitive
         (``RASTER_RAYS_PER_PRIMITIVE``). With ``bvh=False`` both are brute force.
-    interior_samples: with ``antialias="boundary"``, the samples (a perfect square) whose
-        mean gives the interior term (the shading's own derivative) of pixels whose box is
-        mixed: where a silhouette, crease, shadow border or faces smaller than the pixel
-        cross it (``render.edges.interior``; the image is unchanged). 16 (default): right
-        to a few per cent where one sample per pixel was 27 % off and more; at most
-        ``spp``: the render's own samples, as before (faster: on the paper teapot at
-        512x512 a forward+backward takes ~3x less).
+    interior_samples: with "boundary", a mixed pixel's samples for its interior term
+        (``render.edges.interior``); at most ``spp``: its own (~3x faster at 512x512).
 
     integrator: "direct" (default): the renderer above, the paper's; "path": a Monte Carlo
         path tracer with area lights (emissive materials), indirect light and the
@@ -130,7 +124,7 @@ def render(
     subpixel_offsets(spp)  # a clear error for a bad spp before anything else
     check_ray_count(scene.camera.width, scene.camera.height, spp)
     antialias = _check_antialias(antialias)
-    interior_samples = _check_interior(interior_samples)
+    inner = check_interior_samples(interior_samples)  # a mixed pixel's interior samples
     max_bounces = _check_bounces(max_bounces)
     raster = _rasterise(scene, _check_primary(primary), spp) and bool(bvh)
     cache = cache_for(scene, reuse_visibility)
@@ -149,9 +143,7 @@ def render(
     else:
         image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
         if antialias == "boundary" and differentiated(scene):  # 4': zero in value
-            image = add_interior_samples(
-                world, visibility, image, frame, spp, max_bounces, interior_samples
-            )
+            image = add_interior_samples(world, visibility, image, frame, spp, max_bounces, inner)
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
@@ -181,19 +173,6 @@ def _check_antialias(value) -> str | None:
     if value in ("pairs", "boundary"):
         return value
     raise ValueError(f'render: antialias must be True, False, "pairs" or "boundary", got {value!r}')
-
-
-def _check_interior(value) -> int:
-    """The interior samples per mixed pixel: a perfect square >= 1."""
-    root = 0
-    if not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1:
-        root = math.isqrt(int(value))
-    if root * root != value or root == 0:
-        raise ValueError(
-            f"render: interior_samples must be a perfect square (1, 4, 9, 16, ...), got {value!r}"
-        )
-    check_ray_count(1, 1, int(value))
-    return int(value)
 
 
 def _check_bounces(value) -> int:

@@ -30,6 +30,7 @@ the image:
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -38,7 +39,7 @@ import minidiff as md
 from render.edges.boundary import plain_camera, seen_through, to_image_plane
 from render.scene.cache import RenderCache
 from render.scene.camera import camera_directions, subpixel_offsets
-from render.scene.scene import Scene
+from render.scene.scene import Scene, check_ray_count
 from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
@@ -46,6 +47,19 @@ from render.trace.visibility import PrimaryHits, Visibility
 #: ``render``'s default: a mixed pixel's interior term is the mean over 4 x 4 stratified
 #: samples.
 INTERIOR_SAMPLES = 16
+
+
+def check_interior_samples(value) -> int:
+    """``render``'s ``interior_samples``, checked: a perfect square >= 1."""
+    root = 0
+    if not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1:
+        root = math.isqrt(int(value))
+    if root * root != value or root == 0:
+        raise ValueError(
+            f"render: interior_samples must be a perfect square (1, 4, 9, 16, ...), got {value!r}"
+        )
+    check_ray_count(1, 1, int(value))
+    return int(value)
 
 
 def _what_is_seen(visibility: Visibility, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
