@@ -96,9 +96,17 @@ EPSILON = 1e-3
 CHORD = 0.5
 #: Points closer to the eye's plane than this fraction of the scene's size are clipped.
 NEAR = 1e-7
-#: Pieces' bounding boxes are widened by this many pixels before the pair test rejects
-#: pairs whose boxes are apart: far above the rounding of pixel coordinates (~1e-13), far
-#: below any piece's length that matters, so no pair the exact test accepts is rejected.
+#: A piece that ends this close (pixels) before another one, its line going on to cross
+#: it, counts as ending on it (a T-junction, ``split_at_crossings``): a shadow border
+#: followed until its receiver changes (``shadow_boundary.bisect_chords``) stops just
+#: short of the border of the shadow it enters, ~1e-5 pixels before it, and the other
+#: border must still be cut there (on one side of the junction it lies inside this
+#: shadow and jumps by nothing).
+JUNCTION = 1e-4
+#: Pieces' bounding boxes are widened by this many pixels (and JUNCTION) before the pair
+#: test rejects pairs whose boxes are apart: far above the rounding of pixel coordinates
+#: (~1e-13), far below any piece's length that matters, so no pair the exact test accepts
+#: is rejected.
 BOX_SLACK = 1e-9
 
 
@@ -279,8 +287,9 @@ def _piece_geometry(p0, p1, segment, start, end, order):
         ax, ay = p0[s, 0] + start[i] * dx, p0[s, 1] + start[i] * dy
         bx, by = p0[s, 0] + end[i] * dx - ax, p0[s, 1] + end[i] * dy - ay
         out[x, 0], out[x, 1], out[x, 2], out[x, 3] = ax, ay, bx, by
-        out[x, 4], out[x, 5] = min(ax, ax + bx) - BOX_SLACK, max(ax, ax + bx) + BOX_SLACK
-        out[x, 6], out[x, 7] = min(ay, ay + by) - BOX_SLACK, max(ay, ay + by) + BOX_SLACK
+        slack = BOX_SLACK + JUNCTION
+        out[x, 4], out[x, 5] = min(ax, ax + bx) - slack, max(ax, ax + bx) + slack
+        out[x, 6], out[x, 7] = min(ay, ay + by) - slack, max(ay, ay + by) + slack
     return out
 
 
@@ -311,7 +320,9 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
                 continue
             t = ((cx - ax) * fy - (cy - ay) * fx) / den
             u = ((cx - ax) * by - (cy - ay) * bx) / den
-            if 1e-9 < t < 1.0 - 1e-9 and -1e-12 <= u <= 1.0 + 1e-12:
+            # y's ends count as on x when they stop within JUNCTION pixels of it
+            reach = max(1e-12, JUNCTION / math.sqrt(fx * fx + fy * fy))
+            if 1e-9 < t < 1.0 - 1e-9 and -reach <= u <= 1.0 + reach:
                 ts[m] = t
                 m += 1
         # m is small on most pieces, but where hundreds of silhouette segments meet (the
