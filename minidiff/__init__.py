@@ -61,6 +61,7 @@ from minidiff.tensor import (
     Tensor,
     as_tensor,
     detect_anomaly,
+    enable_grad,
     is_grad_enabled,
     no_grad,
     tangents,
@@ -69,7 +70,7 @@ from minidiff.tensor import (
 )
 
 __all__ = [
-    "Tensor", "tensor", "as_tensor", "no_grad", "detect_anomaly", "is_grad_enabled",
+    "Tensor", "tensor", "as_tensor", "no_grad", "enable_grad", "detect_anomaly", "is_grad_enabled",
     "unbroadcast", "kernels", "buffers", "grad", "value_and_grad", "check_grad",
     "numerical_grad", "optim", "jvp", "tangents",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul", "linear",

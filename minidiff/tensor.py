@@ -662,15 +662,28 @@ def _output_tangent(name: str, out: np.ndarray, inputs: Sequence[Tensor], jvp) -
 
 
 @contextmanager
-def no_grad():
-    """Within this block nothing is differentiated: results are constants, with no node on
-    the tape and no tangent (faster, no memory). It applies to the current thread (context)
-    only: other threads keep recording."""
-    token = _grad_enabled.set(False)
+def _grad_mode(enabled: bool):
+    """Gradients enabled or not in the current thread (context) within the block."""
+    token = _grad_enabled.set(enabled)
     try:
         yield
     finally:
         _grad_enabled.reset(token)
+
+
+def no_grad():
+    """Within this block nothing is differentiated: results are constants, with no node on
+    the tape and no tangent (faster, no memory). It applies to the current thread (context)
+    only: other threads keep recording."""
+    return _grad_mode(False)
+
+
+def enable_grad():
+    """Within this block operations are recorded again, even inside ``no_grad()`` (as
+    PyTorch's ``enable_grad``): for code that must build a tape of its own, such as a VJP
+    that differentiates a replayed computation while the caller's ``backward`` runs under
+    ``no_grad()``. Current thread (context) only."""
+    return _grad_mode(True)
 
 
 @contextmanager

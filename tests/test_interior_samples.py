@@ -40,7 +40,7 @@ def test_every_mixed_pixel_is_a_candidate(size):
         lit = lit.reshape(-1, 16)
         mixed = np.any(prim != one.primary.prim_id[:, None], axis=1)
         mixed |= np.any(lit != lit[:, :1], axis=1)
-        found = interior.candidate_pixels(one, size, size, 1)
+        found = interior.candidate_pixels(*interior.what_is_seen(one, size * size), size, size, 1)
         assert mixed.sum() > 10
         assert np.isin(np.flatnonzero(mixed), found).all()
 

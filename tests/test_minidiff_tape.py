@@ -158,6 +158,20 @@ def test_no_grad_restores_state_after_an_exception():
     assert md.is_grad_enabled()
 
 
+def test_enable_grad_records_inside_no_grad_and_restores_it():
+    x = leaf([1.0, 2.0])
+    with md.no_grad():
+        with md.enable_grad():
+            assert md.is_grad_enabled()
+            loss = (md.sin(x) * x).sum()
+        assert not md.is_grad_enabled()
+        loss.backward()  # the tape of the enabled block, even here
+    np.testing.assert_allclose(x.grad, np.cos(x.data) * x.data + np.sin(x.data))
+    with pytest.raises(KeyError), md.no_grad(), md.enable_grad():
+        raise KeyError("boom")
+    assert md.is_grad_enabled()
+
+
 def test_detach_cuts_the_tape():
     x = leaf([1.0, 2.0])
     d = x.detach()

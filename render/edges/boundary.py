@@ -437,15 +437,20 @@ def seen_through(
     coords: np.ndarray,
     prim_id: np.ndarray,
     depth: np.ndarray,
+    directions: np.ndarray | None = None,
 ) -> Visibility:
     """The render's ``visibility`` with its camera rays replaced by k rays through
     image-plane points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the
     background) at ``depth`` (k,) along the view axis: their hit points and, per light,
-    which of them it reaches (shadow rays traced as the render's are)."""
+    which of them it reaches (shadow rays traced as the render's are). ``directions``:
+    the rays' camera directions (k, 3) if the caller has them already."""
     forward, right, up, eye = plain_camera(frame)
     hit = np.flatnonzero(prim_id >= 0)
     at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
-    directions = camera_directions(at, right, up, forward)
+    if directions is None:
+        directions = camera_directions(at, right, up, forward)
+    else:
+        directions = np.take(directions, hit, axis=0)
     points = eye + depth[hit][:, None] * directions
     primary = PrimaryHits(prim_id, hit, depth, points, at)
     lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
@@ -814,7 +819,7 @@ def _onto_sphere_cut(coords, corners, centre, radius, frame, steps: int = 3):
     w = eye - centre
     k = np.einsum("ij,ij->i", n, a - eye)
     for step in range(steps + 1):
-        d = forward + coords[:, :1] * right + coords[:, 1:] * up
+        d = camera_directions(coords, right, up, forward)
         nd = np.einsum("ij,ij->i", n, d)
         g = nd[:, None] * w + k[:, None] * d
         e = np.einsum("ij,ij->i", g, g) - radius * radius * nd * nd

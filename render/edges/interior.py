@@ -30,7 +30,6 @@ the image:
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import numpy as np
@@ -38,8 +37,8 @@ import numpy as np
 import minidiff as md
 from render.edges.boundary import plain_camera, seen_through, to_image_plane
 from render.scene.cache import RenderCache
-from render.scene.camera import camera_directions, subpixel_offsets
-from render.scene.scene import Scene, check_ray_count
+from render.scene.camera import camera_directions, check_square, subpixel_offsets
+from render.scene.scene import Scene
 from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
@@ -51,18 +50,10 @@ INTERIOR_SAMPLES = 16
 
 def check_interior_samples(value) -> int:
     """``render``'s ``interior_samples``, checked: a perfect square >= 1."""
-    root = 0
-    if not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1:
-        root = math.isqrt(int(value))
-    if root * root != value or root == 0:
-        raise ValueError(
-            f"render: interior_samples must be a perfect square (1, 4, 9, 16, ...), got {value!r}"
-        )
-    check_ray_count(1, 1, int(value))
-    return int(value)
+    return check_square(value, "interior_samples")
 
 
-def _what_is_seen(visibility: Visibility, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
+def what_is_seen(visibility: Visibility, n_rays: int) -> tuple[np.ndarray, np.ndarray]:
     """Per camera ray of ``visibility`` (n_rays of them): the primitive it sees (n_rays,)
     and which lights reach its hit (n_rays, L) bool (False for a miss)."""
     primary = visibility.primary
@@ -72,10 +63,12 @@ def _what_is_seen(visibility: Visibility, n_rays: int) -> tuple[np.ndarray, np.n
     return primary.prim_id, lit
 
 
-def candidate_pixels(visibility: Visibility, width: int, height: int, spp: int) -> np.ndarray:
+def candidate_pixels(
+    prim: np.ndarray, lit: np.ndarray, width: int, height: int, spp: int
+) -> np.ndarray:
     """Flat indices (m,) of the pixels whose ``spp`` samples, or whose 8 neighbours' first
-    samples, do not all see the same primitive lit by the same lights."""
-    prim, lit = _what_is_seen(visibility, width * height * spp)
+    samples, do not all see the same primitive lit by the same lights; ``prim``, ``lit``:
+    what each of the render's rays sees (``what_is_seen``)."""
     prim, lit = prim.reshape(height, width, spp), lit.reshape(height, width, spp, -1)
     odd = np.any(prim != prim[..., :1], axis=2) | np.any(lit != lit[:, :, :1], axis=(2, 3))
     first = np.pad(prim[..., 0], 1, mode="edge")
@@ -116,7 +109,8 @@ def add_interior_samples(
     width, height = camera.width, camera.height
     if spp >= grid_spp:
         return image
-    pixels = candidate_pixels(visibility, width, height, spp)
+    own_prim, own_lit = what_is_seen(visibility, width * height * spp)
+    pixels = candidate_pixels(own_prim, own_lit, width, height, spp)
     if len(pixels) == 0:
         return image
     # 2: the candidates' samples, traced and shadow-tested as camera rays are.
@@ -128,9 +122,8 @@ def add_interior_samples(
     prim_id, depth, _, _ = visibility.accelerator().closest_hit(
         np.broadcast_to(eye, directions.shape), directions
     )
-    seen = seen_through(scene, visibility, frame, coords, prim_id, depth)
-    prim, lit = _what_is_seen(seen, len(coords))
-    own_prim, own_lit = _what_is_seen(visibility, width * height * spp)
+    seen = seen_through(scene, visibility, frame, coords, prim_id, depth, directions)
+    prim, lit = what_is_seen(seen, len(coords))
     own = pixels * spp  # each candidate's first sample
     same = (prim.reshape(-1, grid_spp) == own_prim[own][:, None]) & np.all(
         lit.reshape(len(pixels), grid_spp, -1) == own_lit[own][:, None], axis=2

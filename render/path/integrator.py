@@ -24,14 +24,13 @@ the image is estimated with, and E[dL/dI * dI/dtheta] is the product of the expe
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 
 import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from minidiff.tensor import _grad_enabled, record
+from minidiff.tensor import record
 from render.edges.terms import differentiated
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
@@ -202,23 +201,13 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
     def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
         for leaf in leaves:  # every moving copy, as differentiated as on the tape
             leaf.requires_grad, leaf.grad = True, None
-        with _recording(), buffers.fresh():
+        # Recorded even when the caller's backward runs under no_grad().
+        with md.enable_grad(), buffers.fresh():
             _backpropagate(frozen, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges,
                            edge_spp)  # fmt: skip
         return tuple(leaf.grad for leaf in leaves)  # None: the image does not depend on it
 
     return record("path_image", image.data, moving, vjp, jvp=lambda *_: tangent)
-
-
-@contextlib.contextmanager
-def _recording() -> Iterator[None]:
-    """Gradients enabled in this thread (or task) within the block: a replay's batches must
-    be recorded even when the caller's ``backward`` runs under ``no_grad()``."""
-    token = _grad_enabled.set(True)
-    try:
-        yield
-    finally:
-        _grad_enabled.reset(token)
 
 
 def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):

@@ -30,18 +30,28 @@ from render.scene.cache import same
 from render.scene.scene import Camera, check_ray_count
 
 
+def check_square(value, name: str) -> int:
+    """``value`` as an int if it is a perfect square >= 1 of at most the ray limit
+    (``check_ray_count``), else a ValueError naming ``name``: samples per pixel on an n x n
+    grid."""
+    # Type and sign first: math.isqrt would fail on them with a message that names nothing.
+    valid = not isinstance(value, bool) and isinstance(value, int | np.integer) and value >= 1
+    n = math.isqrt(value) if valid else 0
+    if not valid or n * n != value:
+        raise ValueError(
+            f"render: {name} must be a perfect square (1, 4, 9, 16, ...), got {value!r}"
+        )
+    check_ray_count(1, 1, int(value))  # before an n x n grid is allocated
+    return int(value)
+
+
 def subpixel_offsets(spp: int) -> np.ndarray:
     """(spp, 2) fixed stratified sample positions inside a pixel, in [0, 1)^2.
 
     spp = n^2 gives the centres of an n x n grid of cells. The pattern is fixed (no random
     jitter), so the rendered image is a deterministic, differentiable function of the scene.
     """
-    # Type and sign first: math.isqrt would fail on them with a message that names no spp.
-    valid = not isinstance(spp, bool) and isinstance(spp, int | np.integer) and spp >= 1
-    n = math.isqrt(spp) if valid else 0
-    if not valid or n * n != spp:
-        raise ValueError(f"render: spp must be a perfect square (1, 4, 9, 16, ...), got {spp!r}")
-    check_ray_count(1, 1, spp)  # before the n x n grid below is allocated
+    n = math.isqrt(check_square(spp, "spp"))
     cells = (np.arange(n) + 0.5) / n
     sx, sy = np.meshgrid(cells, cells)
     return np.stack([sx.ravel(), sy.ravel()], axis=1)
