@@ -145,7 +145,7 @@ print(f"<u, J v> = {lhs:.15f}   <J^T u, v> = {rhs:.15f}   relative {dot_identity
 #
 # and the two sides agree to a relative `1e-14` <!-- check: dot_identity_error < -->. This
 # *dot-product test* is how a JVP and a VJP are checked against each other without any
-# step size: `tests/test_minidiff_jvp.py` runs it on every primitive.
+# step size: `tests/minidiff/test_jvp.py` runs it on every primitive.
 #
 # ## What each mode costs
 #

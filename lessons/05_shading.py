@@ -37,7 +37,7 @@
 # that answer is a constant on the tape.
 #
 # We check the formulas on a case with a closed form, then render a small scene.
-# (`tests/test_render_closed_form.py` holds the renderer to closed forms the same way, for
+# (`tests/render/shade/test_closed_form.py` holds the renderer to closed forms the same way, for
 # triangles, spheres, textures, directional lights and shadows.)
 
 # %%
@@ -237,7 +237,7 @@ print(f"share of the visible ground in the teapot's shadow: {teapot_shadow_share
 # the teapot has a closed-form check: what a mirror pixel shows is exactly what a camera
 # mirrored through the floor's plane `y = −0.5` sees of the scene without the floor, in the
 # same row, with left and right swapped (a reflection reverses handedness).
-# (`tests/test_reflection.py` checks this on random scenes.)
+# (`tests/render/shade/test_reflection.py` checks this on random scenes.)
 
 # %%
 M = 96

@@ -184,7 +184,7 @@ print(f"elapsed {time.perf_counter() - start:.1f} s; figures in {OUT}")
 # happens to flip and both errors are small; the mask is what makes the check reliable
 # for *every* `h` and scene, not only lucky ones. `fd_unmasked_h1e-2.png` shows the
 # difference quotient on the gradient image's scale: one saturated pixel on the shadow's
-# border. (`tests/test_render_gradients.py` runs this check on random scenes for every kind
+# border. (`tests/render/test_gradients.py` runs this check on random scenes for every kind
 # of parameter; `tests/render_helpers.py` holds its mask, texels included.)
 #
 # ## Exercises

@@ -3,7 +3,7 @@
 Nothing here knows about tensors or gradients. Each function computes one ordinary NumPy
 expression, named in the first line of its docstring (its *contract*), faster for the
 arrays a renderer produces: tall, thin arrays such as 41,000 hit points of 3 coordinates,
-and images. The tests (``tests/test_minidiff_kernels.py``) compare every kernel with its
+and images. The tests (``tests/minidiff/test_kernels.py``) compare every kernel with its
 contract; "bit for bit" means the same values (``np.array_equal``), shape and dtype, except
 that a sum of zeros may be -0.0 where NumPy gives +0.0 (NumPy starts its sums from +0.0).
 

@@ -6,7 +6,7 @@
   light) whose parameters are all stored as Tensors in the scene.
 * ``masked_gradient_check``: tape gradient of a render-level loss vs. central finite
   differences, restricted to the pixels whose visibility the perturbations leave alone (see
-  ``tests/test_render_gradients.py`` for why).
+  ``tests/render/test_gradients.py`` for why).
 """
 
 from __future__ import annotations

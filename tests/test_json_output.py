@@ -1,6 +1,6 @@
 """Every JSON file the project writes parses with a strict parser (no NaN / Infinity). (The
 reproduction script's own results.json is checked where the script runs end to end:
-tests/test_inverse_rendering.py.)"""
+tests/render/inverse/test_inverse_rendering.py.)"""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from render_helpers import strict_load
 
 from render.inverse.jsonio import to_json, write_json
+from tests.render_helpers import strict_load
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1096,7 +1096,7 @@ def edge_sides_kernel(
     scalars and four scratch 3-vectors instead of a dozen (k, 3) temporaries, the points
     shared out over ``n_threads`` (``numba.get_num_threads()``) as the ray kernels share
     rays (``render.trace.intersect._jobs``: every point's result is the same on any number
-    of threads). The hot loop of the boundary term; tests/test_boundary_edges.py ties it to
+    of threads). The hot loop of the boundary term; tests/render/edges/test_boundary.py ties it to
     ``edge_sides``."""
     k, n_faces = faces.shape
     directions = np.empty((k, 3))

@@ -361,7 +361,7 @@ def bisect_chords(
     (traced one by one in ``bvh``). ``curves`` = (kind, a, b, axis) per curve; ``where``
     (c, 3), ``point`` (c,) and ``own`` (c,) per curve. Returns the chords (x0 (m, 2), x1
     (m, 2), curve (m,), receiver (m,)): the same set as ``_border_chords``, in another
-    order. tests/test_shadow_edges.py ties the two.
+    order. tests/render/edges/test_shadow_edges.py ties the two.
 
     The starting chords are cut into blocks, dealt to ``n_threads`` threads
     (``numba.get_num_threads()``) in turn; each block writes its chords to its own rows of
@@ -595,7 +595,8 @@ def border_newton(forward, right, up, eye, receivers, occluders, light, coords, 
     arithmetic per point, in scalars): the points (k, 2) moved onto the border by ``steps``
     Newton steps along grad e, and there e (k,), its image-plane gradient (k, 2), the
     receiver points P (k, 3) and their depths t (k,). ``receivers``, ``occluders``,
-    ``light``: ``_border_rows``. tests/test_shadow_edges.py ties it to the NumPy functions."""
+    ``light``: ``_border_rows``. tests/render/edges/test_shadow_edges.py ties it to the
+    NumPy functions."""
     normal, corner, radius = receivers
     kind, m, base, size = occluders
     where, point = light

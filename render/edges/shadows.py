@@ -25,8 +25,8 @@ two samples (``render.edges.silhouettes``), but only the light's own contributio
    gains, the light's unoccluded contribution times the area of the box on the other side
    of the shadow edge (``render.edges.geometry.box_coverage``).
 
-Approximations (measured in ``tests/test_shadow_edges.py``): the receiver is taken to be
-the plane of the lit sample's face (its tangent plane on a sphere), so a curved receiver
+Approximations (measured in ``tests/render/edges/test_shadow_edges.py``): the receiver is
+taken to be the plane of the lit sample's face (its tangent plane on a sphere), so a curved receiver
 or a pair across a crease of the receiver is approximated by that plane; pairs whose two
 samples hit different objects get no shadow-edge term (their silhouette term, if any,
 blends the whole colour already); a sphere occluder under a directional light gets none.

@@ -183,7 +183,7 @@ IN_RANGE = (
 #:   1e8 view distances that is 2.3e-5 of one, a sixtieth of a pixel. Measured (random scenes
 #:   moved that far): within 1e-6 of the unmoved image, ten times worse per decade beyond,
 #:   shadows flipping from 1e11; and a quad with a vertex at 1e12 seen from 5 units had no
-#:   pixel hit (``tests/test_coordinate_range.py``). Point lights are not exempt: their
+#:   pixel hit (``tests/render/scene/test_coordinate_range.py``). Point lights are not exempt: their
 #:   position enters the shading (direction and 1 / r^2) and the shadow rays' offset, and a
 #:   light 1e12 view distances away lost shadows. One at the bound shades like a
 #:   ``DirectionalLight`` to 1e-8; for a farther light, use one.
@@ -193,7 +193,7 @@ IN_RANGE = (
 #:   pixel). A ground 1e7 view distances across lost the shadow at the foot of a wall.
 #:
 #: Scenes scaled by any factor and moved by up to 1e6 of their size
-#: (``tests/test_scale_invariance.py``) stay well inside both.
+#: (``tests/render/test_scale_invariance.py``) stay well inside both.
 MAX_COORD_RELATIVE = 1e8
 MAX_EXTENT_RELATIVE = 1e4
 

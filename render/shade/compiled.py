@@ -13,7 +13,7 @@ The arithmetic is the tape code's, operation for operation and in the same order
 does not contract a * b + c into a fused multiply-add without fastmath), so the colours
 are the same bit for bit, except where a Blinn-Phong lobe raises n.h to the shininess:
 NumPy's vectorised ``power`` and the C library's ``pow`` that Numba calls may round the
-last bit differently. ``tests/test_compiled_shading.py`` ties the two together.
+last bit differently. ``tests/render/shade/test_compiled_shading.py`` ties the two together.
 
 Its users: a forward render that nothing differentiates, and the edge terms, which shade
 what lies on either side of an edge off the tape (``render.edges.boundary.shade_seen``).

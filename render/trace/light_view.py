@@ -17,11 +17,11 @@ rasteriser's idea (``render.trace.raster``) with the light as the eye.
    light than the ray's start (``raster.wholly_beyond``).
 
 Any-hit is a yes or no, and the lists are conservative, so the answers are the BVH's (and
-brute force's): ``tests/test_light_view.py`` checks it on random soups and spheres, shared
-edges and vertices, scenes far from the origin, and rendered images. Where rounding in the
-directions from the light could put a point in the wrong cell (primitives or ray origins
-very close to the light), the primitive is listed in every cell and the ray tested against
-every primitive.
+brute force's): ``tests/render/trace/test_light_view.py`` checks it on random soups and
+spheres, shared edges and vertices, scenes far from the origin, and rendered images. Where
+rounding in the directions from the light could put a point in the wrong cell (primitives or
+ray origins very close to the light), the primitive is listed in every cell and the ray tested
+against every primitive.
 """
 
 from __future__ import annotations

@@ -22,7 +22,7 @@ primary visibility and ray tracing for secondary effects").
 Step 3 is the brute-force tracer restricted to candidates, and the candidates are
 conservative (a ray outside a triangle's projected edges cannot hit it, nor can one that
 already hit something nearer than all of it win against that), so the ids, t, u and v
-are bit-identical to ``Accelerator.closest_hit`` (``tests/test_raster.py`` checks it on
+are bit-identical to ``Accelerator.closest_hit`` (``tests/render/trace/test_raster.py`` checks it on
 random triangle soups, shared edges and vertices, spheres, and the teapot).
 
 Any-hit camera rays through arbitrary image-plane points (the boundary term asks whether
@@ -350,7 +350,7 @@ def raster_occluded(
     int64, -1: none), found as ``raster_closest_hit`` finds hits: the primitives binned in
     the camera's tiles nearest first, each ray tested against its tile's list with the
     tracer's ray-primitive function up to the first primitive wholly beyond its end. The
-    same answers as the BVH's (``tests/test_raster.py``).
+    same answers as the BVH's (``tests/render/trace/test_raster.py``).
 
     primitives: ``scene_primitives``; frame: the camera's (forward, right, up, eye)
     (``plain_frame``) of a ``width`` x ``height`` image."""

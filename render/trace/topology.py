@@ -9,7 +9,7 @@ false boundary, hence a false silhouette (a known failure of nvdiffrast's own tr
 
 ``walk_to_silhouette`` is written twice: in NumPy, one step for all segments at a time
 (the version to read), and as a Numba kernel, one segment at a time (the version the
-renderer runs); ``tests/test_edges.py`` checks that they agree.
+renderer runs); ``tests/render/edges/test_pairs.py`` checks that they agree.
 """
 
 from __future__ import annotations

@@ -233,7 +233,7 @@ def _ignore_spheres_facing(ignore, light, points, start_prim, primitives) -> Non
     for the direction l to the light, never meets it again. Near the terminator the offset
     along l moves the start point only offset * cos(angle) off the surface, less than the
     rounding of the hit point far from the origin; without this the ray could meet the
-    sphere at t ~ 0 and shadow the point (tests/test_scale_invariance.py, seed 315)."""
+    sphere at t ~ 0 and shadow the point (tests/render/test_scale_invariance.py, seed 315)."""
     triangles, centers, _ = primitives
     on_sphere = np.flatnonzero(start_prim >= len(triangles))
     if len(on_sphere) == 0:

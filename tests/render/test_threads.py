@@ -1,0 +1,148 @@
+"""Rendering from several threads at once gives every thread what it would get alone.
+
+Users do this: Numba kernels release the GIL, and fitting several views with a thread pool
+is the obvious way to use more than one core. Each thread renders its own scenes with
+``backward`` (plain, antialiased, 4 samples per pixel, mirrors), and all of them render one
+shared scene read-only; every image and gradient must be bit-identical to the same work done
+alone, and gradient mode must be what it was in every thread afterwards.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numba
+import numpy as np
+
+import minidiff as md
+import render
+from render import Material
+from tests.render_helpers import random_scene
+
+N_THREADS = 4
+
+
+def scene_and_options(job: int):
+    """A different scene and render options for each job number."""
+    kind = job % 5
+    if kind == 0:
+        return render.paper_scene(width=40, height=32), {}
+    if kind == 1:
+        return render.paper_scene(width=40, height=32), {"antialias": True}
+    if kind == 2:
+        return random_scene(job, lights=("point", "directional"), texture=True), {"spp": 4}
+    if kind == 3:
+        mirror = Material((0.05, 0.05, 0.05), reflectance=0.8)
+        return render.paper_scene(width=32, height=24, ground_material=mirror), {}
+    return random_scene(job, smooth=True), {"antialias": True}
+
+
+def render_with_gradients(job: int) -> list[np.ndarray]:
+    """The image and the gradient of a fixed weighted sum of it for every parameter (two
+    renders of the same scene, so that the second one reuses the cache)."""
+    scene, options = scene_and_options(job)
+    params = [t for _, t in sorted(scene.named_parameters().items())]
+    for p in params:
+        p.requires_grad = True
+    for _ in range(2):
+        for p in params:
+            p.grad = None
+        image = render.render(scene, **options)
+        weights = np.random.default_rng(job).standard_normal(image.shape)
+        (image * md.tensor(weights)).sum().backward()
+    grads = [np.zeros_like(p.data) if p.grad is None else np.array(p.grad) for p in params]
+    return [image.data.copy()] + grads
+
+
+def run_in_threads(work, jobs_per_thread: list[list[int]]):
+    """Run ``work(job)`` for every job, each list of jobs in its own thread, all threads
+    released at once; returns {job: result} and each thread's grad mode at the end."""
+    results, modes, errors = {}, {}, []
+    barrier = threading.Barrier(len(jobs_per_thread))
+
+    def thread_main(index: int, jobs: list[int]) -> None:
+        try:
+            barrier.wait()
+            for job in jobs:
+                results[job] = work(job)
+            modes[index] = md.is_grad_enabled()
+        except BaseException as error:  # reported in the main thread
+            errors.append(error)
+
+    threads = [
+        threading.Thread(target=thread_main, args=(i, jobs))
+        for i, jobs in enumerate(jobs_per_thread)
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return results, modes
+
+
+def assert_identical(got: list[np.ndarray], expected: list[np.ndarray]) -> None:
+    assert len(got) == len(expected)
+    for a, b in zip(got, expected, strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_threads_rendering_different_scenes_with_backward_match_the_work_done_alone():
+    jobs = [[t + N_THREADS * k for k in range(3)] for t in range(N_THREADS)]
+    alone = {job: render_with_gradients(job) for row in jobs for job in row}
+    together, modes = run_in_threads(render_with_gradients, jobs)
+    for job, expected in alone.items():
+        assert_identical(together[job], expected)
+    assert modes == {i: True for i in range(N_THREADS)}
+    assert md.is_grad_enabled()
+    # Numba's thread-safe layers (its fallback, workqueue, aborts on concurrent launches:
+    # docs/architecture.md).
+    assert numba.threading_layer() in ("omp", "tbb")
+
+
+def test_threads_rendering_one_shared_scene_read_only_match_a_render_alone():
+    scene = render.paper_scene(width=48, height=40)
+    options = [{}, {"antialias": True}, {"spp": 4}, {"antialias": True, "spp": 4}]
+    alone = {}
+    for i, opts in enumerate(options):
+        with md.no_grad():
+            alone[i] = render.render(scene, reuse_visibility=False, **opts).data.copy()
+
+    def work(job: int) -> list[np.ndarray]:
+        opts = options[job % len(options)]
+        if job % 2:  # with the tape on (nothing requires grad: a constant image)
+            return [render.render(scene, **opts).data.copy()]
+        with md.no_grad():
+            return [render.render(scene, **opts).data.copy()]
+
+    jobs = [[t + N_THREADS * k for k in range(4)] for t in range(N_THREADS)]
+    together, modes = run_in_threads(work, jobs)
+    for job, (image,) in together.items():
+        np.testing.assert_array_equal(image, alone[job % len(options)])
+    assert modes == {i: True for i in range(N_THREADS)}
+    assert md.is_grad_enabled()
+
+
+def test_no_grad_in_one_thread_does_not_switch_the_tape_off_in_another():
+    inside, other_saw = threading.Event(), []
+    release = threading.Event()
+
+    def holder() -> None:
+        with md.no_grad():
+            inside.set()
+            release.wait(timeout=10)
+
+    def watcher() -> None:
+        inside.wait(timeout=10)
+        x = md.tensor(np.ones(3), requires_grad=True)
+        other_saw.append((md.is_grad_enabled(), (x * 2.0).requires_grad))
+        release.set()
+
+    threads = [threading.Thread(target=holder), threading.Thread(target=watcher)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert other_saw == [(True, True)]
+    assert md.is_grad_enabled()
