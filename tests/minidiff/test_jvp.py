@@ -94,6 +94,21 @@ def assert_jvp_matches(f, *args, fd=True, seed=0):
 # ---------------------------------------------------------------------------------------------
 
 
+#: primitive name -> strategies drawing (f, args); every primitive in md.__all__ needs one.
+CASES: dict[str, list] = {}
+
+
+def case_of(name: str):
+    """Register a composite strategy (a function of ``draw``) as a case of primitive
+    ``name``."""
+
+    def register(strategy):
+        CASES.setdefault(name, []).append(strategy())
+        return strategy
+
+    return register
+
+
 def unary_case(name):
     f, _, values = UNARY[name]
     return shapes.flatmap(values).map(lambda x: (f, [x]))
@@ -127,6 +142,7 @@ def binary_with_constant_case(name):
     return draw()
 
 
+@case_of("matmul")
 @st.composite
 def matmul_case(draw):
     signature = hnp.mutually_broadcastable_shapes(
@@ -136,6 +152,7 @@ def matmul_case(draw):
     return md.matmul, [draw(arrays(shape_a)), draw(arrays(shape_b))]
 
 
+@case_of("clip")
 @st.composite
 def clip_case(draw):
     shape_x, shape_lo = draw(pairs).input_shapes
@@ -143,6 +160,7 @@ def clip_case(draw):
     return (lambda x: md.clip(x, lo, lo + 1.0)), [x]
 
 
+@case_of("where")
 @st.composite
 def where_case(draw):
     shape_c, shape_a, shape_b = draw(
@@ -164,6 +182,7 @@ def reduction_case(name):
     return draw()
 
 
+@case_of("dot")
 @st.composite
 def dot_case(draw):
     batch = draw(hnp.mutually_broadcastable_shapes(num_shapes=2, max_dims=2, max_side=3))
@@ -172,12 +191,14 @@ def dot_case(draw):
     return md.dot, [draw(arrays(shape_a)), draw(arrays(shape_b))]
 
 
+@case_of("mean_squared_error")
 @st.composite
 def mean_squared_error_case(draw):
     shape = draw(hnp.array_shapes(min_dims=1, max_dims=3, max_side=4))
     return md.mean_squared_error, [draw(arrays(shape)), draw(arrays(shape))]
 
 
+@case_of("cross")
 @st.composite
 def cross_case(draw):
     batch = draw(hnp.mutually_broadcastable_shapes(num_shapes=2, max_dims=2))
@@ -185,6 +206,7 @@ def cross_case(draw):
     return md.cross, [draw(arrays(shape_a)), draw(arrays(shape_b))]
 
 
+@case_of("norm")
 @st.composite
 def norm_case(draw):
     shape = draw(nonscalar_shapes)
@@ -193,6 +215,7 @@ def norm_case(draw):
     return (lambda x: md.norm(x, axis=axis, keepdims=keepdims)), [draw(away_from_zero(shape))]
 
 
+@case_of("normalize")
 @st.composite
 def normalize_case(draw):
     # At least 2 components: a 1-vector normalises to its sign, whose derivative is 0 up to
@@ -202,6 +225,7 @@ def normalize_case(draw):
     return md.normalize, [draw(away_from_zero(shape))]
 
 
+@case_of("reshape")
 @st.composite
 def reshape_case(draw):
     shape = draw(shapes)
@@ -210,6 +234,7 @@ def reshape_case(draw):
     return (lambda x: md.reshape(x, target)), [draw(arrays(shape))]
 
 
+@case_of("transpose")
 @st.composite
 def transpose_case(draw):
     shape = draw(shapes)
@@ -218,6 +243,7 @@ def transpose_case(draw):
     return (lambda x: md.transpose(x, axes)), [draw(arrays(shape))]
 
 
+@case_of("broadcast_to")
 @st.composite
 def broadcast_to_case(draw):
     target = draw(shapes)
@@ -228,6 +254,7 @@ def broadcast_to_case(draw):
     return (lambda x: md.broadcast_to(x, target)), [draw(arrays(shape))]
 
 
+@case_of("stack")
 @st.composite
 def stack_case(draw):
     shape, count = draw(shapes), draw(st.integers(1, 3))
@@ -237,6 +264,7 @@ def stack_case(draw):
     return (lambda *xs: md.stack([*xs, constant], axis=axis)), xs
 
 
+@case_of("concatenate")
 @st.composite
 def concatenate_case(draw):
     shape, count = draw(nonscalar_shapes), draw(st.integers(1, 3))
@@ -251,6 +279,7 @@ def concatenate_case(draw):
     return (lambda *xs: md.concatenate([constant, *xs], axis=axis)), xs
 
 
+@case_of("getitem")
 @st.composite
 def getitem_case(draw):
     shape = draw(nonscalar_shapes)
@@ -271,6 +300,7 @@ def getitem_case(draw):
     return (lambda x: x[index]), [x]
 
 
+@case_of("scatter_add")
 @st.composite
 def scatter_add_case(draw):
     trailing = draw(hnp.array_shapes(min_dims=0, max_dims=2, max_side=4))
@@ -279,6 +309,7 @@ def scatter_add_case(draw):
     return (lambda v: md.scatter_add(v, index, size)), [draw(arrays((k,) + trailing))]
 
 
+@case_of("linear")
 @st.composite
 def linear_case(draw):
     """A dense matrix, or the inverse of a prefactored sparse one (``linear``'s two uses)."""
@@ -292,37 +323,16 @@ def linear_case(draw):
 UNARY_PRIMITIVES = ["negative", "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs"]
 BINARY_PRIMITIVES = ["add", "subtract", "multiply", "divide", "power", "maximum", "minimum"]
 
-# primitive name -> strategies drawing (f, args); every primitive in md.__all__ needs one.
-CASES = {name: [unary_case(name)] for name in UNARY_PRIMITIVES}
+for _name in UNARY_PRIMITIVES:
+    CASES[_name] = [unary_case(_name)]
 CASES["negative"].append(unary_case("neg_operator"))
 for _name in BINARY_PRIMITIVES:
     CASES[_name] = [binary_case(_name), binary_with_constant_case(_name)]
 for _name, _op in [("add", "add"), ("subtract", "sub"), ("multiply", "mul"), ("divide", "div")]:
     CASES[_name].append(binary_case(_op + "_operator"))
 CASES["power"].append(binary_case("pow_operator"))
-CASES.update(
-    {
-        "matmul": [matmul_case()],
-        "linear": [linear_case()],
-        "clip": [clip_case()],
-        "where": [where_case()],
-        "sum": [reduction_case("sum")],
-        "mean": [reduction_case("mean")],
-        "max": [reduction_case("max")],
-        "dot": [dot_case()],
-        "mean_squared_error": [mean_squared_error_case()],
-        "cross": [cross_case()],
-        "norm": [norm_case()],
-        "normalize": [normalize_case()],
-        "reshape": [reshape_case()],
-        "transpose": [transpose_case()],
-        "broadcast_to": [broadcast_to_case()],
-        "stack": [stack_case()],
-        "concatenate": [concatenate_case()],
-        "getitem": [getitem_case()],
-        "scatter_add": [scatter_add_case()],
-    }
-)
+for _name in ("sum", "mean", "max"):
+    CASES[_name] = [reduction_case(_name)]
 
 PRIMITIVES = sorted(
     name

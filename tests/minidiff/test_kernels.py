@@ -17,6 +17,11 @@ from hypothesis.extra import numpy as hnp
 from minidiff import kernels
 
 DTYPES = st.sampled_from([np.float32, np.float64])
+#: Shapes for the element-wise kernels: small ones (0 to 3 axes) or a large one, which takes
+#: the compiled loops and reused memory.
+SMALL_OR_LARGE = st.one_of(
+    hnp.array_shapes(min_dims=0, max_dims=3, max_side=40), st.just((30_000, 3))
+)
 # Each arithmetic kernel and the NumPy operator it equals.
 ARITHMETIC = [
     (kernels.add, np.add),
@@ -224,18 +229,15 @@ def test_large_gathers_and_products_equal_numpy(dtype):
 
 @settings(max_examples=40, deadline=None)
 @given(
-    shape=hnp.array_shapes(min_dims=0, max_dims=3, max_side=40),
+    shape=SMALL_OR_LARGE,
     dtype=st.sampled_from([np.float32, np.float64, np.int64]),
     bounds=st.sampled_from([(0.0, 1.0), (0, 1), (-0.5, 0.25), ("a0", "a1"), ("v", "v")]),
-    large=st.booleans(),
     seed=st.integers(0, 2**16),
 )
-def test_clip_equals_numpy(shape, dtype, bounds, large, seed):
+def test_clip_equals_numpy(shape, dtype, bounds, seed):
     # Bounds: Python floats or ints, 0-d arrays of x's dtype ("a0", "a1"), or arrays that
-    # broadcast against x ("v"); large arrays take reused memory.
+    # broadcast against x ("v").
     rng = np.random.default_rng(seed)
-    if large:
-        shape = (30_000, 3)
     x = values(rng, shape, np.float64) * 2
     x = x.astype(dtype) if dtype != np.int64 else np.round(x * 10).astype(np.int64)
     if bounds == ("a0", "a1"):
@@ -252,18 +254,15 @@ def test_clip_equals_numpy(shape, dtype, bounds, large, seed):
 
 @settings(max_examples=40, deadline=None)
 @given(
-    shape=hnp.array_shapes(min_dims=0, max_dims=3, max_side=40),
-    dtype=st.sampled_from([np.float32, np.float64]),
-    large=st.booleans(),
+    shape=SMALL_OR_LARGE,
+    dtype=DTYPES,
     strided=st.booleans(),
     seed=st.integers(0, 2**16),
 )
-def test_pass_where_equal_equals_numpy(shape, dtype, large, strided, seed):
+def test_pass_where_equal_equals_numpy(shape, dtype, strided, seed):
     # a == b where a is b clipped (the clip VJP), with NaN (never equal) and -0.0 == 0.0
-    # among the values; large arrays take the compiled loop and reused memory.
+    # among the values.
     rng = np.random.default_rng(seed)
-    if large:
-        shape = (30_000, 3)
     b = (values(rng, shape, np.float64) * 2).astype(dtype)
     if b.size:
         b.reshape(-1)[:: max(1, b.size // 7)] = np.nan
