@@ -18,13 +18,13 @@ given; the committed results are regenerated with ``--out docs/path_tracing``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 import tracemalloc
 from pathlib import Path
 
 import numpy as np
+import timing
 
 import minidiff as md
 from minidiff import buffers
@@ -137,14 +137,9 @@ def speed(size: int, spp: int, repeats: int) -> dict:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--out",
-        default="out/bench_path",
-        help="output folder (default out/bench_path; the committed results were made with "
-        "--out docs/path_tracing)",
+    parser = timing.make_parser(
+        __doc__, out=Path("out/bench_path"), quick="memory at 16x16, speed at 32x32: a smoke run"
     )
-    parser.add_argument("--quick", action="store_true")
     parser.add_argument(
         "--part", choices=("both", "memory", "speed"), default="both",
         help="measure one part only, keeping the other's results from bench_path.json",

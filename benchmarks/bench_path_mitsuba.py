@@ -70,7 +70,6 @@ import os
 # threads would slow Mitsuba's calls that follow ours.
 os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 
-import argparse
 import json
 import sys
 import time
@@ -455,92 +454,100 @@ def report(result: dict) -> dict:
                                  notes, [])  # fmt: skip
 
 
+def _quick_notice(part: dict, why: str) -> list[str]:
+    """The warning that opens a part of results.md measured with --quick, or nothing."""
+    return [f"**A --quick smoke run: {why}.**", ""] if part.get("quick") else []
+
+
+def _correctness_markdown(c: dict, version: str) -> list[str]:
+    """results.md's correctness part: the z table per max_depth, what it compares, and the
+    images."""
+    lines = [
+        f"Cornell box {c['size']}x{c['size']} with its blocks, {c['seeds']} seeds x "
+        f"{c['spp_per_seed']} spp = {c['seeds'] * c['spp_per_seed']:,} spp per pixel in "
+        f"each renderer (ours; Mitsuba {version} `path`, {VARIANT}), "
+        "rr_depth 5, other seeds for every max_depth. z = (ours - Mitsuba) / combined "
+        "standard error, per pixel and channel (standard errors from the spread of the "
+        "seed means). In brackets, what z would be if both estimated the same image: "
+        "Student's t with Welch's degrees of freedom; Mitsuba against itself with "
+        "other seeds.",
+        "",
+        "| max_depth | pixel-channels | mean z | std z (t; Mitsuba vs Mitsuba) | "
+        "\\|z\\| > 3 (t; Mitsuba vs Mitsuba) | image mean, ours | Mitsuba | "
+        "relative difference |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in c["rows"]:
+        null = r["mitsuba_vs_mitsuba"]
+        rel = r["image_mean_relative_difference"][3]
+        err = r["image_mean_relative_difference_error"][3]
+        compared = f"{r['compared']:,}"
+        if r["constant_pixel_channels"]:
+            compared += f" (+{r['constant_pixel_channels']:,} constant)"
+        lines.append(
+            f"| {r['max_depth']} | {compared} | {r['z_mean']:+.3f} | {r['z_std']:.3f} "
+            f"({r['z_std_expected']:.3f}; {null['z_std']:.3f}) | "
+            f"{r['frac_abs_z_above_3']:.2%} ({r['frac_abs_z_above_3_expected']:.2%}; "
+            f"{null['frac_abs_z_above_3']:.2%}) | "
+            f"{r['image_mean_ours'][3]:.5f} ± {r['image_mean_ours_error'][3]:.5f} | "
+            f"{r['image_mean_mitsuba'][3]:.5f} ± {r['image_mean_mitsuba_error'][3]:.5f} | "
+            f"{rel:+.2%} ± {err:.2%} |"
+        )
+    flips = ", ".join(
+        f"max_depth {r['max_depth']}: "
+        + ", ".join(f"{k} {v:.2g}" for k, v in r["orientation"].items())
+        for r in c["rows"]
+    )
+    lines += [
+        "",
+        "Image means over all three channels. Constant pixel-channels: zero spread in "
+        "both renderers (black, or inside the light at max_depth 1), where the two are "
+        "equal to a relative "
+        + ", ".join(f"{r['constant_max_relative_gap']:.1g}" for r in c["rows"])
+        + " (by max_depth). Orientation: the root mean square z of our image against "
+        f"Mitsuba's as it is and flipped ({flips}).",
+        "",
+        "![ours, Mitsuba, |z| (largest of the three channels; black 0, white 4, red above "
+        "3); one row per max_depth in the table's order](images.png)",
+        "",
+    ]
+    return lines
+
+
+def _speed_markdown(s: dict) -> list[str]:
+    """results.md's speed part: how the times were taken, and the table."""
+    return [
+        f"Speed: one render, {s['size']}x{s['size']}, max_depth {s['max_depth']}, "
+        f"medians of {s['repeats']} after a warm-up, timed in turns, {s['threads']} "
+        "threads each (ours: no tape; Mitsuba: one fixed seed, image evaluated). "
+        "Provisional unless measured on a quiet machine (1-minute load average "
+        f"{s.get('load_average', 'not recorded')} when the script started).",
+        "",
+        "| workload | ours | Mitsuba 3 | ours / Mitsuba |",
+        "|---|---|---|---|",
+        f"| path tracing, us per sample per pixel | "
+        f"{s['ours']['us_per_sample_per_pixel']:.3f} ({s['our_spp']} spp, "
+        f"{timing.ms(s['ours'])}) | {s['mitsuba']['us_per_sample_per_pixel']:.4f} "
+        f"({s['mitsuba_spp']} spp, {timing.ms(s['mitsuba'])}) | {s['ratio']:.0f}x |",
+        "",
+    ]
+
+
 def markdown(result: dict) -> str:
     """results.md: the correctness table, the speed row, and how they were measured."""
+    c, s = result.get("correctness"), result.get("speed")
     lines = []
-    c = result.get("correctness")
     if c:
-        if c.get("quick"):
-            lines += ["**A --quick smoke run: too few samples to judge anything by.**", ""]
-        lines += [
-            f"Cornell box {c['size']}x{c['size']} with its blocks, {c['seeds']} seeds x "
-            f"{c['spp_per_seed']} spp = {c['seeds'] * c['spp_per_seed']:,} spp per pixel in "
-            f"each renderer (ours; Mitsuba {result['mitsuba_version']} `path`, {VARIANT}), "
-            "rr_depth 5, other seeds for every max_depth. z = (ours - Mitsuba) / combined "
-            "standard error, per pixel and channel (standard errors from the spread of the "
-            "seed means). In brackets, what z would be if both estimated the same image: "
-            "Student's t with Welch's degrees of freedom; Mitsuba against itself with "
-            "other seeds.",
-            "",
-            "| max_depth | pixel-channels | mean z | std z (t; Mitsuba vs Mitsuba) | "
-            "\\|z\\| > 3 (t; Mitsuba vs Mitsuba) | image mean, ours | Mitsuba | "
-            "relative difference |",
-            "|---|---|---|---|---|---|---|---|",
-        ]
-        for r in c["rows"]:
-            null = r["mitsuba_vs_mitsuba"]
-            rel = r["image_mean_relative_difference"][3]
-            err = r["image_mean_relative_difference_error"][3]
-            compared = f"{r['compared']:,}"
-            if r["constant_pixel_channels"]:
-                compared += f" (+{r['constant_pixel_channels']:,} constant)"
-            lines.append(
-                f"| {r['max_depth']} | {compared} | {r['z_mean']:+.3f} | {r['z_std']:.3f} "
-                f"({r['z_std_expected']:.3f}; {null['z_std']:.3f}) | "
-                f"{r['frac_abs_z_above_3']:.2%} ({r['frac_abs_z_above_3_expected']:.2%}; "
-                f"{null['frac_abs_z_above_3']:.2%}) | "
-                f"{r['image_mean_ours'][3]:.5f} ± {r['image_mean_ours_error'][3]:.5f} | "
-                f"{r['image_mean_mitsuba'][3]:.5f} ± {r['image_mean_mitsuba_error'][3]:.5f} | "
-                f"{rel:+.2%} ± {err:.2%} |"
-            )
-        flips = ", ".join(
-            f"max_depth {r['max_depth']}: "
-            + ", ".join(f"{k} {v:.2g}" for k, v in r["orientation"].items())
-            for r in c["rows"]
-        )
-        lines += [
-            "",
-            "Image means over all three channels. Constant pixel-channels: zero spread in "
-            "both renderers (black, or inside the light at max_depth 1), where the two are "
-            "equal to a relative "
-            + ", ".join(f"{r['constant_max_relative_gap']:.1g}" for r in c["rows"])
-            + " (by max_depth). Orientation: the root mean square z of our image against "
-            f"Mitsuba's as it is and flipped ({flips}).",
-            "",
-            "![ours, Mitsuba, |z| (largest of the three channels; black 0, white 4, red above "
-            "3); one row per max_depth in the table's order](images.png)",
-            "",
-        ]
-    s = result.get("speed")
+        lines += _quick_notice(c, "too few samples to judge anything by")
+        lines += _correctness_markdown(c, result["mitsuba_version"])
     if s:
-        if s.get("quick"):
-            lines += ["**A --quick smoke run: not the benchmark's workload.**", ""]
-        lines += [
-            f"Speed: one render, {s['size']}x{s['size']}, max_depth {s['max_depth']}, "
-            f"medians of {s['repeats']} after a warm-up, timed in turns, {s['threads']} "
-            "threads each (ours: no tape; Mitsuba: one fixed seed, image evaluated). "
-            "Provisional unless measured on a quiet machine (1-minute load average "
-            f"{s.get('load_average', 'not recorded')} when the script started).",
-            "",
-            "| workload | ours | Mitsuba 3 | ours / Mitsuba |",
-            "|---|---|---|---|",
-            f"| path tracing, us per sample per pixel | "
-            f"{s['ours']['us_per_sample_per_pixel']:.3f} ({s['our_spp']} spp, "
-            f"{timing.ms(s['ours'])}) | {s['mitsuba']['us_per_sample_per_pixel']:.4f} "
-            f"({s['mitsuba_spp']} spp, {timing.ms(s['mitsuba'])}) | {s['ratio']:.0f}x |",
-            "",
-        ]
+        lines += _quick_notice(s, "not the benchmark's workload")
+        lines += _speed_markdown(s)
     return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(
-        description=__doc__.splitlines()[0], formatter_class=argparse.RawTextHelpFormatter
-    )
-    parser.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})"
-    )
-    parser.add_argument("--quick", action="store_true", help="a smoke run (under a minute)")
+    parser = timing.make_parser(__doc__, out=DEFAULT_OUT, quick="a smoke run (under a minute)")
     parser.add_argument("--skip-timing", action="store_true", help="correctness only")
     parser.add_argument("--skip-correctness", action="store_true", help="speed only")
     parser.add_argument("--size", type=int, help="correctness image side (default 32)")

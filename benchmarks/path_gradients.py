@@ -2,6 +2,7 @@
 the missing boundary terms cost.
 
 Run:  python benchmarks/path_gradients.py [--out out/path_gradients] [--quick]
+(the committed results in docs/path_tracing/ were made with ``--out docs/path_tracing``)
 
 For each parameter (the light's emission, the red wall's albedo with the wall out of view,
 the light's position, an interior vertex of the back wall) and each scene (the empty room,
@@ -27,11 +28,11 @@ measure it. The camera looks at the lower part of the room unless ``light_in_vie
 
 from __future__ import annotations
 
-import argparse
 import time
 from pathlib import Path
 
 import numpy as np
+import timing
 
 import minidiff as md
 import render
@@ -172,14 +173,7 @@ def markdown(rows: list[dict], seeds: int, spp: int, h: float) -> str:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--out",
-        default="out/path_gradients",
-        help="output folder (default out/path_gradients; the committed results were made "
-        "with --out docs/path_tracing)",
-    )
-    parser.add_argument("--quick", action="store_true", help="2 seeds at 2 spp")
+    parser = timing.make_parser(__doc__, out=Path("out/path_gradients"), quick="2 seeds at 2 spp")
     parser.add_argument("--seeds", type=int, default=48)
     parser.add_argument("--spp", type=int, default=32)
     parser.add_argument("--h", type=float, default=0.02)

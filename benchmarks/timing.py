@@ -320,17 +320,16 @@ def write_json(out: Path, name: str, payload: dict) -> Path:
     return write_strict_json(out / f"{name}.json", payload, indent=2)
 
 
-def make_parser(doc: str) -> argparse.ArgumentParser:
-    """The common command line: ``--out DIR`` and ``--quick``."""
+def make_parser(
+    doc: str, out: Path = DEFAULT_OUT, quick: str = "tiny sizes and few repeats: a smoke run"
+) -> argparse.ArgumentParser:
+    """The common command line: ``--out DIR`` (default ``out``) and ``--quick`` (``quick``
+    says what it runs); the description is the first line of ``doc``."""
     parser = argparse.ArgumentParser(
         description=doc.strip().splitlines()[0], formatter_class=argparse.RawTextHelpFormatter
     )
-    parser.add_argument(
-        "--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})"
-    )
-    parser.add_argument(
-        "--quick", action="store_true", help="tiny sizes and few repeats: a smoke run"
-    )
+    parser.add_argument("--out", type=Path, default=out, help=f"output folder (default {out})")
+    parser.add_argument("--quick", action="store_true", help=quick)
     return parser
 
 
