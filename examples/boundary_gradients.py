@@ -122,10 +122,9 @@ def _vertices(scene) -> tuple[int, int]:
     used = np.zeros(len(v), bool)
     used[faces.ravel()] = True
     candidates = np.flatnonzero(used & all_seen & (counts[inverse.ravel()] == 1))
-    from render.edges.boundary import plain_camera, project
-    from render.scene.camera import camera_frame
+    from render.scene.camera import plain_frame, project
 
-    px, _ = project(v[candidates], plain_camera(camera_frame(scene.camera)), *prim.shape[::-1])
+    px, _ = project(v[candidates], plain_frame(scene.camera), *prim.shape[::-1])
     col, row = px[:, 0].astype(int), px[:, 1].astype(int)
     teapot = np.pad((prim >= 0) & (prim < len(faces)), 3)
 

@@ -135,7 +135,7 @@ def kernel_notice(edges) -> str:
         "render.shade.compiled": "_shade_kernel",
     }
     if boundary:
-        modules["render.edges.boundary"] = "_split_all"
+        modules["render.edges.boundary.pixels"] = "_split_all"
     what = "ray tracing, shading" + (", boundary-integral edges" if boundary else ", edges")
     if kernels_cached(modules):
         return f"The renderer's Numba kernels ({what}) are in Numba's cache: no compiling."

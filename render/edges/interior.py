@@ -35,9 +35,15 @@ from dataclasses import replace
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import plain_camera, seen_through, to_image_plane
+from render.edges.boundary.radiance import seen_through
 from render.scene.cache import RenderCache
-from render.scene.camera import camera_directions, check_square, subpixel_offsets
+from render.scene.camera import (
+    camera_directions,
+    check_square,
+    plain_frame,
+    subpixel_offsets,
+    to_image_plane,
+)
 from render.scene.scene import Scene
 from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.mirrors import Mirrors
@@ -117,7 +123,7 @@ def add_interior_samples(
     offsets = subpixel_offsets(grid_spp)  # (G, 2)
     corner = np.stack([pixels % width, pixels // width], axis=1).astype(np.float64)
     coords = to_image_plane((corner[:, None] + offsets).reshape(-1, 2), width, height)
-    forward, right, up, eye = plain_camera(frame)
+    forward, right, up, eye = plain_frame(scene.camera)
     directions = camera_directions(coords, right, up, forward)
     prim_id, depth, _, _ = visibility.accelerator().closest_hit(
         np.broadcast_to(eye, directions.shape), directions

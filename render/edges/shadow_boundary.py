@@ -46,15 +46,11 @@ import numba
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import (
-    EPSILON,
-    _hidden,
-    _pixel_gradient,
-    plain_camera,
-    project,
-)
+from render.edges.boundary.occlusion import hidden_points as _hidden
+from render.edges.boundary.pixels import pixel_gradient as _pixel_gradient
+from render.edges.boundary.radiance import EPSILON
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
-from render.scene.camera import camera_directions, ray_directions
+from render.scene.camera import camera_directions, plain_camera, project, ray_directions
 from render.scene.scene import PointLight, Scene
 from render.shade.hits import working_dtype
 from render.shade.surface import in_order

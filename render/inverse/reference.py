@@ -22,10 +22,10 @@ from collections.abc import Callable
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import radiance_at, to_image_plane
+from render.edges.boundary.radiance import radiance_at
 from render.renderer import render
 from render.scene.cache import RenderCache
-from render.scene.camera import camera_frame, subpixel_offsets
+from render.scene.camera import camera_frame, subpixel_offsets, to_image_plane
 from render.scene.placement import placed
 from render.scene.scene import Scene
 from render.trace.visibility import trace_visibility

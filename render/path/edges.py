@@ -22,11 +22,11 @@ from __future__ import annotations
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import project, to_image_plane
 from render.edges.terms import add_boundary_term
 from render.path.tracer import PathSampler
 from render.path.transport import path_radiance
 from render.scene.cache import cache_for
+from render.scene.camera import project, to_image_plane
 from render.scene.scene import Scene
 from render.trace.visibility import Visibility, scene_size
 

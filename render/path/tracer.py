@@ -35,7 +35,6 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import to_image_plane
 from render.path.emitters import Emitters, point_on
 from render.path.random import bounce_dimension, uniform
 from render.path.sampling import (
@@ -47,7 +46,7 @@ from render.path.sampling import (
     power_heuristic,
     unit,
 )
-from render.scene.camera import camera_directions, plain_frame
+from render.scene.camera import camera_directions, plain_frame, to_image_plane
 from render.scene.scene import DirectionalLight, Mesh, PointLight, Scene
 from render.shade.surface import vertex_normals
 from render.trace.accel import Accelerator

@@ -29,6 +29,10 @@ from minidiff.kernels import sum_rows
 from render.scene.cache import same
 from render.scene.scene import Camera, check_ray_count
 
+#: A camera frame off the tape: (forward, right * half_width, up * half_height, eye), (3,)
+#: float64 each (``plain_frame``).
+PlainFrame = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+
 
 def check_square(value, name: str) -> int:
     """``value`` as an int if it is a perfect square >= 1 of at most the ray limit
@@ -157,9 +161,10 @@ def _primary_directions(width, height, offsets, forward, right, up):
     return out
 
 
-def plain_frame(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def plain_frame(camera: Camera) -> PlainFrame:
     """The camera frame of ``camera_frame`` as plain float64 arrays (forward, right, up,
-    eye), for the visibility kernels (read-only: they may be returned again)."""
+    eye), for everything computed off the tape (visibility, the edge terms); remembered
+    for the last camera asked about (read-only: they may be returned again)."""
     tensors = (camera.position, camera.look_at, camera.up, camera.fov)
     key = [np.array(t.data) for t in tensors]  # copies: optimisers edit values in place
     key.append(np.array([camera.width, camera.height] + [t.data.dtype.num for t in tensors]))
@@ -167,11 +172,17 @@ def plain_frame(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     if last_key is not None and same(key, last_key):
         return last_frame  # a render asks several times; ten tape operations each time add up
     with md.no_grad():
-        frame = tuple(t.data.astype(np.float64) for t in camera_frame(camera))
+        frame = plain_camera(camera_frame(camera))
     for array in frame:
         array.flags.writeable = False
     _last_plain_frame.entry = (key, frame)
     return frame
+
+
+def plain_camera(frame) -> PlainFrame:
+    """The values of a frame on the tape (``camera_frame``) as float64 arrays (copies):
+    what ``plain_frame`` returns for the frame's camera."""
+    return tuple(np.array(t.data, np.float64) for t in frame)
 
 
 # The last camera values plain_frame was asked about, and its answer.
@@ -219,3 +230,43 @@ def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:
     offsets = subpixel_offsets(spp)
     directions = _primary_directions(camera.width, camera.height, offsets, forward, right, up)
     return eye, directions
+
+
+# ---------------------------------------------------------------------------------------
+# World points onto the image, off the tape
+# ---------------------------------------------------------------------------------------
+
+
+def project(
+    points: np.ndarray, frame: PlainFrame, width: int, height: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (k, 2) (column, row; continuous, the image spans [0, W] x [0, H])
+    and depth along the view axis (k,) of world points (k, 3)."""
+    forward, right, up, eye = frame
+    rel = points - eye
+    depth = rel @ forward
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (rel @ right) / (depth * (right @ right))
+        y = (rel @ up) / (depth * (up @ up))
+    return np.stack([(x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)], axis=1), depth
+
+
+def to_image_plane(px: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Image-plane (x, y) in [-1, 1] of pixel coordinates (k, 2)."""
+    return np.stack([2.0 * px[:, 0] / width - 1.0, 1.0 - 2.0 * px[:, 1] / height], axis=1)
+
+
+def clip_to_near(
+    p0: np.ndarray, p1: np.ndarray, frame: PlainFrame, near: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The parts of 3-D segments p0 -> p1 (k, 3) in front of the plane at distance ``near``
+    ahead of the eye: new endpoints (k, 3) each, and which segments keep a part (k,)."""
+    forward, _, _, eye = frame
+    z0, z1 = (p0 - eye) @ forward, (p1 - eye) @ forward
+    keep = (z0 > near) | (z1 > near)
+    cut = ((z0 <= near) | (z1 <= near)) & keep  # then z0 != z1
+    t = np.where(cut, near - z0, 0.0) / np.where(cut, z1 - z0, 1.0)
+    q = p0 + t[:, None] * (p1 - p0)
+    p0 = np.where((cut & (z0 <= near))[:, None], q, p0)
+    p1 = np.where((cut & (z1 <= near))[:, None], q, p1)
+    return p0, p1, keep

@@ -224,7 +224,7 @@ def test_border_newton_kernel_computes_what_the_numpy_functions_do(seed, monkeyp
     sphere receiving), under a point and a directional light."""
     from render.edges import shadow_boundary as sb
     from render.edges import terms
-    from render.edges.boundary import plain_camera
+    from render.scene.camera import plain_camera
 
     seen = {}
 
@@ -264,7 +264,7 @@ def test_bisect_chords_kernel_finds_the_chords_the_numpy_bisection_finds(seed, m
     under a point and a directional light."""
     from render.edges import shadow_boundary as sb
     from render.edges import terms
-    from render.edges.boundary import plain_camera
+    from render.scene.camera import plain_camera
 
     seen = {}
     follow = sb.border_chords

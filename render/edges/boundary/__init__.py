@@ -62,52 +62,49 @@ included.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
 
 import minidiff as md
-from minidiff import buffers
+from render.edges.boundary.occlusion import hidden_points, seen_in
+from render.edges.boundary.pixels import (  # noqa: F401 (re-exported)
+    GAUSS_POINTS,
+    pixel_gradient,
+    pixel_order,
+    pixel_pieces,
+    quadrature,
+    split_at_crossings,
+)
+from render.edges.boundary.radiance import (  # noqa: F401 (re-exported)
+    EPSILON,
+    DirectRadiance,
+    SideRadiance,
+    radiance_at,
+    seen_through,
+    shade_seen,
+)
 from render.edges.geometry import as_column, dot_last, plane_normal, triangle_corners
-from render.scene.cache import RenderCache
-from render.scene.camera import camera_directions, ray_directions
+from render.scene.camera import (
+    camera_directions,
+    clip_to_near,
+    plain_frame,
+    project,
+    ray_directions,
+    to_image_plane,
+)
 from render.scene.scene import Scene
-from render.shade.hits import shade_camera_hits, working_dtype
-from render.shade.mirrors import Mirrors
+from render.shade.hits import working_dtype
 from render.trace.intersect import BLOCK, _jobs
 from render.trace.primitives import first_sphere_id
-from render.trace.raster import OCCLUSION_RAYS_PER_PRIMITIVE, raster_occluded
 from render.trace.topology import EdgeTable
-from render.trace.visibility import PrimaryHits, Visibility
+from render.trace.visibility import Visibility
 
-#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
-#: pieces are first cut wherever another curve crosses them in the pixel
-#: (``split_at_crossings``), so that along a part nothing is hidden or uncovered and no
-#: shadow begins: then the midpoint is exact while the jump varies linearly along it.
-#: Without the cuts, a piece partly hidden by another surface's outline or partly in
-#: shadow counted all or nothing: on the paper teapot at 64x64 (translation, window check
-#: against 4,096-spp renders) one uncut point per piece left 1.8 % (3.2 % with shadows),
-#: two 0.35 % (0.7 %).
-GAUSS_POINTS = 1
-#: How far, in pixels, the two rays that see either side of a curve pass from it.
-EPSILON = 1e-3
 #: A sphere's outline is followed by chords at most this long, in pixels.
 CHORD = 0.5
 #: Points closer to the eye's plane than this fraction of the scene's size are clipped.
 NEAR = 1e-7
-#: A piece that ends this close (pixels) before another one, its line going on to cross
-#: it, counts as ending on it (a T-junction, ``split_at_crossings``): a shadow border
-#: followed until its receiver changes (``shadow_boundary.bisect_chords``) stops just
-#: short of the border of the shadow it enters, ~1e-5 pixels before it, and the other
-#: border must still be cut there (on one side of the junction it lies inside this
-#: shadow and jumps by nothing).
-JUNCTION = 1e-4
-#: Pieces' bounding boxes are widened by this many pixels (and JUNCTION) before the pair
-#: test rejects pairs whose boxes are apart: far above the rounding of pixel coordinates
-#: (~1e-13), far below any piece's length that matters, so no pair the exact test accepts
-#: is rejected.
-BOX_SLACK = 1e-9
 
 
 @dataclass
@@ -137,392 +134,6 @@ class BoundaryPoints:
 # ---------------------------------------------------------------------------------------
 # Off the tape: curves, pieces, quadrature points
 # ---------------------------------------------------------------------------------------
-
-
-def plain_camera(frame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(forward, right, up, eye) of a ``camera_frame`` as float64 arrays."""
-    return tuple(np.asarray(t.data, np.float64) for t in frame)
-
-
-def project(points: np.ndarray, frame, width: int, height: int):
-    """Pixel coordinates (k, 2) (column, row; continuous, the image spans [0, W] x [0, H])
-    and depth along the view axis (k,) of world points (k, 3)."""
-    forward, right, up, eye = frame
-    rel = points - eye
-    depth = rel @ forward
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = (rel @ right) / (depth * (right @ right))
-        y = (rel @ up) / (depth * (up @ up))
-    return np.stack([(x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)], axis=1), depth
-
-
-def to_image_plane(px: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Image-plane (x, y) in [-1, 1] of pixel coordinates (k, 2)."""
-    return np.stack([2.0 * px[:, 0] / width - 1.0, 1.0 - 2.0 * px[:, 1] / height], axis=1)
-
-
-def clip_to_near(p0: np.ndarray, p1: np.ndarray, frame, near: float):
-    """The parts of 3-D segments p0 -> p1 (k, 3) in front of the plane at distance ``near``
-    ahead of the eye: new endpoints (k, 3) each, and which segments keep a part (k,)."""
-    forward, _, _, eye = frame
-    z0, z1 = (p0 - eye) @ forward, (p1 - eye) @ forward
-    keep = (z0 > near) | (z1 > near)
-    cut = ((z0 <= near) | (z1 <= near)) & keep  # then z0 != z1
-    t = np.where(cut, near - z0, 0.0) / np.where(cut, z1 - z0, 1.0)
-    q = p0 + t[:, None] * (p1 - p0)
-    p0 = np.where((cut & (z0 <= near))[:, None], q, p0)
-    p1 = np.where((cut & (z1 <= near))[:, None], q, p1)
-    return p0, p1, keep
-
-
-@numba.njit(cache=True)
-def _clip_box(x0, y0, x1, y1, width, height):
-    """Liang-Barsky: the parameter range [t0, t1] of the segment inside [0, W] x [0, H]
-    (t0 > t1: none of it)."""
-    t0, t1 = 0.0, 1.0
-    dx, dy = x1 - x0, y1 - y0
-    for p, q in ((-dx, x0), (dx, width - x0), (-dy, y0), (dy, height - y0)):
-        if p == 0.0:
-            if q < 0.0:
-                return 1.0, 0.0
-        else:
-            r = q / p
-            if p < 0.0:
-                t0 = max(t0, r)
-            else:
-                t1 = min(t1, r)
-    return t0, t1
-
-
-@numba.njit(cache=True)
-def _crossings(a0, a1, t0, t1, out):
-    """The parameters t in (t0, t1) where a0 + t (a1 - a0) crosses an integer, in
-    increasing order, written to ``out``; returns how many."""
-    n = 0
-    d = a1 - a0
-    if d == 0.0:
-        return 0
-    lo, hi = a0 + t0 * d, a0 + t1 * d
-    step = 1 if hi > lo else -1
-    k = math.floor(lo) + 1 if step > 0 else math.ceil(lo) - 1
-    while (k < hi) if step > 0 else (k > hi):
-        out[n] = (k - a0) / d
-        n += 1
-        k += step
-    return n
-
-
-@numba.njit(cache=True)
-def _count_pieces(p0, p1, width, height):
-    n = 0
-    for s in range(p0.shape[0]):
-        t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
-        if t0 >= t1:
-            continue
-        ax, ay = p0[s, 0] + t0 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t0 * (p1[s, 1] - p0[s, 1])
-        bx, by = p0[s, 0] + t1 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t1 * (p1[s, 1] - p0[s, 1])
-        n += abs(math.floor(bx) - math.floor(ax)) + abs(math.floor(by) - math.floor(ay)) + 1
-    return n
-
-
-@numba.njit(cache=True)
-def _fill_pieces(p0, p1, width, height, segment, start, end, pixel):
-    xs = np.empty(width + 2)
-    ys = np.empty(height + 2)
-    n = 0
-    for s in range(p0.shape[0]):
-        t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
-        if t0 >= t1:
-            continue
-        nx = _crossings(p0[s, 0], p1[s, 0], t0, t1, xs)
-        ny = _crossings(p0[s, 1], p1[s, 1], t0, t1, ys)
-        i = j = 0
-        a = t0
-        while True:  # merge the two sorted lists of crossings
-            if i < nx and (j >= ny or xs[i] <= ys[j]):
-                b = xs[i]
-                i += 1
-            elif j < ny:
-                b = ys[j]
-                j += 1
-            else:
-                b = t1
-            if b > a:
-                m = 0.5 * (a + b)
-                cx = p0[s, 0] + m * (p1[s, 0] - p0[s, 0])
-                cy = p0[s, 1] + m * (p1[s, 1] - p0[s, 1])
-                col, row = math.floor(cx), math.floor(cy)
-                if 0 <= col < width and 0 <= row < height:
-                    segment[n], start[n], end[n] = s, a, b
-                    pixel[n] = row * width + col
-                    n += 1
-            a = b
-            if b >= t1:
-                break
-    return n
-
-
-def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
-    """Cut 2-D segments p0 -> p1 (k, 2), in pixel coordinates, at pixel borders and at the
-    image's border: per piece its segment (m,) int64, parameter range [start, end] (m,)
-    each along the segment, and pixel (m,) int64 (row * W + column)."""
-    p0, p1 = np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64)
-    bound = _count_pieces(p0, p1, width, height)
-    segment, pixel = np.empty(bound, np.int64), np.empty(bound, np.int64)
-    start, end = np.empty(bound), np.empty(bound)
-    n = _fill_pieces(p0, p1, width, height, segment, start, end, pixel)
-    return segment[:n], start[:n], end[:n], pixel[:n]
-
-
-@numba.njit(cache=True)
-def _piece_geometry(p0, p1, segment, start, end, order):
-    """Per piece, in ``order``: its start a, its extent b (the piece is a -> a + b) and its
-    bounding box widened by BOX_SLACK: (k, 8) rows (ax, ay, bx, by, x0, x1, y0, y1), read
-    contiguously by ``_split_group``'s pair loop."""
-    out = np.empty((len(order), 8))
-    for x in range(len(order)):
-        i = order[x]
-        s = segment[i]
-        dx, dy = p1[s, 0] - p0[s, 0], p1[s, 1] - p0[s, 1]
-        ax, ay = p0[s, 0] + start[i] * dx, p0[s, 1] + start[i] * dy
-        bx, by = p0[s, 0] + end[i] * dx - ax, p0[s, 1] + end[i] * dy - ay
-        out[x, 0], out[x, 1], out[x, 2], out[x, 3] = ax, ay, bx, by
-        slack = BOX_SLACK + JUNCTION
-        out[x, 4], out[x, 5] = min(ax, ax + bx) - slack, max(ax, ax + bx) + slack
-        out[x, 6], out[x, 7] = min(ay, ay + by) - slack, max(ay, ay + by) + slack
-    return out
-
-
-@numba.njit(cache=True)
-def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
-    """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
-    touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
-    (``geometry``: ``_piece_geometry``; ``ts``: scratch, at least hi - lo long). Returns the
-    new row count."""
-    for x in range(lo, hi):
-        i = order[x]
-        ax, ay, bx, by = geometry[x, 0], geometry[x, 1], geometry[x, 2], geometry[x, 3]
-        m = 0
-        for y in range(lo, hi):
-            if y == x:
-                continue
-            # Pieces whose boxes are apart cannot meet (most pairs in a crowded pixel).
-            if (
-                geometry[y, 4] > geometry[x, 5]
-                or geometry[x, 4] > geometry[y, 5]
-                or geometry[y, 6] > geometry[x, 7]
-                or geometry[x, 6] > geometry[y, 7]
-            ):
-                continue
-            cx, cy, fx, fy = geometry[y, 0], geometry[y, 1], geometry[y, 2], geometry[y, 3]
-            den = bx * fy - by * fx
-            if den == 0.0:
-                continue
-            t = ((cx - ax) * fy - (cy - ay) * fx) / den
-            u = ((cx - ax) * by - (cy - ay) * bx) / den
-            # y's ends count as on x when they stop within JUNCTION pixels of it
-            reach = max(1e-12, JUNCTION / math.sqrt(fx * fx + fy * fy))
-            if 1e-9 < t < 1.0 - 1e-9 and -reach <= u <= 1.0 + reach:
-                ts[m] = t
-                m += 1
-        # m is small on most pieces, but where hundreds of silhouette segments meet (the
-        # teapot's pole) each has hundreds of cuts: an O(m log m) sort, not insertion.
-        ts[:m].sort()
-        previous = 0.0
-        for k in range(m + 1):
-            t = ts[k] if k < m else 1.0
-            if t > previous:
-                out[n, 0] = segment[i]
-                out[n, 1] = start[i] + previous * (end[i] - start[i])
-                out[n, 2] = start[i] + t * (end[i] - start[i])
-                out[n, 3] = pixel[i]
-                n += 1
-            previous = t
-    return n
-
-
-@numba.njit(cache=True, parallel=True)
-def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_threads):
-    """Every pixel's group of pieces split (``_split_group``), the groups shared out over
-    ``n_threads`` (job j takes groups j, j + n_jobs, ...: the crowded pixels lie together
-    in pixel order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch
-    table and a compaction keeps them in group order: the same rows, in the same order, on
-    any number of threads. ``out``: the scratch table, slots[-1] rows at least."""
-    n_groups = len(bounds) - 1
-    count = np.empty(n_groups, np.int64)
-    geometry = _piece_geometry(p0, p1, segment, start, end, order)
-    n_jobs = max(1, min(n_groups, n_threads))
-    for job in numba.prange(n_jobs):
-        ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)  # per thread
-        for g in range(job, n_groups, n_jobs):
-            lo, hi = bounds[g], bounds[g + 1]
-            if hi - lo == 1:  # nothing to cut: the common case
-                i = order[lo]
-                row = slots[g]
-                out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
-                out[row, 3] = pixel[i]
-                count[g] = 1
-            else:
-                count[g] = _split_group(
-                    geometry, segment, start, end, pixel, order, lo, hi, out, slots[g], ts
-                ) - slots[g]  # fmt: skip
-    kept = np.empty((np.sum(count), 4))
-    n = 0
-    for g in range(n_groups):
-        kept[n : n + count[g]] = out[slots[g] : slots[g] + count[g]]
-        n += count[g]
-    return kept
-
-
-def pixel_order(pixel: np.ndarray) -> np.ndarray:
-    """``np.argsort(pixel, kind="stable")`` for pixel ids (k,) int64 >= 0: each pair (id,
-    position) packed into one int64 and sorted by NumPy's fastest sort (vectorised on x86;
-    the stable argsort takes ~6x as long on the teapot's 52k pieces at 512x512). Unique
-    keys, so the order is the stable one; ids or positions too large to pack fall back."""
-    n = len(pixel)
-    if n == 0 or n >= 1 << 32 or pixel.max() >= 1 << 31:
-        return np.argsort(pixel, kind="stable")
-    return np.sort((pixel << 32) | np.arange(n)) & 0xFFFFFFFF
-
-
-def split_at_crossings(p0, p1, segment, start, end, pixel):
-    """The pieces (``pixel_pieces``' arrays) cut where two pieces in the same pixel cross,
-    or where one ends on another (a T-junction): along each part the set of curves beside
-    it does not change, so what is seen on either side changes smoothly, and one
-    quadrature point stands for the part. Same arrays, more rows."""
-    if len(pixel) == 0:  # nothing in view (the group bounds below assume one piece at least)
-        return segment, start, end, pixel
-    order = pixel_order(pixel)
-    ordered = pixel[order]
-    bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
-    sizes = np.diff(bounds)
-    slots = np.r_[0, np.cumsum(sizes * sizes)]  # a group of k pieces has at most k * k parts
-    # The scratch table (~8 MB at 512x512) from minidiff's pool, its rows rounded up to a
-    # power of two so that the next render, whose count differs a little, reuses it
-    # instead of touching fresh pages.
-    scratch = buffers.empty((1 << int(slots[-1]).bit_length(), 4), np.float64)
-    out = _split_all(
-        np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
-        start, end, pixel, order, bounds, slots, scratch, numba.get_num_threads(),
-    )  # fmt: skip
-    return out[:, 0].astype(np.int64), out[:, 1], out[:, 2], out[:, 3].astype(np.int64)
-
-
-def quadrature(p0, p1, segment, start, end):
-    """Gauss-Legendre points on the pieces: positions (m * GAUSS_POINTS, 2), their segment,
-    and weights (the rule's weight times the piece's length, in pixels)."""
-    nodes, weights = np.polynomial.legendre.leggauss(GAUSS_POINTS)
-    nodes, weights = (nodes + 1.0) / 2.0, weights / 2.0
-    t = start[:, None] + (end - start)[:, None] * nodes[None, :]  # (m, g)
-    first = np.take(p0, segment, axis=0)  # np.take: a faster gather than p0[segment]
-    delta = np.take(p1, segment, axis=0) - first
-    length = np.sqrt(np.einsum("ij,ij->i", delta, delta)) * (end - start)
-    points = first[:, None, :] + t[..., None] * delta[:, None, :]
-    return (
-        points.reshape(-1, 2),
-        np.repeat(segment, GAUSS_POINTS),
-        (length[:, None] * weights[None, :]).reshape(-1),
-    )
-
-
-# ---------------------------------------------------------------------------------------
-# The radiance on either side
-# ---------------------------------------------------------------------------------------
-
-
-def seen_through(
-    scene: Scene,
-    visibility: Visibility,
-    frame,
-    coords: np.ndarray,
-    prim_id: np.ndarray,
-    depth: np.ndarray,
-    directions: np.ndarray | None = None,
-) -> Visibility:
-    """The render's ``visibility`` with its camera rays replaced by k rays through
-    image-plane points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the
-    background) at ``depth`` (k,) along the view axis: their hit points and, per light,
-    which of them it reaches (shadow rays traced as the render's are). ``directions``:
-    the rays' camera directions (k, 3) if the caller has them already."""
-    forward, right, up, eye = plain_camera(frame)
-    hit = np.flatnonzero(prim_id >= 0)
-    at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
-    if directions is None:
-        directions = camera_directions(at, right, up, forward)
-    else:
-        directions = np.take(directions, hit, axis=0)
-    points = eye + depth[hit][:, None] * directions
-    primary = PrimaryHits(prim_id, hit, depth, points, at)
-    lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
-    return replace(visibility, primary=primary, lit=lit)
-
-
-def shade_seen(
-    scene: Scene,
-    visibility: Visibility,
-    frame,
-    coords: np.ndarray,
-    prim_id: np.ndarray,
-    depth: np.ndarray,
-    max_bounces: int,
-) -> np.ndarray:
-    """(k, 3) float64, off the tape: the radiance of k camera rays through image-plane
-    points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the background) at
-    ``depth`` (k,) along the view axis, shaded as camera hits of the render are (shadows
-    and mirror reflections included, by ``shade_camera_hits``)."""
-    seen = seen_through(scene, visibility, frame, coords, prim_id, depth)
-    out = np.empty((len(coords), 3))
-    out[:] = np.asarray(scene.background.data, np.float64)
-    # Values only: a reflectance that is zero adds nothing, even while it is differentiated.
-    if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
-        max_bounces = 0
-    with md.no_grad():
-        mirrors = Mirrors.of(scene, seen, max_bounces)
-        shading = shade_camera_hits(scene, seen, frame, RenderCache(), mirrors, surfaces=False)
-    if shading.colour is not None:
-        out[shading.rays] = shading.colour.data
-    return out
-
-
-def radiance_at(
-    scene: Scene, visibility: Visibility, frame, coords: np.ndarray, max_bounces: int
-) -> np.ndarray:
-    """(k, 3) float64, off the tape: the radiance the camera sees through image-plane
-    points (k, 2): each ray traced with the render's accelerator, then ``shade_seen``."""
-    forward, right, up, eye = plain_camera(frame)
-    directions = camera_directions(coords, right, up, forward)
-    prim_id, t, _, _ = visibility.accelerator().closest_hit(
-        np.broadcast_to(eye, directions.shape), directions
-    )
-    return shade_seen(scene, visibility, frame, coords, prim_id, t, max_bounces)
-
-
-class DirectRadiance:
-    """What the camera sees through image-plane points, for f_+ and f_-: the direct
-    renderer's shading (``shade_seen``, ``radiance_at``). Another integrator supplies its
-    own object with the same two methods (``render.path.edges.PathRadiance``).
-
-    ``key`` (k,) int64 names the quadrature point each ray belongs to: the two sides of a
-    point share it. A deterministic renderer ignores it; a Monte Carlo one draws both
-    sides' random numbers from it, so that f_+ - f_- is estimated with common random
-    numbers (far less noise than two independent estimates)."""
-
-    def __init__(self, scene: Scene, visibility: Visibility, frame, max_bounces: int) -> None:
-        self.scene, self.visibility, self.frame = scene, visibility, frame
-        self.max_bounces = max_bounces
-
-    def seen(
-        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
-    ) -> np.ndarray:
-        """(k, 3): the radiance of camera rays through ``coords`` (k, 2) that meet
-        primitives ``prim_id`` (k,) (-1: none) at ``depth`` (k,) along the view axis."""
-        return shade_seen(
-            self.scene, self.visibility, self.frame, coords, prim_id, depth, self.max_bounces
-        )
-
-    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
-        """(k, 3): the radiance of the camera rays through ``coords`` (k, 2), traced."""
-        return radiance_at(self.scene, self.visibility, self.frame, coords, self.max_bounces)
 
 
 # ---------------------------------------------------------------------------------------
@@ -936,7 +547,7 @@ def boundary_points(
     """
     camera = scene.camera
     width, height = camera.width, camera.height
-    plain = plain_camera(frame)
+    plain = plain_frame(scene.camera)
     size = max(visibility.size, 1e-300)
     tables = [topology[k].table for k in range(len(scene.meshes))]
     starts, ends, kept = _edge_curves(scene, plain, tables, size, shared)
@@ -1033,24 +644,14 @@ def boundary_points(
     return points, others
 
 
-def _pixel_gradient(grad: np.ndarray, width: int, height: int):
-    """A gradient (k, 2) with respect to the image-plane (x, y) in pixel units (x = 2 px /
-    W - 1, y = 1 - 2 py / H): its length in pixel units (k,), and the image-plane step (k, 2)
-    that moves a point one pixel along it."""
-    grad_px = grad * np.array([2.0 / width, -2.0 / height])
-    norm = np.linalg.norm(grad_px, axis=1)
-    unit = grad_px / np.where(norm > 0, norm, 1.0)[:, None]
-    return norm, unit * np.array([2.0 / width, -2.0 / height])
-
-
 def _line_points(visibility, frame, camera, m, coords, directions, depth, ignore):
     """For k points on lines with the edge function e = d . m (m (k, 3), the plane through
     the eye and the line), seen along camera directions (k, 3) at ``depth`` (k,): |grad e|
     in pixel units (k,), the image-plane step one pixel along grad e (k, 2), and which
-    points are ``_hidden`` (k,) bool."""
+    points are ``hidden_points`` (k,) bool."""
     forward, right, up, eye = frame
-    norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
-    hidden = _hidden(visibility, frame, camera, coords, directions, depth, norm, ignore)
+    norm, step = pixel_gradient(np.stack([m @ right, m @ up], axis=1), *_size(camera))
+    hidden = hidden_points(visibility, frame, camera, coords, directions, depth, norm, ignore)
     return norm, step, hidden
 
 
@@ -1065,14 +666,14 @@ def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, w
 
     Returns the camera directions (k, 3) through the points, the depth (k,) of the edge
     point along them (``_edge_points``), |grad e| in pixel units (k,) and the image-plane
-    step (k, 2) one pixel along grad e (``_pixel_gradient``), and the face (k, 2) seen
+    step (k, 2) one pixel along grad e (``pixel_gradient``), and the face (k, 2) seen
     just beside the edge on its + and - side (-1: no face on that side): the nearest
     there of the faces on that side (``_approach``)."""
     a, b = vertices[i], vertices[j]
     m = np.cross(a - eye, b - eye)
     directions = camera_directions(coords, right, up, forward)
     depth = _edge_points(eye, directions, a, b)
-    norm, step = _pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
+    norm, step = pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
     valid = faces >= 0
     third = thirds  # (k, K, 3)
     side = np.sign(np.einsum("nkj,nj->nk", third - eye[None], m))
@@ -1120,7 +721,7 @@ def edge_sides_kernel(
                 dd, du, uu, dw, uw = _dot(d, d), _dot(d, u), _dot(u, u), _dot(d, w0), _dot(u, w0)
                 det = dd * uu - du * du
                 depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
-                # _pixel_gradient of grad e = (m . right, m . up)
+                # pixel_gradient of grad e = (m . right, m . up)
                 gx, gy = _dot(m, right) * sx, _dot(m, up) * sy
                 length = math.sqrt(gx * gx + gy * gy)
                 scale = length if length > 0 else 1.0
@@ -1150,43 +751,6 @@ def edge_sides_kernel(
     return directions, depth, norm, step, chosen
 
 
-def _hidden(visibility, frame, camera, coords, directions, depth, norm, ignore, first_try=None):
-    """(k,) bool: which of k points seen along camera directions (k, 3) through image-plane
-    points ``coords`` (k, 2) at ``depth`` (k,) are hidden: something other than primitive
-    ``ignore`` (k,) lies in front (an any-hit ray that ends just short of the point), or
-    their curve is seen edge-on (|grad e| = ``norm`` zero) or from behind. ``frame``: the
-    plain camera (``plain_camera``). With many rays per primitive the rays are answered by
-    the rasteriser's tiles (``raster_occluded``), else by the BVH, which tries
-    ``first_try`` (k,), a primitive likely to lie in front of each point (``_seen_in``),
-    before its traversal: the same answers either way."""
-    tmax = depth * (1.0 - 1e-6)
-    primitives = visibility.primitives
-    n_prims = len(primitives[0]) + len(primitives[1])
-    if visibility.bvh and len(coords) >= OCCLUSION_RAYS_PER_PRIMITIVE * n_prims:
-        blocked = raster_occluded(
-            primitives, frame, *_size(camera), coords, directions, tmax, ignore
-        )
-    else:
-        blocked = visibility.accelerator().occluded(
-            np.broadcast_to(frame[3], directions.shape), directions, tmax,
-            tmin=0.0, ignore_prim=ignore, first_try=first_try,
-        )  # fmt: skip
-    return (norm <= 0) | ~(depth > 0) | blocked
-
-
-def _seen_in(visibility, pixel: np.ndarray, scene: Scene) -> np.ndarray | None:
-    """(k,) int64: the primitive the camera sees at the first sample of each pixel ``pixel``
-    (k,) (row * W + column), -1 for none; None if the render traced no camera rays (the
-    path integrator's edges). What hides a point in a pixel is most often what is seen
-    there: on the teapot at 512x512 it hides 24k of the 31k hidden edge points, which then
-    need no traversal of the BVH."""
-    if visibility.primary is None:
-        return None
-    prim_id = visibility.primary.prim_id  # ray r: pixel r // spp, sample r % spp
-    width, height = _size(scene.camera)
-    return np.take(prim_id, pixel * (prim_id.size // (width * height)))
-
-
 def _mesh_edge_factors(
     scene, visibility, frame, index, first_prim, table, edges, coords, pixel, weight, radiance,
     keys, shared=None,
@@ -1205,7 +769,7 @@ def _mesh_edge_factors(
     edge sees. A crease has one face on each side, a silhouette both on one. ``shared``:
     the faces other meshes have on these edges (``render.trace.seams.SharedEdges``),
     candidates on either side as the mesh's own are; None: no other mesh's."""
-    forward, right, up, eye = plain_camera(frame)
+    forward, right, up, eye = plain_frame(scene.camera)
     vertices = np.asarray(scene.meshes[index].vertices.data, np.float64)
     own = np.take(table.faces, edges, axis=0)
     faces = np.where(own >= 0, own + first_prim, -1)  # global primitive ids
@@ -1218,9 +782,9 @@ def _mesh_edge_factors(
         np.ascontiguousarray(coords), *_size(scene.camera), numba.get_num_threads(),
     )  # fmt: skip
     ignore = table.faces[edges, 0] + first_prim
-    hidden = _hidden(
+    hidden = hidden_points(
         visibility, (forward, right, up, eye), scene.camera, coords, directions, depth, norm,
-        ignore, _seen_in(visibility, pixel, scene),
+        ignore, seen_in(visibility, pixel, scene),
     )  # fmt: skip
     seen = np.flatnonzero(~hidden)
     n = len(seen)
@@ -1274,7 +838,7 @@ def _crossing_factors(scene, visibility, frame, pairs, coords, weight, radiance,
     """(k, 3): w (f_+ - f_-) / |grad e| for k quadrature points on the segments where the
     triangle pairs ``pairs`` (k, 2) cross, zero where hidden. Near the segment each side
     sees the triangle that is nearer there, shaded at the point."""
-    forward, right, up, eye = plain_camera(frame)
+    forward, right, up, eye = plain_frame(scene.camera)
     camera = scene.camera
     triangles = visibility.primitives[0]
     t1, t2 = triangles[pairs[:, 0]], triangles[pairs[:, 1]]
@@ -1315,12 +879,12 @@ def _outline_factors(scene, visibility, frame, index, coords, weight, radiance, 
     """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on the outline of sphere
     ``index``, and the points moved onto the outline (k, 2). The outline of a sphere is
     smooth: f_+ and f_- are what two rays just inside and just outside it see, where the
-    point at which the ray touches the sphere is visible (``_hidden``, the sphere itself
+    point at which the ray touches the sphere is visible (``hidden_points``, the sphere itself
     ignored). The test matters where another curve runs within the rays' EPSILON of the
     outline: where a triangle passing through the sphere seems to emerge from it, the
     curve of the cut is tangent to the outline, and there the rays alone saw the same
     jump across both (counting it twice)."""
-    plain = plain_camera(frame)
+    plain = plain_frame(scene.camera)
     sphere = scene.spheres[index]
     coords, grad = _onto_outline(coords, sphere, plain)
     forward, right, up, eye = plain
@@ -1338,10 +902,10 @@ def _sphere_cut_factors(scene, visibility, frame, index, ids, coords, weight, ra
     """(k, 3) w (f_+ - f_-) / |grad e| for k quadrature points on the curves where the
     triangles ``ids`` (k,) (global ids) cut sphere ``index``, and the points moved onto
     those curves (k, 2). A point is hidden where it lies on the sphere's far half (the
-    sphere itself is in front) or something else is in front of it (``_hidden``); where
+    sphere itself is in front) or something else is in front of it (``hidden_points``); where
     it is visible f_+ and f_- are what two rays either side see (the triangle on one, the
     sphere on the other)."""
-    plain = plain_camera(frame)
+    plain = plain_frame(scene.camera)
     forward, right, up, eye = plain
     sphere = scene.spheres[index]
     centre, radius = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
@@ -1367,10 +931,12 @@ def _traced_factors(
     """(k, 3) w (f_+ - f_-) / |grad e| for k points ``coords`` (k, 2) on a curve whose edge
     function has image-plane gradient ``grad`` (k, 2) there, zero where the curve's point
     (along camera ``directions`` (k, 3) at ``depth`` (k,)) is ``hidden`` (k,) already or
-    ``_hidden`` (primitive ``ignore`` (k,) not counted), else f_+ and f_- traced by rays
+    ``hidden_points`` (primitive ``ignore`` (k,) not counted), else f_+ and f_- traced by rays
     ``EPSILON`` pixels either side; and the points."""
-    norm, step = _pixel_gradient(grad, *_size(camera))
-    hidden = hidden | _hidden(visibility, frame, camera, coords, directions, depth, norm, ignore)
+    norm, step = pixel_gradient(grad, *_size(camera))
+    hidden = hidden | hidden_points(
+        visibility, frame, camera, coords, directions, depth, norm, ignore
+    )
     seen = np.flatnonzero(~hidden)
     at, step, keys = coords[seen], step[seen], keys[seen]
     both = np.concatenate([at + EPSILON * step, at - EPSILON * step])

@@ -1,0 +1,301 @@
+"""Curves cut into pixels, and the quadrature points on the pieces (off the tape).
+
+The boundary term integrates over each curve's piece inside each pixel. The curves come as
+2-D segments in pixel coordinates (column, row; the image spans [0, W] x [0, H]):
+``pixel_pieces`` cuts them at pixel borders and the image's border, ``split_at_crossings``
+cuts the pieces again where two pieces in one pixel cross or one ends on another, and
+``quadrature`` puts Gauss-Legendre points on the parts. The cutting runs in Numba: the
+teapot at 512x512 has ~52k pieces, and the pair test inside crowded pixels is quadratic.
+``pixel_gradient`` turns an edge function's image-plane gradient into pixel units.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from minidiff import buffers
+
+#: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
+#: pieces are first cut wherever another curve crosses them in the pixel
+#: (``split_at_crossings``), so that along a part nothing is hidden or uncovered and no
+#: shadow begins: then the midpoint is exact while the jump varies linearly along it.
+#: Without the cuts, a piece partly hidden by another surface's outline or partly in
+#: shadow counted all or nothing: on the paper teapot at 64x64 (translation, window check
+#: against 4,096-spp renders) one uncut point per piece left 1.8 % (3.2 % with shadows),
+#: two 0.35 % (0.7 %).
+GAUSS_POINTS = 1
+#: A piece that ends this close (pixels) before another one, its line going on to cross
+#: it, counts as ending on it (a T-junction, ``split_at_crossings``): a shadow border
+#: followed until its receiver changes (``shadow_boundary.bisect_chords``) stops just
+#: short of the border of the shadow it enters, ~1e-5 pixels before it, and the other
+#: border must still be cut there (on one side of the junction it lies inside this
+#: shadow and jumps by nothing).
+JUNCTION = 1e-4
+#: Pieces' bounding boxes are widened by this many pixels (and JUNCTION) before the pair
+#: test rejects pairs whose boxes are apart: far above the rounding of pixel coordinates
+#: (~1e-13), far below any piece's length that matters, so no pair the exact test accepts
+#: is rejected.
+BOX_SLACK = 1e-9
+
+
+@numba.njit(cache=True)
+def _clip_box(x0, y0, x1, y1, width, height):
+    """Liang-Barsky: the parameter range [t0, t1] of the segment inside [0, W] x [0, H]
+    (t0 > t1: none of it)."""
+    t0, t1 = 0.0, 1.0
+    dx, dy = x1 - x0, y1 - y0
+    for p, q in ((-dx, x0), (dx, width - x0), (-dy, y0), (dy, height - y0)):
+        if p == 0.0:
+            if q < 0.0:
+                return 1.0, 0.0
+        else:
+            r = q / p
+            if p < 0.0:
+                t0 = max(t0, r)
+            else:
+                t1 = min(t1, r)
+    return t0, t1
+
+
+@numba.njit(cache=True)
+def _crossings(a0, a1, t0, t1, out):
+    """The parameters t in (t0, t1) where a0 + t (a1 - a0) crosses an integer, in
+    increasing order, written to ``out``; returns how many."""
+    n = 0
+    d = a1 - a0
+    if d == 0.0:
+        return 0
+    lo, hi = a0 + t0 * d, a0 + t1 * d
+    step = 1 if hi > lo else -1
+    k = math.floor(lo) + 1 if step > 0 else math.ceil(lo) - 1
+    while (k < hi) if step > 0 else (k > hi):
+        out[n] = (k - a0) / d
+        n += 1
+        k += step
+    return n
+
+
+@numba.njit(cache=True)
+def _count_pieces(p0, p1, width, height):
+    n = 0
+    for s in range(p0.shape[0]):
+        t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
+        if t0 >= t1:
+            continue
+        ax, ay = p0[s, 0] + t0 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t0 * (p1[s, 1] - p0[s, 1])
+        bx, by = p0[s, 0] + t1 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t1 * (p1[s, 1] - p0[s, 1])
+        n += abs(math.floor(bx) - math.floor(ax)) + abs(math.floor(by) - math.floor(ay)) + 1
+    return n
+
+
+@numba.njit(cache=True)
+def _fill_pieces(p0, p1, width, height, segment, start, end, pixel):
+    xs = np.empty(width + 2)
+    ys = np.empty(height + 2)
+    n = 0
+    for s in range(p0.shape[0]):
+        t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
+        if t0 >= t1:
+            continue
+        nx = _crossings(p0[s, 0], p1[s, 0], t0, t1, xs)
+        ny = _crossings(p0[s, 1], p1[s, 1], t0, t1, ys)
+        i = j = 0
+        a = t0
+        while True:  # merge the two sorted lists of crossings
+            if i < nx and (j >= ny or xs[i] <= ys[j]):
+                b = xs[i]
+                i += 1
+            elif j < ny:
+                b = ys[j]
+                j += 1
+            else:
+                b = t1
+            if b > a:
+                m = 0.5 * (a + b)
+                cx = p0[s, 0] + m * (p1[s, 0] - p0[s, 0])
+                cy = p0[s, 1] + m * (p1[s, 1] - p0[s, 1])
+                col, row = math.floor(cx), math.floor(cy)
+                if 0 <= col < width and 0 <= row < height:
+                    segment[n], start[n], end[n] = s, a, b
+                    pixel[n] = row * width + col
+                    n += 1
+            a = b
+            if b >= t1:
+                break
+    return n
+
+
+def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
+    """Cut 2-D segments p0 -> p1 (k, 2), in pixel coordinates, at pixel borders and at the
+    image's border: per piece its segment (m,) int64, parameter range [start, end] (m,)
+    each along the segment, and pixel (m,) int64 (row * W + column)."""
+    p0, p1 = np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64)
+    bound = _count_pieces(p0, p1, width, height)
+    segment, pixel = np.empty(bound, np.int64), np.empty(bound, np.int64)
+    start, end = np.empty(bound), np.empty(bound)
+    n = _fill_pieces(p0, p1, width, height, segment, start, end, pixel)
+    return segment[:n], start[:n], end[:n], pixel[:n]
+
+
+@numba.njit(cache=True)
+def _piece_geometry(p0, p1, segment, start, end, order):
+    """Per piece, in ``order``: its start a, its extent b (the piece is a -> a + b) and its
+    bounding box widened by BOX_SLACK: (k, 8) rows (ax, ay, bx, by, x0, x1, y0, y1), read
+    contiguously by ``_split_group``'s pair loop."""
+    out = np.empty((len(order), 8))
+    for x in range(len(order)):
+        i = order[x]
+        s = segment[i]
+        dx, dy = p1[s, 0] - p0[s, 0], p1[s, 1] - p0[s, 1]
+        ax, ay = p0[s, 0] + start[i] * dx, p0[s, 1] + start[i] * dy
+        bx, by = p0[s, 0] + end[i] * dx - ax, p0[s, 1] + end[i] * dy - ay
+        out[x, 0], out[x, 1], out[x, 2], out[x, 3] = ax, ay, bx, by
+        slack = BOX_SLACK + JUNCTION
+        out[x, 4], out[x, 5] = min(ax, ax + bx) - slack, max(ax, ax + bx) + slack
+        out[x, 6], out[x, 7] = min(ay, ay + by) - slack, max(ay, ay + by) + slack
+    return out
+
+
+@numba.njit(cache=True)
+def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
+    """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
+    touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
+    (``geometry``: ``_piece_geometry``; ``ts``: scratch, at least hi - lo long). Returns the
+    new row count."""
+    for x in range(lo, hi):
+        i = order[x]
+        ax, ay, bx, by = geometry[x, 0], geometry[x, 1], geometry[x, 2], geometry[x, 3]
+        m = 0
+        for y in range(lo, hi):
+            if y == x:
+                continue
+            # Pieces whose boxes are apart cannot meet (most pairs in a crowded pixel).
+            if (
+                geometry[y, 4] > geometry[x, 5]
+                or geometry[x, 4] > geometry[y, 5]
+                or geometry[y, 6] > geometry[x, 7]
+                or geometry[x, 6] > geometry[y, 7]
+            ):
+                continue
+            cx, cy, fx, fy = geometry[y, 0], geometry[y, 1], geometry[y, 2], geometry[y, 3]
+            den = bx * fy - by * fx
+            if den == 0.0:
+                continue
+            t = ((cx - ax) * fy - (cy - ay) * fx) / den
+            u = ((cx - ax) * by - (cy - ay) * bx) / den
+            # y's ends count as on x when they stop within JUNCTION pixels of it
+            reach = max(1e-12, JUNCTION / math.sqrt(fx * fx + fy * fy))
+            if 1e-9 < t < 1.0 - 1e-9 and -reach <= u <= 1.0 + reach:
+                ts[m] = t
+                m += 1
+        # m is small on most pieces, but where hundreds of silhouette segments meet (the
+        # teapot's pole) each has hundreds of cuts: an O(m log m) sort, not insertion.
+        ts[:m].sort()
+        previous = 0.0
+        for k in range(m + 1):
+            t = ts[k] if k < m else 1.0
+            if t > previous:
+                out[n, 0] = segment[i]
+                out[n, 1] = start[i] + previous * (end[i] - start[i])
+                out[n, 2] = start[i] + t * (end[i] - start[i])
+                out[n, 3] = pixel[i]
+                n += 1
+            previous = t
+    return n
+
+
+@numba.njit(cache=True, parallel=True)
+def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_threads):
+    """Every pixel's group of pieces split (``_split_group``), the groups shared out over
+    ``n_threads`` (job j takes groups j, j + n_jobs, ...: the crowded pixels lie together
+    in pixel order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch
+    table and a compaction keeps them in group order: the same rows, in the same order, on
+    any number of threads. ``out``: the scratch table, slots[-1] rows at least."""
+    n_groups = len(bounds) - 1
+    count = np.empty(n_groups, np.int64)
+    geometry = _piece_geometry(p0, p1, segment, start, end, order)
+    n_jobs = max(1, min(n_groups, n_threads))
+    for job in numba.prange(n_jobs):
+        ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)  # per thread
+        for g in range(job, n_groups, n_jobs):
+            lo, hi = bounds[g], bounds[g + 1]
+            if hi - lo == 1:  # nothing to cut: the common case
+                i = order[lo]
+                row = slots[g]
+                out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
+                out[row, 3] = pixel[i]
+                count[g] = 1
+            else:
+                count[g] = _split_group(
+                    geometry, segment, start, end, pixel, order, lo, hi, out, slots[g], ts
+                ) - slots[g]  # fmt: skip
+    kept = np.empty((np.sum(count), 4))
+    n = 0
+    for g in range(n_groups):
+        kept[n : n + count[g]] = out[slots[g] : slots[g] + count[g]]
+        n += count[g]
+    return kept
+
+
+def pixel_order(pixel: np.ndarray) -> np.ndarray:
+    """``np.argsort(pixel, kind="stable")`` for pixel ids (k,) int64 >= 0: each pair (id,
+    position) packed into one int64 and sorted by NumPy's fastest sort (vectorised on x86;
+    the stable argsort takes ~6x as long on the teapot's 52k pieces at 512x512). Unique
+    keys, so the order is the stable one; ids or positions too large to pack fall back."""
+    n = len(pixel)
+    if n == 0 or n >= 1 << 32 or pixel.max() >= 1 << 31:
+        return np.argsort(pixel, kind="stable")
+    return np.sort((pixel << 32) | np.arange(n)) & 0xFFFFFFFF
+
+
+def split_at_crossings(p0, p1, segment, start, end, pixel):
+    """The pieces (``pixel_pieces``' arrays) cut where two pieces in the same pixel cross,
+    or where one ends on another (a T-junction): along each part the set of curves beside
+    it does not change, so what is seen on either side changes smoothly, and one
+    quadrature point stands for the part. Same arrays, more rows."""
+    if len(pixel) == 0:  # nothing in view (the group bounds below assume one piece at least)
+        return segment, start, end, pixel
+    order = pixel_order(pixel)
+    ordered = pixel[order]
+    bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
+    sizes = np.diff(bounds)
+    slots = np.r_[0, np.cumsum(sizes * sizes)]  # a group of k pieces has at most k * k parts
+    # The scratch table (~8 MB at 512x512) from minidiff's pool, its rows rounded up to a
+    # power of two so that the next render, whose count differs a little, reuses it
+    # instead of touching fresh pages.
+    scratch = buffers.empty((1 << int(slots[-1]).bit_length(), 4), np.float64)
+    out = _split_all(
+        np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
+        start, end, pixel, order, bounds, slots, scratch, numba.get_num_threads(),
+    )  # fmt: skip
+    return out[:, 0].astype(np.int64), out[:, 1], out[:, 2], out[:, 3].astype(np.int64)
+
+
+def quadrature(p0, p1, segment, start, end):
+    """Gauss-Legendre points on the pieces: positions (m * GAUSS_POINTS, 2), their segment,
+    and weights (the rule's weight times the piece's length, in pixels)."""
+    nodes, weights = np.polynomial.legendre.leggauss(GAUSS_POINTS)
+    nodes, weights = (nodes + 1.0) / 2.0, weights / 2.0
+    t = start[:, None] + (end - start)[:, None] * nodes[None, :]  # (m, g)
+    first = np.take(p0, segment, axis=0)  # np.take: a faster gather than p0[segment]
+    delta = np.take(p1, segment, axis=0) - first
+    length = np.sqrt(np.einsum("ij,ij->i", delta, delta)) * (end - start)
+    points = first[:, None, :] + t[..., None] * delta[:, None, :]
+    return (
+        points.reshape(-1, 2),
+        np.repeat(segment, GAUSS_POINTS),
+        (length[:, None] * weights[None, :]).reshape(-1),
+    )
+
+
+def pixel_gradient(grad: np.ndarray, width: int, height: int):
+    """A gradient (k, 2) with respect to the image-plane (x, y) in pixel units (x = 2 px /
+    W - 1, y = 1 - 2 py / H): its length in pixel units (k,), and the image-plane step (k, 2)
+    that moves a point one pixel along it."""
+    grad_px = grad * np.array([2.0 / width, -2.0 / height])
+    norm = np.linalg.norm(grad_px, axis=1)
+    unit = grad_px / np.where(norm > 0, norm, 1.0)[:, None]
+    return norm, unit * np.array([2.0 / width, -2.0 / height])

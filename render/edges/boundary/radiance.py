@@ -1,0 +1,140 @@
+"""The radiance either side of a curve: f_+ and f_- of the boundary term (off the tape).
+
+The boundary term of a curve's point is w (f_+ - f_-) / |grad e| de/dtheta: f_+ and f_- are
+what the camera sees just on either side of the curve. The curve kinds ask for them through
+a ``SideRadiance``, in one of two forms: ``seen`` where the primitive seen on a side is known
+(a mesh edge's face, one of two crossing triangles: shaded at the curve's point), ``along``
+where it is not (a ray ``EPSILON`` pixels beside the curve, traced). The direct renderer's
+is ``DirectRadiance`` (its own shading, ``shade_seen``, ``radiance_at``); the path
+integrator's is ``render.path.edges.PathRadiance`` (path-traced estimates).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Protocol
+
+import numpy as np
+
+import minidiff as md
+from render.scene.cache import RenderCache
+from render.scene.camera import camera_directions, plain_frame
+from render.scene.scene import Scene
+from render.shade.hits import shade_camera_hits
+from render.shade.mirrors import Mirrors
+from render.trace.visibility import PrimaryHits, Visibility
+
+#: How far, in pixels, the two rays that see either side of a curve pass from it.
+EPSILON = 1e-3
+
+
+class SideRadiance(Protocol):
+    """What the camera sees through image-plane points, for f_+ and f_- (float64, off the
+    tape). Image-plane points are (x, y) in [-1, 1] (``render.scene.camera``).
+
+    ``key`` (k,) int64 names the quadrature point each ray belongs to: the two sides of a
+    point share it. A deterministic renderer ignores it; a Monte Carlo one draws both
+    sides' random numbers from it, so that f_+ - f_- is estimated with common random
+    numbers (far less noise than two independent estimates)."""
+
+    def seen(
+        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
+    ) -> np.ndarray:
+        """(k, 3): the radiance of camera rays through ``coords`` (k, 2) that first meet
+        primitive ``prim_id`` (k,) int64 (global ids; -1: none) at ``depth`` (k,) along the
+        view axis."""
+        ...
+
+    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """(k, 3): the radiance of the camera rays through ``coords`` (k, 2), their first
+        hit traced."""
+        ...
+
+
+def seen_through(
+    scene: Scene,
+    visibility: Visibility,
+    frame,
+    coords: np.ndarray,
+    prim_id: np.ndarray,
+    depth: np.ndarray,
+    directions: np.ndarray | None = None,
+) -> Visibility:
+    """The render's ``visibility`` with its camera rays replaced by k rays through
+    image-plane points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the
+    background) at ``depth`` (k,) along the view axis: their hit points and, per light,
+    which of them it reaches (shadow rays traced as the render's are). ``directions``:
+    the rays' camera directions (k, 3) if the caller has them already."""
+    forward, right, up, eye = plain_frame(scene.camera)
+    hit = np.flatnonzero(prim_id >= 0)
+    at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
+    if directions is None:
+        directions = camera_directions(at, right, up, forward)
+    else:
+        directions = np.take(directions, hit, axis=0)
+    points = eye + depth[hit][:, None] * directions
+    primary = PrimaryHits(prim_id, hit, depth, points, at)
+    lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
+    return replace(visibility, primary=primary, lit=lit)
+
+
+def shade_seen(
+    scene: Scene,
+    visibility: Visibility,
+    frame,
+    coords: np.ndarray,
+    prim_id: np.ndarray,
+    depth: np.ndarray,
+    max_bounces: int,
+) -> np.ndarray:
+    """(k, 3) float64, off the tape: the radiance of k camera rays through image-plane
+    points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the background) at
+    ``depth`` (k,) along the view axis, shaded as camera hits of the render are (shadows
+    and mirror reflections included, by ``shade_camera_hits``)."""
+    seen = seen_through(scene, visibility, frame, coords, prim_id, depth)
+    out = np.empty((len(coords), 3))
+    out[:] = np.asarray(scene.background.data, np.float64)
+    # Values only: a reflectance that is zero adds nothing, even while it is differentiated.
+    if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
+        max_bounces = 0
+    with md.no_grad():
+        mirrors = Mirrors.of(scene, seen, max_bounces)
+        shading = shade_camera_hits(scene, seen, frame, RenderCache(), mirrors, surfaces=False)
+    if shading.colour is not None:
+        out[shading.rays] = shading.colour.data
+    return out
+
+
+def radiance_at(
+    scene: Scene, visibility: Visibility, frame, coords: np.ndarray, max_bounces: int
+) -> np.ndarray:
+    """(k, 3) float64, off the tape: the radiance the camera sees through image-plane
+    points (k, 2): each ray traced with the render's accelerator, then ``shade_seen``."""
+    forward, right, up, eye = plain_frame(scene.camera)
+    directions = camera_directions(coords, right, up, forward)
+    prim_id, t, _, _ = visibility.accelerator().closest_hit(
+        np.broadcast_to(eye, directions.shape), directions
+    )
+    return shade_seen(scene, visibility, frame, coords, prim_id, t, max_bounces)
+
+
+class DirectRadiance:
+    """The direct renderer's ``SideRadiance``: its own shading of the rays either side
+    (``shade_seen``, ``radiance_at``; ``key`` is ignored: the shading is deterministic).
+    ``frame``: the render's camera frame on the tape (``render.scene.camera.camera_frame``)."""
+
+    def __init__(self, scene: Scene, visibility: Visibility, frame, max_bounces: int) -> None:
+        self.scene, self.visibility, self.frame = scene, visibility, frame
+        self.max_bounces = max_bounces
+
+    def seen(
+        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
+    ) -> np.ndarray:
+        """``SideRadiance.seen``, shaded as the render's camera hits (``shade_seen``)."""
+        return shade_seen(
+            self.scene, self.visibility, self.frame, coords, prim_id, depth, self.max_bounces
+        )
+
+    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+        """``SideRadiance.along``, traced and shaded (``radiance_at``)."""
+        return radiance_at(self.scene, self.visibility, self.frame, coords, self.max_bounces)
