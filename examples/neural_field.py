@@ -41,6 +41,27 @@ EXTRA = {
 }
 
 
+def report(r: dict) -> str:
+    """neural_field.md from the result ``r``: the setup, and minidiff against PyTorch (final
+    loss, held-out PSNR, time per iteration)."""
+    size = r["size"]
+    return (
+        f"# Neural field trained through the renderer\n\n"
+        f"{r['views']} views at {size}x{size}, {r['iterations']} Adam iterations "
+        f"(lr {r['lr']}); MLP {r['layers']} on Fourier features: {r['parameters']} parameters, "
+        f"evaluated at {r['texels']} texel centres.\n\n"
+        f"| | minidiff | PyTorch (render.torch) |\n|---|---|---|\n"
+        f"| final loss | {r['loss_minidiff'][-1]:.4e} | {r['loss_torch'][-1]:.4e} |\n"
+        f"| held-out PSNR ({r['held_out_views']} views; start "
+        f"{r['held_out_psnr_start']:.1f} dB) | {r['held_out_psnr_minidiff']:.2f} dB | "
+        f"{r['held_out_psnr_torch']:.2f} dB |\n"
+        f"| time per iteration (median) | {1e3 * r['seconds_per_iteration_minidiff']:.0f}"
+        f" ms | {1e3 * r['seconds_per_iteration_torch']:.0f} ms |\n\n"
+        f"Largest relative difference between the two loss curves: "
+        f"{r['loss_max_relative_difference']:.1e}.\n"
+    )
+
+
 def main(argv=None) -> dict:
     args = command_line(__doc__.splitlines()[0], 500, argv, EXTRA, default_size=64)
     size, iters = (16, 5) if args.quick else (args.size, args.iters)
@@ -81,22 +102,7 @@ def main(argv=None) -> dict:
     if frames:
         frames[0].save(out / "training.gif", save_all=True, append_images=frames[1:],
                        duration=100, loop=0)  # fmt: skip
-    report = (
-        f"# Neural field trained through the renderer\n\n"
-        f"{args.views} views at {size}x{size}, {iters} Adam iterations (lr {args.lr}); MLP "
-        f"{setup.sizes} on Fourier features: {count} parameters, evaluated at "
-        f"{result['texels']} texel centres.\n\n"
-        f"| | minidiff | PyTorch (render.torch) |\n|---|---|---|\n"
-        f"| final loss | {a[-1]:.4e} | {b[-1]:.4e} |\n"
-        f"| held-out PSNR ({len(setup.held_out)} views; start "
-        f"{mine['held_out_psnr_start']:.1f} dB) | {mine['held_out_psnr']:.2f} dB | "
-        f"{theirs['held_out_psnr']:.2f} dB |\n"
-        f"| time per iteration (median) | {1e3 * result['seconds_per_iteration_minidiff']:.0f}"
-        f" ms | {1e3 * result['seconds_per_iteration_torch']:.0f} ms |\n\n"
-        f"Largest relative difference between the two loss curves: "
-        f"{result['loss_max_relative_difference']:.1e}.\n"
-    )
-    return write_results(out, "neural_field", result, report)
+    return write_results(out, "neural_field", result, report(result))
 
 
 if __name__ == "__main__":
