@@ -51,6 +51,7 @@ WRITTEN = [
     "docs/path_tracing.md",
     "docs/bridges.md",
     "docs/paper_scene.md",
+    "docs/architecture.md",
 ]
 
 #: Generated pages whose script builds the text in ``main``: every number must be in the JSON.
@@ -345,6 +346,15 @@ def test_benchmark_report_is_its_json(tmp_path):
     note = next(line for line in committed.splitlines() if line.startswith("Threading:"))
     text = _script("run_all").write_report(tmp_path, {}, note).read_text(encoding="utf-8")
     assert committed == text
+
+
+def test_every_page_is_checked():
+    """A new page under docs/ must be listed here: written, or generated from its JSON."""
+    checked = {*WRITTEN, *WHOLE_PAGES, *GENERATED}
+    checked |= {"docs/path_tracing/gradients.md", "docs/reproduction_results.md"}
+    checked |= {"docs/benchmarks/report.md"}
+    pages = {str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md")}
+    assert pages <= checked, f"pages no test checks: {sorted(pages - checked)}"
 
 
 def test_the_check_reads_numbers_as_written():

@@ -1,0 +1,57 @@
+"""Every file a page of documentation names exists: paths in code spans (`render/film.py`),
+module names of the package (`render.inverse.shape`) and relative links, in README.md,
+lessons/README.md and docs/. Code moves; the pages must follow."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [
+    "README.md",
+    "lessons/README.md",
+    *sorted(str(p.relative_to(ROOT)) for p in (ROOT / "docs").rglob("*.md")),
+]
+#: Top-level folders whose paths a page may name.
+FOLDERS = ("minidiff/", "render/", "tests/", "examples/", "benchmarks/", "lessons/", "docs/")
+#: A path in a code span: a top-level folder, then names (placeholders such as NN_*.py and
+#: <name> are skipped).
+PATH = re.compile(r"`((?:" + "|".join(map(re.escape, FOLDERS)) + r")[\w./-]*)")
+#: A module of the package in a code span, e.g. `render.inverse.shape.LargeSteps`.
+MODULE = re.compile(r"`((?:render|minidiff)(?:\.\w+)+)")
+LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
+
+
+def _resolves(dotted: str) -> bool:
+    """Whether some prefix of a dotted name is a module whose remainder is an attribute
+    chain (`render.inverse.shape.LargeSteps`); modules are found, not imported."""
+    parts = dotted.split(".")
+    for k in range(len(parts), 0, -1):
+        try:
+            if importlib.util.find_spec(".".join(parts[:k])) is not None:
+                return True
+        except ModuleNotFoundError:  # a module's attribute, not a module: try shorter
+            continue
+    return False
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_named_paths_exist(page):
+    text = (ROOT / page).read_text(encoding="utf-8")
+    named = [m.group(1) for m in PATH.finditer(text) if text[m.end()] not in "*<"]
+    missing = [p for p in named if not (ROOT / p.rstrip(".")).exists()]
+    for link in LINK.findall(text):
+        if not re.match(r"[a-z]+:", link) and not (ROOT / page).parent.joinpath(link).exists():
+            missing.append(link)
+    assert not missing, f"{page} names paths that do not exist: {missing}"
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_named_modules_exist(page):
+    text = (ROOT / page).read_text(encoding="utf-8")
+    missing = [m for m in MODULE.findall(text) if not _resolves(m)]
+    assert not missing, f"{page} names modules that do not exist: {missing}"
