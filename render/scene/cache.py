@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from render.scene.scene import Camera, DirectionalLight, Mesh, PointLight, Scene, Sphere
+from render.scene.scene import Camera, Light, Mesh, Scene, Sphere
 
 
 def same(key_a: list[np.ndarray] | None, key_b: list[np.ndarray]) -> bool:
@@ -102,11 +102,9 @@ def camera_key(camera: Camera, spp: int, bvh: bool) -> list[np.ndarray]:
     ]
 
 
-def light_key(light: PointLight | DirectionalLight) -> list[np.ndarray]:
-    """What a light's shadow rays depend on besides the hit points."""
-    if isinstance(light, PointLight):
-        return _copies([light.position]) + [np.array([0.0])]
-    return _copies([light.direction]) + [np.array([1.0])]
+def light_key(light: Light) -> list[np.ndarray]:
+    """What a light's shadow rays depend on besides the hit points (``Light.shadow_key``)."""
+    return light.shadow_key()
 
 
 def surface_key(obj: Mesh | Sphere, owned: list, dtype) -> list[np.ndarray]:

@@ -29,7 +29,7 @@ import numba
 import numpy as np
 
 import minidiff as md
-from render.scene.scene import Mesh, PointLight, Scene
+from render.scene.scene import Mesh, Scene
 from render.shade.surface import vertex_normals
 from render.trace.intersect import BLOCK, _jobs
 
@@ -68,20 +68,13 @@ def shade_mesh_values(
             if mesh.normals is not None
             else vertex_normals(mesh.vertices, mesh.faces).data
         )
-        # A point light's position; the unit vector towards a directional light.
-        vec = [
-            light.position.data if isinstance(light, PointLight)
-            else md.normalize(-light.direction).data
-            for light in lights
-        ]  # fmt: skip
-    vec = np.array(vec, np.float64).reshape(-1, 3)
+    # Per light: its kind, its position or the unit vector towards it, its strength.
+    packs = [light.shading_pack() for light in lights]
+    vec = np.array([p[1] for p in packs], np.float64).reshape(-1, 3)
     textured = bool(material.textures)
     maps = [material.texture, material.specular_texture, material.ambient_texture]
-    kinds = np.array([0 if isinstance(light, PointLight) else 1 for light in lights], np.int64)
-    strength = np.array(
-        [light.intensity.data if isinstance(light, PointLight) else light.irradiance.data
-         for light in lights], np.float64,
-    ).reshape(-1)  # fmt: skip
+    kinds = np.array([p[0] for p in packs], np.int64)
+    strength = np.array([p[2] for p in packs], np.float64).reshape(-1)
     colour = np.array([light.color.data for light in lights], np.float64).reshape(-1, 3)
     visible = np.zeros((len(lights), len(faces_hit)))
     for j, mask in enumerate(lit):

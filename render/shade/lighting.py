@@ -6,7 +6,8 @@ light, material and texture parameter receives gradients. Radiometric convention
 
     L = (albedo / pi + f_specular) * I * color * max(0, cos theta) / r^2
 
-and for a directional light of irradiance E: the same with I / r^2 replaced by E.
+and for a directional light of irradiance E: the same with I / r^2 replaced by E. The
+direction to each light and its irradiance come from the light (``Light.incidence``).
 """
 
 from __future__ import annotations
@@ -18,30 +19,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from render.scene.scene import DirectionalLight, Material, Mesh, PointLight
-from render.shade.surface import Surface, column, mesh_surface
-
-
-def light_incidence(light, points):
-    """Direction to the light and the irradiance it delivers, per hit.
-
-    points (k, 3). Returns (to_light, irradiance): to_light (k, 3) or (3,) unit vectors;
-    irradiance (k,) or a scalar, on a surface facing the light (no cosine yet), to be
-    multiplied by ``light.color``. Keeping it scalar per hit until the very end means only
-    one (k, 3) product per light instead of several.
-    """
-    if isinstance(light, PointLight):
-        offset = light.position - points
-        # A light exactly on the surface would give 0/0: divide by 1 there instead (the
-        # contribution is zero anyway, since the direction to the light is zero). Only exact
-        # zeros are replaced, so that any distance, however small the scene, is used as it
-        # is (a fixed floor was not scale-invariant: issue 9).
-        distance_sq = md.dot(offset, offset)
-        distance_sq = md.where(distance_sq.data == 0, 1.0, distance_sq)
-        return md.normalize(offset), light.intensity / distance_sq
-    if isinstance(light, DirectionalLight):
-        return md.normalize(-light.direction), light.irradiance
-    raise TypeError(f"render: unsupported light type {type(light).__name__}")
+from render.scene.scene import Light, Material, Mesh
+from render.shade.surface import Surface, column, surface_at as mesh_surface
 
 
 def _texel_position(shape, uv):
@@ -159,10 +138,10 @@ def brdf(normals, view, to_light, diffuse_brdf, look: Appearance):
     return diffuse_brdf + column(lobe) * look.specular
 
 
-def _light_term(points, normals, view, diffuse_brdf, look: Appearance, light, visible):
+def _light_term(points, normals, view, diffuse_brdf, look: Appearance, light: Light, visible):
     """``light_contribution`` with the per-hit terms that do not depend on the light (the
     unit direction to the eye, the diffuse BRDF) computed once by the caller."""
-    to_light, irradiance = light_incidence(light, points)
+    to_light, irradiance = light.incidence(points)
     cos_theta = md.maximum(md.dot(normals, to_light), 0.0)
     f = brdf(normals, view, to_light, diffuse_brdf, look)
     # Per-hit scalars first, then a single (k, 3) product with the colours.

@@ -22,13 +22,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
-from minidiff import buffers
 from render.scene.cache import RenderCache, camera_key, light_key
 from render.scene.camera import hits_along_rays, primary_rays
-from render.scene.scene import Camera, DirectionalLight, PointLight, Scene
+from render.scene.scene import Camera, Light, Scene
 from render.trace.accel import Accelerator
 from render.trace.light_view import bounding_box, occluded_towards_light
 from render.trace.primitives import Primitives, scene_primitives
@@ -107,65 +105,23 @@ def shadow_offset(points: np.ndarray, scene_size: float, light_position=None) ->
 
 
 def shadow_rays(
-    light: PointLight | DirectionalLight,
+    light: Light,
     points: np.ndarray,
     start_prim: np.ndarray,
     n_triangles: int,
     scene_size: float,
 ) -> ShadowRays:
-    """The shadow rays from hit points (k, 3) on primitives start_prim (k,) to ``light``;
+    """The shadow rays from hit points (k, 3) on primitives start_prim (k,) to ``light``
+    (``Light.shadow_rays``: a point light's end just before it, a directional light's never);
     ``scene_size`` is the diagonal of the geometry's bounding box."""
-    if isinstance(light, PointLight):
-        position = np.asarray(light.position.data, dtype=np.float64)
-        offset = shadow_offset(points, scene_size, position)
-        points = np.asarray(points, np.float64)
-        origins = buffers.empty(points.shape, np.float64)
-        directions = buffers.empty(points.shape, np.float64)
-        tmax = buffers.empty(points.shape[:1], np.float64)
-        _point_light_rays(position, points, offset, origins, directions, tmax)
-    elif isinstance(light, DirectionalLight):
-        # Unit length: the user's direction may have any length.
-        towards = -np.asarray(light.direction.data, np.float64)
-        unit = towards / np.linalg.norm(towards)
-        origins = points + shadow_offset(points, scene_size) * unit
-        directions = np.broadcast_to(unit, points.shape)
-        tmax = np.inf
-    else:
-        raise TypeError(f"render: unsupported light type {type(light).__name__}")
+    offset = shadow_offset(points, scene_size, light.location())
+    origins, directions, tmax = light.shadow_rays(points, offset)
     # Skip the triangle the ray starts on (a flat triangle cannot shadow its own points), but
     # not a sphere: seen from inside it does shadow itself (a light outside cannot reach the
     # inside). Starting on the outside of a sphere towards the light, its other root is
     # behind the ray, and the offset removes the start point itself.
     ignore = np.where(start_prim < n_triangles, start_prim, -1)
     return ShadowRays(origins, directions, tmax, ignore)
-
-
-@numba.njit(cache=True)
-def _point_light_rays(position, points, offset, origins, directions, tmax):
-    """Shadow rays towards a point light, one pass over the points (k, 3): each starts
-    ``offset`` towards the light and ends just before it (``shadow_rays``)."""
-    for i in range(points.shape[0]):
-        tx = position[0] - points[i, 0]
-        ty = position[1] - points[i, 1]
-        tz = position[2] - points[i, 2]
-        distance = np.sqrt(tx * tx + ty * ty + tz * tz)
-        if distance <= 2.0 * offset:
-            # A light on (or within the offset of) the hit point: nothing can come between;
-            # its contribution is zero or nearly so (see shading), so call it lit (tmax = 0).
-            fraction = offset
-            directions[i, 0], directions[i, 1], directions[i, 2] = 0.0, 1.0, 0.0
-            tmax[i] = 0.0
-        else:
-            fraction = offset / distance  # of the way to the light
-            tmax[i] = 1.0 - fraction / (1.0 - fraction)
-        origins[i, 0] = points[i, 0] + fraction * tx
-        origins[i, 1] = points[i, 1] + fraction * ty
-        origins[i, 2] = points[i, 2] + fraction * tz
-        if distance > 2.0 * offset:
-            # Unnormalised direction to the light: t = 1 is the light itself.
-            directions[i, 0] = position[0] - origins[i, 0]
-            directions[i, 1] = position[1] - origins[i, 1]
-            directions[i, 2] = position[2] - origins[i, 2]
 
 
 def scene_size(primitives: Primitives) -> float:
@@ -194,7 +150,7 @@ LIGHT_VIEW_RAYS_PER_PRIMITIVE = 4
 def trace_shadows(
     accelerator: Callable[[], Accelerator],
     primitives: Primitives,
-    light: PointLight | DirectionalLight,
+    light: Light,
     points: np.ndarray,
     start_prim: np.ndarray,
     size: float,
@@ -213,9 +169,9 @@ def trace_shadows(
     n_prims = len(primitives[0]) + len(primitives[1])
     rays = shadow_rays(light, points, start_prim, len(primitives[0]), size)
     _ignore_spheres_facing(rays.ignore_prim, light, points, start_prim, primitives)
-    if bvh and isinstance(light, PointLight):
+    position = light.location()  # None: a light at infinity, which has no view
+    if bvh and position is not None:
         if len(points) >= LIGHT_VIEW_RAYS_PER_PRIMITIVE * n_prims:
-            position = np.asarray(light.position.data, dtype=np.float64)
             blocked = occluded_towards_light(
                 primitives, position, rays.origins, rays.directions, rays.tmax, rays.ignore_prim
             )
@@ -240,10 +196,7 @@ def _ignore_spheres_facing(ignore, light, points, start_prim, primitives) -> Non
         return
     p = points[on_sphere]
     outward = p - centers[start_prim[on_sphere] - len(triangles)]
-    if isinstance(light, PointLight):
-        towards = np.asarray(light.position.data, np.float64) - p
-    else:
-        towards = np.broadcast_to(-np.asarray(light.direction.data, np.float64), p.shape)
+    towards = np.broadcast_to(light.towards(p), p.shape)
     facing = np.einsum("ij,ij->i", outward, towards) > 0.0
     ignore[on_sphere[facing]] = start_prim[on_sphere[facing]]
 
@@ -273,7 +226,7 @@ class Visibility:
     primitives: Primitives
     size: float
 
-    def lit_towards(self, light: PointLight | DirectionalLight, points, start_prim) -> np.ndarray:
+    def lit_towards(self, light: Light, points, start_prim) -> np.ndarray:
         """(k,) bool: True where ``light`` reaches the points (k, 3) on primitives
         ``start_prim`` (k,) (all True without shadows); ``trace_shadows`` with this
         render's primitives and accelerator."""
