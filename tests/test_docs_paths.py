@@ -4,7 +4,7 @@ lessons/README.md and docs/. Code moves; the pages must follow."""
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import re
 from pathlib import Path
 
@@ -27,15 +27,22 @@ LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
 
 
 def _resolves(dotted: str) -> bool:
-    """Whether some prefix of a dotted name is a module whose remainder is an attribute
-    chain (`render.inverse.shape.LargeSteps`); modules are found, not imported."""
+    """Whether a dotted name is a module, or a module's attribute chain
+    (`render.inverse.shape.LargeSteps`, `render.torch.function`)."""
     parts = dotted.split(".")
     for k in range(len(parts), 0, -1):
         try:
-            if importlib.util.find_spec(".".join(parts[:k])) is not None:
-                return True
-        except ModuleNotFoundError:  # a module's attribute, not a module: try shorter
-            continue
+            module = importlib.import_module(".".join(parts[:k]))
+        except ModuleNotFoundError as error:
+            if error.name is not None and not dotted.startswith(error.name):
+                return True  # an optional dependency (torch, jax) is missing: cannot tell
+            continue  # a module's attribute, not a module: try shorter
+        obj = module
+        for name in parts[k:]:
+            if not hasattr(obj, name):
+                return False
+            obj = getattr(obj, name)
+        return True
     return False
 
 
