@@ -62,3 +62,31 @@ def test_named_modules_exist(page):
     text = (ROOT / page).read_text(encoding="utf-8")
     missing = [m for m in MODULE.findall(text) if not _resolves(m)]
     assert not missing, f"{page} names modules that do not exist: {missing}"
+
+
+#: A command line that runs a script, with its options: python examples/x.py --a 1 --b.
+#: A line break may come after "python" or before an option (prose wraps); # ends it.
+COMMAND = re.compile(
+    r"python\s+((?:examples|benchmarks|lessons)/[\w/]+\.py)"
+    r"((?:(?:[ \t]+|\n[ \t]*(?=--))[^\s`|)#]+)*)"
+)
+#: Where options shared by several scripts are declared.
+SHARED_OPTIONS = ["examples/script_support.py", "benchmarks/timing.py"]
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_named_script_options_exist(page):
+    """`python examples/x.py --opt` in a page: the script exists and declares --opt (in its
+    own source or in the helpers that build the scripts' command lines)."""
+    text = (ROOT / page).read_text(encoding="utf-8")
+    shared = "".join((ROOT / p).read_text(encoding="utf-8") for p in SHARED_OPTIONS)
+    missing = []
+    for script, args in COMMAND.findall(text):
+        if not (ROOT / script).exists():
+            missing.append(script)
+            continue
+        source = (ROOT / script).read_text(encoding="utf-8") + shared
+        for option in re.findall(r"(?<!\S)(--[a-z][\w-]*)", args):  # not "--" in a value
+            if f'"{option}"' not in source:
+                missing.append(f"{script} {option}")
+    assert not missing, f"{page} names scripts or options that do not exist: {missing}"
