@@ -1,10 +1,20 @@
 """The path integrator: light that bounces, by Monte Carlo (``render(..., integrator="path")``).
 
-``random`` (counter-based random numbers: the same seed, the same image), ``sampling``
-(directions and points and their densities), ``emitters`` (area lights), ``tracer`` (off
-the tape: the paths' discrete choices, traced with the BVH), ``transport`` (on the tape:
-what each path carries), ``integrator`` (the image, and its gradient through the tape or
-by replay). ``docs/path_tracing.md`` walks through them.
+Like the direct renderer, it makes its discrete choices off the tape and recomputes
+everything continuous on it:
+
+* ``tracer``: where each path goes, off the tape (the BVH of ``render.trace``; directions
+  and densities from ``sampling``, points on area lights from ``emitters``, counter-based
+  random numbers from ``random``: the same seed, the same image), recorded as constants;
+* ``transport``: what each path carries, on the tape: every vertex recomputed from its
+  primitive by ``render.shade.surface.surface_at`` (the direct renderer's surfaces too),
+  shaded with ``render.shade.lighting``'s materials and lights;
+* ``integrator``: the image from batches of paths, and its gradient through the tape or by
+  replay (``render_path``, ``replay_gradient``);
+* ``edges``: primary visibility's boundary term (``antialias="boundary"``), the boundary
+  integral of ``render.edges`` with the jumps path-traced.
+
+``docs/path_tracing.md`` walks through them.
 """
 
 from render.path.integrator import render_path, replay_gradient

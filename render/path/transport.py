@@ -43,32 +43,20 @@ import numpy as np
 import minidiff as md
 from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler
 from render.scene.camera import ray_directions
-from render.scene.scene import Mesh
 from render.shade.lighting import Appearance, appearance, brdf, light_contribution
-from render.shade.surface import (
-    column,
-    in_order,
-    interpolate,
-    intersect_edges,
-    intersect_spheres,
-    vertex_normals,
-)
+from render.shade.surface import Surface, column, in_order, surface_at
 from render.trace.primitives import primitive_ranges
 
 
-@dataclass
-class Vertex:
-    """k path vertices on the tape: points, unit geometric and shading normals (not yet
-    facing the viewer), the unit direction back to the previous vertex ``wo``, the area
-    element's stretch ``jacobian`` (k,) (1 for ray-found vertices), and the material there
-    (``look``: albedo, specular (k, 3), shininess (k,)), ``reflectance`` and ``emission``
-    (k, 3)."""
+@dataclass(kw_only=True)
+class Vertex(Surface):
+    """k path vertices on the tape, possibly on several objects: their ``Surface`` (points,
+    unit ``geometric`` and ``shading`` normals, not yet facing the viewer; ``stretch`` (k,)
+    the area element's scale, 1 at vertices found by rays), the unit direction back to the
+    previous vertex ``wo`` (k, 3), and the material there (``look``: albedo, specular
+    (k, 3), shininess (k,)), ``reflectance`` and ``emission`` (k, 3)."""
 
-    points: md.Tensor
-    ng: md.Tensor
-    ns: md.Tensor
     wo: md.Tensor
-    jacobian: md.Tensor
     look: Appearance
     reflectance: md.Tensor
     emission: md.Tensor
@@ -77,10 +65,11 @@ class Vertex:
         """The vertices ``rows``."""
         look = self.look
         return Vertex(
-            self.points[rows], self.ng[rows], self.ns[rows], self.wo[rows], self.jacobian[rows],
-            Appearance(look.albedo[rows], look.specular[rows], look.ambient,
-                       look.shininess[rows], look.texel[rows]),
-            self.reflectance[rows], self.emission[rows],
+            points=self.points[rows], geometric=self.geometric[rows],
+            shading=self.shading[rows], wo=self.wo[rows], stretch=self.stretch[rows],
+            look=Appearance(look.albedo[rows], look.specular[rows], look.ambient,
+                            look.shininess[rows], look.texel[rows]),
+            reflectance=self.reflectance[rows], emission=self.emission[rows],
         )  # fmt: skip
 
 
@@ -124,9 +113,9 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
     """Add what the paths gain at one depth's vertices (emission, NEE, lights, the
     environment after a last bounce) to ``parts``; return the throughput (k', 3) and the
     ``Vertex`` of the paths that go on (None, None when none does)."""
-    side = np.where(md.kernels.dot_last(v.ng.data, v.wo.data) < 0, -1.0, 1.0).astype(dtype)
+    side = np.where(md.kernels.dot_last(v.geometric.data, v.wo.data) < 0, -1.0, 1.0).astype(dtype)
     side = side[:, None]
-    ns = v.ns * side  # two-sided: the shading normal faces the viewer
+    ns = v.shading * side  # two-sided: the shading normal faces the viewer
     look = v.look
     diffuse = look.albedo * (1.0 / math.pi)
     specular = look.specular.is_differentiated() or bool(np.any(look.specular.data))
@@ -155,11 +144,11 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
         d2 = md.dot(to, to)
         wi = to / column(md.sqrt(d2))
         cos_x = md.maximum(md.dot(ns[nee], wi), 0.0)
-        cos_z = md.abs(md.dot(light.ng, wi))
+        cos_z = md.abs(md.dot(light.geometric, wi))
         f = brdf(ns[nee], None if view is None else view[nee], wi, diffuse[nee], v.take(nee).look)
-        # The point's density P / area: the area (half the jacobian on a triangle, 4 pi r^2
-        # / r^2 * r^2 on a sphere) is on the tape; P is in nee_weight.
-        area = light.jacobian * _area_factor(sampler, record.nee_prim[nee], dtype)
+        # The point's density P / area: the area (half the stretch on a triangle, 4 pi times
+        # it on a sphere) is on the tape; P is in nee_weight.
+        area = light.stretch * _area_factor(sampler, record.nee_prim[nee], dtype)
         scale = cos_x * cos_z / d2 * area * record.nee_weight[nee].astype(dtype)
         parts.append(
             _times(
@@ -209,7 +198,7 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
         to = nxt.points[area_rows] - v.points[k]
         d2 = md.dot(to, to)
         wi = to / column(md.sqrt(d2))
-        geometry = md.abs(md.dot(nxt.ng[area_rows], wi)) / d2 * nxt.jacobian[area_rows]
+        geometry = md.abs(md.dot(nxt.geometric[area_rows], wi)) / d2 * nxt.stretch[area_rows]
         change = geometry / md.tensor(geometry.data)  # value 1: the change of measure
         factors.append(bounce_weight(wi, k) * column(change))
         order.append(area_rows)
@@ -223,8 +212,8 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
 
 
 def _area_factor(sampler: PathSampler, prims: np.ndarray, dtype) -> np.ndarray:
-    """(k,) what turns ``Vertex.jacobian`` into the primitive's area: 1/2 on a triangle
-    (the jacobian is |(b - a) x (c - a)|), 4 pi on a sphere (the jacobian is r^2)."""
+    """(k,) what turns ``Vertex.stretch`` into the primitive's area: 1/2 on a triangle
+    (the stretch is |(b - a) x (c - a)|), 4 pi on a sphere (the stretch is r^2)."""
     return np.where(prims < sampler.n_triangles, 0.5, 4.0 * math.pi).astype(dtype)
 
 
@@ -242,23 +231,30 @@ def vertex_on_tape(world, sampler: PathSampler, prims, local, form, origins, dir
             rows = np.flatnonzero((objects == o) & ((form == AREA) == is_area))
             if len(rows) == 0:
                 continue
-            ray = None if is_area else (origins[rows], directions[rows])
-            previous = origins[rows] if is_area and origins is not None else None
-            if isinstance(obj, Mesh):
-                group = _on_mesh(
-                    obj, o, sampler, prims[rows] - sampler.first[o], local[rows], ray, previous
-                )
-            else:
-                group = _on_sphere(obj, local[rows], ray, previous)
-            parts.append(group)
+            faces = prims[rows] - sampler.first[o]
+            if is_area:
+                found = surface_at(obj, faces, local=local[rows])
+                previous = None if origins is None else origins[rows]
+                wo = _back(found.points, previous)
+                stretch = found.stretch
+            else:  # the normal as n / |n|, like the AREA vertices' (``surface_at``)
+                found = surface_at(obj, faces, origins[rows], directions[rows], divide=True)
+                wo = -md.normalize(found.directions)
+                stretch = md.tensor(np.ones(len(rows), found.points.dtype))
+            parts.append(
+                {"points": found.points, "geometric": found.geometric,
+                 "shading": found.shading,
+                 "wo": wo, "stretch": stretch}
+                | _material(obj.material, found.uv, len(rows))
+            )  # fmt: skip
             order.append(rows)
-    fields = ("points", "ng", "ns", "wo", "jacobian", "albedo", "specular", "shininess",
+    fields = ("points", "geometric", "shading", "wo", "stretch", "albedo", "specular", "shininess",
               "reflectance", "emission")  # fmt: skip
     joined = {name: in_order([p[name] for p in parts], order) for name in fields}
     look = Appearance(joined["albedo"], joined["specular"], md.tensor(0.0), joined["shininess"],
                       np.full(len(prims), -1, np.int64))  # fmt: skip
-    return Vertex(joined["points"], joined["ng"], joined["ns"], joined["wo"], joined["jacobian"],
-                  look, joined["reflectance"], joined["emission"])  # fmt: skip
+    return Vertex(**{name: joined[name] for name in fields[:5]}, look=look,
+                  reflectance=joined["reflectance"], emission=joined["emission"])  # fmt: skip
 
 
 def object_of(sampler: PathSampler, prims: np.ndarray) -> np.ndarray:
@@ -278,68 +274,9 @@ def _material(material, uv, k: int) -> dict:
     }
 
 
-def _back(points, previous, ray):
-    """The unit direction from vertices back to where their path came from."""
-    if ray is not None:
-        return -md.normalize(ray[1])
+def _back(points, previous):
+    """The unit direction (k, 3) from ``AREA`` vertices back to the ``previous`` vertex
+    (zero for NEE points, which have none and need none)."""
     if previous is not None:
         return md.normalize(previous - points)
-    return md.tensor(np.zeros(points.shape, points.dtype))  # NEE points: not needed
-
-
-def _on_mesh(mesh: Mesh, o: int, sampler: PathSampler, faces, local, ray, previous) -> dict:
-    """Vertices on one mesh's faces (local face ids (k,)): at barycentrics ``local`` (k, 3),
-    or where ``ray`` = (origins, directions) meets them."""
-    corners = [mesh.faces[faces, i] for i in range(3)]
-    a, b, c = (mesh.vertices[ids] for ids in corners)
-    e1, e2 = b - a, c - a
-    textured = bool(mesh.material.textures)
-    if ray is None:
-        u, v = (md.tensor(local[:, i].astype(a.dtype)) for i in (0, 1))
-        points = a + column(u) * e1 + column(v) * e2
-    else:
-        t, u, v = intersect_edges(ray[0], ray[1], a, e1, e2)
-        points = ray[0] + column(t) * ray[1]
-    n = md.cross(e1, e2)
-    length = md.sqrt(md.dot(n, n))
-    ng = n / column(length)
-    jacobian = length if ray is None else md.tensor(np.ones(len(faces), a.dtype))
-    weights = (column(1.0 - u - v), column(u), column(v))
-    ns = ng
-    if mesh.smooth:
-        vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        ns = md.normalize(interpolate(weights, vn, corners))
-    uv = interpolate(weights, mesh.uvs, corners) if textured else None
-    out = {
-        "points": points,
-        "ng": ng,
-        "ns": ns,
-        "jacobian": jacobian,
-        "wo": _back(points, previous, ray),
-    }
-    return out | _material(mesh.material, uv, len(faces))
-
-
-def _on_sphere(sphere, local, ray, previous) -> dict:
-    """Vertices on a sphere: at unit directions ``local`` (k, 3) from its centre, or where
-    ``ray`` meets it (the far side for rays starting inside)."""
-    k = len(local)
-    if ray is None:
-        d = md.tensor(local.astype(sphere.center.dtype))
-        points = sphere.center + sphere.radius * d
-        ng = d
-        jacobian = md.broadcast_to(sphere.radius * sphere.radius, (k,))
-    else:
-        inside = np.linalg.norm(ray[0].data - sphere.center.data, axis=-1) < sphere.radius.data
-        t = intersect_spheres(ray[0], ray[1], sphere.center, sphere.radius, inside)
-        points = ray[0] + column(t) * ray[1]
-        ng = md.normalize(points - sphere.center)
-        jacobian = md.tensor(np.ones(k, points.dtype))
-    out = {
-        "points": points,
-        "ng": ng,
-        "ns": ng,
-        "jacobian": jacobian,
-        "wo": _back(points, previous, ray),
-    }
-    return out | _material(sphere.material, None, k)
+    return md.tensor(np.zeros(points.shape, points.dtype))

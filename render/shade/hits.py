@@ -24,18 +24,11 @@ import minidiff as md
 from minidiff import buffers
 from render.scene.cache import RenderCache, surface_key
 from render.scene.camera import ray_directions
-from render.scene.scene import Mesh, Scene
+from render.scene.scene import Scene
 from render.shade import compiled
 from render.shade.lighting import shade_surface
 from render.shade.mirrors import Mirrors
-from render.shade.surface import (
-    Hits,
-    Surface,
-    in_order,
-    mesh_surface,
-    moves_surface,
-    sphere_surface,
-)
+from render.shade.surface import Hits, Surface, in_order, moves_surface, surface_at
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import Visibility
 
@@ -149,10 +142,7 @@ def object_hits(
 
     def surface() -> Surface:
         coords = md.kernels.gather_rows(primary.coords.astype(dtype, copy=False), in_obj)
-        directions = ray_directions(frame, coords)
-        if isinstance(obj, Mesh):
-            return mesh_surface(obj, prims - first, frame[3], directions)
-        return sphere_surface(obj, frame[3], directions)
+        return surface_at(obj, prims - first, frame[3], ray_directions(frame, coords))
 
     found = _reused_surface(scene, cache, visibility, index, obj, dtype, surface)
     lit = [_as_dtype(mask[in_obj], dtype) for mask in visibility.lit]

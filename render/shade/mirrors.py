@@ -41,8 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.scene.scene import Mesh, Scene
-from render.shade.surface import Hits, Surface, mesh_surface, sphere_surface
+from render.scene.scene import Scene, Sphere
+from render.shade.surface import Hits, Surface, surface_at
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import Visibility, shadow_offset
 
@@ -109,12 +109,11 @@ class Mirrors:
             rows = np.flatnonzero((prim >= first) & (prim < first + count))
             if len(rows) == 0:
                 continue
-            start, along = surface.points[rows], mirrored[rows]
-            if isinstance(obj, Mesh):
-                found = mesh_surface(obj, prim[rows] - first, start, along)
-            else:  # which root the tracer took follows from where its ray started
+            inside = None
+            if isinstance(obj, Sphere):  # which root the tracer took: where its ray started
                 inside = np.linalg.norm(origins[rows] - obj.center.data, axis=1) < obj.radius.data
-                found = sphere_surface(obj, start, along, inside)
+            start, along = surface.points[rows], mirrored[rows]
+            found = surface_at(obj, prim[rows] - first, start, along, inside=inside)
             lit = self._lit(hit_points[rows], prim[rows])
             self.record.lit[bounce - 1][:, rays[rows]] = lit
             lit = [mask.astype(found.points.dtype) for mask in lit]

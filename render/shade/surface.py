@@ -97,23 +97,37 @@ def toward_ray(normals, directions) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------
-# Surfaces: everything shading needs about the hits on one object, recomputed on the tape
+# Surfaces: the points where rays meet an object (or points placed on it), on the tape
 # --------------------------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Surface:
-    """What shading needs to know about k hits on one object (tensors, on the tape):
-    points (k, 3), unit normals facing the ray (k, 3), the incoming rays' directions (k, 3),
-    for a textured mesh the interpolated UVs (k, 2) (else None), and ``front`` (k,) bool:
-    whether the ray meets the front of the surface (the side the geometric normal points
-    to), the side an emissive material emits from."""
+    """k points on the surface of one object, recomputed on the tape from the primitives
+    they lie on (``surface_at``): what both integrators shade.
+
+    points (k, 3); geometric (k, 3): unit geometric normals, as the primitive orients them
+    (a triangle's (b - a) x (c - a), a sphere's outward normal); shading (k, 3): unit
+    shading normals, oriented as ``geometric`` (a smooth mesh's interpolated vertex
+    normals, else ``geometric`` itself); uv (k, 2): a textured mesh's interpolated UVs
+    (else None).
+
+    For points found by rays: directions (k, 3), the rays' directions; normals (k, 3), the
+    shading normals turned to face the rays (two-sided shading: what the direct renderer
+    shades with); front (k,) bool, whether the ray meets the side the geometric normal
+    points to (the side an emissive material emits from). For points placed on their
+    primitive (by coordinates on it): stretch (k,), the area element's scale, dA = stretch
+    du dv on a triangle (|(b - a) x (c - a)|, twice its area) and dA = stretch dw on a
+    sphere (r^2, w the unit direction from its centre). The others are None."""
 
     points: md.Tensor
-    normals: md.Tensor
-    directions: md.Tensor
+    geometric: md.Tensor
+    shading: md.Tensor
     uv: md.Tensor | None = None
+    directions: md.Tensor | None = None
+    normals: md.Tensor | None = None
     front: np.ndarray | None = None
+    stretch: md.Tensor | None = None
 
 
 @dataclass
@@ -149,49 +163,90 @@ def interpolate(weights, attribute, corners):
     return sum(w * attribute[ids] for ids, w in zip(corners, weights, strict=True))
 
 
-def mesh_surface(mesh: Mesh, faces_hit: np.ndarray, eye, directions) -> Surface:
-    """Recompute the hits on one mesh's triangles on the tape.
+def surface_at(
+    obj: Mesh | Sphere,
+    prims: np.ndarray,
+    origins=None,
+    directions=None,
+    *,
+    local: np.ndarray | None = None,
+    inside: np.ndarray | None = None,
+    divide: bool = False,
+) -> Surface:
+    """The ``Surface`` of k points on one object, on the tape (or plain values under
+    ``md.no_grad()``): where the rays ``origins`` (3,) or (k, 3) and ``directions`` (k, 3)
+    (tensors: the camera's, or rays leaving another surface) meet the object's primitives
+    ``prims`` (k,) (local ids: a mesh's faces; ignored on a sphere), or, given ``local``
+    (k, 3) instead of rays, at those coordinates on them ((u, v, _) barycentrics of corners
+    b and c on a triangle, the unit direction from a sphere's centre).
 
-    faces_hit (k,) local face ids from the BVH; eye (3,) or (k, 3) and directions (k, 3)
-    the rays (tensors): the camera's, or reflected rays starting on another surface.
+    inside (k,) bool: which rays start inside a sphere (they meet its far side); by
+    default decided from ``origins`` (a reflected ray starting *on* the sphere passes the
+    side it was traced from). divide: a triangle's unit normal as n / |n| rather than
+    ``md.normalize``'s n * (1 / |n|) (the two differ in the last bit; the path integrator
+    divides, sharing |n| with ``stretch``; points placed by ``local`` always do).
     """
+    if isinstance(obj, Mesh):
+        surface = _on_mesh(obj, prims, origins, directions, local, divide)
+    else:
+        surface = _on_sphere(obj, origins, directions, local, inside)
+    if directions is not None:
+        flip = toward_ray(surface.geometric, directions)
+        surface.directions = directions
+        surface.normals = surface.shading * flip
+        surface.front = flip[:, 0] > 0
+    return surface
+
+
+def _on_mesh(mesh: Mesh, faces: np.ndarray, origins, directions, local, divide) -> Surface:
+    """``surface_at`` on a mesh's faces ``faces`` (k,) (local ids)."""
     # The vertex ids of the hit faces' corners, (k,) each (gathered into reused memory).
-    corners = [md.kernels.gather_rows(mesh.faces[:, i], faces_hit) for i in range(3)]
+    corners = [md.kernels.gather_rows(mesh.faces[:, i], faces) for i in range(3)]
     a, b, c = (mesh.vertices[ids] for ids in corners)
     e1, e2 = b - a, c - a
     # Barycentrics are needed only to interpolate vertex normals or UVs.
     textured = bool(mesh.material.textures)
     interpolated = mesh.smooth or textured
-    t, u, v = intersect_edges(eye, directions, a, e1, e2, barycentrics=interpolated)
-    points = eye + column(t) * directions
-    normals = md.normalize(md.cross(e1, e2))
-    flip = toward_ray(normals, directions)
+    if local is None:
+        t, u, v = intersect_edges(origins, directions, a, e1, e2, barycentrics=interpolated)
+        points = origins + column(t) * directions
+    else:
+        u, v = (md.tensor(local[:, i].astype(a.dtype)) for i in (0, 1))
+        points = a + column(u) * e1 + column(v) * e2
+    n = md.cross(e1, e2)
+    stretch = None
+    if local is None and not divide:
+        geometric = md.normalize(n)
+    else:
+        length = md.sqrt(md.dot(n, n))
+        geometric = n / column(length)
+        stretch = None if local is None else length
+    shading = geometric
     if interpolated:
         weights = (column(1.0 - u - v), column(u), column(v))  # of corners a, b, c
     if mesh.smooth:
         vn = mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
-        normals = md.normalize(interpolate(weights, vn, corners))
+        shading = md.normalize(interpolate(weights, vn, corners))
     uv = interpolate(weights, mesh.uvs, corners) if textured else None
-    return Surface(points, normals * flip, directions, uv, flip[:, 0] > 0)
+    return Surface(points=points, geometric=geometric, shading=shading, uv=uv, stretch=stretch)
 
 
-def sphere_surface(sphere: Sphere, eye, directions, inside: np.ndarray | None = None) -> Surface:
-    """Recompute the hits on one sphere on the tape (k rays known to hit it).
-
-    eye (3,) or (k, 3) and directions (k, 3): the rays. ``inside`` (k,) bool: which rays
-    start inside the sphere (they hit its far side); by default decided from ``eye``
-    (a reflected ray starting *on* the sphere passes the side it was traced from).
-    """
+def _on_sphere(sphere: Sphere, origins, directions, local, inside) -> Surface:
+    """``surface_at`` on a sphere."""
     if sphere.material.textures:
         raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
+    if local is not None:
+        w = md.tensor(local.astype(sphere.center.dtype))
+        points = sphere.center + sphere.radius * w
+        stretch = md.broadcast_to(sphere.radius * sphere.radius, (len(local),))
+        return Surface(points=points, geometric=w, shading=w, stretch=stretch)
     if inside is None:
-        inside = np.linalg.norm(eye.data - sphere.center.data, axis=-1) < sphere.radius.data
+        inside = np.linalg.norm(origins.data - sphere.center.data, axis=-1) < sphere.radius.data
     far_root = np.broadcast_to(inside, (directions.shape[0],))
-    t = intersect_spheres(eye, directions, sphere.center, sphere.radius, far_root)
-    points = eye + column(t) * directions
+    t = intersect_spheres(origins, directions, sphere.center, sphere.radius, far_root)
+    points = origins + column(t) * directions
     normals = md.normalize(points - sphere.center)
-    flip = toward_ray(normals, directions)
-    return Surface(points, normals * flip, directions, None, flip[:, 0] > 0)
+    return Surface(points=points, geometric=normals, shading=normals)
 
 
 def moves_surface(obj: Mesh | Sphere) -> list[md.Tensor]:

@@ -19,7 +19,7 @@ import render
 from render.scene.camera import camera_directions, camera_frame
 from render.shade import compiled
 from render.shade.lighting import shade_surface
-from render.shade.surface import mesh_surface
+from render.shade.surface import surface_at as mesh_surface
 from tests.render_helpers import random_scene
 
 #: Where a lobe is computed: a few ulps of the largest value compared.
