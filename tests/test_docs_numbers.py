@@ -14,16 +14,16 @@ Two kinds of page:
   Every number in the block must be one of the sources' numbers as written, rounded to the
   digits the block shows (``0.0067`` matches 0.006658; a % may show a fraction times 100, a
   ms a second times 1000). A JSON source gives its numeric values, the numbers inside its
-  strings, and for every list of runs (also grouped by a setting with a few values, such as
-  the start angle) each key's count, mean, standard deviation, median, minimum, maximum
-  and the number of runs where a flag is true; ``file.json:key.0`` narrows it to a part
-  (the fewer numbers a source offers, the stronger the check). A markdown source (itself
-  a generated page, checked against its JSON) gives the numbers it states. A block
-  with a number followed by a unit of measurement (%, ms, s, x, dB, MB, ...) and no marker
-  fails: measured numbers must name their source.
+  strings, and for every list of runs (also grouped by one or two of the settings in
+  ``GROUPS``, such as the start angle) each key's count, mean, standard deviation, median,
+  minimum, maximum and the number of runs where a flag is true. ``file.json:key.0``
+  narrows a source to a part: the fewer numbers a source offers, the stronger the check.
+  A markdown source (itself a generated page, checked against its JSON) gives the numbers
+  it states. A block with a number followed by a unit of measurement (%, ms, s, x, dB,
+  MB, ...) and no marker fails: measured numbers must name their source.
 
-Run ``python -m tests.test_docs_numbers FILE.md`` to list a page's numbers that no source
-matches.
+Sizes written as 512x512 are settings and not read as numbers. Run ``python -m
+tests.test_docs_numbers FILE.md`` to list a page's numbers that no source matches.
 """
 
 from __future__ import annotations
@@ -74,6 +74,9 @@ SETTINGS = {
     "docs/ml/light_network/light_network.md": "the box [0.5, 3.5, 1.5]..[3.5, 6.5, 4.5], "
     "steps of 8, 30 Adam steps",
 }
+
+#: Settings that runs in a result file are grouped by for their statistics.
+GROUPS = ("angle", "method", "search_renders", "views", "shadows", "size", "antialias")
 
 MARKER = re.compile(r"<!--\s*numbers:\s*(.*?)-->")
 #: A number as text: 1,377 / 0.0067 / 2.1e-4; not part of a name (float64, x86_64, 3D).
@@ -141,16 +144,9 @@ def _collect(value, pool: list[float]) -> None:
 
 
 def _groups(rows: list[dict]) -> list[list[dict]]:
-    """The runs, and the runs grouped by one or two of their settings (keys with a few
-    repeated values, e.g. the start angle and the search's renders)."""
-    if len(rows) < 2:
-        return [rows]
-    settings = [
-        k
-        for k in {k for r in rows for k in r}
-        if all(isinstance(r.get(k), str | int | float | None) for r in rows)
-        and 1 < len({r.get(k) for r in rows}) <= min(6, len(rows) // 2)
-    ]
+    """The runs, and the runs grouped by one or two of the settings in ``GROUPS`` that
+    vary between them (e.g. the start angle and the method)."""
+    settings = [k for k in GROUPS if len({str(r.get(k)) for r in rows}) > 1]
     groups = [rows]
     for i, a in enumerate(settings):
         for b in [None, *settings[i + 1 :]]:
