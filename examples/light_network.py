@@ -6,7 +6,7 @@ Run:  python examples/light_network.py [--out out] [--size 32] [--iters 1500] [-
 A PyTorch MLP maps an image of the paper scene to the position of its light. It never
 sees a position label: each step draws 8 random light positions, renders them (the
 targets), predicts a position from each target, renders the predictions through
-``render.torch`` and minimises the image difference (``render.networks``). Reported
+``render.torch`` and minimises the image difference (``torch_networks.py``). Reported
 on 50 held-out targets: the distance from the predicted to the true position, and after 30
 Adam steps of inverse rendering started from the prediction, or from the centre of the
 light's box instead. Writes ``<out>/light_network/``: ``light_network.json`` and ``.md``,
@@ -22,10 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 from script_support import command_line, write_results
+from torch_networks import LIGHT_BOX, train_light_network
 
 import minidiff as md
 from render.inverse.plot import line_plot
-from render.networks import LIGHT_BOX, train_light_network
 from render.renderer import render
 from render.scene.image import save_image
 from render.scene.teapot import paper_scene

@@ -1,4 +1,5 @@
-"""Networks trained through the renderer (``render.networks``): the teapot's atlas,
+"""Networks trained through the renderer (``render.inverse.networks``, and
+``examples/torch_networks.py`` in PyTorch): the teapot's atlas,
 the field trained in minidiff and in PyTorch giving the same losses, the light network,
 and the two example scripts."""
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 import minidiff as md
-from render.networks import (
+from render.inverse.networks import (
     field_setup,
     fourier_features,
     init_mlp,
@@ -62,9 +63,9 @@ def test_mlp_is_the_same_function_in_minidiff_and_torch():
     assert colours.shape == (50, 3) and colours.min() >= 0.15 and colours.max() <= 0.85 + 1e-12
 
 
-def test_field_training_gives_the_same_losses_in_minidiff_and_torch():
+def test_field_training_gives_the_same_losses_in_minidiff_and_torch(load_script):
     pytest.importorskip("torch")
-    from render.networks import train_field_torch
+    train_field_torch = load_script("examples/torch_networks.py").train_field_torch
 
     setup = field_setup(views=2, held_out=1, size=12, tile=4, frequencies=4, hidden=(8,))
     weights = init_mlp(setup.sizes, seed=3)
