@@ -4,7 +4,7 @@ PyTorch.
 Run:  python examples/neural_field.py [--out out] [--size 64] [--iters 500] [--lr 0.005]
       [--quick]
 
-An MLP on Fourier features of 3-D position (``render.networks``) gives the albedo at
+An MLP on Fourier features of 3-D position (``render.inverse.networks``) gives the albedo at
 every texel centre of the teapot's atlas; 8 views rendered with that texture are compared
 with targets painted by a 3-D pattern. The same training runs twice from the same initial
 weights: in minidiff (network, renderer and Adam on one tape) and in PyTorch (network and
@@ -22,16 +22,16 @@ from __future__ import annotations
 import numpy as np
 from PIL import Image
 from script_support import command_line, write_results
+from torch_networks import train_field_torch
 
-from render.inverse.plot import line_plot
-from render.networks import (
+from render.inverse.networks import (
     field_setup,
     field_texture,
     held_out_renders,
     init_mlp,
     train_field_minidiff,
-    train_field_torch,
 )
+from render.inverse.plot import line_plot
 from render.scene.image import save_image
 
 EXTRA = {
