@@ -1,15 +1,27 @@
 """render: a differentiable ray tracer built on minidiff.
 
-The folders are the pipeline, in order (``docs/architecture.md``): ``scene/`` (what a
-scene is: objects, materials, lights, the camera model, mesh and image files, the teapot,
-the cache of results computed from a scene's values), ``trace/`` (step 1, plain arrays:
-which primitive each ray hits, which lights each hit sees), ``shade/`` (steps 2-3, on the
-tape: surfaces recomputed from the hits, lights and materials, mirror bounces),
-``edges/`` (step 4: silhouettes and shadow edges blended on the tape), ``film.py`` (step
-5: pixels from samples); ``renderer.py`` calls them top to bottom. ``inverse/`` uses the
-renderer: optimisation, gradient images (forward mode), the paper's experiments, and the
-plots and JSON they write. Command lines belong to the scripts
-(``examples/script_support.py``).
+``render(scene)`` (``renderer.py``) makes the pipeline's calls top to bottom; each step
+lives in its own folder, and a folder imports only from the ones before it
+(``docs/architecture.md``):
+
+* ``scene/``: what a scene is (objects, materials, lights that know their own geometry,
+  the camera model, transforms), mesh and image files, the teapot, the cache of results
+  computed from a scene's values;
+* ``trace/`` (step 1, plain arrays): which primitive each ray hits, which lights each hit
+  sees;
+* ``shade/`` (steps 2-3, on the tape): surfaces recomputed from the hits, lit by the
+  lights through the materials, mirror bounces;
+* ``edges/`` (step 4): what moving edges add to the gradient: pairs of samples blended
+  across silhouettes, creases and shadow edges (``antialias=True``), or the boundary
+  integral over every curve where the image jumps (``antialias="boundary"``);
+* ``film.py`` (step 5): pixels from samples;
+* ``path/``: the path integrator (``render(..., integrator="path")``), light that bounces,
+  by Monte Carlo, with the same split of discrete and continuous;
+* ``inverse/``: what uses the renderer: optimisation, gradient images, the paper's
+  experiments, reconstruction, a neural field, the renderer as a function of arrays;
+* ``torch.py``, ``jax.py``: the bridges to PyTorch and JAX (optional extras).
+
+Command lines belong to the scripts (``examples/script_support.py``).
 """
 
 from render.inverse.gradient_image import gradient_image
@@ -20,6 +32,7 @@ from render.scene.meshio import load_mesh
 from render.scene.scene import (
     Camera,
     DirectionalLight,
+    Light,
     Material,
     Mesh,
     PointLight,
@@ -31,7 +44,7 @@ from render.scene.teapot import paper_scene, teapot, teapot_geometry
 from render.trace.accel import Accelerator
 
 __all__ = [
-    "Accelerator", "Camera", "DirectionalLight", "Material", "Mesh", "PointLight", "Scene",
+    "Accelerator", "Camera", "DirectionalLight", "Light", "Material", "Mesh", "PointLight", "Scene",
     "Sphere", "Transform", "RenderInfo", "render", "load_image", "save_image", "mse", "psnr",
     "load_mesh",
     "paper_scene", "teapot", "teapot_geometry", "optimize", "FlatParameters", "History",

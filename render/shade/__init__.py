@@ -1,2 +1,9 @@
-"""Steps 2 and 3, on the tape: surfaces recomputed from the hits, lights and materials,
-mirror bounces."""
+"""Steps 2 and 3, the continuous part, on the tape: what the hits look like.
+
+* ``surface``: each hit's point, normal and UV recomputed from its primitive and ray;
+* ``lighting``: materials (textures, Lambert + Blinn-Phong) lit by the scene's lights, each
+  light giving its own direction and irradiance (``Light.incidence``);
+* ``hits``: the one function that shades hits, camera hits or mirror hits;
+  ``mirrors``: the reflected rays of mirror materials;
+* ``compiled``: the same colours in one Numba pass where nothing is differentiated.
+"""

@@ -20,7 +20,7 @@ import numpy as np
 import minidiff as md
 from minidiff import buffers
 from render.scene.scene import Light, Material, Mesh
-from render.shade.surface import Surface, column, surface_at as mesh_surface
+from render.shade.surface import Surface, column, surface_at
 
 
 def _texel_position(shape, uv):
@@ -180,5 +180,5 @@ def shade_surface(
 
 
 def shade_mesh(mesh: Mesh, faces_hit, eye, directions, lights, lit) -> tuple[md.Tensor, np.ndarray]:
-    """``mesh_surface`` then ``shade_surface``: radiance (k, 3) and texel cells (k,)."""
-    return shade_surface(mesh_surface(mesh, faces_hit, eye, directions), mesh.material, lights, lit)
+    """``surface_at`` then ``shade_surface``: radiance (k, 3) and texel cells (k,)."""
+    return shade_surface(surface_at(mesh, faces_hit, eye, directions), mesh.material, lights, lit)
