@@ -69,6 +69,17 @@ class History:
     iterations: int = 0
     views: list[list[int]] = field(default_factory=list)
 
+    def summary(self, seconds: float) -> dict:
+        """What the experiments report of a run that took ``seconds``: the loss at the start
+        and the end, the updates made, and the time in all and per loss evaluation."""
+        return {
+            "initial_loss": self.loss[0],
+            "final_loss": self.loss[-1],
+            "iterations": self.iterations,
+            "seconds": seconds,
+            "seconds_per_iteration": seconds / max(1, len(self.loss)),
+        }
+
 
 class _Progress:
     """One status line, refreshed at most every ``every`` seconds (quiet: nothing)."""

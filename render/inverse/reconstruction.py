@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 
 import minidiff as md
 from render.inverse.basin import greedy_search, multi_start
+from render.inverse.experiments import relative_error_pct
 from render.inverse.optimize import image_loss, optimize
 from render.inverse.shape import (
     LargeStepsAdam,
@@ -341,11 +342,7 @@ def run_shape(
         "region_share_percent": distances.region_share,
         "chamfer_outside_region_percent": distances.chamfer_outside,
         "held_out_psnr": float(np.mean(held)),
-        "initial_loss": history.loss[0],
-        "final_loss": history.loss[-1],
-        "iterations": history.iterations,
-        "seconds": seconds,
-        "seconds_per_iteration": seconds / max(1, len(history.loss)),
+        **history.summary(seconds),
         "vertices": len(v0),
         "mesh": (vertices.data.copy(), f0),
         "held_out_images": np.stack([np.clip(targets[views], 0, 1), seen_held[0]]),
@@ -430,16 +427,16 @@ def run_joint(
         """Each parameter's error now, the keys prefixed with ``prefix``."""
         product, true_product = albedo.data * intensity.data, true["albedo"] * true["intensity"]
         values = {
-            "camera_position_error_percent": _pct(position.data, true["position"]),
+            "camera_position_error_percent": relative_error_pct(position.data, true["position"]),
             "look_at_error": float(np.linalg.norm(look_at.data)),
             # Only the direction to the look-at point reaches an image, not its distance.
             "view_direction_error_degrees": _angle_degrees(
                 look_at.data - position.data, -true["position"]
             ),  # fmt: skip
-            "light_position_error_percent": _pct(light.data, true["light"]),
-            "intensity_error_percent": _pct(intensity.data, true["intensity"]),
-            "albedo_error_percent": _pct(albedo.data, true["albedo"]),
-            "albedo_times_intensity_error_percent": _pct(product, true_product),
+            "light_position_error_percent": relative_error_pct(light.data, true["light"]),
+            "intensity_error_percent": relative_error_pct(intensity.data, true["intensity"]),
+            "albedo_error_percent": relative_error_pct(albedo.data, true["albedo"]),
+            "albedo_times_intensity_error_percent": relative_error_pct(product, true_product),
         }
         return {prefix + key: value for key, value in values.items()}
 
@@ -464,11 +461,7 @@ def run_joint(
         "shape_chamfer_at_start_percent": surface_distances(
             base, faces, true_vertices, faces
         ).chamfer,  # fmt: skip
-        "initial_loss": history.loss[0],
-        "final_loss": history.loss[-1],
-        "iterations": history.iterations,
-        "seconds": seconds,
-        "seconds_per_iteration": seconds / max(1, len(history.loss)),
+        **history.summary(seconds),
         "images": np.clip(np.stack([targets[0], before, after]), 0.0, 1.0),
     }
 
@@ -476,7 +469,3 @@ def run_joint(
 def _angle_degrees(a: np.ndarray, b: np.ndarray) -> float:
     cos = np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b))
     return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
-
-
-def _pct(estimate, truth) -> float:
-    return float(100.0 * np.linalg.norm(np.asarray(estimate) - truth) / np.linalg.norm(truth))
