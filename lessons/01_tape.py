@@ -32,21 +32,16 @@
 
 # %%
 import math
-import os
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 
 import minidiff as md
 from minidiff.tensor import as_tensor, record
 from render.inverse.plot import line_figure, show
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "01_tape"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/01_tape/ (or under $LESSONS_OUT).
+OUT = figures_folder("01_tape")
 
 # %% [markdown]
 # ## A scalar tape in thirty lines
@@ -85,7 +80,7 @@ class Value:
         e = math.exp(self.data)
         return Value(e, (self,), (e,))
 
-    def backward(self):
+    def topological_order(self):  # every value after its parents, each value once
         order, seen = [], set()
 
         def visit(v):  # depth first: a value is appended after all its parents
@@ -96,8 +91,11 @@ class Value:
                 order.append(v)
 
         visit(self)
+        return order
+
+    def backward(self):
         self.grad = 1.0  # df/df
-        for v in reversed(order):  # every user before the values it uses
+        for v in reversed(self.topological_order()):  # every user before the values it uses
             v._backward()
 
 
@@ -252,7 +250,7 @@ print("tape:", g_tape, " finite differences:", g_fd, f" relative error {cube_err
 # 1. Give `Value` a `tanh` method (`d tanh/dx = 1 − tanh²`) and a power `__pow__` for a
 #    constant exponent, and check `g(x) = tanh(x)³ + x²` at `x = 0.7` against a central
 #    difference with `h = 1e-5`.
-# 2. In `backward`, the set `seen` makes each value appear once in `order`. Build
+# 2. In `topological_order`, the set `seen` makes each value appear once in `order`. Build
 #    `a = x; a = a + a` ten times (so `a = 1024·x`) and show what happens to `x.grad` and to
 #    the number of `_backward` calls if `visit` forgets `seen`.
 # 3. Write a minidiff primitive `softplus(x) = log(1 + eˣ)` with `record`; its derivative is

@@ -25,21 +25,16 @@
 # check that both are tested against.
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 
 import minidiff as md
 from render.inverse.plot import line_figure, show
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "02_arrays_and_modes"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/02_arrays_and_modes/ (or under $LESSONS_OUT).
+OUT = figures_folder("02_arrays_and_modes")
 rng = np.random.default_rng(2)
 
 # %% [markdown]

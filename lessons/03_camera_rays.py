@@ -35,10 +35,10 @@
 
 # %%
 import math
-import os
 from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 from PIL import Image, ImageDraw
 
 import minidiff as md
@@ -51,12 +51,8 @@ from render.scene.camera import (
     subpixel_offsets,
 )
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "03_camera_rays"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/03_camera_rays/ (or under $LESSONS_OUT).
+OUT = figures_folder("03_camera_rays")
 
 # %% [markdown]
 # ## The frame

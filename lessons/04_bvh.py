@@ -34,11 +34,10 @@
 # `render.shade.surface.intersect_edges` computes the arrangement above on the minidiff tape.
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 from PIL import Image, ImageDraw
 
 import minidiff as md
@@ -48,12 +47,8 @@ from render.shade.surface import intersect_edges
 from render.trace.accel import Accelerator
 from render.trace.intersect import intersect_triangle, make_ray, pack_primitives
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "04_bvh"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/04_bvh/ (or under $LESSONS_OUT).
+OUT = figures_folder("04_bvh")
 
 # %%
 a, b, c = np.array([0.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])

@@ -42,22 +42,17 @@
 
 # %%
 import math
-import os
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 
 import render
 from render.inverse.plot import line_figure, show
 from render.scene.camera import primary_rays
 from render.scene.teapot import PAPER_ALBEDO
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "05_shading"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/05_shading/ (or under $LESSONS_OUT).
+OUT = figures_folder("05_shading")
 
 # %% [markdown]
 # ## A plane under a point light

@@ -28,21 +28,16 @@
 # first as pictures, then checks it against finite differences the only honest way.
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 
 import minidiff as md
 import render
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "06_gradients_through_a_renderer"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/06_gradients_through_a_renderer/ (or under $LESSONS_OUT).
+OUT = figures_folder("06_gradients_through_a_renderer")
 SIZE = 64
 
 # %% [markdown]

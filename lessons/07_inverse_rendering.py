@@ -29,23 +29,18 @@
 # gradient.
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 
 import minidiff as md
 import render
 from render.inverse import experiments
 from render.inverse.plot import line_figure, show
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "07_inverse_rendering"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/07_inverse_rendering/ (or under $LESSONS_OUT).
+OUT = figures_folder("07_inverse_rendering")
 SIZE = 48
 lesson_start = time.perf_counter()
 

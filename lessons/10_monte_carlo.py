@@ -30,12 +30,11 @@
 
 # %%
 import math
-import os
 import time
 import tracemalloc
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 
 import minidiff as md
 import render
@@ -45,12 +44,8 @@ from render.path.random import uniform
 from render.path.sampling import cosine_hemisphere
 from render.scene.cornell import cornell_box
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "10_monte_carlo"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/10_monte_carlo/ (or under $LESSONS_OUT).
+OUT = figures_folder("10_monte_carlo")
 lesson_start = time.perf_counter()
 
 # %% [markdown]

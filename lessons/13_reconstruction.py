@@ -28,11 +28,10 @@
 # `render.inverse.reconstruction`).
 
 # %%
-import os
 import time
-from pathlib import Path
 
 import numpy as np
+from course import figures_folder
 from scipy.spatial.transform import Rotation
 
 import minidiff as md
@@ -50,12 +49,8 @@ from render.inverse.reconstruction import (
 from render.scene.placement import rotation_matrix
 from render.scene.teapot import paper_scene
 
-# This lesson's figures go to out/lessons/ in the repository (or to $LESSONS_OUT), whether
-# it runs as a script or as a notebook: a notebook has no __file__ and starts in lessons/.
-LESSONS = Path(__file__).parent if "__file__" in globals() else Path.cwd()
-COURSE_OUT = os.environ.get("LESSONS_OUT") or LESSONS.resolve().parent / "out" / "lessons"
-OUT = Path(COURSE_OUT) / "13_reconstruction"
-OUT.mkdir(parents=True, exist_ok=True)
+# This lesson's figures go to out/lessons/13_reconstruction/ (or under $LESSONS_OUT).
+OUT = figures_folder("13_reconstruction")
 lesson_start = time.perf_counter()
 
 # %% [markdown]

@@ -11,13 +11,14 @@
 # # Solutions to lesson 1 (a tape from scratch)
 #
 # The lesson's `Value` (run from the lesson's file), with the additions of exercise 1
-# (`tanh`, `__pow__`) and a switch for exercise 2.
+# (`tanh`, `__pow__`) and, for exercise 2, a `topological_order` that forgets `seen`.
 
 # %%
 import contextlib
 import io
 import math
 import runpy
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,7 @@ from minidiff.tensor import as_tensor, record
 with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
     # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
     here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+    sys.path.insert(0, str(here.parent))  # the lesson imports lessons/course.py
     Value = runpy.run_path(str(here.parent / "01_tape.py"))["Value"]
 
 
@@ -42,26 +44,7 @@ def power(self, k):  # a constant exponent
     return Value(self.data**k, (self,), (k * self.data ** (k - 1),))
 
 
-def backward(self, dedupe=True):
-    """As in the lesson; dedupe=False forgets `seen` (exercise 2). Returns the number of
-    _backward calls."""
-    order, seen = [], set()
-
-    def visit(v):  # depth first: a value is appended after all its parents
-        if not dedupe or id(v) not in seen:
-            seen.add(id(v))
-            for p in v.parents:
-                visit(p)
-            order.append(v)
-
-    visit(self)
-    self.grad = 1.0  # df/df
-    for v in reversed(order):  # every user before the values it uses
-        v._backward()
-    return len(order)
-
-
-Value.tanh, Value.__pow__, Value.backward = tanh, power, backward
+Value.tanh, Value.__pow__ = tanh, power
 
 
 # %% [markdown]
@@ -94,18 +77,36 @@ assert abs(x.grad - exact) < 1e-14 and abs(fd - exact) < 1e-9
 # value is listed (and its `_backward` run) once per path to it, and each run adds its whole
 # `grad` again. The number of calls grows as 2ⁿ and the gradient is wrong.
 
+
 # %%
-for dedupe in (True, False):
+def order_forgetting_seen(self):
+    """The lesson's `topological_order` with a `visit` that forgets `seen`."""
+    order = []
+
+    def visit(v):  # a value is appended once per path from the output to it
+        for p in v.parents:
+            visit(p)
+        order.append(v)
+
+    visit(self)
+    return order
+
+
+lesson_order = Value.topological_order
+for dedupe, order in ((True, lesson_order), (False, order_forgetting_seen)):
+    Value.topological_order = order
     x = Value(1.0)
     a = x
     for _ in range(10):
         a = a + a
-    calls = a.backward(dedupe=dedupe)
+    a.backward()
+    calls = len(a.topological_order())  # backward runs one _backward per entry
     print(f"dedupe={dedupe!s:<5}: x.grad = {x.grad:>10.0f}, _backward calls = {calls}")
     if dedupe:
         assert x.grad == 1024 and calls == 11
     else:
         assert x.grad != 1024 and calls == 2**11 - 1
+Value.topological_order = lesson_order
 
 # %% [markdown]
 # ## Exercise 3

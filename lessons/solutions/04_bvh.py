@@ -17,6 +17,7 @@
 import contextlib
 import io
 import runpy
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +30,7 @@ from render.trace.intersect import intersect_triangle, make_ray, pack_primitives
 with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
     # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
     here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+    sys.path.insert(0, str(here.parent))  # lessons/course.py, lessons/exercise_checks.py
     lesson = runpy.run_path(str(here.parent / "04_bvh.py"))
 closest_hit_counted, sah_cost = lesson["closest_hit_counted"], lesson["sah_cost"]
 triangles = lesson["triangles"]
@@ -108,9 +110,6 @@ assert far[0] < 0.4 * near[0] and far[2] > near[2]
 # triangle's plane has `det = 0`.
 
 # %%
-import sys  # noqa: E402
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # lessons/: exercise_checks
 from exercise_checks import check_any_hit, check_intersection  # noqa: E402
 
 

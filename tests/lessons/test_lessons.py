@@ -77,6 +77,7 @@ def agrees(value: float, number: str, rel: str) -> bool:
 def run_script(path: Path, out: Path, monkeypatch) -> dict:
     monkeypatch.setenv("LESSONS_OUT", str(out))
     monkeypatch.setattr(sys, "argv", [str(path)])
+    monkeypatch.syspath_prepend(str(path.parent))  # a script's folder comes first on the path
     return runpy.run_path(str(path), run_name="__main__")
 
 

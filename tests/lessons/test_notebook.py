@@ -61,7 +61,8 @@ def test_a_notebook_writes_its_figures_to_out_lessons_beside_lessons(tmp_path, m
     monkeypatch.delenv("LESSONS_OUT", raising=False)
     lesson = tmp_path / "lessons" / "01_tape.py"
     lesson.parent.mkdir()
-    shutil.copy(ROOT / "lessons" / "01_tape.py", lesson)
+    for name in ("01_tape.py", "course.py"):
+        shutil.copy(ROOT / "lessons" / name, lesson.parent / name)
     _runner().execute_lesson(lesson, tmp_path / "notebook.ipynb")
     figures = [p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.png")]
     assert figures == ["out/lessons/01_tape/fd_error.png"]
