@@ -72,6 +72,9 @@ class Light(HasFields, ABC):
     #: The parameter t at which a shadow ray from ``shadow_rays`` (or one along
     #: ``towards``) reaches the light: 1.0 for a light at a point, inf for one at infinity.
     shadow_ray_end: ClassVar[float]
+    #: Whether ``render.shade.compiled``'s kernel shades it (``shading_pack``): its KIND's
+    #: formula there is this light's ``incidence``. A new light type starts without.
+    compiled_shading: ClassVar[bool] = False
     color: Tensor
 
     @abstractmethod
@@ -104,11 +107,12 @@ class Light(HasFields, ABC):
         """(KIND, (3,) float64) for compiled kernels: a point light's position, a
         directional light's direction of travel as given (``unit``: divided by its length)."""
 
-    @abstractmethod
     def shading_pack(self) -> tuple[int, np.ndarray, float]:
         """(KIND, (3,) float64, strength) for ``render.shade.compiled``: the position, or the
         unit vector towards the light as ``incidence`` computes it; the intensity or
-        irradiance."""
+        irradiance. Only for a light with ``compiled_shading`` (the others are shaded on
+        the tape only)."""
+        raise TypeError(f"{type(self).__name__} has no compiled shading")
 
     @abstractmethod
     def edge_plane(self, v_i, v_j):
@@ -152,6 +156,7 @@ class PointLight(Light):
 
     KIND = POINT
     shadow_ray_end = 1.0
+    compiled_shading = True
     FIELDS = (Field("position", ((3,),), IN_RANGE), _strength("intensity"), _LIGHT_COLOR)
 
     def __init__(self, position: ArrayLike, intensity: ArrayLike, color: ArrayLike = WHITE):
@@ -222,6 +227,7 @@ class DirectionalLight(Light):
 
     KIND = DIRECTIONAL
     shadow_ray_end = math.inf
+    compiled_shading = True
     # Shading and shadow rays divide by the direction's length: it must not underflow.
     _DIRECTION = Field("direction", ((3,),), (normalisable, "a vector of length 1e-150 to 1e150"))
     FIELDS = (_DIRECTION, _strength("irradiance"), _LIGHT_COLOR)

@@ -40,8 +40,10 @@ def applies(scene: Scene, obj, reflects: bool) -> bool:
     """Whether ``shade_mesh_values`` gives ``obj``'s camera hits their colour: a mesh in a
     float64 scene, ``reflects`` False (no mirror ray leaves it), and, while gradients are
     enabled, nothing its colour depends on differentiated (the camera, the mesh, its
-    material, the lights)."""
+    material, the lights); and every light one the kernel shades (``compiled_shading``)."""
     if not isinstance(obj, Mesh) or reflects:
+        return False
+    if not all(light.compiled_shading for light in scene.lights):
         return False
     owners = [scene.camera, obj, obj.material, *scene.lights]
     depends = [t for owner in owners for t in owner.named_parameters().values()]

@@ -122,3 +122,32 @@ def test_sphere_outline_is_where_the_light_grazes(light):
 
 def test_sphere_outline_light_inside():
     assert PointLight((0.0, 0.0, 0.0), 1.0).sphere_outline(np.zeros(3), 1.0) is None
+
+
+class HalfLight(PointLight):
+    """A new light type defined here only: a point light at half its intensity, shaded on
+    the tape (no compiled kernel knows it)."""
+
+    compiled_shading = False
+
+    def incidence(self, points):
+        to_light, irradiance = super().incidence(points)
+        return to_light, irradiance * 0.5
+
+
+def test_a_new_light_type_needs_only_its_class():
+    """A light type the renderer has never seen renders (shadows, shading, the cache) and
+    differentiates through its own ``incidence``, with every other method inherited."""
+    from render.renderer import render
+    from render.scene.teapot import paper_scene
+
+    scene = paper_scene(24, 24, ground=True)
+    with md.no_grad():
+        full = render(scene).data
+    light = scene.lights[0]
+    half = HalfLight(md.tensor(light.position.data.copy(), requires_grad=True), light.intensity)
+    scene.lights[0] = half
+    image = render(scene)
+    np.testing.assert_allclose(image.data, full * 0.5, rtol=1e-12, atol=1e-15)
+    md.sum(image).backward()
+    assert np.any(half.position.grad != 0.0)
