@@ -15,9 +15,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import torch
 
-import render.torch as rtorch
 from render.inverse.networks import FieldSetup, field_texture, held_out_psnr, mlp
 from render.scene.teapot import paper_scene
 
@@ -27,6 +25,10 @@ def train_field_torch(
 ) -> dict:
     """The same training in PyTorch: the network and Adam are PyTorch's; the renderer is
     called through ``render.torch`` with the views' texture as its one parameter."""
+    import torch  # an optional extra: imported where it is used
+
+    import render.torch as rtorch
+
     params = [torch.tensor(w, dtype=torch.float64, requires_grad=True) for w in weights]
     opt = torch.optim.Adam(params, lr=lr)
     f = rtorch.function(setup.views, ["objects[0].material.texture"])
@@ -80,6 +82,10 @@ def train_light_network(
     the renderer (the network's guess as the start of an inverse-rendering fit), and the
     same refinement started from the box centre instead, for comparison. Returns those
     errors, the loss curve, the number of renders and the time."""
+    import torch
+
+    import render.torch as rtorch
+
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     scene = paper_scene(size, size)
