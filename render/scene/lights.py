@@ -36,6 +36,13 @@ from render.scene.fields import IN_RANGE, ArrayLike, Field, HasFields, normalisa
 
 __all__ = ["DIRECTIONAL", "POINT", "DirectionalLight", "Light", "PointLight"]
 
+#: Values a formula is written over: minidiff tensors (on the tape) or plain arrays.
+Values = Tensor | np.ndarray
+#: Rays (origins (k, 3), directions (k, 3), tmax (k,) or one float for all).
+Rays = tuple[np.ndarray, np.ndarray, np.ndarray | float]
+#: A circle: its centre (3,) and two orthogonal radius vectors u1, u2 (3,) each.
+Circle = tuple[np.ndarray, np.ndarray, np.ndarray]
+
 #: The kind codes compiled kernels switch on (``Light.KIND``).
 POINT, DIRECTIONAL = 0, 1
 
@@ -50,12 +57,12 @@ _LIGHT_COLOR = Field("color", ((3,),))
 WHITE = (1.0, 1.0, 1.0)
 
 
-def _value(param: Tensor, like: Any) -> Tensor | np.ndarray:
+def _value(param: Tensor, like: Any) -> Values:
     """``param`` itself when ``like`` is a tensor (on the tape), else its values, float64."""
     return param if isinstance(like, Tensor) else np.asarray(param.data, np.float64)
 
 
-def _cross(a, b):
+def _cross(a: Values, b: Values) -> Values:
     """a x b along the last axis: on the tape if either is a tensor."""
     if isinstance(a, Tensor) or isinstance(b, Tensor):
         return md.cross(a, b)
@@ -82,18 +89,18 @@ class Light(HasFields, ABC):
         """(3,) float64: where the light is; None for a light at infinity."""
 
     @abstractmethod
-    def towards(self, points):
+    def towards(self, points: Values) -> Values:
         """The vector (k, 3) or (3,) from points (k, 3) to the light, not normalised (a
         tensor if ``points`` is one, on the tape)."""
 
     @abstractmethod
-    def incidence(self, points) -> tuple[Tensor, Tensor]:
+    def incidence(self, points: Values) -> tuple[Tensor, Tensor]:
         """On the tape, per point (k, 3): the unit direction to the light (k, 3) or (3,) and
         the irradiance (k,) or a scalar on a surface facing it (no cosine yet), to be
         multiplied by ``color``."""
 
     @abstractmethod
-    def shadow_rays(self, points: np.ndarray, offset: float):
+    def shadow_rays(self, points: np.ndarray, offset: float) -> Rays:
         """Rays from points (k, 3) towards the light, each started ``offset`` towards it:
         (origins (k, 3), directions (k, 3), tmax (k,) or a float): the ray is blocked by a hit
         with 0 < t < tmax."""
@@ -115,25 +122,25 @@ class Light(HasFields, ABC):
         raise TypeError(f"{type(self).__name__} has no compiled shading")
 
     @abstractmethod
-    def edge_plane(self, v_i, v_j):
+    def edge_plane(self, v_i: Values, v_j: Values) -> tuple[Values, Values]:
         """The plane an occluder's edge from v_i to v_j (k, 3) sweeps in this light, the
         border of its shadow: (m, base), e(P) = m . (P - base) is zero on it. Tensors (on the
         tape) or arrays."""
 
     @abstractmethod
-    def ray_to(self, points):
+    def ray_to(self, points: Values) -> tuple[Values, Values]:
         """The light's ray reaching points (k, 3), as (origin, direction): P lies on
         origin + t direction (for a sphere occluder's border: the ray grazes the sphere).
         Tensors (on the tape) or arrays."""
 
     @abstractmethod
-    def sphere_outline(self, centre: np.ndarray, radius: float):
+    def sphere_outline(self, centre: np.ndarray, radius: float) -> Circle | None:
         """The outline of a sphere (centre (3,), radius) seen from the light, a circle:
         (its centre (3,), u1 (3,), u2 (3,)), its points centre + cos(phi) u1 + sin(phi) u2;
         None if the light cannot see it from outside."""
 
 
-def _circle(centre: np.ndarray, radius: float, view: np.ndarray, shrink: float):
+def _circle(centre: np.ndarray, radius: float, view: np.ndarray, shrink: float) -> Circle:
     """The circle where rays along ``view`` (3,) touch the sphere, ``shrink`` = r^2 / |view|^2
     of the way back along ``view`` from the centre (0: rays from infinity)."""
     dist2 = float(view @ view)
@@ -166,10 +173,10 @@ class PointLight(Light):
     def location(self) -> np.ndarray:
         return np.asarray(self.position.data, dtype=np.float64)
 
-    def towards(self, points):
+    def towards(self, points: Values) -> Values:
         return _value(self.position, points) - points
 
-    def incidence(self, points) -> tuple[Tensor, Tensor]:
+    def incidence(self, points: Values) -> tuple[Tensor, Tensor]:
         offset = self.towards(points)
         # A light exactly on the surface would give 0/0: divide by 1 there instead (the
         # contribution is zero anyway, since the direction to the light is zero). Only exact
@@ -179,7 +186,7 @@ class PointLight(Light):
         distance_sq = md.where(distance_sq.data == 0, 1.0, distance_sq)
         return md.normalize(offset), self.intensity / distance_sq
 
-    def shadow_rays(self, points: np.ndarray, offset: float):
+    def shadow_rays(self, points: np.ndarray, offset: float) -> Rays:
         points = np.asarray(points, np.float64)
         origins = buffers.empty(points.shape, np.float64)
         directions = buffers.empty(points.shape, np.float64)
@@ -196,15 +203,15 @@ class PointLight(Light):
     def shading_pack(self) -> tuple[int, np.ndarray, float]:
         return POINT, self.position.data, self.intensity.data
 
-    def edge_plane(self, v_i, v_j):
+    def edge_plane(self, v_i: Values, v_j: Values) -> tuple[Values, Values]:
         position = _value(self.position, v_i)
         return _cross(v_i - position, v_j - position), position
 
-    def ray_to(self, points):
+    def ray_to(self, points: Values) -> tuple[Values, Values]:
         position = _value(self.position, points)
         return position, points - position
 
-    def sphere_outline(self, centre: np.ndarray, radius: float):
+    def sphere_outline(self, centre: np.ndarray, radius: float) -> Circle | None:
         view = centre - self.location()
         dist2 = float(view @ view)
         if dist2 <= radius * radius:
@@ -239,13 +246,13 @@ class DirectionalLight(Light):
     def location(self) -> None:
         return None
 
-    def towards(self, points):
+    def towards(self, points: Values) -> Values:
         return -_value(self.direction, points)
 
-    def incidence(self, points) -> tuple[Tensor, Tensor]:
+    def incidence(self, points: Values) -> tuple[Tensor, Tensor]:
         return md.normalize(self.towards(points)), self.irradiance
 
-    def shadow_rays(self, points: np.ndarray, offset: float):
+    def shadow_rays(self, points: np.ndarray, offset: float) -> Rays:
         # Unit length: the user's direction may have any length.
         towards = -np.asarray(self.direction.data, np.float64)
         unit = towards / np.linalg.norm(towards)
@@ -263,13 +270,13 @@ class DirectionalLight(Light):
         with md.no_grad():
             return DIRECTIONAL, md.normalize(-self.direction).data, self.irradiance.data
 
-    def edge_plane(self, v_i, v_j):
+    def edge_plane(self, v_i: Values, v_j: Values) -> tuple[Values, Values]:
         return _cross(v_j - v_i, _value(self.direction, v_i)), v_i
 
-    def ray_to(self, points):
+    def ray_to(self, points: Values) -> tuple[Values, Values]:
         return points, _value(self.direction, points)
 
-    def sphere_outline(self, centre: np.ndarray, radius: float):
+    def sphere_outline(self, centre: np.ndarray, radius: float) -> Circle | None:
         return _circle(centre, radius, np.asarray(self.direction.data, np.float64), 0.0)
 
 

@@ -112,7 +112,7 @@ class Camera(HasFields):
 
     The default ``fov`` (39.5978 degrees) is a 50 mm lens on a 36 mm wide sensor, as in the
     paper's reference scene. All continuous arguments become ``minidiff.Tensor`` s
-    (see the module docstring); ``width``/``height`` stay ints.
+    (``render.scene.fields``); ``width``/``height`` stay ints.
     """
 
     FIELDS = (
