@@ -140,6 +140,7 @@ def test_a_new_light_type_needs_only_its_class():
     differentiates through its own ``incidence``, with every other method inherited."""
     from render.renderer import render
     from render.scene.teapot import paper_scene
+    from render.shade import compiled
 
     scene = paper_scene(24, 24, ground=True)
     with md.no_grad():
@@ -147,6 +148,8 @@ def test_a_new_light_type_needs_only_its_class():
     light = scene.lights[0]
     half = HalfLight(md.tensor(light.position.data.copy(), requires_grad=True), light.intensity)
     scene.lights[0] = half
+    with md.no_grad():  # nothing differentiated, yet the compiled pass does not know it
+        assert not compiled.applies(scene, scene.objects[0], reflects=False)
     image = render(scene)
     np.testing.assert_allclose(image.data, full * 0.5, rtol=1e-12, atol=1e-15)
     md.sum(image).backward()
