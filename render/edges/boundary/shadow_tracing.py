@@ -1,0 +1,414 @@
+"""Finding the shadow borders of the boundary term, off the tape: curves of secondary
+visibility as image segments (``border_chords``).
+
+A point light L casts past an occluder's silhouette *as seen from the light* a shadow whose
+border, on the receiving surface, is where the light's ray to the receiver point grazes the
+occluder (``render.edges.boundary.shadow_border`` writes that border's edge function e and
+adds its term). Each silhouette curve of each occluder seen from the light (mesh edges whose
+faces do not all face the light, open edges, a sphere's circle of tangency;
+``_light_silhouettes``) is followed by rays from the light that graze it; where such a ray
+goes on to hit a receiver, it marks a point of the border. Consecutive points on one
+receiver triangle are joined by a chord, exact while the occluder is an edge and the
+receiver a triangle (the border is then straight), and at most ``CHORD`` pixels long
+otherwise; where the receiver changes, the curve parameter is bisected until the gap is
+below ``GAP`` pixels (``bisect_chords``, one compiled pass; its plain NumPy statement,
+round by round, is ``tests/render/edges/shadow_reference.py``, and a test ties the two).
+
+Not included: shadow borders seen in mirrors, and a receiver narrower than the spacing of
+the grazing rays: they start ``SPACING`` pixels apart along the occluder's image and are
+refined where the border they draw is longer than that, but a small receiver between two
+rays that both miss it, or both hit the same other one, is not seen.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from render.scene.camera import plain_camera, project
+from render.scene.scene import PointLight, Scene
+from render.trace.intersect import closest_hit_ray, make_ray
+from render.trace.primitives import first_sphere_id
+from render.trace.visibility import Visibility
+
+#: Where the border is curved (a sphere casts it or receives it), chords at most this long.
+CHORD = 0.5
+#: Grazing rays along a silhouette are at most this far apart, in image pixels, while they
+#: hit the same receiver (so that a small receiver between two of them is rarely missed).
+SPACING = 2.0
+#: Where the receiver changes between two grazing rays, bisect until they are this close.
+GAP = 1e-3
+#: Bisection rounds at most. A chord is at most SPACING = 2 pixels long at the start, so
+#: after 20 halvings what is left of one whose receiver jumps (the border falls off one
+#: surface onto another farther away, and the two ends never come within GAP) is ~2e-6
+#: pixels of the border: dropping it changes the term by ~1e-6 of one pixel's share.
+#: (30 rounds changed gradients by < 1e-7 relative on the teapot and its ground, and cost
+#: 10 more rounds of grazing rays for the few dozen chords at such jumps.)
+ROUNDS = 20
+#: Grazing rays start this fraction of the way beyond the occluder (off its own surface).
+START = 1e-7
+
+
+@dataclass
+class BorderChords:
+    """The shadow borders of one render as image segments (off the tape): start, end (k, 2)
+    pixel coordinates; per chord its light (k,) (an index into ``scene.lights``), occluder
+    (k, 3) int64 ((mesh index, v_i, v_j) of an occluder edge, or (-1, sphere index, -1) of
+    an occluder sphere) and receiver (k,) (the primitive, global id, the border lies on)."""
+
+    start: np.ndarray
+    end: np.ndarray
+    light: np.ndarray
+    occluder: np.ndarray
+    receiver: np.ndarray
+
+
+# ---------------------------------------------------------------------------------------
+# The silhouettes as seen from the light, as curves S(u), u in [0, 1]
+# ---------------------------------------------------------------------------------------
+
+
+def _edge_faces(scene: Scene, topology, shared=None) -> list[tuple]:
+    """Per mesh, for every face on every welded edge (``EdgeTable.faces``, (E, K), then the
+    faces other meshes have on it, ``render.trace.seams.SharedEdges.faces``, when
+    ``shared`` is given): its normal (E, K', 3), first corner (E, K', 3) and whether the
+    slot holds a face (E, K') bool; the same for every light, so computed once per
+    render."""
+    out = []
+    if shared is not None:
+        every = [np.asarray(m.vertices.data, np.float64)[m.faces] for m in scene.meshes]
+        triangles = np.concatenate(every)  # (N, 3, 3), by global primitive id
+    for k, mesh in enumerate(scene.meshes):
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        faces = topology[k].table.faces
+        tri = vertices[mesh.faces[np.maximum(faces, 0)]]  # (E, K, 3, 3)
+        valid = faces >= 0
+        if shared is not None:
+            tri = np.concatenate([tri, triangles[np.maximum(shared[k].faces, 0)]], axis=1)
+            valid = np.concatenate([valid, shared[k].faces >= 0], axis=1)
+        normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
+        out.append((normal, tri[..., 0, :], valid))
+    return out
+
+
+def _light_silhouettes(scene: Scene, topology, light, edge_faces, shared=None):
+    """Occluder curves of one light: (occluder (c, 3) int64 as in ``BorderChords``, curve
+    kind per row: 0 a segment from ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius
+    vector ``b`` and second axis ``axis`` (c, 3)). ``edge_faces``: ``_edge_faces``;
+    ``shared``: the edges meshes share (``render.trace.seams.shared_edges``, None: none),
+    each an occluder's silhouette once, judged by every mesh's faces on it."""
+    rows, a, b, axis = [], [], [], []
+    point = isinstance(light, PointLight)
+    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
+    for k, mesh in enumerate(scene.meshes):
+        table = topology[k].table
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        normal, corner, valid = edge_faces[k]
+        towards = (where - corner) if point else -where
+        facing = np.sign(np.sum(normal * towards, axis=-1))
+        lit = np.any(valid & (facing > 0), axis=1)
+        dark = np.any(valid & (facing < 0), axis=1)
+        keep = (lit & dark) | (valid.sum(axis=1) == 1)
+        if shared is not None:
+            joined = np.any(shared[k].faces >= 0, axis=1)
+            own = vertices[np.maximum(table.thirds, 0)]
+            thirds = np.concatenate([own, shared[k].thirds], axis=1)
+            one_side = _one_sided(vertices[table.i], vertices[table.j], thirds, valid, where, point)
+            # Where faces of several meshes meet, their windings need not agree (two
+            # coincident copies, a seam between differently wound parts): the edge is an
+            # outline seen from the light where all their third corners lie on one side
+            # of the plane through the light and the edge.
+            keep = np.where(joined, one_side, keep) & shared[k].owned
+        keep = np.flatnonzero(keep)
+        rows.append(np.stack([np.full(len(keep), k), table.i[keep], table.j[keep]], axis=1))
+        a.append(vertices[table.i[keep]])
+        b.append(vertices[table.j[keep]])
+        axis.append(np.zeros((len(keep), 3)))
+    for index, sphere in enumerate(scene.spheres):
+        centre, r = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
+        view = (centre - where) if point else where
+        dist2 = float(view @ view)
+        if point and dist2 <= r * r:
+            continue  # the light inside the sphere: everything outside is dark
+        shrink = r * r / dist2 if point else 0.0
+        rho = r * math.sqrt(1.0 - shrink)
+        u1 = np.cross(view, [1.0, 0, 0] if abs(view[0]) < 0.9 * math.sqrt(dist2) else [0, 1.0, 0])
+        u1 *= rho / np.linalg.norm(u1)
+        u2 = np.cross(view, u1) / math.sqrt(dist2)
+        rows.append(np.array([[-1, index, -1]]))
+        a.append((centre - shrink * view)[None])
+        b.append(u1[None])
+        axis.append(u2[None])
+    occluder = np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
+    kind = (occluder[:, 0] < 0).astype(np.int64)
+    cat = (lambda x: np.concatenate(x)) if rows else (lambda x: np.zeros((0, 3)))
+    return occluder, kind, cat(a), cat(b), cat(axis)
+
+
+def _one_sided(a, b, thirds, valid, where, point: bool) -> np.ndarray:
+    """(E,) bool: edges (a, b) (E, 3) whose faces' third corners ``thirds`` (E, K, 3) (where
+    ``valid`` (E, K)) all lie on one side of the plane through the light and the edge
+    (``where``: a point light's position, or a directional light's direction)."""
+    m = np.cross(a - where, b - where) if point else np.cross(b - a, where)
+    side = np.einsum("ekj,ej->ek", thirds - a[:, None], m)
+    plus = np.any(valid & (side > 0), axis=1)
+    minus = np.any(valid & (side < 0), axis=1)
+    return ~(plus & minus)
+
+
+# ---------------------------------------------------------------------------------------
+# Following the border: grazing rays, bisection, chords (``bisect_chords``)
+# ---------------------------------------------------------------------------------------
+
+
+def _starting_chords(scene, frame, curves):
+    """Where the grazing rays start: each curve at 2 points plus one per SPACING pixels of
+    its image from the camera, as chords (curve (n,), u0 (n,), u1 (n,)); and per curve
+    the sphere a ray grazing it must not count as its receiver (``own`` (c,), -2: none)."""
+    occluder, kind, a, b, axis = curves
+    camera = scene.camera
+    ends = np.concatenate([a, np.where(kind[:, None] == 1, a + b, b)])
+    px, depth = project(ends, frame, camera.width, camera.height)
+    ok = (depth[: len(a)] > 0) & (depth[len(a) :] > 0)
+    span = np.where(ok, np.linalg.norm(px[: len(a)] - px[len(a) :], axis=1), 0.0)
+    span = np.where(kind == 1, 2.0 * math.pi * span, span)
+    count = np.clip(np.ceil(span / SPACING), 4 * kind + 1, 4096).astype(np.int64)
+    curve = np.repeat(np.arange(len(a)), count)
+    first = np.repeat(np.cumsum(count) - count, count)
+    u0 = (np.arange(len(curve)) - first) / count[curve]
+    own = np.where(kind == 1, first_sphere_id(scene) + occluder[:, 1], -2)
+    return (curve, u0, u0 + 1.0 / count[curve]), own
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _curve_point(kind, a, b, axis, u, out):
+    """The point S(u) of one curve (kind 0: the segment from a to b; 1: the circle with
+    centre a, radius vector b and second axis ``axis``) at parameter u in [0, 1], into out
+    (3,)."""
+    if kind == 1:
+        phi = 2.0 * math.pi * u
+        cos, sin = math.cos(phi), math.sin(phi)
+        for c in range(3):
+            out[c] = a[c] + cos * b[c] + sin * axis[c]
+    else:
+        for c in range(3):
+            out[c] = a[c] + u * (b[c] - a[c])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, stack_t, px):
+    """Where the light's ray grazing the point s (3,) of a curve goes on to hit: the
+    receiver (-1: nothing, behind the camera, or ``own``, the sphere grazed, which a ray
+    touching it meets again only by rounding) and its pixel position, written to px (2,).
+    ``where``: the light's position if ``point``, else its unit direction."""
+    forward, right, up, eye = frame
+    hit = np.empty(3)
+    if point:
+        d = np.empty(3)
+        for c in range(3):
+            d[c] = s[c] - where[c]
+        prim, t, _, _ = closest_hit_ray(
+            bvh, make_ray(where, d, 1.0 + START, np.inf), stack, stack_t
+        )
+        for c in range(3):
+            hit[c] = where[c] + (t if prim >= 0 else 0.0) * d[c]
+    else:
+        ray = make_ray(s, where, START * size, np.inf)
+        prim, t, _, _ = closest_hit_ray(bvh, ray, stack, stack_t)
+        for c in range(3):
+            hit[c] = s[c] + (t if prim >= 0 else 0.0) * where[c]
+    if prim < 0:
+        px[0] = px[1] = 0.0
+        return -1
+    rel = hit - eye
+    depth = rel[0] * forward[0] + rel[1] * forward[1] + rel[2] * forward[2]
+    rr = right[0] * right[0] + right[1] * right[1] + right[2] * right[2]
+    uu = up[0] * up[0] + up[1] * up[1] + up[2] * up[2]
+    x = (rel[0] * right[0] + rel[1] * right[1] + rel[2] * right[2]) / (depth * rr)
+    y = (rel[0] * up[0] + rel[1] * up[1] + rel[2] * up[2]) / (depth * uu)
+    if not (depth > 1e-7 * size) or prim == own:
+        px[0] = px[1] = 0.0
+        return -1
+    px[0], px[1] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
+    return prim
+
+
+#: ``bisect_chords`` deals the starting chords to threads in this many blocks per thread
+#: (the work per chord varies: a chord over a busy receiver is cut many times).
+BLOCKS_PER_THREAD = 8
+#: Rows of chords each block may write at first: this many per starting chord in it, and
+#: SPARE_ROWS more (measured on the teapot and its ground, 32x32 to 512x512: at most 6.5
+#: chords per starting chord beyond 64 at 512x512, 17 at 32x32, where blocks are short).
+#: A block that needs more makes the whole pass run again with four times the room.
+CHORDS_PER_START = 8
+SPARE_ROWS = 1024
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def bisect_chords(
+    bvh, curves, where, point, own, start, frame, width, height, size, first_sphere, n_threads,
+    room,
+):  # fmt: skip
+    """The border's chords, bisected: each starting chord (``start`` = curve (n,), u0 (n,),
+    u1 (n,)) followed depth first, one grazing ray at a time (traced in ``bvh``): a chord
+    over one receiver longer than SPACING (CHORD where a sphere casts or receives) is
+    halved, and one whose ends see different receivers is halved until they are GAP apart,
+    ROUNDS times at most. ``curves`` = (kind, a, b, axis) per curve; ``where``
+    (c, 3), ``point`` (c,) and ``own`` (c,) per curve. Returns the chords (x0 (m, 2), x1
+    (m, 2), curve (m,), receiver (m,)). ``tests/render/edges/shadow_reference.py`` states
+    the same bisection round by round in NumPy, and test_shadow_edges.py ties the two.
+
+    The starting chords are cut into blocks, dealt to ``n_threads`` threads
+    (``numba.get_num_threads()``) in turn; each block writes its chords to its own rows of
+    shared arrays (arrays, not a list of parts: Numba does not support lists written in a
+    prange), and the blocks are read back in block order: the same rows in the same order
+    on any number of threads."""
+    n = len(start[0])
+    n_blocks = max(1, min(n, BLOCKS_PER_THREAD * n_threads))
+    bounds = (np.arange(n_blocks + 1) * n) // n_blocks
+    n_jobs = min(n_blocks, max(1, n_threads))
+    # ``room``: rows per block at first; 0 (the renderer) sizes them from ``n``, a positive
+    # value (the tests) forces that many. A required argument: a default would make Numba
+    # compile a second signature (the call with it omitted), ~5 s more on every fresh install.
+    if room <= 0:
+        room = CHORDS_PER_START * ((n + n_blocks - 1) // n_blocks) + SPARE_ROWS
+    while True:
+        x0s, x1s = np.empty((n_blocks * room, 2)), np.empty((n_blocks * room, 2))
+        curve_out = np.empty(n_blocks * room, np.int64)
+        receiver_out = np.empty(n_blocks * room, np.int64)
+        count = np.empty(n_blocks, np.int64)
+        for job in numba.prange(n_jobs):
+            for block in range(job, n_blocks, n_jobs):
+                count[block] = _bisect_block(
+                    bvh, curves, where, point, own, start, bounds[block], bounds[block + 1],
+                    frame, width, height, size, first_sphere,
+                    (x0s, x1s, curve_out, receiver_out), block * room, room,
+                )  # fmt: skip
+        if np.all(count >= 0):
+            break
+        room *= 4  # some block ran out of rows: again, with more (the same chords)
+    keep = np.empty(np.sum(count), np.int64)
+    m = 0
+    for block in range(n_blocks):
+        keep[m : m + count[block]] = np.arange(block * room, block * room + count[block])
+        m += count[block]
+    return x0s[keep], x1s[keep], curve_out[keep], receiver_out[keep]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _bisect_block(
+    bvh, curves, where, point, own, start, first, last, frame, width, height, size,
+    first_sphere, out, offset, room,
+):  # fmt: skip
+    """``bisect_chords`` for the starting chords first..last - 1: their chords written to
+    rows offset, offset + 1, ... of ``out`` = (x0, x1, curve, receiver). Returns how many,
+    or -1 if they need more than ``room`` rows."""
+    x0s, x1s, curve_out, receiver_out = out
+    kind, a, b, axis = curves
+    curve0, u0s, u1s = start
+    stack = np.empty(bvh.stack_size, np.int64)
+    stack_t = np.empty(bvh.stack_size)
+    m = 0
+    # A pending interval: (u0, u1, receiver and pixel at either end, its round).
+    todo_u = np.empty((2 * ROUNDS + 4, 2))
+    todo_p = np.empty((2 * ROUNDS + 4, 2), np.int64)
+    todo_x = np.empty((2 * ROUNDS + 4, 4))
+    todo_r = np.empty(2 * ROUNDS + 4, np.int64)
+    s, px = np.empty(3), np.empty(2)
+    for k in range(first, last):
+        cv = curve0[k]
+        curved_curve = kind[cv] == 1
+        _curve_point(kind[cv], a[cv], b[cv], axis[cv], u0s[k], s)
+        p_a = _graze_one(
+            bvh, where[cv], point[cv], s, own[cv], frame, width, height, size, stack, stack_t, px
+        )
+        xa0, xa1 = px[0], px[1]
+        _curve_point(kind[cv], a[cv], b[cv], axis[cv], u1s[k], s)
+        p_b = _graze_one(
+            bvh, where[cv], point[cv], s, own[cv], frame, width, height, size, stack, stack_t, px
+        )
+        todo_u[0, 0], todo_u[0, 1] = u0s[k], u1s[k]
+        todo_p[0, 0], todo_p[0, 1] = p_a, p_b
+        todo_x[0, 0], todo_x[0, 1], todo_x[0, 2], todo_x[0, 3] = xa0, xa1, px[0], px[1]
+        todo_r[0] = 0
+        n = 1
+        while n > 0:
+            n -= 1
+            lo, hi = todo_u[n, 0], todo_u[n, 1]
+            p0, p1 = todo_p[n, 0], todo_p[n, 1]
+            x00, x01, x10, x11 = todo_x[n, 0], todo_x[n, 1], todo_x[n, 2], todo_x[n, 3]
+            rounds = todo_r[n]
+            both = p0 >= 0 and p1 >= 0
+            length = math.sqrt((x10 - x00) ** 2 + (x11 - x01) ** 2) if both else 0.0
+            curved = curved_curve or p0 >= first_sphere
+            long = p0 == p1 and both and length > (CHORD if curved else SPACING)
+            change = p0 != p1 and not (both and length < GAP)
+            if (long or change) and rounds < ROUNDS:
+                mid = 0.5 * (lo + hi)
+                _curve_point(kind[cv], a[cv], b[cv], axis[cv], mid, s)
+                pm = _graze_one(bvh, where[cv], point[cv], s, own[cv], frame, width, height,
+                                size, stack, stack_t, px)  # fmt: skip
+                # the upper half first on the stack, so the lower one is taken next
+                todo_u[n, 0], todo_u[n, 1] = mid, hi
+                todo_p[n, 0], todo_p[n, 1] = pm, p1
+                todo_x[n, 0], todo_x[n, 1], todo_x[n, 2], todo_x[n, 3] = px[0], px[1], x10, x11
+                todo_r[n] = rounds + 1
+                todo_u[n + 1, 0], todo_u[n + 1, 1] = lo, mid
+                todo_p[n + 1, 0], todo_p[n + 1, 1] = p0, pm
+                todo_x[n + 1, 0], todo_x[n + 1, 1] = x00, x01
+                todo_x[n + 1, 2], todo_x[n + 1, 3] = px[0], px[1]
+                todo_r[n + 1] = rounds + 1
+                n += 2
+                continue
+            if p0 == p1 and p0 >= 0:
+                if m == room:
+                    return -1
+                r = offset + m
+                x0s[r, 0], x0s[r, 1], x1s[r, 0], x1s[r, 1] = x00, x01, x10, x11
+                curve_out[r], receiver_out[r] = cv, p0
+                m += 1
+    return m
+
+
+def border_chords(
+    scene: Scene, visibility: Visibility, frame, topology, shared=None
+) -> BorderChords:
+    """The chords of every light's shadow borders (module docstring); ``topology``:
+    ``mesh_edges`` per mesh; ``shared``: the edges meshes share
+    (``render.trace.seams.shared_edges``, None: none). None of them without shadows."""
+    plain = plain_camera(frame)
+    size = max(visibility.size, 1e-300)
+    parts = []
+    edge_faces = (
+        _edge_faces(scene, topology, shared) if visibility.shadows and scene.lights else None
+    )
+    for j, light in enumerate(scene.lights if visibility.shadows else []):
+        curves = _light_silhouettes(scene, topology, light, edge_faces, shared)
+        parts.append((*curves, np.full(len(curves[0]), j)))
+    if parts:
+        *curves, light = (np.concatenate(p) for p in zip(*parts, strict=True))
+    if not parts or len(light) == 0:
+        empty = np.zeros(0, np.int64)
+        return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
+                            np.zeros((0, 3), np.int64), empty)  # fmt: skip
+    start, own = _starting_chords(scene, plain, curves)
+    towards = np.array([_towards(x) for x in scene.lights])
+    point = np.array([isinstance(x, PointLight) for x in scene.lights])
+    camera = scene.camera
+    x0, x1, curve, receiver = bisect_chords(
+        visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
+        own, start, plain, camera.width, camera.height, size, first_sphere_id(scene),
+        numba.get_num_threads(), 0,
+    )  # fmt: skip
+    return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
+
+
+def _towards(light) -> np.ndarray:
+    """(3,): a point light's position, or a directional light's unit direction."""
+    if isinstance(light, PointLight):
+        return np.asarray(light.position.data, np.float64)
+    w = np.asarray(light.direction.data, np.float64)
+    return w / np.linalg.norm(w)
