@@ -34,11 +34,11 @@
 import math
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 from minidiff.tensor import as_tensor, record
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/01_tape/ (or under $LESSONS_OUT).
 OUT = figures_folder("01_tape")
@@ -153,8 +153,7 @@ figure = line_figure(
     logx=True,
     logy=True,
 )
-figure.savefig(OUT / "fd_error.png")
-show(figure)
+save_and_show(figure, OUT / "fd_error.png")
 fd_error_at_1e5 = errors[4]
 fd_error_at_1e1 = errors[0]
 

@@ -28,10 +28,10 @@
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/02_arrays_and_modes/ (or under $LESSONS_OUT).
 OUT = figures_folder("02_arrays_and_modes")
@@ -228,8 +228,7 @@ figure = line_figure(
     logy=True,
     references=("h^2 (truncation)", "eps / h (rounding)"),  # guides: dashed, beneath the data
 )
-figure.savefig(OUT / "fd_step.png")
-show(figure)
+save_and_show(figure, OUT / "fd_step.png")
 print(f"best step {best_h:.1e} with relative error {best_error:.1e}; "
       f"slopes {truncation_slope:.2f} (large h), {rounding_slope:.2f} (small h)")  # fmt: skip
 

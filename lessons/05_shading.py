@@ -44,10 +44,10 @@
 import math
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import render
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 from render.scene.camera import primary_rays
 from render.scene.teapot import PAPER_ALBEDO
 
@@ -118,8 +118,7 @@ figure = line_figure(
     xlabel="x on the plane",
     ylabel="radiance",
 )  # fmt: skip
-figure.savefig(OUT / "falloff.png")
-show(figure)
+save_and_show(figure, OUT / "falloff.png")
 
 # %% [markdown]
 # ## Adding a Blinn-Phong lobe

@@ -32,12 +32,12 @@
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 import render
 from render.inverse import experiments
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/07_inverse_rendering/ (or under $LESSONS_OUT).
 OUT = figures_folder("07_inverse_rendering")
@@ -235,8 +235,7 @@ figure = line_figure(
     ylabel="loss (Eq. 1)",
     logy=True,
 )
-figure.savefig(OUT / "loss_curves.png")
-show(figure)
+save_and_show(figure, OUT / "loss_curves.png")
 rows = [
     [target, initial_image, final_image],
     [material.target, material.initial, material.final],

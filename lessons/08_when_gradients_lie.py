@@ -30,12 +30,12 @@ import math
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 import render
 from render.inverse import experiments
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/08_when_gradients_lie/ (or under $LESSONS_OUT).
 OUT = figures_folder("08_when_gradients_lie")
@@ -378,8 +378,7 @@ figure = line_figure(
     ylabel="position error (%)",
     logy=True,
 )
-figure.savefig(OUT / "camera_calibration_error.png")
-show(figure)
+save_and_show(figure, OUT / "camera_calibration_error.png")
 
 # %% [markdown]
 # At this size and budget the antialiased run ends below `1.5`

@@ -27,11 +27,11 @@ import math
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 import render
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/09_beyond/ (or under $LESSONS_OUT).
 OUT = figures_folder("09_beyond")
@@ -249,8 +249,7 @@ figure = line_figure(
 figure.axes[0].set_aspect("equal")
 for q, colour in ((fits[0.0][0], "C0"), (fits[1e-2][0], "C1")):
     figure.axes[0].plot(q[:, 0], q[:, 1], ".", color=colour, markersize=4)  # the vertices
-figure.savefig(OUT / "crumpling.png")
-show(figure)
+save_and_show(figure, OUT / "crumpling.png")
 print(f"48 vertices: lambda = 0: {folds_free} folds, edge lengths {spacing_free:.1f}:1, "
       f"outline {outline_free:.4f}; lambda = 0.01: {folds_reg} folds, {spacing_reg:.2f}:1, "
       f"outline {outline_reg:.4f}")  # fmt: skip

@@ -34,11 +34,11 @@ import time
 import tracemalloc
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 import render
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 from render.path import render_path, replay_gradient
 from render.path.random import uniform
 from render.path.sampling import cosine_hemisphere
@@ -107,8 +107,7 @@ figure = line_figure(
     logy=True,
     references=("1 / sqrt(N)",),
 )
-figure.savefig(OUT / "error_vs_samples.png")
-show(figure)
+save_and_show(figure, OUT / "error_vs_samples.png")
 print(f"E = {exact_E:.6f}; mean of 400 cosine estimates {mean_of_estimates:.6f}")
 for kind, values in rms.items():
     print(kind, " ".join(f"{v:.4f}" for v in values))

@@ -21,12 +21,12 @@
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 import render
 from render.inverse import experiments
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/11_discontinuities/ (or under $LESSONS_OUT).
 OUT = figures_folder("11_discontinuities")
@@ -223,8 +223,7 @@ figure = line_figure(
     xlabel="pixel column",
     ylabel="derivative",
 )
-figure.savefig(OUT / "teapot_row.png")
-show(figure)
+save_and_show(figure, OUT / "teapot_row.png")
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
 # %% [markdown]

@@ -30,12 +30,12 @@
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 
 import minidiff as md
 import render
 from render.inverse.function import RenderFunction
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/12_connecting_autodiff/ (or under $LESSONS_OUT).
 OUT = figures_folder("12_connecting_autodiff")
@@ -189,8 +189,7 @@ if torch is not None:
     figure = line_figure({"loss": (np.arange(len(fit_losses)), fit_losses)},
                          title="The light fitted by torch.optim.Adam through render.torch",
                          xlabel="step", ylabel="image MSE", logy=True)  # fmt: skip
-    figure.savefig(OUT / "torch_fit.png")
-    show(figure)
+    save_and_show(figure, OUT / "torch_fit.png")
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
 # %% [markdown]

@@ -31,14 +31,14 @@
 import time
 
 import numpy as np
-from course import figures_folder
+from course import figures_folder, save_and_show
 from scipy.spatial.transform import Rotation
 
 import minidiff as md
 import render
 from render.inverse.basin import downsample, resized
 from render.inverse.optimize import optimize
-from render.inverse.plot import line_figure, show
+from render.inverse.plot import line_figure
 from render.inverse.reconstruction import (
     dented_blob,
     rotation_error_degrees,
@@ -88,8 +88,7 @@ weakest_at_90 = weakest[90]
 figure = line_figure({"smallest singular value of J": (pitches, weakest)},
                      title="Euler angles: how well every direction can still be turned",
                      xlabel="pitch (degrees)", ylabel="smallest singular value")  # fmt: skip
-figure.savefig(OUT / "gimbal_lock.png")
-show(figure)
+save_and_show(figure, OUT / "gimbal_lock.png")
 print(f"smallest singular value: {weakest_at_45:.4f} at 45°, {weakest_at_85:.4f} at 85°, "
       f"{weakest_at_90:.1e} at 90°")  # fmt: skip
 
@@ -259,8 +258,7 @@ minima_full, minima_coarse = minima["64 x 64"], minima["16 x 16 block means"]
 figure = line_figure(curves, title="Image loss against the teapot's turn (target: 0)",
                      xlabel="turn about the vertical (degrees)",
                      ylabel="loss / its largest value")  # fmt: skip
-figure.savefig(OUT / "basin.png")
-show(figure)
+save_and_show(figure, OUT / "basin.png")
 for name in landscapes:
     print(f"{name:22s} basin {basins[name]}, {minima[name]} other local minima")
 
