@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 import minidiff as md
-from render.scene.camera import camera_frame, image_plane_coords
+from render.scene.camera import image_plane_coords, plain_frame
 from render.scene.scene import Camera, Scene, Sphere
 from render.shade.surface import in_order
 
@@ -43,9 +43,7 @@ def sample_steps(camera: Camera, spp: int, dtype=np.float64) -> np.ndarray:
 def plain_rays(camera: Camera, near: np.ndarray, far: np.ndarray, spp: int):
     """Eye (3,), directions (n, 3) of the near and far samples (float64, off the tape), and
     the factors (2,) that turn an image-plane gradient into sample-grid units."""
-    with md.no_grad():
-        frame = camera_frame(camera)
-    forward, right, up, eye = (np.asarray(t.data, np.float64) for t in frame)
+    forward, right, up, eye = plain_frame(camera)
     basis = np.stack([right, up, forward])
     d_near = _homogeneous(image_plane_coords(camera, near, spp)) @ basis
     d_far = _homogeneous(image_plane_coords(camera, far, spp)) @ basis
@@ -61,6 +59,13 @@ def dot_last(a, b):
     if isinstance(a, md.Tensor) or isinstance(b, md.Tensor):
         return md.dot(a, b)
     return np.sum(a * b, axis=-1)
+
+
+def cross_last(a, b):
+    """Cross product over the last axis, for tensors (on the tape) and plain arrays alike."""
+    if isinstance(a, md.Tensor) or isinstance(b, md.Tensor):
+        return md.cross(a, b)
+    return np.cross(a, b)
 
 
 def as_column(x):

@@ -7,7 +7,8 @@ arrays, the pairs of adjacent samples across a silhouette or crease
 visibility they come from is unchanged; then, on the tape, where each edge crosses its
 pair and how much of each sample's box lies beyond it, and adds the blends to the
 samples' colours. With ``antialias="boundary"`` nothing is blended: ``add_boundary_term``
-adds the exact term of every edge and shadow border to the image instead.
+adds the exact term of every edge and shadow border to the image instead, curve kind by
+curve kind (``primary_kinds``, ``ShadowBorders``; ``render.edges.boundary``).
 """
 
 from __future__ import annotations
@@ -17,15 +18,16 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary import (
-    DirectRadiance,
-    boundary_points,
-    boundary_term,
-    crossing_segments,
-    global_welded,
-)
+from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
+from render.edges.boundary.curves import CurveKind, CurvePoints, Curves, OnCurves, View
+from render.edges.boundary.mesh_edge import MeshEdge
+from render.edges.boundary.occlusion import Occluders
+from render.edges.boundary.radiance import DirectRadiance
+from render.edges.boundary.shadow_border import shadow_points, shadow_term
+from render.edges.boundary.shadow_tracing import border_chords
+from render.edges.boundary.sphere import SphereCut, SphereOutline
+from render.edges.boundary.term import add_curve_terms
 from render.edges.geometry import add_to_samples
-from render.edges.shadow_boundary import border_chords, shadow_points, shadow_term
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
 from render.scene.cache import RenderCache, light_key
@@ -46,11 +48,11 @@ class EdgeDecisions:
     shadows: ShadowPairs | None
 
 
-def mesh_topology(scene: Scene, visibility: Visibility, cache: RenderCache) -> dict:
+def mesh_topology(scene: Scene, geometry: np.ndarray, cache: RenderCache) -> dict:
     """``mesh_edges`` per mesh index in ``scene.meshes``, reused from ``cache`` while the
-    geometry is unchanged, and while a mesh's faces and their ``welding`` are (vertices
-    that move without merging or collapsing a face, as in a shape optimisation: only the
-    welding is computed again)."""
+    geometry (its stamp ``geometry``) is unchanged, and while a mesh's faces and their
+    ``welding`` are (vertices that move without merging or collapsing a face, as in a shape
+    optimisation: only the welding is computed again)."""
 
     def per_mesh() -> dict:
         out = {}
@@ -63,7 +65,7 @@ def mesh_topology(scene: Scene, visibility: Visibility, cache: RenderCache) -> d
             )
         return out
 
-    topology, _ = cache.get("topology", [visibility.geometry], per_mesh)
+    topology, _ = cache.get("topology", [geometry], per_mesh)
     return topology
 
 
@@ -71,7 +73,7 @@ def find_pairs(scene: Scene, visibility: Visibility, cache: RenderCache, spp: in
     """The pairs of adjacent samples across moving edges (``EdgeDecisions``), from the
     camera rays' hits and lit masks of step 1, reused from ``cache`` while those are."""
     primary, traced = visibility.primary, visibility.stamp
-    topology = mesh_topology(scene, visibility, cache)
+    topology = mesh_topology(scene, visibility.geometry, cache)
     pairs, _ = cache.get(
         "pairs",
         [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
@@ -126,6 +128,76 @@ def differentiated(scene: Scene) -> bool:
     return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
 
 
+def primary_kinds(scene: Scene, occluders: Occluders, cache: RenderCache) -> list[CurveKind]:
+    """The curve kinds of primary visibility (``render.edges.boundary``): every mesh's
+    edges, the surfaces' crossings, every sphere's outline, the spheres' cuts, in the order
+    their points are named (the path integrator draws its random numbers by those names).
+    What depends on the geometry alone is reused from ``cache``: the mesh topology, the
+    crossings and the edges meshes share (``render.trace.seams``: counted once)."""
+    topology, crossings, shared = _geometry_tables(scene, occluders, cache)
+    first = np.cumsum([0] + [m.num_faces for m in scene.meshes])
+    meshes = [
+        MeshEdge(k, topology[k].table, int(first[k]), None if shared is None else shared[k])
+        for k in range(len(scene.meshes))
+    ]
+    outlines = [SphereOutline(k) for k in range(len(scene.spheres))]
+    return [*meshes, SurfaceCrossing(*crossings), *outlines, SphereCut()]
+
+
+def _geometry_tables(scene: Scene, occluders: Occluders, cache: RenderCache) -> tuple:
+    """The mesh topology (``mesh_topology``), the crossings of surfaces
+    (``crossing_segments``: pairs (m, 2), segments (m, 2, 3)) and the edges meshes share
+    (``render.trace.seams.shared_edges``), each reused from ``cache`` while the geometry is
+    unchanged."""
+    geometry = occluders.geometry
+    topology = mesh_topology(scene, geometry, cache)
+    crossings, _ = cache.get(
+        "crossings",
+        [geometry],
+        lambda: crossing_segments(occluders.primitives[0], global_welded(scene, topology)),
+    )
+    shared, _ = cache.get("shared edges", [geometry], lambda: shared_edges(scene, topology))
+    return topology, crossings, shared
+
+
+class ShadowBorders:
+    """The shadow borders of the direct renderer's lights as a curve kind
+    (``render.edges.boundary.curves``), over the functions that find them
+    (``border_chords``), weigh their points (``shadow_points``) and write their edge
+    function on the tape (``shadow_term``). It remembers the chords it found and the points
+    it weighed, for the later steps of the same render. Labels: chord ids."""
+
+    summed, taped = 4, 0
+
+    def __init__(self, visibility: Visibility, frame, topology: dict, shared) -> None:
+        self.visibility, self.frame, self.topology, self.shared = (
+            visibility,
+            frame,
+            topology,
+            shared,
+        )
+
+    def curves(self, view: View) -> Curves:
+        """The chords of every light's shadow borders."""
+        self.chords = border_chords(
+            view.scene, self.visibility, self.frame, self.topology, self.shared
+        )
+        return Curves(self.chords.start, self.chords.end, np.arange(len(self.chords.start)))
+
+    def points(self, view: View, on: OnCurves) -> CurvePoints:
+        """The points moved onto the borders, with their factors."""
+        pieces = (on.label, on.coords, on.weight, on.pixel)
+        self.borders = shadow_points(
+            view.scene, self.visibility, self.frame, self.chords, pieces, view.radiance
+        )
+        found = self.borders
+        return CurvePoints(found.coords, found.pixel, found.weight, np.arange(len(found.pixel)))
+
+    def edge_function(self, scene: Scene, frame, points: CurvePoints):
+        """The borders' edge function on the tape, light by light and occluder by occluder."""
+        return shadow_term(scene, self.borders, frame)
+
+
 def add_boundary_term(
     scene: Scene,
     visibility: Visibility,
@@ -133,37 +205,16 @@ def add_boundary_term(
     image: md.Tensor,
     frame,
     max_bounces: int,
-    radiance=None,
 ) -> md.Tensor:
-    """The image (H, W, 3) plus the boundary term of every silhouette, crease, sphere
-    outline and intersection of surfaces (``render.edges.boundary``): the same values, the
-    exact edge derivative. ``radiance``: what the camera sees either side of an edge (None:
-    the direct renderer's, ``DirectRadiance``, and the shadow borders of its lights are
-    included; another integrator's object: primary visibility only)."""
-    topology = mesh_topology(scene, visibility, cache)
-    crossings, _ = cache.get(
-        "crossings",
-        [visibility.geometry],
-        lambda: crossing_segments(visibility.primitives[0], global_welded(scene, topology)),
-    )
-    # Edges that meshes share (a multi-material file's seams) are counted once.
-    shared, _ = cache.get(
-        "shared edges", [visibility.geometry], lambda: shared_edges(scene, topology)
-    )
-    direct = radiance is None
-    if direct:
-        radiance = DirectRadiance(scene, visibility, frame, max_bounces)
-    chords = border_chords(scene, visibility, frame, topology, shared) if direct else None
-    extra = (chords.start, chords.end) if direct else None
-    points, on_chords = boundary_points(
-        scene, visibility, frame, topology, crossings, radiance, extra, shared
-    )
-    shadows = None
-    if direct:
-        borders = shadow_points(scene, visibility, frame, chords, on_chords, radiance)
-        found = shadow_term(scene, borders, frame)
-        if found is not None:
-            e, rows = found
-            shadows = (e, borders.weight[rows], borders.pixel[rows])
-    term = boundary_term(scene, points, frame, shadows)
-    return image if term is None else image + term
+    """The direct renderer's image (H, W, 3) plus the boundary term of every silhouette,
+    crease, sphere outline, intersection of surfaces and shadow border
+    (``render.edges.boundary``): the same values, the exact edge derivative. The radiance
+    either side of a curve is the renderer's own shading (``DirectRadiance``)."""
+    occluders = Occluders.of(visibility)
+    topology, _, shared = _geometry_tables(scene, occluders, cache)
+    kinds = [
+        *primary_kinds(scene, occluders, cache),
+        ShadowBorders(visibility, frame, topology, shared),
+    ]
+    radiance = DirectRadiance(scene, visibility, frame, max_bounces)
+    return add_curve_terms(scene, occluders, image, frame, radiance, kinds)

@@ -22,13 +22,15 @@ from __future__ import annotations
 import numpy as np
 
 import minidiff as md
-from render.edges.terms import add_boundary_term
+from render.edges.boundary.occlusion import Occluders
+from render.edges.boundary.term import add_curve_terms
+from render.edges.terms import primary_kinds
 from render.path.tracer import PathSampler
 from render.path.transport import path_radiance
 from render.scene.cache import cache_for
 from render.scene.camera import project, to_image_plane
 from render.scene.scene import Scene
-from render.trace.visibility import Visibility, scene_size
+from render.trace.visibility import scene_size
 
 #: Paths traced at once when estimating jumps (bounds the memory of one estimate).
 CHUNK_PATHS = 1 << 17
@@ -37,8 +39,8 @@ INSIDE = 1e-6
 
 
 class PathRadiance:
-    """What the camera sees through image-plane points, by path tracing: the
-    ``render.edges.boundary.DirectRadiance`` interface for the path integrator.
+    """What the camera sees through image-plane points, by path tracing: the path
+    integrator's ``render.edges.boundary.radiance.SideRadiance``.
 
     world: the scene in world space; frame: its camera frame; sampler: the render's
     ``PathSampler`` (its BVH, emitters, seed, max_depth); samples: paths per side of each
@@ -108,12 +110,12 @@ def add_path_boundary_term(
     cache = cache_for(scene, True)
     primitives = sampler.primitives
     _, geometry = cache.get("geometry", list(primitives), lambda: None)  # its stamp
-    # What the boundary code asks of a render's visibility: the primitives, their size and
-    # BVH (for occlusion rays), the geometry's stamp (for the caches). The sampler has them
-    # all; no camera ray is traced for it (``primary`` None: the edge code reads none).
-    visibility = Visibility(None, [], geometry, geometry, lambda: sampler.accelerator, True,
-                            False, primitives, scene_size(primitives))  # fmt: skip
+    # The sampler's primitives and BVH answer the occlusion rays; no camera ray was traced
+    # for the edges (no ``camera_prims``).
+    accelerator = sampler.accelerator
+    occluders = Occluders(primitives, scene_size(primitives), lambda: accelerator, True, geometry)
     camera = world.camera
     first_id = camera.width * camera.height * sampler.spp  # after the image's path ids
     radiance = PathRadiance(world, frame, sampler, samples, first_id)
-    return add_boundary_term(world, visibility, cache, image, frame, 0, radiance)
+    kinds = primary_kinds(world, occluders, cache)
+    return add_curve_terms(world, occluders, image, frame, radiance, kinds)

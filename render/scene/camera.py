@@ -13,6 +13,12 @@ Two versions of this formula live here, for two jobs:
   cost more than tracing them.
 * ``ray_directions`` evaluates it on the tape for the rays that hit something, so gradients
   reach the camera's position, look_at, up and fov.
+
+Off the tape the frame is ``plain_frame`` (float64 arrays, the one plain version every
+caller uses), the directions through given image-plane points ``camera_directions``, and
+the way back, from world points to the image, ``project`` (pixel coordinates and depth),
+``to_image_plane`` (pixel coordinates to image-plane ones) and ``clip_to_near`` (segments
+clipped to the part in front of the eye).
 """
 
 from __future__ import annotations

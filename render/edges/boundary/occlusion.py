@@ -3,20 +3,57 @@
 A point of a curve (the point on a mesh edge, an outline or the cut of two surfaces that a
 quadrature point stands for) is hidden where something lies between it and the eye: an
 any-hit ray from the eye that ends just short of it (``hidden_points``), answered by the
-rasteriser's tiles when there are many rays per primitive, else by the BVH.
+rasteriser's tiles when there are many rays per primitive, else by the BVH. What a render
+hands the boundary term for these rays is an ``Occluders``.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import numpy as np
 
 from render.scene.scene import Scene
+from render.trace.accel import Accelerator
+from render.trace.primitives import Primitives
 from render.trace.raster import OCCLUSION_RAYS_PER_PRIMITIVE, raster_occluded
 from render.trace.visibility import Visibility
 
 
+@dataclass(frozen=True)
+class Occluders:
+    """What the boundary term needs of a render's geometry (plain arrays, constants).
+
+    primitives: what the render traced (``render.trace.primitives.scene_primitives``);
+    size: their bounding box's diagonal; accelerator(): their accelerator (built on first
+    call); bvh: whether it is a BVH (False: brute force, and the rasteriser does not answer
+    occlusion rays either); geometry: the stamp of the primitives (keys of the render
+    cache); camera_prims (H * W * spp,) int64: the primitive each camera ray of the render
+    sees (-1: none), or None where the render traced none (the path integrator's edges)."""
+
+    primitives: Primitives
+    size: float
+    accelerator: Callable[[], Accelerator]
+    bvh: bool
+    geometry: np.ndarray
+    camera_prims: np.ndarray | None = None
+
+    @classmethod
+    def of(cls, visibility: Visibility) -> Occluders:
+        """The occluders of a render's ``Visibility`` (the direct renderer's)."""
+        return cls(
+            visibility.primitives,
+            visibility.size,
+            visibility.accelerator,
+            visibility.bvh,
+            visibility.geometry,
+            visibility.primary.prim_id,
+        )
+
+
 def hidden_points(
-    visibility: Visibility,
+    visibility: Occluders | Visibility,
     frame,
     camera,
     coords: np.ndarray,
@@ -50,14 +87,14 @@ def hidden_points(
     return (norm <= 0) | ~(depth > 0) | blocked
 
 
-def seen_in(visibility: Visibility, pixel: np.ndarray, scene: Scene) -> np.ndarray | None:
+def seen_in(occluders: Occluders, pixel: np.ndarray, scene: Scene) -> np.ndarray | None:
     """(k,) int64: the primitive the camera sees at the first sample of each pixel ``pixel``
     (k,) (row * W + column), -1 for none; None if the render traced no camera rays (the
     path integrator's edges). What hides a point in a pixel is most often what is seen
     there: on the teapot at 512x512 it hides 24k of the 31k hidden edge points, which then
     need no traversal of the BVH."""
-    if visibility.primary is None:
+    prim_id = occluders.camera_prims  # ray r: pixel r // spp, sample r % spp
+    if prim_id is None:
         return None
-    prim_id = visibility.primary.prim_id  # ray r: pixel r // spp, sample r % spp
     width, height = scene.camera.width, scene.camera.height
     return np.take(prim_id, pixel * (prim_id.size // (width * height)))

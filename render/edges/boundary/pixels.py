@@ -159,6 +159,13 @@ def _piece_geometry(p0, p1, segment, start, end, order):
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def boxes_apart(ax0, ax1, bx0, bx1, ay0, ay1, by0, by1):
+    """Whether two axis-aligned boxes, [ax0, ax1] x [ay0, ay1] and [bx0, bx1] x [by0, by1],
+    are apart along x or y."""
+    return bx0 > ax1 or ax0 > bx1 or by0 > ay1 or ay0 > by1
+
+
 @numba.njit(cache=True)
 def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
     """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
@@ -173,12 +180,10 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
             if y == x:
                 continue
             # Pieces whose boxes are apart cannot meet (most pairs in a crowded pixel).
-            if (
-                geometry[y, 4] > geometry[x, 5]
-                or geometry[x, 4] > geometry[y, 5]
-                or geometry[y, 6] > geometry[x, 7]
-                or geometry[x, 6] > geometry[y, 7]
-            ):
+            if boxes_apart(
+                geometry[x, 4], geometry[x, 5], geometry[y, 4], geometry[y, 5],
+                geometry[x, 6], geometry[x, 7], geometry[y, 6], geometry[y, 7],
+            ):  # fmt: skip
                 continue
             cx, cy, fx, fy = geometry[y, 0], geometry[y, 1], geometry[y, 2], geometry[y, 3]
             den = bx * fy - by * fx

@@ -1,5 +1,5 @@
 """render(antialias="boundary"): the boundary integral along edges, outlines, intersections
-and shadow borders (``render.edges.boundary``, ``render.edges.shadow_boundary``), checked
+and shadow borders (``render.edges.boundary``), checked
 against what it estimates: the derivative of box-filtered pixels.
 
 The check (``render.inverse.reference``): for a parameter moved by s along a direction, the
@@ -25,7 +25,10 @@ from hypothesis import strategies as st
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
 from render.edges.boundary import pixel_order, pixel_pieces
+from render.edges.boundary.mesh_edge import approach, edge_plane, edge_sides_kernel
+from render.edges.boundary.pixels import pixel_gradient
 from render.inverse.reference import moved_along, window_difference, window_mean_gradient
+from render.scene.camera import camera_directions
 from render.scene.teapot import paper_scene
 from tests.render_helpers import random_scene
 
@@ -389,7 +392,7 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
     """Dropping the smooth mesh's non-silhouette edges (``continuous_creases``) changes the
     boundary term by rounding only: their two sides were shaded alike. Flat-shaded meshes
     and meshes whose faces do not share the edge's vertex ids keep every edge."""
-    from render.edges import boundary
+    from render.edges.boundary import mesh_edge as boundary
     from render.inverse.shape import icosphere
     from render.trace.topology import mesh_edges
 
@@ -423,6 +426,55 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
     assert not boundary.continuous_creases(unwelded, table, eye).any()
 
 
+def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height):
+    """The geometry of k quadrature points on mesh edges (v_i, v_j), plainly in NumPy: the
+    statement ``render.edges.boundary.mesh_edge.edge_sides_kernel`` computes in one pass.
+
+    eye, forward, right, up (3,): the camera (``plain_frame``); vertices (V, 3); i, j
+    (k,) the edges' vertex ids; faces (k, K): the faces on each edge (ids, -1 padding, as
+    ``EdgeTable.faces``); thirds (k, K, 3): their corners off the edge (positions: a face
+    may belong to another mesh, ``render.trace.seams``); coords (k, 2) image-plane points.
+
+    Returns the camera directions (k, 3) through the points, the depth (k,) of the edge
+    point along them (``edge_points``), |grad e| in pixel units (k,) and the image-plane
+    step (k, 2) one pixel along grad e (``pixel_gradient``), and the face (k, 2) seen
+    just beside the edge on its + and - side (-1: no face on that side): the nearest
+    there of the faces on that side (``approach``)."""
+    a, b = vertices[i], vertices[j]
+    m = edge_plane(a, b, eye)
+    directions = camera_directions(coords, right, up, forward)
+    depth = edge_points(eye, directions, a, b)
+    norm, step = pixel_gradient(np.stack([m @ right, m @ up], axis=1), width, height)
+    valid = faces >= 0
+    third = thirds  # (k, K, 3)
+    side = np.sign(np.einsum("nkj,nj->nk", third - eye[None], m))
+    towards = step[:, :1] * right + step[:, 1:] * up  # the image step to the + side
+    normals = np.cross((b - a)[:, None], third - a[:, None])  # (k, K, 3)
+    rate = approach(normals, directions[:, None], towards[:, None])  # (k, K)
+    chosen = np.full((len(coords), 2), -1, np.int64)
+    for column, sign in enumerate((1.0, -1.0)):
+        on_side = valid & (side == sign)
+        best = np.argmax(np.where(on_side, sign * rate, -np.inf), axis=1)
+        has = on_side.any(axis=1)
+        chosen[has, column] = faces[has, best[has]]
+    return directions, depth, norm, step, chosen
+
+
+def edge_points(eye, directions, a, b):
+    """Depth t (k,) along rays eye + t d (d with unit view-axis component) of the points
+    where they pass closest to the lines through a and b (k, 3): the edge point each
+    quadrature point stands for."""
+    u = b - a
+    w0 = eye - a
+    dd = np.einsum("ij,ij->i", directions, directions)
+    du = np.einsum("ij,ij->i", directions, u)
+    uu = np.einsum("ij,ij->i", u, u)
+    dw = np.einsum("ij,ij->i", directions, w0)
+    uw = np.einsum("ij,ij->i", u, w0)
+    det = dd * uu - du * du
+    return (du * uw - uu * dw) / np.where(det > 0, det, 1.0)
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), k=st.integers(0, 60), n_faces=st.integers(1, 4))
 def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_faces):
@@ -430,8 +482,6 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     NumPy statement (``edge_sides``): depths, |grad e|, steps and directions to rounding,
     and the same face chosen on either side (random edges with one to four faces and
     some padding; no face is degenerate, as in an ``EdgeTable``)."""
-    from render.edges.boundary import edge_sides, edge_sides_kernel
-
     rng = np.random.default_rng(seed)
     vertices = rng.normal(0.0, 1.0, (20, 3)) + [0.0, 0.0, -4.0]
     eye, forward = rng.normal(0.0, 0.2, 3), np.array([0.0, 0.0, -1.0])

@@ -251,8 +251,6 @@ def test_topology_is_reused_while_the_welding_holds():
     """``mesh_topology`` recomputes only the welding when vertices move; the edge structure
     it returns always equals ``mesh_edges`` of the current vertices (also after two vertices
     merge, which changes the welding)."""
-    from types import SimpleNamespace
-
     from render.edges.terms import mesh_topology
     from render.scene.cache import RenderCache
 
@@ -265,7 +263,7 @@ def test_topology_is_reused_while_the_welding_holds():
     cache = RenderCache()
     for step, moved in enumerate([vertices, vertices * 1.1, np.r_[vertices[:4], vertices[[3]]]]):
         mesh.vertices.data = moved
-        got = mesh_topology(scene, SimpleNamespace(geometry=np.array([step])), cache)[0]
+        got = mesh_topology(scene, np.array([step]), cache)[0]
         want = mesh_edges(moved, faces)
         for name in ("edge_group", "neighbour", "neighbour_edge", "shared_ids", "welded"):
             np.testing.assert_array_equal(getattr(got, name), getattr(want, name), err_msg=name)

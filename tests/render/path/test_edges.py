@@ -161,3 +161,18 @@ def test_box_mesh_faces_point_outward():
     normal = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
     outward = v.mean(axis=1) - np.array([0.3, -0.2, 0.1])
     assert np.all(np.einsum("ij,ij->i", normal, outward) > 0)
+
+
+def test_both_integrators_radiances_are_side_radiances():
+    """The direct renderer's and the path integrator's radiance either side of a curve
+    (``DirectRadiance``, ``PathRadiance``) implement the one ``SideRadiance`` interface: the
+    same methods with the same parameters and annotations."""
+    import inspect
+
+    from render.edges.boundary.radiance import DirectRadiance, SideRadiance
+    from render.path.edges import PathRadiance
+
+    for method in ("seen", "along"):
+        want = inspect.signature(getattr(SideRadiance, method))
+        for cls in (DirectRadiance, PathRadiance):
+            assert inspect.signature(getattr(cls, method)) == want, (cls.__name__, method)

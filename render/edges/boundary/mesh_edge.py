@@ -1,0 +1,253 @@
+"""Mesh edges: silhouettes, creases, open boundaries and seams, a curve kind.
+
+An edge (v_i, v_j) seen from the eye C lies on the zero set of
+
+    e(x) = d(x) . m,    m = (v_i - C) x (v_j - C)
+
+(the plane through the eye and the edge), linear in the camera direction d(x): its image
+is a straight segment (``MeshEdge.curves``: every edge of every mesh that can be a jump,
+clipped to the eye's near plane). At each quadrature point the edge point is where the
+camera ray meets the edge; the face seen just beside the edge on either side is the
+nearest there of the faces on that side (``edge_sides_kernel``), shaded at the edge point;
+a side without a face (a silhouette's outside) is what a ray just beyond the edge sees.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+from render.edges.boundary.curves import (
+    NEAR,
+    CurvePoints,
+    Curves,
+    OnCurves,
+    View,
+    directions_at,
+)
+from render.edges.boundary.occlusion import hidden_points, seen_in
+from render.edges.boundary.radiance import EPSILON
+from render.edges.geometry import cross_last, dot_last
+from render.scene.camera import clip_to_near, project
+from render.scene.scene import Scene
+from render.trace.intersect import BLOCK, _jobs
+from render.trace.seams import SharedEdges
+from render.trace.topology import EdgeTable
+
+
+def edge_plane(a, b, eye):
+    """m (k, 3) = (a - eye) x (b - eye) of edges (a, b) (k, 3) seen from ``eye``: the edge
+    function is e = d . m. Arrays, or tensors on the tape."""
+    return cross_last(a - eye, b - eye)
+
+
+class MeshEdge:
+    """The edges of mesh ``index`` as a curve kind (``render.edges.boundary.curves``):
+    ``table`` its ``EdgeTable``, ``first_prim`` the global id of its first face, ``shared``
+    the faces other meshes have on its edges (``render.trace.seams.SharedEdges``; None: no
+    mesh shares an edge with another). Labels: rows of ``table``."""
+
+    summed, taped = 0, 1
+
+    def __init__(
+        self, index: int, table: EdgeTable, first_prim: int, shared: SharedEdges | None
+    ) -> None:
+        self.index, self.table, self.first_prim, self.shared = index, table, first_prim, shared
+
+    def curves(self, view: View) -> Curves:
+        """Every edge in front of the eye that can be a jump: ``continuous_creases`` are
+        left out, and the rows another mesh counts (``SharedEdges.owned``)."""
+        mesh, table, frame = view.scene.meshes[self.index], self.table, view.frame
+        camera = view.scene.camera
+        vertices = np.asarray(mesh.vertices.data, np.float64)
+        size = max(view.occluders.size, 1e-300)
+        a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * size)
+        if self.shared is None:
+            keep = keep & ~continuous_creases(mesh, table, frame[3])
+        else:  # a row that other meshes' faces join is no continuous crease of this one
+            alone = ~np.any(self.shared.faces >= 0, axis=1)
+            creases = continuous_creases(mesh, table, frame[3]) & alone
+            keep = keep & self.shared.owned & ~creases
+        return Curves(
+            project(a[keep], frame, camera.width, camera.height)[0],
+            project(b[keep], frame, camera.width, camera.height)[0],
+            np.flatnonzero(keep),
+        )
+
+    def points(self, view: View, on: OnCurves) -> CurvePoints:
+        """The factors of the points (``_edge_factors``)."""
+        factor = _edge_factors(view, self, on)
+        return CurvePoints.nonzero(on, factor, on.coords)
+
+    def edge_function(self, scene: Scene, frame, points: CurvePoints):
+        """e = d . m on the tape (``edge_plane``)."""
+        vertices = scene.meshes[self.index].vertices
+        i, j = self.table.i[points.label], self.table.j[points.label]
+        m = edge_plane(vertices[i], vertices[j], frame[3])
+        e = dot_last(directions_at(scene, frame, points.coords), m)
+        return e, np.arange(len(points.pixel))
+
+
+def continuous_creases(mesh, table: EdgeTable, eye: np.ndarray) -> np.ndarray:
+    """(E,) bool: the edges of a smooth-shaded mesh across which the image cannot jump, so
+    that they need no quadrature points: manifold edges whose two faces share the edge's
+    vertex ids, wind consistently (one i -> j, the other j -> i) and lie on either side of
+    the plane through the eye and the edge (not a silhouette from this eye). Normals and
+    UVs are per vertex id, so both faces interpolate the same values along the edge and
+    their shading agrees there exactly; both face the eye alike, so neither is flipped
+    alone. (Their f_+ - f_- was zero up to rounding: dropping them changes the term by
+    rounding only, and saves the rays and shading of most points of a smooth mesh.)"""
+    if not mesh.smooth or table.faces.shape[1] < 2:
+        return np.zeros(len(table.i), dtype=bool)
+    two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
+    second = mesh.faces[np.maximum(table.faces[:, 1], 0)]  # (E, 3) vertex ids
+    following = np.roll(second, -1, axis=1)  # each corner's next corner
+    reversed_edge = np.any((second == table.j[:, None]) & (following == table.i[:, None]), axis=1)
+    vertices = np.asarray(mesh.vertices.data, np.float64)
+    a, b = vertices[table.i], vertices[table.j]
+    m = edge_plane(a, b, eye)
+    thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
+    side = np.einsum("ekj,ej->ek", thirds - eye, m)
+    return two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def dot3(x, y):
+    """x . y of two 3-vectors, summed left to right."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def cross3(x, y, out):
+    """out = x cross y, three 3-vectors."""
+    out[0] = x[1] * y[2] - x[2] * y[1]
+    out[1] = x[2] * y[0] - x[0] * y[2]
+    out[2] = x[0] * y[1] - x[1] * y[0]
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def edge_sides_kernel(
+    eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height, n_threads
+):
+    """``edge_sides`` in one pass over the points: the same arithmetic per point, in
+    scalars and four scratch 3-vectors instead of a dozen (k, 3) temporaries, the points
+    shared out over ``n_threads`` (``numba.get_num_threads()``) as the ray kernels share
+    rays (``render.trace.intersect._jobs``: every point's result is the same on any number
+    of threads). The hot loop of the boundary term; tests/render/edges/test_boundary.py ties it to
+    its NumPy statement (``edge_sides`` there)."""
+    k, n_faces = faces.shape
+    directions = np.empty((k, 3))
+    depth, norm = np.empty(k), np.empty(k)
+    step = np.empty((k, 2))
+    chosen = np.full((k, 2), -1, np.int64)
+    n_blocks, n_jobs = _jobs(k, n_threads)
+    sx, sy = 2.0 / width, -2.0 / height
+    for job in numba.prange(n_jobs):
+        am, bm, m, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # per thread
+        w0, towards, t, normal = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+        for block in range(job, n_blocks, n_jobs):
+            for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
+                a, b, d = vertices[i[p]], vertices[j[p]], directions[p]
+                for c in range(3):
+                    am[c], bm[c] = a[c] - eye[c], b[c] - eye[c]
+                    d[c] = coords[p, 0] * right[c] + coords[p, 1] * up[c] + forward[c]
+                    u[c], w0[c] = b[c] - a[c], eye[c] - a[c]
+                cross3(am, bm, m)
+                # _edge_points: the depth along d of the point nearest the line through a and b
+                dd, du, uu, dw, uw = dot3(d, d), dot3(d, u), dot3(u, u), dot3(d, w0), dot3(u, w0)
+                det = dd * uu - du * du
+                depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
+                # _pixel_gradient of grad e = (m . right, m . up)
+                gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
+                length = math.sqrt(gx * gx + gy * gy)
+                scale = length if length > 0 else 1.0
+                norm[p] = length
+                step[p, 0], step[p, 1] = gx / scale * sx, gy / scale * sy
+                for c in range(3):
+                    towards[c] = step[p, 0] * right[c] + step[p, 1] * up[c]
+                # the nearest face on either side (approach; ties go to the first, as np.argmax)
+                best_plus, best_minus = -np.inf, -np.inf
+                for f in range(n_faces):
+                    if faces[p, f] < 0:
+                        continue
+                    third = thirds[p, f]
+                    for c in range(3):
+                        t[c] = third[c] - a[c]
+                    side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
+                    side = side + (third[2] - eye[2]) * m[2]
+                    if side == 0 or side != side:
+                        continue
+                    cross3(u, t, normal)
+                    nd, ng = dot3(normal, d), dot3(normal, towards)
+                    rate = ng / nd if nd != 0 else ng / np.inf
+                    if side > 0 and (chosen[p, 0] < 0 or rate > best_plus):
+                        best_plus, chosen[p, 0] = rate, faces[p, f]
+                    elif side < 0 and (chosen[p, 1] < 0 or -rate > best_minus):
+                        best_minus, chosen[p, 1] = -rate, faces[p, f]
+    return directions, depth, norm, step, chosen
+
+
+def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
+    """(g, 3): w (f_+ - f_-) / |grad e| for the quadrature points ``on`` the edges of mesh
+    ``kind.index`` (labels: rows of its table), zero where the edge point is hidden.
+
+    The edge point is where the camera ray through the quadrature point meets the edge.
+    It is visible if nothing lies in front of it (an any-hit ray that ends just short of
+    it). Each face's third vertex tells on which side of the edge's image it lies. On each
+    side, the face seen just beside the edge is the nearest there of the faces on that
+    side (``approach``), shaded at the edge point as a camera hit on it would be; a side
+    with no face (a silhouette's outside, an open boundary) is what a ray just beyond the
+    edge sees. A crease has one face on each side, a silhouette both on one. The faces
+    other meshes have on these edges (``kind.shared``) are candidates on either side as
+    the mesh's own are."""
+    scene, table, first_prim, shared = view.scene, kind.table, kind.first_prim, kind.shared
+    edges, coords, pixel, weight, keys = on.label, on.coords, on.pixel, on.weight, on.key
+    camera, radiance = scene.camera, view.radiance
+    forward, right, up, eye = view.frame
+    vertices = np.asarray(scene.meshes[kind.index].vertices.data, np.float64)
+    own = np.take(table.faces, edges, axis=0)
+    faces = np.where(own >= 0, own + first_prim, -1)  # global primitive ids
+    thirds = np.take(vertices, np.maximum(np.take(table.thirds, edges, axis=0), 0), axis=0)
+    if shared is not None and shared.faces.shape[1]:
+        faces = np.concatenate([faces, np.take(shared.faces, edges, axis=0)], axis=1)
+        thirds = np.concatenate([thirds, np.take(shared.thirds, edges, axis=0)], axis=1)
+    directions, depth, norm, step, chosen = edge_sides_kernel(
+        eye, forward, right, up, vertices, table.i[edges], table.j[edges], faces, thirds,
+        np.ascontiguousarray(coords), camera.width, camera.height, numba.get_num_threads(),
+    )  # fmt: skip
+    ignore = table.faces[edges, 0] + first_prim
+    hidden = hidden_points(
+        view.occluders, view.frame, camera, coords, directions, depth, norm, ignore,
+        seen_in(view.occluders, pixel, scene),
+    )  # fmt: skip
+    seen = np.flatnonzero(~hidden)
+    n = len(seen)
+    coords, depth, step, chosen = (np.take(x, seen, axis=0) for x in (coords, depth, step, chosen))
+    keys = np.concatenate([keys[seen], keys[seen]])  # per row of ``colour`` below
+    # Both sides at once: one shading pass for the sides with a face (shaded at the edge
+    # point), one for the sides without (what a ray just beyond the edge sees).
+    face = np.concatenate([chosen[:, 0], chosen[:, 1]])  # rows: the + sides, then the -
+    both = np.concatenate([coords, coords])
+    faced, beyond = np.flatnonzero(face >= 0), np.flatnonzero(face < 0)
+    colour = np.empty((2 * n, 3))
+    colour[faced] = radiance.seen(
+        np.take(both, faced, axis=0), face[faced],
+        np.concatenate([depth, depth])[faced], keys[faced],
+    )  # fmt: skip
+    offset = EPSILON * np.concatenate([step, -step])
+    colour[beyond] = radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond])
+    out = np.zeros((len(hidden), 3))
+    out[seen] = (weight[seen] / norm[seen])[:, None] * (colour[:n] - colour[n:])
+    return out
+
+
+def approach(normals, directions, towards):
+    """How fast planes through a point come nearer as the ray moves into one side: a plane
+    with normal n through the point at depth t has depth t (n . d) / (n . (d + s g)) along
+    the ray moved by s towards g, so the larger (n . g) / (n . d), the nearer it comes.
+    Arrays broadcast over leading axes; the last is xyz."""
+    nd = np.sum(normals * directions, axis=-1)
+    ng = np.sum(normals * towards, axis=-1)
+    return ng / np.where(nd != 0, nd, np.inf)

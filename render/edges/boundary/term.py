@@ -1,0 +1,108 @@
+"""The boundary term: every curve kind's quadrature points, and the term on the tape.
+
+``boundary_points`` asks each curve kind (``render.edges.boundary.curves``) for its curves,
+cuts them all together at pixel borders and where they cross (``render.edges.boundary.
+pixels``), puts the quadrature points on the pieces and hands each kind back the points on
+its own curves, for their constant factors. ``boundary_term`` then adds, for every kind, c_g
+(e(x_g; theta) - detach(e(x_g; theta))) to the image: zero in value, the boundary term in
+derivative. ``add_curve_terms`` does both for one render.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+import minidiff as md
+from render.edges.boundary.curves import CurveKind, CurvePoints, OnCurves, View
+from render.edges.boundary.occlusion import Occluders
+from render.edges.boundary.pixels import (
+    GAUSS_POINTS,
+    pixel_pieces,
+    quadrature,
+    split_at_crossings,
+)
+from render.edges.boundary.radiance import SideRadiance
+from render.scene.camera import plain_frame, to_image_plane
+from render.scene.scene import Scene
+from render.shade.hits import working_dtype
+
+
+def boundary_points(view: View, kinds: Sequence[CurveKind]) -> list[CurvePoints]:
+    """Each kind's quadrature points with their constant factors (``CurvePoints``, one per
+    kind, in the order of ``kinds``). A point's key (its name for the ``SideRadiance``) is
+    its row among all kinds' points before any are dropped: it depends on the order of
+    ``kinds``, which the caller keeps fixed."""
+    camera = view.scene.camera
+    width, height = camera.width, camera.height
+    curves = [kind.curves(view) for kind in kinds]
+    p0 = np.concatenate([np.zeros((0, 2))] + [c.start for c in curves])
+    p1 = np.concatenate([np.zeros((0, 2))] + [c.end for c in curves])
+    pieces = split_at_crossings(p0, p1, *pixel_pieces(p0, p1, width, height))
+    at, segment, weight = quadrature(p0, p1, *pieces[:3])
+    pixel = np.repeat(pieces[3], GAUSS_POINTS)
+    coords = to_image_plane(at, width, height)
+    # Which kind's curves each point lies on, and which of that kind's segments.
+    counts = np.array([len(c.start) for c in curves], np.int64)
+    owner = np.repeat(np.arange(len(kinds)), counts)[segment]
+    own_segment = segment - (np.cumsum(counts) - counts)[owner]
+    found = []
+    for k, (kind, mine) in enumerate(zip(kinds, curves, strict=True)):
+        rows = np.flatnonzero(owner == k)
+        on = OnCurves(
+            mine.label[own_segment[rows]],
+            np.take(coords, rows, axis=0),
+            pixel[rows],
+            weight[rows],
+            rows,
+        )
+        none = CurvePoints.nonzero(on, np.zeros((0, 3)), on.coords)  # no points, none kept
+        found.append(kind.points(view, on) if len(rows) else none)
+    return found
+
+
+def boundary_term(
+    scene: Scene, frame, kinds: Sequence[CurveKind], points: Sequence[CurvePoints]
+) -> md.Tensor | None:
+    """(H, W, 3) on the tape: zero in value, the boundary term in derivative (None when
+    there are no points). ``points``: ``boundary_points`` of ``kinds``; ``frame``: the
+    render's ``camera_frame``. The kinds' edge functions are recorded in the order of their
+    ``taped`` rank and their terms summed in that of their ``summed`` rank (ties: in the
+    order of ``kinds``; ``CurveKind`` says why two orders)."""
+    on_tape = {}
+    for k in sorted(range(len(kinds)), key=lambda k: kinds[k].taped):
+        if len(points[k].pixel):
+            on_tape[k] = kinds[k].edge_function(scene, frame, points[k])
+    parts, weight, pixel = [], [], []
+    for k in sorted(on_tape, key=lambda k: kinds[k].summed):
+        e, rows = on_tape[k]
+        parts.append(e)
+        weight.append(points[k].factor[rows])
+        pixel.append(points[k].pixel[rows])
+    if not parts:
+        return None
+    dtype = working_dtype(scene)
+    e = md.concatenate(parts) if len(parts) > 1 else parts[0]
+    moving = e - md.tensor(e.data)  # zero, with the derivative of e
+    values = md.reshape(moving, (-1, 1)) * np.concatenate(weight).astype(dtype)
+    camera = scene.camera
+    image = md.scatter_add(values, np.concatenate(pixel), camera.width * camera.height)
+    return md.reshape(image, (camera.height, camera.width, 3))
+
+
+def add_curve_terms(
+    scene: Scene,
+    occluders: Occluders,
+    image: md.Tensor,
+    frame,
+    radiance: SideRadiance,
+    kinds: Sequence[CurveKind],
+) -> md.Tensor:
+    """The image (H, W, 3) plus the boundary term of ``kinds``' curves: the same values, the
+    exact edge derivative. ``occluders``: the render's geometry for occlusion rays;
+    ``frame``: its ``camera_frame``; ``radiance``: what the camera sees either side of a
+    curve."""
+    view = View(scene, plain_frame(scene.camera), occluders, radiance)
+    term = boundary_term(scene, frame, kinds, boundary_points(view, kinds))
+    return image if term is None else image + term
