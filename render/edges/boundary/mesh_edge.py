@@ -159,7 +159,7 @@ def edge_sides_kernel(
                 dd, du, uu, dw, uw = dot3(d, d), dot3(d, u), dot3(u, u), dot3(d, w0), dot3(u, w0)
                 det = dd * uu - du * du
                 depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
-                # _pixel_gradient of grad e = (m . right, m . up)
+                # pixel_gradient of grad e = (m . right, m . up)
                 gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
                 length = math.sqrt(gx * gx + gy * gy)
                 scale = length if length > 0 else 1.0

@@ -29,7 +29,7 @@ from minidiff import buffers
 GAUSS_POINTS = 1
 #: A piece that ends this close (pixels) before another one, its line going on to cross
 #: it, counts as ending on it (a T-junction, ``split_at_crossings``): a shadow border
-#: followed until its receiver changes (``shadow_boundary.bisect_chords``) stops just
+#: followed until its receiver changes (``shadow_tracing.bisect_chords``) stops just
 #: short of the border of the shadow it enters, ~1e-5 pixels before it, and the other
 #: border must still be cut there (on one side of the junction it lies inside this
 #: shadow and jumps by nothing).

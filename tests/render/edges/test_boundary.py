@@ -535,3 +535,57 @@ def test_pixel_order_is_the_stable_argsort(pixel, big):
     """Ties kept in order; ids too large to pack (big) take the fallback."""
     pixel = np.array(pixel + ([2**40] if big else []), np.int64)
     np.testing.assert_array_equal(pixel_order(pixel), np.argsort(pixel, kind="stable"))
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_the_spheres_newton_steps_follow_their_edge_functions(seed):
+    """The Newton steps that move points onto a sphere's outline and onto the cut of a
+    triangle through it (``_onto_outline``, ``_onto_sphere_cut``: NumPy written out for its
+    bits) against the edge functions the tape records (``outline_function``,
+    ``sphere_cut_function``): e vanishes at the points they return, and the gradient they
+    return is e's (central differences)."""
+    from types import SimpleNamespace
+
+    from render.edges.boundary import sphere as spheres
+    from render.scene.camera import camera_directions
+
+    rng = np.random.default_rng(seed)
+    forward, right, up = (
+        np.array([0.0, 0.0, -1.0]),
+        np.array([0.6, 0.0, 0.0]),
+        np.array([0, 0.5, 0]),
+    )
+    eye = rng.normal(0.0, 0.1, 3)
+    frame = (forward, right, up, eye)
+    centre, radius = np.array([0.0, 0.0, -4.0]) + rng.normal(0.0, 0.3, 3), rng.uniform(0.5, 1.0)
+    sphere = SimpleNamespace(center=md.tensor(centre), radius=md.tensor(radius))
+    oc = eye - centre
+    kappa = spheres.outline_kappa(oc, radius)
+    # a triangle through the sphere's centre plane, facing the eye
+    corners = centre + np.array([[-3.0, -3.0, 0.0], [3.0, -3.0, 0.0], [0.0, 3.0, 0.0]])
+    corners = corners + rng.normal(0.0, 0.1, (3, 3))
+    a, normal = corners[0], np.cross(corners[1] - corners[0], corners[2] - corners[0])
+
+    def outline(c):
+        return spheres.outline_function(oc, kappa, camera_directions(c, right, up, forward))
+
+    def cut(c):
+        d = camera_directions(c, right, up, forward)
+        n = np.broadcast_to(normal, d.shape)
+        return spheres.sphere_cut_function(np.broadcast_to(a, d.shape), n, centre, radius, eye, d)
+
+    phi = rng.uniform(0.0, 2.0 * np.pi, 8)
+    start = 0.15 * np.stack([np.cos(phi), np.sin(phi)], axis=1)  # near both curves
+    outlined = spheres._onto_outline(start, sphere, frame, steps=30)  # the render's start nearer
+    on_cut = spheres._onto_sphere_cut(start, np.broadcast_to(corners, (8, 3, 3)), centre, radius,
+                                     frame, steps=30)  # fmt: skip
+    for e, (points, grad) in ((outline, outlined), (cut, on_cut)):
+        scale = np.abs(grad).max()
+        np.testing.assert_allclose(e(points), 0.0, atol=1e-9 * scale)
+        h = 1e-6
+        for axis in range(2):
+            step = np.zeros(2)
+            step[axis] = h
+            numeric = (e(points + step) - e(points - step)) / (2.0 * h)
+            np.testing.assert_allclose(grad[:, axis], numeric, rtol=1e-5, atol=1e-7 * scale)
