@@ -54,15 +54,17 @@ outlines and of these arcs are tested for visibility as mesh edges' are (an occl
 to the point where the curve lies; for an arc, also the sphere's far half), before the
 rays either side are compared: where a triangle seems to emerge from a sphere the arc is
 tangent to the outline, and within EPSILON of each other the rays alone cannot tell which
-of the two is seen. Shadow borders (secondary visibility) are a curve kind too
-(``shadow_border*``). Edges seen in mirrors are not included.
+of the two is seen. Shadow borders (secondary visibility) are curves of the same term
+(``shadow_tracing``, ``shadow_border``). Edges seen in mirrors are not included.
 
 The package, one job per module:
 
 * ``curves``: what a curve kind is (``CurveKind``: its curves as segments, its points'
   factors, its edge function on the tape) and what the kinds are handed (``View``);
 * ``mesh_edge`` (``MeshEdge``), ``crossing`` (``SurfaceCrossing``), ``sphere``
-  (``SphereOutline``, ``SphereCut``), ``shadow_border*`` (the shadow borders): the kinds;
+  (``SphereOutline``, ``SphereCut``): the kinds of primary visibility; ``shadow_tracing``
+  (finding the shadow borders) and ``shadow_border`` (their edge function): the shadow
+  borders, a kind through ``render.edges.terms.ShadowBorders``;
 * ``pixels``: curves cut into pixel pieces, quadrature points on them (Numba);
 * ``occlusion``: which curve points the camera sees (``Occluders``, ``hidden_points``);
 * ``radiance``: f_+ and f_- (``SideRadiance``; the direct renderer's ``DirectRadiance``);
