@@ -42,7 +42,8 @@ import minidiff as md
 from render.edges import geometry
 from render.edges.geometry import as_column, dot_last
 from render.scene.camera import image_plane_coords, ray_directions
-from render.scene.scene import PointLight, Scene
+from render.scene.lights import DIRECTIONAL
+from render.scene.scene import Scene
 from render.shade.hits import working_dtype
 from render.shade.lighting import appearance, light_contribution
 from render.shade.surface import Hits, Surface, in_order
@@ -99,13 +100,6 @@ def _receiver_planes(scene: Scene, prim: np.ndarray, points: np.ndarray):
     return normal, anchor
 
 
-def _light_viewer(light) -> tuple[np.ndarray, bool]:
-    """Where the light 'looks from': its position, or its direction of travel."""
-    if isinstance(light, PointLight):
-        return np.asarray(light.position.data, np.float64), False
-    return np.asarray(light.direction.data, np.float64), True
-
-
 def _image_normal(m, v_i, normal, anchor, eye):
     """M = (m . (C - v_i)) n + (n . (a - C)) m: the normal, in camera-direction space, of
     the image line where the plane m . (P - v_i) = 0 cuts the receiver plane (n, a).
@@ -122,17 +116,6 @@ def _homogeneous_points(d, normal, anchor, eye, origin):
         as_column(dot_last(normal, d)) * (eye - origin)
         + as_column(dot_last(normal, anchor - eye)) * d
     )
-
-
-def _shadow_plane_normal(corner_i, corner_j, light):
-    """m of the plane through an occluder edge and the light (arrays or tensors)."""
-    on_tape = isinstance(corner_i, md.Tensor)
-    cross = md.cross if on_tape else np.cross
-    if isinstance(light, PointLight):
-        position = light.position if on_tape else light.position.data
-        return cross(corner_i - position, corner_j - position)
-    direction = light.direction if on_tape else light.direction.data
-    return cross(corner_j - corner_i, direction)
 
 
 def shadow_pairs(
@@ -174,7 +157,7 @@ def shadow_pairs(
         lit_id, dark_id = np.where(lit_ray[a], a, b), np.where(lit_ray[a], b, a)
         dark_points = primary.points[hit_index[dark_id]]
         rays = shadow_rays(light, dark_points, prim_id[dark_id], accel.n_triangles, size)
-        tmax = 1.0 if isinstance(light, PointLight) else np.inf
+        tmax = light.shadow_ray_end
         blocker, _, _, _ = accel.closest_hit(rays.origins, rays.directions, 0.0, tmax)
         rows = (lit_id, dark_id, h, blocker)
         parts.append(
@@ -190,7 +173,9 @@ def _edges_of_blockers(
     shadow edge crosses the pair within the 45-degree rule. rows: (lit ray ids, dark ray
     ids, horizontal, blocker of the dark ray's shadow ray), (n,) each."""
     lit_id, dark_id, horizontal, blocker = rows
-    viewer, directional = _light_viewer(light)
+    # Where the light 'looks from': its position, or (at infinity) its direction of travel.
+    kind, viewer = light.pack()
+    directional = kind == DIRECTIONAL
     lit_points = primary.points[hit_index[lit_id]]
     dark_points = primary.points[hit_index[dark_id]]
     eye, d_lit, d_dark, to_pixels = geometry.plain_rays(scene.camera, lit_id, dark_id, spp)
@@ -216,7 +201,7 @@ def _edges_of_blockers(
             found = k >= 0
             corners = vertices[mesh.faces[face]]
             r, kk = np.arange(len(rows)), np.maximum(k, 0)
-            m = _shadow_plane_normal(corners[r, kk], corners[r, (kk + 1) % 3], light)
+            m, _ = light.edge_plane(corners[r, kk], corners[r, (kk + 1) % 3])
             image_normal[rows] = _image_normal(m, corners[r, kk], normal[rows], anchor[rows], eye)
             edge[rows] = np.where(found, k, -2)
             occluder[rows] = face + first
@@ -306,7 +291,7 @@ def shadow_crossings(
             corners = md.stack(geometry.triangle_corners(scene, pairs.occluder[rows]), axis=1)
             r, k = np.arange(len(rows)), pairs.edge[rows]
             v_i, v_j = corners[r, k], corners[r, (k + 1) % 3]
-            m = _shadow_plane_normal(v_i, v_j, light)
+            m, _ = light.edge_plane(v_i, v_j)
             big_m = _image_normal(m, v_i, normal[rows], anchor[rows], eye)
             e_lit, e_dark = md.dot(d_lit[rows], big_m), md.dot(d_dark[rows], big_m)
             s_parts.append(e_lit / (e_lit - e_dark))

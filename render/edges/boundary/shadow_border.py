@@ -47,7 +47,8 @@ from render.edges.boundary.radiance import EPSILON, SideRadiance
 from render.edges.boundary.shadow_tracing import BorderChords
 from render.edges.geometry import as_column, plane_normal, triangle_corners
 from render.scene.camera import camera_directions, plain_camera, ray_directions
-from render.scene.scene import PointLight, Scene
+from render.scene.lights import Light
+from render.scene.scene import Scene
 from render.shade.hits import working_dtype
 from render.shade.surface import in_order
 from render.trace.primitives import first_sphere_id
@@ -115,18 +116,26 @@ def edge_border(m, base, p):
     return _dot(m, p - base)
 
 
-def sphere_border(centre, radius, p, towards, point: bool):
-    """e (k,) of an occluder sphere's border at receiver points p (k, 3): the discriminant of
-    the light's ray through p, positive where it meets the sphere. ``towards``: a point
-    light's position (``point``), else a directional light's direction (3,)."""
+def sphere_border(oc, u, radius):
+    """e (k,) of an occluder sphere's border at receiver points P (k, 3): the discriminant
+    (oc . u)^2 - |u|^2 (|oc|^2 - r^2) of the light's rays origin + t u that reach them, oc =
+    origin - centre (``sphere_ray``), positive where the ray meets the sphere."""
     r2 = radius * radius
-    if point:
-        oc, u = towards - centre, p - towards
-        ou = _dot(u, oc)
-        return ou * ou - _dot(u, u) * (_dot(oc, oc) - r2)
-    oc = p - centre
-    ow = _dot(oc, towards)
-    return ow * ow - _dot(towards, towards) * (_dot(oc, oc) - r2)
+    ou = _dot(u, oc)
+    return ou * ou - _dot(u, u) * (_dot(oc, oc) - r2)
+
+
+def sphere_ray(light: Light, centre, p):
+    """(oc (k, 3) or (3,), u (k, 3) or (3,)): the light's rays origin + t u reaching receiver
+    points p (k, 3) (``Light.ray_to``), as seen from a sphere's centre: oc = origin - centre.
+    Rays from a light at infinity start at the points; from a light at a point every ray
+    starts at the light, and oc is recorded on the tape before u (the order in which the
+    light position's gradient has always been summed: the same bits)."""
+    if light.location() is None:
+        origin, u = light.ray_to(p)
+        return origin - centre, u
+    oc = light.ray_to(centre)[0] - centre  # the ray's origin, the light, is the same for all
+    return oc, light.ray_to(p)[1]
 
 
 # ---------------------------------------------------------------------------------------
@@ -134,15 +143,14 @@ def sphere_border(centre, radius, p, towards, point: bool):
 # ---------------------------------------------------------------------------------------
 
 
-def _sphere_border_gradient(centre, radius, p, towards, point: bool) -> np.ndarray:
-    """de/dp (k, 3) of ``sphere_border``."""
-    if point:
-        oc, u = towards - centre, p - towards
+def _sphere_border_gradient(oc, u, radius, at_point: bool) -> np.ndarray:
+    """de/dP (k, 3) of ``sphere_border``: P moves the ray's direction u = P - origin from a
+    light at a point (``at_point``), the ray's origin P from a light at infinity."""
+    ou = _dot(u, oc)
+    if at_point:
         kappa = _dot(oc, oc) - radius * radius
-        return as_column(2.0 * _dot(u, oc)) * oc - as_column(2.0 * kappa) * u
-    oc = p - centre
-    ow, ww = _dot(oc, towards), _dot(towards, towards)
-    return as_column(2.0 * ow) * towards - as_column(2.0 * ww) * oc
+        return as_column(2.0 * ou) * oc - as_column(2.0 * kappa) * u
+    return as_column(2.0 * ou) * u - as_column(2.0 * _dot(u, u)) * oc
 
 
 def _receiver_hits(receivers, d, eye, dot=_dot):
@@ -173,15 +181,14 @@ def border_gradient(frame, receivers, occluders, light, coords):
     (n . d))."""
     forward, right, up, eye = frame
     kind, m, base, size = occluders
-    where, point = light
     d = forward + as_column(coords[:, 0]) * right + as_column(coords[:, 1]) * up
     t, points, normal = _receiver_hits(receivers, d, eye)
     e, g = edge_border(m, base, points), m.copy()
     rows = np.flatnonzero(kind == 1)  # the spheres'
     if len(rows):
-        on = (np.take(base, rows, axis=0), size[rows], np.take(points, rows, axis=0))
-        e[rows] = sphere_border(*on, where, point)
-        g[rows] = _sphere_border_gradient(*on, where, point)
+        ray = sphere_ray(light, np.take(base, rows, axis=0), np.take(points, rows, axis=0))
+        e[rows] = sphere_border(*ray, size[rows])
+        g[rows] = _sphere_border_gradient(*ray, size[rows], light.location() is not None)
     with np.errstate(divide="ignore", invalid="ignore"):
         gd = as_column(t) * (g - as_column(_dot(g, d) / _dot(normal, d)) * normal)
     return e, np.stack([_dot(gd, right), _dot(gd, up)], axis=1), points, t
@@ -221,23 +228,20 @@ def _border_rows(scene, visibility, light, occluder, receiver):
     receiver (plane normal or sphere centre (k, 3), a point on the plane (k, 3), radius
     (k,): -1 for a triangle) and occluder (kind (k,): 0 an edge, 1 a sphere; m (k, 3) and
     base (k, 3) of an edge's e = m . (P - base); a sphere's centre (k, 3) and radius
-    (k,)), and the light (where (3,): position or direction; whether it is a point light)."""
+    (k,)), and the light itself."""
     k = len(receiver)
     normal, corner, radius = _receiver_rows(scene, visibility, receiver)
-    point = isinstance(light, PointLight)
-    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
     kind, m, base, size = np.zeros(k, np.int64), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k)
     for index, mesh in enumerate(scene.meshes):
         rows = np.flatnonzero(occluder[:, 0] == index)
         vertices = np.asarray(mesh.vertices.data, np.float64)
         vi, vj = vertices[occluder[rows, 1]], vertices[occluder[rows, 2]]
-        m[rows] = np.cross(vi - where, vj - where) if point else np.cross(vj - vi, where)
-        base[rows] = where if point else vi
+        m[rows], base[rows] = light.edge_plane(vi, vj)
     for index, sphere in enumerate(scene.spheres):
         rows = np.flatnonzero((occluder[:, 0] < 0) & (occluder[:, 1] == index))
         kind[rows], base[rows] = 1, np.asarray(sphere.center.data, np.float64)
         size[rows] = float(sphere.radius.data)
-    return (normal, corner, radius), (kind, m, base, size), (where, point)
+    return (normal, corner, radius), (kind, m, base, size), light
 
 
 def shadow_points(
@@ -362,8 +366,6 @@ def shadow_term(scene: Scene, points: ShadowPoints, frame) -> tuple[md.Tensor, n
         mine = points.light == j
         if not mine.any():
             continue
-        point = isinstance(light, PointLight)
-        where = light.position if point else light.direction
         for k, mesh in enumerate(scene.meshes):
             rows = np.flatnonzero(mine & (points.occluder[:, 0] == k))
             if len(rows) == 0:
@@ -371,10 +373,7 @@ def shadow_term(scene: Scene, points: ShadowPoints, frame) -> tuple[md.Tensor, n
             p = _receiver_points_tape(scene, d[rows], eye, points.receiver[rows])
             vi = mesh.vertices[points.occluder[rows, 1]]
             vj = mesh.vertices[points.occluder[rows, 2]]
-            if point:
-                parts.append(edge_border(md.cross(vi - where, vj - where), where, p))
-            else:
-                parts.append(edge_border(md.cross(vj - vi, where), vi, p))
+            parts.append(edge_border(*light.edge_plane(vi, vj), p))
             order.append(rows)
         for index, sphere in enumerate(scene.spheres):
             on = (points.occluder[:, 0] < 0) & (points.occluder[:, 1] == index)
@@ -382,7 +381,7 @@ def shadow_term(scene: Scene, points: ShadowPoints, frame) -> tuple[md.Tensor, n
             if len(rows) == 0:
                 continue
             p = _receiver_points_tape(scene, d[rows], eye, points.receiver[rows])
-            parts.append(sphere_border(sphere.center, sphere.radius, p, where, point))
+            parts.append(sphere_border(*sphere_ray(light, sphere.center, p), sphere.radius))
             order.append(rows)
     if not parts:
         return None

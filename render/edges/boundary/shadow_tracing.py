@@ -29,7 +29,8 @@ import numba
 import numpy as np
 
 from render.scene.camera import plain_camera, project
-from render.scene.scene import PointLight, Scene
+from render.scene.lights import POINT, Light
+from render.scene.scene import Scene
 from render.trace.intersect import closest_hit_ray, make_ray
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
@@ -101,14 +102,11 @@ def _light_silhouettes(scene: Scene, topology, light, edge_faces, shared=None):
     ``shared``: the edges meshes share (``render.trace.seams.shared_edges``, None: none),
     each an occluder's silhouette once, judged by every mesh's faces on it."""
     rows, a, b, axis = [], [], [], []
-    point = isinstance(light, PointLight)
-    where = np.asarray(light.position.data if point else light.direction.data, np.float64)
     for k, mesh in enumerate(scene.meshes):
         table = topology[k].table
         vertices = np.asarray(mesh.vertices.data, np.float64)
         normal, corner, valid = edge_faces[k]
-        towards = (where - corner) if point else -where
-        facing = np.sign(np.sum(normal * towards, axis=-1))
+        facing = np.sign(np.sum(normal * light.towards(corner), axis=-1))
         lit = np.any(valid & (facing > 0), axis=1)
         dark = np.any(valid & (facing < 0), axis=1)
         keep = (lit & dark) | (valid.sum(axis=1) == 1)
@@ -116,7 +114,7 @@ def _light_silhouettes(scene: Scene, topology, light, edge_faces, shared=None):
             joined = np.any(shared[k].faces >= 0, axis=1)
             own = vertices[np.maximum(table.thirds, 0)]
             thirds = np.concatenate([own, shared[k].thirds], axis=1)
-            one_side = _one_sided(vertices[table.i], vertices[table.j], thirds, valid, where, point)
+            one_side = _one_sided(vertices[table.i], vertices[table.j], thirds, valid, light)
             # Where faces of several meshes meet, their windings need not agree (two
             # coincident copies, a seam between differently wound parts): the edge is an
             # outline seen from the light where all their third corners lie on one side
@@ -129,30 +127,22 @@ def _light_silhouettes(scene: Scene, topology, light, edge_faces, shared=None):
         axis.append(np.zeros((len(keep), 3)))
     for index, sphere in enumerate(scene.spheres):
         centre, r = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
-        view = (centre - where) if point else where
-        dist2 = float(view @ view)
-        if point and dist2 <= r * r:
+        circle = light.sphere_outline(centre, r)
+        if circle is None:
             continue  # the light inside the sphere: everything outside is dark
-        shrink = r * r / dist2 if point else 0.0
-        rho = r * math.sqrt(1.0 - shrink)
-        u1 = np.cross(view, [1.0, 0, 0] if abs(view[0]) < 0.9 * math.sqrt(dist2) else [0, 1.0, 0])
-        u1 *= rho / np.linalg.norm(u1)
-        u2 = np.cross(view, u1) / math.sqrt(dist2)
         rows.append(np.array([[-1, index, -1]]))
-        a.append((centre - shrink * view)[None])
-        b.append(u1[None])
-        axis.append(u2[None])
+        for out, x in zip((a, b, axis), circle, strict=True):
+            out.append(x[None])
     occluder = np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
     kind = (occluder[:, 0] < 0).astype(np.int64)
     cat = (lambda x: np.concatenate(x)) if rows else (lambda x: np.zeros((0, 3)))
     return occluder, kind, cat(a), cat(b), cat(axis)
 
 
-def _one_sided(a, b, thirds, valid, where, point: bool) -> np.ndarray:
+def _one_sided(a, b, thirds, valid, light: Light) -> np.ndarray:
     """(E,) bool: edges (a, b) (E, 3) whose faces' third corners ``thirds`` (E, K, 3) (where
-    ``valid`` (E, K)) all lie on one side of the plane through the light and the edge
-    (``where``: a point light's position, or a directional light's direction)."""
-    m = np.cross(a - where, b - where) if point else np.cross(b - a, where)
+    ``valid`` (E, K)) all lie on one side of the plane the edge sweeps in ``light``."""
+    m, _ = light.edge_plane(a, b)
     side = np.einsum("ekj,ej->ek", thirds - a[:, None], m)
     plus = np.any(valid & (side > 0), axis=1)
     minus = np.any(valid & (side < 0), axis=1)
@@ -395,8 +385,10 @@ def border_chords(
         return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
                             np.zeros((0, 3), np.int64), empty)  # fmt: skip
     start, own = _starting_chords(scene, plain, curves)
-    towards = np.array([_towards(x) for x in scene.lights])
-    point = np.array([isinstance(x, PointLight) for x in scene.lights])
+    # The kernel's grazing rays: from a point light's position, or along a light's unit
+    # direction of travel.
+    kinds, towards = zip(*(x.pack(unit=True) for x in scene.lights), strict=True)
+    point, towards = np.array(kinds) == POINT, np.array(towards)
     camera = scene.camera
     x0, x1, curve, receiver = bisect_chords(
         visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
@@ -404,11 +396,3 @@ def border_chords(
         numba.get_num_threads(), 0,
     )  # fmt: skip
     return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
-
-
-def _towards(light) -> np.ndarray:
-    """(3,): a point light's position, or a directional light's unit direction."""
-    if isinstance(light, PointLight):
-        return np.asarray(light.position.data, np.float64)
-    w = np.asarray(light.direction.data, np.float64)
-    return w / np.linalg.norm(w)
