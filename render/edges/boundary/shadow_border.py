@@ -41,10 +41,11 @@ import numpy as np
 
 import minidiff as md
 from minidiff.kernels import dot_last as _plain_dot
+from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON, SideRadiance
-from render.edges.boundary.shadow_tracing import BorderChords
+from render.edges.boundary.shadow_tracing import BorderChords, border_chords
 from render.edges.geometry import as_column, plane_normal, triangle_corners
 from render.scene.camera import camera_directions, plain_camera, ray_directions
 from render.scene.lights import Light
@@ -386,3 +387,40 @@ def shadow_term(scene: Scene, points: ShadowPoints, frame) -> tuple[md.Tensor, n
     if not parts:
         return None
     return (md.concatenate(parts) if len(parts) > 1 else parts[0]), np.concatenate(order)
+
+
+class ShadowBorder:
+    """The shadow borders of the scene's lights as a curve kind of the boundary term
+    (``render.edges.boundary.curves.CurveKind``): its curves are the chords
+    ``border_chords`` finds, its points those ``shadow_points`` moves onto the borders and
+    weighs, its edge function ``shadow_term``. It keeps the chords and the points of the
+    render it is asked about, for that render's later steps. Labels: chord ids.
+
+    ``visibility``, ``frame``: the render's; ``topology``: ``mesh_edges`` per mesh;
+    ``shared``: the edges meshes share (``render.trace.seams.shared_edges``, None: none)."""
+
+    summed, taped = 4, 0
+
+    def __init__(self, visibility: Visibility, frame, topology: dict, shared=None) -> None:
+        self.visibility, self.frame = visibility, frame
+        self.topology, self.shared = topology, shared
+
+    def curves(self, view: View) -> Curves:
+        """The chords of every light's shadow borders."""
+        self.chords = border_chords(
+            view.scene, self.visibility, self.frame, self.topology, self.shared
+        )
+        return Curves(self.chords.start, self.chords.end, np.arange(len(self.chords.start)))
+
+    def points(self, view: View, on: OnCurves) -> CurvePoints:
+        """The points moved onto the borders, with their factors."""
+        pieces = (on.label, on.coords, on.weight, on.pixel)
+        self.borders = shadow_points(
+            view.scene, self.visibility, self.frame, self.chords, pieces, view.radiance
+        )
+        found = self.borders
+        return CurvePoints(found.coords, found.pixel, found.weight, np.arange(len(found.pixel)))
+
+    def edge_function(self, scene: Scene, frame, points: CurvePoints):
+        """The borders' edge function on the tape, light by light and occluder by occluder."""
+        return shadow_term(scene, self.borders, frame)
