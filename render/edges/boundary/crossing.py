@@ -36,8 +36,8 @@ class SurfaceCrossing:
     def curves(self, view: View) -> Curves:
         """The segments in front of the eye."""
         frame, camera = view.frame, view.scene.camera
-        size = max(view.occluders.size, 1e-300)
-        a, b, keep = clip_to_near(self.segments[:, 0], self.segments[:, 1], frame, NEAR * size)
+        ends = self.segments[:, 0], self.segments[:, 1]
+        a, b, keep = clip_to_near(*ends, frame, NEAR * view.size)
         return Curves(
             project(a[keep], frame, camera.width, camera.height)[0],
             project(b[keep], frame, camera.width, camera.height)[0],

@@ -44,6 +44,11 @@ class View:
     occluders: Occluders
     radiance: SideRadiance
 
+    @property
+    def size(self) -> float:
+        """The scene's size (its bounding box's diagonal, > 0): ``NEAR`` is a fraction of it."""
+        return max(self.occluders.size, 1e-300)
+
 
 @dataclass
 class Curves:

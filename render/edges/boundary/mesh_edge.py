@@ -62,8 +62,7 @@ class MeshEdge:
         mesh, table, frame = view.scene.meshes[self.index], self.table, view.frame
         camera = view.scene.camera
         vertices = np.asarray(mesh.vertices.data, np.float64)
-        size = max(view.occluders.size, 1e-300)
-        a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * size)
+        a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * view.size)
         if self.shared is None:
             keep = keep & ~continuous_creases(mesh, table, frame[3])
         else:  # a row that other meshes' faces join is no continuous crease of this one

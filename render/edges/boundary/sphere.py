@@ -44,9 +44,8 @@ class SphereOutline:
         """The outline as a closed polyline (``_outline_polyline``; none where it cannot be
         followed)."""
         camera = view.scene.camera
-        size = max(view.occluders.size, 1e-300)
         poly = _outline_polyline(
-            view.scene.spheres[self.index], view.frame, camera.width, camera.height, size
+            view.scene.spheres[self.index], view.frame, camera.width, camera.height, view.size
         )
         if poly is None:
             return Curves(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0, np.int64))
@@ -79,9 +78,9 @@ class SphereCut:
             (np.asarray(sp.center.data, np.float64), float(sp.radius.data))
             for sp in view.scene.spheres
         ]
-        size = max(view.occluders.size, 1e-300)
+        triangles, frame = view.occluders.primitives[0], view.frame
         start, end, sphere, triangle = sphere_cut_curves(
-            spheres, view.occluders.primitives[0], view.frame, camera.width, camera.height, size
+            spheres, triangles, frame, camera.width, camera.height, view.size
         )
         return Curves(start, end, np.stack([sphere, triangle], axis=1))
 
