@@ -10,9 +10,10 @@ meets on the receiver, the border in the image is the zero set of
 
 * an occluder edge (v_i, v_j): e = m . (P(x) - L), m = (v_i - L) x (v_j - L) (the plane
   through the light and the edge; for a directional light travelling along w, m = (v_j -
-  v_i) x w and e = m . (P(x) - v_i)) (``edge_border``);
+  v_i) x w and e = m . (P(x) - v_i): ``Light.edge_plane``) (``edge_border``);
 * an occluder sphere (c, r): e = (oc . u)^2 - |u|^2 (|oc|^2 - r^2), the discriminant of the
-  light's ray: oc = L - c, u = P(x) - L (directional: oc = P(x) - c, u = w)
+  light's ray origin + t u reaching P (``Light.ray_to``), oc = origin - c: from a point
+  light origin L and u = P(x) - L, from a directional one origin P(x) and u = w
   (``sphere_border``);
 
 smooth in every parameter: the receiver's vertices or sphere (through P: ``plane_depth``,
@@ -24,7 +25,8 @@ onto the border (Newton on e, ``onto_border``), on the tape they give e(x_g; the
 quadrature points on the border's pieces inside it of w (f_+ - f_-) / |grad_x e|
 de/dtheta: f_+ and f_- are the radiance on the receiver just either side (``radiance``'s
 ``seen``), zero where the camera does not see the border point (``hidden_points``) or it
-lies in another shadow of the same light (f_+ = f_- there).
+lies in another shadow of the same light (f_+ = f_- there). ``ShadowBorder`` is the curve
+kind that hands all this to the term (``render.edges.boundary.curves``).
 
 (A compiled pass over the points, the same Newton steps in scalars, took 0.54 ms where
 ``onto_border`` takes 2.5 ms (its sums by minidiff's kernel, ``_dot``; 5.6 ms with np.sum)
