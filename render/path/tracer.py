@@ -47,8 +47,8 @@ from render.path.sampling import (
     unit,
 )
 from render.scene.camera import camera_directions, plain_frame, to_image_plane
-from render.scene.scene import DirectionalLight, Mesh, PointLight, Scene
-from render.shade.surface import vertex_normals
+from render.scene.scene import Mesh, Scene
+from render.shade.surface import geometric_normals, vertex_normals
 from render.trace.accel import Accelerator
 from render.trace.primitives import object_index_of, primitive_ranges, scene_primitives
 from render.trace.visibility import scene_size, shadow_offset, shadow_rays
@@ -280,14 +280,9 @@ class PathSampler:
         record.nee_weight[:] = np.where(visible, weight, 0.0)
 
     def _lights(self, record, s: _State, ng: np.ndarray) -> None:
-        """Which point and directional lights reach each vertex (from its front side)."""
+        """Which of the scene's lights reach each vertex (from its front side)."""
         for j, light in enumerate(self.scene.lights):
-            if isinstance(light, PointLight):
-                towards = np.asarray(light.position.data, np.float64) - s.points
-            elif isinstance(light, DirectionalLight):
-                towards = np.broadcast_to(-np.asarray(light.direction.data, np.float64), ng.shape)
-            else:
-                raise TypeError(f"render: unsupported light type {type(light).__name__}")
+            towards = np.broadcast_to(light.towards(s.points), ng.shape)
             rays = shadow_rays(light, s.points, s.prim, self.n_triangles, self.size)
             blocked = self.accelerator.occluded(
                 rays.origins, rays.directions, rays.tmax, tmin=0.0, ignore_prim=rays.ignore_prim
@@ -348,8 +343,7 @@ class PathSampler:
         local = np.zeros((len(prim), 3))
         on_tri = prim < self.n_triangles
         local[on_tri, 0], local[on_tri, 1] = u[on_tri], v[on_tri]
-        spheres = prim[~on_tri] - self.n_triangles
-        local[~on_tri] = unit(points[~on_tri] - self.primitives[1][spheres])
+        local[~on_tri] = geometric_normals(self.primitives, prim[~on_tri], points[~on_tri])
         return local
 
     def _barycentric(self, prim, points) -> tuple[np.ndarray, np.ndarray]:
@@ -369,12 +363,7 @@ class PathSampler:
     def _normals(self, prim, points, local) -> tuple[np.ndarray, np.ndarray]:
         """Unit geometric and shading normals (k, 3) at hit points (not yet facing the
         viewer): a smooth mesh's shading normal interpolates its vertex normals."""
-        triangles = self.primitives[0]
-        ng = np.empty((len(prim), 3))
-        on_tri = prim < self.n_triangles
-        tri = triangles[prim[on_tri]]
-        ng[on_tri] = unit(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
-        ng[~on_tri] = local[~on_tri]
+        ng = geometric_normals(self.primitives, prim, points)
         ns = ng.copy()
         obj = object_index_of(self.scene, prim)
         for o, normals in self.normals.items():

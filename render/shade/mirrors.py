@@ -42,7 +42,7 @@ import numpy as np
 
 import minidiff as md
 from render.scene.scene import Scene, Sphere
-from render.shade.surface import Hits, Surface, surface_at
+from render.shade.surface import Hits, Surface, geometric_normals, surface_at
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import Visibility, shadow_offset
 
@@ -122,15 +122,7 @@ class Mirrors:
     def _geometric_normals(self, prims: np.ndarray, points: np.ndarray, incoming):
         """(k, 3) plain unit normals of the primitives ``prims`` (k,) at ``points`` (k, 3),
         facing the ``incoming`` directions (k, 3): the side the mirror ray leaves from."""
-        triangles, centers, _ = self.visibility.primitives
-        n_tri = len(triangles)
-        normals = np.empty_like(points)
-        on_triangle = prims < n_tri
-        a, b, c = np.moveaxis(triangles[prims[on_triangle]], 1, 0)
-        normals[on_triangle] = np.cross(b - a, c - a)
-        on_sphere = ~on_triangle
-        normals[on_sphere] = points[on_sphere] - centers[prims[on_sphere] - n_tri]
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = geometric_normals(self.visibility.primitives, prims, points)
         facing_away = np.einsum("ij,ij->i", normals, incoming) > 0
         normals[facing_away] *= -1.0
         return normals

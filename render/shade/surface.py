@@ -82,6 +82,23 @@ def vertex_normals(vertices, faces: np.ndarray):
     return md.normalize(summed)
 
 
+def geometric_normals(primitives, prims: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Plain unit geometric normals (k, 3), ``points``' dtype, of primitives ``prims`` (k,)
+    (global ids into ``render.trace.primitives.scene_primitives``' (triangles, centres,
+    radii)) at ``points`` (k, 3) on them: a triangle's (b - a) x (c - a), a sphere's outward
+    normal; not turned to face anything (zero for a degenerate triangle)."""
+    triangles, centers, _ = primitives
+    n_tri = len(triangles)
+    normals = np.empty_like(points)
+    on_tri = prims < n_tri
+    a, b, c = np.moveaxis(triangles[prims[on_tri]], 1, 0)
+    normals[on_tri] = np.cross(b - a, c - a)
+    on_sphere = ~on_tri
+    normals[on_sphere] = points[on_sphere] - centers[prims[on_sphere] - n_tri]
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals / np.where(length > 0, length, 1.0)
+
+
 def toward_ray(normals, directions) -> np.ndarray:
     """(k, 1) constant signs that flip normals to face the incoming ray (two-sided shading).
 
