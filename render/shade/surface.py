@@ -1,10 +1,17 @@
-"""Geometry on the tape: ray-surface intersections and normals, recomputed differentiably.
+"""Geometry on the tape: where rays meet surfaces, and their normals, recomputed differentiably.
 
 The BVH tells us *which* primitive each ray hits; that choice is discrete and is treated
 as a constant. *Where* the ray hits it is a smooth function of the ray and the primitive,
 so we recompute it here with minidiff: that is what carries gradients from a pixel back to
 the camera (through the ray) and to the vertex positions (through the triangle). Using the
 BVH's t and barycentrics as constants instead would silently zero those gradients.
+
+One surface interaction serves both integrators: ``surface_at`` builds a ``Surface`` (points,
+normals, UVs, and either the rays that found the points or the area element of points placed
+on their primitive) for meshes and spheres; the direct renderer shades it
+(``render.shade.hits``, ``render.shade.mirrors``), the path integrator's vertices are
+Surfaces too (``render.path.transport.Vertex``). ``geometric_normals`` is the plain normal
+the tracers decide with.
 """
 
 from __future__ import annotations
