@@ -1,5 +1,5 @@
 """``render.shade.compiled`` computes what the tape code computes: ``shade_mesh_values``
-against ``mesh_surface`` + ``shade_surface`` on random meshes, materials (every texture,
+against ``surface_at`` + ``shade_surface`` on random meshes, materials (every texture,
 flat and smooth, emission) and lights, and whole renders with nothing differentiated (the
 compiled pass) against the same renders on the tape.
 
@@ -19,7 +19,7 @@ import render
 from render.scene.camera import camera_directions, camera_frame
 from render.shade import compiled
 from render.shade.lighting import shade_surface
-from render.shade.surface import surface_at as mesh_surface
+from render.shade.surface import surface_at
 from tests.render_helpers import random_scene
 
 #: Where a lobe is computed: a few ulps of the largest value compared.
@@ -78,7 +78,7 @@ def _assert_same(now, tape, bitwise: bool):
     specular=st.booleans(),
     kinds=st.lists(st.sampled_from(["point", "directional"]), max_size=3),
 )
-def test_shade_mesh_values_equals_mesh_surface_then_shade_surface(
+def test_shade_mesh_values_equals_surface_at_then_shade_surface(
     seed, smooth, normals, maps, specular, kinds
 ):
     rng = np.random.default_rng(seed)
@@ -97,7 +97,7 @@ def test_shade_mesh_values_equals_mesh_surface_then_shade_surface(
     with md.no_grad():
         forward, right, up, eye = frame
         directions = md.tensor(camera_directions(coords, right.data, up.data, forward.data))
-        surface = mesh_surface(mesh, faces_hit, eye, directions)
+        surface = surface_at(mesh, faces_hit, eye, directions)
         tape, cells = shade_surface(surface, mesh.material, lights, [m * 1.0 for m in lit])
     _assert_same(colour, tape.data, bitwise=not (specular and lights))
     np.testing.assert_array_equal(texel, cells)
