@@ -17,6 +17,7 @@ import numpy as np
 
 from render.path.sampling import sphere_direction, triangle_point
 from render.scene.scene import Mesh, Scene
+from render.shade.surface import geometric_normals
 from render.trace.primitives import primitive_ranges
 
 
@@ -96,8 +97,7 @@ def point_on(primitives, prims: np.ndarray, u1: np.ndarray, u2: np.ndarray):
     tri = triangles[prims[on_tri]]
     e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
     points[on_tri] = tri[:, 0] + uv[:, :1] * e1 + uv[:, 1:] * e2
-    n = np.cross(e1, e2)
-    normals[on_tri] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    normals[on_tri] = geometric_normals(primitives, prims[on_tri], points[on_tri])
     on_sphere = ~on_tri
     d = sphere_direction(u1[on_sphere], u2[on_sphere])
     s = prims[on_sphere] - n_tri
