@@ -241,12 +241,9 @@ def vertex_on_tape(world, sampler: PathSampler, prims, local, form, origins, dir
                 found = surface_at(obj, faces, origins[rows], directions[rows], divide=True)
                 wo = -md.normalize(found.directions)
                 stretch = md.tensor(np.ones(len(rows), found.points.dtype))
-            parts.append(
-                {"points": found.points, "geometric": found.geometric,
-                 "shading": found.shading,
-                 "wo": wo, "stretch": stretch}
-                | _material(obj.material, found.uv, len(rows))
-            )  # fmt: skip
+            geometry = {"points": found.points, "geometric": found.geometric,
+                        "shading": found.shading, "wo": wo, "stretch": stretch}  # fmt: skip
+            parts.append(geometry | _material(obj.material, found.uv, len(rows)))
             order.append(rows)
     fields = ("points", "geometric", "shading", "wo", "stretch", "albedo", "specular", "shininess",
               "reflectance", "emission")  # fmt: skip
