@@ -34,7 +34,7 @@ from minidiff.tensor import record
 from render.edges.terms import differentiated
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
-from render.path.tracer import PathSampler, check_path_options
+from render.path.tracer import PathSampler, check_count, check_path_options
 from render.path.transport import path_radiance
 from render.scene.camera import camera_frame
 from render.scene.placement import placed
@@ -133,13 +133,6 @@ def check_path_edges(antialias, edge_spp, spp: int) -> tuple[bool, int]:
             "height x spp)"
         )
     return edges, int(edge_spp)
-
-
-def check_count(name: str, value) -> int:
-    """``value`` as an int if it is an integer >= 1, else a ValueError naming ``name``."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise ValueError(f"render: {name} must be an integer >= 1, got {value!r}")
-    return int(value)
 
 
 def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:

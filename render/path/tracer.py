@@ -399,9 +399,12 @@ class _State:
 
 def check_path_options(spp, max_depth, rr_depth) -> tuple[int, int, int]:
     """spp >= 1, max_depth >= 1 and rr_depth >= 1, as ints, or a clear error."""
-    out = []
-    for name, value in (("spp", spp), ("max_depth", max_depth), ("rr_depth", rr_depth)):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-            raise ValueError(f"render: {name} must be an integer >= 1, got {value!r}")
-        out.append(int(value))
-    return tuple(out)
+    names = ("spp", "max_depth", "rr_depth")
+    return tuple(check_count(n, x) for n, x in zip(names, (spp, max_depth, rr_depth), strict=True))
+
+
+def check_count(name: str, value) -> int:
+    """``value`` as an int if it is an integer >= 1, else a ValueError naming ``name``."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"render: {name} must be an integer >= 1, got {value!r}")
+    return int(value)
