@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.scene.scene import Scene, Sphere
+from render.scene.scene import Scene
 from render.shade.surface import Hits, Surface, geometric_normals, surface_at
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import Visibility, shadow_offset
@@ -109,11 +109,9 @@ class Mirrors:
             rows = np.flatnonzero((prim >= first) & (prim < first + count))
             if len(rows) == 0:
                 continue
-            inside = None
-            if isinstance(obj, Sphere):  # which root the tracer took: where its ray started
-                inside = np.linalg.norm(origins[rows] - obj.center.data, axis=1) < obj.radius.data
             start, along = surface.points[rows], mirrored[rows]
-            found = surface_at(obj, prim[rows] - first, start, along, inside=inside)
+            # A sphere's root is the one the tracer took: from where its ray started.
+            found = surface_at(obj, prim[rows] - first, start, along, traced_from=origins[rows])
             lit = self._lit(hit_points[rows], prim[rows])
             self.record.lit[bounce - 1][:, rays[rows]] = lit
             lit = [mask.astype(found.points.dtype) for mask in lit]

@@ -194,7 +194,7 @@ def surface_at(
     directions=None,
     *,
     local: np.ndarray | None = None,
-    inside: np.ndarray | None = None,
+    traced_from: np.ndarray | None = None,
     divide: bool = False,
 ) -> Surface:
     """The ``Surface`` of k points on one object, on the tape (or plain values under
@@ -204,16 +204,17 @@ def surface_at(
     (k, 3) instead of rays, at those coordinates on them ((u, v, _) barycentrics of corners
     b and c on a triangle, the unit direction from a sphere's centre).
 
-    inside (k,) bool: which rays start inside a sphere (they meet its far side); by
-    default decided from ``origins`` (a reflected ray starting *on* the sphere passes the
-    side it was traced from). divide: a triangle's unit normal as n / |n| rather than
-    ``md.normalize``'s n * (1 / |n|) (the two differ in the last bit; the path integrator
-    divides, sharing |n| with ``stretch``; points placed by ``local`` always do).
+    traced_from (k, 3): where the tracer started the rays (plain; by default ``origins``'
+    values): a ray that starts inside a sphere meets its far side (a reflected ray starting
+    *on* the sphere passes the side it was traced from). divide: a triangle's unit normal
+    as n / |n| rather than ``md.normalize``'s n * (1 / |n|) (the two differ in the last
+    bit; the path integrator divides, sharing |n| with ``stretch``; points placed by
+    ``local`` always do).
     """
     if isinstance(obj, Mesh):
         surface = _on_mesh(obj, prims, origins, directions, local, divide)
     else:
-        surface = _on_sphere(obj, origins, directions, local, inside)
+        surface = _on_sphere(obj, origins, directions, local, traced_from)
     if directions is not None:
         flip = toward_ray(surface.geometric, directions)
         surface.directions = directions
@@ -255,7 +256,7 @@ def _on_mesh(mesh: Mesh, faces: np.ndarray, origins, directions, local, divide) 
     return Surface(points=points, geometric=geometric, shading=shading, uv=uv, stretch=stretch)
 
 
-def _on_sphere(sphere: Sphere, origins, directions, local, inside) -> Surface:
+def _on_sphere(sphere: Sphere, origins, directions, local, traced_from) -> Surface:
     """``surface_at`` on a sphere."""
     if sphere.material.textures:
         raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
@@ -264,8 +265,8 @@ def _on_sphere(sphere: Sphere, origins, directions, local, inside) -> Surface:
         points = sphere.center + sphere.radius * w
         stretch = md.broadcast_to(sphere.radius * sphere.radius, (len(local),))
         return Surface(points=points, geometric=w, shading=w, stretch=stretch)
-    if inside is None:
-        inside = np.linalg.norm(origins.data - sphere.center.data, axis=-1) < sphere.radius.data
+    starts = origins.data if traced_from is None else traced_from
+    inside = np.linalg.norm(starts - sphere.center.data, axis=-1) < sphere.radius.data
     far_root = np.broadcast_to(inside, (directions.shape[0],))
     t = intersect_spheres(origins, directions, sphere.center, sphere.radius, far_root)
     points = origins + column(t) * directions
