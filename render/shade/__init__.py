@@ -1,6 +1,7 @@
 """Steps 2 and 3, the continuous part, on the tape: what the hits look like.
 
-* ``surface``: each hit's point, normal and UV recomputed from its primitive and ray;
+* ``surface``: the surface interaction both integrators use (``surface_at``): a hit's point,
+  normals and UV recomputed from its primitive and ray, or a point placed on a primitive;
 * ``lighting``: materials (textures, Lambert + Blinn-Phong) lit by the scene's lights, each
   light giving its own direction and irradiance (``Light.incidence``);
 * ``hits``: the one function that shades hits, camera hits or mirror hits;
