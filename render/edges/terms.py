@@ -8,7 +8,7 @@ visibility they come from is unchanged; then, on the tape, where each edge cross
 pair and how much of each sample's box lies beyond it, and adds the blends to the
 samples' colours. With ``antialias="boundary"`` nothing is blended: ``add_boundary_term``
 adds the exact term of every edge and shadow border to the image instead, curve kind by
-curve kind (``primary_kinds``, ``ShadowBorders``; ``render.edges.boundary``).
+curve kind (``primary_kinds``, ``ShadowBorder``; ``render.edges.boundary``).
 """
 
 from __future__ import annotations
@@ -19,12 +19,11 @@ import numpy as np
 
 import minidiff as md
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
-from render.edges.boundary.curves import CurveKind, CurvePoints, Curves, OnCurves, View
+from render.edges.boundary.curves import CurveKind
 from render.edges.boundary.mesh_edge import MeshEdge
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.radiance import DirectRadiance
-from render.edges.boundary.shadow_border import shadow_points, shadow_term
-from render.edges.boundary.shadow_tracing import border_chords
+from render.edges.boundary.shadow_border import ShadowBorder
 from render.edges.boundary.sphere import SphereCut, SphereOutline
 from render.edges.boundary.term import add_curve_terms
 from render.edges.geometry import add_to_samples
@@ -160,44 +159,6 @@ def _geometry_tables(scene: Scene, occluders: Occluders, cache: RenderCache) -> 
     return topology, crossings, shared
 
 
-class ShadowBorders:
-    """The shadow borders of the direct renderer's lights as a curve kind
-    (``render.edges.boundary.curves``), over the functions that find them
-    (``border_chords``), weigh their points (``shadow_points``) and write their edge
-    function on the tape (``shadow_term``). It remembers the chords it found and the points
-    it weighed, for the later steps of the same render. Labels: chord ids."""
-
-    summed, taped = 4, 0
-
-    def __init__(self, visibility: Visibility, frame, topology: dict, shared) -> None:
-        self.visibility, self.frame, self.topology, self.shared = (
-            visibility,
-            frame,
-            topology,
-            shared,
-        )
-
-    def curves(self, view: View) -> Curves:
-        """The chords of every light's shadow borders."""
-        self.chords = border_chords(
-            view.scene, self.visibility, self.frame, self.topology, self.shared
-        )
-        return Curves(self.chords.start, self.chords.end, np.arange(len(self.chords.start)))
-
-    def points(self, view: View, on: OnCurves) -> CurvePoints:
-        """The points moved onto the borders, with their factors."""
-        pieces = (on.label, on.coords, on.weight, on.pixel)
-        self.borders = shadow_points(
-            view.scene, self.visibility, self.frame, self.chords, pieces, view.radiance
-        )
-        found = self.borders
-        return CurvePoints(found.coords, found.pixel, found.weight, np.arange(len(found.pixel)))
-
-    def edge_function(self, scene: Scene, frame, points: CurvePoints):
-        """The borders' edge function on the tape, light by light and occluder by occluder."""
-        return shadow_term(scene, self.borders, frame)
-
-
 def add_boundary_term(
     scene: Scene,
     visibility: Visibility,
@@ -214,7 +175,7 @@ def add_boundary_term(
     topology, _, shared = _geometry_tables(scene, occluders, cache)
     kinds = [
         *primary_kinds(scene, occluders, cache),
-        ShadowBorders(visibility, frame, topology, shared),
+        ShadowBorder(visibility, frame, topology, shared),
     ]
     radiance = DirectRadiance(scene, visibility, frame, max_bounces)
     return add_curve_terms(scene, occluders, image, frame, radiance, kinds)

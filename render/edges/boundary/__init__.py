@@ -64,7 +64,7 @@ The package, one job per module:
 * ``mesh_edge`` (``MeshEdge``), ``crossing`` (``SurfaceCrossing``), ``sphere``
   (``SphereOutline``, ``SphereCut``): the kinds of primary visibility; ``shadow_tracing``
   (finding the shadow borders) and ``shadow_border`` (their edge function): the shadow
-  borders, a kind through ``render.edges.terms.ShadowBorders``;
+  borders, a kind (``ShadowBorder``);
 * ``pixels``: curves cut into pixel pieces, quadrature points on them (Numba);
 * ``occlusion``: which curve points the camera sees (``Occluders``, ``hidden_points``);
 * ``radiance``: f_+ and f_- (``SideRadiance``; the direct renderer's ``DirectRadiance``);
