@@ -137,7 +137,7 @@ def numpy_forward(w: dict, return_radiance: bool = False):
     normals = _normalize(cross3(e1, e2))
     flip = np.where(dot_last(normals, d) > 0, -1.0, 1.0).astype(d.dtype)[:, None]
     normals = _mul(normals, flip)
-    # Point light, Lambert (render.shade.lighting.shade / light_incidence)
+    # Point light, Lambert (render.shade.lighting.shade / PointLight.incidence)
     offset = subtract(w["light_position"], points)
     distance_sq = np.maximum(dot_last(offset, offset), 1e-12)
     to_light = _normalize(offset)

@@ -147,7 +147,7 @@ print(f"antialiased: {disagreeing_pixels} pixels disagree, at rows/columns "
 # with a step small enough that the edges do not cross a pixel's corner on the way
 # (coverage has kinks there). Then compare the two edge methods of the renderer: the pairs
 # above (`antialias=True`), and the **boundary integral** (`antialias="boundary"`,
-# `render/edges/boundary.py`): the image is the plain one, and on the tape it adds, for
+# `render/edges/boundary/`): the image is the plain one, and on the tape it adds, for
 # every point `x` of every edge, the jump `f₊ − f₋` across the edge times how fast the edge
 # moves across `x`, integrated along the edge inside each pixel (Li et al. 2018's edge
 # integral, evaluated by quadrature instead of sampled). Both for the lesson's square and

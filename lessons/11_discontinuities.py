@@ -162,7 +162,7 @@ supersampled_error_512 = supersampled_fd[512]
 #   points on the silhouette edges at random, evaluate the jump with two rays, add the
 #   term. Unbiased, but needs the edges listed and sampled well.
 # * **The boundary integral, deterministic** (this library's `antialias="boundary"`,
-#   `render/edges/boundary.py`): every edge that can be a silhouette or crease, cut into
+#   `render/edges/boundary/`): every edge that can be a silhouette or crease, cut into
 #   pieces per pixel, one quadrature point per piece, occlusion tested with a ray. Exact
 #   for straight edges up to the quadrature; for a Monte Carlo jump, the path integrator's
 #   `render/path/edges.py` (lesson 10) traces both sides.

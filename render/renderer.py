@@ -83,9 +83,8 @@ def render(
         it on.
         True or "pairs": as just said. "boundary": silhouettes, creases, the lines where
         surfaces intersect and shadow borders get the exact edge derivative of
-        box-filtered pixels instead (``render.edges.boundary`` and
-        ``render.edges.shadow_boundary``: the boundary integral; the image is the plain
-        one, unchanged).
+        box-filtered pixels instead (``render.edges.boundary``: the boundary integral, one
+        curve kind per kind of discontinuity; the image is the plain one, unchanged).
     max_bounces: how many mirror reflections a camera ray may take (RayTracer.jl's depth:
         the camera hit plus two reflections); 0 turns reflection off. Only hits on a
         material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.

@@ -9,7 +9,7 @@ A light answers, for the stages that trace, shade and differentiate edges, in on
   ``location()``: where it is, if it is anywhere (the shadow rays' offset, the light's view);
 * ``shadow_key()``: what its shadow rays depend on (``render.scene.cache``);
 * ``pack()`` / ``shading_pack()``: its kind code and values for the compiled kernels
-  (``render.edges.shadow_boundary``, ``render.shade.compiled``);
+  (``render.edges.boundary.shadow_tracing``, ``render.shade.compiled``);
 * ``edge_plane(v_i, v_j)``: the plane an occluder's edge sweeps in its light, the shadow's
   border; ``ray_to(points)``: its ray to points, for a sphere occluder; ``sphere_outline``:
   a sphere's silhouette as the light sees it (``render.edges``, ``render.path``).

@@ -1,7 +1,7 @@
 """Steps 2 and 3 off the tape, in one compiled pass: the colour of k camera hits on a mesh
 when nothing that colour depends on is differentiated.
 
-``shade_camera_hits`` recomputes each hit's surface (``mesh_surface``) and shades it
+``shade_camera_hits`` recomputes each hit's surface (``surface_at``) and shades it
 (``shade_surface``) with minidiff operations: some forty passes over (k, 3) arrays, each
 writing a new one. When no parameter of the camera, the mesh, its material or the lights
 is differentiated, no tape is needed, and ``shade_mesh_values`` computes the same colours
@@ -57,7 +57,7 @@ def shade_mesh_values(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The radiance (k, 3) float64 and texture cell (k,) int64 (-1: untextured) of k camera
     rays through image-plane points ``coords`` (k, 2) that hit the mesh's faces
-    ``faces_hit`` (k,) (local ids): what ``mesh_surface`` then ``shade_surface`` compute,
+    ``faces_hit`` (k,) (local ids): what ``surface_at`` then ``shade_surface`` compute,
     as plain values. ``camera``: (forward, right, up, eye) float64 (3,) each (the camera
     frame's values); ``lit[j]`` (k,): 1 where light j reaches the hit."""
     forward, right, up, eye = camera
@@ -158,7 +158,7 @@ def _shade_kernel(
                 t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
                 u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
                 v = (d[0] * q0 + d[1] * q1 + d[2] * q2) * inv_det
-                # The normal, facing the ray (mesh_surface, toward_ray).
+                # The normal, facing the ray (surface_at, toward_ray).
                 n[0], n[1], n[2] = _unit(
                     e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20
                 )
