@@ -128,7 +128,7 @@ def add_interior_samples(
     prim_id, depth, _, _ = visibility.accelerator().closest_hit(
         np.broadcast_to(eye, directions.shape), directions
     )
-    seen = seen_through(scene, visibility, frame, coords, prim_id, depth, directions)
+    seen = seen_through(scene, visibility, coords, prim_id, depth, directions)
     prim, lit = what_is_seen(seen, len(coords))
     own = pixels * spp  # each candidate's first sample
     same = (prim.reshape(-1, grid_spp) == own_prim[own][:, None]) & np.all(

@@ -12,7 +12,7 @@ positions, so the two renders of a central difference are correlated, and the er
 counted row is random from pixel to pixel and averages out.
 
 The rays are traced with the scene's accelerator and shaded as the renderer's camera rays
-(``render.edges.boundary.radiance_at``: shadows and mirrors included), in batches.
+(``render.edges.boundary.DirectRadiance.along``: shadows and mirrors included), in batches.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 
 import minidiff as md
-from render.edges.boundary.radiance import radiance_at
+from render.edges.boundary.radiance import DirectRadiance
 from render.renderer import render
 from render.scene.cache import RenderCache
 from render.scene.camera import camera_frame, subpixel_offsets, to_image_plane
@@ -80,7 +80,8 @@ def supersampled_image(
         positions = cells[None] + (jitter - 0.5) / n  # inside each cell
         px = np.stack([cols[lo:hi], rows[lo:hi]], axis=1)[:, None, :] + positions
         coords = to_image_plane(px.reshape(-1, 2), width, height)
-        radiance = radiance_at(scene, visibility, frame, coords, max_bounces)
+        key = np.arange(len(coords))  # DirectRadiance names points but does not use the names
+        radiance = DirectRadiance(scene, visibility, frame, max_bounces).along(coords, key)
         out[lo:hi] = radiance.reshape(hi - lo, spp, 3).mean(axis=1)
     return out.reshape(height, width, 3) if whole else out
 

@@ -16,7 +16,7 @@ NumPy's vectorised ``power`` and the C library's ``pow`` that Numba calls may ro
 last bit differently. ``tests/render/shade/test_compiled_shading.py`` ties the two together.
 
 Its users: a forward render that nothing differentiates, and the edge terms, which shade
-what lies on either side of an edge off the tape (``render.edges.boundary.shade_seen``).
+what lies on either side of an edge off the tape (``render.edges.boundary.DirectRadiance``).
 Spheres, float32 scenes and materials that reflect (their mirror rays are traced by
 ``render.shade.mirrors``) take the tape code, values only.
 """

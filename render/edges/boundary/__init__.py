@@ -34,7 +34,7 @@ centres and radii, the camera's position, look-at, up and field of view) in one 
 
 Which parts of an edge are visible, and what lies on either side, is not decided here by
 geometry: f_+ and f_- are the radiance seen by two camera rays through x_g +- epsilon n,
-shaded as any camera ray (``radiance_at``). Where the edge is hidden behind another surface
+shaded as any camera ray (``DirectRadiance``). Where the edge is hidden behind another surface
 both rays see that surface and f_+ - f_- vanishes; where a flat-shaded mesh folds, the two
 faces' colours differ; where the shading is smooth across an edge the difference is zero.
 Every edge of every mesh is therefore a candidate; only the points of edges seen from
@@ -84,9 +84,7 @@ from render.edges.boundary.radiance import (
     EPSILON,
     DirectRadiance,
     SideRadiance,
-    radiance_at,
     seen_through,
-    shade_seen,
 )
 from render.edges.boundary.sphere import SphereCut, SphereOutline, sphere_cut_curves
 from render.edges.boundary.term import add_curve_terms, boundary_points, boundary_term
@@ -115,9 +113,7 @@ __all__ = [
     "hidden_points",
     "pixel_order",
     "pixel_pieces",
-    "radiance_at",
     "seen_through",
-    "shade_seen",
     "sphere_cut_curves",
     "split_at_crossings",
 ]

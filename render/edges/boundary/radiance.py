@@ -5,7 +5,7 @@ what the camera sees just on either side of the curve. The curve kinds ask for t
 a ``SideRadiance``, in one of two forms: ``seen`` where the primitive seen on a side is known
 (a mesh edge's face, one of two crossing triangles: shaded at the curve's point), ``along``
 where it is not (a ray ``EPSILON`` pixels beside the curve, traced). The direct renderer's
-is ``DirectRadiance`` (its own shading, ``shade_seen``, ``radiance_at``); the path
+is ``DirectRadiance`` (its own shading of the rays either side); the path
 integrator's is ``render.path.edges.PathRadiance`` (path-traced estimates).
 """
 
@@ -54,7 +54,6 @@ class SideRadiance(Protocol):
 def seen_through(
     scene: Scene,
     visibility: Visibility,
-    frame,
     coords: np.ndarray,
     prim_id: np.ndarray,
     depth: np.ndarray,
@@ -78,49 +77,9 @@ def seen_through(
     return replace(visibility, primary=primary, lit=lit)
 
 
-def shade_seen(
-    scene: Scene,
-    visibility: Visibility,
-    frame,
-    coords: np.ndarray,
-    prim_id: np.ndarray,
-    depth: np.ndarray,
-    max_bounces: int,
-) -> np.ndarray:
-    """(k, 3) float64, off the tape: the radiance of k camera rays through image-plane
-    points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the background) at
-    ``depth`` (k,) along the view axis, shaded as camera hits of the render are (shadows
-    and mirror reflections included, by ``shade_camera_hits``)."""
-    seen = seen_through(scene, visibility, frame, coords, prim_id, depth)
-    out = np.empty((len(coords), 3))
-    out[:] = np.asarray(scene.background.data, np.float64)
-    # Values only: a reflectance that is zero adds nothing, even while it is differentiated.
-    if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
-        max_bounces = 0
-    with md.no_grad():
-        mirrors = Mirrors.of(scene, seen, max_bounces)
-        shading = shade_camera_hits(scene, seen, frame, RenderCache(), mirrors, surfaces=False)
-    if shading.colour is not None:
-        out[shading.rays] = shading.colour.data
-    return out
-
-
-def radiance_at(
-    scene: Scene, visibility: Visibility, frame, coords: np.ndarray, max_bounces: int
-) -> np.ndarray:
-    """(k, 3) float64, off the tape: the radiance the camera sees through image-plane
-    points (k, 2): each ray traced with the render's accelerator, then ``shade_seen``."""
-    forward, right, up, eye = plain_frame(scene.camera)
-    directions = camera_directions(coords, right, up, forward)
-    prim_id, t, _, _ = visibility.accelerator().closest_hit(
-        np.broadcast_to(eye, directions.shape), directions
-    )
-    return shade_seen(scene, visibility, frame, coords, prim_id, t, max_bounces)
-
-
 class DirectRadiance:
     """The direct renderer's ``SideRadiance``: its own shading of the rays either side
-    (``shade_seen``, ``radiance_at``; ``key`` is ignored: the shading is deterministic).
+    (``key`` is ignored: the shading is deterministic).
     ``frame``: the render's camera frame on the tape (``render.scene.camera.camera_frame``)."""
 
     def __init__(self, scene: Scene, visibility: Visibility, frame, max_bounces: int) -> None:
@@ -130,11 +89,33 @@ class DirectRadiance:
     def seen(
         self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
     ) -> np.ndarray:
-        """``SideRadiance.seen``, shaded as the render's camera hits (``shade_seen``)."""
-        return shade_seen(
-            self.scene, self.visibility, self.frame, coords, prim_id, depth, self.max_bounces
-        )
+        """``SideRadiance.seen``, off the tape: the radiance (k, 3) float64 of camera rays
+        through ``coords`` (k, 2) that meet ``prim_id`` (k,) (-1: the background) at
+        ``depth`` (k,), shaded as the render's camera hits are (shadows and mirror
+        reflections included, by ``shade_camera_hits``)."""
+        scene, max_bounces = self.scene, self.max_bounces
+        seen = seen_through(scene, self.visibility, coords, prim_id, depth)
+        out = np.empty((len(coords), 3))
+        out[:] = np.asarray(scene.background.data, np.float64)
+        # Values only: a reflectance that is zero adds nothing, even while it is differentiated.
+        if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
+            max_bounces = 0
+        with md.no_grad():
+            mirrors = Mirrors.of(scene, seen, max_bounces)
+            shading = shade_camera_hits(
+                scene, seen, self.frame, RenderCache(), mirrors, surfaces=False
+            )
+        if shading.colour is not None:
+            out[shading.rays] = shading.colour.data
+        return out
 
     def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
-        """``SideRadiance.along``, traced and shaded (``radiance_at``)."""
-        return radiance_at(self.scene, self.visibility, self.frame, coords, self.max_bounces)
+        """``SideRadiance.along``, off the tape: the radiance (k, 3) the camera sees through
+        image-plane points ``coords`` (k, 2), each ray traced with the render's accelerator,
+        then shaded as ``seen`` does."""
+        forward, right, up, eye = plain_frame(self.scene.camera)
+        directions = camera_directions(coords, right, up, forward)
+        prim_id, t, _, _ = self.visibility.accelerator().closest_hit(
+            np.broadcast_to(eye, directions.shape), directions
+        )
+        return self.seen(coords, prim_id, t, key)
