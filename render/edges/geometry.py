@@ -12,7 +12,7 @@ the edge (``box_coverage``, ``pair_coverages``), and the blends are added to the
 colours in one scatter (``add_to_samples``).
 
 Functions named ``..._plain`` or taking arrays work off the tape (to find pairs); the
-others work on tensors and arrays alike (``dot_last``, ``as_column``) or on the tape.
+others work on tensors and arrays alike (with ``minidiff.either``) or on the tape.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 import minidiff as md
+from minidiff.either import as_column, dot_last
 from render.scene.camera import image_plane_coords, plain_frame
 from render.scene.scene import Camera, Scene, Sphere
 from render.shade.surface import in_order
@@ -52,24 +53,6 @@ def plain_rays(camera: Camera, near: np.ndarray, far: np.ndarray, spp: int):
 
 def _homogeneous(coords: np.ndarray) -> np.ndarray:
     return np.concatenate([coords, np.ones((len(coords), 1), coords.dtype)], axis=1)
-
-
-def dot_last(a, b):
-    """Dot product over the last axis, for tensors (on the tape) and plain arrays alike."""
-    if isinstance(a, md.Tensor) or isinstance(b, md.Tensor):
-        return md.dot(a, b)
-    return np.sum(a * b, axis=-1)
-
-
-def cross_last(a, b):
-    """Cross product over the last axis, for tensors (on the tape) and plain arrays alike."""
-    if isinstance(a, md.Tensor) or isinstance(b, md.Tensor):
-        return md.cross(a, b)
-    return np.cross(a, b)
-
-
-def as_column(x):
-    return md.reshape(x, (-1, 1)) if isinstance(x, md.Tensor) else np.reshape(x, (-1, 1))
 
 
 def plane_normal(corners):

@@ -39,8 +39,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from minidiff.either import as_column, dot_last
 from render.edges import geometry
-from render.edges.geometry import as_column, dot_last
 from render.scene.camera import image_plane_coords, ray_directions
 from render.scene.lights import DIRECTIONAL
 from render.scene.scene import Scene

@@ -44,10 +44,9 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from minidiff.either import as_column, dot_last
 from render.edges.geometry import (
-    as_column,
     axis_ok,
-    dot_last,
     outline_normal,
     pair_coverages,
     plain_rays,

@@ -32,6 +32,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff import Tensor, buffers
+from minidiff.either import cross_last
 from render.scene.fields import IN_RANGE, ArrayLike, Field, HasFields, normalisable
 
 __all__ = ["DIRECTIONAL", "POINT", "DirectionalLight", "Light", "PointLight"]
@@ -60,13 +61,6 @@ WHITE = (1.0, 1.0, 1.0)
 def _value(param: Tensor, like: Any) -> Values:
     """``param`` itself when ``like`` is a tensor (on the tape), else its values, float64."""
     return param if isinstance(like, Tensor) else np.asarray(param.data, np.float64)
-
-
-def _cross(a: Values, b: Values) -> Values:
-    """a x b along the last axis: on the tape if either is a tensor."""
-    if isinstance(a, Tensor) or isinstance(b, Tensor):
-        return md.cross(a, b)
-    return np.cross(a, b)
 
 
 class Light(HasFields, ABC):
@@ -205,7 +199,7 @@ class PointLight(Light):
 
     def edge_plane(self, v_i: Values, v_j: Values) -> tuple[Values, Values]:
         position = _value(self.position, v_i)
-        return _cross(v_i - position, v_j - position), position
+        return cross_last(v_i - position, v_j - position), position
 
     def ray_to(self, points: Values) -> tuple[Values, Values]:
         position = _value(self.position, points)
@@ -271,7 +265,7 @@ class DirectionalLight(Light):
             return DIRECTIONAL, md.normalize(-self.direction).data, self.irradiance.data
 
     def edge_plane(self, v_i: Values, v_j: Values) -> tuple[Values, Values]:
-        return _cross(v_j - v_i, _value(self.direction, v_i)), v_i
+        return cross_last(v_j - v_i, _value(self.direction, v_i)), v_i
 
     def ray_to(self, points: Values) -> tuple[Values, Values]:
         return points, _value(self.direction, points)

@@ -19,6 +19,7 @@ import math
 import numba
 import numpy as np
 
+from minidiff.either import cross_last, dot_last
 from render.edges.boundary.curves import (
     NEAR,
     CurvePoints,
@@ -29,7 +30,6 @@ from render.edges.boundary.curves import (
 )
 from render.edges.boundary.occlusion import hidden_points, seen_in
 from render.edges.boundary.radiance import EPSILON
-from render.edges.geometry import cross_last, dot_last
 from render.scene.camera import clip_to_near, project
 from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, _jobs

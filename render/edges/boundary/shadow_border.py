@@ -29,7 +29,7 @@ lies in another shadow of the same light (f_+ = f_- there). ``ShadowBorder`` is 
 kind that hands all this to the term (``render.edges.boundary.curves``).
 
 (A compiled pass over the points, the same Newton steps in scalars, took 0.54 ms where
-``onto_border`` takes 2.5 ms (its sums by minidiff's kernel, ``_dot``; 5.6 ms with np.sum)
+``onto_border`` takes 2.5 ms (its sums by minidiff's kernel, ``dot_last``; 5.6 ms with np.sum)
 on the paper teapot's 6,068 points at 128x128, single-threaded, medians of 20 calls in one
 process: 2 ms, under 2 % of a 105-125 ms render and backward, did not pay for a second
 statement of the formulas and 1.5 s of compiling on a fresh install. The steps give the
@@ -43,13 +43,13 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from minidiff.kernels import dot_last as _plain_dot
+from minidiff.either import as_column, dot_last, square_root
 from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON, SideRadiance
 from render.edges.boundary.shadow_tracing import BorderChords, border_chords
-from render.edges.geometry import as_column, plane_normal, triangle_corners
+from render.edges.geometry import plane_normal, triangle_corners
 from render.scene.camera import camera_directions, plain_camera, ray_directions
 from render.scene.lights import Light
 from render.scene.scene import Scene
@@ -86,38 +86,26 @@ class ShadowPoints:
 # ---------------------------------------------------------------------------------------
 
 
-def _dot(a, b):
-    """Dot product over the last axis of 3-vectors: ``md.dot`` on the tape, minidiff's plain
-    kernel on arrays (the same sums, (a0 b0 + a1 b1) + a2 b2, ~5x faster than np.sum)."""
-    if isinstance(a, md.Tensor) or isinstance(b, md.Tensor):
-        return md.dot(a, b)
-    return _plain_dot(np.asarray(a), np.asarray(b))
-
-
-def _sqrt(x):
-    return md.sqrt(x) if isinstance(x, md.Tensor) else np.sqrt(x)
-
-
-def plane_depth(normal, corner, eye, d, dot=_dot):
+def plane_depth(normal, corner, eye, d, dot=dot_last):
     """t (k,): where rays eye + t d (d (k, 3)) meet the planes through ``corner`` (k, 3)
     with normals ``normal`` (k, 3) (inf or NaN where a ray runs along its plane)."""
     return dot(normal, corner - eye) / dot(normal, d)
 
 
-def sphere_depth(centre, radius, eye, d, dot=_dot):
+def sphere_depth(centre, radius, eye, d, dot=dot_last):
     """t (k,): where rays eye + t d (d (k, 3)) enter spheres (``centre`` (3,) or (k, 3),
     ``radius`` scalar or (k,)); NaN where they miss."""
     oc = eye - centre
     dd, bb = dot(d, d), dot(d, oc)
     kappa = dot(oc, oc) - radius * radius
-    return (-bb - _sqrt(bb * bb - dd * kappa)) / dd
+    return (-bb - square_root(bb * bb - dd * kappa)) / dd
 
 
 def edge_border(m, base, p):
     """e (k,) of an occluder edge's border at receiver points p (k, 3): m . (p - base), with
     m (k, 3) the normal of the plane through the light and the edge and ``base`` (3,) or
     (k, 3) a point on it (the light's position, or the edge's first corner)."""
-    return _dot(m, p - base)
+    return dot_last(m, p - base)
 
 
 def sphere_border(oc, u, radius):
@@ -125,8 +113,8 @@ def sphere_border(oc, u, radius):
     (oc . u)^2 - |u|^2 (|oc|^2 - r^2) of the light's rays origin + t u that reach them, oc =
     origin - centre (``sphere_ray``), positive where the ray meets the sphere."""
     r2 = radius * radius
-    ou = _dot(u, oc)
-    return ou * ou - _dot(u, u) * (_dot(oc, oc) - r2)
+    ou = dot_last(u, oc)
+    return ou * ou - dot_last(u, u) * (dot_last(oc, oc) - r2)
 
 
 def sphere_ray(light: Light, centre, p):
@@ -150,14 +138,14 @@ def sphere_ray(light: Light, centre, p):
 def _sphere_border_gradient(oc, u, radius, at_point: bool) -> np.ndarray:
     """de/dP (k, 3) of ``sphere_border``: P moves the ray's direction u = P - origin from a
     light at a point (``at_point``), the ray's origin P from a light at infinity."""
-    ou = _dot(u, oc)
+    ou = dot_last(u, oc)
     if at_point:
-        kappa = _dot(oc, oc) - radius * radius
+        kappa = dot_last(oc, oc) - radius * radius
         return as_column(2.0 * ou) * oc - as_column(2.0 * kappa) * u
-    return as_column(2.0 * ou) * u - as_column(2.0 * _dot(u, u)) * oc
+    return as_column(2.0 * ou) * u - as_column(2.0 * dot_last(u, u)) * oc
 
 
-def _receiver_hits(receivers, d, eye, dot=_dot):
+def _receiver_hits(receivers, d, eye, dot=dot_last):
     """Depth t (k,), point P (k, 3) and surface normal n (k, 3) where rays eye + t d (d (k,
     3)) meet the planes of triangle receivers, or the near side of sphere receivers
     (``receivers``: ``_receiver_rows``); t is NaN where they miss or run along the plane."""
@@ -194,8 +182,8 @@ def border_gradient(frame, receivers, occluders, light, coords):
         e[rows] = sphere_border(*ray, size[rows])
         g[rows] = _sphere_border_gradient(*ray, size[rows], light.location() is not None)
     with np.errstate(divide="ignore", invalid="ignore"):
-        gd = as_column(t) * (g - as_column(_dot(g, d) / _dot(normal, d)) * normal)
-    return e, np.stack([_dot(gd, right), _dot(gd, up)], axis=1), points, t
+        gd = as_column(t) * (g - as_column(dot_last(g, d) / dot_last(normal, d)) * normal)
+    return e, np.stack([dot_last(gd, right), dot_last(gd, up)], axis=1), points, t
 
 
 def onto_border(frame, receivers, occluders, light, coords, steps: int = NEWTON_STEPS):

@@ -18,11 +18,12 @@ import math
 import numpy as np
 
 import minidiff as md
+from minidiff.either import as_column, dot_last
 from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON
-from render.edges.geometry import as_column, dot_last, triangle_corners
+from render.edges.geometry import triangle_corners
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
 from render.trace.primitives import first_sphere_id

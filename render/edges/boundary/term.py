@@ -57,8 +57,10 @@ def boundary_points(view: View, kinds: Sequence[CurveKind]) -> list[CurvePoints]
             weight[rows],
             rows,
         )
-        none = CurvePoints.nonzero(on, np.zeros((0, 3)), on.coords)  # no points, none kept
-        found.append(kind.points(view, on) if len(rows) else none)
+        if len(rows):
+            found.append(kind.points(view, on))
+        else:  # no points on this kind's curves
+            found.append(CurvePoints.nonzero(on, np.zeros((0, 3)), on.coords))
     return found
 
 
