@@ -32,6 +32,7 @@ import minidiff as md
 from minidiff import buffers
 from minidiff.tensor import record
 from render.edges.terms import differentiated
+from render.path import kernel
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
 from render.path.tracer import PathSampler, check_count, check_path_options
@@ -96,6 +97,15 @@ def render_path(
 def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
+    if not differentiated(scene) and kernel.applies(world):
+        # Nothing to differentiate: the compiled kernel alone (render.path.kernel).
+        return md.tensor(kernel.render_image(sampler))
+    return _taped_image(scene, world, sampler, spp, batch_spp, edges, edge_spp)
+
+
+def _taped_image(scene, world, sampler, spp, batch_spp, edges, edge_spp):
+    """The image of ``sampler``'s paths on the tape (the readable reference): batches of
+    ``batch_spp`` samples from the plain sampler, their radiance recomputed on the tape."""
     frame = camera_frame(world.camera)
     total = None
     for first in range(0, spp, batch_spp):
@@ -135,12 +145,20 @@ def check_path_edges(antialias, edge_spp, spp: int) -> tuple[bool, int]:
     return edges, int(edge_spp)
 
 
-def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
-    """The radiance of samples first..last-1 of every pixel, (H, W, last - first, 3)."""
+def _batch_samples(
+    world, frame, sampler: PathSampler, first: int, last: int, packed: kernel.Packed | None = None
+) -> md.Tensor:
+    """The radiance of samples first..last-1 of every pixel, (H, W, last - first, 3), on the
+    tape; the paths sampled by the plain sampler, or by the kernel given its ``packed``
+    scene (the same decisions)."""
     camera = world.camera
     pixels = np.arange(camera.width * camera.height, dtype=np.int64)
     paths = (pixels[:, None] * sampler.spp + np.arange(first, last)[None, :]).ravel()
-    radiance = path_radiance(world, frame, sampler, sampler.sample(paths))
+    if packed is None:
+        batch = sampler.sample(paths)
+    else:
+        batch = kernel.sample_paths(sampler, paths, packed)[0]
+    radiance = path_radiance(world, frame, sampler, batch)
     return md.reshape(radiance, (camera.height, camera.width, last - first, 3))
 
 
@@ -149,9 +167,7 @@ def _replays(scene: Scene, gradient: str, spp: int, batch_spp: int) -> bool:
     parameter requires grad (with gradients enabled) and there is more than one batch."""
     if gradient not in GRADIENTS:
         raise ValueError(f'render: gradient must be "replay" or "tape", got {gradient!r}')
-    if gradient == "tape" or spp <= batch_spp or not md.is_grad_enabled():
-        return False
-    return any(p.requires_grad for p in scene.parameters())
+    return gradient == "replay" and differentiated(scene)
 
 
 def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
@@ -177,19 +193,18 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
     moving = [p for p in parameters if p.requires_grad or p.tangent is not None]
     leaves = [copies[id(p)] for p in moving]
     options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
-    if all(p.tangent is None for p in moving):
-        for leaf in leaves:
-            leaf.requires_grad = True
-        with md.no_grad():
-            image = _render_path(frozen, *options)
-    else:
+    tangent = None
+    if any(p.tangent is not None for p in moving):
         directions = {
             leaf: np.zeros(p.shape, p.dtype) if p.tangent is None else p.tangent
             for p, leaf in zip(moving, leaves, strict=True)
         }
         with md.tangents(directions):
-            image = _render_path(frozen, *options)
-    tangent = image.tangent
+            tangent = _render_path(frozen, *options).tangent
+    for leaf in leaves:
+        leaf.requires_grad = True
+    with md.no_grad():  # the value: the kernel's image when it applies, as without tangents
+        image = _render_path(frozen, *options)
 
     def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
         for leaf in leaves:  # every moving copy, as differentiated as on the tape
@@ -210,13 +225,14 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     ids and random numbers under ``seed``), each on its own tape that its ``backward``
     frees before the next batch is rendered."""
     adjoint = d_image * (1.0 / spp)  # the tape's image is total * (1 / spp): the same seed
-    sampler = None
+    sampler = packed = None
     for first in range(0, spp, batch_spp):
         world = placed(scene)  # a fresh tape per batch: placement is on it too
         if sampler is None:  # plain arrays: the same for every batch
             sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
+            packed = kernel.pack(sampler) if kernel.applies(world) else None
         last = min(first + batch_spp, spp)
-        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last)
+        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last, packed)
         if samples.requires_grad:  # else no parameter that requires grad moves the image
             # This batch's share of the image is sum_s samples / spp; its share of dL/dp:
             md.sum(samples * adjoint[:, :, None, :]).backward()

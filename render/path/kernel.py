@@ -1,0 +1,762 @@
+"""The path tracer compiled: whole paths, one after the other, in one Numba kernel per batch.
+
+``render.path.tracer`` (the sampler) and ``render.path.transport`` (the radiance on the
+tape) are the readable reference: a wavefront of NumPy passes, one depth at a time. This
+module does the same work path by path, in parallel over pixels (``prange``), with no array
+between the steps: the camera ray, the BVH, the lobe and direction choices, next-event
+estimation with its shadow ray, point and directional lights, multiple importance sampling,
+Russian roulette, and the radiance each path carries.
+
+It makes the same decisions as the sampler, from the same random numbers
+(``render.path.random``: a hash of seed, path id and dimension, written here for Numba with
+the same bits), and computes the same radiance, up to the order of floating-point
+operations. Two uses:
+
+* ``render_image``: the image, when nothing is differentiated (a forward render). Each
+  pixel's samples are summed in sample order, so the image is the same bit for bit on any
+  number of threads.
+* ``sample_paths``: the sampler's ``PathBatch`` (every vertex's decisions, what the tape
+  recomputes) and each path's radiance, for the gradients (``render.path.replay``).
+
+``tests/render/path/test_kernel.py`` ties both to the reference: the same decisions, and
+the radiance to rounding.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from render.path.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
+from render.path.tracer import (
+    AREA,
+    CAMERA,
+    MAX_SURVIVAL,
+    MIN_SURVIVAL,
+    MIRROR,
+    STOP,
+    PathBatch,
+    PathSampler,
+    Vertices,
+)
+from render.scene.scene import Mesh, Scene
+from render.shade.compiled import _sample, _unit
+from render.trace.intersect import BLOCK, _jobs, closest_hit_ray, make_ray, occluded_ray
+from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
+
+_NO_MAP = np.zeros((0, 0, 3))
+
+
+def applies(world: Scene) -> bool:
+    """Whether the kernel can trace ``world``: float64 parameters and lights it shades
+    (``Light.compiled_shading``); otherwise the reference code runs."""
+    if not all(light.compiled_shading for light in world.lights):
+        return False
+    return all(t.dtype == np.float64 for t in world.parameters())
+
+
+@dataclass
+class Packed:
+    """A scene as the kernel reads it: its BVH and plain float64 / int64 arrays (``pack``)."""
+
+    bvh: object
+    arrays: tuple
+    width: int
+    height: int
+    n_lights: int
+
+
+def pack(sampler: PathSampler) -> Packed:
+    """The plain arrays of ``sampler``'s scene (its primitives, BVH, emitters, lobes), and
+    per object its material, smooth normals, UVs and textures, concatenated."""
+    world = sampler.scene
+    objects = sampler.objects
+    n_obj = len(objects)
+    triangles, centers, radii = sampler.primitives
+    counts = np.diff(np.append(sampler.first, sampler.n_triangles + len(centers)))
+    prim_object = np.repeat(np.arange(n_obj, dtype=np.int64), counts)
+    albedo, specular, reflectance, emission = (np.zeros((n_obj, 3)) for _ in range(4))
+    shininess = np.zeros(n_obj)
+    maps = np.full((n_obj, 2, 3), -1, np.int64)  # (offset, height, width) of map_Kd, map_Ks
+    texels, n_texels = [], 0
+    smooth = np.zeros(n_obj, np.bool_)
+    corners = np.zeros((sampler.n_triangles, 3), np.int64)  # global vertex ids
+    normals, uvs, n_vertices = [], [], 0
+    for o, obj in enumerate(objects):
+        m = obj.material
+        albedo[o] = np.broadcast_to(m.albedo.data, (3,))
+        specular[o] = np.broadcast_to(m.specular.data, (3,))
+        reflectance[o] = np.broadcast_to(m.reflectance.data, (3,))
+        emission[o] = np.broadcast_to(m.emission.data, (3,))
+        shininess[o] = float(m.shininess.data)
+        for k, texture in enumerate((m.texture, m.specular_texture)):
+            if texture is not None:
+                h, w = texture.shape[:2]
+                maps[o, k] = (n_texels, h, w)
+                texels.append(texture.data.reshape(-1, 3))
+                n_texels += h * w
+        if isinstance(obj, Mesh):
+            first = sampler.first[o]
+            corners[first : first + obj.num_faces] = obj.faces + n_vertices
+            count = obj.vertices.shape[0]
+            if obj.smooth:
+                smooth[o] = True
+            normals.append(sampler.normals.get(o, np.zeros((count, 3))))
+            uvs.append(obj.uvs.data if obj.uvs is not None else np.zeros((count, 2)))
+            n_vertices += count
+    e = sampler.emitters
+    lights = world.lights
+    packs = [light.shading_pack() for light in lights]
+    light_kind = np.array([p[0] for p in packs], np.int64)
+    light_vec = np.array([p[1] for p in packs], np.float64).reshape(-1, 3)
+    light_strength = np.array([p[2] for p in packs], np.float64).reshape(-1)
+    light_color = np.array([light.color.data for light in lights], np.float64).reshape(-1, 3)
+    forward, right, up, eye = sampler.frame
+    # The shadow rays' offset (render.trace.visibility.shadow_offset), from the largest
+    # coordinate any point or point light can have.
+    extent = np.abs(centers).max(initial=0.0) + radii.max(initial=0.0)
+    magnitude = max(
+        [np.abs(triangles).max(initial=0.0), extent]
+        + [float(np.abs(light_vec[j]).max()) for j in range(len(lights)) if light_kind[j] == 0]
+    )
+    offset = max(SHADOW_EPSILON * sampler.size, SHADOW_ULPS * np.finfo(np.float64).eps * magnitude)
+    background = np.broadcast_to(world.background.data, (3,)).astype(np.float64)
+    arrays = (
+        triangles, centers, radii, prim_object,
+        sampler.first, albedo, specular, shininess, reflectance, emission,
+        sampler.lobes.probability, sampler.lobes.reflectance, maps,
+        np.concatenate(texels) if texels else np.zeros((0, 3)), smooth, corners,
+        np.concatenate(normals) if normals else np.zeros((0, 3)),
+        np.concatenate(uvs) if uvs else np.zeros((0, 2)),
+        e.prims, e.cdf, e.probability, e.area, e.row_of,
+        light_kind, light_vec, light_strength, light_color,
+        np.ascontiguousarray(forward), np.ascontiguousarray(right), np.ascontiguousarray(up),
+        np.ascontiguousarray(eye), background, offset, sampler.n_triangles,
+    )  # fmt: skip
+    camera = world.camera
+    return Packed(sampler.accelerator.flat_tree(), arrays, camera.width, camera.height,
+                  len(lights))  # fmt: skip
+
+
+# --- random numbers: render.path.random.uniform for one path and dimension ------------------
+
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _mix(z):
+    z = z + _GOLDEN
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    return z ^ (z >> _S31)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _uniform(key, dimension):
+    """``uniform(seed, path, dimension)`` given key = mix(mix(seed) ^ path)."""
+    z = _mix(key ^ np.uint64(dimension))
+    return np.float64(z >> _S11) * (1.0 / 9007199254740992.0)
+
+
+_LOBE = BOUNCE_DIMENSIONS["lobe"]
+_DIRECTION = BOUNCE_DIMENSIONS["direction"]
+_ROULETTE = BOUNCE_DIMENSIONS["roulette"]
+_EMITTER = BOUNCE_DIMENSIONS["emitter"]
+_EMITTER_POINT = BOUNCE_DIMENSIONS["emitter_point"]
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _dim(depth, j):
+    """``render.path.random.bounce_dimension``."""
+    return 2 + DIMENSIONS_PER_BOUNCE * (depth - 1) + j
+
+
+# --- small vector helpers ----------------------------------------------------------------------
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _divided(x0, x1, x2):
+    """x / |x| (``np.linalg.norm`` then a division, as the sampler's ``unit``)."""
+    length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    if length > 0:
+        return x0 / length, x1 / length, x2 / length
+    return x0, x1, x2
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _put(records, row, k, column, x):
+    """Write the 3-tuple x to records[row, k, column:column + 3]."""
+    records[row, k, column] = x[0]
+    records[row, k, column + 1] = x[1]
+    records[row, k, column + 2] = x[2]
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _basis(n):
+    """``render.path.sampling.orthonormal_basis`` of one unit normal."""
+    sign = 1.0 if n[2] >= 0 else -1.0
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    s = (1.0 + sign * n[0] ** 2 * a, sign * b, -sign * n[0])
+    t = (b, sign + n[1] ** 2 * a, -n[1])
+    return s, t
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _to_world(l0, l1, l2, n):
+    s, t = _basis(n)
+    return (
+        l0 * s[0] + l1 * t[0] + l2 * n[0],
+        l0 * s[1] + l1 * t[1] + l2 * n[1],
+        l0 * s[2] + l1 * t[2] + l2 * n[2],
+    )
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _power(p, q):
+    total = p * p + q * q
+    return p * p / total if total > 0 else 0.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _glossy_pdf(n, view, w, shininess):
+    """``render.path.sampling.blinn_phong_pdf`` of one direction."""
+    h = _divided(view[0] + w[0], view[1] + w[1], view[2] + w[2])
+    cos_h = max(_dot(n, h), 0.0)
+    vh = abs(_dot(view, h))
+    if not (vh > 0 and _dot(n, w) > 0):
+        return 0.0
+    return (shininess + 1.0) / (2.0 * math.pi) * cos_h**shininess / (4.0 * vh)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _pdf(p_diffuse, p_glossy, shininess, ns, wo, wi):
+    """``PathSampler._pdf``: the density of the diffuse-or-glossy choice at wi."""
+    return p_diffuse * (max(_dot(ns, wi), 0.0) / math.pi) + p_glossy * _glossy_pdf(
+        ns, wo, wi, shininess
+    )
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _brdf(ns, view, wi, albedo, specular, shininess):
+    """``render.shade.lighting.brdf`` (3-tuple): albedo / pi plus the Blinn-Phong lobe."""
+    inv_pi = 1.0 / math.pi
+    f0, f1, f2 = albedo[0] * inv_pi, albedo[1] * inv_pi, albedo[2] * inv_pi
+    if specular[0] != 0.0 or specular[1] != 0.0 or specular[2] != 0.0:
+        h = _unit(wi[0] + view[0], wi[1] + view[1], wi[2] + view[2])
+        n_dot_h = max(_dot(ns, h), 1e-12)
+        lobe = n_dot_h**shininess * ((shininess + 8.0) / (8.0 * math.pi))
+        f0, f1, f2 = f0 + lobe * specular[0], f1 + lobe * specular[1], f2 + lobe * specular[2]
+    return f0, f1, f2
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _surface(s, prim, point, u, v):
+    """At a point on primitive ``prim`` (barycentrics u, v on a triangle): the object, the
+    unit geometric normal, the shading normal and the UV, and the coordinates ``local``."""
+    (triangles, centers, radii, prim_object, first, albedo, specular, shininess,
+     reflectance, emission, probability, lobe_reflectance, maps, texels, smooth, corners,
+     normals, uvs) = s[:18]  # fmt: skip
+    o = prim_object[prim]
+    n_tri = triangles.shape[0]
+    if prim < n_tri:
+        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
+        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
+        ng = _divided(
+            e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+            e1[0] * e2[1] - e1[1] * e2[0],
+        )  # fmt: skip
+        local = (u, v, 0.0)
+        ns = ng
+        w0 = 1.0 - u - v
+        ia, ib, ic = corners[prim, 0], corners[prim, 1], corners[prim, 2]
+        if smooth[o]:
+            ns = _divided(
+                w0 * normals[ia, 0] + u * normals[ib, 0] + v * normals[ic, 0],
+                w0 * normals[ia, 1] + u * normals[ib, 1] + v * normals[ic, 1],
+                w0 * normals[ia, 2] + u * normals[ib, 2] + v * normals[ic, 2],
+            )
+        uv = (
+            w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0],
+            w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1],
+        )
+    else:
+        k = prim - n_tri
+        ng = _divided(point[0] - centers[k, 0], point[1] - centers[k, 1], point[2] - centers[k, 2])
+        local, ns, uv = ng, ng, (0.0, 0.0)
+    return o, ng, ns, uv, local
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _look(albedo, specular, maps, texels, o, uv):
+    """The albedo and specular colours of object o at UV ``uv`` (its textures sampled)."""
+    kd = (albedo[o, 0], albedo[o, 1], albedo[o, 2])
+    ks = (specular[o, 0], specular[o, 1], specular[o, 2])
+    if maps[o, 0, 0] >= 0:
+        start, h, w = maps[o, 0, 0], maps[o, 0, 1], maps[o, 0, 2]
+        t = texels[start : start + h * w].reshape((h, w, 3))
+        kd = (_sample(t, uv[0], uv[1], 0)[0], _sample(t, uv[0], uv[1], 1)[0],
+              _sample(t, uv[0], uv[1], 2)[0])  # fmt: skip
+    if maps[o, 1, 0] >= 0:
+        start, h, w = maps[o, 1, 0], maps[o, 1, 1], maps[o, 1, 2]
+        t = texels[start : start + h * w].reshape((h, w, 3))
+        ks = (ks[0] * _sample(t, uv[0], uv[1], 0)[0], ks[1] * _sample(t, uv[0], uv[1], 1)[0],
+              ks[2] * _sample(t, uv[0], uv[1], 2)[0])  # fmt: skip
+    return kd, ks
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _point_on(s, prim, u1, u2):
+    """``render.path.emitters.point_on`` for one primitive: local, point, unit normal."""
+    triangles, centers, radii = s[0], s[1], s[2]
+    n_tri = triangles.shape[0]
+    if prim < n_tri:
+        root = math.sqrt(u1)
+        u, v = u2 * root, 1.0 - root
+        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+        z = (a[0] + u * (b[0] - a[0]) + v * (c[0] - a[0]),
+             a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1]),
+             a[2] + u * (b[2] - a[2]) + v * (c[2] - a[2]))  # fmt: skip
+        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
+        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
+        nz = _divided(
+            e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+            e1[0] * e2[1] - e1[1] * e2[0],
+        )  # fmt: skip
+        return (u, v, 0.0), z, nz
+    k = prim - n_tri
+    zc = 1.0 - 2.0 * u1
+    r = math.sqrt(max(1.0 - zc * zc, 0.0))
+    phi = 2.0 * math.pi * u2
+    d = (r * math.cos(phi), r * math.sin(phi), zc)
+    z = (centers[k, 0] + radii[k] * d[0], centers[k, 1] + radii[k] * d[1],
+         centers[k, 2] + radii[k] * d[2])  # fmt: skip
+    return d, z, d
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _reintersect(s, prim, o, d):
+    """Where the ray o + t d meets primitive ``prim`` as the tape finds it
+    (``surface_at`` from rays: the triangle's plane, or the sphere's root on the far side
+    of the ray's start when it starts inside): the point and its barycentrics (u, v)."""
+    triangles, centers, radii = s[0], s[1], s[2]
+    n_tri = triangles.shape[0]
+    if prim < n_tri:
+        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
+        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
+        p = (d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0])
+        inv_det = 1.0 / _dot(e1, p)
+        q0 = (o[0] - a[0], o[1] - a[1], o[2] - a[2])
+        q = (q0[1] * e1[2] - q0[2] * e1[1], q0[2] * e1[0] - q0[0] * e1[2],
+             q0[0] * e1[1] - q0[1] * e1[0])  # fmt: skip
+        t = _dot(e2, q) * inv_det
+        u, v = _dot(q0, p) * inv_det, _dot(d, q) * inv_det
+    else:
+        k = prim - n_tri
+        oc = (o[0] - centers[k, 0], o[1] - centers[k, 1], o[2] - centers[k, 2])
+        a2, b2 = _dot(d, d), _dot(oc, d)
+        c2 = _dot(oc, oc) - radii[k] * radii[k]
+        root = math.sqrt(max(b2 * b2 - a2 * c2, max(b2 * b2 * 1e-16, 2.2250738585072014e-308)))
+        sign = 1.0 if math.sqrt(_dot(oc, oc)) < radii[k] else -1.0
+        t = (-b2 + sign * root) / a2
+        u = v = 0.0
+    return (o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]), u, v
+
+
+# The traversals are called through these two functions, not inlined where they are used:
+# one compiled copy each keeps the kernel's compile time down.
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _closest(bvh, origin, direction, stack, stack_t):
+    """``closest_hit_ray`` of the ray origin + t direction, t > 0: (prim, t, u, v)."""
+    return closest_hit_ray(bvh, make_ray(origin, direction, 0.0, np.inf), stack, stack_t)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _blocked(bvh, origin, direction, tmax, ignore, stack):
+    """``occluded_ray`` of the ray origin + t direction, 0 < t < tmax, ignoring ``ignore``."""
+    return occluded_ray(bvh, make_ray(origin, direction, 0.0, tmax), ignore, stack)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _local(s, prim, point, u, v):
+    """``PathSampler._local``: (u, v, 0) on a triangle, the unit direction from a sphere's
+    centre."""
+    triangles, centers = s[0], s[1]
+    if prim < triangles.shape[0]:
+        return (u, v, 0.0)
+    k = prim - triangles.shape[0]
+    return _divided(point[0] - centers[k, 0], point[1] - centers[k, 1], point[2] - centers[k, 2])
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _placed(s, prim, local):
+    """The point at coordinates ``local`` on primitive ``prim`` (``surface_at(local=)``)."""
+    triangles, centers, radii = s[0], s[1], s[2]
+    n_tri = triangles.shape[0]
+    if prim < n_tri:
+        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+        u, v = local[0], local[1]
+        return (a[0] + u * (b[0] - a[0]) + v * (c[0] - a[0]),
+                a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1]),
+                a[2] + u * (b[2] - a[2]) + v * (c[2] - a[2]))  # fmt: skip
+    k = prim - n_tri
+    return (centers[k, 0] + radii[k] * local[0], centers[k, 1] + radii[k] * local[1],
+            centers[k, 2] + radii[k] * local[2])  # fmt: skip
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
+                stack_t, keep, row, rec_i, rec_f, rec_lit):  # fmt: skip
+    """The radiance (3-tuple) of path id ``path`` through pixel (px, py). With ``keep``,
+    its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``).
+
+    Two views of each vertex, as in the reference: the sampler decides with the point its
+    ray found (``point``, the direction it arrived along ``incoming``); the tape computes
+    the radiance at the point it recomputes (``xt``: the same point for a vertex placed on
+    its primitive, but a mirror's reflected ray starts at the surface, not ``offset`` above
+    it) with directions between recomputed points (``wot``)."""
+    (triangles, centers, radii, prim_object, first, albedo, specular, shininess,
+     reflectance, emission, probability, lobe_reflectance, maps, texels, smooth, corners,
+     normals, uvs, e_prims, e_cdf, e_probability, e_area, e_row_of, light_kind, light_vec,
+     light_strength, light_color, forward, right, up, eye, background, offset,
+     n_tri) = s  # fmt: skip
+    key = _mix(seed_key ^ np.uint64(path))
+    # The camera ray (PathSampler.sample, to_image_plane, camera_directions).
+    fx = px + _uniform(key, 0)
+    fy = py + _uniform(key, 1)
+    x, y = 2.0 * fx / width - 1.0, 1.0 - 2.0 * fy / height
+    d = (x * right[0] + y * up[0] + forward[0], x * right[1] + y * up[1] + forward[1],
+         x * right[2] + y * up[2] + forward[2])  # fmt: skip
+    if keep:
+        rec_f[row, 0, _F_COORD], rec_f[row, 0, _F_COORD + 1] = x, y
+    prim, t, u, v = _closest(bvh, eye, d, stack, stack_t)
+    if prim < 0:
+        if keep:
+            rec_i[row, 0, _I_COUNT] = 0
+        return background[0], background[1], background[2]
+    point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
+    incoming = _divided(d[0], d[1], d[2])
+    form, pdf, previous, estimate = CAMERA, 0.0, point, 1.0
+    xt, ut, vt, wot = point, u, v, _unit(-d[0], -d[1], -d[2])
+    beta = (1.0, 1.0, 1.0)
+    L0 = L1 = L2 = 0.0
+    n_emit = e_prims.shape[0]
+    depth = 1
+    while True:
+        o, ng, ns, uv, local = _surface(s, prim, point, u, v)
+        ngt, nst, uvt = ng, ns, uv
+        if form == MIRROR:
+            ngt, nst, uvt = _surface(s, prim, xt, ut, vt)[1:4]
+        wo = (-incoming[0], -incoming[1], -incoming[2])
+        side = -1.0 if _dot(ng, wo) < 0 else 1.0
+        ng = (side * ng[0], side * ng[1], side * ng[2])
+        ns = (side * ns[0], side * ns[1], side * ns[2])
+        side_t = -1.0 if _dot(ngt, wot) < 0 else 1.0
+        nst = (side_t * nst[0], side_t * nst[1], side_t * nst[2])
+        # Emission seen here, MIS-weighted against NEE (PathSampler._emission_weight).
+        weight = 1.0
+        if n_emit > 0 and form == AREA:
+            r = e_row_of[prim]
+            p_nee = e_probability[r] / e_area[r] if r >= 0 else 0.0
+            to = (point[0] - previous[0], point[1] - previous[1], point[2] - previous[2])
+            d2 = _dot(to, to)
+            d2 = d2 if d2 > 0 else 1.0
+            cos = abs(_dot(ng, to)) / math.sqrt(d2)
+            if p_nee > 0:
+                weight = _power(pdf * cos / d2, p_nee)
+        if side_t > 0:
+            L0 += beta[0] * (emission[o, 0] * weight)
+            L1 += beta[1] * (emission[o, 1] * weight)
+            L2 += beta[2] * (emission[o, 2] * weight)
+        if keep:
+            rec_i[row, depth - 1, _I_PRIM] = prim
+            rec_i[row, depth - 1, _I_FORM] = form
+            rec_i[row, depth - 1, _I_NEE_PRIM] = -1
+            rec_i[row, depth - 1, _I_NEXT] = STOP
+            _put(rec_f, row, depth - 1, _F_LOCAL, local)
+            rec_f[row, depth - 1, _F_EMIT] = weight
+            rec_f[row, depth - 1, _F_NEE_WEIGHT] = 0.0
+            rec_f[row, depth - 1, _F_NEXT_PDF] = 1.0
+            rec_f[row, depth - 1, _F_SURVIVE] = 1.0
+            rec_i[row, depth - 1, _I_ESCAPE] = 0
+            rec_i[row, 0, _I_COUNT] = depth
+        if depth == max_depth:
+            break
+        p_d, p_g, p_m = probability[o, 0], probability[o, 1], probability[o, 2]
+        shin = shininess[o]
+        kd, ks = _look(albedo, specular, maps, texels, o, uvt)
+        origin = (point[0] + offset * ng[0], point[1] + offset * ng[1], point[2] + offset * ng[2])
+        ignore = prim if prim < n_tri else -1
+        # Next-event estimation: one point on the area lights (PathSampler._next_event).
+        if n_emit > 0:
+            pick = np.searchsorted(e_cdf, _uniform(key, _dim(depth, _EMITTER)) * e_cdf[-1],
+                                   side="right")  # fmt: skip
+            pick = min(pick, n_emit - 1)
+            e_prim = e_prims[pick]
+            u1 = _uniform(key, _dim(depth, _EMITTER_POINT))
+            u2 = _uniform(key, _dim(depth, _EMITTER_POINT) + 1)
+            e_local, z, nz = _point_on(s, e_prim, u1, u2)
+            to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
+            d2 = _dot(to, to)
+            root = math.sqrt(d2 if d2 > 0 else 1.0)
+            wi = (to[0] / root, to[1] / root, to[2] / root)
+            cos_z = -_dot(nz, wi)
+            ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
+            if ok:
+                to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
+                ok = not _blocked(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
+            if ok:
+                p_nee = e_probability[pick] / e_area[pick]
+                p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
+                nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
+                if keep:
+                    rec_i[row, depth - 1, _I_NEE_PRIM] = e_prim
+                    _put(rec_f, row, depth - 1, _F_NEE_LOCAL, e_local)
+                    rec_f[row, depth - 1, _F_NEE_WEIGHT] = nee_weight
+                # The radiance it brings (transport._at_vertex), from the tape's point.
+                to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
+                d2 = _dot(to, to)
+                root = math.sqrt(d2)
+                wi = (to[0] / root, to[1] / root, to[2] / root)
+                eo = prim_object[e_prim]
+                scale = max(_dot(nst, wi), 0.0) * abs(_dot(nz, wi)) / d2 * e_area[pick]
+                scale = scale * nee_weight
+                f = _brdf(nst, wot, wi, kd, ks, shin)
+                L0 += beta[0] * (f[0] * scale * emission[eo, 0])
+                L1 += beta[1] * (f[1] * scale * emission[eo, 1])
+                L2 += beta[2] * (f[2] * scale * emission[eo, 2])
+        # Point and directional lights (PathSampler._lights, lighting.light_contribution).
+        for j in range(light_kind.shape[0]):
+            if light_kind[j] == 0:
+                tx = light_vec[j, 0] - point[0]
+                ty = light_vec[j, 1] - point[1]
+                tz = light_vec[j, 2] - point[2]
+                distance = math.sqrt(tx * tx + ty * ty + tz * tz)
+                lit = ng[0] * tx + ng[1] * ty + ng[2] * tz > 0
+                if lit and distance > 2.0 * offset:
+                    fraction = offset / distance
+                    so = (point[0] + fraction * tx, point[1] + fraction * ty,
+                          point[2] + fraction * tz)  # fmt: skip
+                    to = (light_vec[j, 0] - so[0], light_vec[j, 1] - so[1], light_vec[j, 2] - so[2])
+                    lit = not _blocked(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
+                                       stack)  # fmt: skip
+                tx = light_vec[j, 0] - xt[0]
+                ty = light_vec[j, 1] - xt[1]
+                tz = light_vec[j, 2] - xt[2]
+                distance_sq = tx * tx + ty * ty + tz * tz
+                irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
+                wl = _unit(tx, ty, tz)
+            else:
+                wl = (light_vec[j, 0], light_vec[j, 1], light_vec[j, 2])
+                lit = _dot(ng, wl) > 0
+                if lit:
+                    so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
+                          point[2] + offset * wl[2])  # fmt: skip
+                    lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
+                irradiance = light_strength[j]
+            if keep:
+                rec_lit[row, depth - 1, j] = lit
+            if lit:
+                scalar = irradiance * max(_dot(nst, wl), 0.0)
+                f = _brdf(nst, wot, wl, kd, ks, shin)
+                L0 += beta[0] * (scalar * (f[0] * light_color[j, 0]))
+                L1 += beta[1] * (scalar * (f[1] * light_color[j, 1]))
+                L2 += beta[2] * (scalar * (f[2] * light_color[j, 2]))
+        # How the path goes on (PathSampler._continue).
+        u1 = _uniform(key, _dim(depth, _DIRECTION))
+        u2 = _uniform(key, _dim(depth, _DIRECTION) + 1)
+        pick_lobe = _uniform(key, _dim(depth, _LOBE))
+        mirror = pick_lobe >= p_d + p_g
+        if mirror:
+            c2 = 2.0 * _dot(wo, ns)
+            wi = (c2 * ns[0] - wo[0], c2 * ns[1] - wo[1], c2 * ns[2] - wo[2])
+            next_pdf = p_m
+        else:
+            if pick_lobe >= p_d:  # glossy
+                cos_h = u1 ** (1.0 / (shin + 1.0))
+                sin_h = math.sqrt(max(1.0 - cos_h**2, 0.0))
+                phi = 2.0 * math.pi * u2
+                h = _to_world(sin_h * math.cos(phi), sin_h * math.sin(phi), cos_h, ns)
+                c2 = 2.0 * _dot(wo, h)
+                wi = (c2 * h[0] - wo[0], c2 * h[1] - wo[1], c2 * h[2] - wo[2])
+            else:
+                r, phi = math.sqrt(u1), 2.0 * math.pi * u2
+                wi = _to_world(r * math.cos(phi), r * math.sin(phi),
+                               math.sqrt(max(1.0 - u1, 0.0)), ns)  # fmt: skip
+            next_pdf = _pdf(p_d, p_g, shin, ns, wo, wi)
+        go = (p_d + p_g + p_m > 0) and next_pdf > 0 and _dot(ng, wi) > 0
+        estimate = estimate * lobe_reflectance[o]
+        survive = 1.0
+        if depth >= rr_depth:
+            survive = min(max(estimate, MIN_SURVIVAL), MAX_SURVIVAL)
+            go = go and _uniform(key, _dim(depth, _ROULETTE)) < survive
+        wi = _divided(wi[0], wi[1], wi[2])
+        if keep:
+            rec_f[row, depth - 1, _F_SURVIVE] = survive
+            _put(rec_f, row, depth - 1, _F_ESCAPE_DIR, wi)
+        if not go:
+            break
+        scale = 1.0 / (next_pdf * survive)
+        prim, t, u, v = _closest(bvh, origin, wi, stack, stack_t)
+        if keep:
+            rec_i[row, depth - 1, _I_NEXT] = MIRROR if mirror else AREA
+            rec_f[row, depth - 1, _F_NEXT_PDF] = next_pdf
+            rec_i[row, depth - 1, _I_ESCAPE] = prim < 0
+        point_next = (origin[0] + t * wi[0], origin[1] + t * wi[1], origin[2] + t * wi[2])
+        if mirror:
+            factor = (reflectance[o, 0] * scale, reflectance[o, 1] * scale,
+                      reflectance[o, 2] * scale)  # fmt: skip
+            c2 = 2.0 * _dot(wot, nst)  # the tape's reflected ray, from its own point
+            reflected = (c2 * nst[0] - wot[0], c2 * nst[1] - wot[1], c2 * nst[2] - wot[2])
+            if prim >= 0:
+                x_next, ut, vt = _reintersect(s, prim, xt, reflected)
+            wo_next = _unit(-reflected[0], -reflected[1], -reflected[2])
+        else:
+            w = wi  # the direction sampled; to a new vertex, the one between the points
+            if prim >= 0:
+                x_next = _placed(s, prim, _local(s, prim, point_next, u, v))
+                to = (x_next[0] - xt[0], x_next[1] - xt[1], x_next[2] - xt[2])
+                root = math.sqrt(_dot(to, to))
+                w = (to[0] / root, to[1] / root, to[2] / root)
+                wo_next = _unit(-w[0], -w[1], -w[2])
+            cos = max(_dot(nst, w), 0.0) * scale
+            f = _brdf(nst, wot, w, kd, ks, shin)
+            factor = (f[0] * cos, f[1] * cos, f[2] * cos)
+        beta = (beta[0] * factor[0], beta[1] * factor[1], beta[2] * factor[2])
+        if prim < 0:  # the environment
+            L0 += beta[0] * background[0]
+            L1 += beta[1] * background[1]
+            L2 += beta[2] * background[2]
+            break
+        previous, point, xt, wot = point, point_next, x_next, wo_next
+        incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
+        depth += 1
+    return L0, L1, L2
+
+
+#: The records of ``sample_paths``: integer fields (N, max_depth, _I_FIELDS) ...
+_I_PRIM, _I_FORM, _I_NEE_PRIM, _I_NEXT, _I_ESCAPE, _I_COUNT = range(6)
+_I_FIELDS = 6
+#: ... and float fields (N, max_depth, _F_FIELDS); _F_COORD (the camera ray's image-plane
+#: point) is kept at depth 0 only.
+_F_LOCAL, _F_EMIT, _F_NEE_LOCAL, _F_NEE_WEIGHT, _F_NEXT_PDF, _F_SURVIVE = 0, 3, 4, 7, 8, 9
+_F_ESCAPE_DIR, _F_COORD = 10, 13
+_F_FIELDS = 15
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, start, stop, paths,
+                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit):  # fmt: skip
+    """Items start..stop-1: pixels (``paths`` empty: each pixel's mean over its spp paths,
+    summed in sample order, into ``out`` (H, W, 3)), or paths ``paths[i]`` (their radiance
+    into ``radiance`` (N, 3) and their records). One call per block of items, so that the
+    scene's arrays are handed over once per block, not once per path."""
+    image = paths.shape[0] == 0
+    for i in range(start, stop):
+        count = spp if image else 1
+        total = (0.0, 0.0, 0.0)
+        for sample in range(count):
+            path = i * spp + sample if image else paths[i]
+            pixel = path // spp
+            L = _trace_path(bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
+                            max_depth, rr_depth, stack, stack_t, not image, i, rec_i, rec_f,
+                            rec_lit)  # fmt: skip
+            total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
+        if image:
+            inv = 1.0 / spp
+            x, y = i % width, i // width
+            out[y, x, 0] = total[0] * inv
+            out[y, x, 1] = total[1] * inv
+            out[y, x, 2] = total[2] * inv
+        else:
+            radiance[i, 0], radiance[i, 1], radiance[i, 2] = total
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, n_threads, out,
+            radiance, rec_i, rec_f, rec_lit):  # fmt: skip
+    """``_trace_block`` over every pixel (``paths`` empty) or every path of ``paths``, in
+    blocks of BLOCK dealt to ``n_threads`` jobs (``render.trace.intersect._jobs``)."""
+    n = width * height if paths.shape[0] == 0 else paths.shape[0]
+    n_blocks, n_jobs = _jobs(n, n_threads)
+    seed_key = _mix(np.uint64(seed))
+    for job in numba.prange(n_jobs):
+        stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
+        for b in range(job, n_blocks, n_jobs):
+            _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, b * BLOCK,
+                         min(n, (b + 1) * BLOCK), paths, stack, stack_t, out, radiance, rec_i,
+                         rec_f, rec_lit)  # fmt: skip
+
+
+def render_image(sampler: PathSampler, packed: Packed | None = None) -> np.ndarray:
+    """The (H, W, 3) float64 image of ``sampler``'s scene: its spp paths per pixel, traced
+    by the kernel (the same seed, the same image bit for bit on any number of threads)."""
+    packed = pack(sampler) if packed is None else packed
+    out = np.empty((packed.height, packed.width, 3))
+    none = np.zeros((0, 1, 1), np.bool_)
+    _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
+            packed.height, sampler.max_depth, sampler.rr_depth, np.zeros(0, np.int64),
+            numba.get_num_threads(), out, np.zeros((0, 3)), np.zeros((0, 1, _I_FIELDS), np.int64),
+            np.zeros((0, 1, _F_FIELDS)), none)  # fmt: skip
+    return out
+
+
+def sample_paths(
+    sampler: PathSampler, paths: np.ndarray, packed: Packed | None = None
+) -> tuple[PathBatch, np.ndarray]:
+    """The ``PathBatch`` of path ids ``paths`` (N,) int64, as ``sampler.sample(paths)``
+    makes it, and each path's radiance (N, 3) float64, traced by the kernel."""
+    packed = pack(sampler) if packed is None else packed
+    n, depth = len(paths), sampler.max_depth
+    rec_i = np.zeros((n, depth, _I_FIELDS), np.int64)
+    rec_f = np.zeros((n, depth, _F_FIELDS))
+    rec_lit = np.zeros((n, depth, max(packed.n_lights, 1)), np.bool_)
+    radiance = np.empty((n, 3))
+    paths = np.ascontiguousarray(paths, np.int64)
+    if n == 0:
+        return PathBatch(paths, np.zeros((0, 2)), np.zeros(0, bool), []), radiance
+    _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
+            packed.height, depth, sampler.rr_depth, paths, numba.get_num_threads(),
+            np.zeros((0, 0, 3)), radiance, rec_i, rec_f, rec_lit)  # fmt: skip
+    count = rec_i[:, 0, _I_COUNT]
+    vertices = []
+    for k in range(depth):
+        rows = np.flatnonzero(count > k)
+        if len(rows) == 0:
+            break
+        i, f = rec_i[rows, k], rec_f[rows, k]
+        vertices.append(
+            Vertices(
+                rows,
+                i[:, _I_PRIM],
+                f[:, _F_LOCAL : _F_LOCAL + 3],
+                i[:, _I_FORM].astype(np.int8),
+                f[:, _F_EMIT],
+                i[:, _I_NEE_PRIM],
+                f[:, _F_NEE_LOCAL : _F_NEE_LOCAL + 3],
+                f[:, _F_NEE_WEIGHT],
+                rec_lit[rows, k, : packed.n_lights].T.copy(),
+                i[:, _I_NEXT].astype(np.int8),
+                f[:, _F_NEXT_PDF],
+                f[:, _F_SURVIVE],
+                i[:, _I_ESCAPE].astype(bool),
+                f[:, _F_ESCAPE_DIR : _F_ESCAPE_DIR + 3],
+            )  # fmt: skip
+        )
+    coords = rec_f[:, 0, _F_COORD : _F_COORD + 2].copy()
+    return PathBatch(paths, coords, count == 0, vertices), radiance
