@@ -25,12 +25,36 @@ the radiance to rounding.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numba
 import numpy as np
 
-from render.path.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
+from render.path.packed import Packed, applies, pack
+from render.path.scalar import (
+    _DIRECTION,
+    _EMITTER,
+    _EMITTER_POINT,
+    _LOBE,
+    _ROULETTE,
+    _blocked,
+    _brdf,
+    _closest,
+    _dim,
+    _divided,
+    _dot,
+    _local,
+    _look,
+    _mix,
+    _pdf,
+    _placed,
+    _point_on,
+    _power,
+    _put,
+    _reintersect,
+    _surface,
+    _to_world,
+    _uniform,
+)
 from render.path.tracer import (
     AREA,
     CAMERA,
@@ -42,381 +66,10 @@ from render.path.tracer import (
     PathSampler,
     Vertices,
 )
-from render.scene.scene import Mesh, Scene
-from render.shade.compiled import _sample, _unit
-from render.trace.intersect import BLOCK, _jobs, closest_hit_ray, make_ray, occluded_ray
-from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
+from render.shade.compiled import _unit
+from render.trace.intersect import BLOCK, _jobs
 
-_NO_MAP = np.zeros((0, 0, 3))
-
-
-def applies(world: Scene) -> bool:
-    """Whether the kernel can trace ``world``: float64 parameters and lights it shades
-    (``Light.compiled_shading``); otherwise the reference code runs."""
-    if not all(light.compiled_shading for light in world.lights):
-        return False
-    return all(t.dtype == np.float64 for t in world.parameters())
-
-
-@dataclass
-class Packed:
-    """A scene as the kernel reads it: its BVH and plain float64 / int64 arrays (``pack``)."""
-
-    bvh: object
-    arrays: tuple
-    width: int
-    height: int
-    n_lights: int
-
-
-def pack(sampler: PathSampler) -> Packed:
-    """The plain arrays of ``sampler``'s scene (its primitives, BVH, emitters, lobes), and
-    per object its material, smooth normals, UVs and textures, concatenated."""
-    world = sampler.scene
-    objects = sampler.objects
-    n_obj = len(objects)
-    triangles, centers, radii = sampler.primitives
-    counts = np.diff(np.append(sampler.first, sampler.n_triangles + len(centers)))
-    prim_object = np.repeat(np.arange(n_obj, dtype=np.int64), counts)
-    albedo, specular, reflectance, emission = (np.zeros((n_obj, 3)) for _ in range(4))
-    shininess = np.zeros(n_obj)
-    maps = np.full((n_obj, 2, 3), -1, np.int64)  # (offset, height, width) of map_Kd, map_Ks
-    texels, n_texels = [], 0
-    smooth = np.zeros(n_obj, np.bool_)
-    corners = np.zeros((sampler.n_triangles, 3), np.int64)  # global vertex ids
-    normals, uvs, n_vertices = [], [], 0
-    for o, obj in enumerate(objects):
-        m = obj.material
-        albedo[o] = np.broadcast_to(m.albedo.data, (3,))
-        specular[o] = np.broadcast_to(m.specular.data, (3,))
-        reflectance[o] = np.broadcast_to(m.reflectance.data, (3,))
-        emission[o] = np.broadcast_to(m.emission.data, (3,))
-        shininess[o] = float(m.shininess.data)
-        for k, texture in enumerate((m.texture, m.specular_texture)):
-            if texture is not None:
-                h, w = texture.shape[:2]
-                maps[o, k] = (n_texels, h, w)
-                texels.append(texture.data.reshape(-1, 3))
-                n_texels += h * w
-        if isinstance(obj, Mesh):
-            first = sampler.first[o]
-            corners[first : first + obj.num_faces] = obj.faces + n_vertices
-            count = obj.vertices.shape[0]
-            if obj.smooth:
-                smooth[o] = True
-            normals.append(sampler.normals.get(o, np.zeros((count, 3))))
-            uvs.append(obj.uvs.data if obj.uvs is not None else np.zeros((count, 2)))
-            n_vertices += count
-    e = sampler.emitters
-    lights = world.lights
-    packs = [light.shading_pack() for light in lights]
-    light_kind = np.array([p[0] for p in packs], np.int64)
-    light_vec = np.array([p[1] for p in packs], np.float64).reshape(-1, 3)
-    light_strength = np.array([p[2] for p in packs], np.float64).reshape(-1)
-    light_color = np.array([light.color.data for light in lights], np.float64).reshape(-1, 3)
-    forward, right, up, eye = sampler.frame
-    # The shadow rays' offset (render.trace.visibility.shadow_offset), from the largest
-    # coordinate any point or point light can have.
-    extent = np.abs(centers).max(initial=0.0) + radii.max(initial=0.0)
-    magnitude = max(
-        [np.abs(triangles).max(initial=0.0), extent]
-        + [float(np.abs(light_vec[j]).max()) for j in range(len(lights)) if light_kind[j] == 0]
-    )
-    offset = max(SHADOW_EPSILON * sampler.size, SHADOW_ULPS * np.finfo(np.float64).eps * magnitude)
-    background = np.broadcast_to(world.background.data, (3,)).astype(np.float64)
-    arrays = (
-        triangles, centers, radii, prim_object,
-        sampler.first, albedo, specular, shininess, reflectance, emission,
-        sampler.lobes.probability, sampler.lobes.reflectance, maps,
-        np.concatenate(texels) if texels else np.zeros((0, 3)), smooth, corners,
-        np.concatenate(normals) if normals else np.zeros((0, 3)),
-        np.concatenate(uvs) if uvs else np.zeros((0, 2)),
-        e.prims, e.cdf, e.probability, e.area, e.row_of,
-        light_kind, light_vec, light_strength, light_color,
-        np.ascontiguousarray(forward), np.ascontiguousarray(right), np.ascontiguousarray(up),
-        np.ascontiguousarray(eye), background, offset, sampler.n_triangles,
-    )  # fmt: skip
-    camera = world.camera
-    return Packed(sampler.accelerator.flat_tree(), arrays, camera.width, camera.height,
-                  len(lights))  # fmt: skip
-
-
-# --- random numbers: render.path.random.uniform for one path and dimension ------------------
-
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _mix(z):
-    z = z + _GOLDEN
-    z = (z ^ (z >> _S30)) * _M1
-    z = (z ^ (z >> _S27)) * _M2
-    return z ^ (z >> _S31)
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _uniform(key, dimension):
-    """``uniform(seed, path, dimension)`` given key = mix(mix(seed) ^ path)."""
-    z = _mix(key ^ np.uint64(dimension))
-    return np.float64(z >> _S11) * (1.0 / 9007199254740992.0)
-
-
-_LOBE = BOUNCE_DIMENSIONS["lobe"]
-_DIRECTION = BOUNCE_DIMENSIONS["direction"]
-_ROULETTE = BOUNCE_DIMENSIONS["roulette"]
-_EMITTER = BOUNCE_DIMENSIONS["emitter"]
-_EMITTER_POINT = BOUNCE_DIMENSIONS["emitter_point"]
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _dim(depth, j):
-    """``render.path.random.bounce_dimension``."""
-    return 2 + DIMENSIONS_PER_BOUNCE * (depth - 1) + j
-
-
-# --- small vector helpers ----------------------------------------------------------------------
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _divided(x0, x1, x2):
-    """x / |x| (``np.linalg.norm`` then a division, as the sampler's ``unit``)."""
-    length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
-    if length > 0:
-        return x0 / length, x1 / length, x2 / length
-    return x0, x1, x2
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _put(records, row, k, column, x):
-    """Write the 3-tuple x to records[row, k, column:column + 3]."""
-    records[row, k, column] = x[0]
-    records[row, k, column + 1] = x[1]
-    records[row, k, column + 2] = x[2]
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _basis(n):
-    """``render.path.sampling.orthonormal_basis`` of one unit normal."""
-    sign = 1.0 if n[2] >= 0 else -1.0
-    a = -1.0 / (sign + n[2])
-    b = n[0] * n[1] * a
-    s = (1.0 + sign * n[0] ** 2 * a, sign * b, -sign * n[0])
-    t = (b, sign + n[1] ** 2 * a, -n[1])
-    return s, t
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _to_world(l0, l1, l2, n):
-    s, t = _basis(n)
-    return (
-        l0 * s[0] + l1 * t[0] + l2 * n[0],
-        l0 * s[1] + l1 * t[1] + l2 * n[1],
-        l0 * s[2] + l1 * t[2] + l2 * n[2],
-    )
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _power(p, q):
-    total = p * p + q * q
-    return p * p / total if total > 0 else 0.0
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _glossy_pdf(n, view, w, shininess):
-    """``render.path.sampling.blinn_phong_pdf`` of one direction."""
-    h = _divided(view[0] + w[0], view[1] + w[1], view[2] + w[2])
-    cos_h = max(_dot(n, h), 0.0)
-    vh = abs(_dot(view, h))
-    if not (vh > 0 and _dot(n, w) > 0):
-        return 0.0
-    return (shininess + 1.0) / (2.0 * math.pi) * cos_h**shininess / (4.0 * vh)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _pdf(p_diffuse, p_glossy, shininess, ns, wo, wi):
-    """``PathSampler._pdf``: the density of the diffuse-or-glossy choice at wi."""
-    return p_diffuse * (max(_dot(ns, wi), 0.0) / math.pi) + p_glossy * _glossy_pdf(
-        ns, wo, wi, shininess
-    )
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _brdf(ns, view, wi, albedo, specular, shininess):
-    """``render.shade.lighting.brdf`` (3-tuple): albedo / pi plus the Blinn-Phong lobe."""
-    inv_pi = 1.0 / math.pi
-    f0, f1, f2 = albedo[0] * inv_pi, albedo[1] * inv_pi, albedo[2] * inv_pi
-    if specular[0] != 0.0 or specular[1] != 0.0 or specular[2] != 0.0:
-        h = _unit(wi[0] + view[0], wi[1] + view[1], wi[2] + view[2])
-        n_dot_h = max(_dot(ns, h), 1e-12)
-        lobe = n_dot_h**shininess * ((shininess + 8.0) / (8.0 * math.pi))
-        f0, f1, f2 = f0 + lobe * specular[0], f1 + lobe * specular[1], f2 + lobe * specular[2]
-    return f0, f1, f2
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _surface(s, prim, point, u, v):
-    """At a point on primitive ``prim`` (barycentrics u, v on a triangle): the object, the
-    unit geometric normal, the shading normal and the UV, and the coordinates ``local``."""
-    (triangles, centers, radii, prim_object, first, albedo, specular, shininess,
-     reflectance, emission, probability, lobe_reflectance, maps, texels, smooth, corners,
-     normals, uvs) = s[:18]  # fmt: skip
-    o = prim_object[prim]
-    n_tri = triangles.shape[0]
-    if prim < n_tri:
-        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
-        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
-        ng = _divided(
-            e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-            e1[0] * e2[1] - e1[1] * e2[0],
-        )  # fmt: skip
-        local = (u, v, 0.0)
-        ns = ng
-        w0 = 1.0 - u - v
-        ia, ib, ic = corners[prim, 0], corners[prim, 1], corners[prim, 2]
-        if smooth[o]:
-            ns = _divided(
-                w0 * normals[ia, 0] + u * normals[ib, 0] + v * normals[ic, 0],
-                w0 * normals[ia, 1] + u * normals[ib, 1] + v * normals[ic, 1],
-                w0 * normals[ia, 2] + u * normals[ib, 2] + v * normals[ic, 2],
-            )
-        uv = (
-            w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0],
-            w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1],
-        )
-    else:
-        k = prim - n_tri
-        ng = _divided(point[0] - centers[k, 0], point[1] - centers[k, 1], point[2] - centers[k, 2])
-        local, ns, uv = ng, ng, (0.0, 0.0)
-    return o, ng, ns, uv, local
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _look(albedo, specular, maps, texels, o, uv):
-    """The albedo and specular colours of object o at UV ``uv`` (its textures sampled)."""
-    kd = (albedo[o, 0], albedo[o, 1], albedo[o, 2])
-    ks = (specular[o, 0], specular[o, 1], specular[o, 2])
-    if maps[o, 0, 0] >= 0:
-        start, h, w = maps[o, 0, 0], maps[o, 0, 1], maps[o, 0, 2]
-        t = texels[start : start + h * w].reshape((h, w, 3))
-        kd = (_sample(t, uv[0], uv[1], 0)[0], _sample(t, uv[0], uv[1], 1)[0],
-              _sample(t, uv[0], uv[1], 2)[0])  # fmt: skip
-    if maps[o, 1, 0] >= 0:
-        start, h, w = maps[o, 1, 0], maps[o, 1, 1], maps[o, 1, 2]
-        t = texels[start : start + h * w].reshape((h, w, 3))
-        ks = (ks[0] * _sample(t, uv[0], uv[1], 0)[0], ks[1] * _sample(t, uv[0], uv[1], 1)[0],
-              ks[2] * _sample(t, uv[0], uv[1], 2)[0])  # fmt: skip
-    return kd, ks
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _point_on(s, prim, u1, u2):
-    """``render.path.emitters.point_on`` for one primitive: local, point, unit normal."""
-    triangles, centers, radii = s[0], s[1], s[2]
-    n_tri = triangles.shape[0]
-    if prim < n_tri:
-        root = math.sqrt(u1)
-        u, v = u2 * root, 1.0 - root
-        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-        z = (a[0] + u * (b[0] - a[0]) + v * (c[0] - a[0]),
-             a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1]),
-             a[2] + u * (b[2] - a[2]) + v * (c[2] - a[2]))  # fmt: skip
-        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
-        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
-        nz = _divided(
-            e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-            e1[0] * e2[1] - e1[1] * e2[0],
-        )  # fmt: skip
-        return (u, v, 0.0), z, nz
-    k = prim - n_tri
-    zc = 1.0 - 2.0 * u1
-    r = math.sqrt(max(1.0 - zc * zc, 0.0))
-    phi = 2.0 * math.pi * u2
-    d = (r * math.cos(phi), r * math.sin(phi), zc)
-    z = (centers[k, 0] + radii[k] * d[0], centers[k, 1] + radii[k] * d[1],
-         centers[k, 2] + radii[k] * d[2])  # fmt: skip
-    return d, z, d
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _reintersect(s, prim, o, d):
-    """Where the ray o + t d meets primitive ``prim`` as the tape finds it
-    (``surface_at`` from rays: the triangle's plane, or the sphere's root on the far side
-    of the ray's start when it starts inside): the point and its barycentrics (u, v)."""
-    triangles, centers, radii = s[0], s[1], s[2]
-    n_tri = triangles.shape[0]
-    if prim < n_tri:
-        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
-        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
-        p = (d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0])
-        inv_det = 1.0 / _dot(e1, p)
-        q0 = (o[0] - a[0], o[1] - a[1], o[2] - a[2])
-        q = (q0[1] * e1[2] - q0[2] * e1[1], q0[2] * e1[0] - q0[0] * e1[2],
-             q0[0] * e1[1] - q0[1] * e1[0])  # fmt: skip
-        t = _dot(e2, q) * inv_det
-        u, v = _dot(q0, p) * inv_det, _dot(d, q) * inv_det
-    else:
-        k = prim - n_tri
-        oc = (o[0] - centers[k, 0], o[1] - centers[k, 1], o[2] - centers[k, 2])
-        a2, b2 = _dot(d, d), _dot(oc, d)
-        c2 = _dot(oc, oc) - radii[k] * radii[k]
-        root = math.sqrt(max(b2 * b2 - a2 * c2, max(b2 * b2 * 1e-16, 2.2250738585072014e-308)))
-        sign = 1.0 if math.sqrt(_dot(oc, oc)) < radii[k] else -1.0
-        t = (-b2 + sign * root) / a2
-        u = v = 0.0
-    return (o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]), u, v
-
-
-# The traversals are called through these two functions, not inlined where they are used:
-# one compiled copy each keeps the kernel's compile time down.
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _closest(bvh, origin, direction, stack, stack_t):
-    """``closest_hit_ray`` of the ray origin + t direction, t > 0: (prim, t, u, v)."""
-    return closest_hit_ray(bvh, make_ray(origin, direction, 0.0, np.inf), stack, stack_t)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _blocked(bvh, origin, direction, tmax, ignore, stack):
-    """``occluded_ray`` of the ray origin + t direction, 0 < t < tmax, ignoring ``ignore``."""
-    return occluded_ray(bvh, make_ray(origin, direction, 0.0, tmax), ignore, stack)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _local(s, prim, point, u, v):
-    """``PathSampler._local``: (u, v, 0) on a triangle, the unit direction from a sphere's
-    centre."""
-    triangles, centers = s[0], s[1]
-    if prim < triangles.shape[0]:
-        return (u, v, 0.0)
-    k = prim - triangles.shape[0]
-    return _divided(point[0] - centers[k, 0], point[1] - centers[k, 1], point[2] - centers[k, 2])
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _placed(s, prim, local):
-    """The point at coordinates ``local`` on primitive ``prim`` (``surface_at(local=)``)."""
-    triangles, centers, radii = s[0], s[1], s[2]
-    n_tri = triangles.shape[0]
-    if prim < n_tri:
-        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-        u, v = local[0], local[1]
-        return (a[0] + u * (b[0] - a[0]) + v * (c[0] - a[0]),
-                a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1]),
-                a[2] + u * (b[2] - a[2]) + v * (c[2] - a[2]))  # fmt: skip
-    k = prim - n_tri
-    return (centers[k, 0] + radii[k] * local[0], centers[k, 1] + radii[k] * local[1],
-            centers[k, 2] + radii[k] * local[2])  # fmt: skip
+__all__ = ["Packed", "applies", "pack", "render_image", "sample_paths"]
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -1,0 +1,108 @@
+"""A scene as the compiled path tracer reads it (``render.path.kernel``): plain arrays.
+
+``pack`` reads a ``PathSampler``'s world once: its primitives and BVH, emitters and lobe
+probabilities (the sampler's own), and per object its material, smooth normals, UVs and
+textures, concatenated into flat float64 / int64 arrays that Numba code indexes by object
+or primitive id.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from render.path.tracer import PathSampler
+from render.scene.scene import Mesh, Scene
+from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
+
+
+def applies(world: Scene) -> bool:
+    """Whether the kernel can trace ``world``: float64 parameters and lights it shades
+    (``Light.compiled_shading``); otherwise the reference code runs."""
+    if not all(light.compiled_shading for light in world.lights):
+        return False
+    return all(t.dtype == np.float64 for t in world.parameters())
+
+
+@dataclass
+class Packed:
+    """A scene as the kernel reads it: its BVH and plain float64 / int64 arrays (``pack``)."""
+
+    bvh: object
+    arrays: tuple
+    width: int
+    height: int
+    n_lights: int
+
+
+def pack(sampler: PathSampler) -> Packed:
+    """The plain arrays of ``sampler``'s scene (its primitives, BVH, emitters, lobes), and
+    per object its material, smooth normals, UVs and textures, concatenated."""
+    world = sampler.scene
+    objects = sampler.objects
+    n_obj = len(objects)
+    triangles, centers, radii = sampler.primitives
+    counts = np.diff(np.append(sampler.first, sampler.n_triangles + len(centers)))
+    prim_object = np.repeat(np.arange(n_obj, dtype=np.int64), counts)
+    albedo, specular, reflectance, emission = (np.zeros((n_obj, 3)) for _ in range(4))
+    shininess = np.zeros(n_obj)
+    maps = np.full((n_obj, 2, 3), -1, np.int64)  # (offset, height, width) of map_Kd, map_Ks
+    texels, n_texels = [], 0
+    smooth = np.zeros(n_obj, np.bool_)
+    corners = np.zeros((sampler.n_triangles, 3), np.int64)  # global vertex ids
+    normals, uvs, n_vertices = [], [], 0
+    for o, obj in enumerate(objects):
+        m = obj.material
+        albedo[o] = np.broadcast_to(m.albedo.data, (3,))
+        specular[o] = np.broadcast_to(m.specular.data, (3,))
+        reflectance[o] = np.broadcast_to(m.reflectance.data, (3,))
+        emission[o] = np.broadcast_to(m.emission.data, (3,))
+        shininess[o] = float(m.shininess.data)
+        for k, texture in enumerate((m.texture, m.specular_texture)):
+            if texture is not None:
+                h, w = texture.shape[:2]
+                maps[o, k] = (n_texels, h, w)
+                texels.append(texture.data.reshape(-1, 3))
+                n_texels += h * w
+        if isinstance(obj, Mesh):
+            first = sampler.first[o]
+            corners[first : first + obj.num_faces] = obj.faces + n_vertices
+            count = obj.vertices.shape[0]
+            if obj.smooth:
+                smooth[o] = True
+            normals.append(sampler.normals.get(o, np.zeros((count, 3))))
+            uvs.append(obj.uvs.data if obj.uvs is not None else np.zeros((count, 2)))
+            n_vertices += count
+    e = sampler.emitters
+    lights = world.lights
+    packs = [light.shading_pack() for light in lights]
+    light_kind = np.array([p[0] for p in packs], np.int64)
+    light_vec = np.array([p[1] for p in packs], np.float64).reshape(-1, 3)
+    light_strength = np.array([p[2] for p in packs], np.float64).reshape(-1)
+    light_color = np.array([light.color.data for light in lights], np.float64).reshape(-1, 3)
+    forward, right, up, eye = sampler.frame
+    # The shadow rays' offset (render.trace.visibility.shadow_offset), from the largest
+    # coordinate any point or point light can have.
+    extent = np.abs(centers).max(initial=0.0) + radii.max(initial=0.0)
+    magnitude = max(
+        [np.abs(triangles).max(initial=0.0), extent]
+        + [float(np.abs(light_vec[j]).max()) for j in range(len(lights)) if light_kind[j] == 0]
+    )
+    offset = max(SHADOW_EPSILON * sampler.size, SHADOW_ULPS * np.finfo(np.float64).eps * magnitude)
+    background = np.broadcast_to(world.background.data, (3,)).astype(np.float64)
+    arrays = (
+        triangles, centers, radii, prim_object,
+        sampler.first, albedo, specular, shininess, reflectance, emission,
+        sampler.lobes.probability, sampler.lobes.reflectance, maps,
+        np.concatenate(texels) if texels else np.zeros((0, 3)), smooth, corners,
+        np.concatenate(normals) if normals else np.zeros((0, 3)),
+        np.concatenate(uvs) if uvs else np.zeros((0, 2)),
+        e.prims, e.cdf, e.probability, e.area, e.row_of,
+        light_kind, light_vec, light_strength, light_color,
+        np.ascontiguousarray(forward), np.ascontiguousarray(right), np.ascontiguousarray(up),
+        np.ascontiguousarray(eye), background, offset, sampler.n_triangles,
+    )  # fmt: skip
+    camera = world.camera
+    return Packed(sampler.accelerator.flat_tree(), arrays, camera.width, camera.height,
+                  len(lights))  # fmt: skip
