@@ -32,7 +32,7 @@ import minidiff as md
 from minidiff import buffers
 from minidiff.tensor import record
 from render.edges.terms import differentiated
-from render.path import kernel
+from render.path import adjoint, kernel
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
 from render.path.tracer import PathSampler, check_count, check_path_options
@@ -221,21 +221,16 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
 def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
     """Add d_image . d image / d p (``d_image`` (H, W, 3): dL/dimage) to ``p.grad`` of every
     parameter of ``scene`` that requires grad, as ``backward`` through ``_render_path``'s
-    tape would, by rendering the samples again in batches of ``batch_spp`` (the same path
-    ids and random numbers under ``seed``), each on its own tape that its ``backward``
-    frees before the next batch is rendered."""
-    adjoint = d_image * (1.0 / spp)  # the tape's image is total * (1 / spp): the same seed
-    sampler = packed = None
-    for first in range(0, spp, batch_spp):
-        world = placed(scene)  # a fresh tape per batch: placement is on it too
-        if sampler is None:  # plain arrays: the same for every batch
-            sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
-            packed = kernel.pack(sampler) if kernel.applies(world) else None
-        last = min(first + batch_spp, spp)
-        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last, packed)
-        if samples.requires_grad:  # else no parameter that requires grad moves the image
-            # This batch's share of the image is sum_s samples / spp; its share of dL/dp:
-            md.sum(samples * adjoint[:, :, None, :]).backward()
+    tape would, by replaying the image's paths (the same path ids and random numbers under
+    ``seed``): compiled when only materials, lights' strengths and colours and the
+    environment require grad (``render.path.adjoint``), else on the tape, a batch of
+    ``batch_spp`` samples at a time."""
+    world = placed(scene)
+    sampler = PathSampler(world, spp, max_depth, rr_depth, seed)  # plain arrays: reused
+    if adjoint.covers(world):
+        adjoint.backpropagate(world, sampler, d_image)
+    else:
+        _backpropagate_on_tape(scene, sampler, d_image, batch_spp)
     if edges and differentiated(scene):
         world = placed(scene)
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
@@ -244,6 +239,22 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         )
         if term.requires_grad:
             md.sum(term * d_image).backward()
+
+
+def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:
+    """``_backpropagate``'s tape: the samples rendered again in batches of ``batch_spp``
+    (paths from the kernel when it applies), each on its own tape that its ``backward``
+    frees before the next batch is rendered."""
+    spp = sampler.spp
+    weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
+    packed = kernel.pack(sampler) if kernel.applies(sampler.scene) else None
+    for first in range(0, spp, batch_spp):
+        world = placed(scene)  # a fresh tape per batch: placement is on it too
+        last = min(first + batch_spp, spp)
+        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last, packed)
+        if samples.requires_grad:  # else no parameter that requires grad moves the image
+            # This batch's share of the image is sum_s samples / spp; its share of dL/dp:
+            md.sum(samples * weights[:, :, None, :]).backward()
 
 
 def replay_gradient(

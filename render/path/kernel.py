@@ -38,6 +38,7 @@ from render.path.scalar import (
     _ROULETTE,
     _blocked,
     _brdf,
+    _brdf_adjoint,
     _closest,
     _dim,
     _divided,
@@ -69,14 +70,27 @@ from render.path.tracer import (
 from render.shade.compiled import _unit
 from render.trace.intersect import BLOCK, _jobs
 
-__all__ = ["Packed", "applies", "pack", "render_image", "sample_paths"]
+__all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "sample_paths"]
+
+#: Path replay adds into this many partial gradient vectors (each a fixed share of the
+#: image's blocks), then sums them in order: the same bits on any number of threads.
+CHUNKS = 64
 
 
 @numba.njit(cache=True, error_model="numpy")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
-                stack_t, keep, row, rec_i, rec_f, rec_lit):  # fmt: skip
+                stack_t, keep, row, rec_i, rec_f, rec_lit, delta, total, grad):  # fmt: skip
     """The radiance (3-tuple) of path id ``path`` through pixel (px, py). With ``keep``,
     its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``).
+
+    Path replay (``grad`` non-empty; ``total`` the path's radiance from a first call):
+    adds delta . d radiance / d q to ``grad`` (laid out by ``_G_*``) for the material,
+    light and environment values q. The radiance is sum_k beta_k C_k with beta_{k+1} =
+    beta_k F_k (C_k what vertex k adds, F_k its continuation factor), so d radiance =
+    sum_k beta_k (dC_k + dF_k Lrem_k), where Lrem_k = (total - sum_{j<=k} beta_j C_j) /
+    beta_{k+1} is the radiance that reaches vertex k from the rest of the path (Vicini et
+    al. 2021): each vertex's share is known when the replay reaches it, with no memory of
+    the path's other vertices.
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -87,7 +101,10 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
      reflectance, emission, probability, lobe_reflectance, maps, texels, smooth, corners,
      normals, uvs, e_prims, e_cdf, e_probability, e_area, e_row_of, light_kind, light_vec,
      light_strength, light_color, forward, right, up, eye, background, offset,
-     n_tri) = s  # fmt: skip
+     n_tri, lobe_on) = s  # fmt: skip
+    adjoint = grad.shape[0] > 0
+    g_light = _G_OBJECT * albedo.shape[0]  # where the lights' and the environment's are
+    g_background = g_light + _G_LIGHT * light_kind.shape[0]
     key = _mix(seed_key ^ np.uint64(path))
     # The camera ray (PathSampler.sample, to_image_plane, camera_directions).
     fx = px + _uniform(key, 0)
@@ -101,6 +118,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     if prim < 0:
         if keep:
             rec_i[row, 0, _I_COUNT] = 0
+        if adjoint:
+            for c in range(3):
+                grad[g_background + c] += delta[c]
         return background[0], background[1], background[2]
     point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
     incoming = _divided(d[0], d[1], d[2])
@@ -136,6 +156,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             L0 += beta[0] * (emission[o, 0] * weight)
             L1 += beta[1] * (emission[o, 1] * weight)
             L2 += beta[2] * (emission[o, 2] * weight)
+            if adjoint:
+                for c in range(3):
+                    grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
         if keep:
             rec_i[row, depth - 1, _I_PRIM] = prim
             rec_i[row, depth - 1, _I_FORM] = form
@@ -153,6 +176,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         p_d, p_g, p_m = probability[o, 0], probability[o, 1], probability[o, 2]
         shin = shininess[o]
         kd, ks = _look(albedo, specular, maps, texels, o, uvt)
+        lobe, textured = lobe_on[o], maps[o, 0, 0] >= 0
+        g_object = _G_OBJECT * o
         origin = (point[0] + offset * ng[0], point[1] + offset * ng[1], point[2] + offset * ng[2])
         ignore = prim if prim < n_tri else -1
         # Next-event estimation: one point on the area lights (PathSampler._next_event).
@@ -189,10 +214,18 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 eo = prim_object[e_prim]
                 scale = max(_dot(nst, wi), 0.0) * abs(_dot(nz, wi)) / d2 * e_area[pick]
                 scale = scale * nee_weight
-                f = _brdf(nst, wot, wi, kd, ks, shin)
+                f = _brdf(nst, wot, wi, kd, ks, shin, lobe)
                 L0 += beta[0] * (f[0] * scale * emission[eo, 0])
                 L1 += beta[1] * (f[1] * scale * emission[eo, 1])
                 L2 += beta[2] * (f[2] * scale * emission[eo, 2])
+                if adjoint:
+                    w = (delta[0] * beta[0] * scale * emission[eo, 0],
+                         delta[1] * beta[1] * scale * emission[eo, 1],
+                         delta[2] * beta[2] * scale * emission[eo, 2])  # fmt: skip
+                    _brdf_adjoint(nst, wot, wi, ks, shin, lobe, textured, w, grad, g_object)
+                    g = _G_OBJECT * eo + _G_EMISSION
+                    for c in range(3):
+                        grad[g + c] += delta[c] * beta[c] * f[c] * scale
         # Point and directional lights (PathSampler._lights, lighting.light_contribution).
         for j in range(light_kind.shape[0]):
             if light_kind[j] == 0:
@@ -212,6 +245,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 ty = light_vec[j, 1] - xt[1]
                 tz = light_vec[j, 2] - xt[2]
                 distance_sq = tx * tx + ty * ty + tz * tz
+                per_strength = 1.0 / (1.0 if distance_sq == 0 else distance_sq)
                 irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
                 wl = _unit(tx, ty, tz)
             else:
@@ -221,15 +255,25 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
                           point[2] + offset * wl[2])  # fmt: skip
                     lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
-                irradiance = light_strength[j]
+                irradiance, per_strength = light_strength[j], 1.0
             if keep:
                 rec_lit[row, depth - 1, j] = lit
             if lit:
                 scalar = irradiance * max(_dot(nst, wl), 0.0)
-                f = _brdf(nst, wot, wl, kd, ks, shin)
+                f = _brdf(nst, wot, wl, kd, ks, shin, lobe)
                 L0 += beta[0] * (scalar * (f[0] * light_color[j, 0]))
                 L1 += beta[1] * (scalar * (f[1] * light_color[j, 1]))
                 L2 += beta[2] * (scalar * (f[2] * light_color[j, 2]))
+                if adjoint:
+                    w = (delta[0] * beta[0] * scalar * light_color[j, 0],
+                         delta[1] * beta[1] * scalar * light_color[j, 1],
+                         delta[2] * beta[2] * scalar * light_color[j, 2])  # fmt: skip
+                    _brdf_adjoint(nst, wot, wl, ks, shin, lobe, textured, w, grad, g_object)
+                    g = g_light + _G_LIGHT * j
+                    per_strength = per_strength * max(_dot(nst, wl), 0.0)  # d scalar / d I
+                    for c in range(3):
+                        grad[g] += delta[c] * beta[c] * per_strength * f[c] * light_color[j, c]
+                        grad[g + 1 + c] += delta[c] * beta[c] * scalar * f[c]
         # How the path goes on (PathSampler._continue).
         u1 = _uniform(key, _dim(depth, _DIRECTION))
         u2 = _uniform(key, _dim(depth, _DIRECTION) + 1)
@@ -274,33 +318,63 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if mirror:
             factor = (reflectance[o, 0] * scale, reflectance[o, 1] * scale,
                       reflectance[o, 2] * scale)  # fmt: skip
+            f = (scale, scale, scale)  # d factor / d reflectance
             c2 = 2.0 * _dot(wot, nst)  # the tape's reflected ray, from its own point
             reflected = (c2 * nst[0] - wot[0], c2 * nst[1] - wot[1], c2 * nst[2] - wot[2])
             if prim >= 0:
                 x_next, ut, vt = _reintersect(s, prim, xt, reflected)
             wo_next = _unit(-reflected[0], -reflected[1], -reflected[2])
         else:
-            w = wi  # the direction sampled; to a new vertex, the one between the points
+            wn = wi  # the direction sampled; to a new vertex, the one between the points
             if prim >= 0:
                 x_next = _placed(s, prim, _local(s, prim, point_next, u, v))
                 to = (x_next[0] - xt[0], x_next[1] - xt[1], x_next[2] - xt[2])
                 root = math.sqrt(_dot(to, to))
-                w = (to[0] / root, to[1] / root, to[2] / root)
-                wo_next = _unit(-w[0], -w[1], -w[2])
-            cos = max(_dot(nst, w), 0.0) * scale
-            f = _brdf(nst, wot, w, kd, ks, shin)
+                wn = (to[0] / root, to[1] / root, to[2] / root)
+                wo_next = _unit(-wn[0], -wn[1], -wn[2])
+            cos = max(_dot(nst, wn), 0.0) * scale
+            f = _brdf(nst, wot, wn, kd, ks, shin, lobe)
             factor = (f[0] * cos, f[1] * cos, f[2] * cos)
+        before = beta
         beta = (beta[0] * factor[0], beta[1] * factor[1], beta[2] * factor[2])
+        if adjoint:  # dF_k weighted by the radiance the rest of the path brings
+            rest = (_rest(total[0], L0, beta[0]), _rest(total[1], L1, beta[1]),
+                    _rest(total[2], L2, beta[2]))  # fmt: skip
+            w = (delta[0] * before[0] * rest[0], delta[1] * before[1] * rest[1],
+                 delta[2] * before[2] * rest[2])  # fmt: skip
+            if mirror:
+                for c in range(3):
+                    grad[g_object + _G_REFLECTANCE + c] += w[c] * f[c]
+            else:
+                w = (w[0] * cos, w[1] * cos, w[2] * cos)
+                _brdf_adjoint(nst, wot, wn, ks, shin, lobe, textured, w, grad, g_object)
         if prim < 0:  # the environment
             L0 += beta[0] * background[0]
             L1 += beta[1] * background[1]
             L2 += beta[2] * background[2]
+            if adjoint:
+                for c in range(3):
+                    grad[g_background + c] += delta[c] * beta[c]
             break
         previous, point, xt, wot = point, point_next, x_next, wo_next
         incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
         depth += 1
     return L0, L1, L2
 
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _rest(total, so_far, beta):
+    """One channel of (total - so_far) / beta: the radiance that reaches a vertex from the
+    rest of its path (0 where the throughput beta is 0: nothing comes back then)."""
+    return (total - so_far) / beta if beta != 0.0 else 0.0
+
+
+#: Path replay's gradient vector: per object (``_G_OBJECT`` entries from ``_G_OBJECT * o``)
+#: albedo (3), specular (3), shininess, reflectance (3), emission (3); then per light
+#: (``_G_LIGHT`` entries) its strength (intensity or irradiance) and colour (3); then the
+#: environment (3).
+_G_ALBEDO, _G_SPECULAR, _G_SHININESS, _G_REFLECTANCE, _G_EMISSION = 0, 3, 6, 7, 10
+_G_OBJECT, _G_LIGHT = 13, 4
 
 #: The records of ``sample_paths``: integer fields (N, max_depth, _I_FIELDS) ...
 _I_PRIM, _I_FORM, _I_NEE_PRIM, _I_NEXT, _I_ESCAPE, _I_COUNT = range(6)
@@ -314,46 +388,80 @@ _F_FIELDS = 15
 
 @numba.njit(cache=True, error_model="numpy")
 def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, start, stop, paths,
-                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit):  # fmt: skip
-    """Items start..stop-1: pixels (``paths`` empty: each pixel's mean over its spp paths,
-    summed in sample order, into ``out`` (H, W, 3)), or paths ``paths[i]`` (their radiance
-    into ``radiance`` (N, 3) and their records). One call per block of items, so that the
-    scene's arrays are handed over once per block, not once per path."""
+                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit, d_image,
+                 grad):  # fmt: skip
+    """Items start..stop-1, one of three ways:
+
+    * pixels (``paths`` and ``grad`` empty): each pixel's mean over its spp paths, summed
+      in sample order, into ``out`` (H, W, 3);
+    * paths ``paths[i]``: their radiance into ``radiance`` (N, 3) and their records;
+    * pixels, path replay (``grad`` non-empty): each of their paths traced, then replayed
+      with its radiance and the pixel's ``d_image`` (dL/dimage / spp), adding to ``grad``.
+
+    One call per block of items, so that the scene's arrays are handed over once per block,
+    not once per path."""
     image = paths.shape[0] == 0
+    no_grad = grad[:0]
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
+        x, y = i % width, i // width
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
             L = _trace_path(bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
                             max_depth, rr_depth, stack, stack_t, not image, i, rec_i, rec_f,
-                            rec_lit)  # fmt: skip
+                            rec_lit, total, total, no_grad)  # fmt: skip
+            if grad.shape[0] > 0:
+                delta = (d_image[y, x, 0], d_image[y, x, 1], d_image[y, x, 2])
+                _trace_path(bvh, s, seed_key, path, x, y, width, height, max_depth, rr_depth,
+                            stack, stack_t, False, i, rec_i, rec_f, rec_lit, delta, L,
+                            grad)  # fmt: skip
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
-        if image:
+        if image and out.shape[0] > 0:
             inv = 1.0 / spp
-            x, y = i % width, i // width
             out[y, x, 0] = total[0] * inv
             out[y, x, 1] = total[1] * inv
             out[y, x, 2] = total[2] * inv
-        else:
+        elif not image:
             radiance[i, 0], radiance[i, 1], radiance[i, 2] = total
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, n_threads, out,
-            radiance, rec_i, rec_f, rec_lit):  # fmt: skip
+            radiance, rec_i, rec_f, rec_lit, d_image, grads):  # fmt: skip
     """``_trace_block`` over every pixel (``paths`` empty) or every path of ``paths``, in
-    blocks of BLOCK dealt to ``n_threads`` jobs (``render.trace.intersect._jobs``)."""
+    blocks of BLOCK dealt to ``n_threads`` jobs (``render.trace.intersect._jobs``). Path
+    replay (``grads`` (C, G) non-empty) deals the blocks to C jobs whatever the number of
+    threads, each adding to its own row: the sums' order, and so the gradient's bits, do
+    not depend on the threads."""
     n = width * height if paths.shape[0] == 0 else paths.shape[0]
     n_blocks, n_jobs = _jobs(n, n_threads)
+    replay = grads.shape[1] > 0
+    n_jobs = np.int64(grads.shape[0] if replay else n_jobs)
     seed_key = _mix(np.uint64(seed))
     for job in numba.prange(n_jobs):
         stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
+        grad = grads[np.int64(job) if replay else 0]  # (0,) when there is no replay
         for b in range(job, n_blocks, n_jobs):
             _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, b * BLOCK,
                          min(n, (b + 1) * BLOCK), paths, stack, stack_t, out, radiance, rec_i,
-                         rec_f, rec_lit)  # fmt: skip
+                         rec_f, rec_lit, d_image, grad)  # fmt: skip
+
+
+def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=None, records=None,
+         d_image=None, grads=None) -> None:  # fmt: skip
+    """``_kernel`` with empty arrays for what this call does not use."""
+    none_i = np.zeros((0, 1, _I_FIELDS), np.int64)
+    none_f, none_lit = np.zeros((0, 1, _F_FIELDS)), np.zeros((0, 1, 1), bool)
+    rec_i, rec_f, rec_lit = records or (none_i, none_f, none_lit)
+    _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
+            packed.height, sampler.max_depth, sampler.rr_depth,
+            np.zeros(0, np.int64) if paths is None else paths, numba.get_num_threads(),
+            np.zeros((0, 0, 3)) if out is None else out,
+            np.zeros((0, 3)) if radiance is None else radiance, rec_i, rec_f, rec_lit,
+            np.zeros((0, 0, 3)) if d_image is None else d_image,
+            np.zeros((1, 0)) if grads is None else grads)  # fmt: skip
 
 
 def render_image(sampler: PathSampler, packed: Packed | None = None) -> np.ndarray:
@@ -361,11 +469,7 @@ def render_image(sampler: PathSampler, packed: Packed | None = None) -> np.ndarr
     by the kernel (the same seed, the same image bit for bit on any number of threads)."""
     packed = pack(sampler) if packed is None else packed
     out = np.empty((packed.height, packed.width, 3))
-    none = np.zeros((0, 1, 1), np.bool_)
-    _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
-            packed.height, sampler.max_depth, sampler.rr_depth, np.zeros(0, np.int64),
-            numba.get_num_threads(), out, np.zeros((0, 3)), np.zeros((0, 1, _I_FIELDS), np.int64),
-            np.zeros((0, 1, _F_FIELDS)), none)  # fmt: skip
+    _run(packed, sampler, out=out)
     return out
 
 
@@ -383,9 +487,7 @@ def sample_paths(
     paths = np.ascontiguousarray(paths, np.int64)
     if n == 0:
         return PathBatch(paths, np.zeros((0, 2)), np.zeros(0, bool), []), radiance
-    _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
-            packed.height, depth, sampler.rr_depth, paths, numba.get_num_threads(),
-            np.zeros((0, 0, 3)), radiance, rec_i, rec_f, rec_lit)  # fmt: skip
+    _run(packed, sampler, paths=paths, radiance=radiance, records=(rec_i, rec_f, rec_lit))
     count = rec_i[:, 0, _I_COUNT]
     vertices = []
     for k in range(depth):
@@ -413,3 +515,21 @@ def sample_paths(
         )
     coords = rec_f[:, 0, _F_COORD : _F_COORD + 2].copy()
     return PathBatch(paths, coords, count == 0, vertices), radiance
+
+
+def replay_gradient(
+    sampler: PathSampler, d_image: np.ndarray, packed: Packed | None = None
+) -> np.ndarray:
+    """Path replay: the gradient vector (laid out by ``_G_*``) of sum(d_image * image) with
+    respect to the materials, the lights' strengths and colours and the environment, for
+    ``sampler``'s image (``d_image`` (H, W, 3): dL/dimage). Memory: the vector, CHUNKS
+    times; nothing per path or per vertex."""
+    packed = pack(sampler) if packed is None else packed
+    n_objects, n_lights = len(sampler.objects), packed.n_lights
+    size = _G_OBJECT * n_objects + _G_LIGHT * n_lights + 3
+    n_blocks = -(-(packed.width * packed.height) // BLOCK)
+    grads = np.zeros((min(CHUNKS, n_blocks), size))
+    # The image is the sum of each pixel's samples times 1 / spp.
+    adjoint = np.ascontiguousarray(d_image, np.float64) * (1.0 / sampler.spp)
+    _run(packed, sampler, d_image=adjoint, grads=grads)
+    return grads.sum(axis=0)

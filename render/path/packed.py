@@ -47,6 +47,9 @@ def pack(sampler: PathSampler) -> Packed:
     prim_object = np.repeat(np.arange(n_obj, dtype=np.int64), counts)
     albedo, specular, reflectance, emission = (np.zeros((n_obj, 3)) for _ in range(4))
     shininess = np.zeros(n_obj)
+    # Whether the Blinn-Phong lobe is computed: a non-zero or differentiated specular
+    # (render.path.transport computes it then; its derivative needs it when zero).
+    lobe_on = np.zeros(n_obj, np.bool_)
     maps = np.full((n_obj, 2, 3), -1, np.int64)  # (offset, height, width) of map_Kd, map_Ks
     texels, n_texels = [], 0
     smooth = np.zeros(n_obj, np.bool_)
@@ -59,6 +62,7 @@ def pack(sampler: PathSampler) -> Packed:
         reflectance[o] = np.broadcast_to(m.reflectance.data, (3,))
         emission[o] = np.broadcast_to(m.emission.data, (3,))
         shininess[o] = float(m.shininess.data)
+        lobe_on[o] = m.specular.is_differentiated() or bool(np.any(m.specular.data))
         for k, texture in enumerate((m.texture, m.specular_texture)):
             if texture is not None:
                 h, w = texture.shape[:2]
@@ -101,7 +105,7 @@ def pack(sampler: PathSampler) -> Packed:
         e.prims, e.cdf, e.probability, e.area, e.row_of,
         light_kind, light_vec, light_strength, light_color,
         np.ascontiguousarray(forward), np.ascontiguousarray(right), np.ascontiguousarray(up),
-        np.ascontiguousarray(eye), background, offset, sampler.n_triangles,
+        np.ascontiguousarray(eye), background, offset, sampler.n_triangles, lobe_on,
     )  # fmt: skip
     camera = world.camera
     return Packed(sampler.accelerator.flat_tree(), arrays, camera.width, camera.height,

@@ -129,16 +129,45 @@ def _pdf(p_diffuse, p_glossy, shininess, ns, wo, wi):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _brdf(ns, view, wi, albedo, specular, shininess):
-    """``render.shade.lighting.brdf`` (3-tuple): albedo / pi plus the Blinn-Phong lobe."""
+def _lobe(ns, view, wi, shininess):
+    """The Blinn-Phong lobe's n.h (clamped as the tape clamps it, >= 1e-12) and
+    (n.h)^shininess."""
+    h = _unit(wi[0] + view[0], wi[1] + view[1], wi[2] + view[2])
+    n_dot_h = max(_dot(ns, h), 1e-12)
+    return n_dot_h, n_dot_h**shininess
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _brdf(ns, view, wi, albedo, specular, shininess, lobe_on):
+    """``render.shade.lighting.brdf`` (3-tuple): albedo / pi plus the energy-normalised
+    Blinn-Phong lobe specular (n + 8) / (8 pi) (n.h)^n where ``lobe_on`` (the material's
+    specular is non-zero or differentiated)."""
     inv_pi = 1.0 / math.pi
     f0, f1, f2 = albedo[0] * inv_pi, albedo[1] * inv_pi, albedo[2] * inv_pi
-    if specular[0] != 0.0 or specular[1] != 0.0 or specular[2] != 0.0:
-        h = _unit(wi[0] + view[0], wi[1] + view[1], wi[2] + view[2])
-        n_dot_h = max(_dot(ns, h), 1e-12)
-        lobe = n_dot_h**shininess * ((shininess + 8.0) / (8.0 * math.pi))
+    if lobe_on:
+        power = _lobe(ns, view, wi, shininess)[1]
+        lobe = power * ((shininess + 8.0) / (8.0 * math.pi))
         f0, f1, f2 = f0 + lobe * specular[0], f1 + lobe * specular[1], f2 + lobe * specular[2]
     return f0, f1, f2
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _brdf_adjoint(ns, view, wi, specular, shininess, lobe_on, textured, w, grad, base):
+    """Add sum_c w[c] d f_c / d (albedo (3), specular (3), shininess) of ``_brdf`` to
+    grad[base : base + 7]: 1 / pi (none if ``textured``: a texture replaces the albedo),
+    the lobe, and specular . w times d lobe / d shininess, where d (n.h)^n / dn is
+    (n.h)^n log(n.h) and d ((n + 8) / (8 pi)) / dn is 1 / (8 pi)."""
+    if not textured:
+        for c in range(3):
+            grad[base + c] += w[c] * (1.0 / math.pi)
+    if lobe_on:
+        n_dot_h, power = _lobe(ns, view, wi, shininess)
+        lobe = power * ((shininess + 8.0) / (8.0 * math.pi))
+        d_lobe = power * math.log(n_dot_h) * ((shininess + 8.0) / (8.0 * math.pi))
+        d_lobe += power * (1.0 / (8.0 * math.pi))
+        for c in range(3):
+            grad[base + 3 + c] += w[c] * lobe
+        grad[base + 6] += d_lobe * (w[0] * specular[0] + w[1] * specular[1] + w[2] * specular[2])
 
 
 @numba.njit(cache=True, error_model="numpy")
