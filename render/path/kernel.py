@@ -77,7 +77,7 @@ __all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "samp
 CHUNKS = 64
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
                 stack_t, keep, row, rec_i, rec_f, rec_lit, delta, total, grad):  # fmt: skip
     """The radiance (3-tuple) of path id ``path`` through pixel (px, py). With ``keep``,
@@ -189,6 +189,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             u1 = _uniform(key, _dim(depth, _EMITTER_POINT))
             u2 = _uniform(key, _dim(depth, _EMITTER_POINT) + 1)
             e_local, z, nz = _point_on(s, e_prim, u1, u2)
+            if keep:  # recorded whether or not it is seen, as the sampler does
+                _put(rec_f, row, depth - 1, _F_NEE_LOCAL, e_local)
             to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
             d2 = _dot(to, to)
             root = math.sqrt(d2 if d2 > 0 else 1.0)
@@ -204,7 +206,6 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
                 if keep:
                     rec_i[row, depth - 1, _I_NEE_PRIM] = e_prim
-                    _put(rec_f, row, depth - 1, _F_NEE_LOCAL, e_local)
                     rec_f[row, depth - 1, _F_NEE_WEIGHT] = nee_weight
                 # The radiance it brings (transport._at_vertex), from the tape's point.
                 to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
@@ -402,21 +403,27 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
     not once per path."""
     image = paths.shape[0] == 0
     no_grad = grad[:0]
+    passes = 2 if grad.shape[0] > 0 else 1
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
         x, y = i % width, i // width
+        delta = (0.0, 0.0, 0.0)
+        if passes == 2:
+            delta = (d_image[y, x, 0], d_image[y, x, 1], d_image[y, x, 2])
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
-            L = _trace_path(bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
-                            max_depth, rr_depth, stack, stack_t, not image, i, rec_i, rec_f,
-                            rec_lit, total, total, no_grad)  # fmt: skip
-            if grad.shape[0] > 0:
-                delta = (d_image[y, x, 0], d_image[y, x, 1], d_image[y, x, 2])
-                _trace_path(bvh, s, seed_key, path, x, y, width, height, max_depth, rr_depth,
-                            stack, stack_t, False, i, rec_i, rec_f, rec_lit, delta, L,
-                            grad)  # fmt: skip
+            L = (0.0, 0.0, 0.0)
+            # One call site (the path is inlined here once): the path, then its replay.
+            for replay in range(passes):
+                radiance_i = _trace_path(
+                    bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
+                    max_depth, rr_depth, stack, stack_t, not image and replay == 0, i, rec_i,
+                    rec_f, rec_lit, delta, L, grad if replay == 1 else no_grad,
+                )  # fmt: skip
+                if replay == 0:
+                    L = radiance_i
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
         if image and out.shape[0] > 0:
             inv = 1.0 / spp
@@ -432,7 +439,7 @@ def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, n_thre
             radiance, rec_i, rec_f, rec_lit, d_image, grads):  # fmt: skip
     """``_trace_block`` over every pixel (``paths`` empty) or every path of ``paths``, in
     blocks of BLOCK dealt to ``n_threads`` jobs (``render.trace.intersect._jobs``). Path
-    replay (``grads`` (C, G) non-empty) deals the blocks to C jobs whatever the number of
+    replay (``grads`` (C, G), G > 0; else (1, 0)) deals the blocks to C jobs whatever the number of
     threads, each adding to its own row: the sums' order, and so the gradient's bits, do
     not depend on the threads."""
     n = width * height if paths.shape[0] == 0 else paths.shape[0]
