@@ -131,10 +131,14 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     n_emit = e_prims.shape[0]
     depth = 1
     while True:
-        o, ng, ns, uv, local = _surface(s, prim, point, u, v)
+        o, ng, ns, uv, local = _surface(
+            triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v
+        )
         ngt, nst, uvt = ng, ns, uv
         if form == MIRROR:
-            ngt, nst, uvt = _surface(s, prim, xt, ut, vt)[1:4]
+            ngt, nst, uvt = _surface(
+                triangles, centers, prim_object, smooth, corners, normals, uvs, prim, xt, ut, vt
+            )[1:4]
         wo = (-incoming[0], -incoming[1], -incoming[2])
         side = -1.0 if _dot(ng, wo) < 0 else 1.0
         ng = (side * ng[0], side * ng[1], side * ng[2])
@@ -188,7 +192,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             e_prim = e_prims[pick]
             u1 = _uniform(key, _dim(depth, _EMITTER_POINT))
             u2 = _uniform(key, _dim(depth, _EMITTER_POINT) + 1)
-            e_local, z, nz = _point_on(s, e_prim, u1, u2)
+            e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
             if keep:  # recorded whether or not it is seen, as the sampler does
                 _put(rec_f, row, depth - 1, _F_NEE_LOCAL, e_local)
             to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
@@ -323,12 +327,18 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             c2 = 2.0 * _dot(wot, nst)  # the tape's reflected ray, from its own point
             reflected = (c2 * nst[0] - wot[0], c2 * nst[1] - wot[1], c2 * nst[2] - wot[2])
             if prim >= 0:
-                x_next, ut, vt = _reintersect(s, prim, xt, reflected)
+                x_next, ut, vt = _reintersect(triangles, centers, radii, prim, xt, reflected)
             wo_next = _unit(-reflected[0], -reflected[1], -reflected[2])
         else:
             wn = wi  # the direction sampled; to a new vertex, the one between the points
             if prim >= 0:
-                x_next = _placed(s, prim, _local(s, prim, point_next, u, v))
+                x_next = _placed(
+                    triangles,
+                    centers,
+                    radii,
+                    prim,
+                    _local(triangles, centers, prim, point_next, u, v),
+                )
                 to = (x_next[0] - xt[0], x_next[1] - xt[1], x_next[2] - xt[2])
                 root = math.sqrt(_dot(to, to))
                 wn = (to[0] / root, to[1] / root, to[2] / root)

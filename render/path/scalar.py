@@ -5,9 +5,8 @@ its docstring (``render.path.random``, ``render.path.sampling``, ``render.path.t
 ``render.shade.lighting``, ``render.shade.surface``), the same formula in the same order of
 operations where the order matters.
 
-``s`` is ``render.path.packed.Packed.arrays``: (triangles, centers, radii, prim_object,
-first, albedo, specular, shininess, reflectance, emission, probability, lobe_reflectance,
-maps, texels, smooth, corners, normals, uvs, ...).
+The arrays are ``render.path.packed.Packed``'s (each function takes the ones it reads:
+handed over one by one, not as the whole tuple, which Numba would copy at every call).
 """
 
 from __future__ import annotations
@@ -171,12 +170,9 @@ def _brdf_adjoint(ns, view, wi, specular, shininess, lobe_on, textured, w, grad,
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _surface(s, prim, point, u, v):
+def _surface(triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v):
     """At a point on primitive ``prim`` (barycentrics u, v on a triangle): the object, the
     unit geometric normal, the shading normal and the UV, and the coordinates ``local``."""
-    (triangles, centers, radii, prim_object, first, albedo, specular, shininess,
-     reflectance, emission, probability, lobe_reflectance, maps, texels, smooth, corners,
-     normals, uvs) = s[:18]  # fmt: skip
     o = prim_object[prim]
     n_tri = triangles.shape[0]
     if prim < n_tri:
@@ -227,9 +223,8 @@ def _look(albedo, specular, maps, texels, o, uv):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _point_on(s, prim, u1, u2):
+def _point_on(triangles, centers, radii, prim, u1, u2):
     """``render.path.emitters.point_on`` for one primitive: local, point, unit normal."""
-    triangles, centers, radii = s[0], s[1], s[2]
     n_tri = triangles.shape[0]
     if prim < n_tri:
         root = math.sqrt(u1)
@@ -256,11 +251,10 @@ def _point_on(s, prim, u1, u2):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _reintersect(s, prim, o, d):
+def _reintersect(triangles, centers, radii, prim, o, d):
     """Where the ray o + t d meets primitive ``prim`` as the tape finds it
     (``surface_at`` from rays: the triangle's plane, or the sphere's root on the far side
     of the ray's start when it starts inside): the point and its barycentrics (u, v)."""
-    triangles, centers, radii = s[0], s[1], s[2]
     n_tri = triangles.shape[0]
     if prim < n_tri:
         a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
@@ -302,10 +296,9 @@ def _blocked(bvh, origin, direction, tmax, ignore, stack):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _local(s, prim, point, u, v):
+def _local(triangles, centers, prim, point, u, v):
     """``PathSampler._local``: (u, v, 0) on a triangle, the unit direction from a sphere's
     centre."""
-    triangles, centers = s[0], s[1]
     if prim < triangles.shape[0]:
         return (u, v, 0.0)
     k = prim - triangles.shape[0]
@@ -313,9 +306,8 @@ def _local(s, prim, point, u, v):
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _placed(s, prim, local):
+def _placed(triangles, centers, radii, prim, local):
     """The point at coordinates ``local`` on primitive ``prim`` (``surface_at(local=)``)."""
-    triangles, centers, radii = s[0], s[1], s[2]
     n_tri = triangles.shape[0]
     if prim < n_tri:
         a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
