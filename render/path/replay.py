@@ -26,7 +26,7 @@ therefore starts at an *anchor* that stands on its own and rebuilds the vertices
 a ``CAMERA`` vertex (its ray is the camera's), or an ``AREA`` vertex followed by an ``AREA``
 vertex (its wo is not needed, only its point). Without mirrors the anchor is k - 1; a run of
 mirrors reaches back to its start. A vertex is never evaluated from a wrong origin: an
-anchor's wo is left zero and is only ever used where it does not matter.
+anchor's wo, left zero, is never read.
 
 **The placement.** The placed world (``render.scene.placement``) and the camera's frame are
 computed once per batch on the caller's tape, which one ``backward`` frees. The windows
@@ -34,15 +34,19 @@ therefore read leaf copies of the differentiated tensors (``substituted``), whos
 add up window after window; one last ``backward`` of sum_t t * grad(copy of t) carries them
 through the placement to the scene's parameters.
 
-**A limit of the algebra.** Where F_k is exactly zero in a channel (an albedo or reflectance
-channel that is 0, or a cosine clamped to 0) while the path goes on, Lrem_k in that channel
-cannot be recovered from L and is taken as 0, as in Mitsuba 3: the term beta_k dF_k Lrem_k
-is then missing from that channel's gradient (the taped integrator has it).
+**Where the throughput becomes zero.** Where F_k is zero in a channel (an albedo,
+specular or reflectance channel that is 0, a cosine clamped to 0) while beta_k is not, L
+says nothing of Lrem_k in that channel, yet beta_k dF_k Lrem_k need not be zero (the
+derivative of that albedo channel). The later windows then gather Lrem_k as well (plain
+(N, 3) arrays, at most one such depth per channel: beta is zero after it) and window k is
+built again for those paths at the end (``_Pending``), so the gradient stays exact (Mitsuba
+3's ``prb.py`` takes the inverse of a zero BSDF value as 0, leaving that term out).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -77,22 +81,21 @@ def backpropagate_paths(
     if len(missed) and window_world.background.requires_grad:  # camera rays seeing the sky
         seen = md.sum(md.broadcast_to(window_world.background, (len(missed), 3)) * weights[missed])
         seen.backward()
+    vertices = [v for v in batch.vertices if len(v.rows)]
+    paths = _Paths(window_world, window_frame, sampler, batch, vertices, dtype)
     n_paths = len(batch.paths)
     beta = np.ones((n_paths, 3), dtype)  # the throughput before each path's current vertex
     gathered = np.zeros((n_paths, 3), dtype)  # sum_{j<=k} beta_j C_j, plain
     anchor = np.zeros(n_paths, np.int64)  # where window k starts, per path
-    vertices = [v for v in batch.vertices if len(v.rows)]
+    pending = _Pending.none(n_paths, dtype)
     for k, record in enumerate(vertices):
         if k > 0:
             anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
-        following = vertices[k + 1] if k + 1 < len(vertices) else None
-        window = _Window(window_world, window_frame, sampler, batch, vertices, k, dtype)
-        for start in np.unique(anchor[record.rows]):
-            group = record.rows[anchor[record.rows] == start]
-            window.add(group, start, following)
+        window = _Window(paths, k, record.rows, anchor[record.rows])
         # The constants of this window's objective, from its values.
-        for part, rows in zip(window.parts, window.rows_of, strict=True):
-            np.add.at(gathered, rows, beta[rows] * part.data)
+        here = window.added(n_paths)  # C_k (N, 3), zero for the paths not at vertex k
+        gathered += beta * here
+        pending.gather(here)
         objective = [
             md.sum(part * (weights[rows] * beta[rows]))
             for part, rows in zip(window.parts, window.rows_of, strict=True)
@@ -103,15 +106,80 @@ def backpropagate_paths(
             arriving = np.divide(radiance[rows] - gathered[rows], after,
                                  out=np.zeros_like(after), where=after != 0)  # fmt: skip
             objective.append(md.sum(factor * (weights[rows] * beta[rows] * arriving)))
+            pending.carry(rows, factor.data)
+            pending.open(k, rows, anchor[rows], beta[rows], after)
             beta[rows] = after
-        total = _summed(objective)
-        if total is not None and total.requires_grad:
-            total.backward()
-        del window, objective, total  # this window's tape, before the next is built
+        _backward(objective)
+        del window, objective  # this window's tape, before the next is built
+    pending.close(paths, weights)
 
     carried = [md.sum(t * copies[id(t)].grad) for t in originals if copies[id(t)].grad is not None]
-    if carried:
-        _summed(carried).backward()
+    _backward(carried)
+
+
+@dataclass
+class _Pending:
+    """The paths' channels whose factor F_e is zero where their throughput beta_e is not
+    (a zero albedo or reflectance channel, a cosine clamped to zero): L says nothing of the
+    radiance Lrem_e arriving at vertex e there, so the windows after e gather it (with
+    gamma, the throughput from vertex e + 1 on) and ``close`` adds beta_e dF_e Lrem_e
+    once it is known, by building window e again for those paths. Each array (N, 3):
+    ``depth`` e (-1: none; at most one per channel, as beta is zero after it), ``anchor``
+    window e's anchor, ``beta`` beta_e, ``gamma``, ``arriving`` Lrem_e so far."""
+
+    depth: np.ndarray
+    anchor: np.ndarray
+    beta: np.ndarray
+    gamma: np.ndarray
+    arriving: np.ndarray
+
+    @classmethod
+    def none(cls, n: int, dtype) -> _Pending:
+        depth = np.full((n, 3), -1, np.int64)
+        zeros = np.zeros((n, 3), dtype)
+        return cls(depth, depth.copy(), zeros, zeros.copy(), zeros.copy())
+
+    def gather(self, here: np.ndarray) -> None:
+        """Add what the current vertices add (C_k (N, 3)) to the radiance arriving."""
+        self.arriving += np.where(self.depth >= 0, self.gamma * here, 0.0)
+
+    def carry(self, rows: np.ndarray, factor: np.ndarray) -> None:
+        """The paths ``rows`` go on with factors F_k ``factor`` (m, 3)."""
+        self.gamma[rows] *= factor
+
+    def open(self, k: int, rows, anchor, beta, after) -> None:
+        """Channels of the paths ``rows`` (m,) that go on with throughput ``after``
+        (beta_{k+1}, (m, 3)) zero from ``beta`` (beta_k) non-zero."""
+        new = (after == 0) & (beta != 0)
+        if not new.any():
+            return
+        at, channel = np.nonzero(new)
+        row = rows[at]
+        self.depth[row, channel], self.anchor[row, channel] = k, anchor[at]
+        self.beta[row, channel], self.gamma[row, channel] = beta[at, channel], 1.0
+        self.arriving[row, channel] = 0.0
+
+    def close(self, paths: _Paths, weights: np.ndarray) -> None:
+        """Backward, for each depth e with pending channels, of
+        sum(weights beta_e F_e Lrem_e) over those channels (window e built again)."""
+        for e in np.unique(self.depth[self.depth >= 0]):
+            mine = self.depth == e  # (N, 3)
+            rows = np.flatnonzero(mine.any(axis=1))
+            anchor = self.anchor[rows, np.argmax(mine[rows], axis=1)]
+            window = _Window(paths, int(e), rows, anchor)
+            factor, going = window.factor()  # every one of ``rows`` goes on
+            scale = np.where(mine, weights * self.beta * self.arriving, 0.0)[going]
+            _backward([md.sum(factor * scale)])
+
+
+def _backward(terms: list[md.Tensor]) -> None:
+    """Backward of the sum of scalar tensors (nothing if none requires grad)."""
+    terms = [t for t in terms if t.requires_grad]
+    if terms:
+        total = terms[0]
+        for term in terms[1:]:
+            total = total + term
+        total.backward()
 
 
 def _differentiated(world, frame) -> list[md.Tensor]:
@@ -123,14 +191,6 @@ def _differentiated(world, frame) -> list[md.Tensor]:
             seen.add(id(t))
             out.append(t)
     return out
-
-
-def _summed(terms: list[md.Tensor]) -> md.Tensor | None:
-    """The sum of scalar tensors (None for none)."""
-    total = None
-    for term in terms:
-        total = term if total is None else total + term
-    return total
 
 
 def _anchors(vertices: list[Vertices], k: int, before: np.ndarray) -> np.ndarray:
@@ -153,19 +213,44 @@ def _take(record: Vertices, at: np.ndarray) -> Vertices:
                        for name, value in fields.items()})  # fmt: skip
 
 
-class _Window:
-    """Window k on its own tape: ``parts``/``rows_of``, C_k's pieces (each (m, 3) with the
-    paths it belongs to), and ``factors``/``factor_rows``, F_k of the paths that go on."""
+@dataclass
+class _Paths:
+    """What the windows read: the world and camera frame of the leaf copies, the sampler,
+    the batch and its vertices (the depths some path reaches), the dtype."""
 
-    def __init__(self, world, frame, sampler, batch, vertices, k, dtype):
-        self.world, self.frame, self.sampler, self.batch = world, frame, sampler, batch
-        self.vertices, self.k, self.dtype = vertices, k, dtype
+    world: object
+    frame: tuple
+    sampler: PathSampler
+    batch: PathBatch
+    vertices: list[Vertices]
+    dtype: np.dtype
+
+
+class _Window:
+    """Window k of the paths ``rows`` (sorted rows of the batch reaching vertex k) on its
+    own tape, their vertices rebuilt from their ``anchors`` (m,): ``parts``/``rows_of``,
+    C_k's pieces (each (m', 3) with the paths it belongs to), and ``factors`` /
+    ``factor_rows``, F_k (m', 3) of the paths that go on, by anchor."""
+
+    def __init__(self, paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
+        self.world, self.frame, self.sampler = paths.world, paths.frame, paths.sampler
+        self.batch, self.vertices, self.dtype, self.k = paths.batch, paths.vertices, paths.dtype, k
         self.parts: list[md.Tensor] = []
         self.rows_of: list[np.ndarray] = []
         self.factors: list[md.Tensor] = []
         self.factor_rows: list[np.ndarray] = []
+        following = self.vertices[k + 1] if k + 1 < len(self.vertices) else None
+        for start in np.unique(anchors):
+            self._add(rows[anchors == start], int(start), following)
 
-    def add(self, group: np.ndarray, start: int, following: Vertices | None) -> None:
+    def added(self, n_paths: int) -> np.ndarray:
+        """(N, 3) the values of C_k, zero for the paths not in the window."""
+        here = np.zeros((n_paths, 3), self.dtype)
+        for part, rows in zip(self.parts, self.rows_of, strict=True):
+            np.add.at(here, rows, part.data)
+        return here
+
+    def _add(self, group: np.ndarray, start: int, following: Vertices | None) -> None:
         """C_k and F_k of the paths ``group`` (sorted rows of the batch), whose vertices are
         rebuilt from vertex ``start`` on."""
         vertex = self._standalone(group, start)
