@@ -66,7 +66,14 @@ def backpropagate_paths(
     depth of the paths at a time (module docstring). ``world``: the placed scene the batch
     was sampled in; ``frame``: its camera frame (``camera_frame``); ``radiance`` (N, 3): each
     path's radiance (the plain value of ``path_radiance``, e.g. ``kernel.sample_paths``');
-    ``weights`` (N, 3) plain: d loss / d radiance."""
+    ``weights`` (N, 3) plain: d loss / d radiance. Memory: one depth's tape (a window) and
+    a few (N, 3) arrays, whatever ``max_depth``."""
+    with md.enable_grad():  # its own tapes, recorded even inside a caller's no_grad()
+        _backpropagate(world, frame, sampler, batch, radiance, weights)
+
+
+def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
+    """``backpropagate_paths``, with the tape on."""
     dtype = np.result_type(*[t.dtype for t in world.parameters()])
     weights = np.asarray(weights, dtype)
     radiance = np.asarray(radiance, dtype)
