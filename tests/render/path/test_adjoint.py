@@ -36,12 +36,17 @@ from render.scene.placement import placed
 from tests.render.path.test_kernel import UncompiledPointLight, _facing_triangle
 from tests.render.path.test_replay import _gradients, every_kind
 
-#: |replay - tape| <= RTOL * max |tape| per parameter: the same terms summed in another
-#: order (the tape per batch and per depth, the kernel path by path into 64 chunks).
-#: Measured worst ratio (this machine): 4.0e-15 on the Cornell box, 2.1e-14 on every_kind
-#: (depths 2 to 8 with Russian roulette), 1.9e-14 over the drawn scenes, 6e-16 for the
-#: MSE loss.
+#: |replay - tape| <= RTOL * max(max |tape|, FLOOR * the largest |tape| of all parameters)
+#: per parameter: the same terms summed in another order (the tape per batch and per depth,
+#: the kernel path by path into 64 chunks), and divided: the kernel gets the radiance that
+#: reaches a vertex as (path radiance - radiance so far) / throughput. Measured (this
+#: machine), max |difference| / max |tape| per parameter: 1.5e-14 on the Cornell box,
+#: 6.4e-14 on every_kind (depths 2 to 8, Russian roulette), 6e-16 for the MSE loss; over 200
+#: drawn scenes up to 1.4e-10, at a shininess whose gradient is 2e-6 of the scene's largest
+#: (a sum of terms of both signs: its rounding is that of its terms); the others below
+#: 8e-12. Against the scene's largest gradient every difference is below 4e-14: FLOOR.
 RTOL = 1e-10
+FLOOR = 1e-4
 #: The names (suffixes) of the parameters the compiled replay differentiates.
 COVERED = (
     ".albedo", ".specular", ".shininess", ".reflectance", ".emission", ".ambient",
@@ -61,6 +66,7 @@ def worst_ratio(replayed: dict, taped: dict) -> tuple[float, int]:
     """(max over parameters of max |replay - tape| / max |tape|, how many parameters the
     image depends on), after checking every parameter agrees to RTOL (None as zeros)."""
     worst, moved = 0.0, 0
+    largest = max(np.abs(g).max() for g in taped.values() if g is not None)
     for name, tape in taped.items():
         ours = replayed[name]
         if tape is None and ours is None:
@@ -74,7 +80,7 @@ def worst_ratio(replayed: dict, taped: dict) -> tuple[float, int]:
         if scale == 0:
             assert error == 0, f"{name}: {ours} where the tape has zeros"
             continue
-        assert error <= RTOL * scale, f"{name}: {ours} != {tape} (tape)"
+        assert error <= RTOL * max(scale, FLOOR * largest), f"{name}: {ours} != {tape} (tape)"
         worst, moved = max(worst, error / scale), moved + 1
     return worst, moved
 
@@ -193,7 +199,7 @@ def test_drawn_scenes(scene, spp, max_depth, rr_depth, seed):
     options = {"spp": spp, "max_depth": max_depth, "rr_depth": rr_depth, "seed": seed,
                "batch_spp": 2}  # fmt: skip
     _, moved = replay_against_tape(scene, weights_for(scene, seed), **options)
-    assert moved >= 3
+    assert moved >= 2  # max_depth 1: the emissions seen and the background
     assert np.abs(scene.background.grad).max() > 0  # the background is seen
 
 
@@ -375,17 +381,18 @@ def _peak_kb(scene: render.Scene, spp: int, max_depth: int) -> float:
 
 
 def test_memory_does_not_grow_with_spp_or_depth():
-    """16x more samples, 4x deeper paths: the same peak (measured: 52 KB each, the packed
-    scene, the 64 x 117 gradient chunks (60 KB... of which less is live at once) and the
-    6 KB d_image copy); a per-path or per-vertex array would add 16 x 16 x 64 x 3 x 8 B =
-    393 KB."""
+    """16x more samples, 4x deeper paths: the same peak. Measured (this machine): 20.9 KB
+    at spp 4 and 64, max_depth 2 and 8, within 0.03 KB: the packed scene, the gradient
+    chunks (16 x 16 pixels are 4 blocks of 64: 4 x 107 floats, 3.4 KB) and the d_image
+    copy (6 KB). A per-path array of colours would add 16 x 16 x 64 x 3 x 8 B = 393 KB at
+    spp 64; 10 % (2 KB) leaves room for Python's own small allocations."""
     scene = cornell_box(16, 16)
     require_covered(scene)
     _peak_kb(scene, 4, 2)  # first-call allocations (compiled code, caches) not counted
     peaks = {(spp, depth): _peak_kb(scene, spp, depth) for spp in (4, 64) for depth in (2, 8)}
     low = min(peaks.values())
     assert low > 0
-    assert max(peaks.values()) < low + 0.1 * low + 4.0, peaks
+    assert max(peaks.values()) < 1.1 * low, peaks
 
 
 # --------------------------------------------------------------------------------------
