@@ -79,18 +79,22 @@ CHUNKS = 64
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
-                stack_t, keep, row, rec_i, rec_f, rec_lit, delta, total, grad):  # fmt: skip
+                stack_t, keep, row, rec_i, rec_f, rec_lit, delta, chain, grad):  # fmt: skip
     """The radiance (3-tuple) of path id ``path`` through pixel (px, py). With ``keep``,
     its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``).
 
-    Path replay (``grad`` non-empty; ``total`` the path's radiance from a first call):
-    adds delta . d radiance / d q to ``grad`` (laid out by ``_G_*``) for the material,
-    light and environment values q. The radiance is sum_k beta_k C_k with beta_{k+1} =
-    beta_k F_k (C_k what vertex k adds, F_k its continuation factor), so d radiance =
-    sum_k beta_k (dC_k + dF_k Lrem_k), where Lrem_k = (total - sum_{j<=k} beta_j C_j) /
-    beta_{k+1} is the radiance that reaches vertex k from the rest of the path (Vicini et
-    al. 2021): each vertex's share is known when the replay reaches it, with no memory of
-    the path's other vertices.
+    Path replay: the radiance is sum_k beta_k C_k with beta_{k+1} = beta_k F_k (C_k what
+    vertex k adds, F_k its continuation factor, RGB), so d radiance = sum_k beta_k (dC_k +
+    dF_k R_k), R_k = C_{k+1} + F_{k+1} R_{k+1} the radiance that reaches vertex k from the
+    rest of the path (Vicini et al. 2021). A first call with ``chain`` (max_depth,
+    _C_FIELDS) zeroed and ``grad`` empty records each vertex's C_k, F_k and the
+    environment seen after it; ``_replay_chain`` turns them into R_k; a second call with
+    ``grad`` non-empty adds delta . d radiance / d q to ``grad`` (laid out by ``_G_*``)
+    for the material, light and environment values q, vertex by vertex. The chain is a
+    few numbers per vertex of one path (per thread), not per path of the image; R_k
+    from this recursion, not from (radiance - what came before) / beta_{k+1} as Mitsuba's
+    prb does, stays exact where a channel of F_k is 0 (an albedo channel at 0 still gets
+    its derivative).
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -103,6 +107,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
      light_strength, light_color, forward, right, up, eye, background, offset,
      n_tri, lobe_on) = s  # fmt: skip
     adjoint = grad.shape[0] > 0
+    chained = chain.shape[0] > 0 and not adjoint  # the first pass records the chain
     g_light = _G_OBJECT * albedo.shape[0]  # where the lights' and the environment's are
     g_background = g_light + _G_LIGHT * light_kind.shape[0]
     key = _mix(seed_key ^ np.uint64(path))
@@ -160,6 +165,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             L0 += beta[0] * (emission[o, 0] * weight)
             L1 += beta[1] * (emission[o, 1] * weight)
             L2 += beta[2] * (emission[o, 2] * weight)
+            if chained:
+                for c in range(3):
+                    chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
             if adjoint:
                 for c in range(3):
                     grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
@@ -223,6 +231,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 L0 += beta[0] * (f[0] * scale * emission[eo, 0])
                 L1 += beta[1] * (f[1] * scale * emission[eo, 1])
                 L2 += beta[2] * (f[2] * scale * emission[eo, 2])
+                if chained:
+                    for c in range(3):
+                        chain[depth - 1, _C_ADDED + c] += f[c] * scale * emission[eo, c]
                 if adjoint:
                     w = (delta[0] * beta[0] * scale * emission[eo, 0],
                          delta[1] * beta[1] * scale * emission[eo, 1],
@@ -269,6 +280,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 L0 += beta[0] * (scalar * (f[0] * light_color[j, 0]))
                 L1 += beta[1] * (scalar * (f[1] * light_color[j, 1]))
                 L2 += beta[2] * (scalar * (f[2] * light_color[j, 2]))
+                if chained:
+                    for c in range(3):
+                        chain[depth - 1, _C_ADDED + c] += scalar * (f[c] * light_color[j, c])
                 if adjoint:
                     w = (delta[0] * beta[0] * scalar * light_color[j, 0],
                          delta[1] * beta[1] * scalar * light_color[j, 1],
@@ -348,9 +362,14 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             factor = (f[0] * cos, f[1] * cos, f[2] * cos)
         before = beta
         beta = (beta[0] * factor[0], beta[1] * factor[1], beta[2] * factor[2])
+        if chained:
+            for c in range(3):
+                chain[depth - 1, _C_FACTOR + c] = factor[c]
+                if prim < 0:
+                    chain[depth - 1, _C_ESCAPE + c] = background[c]
         if adjoint:  # dF_k weighted by the radiance the rest of the path brings
-            rest = (_rest(total[0], L0, beta[0]), _rest(total[1], L1, beta[1]),
-                    _rest(total[2], L2, beta[2]))  # fmt: skip
+            at = depth - 1
+            rest = (chain[at, _C_REST], chain[at, _C_REST + 1], chain[at, _C_REST + 2])
             w = (delta[0] * before[0] * rest[0], delta[1] * before[1] * rest[1],
                  delta[2] * before[2] * rest[2])  # fmt: skip
             if mirror:
@@ -373,11 +392,25 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     return L0, L1, L2
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _rest(total, so_far, beta):
-    """One channel of (total - so_far) / beta: the radiance that reaches a vertex from the
-    rest of its path (0 where the throughput beta is 0: nothing comes back then)."""
-    return (total - so_far) / beta if beta != 0.0 else 0.0
+@numba.njit(cache=True, error_model="numpy")
+def _replay_chain(chain):
+    """Fill chain[k, _C_REST:] with R_k = E_k + C_{k+1} + F_{k+1} R_{k+1}: the radiance
+    that reaches vertex k from the rest of its path (E_k: the environment, if the path
+    leaves the scene after vertex k; rows past the path's end are zero)."""
+    depth = chain.shape[0]
+    for k in range(depth - 1, -1, -1):
+        for c in range(3):
+            rest = chain[k, _C_ESCAPE + c]
+            if k + 1 < depth:
+                after = chain[k + 1, _C_ADDED + c]
+                rest += after + chain[k + 1, _C_FACTOR + c] * chain[k + 1, _C_REST + c]
+            chain[k, _C_REST + c] = rest
+
+
+#: A path's chain for path replay, per vertex: C_k (3), F_k (3), the environment seen
+#: after it (3) and R_k (3).
+_C_ADDED, _C_FACTOR, _C_ESCAPE, _C_REST = 0, 3, 6, 9
+_C_FIELDS = 12
 
 
 #: Path replay's gradient vector: per object (``_G_OBJECT`` entries from ``_G_OBJECT * o``)
@@ -414,6 +447,7 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
     image = paths.shape[0] == 0
     no_grad = grad[:0]
     passes = 2 if grad.shape[0] > 0 else 1
+    chain = np.zeros((max_depth if passes == 2 else 0, _C_FIELDS))
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
@@ -425,15 +459,18 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
             L = (0.0, 0.0, 0.0)
+            chain[:] = 0.0
             # One call site (the path is inlined here once): the path, then its replay.
             for replay in range(passes):
                 radiance_i = _trace_path(
                     bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
                     max_depth, rr_depth, stack, stack_t, not image and replay == 0, i, rec_i,
-                    rec_f, rec_lit, delta, L, grad if replay == 1 else no_grad,
+                    rec_f, rec_lit, delta, chain, grad if replay == 1 else no_grad,
                 )  # fmt: skip
                 if replay == 0:
                     L = radiance_i
+                    if passes == 2:
+                        _replay_chain(chain)
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
         if image and out.shape[0] > 0:
             inv = 1.0 / spp
