@@ -35,6 +35,7 @@ from render.edges.terms import differentiated
 from render.path import adjoint, kernel
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
+from render.path.replay import backpropagate_paths
 from render.path.tracer import PathSampler, check_count, check_path_options
 from render.path.transport import path_radiance
 from render.scene.camera import camera_frame
@@ -145,19 +146,19 @@ def check_path_edges(antialias, edge_spp, spp: int) -> tuple[bool, int]:
     return edges, int(edge_spp)
 
 
-def _batch_samples(
-    world, frame, sampler: PathSampler, first: int, last: int, packed: kernel.Packed | None = None
-) -> md.Tensor:
-    """The radiance of samples first..last-1 of every pixel, (H, W, last - first, 3), on the
-    tape; the paths sampled by the plain sampler, or by the kernel given its ``packed``
-    scene (the same decisions)."""
+def _batch_paths(world, sampler: PathSampler, first: int, last: int) -> np.ndarray:
+    """The path ids of samples first..last-1 of every pixel, pixel by pixel: (H W (last -
+    first),) int64."""
     camera = world.camera
     pixels = np.arange(camera.width * camera.height, dtype=np.int64)
-    paths = (pixels[:, None] * sampler.spp + np.arange(first, last)[None, :]).ravel()
-    if packed is None:
-        batch = sampler.sample(paths)
-    else:
-        batch = kernel.sample_paths(sampler, paths, packed)[0]
+    return (pixels[:, None] * sampler.spp + np.arange(first, last)[None, :]).ravel()
+
+
+def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
+    """The radiance of samples first..last-1 of every pixel, (H, W, last - first, 3), on the
+    tape: the reference sampler's paths, their radiance recomputed on the tape."""
+    camera = world.camera
+    batch = sampler.sample(_batch_paths(world, sampler, first, last))
     radiance = path_radiance(world, frame, sampler, batch)
     return md.reshape(radiance, (camera.height, camera.width, last - first, 3))
 
@@ -242,16 +243,24 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
 
 
 def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:
-    """``_backpropagate``'s tape: the samples rendered again in batches of ``batch_spp``
-    (paths from the kernel when it applies), each on its own tape that its ``backward``
-    frees before the next batch is rendered."""
+    """``_backpropagate``'s tape, a batch of ``batch_spp`` samples at a time. With the
+    kernel (``kernel.applies``): its paths and radiance, replayed one depth at a time
+    (``render.path.replay``: memory flat in depth); else the reference sampler's paths, each
+    batch on one tape that its ``backward`` frees before the next batch is rendered."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
     packed = kernel.pack(sampler) if kernel.applies(sampler.scene) else None
     for first in range(0, spp, batch_spp):
         world = placed(scene)  # a fresh tape per batch: placement is on it too
+        frame = camera_frame(world.camera)
         last = min(first + batch_spp, spp)
-        samples = _batch_samples(world, camera_frame(world.camera), sampler, first, last, packed)
+        if packed is not None:
+            paths = _batch_paths(world, sampler, first, last)
+            batch, radiance = kernel.sample_paths(sampler, paths, packed)
+            per_path = np.repeat(weights.reshape(-1, 3), last - first, axis=0)
+            backpropagate_paths(world, frame, sampler, batch, radiance, per_path)
+            continue
+        samples = _batch_samples(world, frame, sampler, first, last)
         if samples.requires_grad:  # else no parameter that requires grad moves the image
             # This batch's share of the image is sum_s samples / spp; its share of dL/dp:
             md.sum(samples * weights[:, :, None, :]).backward()
