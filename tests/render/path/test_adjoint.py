@@ -21,6 +21,7 @@ import tracemalloc
 from pathlib import Path
 from unittest import mock
 
+import numba
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -391,15 +392,23 @@ def _peak_kb(scene: render.Scene, spp: int, max_depth: int) -> float:
 
 
 def test_memory_does_not_grow_with_spp_or_depth():
-    """16x more samples, 4x deeper paths: the same peak. Measured (this machine): 20.9 KB
-    at spp 4 and 64, max_depth 2 and 8, within 0.03 KB: the packed scene, the gradient
-    chunks (16 x 16 pixels are 4 blocks of 64: 4 x 107 floats, 3.4 KB) and the d_image
-    copy (6 KB). A per-path array of colours would add 16 x 16 x 64 x 3 x 8 B = 393 KB at
-    spp 64; 10 % (2 KB) leaves room for Python's own small allocations."""
+    """16x more samples, 4x deeper paths: about the same peak, on one Numba thread (each
+    thread replays one path at a time). Measured (this machine): 20.8 KB at max_depth 2
+    and 21.4 KB at 8, the same at spp 4 and 64 (to 0.03 KB): the packed scene, the
+    gradient chunks (16 x 16 pixels are 4 blocks of 64: 4 x 107 floats, 3.4 KB), the
+    d_image copy (6 KB) and the chain of the path being replayed (12 floats per vertex:
+    what grows with max_depth). A per-path array of colours would add 16 x 16 x 64 x 3 x
+    8 B = 393 KB at spp 64; 10 % (2 KB) leaves room for the chain and Python's own small
+    allocations."""
     scene = cornell_box(16, 16)
     require_covered(scene)
-    _peak_kb(scene, 4, 2)  # first-call allocations (compiled code, caches) not counted
-    peaks = {(spp, depth): _peak_kb(scene, spp, depth) for spp in (4, 64) for depth in (2, 8)}
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        _peak_kb(scene, 4, 2)  # first-call allocations (compiled code, caches) not counted
+        peaks = {(spp, depth): _peak_kb(scene, spp, depth) for spp in (4, 64) for depth in (2, 8)}
+    finally:
+        numba.set_num_threads(threads)
     low = min(peaks.values())
     assert low > 0
     assert max(peaks.values()) < 1.1 * low, peaks
