@@ -112,7 +112,7 @@ def test_cornell_box_every_material_and_light_parameter():
     scene = cornell_box(8, 8)
     require_covered(scene)
     options = {"spp": 6, "max_depth": 5, "seed": 2, "batch_spp": 2}
-    worst, moved = replay_against_tape(scene, weights_for(scene), **options)
+    _, moved = replay_against_tape(scene, weights_for(scene), **options)
     assert moved >= 12  # the walls' albedos, the light's emission, ...
 
 
@@ -124,7 +124,7 @@ def test_every_kind_of_material_light_and_environment(max_depth, rr_depth):
     require_covered(scene, skip=("objects[0].material.specular",))
     options = {"spp": 4, "max_depth": max_depth, "rr_depth": rr_depth, "seed": max_depth,
                "batch_spp": 2}  # fmt: skip
-    worst, moved = replay_against_tape(scene, weights_for(scene, max_depth), **options)
+    _, moved = replay_against_tape(scene, weights_for(scene, max_depth), **options)
     assert moved >= 20
 
 
