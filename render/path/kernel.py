@@ -68,12 +68,13 @@ from render.path.tracer import (
     Vertices,
 )
 from render.shade.compiled import _unit
-from render.trace.intersect import BLOCK, _jobs
+from render.trace.intersect import BLOCK
 
 __all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "sample_paths"]
 
-#: Path replay adds into this many partial gradient vectors (each a fixed share of the
-#: image's blocks), then sums them in order: the same bits on any number of threads.
+#: Blocks of pixels are dealt to this many jobs (``_kernel``); path replay adds into one
+#: partial gradient vector per job, then sums them in order: the same bits on any number
+#: of threads.
 CHUNKS = 64
 
 
@@ -87,10 +88,11 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     vertex k adds, F_k its continuation factor, RGB), so d radiance = sum_k beta_k (dC_k +
     dF_k R_k), R_k = C_{k+1} + F_{k+1} R_{k+1} the radiance that reaches vertex k from the
     rest of the path (Vicini et al. 2021). A first call with ``chain`` (max_depth,
-    _C_FIELDS) zeroed and ``grad`` empty records each vertex's C_k, F_k and the
-    environment seen after it; ``_replay_chain`` turns them into R_k; a second call with
-    ``grad`` non-empty adds delta . d radiance / d q to ``grad`` (laid out by ``_G_*``)
-    for the material, light and environment values q, vertex by vertex. The chain is a
+    _C_LIGHTS + lights) zeroed and ``grad`` empty records each vertex's C_k, F_k, the
+    environment seen after it and what its rays found; ``_replay_chain`` turns them into
+    R_k; a second call with ``grad`` non-empty reads the rays' answers back (it traces
+    none) and adds delta . d radiance / d q to ``grad`` (laid out by ``_G_*``) for the
+    material, light and environment values q, vertex by vertex. The chain is a
     few numbers per vertex of one path (per thread), not per path of the image; R_k
     from this recursion, not from (radiance - what came before) / beta_{k+1} as Mitsuba's
     prb does, stays exact where a channel of F_k is 0 (an albedo channel at 0 still gets
@@ -119,7 +121,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
          x * right[2] + y * up[2] + forward[2])  # fmt: skip
     if keep:
         rec_f[row, 0, _F_COORD], rec_f[row, 0, _F_COORD + 1] = x, y
-    prim, t, u, v = _closest(bvh, eye, d, stack, stack_t)
+    prim, t, u, v = _hit(bvh, eye, d, stack, stack_t, chain, 0, adjoint, chained)
     if prim < 0:
         if keep:
             rec_i[row, 0, _I_COUNT] = 0
@@ -211,7 +213,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
             if ok:
                 to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
-                ok = not _blocked(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
+                ok = not _seen_blocked(bvh, origin, to, 1.0 - 1e-7, ignore, stack, chain,
+                                       depth - 1, _C_NEE_BLOCKED, adjoint, chained)  # fmt: skip
             if ok:
                 p_nee = e_probability[pick] / e_area[pick]
                 p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
@@ -255,8 +258,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     so = (point[0] + fraction * tx, point[1] + fraction * ty,
                           point[2] + fraction * tz)  # fmt: skip
                     to = (light_vec[j, 0] - so[0], light_vec[j, 1] - so[1], light_vec[j, 2] - so[2])
-                    lit = not _blocked(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
-                                       stack)  # fmt: skip
+                    lit = not _seen_blocked(bvh, so, to, 1.0 - fraction / (1.0 - fraction),
+                                            ignore, stack, chain, depth - 1, _C_LIGHTS + j,
+                                            adjoint, chained)  # fmt: skip
                 tx = light_vec[j, 0] - xt[0]
                 ty = light_vec[j, 1] - xt[1]
                 tz = light_vec[j, 2] - xt[2]
@@ -270,7 +274,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 if lit:
                     so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
                           point[2] + offset * wl[2])  # fmt: skip
-                    lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
+                    lit = not _seen_blocked(bvh, so, wl, np.inf, ignore, stack, chain,
+                                            depth - 1, _C_LIGHTS + j, adjoint,
+                                            chained)  # fmt: skip
                 irradiance, per_strength = light_strength[j], 1.0
             if keep:
                 rec_lit[row, depth - 1, j] = lit
@@ -328,7 +334,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if not go:
             break
         scale = 1.0 / (next_pdf * survive)
-        prim, t, u, v = _closest(bvh, origin, wi, stack, stack_t)
+        prim, t, u, v = _hit(bvh, origin, wi, stack, stack_t, chain, depth, adjoint, chained)
         if keep:
             rec_i[row, depth - 1, _I_NEXT] = MIRROR if mirror else AREA
             rec_f[row, depth - 1, _F_NEXT_PDF] = next_pdf
@@ -407,10 +413,38 @@ def _replay_chain(chain):
             chain[k, _C_REST + c] = rest
 
 
-#: A path's chain for path replay, per vertex: C_k (3), F_k (3), the environment seen
-#: after it (3) and R_k (3).
-_C_ADDED, _C_FACTOR, _C_ESCAPE, _C_REST = 0, 3, 6, 9
-_C_FIELDS = 12
+#: A path's chain for path replay, per vertex k: C_k (3), F_k (3), the environment seen
+#: after it (3), R_k (3); the ray that reached it (primitive, t, u, v); whether NEE's
+#: shadow ray was blocked; then per point or directional light whether its shadow ray was
+#: (1.0 for yes). The replay reads the rays' answers instead of tracing them again.
+_C_ADDED, _C_FACTOR, _C_ESCAPE, _C_REST, _C_HIT, _C_NEE_BLOCKED, _C_LIGHTS = 0, 3, 6, 9, 12, 16, 17
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _hit(bvh, origin, direction, stack, stack_t, chain, row, replay, chained):
+    """``_closest`` (prim, t, u, v) of the ray that reaches vertex ``row``: traced (and
+    kept in the chain on the first pass), or read back on the replay."""
+    if replay:
+        at = chain[row]
+        return np.int64(at[_C_HIT]), at[_C_HIT + 1], at[_C_HIT + 2], at[_C_HIT + 3]
+    prim, t, u, v = _closest(bvh, origin, direction, stack, stack_t)
+    if chained:
+        chain[row, _C_HIT], chain[row, _C_HIT + 1] = prim, t
+        chain[row, _C_HIT + 2], chain[row, _C_HIT + 3] = u, v
+    return prim, t, u, v
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _seen_blocked(bvh, origin, direction, tmax, ignore, stack, chain, row, column, replay,
+                  chained):  # fmt: skip
+    """``_blocked`` of a shadow ray at vertex ``row``: traced (kept in chain[row, column]
+    on the first pass), or read back on the replay."""
+    if replay:
+        return chain[row, column] > 0.0
+    blocked = _blocked(bvh, origin, direction, tmax, ignore, stack)
+    if chained:
+        chain[row, column] = 1.0 if blocked else 0.0
+    return blocked
 
 
 #: Path replay's gradient vector: per object (``_G_OBJECT`` entries from ``_G_OBJECT * o``)
@@ -447,7 +481,8 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
     image = paths.shape[0] == 0
     no_grad = grad[:0]
     passes = 2 if grad.shape[0] > 0 else 1
-    chain = np.zeros((max_depth if passes == 2 else 0, _C_FIELDS))
+    n_lights = s[23].shape[0]  # light_kind
+    chain = np.zeros((max_depth if passes == 2 else 0, _C_LIGHTS + n_lights))
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
@@ -482,17 +517,19 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
-def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, n_threads, out,
-            radiance, rec_i, rec_f, rec_lit, d_image, grads):  # fmt: skip
+def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, out, radiance, rec_i,
+            rec_f, rec_lit, d_image, grads):  # fmt: skip
     """``_trace_block`` over every pixel (``paths`` empty) or every path of ``paths``, in
-    blocks of BLOCK dealt to ``n_threads`` jobs (``render.trace.intersect._jobs``). Path
-    replay (``grads`` (C, G), G > 0; else (1, 0)) deals the blocks to C jobs whatever the number of
-    threads, each adding to its own row: the sums' order, and so the gradient's bits, do
-    not depend on the threads."""
+    blocks of BLOCK dealt to min(blocks, CHUNKS) jobs: job j takes blocks j, j + jobs, ...
+    (``prange`` gives each thread a contiguous run of jobs, so each thread's blocks are
+    spread over the whole image: with one job per thread, the left and the right halves of
+    a 128-pixel-wide image went to different threads, which take different times). Path
+    replay (``grads`` (jobs, G), G > 0; else (1, 0)): each job adds to its own row, so the
+    sums' order, and so the gradient's bits, do not depend on the threads."""
     n = width * height if paths.shape[0] == 0 else paths.shape[0]
-    n_blocks, n_jobs = _jobs(n, n_threads)
+    n_blocks = (n + BLOCK - 1) // BLOCK
     replay = grads.shape[1] > 0
-    n_jobs = np.int64(grads.shape[0] if replay else n_jobs)
+    n_jobs = np.int64(grads.shape[0] if replay else min(n_blocks, CHUNKS))
     seed_key = _mix(np.uint64(seed))
     for job in numba.prange(n_jobs):
         stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
@@ -511,7 +548,7 @@ def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=No
     rec_i, rec_f, rec_lit = records or (none_i, none_f, none_lit)
     _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
             packed.height, sampler.max_depth, sampler.rr_depth,
-            np.zeros(0, np.int64) if paths is None else paths, numba.get_num_threads(),
+            np.zeros(0, np.int64) if paths is None else paths,
             np.zeros((0, 0, 3)) if out is None else out,
             np.zeros((0, 3)) if radiance is None else radiance, rec_i, rec_f, rec_lit,
             np.zeros((0, 0, 3)) if d_image is None else d_image,
