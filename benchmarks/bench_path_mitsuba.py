@@ -3,7 +3,7 @@ estimate the same image, and how long does a sample take?
 
 Run:  python benchmarks/bench_path_mitsuba.py [--out out/bench_path_mitsuba] [--quick]
           [--skip-timing | --skip-correctness] [--size 32] [--seeds 16] [--spp 256]
-          [--depths 1,2,5,8] [--repeats 7]
+          [--depths 1,2,5,8] [--repeats 7] [--baseline DIR]
 
 Needs Mitsuba 3 (not a dependency of this project: the script says so and exits with 1
 without it). Install it next to the project, not into the project's environment, e.g.
@@ -60,11 +60,15 @@ without a tape (16 spp), Mitsuba ``mi.render`` with one fixed seed (a new seed w
 compile its kernel again) and the image evaluated (256 spp: Mitsuba's time per sample
 levels off above ~100 spp); medians of ``--repeats`` calls after a warm-up, in turns
 (blocks of ours, blocks of Mitsuba), as microseconds per sample per pixel and their ratio.
+``--baseline DIR`` (a checkout of another version of this project, e.g. ``git worktree add
+DIR <commit>``) times that version's ``render_path`` in the same turns, in a process of its
+own: how far a change moved us.
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
 
 # Numba's OpenMP threads sleep when idle instead of spinning (as run_all.py sets): spinning
 # threads would slow Mitsuba's calls that follow ours.
@@ -385,8 +389,43 @@ def write_images(maps: list[dict], path: Path) -> None:
 # --- speed ---------------------------------------------------------------------------------
 
 
-def speed(workload: dict, repeats: int) -> dict:
-    """Time per sample per pixel of one render, ours and Mitsuba's, timed in turns."""
+#: The baseline's render, in a process of its own (``--baseline``): it renders the speed
+#: workload once per line it reads, and answers each with a line.
+_BASELINE_SERVER = """
+import sys
+import minidiff as md
+from render.path import render_path
+from render.scene.cornell import cornell_box
+size, spp, depth = (int(x) for x in sys.argv[1:4])
+scene = cornell_box(size, size, blocks=True)
+for _ in sys.stdin:
+    with md.no_grad():
+        render_path(scene, spp=spp, max_depth=depth, seed=0)
+    print("done", flush=True)
+"""
+
+
+def _baseline_renderer(folder: str, size: int, spp: int, depth: int):
+    """A callable that renders the workload once with the code checked out in ``folder``
+    (another version of this project), in a process of its own, and its process."""
+    env = dict(os.environ, PYTHONPATH=str(Path(folder).resolve()))
+    process = subprocess.Popen(
+        [sys.executable, "-c", _BASELINE_SERVER, str(size), str(spp), str(depth)],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, env=env, cwd=folder,
+    )  # fmt: skip
+
+    def once() -> None:
+        process.stdin.write("go\n")
+        process.stdin.flush()
+        if process.stdout.readline().strip() != "done":
+            raise RuntimeError(f"bench_path_mitsuba: the baseline in {folder} failed")
+
+    return once, process
+
+
+def speed(workload: dict, repeats: int, baseline: str | None = None) -> dict:
+    """Time per sample per pixel of one render, ours and Mitsuba's (and the ``baseline``
+    checkout's, if given), timed in turns."""
     size, depth = workload["size"], workload["max_depth"]
     our_spp, their_spp = workload["our_spp"], workload["mitsuba_spp"]
     scene = cornell_box(size, size, blocks=True)
@@ -400,16 +439,30 @@ def speed(workload: dict, repeats: int) -> dict:
         np.array(mi.render(theirs, spp=their_spp, seed=0))  # evaluated: the kernel has run
 
     block = max(1, repeats // 3)
-    times = timing.measure_interleaved(
-        {"ours": ours_once, "mitsuba": mitsuba_once}, repeats, warmup=1, block=block
-    )
+    fns, spps = {"ours": ours_once, "mitsuba": mitsuba_once}, {"ours": our_spp,
+                                                                "mitsuba": their_spp}  # fmt: skip
+    process = None
+    if baseline:
+        fns["baseline"], process = _baseline_renderer(baseline, size, our_spp, depth)
+        spps["baseline"] = our_spp
+    try:
+        times = timing.measure_interleaved(fns, repeats, warmup=1, block=block)
+    finally:
+        if process is not None:
+            process.stdin.close()
+            process.wait()
     out = dict(workload) | {"repeats": repeats, "threads": THREADS}
-    for name, spp in (("ours", our_spp), ("mitsuba", their_spp)):
+    for name, spp in spps.items():
         out[name] = times[name] | {
             "us_per_sample_per_pixel": times[name]["median_ms"] * 1e3 / (size * size * spp)
         }
     out["ratio"] = out["ours"]["us_per_sample_per_pixel"] / out["mitsuba"][
         "us_per_sample_per_pixel"]  # fmt: skip
+    if baseline:
+        out["baseline_commit"] = _commit(baseline)
+        out["baseline_over_ours"] = out["baseline"]["median_ms"] / out["ours"]["median_ms"]
+        out["baseline_over_mitsuba"] = out["baseline"]["us_per_sample_per_pixel"] / out[
+            "mitsuba"]["us_per_sample_per_pixel"]  # fmt: skip
     print(
         f"speed {size}x{size}, max_depth {depth}: ours "
         f"{out['ours']['us_per_sample_per_pixel']:.3f} us/sample/pixel ({our_spp} spp), "
@@ -514,8 +567,25 @@ def _correctness_markdown(c: dict, version: str) -> list[str]:
     return lines
 
 
+def _commit(folder: str) -> str:
+    """The git commit checked out in ``folder`` (or "unknown")."""
+    try:
+        command = ["git", "-C", folder, "rev-parse", "--short", "HEAD"]
+        return subprocess.run(command, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
 def _speed_markdown(s: dict) -> list[str]:
     """results.md's speed part: how the times were taken, and the table."""
+    rows = []
+    if "baseline" in s:
+        rows = [
+            f"| the same, baseline (commit {s['baseline_commit']}, run beside them) | "
+            f"{s['baseline']['us_per_sample_per_pixel']:.3f} ({s['our_spp']} spp, "
+            f"{timing.ms(s['baseline'])}) | | {s['baseline_over_mitsuba']:.0f}x "
+            f"(ours is {s['baseline_over_ours']:.1f}x faster) |"
+        ]
     return [
         f"Speed: one render, {s['size']}x{s['size']}, max_depth {s['max_depth']}, "
         f"medians of {s['repeats']} after a warm-up, timed in turns, {s['threads']} "
@@ -528,7 +598,8 @@ def _speed_markdown(s: dict) -> list[str]:
         f"| path tracing, us per sample per pixel | "
         f"{s['ours']['us_per_sample_per_pixel']:.3f} ({s['our_spp']} spp, "
         f"{timing.ms(s['ours'])}) | {s['mitsuba']['us_per_sample_per_pixel']:.4f} "
-        f"({s['mitsuba_spp']} spp, {timing.ms(s['mitsuba'])}) | {s['ratio']:.0f}x |",
+        f"({s['mitsuba_spp']} spp, {timing.ms(s['mitsuba'])}) | {s['ratio']:.1f}x |",
+        *rows,
         "",
     ]
 
@@ -555,6 +626,11 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--spp", type=int, help="samples per pixel per seed (256)")
     parser.add_argument("--depths", help="max_depths compared, comma-separated (1,2,5,8)")
     parser.add_argument("--repeats", type=int, help="timed calls per renderer (7)")
+    parser.add_argument(
+        "--baseline",
+        help="a checkout of another version of this project (e.g. a git worktree) whose "
+        "path integrator is timed beside ours, in a process of its own",
+    )
     args = parser.parse_args(argv)
     quick = args.quick
     out = args.out
@@ -585,7 +661,7 @@ def main(argv: list[str] | None = None) -> dict:
         write_images(maps, out / "images.png")
     if not args.skip_timing:
         part = time.perf_counter()
-        result["speed"] = speed(QUICK_SPEED if quick else SPEED, repeats)
+        result["speed"] = speed(QUICK_SPEED if quick else SPEED, repeats, args.baseline)
         result["speed"] |= {"quick": quick, "seconds": time.perf_counter() - part,
                             "load_average": load}  # fmt: skip
     result["seconds"] = time.perf_counter() - start  # this run's

@@ -1,6 +1,6 @@
 """Recover the albedo of a wall the camera does not see, from the light it bleeds.
 
-Run:  python examples/colour_bleeding.py [--out out/colour_bleeding] [--size 32]
+Run:  python examples/colour_bleeding.py [--out out/colour_bleeding] [--size 128]
       [--iters 150] [--spp 1 4 16 64] [--quick]
 
 The Cornell box seen without its red wall (``render.inverse.bleeding``): the wall's albedo
@@ -10,7 +10,7 @@ samples every iteration, decorrelated gradient seeds), once per spp in ``--spp``
 ``results.json`` and ``results.md`` (the albedo error per spp after every 10 iterations),
 ``error.png`` (error against iterations, one line per spp) and ``images.png`` (target,
 start, final, each rendered at 1,024 spp, the final one the highest-spp run's, and 10x
-|target - start|; shown with 2x exposure and gamma 1/2.2, enlarged 4x).
+|target - start|; shown with 2x exposure and gamma 1/2.2, enlarged to at least 128 pixels).
 ``--quick``: 16x16, 20 iterations, spp 1 and 4 (a smoke run, not results). The default
 ``--out`` is scratch (``out/`` is git-ignored); the README's figures are regenerated with
 ``--out docs/path_tracing/bleeding``.
@@ -39,7 +39,7 @@ def main(argv=None) -> dict:
         help="output folder (default out/colour_bleeding; the README's figures were made "
         "with --out docs/path_tracing/bleeding)",
     )
-    parser.add_argument("--size", type=int, default=32)
+    parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--iters", type=int, default=150)
     parser.add_argument("--spp", type=int, nargs="+", default=[1, 4, 16, 64])
     parser.add_argument("--target-spp", type=int, default=1024)
@@ -78,7 +78,8 @@ def main(argv=None) -> dict:
     # What the wall's colour changes: 10x the difference the start's grey wall makes.
     images.append(10.0 * np.abs(last.images["target"] - last.images["start"]))
     strip = np.concatenate([display(im) for im in images], axis=1)
-    save_image(np.repeat(np.repeat(strip, 4, axis=0), 4, axis=1), out / "images.png")  # 4x
+    zoom = max(1, -(-128 // args.size))  # small images enlarged to be seen
+    save_image(np.repeat(np.repeat(strip, zoom, axis=0), zoom, axis=1), out / "images.png")
     write_json(out / "results.json", result)
     (out / "results.md").write_text(report(result))
     print(report(result))
