@@ -84,19 +84,19 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     """The radiance (3-tuple) of path id ``path`` through pixel (px, py). With ``keep``,
     its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``).
 
-    Path replay: the radiance is sum_k beta_k C_k with beta_{k+1} = beta_k F_k (C_k what
-    vertex k adds, F_k its continuation factor, RGB), so d radiance = sum_k beta_k (dC_k +
-    dF_k R_k), R_k = C_{k+1} + F_{k+1} R_{k+1} the radiance that reaches vertex k from the
-    rest of the path (Vicini et al. 2021). A first call with ``chain`` (max_depth,
-    _C_LIGHTS + lights) zeroed and ``grad`` empty records each vertex's C_k, F_k, the
-    environment seen after it and what its rays found; ``_replay_chain`` turns them into
-    R_k; a second call with ``grad`` non-empty reads the rays' answers back (it traces
-    none) and adds delta . d radiance / d q to ``grad`` (laid out by ``_G_*``) for the
-    material, light and environment values q, vertex by vertex. The chain is a
-    few numbers per vertex of one path (per thread), not per path of the image; R_k
-    from this recursion, not from (radiance - what came before) / beta_{k+1} as Mitsuba's
-    prb does, stays exact where a channel of F_k is 0 (an albedo channel at 0 still gets
-    its derivative).
+    Path replay (``grad`` non-empty, ``chain`` (max_depth, _C_FIELDS) zeroed, ``delta``
+    the pixel's dL/dimage / spp): the radiance is sum_k beta_k C_k with beta_{k+1} =
+    beta_k F_k (C_k what vertex k adds, F_k its continuation factor, RGB), so d radiance
+    = sum_k beta_k (dC_k + dF_k R_k), R_k = C_{k+1} + F_{k+1} R_{k+1} the radiance that
+    reaches vertex k from the rest of the path (Vicini et al. 2021). The dC_k terms are
+    added to ``grad`` (laid out by ``_G_*``) as the path is traced; each vertex's C_k, F_k,
+    the environment seen after it and what dF_k needs go into the chain, and once the path
+    has ended ``_replay_chain`` computes R_k and ``_factor_gradients`` adds the dF_k R_k
+    terms. One trace per path (the replay needs no second one: nothing in dF_k R_k but R_k
+    waits for the rest of the path), and memory of a few numbers per vertex of one path
+    (per block of pixels), not per path of the image. R_k from the recursion, not from
+    (radiance - what came before) / beta_{k+1} as Mitsuba's prb divides, stays exact where
+    a channel of F_k is 0 (an albedo channel at 0 still gets its derivative).
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -108,8 +108,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
      normals, uvs, e_prims, e_cdf, e_probability, e_area, e_row_of, light_kind, light_vec,
      light_strength, light_color, forward, right, up, eye, background, offset,
      n_tri, lobe_on) = s  # fmt: skip
-    adjoint = grad.shape[0] > 0
-    chained = chain.shape[0] > 0 and not adjoint  # the first pass records the chain
+    adjoint = grad.shape[0] > 0  # path replay: dC_k now, F_k's data into the chain
+    chained = adjoint
     g_light = _G_OBJECT * albedo.shape[0]  # where the lights' and the environment's are
     g_background = g_light + _G_LIGHT * light_kind.shape[0]
     key = _mix(seed_key ^ np.uint64(path))
@@ -121,7 +121,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
          x * right[2] + y * up[2] + forward[2])  # fmt: skip
     if keep:
         rec_f[row, 0, _F_COORD], rec_f[row, 0, _F_COORD + 1] = x, y
-    prim, t, u, v = _hit(bvh, eye, d, stack, stack_t, chain, 0, adjoint, chained)
+    prim, t, u, v = _closest(bvh, eye, d, stack, stack_t)
     if prim < 0:
         if keep:
             rec_i[row, 0, _I_COUNT] = 0
@@ -213,8 +213,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
             if ok:
                 to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
-                ok = not _seen_blocked(bvh, origin, to, 1.0 - 1e-7, ignore, stack, chain,
-                                       depth - 1, _C_NEE_BLOCKED, adjoint, chained)  # fmt: skip
+                ok = not _blocked(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
             if ok:
                 p_nee = e_probability[pick] / e_area[pick]
                 p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
@@ -258,9 +257,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     so = (point[0] + fraction * tx, point[1] + fraction * ty,
                           point[2] + fraction * tz)  # fmt: skip
                     to = (light_vec[j, 0] - so[0], light_vec[j, 1] - so[1], light_vec[j, 2] - so[2])
-                    lit = not _seen_blocked(bvh, so, to, 1.0 - fraction / (1.0 - fraction),
-                                            ignore, stack, chain, depth - 1, _C_LIGHTS + j,
-                                            adjoint, chained)  # fmt: skip
+                    lit = not _blocked(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
+                                       stack)  # fmt: skip
                 tx = light_vec[j, 0] - xt[0]
                 ty = light_vec[j, 1] - xt[1]
                 tz = light_vec[j, 2] - xt[2]
@@ -274,9 +272,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 if lit:
                     so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
                           point[2] + offset * wl[2])  # fmt: skip
-                    lit = not _seen_blocked(bvh, so, wl, np.inf, ignore, stack, chain,
-                                            depth - 1, _C_LIGHTS + j, adjoint,
-                                            chained)  # fmt: skip
+                    lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
                 irradiance, per_strength = light_strength[j], 1.0
             if keep:
                 rec_lit[row, depth - 1, j] = lit
@@ -334,7 +330,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if not go:
             break
         scale = 1.0 / (next_pdf * survive)
-        prim, t, u, v = _hit(bvh, origin, wi, stack, stack_t, chain, depth, adjoint, chained)
+        prim, t, u, v = _closest(bvh, origin, wi, stack, stack_t)
         if keep:
             rec_i[row, depth - 1, _I_NEXT] = MIRROR if mirror else AREA
             rec_f[row, depth - 1, _F_NEXT_PDF] = next_pdf
@@ -373,17 +369,16 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 chain[depth - 1, _C_FACTOR + c] = factor[c]
                 if prim < 0:
                     chain[depth - 1, _C_ESCAPE + c] = background[c]
-        if adjoint:  # dF_k weighted by the radiance the rest of the path brings
+        if adjoint:  # what dF_k needs, applied once R_k is known (_factor_gradients)
             at = depth - 1
-            rest = (chain[at, _C_REST], chain[at, _C_REST + 1], chain[at, _C_REST + 2])
-            w = (delta[0] * before[0] * rest[0], delta[1] * before[1] * rest[1],
-                 delta[2] * before[2] * rest[2])  # fmt: skip
-            if mirror:
-                for c in range(3):
-                    grad[g_object + _G_REFLECTANCE + c] += w[c] * f[c]
-            else:
-                w = (w[0] * cos, w[1] * cos, w[2] * cos)
-                _brdf_adjoint(nst, wot, wn, ks, shin, lobe, textured, w, grad, g_object)
+            chain[at, _C_OBJECT], chain[at, _C_MIRROR] = o, 1.0 if mirror else 0.0
+            chain[at, _C_COS] = scale if mirror else cos
+            chain[at, _C_SHININESS], chain[at, _C_LOBE] = shin, 1.0 if lobe else 0.0
+            chain[at, _C_TEXTURED] = 1.0 if textured else 0.0
+            for c in range(3):
+                chain[at, _C_NORMAL + c], chain[at, _C_VIEW + c] = nst[c], wot[c]
+                chain[at, _C_DIRECTION + c] = wi[c] if mirror else wn[c]
+                chain[at, _C_SPECULAR + c], chain[at, _C_BETA + c] = ks[c], before[c]
         if prim < 0:  # the environment
             L0 += beta[0] * background[0]
             L1 += beta[1] * background[1]
@@ -414,37 +409,41 @@ def _replay_chain(chain):
 
 
 #: A path's chain for path replay, per vertex k: C_k (3), F_k (3), the environment seen
-#: after it (3), R_k (3); the ray that reached it (primitive, t, u, v); whether NEE's
-#: shadow ray was blocked; then per point or directional light whether its shadow ray was
-#: (1.0 for yes). The replay reads the rays' answers instead of tracing them again.
-_C_ADDED, _C_FACTOR, _C_ESCAPE, _C_REST, _C_HIT, _C_NEE_BLOCKED, _C_LIGHTS = 0, 3, 6, 9, 12, 16, 17
+#: after it (3), R_k (3); and what d F_k needs: the object, whether the bounce is a
+#: mirror's, the cosine over the density (a mirror: 1 / the density), the shading normal,
+#: the view and the new direction (3 each), the specular colour (3), the shininess,
+#: whether the lobe and a texture are on, and the throughput before the vertex (3).
+_C_ADDED, _C_FACTOR, _C_ESCAPE, _C_REST = 0, 3, 6, 9
+_C_OBJECT, _C_MIRROR, _C_COS, _C_NORMAL, _C_VIEW, _C_DIRECTION = 12, 13, 14, 15, 18, 21
+_C_SPECULAR, _C_SHININESS, _C_LOBE, _C_TEXTURED, _C_BETA = 24, 27, 28, 29, 30
+_C_FIELDS = 33
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _hit(bvh, origin, direction, stack, stack_t, chain, row, replay, chained):
-    """``_closest`` (prim, t, u, v) of the ray that reaches vertex ``row``: traced (and
-    kept in the chain on the first pass), or read back on the replay."""
-    if replay:
-        at = chain[row]
-        return np.int64(at[_C_HIT]), at[_C_HIT + 1], at[_C_HIT + 2], at[_C_HIT + 3]
-    prim, t, u, v = _closest(bvh, origin, direction, stack, stack_t)
-    if chained:
-        chain[row, _C_HIT], chain[row, _C_HIT + 1] = prim, t
-        chain[row, _C_HIT + 2], chain[row, _C_HIT + 3] = u, v
-    return prim, t, u, v
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _seen_blocked(bvh, origin, direction, tmax, ignore, stack, chain, row, column, replay,
-                  chained):  # fmt: skip
-    """``_blocked`` of a shadow ray at vertex ``row``: traced (kept in chain[row, column]
-    on the first pass), or read back on the replay."""
-    if replay:
-        return chain[row, column] > 0.0
-    blocked = _blocked(bvh, origin, direction, tmax, ignore, stack)
-    if chained:
-        chain[row, column] = 1.0 if blocked else 0.0
-    return blocked
+@numba.njit(cache=True, error_model="numpy")
+def _factor_gradients(chain, delta, grad):
+    """Add each vertex's delta . beta_k dF_k R_k to ``grad``, from the chain that
+    ``_trace_path`` recorded and ``_replay_chain`` completed (rows of vertices that did
+    not go on hold a zero throughput and add nothing)."""
+    for k in range(chain.shape[0]):
+        row = chain[k]
+        if row[_C_BETA] == 0.0 and row[_C_BETA + 1] == 0.0 and row[_C_BETA + 2] == 0.0:
+            continue  # past the path's end (or no throughput left): nothing to add
+        w = (delta[0] * row[_C_BETA] * row[_C_REST], delta[1] * row[_C_BETA + 1] * row[_C_REST + 1],
+             delta[2] * row[_C_BETA + 2] * row[_C_REST + 2])  # fmt: skip
+        g_object = _G_OBJECT * np.int64(row[_C_OBJECT])
+        scale = row[_C_COS]
+        if row[_C_MIRROR] > 0.0:
+            for c in range(3):
+                grad[g_object + _G_REFLECTANCE + c] += w[c] * scale
+        else:
+            w = (w[0] * scale, w[1] * scale, w[2] * scale)
+            normal = (row[_C_NORMAL], row[_C_NORMAL + 1], row[_C_NORMAL + 2])
+            view = (row[_C_VIEW], row[_C_VIEW + 1], row[_C_VIEW + 2])
+            direction = (row[_C_DIRECTION], row[_C_DIRECTION + 1], row[_C_DIRECTION + 2])
+            specular = (row[_C_SPECULAR], row[_C_SPECULAR + 1], row[_C_SPECULAR + 2])
+            _brdf_adjoint(normal, view, direction, specular, row[_C_SHININESS],
+                          row[_C_LOBE] > 0.0, row[_C_TEXTURED] > 0.0, w, grad,
+                          g_object)  # fmt: skip
 
 
 #: Path replay's gradient vector: per object (``_G_OBJECT`` entries from ``_G_OBJECT * o``)
@@ -473,39 +472,32 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
     * pixels (``paths`` and ``grad`` empty): each pixel's mean over its spp paths, summed
       in sample order, into ``out`` (H, W, 3);
     * paths ``paths[i]``: their radiance into ``radiance`` (N, 3) and their records;
-    * pixels, path replay (``grad`` non-empty): each of their paths traced, then replayed
-      with its radiance and the pixel's ``d_image`` (dL/dimage / spp), adding to ``grad``.
+    * pixels, path replay (``grad`` non-empty): each of their paths traced once, adding
+      to ``grad`` its share of the pixel's ``d_image`` (dL/dimage / spp) . d image / d q.
 
     One call per block of items, so that the scene's arrays are handed over once per block,
     not once per path."""
     image = paths.shape[0] == 0
-    no_grad = grad[:0]
-    passes = 2 if grad.shape[0] > 0 else 1
-    n_lights = s[23].shape[0]  # light_kind
-    chain = np.zeros((max_depth if passes == 2 else 0, _C_LIGHTS + n_lights))
+    replay = grad.shape[0] > 0
+    chain = np.zeros((max_depth if replay else 0, _C_FIELDS))
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
         x, y = i % width, i // width
         delta = (0.0, 0.0, 0.0)
-        if passes == 2:
+        if replay:
             delta = (d_image[y, x, 0], d_image[y, x, 1], d_image[y, x, 2])
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
-            L = (0.0, 0.0, 0.0)
-            chain[:] = 0.0
-            # One call site (the path is inlined here once): the path, then its replay.
-            for replay in range(passes):
-                radiance_i = _trace_path(
-                    bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
-                    max_depth, rr_depth, stack, stack_t, not image and replay == 0, i, rec_i,
-                    rec_f, rec_lit, delta, chain, grad if replay == 1 else no_grad,
-                )  # fmt: skip
-                if replay == 0:
-                    L = radiance_i
-                    if passes == 2:
-                        _replay_chain(chain)
+            if replay:
+                chain[:] = 0.0
+            L = _trace_path(bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
+                            max_depth, rr_depth, stack, stack_t, not image, i, rec_i, rec_f,
+                            rec_lit, delta, chain, grad)  # fmt: skip
+            if replay:
+                _replay_chain(chain)
+                _factor_gradients(chain, delta, grad)
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
         if image and out.shape[0] > 0:
             inv = 1.0 / spp
