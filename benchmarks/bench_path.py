@@ -210,7 +210,7 @@ def main(argv=None) -> None:
             else memory(32, (16, 64, 256), (16, 64, 256, 1024), (2, 4, 8), 64)
         )
     if args.part in ("both", "speed"):
-        result["speed"] = speed(32, 4, 2) if args.quick else speed(128, 16, 5)
+        result["speed"] = speed(32, 4, 2) if args.quick else speed(128, 16, 9)
     write_json(path, result)
 
 
