@@ -45,6 +45,9 @@ from render.scene.substitute import substituted
 
 #: Default samples per pixel in one batch (one tape, for ``replay_gradient``).
 BATCH_SPP = 16
+#: The replay on the tape takes a batch's paths this many at a time: a 512x512 batch of 16
+#: samples would otherwise hold 4 million paths' records and window at once (gigabytes).
+REPLAY_PATHS = 2**17
 #: Default number of vertices before Russian roulette may end a path (Mitsuba's rr_depth).
 RR_DEPTH = 5
 #: How ``render_path``'s image is differentiated (its ``gradient`` argument).
@@ -245,21 +248,26 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
 def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:
     """``_backpropagate``'s tape, a batch of ``batch_spp`` samples at a time. With the
     kernel (``kernel.applies``): its paths and radiance, replayed one depth at a time
-    (``render.path.replay``: memory flat in depth); else the reference sampler's paths, each
+    (``render.path.replay``: memory flat in depth), at most REPLAY_PATHS paths at a time
+    (memory bounded whatever the image's size); else the reference sampler's paths, each
     batch on one tape that its ``backward`` frees before the next batch is rendered."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
     packed = kernel.pack(sampler) if kernel.applies(sampler.scene) else None
     for first in range(0, spp, batch_spp):
-        world = placed(scene)  # a fresh tape per batch: placement is on it too
-        frame = camera_frame(world.camera)
         last = min(first + batch_spp, spp)
         if packed is not None:
-            paths = _batch_paths(world, sampler, first, last)
-            batch, radiance = kernel.sample_paths(sampler, paths, packed)
+            paths = _batch_paths(sampler.scene, sampler, first, last)
             per_path = np.repeat(weights.reshape(-1, 3), last - first, axis=0)
-            backpropagate_paths(world, frame, sampler, batch, radiance, per_path)
+            for start in range(0, len(paths), REPLAY_PATHS):
+                world = placed(scene)  # a fresh tape each time: placement is on it too
+                chunk = slice(start, start + REPLAY_PATHS)
+                batch, radiance = kernel.sample_paths(sampler, paths[chunk], packed)
+                backpropagate_paths(world, camera_frame(world.camera), sampler, batch,
+                                    radiance, per_path[chunk])  # fmt: skip
             continue
+        world = placed(scene)  # a fresh tape per batch: placement is on it too
+        frame = camera_frame(world.camera)
         samples = _batch_samples(world, frame, sampler, first, last)
         if samples.requires_grad:  # else no parameter that requires grad moves the image
             # This batch's share of the image is sum_s samples / spp; its share of dL/dp:

@@ -221,3 +221,17 @@ def test_memory_does_not_grow_with_spp():
 def test_bad_gradient_option_is_named():
     with pytest.raises(ValueError, match='gradient must be "replay" or "tape"'):
         render.render(cornell_box(4, 4), integrator="path", gradient="adjoint")
+
+
+def test_the_replay_on_the_tape_takes_a_batch_in_chunks_of_paths(monkeypatch):
+    """A batch's paths replayed a few at a time (``REPLAY_PATHS``, so that a large image's
+    batch does not hold millions of paths at once) give the tape's gradient."""
+    from render.path import integrator
+
+    scene = every_kind()
+    weights = np.random.default_rng(4).normal(size=(8, 8, 3))
+    options = {"spp": 4, "max_depth": 3, "seed": 5, "batch_spp": 2}
+    _, taped = _gradients(scene, weights, gradient="tape", **options)
+    monkeypatch.setattr(integrator, "REPLAY_PATHS", 37)  # 128 paths a batch: 4 chunks
+    _, chunked = _gradients(scene, weights, **options)
+    _assert_same_gradients(chunked, taped)
