@@ -176,13 +176,7 @@ def _surface(triangles, centers, prim_object, smooth, corners, normals, uvs, pri
     o = prim_object[prim]
     n_tri = triangles.shape[0]
     if prim < n_tri:
-        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
-        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
-        ng = _divided(
-            e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-            e1[0] * e2[1] - e1[1] * e2[0],
-        )  # fmt: skip
+        ng = _triangle_normal(triangles, prim)
         local = (u, v, 0.0)
         ns = ng
         w0 = 1.0 - u - v
@@ -224,30 +218,30 @@ def _look(albedo, specular, maps, texels, o, uv):
 
 @numba.njit(cache=True, error_model="numpy")
 def _point_on(triangles, centers, radii, prim, u1, u2):
-    """``render.path.emitters.point_on`` for one primitive: local, point, unit normal."""
-    n_tri = triangles.shape[0]
-    if prim < n_tri:
+    """``render.path.emitters.point_on`` for one primitive: local, point, unit normal (a
+    uniform point by Turk's square-root warp on a triangle, by Archimedes on a sphere)."""
+    if prim < triangles.shape[0]:
         root = math.sqrt(u1)
-        u, v = u2 * root, 1.0 - root
-        a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-        z = (a[0] + u * (b[0] - a[0]) + v * (c[0] - a[0]),
-             a[1] + u * (b[1] - a[1]) + v * (c[1] - a[1]),
-             a[2] + u * (b[2] - a[2]) + v * (c[2] - a[2]))  # fmt: skip
-        e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
-        e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
-        nz = _divided(
-            e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-            e1[0] * e2[1] - e1[1] * e2[0],
-        )  # fmt: skip
-        return (u, v, 0.0), z, nz
-    k = prim - n_tri
-    zc = 1.0 - 2.0 * u1
-    r = math.sqrt(max(1.0 - zc * zc, 0.0))
-    phi = 2.0 * math.pi * u2
-    d = (r * math.cos(phi), r * math.sin(phi), zc)
-    z = (centers[k, 0] + radii[k] * d[0], centers[k, 1] + radii[k] * d[1],
-         centers[k, 2] + radii[k] * d[2])  # fmt: skip
-    return d, z, d
+        local = (u2 * root, 1.0 - root, 0.0)
+        normal = _triangle_normal(triangles, prim)
+    else:
+        z = 1.0 - 2.0 * u1
+        r = math.sqrt(max(1.0 - z * z, 0.0))
+        phi = 2.0 * math.pi * u2
+        local = (r * math.cos(phi), r * math.sin(phi), z)
+        normal = local
+    return local, _placed(triangles, centers, radii, prim, local), normal
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _triangle_normal(triangles, prim):
+    """The unit normal (b - a) x (c - a) / |.| of triangle ``prim``."""
+    a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+    e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
+    e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
+    return _divided(
+        e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]
+    )
 
 
 @numba.njit(cache=True, error_model="numpy")

@@ -13,7 +13,6 @@ is never picked, an albedo under a texture): both count as zero here.
 
 from __future__ import annotations
 
-import math
 import os
 import subprocess
 import sys
@@ -34,7 +33,7 @@ from render.path import adjoint, kernel
 from render.path.tracer import PathSampler
 from render.scene.cornell import box_mesh, cornell_box
 from render.scene.placement import placed
-from tests.render.path.test_kernel import UncompiledPointLight, _facing_triangle
+from tests.render.path.test_kernel import UncompiledPointLight, drawn_view
 from tests.render.path.test_replay import _gradients, every_kind
 
 #: |replay - tape| <= RTOL * max(max |tape|, FLOOR * the largest |tape| of all parameters)
@@ -185,16 +184,8 @@ def small_scenes(draw) -> render.Scene:
     if directional:
         direction, irradiance = rng.normal(size=3), rng.uniform(0.2, 1.0)
         lights.append(render.DirectionalLight(direction, irradiance, rng.uniform(0.3, 1.0, 3)))
-    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(-1.0, 1.0)
-    eye = rng.uniform(2.5, 4.0) * np.array(
-        [math.cos(elevation) * math.sin(azimuth), math.sin(elevation),
-         math.cos(elevation) * math.cos(azimuth)]
-    )  # fmt: skip
-    look_at, fov = rng.uniform(-0.2, 0.2, 3), rng.uniform(30.0, 60.0)
-    objects.append(_facing_triangle(eye, look_at, fov, rng.uniform(0.5, 3.0, 3)))
-    width, height = draw(st.integers(8, 12)), draw(st.integers(8, 12))
-    camera = render.Camera(eye, look_at, (0.0, 1.0, 0.0), fov, width, height)
-    return render.Scene(objects, lights, camera, background=rng.uniform(0.1, 0.8, 3))
+    camera, triangle = drawn_view(draw, rng)
+    return render.Scene([*objects, triangle], lights, camera, background=rng.uniform(0.1, 0.8, 3))
 
 
 @settings(max_examples=8, deadline=None)

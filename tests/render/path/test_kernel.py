@@ -188,6 +188,20 @@ def _facing_triangle(eye, look_at, fov: float, emission) -> render.Mesh:
     )
 
 
+def drawn_view(draw, rng) -> tuple[render.Camera, render.Mesh]:
+    """A drawn camera (8x8 to 12x12 pixels, 2.5 to 4 from the origin, looking near it) and
+    an emissive triangle in the middle of its view, facing it (``_facing_triangle``)."""
+    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(-1.0, 1.0)
+    eye = rng.uniform(2.5, 4.0) * np.array(
+        [math.cos(elevation) * math.sin(azimuth), math.sin(elevation),
+         math.cos(elevation) * math.cos(azimuth)]
+    )  # fmt: skip
+    look_at, fov = rng.uniform(-0.2, 0.2, 3), rng.uniform(30.0, 60.0)
+    triangle = _facing_triangle(eye, look_at, fov, rng.uniform(0.5, 3.0, 3))
+    width, height = draw(st.integers(8, 12)), draw(st.integers(8, 12))
+    return render.Camera(eye, look_at, (0.0, 1.0, 0.0), fov, width, height), triangle
+
+
 @st.composite
 def small_scenes(draw) -> render.Scene:
     """A few boxes and spheres of drawn materials near the origin, an emissive sphere (an
@@ -213,16 +227,8 @@ def small_scenes(draw) -> render.Scene:
     if draw(st.booleans()):
         lights.append(render.DirectionalLight(rng.normal(size=3), rng.uniform(0.2, 1.0)))
     background = rng.uniform(0.0, 1.0, 3) if draw(st.booleans()) else (0.0, 0.0, 0.0)
-    azimuth, elevation = rng.uniform(0, 2 * math.pi), rng.uniform(-1.0, 1.0)
-    eye = rng.uniform(2.5, 4.0) * np.array(
-        [math.cos(elevation) * math.sin(azimuth), math.sin(elevation),
-         math.cos(elevation) * math.cos(azimuth)]
-    )  # fmt: skip
-    look_at, fov = rng.uniform(-0.2, 0.2, 3), rng.uniform(30.0, 60.0)
-    objects.append(_facing_triangle(eye, look_at, fov, rng.uniform(0.5, 3.0, 3)))
-    width, height = draw(st.integers(8, 12)), draw(st.integers(8, 12))
-    camera = render.Camera(eye, look_at, (0.0, 1.0, 0.0), fov, width, height)
-    return render.Scene(objects, lights, camera, background=background)
+    camera, triangle = drawn_view(draw, rng)
+    return render.Scene([*objects, triangle], lights, camera, background=background)
 
 
 @settings(max_examples=8)
