@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 import minidiff as md
-from render.path import kernel
+from render.path import chain, kernel
 from render.path.tracer import PathSampler
 from render.scene.lights import DIRECTIONAL, POINT
 from render.scene.scene import Scene
@@ -29,11 +29,11 @@ from render.scene.scene import Scene
 _STRENGTH = {POINT: "intensity", DIRECTIONAL: "irradiance"}
 #: A material's covered fields and where they sit in an object's gradient entries.
 _MATERIAL = (
-    ("albedo", kernel._G_ALBEDO, 3),
-    ("specular", kernel._G_SPECULAR, 3),
-    ("shininess", kernel._G_SHININESS, 1),
-    ("reflectance", kernel._G_REFLECTANCE, 3),
-    ("emission", kernel._G_EMISSION, 3),
+    ("albedo", chain._G_ALBEDO, 3),
+    ("specular", chain._G_SPECULAR, 3),
+    ("shininess", chain._G_SHININESS, 1),
+    ("reflectance", chain._G_REFLECTANCE, 3),
+    ("emission", chain._G_EMISSION, 3),
 )
 
 
@@ -63,7 +63,7 @@ def backpropagate(world: Scene, sampler: PathSampler, d_image: np.ndarray) -> No
     grad = kernel.replay_gradient(sampler, d_image)
     for o, obj in enumerate(sampler.objects):
         m = obj.material
-        base = kernel._G_OBJECT * o
+        base = chain._G_OBJECT * o
         for name, at, size in _MATERIAL:
             if name == "albedo" and m.texture is not None:
                 continue  # the texture replaces the albedo: it does not move the image
@@ -71,10 +71,10 @@ def backpropagate(world: Scene, sampler: PathSampler, d_image: np.ndarray) -> No
                 continue  # no path picks the mirror lobe: the tape does not read it either
             _add(getattr(m, name), grad[base + at : base + at + size])
     for j, light in enumerate(world.lights):
-        base = kernel._G_OBJECT * len(sampler.objects) + kernel._G_LIGHT * j
+        base = chain._G_OBJECT * len(sampler.objects) + chain._G_LIGHT * j
         _add(getattr(light, _STRENGTH[light.KIND]), grad[base : base + 1])
         _add(light.color, grad[base + 1 : base + 4])
-    base = kernel._G_OBJECT * len(sampler.objects) + kernel._G_LIGHT * len(world.lights)
+    base = chain._G_OBJECT * len(sampler.objects) + chain._G_LIGHT * len(world.lights)
     _add(world.background, grad[base : base + 3])
 
 
