@@ -1,19 +1,20 @@
-"""The path integrator: an image from sampled paths, and its gradient two ways.
+"""The path integrator: an image from sampled paths, and its gradient.
 
-``render_path`` renders ``spp`` paths per pixel in batches of ``batch_spp`` samples. With
-``gradient="tape"`` every batch stays on the tape until the caller's ``backward``: memory
-grows with spp x depth (way 1, plain reverse mode, the readable reference). By default
-(``gradient="replay"``) the image is one node on the tape whose VJP is way 2 below, run
-with the caller's dL/dimage: ``backward`` gives the tape's gradient (to rounding) and no
-path is kept between the render and the ``backward``.
+``render_path`` renders ``spp`` paths per pixel. Nothing differentiated: the compiled
+kernel's image (``render.path.kernel``). With ``gradient="tape"`` the reference samples
+batches of ``batch_spp`` samples and every batch stays on the tape until the caller's
+``backward``: memory grows with spp x depth (plain reverse mode, the readable reference).
+By default (``gradient="replay"``) the image is the kernel's, one node on the tape whose
+VJP (``_backpropagate``) replays the image's paths with the caller's dL/dimage: compiled
+(``render.path.adjoint``) when only materials, lights' strengths and colours and the
+environment are differentiated, else on the tape one depth at a time
+(``render.path.replay``). ``backward`` gives the tape's gradient (to rounding), no path is
+kept between the render and the ``backward``, and memory does not grow with spp.
 
-``replay_gradient`` is the adjoint by replay (the structure of radiative backpropagation,
-Nimier-David et al. 2020): a primal pass without a tape gives the image and dL/dimage; then
-each batch of samples is rendered again on its own short tape, with the same random numbers
-(the same path ids under ``seed_grad``), and ``backward`` takes its share of dL/dimage into
-the parameters before the tape is dropped. Memory is that of one batch, whatever spp is.
-Each batch's tape still holds its paths' every vertex, so memory grows with max_depth (path
-replay, Vicini et al. 2021, would also make it constant in depth; not done here).
+``replay_gradient`` is the same adjoint for a loss given as a function (the structure of
+radiative backpropagation, Nimier-David et al. 2020): a primal pass without a tape gives
+the image and dL/dimage, then the paths are replayed with the same random numbers (the
+same path ids under ``seed_grad``) and their gradient goes into the parameters.
 
 With ``seed_grad == seed`` both ways compute the same gradient to float rounding. For an
 unbiased gradient of a non-linear loss, pass a different ``seed_grad`` (as Mitsuba 3's
@@ -75,14 +76,12 @@ def render_path(
     value), its jumps estimated with ``edge_spp`` paths per side of each edge point (None:
     ``spp``).
 
-    gradient: how ``backward`` reaches the parameters (reverse mode; forward mode needs no
-    tape either way). "replay" (default): the image is one node on the tape; its VJP
-    renders the samples again, ``batch_spp`` at a time, each batch on its own tape dropped
-    before the next (``_backpropagate``): memory of one batch whatever ``spp``, the tape's
-    gradient to rounding, at the cost of one more render without a tape. "tape": every
-    batch stays on the tape until ``backward``: memory grows with spp x depth (~3 MB per
-    sample per pixel at 32x32, depth 4). With ``spp <= batch_spp`` both are the same one
-    batch, so the tape is used."""
+    gradient: how ``backward`` reaches the parameters (reverse mode; forward mode's tangents
+    are computed on the tape either way). "replay" (default): the image is the kernel's,
+    one node on the tape; its VJP replays the paths (``_backpropagate``): memory that does
+    not grow with ``spp``, the tape's gradient to rounding. "tape": every batch of
+    ``batch_spp`` samples stays on the tape until ``backward``: memory grows with spp x
+    depth (~3 MB per sample per pixel at 32x32, depth 4)."""
     spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
     seed = check_seed(seed)
     batch_spp = check_count("batch_spp", batch_spp)
@@ -93,7 +92,7 @@ def render_path(
     # minidiff's buffers would only fill its pool with arrays nobody asks for again.
     with buffers.fresh():
         options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
-        if _replays(scene, gradient, spp, batch_spp):
+        if _replays(scene, gradient):
             return _replayed_image(scene, *options)
         return _render_path(scene, *options)
 
@@ -166,9 +165,10 @@ def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) ->
     return md.reshape(radiance, (camera.height, camera.width, last - first, 3))
 
 
-def _replays(scene: Scene, gradient: str, spp: int, batch_spp: int) -> bool:
-    """Whether ``render_path`` returns the image as one node differentiated by replay: a
-    parameter requires grad (with gradients enabled) and there is more than one batch."""
+def _replays(scene: Scene, gradient: str) -> bool:
+    """Whether ``render_path`` returns the image as one node differentiated by replay:
+    ``gradient="replay"`` and a parameter is differentiated (it requires grad with
+    gradients enabled, or carries a tangent)."""
     if gradient not in GRADIENTS:
         raise ValueError(f'render: gradient must be "replay" or "tape", got {gradient!r}')
     return gradient == "replay" and differentiated(scene)
@@ -187,10 +187,10 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
     The copies of the moving parameters must look differentiated in the render as the
     originals do on the tape: some choices of the sampler depend on it (an emission being
     differentiated makes its surface an area light that NEE samples, ``Material.emissive``).
-    Reverse mode alone: they require grad and the render runs under ``no_grad()``. With
-    forward mode: each carries its parameter's tangent (zero if it has none) and nothing
-    requires grad, so the tangents flow and nothing is recorded; the image's tangent is
-    the tape's."""
+    The value: they require grad and the render runs under ``no_grad()`` (the kernel's
+    image). With forward mode, first the tangent: each copy carries its parameter's tangent
+    (zero if it has none) and nothing requires grad, so the tangents flow through the
+    reference on the tape and nothing is recorded; the image's tangent is the tape's."""
     parameters = scene.parameters()
     copies = {id(p): md.tensor(p.data) for p in parameters}
     frozen = substituted(scene, copies, {})

@@ -130,8 +130,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
      normals, uvs, e_prims, e_cdf, e_probability, e_area, e_row_of, light_kind, light_vec,
      light_strength, light_color, forward, right, up, eye, background, offset,
      n_tri, lobe_on) = s  # fmt: skip
-    adjoint = grad.shape[0] > 0  # path replay: dC_k now, F_k's data into the chain
-    chained = adjoint
+    adjoint = grad.shape[0] > 0  # path replay: dC_k now, the rest into the chain
     g_light = _G_OBJECT * albedo.shape[0]  # where the lights' and the environment's are
     g_background = g_light + _G_LIGHT * light_kind.shape[0]
     key = _mix(seed_key ^ np.uint64(path))
@@ -189,11 +188,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             L0 += beta[0] * (emission[o, 0] * weight)
             L1 += beta[1] * (emission[o, 1] * weight)
             L2 += beta[2] * (emission[o, 2] * weight)
-            if chained:
-                for c in range(3):
-                    chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
             if adjoint:
                 for c in range(3):
+                    chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
                     grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
         if keep:
             rec_i[row, depth - 1, _I_PRIM] = prim
@@ -255,10 +252,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 L0 += beta[0] * (f[0] * scale * emission[eo, 0])
                 L1 += beta[1] * (f[1] * scale * emission[eo, 1])
                 L2 += beta[2] * (f[2] * scale * emission[eo, 2])
-                if chained:
+                if adjoint:
                     for c in range(3):
                         chain[depth - 1, _C_ADDED + c] += f[c] * scale * emission[eo, c]
-                if adjoint:
                     w = (delta[0] * beta[0] * scale * emission[eo, 0],
                          delta[1] * beta[1] * scale * emission[eo, 1],
                          delta[2] * beta[2] * scale * emission[eo, 2])  # fmt: skip
@@ -304,10 +300,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 L0 += beta[0] * (scalar * (f[0] * light_color[j, 0]))
                 L1 += beta[1] * (scalar * (f[1] * light_color[j, 1]))
                 L2 += beta[2] * (scalar * (f[2] * light_color[j, 2]))
-                if chained:
+                if adjoint:
                     for c in range(3):
                         chain[depth - 1, _C_ADDED + c] += scalar * (f[c] * light_color[j, c])
-                if adjoint:
                     w = (delta[0] * beta[0] * scalar * light_color[j, 0],
                          delta[1] * beta[1] * scalar * light_color[j, 1],
                          delta[2] * beta[2] * scalar * light_color[j, 2])  # fmt: skip
@@ -386,18 +381,15 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             factor = (f[0] * cos, f[1] * cos, f[2] * cos)
         before = beta
         beta = (beta[0] * factor[0], beta[1] * factor[1], beta[2] * factor[2])
-        if chained:
-            for c in range(3):
-                chain[depth - 1, _C_FACTOR + c] = factor[c]
-                if prim < 0:
-                    chain[depth - 1, _C_ESCAPE + c] = background[c]
-        if adjoint:  # what dF_k needs, applied once R_k is known (_factor_gradients)
+        if adjoint:  # F_k, and what dF_k needs once R_k is known (_factor_gradients)
             at = depth - 1
             chain[at, _C_OBJECT], chain[at, _C_MIRROR] = o, 1.0 if mirror else 0.0
             chain[at, _C_COS] = scale if mirror else cos
             chain[at, _C_SHININESS], chain[at, _C_LOBE] = shin, 1.0 if lobe else 0.0
             chain[at, _C_TEXTURED] = 1.0 if textured else 0.0
             for c in range(3):
+                chain[at, _C_FACTOR + c] = factor[c]
+                chain[at, _C_ESCAPE + c] = background[c] if prim < 0 else 0.0
                 chain[at, _C_NORMAL + c], chain[at, _C_VIEW + c] = nst[c], wot[c]
                 chain[at, _C_DIRECTION + c] = wi[c] if mirror else wn[c]
                 chain[at, _C_SPECULAR + c], chain[at, _C_BETA + c] = ks[c], before[c]
