@@ -125,7 +125,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     the radiance at the point it recomputes (``xt``: the same point for a vertex placed on
     its primitive, but a mirror's reflected ray starts at the surface, not ``offset`` above
     it) with directions between recomputed points (``wot``)."""
-    (triangles, centers, radii, prim_object, first, albedo, specular, shininess,
+    (triangles, centers, radii, prim_object, albedo, specular, shininess,
      reflectance, emission, probability, lobe_reflectance, maps, texels, smooth, corners,
      normals, uvs, e_prims, e_cdf, e_probability, e_area, e_row_of, light_kind, light_vec,
      light_strength, light_color, forward, right, up, eye, background, offset,

@@ -14,6 +14,7 @@ import numpy as np
 
 from render.path.tracer import PathSampler
 from render.scene.scene import Mesh, Scene
+from render.trace.intersect import FlatBVH
 from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
 
 
@@ -29,7 +30,7 @@ def applies(world: Scene) -> bool:
 class Packed:
     """A scene as the kernel reads it: its BVH and plain float64 / int64 arrays (``pack``)."""
 
-    bvh: object
+    bvh: FlatBVH
     arrays: tuple
     width: int
     height: int
@@ -97,7 +98,7 @@ def pack(sampler: PathSampler) -> Packed:
     background = np.broadcast_to(world.background.data, (3,)).astype(np.float64)
     arrays = (
         triangles, centers, radii, prim_object,
-        sampler.first, albedo, specular, shininess, reflectance, emission,
+        albedo, specular, shininess, reflectance, emission,
         sampler.lobes.probability, sampler.lobes.reflectance, maps,
         np.concatenate(texels) if texels else np.zeros((0, 3)), smooth, corners,
         np.concatenate(normals) if normals else np.zeros((0, 3)),
