@@ -1,0 +1,242 @@
+"""Recover an area light's position and size from the soft shadows it casts, the light unseen.
+
+Run:  python examples/soft_shadow_light.py [--out out/soft_shadow] [--size 64] [--steps 200]
+      [--spp 8] [--quick]
+
+The Cornell box with its blocks (``render.scene.cornell.cornell_box``), seen by a camera
+inside the room that looks down at the floor: it sees the floor, the walls' lower parts,
+the tall box, the sphere and their shadows, but neither the ceiling nor the light (every
+surface is diffuse, so nothing reflects the light's image either). The light (object 5)
+is placed by its ``Transform``: the translation (3,) moves it, the uniform scale (a
+scalar, about the light's centre) sizes it. Both start 30 % wrong and are fitted by Adam
+on the image MSE against a ``--target-spp`` render of the true scene, with the path
+integrator's replay gradient (``render.path.replay_gradient``, ``antialias="boundary"``:
+its boundary terms, new samples every step, the gradient pass's seed decorrelated).
+
+How wrong: the room is the cube [-1, 1]^3, so a translation error is measured in units
+of its half-width (1): the start moves the light 0.3 along x and 0.3 along z (30 % of the
+half-width along each, 0.42 in distance; y starts right and is free). The size error is
+|scale - 1| (the true scale is 1): the start is 1.3. The light is kept below the ceiling
+(y translation <= 0.009, it hangs 0.01 below), above the camera and inside the room.
+
+Writes ``result.json`` (the settings; the translation, scale, errors and loss after every
+step; the final errors, of the last step and of the mean of the last 10; the timings) and
+``soft_shadow.png`` (target, start and result rendered at ``--target-spp``, and the
+position and size errors against the step). ``--quick``: 16x16, 6 steps (a smoke run, not
+results). The default ``--out`` is scratch (``out/`` is git-ignored); the committed copy
+is made with ``--out docs/path_tracing/soft_shadow``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+from colour_bleeding import display
+
+import minidiff as md
+from render.inverse.jsonio import write_json
+from render.path import render_path, replay_gradient
+from render.scene.camera import Camera
+from render.scene.cornell import LIGHT_DROP, cornell_box
+from render.scene.image import mse
+from render.scene.scene import Scene, Transform
+
+#: The light's index in ``cornell_box``'s objects.
+LIGHT = 5
+#: The true placement (the light where ``cornell_box`` puts it) and the start.
+TRUE_TRANSLATION, TRUE_SCALE = (0.0, 0.0, 0.0), 1.0
+START_TRANSLATION, START_SCALE = (0.3, 0.0, 0.3), 1.3
+#: Where the optimiser may put the translation: the light stays inside the room, below
+#: the ceiling (it hangs LIGHT_DROP under it) and above the camera (at y = 0.6, looking
+#: down), so that it never comes into view.
+LOWEST, HIGHEST = (-0.7, -0.2, -0.7), (0.7, LIGHT_DROP - 0.001, 0.7)
+#: ... and the scale.
+SMALLEST, LARGEST = 0.2, 2.0
+#: The seeds of the target render and of the gradient passes (step + GRAD_SEED).
+TARGET_SEED, GRAD_SEED = 10**6, 10**7
+
+
+def shadow_scene(size: int) -> Scene:
+    """The Cornell box with blocks at ``size`` x ``size``, seen from inside the room looking
+    down at the floor (the light out of view), the light's transform pivoting about its
+    centre so that the scale sizes it without moving it."""
+    scene = cornell_box(size, size, blocks=True)
+    scene.camera = Camera((0.0, 0.6, 0.95), (0.0, -1.0, -0.35), (0, 1, 0), 75.0, size, size)
+    scene.objects[LIGHT].transform = Transform(pivot=(0.0, 1.0 - LIGHT_DROP, 0.0))
+    return scene
+
+
+def errors(translation: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position errors |t - t_true| (in the room's half-width) and size errors
+    |scale - 1| / 1 of placements given as translations (n, 3) and scales (n,)."""
+    position = np.linalg.norm(translation - np.array(TRUE_TRANSLATION), axis=-1)
+    return position, np.abs(scale - TRUE_SCALE) / TRUE_SCALE
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--out",
+        default="out/soft_shadow",
+        help="output folder (default out/soft_shadow; the committed copy was made with "
+        "--out docs/path_tracing/soft_shadow)",
+    )
+    parser.add_argument("--size", type=int, default=64)
+    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--spp", type=int, default=8, help="samples per pixel per step")
+    parser.add_argument("--target-spp", type=int, default=1024)
+    parser.add_argument("--max-depth", type=int, default=4)
+    parser.add_argument("--lr", type=float, default=0.02, help="Adam's first step")
+    parser.add_argument(
+        "--antialias",
+        default="boundary",
+        help='render_path\'s antialias ("none": no boundary term; default "boundary")',
+    )
+    parser.add_argument(
+        "--compare",
+        metavar="ANTIALIAS",
+        help="also fit with this antialias (e.g. none), drawn dashed beside the first",
+    )
+    parser.add_argument("--quick", action="store_true")
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.size, args.steps, args.spp, args.target_spp = 16, 6, 2, 16
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    begin = time.perf_counter()
+    run = recover_light(args, args.antialias)
+    run["seconds"]["total"] = time.perf_counter() - begin
+    print(summary(run), flush=True)
+    if args.compare is not None:
+        other = recover_light(args, args.compare)
+        print(summary(other), flush=True)
+        run["comparison"] = {k: v for k, v in other.items() if k not in ("images", "settings")}
+    write_json(out / "result.json", {k: v for k, v in run.items() if k != "images"})
+    figure(run, out / "soft_shadow.png")
+    return run
+
+
+def summary(run: dict) -> str:
+    """One line: the settings, the errors at the start and the end, the time."""
+    final, settings = run["final"], run["settings"]
+    return (
+        f"antialias {run['antialias']}, {settings['steps']} steps of {settings['spp']} spp at "
+        f"{settings['size']}x{settings['size']}: position error "
+        f"{run['position_error'][0]:.3f} -> {final['position_error']:.4f} (last 10 averaged: "
+        f"{final['settled_position_error']:.4f}), size error {run['size_error'][0]:.3f} -> "
+        f"{final['size_error']:.4f} (last 10 averaged: {final['settled_size_error']:.4f}); "
+        f"{run['seconds']['steps']:.1f} s of steps"
+    )
+
+
+def recover_light(args: argparse.Namespace, antialias: str) -> dict:
+    """Fit the light's translation and scale (see the module docstring) with ``antialias``
+    ("none": False) as ``render_path``'s; returns what ``result.json`` holds, plus the
+    target, start and result images (H, W, 3)."""
+    depth = args.max_depth
+    began = time.perf_counter()
+    target = render_path(shadow_scene(args.size), args.target_spp, depth, TARGET_SEED).data
+    target_seconds = time.perf_counter() - began
+    scene = shadow_scene(args.size)
+    transform = scene.objects[LIGHT].transform
+    translation, scale = transform.translation, transform.scale
+    translation.data, scale.data = np.array(START_TRANSLATION), np.array(START_SCALE)
+    with md.no_grad():  # the start, rendered as the target is (another seed)
+        start = render_path(scene, args.target_spp, depth, TARGET_SEED + 1).data
+    translation.requires_grad = scale.requires_grad = True
+    project = [md.optim.box(np.array(LOWEST), np.array(HIGHEST)), md.optim.box(SMALLEST, LARGEST)]
+    optimiser = md.optim.Adam([translation, scale], lr=args.lr, project=project)
+    placements, losses, seconds = [(translation.data.copy(), float(scale.data))], [], []
+    for step in range(args.steps):
+        began = time.perf_counter()
+        # The step shrinks tenfold over the run: the last steps average the noise of many
+        # gradients instead of following each one.
+        optimiser.lr = [args.lr * 0.1 ** (step / args.steps)] * 2
+        optimiser.zero_grad()
+        value, _ = replay_gradient(
+            scene, lambda image: mse(image, target), spp=args.spp, max_depth=depth,
+            seed=step, seed_grad=step + GRAD_SEED,
+            antialias=False if antialias == "none" else antialias,
+        )  # fmt: skip
+        optimiser.step()
+        seconds.append(time.perf_counter() - began)
+        placements.append((translation.data.copy(), float(scale.data)))
+        losses.append(value)
+    with md.no_grad():
+        result = render_path(scene, args.target_spp, depth, TARGET_SEED + 2).data
+    translations = np.array([t for t, _ in placements])
+    scales = np.array([s for _, s in placements])
+    position_error, size_error = errors(translations, scales)
+    # The mean of the last 10 iterates: what the noisy steps hover around.
+    settled = errors(translations[-10:].mean(axis=0), scales[-10:].mean())
+    return {
+        "settings": {k: v for k, v in vars(args).items() if k not in ("out", "compare")},
+        "antialias": antialias,
+        "definitions": {
+            "position_error": "|translation - true| in units of the room's half-width (1)",
+            "size_error": "|scale - true| / true (true scale 1)",
+        },
+        "truth": {"translation": TRUE_TRANSLATION, "scale": TRUE_SCALE},
+        "start": {"translation": START_TRANSLATION, "scale": START_SCALE},
+        "translation": translations,
+        "scale": scales,
+        "position_error": position_error,
+        "size_error": size_error,
+        "loss": losses,
+        "final": {
+            "translation": translations[-1],
+            "scale": scales[-1],
+            "position_error": position_error[-1],
+            "size_error": size_error[-1],
+            "settled_translation": translations[-10:].mean(axis=0),
+            "settled_scale": scales[-10:].mean(),
+            "settled_position_error": settled[0],
+            "settled_size_error": settled[1],
+        },
+        "seconds": {
+            "target_render": target_seconds,
+            "steps": sum(seconds),
+            "per_step": seconds,
+            "mean_per_step": sum(seconds) / max(1, len(seconds)),
+        },
+        "images": {"target": target, "start": start, "result": result},
+    }
+
+
+def figure(run: dict, path: Path) -> None:
+    """``soft_shadow.png``: the target, start and result images (2x exposure, gamma 1/2.2)
+    and the position and size errors against the step (log scale; the ``--compare`` run's
+    dashed)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(13.0, 3.4), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)  # renders to PNG without pyplot
+    axes = fig.subplots(1, 4, width_ratios=[1, 1, 1, 1.6])
+    for ax, name in zip(axes, ("target", "start", "result"), strict=False):
+        ax.imshow(display(run["images"][name]), interpolation="nearest")
+        ax.set_title(name, fontsize=10)
+        ax.set_axis_off()
+    ax = axes[3]
+    for other, style in ((run, "-"), (run.get("comparison"), "--")):
+        if other is None:
+            continue
+        steps, aa = np.arange(len(other["position_error"])), other["antialias"]
+        ax.semilogy(steps, other["position_error"], style, color="C0",
+                    label=f"position |t - t*| (room half-widths), {aa}")  # fmt: skip
+        ax.semilogy(
+            steps, other["size_error"], style, color="C1", label=f"size |s - s*| / s*, {aa}"
+        )
+    ax.axhline(0.02, color="0.5", linestyle=":", linewidth=1, label="2 %")
+    ax.set_xlabel("step")
+    ax.set_ylabel("error")
+    ax.grid(True, which="major", color="0.9")
+    ax.legend(fontsize=8, frameon=False)
+    fig.savefig(path)
+
+
+if __name__ == "__main__":
+    main()
