@@ -37,6 +37,7 @@ from render.path import adjoint, kernel
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
 from render.path.replay import backpropagate_paths
+from render.path.secondary import add_secondary_term, backpropagate_secondary
 from render.path.tracer import PathSampler, check_count, check_path_options
 from render.path.transport import path_radiance
 from render.scene.camera import camera_frame
@@ -51,6 +52,8 @@ BATCH_SPP = 16
 REPLAY_PATHS = 2**17
 #: Default number of vertices before Russian roulette may end a path (Mitsuba's rr_depth).
 RR_DEPTH = 5
+#: ``antialias`` -> (primary visibility's boundary term, secondary visibility's).
+EDGE_TERMS = {"boundary": (True, True), "primary": (True, False), "secondary": (False, True)}
 #: How ``render_path``'s image is differentiated (its ``gradient`` argument).
 GRADIENTS = ("replay", "tape")
 
@@ -71,10 +74,13 @@ def render_path(
     direct light; 3: one indirect bounce; ...). The same seed gives the same image bit for
     bit, whatever ``batch_spp`` and the number of threads.
 
-    antialias: False (default): no edge term, the motion of silhouettes has no gradient;
-    "boundary": add primary visibility's boundary term (``render.path.edges``; zero in
-    value), its jumps estimated with ``edge_spp`` paths per side of each edge point (None:
-    ``spp``).
+    antialias: False (default): no edge term, the motion of silhouettes and shadows has no
+    gradient; "boundary": add the boundary terms of primary and secondary visibility (zero
+    in value): the camera's silhouettes (``render.path.edges``, its jumps estimated with
+    ``edge_spp`` paths per side of each edge point; None: ``spp``) and the edges of
+    shadows and indirect occlusion seen from the paths' vertices
+    (``render.path.secondary``, ``spp`` boundary paths per pixel); "primary" or
+    "secondary": one of the two.
 
     gradient: how ``backward`` reaches the parameters (reverse mode; forward mode's tangents
     are computed on the tape either way). "replay" (default): the image is the kernel's,
@@ -118,22 +124,26 @@ def _taped_image(scene, world, sampler, spp, batch_spp, edges, edge_spp):
         for s in range(samples.shape[2]):
             total = samples[:, :, s] if total is None else total + samples[:, :, s]
     image = total * (1.0 / spp)
-    if edges and differentiated(scene):
+    if edges[0] and differentiated(scene):
         image = add_path_boundary_term(scene, world, image, frame, sampler, edge_spp)
+    if edges[1] and differentiated(scene):
+        image = add_secondary_term(world, image, frame, sampler)
     return image
 
 
-def check_path_edges(antialias, edge_spp, spp: int) -> tuple[bool, int]:
-    """(whether to add the boundary term, paths per side of an edge point), or a clear
-    error: the path integrator's edge term is the boundary integral only."""
+def check_path_edges(antialias, edge_spp, spp: int) -> tuple[tuple[bool, bool], int]:
+    """((whether to add primary visibility's boundary term, and secondary's), paths per side
+    of a primary edge point), or a clear error: the path integrator's edge terms are
+    boundary integrals only."""
     if antialias is False or antialias is None:
-        edges = False
-    elif antialias == "boundary":
-        edges = True
+        edges = (False, False)
+    elif isinstance(antialias, str) and antialias in EDGE_TERMS:
+        edges = EDGE_TERMS[antialias]
     else:
         raise ValueError(
-            'render: the path integrator takes antialias=False or "boundary" (the boundary '
-            f"integral of primary visibility), got {antialias!r}"
+            'render: the path integrator takes antialias=False, "boundary" (the boundary '
+            'integrals of primary and secondary visibility), "primary" or "secondary", got '
+            f"{antialias!r}"
         )
     if edge_spp is None:
         return edges, spp
@@ -235,7 +245,7 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         adjoint.backpropagate(world, sampler, d_image)
     else:
         _backpropagate_on_tape(scene, sampler, d_image, batch_spp)
-    if edges and differentiated(scene):
+    if edges[0] and differentiated(scene):
         world = placed(scene)
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
         term = add_path_boundary_term(
@@ -243,6 +253,8 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         )
         if term.requires_grad:
             md.sum(term * d_image).backward()
+    if edges[1] and differentiated(scene):
+        backpropagate_secondary(lambda: placed(scene), sampler, d_image)
 
 
 def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:

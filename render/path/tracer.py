@@ -200,13 +200,31 @@ class PathSampler:
         state = _State(rows, prim[rows], local, points, unit(directions[rows]),
                        np.full(len(rows), CAMERA, np.int8), np.zeros(len(rows)), points,
                        np.ones(len(rows)))  # fmt: skip
+        return PathBatch(paths, coords, prim < 0, self._walk(paths, 1, state))
+
+    def resume(
+        self, paths: np.ndarray, depth: int, prim: np.ndarray, local: np.ndarray,
+        points: np.ndarray, previous: np.ndarray,
+    ) -> list[Vertices]:  # fmt: skip
+        """The records of depths ``depth``, ``depth + 1``, ... of paths ``paths`` (n,) that
+        are at ``points`` (n, 3) on primitives ``prim`` (n,) (coordinates ``local`` (n, 3)),
+        reached from ``previous`` (n, 3) as ``AREA`` vertices: the continuation of a path
+        from a given point (``render.path.secondary``). The first record's ``emit_weight``
+        is MIS against a direction density of 1 per steradian: the caller sets its own."""
+        n = len(paths)
+        state = _State(np.arange(n), prim, local, points, unit(points - previous),
+                       np.full(n, AREA, np.int8), np.ones(n), previous, np.ones(n))  # fmt: skip
+        return self._walk(paths, depth, state)
+
+    def _walk(self, paths, depth: int, state: _State) -> list[Vertices]:
+        """The records of ``state``'s paths from ``depth`` until they all stop."""
         vertices = []
-        for k in range(1, self.max_depth + 1):
+        for k in range(depth, self.max_depth + 1):
             record, state = self._vertex(paths, k, state)
             vertices.append(record)
             if state is None:
                 break
-        return PathBatch(paths, coords, prim < 0, vertices)
+        return vertices
 
     # --- one depth ------------------------------------------------------------------------
 
