@@ -1,7 +1,7 @@
 """Recover an area light's position and size from the soft shadows it casts, the light unseen.
 
 Run:  python examples/soft_shadow_light.py [--out out/soft_shadow] [--size 64] [--steps 200]
-      [--spp 8] [--quick]
+      [--spp 8] [--antialias boundary] [--compare none] [--quick]
 
 The Cornell box with its blocks (``render.scene.cornell.cornell_box``), seen by a camera
 inside the room that looks down at the floor: it sees the floor, the walls' lower parts,
@@ -12,6 +12,8 @@ scalar, about the light's centre) sizes it. Both start 30 % wrong and are fitted
 on the image MSE against a ``--target-spp`` render of the true scene, with the path
 integrator's replay gradient (``render.path.replay_gradient``, ``antialias="boundary"``:
 its boundary terms, new samples every step, the gradient pass's seed decorrelated).
+``--compare none`` fits a second time without any boundary term (the interior gradient
+alone), to show what the boundary terms change.
 
 How wrong: the room is the cube [-1, 1]^3, so a translation error is measured in units
 of its half-width (1): the start moves the light 0.3 along x and 0.3 along z (30 % of the
@@ -20,11 +22,13 @@ half-width along each, 0.42 in distance; y starts right and is free). The size e
 (y translation <= 0.009, it hangs 0.01 below), above the camera and inside the room.
 
 Writes ``result.json`` (the settings; the translation, scale, errors and loss after every
-step; the final errors, of the last step and of the mean of the last 10; the timings) and
-``soft_shadow.png`` (target, start and result rendered at ``--target-spp``, and the
-position and size errors against the step). ``--quick``: 16x16, 6 steps (a smoke run, not
-results). The default ``--out`` is scratch (``out/`` is git-ignored); the committed copy
-is made with ``--out docs/path_tracing/soft_shadow``.
+step; the final errors, of the last step and of the mean of the last 10, and the step from
+which each error stays below 2 %; the timings; the ``--compare`` run's the same under
+``comparison``) and ``soft_shadow.png`` (target, start and result rendered at
+``--target-spp``, and the position and size errors against the step, the ``--compare``
+run's dashed). ``--quick``: 16x16, 6 steps (a smoke run, not results). The default
+``--out`` is scratch (``out/`` is git-ignored); the committed copy is made with
+``--out docs/path_tracing/soft_shadow``.
 """
 
 from __future__ import annotations
@@ -195,6 +199,10 @@ def recover_light(args: argparse.Namespace, antialias: str) -> dict:
             "settled_scale": scales[-10:].mean(),
             "settled_position_error": settled[0],
             "settled_size_error": settled[1],
+            "below_2pct_from_step": {
+                "position": settled_below(position_error, 0.02),
+                "size": settled_below(size_error, 0.02),
+            },
         },
         "seconds": {
             "target_render": target_seconds,
@@ -204,6 +212,15 @@ def recover_light(args: argparse.Namespace, antialias: str) -> dict:
         },
         "images": {"target": target, "start": start, "result": result},
     }
+
+
+def settled_below(error: np.ndarray, level: float) -> int | None:
+    """The first step from which ``error`` (steps + 1,) stays below ``level`` to the end;
+    None if its last value is not below."""
+    above = np.flatnonzero(error >= level)
+    if len(above) == 0:
+        return 0
+    return None if above[-1] == len(error) - 1 else int(above[-1] + 1)
 
 
 def figure(run: dict, path: Path) -> None:

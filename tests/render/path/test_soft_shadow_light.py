@@ -51,3 +51,10 @@ def test_soft_shadow_light_quick(tmp_path, load_script):
         assert len(run["loss"]) == len(run["seconds"]["per_step"]) == steps
     assert result["antialias"] == "boundary" and result["comparison"]["antialias"] == "none"
     assert (tmp_path / "soft_shadow.png").stat().st_size > 0
+
+
+def test_settled_below_is_the_step_from_which_the_error_stays_below(load_script):
+    settled_below = load_script("examples/soft_shadow_light.py").settled_below
+    assert settled_below(np.array([0.5, 0.01, 0.03, 0.01, 0.005]), 0.02) == 3
+    assert settled_below(np.array([0.01, 0.01]), 0.02) == 0
+    assert settled_below(np.array([0.5, 0.01, 0.03]), 0.02) is None
