@@ -52,6 +52,7 @@ import numpy as np
 
 import minidiff as md
 from render.path import kernel
+from render.path.random import uniform
 from render.path.sampling import dot, unit
 from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import path_radiance, vertex_on_tape
@@ -136,12 +137,10 @@ class Curves:
     def n_edges(self) -> int:
         return len(self.a)
 
-    def pick(self, apex: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """For apexes (n, 3) (or one, (1, 3)) and uniforms u (n,): a silhouette seen from each
-        apex (index
-        (n,): < ``n_edges`` an edge, else a sphere; -1 if none), picked with probability
-        (n,) proportional to the angle it subtends, and the side (n,) of the plane through
-        apex and edge that its faces lie on (+1 or -1; spheres: 0)."""
+    def silhouettes(self, apex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For apexes (n, 3): the angle (n, E + S) each curve subtends there, zero where it
+        is no silhouette (edges first, then spheres), and the side (n, E) of the plane
+        through apex and edge that the edge's faces lie on (+1 or -1)."""
         pa, pb = self.a[None] - apex[:, None], self.b[None] - apex[:, None]  # (n, E, 3)
         normal = np.cross(pa, pb)
         size = np.linalg.norm(normal, axis=2)
@@ -153,27 +152,80 @@ class Curves:
         distance = np.linalg.norm(self.centre[None] - apex[:, None], axis=2)  # (n, S)
         around = self.radius < distance * (1 - 1e-9)
         circle = np.where(around, 2 * np.pi * self.radius / np.maximum(distance, 1e-300), 0.0)
-        weights = np.concatenate([angle, circle], axis=1)
-        cdf = np.cumsum(weights, axis=1)
-        total = cdf[:, -1] if cdf.shape[1] else np.zeros(len(apex))
-        n = len(u)
-        if cdf.shape[1] == 0:
-            return np.full(n, -1), np.zeros(n), np.zeros(n)
-        total = np.broadcast_to(total, (n,))
-        index = np.minimum((cdf < (u * total)[:, None]).sum(axis=1), cdf.shape[1] - 1)
-        rows = np.zeros(n, np.int64) if len(apex) == 1 else np.arange(n)
-        chosen = weights[rows, index]
-        ok = (total > 0) & (chosen > 0)
-        probability = np.where(ok, chosen / np.where(total > 0, total, 1.0), 0.0)
-        on_edge = np.minimum(index, max(self.n_edges - 1, 0))
-        faces_side = np.sign(side[rows, on_edge, 0]) if self.n_edges else np.zeros(n)
-        faces_side = np.where(index < self.n_edges, faces_side, 0.0)
-        return np.where(ok, index, -1), probability, faces_side
+        return np.concatenate([angle, circle], axis=1), np.sign(side[..., 0])
+
+    def towards(self, apex: np.ndarray, triangle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The parameters (lo, hi) (n, E + S) of the part of each curve through which rays
+        from the apexes (n, 3) meet the triangle (n, 3, 3) (lo = hi: none): on an edge, the
+        rays in the plane through apex and edge that cross the triangle; on a sphere's
+        circle, the azimuths (about the axis apex -> centre, which rays from the apex keep)
+        that the triangle spans, as an arc that may run past 1 (the circle is periodic)."""
+        pa, e = self.a[None] - apex[:, None], (self.b - self.a)[None]  # (n, E, 3)
+        normal = np.cross(pa, self.b[None] - apex[:, None])
+        v = triangle[:, None] - apex[:, None, None]  # (n, 1, 3, 3)
+        dist = np.einsum("nvk,nek->nev", v[:, 0], normal)  # (n, E, 3)
+        ts = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            crosses = dist[..., i] * dist[..., j] < 0
+            f = dist[..., i] / np.where(crosses, dist[..., i] - dist[..., j], 1.0)
+            q = v[:, :, i] + f[..., None] * (v[:, :, j] - v[:, :, i])  # from the apex
+            # Where apex + mu q meets a + t e: t = ((-pa) x q) . (e x q) / |e x q|^2.
+            exq = np.cross(e, q)
+            t = np.einsum("nek,nek->ne", np.cross(-pa, q), exq) / np.maximum(
+                np.einsum("nek,nek->ne", exq, exq), 1e-300
+            )
+            ts.append(np.where(crosses, t, np.nan))
+        ts = np.stack(ts, axis=2)
+        two = np.sum(~np.isnan(ts), axis=2) >= 2
+        edge_lo = np.where(two, np.clip(np.nanmin(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
+        edge_hi = np.where(two, np.clip(np.nanmax(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
+        q = self.centre[None] - apex[:, None]  # (n, S, 3)
+        d = q / np.maximum(np.linalg.norm(q, axis=2, keepdims=True), 1e-300)
+        u1, u2 = _basis(d.reshape(-1, 3))
+        u1, u2 = u1.reshape(d.shape), u2.reshape(d.shape)
+        azimuth = np.arctan2(np.einsum("nsk,nvk->nsv", u2, v[:, 0]),
+                             np.einsum("nsk,nvk->nsv", u1, v[:, 0]))  # fmt: skip
+        azimuth = np.sort(azimuth, axis=2)
+        gaps = np.diff(np.concatenate([azimuth, azimuth[..., :1] + 2 * np.pi], axis=2), axis=2)
+        widest = np.argmax(gaps, axis=2)
+        start = np.take_along_axis(azimuth, ((widest + 1) % 3)[..., None], axis=2)[..., 0]
+        width = 2 * np.pi - np.take_along_axis(gaps, widest[..., None], axis=2)[..., 0]
+        whole = np.take_along_axis(gaps, widest[..., None], axis=2)[..., 0] <= np.pi
+        sphere_lo = np.where(whole, 0.0, np.mod(start, 2 * np.pi) / (2 * np.pi))
+        sphere_hi = np.where(whole, 1.0, sphere_lo + width / (2 * np.pi))
+        lo = np.concatenate([edge_lo, sphere_lo], axis=1)
+        return lo, np.concatenate([edge_hi, sphere_hi], axis=1)
+
+    def parameter(self, apex, index, lo, hi, u) -> tuple[np.ndarray, np.ndarray]:
+        """A parameter t (n,) in lo..hi (n,) on each curve ``index`` (n,), and its density
+        (n,) per unit t: uniform in the angle seen from the apex (n, 3), so that the
+        weights stay bounded where an apex is close to an edge (uniform in t, the points
+        near it would carry weights that grow as 1 / distance). Spheres' circles: uniform
+        in azimuth, which is the same."""
+        t, density = lo + u * (hi - lo), 1.0 / np.where(hi > lo, hi - lo, 1.0)
+        edge = np.flatnonzero(index < self.n_edges)
+        if len(edge) == 0:
+            return t, density
+        j, p = index[edge], apex[edge]
+        e = self.b[j] - self.a[j]
+        start = unit(self.a[j] + lo[edge, None] * e - p)
+        end = unit(self.a[j] + hi[edge, None] * e - p)
+        total = np.arctan2(np.linalg.norm(np.cross(start, end), axis=1), dot(start, end))
+        towards = unit(end - dot(end, start)[:, None] * start)
+        psi = (u[edge] * total)[:, None]
+        d = np.cos(psi) * start + np.sin(psi) * towards
+        exd = np.cross(e, d)
+        t[edge] = dot(np.cross(p - self.a[j], d), exd) / np.maximum(dot(exd, exd), 1e-300)
+        w = self.a[j] + t[edge, None] * e - p
+        # dpsi/dt = |w x e| / |w|^2, over the total angle.
+        rate = np.linalg.norm(np.cross(w, e), axis=1) / dot(w, w)
+        density[edge] = rate / np.where(total > 0, total, 1.0)
+        return t, density
 
     def point(self, apex: np.ndarray, index: np.ndarray, t: np.ndarray):
-        """The point m (n, 3) at parameter t (n,) in [0, 1) on curves ``index`` (n,) (all
-        valid), and dm/dt (n, 3): along an edge from a to b; around the circle where the
-        cone from the apex (n, 3) touches a sphere."""
+        """The point m (n, 3) at parameter t (n,) on curves ``index`` (n,) (all valid), and
+        dm/dt (n, 3): along an edge from a (t = 0) to b (t = 1); around the circle where the
+        cone from the apex (n, 3) touches a sphere (azimuth 2 pi t)."""
         m, tangent = np.zeros((len(index), 3)), np.zeros((len(index), 3))
         edge = index < self.n_edges
         j = index[edge]
@@ -221,6 +273,25 @@ def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u1, np.cross(n, u1)
 
 
+def _choose(weights: np.ndarray, u: np.ndarray, side: np.ndarray):
+    """A curve per row, picked with probability proportional to ``weights`` (n or 1,
+    E + S) by uniforms u (n,): its index (n,) (-1: none had weight), the probability (n,)
+    and, for edges, the side its faces lie on (``side`` (n or 1, E); 0 for spheres)."""
+    n = len(u)
+    if weights.shape[1] == 0:
+        return np.full(n, -1), np.zeros(n), np.zeros(n)
+    cdf = np.cumsum(weights, axis=1)
+    total = np.broadcast_to(cdf[:, -1], (n,))
+    index = np.minimum((cdf < (u * total)[:, None]).sum(axis=1), weights.shape[1] - 1)
+    rows = np.zeros(n, np.int64) if len(weights) == 1 else np.arange(n)
+    chosen = weights[rows, index]
+    ok = (total > 0) & (chosen > 0)
+    probability = np.where(ok, chosen / np.where(total > 0, total, 1.0), 0.0)
+    edges = side.shape[1]
+    faces = np.where(index < edges, side[rows, np.minimum(index, max(edges - 1, 0))], 0.0)
+    return np.where(ok, index, -1), probability, faces if edges else np.zeros(n)
+
+
 @dataclass
 class _Crossing:
     """Boundary samples behind curves: which are valid (n,) bool; for the valid ones (k of
@@ -241,8 +312,9 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     """Boundary samples behind the curves ``index`` (n,) (-1: none) seen from ``apex``
     (n, 3): the point at t (n,) on the curve must be seen from the apex (rays leave from
     ``origin`` (n, 3), the apex lifted off its surface), and the first surface beyond it,
-    x', must not touch the curve; its normal is turned to face ``viewer`` (n, 3)."""
-    valid = index >= 0
+    x', must not touch the curve; its normal is turned to face ``viewer`` (n, 3).
+    ``probability`` (n,): the density of the sample, P(curve) times the density of t."""
+    valid = (index >= 0) & (probability > 0)
     rows = np.flatnonzero(valid)
     m, tangent = curves.point(apex[rows], index[rows], t[rows])
     to = m - origin[rows]
@@ -332,7 +404,7 @@ def _chunk(world, frame, sampler: PathSampler, paths: np.ndarray, packed):
     points = _points(own, batch)
     values, pixels = [], []
     for k in range(1, min(len(batch.vertices), own.max_depth - 1) + 1):
-        for term in _terms_at(world, frame, own, curves, batch, points, k):
+        for term in _terms_at(own, curves, batch, points, k, world, frame):
             values.append(term[0])
             pixels.append(batch.paths[term[1]] // own.spp)
     if not values:
@@ -359,7 +431,7 @@ def _points(sampler, batch: PathBatch) -> list[np.ndarray]:
     return out
 
 
-def _terms_at(world, frame, sampler, curves, batch, points, k: int):
+def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     """The boundary samples at the paths' k-th vertices: behind silhouettes seen from
     them (the next segment's visibility) and, for every point light, behind silhouettes
     seen from the light (its shadow at the next vertex). Yields (values (M, 3), the
@@ -382,15 +454,40 @@ def _terms_at(world, frame, sampler, curves, batch, points, k: int):
     origin = here + shadow_offset(here, sampler.size) * normal
     dims = 2 + 8 * (k - 1)  # bounce k's block of dimensions (render.path.random)
     seed = sampler.seed ^ CHOICE_KEY
-    from render.path.random import uniform
+    weights, side = curves.silhouettes(here)
+    weights[~can] = 0.0
 
-    # The next segment's visibility, seen from x_k.
-    u, t = uniform(seed, ids, dims), uniform(seed, ids, dims + 1)
-    index, probability, side = curves.pick(here, u)
-    index = np.where(can, index, -1)
-    cross = _cross(sampler, curves, here, index, probability, side, t, here, origin)
+    # Two estimators of the next segment's term, for two parts of F: x''s emission, by
+    # curves clipped to where their rays meet an emitter picked as NEE picks it (a soft
+    # shadow's edges are mostly seen against the light); and all the rest, by whole curves.
+    emitters = sampler.emitters
+    if len(emitters):
+        row = emitters.pick(uniform(seed, ids, dims + 2))
+        target = emitters.prims[row]
+        on = target < sampler.n_triangles
+        triangle = sampler.primitives[0][np.where(on, target, 0)]
+        lo, hi = curves.towards(here, triangle)
+        lo[~on], hi[~on] = 0.0, 1.0
+        clipped = np.where(weights > 0, _clipped_angle(curves, here, weights, lo, hi), 0.0)
+        index, probability, faces = _choose(clipped, uniform(seed, ids, dims + 3), side)
+        at, every = np.maximum(index, 0), np.arange(len(ids))
+        low, high = lo[every, at], hi[every, at]
+        t, density = curves.parameter(here, at, low, high, uniform(seed, ids, dims + 4))
+        probability = probability * emitters.probability[row] * density
+        index = np.where(high > low, index, -1)
+        cross = _cross(sampler, curves, here, index, probability, faces, t, here, origin)
+        sub = np.flatnonzero(cross.valid)
+        keep = (dot(normal[sub], cross.points - here[sub]) > 0) & (cross.prim == target[sub])
+        yield from _segment(world, frame, sampler, curves, batch, k, cross, keep, here, True)
+
+    index, probability, faces = _choose(weights, uniform(seed, ids, dims), side)
+    ones = np.ones(len(ids))
+    t, density = curves.parameter(here, np.maximum(index, 0), 0 * ones, ones,
+                                  uniform(seed, ids, dims + 1))  # fmt: skip
+    probability = probability * density
+    cross = _cross(sampler, curves, here, index, probability, faces, t, here, origin)
     front = dot(normal[cross.valid], cross.points - here[cross.valid]) > 0
-    yield from _segment(world, frame, sampler, curves, batch, points, k, cross, front, here)
+    yield from _segment(world, frame, sampler, curves, batch, k, cross, front, here, False)
 
     # Point lights' shadows at x' seen from x_k (x' must still get the light's NEE).
     if k + 1 > sampler.max_depth - 1:
@@ -401,35 +498,59 @@ def _terms_at(world, frame, sampler, curves, batch, points, k: int):
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
         u, t = uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1)
         at = np.asarray(light.position.data, np.float64)[None]
-        index, probability, side = curves.pick(at, u)  # the same silhouettes for every x_k
+        seen, side = curves.silhouettes(at)  # the same silhouettes for every x_k
+        index, probability, side = _choose(seen, u, side)
         index = np.where(can, index, -1)
         apex = np.repeat(at, len(ids), 0)
+        ones = np.ones(len(ids))
+        t, density = curves.parameter(apex, np.maximum(index, 0), 0 * ones, ones, t)
+        probability = probability * density
         cross = _cross(sampler, curves, apex, index, probability, side, t, here, apex)
         sub = np.flatnonzero(cross.valid)
         to = cross.points - here[sub]
         ok = (dot(normal[sub], to) > 0) & (dot(cross.normal, at - cross.points) > 0)
         ok &= ~sampler.accelerator.occluded(origin[sub], cross.points - origin[sub],
                                             1.0 - 1e-7, tmin=0.0)  # fmt: skip
-        yield from _shadow(world, frame, sampler, curves, batch, points, k, cross, ok, here, j)
+        yield from _shadow(world, frame, sampler, curves, batch, k, cross, ok, here, j)
 
 
-def _segment(world, frame, sampler, curves, batch, points, k, cross, front, here):
-    """The samples behind silhouettes seen from x_k: the path through x' continued from
-    there (x''s emission counted whole: NEE's and the sampled direction's MIS weights at
-    x' sum to 1). Yields (values (M, 3), rows in the batch (M,))."""
+def _segment(world, frame, sampler, curves, batch, k, cross, keep, here, emission: bool):
+    """The samples behind silhouettes seen from x_k that ``keep`` selects: with
+    ``emission``, x''s emission alone; else the path through x' continued from there, but
+    for the emission of the emitters (the other estimator's). Yields (values (M, 3), rows
+    in the batch (M,))."""
     record = batch.vertices[k - 1]
-    sub = np.flatnonzero(cross.valid)[front]
+    sub = np.flatnonzero(cross.valid)[keep]
     if len(sub) == 0:
         return
-    hit = _take(cross, front)
+    hit = _take(cross, keep)
     src = record.rows[sub]
+    m = len(src)
     prefix = _prefix(sampler, batch, k, src, here[sub], hit)
-    tail = sampler.resume(batch.paths[src], k + 1, hit.prim, hit.local, hit.points, here[sub])
-    tail[0].emit_weight[:] = 1.0
+    if emission:
+        lights = np.zeros((len(sampler.scene.lights), m), bool)
+        tail = [_quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lights)]
+        tail[0].emit_weight[:] = 1.0
+    else:
+        tail = sampler.resume(batch.paths[src], k + 1, hit.prim, hit.local, hit.points, here[sub])
+        tail[0].emit_weight[:] = np.where(sampler.emitters.row_of[hit.prim] >= 0, 0.0, 1.0)
     yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + tail, None), src
 
 
-def _shadow(world, frame, sampler, curves, batch, points, k, cross, ok, here, j):
+def _clipped_angle(curves: Curves, apex, weights, lo, hi) -> np.ndarray:
+    """(n, E + S): the angle that the part lo..hi of each curve subtends at the apexes
+    (n, 3), given the whole curves' angles ``weights`` (n, E + S)."""
+    e = curves.n_edges
+    a, ab = curves.a[None], (curves.b - curves.a)[None]
+    start = a + lo[:, :e, None] * ab - apex[:, None]
+    end = a + hi[:, :e, None] * ab - apex[:, None]
+    edges = np.arctan2(np.linalg.norm(np.cross(start, end), axis=2),
+                       np.einsum("nek,nek->ne", start, end))  # fmt: skip
+    spheres = weights[:, e:] * (hi[:, e:] - lo[:, e:])
+    return np.concatenate([edges, spheres], axis=1)
+
+
+def _shadow(world, frame, sampler, curves, batch, k, cross, ok, here, j):
     """The samples on point light j's shadow border seen from x_k: the jump is the light's
     contribution at x'. Yields (values (M, 3), rows in the batch (M,))."""
     record = batch.vertices[k - 1]
