@@ -54,6 +54,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 import timing
 from path_gradients import scene_for
@@ -259,9 +260,7 @@ def cost(case: Case, spp: int, modes: list, repeats: int) -> dict:
 def markdown(result: dict) -> str:
     """The tables: gradients against central differences, and the cost."""
     modes = result["modes"]
-    lines = ["**A --quick smoke run: too few samples to judge anything by.**", ""]
-    lines = lines if result["quick"] else []
-    lines += [
+    lines = quick_notice(result) + [
         f"Cornell box with its blocks, {SIZE}x{SIZE}, {result['spp']} spp per seed, "
         f"{result['seeds']} seeds (a multiple for a noisier case), no Russian roulette; "
         "central differences (FD) with the same seed on both sides, step h per case. "
@@ -320,14 +319,24 @@ def main(argv: list[str] | None = None) -> dict:
         rows.append(row)
     result = {"quick": args.quick, "size": SIZE, "seeds": seeds, "spp": spp,
               "repeats": repeats, "modes": modes, "rows": rows}  # fmt: skip
+    result["numba_threads"] = numba.get_num_threads()
     result["seconds"] = time.perf_counter() - start
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "secondary.json", result)
-    (out / "secondary.md").write_text(markdown(result))
-    print(markdown(result))
-    print(f"{result['seconds']:.0f} s")
+    write_results(Path(args.out), "secondary", result, markdown(result))
     return result
+
+
+def write_results(out: Path, stem: str, result: dict, text: str) -> None:
+    """``result`` to OUT/stem.json and the tables ``text`` to OUT/stem.md; print them."""
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / f"{stem}.json", result)
+    (out / f"{stem}.md").write_text(text)
+    print(text)
+    print(f"wrote {out / stem}.json and .md: {result['seconds']:.0f} s")
+
+
+def quick_notice(result: dict) -> list[str]:
+    """The warning that opens a --quick run's tables, or nothing."""
+    return ["**A --quick smoke run: too few samples to judge anything by.**", ""] * result["quick"]
 
 
 if __name__ == "__main__":

@@ -39,7 +39,6 @@ the variance per unit time, per-seed variance x median seconds per gradient, of 
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -48,10 +47,17 @@ from typing import Any
 import bench_path_mitsuba as bpm
 import numpy as np
 import timing
-from path_secondary import CASES, NO_ROULETTE, Case, mean_error, weights
+from path_secondary import (
+    CASES,
+    NO_ROULETTE,
+    Case,
+    mean_error,
+    quick_notice,
+    weights,
+    write_results,
+)
 
 import minidiff as md
-from render.inverse.jsonio import write_json
 from render.path import render_path
 from render.scene.placement import placed
 
@@ -269,9 +275,7 @@ def _agrees(z: float | None) -> str:
 
 def markdown(result: dict) -> str:
     """The comparison table and the cost table."""
-    lines = ["**A --quick smoke run: too few samples to judge anything by.**", ""]
-    lines = lines if result["quick"] else []
-    lines += [
+    lines = quick_notice(result) + [
         f"Mitsuba {result['mitsuba_version']} `prb_projective` ({result['variant']}, "
         f"{THREADS} thread, guiding none), {result['spp']} spp (sppc = sppp = sppi), "
         f"{result['seeds']} seeds; Mitsuba's own same-seed central differences (`path`, "
@@ -356,14 +360,9 @@ def main(argv: list[str] | None = None) -> dict:
         "seeds": args.seeds,
         "fd_seeds": args.fd_seeds,
         "rows": rows,
-        "numba_threads": os.environ.get("NUMBA_NUM_THREADS"),
     }
     result["seconds"] = time.perf_counter() - start
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "mitsuba.json", result)
-    (out / "mitsuba.md").write_text(markdown(result))
-    print(markdown(result))
-    print(f"{result['seconds']:.0f} s")
+    write_results(out, "mitsuba", result, markdown(result))
     return result
 
 
