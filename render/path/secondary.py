@@ -54,14 +54,13 @@ import minidiff as md
 from render.path import kernel
 from render.path.random import uniform
 from render.path.sampling import dot, unit
+from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import path_radiance, vertex_on_tape
-from render.scene.camera import ray_directions
+from render.scene.camera import camera_frame, ray_directions
 from render.scene.lights import PointLight
-from render.scene.scene import Mesh
 from render.shade.surface import column, geometric_normals, in_order
 from render.trace.primitives import primitive_ranges
-from render.trace.topology import mesh_edges
 from render.trace.visibility import shadow_offset
 
 #: The boundary paths' seed is the render's seed XOR this (independent of the image's).
@@ -70,226 +69,8 @@ SEED_KEY = 0x5EC0_DA7A_0B0D_1E55
 CHOICE_KEY = 0x2545_F491_4F6C_DD1D
 #: Boundary paths traced together (bounds the memory of one chunk's tape).
 CHUNK_PATHS = 1 << 14
-#: A surface closer than this (a fraction of the scene's size) behind an edge touches it.
-CONTACT = 1e-5
 #: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
 GRAZING = 1e-9
-
-
-@dataclass
-class Curves:
-    """Where visibility can change, as plain world-space arrays: mesh edges (E of them)
-    with their endpoints ``a``, ``b`` (E, 3), the third vertices ``c`` (E, 2, 3) of the
-    faces on either side (a border edge: its one face twice), the owning object (E,) and
-    the endpoints' vertex ids in it ``ends`` (E, 2) (coincident vertices welded, as
-    ``render.trace.topology`` does; where more than two faces meet, the first two); and
-    spheres (S): ``centre`` (S, 3), ``radius`` (S,), object (S,). Edges between two faces
-    of one plane never are silhouettes and are left out."""
-
-    a: np.ndarray
-    b: np.ndarray
-    c: np.ndarray
-    edge_object: np.ndarray
-    ends: np.ndarray
-    centre: np.ndarray
-    radius: np.ndarray
-    sphere_object: np.ndarray
-
-    @classmethod
-    def of(cls, sampler: PathSampler) -> Curves:
-        parts, spheres = [], []
-        for o, obj in enumerate(sampler.objects):
-            if not isinstance(obj, Mesh):
-                spheres.append((o, obj.center.data, float(obj.radius.data)))
-                continue
-            vertices, faces = np.asarray(obj.vertices.data, np.float64), np.asarray(obj.faces)
-            # Welded: a box whose sides have their own vertices still has shared edges.
-            table = mesh_edges(vertices, faces).table
-            both = np.where(table.faces[:, 1:2] >= 0, table.faces[:, :2], table.faces[:, :1])
-            thirds = np.where(table.faces[:, 1:2] >= 0, table.thirds[:, :2], table.thirds[:, :1])
-            tri = vertices[faces]
-            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            n1, n2 = normal[both[:, 0]], normal[both[:, 1]]
-            flat = (
-                (table.faces[:, 1] >= 0)
-                & (
-                    np.linalg.norm(np.cross(n1, n2), axis=1)
-                    <= 1e-9 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
-                )
-                & (dot(n1, n2) > 0)
-            )
-            keep = ~flat
-            e = np.stack([table.i[keep], table.j[keep]], axis=1)
-            parts.append((o, vertices, e, thirds[keep, 0], thirds[keep, 1]))
-        a = [v[e[:, 0]] for _, v, e, _, _ in parts]
-        b = [v[e[:, 1]] for _, v, e, _, _ in parts]
-        c = [np.stack([v[t1], v[t2]], axis=1) for _, v, _, t1, t2 in parts]
-        return cls(
-            _rows(a, (0, 3)), _rows(b, (0, 3)), _rows(c, (0, 2, 3)),
-            _rows([np.full(len(e), o) for o, _, e, _, _ in parts], (0,)).astype(np.int64),
-            _rows([e for _, _, e, _, _ in parts], (0, 2)).astype(np.int64),
-            np.array([s[1] for s in spheres], np.float64).reshape(-1, 3),
-            np.array([s[2] for s in spheres], np.float64),
-            np.array([s[0] for s in spheres], np.int64),
-        )  # fmt: skip
-
-    @property
-    def n_edges(self) -> int:
-        return len(self.a)
-
-    def silhouettes(self, apex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For apexes (n, 3): the angle (n, E + S) each curve subtends there, zero where it
-        is no silhouette (edges first, then spheres), and the side (n, E) of the plane
-        through apex and edge that the edge's faces lie on (+1 or -1)."""
-        pa, pb = self.a[None] - apex[:, None], self.b[None] - apex[:, None]  # (n, E, 3)
-        normal = np.cross(pa, pb)
-        size = np.linalg.norm(normal, axis=2)
-        pc = self.c[None] - apex[:, None, None]  # (n, E, 2, 3)
-        side = np.einsum("neij,nej->nei", pc, normal)
-        sure = np.abs(side) > GRAZING * size[..., None] * np.linalg.norm(pc, axis=3)
-        silhouette = sure.all(axis=2) & (np.sign(side[..., 0]) == np.sign(side[..., 1]))
-        angle = np.where(silhouette, np.arctan2(size, np.einsum("nej,nej->ne", pa, pb)), 0.0)
-        distance = np.linalg.norm(self.centre[None] - apex[:, None], axis=2)  # (n, S)
-        around = self.radius < distance * (1 - 1e-9)
-        circle = np.where(around, 2 * np.pi * self.radius / np.maximum(distance, 1e-300), 0.0)
-        return np.concatenate([angle, circle], axis=1), np.sign(side[..., 0])
-
-    def towards(self, apex: np.ndarray, triangle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The parameters (lo, hi) (n, E + S) of the part of each curve through which rays
-        from the apexes (n, 3) meet the triangle (n, 3, 3) (lo = hi: none): on an edge, the
-        rays in the plane through apex and edge that cross the triangle; on a sphere's
-        circle, the azimuths (about the axis apex -> centre, which rays from the apex keep)
-        that the triangle spans, as an arc that may run past 1 (the circle is periodic)."""
-        pa, e = self.a[None] - apex[:, None], (self.b - self.a)[None]  # (n, E, 3)
-        normal = np.cross(pa, self.b[None] - apex[:, None])
-        v = triangle[:, None] - apex[:, None, None]  # (n, 1, 3, 3)
-        dist = np.einsum("nvk,nek->nev", v[:, 0], normal)  # (n, E, 3)
-        ts = []
-        for i, j in ((0, 1), (1, 2), (2, 0)):
-            crosses = dist[..., i] * dist[..., j] < 0
-            f = dist[..., i] / np.where(crosses, dist[..., i] - dist[..., j], 1.0)
-            q = v[:, :, i] + f[..., None] * (v[:, :, j] - v[:, :, i])  # from the apex
-            # Where apex + mu q meets a + t e: t = ((-pa) x q) . (e x q) / |e x q|^2.
-            exq = np.cross(e, q)
-            t = np.einsum("nek,nek->ne", np.cross(-pa, q), exq) / np.maximum(
-                np.einsum("nek,nek->ne", exq, exq), 1e-300
-            )
-            ts.append(np.where(crosses, t, np.nan))
-        ts = np.stack(ts, axis=2)
-        two = np.sum(~np.isnan(ts), axis=2) >= 2
-        edge_lo = np.where(two, np.clip(np.nanmin(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
-        edge_hi = np.where(two, np.clip(np.nanmax(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
-        q = self.centre[None] - apex[:, None]  # (n, S, 3)
-        d = q / np.maximum(np.linalg.norm(q, axis=2, keepdims=True), 1e-300)
-        u1, u2 = _basis(d.reshape(-1, 3))
-        u1, u2 = u1.reshape(d.shape), u2.reshape(d.shape)
-        azimuth = np.arctan2(np.einsum("nsk,nvk->nsv", u2, v[:, 0]),
-                             np.einsum("nsk,nvk->nsv", u1, v[:, 0]))  # fmt: skip
-        azimuth = np.sort(azimuth, axis=2)
-        gaps = np.diff(np.concatenate([azimuth, azimuth[..., :1] + 2 * np.pi], axis=2), axis=2)
-        widest = np.argmax(gaps, axis=2)
-        start = np.take_along_axis(azimuth, ((widest + 1) % 3)[..., None], axis=2)[..., 0]
-        width = 2 * np.pi - np.take_along_axis(gaps, widest[..., None], axis=2)[..., 0]
-        whole = np.take_along_axis(gaps, widest[..., None], axis=2)[..., 0] <= np.pi
-        sphere_lo = np.where(whole, 0.0, np.mod(start, 2 * np.pi) / (2 * np.pi))
-        sphere_hi = np.where(whole, 1.0, sphere_lo + width / (2 * np.pi))
-        lo = np.concatenate([edge_lo, sphere_lo], axis=1)
-        return lo, np.concatenate([edge_hi, sphere_hi], axis=1)
-
-    def parameter(self, apex, index, lo, hi, u) -> tuple[np.ndarray, np.ndarray]:
-        """A parameter t (n,) in lo..hi (n,) on each curve ``index`` (n,), and its density
-        (n,) per unit t: uniform in the angle seen from the apex (n, 3), so that the
-        weights stay bounded where an apex is close to an edge (uniform in t, the points
-        near it would carry weights that grow as 1 / distance). Spheres' circles: uniform
-        in azimuth, which is the same."""
-        t, density = lo + u * (hi - lo), 1.0 / np.where(hi > lo, hi - lo, 1.0)
-        edge = np.flatnonzero(index < self.n_edges)
-        if len(edge) == 0:
-            return t, density
-        j, p = index[edge], apex[edge]
-        e = self.b[j] - self.a[j]
-        start = unit(self.a[j] + lo[edge, None] * e - p)
-        end = unit(self.a[j] + hi[edge, None] * e - p)
-        total = np.arctan2(np.linalg.norm(np.cross(start, end), axis=1), dot(start, end))
-        towards = unit(end - dot(end, start)[:, None] * start)
-        psi = (u[edge] * total)[:, None]
-        d = np.cos(psi) * start + np.sin(psi) * towards
-        exd = np.cross(e, d)
-        t[edge] = dot(np.cross(p - self.a[j], d), exd) / np.maximum(dot(exd, exd), 1e-300)
-        w = self.a[j] + t[edge, None] * e - p
-        # dpsi/dt = |w x e| / |w|^2, over the total angle.
-        rate = np.linalg.norm(np.cross(w, e), axis=1) / dot(w, w)
-        density[edge] = rate / np.where(total > 0, total, 1.0)
-        return t, density
-
-    def point(self, apex: np.ndarray, index: np.ndarray, t: np.ndarray):
-        """The point m (n, 3) at parameter t (n,) on curves ``index`` (n,) (all valid), and
-        dm/dt (n, 3): along an edge from a (t = 0) to b (t = 1); around the circle where the
-        cone from the apex (n, 3) touches a sphere (azimuth 2 pi t)."""
-        m, tangent = np.zeros((len(index), 3)), np.zeros((len(index), 3))
-        edge = index < self.n_edges
-        j = index[edge]
-        tangent[edge] = self.b[j] - self.a[j]
-        m[edge] = self.a[j] + t[edge, None] * tangent[edge]
-        ball = ~edge
-        s = index[ball] - self.n_edges
-        q = self.centre[s] - apex[ball]
-        d2 = dot(q, q)
-        r = self.radius[s]
-        centre = apex[ball] + q * (1 - r * r / d2)[:, None]
-        rho = r * np.sqrt(d2 - r * r) / np.sqrt(d2)
-        u1, u2 = _basis(q / np.sqrt(d2)[:, None])
-        tau = 2 * np.pi * t[ball]
-        cos, sin = np.cos(tau)[:, None], np.sin(tau)[:, None]
-        m[ball] = centre + rho[:, None] * (cos * u1 + sin * u2)
-        tangent[ball] = 2 * np.pi * rho[:, None] * (cos * u2 - sin * u1)
-        return m, tangent
-
-    def gradient(self, apex, index, points) -> np.ndarray:
-        """(n, 3): the gradient in x' of the curve's level set function phi (module
-        docstring) at ``points`` x' (n, 3), seen from ``apex`` (n, 3)."""
-        grad = np.zeros((len(index), 3))
-        edge = index < self.n_edges
-        j = index[edge]
-        grad[edge] = np.cross(self.a[j] - apex[edge], self.b[j] - apex[edge])
-        ball = ~edge
-        w, q = points[ball] - apex[ball], self.centre[index[ball] - self.n_edges] - apex[ball]
-        ww, wq = dot(w, w), dot(w, q)
-        distance = np.linalg.norm(np.cross(w, q), axis=1) / np.sqrt(ww)
-        grad[ball] = -(wq / (np.maximum(distance, 1e-300) * ww))[:, None] * (
-            q - (wq / ww)[:, None] * w
-        )
-        return grad
-
-
-def _rows(parts: list[np.ndarray], empty: tuple) -> np.ndarray:
-    return np.concatenate(parts) if parts else np.zeros(empty)
-
-
-def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (k, 3) orthogonal to the unit n (k, 3) and to each other."""
-    helper = np.where(np.abs(n[:, :1]) > 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    u1 = unit(np.cross(n, helper))
-    return u1, np.cross(n, u1)
-
-
-def _choose(weights: np.ndarray, u: np.ndarray, side: np.ndarray):
-    """A curve per row, picked with probability proportional to ``weights`` (n or 1,
-    E + S) by uniforms u (n,): its index (n,) (-1: none had weight), the probability (n,)
-    and, for edges, the side its faces lie on (``side`` (n or 1, E); 0 for spheres)."""
-    n = len(u)
-    if weights.shape[1] == 0:
-        return np.full(n, -1), np.zeros(n), np.zeros(n)
-    cdf = np.cumsum(weights, axis=1)
-    total = np.broadcast_to(cdf[:, -1], (n,))
-    index = np.minimum((cdf < (u * total)[:, None]).sum(axis=1), weights.shape[1] - 1)
-    rows = np.zeros(n, np.int64) if len(weights) == 1 else np.arange(n)
-    chosen = weights[rows, index]
-    ok = (total > 0) & (chosen > 0)
-    probability = np.where(ok, chosen / np.where(total > 0, total, 1.0), 0.0)
-    edges = side.shape[1]
-    faces = np.where(index < edges, side[rows, np.minimum(index, max(edges - 1, 0))], 0.0)
-    return np.where(ok, index, -1), probability, faces if edges else np.zeros(n)
 
 
 @dataclass
@@ -352,7 +133,10 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
 def add_secondary_term(world, image: md.Tensor, frame, sampler: PathSampler) -> md.Tensor:
     """The image (H, W, 3) plus secondary visibility's boundary term (zero in value),
     estimated with ``sampler.spp`` boundary paths per pixel; on the tape of ``world``."""
-    terms = [t for t in _chunks(world, frame, sampler) if t is not None]
+    own = _boundary_sampler(sampler)
+    curves = Curves.of(own)
+    terms = [_chunk(world, frame, own, curves, paths) for paths in _paths(own)]
+    terms = [t for t in terms if t is not None]
     if not terms:
         return image
     camera = world.camera
@@ -364,49 +148,49 @@ def add_secondary_term(world, image: md.Tensor, frame, sampler: PathSampler) -> 
 
 def backpropagate_secondary(placed_world, sampler: PathSampler, d_image: np.ndarray) -> None:
     """Add d_image . d term / d p to the gradients of the parameters, ``d_image`` (H, W, 3)
-    dL/dimage: one boundary chunk at a time, each on a fresh tape from ``placed_world()``
-    (memory bounded by a chunk, whatever the spp)."""
-    from render.scene.camera import camera_frame
-
+    dL/dimage: one chunk of ``CHUNK_PATHS`` boundary paths at a time, each on a fresh tape
+    from ``placed_world()`` (memory bounded by a chunk, whatever the spp)."""
+    own = _boundary_sampler(sampler)
+    curves = Curves.of(own)
     weights = d_image.reshape(-1, 3) * (1.0 / sampler.spp)
-    for chunk in _paths(sampler):
+    for paths in _paths(own):
         world = placed_world()
-        term = _chunk(world, camera_frame(world.camera), sampler, chunk, None)
+        term = _chunk(world, camera_frame(world.camera), own, curves, paths)
         if term is not None and term[0].requires_grad:
             values, pixels = term
             md.sum(values * weights[pixels]).backward()
 
 
+def _boundary_sampler(sampler: PathSampler) -> PathSampler:
+    """The render's sampler with the boundary paths' seed (``SEED_KEY``)."""
+    own = copy.copy(sampler)
+    own.seed = (sampler.seed ^ SEED_KEY) & (2**64 - 1)
+    return own
+
+
 def _paths(sampler: PathSampler):
+    """The boundary paths' ids (pixel x spp + sample, as the image's), a chunk at a time."""
     camera = sampler.scene.camera
     total = camera.width * camera.height * sampler.spp
     for start in range(0, total, CHUNK_PATHS):
         yield np.arange(start, min(start + CHUNK_PATHS, total), dtype=np.int64)
 
 
-def _chunks(world, frame, sampler):
-    for chunk in _paths(sampler):
-        yield _chunk(world, frame, sampler, chunk, None)
-
-
-def _chunk(world, frame, sampler: PathSampler, paths: np.ndarray, packed):
+def _chunk(world, frame, sampler: PathSampler, curves: Curves, paths: np.ndarray):
     """(values (M, 3) on the tape, pixel (M,)) of the boundary samples of boundary paths
-    ``paths``, or None when there are none."""
-    own = copy.copy(sampler)
-    own.seed = (sampler.seed ^ SEED_KEY) & (2**64 - 1)
-    if kernel.applies(own.scene):
-        batch, _ = kernel.sample_paths(own, paths)
-    else:
-        batch = own.sample(paths)
-    curves = Curves.of(own)
+    ``paths`` (their prefixes traced by the kernel where it applies), or None if none."""
     if curves.n_edges + len(curves.radius) == 0:
         return None
-    points = _points(own, batch)
+    if kernel.applies(sampler.scene):
+        batch, _ = kernel.sample_paths(sampler, paths)
+    else:
+        batch = sampler.sample(paths)
+    points = _points(sampler, batch)
     values, pixels = [], []
-    for k in range(1, min(len(batch.vertices), own.max_depth - 1) + 1):
-        for term in _terms_at(own, curves, batch, points, k, world, frame):
+    for k in range(1, min(len(batch.vertices), sampler.max_depth - 1) + 1):
+        for term in _terms_at(sampler, curves, batch, points, k, world, frame):
             values.append(term[0])
-            pixels.append(batch.paths[term[1]] // own.spp)
+            pixels.append(batch.paths[term[1]] // sampler.spp)
     if not values:
         return None
     joined = md.concatenate(values) if len(values) > 1 else values[0]
@@ -454,38 +238,34 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     origin = here + shadow_offset(here, sampler.size) * normal
     dims = 2 + 8 * (k - 1)  # bounce k's block of dimensions (render.path.random)
     seed = sampler.seed ^ CHOICE_KEY
-    weights, side = curves.silhouettes(here)
-    weights[~can] = 0.0
 
     # Two estimators of the next segment's term, for two parts of F: x''s emission, by
     # curves clipped to where their rays meet an emitter picked as NEE picks it (a soft
     # shadow's edges are mostly seen against the light); and all the rest, by whole curves.
     emitters = sampler.emitters
+    u_curve, u_point = uniform(seed, ids, dims), uniform(seed, ids, dims + 1)
+    towards = None
     if len(emitters):
         row = emitters.pick(uniform(seed, ids, dims + 2))
         target = emitters.prims[row]
-        on = target < sampler.n_triangles
+        on = target < sampler.n_triangles  # a sphere's rays are not clipped
         triangle = sampler.primitives[0][np.where(on, target, 0)]
-        lo, hi = curves.towards(here, triangle)
-        lo[~on], hi[~on] = 0.0, 1.0
-        clipped = np.where(weights > 0, _clipped_angle(curves, here, weights, lo, hi), 0.0)
-        index, probability, faces = _choose(clipped, uniform(seed, ids, dims + 3), side)
-        at, every = np.maximum(index, 0), np.arange(len(ids))
-        low, high = lo[every, at], hi[every, at]
-        t, density = curves.parameter(here, at, low, high, uniform(seed, ids, dims + 4))
-        probability = probability * emitters.probability[row] * density
-        index = np.where(high > low, index, -1)
-        cross = _cross(sampler, curves, here, index, probability, faces, t, here, origin)
+        u_near = (uniform(seed, ids, dims + 3), uniform(seed, ids, dims + 4))
+        towards = (triangle, *u_near, can & on)
+    whole, near = curves.pick(here, (u_curve, u_point, can), towards)
+    if len(emitters):
+        if not on.all():
+            other = curves.pick(here, (*u_near, can & ~on))[0]
+            for mine, theirs in zip(near, other, strict=True):
+                mine[~on] = theirs[~on]
+        index, density, faces, t = near
+        density = density * emitters.probability[row]
+        cross = _cross(sampler, curves, here, index, density, faces, t, here, origin)
         sub = np.flatnonzero(cross.valid)
         keep = (dot(normal[sub], cross.points - here[sub]) > 0) & (cross.prim == target[sub])
         yield from _segment(world, frame, sampler, curves, batch, k, cross, keep, here, True)
 
-    index, probability, faces = _choose(weights, uniform(seed, ids, dims), side)
-    ones = np.ones(len(ids))
-    t, density = curves.parameter(here, np.maximum(index, 0), 0 * ones, ones,
-                                  uniform(seed, ids, dims + 1))  # fmt: skip
-    probability = probability * density
-    cross = _cross(sampler, curves, here, index, probability, faces, t, here, origin)
+    cross = _cross(sampler, curves, here, *whole[:3], whole[3], here, origin)
     front = dot(normal[cross.valid], cross.points - here[cross.valid]) > 0
     yield from _segment(world, frame, sampler, curves, batch, k, cross, front, here, False)
 
@@ -496,15 +276,10 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         if not isinstance(light, PointLight):
             continue
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
-        u, t = uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1)
+        u_curve, u_point = uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1)
         at = np.asarray(light.position.data, np.float64)[None]
-        seen, side = curves.silhouettes(at)  # the same silhouettes for every x_k
-        index, probability, side = _choose(seen, u, side)
-        index = np.where(can, index, -1)
+        index, probability, side, t = curves.pick(at, (u_curve, u_point, can))[0]
         apex = np.repeat(at, len(ids), 0)
-        ones = np.ones(len(ids))
-        t, density = curves.parameter(apex, np.maximum(index, 0), 0 * ones, ones, t)
-        probability = probability * density
         cross = _cross(sampler, curves, apex, index, probability, side, t, here, apex)
         sub = np.flatnonzero(cross.valid)
         to = cross.points - here[sub]
@@ -535,19 +310,6 @@ def _segment(world, frame, sampler, curves, batch, k, cross, keep, here, emissio
         tail = sampler.resume(batch.paths[src], k + 1, hit.prim, hit.local, hit.points, here[sub])
         tail[0].emit_weight[:] = np.where(sampler.emitters.row_of[hit.prim] >= 0, 0.0, 1.0)
     yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + tail, None), src
-
-
-def _clipped_angle(curves: Curves, apex, weights, lo, hi) -> np.ndarray:
-    """(n, E + S): the angle that the part lo..hi of each curve subtends at the apexes
-    (n, 3), given the whole curves' angles ``weights`` (n, E + S)."""
-    e = curves.n_edges
-    a, ab = curves.a[None], (curves.b - curves.a)[None]
-    start = a + lo[:, :e, None] * ab - apex[:, None]
-    end = a + hi[:, :e, None] * ab - apex[:, None]
-    edges = np.arctan2(np.linalg.norm(np.cross(start, end), axis=2),
-                       np.einsum("nek,nek->ne", start, end))  # fmt: skip
-    spheres = weights[:, e:] * (hi[:, e:] - lo[:, e:])
-    return np.concatenate([edges, spheres], axis=1)
 
 
 def _shadow(world, frame, sampler, curves, batch, k, cross, ok, here, j):

@@ -1,0 +1,550 @@
+"""The curves along which what a point sees can change, and how a point on them is drawn.
+
+Seen from a point (the apex: a path vertex, or a point light), visibility jumps across the
+silhouettes of the occluders: a mesh edge whose two faces lie on one side of the plane
+through the apex and the edge (a border edge always), and the circle where the cone from
+the apex touches a sphere. ``render.path.secondary`` samples a point on such a curve for
+every path vertex; here is where the curves come from (``Curves.of``) and how one is drawn:
+
+* a curve with probability proportional to the angle it subtends at the apex (its share of
+  what the apex sees), or to the angle of its part whose rays meet a given triangle (an
+  emitter: ``towards``), and
+* a point on it uniformly in that angle (``parameter``): drawn uniformly along the edge, a
+  point near an apex close to the edge would carry a weight that grows as 1 / distance.
+
+``pick_reference`` composes the NumPy steps (n x E arrays: the version to read);
+``Curves.pick`` does the same per apex in one parallel Numba loop over the curves (no
+n x E arrays; the version the renderer runs). ``tests/render/path/test_secondary.py``
+checks that they agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from render.path.sampling import dot, unit
+from render.path.tracer import PathSampler
+from render.scene.scene import Mesh
+from render.trace.topology import mesh_edges
+
+#: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
+GRAZING = 1e-9
+#: A surface closer than this (a fraction of the scene's size) to an edge touches it.
+CONTACT = 1e-5
+
+
+@dataclass
+class Curves:
+    """Where visibility can change, as plain world-space arrays: mesh edges (E of them)
+    with their endpoints ``a``, ``b`` (E, 3), the third vertices ``c`` (E, 2, 3) of the
+    faces on either side (a border edge: its one face twice), the owning object (E,) and
+    the endpoints' vertex ids in it ``ends`` (E, 2) (coincident vertices welded, as
+    ``render.trace.topology`` does; where more than two faces meet, the first two); and
+    spheres (S): ``centre`` (S, 3), ``radius`` (S,), object (S,). Left out: edges between
+    two faces of one plane (never silhouettes) and edges that lie on another object's
+    surface (a box standing on the floor, the rims of walls meeting at a corner): nothing
+    shows between them and that surface while they touch."""
+
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    edge_object: np.ndarray
+    ends: np.ndarray
+    centre: np.ndarray
+    radius: np.ndarray
+    sphere_object: np.ndarray
+
+    @classmethod
+    def of(cls, sampler: PathSampler) -> Curves:
+        parts, spheres = [], []
+        for o, obj in enumerate(sampler.objects):
+            if not isinstance(obj, Mesh):
+                spheres.append((o, obj.center.data, float(obj.radius.data)))
+                continue
+            vertices, faces = np.asarray(obj.vertices.data, np.float64), np.asarray(obj.faces)
+            # Welded: a box whose sides have their own vertices still has shared edges.
+            table = mesh_edges(vertices, faces).table
+            both = np.where(table.faces[:, 1:2] >= 0, table.faces[:, :2], table.faces[:, :1])
+            thirds = np.where(table.faces[:, 1:2] >= 0, table.thirds[:, :2], table.thirds[:, :1])
+            tri = vertices[faces]
+            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            n1, n2 = normal[both[:, 0]], normal[both[:, 1]]
+            flat = (
+                (table.faces[:, 1] >= 0)
+                & (
+                    np.linalg.norm(np.cross(n1, n2), axis=1)
+                    <= 1e-9 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
+                )
+                & (dot(n1, n2) > 0)
+            )
+            middle = 0.5 * (vertices[table.i] + vertices[table.j])
+            keep = ~flat & ~_touching(middle, o, sampler)
+            e = np.stack([table.i[keep], table.j[keep]], axis=1)
+            parts.append((o, vertices, e, thirds[keep, 0], thirds[keep, 1]))
+        a = [v[e[:, 0]] for _, v, e, _, _ in parts]
+        b = [v[e[:, 1]] for _, v, e, _, _ in parts]
+        c = [np.stack([v[t1], v[t2]], axis=1) for _, v, _, t1, t2 in parts]
+        return cls(
+            _rows(a, (0, 3)), _rows(b, (0, 3)), _rows(c, (0, 2, 3)),
+            _rows([np.full(len(e), o) for o, _, e, _, _ in parts], (0,)).astype(np.int64),
+            _rows([e for _, _, e, _, _ in parts], (0, 2)).astype(np.int64),
+            np.array([s[1] for s in spheres], np.float64).reshape(-1, 3),
+            np.array([s[2] for s in spheres], np.float64),
+            np.array([s[0] for s in spheres], np.int64),
+        )  # fmt: skip
+
+    @property
+    def n_edges(self) -> int:
+        return len(self.a)
+
+    def silhouettes(self, apex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For apexes (n, 3): the angle (n, E + S) each curve subtends there, zero where it
+        is no silhouette (edges first, then spheres), and the side (n, E) of the plane
+        through apex and edge that the edge's faces lie on (+1 or -1)."""
+        pa, pb = self.a[None] - apex[:, None], self.b[None] - apex[:, None]  # (n, E, 3)
+        normal = np.cross(pa, pb)
+        size = np.linalg.norm(normal, axis=2)
+        pc = self.c[None] - apex[:, None, None]  # (n, E, 2, 3)
+        side = np.einsum("neij,nej->nei", pc, normal)
+        sure = np.abs(side) > GRAZING * size[..., None] * np.linalg.norm(pc, axis=3)
+        silhouette = sure.all(axis=2) & (np.sign(side[..., 0]) == np.sign(side[..., 1]))
+        angle = np.where(silhouette, np.arctan2(size, np.einsum("nej,nej->ne", pa, pb)), 0.0)
+        distance = np.linalg.norm(self.centre[None] - apex[:, None], axis=2)  # (n, S)
+        around = self.radius < distance * (1 - 1e-9)
+        circle = np.where(around, 2 * np.pi * self.radius / np.maximum(distance, 1e-300), 0.0)
+        return np.concatenate([angle, circle], axis=1), np.sign(side[..., 0])
+
+    def towards(self, apex: np.ndarray, triangle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The parameters (lo, hi) (n, E + S) of the part of each curve through which rays
+        from the apexes (n, 3) meet the triangle (n, 3, 3) (lo = hi: none): on an edge, the
+        rays in the plane through apex and edge that cross the triangle; on a sphere's
+        circle, the azimuths (about the axis apex -> centre, which rays from the apex keep)
+        that the triangle spans, as an arc that may run past 1 (the circle is periodic)."""
+        pa, e = self.a[None] - apex[:, None], (self.b - self.a)[None]  # (n, E, 3)
+        normal = np.cross(pa, self.b[None] - apex[:, None])
+        v = triangle[:, None] - apex[:, None, None]  # (n, 1, 3, 3)
+        dist = np.einsum("nvk,nek->nev", v[:, 0], normal)  # (n, E, 3)
+        ts = []
+        for i, j in ((0, 1), (1, 2), (2, 0)):
+            crosses = dist[..., i] * dist[..., j] < 0
+            f = dist[..., i] / np.where(crosses, dist[..., i] - dist[..., j], 1.0)
+            q = v[:, :, i] + f[..., None] * (v[:, :, j] - v[:, :, i])  # from the apex
+            # Where apex + mu q meets a + t e: t = ((-pa) x q) . (e x q) / |e x q|^2.
+            exq = np.cross(e, q)
+            t = np.einsum("nek,nek->ne", np.cross(-pa, q), exq) / np.maximum(
+                np.einsum("nek,nek->ne", exq, exq), 1e-300
+            )
+            ts.append(np.where(crosses, t, np.nan))
+        ts = np.stack(ts, axis=2)
+        two = np.sum(~np.isnan(ts), axis=2) >= 2
+        edge_lo = np.where(two, np.clip(np.nanmin(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
+        edge_hi = np.where(two, np.clip(np.nanmax(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
+        q = self.centre[None] - apex[:, None]  # (n, S, 3)
+        d = q / np.maximum(np.linalg.norm(q, axis=2, keepdims=True), 1e-300)
+        u1, u2 = _basis(d.reshape(-1, 3))
+        u1, u2 = u1.reshape(d.shape), u2.reshape(d.shape)
+        azimuth = np.arctan2(np.einsum("nsk,nvk->nsv", u2, v[:, 0]),
+                             np.einsum("nsk,nvk->nsv", u1, v[:, 0]))  # fmt: skip
+        azimuth = np.sort(azimuth, axis=2)
+        gaps = np.diff(np.concatenate([azimuth, azimuth[..., :1] + 2 * np.pi], axis=2), axis=2)
+        widest = np.argmax(gaps, axis=2)
+        start = np.take_along_axis(azimuth, ((widest + 1) % 3)[..., None], axis=2)[..., 0]
+        width = 2 * np.pi - np.take_along_axis(gaps, widest[..., None], axis=2)[..., 0]
+        whole = np.take_along_axis(gaps, widest[..., None], axis=2)[..., 0] <= np.pi
+        sphere_lo = np.where(whole, 0.0, np.mod(start, 2 * np.pi) / (2 * np.pi))
+        sphere_hi = np.where(whole, 1.0, sphere_lo + width / (2 * np.pi))
+        lo = np.concatenate([edge_lo, sphere_lo], axis=1)
+        return lo, np.concatenate([edge_hi, sphere_hi], axis=1)
+
+    def pick(self, apex, whole, towards=None):
+        """``pick_reference`` computed per apex in one compiled loop over the curves:
+        ``whole`` = (u_curve, u_point, active) for a draw from whole curves, ``towards`` =
+        (triangles, u_curve, u_point, active) for one from their parts towards triangles
+        (or None); returns each draw's (index, density, side, t) (None for no ``towards``)."""
+        n = len(whole[0])
+        clip = towards is not None
+        tri = np.zeros((1, 3, 3)) if not clip else np.ascontiguousarray(towards[0], float)
+        second = towards[1:] if clip else (np.zeros(n), np.zeros(n), np.zeros(n, bool))
+        u_curve = np.stack([whole[0], second[0]]).astype(float)
+        u_point = np.stack([whole[1], second[1]]).astype(float)
+        active = np.stack([whole[2], second[2]]).astype(bool)
+        out = np.empty((2, 4, n))
+        _pick(np.ascontiguousarray(apex, float), self.a, self.b, self.c, self.centre,
+              self.radius, tri, clip, active, u_curve, u_point, GRAZING, out)  # fmt: skip
+        draws = [(o[0].astype(np.int64), o[1], o[2], o[3]) for o in out]
+        return draws[0], draws[1] if clip else None
+
+    def parameter(self, apex, index, lo, hi, u) -> tuple[np.ndarray, np.ndarray]:
+        """A parameter t (n,) in lo..hi (n,) on each curve ``index`` (n,), and its density
+        (n,) per unit t: uniform in the angle seen from the apex (n, 3), so that the
+        weights stay bounded where an apex is close to an edge (uniform in t, the points
+        near it would carry weights that grow as 1 / distance). Spheres' circles: uniform
+        in azimuth, which is the same."""
+        t, density = lo + u * (hi - lo), 1.0 / np.where(hi > lo, hi - lo, 1.0)
+        edge = np.flatnonzero(index < self.n_edges)
+        if len(edge) == 0:
+            return t, density
+        j, p = index[edge], apex[edge]
+        e = self.b[j] - self.a[j]
+        start = unit(self.a[j] + lo[edge, None] * e - p)
+        end = unit(self.a[j] + hi[edge, None] * e - p)
+        total = np.arctan2(np.linalg.norm(np.cross(start, end), axis=1), dot(start, end))
+        towards = unit(end - dot(end, start)[:, None] * start)
+        psi = (u[edge] * total)[:, None]
+        d = np.cos(psi) * start + np.sin(psi) * towards
+        exd = np.cross(e, d)
+        t[edge] = dot(np.cross(p - self.a[j], d), exd) / np.maximum(dot(exd, exd), 1e-300)
+        w = self.a[j] + t[edge, None] * e - p
+        # dpsi/dt = |w x e| / |w|^2, over the total angle.
+        rate = np.linalg.norm(np.cross(w, e), axis=1) / dot(w, w)
+        density[edge] = rate / np.where(total > 0, total, 1.0)
+        return t, density
+
+    def point(self, apex: np.ndarray, index: np.ndarray, t: np.ndarray):
+        """The point m (n, 3) at parameter t (n,) on curves ``index`` (n,) (all valid), and
+        dm/dt (n, 3): along an edge from a (t = 0) to b (t = 1); around the circle where the
+        cone from the apex (n, 3) touches a sphere (azimuth 2 pi t)."""
+        m, tangent = np.zeros((len(index), 3)), np.zeros((len(index), 3))
+        edge = index < self.n_edges
+        j = index[edge]
+        tangent[edge] = self.b[j] - self.a[j]
+        m[edge] = self.a[j] + t[edge, None] * tangent[edge]
+        ball = ~edge
+        s = index[ball] - self.n_edges
+        q = self.centre[s] - apex[ball]
+        d2 = dot(q, q)
+        r = self.radius[s]
+        centre = apex[ball] + q * (1 - r * r / d2)[:, None]
+        rho = r * np.sqrt(d2 - r * r) / np.sqrt(d2)
+        u1, u2 = _basis(q / np.sqrt(d2)[:, None])
+        tau = 2 * np.pi * t[ball]
+        cos, sin = np.cos(tau)[:, None], np.sin(tau)[:, None]
+        m[ball] = centre + rho[:, None] * (cos * u1 + sin * u2)
+        tangent[ball] = 2 * np.pi * rho[:, None] * (cos * u2 - sin * u1)
+        return m, tangent
+
+    def gradient(self, apex, index, points) -> np.ndarray:
+        """(n, 3): the gradient in x' of the curve's level set function phi (module
+        docstring) at ``points`` x' (n, 3), seen from ``apex`` (n, 3)."""
+        grad = np.zeros((len(index), 3))
+        edge = index < self.n_edges
+        j = index[edge]
+        grad[edge] = np.cross(self.a[j] - apex[edge], self.b[j] - apex[edge])
+        ball = ~edge
+        w, q = points[ball] - apex[ball], self.centre[index[ball] - self.n_edges] - apex[ball]
+        ww, wq = dot(w, w), dot(w, q)
+        distance = np.linalg.norm(np.cross(w, q), axis=1) / np.sqrt(ww)
+        grad[ball] = -(wq / (np.maximum(distance, 1e-300) * ww))[:, None] * (
+            q - (wq / ww)[:, None] * w
+        )
+        return grad
+
+
+def _touching(points: np.ndarray, owner: int, sampler: PathSampler) -> np.ndarray:
+    """(k,) bool: which ``points`` (k, 3) of object ``owner`` lie on a triangle of another
+    object (within ``CONTACT`` of the scene's size)."""
+    low, high = sampler.first, np.r_[sampler.first[1:], len(sampler.primitives[0])]
+    other = np.ones(sampler.n_triangles, bool)
+    if owner < len(low):
+        other[low[owner] : min(high[owner], sampler.n_triangles)] = False
+    triangles = np.ascontiguousarray(sampler.primitives[0][other])
+    out = np.zeros(len(points), bool)
+    _touch(np.ascontiguousarray(points), triangles, CONTACT * sampler.size, out)
+    return out
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _touch(points, triangles, tolerance, out):
+    """out[i]: point i is within ``tolerance`` of some triangle (its plane, inside it)."""
+    for i in numba.prange(len(points)):
+        p = (points[i, 0], points[i, 1], points[i, 2])
+        for f in range(len(triangles)):
+            v0 = (triangles[f, 0, 0], triangles[f, 0, 1], triangles[f, 0, 2])
+            e1 = _sub(triangles[f, 1], v0)
+            e2 = _sub(triangles[f, 2], v0)
+            normal = _cross(e1, e2)
+            area = _norm(normal)
+            if area == 0:
+                continue
+            d = _sub(p, v0)
+            if abs(_dot(d, normal)) > tolerance * area:
+                continue
+            # Barycentrics of p's projection, with a margin of ``tolerance`` along the sides.
+            d11, d12, d22 = _dot(e1, e1), _dot(e1, e2), _dot(e2, e2)
+            p1, p2 = _dot(d, e1), _dot(d, e2)
+            det = d11 * d22 - d12 * d12
+            u, v = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
+            margin = tolerance * _norm(e1) / area + tolerance * _norm(e2) / area
+            if u >= -margin and v >= -margin and u + v <= 1 + margin:
+                out[i] = True
+                break
+
+
+def _rows(parts: list[np.ndarray], empty: tuple) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros(empty)
+
+
+def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (k, 3) orthogonal to the unit n (k, 3) and to each other."""
+    helper = np.where(np.abs(n[:, :1]) > 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
+    u1 = unit(np.cross(n, helper))
+    return u1, np.cross(n, u1)
+
+
+def _choose(weights: np.ndarray, u: np.ndarray, side: np.ndarray):
+    """A curve per row, picked with probability proportional to ``weights`` (n or 1,
+    E + S) by uniforms u (n,): its index (n,) (-1: none had weight), the probability (n,)
+    and, for edges, the side its faces lie on (``side`` (n or 1, E); 0 for spheres)."""
+    n = len(u)
+    if weights.shape[1] == 0:
+        return np.full(n, -1), np.zeros(n), np.zeros(n)
+    cdf = np.cumsum(weights, axis=1)
+    total = np.broadcast_to(cdf[:, -1], (n,))
+    index = np.minimum((cdf < (u * total)[:, None]).sum(axis=1), weights.shape[1] - 1)
+    rows = np.zeros(n, np.int64) if len(weights) == 1 else np.arange(n)
+    chosen = weights[rows, index]
+    ok = (total > 0) & (chosen > 0)
+    probability = np.where(ok, chosen / np.where(total > 0, total, 1.0), 0.0)
+    edges = side.shape[1]
+    faces = np.where(index < edges, side[rows, np.minimum(index, max(edges - 1, 0))], 0.0)
+    return np.where(ok, index, -1), probability, faces if edges else np.zeros(n)
+
+
+def _clipped_angle(curves: Curves, apex, weights, lo, hi) -> np.ndarray:
+    """(n, E + S): the angle that the part lo..hi of each curve subtends at the apexes
+    (n, 3), given the whole curves' angles ``weights`` (n, E + S)."""
+    e = curves.n_edges
+    a, ab = curves.a[None], (curves.b - curves.a)[None]
+    start = a + lo[:, :e, None] * ab - apex[:, None]
+    end = a + hi[:, :e, None] * ab - apex[:, None]
+    edges = np.arctan2(np.linalg.norm(np.cross(start, end), axis=2),
+                       np.einsum("nek,nek->ne", start, end))  # fmt: skip
+    spheres = weights[:, e:] * (hi[:, e:] - lo[:, e:])
+    return np.concatenate([edges, spheres], axis=1)
+
+
+
+
+def pick_reference(curves: Curves, apex, u_curve, u_point, triangle=None, active=None):
+    """For apexes (n, 3) (or one, (1, 3)), a curve each and a point on it, from uniforms
+    ``u_curve`` and ``u_point`` (n,): the curve's index (n,) (-1: none; only rows
+    ``active`` (n,) bool), the sample's density (n,) (P(curve) times the density of t),
+    the side (n,) the edge's faces lie on, and t (n,). With ``triangle`` (n, 3, 3), only
+    the curves' parts whose rays meet it (``towards``). NumPy, n x (E + S) arrays."""
+    n = len(u_curve)
+    weights, side = curves.silhouettes(apex)
+    weights = np.array(np.broadcast_to(weights, (n, weights.shape[1])))
+    side = np.broadcast_to(side, (n, side.shape[1]))
+    if active is not None:
+        weights[~active] = 0.0
+    lo, hi = np.zeros(weights.shape), np.ones(weights.shape)
+    if triangle is not None:
+        lo, hi = curves.towards(np.broadcast_to(apex, (n, 3)), triangle)
+        angles = _clipped_angle(curves, np.broadcast_to(apex, (n, 3)), weights, lo, hi)
+        weights = np.where(weights > 0, angles, 0.0)
+    index, probability, faces = _choose(weights, u_curve, side)
+    at, rows = np.maximum(index, 0), np.arange(n)
+    low, high = lo[rows, at], hi[rows, at]
+    t, density = curves.parameter(np.broadcast_to(apex, (n, 3)), at, low, high, u_point)
+    index = np.where((high > low) & (index >= 0), index, -1)
+    return index, np.where(index >= 0, probability * density, 0.0), faces, t
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _sub(a, b):
+    return a[0] - b[0], a[1] - b[1], a[2] - b[2]
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _cross(a, b):
+    return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _norm(a):
+    return np.sqrt(_dot(a, a))
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _edge(p, a, b, c0, c1, grazing):
+    """An edge seen from p: (the angle it subtends, 0 if no silhouette; its faces' side)."""
+    pa, pb = _sub(a, p), _sub(b, p)
+    normal = _cross(pa, pb)
+    size = _norm(normal)
+    d0, d1 = _sub(c0, p), _sub(c1, p)
+    s0, s1 = _dot(d0, normal), _dot(d1, normal)
+    if not (abs(s0) > grazing * size * _norm(d0) and abs(s1) > grazing * size * _norm(d1)):
+        return 0.0, 0.0
+    if np.sign(s0) != np.sign(s1):
+        return 0.0, 0.0
+    return np.arctan2(size, _dot(pa, pb)), np.sign(s0)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _edge_towards(p, a, b, tri):
+    """(lo, hi): the part of edge a -> b through which rays from p meet triangle ``tri``
+    (3, 3) (``Curves.towards``); lo = hi = 0 if none."""
+    e, pa = _sub(b, a), _sub(a, p)
+    normal = _cross(pa, _sub(b, p))
+    lo, hi, found = 0.0, 0.0, 0
+    for i in range(3):
+        j = (i + 1) % 3
+        vi, vj = _sub(tri[i], p), _sub(tri[j], p)
+        di, dj = _dot(vi, normal), _dot(vj, normal)
+        if di * dj < 0:
+            f = di / (di - dj)
+            q = (vi[0] + f * (vj[0] - vi[0]), vi[1] + f * (vj[1] - vi[1]),
+                 vi[2] + f * (vj[2] - vi[2]))  # fmt: skip
+            exq = _cross(e, q)
+            t = _dot(_cross((-pa[0], -pa[1], -pa[2]), q), exq) / max(_dot(exq, exq), 1e-300)
+            if found == 0:
+                lo, hi = t, t
+            else:
+                lo, hi = min(lo, t), max(hi, t)
+            found += 1
+    if found < 2:
+        return 0.0, 0.0
+    return min(max(lo, 0.0), 1.0), min(max(hi, 0.0), 1.0)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _axes(n):
+    """``_basis`` for one unit vector."""
+    helper = (0.0, 1.0, 0.0) if abs(n[0]) > 0.9 else (1.0, 0.0, 0.0)
+    u1 = _cross(n, helper)
+    length = _norm(u1)
+    u1 = (u1[0] / length, u1[1] / length, u1[2] / length)
+    return u1, _cross(n, u1)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _sphere_towards(p, centre, tri):
+    """(lo, hi): the azimuths (over 2 pi) about p -> centre that triangle ``tri`` spans."""
+    q = _sub(centre, p)
+    length = max(_norm(q), 1e-300)
+    u1, u2 = _axes((q[0] / length, q[1] / length, q[2] / length))
+    az = np.empty(3)
+    for i in range(3):
+        v = _sub(tri[i], p)
+        az[i] = np.arctan2(_dot(u2, v), _dot(u1, v))
+    az.sort()
+    gaps = (az[1] - az[0], az[2] - az[1], az[0] + 2 * np.pi - az[2])
+    widest = 0
+    for i in range(1, 3):
+        if gaps[i] > gaps[widest]:
+            widest = i
+    if gaps[widest] <= np.pi:
+        return 0.0, 1.0
+    lo = np.mod(az[(widest + 1) % 3], 2 * np.pi) / (2 * np.pi)
+    return lo, lo + (2 * np.pi - gaps[widest]) / (2 * np.pi)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
+    """Curve j seen from p: (weight, side, lo, hi) as ``pick_reference`` has them."""
+    n_edges = a.shape[0]
+    if j < n_edges:
+        angle, side = _edge(p, a[j], b[j], c[j, 0], c[j, 1], grazing)
+        if angle == 0.0 or not clip:
+            return angle, side, 0.0, 1.0
+        lo, hi = _edge_towards(p, a[j], b[j], tri)
+        e = _sub(b[j], a[j])
+        start = (a[j][0] + lo * e[0] - p[0], a[j][1] + lo * e[1] - p[1],
+                 a[j][2] + lo * e[2] - p[2])  # fmt: skip
+        end = (a[j][0] + hi * e[0] - p[0], a[j][1] + hi * e[1] - p[1], a[j][2] + hi * e[2] - p[2])
+        return np.arctan2(_norm(_cross(start, end)), _dot(start, end)), side, lo, hi
+    s = j - n_edges
+    distance = _norm(_sub(centre[s], p))
+    if not radius[s] < distance * (1 - 1e-9):
+        return 0.0, 0.0, 0.0, 1.0
+    circle = 2 * np.pi * radius[s] / max(distance, 1e-300)
+    if not clip:
+        return circle, 0.0, 0.0, 1.0
+    lo, hi = _sphere_towards(p, centre[s], tri)
+    return circle * (hi - lo), 0.0, lo, hi
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _pick(apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point, grazing, out):
+    """``pick_reference`` per apex (row i of ``apex``, or row 0 if it has one), twice:
+    ``out[0]`` from whole curves (rows ``active[0]``, uniforms ``u_curve[0]``,
+    ``u_point[0]``) and, with ``clip``, ``out[1]`` from the curves' parts towards the
+    triangles ``tri`` (rows ``active[1]``, the uniforms' row 1). out (2, 4, n): index,
+    density, side, t. One pass over the curves serves both (their silhouette tests)."""
+    count = a.shape[0] + centre.shape[0]
+    each_apex, each_tri = int(apex.shape[0] > 1), int(tri.shape[0] > 1)  # else row 0 for all
+    for i in numba.prange(u_curve.shape[1]):
+        for s in range(2):
+            out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
+        if count == 0:
+            continue
+        row = i * each_apex
+        p = (apex[row, 0], apex[row, 1], apex[row, 2])
+        triangle = tri[i * each_tri]
+        weights = np.zeros((2, count))
+        for j in range(count):
+            weight, side, lo, hi = _curve(p, j, a, b, c, centre, radius, triangle, False, grazing)
+            if active[0, i]:
+                weights[0, j] = weight
+            if clip and active[1, i] and weight > 0:
+                weights[1, j] = _curve(p, j, a, b, c, centre, radius, triangle, True, grazing)[0]
+        for s in range(2 if clip else 1):
+            _draw(p, weights[s], u_curve[s, i], u_point[s, i], a, b, c, centre, radius,
+                  triangle, s == 1, grazing, out[s, :, i])  # fmt: skip
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _draw(p, weights, u_curve, u_point, a, b, c, centre, radius, triangle, clip, grazing, out):
+    """One curve drawn by its ``weights`` (count,) and a point on it, into out (4,)."""
+    total = 0.0
+    for j in range(len(weights)):
+        total += weights[j]
+    if not total > 0:
+        return
+    target, running, chosen = u_curve * total, 0.0, len(weights) - 1
+    for j in range(len(weights)):
+        running += weights[j]
+        if not running < target:
+            chosen = j
+            break
+    weight, faces, lo, hi = _curve(p, chosen, a, b, c, centre, radius, triangle, clip, grazing)
+    if not (weight > 0 and hi > lo):
+        return
+    probability = weight / total
+    if chosen >= a.shape[0]:  # uniform in azimuth
+        out[0], out[1], out[2] = chosen, probability / (hi - lo), 0.0
+        out[3] = lo + u_point * (hi - lo)
+        return
+    e = _sub(b[chosen], a[chosen])
+    start = (a[chosen][0] + lo * e[0] - p[0], a[chosen][1] + lo * e[1] - p[1],
+             a[chosen][2] + lo * e[2] - p[2])  # fmt: skip
+    end = (a[chosen][0] + hi * e[0] - p[0], a[chosen][1] + hi * e[1] - p[1],
+           a[chosen][2] + hi * e[2] - p[2])  # fmt: skip
+    ls, le = _norm(start), _norm(end)
+    start = (start[0] / ls, start[1] / ls, start[2] / ls)
+    end = (end[0] / le, end[1] / le, end[2] / le)
+    angle = np.arctan2(_norm(_cross(start, end)), _dot(start, end))
+    c_ = _dot(end, start)
+    tw = (end[0] - c_ * start[0], end[1] - c_ * start[1], end[2] - c_ * start[2])
+    lt = _norm(tw)
+    tw = (tw[0] / lt, tw[1] / lt, tw[2] / lt)
+    psi = u_point * angle
+    d = (np.cos(psi) * start[0] + np.sin(psi) * tw[0],
+         np.cos(psi) * start[1] + np.sin(psi) * tw[1],
+         np.cos(psi) * start[2] + np.sin(psi) * tw[2])  # fmt: skip
+    exd = _cross(e, d)
+    ti = _dot(_cross(_sub(p, a[chosen]), d), exd) / max(_dot(exd, exd), 1e-300)
+    w = (a[chosen][0] + ti * e[0] - p[0], a[chosen][1] + ti * e[1] - p[1],
+         a[chosen][2] + ti * e[2] - p[2])  # fmt: skip
+    rate = _norm(_cross(w, e)) / _dot(w, w)  # dpsi / dt
+    density = probability * rate / (angle if angle > 0 else 1.0)
+    if np.isfinite(density) and density > 0 and np.isfinite(ti):  # else an edge seen end-on
+        out[0], out[1], out[2], out[3] = chosen, density, faces, ti
