@@ -98,11 +98,13 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     valid = (index >= 0) & (probability > 0)
     rows = np.flatnonzero(valid)
     m, tangent = curves.point(apex[rows], index[rows], t[rows])
-    to = m - origin[rows]
-    seen = ~sampler.accelerator.occluded(origin[rows], to, 1.0 - 1e-7, tmin=0.0)
-    direction = unit(m - apex[rows])
     size = sampler.size
-    prim, far, u, v = sampler.accelerator.closest_hit(m, direction, tmin=1e-9 * size)
+    # The rays pass a hair off the occluder, on the side that is not hidden: a ray through
+    # the very point m could meet the sphere it touches or the faces at the edge again.
+    off = m + 1e-9 * size * curves.away(apex[rows], index[rows], side[rows], m)
+    seen = ~sampler.accelerator.occluded(origin[rows], off - origin[rows], 1.0, tmin=0.0)
+    direction = unit(m - apex[rows])
+    prim, far, u, v = sampler.accelerator.closest_hit(off, direction, tmin=0.0)
     ok = seen & (prim >= 0) & (far > CONTACT * size)
     rows, m, tangent, direction = rows[ok], m[ok], tangent[ok], direction[ok]
     prim, far, u, v = prim[ok], far[ok], u[ok], v[ok]

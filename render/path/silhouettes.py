@@ -226,6 +226,19 @@ class Curves:
         tangent[ball] = 2 * np.pi * rho[:, None] * (cos * u2 - sin * u1)
         return m, tangent
 
+    def away(self, apex, index, side, m) -> np.ndarray:
+        """(n, 3) unit vectors from the curve points m (n, 3) towards the side that the
+        occluder does not hide: out of a sphere; across the plane through apex and edge,
+        away from the edge's faces (on ``side`` (n,) of it)."""
+        out = np.zeros((len(index), 3))
+        edge = index < self.n_edges
+        j = index[edge]
+        normal = np.cross(self.a[j] - apex[edge], self.b[j] - apex[edge])
+        out[edge] = -side[edge, None] * unit(normal)
+        ball = ~edge
+        out[ball] = unit(m[ball] - self.centre[index[ball] - self.n_edges])
+        return out
+
     def gradient(self, apex, index, points) -> np.ndarray:
         """(n, 3): the gradient in x' of the curve's level set function phi (module
         docstring) at ``points`` x' (n, 3), seen from ``apex`` (n, 3)."""
@@ -324,8 +337,6 @@ def _clipped_angle(curves: Curves, apex, weights, lo, hi) -> np.ndarray:
                        np.einsum("nek,nek->ne", start, end))  # fmt: skip
     spheres = weights[:, e:] * (hi[:, e:] - lo[:, e:])
     return np.concatenate([edges, spheres], axis=1)
-
-
 
 
 def pick_reference(curves: Curves, apex, u_curve, u_point, triangle=None, active=None):
