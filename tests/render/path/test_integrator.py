@@ -365,7 +365,7 @@ def test_negative_radiance_is_refused():
         ({"max_depth": 0}, "max_depth must be an integer >= 1"),
         ({"seed": -3}, r"seed must be an integer in \[0, 2\*\*64\)"),
         ({"rr_depth": 1.5}, "rr_depth must be an integer >= 1"),
-        ({"antialias": True}, 'takes antialias=False or "boundary"'),
+        ({"antialias": True}, 'takes antialias=False, "boundary"'),
     ],
 )
 def test_bad_path_options_are_named(options, message):

@@ -25,11 +25,12 @@ X, Y, Z = np.eye(3)
 
 
 def shadowed_floor(occluder: str, light: str = "area") -> render.Scene:
-    """A floor under an occluder ("square", "box", "tall box" or "sphere") lit by a small square area
-    light (a ``Transform`` places it) or a point light above; 8 x 8 pixels. With the area
-    light the camera looks down at the floor's soft shadow from under the occluder (which
-    it does not see); with the point light it looks up at the occluder's underside, lit
-    only by the floor, whose hard shadow it sees after one bounce."""
+    """A floor under an occluder ("square", "box", "tall box" or "sphere") lit by a
+    small square area light (a ``Transform`` places it) or a point light above; 8 x 8
+    pixels. With the area light the camera looks down at the floor's soft shadow from
+    under the occluder (which it does not see); with the point light it looks up at the
+    occluder's underside, lit only by the floor, whose hard shadow it sees after one
+    bounce."""
     v, f = grid_quad((0, 0, 0), 1.5 * X, -1.5 * Z)
     objects = [render.Mesh(v, f, render.Material((0.8, 0.8, 0.8)))]
     grey = render.Material((0.5, 0.5, 0.5))
