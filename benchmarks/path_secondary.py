@@ -57,6 +57,7 @@ from pathlib import Path
 import numba
 import numpy as np
 import timing
+from bench_path_mitsuba import _commit
 from path_gradients import scene_for
 
 import minidiff as md
@@ -265,7 +266,8 @@ def markdown(result: dict) -> str:
         f"{result['seeds']} seeds (a multiple for a noisier case), no Russian roulette; "
         "central differences (FD) with the same seed on both sides, step h per case. "
         "ours / FD - 1 with its standard error; target within 5 % (met: the 95 % interval "
-        f"inside +-5 %). {result['seconds']:.0f} s in all.",
+        f"inside +-5 %). Commit {result['commit']}, {result['numba_threads']} Numba "
+        f"thread(s), {result['seconds']:.0f} s in all.",
         "",
         "| case | seeds | max_depth | h | FD | antialias | ours | ours / FD - 1 | target |",
         "|---|---|---|---|---|---|---|---|---|",
@@ -320,6 +322,7 @@ def main(argv: list[str] | None = None) -> dict:
     result = {"quick": args.quick, "size": SIZE, "seeds": seeds, "spp": spp,
               "repeats": repeats, "modes": modes, "rows": rows}  # fmt: skip
     result["numba_threads"] = numba.get_num_threads()
+    result["commit"] = _commit(str(timing.ROOT))  # the code measured
     result["seconds"] = time.perf_counter() - start
     write_results(Path(args.out), "secondary", result, markdown(result))
     return result

@@ -281,7 +281,7 @@ def markdown(result: dict) -> str:
         f"{result['seeds']} seeds; Mitsuba's own same-seed central differences (`path`, "
         f"{result['fd_seeds']} seeds, path_secondary's h). Ours: path_secondary.py's "
         "secondary.json (antialias boundary). z: the difference in combined standard "
-        "errors.",
+        f"errors. Commit {result['commit']}, {result['seconds']:.0f} s.",
         "",
         "| case | prb_projective | Mitsuba FD | our FD | ours (boundary) | "
         "z prb vs our FD | z prb vs ours | z Mitsuba FD vs our FD | image mean, ours / "
@@ -361,6 +361,7 @@ def main(argv: list[str] | None = None) -> dict:
         "fd_seeds": args.fd_seeds,
         "rows": rows,
     }
+    result["commit"] = bpm._commit(str(timing.ROOT))
     result["seconds"] = time.perf_counter() - start
     write_results(out, "mitsuba", result, markdown(result))
     return result
