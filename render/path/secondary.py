@@ -58,7 +58,7 @@ from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import path_radiance, vertex_on_tape
 from render.scene.camera import camera_frame, ray_directions
-from render.scene.lights import PointLight
+from render.scene.lights import DirectionalLight, PointLight
 from render.shade.surface import column, geometric_normals, in_order
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import shadow_offset
@@ -67,6 +67,9 @@ from render.trace.visibility import shadow_offset
 SEED_KEY = 0x5EC0_DA7A_0B0D_1E55
 #: The seed of the curve choices: the boundary paths' seed XOR this times (1 + light index).
 CHOICE_KEY = 0x2545_F491_4F6C_DD1D
+#: A directional light's shadows are cast from a point this many scene sizes away in its
+#: direction (the parallel projection to a relative 1e-6; phi stays exact in float64).
+FAR = 1e6
 #: Boundary paths traced together (bounds the memory of one chunk's tape).
 CHUNK_PATHS = 1 << 14
 #: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
@@ -275,11 +278,12 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     if k + 1 > sampler.max_depth - 1:
         return
     for j, light in enumerate(sampler.scene.lights):
-        if not isinstance(light, PointLight):
+        if not isinstance(light, PointLight | DirectionalLight):
             continue
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
         u_curve, u_point = uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1)
-        at = np.asarray(light.position.data, np.float64)[None]
+        with md.no_grad():
+            at = np.asarray(_apex(light, sampler).data, np.float64)[None]
         index, probability, side, t = curves.pick(at, (u_curve, u_point, can))[0]
         apex = np.repeat(at, len(ids), 0)
         cross = _cross(sampler, curves, apex, index, probability, side, t, here, apex)
@@ -329,6 +333,18 @@ def _shadow(world, frame, sampler, curves, batch, k, cross, ok, here, j):
     lit[j] = True
     last = _quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lit)
     yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + [last], j), src
+
+
+def _apex(light, sampler: PathSampler):
+    """Where a light's shadows are cast from: a point light's position; for a directional
+    light, a point ``FAR`` scene sizes from the scene's centre towards it. (3,), on the
+    tape (the light's fields are tensors)."""
+    if isinstance(light, PointLight):
+        return light.position
+    triangles, centres, _ = sampler.primitives
+    points = np.concatenate([triangles.reshape(-1, 3), centres])
+    middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
+    return md.tensor(middle) - md.normalize(light.direction) * (FAR * sampler.size)
 
 
 def _take(cross: _Crossing, keep: np.ndarray) -> _Crossing:
@@ -383,7 +399,7 @@ def _value(world, frame, sampler, curves, batch, k, src, hit, records, light):
         apex = vertex_on_tape(world, sampler, record.prim[pos], record.local[pos],
                               record.form[pos], origins, directions).points  # fmt: skip
     else:
-        apex = md.broadcast_to(world.lights[light].position, (len(src), 3))
+        apex = md.broadcast_to(_apex(world.lights[light], sampler), (len(src), 3))
     far = vertex_on_tape(world, sampler, hit.prim, hit.local, np.full(len(src), AREA, np.int8),
                          None, None).points  # fmt: skip
     phi = _phi(world, curves, hit.index, apex, far)

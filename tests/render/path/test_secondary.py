@@ -28,7 +28,7 @@ def shadowed_floor(occluder: str, light: str = "area") -> render.Scene:
     """A floor under an occluder ("square", "box", "tall box" or "sphere") lit by a
     small square area light (a ``Transform`` places it) or a point light above; 8 x 8
     pixels. With the area light the camera looks down at the floor's soft shadow from
-    under the occluder (which it does not see); with the point light it looks up at the
+    under the occluder (which it does not see); with the others it looks up at the
     occluder's underside, lit only by the floor, whose hard shadow it sees after one
     bounce."""
     v, f = grid_quad((0, 0, 0), 1.5 * X, -1.5 * Z)
@@ -50,7 +50,11 @@ def shadowed_floor(occluder: str, light: str = "area") -> render.Scene:
         objects.append(render.Mesh(v, f, emitter, transform=render.Transform()))
         camera = render.Camera((0.05, 0.35, 0.05), (0.0, 0.0, 0.0), (0, 0, -1), 110.0, 8, 8)
     else:
-        lights.append(render.PointLight((0.0, 1.1, 0.1), 3.0))
+        lights.append(
+            render.PointLight((0.0, 1.1, 0.1), 3.0)
+            if light == "point"
+            else render.DirectionalLight((0.3, -1.0, 0.2), 2.0)
+        )
         camera = render.Camera((0.05, 0.2, 0.05), (0.1, 0.6, 0.0), (0, 0, -1), 50.0, 8, 8)
     return render.Scene(objects, lights, camera)
 
@@ -67,6 +71,8 @@ CASES = {
                    lambda p: corner_copies_direction(p)),
     "point light after a bounce": ("square", "point", lambda s: s.lights[0].position,
                                    lambda p: np.array([1.0, 0.2, 0.5])),
+    "sun after a bounce": ("square", "directional", lambda s: s.lights[0].direction,
+                           lambda p: np.array([1.0, 0.0, 0.5])),
 }  # fmt: skip
 
 
@@ -104,7 +110,7 @@ def derivative(case: str, antialias, spp: int, seed: int, delta: float = 0.0, gr
 #: Central differences' step, their samples per pixel and ours, both over SEEDS; the point
 #: light's hard shadow is noisier on both sides (a sample flips between lit and not).
 H, SEEDS = 0.05, (0, 1)
-SAMPLES = {"point light after a bounce": (512, 2048)}
+SAMPLES = {"point light after a bounce": (512, 2048), "sun after a bounce": (1024, 2048)}
 
 
 @pytest.mark.parametrize("case", list(CASES))
