@@ -110,7 +110,7 @@ def derivative(case: str, antialias, spp: int, seed: int, delta: float = 0.0, gr
 #: Central differences' step, their samples per pixel and ours, both over SEEDS; the point
 #: light's hard shadow is noisier on both sides (a sample flips between lit and not).
 H, SEEDS = 0.05, (0, 1)
-SAMPLES = {"point light after a bounce": (512, 2048), "sun after a bounce": (1024, 2048)}
+SAMPLES = {"point light after a bounce": (512, 2048), "sun after a bounce": (2048, 2048)}
 
 
 @pytest.mark.parametrize("case", list(CASES))
