@@ -152,7 +152,7 @@ CASES = {
              "area light's position, light out of view"),
         Case("sphere_centre", room, lambda s: s.objects[7].center, along((0.3, 0.0, 1.0)),
              0.05, 4, "sphere's centre (silhouette and shadow)", seed_multiple=3),
-        Case("box_corner", room, lambda s: s.objects[BOX].vertices, top_corner, 0.05, 4,
+        Case("box_corner", room, lambda s: s.objects[BOX].vertices, top_corner, 0.1, 4,
              "tall box's top corner (silhouette and shadow)"),
         Case("light_scale", room, lambda s: s.objects[LIGHT].transform.scale, along(1.0),
              0.05, 4, "area light's size (scale), light out of view"),
@@ -304,7 +304,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = timing.make_parser(
         __doc__, out=Path("out/path_secondary"), quick="2 seeds at 4 spp, 2 timed calls"
     )
-    parser.add_argument("--seeds", type=int, default=32)
+    parser.add_argument("--seeds", type=int, default=64)
     parser.add_argument("--spp", type=int, default=32)
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per mode")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated")

@@ -336,7 +336,7 @@ def main(argv: list[str] | None = None) -> dict:
     )
     parser.add_argument("--seeds", type=int, default=256, help="prb_projective gradients")
     parser.add_argument("--spp", type=int, default=32, help="path_secondary.py's spp")
-    parser.add_argument("--fd-seeds", type=int, default=64, help="Mitsuba's FD, image means")
+    parser.add_argument("--fd-seeds", type=int, default=256, help="Mitsuba's FD, image means")
     parser.add_argument("--octree-seeds", type=int, default=2, help="gradients with octree")
     parser.add_argument("--cases", default="light_position,sphere_centre")
     args = parser.parse_args(argv)
