@@ -23,24 +23,27 @@ one more x' in the same area measure, and its MIS weight and the BSDF-sampled on
 
 The estimator, per vertex x_k of a path (k >= 1; not after a mirror, see below): pick a
 silhouette with probability proportional to the angle it subtends at x_k, a point m on it
-uniformly, trace the ray x_k -> m (it must reach m) and on beyond m to x'; the sample is
+uniformly in that angle (``render.path.silhouettes``), trace the ray x_k -> m (it must
+reach m) and on beyond m to x'; the sample is
 
-    beta_k f_k G(x_k, x') L(x' -> x_k) |dx'/dt| / |grad_S phi| / P(curve) * sign * dphi/dtheta,
+    beta_k f_k G(x_k, x') L(x' -> x_k) |dx'/dt| / |grad_S phi| / p(curve, t) * sign * dphi/dtheta,
 
-beta_k the path's weight up to x_k, L estimated by a path continued from x' (its emission
-counted whole). A point light at l casts hard shadows: its NEE at x' jumps where the
-segment x' -> l grazes a silhouette seen from l, a curve on the surfaces, in the integral
-over x' from x_k. The same construction with l as the apex samples it; the jump is the
-light's contribution at x'. Everything but dphi/dtheta is a constant computed off the tape
-(``path_radiance`` under ``no_grad`` for beta_k f_k G L); phi is recomputed on the tape from
-x_k, x' (their places on their surfaces), the curve and the light, so ``backward`` reaches
-every parameter that moves them. Each sample's value is phi - phi = 0: the term adds
-nothing to the image.
+beta_k the path's weight up to x_k, L estimated by a path continued from x'. Two such
+samples per vertex split F: x''s emission, from the curves' parts whose rays meet an
+emitter picked as next-event estimation picks it; the rest, from whole curves. A point
+light at l casts hard shadows: its NEE at x' jumps where the segment x' -> l grazes a
+silhouette seen from l, a curve on the surfaces, in the integral over x' from x_k. The
+same construction with l as the apex samples it; the jump is the light's contribution at
+x'. A directional light is a point light ``FAR`` scene sizes away. Everything but
+dphi/dtheta is a constant computed off the tape (``path_radiance`` under ``no_grad`` for
+beta_k f_k G L); phi is recomputed on the tape from x_k, x' (their places on their
+surfaces), the curve and the light, so ``backward`` reaches every parameter that moves
+them. Each sample's value is phi - phi = 0: the term adds nothing to the image.
 
 Not covered: vertices reached through a mirror (their position on the tape is a chain of
-reflections), directional lights' shadows after a bounce, an environment seen past an edge
-after a bounce, and occluders in contact with the surface behind them (a block standing on
-the floor: its bottom edges are skipped, which is exact while the contact holds).
+reflections), an environment seen past an edge after a bounce, and occluders in contact
+with the surface behind them (a block standing on the floor: its bottom edges are left
+out, which is exact while the contact holds).
 """
 
 from __future__ import annotations
@@ -222,9 +225,9 @@ def _points(sampler, batch: PathBatch) -> list[np.ndarray]:
 
 def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     """The boundary samples at the paths' k-th vertices: behind silhouettes seen from
-    them (the next segment's visibility) and, for every point light, behind silhouettes
-    seen from the light (its shadow at the next vertex). Yields (values (M, 3), the
-    samples' rows in the batch (M,))."""
+    them (the next segment's visibility) and, for every point or directional light,
+    behind silhouettes seen from the light (its shadow at the next vertex). Yields
+    (values (M, 3), the samples' rows in the batch (M,))."""
     record = batch.vertices[k - 1]
     rows = record.rows
     eye = sampler.frame[3]
@@ -254,7 +257,11 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         row = emitters.pick(uniform(seed, ids, dims + 2))
         target = emitters.prims[row]
         on = target < sampler.n_triangles  # a sphere's rays are not clipped
-        triangle = sampler.primitives[0][np.where(on, target, 0)]
+        triangle = (
+            sampler.primitives[0][np.where(on, target, 0)]
+            if sampler.n_triangles
+            else np.zeros((len(ids), 3, 3))
+        )
         u_near = (uniform(seed, ids, dims + 3), uniform(seed, ids, dims + 4))
         towards = (triangle, *u_near, can & on)
     whole, near = curves.pick(here, (u_curve, u_point, can), towards)
