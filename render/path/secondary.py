@@ -275,11 +275,11 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         cross = _cross(sampler, curves, here, index, density, faces, t, here, origin)
         sub = np.flatnonzero(cross.valid)
         keep = (dot(normal[sub], cross.points - here[sub]) > 0) & (cross.prim == target[sub])
-        yield from _segment(world, frame, sampler, curves, batch, k, cross, keep, here, True)
+        yield from _samples(world, frame, sampler, curves, batch, k, cross, keep, here, "emission")
 
     cross = _cross(sampler, curves, here, *whole[:3], whole[3], here, origin)
     front = dot(normal[cross.valid], cross.points - here[cross.valid]) > 0
-    yield from _segment(world, frame, sampler, curves, batch, k, cross, front, here, False)
+    yield from _samples(world, frame, sampler, curves, batch, k, cross, front, here, "rest")
 
     # Point lights' shadows at x' seen from x_k (x' must still get the light's NEE).
     if k + 1 > sampler.max_depth - 1:
@@ -299,14 +299,15 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         ok = (dot(normal[sub], to) > 0) & (dot(cross.normal, at - cross.points) > 0)
         ok &= ~sampler.accelerator.occluded(origin[sub], cross.points - origin[sub],
                                             1.0 - 1e-7, tmin=0.0)  # fmt: skip
-        yield from _shadow(world, frame, sampler, curves, batch, k, cross, ok, here, j)
+        yield from _samples(world, frame, sampler, curves, batch, k, cross, ok, here, "light", j)
 
 
-def _segment(world, frame, sampler, curves, batch, k, cross, keep, here, emission: bool):
-    """The samples behind silhouettes seen from x_k that ``keep`` selects: with
-    ``emission``, x''s emission alone; else the path through x' continued from there, but
-    for the emission of the emitters (the other estimator's). Yields (values (M, 3), rows
-    in the batch (M,))."""
+def _samples(world, frame, sampler, curves, batch, k, cross, keep, here, part, light=None):
+    """The samples behind silhouettes that ``keep`` selects among ``cross``'s valid ones,
+    their jump F at x' being: ``part`` "emission", x''s emission alone; "rest", the path
+    continued from x' but for the emitters' emission (the other estimator's); "light",
+    light ``light``'s contribution at x' (its shadow's border). Yields (values (M, 3),
+    rows in the batch (M,))."""
     record = batch.vertices[k - 1]
     sub = np.flatnonzero(cross.valid)[keep]
     if len(sub) == 0:
@@ -315,31 +316,16 @@ def _segment(world, frame, sampler, curves, batch, k, cross, keep, here, emissio
     src = record.rows[sub]
     m = len(src)
     prefix = _prefix(sampler, batch, k, src, here[sub], hit)
-    if emission:
-        lights = np.zeros((len(sampler.scene.lights), m), bool)
-        tail = [_quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lights)]
-        tail[0].emit_weight[:] = 1.0
-    else:
+    if part == "rest":
         tail = sampler.resume(batch.paths[src], k + 1, hit.prim, hit.local, hit.points, here[sub])
         tail[0].emit_weight[:] = np.where(sampler.emitters.row_of[hit.prim] >= 0, 0.0, 1.0)
-    yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + tail, None), src
-
-
-def _shadow(world, frame, sampler, curves, batch, k, cross, ok, here, j):
-    """The samples on point light j's shadow border seen from x_k: the jump is the light's
-    contribution at x'. Yields (values (M, 3), rows in the batch (M,))."""
-    record = batch.vertices[k - 1]
-    sub = np.flatnonzero(cross.valid)[ok]
-    if len(sub) == 0:
-        return
-    hit = _take(cross, ok)
-    src = record.rows[sub]
-    m = len(src)
-    prefix = _prefix(sampler, batch, k, src, here[sub], hit)
-    lit = np.zeros((len(sampler.scene.lights), m), bool)
-    lit[j] = True
-    last = _quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lit)
-    yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + [last], j), src
+    else:
+        lit = np.zeros((len(sampler.scene.lights), m), bool)
+        if part == "light":
+            lit[light] = True
+        tail = [_quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lit)]
+        tail[0].emit_weight[:] = 1.0 if part == "emission" else 0.0
+    yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + tail, light), src
 
 
 def _apex(light, sampler: PathSampler):
