@@ -160,7 +160,7 @@ CASES = {
              0.05, 4, "area light's size (scale), light out of view"),
         Case("point_light_bounce", point_lit_room, lambda s: s.lights[0].position,
              along((0.2, 1.0, 0.3)), 0.02, 3,
-             "point light's position, its shadows seen after one bounce"),
+             "point light's position, its shadows seen after one bounce", seed_multiple=2),
     )
 }  # fmt: skip
 
