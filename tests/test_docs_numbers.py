@@ -287,6 +287,16 @@ GENERATED = {
         "markdown",
         "docs/path_tracing/mitsuba/results.json",
     ),
+    "docs/path_tracing/secondary/secondary.md": (
+        "path_secondary",
+        "markdown",
+        "docs/path_tracing/secondary/secondary.json",
+    ),
+    "docs/path_tracing/secondary/mitsuba.md": (
+        "path_secondary_mitsuba",
+        "markdown",
+        "docs/path_tracing/secondary/mitsuba.json",
+    ),
 }
 
 
