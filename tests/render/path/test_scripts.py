@@ -51,3 +51,17 @@ def test_bench_path_mitsuba_without_mitsuba_says_so(tmp_path, capsys, load_scrip
         bench.main(["--quick", "--out", str(tmp_path)])
     message = str(stop.value.code) + capsys.readouterr().err
     assert "Mitsuba 3 is not installed" in message
+
+
+def test_bench_secondary_quick(tmp_path, load_script):
+    load_script("benchmarks/bench_secondary.py").main(["--quick", "--out", str(tmp_path)])
+    result = json.loads((tmp_path / "cost.json").read_text())
+    for row in result["cost"]:
+        assert row["secondary"] > 0 and row["plain"] > 0 and row["term_over_plain"] > -1
+    assert result["variance"]["std"] >= 0
+
+
+def test_path_secondary_quick(tmp_path, load_script):
+    load_script("benchmarks/path_secondary.py").main(["--quick", "--out", str(tmp_path)])
+    text = (tmp_path / "secondary.md").read_text()
+    assert "A --quick smoke run" in text and "| light_position" in text
