@@ -58,9 +58,9 @@ from render.path import kernel
 from render.path.random import uniform
 from render.path.sampling import dot, unit
 from render.path.silhouettes import CONTACT, Curves
-from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler, Vertices
+from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import path_radiance, vertex_on_tape
-from render.scene.camera import camera_frame, ray_directions
+from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
 from render.scene.lights import DirectionalLight, PointLight
 from render.shade.surface import column, geometric_normals, in_order
 from render.trace.primitives import primitive_ranges
@@ -199,10 +199,69 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, paths: np.ndarray
         for term in _terms_at(sampler, curves, batch, points, k, world, frame):
             values.append(term[0])
             pixels.append(batch.paths[term[1]] // sampler.spp)
+    if sampler.max_depth >= 2:  # the lights' shadows seen by the camera
+        for value, pixel in _seen_shadows(sampler, curves, paths, world, frame):
+            values.append(value)
+            pixels.append(pixel)
     if not values:
         return None
     joined = md.concatenate(values) if len(values) > 1 else values[0]
     return joined, np.concatenate(pixels)
+
+
+def _seen_shadows(sampler, curves, paths, world, frame):
+    """The borders of point and directional lights' shadows that the camera sees, one
+    sample per boundary path and light: a point x on a shadow's border drawn from the light
+    (as ``_terms_at`` does for later vertices), seen by the camera at the image-plane point
+    s. The pixel integral is over s, so the sample carries the light's contribution at x
+    times ds/dA (the image plane's area per unit of the surface's at x); the N = W H spp
+    samples estimate every pixel's term at once, each going to the pixel holding s.
+    Yields (values (m, 3) on the tape, their pixels (m,))."""
+    camera = sampler.scene.camera
+    width, height = camera.width, camera.height
+    forward, right, up, eye = sampler.frame
+    for j, light in enumerate(sampler.scene.lights):
+        if not isinstance(light, PointLight | DirectionalLight):
+            continue
+        seed = sampler.seed ^ ((CHOICE_KEY * (j + 2 + len(sampler.scene.lights))) & (2**64 - 1))
+        with md.no_grad():
+            at = np.asarray(_apex(light, sampler).data, np.float64)[None]
+        every = np.ones(len(paths), bool)
+        pick = curves.pick(at, (uniform(seed, paths, 0), uniform(seed, paths, 1), every))[0]
+        apex = np.repeat(at, len(paths), 0)
+        cross = _cross(sampler, curves, apex, *pick[:3], pick[3], np.broadcast_to(eye, apex.shape),
+                       apex)  # fmt: skip
+        px, depth = project(cross.points, sampler.frame, width, height)
+        inside = (depth > 0) & np.all((px >= 0) & (px < [width, height]), axis=1)
+        inside &= dot(cross.normal, at - cross.points) > 0  # lit from the camera's side
+        eyes = np.broadcast_to(eye, cross.points.shape)
+        inside &= ~sampler.accelerator.occluded(eyes, cross.points - eye, 1.0 - 1e-7, tmin=0.0)
+        hit = _take(cross, inside)
+        if len(hit.prim) == 0:
+            continue
+        m = len(hit.prim)
+        coords = to_image_plane(px[inside], width, height)
+        lit = np.zeros((len(sampler.scene.lights), m), bool)
+        lit[j] = True
+        first = _quiet(np.arange(m), hit.prim, hit.local, np.full(m, CAMERA, np.int8), lit)
+        rays = PathBatch(paths[np.flatnonzero(cross.valid)[inside]], coords, np.zeros(m, bool),
+                         [first])  # fmt: skip
+        with md.no_grad():
+            radiance = path_radiance(world, frame, sampler, rays).data
+        stretch = _image_area(hit.points, hit.normal, sampler.frame)
+        # Every pixel's estimate divides by N = W H spp (1 / spp is the caller's) and by the
+        # pixel's area in the image plane, 4 / (W H).
+        weight = hit.weight * stretch / 4.0
+        directions = ray_directions(frame, coords.astype(radiance.dtype))
+        origins = md.broadcast_to(frame[3], (m, 3))
+        seen = vertex_on_tape(world, sampler, hit.prim, hit.local, np.full(m, CAMERA, np.int8),
+                              origins, directions).points  # fmt: skip
+        phi = _phi(world, curves, hit.index,
+                   md.broadcast_to(_apex(world.lights[j], sampler), (m, 3)), seen)  # fmt: skip
+        moved = phi - md.tensor(phi.data)
+        pixel = np.minimum(px[inside].astype(np.int64), [width - 1, height - 1])
+        yield (md.tensor(radiance * weight[:, None]) * column(moved),
+               pixel[:, 1] * width + pixel[:, 0])  # fmt: skip
 
 
 def _points(sampler, batch: PathBatch) -> list[np.ndarray]:
@@ -338,6 +397,23 @@ def _apex(light, sampler: PathSampler):
     points = np.concatenate([triangles.reshape(-1, 3), centres])
     middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
     return md.tensor(middle) - md.normalize(light.direction) * (FAR * sampler.size)
+
+
+def _image_area(points, normals, frame) -> np.ndarray:
+    """(k,): ds/dA, the image plane's area (its coordinates s in [-1, 1]^2) per unit area of
+    the surfaces at ``points`` (k, 3) with unit ``normals`` (k, 3), as the camera
+    (``frame``: forward, right, up, eye) projects them: s = (r . right / (z |right|^2),
+    r . up / (z |up|^2)), r = x - eye, z = r . forward; the determinant of ds/dx on the
+    tangent plane."""
+    forward, right, up, eye = frame
+    r = points - eye
+    z = r @ forward
+    rows = []
+    for axis in (right, up):
+        scale = axis @ axis
+        rows.append(axis[None] / (scale * z[:, None]) - ((r @ axis) / (scale * z**2))[:, None]
+                    * forward[None])  # fmt: skip
+    return np.abs(dot(np.cross(rows[0], rows[1]), normals))
 
 
 def _take(cross: _Crossing, keep: np.ndarray) -> _Crossing:

@@ -26,11 +26,11 @@ X, Y, Z = np.eye(3)
 
 def shadowed_floor(occluder: str, light: str = "area") -> render.Scene:
     """A floor under an occluder ("square", "box", "tall box" or "sphere") lit by a
-    small square area light (a ``Transform`` places it) or a point light above; 8 x 8
-    pixels. With the area light the camera looks down at the floor's soft shadow from
-    under the occluder (which it does not see); with the others it looks up at the
-    occluder's underside, lit only by the floor, whose hard shadow it sees after one
-    bounce."""
+    small square area light (a ``Transform`` places it), a point light ("point", "point
+    seen") or the sun ("directional") above; 8 x 8 pixels. With the area light and "point
+    seen" the camera looks down at the floor's shadow from under the occluder (which it
+    does not see); with the others it looks up at the occluder's underside, lit only by
+    the floor, whose hard shadow it sees after one bounce."""
     v, f = grid_quad((0, 0, 0), 1.5 * X, -1.5 * Z)
     objects = [render.Mesh(v, f, render.Material((0.8, 0.8, 0.8)))]
     grey = render.Material((0.5, 0.5, 0.5))
@@ -44,18 +44,19 @@ def shadowed_floor(occluder: str, light: str = "area") -> render.Scene:
     else:
         objects.append(render.Sphere((0.1, 0.6, 0.0), 0.2, grey))
     lights = []
+    down = render.Camera((0.05, 0.35, 0.05), (0.0, 0.0, 0.0), (0, 0, -1), 110.0, 8, 8)
+    up = render.Camera((0.05, 0.2, 0.05), (0.1, 0.6, 0.0), (0, 0, -1), 50.0, 8, 8)
     if light == "area":
         v, f = grid_quad((0.0, 1.0, 0.0), 0.25 * X, 0.25 * Z)
         emitter = render.Material((0, 0, 0), emission=(5.0, 5.0, 5.0))
         objects.append(render.Mesh(v, f, emitter, transform=render.Transform()))
-        camera = render.Camera((0.05, 0.35, 0.05), (0.0, 0.0, 0.0), (0, 0, -1), 110.0, 8, 8)
+        camera = down
+    elif light == "directional":
+        lights.append(render.DirectionalLight((0.3, -1.0, 0.2), 2.0))
+        camera = up
     else:
-        lights.append(
-            render.PointLight((0.0, 1.1, 0.1), 3.0)
-            if light == "point"
-            else render.DirectionalLight((0.3, -1.0, 0.2), 2.0)
-        )
-        camera = render.Camera((0.05, 0.2, 0.05), (0.1, 0.6, 0.0), (0, 0, -1), 50.0, 8, 8)
+        lights.append(render.PointLight((0.0, 1.1, 0.1), 3.0))
+        camera = down if light == "point seen" else up
     return render.Scene(objects, lights, camera)
 
 
@@ -73,6 +74,8 @@ CASES = {
                                    lambda p: np.array([1.0, 0.2, 0.5])),
     "sun after a bounce": ("square", "directional", lambda s: s.lights[0].direction,
                            lambda p: np.array([1.0, 0.0, 0.5])),
+    "point light's shadow in view": ("sphere", "point seen", lambda s: s.lights[0].position,
+                                     lambda p: np.array([1.0, 0.2, 0.5])),
 }  # fmt: skip
 
 
@@ -97,7 +100,7 @@ def derivative(case: str, antialias, spp: int, seed: int, delta: float = 0.0, gr
     d = direction(p)
     p.data = p.data + delta * d
     p.requires_grad = grad
-    depth = 2 if light == "area" else 3
+    depth = 3 if light in ("point", "directional") else 2
     image = render_path(scene, spp=spp, max_depth=depth, seed=seed, rr_depth=100,
                         antialias=antialias)  # fmt: skip
     total = image.sum()
