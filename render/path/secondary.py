@@ -59,7 +59,7 @@ from render.path.random import uniform
 from render.path.sampling import dot, unit
 from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
-from render.path.transport import path_radiance, vertex_on_tape
+from render.path.transport import next_vertex, path_radiance, vertex_on_tape, viewer_side
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
 from render.scene.lights import DirectionalLight, PointLight
 from render.shade.surface import column, geometric_normals, in_order
@@ -300,7 +300,7 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     normal *= np.where(dot(normal, previous - here) < 0, -1.0, 1.0)[:, None]
     obj = np.searchsorted(sampler.first, record.prim, side="right") - 1
     lobes = sampler.lobes.probability[obj]
-    can = (record.form != MIRROR) & (lobes[:, 0] + lobes[:, 1] > 0)
+    can = lobes[:, 0] + lobes[:, 1] > 0  # a pure mirror's reflection has no area integral
     ids = batch.paths[rows]
     origin = here + shadow_offset(here, sampler.size) * normal
     dims = 2 + 8 * (k - 1)  # bounce k's block of dimensions (render.path.random)
@@ -459,14 +459,9 @@ def _value(world, frame, sampler, curves, batch, k, src, hit, records, light):
     rays = PathBatch(batch.paths[src], batch.coords[src], np.zeros(len(src), bool), records)
     with md.no_grad():
         radiance = path_radiance(world, frame, sampler, rays).data
-    record = batch.vertices[k - 1]
-    pos = np.searchsorted(record.rows, src)
     dtype = radiance.dtype
     if light is None:  # the apex is x_k itself
-        directions = ray_directions(frame, batch.coords[src].astype(dtype))
-        origins = md.broadcast_to(frame[3], (len(src), 3))
-        apex = vertex_on_tape(world, sampler, record.prim[pos], record.local[pos],
-                              record.form[pos], origins, directions).points  # fmt: skip
+        apex = _vertex_points(world, frame, sampler, batch, src, k, dtype)
     else:
         apex = md.broadcast_to(_apex(world.lights[light], sampler), (len(src), 3))
     far = vertex_on_tape(world, sampler, hit.prim, hit.local, np.full(len(src), AREA, np.int8),
@@ -474,6 +469,34 @@ def _value(world, frame, sampler, curves, batch, k, src, hit, records, light):
     phi = _phi(world, curves, hit.index, apex, far)
     moved = phi - md.tensor(phi.data)  # zero, with phi's derivative
     return md.tensor(radiance * hit.weight[:, None]) * column(moved)
+
+
+def _vertex_points(world, frame, sampler, batch, src, k, dtype) -> md.Tensor:
+    """(m, 3) on the tape: the k-th vertices of the batch's paths ``src`` (m,), as the tape
+    places them: at their places on their surfaces, where the camera's rays meet them, or,
+    after a mirror, where the reflected rays do (the path replayed from its camera vertex,
+    ``transport.next_vertex``)."""
+    directions = ray_directions(frame, batch.coords[src].astype(dtype))
+    origins = md.broadcast_to(frame[3], (len(src), 3))
+    here = _Rows(batch.vertices[k - 1], src)
+    if not np.any(here.form == MIRROR):  # no reflected ray to replay
+        return vertex_on_tape(world, sampler, here.prim, here.local, here.form, origins,
+                              directions).points  # fmt: skip
+    first = _Rows(batch.vertices[0], src)
+    v = vertex_on_tape(world, sampler, first.prim, first.local, first.form, origins, directions)
+    for d in range(1, k):
+        step = _Rows(batch.vertices[d], src)
+        v = next_vertex(world, sampler, v, v.shading * viewer_side(v), np.arange(len(src)), step)
+    return v.points
+
+
+class _Rows:
+    """The primitive, place and form of the paths ``src`` in a ``Vertices`` record (what
+    ``vertex_on_tape`` and ``next_vertex`` read)."""
+
+    def __init__(self, record: Vertices, src: np.ndarray):
+        pos = np.searchsorted(record.rows, src)
+        self.prim, self.local, self.form = record.prim[pos], record.local[pos], record.form[pos]
 
 
 def _phi(world, curves: Curves, index, apex, far) -> md.Tensor:

@@ -113,8 +113,7 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
     """Add what the paths gain at one depth's vertices (emission, NEE, lights, the
     environment after a last bounce) to ``parts``; return the throughput (k', 3) and the
     ``Vertex`` of the paths that go on (None, None when none does)."""
-    side = np.where(md.kernels.dot_last(v.geometric.data, v.wo.data) < 0, -1.0, 1.0).astype(dtype)
-    side = side[:, None]
+    side = viewer_side(v).astype(dtype)
     ns = v.shading * side  # two-sided: the shading normal faces the viewer
     look = v.look
     diffuse = look.albedo * (1.0 / math.pi)
@@ -187,10 +186,7 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
         return None, None
     at = np.searchsorted(rows, following.rows)  # the continuing paths among these
     is_mirror = following.form == MIRROR
-    # A mirror bounce's ray moves with the surface and its normal; others need no ray.
-    reflected = 2.0 * column(md.dot(v.wo[at], ns[at])) * ns[at] - v.wo[at]
-    nxt = vertex_on_tape(world, sampler, following.prim, following.local, following.form,
-                         v.points[at], reflected)  # fmt: skip
+    nxt = next_vertex(world, sampler, v, ns, at, following)
     factors, order = [], []
     area_rows = np.flatnonzero(~is_mirror)
     if len(area_rows):
@@ -209,6 +205,22 @@ def _at_vertex(world, sampler, record, following, v: Vertex, throughput, parts, 
         order.append(mirror_rows)
     factor = in_order(factors, order)
     return _times(None if throughput is None else throughput[at], factor), nxt
+
+
+def next_vertex(world, sampler: PathSampler, v: Vertex, ns, at: np.ndarray, record) -> Vertex:
+    """The vertices of ``record`` (the next depth's ``Vertices``) reached from rows ``at``
+    of ``v`` (their shading normals ``ns`` (k, 3), facing the viewer): ``AREA`` ones at
+    their places, ``MIRROR`` ones where the reflected rays meet their primitives."""
+    # A mirror bounce's ray moves with the surface and its normal; others need no ray.
+    reflected = 2.0 * column(md.dot(v.wo[at], ns[at])) * ns[at] - v.wo[at]
+    return vertex_on_tape(world, sampler, record.prim, record.local, record.form, v.points[at],
+                          reflected)  # fmt: skip
+
+
+def viewer_side(v: Vertex) -> np.ndarray:
+    """(k, 1): +1 where the geometric normal of ``v`` faces the viewer (``wo``), else -1:
+    surfaces are two-sided, and their normals are turned to face the viewer."""
+    return np.where(md.kernels.dot_last(v.geometric.data, v.wo.data) < 0, -1.0, 1.0)[:, None]
 
 
 def _area_factor(sampler: PathSampler, prims: np.ndarray, dtype) -> np.ndarray:
