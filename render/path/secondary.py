@@ -21,7 +21,7 @@ F = 0; on the other side F is the whole path through x' (``docs/path_tracing.md`
 derivation). Next-event estimation needs no term of its own: its point on an area light is
 one more x' in the same area measure, and its MIS weight and the BSDF-sampled one sum to 1.
 
-The estimator, per vertex x_k of a path (k >= 1; not after a mirror, see below): pick a
+The estimator, per vertex x_k of a path (k >= 1; after a mirror too): pick a
 silhouette with probability proportional to the angle it subtends at x_k, a point m on it
 uniformly in that angle (``render.path.silhouettes``), trace the ray x_k -> m (it must
 reach m) and on beyond m to x'; the sample is
@@ -40,10 +40,12 @@ beta_k f_k G L); phi is recomputed on the tape from x_k, x' (their places on the
 surfaces), the curve and the light, so ``backward`` reaches every parameter that moves
 them. Each sample's value is phi - phi = 0: the term adds nothing to the image.
 
-Not covered: vertices reached through a mirror (their position on the tape is a chain of
-reflections), an environment seen past an edge after a bounce, and occluders in contact
-with the surface behind them (a block standing on the floor: its bottom edges are left
-out, which is exact while the contact holds).
+The lights' shadows that the camera sees directly are the same curves in the image
+plane's integral (``_seen_shadows``). Not covered: edges seen in a mirror (from the camera
+or from a vertex: the mirror's reflection has no area integral to carry them), an
+environment seen past an edge after a bounce, and occluders in contact with the surface
+behind them (a block standing on the floor: its bottom edges are left out, which is exact
+while the contact holds).
 """
 
 from __future__ import annotations
