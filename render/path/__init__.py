@@ -11,8 +11,13 @@ everything continuous on it:
   shaded with ``render.shade.lighting``'s materials and lights;
 * ``integrator``: the image from batches of paths, and its gradient through the tape or by
   replay (``render_path``, ``replay_gradient``);
-* ``edges``: primary visibility's boundary term (``antialias="boundary"``), the boundary
-  integral of ``render.edges`` with the jumps path-traced.
+* ``edges``: primary visibility's boundary term (``antialias="boundary"`` or
+  ``"primary"``), the boundary integral of ``render.edges`` with the jumps path-traced;
+* ``secondary``: secondary visibility's (``"boundary"`` or ``"secondary"``): soft shadows,
+  lights' shadows, indirect occlusion, by edge sampling from every path vertex, with the
+  curves and their draws in ``silhouettes``;
+* ``kernel`` (with ``scalar``, ``packed``, ``chain``, ``adjoint``, ``replay``): the
+  compiled path tracer and path replay beside the reference.
 
 ``docs/path_tracing.md`` walks through them.
 """

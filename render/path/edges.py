@@ -13,8 +13,8 @@ after those of the image (pixel x spp + sample), so that the jumps are independe
 image's own samples. The estimate of each jump is unbiased, so the boundary term is; it is
 added to the image with value zero, as the direct renderer's is.
 
-Not included: the boundary terms of secondary visibility (soft shadows' and indirect
-occlusion's edges, ``docs/path_tracing.md`` measures what they leave out).
+Secondary visibility's boundary terms (soft shadows, lights' shadows, indirect occlusion)
+are ``render.path.secondary``'s.
 """
 
 from __future__ import annotations
