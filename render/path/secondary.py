@@ -57,7 +57,7 @@ import numpy as np
 
 import minidiff as md
 from render.path import kernel
-from render.path.random import uniform
+from render.path.random import bounce_dimension, uniform
 from render.path.sampling import dot, unit
 from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
@@ -77,8 +77,6 @@ CHOICE_KEY = 0x2545_F491_4F6C_DD1D
 FAR = 1e6
 #: Boundary paths traced together (bounds the memory of one chunk's tape).
 CHUNK_PATHS = 1 << 14
-#: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
-GRAZING = 1e-9
 
 
 @dataclass
@@ -135,17 +133,15 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     weight = np.where(good, along / np.where(good, across, 1.0), 0.0) * sign / probability[rows]
     valid = np.zeros(len(index), bool)
     valid[rows] = good
-    keep = good
-    return _Crossing(valid, prim[keep], local[keep], points[keep], normal[keep], weight[keep],
-                     index[rows][keep])  # fmt: skip
+    return _Crossing(valid, prim[good], local[good], points[good], normal[good], weight[good],
+                     index[rows][good])  # fmt: skip
 
 
 def add_secondary_term(world, image: md.Tensor, frame, sampler: PathSampler) -> md.Tensor:
     """The image (H, W, 3) plus secondary visibility's boundary term (zero in value),
     estimated with ``sampler.spp`` boundary paths per pixel; on the tape of ``world``."""
-    own = _boundary_sampler(sampler)
-    curves = Curves.of(own)
-    terms = [_chunk(world, frame, own, curves, paths) for paths in _paths(own)]
+    own, curves, packed = _boundary_sampler(sampler)
+    terms = [_chunk(world, frame, own, curves, packed, paths) for paths in _paths(own)]
     terms = [t for t in terms if t is not None]
     if not terms:
         return image
@@ -160,22 +156,23 @@ def backpropagate_secondary(placed_world, sampler: PathSampler, d_image: np.ndar
     """Add d_image . d term / d p to the gradients of the parameters, ``d_image`` (H, W, 3)
     dL/dimage: one chunk of ``CHUNK_PATHS`` boundary paths at a time, each on a fresh tape
     from ``placed_world()`` (memory bounded by a chunk, whatever the spp)."""
-    own = _boundary_sampler(sampler)
-    curves = Curves.of(own)
+    own, curves, packed = _boundary_sampler(sampler)
     weights = d_image.reshape(-1, 3) * (1.0 / sampler.spp)
     for paths in _paths(own):
         world = placed_world()
-        term = _chunk(world, camera_frame(world.camera), own, curves, paths)
+        term = _chunk(world, camera_frame(world.camera), own, curves, packed, paths)
         if term is not None and term[0].requires_grad:
             values, pixels = term
             md.sum(values * weights[pixels]).backward()
 
 
-def _boundary_sampler(sampler: PathSampler) -> PathSampler:
-    """The render's sampler with the boundary paths' seed (``SEED_KEY``)."""
+def _boundary_sampler(sampler: PathSampler):
+    """What every chunk of boundary paths shares: the render's sampler with the boundary
+    paths' seed (``SEED_KEY``), the scene's curves, and the kernel's arrays (None where the
+    kernel does not apply)."""
     own = copy.copy(sampler)
     own.seed = (sampler.seed ^ SEED_KEY) & (2**64 - 1)
-    return own
+    return own, Curves.of(own), kernel.pack(own) if kernel.applies(own.scene) else None
 
 
 def _paths(sampler: PathSampler):
@@ -186,13 +183,14 @@ def _paths(sampler: PathSampler):
         yield np.arange(start, min(start + CHUNK_PATHS, total), dtype=np.int64)
 
 
-def _chunk(world, frame, sampler: PathSampler, curves: Curves, paths: np.ndarray):
+def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np.ndarray):
     """(values (M, 3) on the tape, pixel (M,)) of the boundary samples of boundary paths
-    ``paths`` (their prefixes traced by the kernel where it applies), or None if none."""
+    ``paths`` (their prefixes traced by the kernel with ``packed``, else by the reference),
+    or None if none."""
     if curves.n_edges + len(curves.radius) == 0:
         return None
-    if kernel.applies(sampler.scene):
-        batch, _ = kernel.sample_paths(sampler, paths)
+    if packed is not None:
+        batch, _ = kernel.sample_paths(sampler, paths, packed)
     else:
         batch = sampler.sample(paths)
     points = _points(sampler, batch)
@@ -226,13 +224,9 @@ def _seen_shadows(sampler, curves, paths, world, frame):
         if not isinstance(light, PointLight | DirectionalLight):
             continue
         seed = sampler.seed ^ ((CHOICE_KEY * (j + 2 + len(sampler.scene.lights))) & (2**64 - 1))
-        with md.no_grad():
-            at = np.asarray(_apex(light, sampler).data, np.float64)[None]
-        every = np.ones(len(paths), bool)
-        pick = curves.pick(at, (uniform(seed, paths, 0), uniform(seed, paths, 1), every))[0]
-        apex = np.repeat(at, len(paths), 0)
-        cross = _cross(sampler, curves, apex, *pick[:3], pick[3], np.broadcast_to(eye, apex.shape),
-                       apex)  # fmt: skip
+        u = (uniform(seed, paths, 0), uniform(seed, paths, 1))
+        at, cross = _from_light(sampler, curves, light, *u, np.ones(len(paths), bool),
+                                np.broadcast_to(eye, (len(paths), 3)))  # fmt: skip
         px, depth = project(cross.points, sampler.frame, width, height)
         inside = (depth > 0) & np.all((px >= 0) & (px < [width, height]), axis=1)
         inside &= dot(cross.normal, at - cross.points) > 0  # lit from the camera's side
@@ -305,7 +299,7 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     can = lobes[:, 0] + lobes[:, 1] > 0  # a pure mirror's reflection has no area integral
     ids = batch.paths[rows]
     origin = here + shadow_offset(here, sampler.size) * normal
-    dims = 2 + 8 * (k - 1)  # bounce k's block of dimensions (render.path.random)
+    dims = bounce_dimension(k, "lobe")  # bounce k's block of dimensions (its first)
     seed = sampler.seed ^ CHOICE_KEY
 
     # Two estimators of the next segment's term, for two parts of F: x''s emission, by
@@ -349,12 +343,8 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         if not isinstance(light, PointLight | DirectionalLight):
             continue
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
-        u_curve, u_point = uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1)
-        with md.no_grad():
-            at = np.asarray(_apex(light, sampler).data, np.float64)[None]
-        index, probability, side, t = curves.pick(at, (u_curve, u_point, can))[0]
-        apex = np.repeat(at, len(ids), 0)
-        cross = _cross(sampler, curves, apex, index, probability, side, t, here, apex)
+        u = (uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1))
+        at, cross = _from_light(sampler, curves, light, *u, can, here)
         sub = np.flatnonzero(cross.valid)
         to = cross.points - here[sub]
         ok = (dot(normal[sub], to) > 0) & (dot(cross.normal, at - cross.points) > 0)
@@ -387,6 +377,18 @@ def _samples(world, frame, sampler, curves, batch, k, cross, keep, here, part, l
         tail = [_quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lit)]
         tail[0].emit_weight[:] = 1.0 if part == "emission" else 0.0
     yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + tail, light), src
+
+
+def _from_light(sampler, curves, light, u_curve, u_point, active, viewer):
+    """Points x' on the borders of ``light``'s shadows, one per row of the uniforms
+    (n,) where ``active``: a silhouette seen from the light and a point on it, the first
+    surface beyond; normals turned to ``viewer`` (n, 3). Returns (where the light casts
+    from (1, 3), the ``_Crossing``)."""
+    with md.no_grad():
+        at = np.asarray(_apex(light, sampler).data, np.float64)[None]
+    index, density, side, t = curves.pick(at, (u_curve, u_point, active))[0]
+    apex = np.repeat(at, len(u_curve), 0)
+    return at, _cross(sampler, curves, apex, index, density, side, t, viewer, apex)
 
 
 def _apex(light, sampler: PathSampler):

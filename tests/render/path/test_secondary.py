@@ -7,7 +7,6 @@ replay against the tape; errors."""
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -166,21 +165,43 @@ def test_compiled_draws_equal_the_reference(seed, towards):
         np.testing.assert_allclose(got[ok], want[ok], rtol=1e-9, atol=1e-12)
 
 
-def test_draws_do_not_depend_on_the_thread_count():
-    curves, sampler = cornell_curves()
-    rng = np.random.default_rng(3)
-    apex, u = rng.uniform(-0.99, 0.99, (300, 3)), rng.random((2, 300))
-    active = np.ones(300, bool)
-    before = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
-        one = curves.pick(apex, (u[0], u[1], active))[0]
-        numba.set_num_threads(before)
-        many = curves.pick(apex, (u[0], u[1], active))[0]
-    finally:
-        numba.set_num_threads(before)
-    for a, b in zip(one, many, strict=True):
-        np.testing.assert_array_equal(a, b)
+#: The secondary term's gradient and the curve draws on 1 and 2 threads in one process.
+_THREADS = """
+import sys, numba, numpy as np
+sys.path.insert(0, "tests/render/path")
+from test_secondary import cornell_curves, shadowed_floor
+from render.path import render_path
+curves, _ = cornell_curves()
+rng = np.random.default_rng(3)
+apex, u = rng.uniform(-0.99, 0.99, (300, 3)), rng.random((2, 300))
+runs = []
+for n in (1, 2):
+    numba.set_num_threads(n)
+    assert numba.get_num_threads() == n
+    scene = shadowed_floor("sphere")
+    p = scene.objects[1].center
+    p.requires_grad = True
+    render_path(scene, spp=16, max_depth=3, seed=2, antialias="secondary").sum().backward()
+    runs.append((p.grad.copy(), *curves.pick(apex, (u[0], u[1], np.ones(300, bool)))[0]))
+assert np.abs(runs[0][0]).max() > 0
+for a, b in zip(*runs):
+    assert np.array_equal(a, b)
+print("same bits")
+"""
+
+
+@pytest.mark.new_processes
+def test_the_same_bits_on_one_and_two_threads():
+    """In a new process (a pytest-xdist worker is limited to one Numba thread)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
+    done = subprocess.run([sys.executable, "-c", _THREADS], env=env, capture_output=True,
+                          text=True, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "same bits"
 
 
 def test_replay_equals_the_tape():
