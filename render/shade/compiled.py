@@ -61,7 +61,23 @@ def shade_mesh_values(
     as plain values. ``camera``: (forward, right, up, eye) float64 (3,) each (the camera
     frame's values); ``lit[j]`` (k,): 1 where light j reaches the hit."""
     forward, right, up, eye = camera
-    material = mesh.material
+    visible = np.zeros((len(lights), len(faces_hit)))
+    for j, mask in enumerate(lit):
+        visible[j] = mask
+    out = np.empty((len(faces_hit), 3))
+    texel = np.empty(len(faces_hit), np.int64)
+    _shade_kernel(
+        np.ascontiguousarray(coords, np.float64), (eye, right, up, forward), mesh_pack(mesh),
+        np.ascontiguousarray(faces_hit, np.int64), material_pack(mesh.material),
+        lights_pack(lights), visible, numba.get_num_threads(), out, texel,
+    )  # fmt: skip
+    return out, texel
+
+
+def mesh_pack(mesh: Mesh) -> tuple:
+    """``shade_hit``'s mesh tuple of ``mesh``: (vertices (V, 3), faces (F, 3), vertex
+    normals (V, 3) (its own, or computed from its vertices; (0, 3) if it is flat), UVs
+    (V, 2) ((0, 2) if untextured), smooth, textured)."""
     with md.no_grad():  # the normals a smooth mesh without its own computes from its vertices
         normals = (
             np.zeros((0, 3))
@@ -70,34 +86,36 @@ def shade_mesh_values(
             if mesh.normals is not None
             else vertex_normals(mesh.vertices, mesh.faces).data
         )
-    # Per light: its kind, its position or the unit vector towards it, its strength.
-    packs = [light.shading_pack() for light in lights]
-    vec = np.array([p[1] for p in packs], np.float64).reshape(-1, 3)
-    textured = bool(material.textures)
+    textured = bool(mesh.material.textures)
+    uvs = mesh.uvs.data if textured else np.zeros((0, 2))
+    return mesh.vertices.data, mesh.faces, normals, uvs, mesh.smooth, textured
+
+
+def material_pack(material) -> tuple:
+    """``shade_hit``'s material tuple of ``material`` (float64 values)."""
     maps = [material.texture, material.specular_texture, material.ambient_texture]
-    kinds = np.array([p[0] for p in packs], np.int64)
-    strength = np.array([p[2] for p in packs], np.float64).reshape(-1)
-    colour = np.array([light.color.data for light in lights], np.float64).reshape(-1, 3)
-    visible = np.zeros((len(lights), len(faces_hit)))
-    for j, mask in enumerate(lit):
-        visible[j] = mask
     specular, ambient, emission = (
         np.broadcast_to(t.data, (3,)).astype(np.float64)
         for t in (material.specular, material.ambient, material.emission)
     )
-    out = np.empty((len(faces_hit), 3))
-    texel = np.empty(len(faces_hit), np.int64)
-    _shade_kernel(
-        np.ascontiguousarray(coords, np.float64), eye, right, up, forward,
-        mesh.vertices.data, mesh.faces, np.ascontiguousarray(faces_hit, np.int64),
-        normals, mesh.uvs.data if textured else np.zeros((0, 2)),
+    return (
         *(_NO_MAP if m is None else m.data for m in maps),
         material.albedo.data, specular, ambient, float(material.shininess.data), emission,
-        mesh.smooth, textured, bool(np.any(material.specular.data)),
-        bool(np.any(material.ambient.data)), material.emissive,
-        kinds, vec, strength, colour, visible, numba.get_num_threads(), out, texel,
+        bool(np.any(material.specular.data)), bool(np.any(material.ambient.data)),
+        material.emissive,
     )  # fmt: skip
-    return out, texel
+
+
+def lights_pack(lights) -> tuple:
+    """``shade_hit``'s lights tuple: per light its kind, its position or the unit vector
+    towards it (``Light.shading_pack``), its strength and colour."""
+    packs = [light.shading_pack() for light in lights]
+    return (
+        np.array([p[0] for p in packs], np.int64),
+        np.array([p[1] for p in packs], np.float64).reshape(-1, 3),
+        np.array([p[2] for p in packs], np.float64).reshape(-1),
+        np.array([light.color.data for light in lights], np.float64).reshape(-1, 3),
+    )
 
 
 @numba.njit(cache=True, inline="always")
@@ -125,103 +143,127 @@ def _unit(x0, x1, x2):
     return x0 * inv, x1 * inv, x2 * inv
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
+    """The radiance of one camera ray through image-plane point (x, y) that hits row
+    ``face`` of ``mesh``: what ``surface_at`` then ``shade_surface`` compute for one hit,
+    in the tape code's order of operations. Written into ``out`` (3,); returns the hit's
+    texture cell (-1: untextured).
+
+    camera: (eye, right, up, forward), float64 (3,) each (the camera frame's values).
+    mesh: (vertices (V, 3) float64, faces (F, 3) int64, vertex normals (V, 3) (read only
+        if smooth), UVs (V, 2) (read only if textured), smooth, textured).
+    material: (albedo map, specular map, ambient map: (H, W, 3) float64 each, (0, 0, 3)
+        for none; albedo (3,), specular (3,), ambient (3,), shininess (float), emission
+        (3,); specular_on, ambient_on, emissive: whether those terms are added).
+    lights: (kind (L,) int64, vector (L, 3): a point light's position or the unit vector
+        towards a directional light, strength (L,), colour (L, 3)) (``Light.shading_pack``).
+    lit: (L,) float64, 1 where light j reaches the hit, 0 where it does not.
+    work: (2, 3) float64 scratch (the albedo and specular at the hit)."""
+    eye, right, up, forward = camera
+    vertices, faces, vertex_normal, uvs, smooth, textured = mesh
+    albedo_map, specular_map, ambient_map = material[0], material[1], material[2]
+    albedo, specular, ambient, shininess, emission = material[3:8]
+    specular_on, ambient_on, emissive = material[8], material[9], material[10]
+    light_kind, light_vec, light_strength, light_color = lights
+    albedo_p, specular_p = work[0], work[1]
+    # The camera ray (render.scene.camera.camera_directions).
+    d0 = x * right[0] + y * up[0] + forward[0]
+    d1 = x * right[1] + y * up[1] + forward[1]
+    d2 = x * right[2] + y * up[2] + forward[2]
+    # Moller-Trumbore (render.shade.surface.intersect_edges).
+    ia, ib, ic = faces[face, 0], faces[face, 1], faces[face, 2]
+    a, b, cc = vertices[ia], vertices[ib], vertices[ic]
+    e10, e11, e12 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    e20, e21, e22 = cc[0] - a[0], cc[1] - a[1], cc[2] - a[2]
+    p0, p1 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22
+    p2 = d0 * e21 - d1 * e20
+    inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
+    s0, s1, s2 = eye[0] - a[0], eye[1] - a[1], eye[2] - a[2]
+    q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
+    t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
+    u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
+    v = (d0 * q0 + d1 * q1 + d2 * q2) * inv_det
+    # The normal, facing the ray (surface_at, toward_ray).
+    n0, n1, n2 = _unit(e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20)
+    flip = -1.0 if n0 * d0 + n1 * d1 + n2 * d2 > 0 else 1.0
+    w0 = 1.0 - u - v
+    if smooth:
+        na, nb, nc = vertex_normal[ia], vertex_normal[ib], vertex_normal[ic]
+        n0, n1, n2 = _unit(
+            0 + w0 * na[0] + u * nb[0] + v * nc[0],
+            0 + w0 * na[1] + u * nb[1] + v * nc[1],
+            0 + w0 * na[2] + u * nb[2] + v * nc[2],
+        )
+    n0, n1, n2 = n0 * flip, n1 * flip, n2 * flip
+    # The material at the hit (render.shade.lighting.appearance).
+    texel = -1
+    uu = vv = 0.0
+    if textured:
+        uu = 0 + w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0]
+        vv = 0 + w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1]
+    for c in range(3):
+        albedo_p[c], specular_p[c] = albedo[c], specular[c]
+        if albedo_map.shape[0] > 0:
+            albedo_p[c], texel = _sample(albedo_map, uu, vv, c)
+        if specular_map.shape[0] > 0:
+            specular_p[c] = specular[c] * _sample(specular_map, uu, vv, c)[0]
+    # The lights (render.shade.lighting.shade).
+    lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
+    point = (eye[0] + t * d0, eye[1] + t * d1, eye[2] + t * d2)
+    view = _unit(d0, d1, d2)
+    for j in range(light_kind.shape[0]):
+        if light_kind[j] == 0:  # a point light
+            o0 = light_vec[j, 0] - point[0]
+            o1 = light_vec[j, 1] - point[1]
+            o2 = light_vec[j, 2] - point[2]
+            distance_sq = o0 * o0 + o1 * o1 + o2 * o2
+            irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
+            l0, l1, l2 = _unit(o0, o1, o2)
+        else:  # a directional light: light_vec holds the unit vector to it
+            l0, l1, l2 = light_vec[j, 0], light_vec[j, 1], light_vec[j, 2]
+            irradiance = light_strength[j]
+        cos_theta = n0 * l0 + n1 * l1 + n2 * l2
+        cos_theta = 0.0 if cos_theta < 0.0 else cos_theta
+        lobe = 0.0
+        if specular_on:
+            h0, h1, h2 = _unit(l0 + -view[0], l1 + -view[1], l2 + -view[2])
+            n_dot_h = n0 * h0 + n1 * h1 + n2 * h2
+            n_dot_h = 1e-12 if n_dot_h < 1e-12 else n_dot_h
+            lobe = n_dot_h**shininess * lobe_scale
+        scalar = irradiance * cos_theta * lit[j]
+        for c in range(3):
+            f = albedo_p[c] * (1.0 / math.pi)
+            if specular_on:
+                f = f + lobe * specular_p[c]
+            term = scalar * (f * light_color[j, c])
+            out[c] = term if j == 0 else out[c] + term
+    for c in range(3):
+        if light_kind.shape[0] == 0:
+            out[c] = 0.0
+        if ambient_on:
+            a_c = ambient[c]
+            if ambient_map.shape[0] > 0:
+                a_c = ambient[c] * _sample(ambient_map, uu, vv, c)[0]
+            out[c] = out[c] + a_c
+        if emissive:
+            out[c] = out[c] + (1.0 if flip > 0 else 0.0) * emission[c]
+    return texel
+
+
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def _shade_kernel(
-    coords, eye, right, up, forward, vertices, faces, face, vertex_normal, uvs,
-    albedo_map, specular_map, ambient_map, albedo, specular, ambient, shininess, emission,
-    smooth, textured, specular_on, ambient_on, emissive,
-    light_kind, light_vec, light_strength, light_color, visible, n_threads, out, texel,
-):  # fmt: skip
-    """``shade_mesh_values``' loop: per hit p, in the tape code's order of operations."""
-    k = face.shape[0]
+    coords, camera, mesh, faces_hit, material, lights, visible, n_threads, out, texel
+):
+    """``shade_mesh_values``' loop: ``shade_hit`` of every hit p, in parallel over
+    ``n_threads`` (``render.trace.intersect._jobs``); ``visible`` (L, k) the lit masks."""
+    k = faces_hit.shape[0]
     n_blocks, n_jobs = _jobs(k, n_threads)
-    lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
     for job in numba.prange(n_jobs):
-        d, n, albedo_p, specular_p = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-        radiance = np.empty(3)
+        work = np.empty((2, 3))
         for block in range(job, n_blocks, n_jobs):
             for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
-                # The camera ray (render.scene.camera.camera_directions).
-                x, y = coords[p, 0], coords[p, 1]
-                for c in range(3):
-                    d[c] = x * right[c] + y * up[c] + forward[c]
-                # Moller-Trumbore (render.shade.surface.intersect_edges).
-                ia, ib, ic = faces[face[p], 0], faces[face[p], 1], faces[face[p], 2]
-                a, b, cc = vertices[ia], vertices[ib], vertices[ic]
-                e10, e11, e12 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-                e20, e21, e22 = cc[0] - a[0], cc[1] - a[1], cc[2] - a[2]
-                p0, p1 = d[1] * e22 - d[2] * e21, d[2] * e20 - d[0] * e22
-                p2 = d[0] * e21 - d[1] * e20
-                inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
-                s0, s1, s2 = eye[0] - a[0], eye[1] - a[1], eye[2] - a[2]
-                q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
-                t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
-                u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
-                v = (d[0] * q0 + d[1] * q1 + d[2] * q2) * inv_det
-                # The normal, facing the ray (surface_at, toward_ray).
-                n[0], n[1], n[2] = _unit(
-                    e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20
-                )
-                flip = -1.0 if n[0] * d[0] + n[1] * d[1] + n[2] * d[2] > 0 else 1.0
-                w0 = 1.0 - u - v
-                if smooth:
-                    na, nb, nc = vertex_normal[ia], vertex_normal[ib], vertex_normal[ic]
-                    n[0], n[1], n[2] = _unit(
-                        0 + w0 * na[0] + u * nb[0] + v * nc[0],
-                        0 + w0 * na[1] + u * nb[1] + v * nc[1],
-                        0 + w0 * na[2] + u * nb[2] + v * nc[2],
-                    )
-                for c in range(3):
-                    n[c] = n[c] * flip
-                # The material at the hit (render.shade.lighting.appearance).
-                texel[p] = -1
-                uu = vv = 0.0
-                if textured:
-                    uu = 0 + w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0]
-                    vv = 0 + w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1]
-                for c in range(3):
-                    albedo_p[c], specular_p[c] = albedo[c], specular[c]
-                    if albedo_map.shape[0] > 0:
-                        albedo_p[c], texel[p] = _sample(albedo_map, uu, vv, c)
-                    if specular_map.shape[0] > 0:
-                        specular_p[c] = specular[c] * _sample(specular_map, uu, vv, c)[0]
-                # The lights (render.shade.lighting.shade).
-                point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
-                view = _unit(d[0], d[1], d[2])
-                for j in range(light_kind.shape[0]):
-                    if light_kind[j] == 0:  # a point light
-                        o0 = light_vec[j, 0] - point[0]
-                        o1 = light_vec[j, 1] - point[1]
-                        o2 = light_vec[j, 2] - point[2]
-                        distance_sq = o0 * o0 + o1 * o1 + o2 * o2
-                        irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
-                        l0, l1, l2 = _unit(o0, o1, o2)
-                    else:  # a directional light: light_vec holds the unit vector to it
-                        l0, l1, l2 = light_vec[j, 0], light_vec[j, 1], light_vec[j, 2]
-                        irradiance = light_strength[j]
-                    cos_theta = n[0] * l0 + n[1] * l1 + n[2] * l2
-                    cos_theta = 0.0 if cos_theta < 0.0 else cos_theta
-                    lobe = 0.0
-                    if specular_on:
-                        h0, h1, h2 = _unit(l0 + -view[0], l1 + -view[1], l2 + -view[2])
-                        n_dot_h = n[0] * h0 + n[1] * h1 + n[2] * h2
-                        n_dot_h = 1e-12 if n_dot_h < 1e-12 else n_dot_h
-                        lobe = n_dot_h**shininess * lobe_scale
-                    scalar = irradiance * cos_theta * visible[j, p]
-                    for c in range(3):
-                        f = albedo_p[c] * (1.0 / math.pi)
-                        if specular_on:
-                            f = f + lobe * specular_p[c]
-                        term = scalar * (f * light_color[j, c])
-                        radiance[c] = term if j == 0 else radiance[c] + term
-                for c in range(3):
-                    if light_kind.shape[0] == 0:
-                        radiance[c] = 0.0
-                    if ambient_on:
-                        a_c = ambient[c]
-                        if ambient_map.shape[0] > 0:
-                            a_c = ambient[c] * _sample(ambient_map, uu, vv, c)[0]
-                        radiance[c] = radiance[c] + a_c
-                    if emissive:
-                        radiance[c] = radiance[c] + (1.0 if flip > 0 else 0.0) * emission[c]
-                    out[p, c] = radiance[c]
+                texel[p] = shade_hit(
+                    coords[p, 0], coords[p, 1], camera, mesh, faces_hit[p], material, lights,
+                    visible[:, p], work, out[p],
+                )  # fmt: skip
