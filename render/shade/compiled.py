@@ -159,14 +159,13 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
     lights: (kind (L,) int64, vector (L, 3): a point light's position or the unit vector
         towards a directional light, strength (L,), colour (L, 3)) (``Light.shading_pack``).
     lit: (L,) float64, 1 where light j reaches the hit, 0 where it does not.
-    work: (2, 3) float64 scratch (the albedo and specular at the hit)."""
+    work: (2, 3) float64, no longer read (the callers still pass it)."""
     eye, right, up, forward = camera
     vertices, faces, vertex_normal, uvs, smooth, textured = mesh
     albedo_map, specular_map, ambient_map = material[0], material[1], material[2]
     albedo, specular, ambient, shininess, emission = material[3:8]
     specular_on, ambient_on, emissive = material[8], material[9], material[10]
     light_kind, light_vec, light_strength, light_color = lights
-    albedo_p, specular_p = work[0], work[1]
     # The camera ray (render.scene.camera.camera_directions).
     d0 = x * right[0] + y * up[0] + forward[0]
     d1 = x * right[1] + y * up[1] + forward[1]
@@ -196,22 +195,28 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
             0 + w0 * na[2] + u * nb[2] + v * nc[2],
         )
     n0, n1, n2 = n0 * flip, n1 * flip, n2 * flip
-    # The material at the hit (render.shade.lighting.appearance).
+    # The material at the hit (render.shade.lighting.appearance). Each map's test sits
+    # outside the loop over channels and the values stay in scalars: a branch inside the
+    # loop, and rows of a scratch array, made this pass ~2x slower.
     texel = -1
     uu = vv = 0.0
     if textured:
         uu = 0 + w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0]
         vv = 0 + w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1]
-    for c in range(3):
-        albedo_p[c], specular_p[c] = albedo[c], specular[c]
-        if albedo_map.shape[0] > 0:
-            albedo_p[c], texel = _sample(albedo_map, uu, vv, c)
-        if specular_map.shape[0] > 0:
-            specular_p[c] = specular[c] * _sample(specular_map, uu, vv, c)[0]
-    # The lights (render.shade.lighting.shade).
+    if albedo_map.shape[0] > 0:
+        a0, texel = _sample(albedo_map, uu, vv, 0)
+        a1, a2 = _sample(albedo_map, uu, vv, 1)[0], _sample(albedo_map, uu, vv, 2)[0]
+    else:
+        a0, a1, a2 = albedo[0], albedo[1], albedo[2]
+    k0, k1, k2 = specular[0], specular[1], specular[2]
+    if specular_map.shape[0] > 0:
+        k0 = specular[0] * _sample(specular_map, uu, vv, 0)[0]
+        k1 = specular[1] * _sample(specular_map, uu, vv, 1)[0]
+        k2 = specular[2] * _sample(specular_map, uu, vv, 2)[0]
+    # The lights (render.shade.lighting.shade), summed in the tape's order.
     lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
     point = (eye[0] + t * d0, eye[1] + t * d1, eye[2] + t * d2)
-    view = _unit(d0, d1, d2)
+    r0 = r1 = r2 = 0.0
     for j in range(light_kind.shape[0]):
         if light_kind[j] == 0:  # a point light
             o0 = light_vec[j, 0] - point[0]
@@ -225,29 +230,30 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
             irradiance = light_strength[j]
         cos_theta = n0 * l0 + n1 * l1 + n2 * l2
         cos_theta = 0.0 if cos_theta < 0.0 else cos_theta
-        lobe = 0.0
+        f0, f1, f2 = a0 * (1.0 / math.pi), a1 * (1.0 / math.pi), a2 * (1.0 / math.pi)
         if specular_on:
+            view = _unit(d0, d1, d2)
             h0, h1, h2 = _unit(l0 + -view[0], l1 + -view[1], l2 + -view[2])
             n_dot_h = n0 * h0 + n1 * h1 + n2 * h2
             n_dot_h = 1e-12 if n_dot_h < 1e-12 else n_dot_h
             lobe = n_dot_h**shininess * lobe_scale
+            f0, f1, f2 = f0 + lobe * k0, f1 + lobe * k1, f2 + lobe * k2
         scalar = irradiance * cos_theta * lit[j]
-        for c in range(3):
-            f = albedo_p[c] * (1.0 / math.pi)
-            if specular_on:
-                f = f + lobe * specular_p[c]
-            term = scalar * (f * light_color[j, c])
-            out[c] = term if j == 0 else out[c] + term
-    for c in range(3):
-        if light_kind.shape[0] == 0:
-            out[c] = 0.0
-        if ambient_on:
-            a_c = ambient[c]
-            if ambient_map.shape[0] > 0:
-                a_c = ambient[c] * _sample(ambient_map, uu, vv, c)[0]
-            out[c] = out[c] + a_c
-        if emissive:
-            out[c] = out[c] + (1.0 if flip > 0 else 0.0) * emission[c]
+        t0 = scalar * (f0 * light_color[j, 0])
+        t1 = scalar * (f1 * light_color[j, 1])
+        t2 = scalar * (f2 * light_color[j, 2])
+        r0, r1, r2 = (t0, t1, t2) if j == 0 else (r0 + t0, r1 + t1, r2 + t2)
+    if ambient_on:
+        if ambient_map.shape[0] > 0:
+            r0 = r0 + ambient[0] * _sample(ambient_map, uu, vv, 0)[0]
+            r1 = r1 + ambient[1] * _sample(ambient_map, uu, vv, 1)[0]
+            r2 = r2 + ambient[2] * _sample(ambient_map, uu, vv, 2)[0]
+        else:
+            r0, r1, r2 = r0 + ambient[0], r1 + ambient[1], r2 + ambient[2]
+    if emissive:
+        front = 1.0 if flip > 0 else 0.0
+        r0, r1, r2 = r0 + front * emission[0], r1 + front * emission[1], r2 + front * emission[2]
+    out[0], out[1], out[2] = r0, r1, r2
     return texel
 
 
