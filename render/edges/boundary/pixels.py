@@ -17,6 +17,7 @@ import numba
 import numpy as np
 
 from minidiff import buffers
+from render.trace.intersect import BLOCK, _jobs
 
 #: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
 #: pieces are first cut wherever another curve crosses them in the pixel
@@ -140,13 +141,14 @@ def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
     return segment[:n], start[:n], end[:n], pixel[:n]
 
 
-@numba.njit(cache=True)
-def _piece_geometry(p0, p1, segment, start, end, order):
-    """Per piece, in ``order``: its start a, its extent b (the piece is a -> a + b) and its
-    bounding box widened by BOX_SLACK: (k, 8) rows (ax, ay, bx, by, x0, x1, y0, y1), read
-    contiguously by ``_split_group``'s pair loop."""
-    out = np.empty((len(order), 8))
-    for x in range(len(order)):
+@numba.njit(cache=True, error_model="numpy")
+def _piece_geometry(p0, p1, segment, start, end, order, lo, hi, out):
+    """Rows lo..hi - 1 of the pieces' geometry, in ``order``: each piece's start a, its
+    extent b (the piece is a -> a + b), its bounding box widened by BOX_SLACK and how far
+    (as a fraction of b) beyond its ends another piece's line still counts as reaching it,
+    as rows (ax, ay, bx, by, x0, x1, y0, y1, reach) of ``out`` (k, 9), read contiguously by
+    ``_split_group``'s pair loop."""
+    for x in range(lo, hi):
         i = order[x]
         s = segment[i]
         dx, dy = p1[s, 0] - p0[s, 0], p1[s, 1] - p0[s, 1]
@@ -156,7 +158,8 @@ def _piece_geometry(p0, p1, segment, start, end, order):
         slack = BOX_SLACK + JUNCTION
         out[x, 4], out[x, 5] = min(ax, ax + bx) - slack, max(ax, ax + bx) + slack
         out[x, 6], out[x, 7] = min(ay, ay + by) - slack, max(ay, ay + by) + slack
-    return out
+        # Another piece's end counts as on this one when it stops within JUNCTION pixels.
+        out[x, 8] = max(1e-12, JUNCTION / math.sqrt(bx * bx + by * by))
 
 
 @numba.njit(cache=True, inline="always")
@@ -166,7 +169,30 @@ def boxes_apart(ax0, ax1, bx0, bx1, ay0, ay1, by0, by1):
     return bx0 > ax1 or ax0 > bx1 or by0 > ay1 or ay0 > by1
 
 
-@numba.njit(cache=True)
+#: ``_sort_cuts`` sorts this many cuts or fewer by insertion.
+FEW_CUTS = 24
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _sort_cuts(ts, m):
+    """Sort ts[:m] in place. m is small on most pieces, and Numba's ``sort`` costs ~200 ns
+    even for two (10 ms of a 512x512 teapot's split): insertion below FEW_CUTS. Where
+    hundreds of silhouette segments meet (the teapot's pole) a piece has hundreds of cuts:
+    an O(m log m) sort there. (The cuts are numbers, never NaN: any sort gives the same
+    array.)"""
+    if m > FEW_CUTS:
+        ts[:m].sort()
+        return
+    for k in range(1, m):
+        t = ts[k]
+        j = k - 1
+        while j >= 0 and ts[j] > t:
+            ts[j + 1] = ts[j]
+            j -= 1
+        ts[j + 1] = t
+
+
+@numba.njit(cache=True, error_model="numpy")
 def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
     """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
     touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
@@ -190,15 +216,14 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
             if den == 0.0:
                 continue
             t = ((cx - ax) * fy - (cy - ay) * fx) / den
+            if not 1e-9 < t < 1.0 - 1e-9:
+                continue  # most pairs: then u is not needed
             u = ((cx - ax) * by - (cy - ay) * bx) / den
-            # y's ends count as on x when they stop within JUNCTION pixels of it
-            reach = max(1e-12, JUNCTION / math.sqrt(fx * fx + fy * fy))
-            if 1e-9 < t < 1.0 - 1e-9 and -reach <= u <= 1.0 + reach:
+            reach = geometry[y, 8]
+            if -reach <= u <= 1.0 + reach:
                 ts[m] = t
                 m += 1
-        # m is small on most pieces, but where hundreds of silhouette segments meet (the
-        # teapot's pole) each has hundreds of cuts: an O(m log m) sort, not insertion.
-        ts[:m].sort()
+        _sort_cuts(ts, m)
         previous = 0.0
         for k in range(m + 1):
             t = ts[k] if k < m else 1.0
@@ -212,48 +237,95 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
     return n
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True, error_model="numpy", parallel=True)
 def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_threads):
-    """Every pixel's group of pieces split (``_split_group``), the groups shared out over
-    ``n_threads`` (job j takes groups j, j + n_jobs, ...: the crowded pixels lie together
-    in pixel order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch
-    table and a compaction keeps them in group order: the same rows, in the same order, on
-    any number of threads. ``out``: the scratch table, slots[-1] rows at least."""
+    """Every pixel's group of pieces split (``_split_group``): the groups (pieces
+    order[bounds[g]:bounds[g + 1]]) in blocks of BLOCK, shared out over ``n_threads`` as
+    ``render.trace.intersect._jobs`` deals rays (the crowded pixels lie together in pixel
+    order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch table
+    ``out`` (slots[-1] rows at least), and a second pass copies them out in group order:
+    the same rows, in the same order, on any number of threads. Returns the parts'
+    (segment, start, end, pixel) (m,) each."""
     n_groups = len(bounds) - 1
     count = np.empty(n_groups, np.int64)
-    geometry = _piece_geometry(p0, p1, segment, start, end, order)
-    n_jobs = max(1, min(n_groups, n_threads))
-    for job in numba.prange(n_jobs):
-        ts = np.empty(np.max(bounds[1:] - bounds[:-1]) + 1)  # per thread
-        for g in range(job, n_groups, n_jobs):
-            lo, hi = bounds[g], bounds[g + 1]
-            if hi - lo == 1:  # nothing to cut: the common case
-                i = order[lo]
-                row = slots[g]
-                out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
-                out[row, 3] = pixel[i]
-                count[g] = 1
-            else:
-                count[g] = _split_group(
-                    geometry, segment, start, end, pixel, order, lo, hi, out, slots[g], ts
-                ) - slots[g]  # fmt: skip
-    kept = np.empty((np.sum(count), 4))
-    n = 0
+    geometry = np.empty((len(order), 9))
+    widest = 0
     for g in range(n_groups):
-        kept[n : n + count[g]] = out[slots[g] : slots[g] + count[g]]
-        n += count[g]
-    return kept
+        widest = max(widest, bounds[g + 1] - bounds[g])
+    n_blocks, n_jobs = _jobs(n_groups, n_threads)
+    for job in numba.prange(n_jobs):
+        ts = np.empty(widest + 1)  # per thread
+        for b in range(job, n_blocks, n_jobs):
+            for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
+                lo, hi = bounds[g], bounds[g + 1]
+                row = slots[g]
+                if hi - lo == 1:  # nothing to cut: the common case
+                    i = order[lo]
+                    out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
+                    out[row, 3] = pixel[i]
+                    count[g] = 1
+                else:
+                    _piece_geometry(p0, p1, segment, start, end, order, lo, hi, geometry)
+                    count[g] = _split_group(
+                        geometry, segment, start, end, pixel, order, lo, hi, out, row, ts
+                    ) - row  # fmt: skip
+    first = np.empty(n_groups + 1, np.int64)  # where each group's parts go
+    first[0] = 0
+    for g in range(n_groups):
+        first[g + 1] = first[g] + count[g]
+    m = first[n_groups]
+    seg_out, start_out = np.empty(m, np.int64), np.empty(m)
+    end_out, pixel_out = np.empty(m), np.empty(m, np.int64)
+    for job in numba.prange(n_jobs):
+        for b in range(job, n_blocks, n_jobs):
+            for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
+                for r in range(count[g]):
+                    row, to = slots[g] + r, first[g] + r
+                    seg_out[to], start_out[to] = np.int64(out[row, 0]), out[row, 1]
+                    end_out[to], pixel_out[to] = out[row, 2], np.int64(out[row, 3])
+    return seg_out, start_out, end_out, pixel_out
 
 
 def pixel_order(pixel: np.ndarray) -> np.ndarray:
     """``np.argsort(pixel, kind="stable")`` for pixel ids (k,) int64 >= 0: each pair (id,
     position) packed into one int64 and sorted by NumPy's fastest sort (vectorised on x86;
     the stable argsort takes ~6x as long on the teapot's 52k pieces at 512x512). Unique
-    keys, so the order is the stable one; ids or positions too large to pack fall back."""
+    keys, so the order is the stable one; ids or positions too large to pack fall back.
+    (``_pixel_groups``' counting sort gives the same order; this is its reference.)"""
     n = len(pixel)
     if n == 0 or n >= 1 << 32 or pixel.max() >= 1 << 31:
         return np.argsort(pixel, kind="stable")
     return np.sort((pixel << 32) | np.arange(n)) & 0xFFFFFFFF
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _pixel_groups(pixel, n_pixels):
+    """The pieces grouped by pixel: ``order`` (k,), the stable order by pixel id (a
+    counting sort over ``n_pixels`` ids: ``pixel_order``'s order, several times faster than
+    NumPy's sort here), ``bounds`` (n + 1,) where each of the n occupied pixels' group
+    starts in it, and ``slots`` (n + 1,) where each group's parts may start in
+    ``_split_all``'s scratch table (a group of k pieces has at most k * k parts)."""
+    where = np.zeros(n_pixels + 1, np.int64)
+    for i in range(len(pixel)):
+        where[pixel[i] + 1] += 1
+    n_groups = 0
+    for p in range(n_pixels):
+        n_groups += where[p + 1] > 0
+        where[p + 1] += where[p]
+    order = np.empty(len(pixel), np.int64)
+    for i in range(len(pixel)):
+        order[where[pixel[i]]] = i
+        where[pixel[i]] += 1
+    bounds, slots = np.empty(n_groups + 1, np.int64), np.empty(n_groups + 1, np.int64)
+    bounds[0] = slots[0] = 0
+    g = 0
+    for x in range(1, len(pixel) + 1):
+        if x == len(pixel) or pixel[order[x]] != pixel[order[x - 1]]:
+            g += 1
+            bounds[g] = x
+            size = x - bounds[g - 1]
+            slots[g] = slots[g - 1] + size * size
+    return order, bounds, slots
 
 
 def split_at_crossings(p0, p1, segment, start, end, pixel):
@@ -263,20 +335,15 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     quadrature point stands for the part. Same arrays, more rows."""
     if len(pixel) == 0:  # nothing in view (the group bounds below assume one piece at least)
         return segment, start, end, pixel
-    order = pixel_order(pixel)
-    ordered = pixel[order]
-    bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
-    sizes = np.diff(bounds)
-    slots = np.r_[0, np.cumsum(sizes * sizes)]  # a group of k pieces has at most k * k parts
+    order, bounds, slots = _pixel_groups(pixel, int(pixel.max()) + 1)
     # The scratch table (~8 MB at 512x512) from minidiff's pool, its rows rounded up to a
     # power of two so that the next render, whose count differs a little, reuses it
     # instead of touching fresh pages.
     scratch = buffers.empty((1 << int(slots[-1]).bit_length(), 4), np.float64)
-    out = _split_all(
+    return _split_all(
         np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
         start, end, pixel, order, bounds, slots, scratch, numba.get_num_threads(),
     )  # fmt: skip
-    return out[:, 0].astype(np.int64), out[:, 1], out[:, 2], out[:, 3].astype(np.int64)
 
 
 def quadrature(p0, p1, segment, start, end):
