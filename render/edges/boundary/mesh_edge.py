@@ -20,6 +20,7 @@ import numba
 import numpy as np
 
 from minidiff.either import cross_last, dot_last
+from render.edges.boundary import edge_kernel
 from render.edges.boundary.curves import (
     NEAR,
     CurvePoints,
@@ -188,7 +189,7 @@ def edge_sides_kernel(
     return directions, depth, norm, step, chosen
 
 
-def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
+def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = True) -> np.ndarray:
     """(g, 3): w (f_+ - f_-) / |grad e| for the quadrature points ``on`` the edges of mesh
     ``kind.index`` (labels: rows of its table), zero where the edge point is hidden.
 
@@ -200,10 +201,14 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     with no face (a silhouette's outside, an open boundary) is what a ray just beyond the
     edge sees. A crease has one face on each side, a silhouette both on one. The faces
     other meshes have on these edges (``kind.shared``) are candidates on either side as
-    the mesh's own are."""
+    the mesh's own are.
+
+    With ``compiled`` the sides are shaded by ``edge_kernel.side_factors`` where it
+    applies to the scene (``edge_kernel.pack_scene``), the rest by ``_side_factors`` (the
+    reference, ``view.radiance``); without, all by the reference."""
     scene, table, first_prim, shared = view.scene, kind.table, kind.first_prim, kind.shared
     edges, coords, pixel, weight, keys = on.label, on.coords, on.pixel, on.weight, on.key
-    camera, radiance = scene.camera, view.radiance
+    camera = scene.camera
     forward, right, up, eye = view.frame
     vertices = np.asarray(scene.meshes[kind.index].vertices.data, np.float64)
     own = np.take(table.faces, edges, axis=0)
@@ -222,24 +227,42 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
         seen_in(view.occluders, pixel, scene),
     )  # fmt: skip
     seen = np.flatnonzero(~hidden)
-    n = len(seen)
     coords, depth, step, chosen = (np.take(x, seen, axis=0) for x in (coords, depth, step, chosen))
-    keys = np.concatenate([keys[seen], keys[seen]])  # per row of ``colour`` below
+    scale, keys = weight[seen] / norm[seen], keys[seen]
+    out = np.zeros((len(hidden), 3))
+    packed = edge_kernel.pack_scene(scene, view.radiance) if compiled and len(seen) else None
+    if packed is None:
+        out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale)
+        return out
+    factor, rest = edge_kernel.side_factors(packed, view.frame, coords, depth, step, chosen, scale)
+    out[seen] = factor
+    if np.any(rest):  # sides that see a sphere: the reference shades those points
+        rest = np.flatnonzero(rest)
+        parts = (np.take(x, rest, axis=0) for x in (coords, depth, step, chosen, keys, scale))
+        out[seen[rest]] = _side_factors(view, *parts)
+    return out
+
+
+def _side_factors(view: View, coords, depth, step, chosen, keys, scale) -> np.ndarray:
+    """(n, 3): ``scale`` (n,) times f_+ - f_- of n visible edge points through image-plane
+    points ``coords`` (n, 2) at ``depth`` (n,), the faces ``chosen`` (n, 2) seen either
+    side (-1: none, then the ray ``EPSILON`` pixels along ``step`` (n, 2) beside the
+    edge), shaded by ``view.radiance`` (``keys`` (n,) its names of the points)."""
+    n = len(coords)
+    keys = np.concatenate([keys, keys])  # per row of ``colour`` below
     # Both sides at once: one shading pass for the sides with a face (shaded at the edge
     # point), one for the sides without (what a ray just beyond the edge sees).
     face = np.concatenate([chosen[:, 0], chosen[:, 1]])  # rows: the + sides, then the -
     both = np.concatenate([coords, coords])
     faced, beyond = np.flatnonzero(face >= 0), np.flatnonzero(face < 0)
     colour = np.empty((2 * n, 3))
-    colour[faced] = radiance.seen(
+    colour[faced] = view.radiance.seen(
         np.take(both, faced, axis=0), face[faced],
         np.concatenate([depth, depth])[faced], keys[faced],
     )  # fmt: skip
     offset = EPSILON * np.concatenate([step, -step])
-    colour[beyond] = radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond])
-    out = np.zeros((len(hidden), 3))
-    out[seen] = (weight[seen] / norm[seen])[:, None] * (colour[:n] - colour[n:])
-    return out
+    colour[beyond] = view.radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond])
+    return scale[:, None] * (colour[:n] - colour[n:])
 
 
 def approach(normals, directions, towards):

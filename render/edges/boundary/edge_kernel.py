@@ -1,0 +1,338 @@
+"""Mesh edges' factors in one compiled pass: both sides of every visible edge point found,
+their shadow rays traced and their radiance shaded, the factor written.
+
+``render.edges.boundary.mesh_edge._edge_factors`` states the factor of a mesh edge's
+quadrature point, w (f_+ - f_-) / |grad e|, with NumPy passes and the renderer's general
+shading (``DirectRadiance``: ``seen_through`` -> shadow rays per light, ``Mirrors``,
+``shade_camera_hits``). For the common scene, ``side_factors_kernel`` computes the same
+numbers point by point in one parallel Numba function: per side, the hit (the face at the
+edge point, or the closest hit of the ray ``EPSILON`` pixels beside the edge), the shadow
+ray towards each light (``render.trace.visibility.shadow_rays``' offset and ignored
+primitive, answered by the BVH's any-hit traversal: the render's answers), and the colour
+(``render.shade.compiled.shade_hit``, the compiled shading of camera hits).
+
+It applies (``pack_scene`` returns a ``PackedScene``) where the reference would shade every
+mesh hit with the compiled shading: a ``DirectRadiance``, every light one that
+``Light.compiled_shading`` covers, and every mesh one ``render.shade.compiled.applies``
+takes (float64, no mirror rays leaving it). Spheres may be in the scene: they block rays;
+a side whose ray beside the edge hits one is left to the reference (``needs_reference``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+import minidiff as md
+from render.edges.boundary.radiance import EPSILON, DirectRadiance
+from render.scene.lights import POINT
+from render.scene.scene import Scene
+from render.shade import compiled
+from render.shade.compiled import shade_hit
+from render.trace.intersect import (
+    BLOCK,
+    FlatBVH,
+    _jobs,
+    closest_hit_ray,
+    make_ray,
+    occluded_ray,
+)
+from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS, Visibility
+
+#: ``shadow_offset``'s SHADOW_ULPS units in the last place, per unit of magnitude.
+_ULP_SCALE = SHADOW_ULPS * np.finfo(np.float64).eps
+
+
+@dataclass
+class PackedScene:
+    """What the kernel reads of a render (plain arrays): ``bvh`` its accelerator's tree;
+    ``meshes`` (vertices (V, 3), faces (T, 3) global vertex ids, vertex normals (V, 3), UVs
+    (V, 2), per mesh smooth (M,) and textured (M,) bool, the mesh of every triangle (T,))
+    over all meshes, concatenated; ``materials`` (albedo, specular, ambient (M, 3),
+    shininess (M,), emission (M, 3), flags (M, 3) bool (specular_on, ambient_on, emissive),
+    texels (n,) flat, maps (M, 3, 3) int64 (offset, height, width) of the albedo, specular
+    and ambient maps (height 0: none)); ``lights`` (``compiled.lights_pack``); ``shadow``
+    (kind (L,) int64, vector (L, 3): a point light's position or the unit direction of a
+    directional light's shadow rays, whether shadow rays are traced at all, the
+    scene-size part of the shadow offset); ``background`` (3,)."""
+
+    bvh: FlatBVH
+    meshes: tuple
+    materials: tuple
+    lights: tuple
+    shadow: tuple
+    background: np.ndarray
+
+
+def pack_scene(scene: Scene, radiance) -> PackedScene | None:
+    """The render's scene as ``side_factors_kernel`` reads it, or None where the kernel
+    does not apply (the module docstring): the reference computes the factors then."""
+    if type(radiance) is not DirectRadiance or not scene.meshes:
+        return None
+    if not all(light.compiled_shading for light in scene.lights):
+        return None
+    # As DirectRadiance.seen decides: mirror rays only where some reflectance is not zero.
+    bounces = radiance.max_bounces
+    if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
+        bounces = 0
+    with md.no_grad():
+        for mesh in scene.meshes:
+            reflects = bounces > 0 and mesh.material.reflective
+            if not compiled.applies(scene, mesh, reflects):
+                return None
+    background = np.asarray(scene.background.data, np.float64)
+    if background.dtype != np.float64 or background.shape != (3,):
+        background = np.broadcast_to(background, (3,)).astype(np.float64)
+    visibility: Visibility = radiance.visibility
+    return PackedScene(
+        visibility.accelerator().flat_tree(),
+        _pack_meshes(scene),
+        _pack_materials(scene),
+        compiled.lights_pack(scene.lights),
+        _pack_shadows(scene, visibility),
+        np.ascontiguousarray(background),
+    )
+
+
+def _pack_meshes(scene: Scene) -> tuple:
+    """``PackedScene.meshes``: every mesh's ``compiled.mesh_pack``, concatenated."""
+    packs = [compiled.mesh_pack(mesh) for mesh in scene.meshes]
+    offsets = np.cumsum([0] + [len(p[0]) for p in packs])
+    vertices = np.concatenate([p[0] for p in packs]).astype(np.float64)
+    faces = np.concatenate([p[1] + o for p, o in zip(packs, offsets, strict=False)])
+    normals = np.concatenate([p[2] if p[4] else np.zeros((len(p[0]), 3)) for p in packs]).astype(
+        np.float64
+    )
+    uvs = np.concatenate([p[3] if p[5] else np.zeros((len(p[0]), 2)) for p in packs])
+    smooth = np.array([p[4] for p in packs], np.bool_)
+    textured = np.array([p[5] for p in packs], np.bool_)
+    counts = [len(p[1]) for p in packs]
+    prim_mesh = np.repeat(np.arange(len(packs), dtype=np.int64), counts)
+    return (
+        np.ascontiguousarray(vertices),
+        np.ascontiguousarray(faces, np.int64),
+        np.ascontiguousarray(normals),
+        np.ascontiguousarray(uvs, np.float64),
+        smooth,
+        textured,
+        prim_mesh,
+    )
+
+
+def _pack_materials(scene: Scene) -> tuple:
+    """``PackedScene.materials``: every mesh's ``compiled.material_pack``, stacked."""
+    packs = [compiled.material_pack(mesh.material) for mesh in scene.meshes]
+    n = len(packs)
+    maps = np.zeros((n, 3, 3), np.int64)
+    texels, offset = [], 0
+    for m, pack in enumerate(packs):
+        for k in range(3):
+            data = np.ascontiguousarray(pack[k], np.float64)
+            maps[m, k] = offset, data.shape[0], data.shape[1]
+            texels.append(data.reshape(-1))
+            offset += data.size
+    albedo, specular, ambient, emission = (
+        np.array([np.broadcast_to(p[i], (3,)) for p in packs], np.float64) for i in (3, 4, 5, 7)
+    )
+    shininess = np.array([p[6] for p in packs], np.float64)
+    flags = np.array([[p[8], p[9], p[10]] for p in packs], np.bool_)
+    return albedo, specular, ambient, shininess, emission, flags, np.concatenate(texels), maps
+
+
+def _pack_shadows(scene: Scene, visibility: Visibility) -> tuple:
+    """``PackedScene.shadow``: per light its kind and its position (a point light) or the
+    unit direction its shadow rays take (``Light.shadow_rays``' own), whether shadows are
+    traced, and SHADOW_EPSILON times the scene's size."""
+    kinds = np.array([light.KIND for light in scene.lights], np.int64)
+    vectors = np.zeros((len(scene.lights), 3))
+    for j, light in enumerate(scene.lights):
+        location = light.location()
+        if location is not None:
+            vectors[j] = location
+        else:  # the light's own shadow ray from the origin: its unit direction
+            vectors[j] = np.asarray(light.shadow_rays(np.zeros((1, 3)), 0.0)[1])[0]
+    return kinds, vectors, bool(visibility.shadows), SHADOW_EPSILON * visibility.size
+
+
+def side_factors(
+    packed: PackedScene, frame, coords, depth, step, chosen, scale
+) -> tuple[np.ndarray, np.ndarray]:
+    """The factors (n, 3) of n visible edge points, and which of them ``needs_reference``
+    (n,) bool (a side's ray hit a sphere: their factors are left zero). ``frame`` (forward,
+    right, up, eye); coords (n, 2) image-plane points on the edges, depth (n,) the edge
+    point's depth, step (n, 2) the image-plane step from the edge towards its + side,
+    chosen (n, 2) the face seen on the + and - side (global ids, -1: none), scale (n,)
+    w / |grad e|."""
+    forward, right, up, eye = frame
+    n = len(coords)
+    out = np.zeros((n, 3))
+    needs_reference = np.zeros(n, np.bool_)
+    if n:
+        side_factors_kernel(
+            packed.bvh, (eye, right, up, forward), packed.meshes, packed.materials,
+            packed.lights, packed.shadow, packed.background,
+            np.ascontiguousarray(coords, np.float64), np.ascontiguousarray(depth, np.float64),
+            np.ascontiguousarray(step, np.float64), np.ascontiguousarray(chosen, np.int64),
+            np.ascontiguousarray(scale, np.float64), numba.get_num_threads(),
+            out, needs_reference,
+        )  # fmt: skip
+    return out, needs_reference
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _magnitude(points, hit, group):
+    """max |x| over the coordinates of the points (2n, 3) whose ``hit`` (2n,) is ``group``
+    (``render.trace.visibility.shadow_offset``'s magnitude; 0 for none). A maximum is the
+    same in any order."""
+    top = 0.0
+    for s in range(points.shape[0]):
+        if hit[s] == group:
+            for c in range(3):
+                top = max(top, abs(points[s, c]))
+    return top
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _lit(bvh, shadow, offsets, group, point, prim, stack, lit):
+    """``lit`` (L,) = 1.0 where light j reaches ``point`` (3,) on triangle ``prim``, 0.0
+    where a primitive blocks its shadow ray: ``shadow_rays`` (the ray starts ``offsets[group,
+    j]`` towards the light, skips ``prim``, a point light's ends just before it) answered
+    by ``occluded_ray``."""
+    kinds, vectors, traced = shadow[0], shadow[1], shadow[2]
+    for j in range(kinds.shape[0]):
+        if not traced:
+            lit[j] = 1.0
+            continue
+        offset = offsets[group, j]
+        if kinds[j] == POINT:  # render.scene.lights._point_light_rays, one ray
+            tx = vectors[j, 0] - point[0]
+            ty = vectors[j, 1] - point[1]
+            tz = vectors[j, 2] - point[2]
+            distance = np.sqrt(tx * tx + ty * ty + tz * tz)
+            if distance <= 2.0 * offset:
+                lit[j] = 1.0  # tmax = 0: nothing can block it
+                continue
+            fraction = offset / distance
+            tmax = 1.0 - fraction / (1.0 - fraction)
+            o0 = point[0] + fraction * tx
+            o1 = point[1] + fraction * ty
+            o2 = point[2] + fraction * tz
+            direction = (vectors[j, 0] - o0, vectors[j, 1] - o1, vectors[j, 2] - o2)
+        else:  # DirectionalLight.shadow_rays: points + offset * unit, never ending
+            o0 = point[0] + offset * vectors[j, 0]
+            o1 = point[1] + offset * vectors[j, 1]
+            o2 = point[2] + offset * vectors[j, 2]
+            direction = (vectors[j, 0], vectors[j, 1], vectors[j, 2])
+            tmax = np.inf
+        ray = make_ray((o0, o1, o2), direction, 0.0, tmax)
+        lit[j] = 0.0 if occluded_ray(bvh, ray, prim, stack) else 1.0
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def side_factors_kernel(
+    bvh, camera, meshes, materials, lights, shadow, background,
+    coords, depth, step, chosen, scale, n_threads, out, needs_reference,
+):  # fmt: skip
+    """``side_factors``' work, points shared out over ``n_threads`` as the ray kernels
+    share rays (``render.trace.intersect._jobs``). Side s of point p is row s * n + p (+
+    side 0, - side 1) of the scratch arrays. Two passes, as the reference's two batches of
+    rays need: the first finds every side's hit (the face at the edge point, or the
+    closest hit of the camera ray ``EPSILON`` pixels beside the edge) and its point; then
+    the shadow offset of each batch (``shadow_offset``: faced sides, then the sides
+    traced beside the edge) from the largest coordinate among its points; the second
+    traces the shadow rays, shades both sides and writes the factor."""
+    eye, right, up, forward = camera
+    vertices, faces, normals, uvs, smooth, textured, prim_mesh = meshes
+    n = coords.shape[0]
+    n_tri = bvh.n_tri
+    xy = np.empty((2 * n, 2))
+    prim = np.empty(2 * n, np.int64)
+    points = np.zeros((2 * n, 3))
+    group = np.full(2 * n, -1, np.int64)  # 0: seen at the edge point, 1: traced beside it
+    n_blocks, n_jobs = _jobs(n, n_threads)
+    for job in numba.prange(n_jobs):
+        stack = np.empty(bvh.stack_size, np.int64)
+        stack_t = np.empty(bvh.stack_size, np.float64)
+        for block in range(job, n_blocks, n_jobs):
+            for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+                for side in range(2):
+                    s = side * n + p
+                    x, y, t, face = coords[p, 0], coords[p, 1], depth[p], chosen[p, side]
+                    if face < 0:  # the ray beside the edge: its closest hit
+                        dx, dy = EPSILON * step[p, 0], EPSILON * step[p, 1]
+                        x, y = (x + dx, y + dy) if side == 0 else (x + -dx, y + -dy)
+                    d0 = x * right[0] + y * up[0] + forward[0]
+                    d1 = x * right[1] + y * up[1] + forward[1]
+                    d2 = x * right[2] + y * up[2] + forward[2]
+                    if face < 0:
+                        ray = make_ray(eye, (d0, d1, d2), 0.0, np.inf)
+                        face, t = closest_hit_ray(bvh, ray, stack, stack_t)[:2]
+                    xy[s, 0], xy[s, 1], prim[s] = x, y, face
+                    if face >= 0:
+                        group[s] = 0 if chosen[p, side] >= 0 else 1
+                        points[s, 0] = eye[0] + t * d0
+                        points[s, 1] = eye[1] + t * d1
+                        points[s, 2] = eye[2] + t * d2
+                    if face >= n_tri:
+                        needs_reference[p] = True  # a sphere: shaded by the reference
+    # The shadow offset per batch and light (render.trace.visibility.shadow_offset).
+    kinds, vectors, epsilon_size = shadow[0], shadow[1], shadow[3]
+    offsets = np.empty((2, kinds.shape[0]))
+    for g in range(2):
+        top = _magnitude(points, group, g)
+        for j in range(kinds.shape[0]):
+            magnitude = top
+            if kinds[j] == POINT:
+                for c in range(3):
+                    magnitude = max(magnitude, abs(vectors[j, c]))
+            offsets[g, j] = max(epsilon_size, _ULP_SCALE * magnitude)
+    for job in numba.prange(n_jobs):
+        stack = np.empty(bvh.stack_size, np.int64)
+        lit = np.empty(kinds.shape[0])
+        work = np.empty((2, 3))
+        colour = np.empty((2, 3))
+        m = 0
+        mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
+        material = _material(materials, m)
+        for block in range(job, n_blocks, n_jobs):
+            for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+                if needs_reference[p]:
+                    continue
+                for side in range(2):
+                    s = side * n + p
+                    f = prim[s]
+                    if f < 0:
+                        colour[side, :] = background
+                        continue
+                    _lit(bvh, shadow, offsets, group[s], points[s], f, stack, lit)
+                    if prim_mesh[f] != m:  # views made once per run of hits on one mesh
+                        m = prim_mesh[f]
+                        mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
+                        material = _material(materials, m)
+                    shade_hit(
+                        xy[s, 0], xy[s, 1], camera, mesh, f, material, lights, lit, work,
+                        colour[side],
+                    )  # fmt: skip
+                for c in range(3):
+                    out[p, c] = scale[p] * (colour[0, c] - colour[1, c])
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _map(texels, maps, m, k):
+    """Map k (albedo, specular, ambient) of mesh m as an (H, W, 3) view of ``texels``
+    ((0, 0, 3) for none)."""
+    offset, height, width = maps[m, k, 0], maps[m, k, 1], maps[m, k, 2]
+    return texels[offset : offset + height * width * 3].reshape((height, width, 3))
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _material(materials, m):
+    """``shade_hit``'s material tuple of mesh m, from ``PackedScene.materials``."""
+    albedo, specular, ambient, shininess, emission, flags, texels, maps = materials
+    return (
+        _map(texels, maps, m, 0), _map(texels, maps, m, 1), _map(texels, maps, m, 2),
+        albedo[m], specular[m], ambient[m], shininess[m], emission[m],
+        flags[m, 0], flags[m, 1], flags[m, 2],
+    )  # fmt: skip
