@@ -41,9 +41,10 @@ from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms,
 from render.film import image_from_hits, pixel_means
 from render.path.integrator import render_path
 from render.scene.cache import cache_for
-from render.scene.camera import camera_frame, subpixel_offsets
+from render.scene.camera import camera_frame, plain_frame, subpixel_offsets
 from render.scene.placement import placed
 from render.scene.scene import Scene, check_ray_count
+from render.shade import fused
 from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.lighting import shade_mesh, shade_surface
 from render.shade.mirrors import Mirrors
@@ -130,24 +131,36 @@ def render(
     world = placed(scene)  # 0: transformed objects in world space, on the tape
 
     visibility = trace_visibility(world, cache, bool(bvh), spp, bool(shadows), raster)  # 1
-    frame = camera_frame(world.camera)
-    mirrors = Mirrors.of(world, visibility, max_bounces)
     pairs = antialias == "pairs"  # the pairs' shadow terms shade the hits' surfaces again
-    shading = shade_camera_hits(world, visibility, frame, cache, mirrors, surfaces=pairs)  # 2, 3
-    prim_id, edges = visibility.primary.prim_id, None
-    if pairs:
-        samples = sample_colours(world, prim_id, shading.colour, shading.rays)
-        samples, edges = add_edge_terms(world, visibility, cache, samples, shading, frame, spp)  # 4
-        image = pixel_means(world, samples, spp)  # 5
+    mirrors, edges = None, None
+    if not pairs and not differentiated(world) and fused.applies(world, max_bounces):
+        # 2, 3, 5 in compiled passes: nothing is differentiated, so no tape is needed.
+        values, texel = fused.image_values(world, visibility, plain_frame(world.camera), spp)
+        image = md.Tensor(values)  # no copy
     else:
-        image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
-        if antialias == "boundary" and differentiated(scene):  # 4': zero in value
-            image = add_interior_samples(world, visibility, image, frame, spp, max_bounces, inner)
-            image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
+        frame = camera_frame(world.camera)
+        mirrors = Mirrors.of(world, visibility, max_bounces)
+        shading = shade_camera_hits(
+            world, visibility, frame, cache, mirrors, surfaces=pairs
+        )  # 2, 3
+        prim_id, texel = visibility.primary.prim_id, shading.texel
+        if pairs:
+            samples = sample_colours(world, prim_id, shading.colour, shading.rays)
+            samples, edges = add_edge_terms(
+                world, visibility, cache, samples, shading, frame, spp
+            )  # 4
+            image = pixel_means(world, samples, spp)  # 5
+        else:
+            image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
+            if antialias == "boundary" and differentiated(scene):  # 4': zero in value
+                image = add_interior_samples(
+                    world, visibility, image, frame, spp, max_bounces, inner
+                )
+                image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
         return image
-    return image, RenderInfo.of(world, visibility, shading.texel, spp, mirrors, edges)
+    return image, RenderInfo.of(world, visibility, texel, spp, mirrors, edges)
 
 
 def _check_direct_defaults(bvh, shadows, return_info, max_bounces, primary, interior) -> None:

@@ -287,3 +287,26 @@ def strict_load(text: str):
         raise ValueError(f"non-standard JSON token {token}")
 
     return json.loads(text, parse_constant=refuse)
+
+
+# --------------------------------------------------------------------------------------
+# Thread-count independence
+# --------------------------------------------------------------------------------------
+
+
+def run_on_two_threads(script: str) -> str:
+    """Run the Python ``script`` in a new process with Numba allowed two threads (a
+    pytest-xdist worker is limited to one) from the repository root; returns its stdout
+    (stripped) and fails the test if it fails. Tests that use it are marked
+    ``new_processes``."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
+    root = Path(__file__).resolve().parents[1]
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=300, cwd=root)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    return done.stdout.strip()

@@ -213,10 +213,12 @@ def hits_along_rays(
     return points, coords
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _hits_along_rays(ray_ids, t, width, height, offsets, forward, right, up, eye, points, coords):
+    """Per ray, in parallel (each ray's arithmetic on one thread: any thread count gives
+    the same bits)."""
     spp = offsets.shape[0]
-    for i in range(ray_ids.shape[0]):
+    for i in numba.prange(ray_ids.shape[0]):
         r = ray_ids[i]
         pixel, s = divmod(r, spp)
         py, px = divmod(pixel, width)

@@ -274,11 +274,11 @@ class DirectionalLight(Light):
         return _circle(centre, radius, np.asarray(self.direction.data, np.float64), 0.0)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, parallel=True)
 def _point_light_rays(position, points, offset, origins, directions, tmax):
-    """Shadow rays towards a point light, one pass over the points (k, 3): each starts
-    ``offset`` towards the light and ends just before it (``PointLight.shadow_rays``)."""
-    for i in range(points.shape[0]):
+    """Shadow rays towards a point light, one parallel pass over the points (k, 3): each
+    starts ``offset`` towards the light and ends just before it (``PointLight.shadow_rays``)."""
+    for i in numba.prange(points.shape[0]):
         tx = position[0] - points[i, 0]
         ty = position[1] - points[i, 1]
         tz = position[2] - points[i, 2]

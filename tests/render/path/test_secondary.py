@@ -19,6 +19,7 @@ from render.path.silhouettes import Curves, pick_reference
 from render.path.tracer import PathSampler
 from render.scene.cornell import box_mesh, cornell_box, grid_quad
 from render.scene.placement import placed
+from tests.render_helpers import run_on_two_threads
 
 X, Y, Z = np.eye(3)
 
@@ -192,16 +193,7 @@ print("same bits")
 
 @pytest.mark.new_processes
 def test_the_same_bits_on_one_and_two_threads():
-    """In a new process (a pytest-xdist worker is limited to one Numba thread)."""
-    import os
-    import subprocess
-    import sys
-
-    env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
-    done = subprocess.run([sys.executable, "-c", _THREADS], env=env, capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "same bits"
+    assert run_on_two_threads(_THREADS) == "same bits"
 
 
 def test_replay_equals_the_tape():

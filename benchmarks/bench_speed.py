@@ -1,0 +1,287 @@
+"""The direct renderer's speed rows (issue 45): ours against Mitsuba 3, against an earlier
+version of ours, and on 1 and 2 threads, every pair timed in turns in one run.
+
+Run:  python benchmarks/bench_speed.py [--out DIR] [--quick] [--repeats 15] [--size 512]
+                                       [--baseline DIR] [--threads 1,2]
+
+Each version runs in its own worker process (``worker``: the package imported from a
+source folder, Numba on a fixed number of threads), so that two versions of the same
+package, and Mitsuba's threads and ours, never share a process. The parent sends every
+worker the same workload in turn, a block of calls at a time, for several rounds, so that
+all see the same machine state; each reports its times and the parent takes medians and
+ratios. Workers:
+
+* ``ours``: this source tree on each of ``--threads`` (default 1 and 2);
+* ``baseline``: ``--baseline DIR``, the source tree of an earlier commit (e.g. a ``git
+  worktree``), on the largest of ``--threads``; left out without ``--baseline``;
+* ``mitsuba``: Mitsuba 3 (LLVM variant, ``direct`` integrator, on the largest of
+  ``--threads``) where it is importable (``bench_mitsuba.mitsuba_problems``): it has the
+  forward, light-estimation and shape workloads only.
+
+Workloads (the paper scene at ``--size``, ``docs/paper_scene.md``):
+
+* ``forward``, ``light_iteration``, ``shape_iteration``: ``bench_mitsuba``'s three;
+* ``fb_{plain,pairs,boundary,boundary16}`` and the same with ``_ground``: one
+  forward+backward into every parameter (``bench_render.forward_backward``) without edge
+  terms, with pixel pairs, and with the boundary integral with one (``boundary``) and 16
+  (``boundary16``, the default) interior samples per mixed pixel; ``_ground``: the teapot on
+  a ground plane (shadow borders);
+* ``camera_{plain,boundary,boundary16}``: one camera-calibration iteration
+  (``bench_render.time_iterations``' ``camera`` step, the camera moved before every call).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import timing
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+#: Targets (issue 45): Mitsuba ratios, and ratios of our own workloads.
+TARGETS = {
+    "forward": 0.8,
+    "light_iteration": 0.5,
+    "shape_iteration": 0.7,
+    "boundary_paper": 2.0,
+    "boundary_ground": 1.5,
+    "camera_boundary": 2.5,
+    "threads_forward": 1.7,
+    "threads_boundary": 1.7,
+}
+MITSUBA_WORKLOADS = ("forward", "light_iteration", "shape_iteration")
+
+
+def main(argv=None) -> dict:
+    options = {
+        "--baseline": {"type": Path, "help": "source tree of the version to compare with"},
+        "--threads": {"default": "1,2", "help": "Numba thread counts for ours (default 1,2)"},
+    }
+    return timing.main("bench_speed", __doc__, run, argv, options, repeats=15, size=(512, 64))
+
+
+# --------------------------------------------------------------------------------------
+# Workers
+# --------------------------------------------------------------------------------------
+
+
+def workloads(size: int) -> dict:
+    """Our workloads as zero-argument callables (each one call), built in a worker."""
+    import bench_mitsuba
+    import bench_render
+
+    import minidiff as md
+    from render import render
+    from render.inverse.experiments import camera_calibration_problem
+
+    out = dict(bench_mitsuba.our_problems(size))
+    for ground in (False, True):
+        problem = bench_render.loss_problem(size, ground=ground)
+        suffix = "_ground" if ground else ""
+        for name, antialias, interior in (
+            ("plain", False, 16),
+            ("pairs", True, 16),
+            ("boundary", "boundary", 1),
+            ("boundary16", "boundary", 16),
+        ):
+            out[f"fb_{name}{suffix}"] = lambda p=problem, a=antialias, i=interior: (
+                bench_render.forward_backward(*p, antialias=a, interior_samples=i)
+            )
+    scene, (position, look_at), target = camera_calibration_problem(size, 42, 10.0)
+    moves = [0]
+
+    def camera_step(antialias, interior) -> None:
+        moves[0] += 1
+        position.data[0] += 1e-4 * (-1) ** moves[0]  # moved: no visibility reused
+        position.grad = look_at.grad = None
+        image = render(scene, antialias=antialias, interior_samples=interior)
+        bench_render.image_loss(image, target).backward()
+
+    for name, antialias, interior in (
+        ("plain", False, 16),
+        ("boundary", "boundary", 1),
+        ("boundary16", "boundary", 16),
+    ):
+        out[f"camera_{name}"] = lambda a=antialias, i=interior: camera_step(a, i)
+    assert md.is_grad_enabled()
+    return out
+
+
+def worker(kind: str, size: int) -> None:
+    """A worker's loop: build the workloads of ``kind`` ("ours" or "mitsuba"), then answer
+    the lines of stdin, ``name calls``: run ``calls`` calls of workload ``name`` and print
+    their times (seconds) as one JSON line; ``names`` prints the workload names."""
+    import time
+
+    if kind == "mitsuba":
+        import bench_mitsuba
+
+        fns = bench_mitsuba.mitsuba_problems(size) or {}
+        fns = {name: fns[name] for name in MITSUBA_WORKLOADS if name in fns}
+    else:
+        fns = workloads(size)
+    for line in sys.stdin:
+        words = line.split()
+        if words == ["names"]:
+            answer = sorted(fns)
+        else:
+            fn, calls = fns[words[0]], int(words[1])
+            answer = []
+            for _ in range(calls):
+                t0 = time.perf_counter()
+                fn()
+                answer.append(time.perf_counter() - t0)
+        print(json.dumps(answer), flush=True)
+
+
+_WORKER = (
+    "import sys; sys.path[:0] = [sys.argv[1], sys.argv[2]]; import bench_speed; "
+    "bench_speed.worker(sys.argv[3], int(sys.argv[4]))"
+)
+
+
+class Worker:
+    """A worker process: ``source`` the folder its ``render`` and ``minidiff`` come from,
+    ``threads`` its Numba threads."""
+
+    def __init__(self, label: str, kind: str, source: Path, threads: int, size: int) -> None:
+        # Idle OpenMP threads sleep rather than spin (as run_all.py sets for the suite):
+        # a spinning worker would slow the next one's turn.
+        env = {"OMP_WAIT_POLICY": "passive", **os.environ, "NUMBA_NUM_THREADS": str(threads)}
+        cmd = [sys.executable, "-c", _WORKER, str(source), str(HERE), kind, str(size)]
+        self.label, self.threads = label, threads
+        self.process = subprocess.Popen(
+            cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=source
+        )
+        self.names = set(self.ask("names"))
+
+    def ask(self, line: str) -> list:
+        self.process.stdin.write(line + "\n")
+        self.process.stdin.flush()
+        answer = self.process.stdout.readline()
+        if not answer:
+            raise RuntimeError(f"worker {self.label} ended (see its stderr above)")
+        return json.loads(answer)
+
+    def close(self) -> None:
+        self.process.stdin.close()
+        self.process.wait()
+
+
+def measure_all(workers: list[Worker], names: list[str], repeats: int, rounds: int = 3) -> dict:
+    """{workload: {worker label: summary}}: every worker that has the workload runs it in
+    turns, ``rounds`` blocks of calls each after two warm-up calls."""
+    out = {}
+    block = max(1, -(-repeats // rounds))
+    for name in names:
+        have = [w for w in workers if name in w.names]
+        times = {w.label: [] for w in have}
+        for w in have:
+            w.ask(f"{name} 2")  # warm-up: compilation, caches
+        for _ in range(rounds):
+            for w in have:
+                times[w.label] += w.ask(f"{name} {block}")
+        out[name] = {label: timing.summarize(t) for label, t in times.items()}
+        print(name, {k: f"{v['median_ms']:.1f}" for k, v in out[name].items()}, flush=True)
+    return out
+
+
+def run(args) -> dict:
+    threads = sorted({int(t) for t in str(args.threads).split(",")})
+    most = threads[-1]
+    workers = [Worker(f"ours_{t}", "ours", ROOT, t, args.size) for t in threads]
+    if args.baseline is not None:
+        workers.append(Worker("baseline", "ours", Path(args.baseline).resolve(), most, args.size))
+    mitsuba = Worker("mitsuba", "mitsuba", ROOT, most, args.size)
+    if mitsuba.names:
+        workers.append(mitsuba)
+    else:
+        mitsuba.close()
+    names = sorted(workers[0].names)
+    if args.quick:
+        names = [n for n in names if n in ("forward", "fb_plain", "fb_boundary")]
+    try:
+        results = measure_all(workers, names, args.repeats)
+    finally:
+        for w in workers:
+            w.close()
+    r = {"size": args.size, "repeats": args.repeats, "threads": threads,
+         "baseline": None if args.baseline is None else str(args.baseline),
+         "results": results}  # fmt: skip
+    r["ratios"] = ratios(results, f"ours_{most}", threads)
+    r["report"] = make_report(r)
+    return r
+
+
+# --------------------------------------------------------------------------------------
+# Report
+# --------------------------------------------------------------------------------------
+
+
+def _median(results: dict, name: str, label: str) -> float:
+    return results.get(name, {}).get(label, {}).get("median_ms", np.nan)
+
+
+def ratios(results: dict, ours: str, threads: list[int]) -> dict:
+    """The ratios the targets are about, from medians of one run (NaN where missing)."""
+    m = lambda name, label=ours: _median(results, name, label)  # noqa: E731
+    out = {name: m(name) / m(name, "mitsuba") for name in MITSUBA_WORKLOADS}
+    out["boundary_paper"] = m("fb_boundary") / m("fb_plain")
+    out["boundary_ground"] = m("fb_boundary_ground") / m("fb_plain_ground")
+    out["boundary16_paper"] = m("fb_boundary16") / m("fb_plain")
+    out["boundary16_ground"] = m("fb_boundary16_ground") / m("fb_plain_ground")
+    out["boundary_to_pairs"] = m("fb_boundary") / m("fb_pairs")
+    out["boundary_to_pairs_ground"] = m("fb_boundary_ground") / m("fb_pairs_ground")
+    out["camera_boundary"] = m("camera_boundary") / m("camera_plain")
+    out["camera_boundary16"] = m("camera_boundary16") / m("camera_plain")
+    if 1 in threads and len(threads) > 1:
+        out["threads_forward"] = m("forward", "ours_1") / m("forward")
+        out["threads_boundary"] = m("fb_boundary", "ours_1") / m("fb_boundary")
+        out["threads_plain"] = m("fb_plain", "ours_1") / m("fb_plain")
+    for name in results:
+        out[f"speedup_{name}"] = m(name, "baseline") / m(name)
+    return {k: float(v) for k, v in out.items()}
+
+
+def make_report(r: dict) -> dict:
+    """The targets' rows, then every workload's medians."""
+    q, rows = r["ratios"], []
+    labels = {
+        "forward": "forward render / Mitsuba 3's",
+        "light_iteration": "light-estimation iteration / Mitsuba 3's",
+        "shape_iteration": "shape iteration, all vertices / Mitsuba 3's",
+        "boundary_paper": "boundary term f+b / plain f+b (1 interior sample)",
+        "boundary_ground": "the same, teapot on a ground plane",
+        "camera_boundary": "camera-calibration iteration, boundary / plain",
+        "threads_forward": "forward, 1 thread / 2 threads",
+        "threads_boundary": "boundary f+b, 1 thread / 2 threads",
+    }
+    for key, label in labels.items():
+        value, limit = q.get(key, np.nan), TARGETS[key]
+        at_least = key.startswith("threads")
+        if not np.isfinite(value):
+            rows.append(timing.row(label, "not measured", "", "not measured"))
+            continue
+        status = ("met" if value >= limit else "not met") if at_least else None
+        target = f"target {'>=' if at_least else '<='} {limit}x"
+        rows.append(timing.row(label, f"{value:.2f}x", target,
+                               status or timing.target_status(value, limit)))  # fmt: skip
+    labels_seen = sorted({label for v in r["results"].values() for label in v})
+    for name, per in r["results"].items():
+        cells = ", ".join(f"{label} {timing.ms(per[label])}" for label in labels_seen
+                          if label in per)  # fmt: skip
+        rows.append(timing.row(name, cells))
+    notes = [f"{r['size']}x{r['size']}, medians of {r['repeats']} calls per worker, in turns."]
+    if r["baseline"]:
+        notes.append(f"baseline: {r['baseline']}")
+    return timing.report_section("Speed of the direct renderer (bench_speed.py)", rows, notes, [])
+
+
+if __name__ == "__main__":
+    main()
