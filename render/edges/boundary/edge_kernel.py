@@ -36,6 +36,7 @@ from render.trace.intersect import (
     FlatBVH,
     _jobs,
     closest_hit_ray,
+    intersect_prim,
     make_ray,
     occluded_ray,
 )
@@ -56,9 +57,11 @@ class PackedScene:
     and ambient maps (height 0: none)); ``lights`` (``compiled.lights_pack``); ``shadow``
     (kind (L,) int64, vector (L, 3): a point light's position or the unit direction of a
     directional light's shadow rays, whether shadow rays are traced at all, the
-    scene-size part of the shadow offset); ``background`` (3,)."""
+    scene-size part of the shadow offset); ``background`` (3,). ``rows`` (P,) the row of each
+    primitive in the tree's leaf table."""
 
     bvh: FlatBVH
+    rows: np.ndarray
     meshes: tuple
     materials: tuple
     lights: tuple
@@ -86,8 +89,12 @@ def pack_scene(scene: Scene, radiance) -> PackedScene | None:
     if background.dtype != np.float64 or background.shape != (3,):
         background = np.broadcast_to(background, (3,)).astype(np.float64)
     visibility: Visibility = radiance.visibility
+    bvh = visibility.accelerator().flat_tree()
+    rows = np.empty(len(bvh.leaf_ids), np.int64)
+    rows[bvh.leaf_ids] = np.arange(len(bvh.leaf_ids))
     return PackedScene(
-        visibility.accelerator().flat_tree(),
+        bvh,
+        rows,
         _pack_meshes(scene),
         _pack_materials(scene),
         compiled.lights_pack(scene.lights),
@@ -171,7 +178,7 @@ def side_factors(
     needs_reference = np.zeros(n, np.bool_)
     if n:
         side_factors_kernel(
-            packed.bvh, (eye, right, up, forward), packed.meshes, packed.materials,
+            packed.bvh, packed.rows, (eye, right, up, forward), packed.meshes, packed.materials,
             packed.lights, packed.shadow, packed.background,
             np.ascontiguousarray(coords, np.float64), np.ascontiguousarray(depth, np.float64),
             np.ascontiguousarray(step, np.float64), np.ascontiguousarray(chosen, np.int64),
@@ -195,44 +202,66 @@ def _magnitude(points, hit, group):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _lit(bvh, shadow, offsets, group, point, prim, stack, lit):
-    """``lit`` (L,) = 1.0 where light j reaches ``point`` (3,) on triangle ``prim``, 0.0
-    where a primitive blocks its shadow ray: ``shadow_rays`` (the ray starts ``offsets[group,
-    j]`` towards the light, skips ``prim``, a point light's ends just before it) answered
-    by ``occluded_ray``."""
+def _shadow_ray(kind, vector, offset, point):
+    """The shadow ray from ``point`` (3,) towards a light of ``kind`` (``vector``: its
+    position, or its shadow rays' unit direction), started ``offset`` towards it: the ray
+    ``Light.shadow_rays`` makes, with ``trace_shadows``' tmin 0."""
+    p0, p1, p2 = point[0], point[1], point[2]
+    if kind == POINT:  # render.scene.lights._point_light_rays, one ray
+        tx, ty, tz = vector[0] - p0, vector[1] - p1, vector[2] - p2
+        distance = np.sqrt(tx * tx + ty * ty + tz * tz)
+        if distance <= 2.0 * offset:  # the light within the offset: tmax 0, never blocked
+            origin = (p0 + offset * tx, p1 + offset * ty, p2 + offset * tz)
+            return make_ray(origin, (0.0, 1.0, 0.0), 0.0, 0.0)
+        fraction = offset / distance
+        tmax = 1.0 - fraction / (1.0 - fraction)
+        o0, o1, o2 = p0 + fraction * tx, p1 + fraction * ty, p2 + fraction * tz
+        return make_ray((o0, o1, o2), (vector[0] - o0, vector[1] - o1, vector[2] - o2), 0.0, tmax)
+    # DirectionalLight.shadow_rays: points + offset * unit, never ending
+    origin = (p0 + offset * vector[0], p1 + offset * vector[1], p2 + offset * vector[2])
+    return make_ray(origin, (vector[0], vector[1], vector[2]), 0.0, np.inf)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _blocks(bvh, rows, prim, ray):
+    """Whether triangle ``prim`` (row ``rows[prim]`` of the leaf table) blocks ``ray``: the
+    test the any-hit traversal makes of it."""
+    return intersect_prim(bvh.leaf_prim, rows[prim], prim, bvh.n_tri, ray)[0] < ray.tmax
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _lit(bvh, rows, shadow, offsets, group, point, plus, minus, stack, lit):
+    """``lit`` (2, L) = 1.0 where light j reaches ``point`` (3,) from the + and the - side,
+    0.0 where a primitive blocks its shadow ray (``shadow_rays``, answered as
+    ``occluded_ray`` answers it). ``plus`` and ``minus``: the triangle each side sees (its
+    ray skips it), -1 for a side not at this point (its row is left as it was).
+
+    A point seen on both sides (a crease) has one shadow ray per light, skipping either
+    face: one traversal that skips ``plus`` answers the + side; the - side is blocked by
+    ``plus`` itself, or, if the traversal found a blocker, by it unless that was ``minus``
+    (a second traversal only when ``minus`` blocks the ray)."""
     kinds, vectors, traced = shadow[0], shadow[1], shadow[2]
     for j in range(kinds.shape[0]):
         if not traced:
-            lit[j] = 1.0
+            lit[0, j] = lit[1, j] = 1.0
             continue
-        offset = offsets[group, j]
-        if kinds[j] == POINT:  # render.scene.lights._point_light_rays, one ray
-            tx = vectors[j, 0] - point[0]
-            ty = vectors[j, 1] - point[1]
-            tz = vectors[j, 2] - point[2]
-            distance = np.sqrt(tx * tx + ty * ty + tz * tz)
-            if distance <= 2.0 * offset:
-                lit[j] = 1.0  # tmax = 0: nothing can block it
-                continue
-            fraction = offset / distance
-            tmax = 1.0 - fraction / (1.0 - fraction)
-            o0 = point[0] + fraction * tx
-            o1 = point[1] + fraction * ty
-            o2 = point[2] + fraction * tz
-            direction = (vectors[j, 0] - o0, vectors[j, 1] - o1, vectors[j, 2] - o2)
-        else:  # DirectionalLight.shadow_rays: points + offset * unit, never ending
-            o0 = point[0] + offset * vectors[j, 0]
-            o1 = point[1] + offset * vectors[j, 1]
-            o2 = point[2] + offset * vectors[j, 2]
-            direction = (vectors[j, 0], vectors[j, 1], vectors[j, 2])
-            tmax = np.inf
-        ray = make_ray((o0, o1, o2), direction, 0.0, tmax)
-        lit[j] = 0.0 if occluded_ray(bvh, ray, prim, stack) else 1.0
+        ray = _shadow_ray(kinds[j], vectors[j], offsets[group, j], point)
+        if plus < 0:
+            lit[1, j] = 0.0 if occluded_ray(bvh, ray, minus, stack) else 1.0
+            continue
+        blocked = occluded_ray(bvh, ray, plus, stack)
+        lit[0, j] = 0.0 if blocked else 1.0
+        if minus >= 0:
+            if not blocked:
+                blocked = _blocks(bvh, rows, plus, ray)
+            elif _blocks(bvh, rows, minus, ray):
+                blocked = occluded_ray(bvh, ray, minus, stack)
+            lit[1, j] = 0.0 if blocked else 1.0
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def side_factors_kernel(
-    bvh, camera, meshes, materials, lights, shadow, background,
+    bvh, rows, camera, meshes, materials, lights, shadow, background,
     coords, depth, step, chosen, scale, n_threads, out, needs_reference,
 ):  # fmt: skip
     """``side_factors``' work, points shared out over ``n_threads`` as the ray kernels
@@ -290,7 +319,7 @@ def side_factors_kernel(
             offsets[g, j] = max(epsilon_size, _ULP_SCALE * magnitude)
     for job in numba.prange(n_jobs):
         stack = np.empty(bvh.stack_size, np.int64)
-        lit = np.empty(kinds.shape[0])
+        lit = np.empty((2, kinds.shape[0]))
         work = np.empty((2, 3))
         colour = np.empty((2, 3))
         m = 0
@@ -300,20 +329,27 @@ def side_factors_kernel(
             for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
                 if needs_reference[p]:
                     continue
+                # The faced sides share the edge point: their shadow rays are traced together.
+                plus, minus = chosen[p, 0], chosen[p, 1]
+                if plus >= 0 or minus >= 0:
+                    s = p if plus >= 0 else n + p
+                    _lit(bvh, rows, shadow, offsets, 0, points[s], plus, minus, stack, lit)
                 for side in range(2):
                     s = side * n + p
                     f = prim[s]
                     if f < 0:
                         colour[side, :] = background
                         continue
-                    _lit(bvh, shadow, offsets, group[s], points[s], f, stack, lit)
+                    if chosen[p, side] < 0:  # traced beside the edge: a point of its own
+                        plus, minus = (f, -1) if side == 0 else (-1, f)
+                        _lit(bvh, rows, shadow, offsets, 1, points[s], plus, minus, stack, lit)
                     if prim_mesh[f] != m:  # views made once per run of hits on one mesh
                         m = prim_mesh[f]
                         mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
                         material = _material(materials, m)
                     shade_hit(
-                        xy[s, 0], xy[s, 1], camera, mesh, f, material, lights, lit, work,
-                        colour[side],
+                        xy[s, 0], xy[s, 1], camera, mesh, f, material, lights, lit[side],
+                        work, colour[side],
                     )  # fmt: skip
                 for c in range(3):
                     out[p, c] = scale[p] * (colour[0, c] - colour[1, c])

@@ -230,3 +230,46 @@ def test_the_same_bits_on_one_and_two_threads():
                           text=True, timeout=300)  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "same bits"
+
+
+def test_two_sides_sharing_their_shadow_rays_get_two_traversals_answers():
+    """``_lit``'s one traversal per light for both faces of a crease (a second only where
+    the - face blocks the ray) answers what two any-hit rays, each skipping its own face,
+    do. (At a crease neither face blocks the other's ray but by rounding: the faces here
+    are drawn, one of them often the ray's first blocker, so that every branch is taken.)"""
+    from types import SimpleNamespace
+
+    from render.trace.accel import Accelerator
+    from render.trace.primitives import scene_primitives
+
+    scene = paper_scene(8, 8, ground=True)
+    accelerator = Accelerator(*scene_primitives(scene))
+    bvh = accelerator.flat_tree()
+    rows = np.empty(len(bvh.leaf_ids), np.int64)
+    rows[bvh.leaf_ids] = np.arange(len(bvh.leaf_ids))
+    rng = np.random.default_rng(2)
+    n, n_tri = 400, bvh.n_tri
+    points = rng.uniform(-1.5, 1.5, (n, 3))
+    traced = SimpleNamespace(shadows=True, size=1.0)
+    branches = set()
+    for light in (PointLight((2.0, 5.0, 3.0), 1.0), DirectionalLight((0.3, -1.0, -0.2), 1.0)):
+        offset = 1e-6
+        shadow = edge_kernel._pack_shadows(Scene(scene.objects, [light], scene.camera), traced)
+        origins, directions, tmax = light.shadow_rays(points, offset)
+        first = accelerator.closest_hit(origins, directions, 0.0, tmax)[0]
+        drawn = rng.integers(0, n_tri, (n, 2))
+        faces = np.where((first >= 0)[:, None] & (rng.random((n, 2)) < 0.5), first[:, None], drawn)
+        faces[faces[:, 0] == faces[:, 1], 1] = -1  # a side with no face here: its own ray
+        expected = [
+            ~accelerator.occluded(origins, directions, tmax, tmin=0.0, ignore_prim=faces[:, k])
+            for k in (0, 1)
+        ]
+        lit, stack = np.empty((2, 1)), np.empty(bvh.stack_size, np.int64)
+        for r in range(n):
+            plus, minus = faces[r]
+            edge_kernel._lit(
+                bvh, rows, shadow, np.full((2, 1), offset), 0, points[r], plus, minus, stack, lit
+            )
+            assert lit[0, 0] == expected[0][r] and (minus < 0 or lit[1, 0] == expected[1][r])
+            branches.add((minus >= 0, bool(expected[0][r]), bool(expected[1][r])))
+    assert {(True, False, True), (True, True, False), (True, False, False)} <= branches
