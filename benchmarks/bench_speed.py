@@ -2,7 +2,8 @@
 version of ours, and on 1 and 2 threads, every pair timed in turns in one run.
 
 Run:  python benchmarks/bench_speed.py [--out DIR] [--quick] [--repeats 15] [--size 512]
-                                       [--baseline DIR] [--threads 1,2]
+                                       [--baseline DIR] [--threads 1,2] [--only A,B]
+                                       [--no-mitsuba]
 
 Each version runs in its own worker process (``worker``: the package imported from a
 source folder, Numba on a fixed number of threads), so that two versions of the same
@@ -62,6 +63,8 @@ def main(argv=None) -> dict:
     options = {
         "--baseline": {"type": Path, "help": "source tree of the version to compare with"},
         "--threads": {"default": "1,2", "help": "Numba thread counts for ours (default 1,2)"},
+        "--only": {"help": "comma-separated workloads to time (default: all)"},
+        "--no-mitsuba": {"action": "store_true", "help": "leave Mitsuba 3 out"},
     }
     return timing.main("bench_speed", __doc__, run, argv, options, repeats=15, size=(512, 64))
 
@@ -71,61 +74,69 @@ def main(argv=None) -> dict:
 # --------------------------------------------------------------------------------------
 
 
-def workloads(size: int) -> dict:
-    """Our workloads as zero-argument callables (each one call), built in a worker."""
+#: Our workloads (the module docstring), and Mitsuba's.
+EDGE_RUNS = (("plain", False, 16), ("pairs", True, 16), ("boundary", "boundary", 1),
+             ("boundary16", "boundary", 16))  # fmt: skip
+CAMERA_RUNS = (("plain", False, 16), ("boundary", "boundary", 1), ("boundary16", "boundary", 16))
+WORKLOADS = (
+    *MITSUBA_WORKLOADS,
+    *(f"fb_{name}{suffix}" for suffix in ("", "_ground") for name, _, _ in EDGE_RUNS),
+    *(f"camera_{name}" for name, _, _ in CAMERA_RUNS),
+)
+
+
+def workloads(size: int, wanted) -> dict:
+    """Our workloads named in ``wanted`` as zero-argument callables (each one call), built
+    in a worker (only the problems they need)."""
     import bench_mitsuba
     import bench_render
 
-    import minidiff as md
     from render import render
     from render.inverse.experiments import camera_calibration_problem
 
-    out = dict(bench_mitsuba.our_problems(size))
+    out = {}
+    if any(name in wanted for name in MITSUBA_WORKLOADS):
+        out.update(bench_mitsuba.our_problems(size))
     for ground in (False, True):
-        problem = bench_render.loss_problem(size, ground=ground)
         suffix = "_ground" if ground else ""
-        for name, antialias, interior in (
-            ("plain", False, 16),
-            ("pairs", True, 16),
-            ("boundary", "boundary", 1),
-            ("boundary16", "boundary", 16),
-        ):
+        if not any(f"fb_{name}{suffix}" in wanted for name, _, _ in EDGE_RUNS):
+            continue
+        problem = bench_render.loss_problem(size, ground=ground)
+        for name, antialias, interior in EDGE_RUNS:
             out[f"fb_{name}{suffix}"] = lambda p=problem, a=antialias, i=interior: (
                 bench_render.forward_backward(*p, antialias=a, interior_samples=i)
             )
-    scene, (position, look_at), target = camera_calibration_problem(size, 42, 10.0)
-    moves = [0]
+    if any(name.startswith("camera_") for name in wanted):
+        scene, (position, look_at), target = camera_calibration_problem(size, 42, 10.0)
+        moves = [0]
 
-    def camera_step(antialias, interior) -> None:
-        moves[0] += 1
-        position.data[0] += 1e-4 * (-1) ** moves[0]  # moved: no visibility reused
-        position.grad = look_at.grad = None
-        image = render(scene, antialias=antialias, interior_samples=interior)
-        bench_render.image_loss(image, target).backward()
+        def camera_step(antialias, interior) -> None:
+            moves[0] += 1
+            position.data[0] += 1e-4 * (-1) ** moves[0]  # moved: no visibility reused
+            position.grad = look_at.grad = None
+            image = render(scene, antialias=antialias, interior_samples=interior)
+            bench_render.image_loss(image, target).backward()
 
-    for name, antialias, interior in (
-        ("plain", False, 16),
-        ("boundary", "boundary", 1),
-        ("boundary16", "boundary", 16),
-    ):
-        out[f"camera_{name}"] = lambda a=antialias, i=interior: camera_step(a, i)
-    assert md.is_grad_enabled()
-    return out
+        for name, antialias, interior in CAMERA_RUNS:
+            out[f"camera_{name}"] = lambda a=antialias, i=interior: camera_step(a, i)
+    return {name: fn for name, fn in out.items() if name in wanted}
 
 
-def worker(kind: str, size: int) -> None:
-    """A worker's loop: build the workloads of ``kind`` ("ours" or "mitsuba"), then answer
-    the lines of stdin, ``name calls``: run ``calls`` calls of workload ``name`` and print
-    their times (seconds) as one JSON line; ``names`` prints the workload names."""
+def worker(kind: str, size: int, wanted: str) -> None:
+    """A worker's loop: build the workloads of ``kind`` ("ours" or "mitsuba") named in
+    ``wanted`` (comma-separated), then answer the lines of stdin, ``name calls``: run
+    ``calls`` calls of workload ``name`` and print their times (seconds) as one JSON line;
+    ``names`` prints the names of the workloads it has."""
     import time
 
+    wanted = wanted.split(",")
     if kind == "mitsuba":
         import bench_mitsuba
 
         fns = bench_mitsuba.mitsuba_problems(size) or {}
-        fns = {name: fns[name] for name in MITSUBA_WORKLOADS if name in fns}
+        fns = {name: fns[name] for name in MITSUBA_WORKLOADS if name in fns and name in wanted}
     else:
-        fns = workloads(size)
+        fns = workloads(size, wanted)
     for line in sys.stdin:
         words = line.split()
         if words == ["names"]:
@@ -142,7 +153,7 @@ def worker(kind: str, size: int) -> None:
 
 _WORKER = (
     "import sys; sys.path[:0] = [sys.argv[1], sys.argv[2]]; import bench_speed; "
-    "bench_speed.worker(sys.argv[3], int(sys.argv[4]))"
+    "bench_speed.worker(sys.argv[3], int(sys.argv[4]), sys.argv[5])"
 )
 
 
@@ -150,11 +161,14 @@ class Worker:
     """A worker process: ``source`` the folder its ``render`` and ``minidiff`` come from,
     ``threads`` its Numba threads."""
 
-    def __init__(self, label: str, kind: str, source: Path, threads: int, size: int) -> None:
+    def __init__(
+        self, label: str, kind: str, source: Path, threads: int, size: int, wanted: list[str]
+    ) -> None:
         # Idle OpenMP threads sleep rather than spin (as run_all.py sets for the suite):
         # a spinning worker would slow the next one's turn.
         env = {"OMP_WAIT_POLICY": "passive", **os.environ, "NUMBA_NUM_THREADS": str(threads)}
-        cmd = [sys.executable, "-c", _WORKER, str(source), str(HERE), kind, str(size)]
+        cmd = [sys.executable, "-c", _WORKER, str(source), str(HERE), kind, str(size),
+               ",".join(wanted)]  # fmt: skip
         self.label, self.threads = label, threads
         self.process = subprocess.Popen(
             cmd, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True, cwd=source
@@ -195,17 +209,21 @@ def measure_all(workers: list[Worker], names: list[str], repeats: int, rounds: i
 def run(args) -> dict:
     threads = sorted({int(t) for t in str(args.threads).split(",")})
     most = threads[-1]
-    workers = [Worker(f"ours_{t}", "ours", ROOT, t, args.size) for t in threads]
+    names = list(WORKLOADS)
+    if args.only:
+        names = [n for n in names if n in args.only.split(",")]
+    elif args.quick:
+        names = ["forward", "fb_plain"]
+    workers = [Worker(f"ours_{t}", "ours", ROOT, t, args.size, names) for t in threads]
     if args.baseline is not None:
-        workers.append(Worker("baseline", "ours", Path(args.baseline).resolve(), most, args.size))
-    mitsuba = Worker("mitsuba", "mitsuba", ROOT, most, args.size)
-    if mitsuba.names:
-        workers.append(mitsuba)
-    else:
-        mitsuba.close()
-    names = sorted(workers[0].names)
-    if args.quick:
-        names = [n for n in names if n in ("forward", "fb_plain", "fb_boundary")]
+        source = Path(args.baseline).resolve()
+        workers.append(Worker("baseline", "ours", source, most, args.size, names))
+    if not args.no_mitsuba:
+        mitsuba = Worker("mitsuba", "mitsuba", ROOT, most, args.size, names)
+        if mitsuba.names:
+            workers.append(mitsuba)
+        else:
+            mitsuba.close()
     try:
         results = measure_all(workers, names, args.repeats)
     finally:

@@ -67,6 +67,12 @@ EXPECTED = {
         ("results", name, "ours", "median_ms")
         for name in ("forward", "light_iteration", "shape_iteration")
     ],
+    "bench_speed": [  # ours on 1 and 2 threads (no baseline; Mitsuba only if installed)
+        ("results", name, f"ours_{threads}", "median_ms")
+        for name in ("forward", "fb_plain")
+        for threads in (1, 2)
+    ]
+    + [("ratios", "threads_forward"), ("ratios", "threads_plain")],
     "fig2_bvh": [
         ("resolution", "*", "bvh", "time", "median_ms"),
         ("resolution", "*", "no_bvh", "time", "median_ms"),
@@ -135,8 +141,10 @@ def test_script_quick(name, tmp_path, load_script):
     for row in section["rows"]:
         assert set(row) == {"quantity", "ours", "reference", "status"}
         assert row["status"] in ("", "met", "not met", "met (stretch met)", "not measured")
-        if row["status"] == "not measured":  # only Mitsuba's half may be missing
-            assert name == "bench_mitsuba" and importlib.util.find_spec("mitsuba") is None
+        if row["status"] == "not measured":  # Mitsuba's half; bench_speed's quick subset
+            assert name == "bench_speed" or (
+                name == "bench_mitsuba" and importlib.util.find_spec("mitsuba") is None
+            )
     for plot in section["plots"]:
         assert (tmp_path / plot).stat().st_size > 0
     assert data["machine"]["usable_cores"] >= 1
