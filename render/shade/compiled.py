@@ -171,14 +171,16 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
     d1 = x * right[1] + y * up[1] + forward[1]
     d2 = x * right[2] + y * up[2] + forward[2]
     # Moller-Trumbore (render.shade.surface.intersect_edges).
+    # Elements read one by one: a row view of a shared array counts a reference to it, an
+    # atomic operation that every thread contends for.
     ia, ib, ic = faces[face, 0], faces[face, 1], faces[face, 2]
-    a, b, cc = vertices[ia], vertices[ib], vertices[ic]
-    e10, e11, e12 = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-    e20, e21, e22 = cc[0] - a[0], cc[1] - a[1], cc[2] - a[2]
+    ax, ay, az = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
+    e10, e11, e12 = vertices[ib, 0] - ax, vertices[ib, 1] - ay, vertices[ib, 2] - az
+    e20, e21, e22 = vertices[ic, 0] - ax, vertices[ic, 1] - ay, vertices[ic, 2] - az
     p0, p1 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22
     p2 = d0 * e21 - d1 * e20
     inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
-    s0, s1, s2 = eye[0] - a[0], eye[1] - a[1], eye[2] - a[2]
+    s0, s1, s2 = eye[0] - ax, eye[1] - ay, eye[2] - az
     q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
     t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
     u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
@@ -188,11 +190,11 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
     flip = -1.0 if n0 * d0 + n1 * d1 + n2 * d2 > 0 else 1.0
     w0 = 1.0 - u - v
     if smooth:
-        na, nb, nc = vertex_normal[ia], vertex_normal[ib], vertex_normal[ic]
+        normal = vertex_normal
         n0, n1, n2 = _unit(
-            0 + w0 * na[0] + u * nb[0] + v * nc[0],
-            0 + w0 * na[1] + u * nb[1] + v * nc[1],
-            0 + w0 * na[2] + u * nb[2] + v * nc[2],
+            0 + w0 * normal[ia, 0] + u * normal[ib, 0] + v * normal[ic, 0],
+            0 + w0 * normal[ia, 1] + u * normal[ib, 1] + v * normal[ic, 1],
+            0 + w0 * normal[ia, 2] + u * normal[ib, 2] + v * normal[ic, 2],
         )
     n0, n1, n2 = n0 * flip, n1 * flip, n2 * flip
     # The material at the hit (render.shade.lighting.appearance). Each map's test sits

@@ -29,6 +29,7 @@ from render.edges.boundary import edge_kernel, mesh_edge
 from render.scene.cornell import box_mesh
 from render.scene.teapot import paper_scene
 from tests.render.edges.test_shared_edges import _scene as shared_scene
+from tests.render_helpers import run_on_two_threads
 
 SIZE = 64
 
@@ -221,15 +222,7 @@ print("same bits")
 @pytest.mark.new_processes
 def test_the_same_bits_on_one_and_two_threads():
     """In a new process (a pytest-xdist worker is limited to one Numba thread)."""
-    import os
-    import subprocess
-    import sys
-
-    env = {**os.environ, "NUMBA_NUM_THREADS": "2"}
-    done = subprocess.run([sys.executable, "-c", _THREADS], env=env, capture_output=True,
-                          text=True, timeout=300)  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    assert done.stdout.strip() == "same bits"
+    assert run_on_two_threads(_THREADS) == "same bits"
 
 
 def test_two_sides_sharing_their_shadow_rays_get_two_traversals_answers():
