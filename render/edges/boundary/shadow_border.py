@@ -28,24 +28,33 @@ de/dtheta: f_+ and f_- are the radiance on the receiver just either side (``radi
 lies in another shadow of the same light (f_+ = f_- there). ``ShadowBorder`` is the curve
 kind that hands all this to the term (``render.edges.boundary.curves``).
 
-(A compiled pass over the points, the same Newton steps in scalars, took 0.54 ms where
-``onto_border`` takes 2.5 ms (its sums by minidiff's kernel, ``dot_last``; 5.6 ms with np.sum)
-on the paper teapot's 6,068 points at 128x128, single-threaded, medians of 20 calls in one
-process: 2 ms, under 2 % of a 105-125 ms render and backward, did not pay for a second
-statement of the formulas and 1.5 s of compiling on a fresh install. The steps give the
-compiled pass's bits.)
+The functions above are the NumPy statement (``shadow_points(..., compiled=False)``); a
+render moves its points by one compiled, parallel pass, ``border_kernel.border_points``,
+which gathers each point's receiver and occluder, takes the Newton steps and finds |grad e|
+in pixels and the receiver's depth just either side, with the same operations (the
+points and factors come out bit for bit on the paper teapot and its ground,
+``tests/render/edges/test_border_kernel.py``). A first compiled Newton pass, judged at
+128x128 (0.54 against 2.5 ms on 6,068 points), did not pay for its second statement of the
+formulas. Counting what the NumPy statement costs besides the steps (gathering the rows,
+the sides' depths, the occlusion rays without a first guess), ``shadow_points`` takes 3.8
+ms against 8.7 ms on the paper teapot at 128x128 (6,152 points), 4.8 against 12.9 ms at
+512x512 (9,499) and 8.1 against 16.0 ms with the ground (11,847), on one thread of a busy
+shared machine (medians of 21 calls in one process); what is left is the occlusion rays
+and the radiance either side (``DirectRadiance``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last, square_root
+from render.edges.boundary.border_kernel import border_points, kernel_lights
 from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
-from render.edges.boundary.occlusion import hidden_points
+from render.edges.boundary.occlusion import Occluders, hidden_points, seen_in
 from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON, SideRadiance
 from render.edges.boundary.shadow_tracing import BorderChords, border_chords
@@ -243,19 +252,41 @@ def shadow_points(
     chords: BorderChords,
     pieces,
     radiance: SideRadiance,
+    compiled: bool = True,
 ) -> ShadowPoints:
     """The quadrature points of the shadow borders with their constant factors
     (``BoundaryPoints``): ``pieces`` = (chord (m,), image-plane coords (m, 2), weight (m,),
     pixel (m,)) of the points on ``chords`` (cut with the other curves at pixel borders
     and crossings); ``radiance``: what the camera sees either side. The points are moved
-    onto their light's border light by light, and the radiance on either side is asked for
-    all of them at once."""
+    onto their borders by one compiled pass (``border_kernel.border_points``) or, with
+    ``compiled`` False or a light the pass does not know, light by light by the NumPy
+    statement (``onto_border``, ``_border_factors``: the reference); the radiance on either
+    side is asked for all of them at once."""
     plain = plain_camera(frame)
     chord, coords, weight, pixel = pieces
     light, occluder = chords.light[chord], np.take(chords.occluder, chord, axis=0)
     receiver = chords.receiver[chord]
-    moved, t = coords.copy(), np.full(len(chord), np.nan)
-    grad = np.zeros((len(chord), 2))
+    lights = kernel_lights(scene) if compiled else None
+    if lights is None:
+        moved, grad, t = _moved_points(scene, visibility, plain, light, occluder, receiver, coords)
+        factor = _border_factors(
+            scene, visibility, plain, receiver, moved, grad, t, weight, radiance
+        )
+    else:
+        moved, factor = _compiled_points(
+            scene, visibility, plain, (light, occluder, receiver), (coords, weight, pixel),
+            radiance, lights,
+        )  # fmt: skip
+    keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
+    return ShadowPoints(np.take(moved, keep, axis=0), pixel[keep], np.take(factor, keep, axis=0),
+                        light[keep], receiver[keep], np.take(occluder, keep, axis=0))  # fmt: skip
+
+
+def _moved_points(scene, visibility, frame, light, occluder, receiver, coords):
+    """The NumPy statement of the points' move onto their borders, light by light: the
+    moved image-plane coords (k, 2), grad e there (k, 2) and the depths t (k,)."""
+    moved, t = coords.copy(), np.full(len(light), np.nan)
+    grad = np.zeros((len(light), 2))
     for j, source in enumerate(scene.lights):
         rows = np.flatnonzero(light == j)
         if len(rows) == 0:
@@ -263,12 +294,46 @@ def shadow_points(
         rows_of = _border_rows(scene, visibility, source, np.take(occluder, rows, axis=0),
                                receiver[rows])  # fmt: skip
         moved[rows], _, grad[rows], _, t[rows] = onto_border(
-            plain, *rows_of, np.take(coords, rows, axis=0)
+            frame, *rows_of, np.take(coords, rows, axis=0)
         )
-    factor = _border_factors(scene, visibility, plain, receiver, moved, grad, t, weight, radiance)
-    keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
-    return ShadowPoints(np.take(moved, keep, axis=0), pixel[keep], np.take(factor, keep, axis=0),
-                        light[keep], receiver[keep], np.take(occluder, keep, axis=0))  # fmt: skip
+    return moved, grad, t
+
+
+def _compiled_points(scene, visibility, frame, labels, pieces, radiance, lights):
+    """``_moved_points`` and ``_border_factors`` with the geometry in one compiled pass
+    (``border_points``): the moved coords (k, 2) and the factors (k, 3). ``labels`` =
+    (light (k,), occluder (k, 3), receiver (k,)); ``pieces`` = (coords (k, 2), weight
+    (k,), pixel (k,)); ``lights``: ``kernel_lights``."""
+    light, occluder, receiver = labels
+    coords, weight, pixel = pieces
+    k = len(light)
+    out = (np.empty((k, 2)), np.empty((k, 2)), np.empty(k), np.empty(k), np.empty((k, 3)),
+           np.empty((k, 2, 2)), np.empty((k, 2)))  # fmt: skip
+    vertices = [np.asarray(mesh.vertices.data, np.float64) for mesh in scene.meshes]
+    first = np.cumsum([0] + [len(v) for v in vertices[:-1]]).astype(np.int64)
+    meshes = (np.concatenate(vertices) if vertices else np.zeros((0, 3)), first)
+    spheres = (
+        np.array([s.center.data for s in scene.spheres], np.float64).reshape(-1, 3),
+        np.array([float(s.radius.data) for s in scene.spheres], np.float64),
+    )
+    camera = scene.camera
+    border_points(
+        coords, light, occluder, receiver, lights, meshes, spheres, visibility.primitives,
+        np.stack(frame), camera.width, camera.height, NEWTON_STEPS, numba.get_num_threads(), out,
+    )  # fmt: skip
+    moved, _, t, norm, direction, side, side_depth = out
+    rows = np.flatnonzero(np.isfinite(t) & (t > 0) & (norm > 0))
+    # What hides a point is most often what the camera sees in its pixel: tried first.
+    hidden = hidden_points(
+        visibility, frame, camera, np.take(moved, rows, axis=0),
+        np.take(direction, rows, axis=0), t[rows], norm[rows], receiver[rows],
+        seen_in(Occluders.of(visibility), pixel[rows], scene),
+    )  # fmt: skip
+    rows = rows[~hidden]
+    sides = np.take(side, rows, axis=0)
+    both = np.concatenate([sides[:, 0], sides[:, 1]])
+    depth = np.take(side_depth, rows, axis=0).T.reshape(-1)
+    return moved, _jumps(radiance, rows, both, receiver, depth, weight, norm, k)
 
 
 def _einsum_dot(a, b):
@@ -294,7 +359,6 @@ def _border_factors(
     rows, at = rows[~hidden], at[~hidden]
     shift = EPSILON * np.take(step, rows, axis=0)
     both = np.concatenate([at + shift, at - shift])
-    keys = np.concatenate([rows, rows])
     # Both sides shaded on the receiver itself (the border point is seen on it): rays
     # traced there would cross any curve of primary visibility within EPSILON of the
     # border and add its jump. Where a triangle passes through a sphere, the sphere's
@@ -306,6 +370,17 @@ def _border_factors(
         _receiver_rows(scene, visibility, on), camera_directions(both, right, up, forward), eye,
         _einsum_dot,
     )  # fmt: skip
+    return _jumps(radiance, rows, both, receiver, depth, weight, norm, len(coords))
+
+
+def _jumps(radiance, rows, both, receiver, depth, weight, norm, k) -> np.ndarray:
+    """(k, 3): w (f_+ - f_-) / |grad e| at the points ``rows`` (n,) of k, zero elsewhere:
+    f_+ and f_- are the radiance at image-plane points ``both`` (2n, 2) (the + sides of
+    ``rows``, then their - sides), each seen on its point's ``receiver`` (k,) at ``depth``
+    (2n,) (NaN or <= 0: beside a sphere receiver's outline, then traced); ``weight`` (k,),
+    ``norm`` (k,): the points' weights and |grad e| in pixels."""
+    keys = np.concatenate([rows, rows])
+    on = np.concatenate([receiver[rows], receiver[rows]])
     found = np.isfinite(depth) & (depth > 0)
     f = np.empty((len(both), 3))
     inside, outside = np.flatnonzero(found), np.flatnonzero(~found)
@@ -314,7 +389,7 @@ def _border_factors(
     )
     if len(outside):  # a side ray beside a sphere receiver's outline: what is seen there
         f[outside] = radiance.along(np.take(both, outside, axis=0), keys[outside])
-    out = np.zeros((len(coords), 3))
+    out = np.zeros((k, 3))
     out[rows] = (weight[rows] / norm[rows])[:, None] * (f[: len(rows)] - f[len(rows) :])
     return out
 

@@ -237,6 +237,7 @@ def _border_inputs(seed, monkeypatch):
 
     monkeypatch.setattr(sb, "_border_rows", keep_rows)
     monkeypatch.setattr(sb, "onto_border", keep_points)
+    monkeypatch.setattr(sb, "kernel_lights", lambda scene: None)  # the NumPy statement
     scene = random_scene(seed, lights=("point", "directional"))
     scene.lights[0].position.requires_grad = True
     render.render(scene, antialias="boundary").sum().backward()
@@ -318,6 +319,7 @@ def _chord_inputs(seed, monkeypatch):
 
     monkeypatch.setattr(st, "bisect_chords", keep)
     monkeypatch.setattr(sb, "_border_rows", keep_visibility)
+    monkeypatch.setattr(sb, "kernel_lights", lambda scene: None)  # the NumPy statement
     scene = random_scene(seed, lights=("point", "directional"))
     scene.lights[0].position.requires_grad = True
     render.render(scene, antialias="boundary")

@@ -1,0 +1,218 @@
+"""The boundary term's compiled passes against their NumPy statements.
+
+``render.edges.boundary.border_kernel.border_points`` moves the shadow borders' quadrature
+points onto their borders and finds their factors' geometry in one pass;
+``shadow_border.shadow_points(..., compiled=False)`` is the NumPy statement it must agree
+with (``_moved_points``, ``_border_factors``). ``pixels.split_at_crossings`` groups the
+pieces by a counting sort and splits the groups in parallel blocks; ``pixel_order`` and
+a group-at-a-time loop are its statement. Both must give the same results on any number
+of threads.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import render
+from render.edges.boundary import border_kernel, pixels
+from render.edges.boundary import shadow_border as sb
+from render.scene.lights import PointLight
+from render.scene.teapot import paper_scene
+from tests.render_helpers import random_scene, run_on_two_threads
+
+
+def _differentiable(scene):
+    """The scene with its light positions or directions, its mesh vertices, sphere centres
+    and camera position requiring gradients; returns those leaves."""
+    leaves = []
+    for light in scene.lights:
+        leaves.append(light.position if isinstance(light, PointLight) else light.direction)
+    leaves += [mesh.vertices for mesh in scene.meshes]
+    leaves += [sphere.center for sphere in scene.spheres]
+    leaves.append(scene.camera.position)
+    for leaf in leaves:
+        leaf.requires_grad = True
+    return leaves
+
+
+def _shadow_inputs(scene, monkeypatch):
+    """The arguments ``ShadowBorder.points`` hands ``shadow_points`` in a boundary render
+    of ``scene``."""
+    seen, points = [], sb.shadow_points
+
+    def keep(*args, **kwargs):
+        seen.append(args)
+        return points(*args, **kwargs)
+
+    with monkeypatch.context() as patch:
+        patch.setattr(sb, "shadow_points", keep)
+        render.render(scene, antialias="boundary")
+    assert len(seen) == 1
+    return seen[0]
+
+
+def _scenes():
+    """The scenes of the tests, by name: the paper teapot on its ground at 64x64 and
+    128x128, a sphere casting onto a textured ground under a point and a directional light,
+    and a flat-shaded pyramid and a sphere under both."""
+    return {
+        "teapot 64": lambda: paper_scene(64, 64, ground=True),
+        "teapot 128": lambda: paper_scene(128, 128, ground=True),
+        "sphere, point light": lambda: random_scene(1, pyramid=False, texture=True),
+        "sphere, directional light": lambda: random_scene(
+            2, lights=("directional",), pyramid=False
+        ),
+        "pyramid and sphere, both lights": lambda: random_scene(
+            3, lights=("point", "directional"), width=48, height=40
+        ),
+    }
+
+
+def _assert_close(got, want):
+    """Equal to ~1e-12 of the largest |want| (finite entries; NaN where want has NaN)."""
+    assert got.shape == want.shape
+    scale = np.abs(want[np.isfinite(want)]).max(initial=0.0)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12 * max(scale, 1e-300))
+
+
+@pytest.mark.parametrize("name", list(_scenes()))
+def test_compiled_points_are_the_numpy_statements(name, monkeypatch):
+    """``shadow_points``: the compiled pass keeps the same points, with the same pixels,
+    labels, coordinates and factors (to rounding) as the NumPy statement."""
+    scene = _scenes()[name]()
+    _differentiable(scene)
+    args = _shadow_inputs(scene, monkeypatch)
+    got, want = sb.shadow_points(*args), sb.shadow_points(*args, compiled=False)
+    assert len(want.pixel) > 0 and np.abs(want.weight).max() > 0
+    for label in ("pixel", "light", "receiver", "occluder"):
+        np.testing.assert_array_equal(getattr(got, label), getattr(want, label))
+    _assert_close(got.coords, want.coords)
+    _assert_close(got.weight, want.weight)
+
+
+@pytest.mark.parametrize("name", ["teapot 64", "pyramid and sphere, both lights"])
+def test_the_gradient_is_the_reference_gradient(name, monkeypatch):
+    """The whole ``render(..., antialias="boundary")`` gradient with the compiled passes
+    equals the one with the NumPy statements (``kernel_lights`` None: the reference),
+    to ~1e-12 of each parameter's largest entry."""
+    grads = []
+    for compiled in (True, False):
+        scene = _scenes()[name]()
+        leaves = _differentiable(scene)
+        with monkeypatch.context() as patch:
+            if not compiled:
+                patch.setattr(sb, "kernel_lights", lambda scene: None)
+            image = render.render(scene, antialias="boundary")
+            (image * image).sum().backward()
+        grads.append([leaf.grad.copy() for leaf in leaves])
+    for got, want in zip(*grads, strict=True):
+        assert np.abs(want).max() > 0
+        _assert_close(got, want)
+
+
+class _OtherPointLight(PointLight):
+    """A light class the compiled pass does not know."""
+
+
+def test_an_unknown_light_takes_the_numpy_statement(monkeypatch):
+    """``kernel_lights`` knows point and directional lights only: with another light class
+    the points are moved by the NumPy statement (the kernel is never called)."""
+    scene = random_scene(4, pyramid=False)
+    light = scene.lights[0]
+    scene.lights[0] = _OtherPointLight(light.position.data, light.intensity.data)
+    assert border_kernel.kernel_lights(scene) is None
+    assert border_kernel.kernel_lights(random_scene(4, pyramid=False)) is not None
+
+    def refuse(*args):
+        raise AssertionError("the kernel was called")
+
+    monkeypatch.setattr(sb, "border_points", refuse)
+    scene.lights[0].position.requires_grad = True
+    render.render(scene, antialias="boundary").sum().backward()
+    assert np.abs(scene.lights[0].position.grad).max() > 0
+
+
+def _split_reference(p0, p1, segment, start, end, pixel):
+    """``split_at_crossings``' statement: pieces grouped by ``pixel_order``, each group
+    split by ``_split_group`` one after the other."""
+    order = pixels.pixel_order(pixel)
+    ordered = pixel[order]
+    bounds = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1], True])
+    geometry = np.empty((len(order), 9))
+    out = np.empty((max(1, int(np.sum(np.diff(bounds) ** 2))), 4))
+    ts = np.empty(len(order) + 1)
+    n = 0
+    for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        pixels._piece_geometry(p0, p1, segment, start, end, order, lo, hi, geometry)
+        n = pixels._split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts)
+    return out[:n, 0].astype(np.int64), out[:n, 1], out[:n, 2], out[:n, 3].astype(np.int64)
+
+
+@settings(max_examples=8, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 120), st.sampled_from([(3, 2), (8, 8)]))
+def test_split_at_crossings_is_its_statement(seed, n, size):
+    """Random segments, many of them crossing in few pixels: the compiled split gives its
+    statement's pieces, row for row, and the counting sort ``pixel_order``'s order."""
+    rng = np.random.default_rng(seed)
+    width, height = size
+    p0 = rng.uniform(-0.5, 1.1, (n, 2)) * [width, height]
+    p1 = p0 + rng.normal(0.0, 1.5, (n, 2))
+    pieces = pixels.pixel_pieces(p0, p1, width, height)
+    if len(pieces[3]) == 0:
+        return
+    order, bounds, slots = pixels._pixel_groups(pieces[3], width * height)
+    np.testing.assert_array_equal(order, pixels.pixel_order(pieces[3]))
+    got = pixels.split_at_crossings(p0, p1, *pieces)
+    want = _split_reference(p0, p1, *pieces)
+    for a, b in zip(got, want, strict=True):
+        assert a.dtype == b.dtype
+    np.testing.assert_array_equal(got[0], want[0])  # the segments
+    np.testing.assert_array_equal(got[3], want[3])  # the pixels
+    # The parameters: to rounding (the same formula, compiled inside the parallel pass
+    # here and on its own in the statement, has differed in the last bit).
+    np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(got[2], want[2], rtol=0, atol=1e-14)
+
+
+#: The compiled passes on 1 and 2 threads in one process: the teapot's shadow points, a
+#: scene's whole boundary gradient and a crowded split.
+_THREADS = """
+import numba, numpy as np
+import render
+from render.edges.boundary import pixels
+from render.edges.boundary import shadow_border as sb
+from render.scene.teapot import paper_scene
+from tests.render_helpers import random_scene
+seen, points = [], sb.shadow_points
+sb.shadow_points = lambda *a: seen.append(a) or points(*a)
+scene = paper_scene(96, 96, ground=True)
+scene.lights[0].position.requires_grad = True
+render.render(scene, antialias="boundary")
+sb.shadow_points = points
+rng = np.random.default_rng(5)
+p0 = rng.uniform(0, 6, (400, 2))
+p1 = p0 + rng.normal(0, 2, (400, 2))
+runs = []
+for n in (1, 2):
+    numba.set_num_threads(n)
+    assert numba.get_num_threads() == n
+    found = sb.shadow_points(*seen[0])
+    other = random_scene(3, lights=("point", "directional"), width=48, height=40)
+    leaf = other.lights[0].position
+    leaf.requires_grad = True
+    render.render(other, antialias="boundary").sum().backward()
+    split = pixels.split_at_crossings(p0, p1, *pixels.pixel_pieces(p0, p1, 6, 6))
+    runs.append((found.coords, found.weight, found.pixel, leaf.grad.copy(), *split))
+assert len(runs[0][2]) > 0 and np.abs(runs[0][3]).max() > 0
+for a, b in zip(*runs):
+    assert np.array_equal(a, b)
+print("same bits")
+"""
+
+
+@pytest.mark.new_processes
+def test_the_same_bits_on_one_and_two_threads():
+    assert run_on_two_threads(_THREADS) == "same bits"
