@@ -50,9 +50,10 @@ def _two_lights() -> Scene:
     return scene
 
 
-def _boxes(textured: bool) -> Scene:
-    """A flat-shaded box (specular, emissive) on a second box, seen from above; with
-    ``textured`` the top box has all three texture maps."""
+def _boxes(textured: bool, lit: bool = True) -> Scene:
+    """A flat-shaded box (specular, emissive) on a second box, seen from above, before a
+    coloured background; with ``textured`` the top box has all three texture maps; without
+    ``lit`` no light (ambient and emitted light alone)."""
     rng = np.random.default_rng(5)
     maps = {}
     if textured:
@@ -68,7 +69,8 @@ def _boxes(textured: bool) -> Scene:
     top = Mesh(md.tensor(top.vertices.data, requires_grad=True), top.faces, material, uvs=uvs)
     below = box_mesh((0.2, -0.5, 0.1), (1.2, 0.5, 0.9), Material((0.3, 0.5, 0.6)))
     camera = Camera((1.5, 2.0, 2.5), (0.0, 0.0, 0.0), fov=45.0, width=SIZE, height=SIZE)
-    return Scene([top, below], [PointLight((1.0, 3.0, 1.0), 30.0)], camera)
+    lights = [PointLight((1.0, 3.0, 1.0), 30.0)] if lit else []
+    return Scene([top, below], lights, camera, background=(0.2, 0.3, 0.4))
 
 
 def _sphere_behind() -> Scene:
@@ -83,9 +85,10 @@ def _shared() -> Scene:
     return shared_scene("separate", True, False, True, np.zeros(3))
 
 
-def _run(scene: Scene, monkeypatch) -> tuple[list, dict]:
-    """Render ``scene`` with the boundary term, each ``_edge_factors`` call computed with
-    and without the kernel: the (compiled, reference) pairs, and what the kernel saw
+def _run(scene: Scene, monkeypatch, **options) -> tuple[list, dict]:
+    """Render ``scene`` with the boundary term (and render ``options``), each
+    ``_edge_factors`` call computed with and without the kernel: the (compiled, reference)
+    pairs, and what the kernel saw
     (``calls``, ``referred``: points it left to the reference)."""
     plain = mesh_edge._edge_factors
     side_factors = edge_kernel.side_factors
@@ -104,7 +107,7 @@ def _run(scene: Scene, monkeypatch) -> tuple[list, dict]:
 
     monkeypatch.setattr(mesh_edge, "_edge_factors", both)
     monkeypatch.setattr(edge_kernel, "side_factors", counted)
-    render(scene, antialias="boundary", reuse_visibility=False)
+    render(scene, antialias="boundary", reuse_visibility=False, **options)
     monkeypatch.undo()
     return pairs, seen
 
@@ -119,19 +122,25 @@ def _assert_same(pairs: list) -> None:
 
 
 @pytest.mark.parametrize(
-    "make",
+    "make, options",
     [
-        functools.partial(_teapot, ground=False),
-        functools.partial(_teapot, ground=True),
-        _two_lights,
-        functools.partial(_boxes, textured=False),
-        functools.partial(_boxes, textured=True),
-        _shared,
+        (functools.partial(_teapot, ground=False), {}),
+        (functools.partial(_teapot, ground=True), {}),
+        (functools.partial(_teapot, ground=True), {"shadows": False}),
+        (functools.partial(_teapot, ground=True), {"bvh": False}),
+        (_two_lights, {}),
+        (functools.partial(_boxes, textured=False), {}),
+        (functools.partial(_boxes, textured=True), {}),
+        (functools.partial(_boxes, textured=False, lit=False), {}),
+        (_shared, {}),
     ],
-    ids=["teapot", "teapot-ground", "two-lights", "flat-box", "textured-box", "shared-edge"],
-)
-def test_the_kernel_gives_the_reference_factors(make, monkeypatch):
-    pairs, seen = _run(make(), monkeypatch)
+    ids=[
+        "teapot", "teapot-ground", "no-shadows", "brute-force", "two-lights", "flat-box",
+        "textured-box", "no-light", "shared-edge",
+    ],
+)  # fmt: skip
+def test_the_kernel_gives_the_reference_factors(make, options, monkeypatch):
+    pairs, seen = _run(make(), monkeypatch, **options)
     _assert_same(pairs)
     assert seen["calls"] > 0 and seen["referred"] == 0
 
