@@ -31,7 +31,7 @@ import numpy as np
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
-from render.trace.intersect import closest_hit_ray, make_ray
+from render.trace.intersect import BLOCK, _jobs, closest_hit_ray, make_ray
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
 
@@ -193,32 +193,30 @@ def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, sta
     """Where the light's ray grazing the point s (3,) of a curve goes on to hit: the
     receiver (-1: nothing, behind the camera, or ``own``, the sphere grazed, which a ray
     touching it meets again only by rounding) and its pixel position, written to px (2,).
-    ``where``: the light's position if ``point``, else its unit direction."""
+    ``where``: the light's position if ``point``, else its unit direction. (Scalars and
+    tuples only: arrays allocated per ray cost more than the arithmetic around the trace.)"""
     forward, right, up, eye = frame
-    hit = np.empty(3)
     if point:
-        d = np.empty(3)
-        for c in range(3):
-            d[c] = s[c] - where[c]
+        d = (s[0] - where[0], s[1] - where[1], s[2] - where[2])
         prim, t, _, _ = closest_hit_ray(
             bvh, make_ray(where, d, 1.0 + START, np.inf), stack, stack_t
         )
-        for c in range(3):
-            hit[c] = where[c] + (t if prim >= 0 else 0.0) * d[c]
+        t_hit = t if prim >= 0 else 0.0
+        h0, h1, h2 = where[0] + t_hit * d[0], where[1] + t_hit * d[1], where[2] + t_hit * d[2]
     else:
         ray = make_ray(s, where, START * size, np.inf)
         prim, t, _, _ = closest_hit_ray(bvh, ray, stack, stack_t)
-        for c in range(3):
-            hit[c] = s[c] + (t if prim >= 0 else 0.0) * where[c]
+        t_hit = t if prim >= 0 else 0.0
+        h0, h1, h2 = s[0] + t_hit * where[0], s[1] + t_hit * where[1], s[2] + t_hit * where[2]
     if prim < 0:
         px[0] = px[1] = 0.0
         return -1
-    rel = hit - eye
-    depth = rel[0] * forward[0] + rel[1] * forward[1] + rel[2] * forward[2]
+    r0, r1, r2 = h0 - eye[0], h1 - eye[1], h2 - eye[2]
+    depth = r0 * forward[0] + r1 * forward[1] + r2 * forward[2]
     rr = right[0] * right[0] + right[1] * right[1] + right[2] * right[2]
     uu = up[0] * up[0] + up[1] * up[1] + up[2] * up[2]
-    x = (rel[0] * right[0] + rel[1] * right[1] + rel[2] * right[2]) / (depth * rr)
-    y = (rel[0] * up[0] + rel[1] * up[1] + rel[2] * up[2]) / (depth * uu)
+    x = (r0 * right[0] + r1 * right[1] + r2 * right[2]) / (depth * rr)
+    y = (r0 * up[0] + r1 * up[1] + r2 * up[2]) / (depth * uu)
     if not (depth > 1e-7 * size) or prim == own:
         px[0] = px[1] = 0.0
         return -1
@@ -226,13 +224,11 @@ def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, sta
     return prim
 
 
-#: ``bisect_chords`` deals the starting chords to threads in this many blocks per thread
-#: (the work per chord varies: a chord over a busy receiver is cut many times).
-BLOCKS_PER_THREAD = 8
-#: Rows of chords each block may write at first: this many per starting chord in it, and
-#: SPARE_ROWS more (measured on the teapot and its ground, 32x32 to 512x512: at most 6.5
-#: chords per starting chord beyond 64 at 512x512, 17 at 32x32, where blocks are short).
-#: A block that needs more makes the whole pass run again with four times the room.
+#: Rows of chords each block of starting chords (BLOCK of them, ``bisect_chords``) may
+#: write at first: this many per starting chord in it, and SPARE_ROWS more (measured on the
+#: teapot and its ground, 32x32 to 512x512: at most 6.5 chords per starting chord beyond 64
+#: at 512x512, 17 at 32x32). A block that needs more makes the whole pass run again with
+#: four times the room.
 CHORDS_PER_START = 8
 SPARE_ROWS = 1024
 
@@ -251,20 +247,20 @@ def bisect_chords(
     (m, 2), curve (m,), receiver (m,)). ``tests/render/edges/shadow_reference.py`` states
     the same bisection round by round in NumPy, and test_shadow_edges.py ties the two.
 
-    The starting chords are cut into blocks, dealt to ``n_threads`` threads
-    (``numba.get_num_threads()``) in turn; each block writes its chords to its own rows of
-    shared arrays (arrays, not a list of parts: Numba does not support lists written in a
-    prange), and the blocks are read back in block order: the same rows in the same order
-    on any number of threads."""
+    The starting chords are cut into blocks of BLOCK, dealt to ``n_threads`` threads
+    (``numba.get_num_threads()``) in turn as ``render.trace.intersect._jobs`` deals rays
+    (the work per chord varies: a chord over a busy receiver is cut many times); each block
+    writes its chords to its own rows of shared arrays (arrays, not a list of parts: Numba
+    does not support lists written in a prange), and the blocks are read back in block
+    order: the same rows in the same order on any number of threads."""
     n = len(start[0])
-    n_blocks = max(1, min(n, BLOCKS_PER_THREAD * n_threads))
-    bounds = (np.arange(n_blocks + 1) * n) // n_blocks
-    n_jobs = min(n_blocks, max(1, n_threads))
+    n_blocks, n_jobs = _jobs(n, n_threads)
+    n_blocks = max(1, n_blocks)
     # ``room``: rows per block at first; 0 (the renderer) sizes them from ``n``, a positive
     # value (the tests) forces that many. A required argument: a default would make Numba
     # compile a second signature (the call with it omitted), ~5 s more on every fresh install.
     if room <= 0:
-        room = CHORDS_PER_START * ((n + n_blocks - 1) // n_blocks) + SPARE_ROWS
+        room = CHORDS_PER_START * min(n, BLOCK) + SPARE_ROWS
     while True:
         x0s, x1s = np.empty((n_blocks * room, 2)), np.empty((n_blocks * room, 2))
         curve_out = np.empty(n_blocks * room, np.int64)
@@ -273,7 +269,8 @@ def bisect_chords(
         for job in numba.prange(n_jobs):
             for block in range(job, n_blocks, n_jobs):
                 count[block] = _bisect_block(
-                    bvh, curves, where, point, own, start, bounds[block], bounds[block + 1],
+                    bvh, curves, where, point, own, start, block * BLOCK,
+                    min(n, (block + 1) * BLOCK),
                     frame, width, height, size, first_sphere,
                     (x0s, x1s, curve_out, receiver_out), block * room, room,
                 )  # fmt: skip
@@ -283,7 +280,8 @@ def bisect_chords(
     keep = np.empty(np.sum(count), np.int64)
     m = 0
     for block in range(n_blocks):
-        keep[m : m + count[block]] = np.arange(block * room, block * room + count[block])
+        for r in range(count[block]):  # (a slice copy here would be a parallel launch)
+            keep[m + r] = block * room + r
         m += count[block]
     return x0s[keep], x1s[keep], curve_out[keep], receiver_out[keep]
 
