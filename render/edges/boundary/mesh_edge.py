@@ -10,6 +10,8 @@ clipped to the eye's near plane). At each quadrature point the edge point is whe
 camera ray meets the edge; the face seen just beside the edge on either side is the
 nearest there of the faces on that side (``edge_sides_kernel``), shaded at the edge point;
 a side without a face (a silhouette's outside) is what a ray just beyond the edge sees.
+Both sides are shaded, shadows included, in one compiled pass (``edge_kernel``) where the
+scene allows, else by the render's ``SideRadiance`` (``_side_factors``, the reference).
 """
 
 from __future__ import annotations
