@@ -16,47 +16,36 @@ import numpy as np
 
 import minidiff as md
 from render.edges.boundary.curves import CurveKind, CurvePoints, OnCurves, View
+from render.edges.boundary.kind_points import kind_points, kind_points_reference
 from render.edges.boundary.occlusion import Occluders
-from render.edges.boundary.pixels import (
-    GAUSS_POINTS,
-    pixel_pieces,
-    quadrature,
-    split_at_crossings,
-)
+from render.edges.boundary.pixels import pixel_pieces, split_at_crossings
 from render.edges.boundary.radiance import SideRadiance
-from render.scene.camera import plain_frame, to_image_plane
+from render.scene.camera import plain_frame
 from render.scene.scene import Scene
 from render.shade.hits import working_dtype
 
 
-def boundary_points(view: View, kinds: Sequence[CurveKind]) -> list[CurvePoints]:
+def boundary_points(
+    view: View, kinds: Sequence[CurveKind], compiled: bool = True
+) -> list[CurvePoints]:
     """Each kind's quadrature points with their constant factors (``CurvePoints``, one per
     kind, in the order of ``kinds``). A point's key (its name for the ``SideRadiance``) is
     its row among all kinds' points before any are dropped: it depends on the order of
-    ``kinds``, which the caller keeps fixed."""
+    ``kinds``, which the caller keeps fixed. The points are dealt to the kinds by one
+    compiled pass (``kind_points``), or with ``compiled`` False by its NumPy statement."""
     camera = view.scene.camera
     width, height = camera.width, camera.height
     curves = [kind.curves(view) for kind in kinds]
     p0 = np.concatenate([np.zeros((0, 2))] + [c.start for c in curves])
     p1 = np.concatenate([np.zeros((0, 2))] + [c.end for c in curves])
     pieces = split_at_crossings(p0, p1, *pixel_pieces(p0, p1, width, height))
-    at, segment, weight = quadrature(p0, p1, *pieces[:3])
-    pixel = np.repeat(pieces[3], GAUSS_POINTS)
-    coords = to_image_plane(at, width, height)
-    # Which kind's curves each point lies on, and which of that kind's segments.
     counts = np.array([len(c.start) for c in curves], np.int64)
-    owner = np.repeat(np.arange(len(kinds)), counts)[segment]
-    own_segment = segment - (np.cumsum(counts) - counts)[owner]
+    deal = kind_points if compiled else kind_points_reference
     found = []
-    for k, (kind, mine) in enumerate(zip(kinds, curves, strict=True)):
-        rows = np.flatnonzero(owner == k)
-        on = OnCurves(
-            mine.label[own_segment[rows]],
-            np.take(coords, rows, axis=0),
-            pixel[rows],
-            weight[rows],
-            rows,
-        )
+    for kind, mine, (segment, coords, pixel, weight, rows) in zip(
+        kinds, curves, deal(p0, p1, pieces, counts, width, height), strict=True
+    ):
+        on = OnCurves(mine.label[segment], coords, pixel, weight, rows)
         if len(rows):
             found.append(kind.points(view, on))
         else:  # no points on this kind's curves
