@@ -26,10 +26,11 @@ against every primitive.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from numba import njit, prange
 
-from render.trace.intersect import intersect_prim, make_ray, pack_primitives
+from render.trace.intersect import BLOCK, _jobs, intersect_prim, make_ray, pack_primitives
 from render.trace.raster import (
     EDGE_MARGIN,
     bin_to_tiles,
@@ -93,7 +94,7 @@ def occluded_towards_light(
     start, ids = bin_to_tiles(boxes, width, height, 1, np.argsort(near, kind="stable"))
     prim_data = pack_primitives(triangles, centers, radii)
     _occluded_by_cell(prim_data, len(triangles), start, ids, near, edges, view, close, origins,
-                      directions, tmax, ignore, out)  # fmt: skip
+                      directions, tmax, ignore, out, numba.get_num_threads())  # fmt: skip
     return out
 
 
@@ -152,7 +153,7 @@ def bounding_box(points):
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, origins,
-                      directions, tmax, ignore, out):  # fmt: skip
+                      directions, tmax, ignore, out, n_threads):  # fmt: skip
     """Any-hit of every ray against the list of its cell of the light's ``view`` (tmin = 0,
     as the shadow rays), nearest first, up to the first primitive wholly beyond the ray's
     start, skipping those whose ``edges`` rule it out; against every primitive if the ray
@@ -161,9 +162,24 @@ def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, or
     rr, uu = right @ right, up @ up
     eps = np.finfo(np.float64).eps
     light_size = max(abs(light[0]), abs(light[1]), abs(light[2]))
-    for i in prange(out.shape[0]):
-        if tmax[i] <= 0.0:
-            continue  # the light is at the ray's start: nothing between
+    # Blocks of rays dealt round-robin to the threads (``intersect._jobs``): prange's
+    # contiguous halves gave one thread the shadowed rows of the image and the other the
+    # lit ones.
+    n_blocks, n_jobs = _jobs(out.shape[0], n_threads)
+    for job in prange(n_jobs):
+        for block in range(job, n_blocks, n_jobs):
+            for i in range(block * BLOCK, min(out.shape[0], (block + 1) * BLOCK)):
+                _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origins,
+                              directions, tmax, ignore, out, i, rr, uu, eps,
+                              light_size)  # fmt: skip
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origins, directions,
+                  tmax, ignore, out, i, rr, uu, eps, light_size):  # fmt: skip
+    """``_occluded_by_cell`` for ray i."""
+    light, forward, right, up, width, height = view
+    if tmax[i] > 0.0:  # else the light is at the ray's start: nothing between
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         wx, wy, wz = ox - light[0], oy - light[1], oz - light[2]
         # The ray's cell: its origin's position as raster._project computes it for points.
