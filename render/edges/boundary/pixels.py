@@ -215,9 +215,14 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
             den = bx * fy - by * fx
             if den == 0.0:
                 continue
-            t = ((cx - ax) * fy - (cy - ay) * fx) / den
+            num = (cx - ax) * fy - (cy - ay) * fx
+            # t = num / den outside (0, 1) for most pairs, seen without the division: signs
+            # that differ give t <= 0, |num| >= |den| gives |t| >= 1 (rounding is monotonic).
+            if (num < 0.0) != (den < 0.0) or abs(num) >= abs(den):
+                continue
+            t = num / den
             if not 1e-9 < t < 1.0 - 1e-9:
-                continue  # most pairs: then u is not needed
+                continue  # then u is not needed
             u = ((cx - ax) * by - (cy - ay) * bx) / den
             reach = geometry[y, 8]
             if -reach <= u <= 1.0 + reach:
@@ -242,33 +247,43 @@ def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_
     """Every pixel's group of pieces split (``_split_group``): the groups (pieces
     order[bounds[g]:bounds[g + 1]]) in blocks of BLOCK, shared out over ``n_threads`` as
     ``render.trace.intersect._jobs`` deals rays (the crowded pixels lie together in pixel
-    order). Group g writes its parts to rows slots[g]:slots[g + 1] of a scratch table
-    ``out`` (slots[-1] rows at least), and a second pass copies them out in group order:
-    the same rows, in the same order, on any number of threads. Returns the parts'
-    (segment, start, end, pixel) (m,) each."""
+    order). A group of k pieces has at most k * k parts (``slots``: their running sum):
+    each job writes its groups' parts one after the other into its own stretch of a
+    scratch table ``out`` (slots[-1] rows at least; the parts packed, not each group at
+    its slot, since rows spread over the whole table missed the caches), and a second pass
+    copies them out in group order: the same rows, in the same order, on any number of
+    threads. Returns the parts' (segment, start, end, pixel) (m,) each."""
     n_groups = len(bounds) - 1
-    count = np.empty(n_groups, np.int64)
+    count, at = np.empty(n_groups, np.int64), np.empty(n_groups, np.int64)
     geometry = np.empty((len(order), 9))
     widest = 0
     for g in range(n_groups):
         widest = max(widest, bounds[g + 1] - bounds[g])
     n_blocks, n_jobs = _jobs(n_groups, n_threads)
+    stretch = np.zeros(n_jobs + 1, np.int64)  # where each job's stretch of ``out`` starts
+    for b in range(n_blocks):
+        last = min(n_groups, (b + 1) * BLOCK)
+        stretch[b % n_jobs + 1] += slots[last] - slots[b * BLOCK]
+    for job in range(n_jobs):
+        stretch[job + 1] += stretch[job]
     for job in numba.prange(n_jobs):
         ts = np.empty(widest + 1)  # per thread
+        row = stretch[job]
         for b in range(job, n_blocks, n_jobs):
             for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
                 lo, hi = bounds[g], bounds[g + 1]
-                row = slots[g]
+                at[g] = row
                 if hi - lo == 1:  # nothing to cut: the common case
                     i = order[lo]
                     out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
                     out[row, 3] = pixel[i]
-                    count[g] = 1
+                    row += 1
                 else:
                     _piece_geometry(p0, p1, segment, start, end, order, lo, hi, geometry)
-                    count[g] = _split_group(
+                    row = _split_group(
                         geometry, segment, start, end, pixel, order, lo, hi, out, row, ts
-                    ) - row  # fmt: skip
+                    )  # fmt: skip
+                count[g] = row - at[g]
     first = np.empty(n_groups + 1, np.int64)  # where each group's parts go
     first[0] = 0
     for g in range(n_groups):
@@ -280,7 +295,7 @@ def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_
         for b in range(job, n_blocks, n_jobs):
             for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
                 for r in range(count[g]):
-                    row, to = slots[g] + r, first[g] + r
+                    row, to = at[g] + r, first[g] + r
                     seg_out[to], start_out[to] = np.int64(out[row, 0]), out[row, 1]
                     end_out[to], pixel_out[to] = out[row, 2], np.int64(out[row, 3])
     return seg_out, start_out, end_out, pixel_out
