@@ -131,63 +131,118 @@ def cross3(x, y, out):
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def edge_sides_kernel(
-    eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height, n_threads
-):
-    """``edge_sides`` in one pass over the points: the same arithmetic per point, in
-    scalars and four scratch 3-vectors instead of a dozen (k, 3) temporaries, the points
-    shared out over ``n_threads`` (``numba.get_num_threads()``) as the ray kernels share
-    rays (``render.trace.intersect._jobs``: every point's result is the same on any number
-    of threads). The hot loop of the boundary term; tests/render/edges/test_boundary.py ties it to
-    its NumPy statement (``edge_sides`` there)."""
-    k, n_faces = faces.shape
+    eye, forward, right, up, vertices, i, j, own_faces, own_thirds, first_prim, shared_faces,
+    shared_thirds, edges, coords, width, height, n_threads,
+):  # fmt: skip
+    """``edge_sides`` of k points on the edges of an ``EdgeTable``: the same arithmetic, in
+    scalars instead of a dozen (k, 3) temporaries.
+
+    The table's rows: i, j (E,) the edges' vertex ids into ``vertices`` (V, 3); own_faces
+    (E, K) the mesh's faces on each (local ids, -1 padding; global ids: plus
+    ``first_prim``), own_thirds (E, K) their third vertices' ids; shared_faces (E, K2) the
+    faces other meshes have on it (global ids) and shared_thirds (E, K2, 3) their third
+    vertices' positions (K2 may be 0). The points: edges (k,) their rows, coords (k, 2)
+    their image-plane points. Returns directions (k, 3), depth (k,), norm (k,), step
+    (k, 2), chosen (k, 2) (``edge_sides``).
+
+    What depends on the edge alone (its plane, |grad e|, the step, each face's side and
+    normal) is computed once per edge the points lie on, then each point's own part;
+    both passes share their work out over ``n_threads`` (``numba.get_num_threads()``) as
+    the ray kernels share rays (``render.trace.intersect._jobs``: every result is the same
+    on any number of threads). tests/render/edges/test_boundary.py ties it to its NumPy
+    statement (``edge_sides`` there)."""
+    k, n_own = edges.shape[0], own_faces.shape[1]
+    n_faces = n_own + shared_faces.shape[1]
+    # The edges the points lie on, each given a slot in the order the points first name it.
+    slot = np.full(i.shape[0], -1, np.int64)
+    rows = np.empty(k, np.int64)
+    n = 0
+    for p in range(k):
+        if slot[edges[p]] < 0:
+            slot[edges[p]], rows[n] = n, edges[p]
+            n += 1
+    u, w0, normal = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, n_faces, 3))
+    uu, uw, length = np.empty(n), np.empty(n), np.empty(n)
+    step_e, ng = np.empty((n, 2)), np.empty((n, n_faces))
+    face = np.full((n, n_faces), -1, np.int64)  # -1: none, or on neither side
+    plus = np.zeros((n, n_faces), np.bool_)
+    sx, sy = 2.0 / width, -2.0 / height
+    n_blocks, n_jobs = _jobs(n, n_threads)
+    for job in numba.prange(n_jobs):
+        am, bm, m, towards = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # per thread
+        t, third, cut = np.empty(3), np.empty(3), np.empty(3)
+        for block in range(job, n_blocks, n_jobs):
+            for e in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+                row = rows[e]
+                ia, ib = i[row], j[row]
+                for c in range(3):
+                    am[c], bm[c] = vertices[ia, c] - eye[c], vertices[ib, c] - eye[c]
+                    u[e, c], w0[e, c] = vertices[ib, c] - vertices[ia, c], eye[c] - vertices[ia, c]
+                cross3(am, bm, m)
+                uu[e], uw[e] = dot3(u[e], u[e]), dot3(u[e], w0[e])
+                # pixel_gradient of grad e = (m . right, m . up)
+                gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
+                length[e] = math.sqrt(gx * gx + gy * gy)
+                scale = length[e] if length[e] > 0 else 1.0
+                step_e[e, 0], step_e[e, 1] = gx / scale * sx, gy / scale * sy
+                for c in range(3):
+                    towards[c] = step_e[e, 0] * right[c] + step_e[e, 1] * up[c]
+                for f in range(n_faces):  # each face's side and normal
+                    if f < n_own:
+                        if own_faces[row, f] < 0:
+                            continue
+                        for c in range(3):
+                            third[c] = vertices[own_thirds[row, f], c]
+                        global_id = own_faces[row, f] + first_prim
+                    else:
+                        global_id = shared_faces[row, f - n_own]
+                        if global_id < 0:
+                            continue
+                        for c in range(3):
+                            third[c] = shared_thirds[row, f - n_own, c]
+                    for c in range(3):
+                        t[c] = third[c] - vertices[ia, c]
+                    side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
+                    side = side + (third[2] - eye[2]) * m[2]
+                    if side == 0 or side != side:
+                        continue
+                    face[e, f], plus[e, f] = global_id, side > 0
+                    cross3(u[e], t, cut)
+                    normal[e, f] = cut
+                    ng[e, f] = dot3(cut, towards)
     directions = np.empty((k, 3))
     depth, norm = np.empty(k), np.empty(k)
     step = np.empty((k, 2))
     chosen = np.full((k, 2), -1, np.int64)
     n_blocks, n_jobs = _jobs(k, n_threads)
-    sx, sy = 2.0 / width, -2.0 / height
     for job in numba.prange(n_jobs):
-        am, bm, m, u = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # per thread
-        w0, towards, t, normal = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
         for block in range(job, n_blocks, n_jobs):
             for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
-                a, b, d = vertices[i[p]], vertices[j[p]], directions[p]
-                for c in range(3):
-                    am[c], bm[c] = a[c] - eye[c], b[c] - eye[c]
-                    d[c] = coords[p, 0] * right[c] + coords[p, 1] * up[c] + forward[c]
-                    u[c], w0[c] = b[c] - a[c], eye[c] - a[c]
-                cross3(am, bm, m)
+                # Elements read one by one: row views of shared arrays would count
+                # references, atomically, in every thread.
+                e, x, y = slot[edges[p]], coords[p, 0], coords[p, 1]
+                d0 = x * right[0] + y * up[0] + forward[0]
+                d1 = x * right[1] + y * up[1] + forward[1]
+                d2 = x * right[2] + y * up[2] + forward[2]
+                directions[p, 0], directions[p, 1], directions[p, 2] = d0, d1, d2
                 # _edge_points: the depth along d of the point nearest the line through a and b
-                dd, du, uu, dw, uw = dot3(d, d), dot3(d, u), dot3(u, u), dot3(d, w0), dot3(u, w0)
-                det = dd * uu - du * du
-                depth[p] = (du * uw - uu * dw) / (det if det > 0 else 1.0)
-                # pixel_gradient of grad e = (m . right, m . up)
-                gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
-                length = math.sqrt(gx * gx + gy * gy)
-                scale = length if length > 0 else 1.0
-                norm[p] = length
-                step[p, 0], step[p, 1] = gx / scale * sx, gy / scale * sy
-                for c in range(3):
-                    towards[c] = step[p, 0] * right[c] + step[p, 1] * up[c]
+                dd = d0 * d0 + d1 * d1 + d2 * d2
+                du = d0 * u[e, 0] + d1 * u[e, 1] + d2 * u[e, 2]
+                dw = d0 * w0[e, 0] + d1 * w0[e, 1] + d2 * w0[e, 2]
+                det = dd * uu[e] - du * du
+                depth[p] = (du * uw[e] - uu[e] * dw) / (det if det > 0 else 1.0)
+                norm[p], step[p, 0], step[p, 1] = length[e], step_e[e, 0], step_e[e, 1]
                 # the nearest face on either side (approach; ties go to the first, as np.argmax)
                 best_plus, best_minus = -np.inf, -np.inf
                 for f in range(n_faces):
-                    if faces[p, f] < 0:
+                    if face[e, f] < 0:
                         continue
-                    third = thirds[p, f]
-                    for c in range(3):
-                        t[c] = third[c] - a[c]
-                    side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
-                    side = side + (third[2] - eye[2]) * m[2]
-                    if side == 0 or side != side:
-                        continue
-                    cross3(u, t, normal)
-                    nd, ng = dot3(normal, d), dot3(normal, towards)
-                    rate = ng / nd if nd != 0 else ng / np.inf
-                    if side > 0 and (chosen[p, 0] < 0 or rate > best_plus):
-                        best_plus, chosen[p, 0] = rate, faces[p, f]
-                    elif side < 0 and (chosen[p, 1] < 0 or -rate > best_minus):
-                        best_minus, chosen[p, 1] = -rate, faces[p, f]
+                    nd = normal[e, f, 0] * d0 + normal[e, f, 1] * d1 + normal[e, f, 2] * d2
+                    rate = ng[e, f] / nd if nd != 0 else ng[e, f] / np.inf
+                    if plus[e, f] and (chosen[p, 0] < 0 or rate > best_plus):
+                        best_plus, chosen[p, 0] = rate, face[e, f]
+                    elif not plus[e, f] and (chosen[p, 1] < 0 or -rate > best_minus):
+                        best_minus, chosen[p, 1] = -rate, face[e, f]
     return directions, depth, norm, step, chosen
 
 
@@ -213,14 +268,12 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = Tru
     camera = scene.camera
     forward, right, up, eye = view.frame
     vertices = np.asarray(scene.meshes[kind.index].vertices.data, np.float64)
-    own = np.take(table.faces, edges, axis=0)
-    faces = np.where(own >= 0, own + first_prim, -1)  # global primitive ids
-    thirds = np.take(vertices, np.maximum(np.take(table.thirds, edges, axis=0), 0), axis=0)
-    if shared is not None and shared.faces.shape[1]:
-        faces = np.concatenate([faces, np.take(shared.faces, edges, axis=0)], axis=1)
-        thirds = np.concatenate([thirds, np.take(shared.thirds, edges, axis=0)], axis=1)
+    shared_faces, shared_thirds = np.zeros((len(table.i), 0), np.int64), np.zeros((1, 0, 3))
+    if shared is not None:
+        shared_faces, shared_thirds = shared.faces, shared.thirds
     directions, depth, norm, step, chosen = edge_sides_kernel(
-        eye, forward, right, up, vertices, table.i[edges], table.j[edges], faces, thirds,
+        eye, forward, right, up, vertices, table.i, table.j, table.faces, table.thirds,
+        first_prim, shared_faces, np.asarray(shared_thirds, np.float64), edges,
         np.ascontiguousarray(coords), camera.width, camera.height, numba.get_num_threads(),
     )  # fmt: skip
     ignore = table.faces[edges, 0] + first_prim

@@ -489,10 +489,21 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     i, j = rng.integers(0, 6, k), rng.integers(6, 12, k)
     faces = rng.integers(-1, 50, (k, n_faces))
     faces[:, 0] = np.abs(faces[:, 0])  # one face at least
-    thirds = vertices[rng.integers(12, 20, (k, n_faces))]  # (k, K, 3) positions
+    third_ids = rng.integers(12, 20, (k, n_faces))
+    thirds = vertices[third_ids]  # (k, K, 3) positions
     coords = rng.uniform(-1.0, 1.0, (k, 2))
     args = (eye, forward, right, up, vertices, i, j, faces, thirds, coords, 40, 30)
-    plain, fast = edge_sides(*args), edge_sides_kernel(*args, 1)
+    plain = edge_sides(*args)
+    # The kernel reads a table: each point on an edge row of its own, listed twice over
+    # (rows k..2k-1 hold no point); its first face the mesh's own (first_prim 0), the rest
+    # another mesh's (ids and positions).
+    table = [np.concatenate([x, x]) for x in (i, j, faces, third_ids, thirds)]
+    fast = edge_sides_kernel(
+        eye, forward, right, up, vertices, table[0], table[1], table[2][:, :1],
+        table[3][:, :1], 0, table[2][:, 1:], table[4][:, 1:], np.arange(k)[::-1].copy(),
+        coords[::-1].copy(), 40, 30, 1,
+    )  # fmt: skip
+    fast = [x[::-1] for x in fast]
     for name, a, b in zip(
         ("directions", "depth", "norm", "step"), plain[:4], fast[:4], strict=True
     ):
