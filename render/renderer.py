@@ -19,6 +19,12 @@
 5. Image (``render/film.py``): each pixel the mean of its samples, misses showing the
    background.
 
+When something is differentiated and nothing reflects, every object is a mesh without
+textures and pixel pairs are off, steps 2, 3 and 5 are one node on the tape
+(``render.shade.adjoint``): the compiled forward of a render that nothing differentiates,
+and a compiled, hand-written adjoint that re-evaluates every hit; the taped functions stay
+the reference it is tested against (and the path forward mode and other scenes take).
+
 Gradients reach every continuous parameter through steps 2-5; step 1's decisions (and
 which primitive each mirror ray hits) are constants. With ``reuse_visibility=True`` (the
 default), step 1, the edge pairs and the surfaces of step 2 are reused from the previous
@@ -44,7 +50,7 @@ from render.scene.cache import cache_for
 from render.scene.camera import camera_frame, plain_frame, subpixel_offsets
 from render.scene.placement import placed
 from render.scene.scene import Scene, check_ray_count
-from render.shade import fused
+from render.shade import adjoint, fused
 from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.lighting import shade_mesh, shade_surface
 from render.shade.mirrors import Mirrors
@@ -139,24 +145,26 @@ def render(
         image = md.Tensor(values)  # no copy
     else:
         frame = camera_frame(world.camera)
-        mirrors = Mirrors.of(world, visibility, max_bounces)
-        shading = shade_camera_hits(
-            world, visibility, frame, cache, mirrors, surfaces=pairs
-        )  # 2, 3
-        prim_id, texel = visibility.primary.prim_id, shading.texel
-        if pairs:
-            samples = sample_colours(world, prim_id, shading.colour, shading.rays)
-            samples, edges = add_edge_terms(
-                world, visibility, cache, samples, shading, frame, spp
-            )  # 4
-            image = pixel_means(world, samples, spp)  # 5
+        if not pairs and differentiated(world) and adjoint.applies(world, max_bounces):
+            # 2, 3, 5 as one node: compiled forward, hand-written adjoint (nothing reflects).
+            image, texel = adjoint.image(world, visibility, frame, spp), None
         else:
-            image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
-            if antialias == "boundary" and differentiated(scene):  # 4': zero in value
-                image = add_interior_samples(
-                    world, visibility, image, frame, spp, max_bounces, inner
-                )
-                image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
+            mirrors = Mirrors.of(world, visibility, max_bounces)
+            shading = shade_camera_hits(
+                world, visibility, frame, cache, mirrors, surfaces=pairs
+            )  # 2, 3
+            prim_id, texel = visibility.primary.prim_id, shading.texel
+            if pairs:
+                samples = sample_colours(world, prim_id, shading.colour, shading.rays)
+                samples, edges = add_edge_terms(
+                    world, visibility, cache, samples, shading, frame, spp
+                )  # 4
+                image = pixel_means(world, samples, spp)  # 5
+            else:
+                image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
+        if antialias == "boundary" and differentiated(scene):  # 4': zero in value
+            image = add_interior_samples(world, visibility, image, frame, spp, max_bounces, inner)
+            image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     if not return_info:
         return image
