@@ -72,7 +72,9 @@ def test_the_paper_scene_gives_the_taped_image(monkeypatch):
 
 
 def test_where_the_fused_passes_do_not_apply(monkeypatch):
-    """Spheres, mirrors, pixel pairs and differentiated parameters take the taped path."""
+    """Spheres, mirrors and pixel pairs take the taped path. (A differentiated render of
+    a scene the passes apply to takes them too, as the forward of
+    ``render.shade.adjoint``'s node: ``test_adjoint.py``.)"""
     calls = _taken(monkeypatch)
     render.render(random_scene(0), reuse_visibility=False)  # a sphere
     mirror = random_scene(1, sphere=False)
@@ -80,11 +82,8 @@ def test_where_the_fused_passes_do_not_apply(monkeypatch):
     render.render(mirror, reuse_visibility=False)
     plain = random_scene(2, sphere=False)
     render.render(plain, reuse_visibility=False, antialias=True)
-    plain.camera.position.requires_grad = True
-    render.render(plain, reuse_visibility=False)
     assert calls == []
-    with md.no_grad():  # values only: nothing needs the tape
-        render.render(plain, reuse_visibility=False)
+    render.render(plain, reuse_visibility=False)
     assert calls == [1]
     assert not fused.applies(random_scene(0), max_bounces=2)
     assert fused.applies(mirror, max_bounces=0)  # no mirror ray leaves it then
