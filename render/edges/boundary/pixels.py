@@ -306,31 +306,44 @@ def pixel_order(pixel: np.ndarray) -> np.ndarray:
     position) packed into one int64 and sorted by NumPy's fastest sort (vectorised on x86;
     the stable argsort takes ~6x as long on the teapot's 52k pieces at 512x512). Unique
     keys, so the order is the stable one; ids or positions too large to pack fall back.
-    (``_pixel_groups``' counting sort gives the same order; this is its reference.)"""
+    (``_counting_order`` gives the same order; this is its reference.)"""
     n = len(pixel)
     if n == 0 or n >= 1 << 32 or pixel.max() >= 1 << 31:
         return np.argsort(pixel, kind="stable")
     return np.sort((pixel << 32) | np.arange(n)) & 0xFFFFFFFF
 
 
+#: ``split_at_crossings`` orders the pieces by a counting sort while the pixel ids span at
+#: most this many per piece (the teapot at 512x512: ~5), else by ``pixel_order``: a counting
+#: sort's table of every pixel of a large image would cost more than sorting few pieces.
+COUNTING_SPAN = 16
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _pixel_groups(pixel, n_pixels):
-    """The pieces grouped by pixel: ``order`` (k,), the stable order by pixel id (a
-    counting sort over ``n_pixels`` ids: ``pixel_order``'s order, several times faster than
-    NumPy's sort here), ``bounds`` (n + 1,) where each of the n occupied pixels' group
-    starts in it, and ``slots`` (n + 1,) where each group's parts may start in
-    ``_split_all``'s scratch table (a group of k pieces has at most k * k parts)."""
+def _counting_order(pixel, n_pixels):
+    """``pixel_order``'s order of pixel ids (k,) int64 in [0, n_pixels), by a counting
+    sort (stable; several times faster than NumPy's sort on the teapot's pieces)."""
     where = np.zeros(n_pixels + 1, np.int64)
     for i in range(len(pixel)):
         where[pixel[i] + 1] += 1
-    n_groups = 0
     for p in range(n_pixels):
-        n_groups += where[p + 1] > 0
         where[p + 1] += where[p]
     order = np.empty(len(pixel), np.int64)
     for i in range(len(pixel)):
         order[where[pixel[i]]] = i
         where[pixel[i]] += 1
+    return order
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _pixel_groups(pixel, order):
+    """The pieces (pixel ids (k,), k > 0, in ``order``, by pixel) grouped: ``bounds``
+    (n + 1,) where each of the n occupied pixels' group starts in ``order``, and ``slots``
+    (n + 1,) the running sum of the groups' most parts (a group of k pieces has at most
+    k * k parts)."""
+    n_groups = 1
+    for x in range(1, len(pixel)):
+        n_groups += pixel[order[x]] != pixel[order[x - 1]]
     bounds, slots = np.empty(n_groups + 1, np.int64), np.empty(n_groups + 1, np.int64)
     bounds[0] = slots[0] = 0
     g = 0
@@ -340,7 +353,7 @@ def _pixel_groups(pixel, n_pixels):
             bounds[g] = x
             size = x - bounds[g - 1]
             slots[g] = slots[g - 1] + size * size
-    return order, bounds, slots
+    return bounds, slots
 
 
 def split_at_crossings(p0, p1, segment, start, end, pixel):
@@ -350,7 +363,12 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     quadrature point stands for the part. Same arrays, more rows."""
     if len(pixel) == 0:  # nothing in view (the group bounds below assume one piece at least)
         return segment, start, end, pixel
-    order, bounds, slots = _pixel_groups(pixel, int(pixel.max()) + 1)
+    n_pixels = int(pixel.max()) + 1
+    if n_pixels <= COUNTING_SPAN * len(pixel):
+        order = _counting_order(pixel, n_pixels)
+    else:
+        order = pixel_order(pixel)
+    bounds, slots = _pixel_groups(pixel, order)
     # The scratch table (~8 MB at 512x512) from minidiff's pool, its rows rounded up to a
     # power of two so that the next render, whose count differs a little, reuses it
     # instead of touching fresh pages.
