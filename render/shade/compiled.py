@@ -144,11 +144,12 @@ def _unit(x0, x1, x2):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
+def shade_hit(x, y, camera, mesh, face, material, lights, lit, i, out, r):
     """The radiance of one camera ray through image-plane point (x, y) that hits row
     ``face`` of ``mesh``: what ``surface_at`` then ``shade_surface`` compute for one hit,
-    in the tape code's order of operations. Written into ``out`` (3,); returns the hit's
-    texture cell (-1: untextured).
+    in the tape code's order of operations. Written into row r of ``out`` (n, 3); returns
+    the hit's texture cell (-1: untextured). Arrays and a row rather than row views: each
+    view counts a reference to its array, atomically, which threads then contend for.
 
     camera: (eye, right, up, forward), float64 (3,) each (the camera frame's values).
     mesh: (vertices (V, 3) float64, faces (F, 3) int64, vertex normals (V, 3) (read only
@@ -158,8 +159,7 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
         (3,); specular_on, ambient_on, emissive: whether those terms are added).
     lights: (kind (L,) int64, vector (L, 3): a point light's position or the unit vector
         towards a directional light, strength (L,), colour (L, 3)) (``Light.shading_pack``).
-    lit: (L,) float64, 1 where light j reaches the hit, 0 where it does not.
-    work: (2, 3) float64, no longer read (the callers still pass it)."""
+    lit: (L, k) float64; column i: 1 where light j reaches the hit, 0 where it does not."""
     eye, right, up, forward = camera
     vertices, faces, vertex_normal, uvs, smooth, textured = mesh
     albedo_map, specular_map, ambient_map = material[0], material[1], material[2]
@@ -240,7 +240,7 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
             n_dot_h = 1e-12 if n_dot_h < 1e-12 else n_dot_h
             lobe = n_dot_h**shininess * lobe_scale
             f0, f1, f2 = f0 + lobe * k0, f1 + lobe * k1, f2 + lobe * k2
-        scalar = irradiance * cos_theta * lit[j]
+        scalar = irradiance * cos_theta * lit[j, i]
         t0 = scalar * (f0 * light_color[j, 0])
         t1 = scalar * (f1 * light_color[j, 1])
         t2 = scalar * (f2 * light_color[j, 2])
@@ -255,7 +255,7 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, work, out):
     if emissive:
         front = 1.0 if flip > 0 else 0.0
         r0, r1, r2 = r0 + front * emission[0], r1 + front * emission[1], r2 + front * emission[2]
-    out[0], out[1], out[2] = r0, r1, r2
+    out[r, 0], out[r, 1], out[r, 2] = r0, r1, r2
     return texel
 
 
@@ -268,10 +268,9 @@ def _shade_kernel(
     k = faces_hit.shape[0]
     n_blocks, n_jobs = _jobs(k, n_threads)
     for job in numba.prange(n_jobs):
-        work = np.empty((2, 3))
         for block in range(job, n_blocks, n_jobs):
             for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
                 texel[p] = shade_hit(
                     coords[p, 0], coords[p, 1], camera, mesh, faces_hit[p], material, lights,
-                    visible[:, p], work, out[p],
+                    visible, p, out, p,
                 )  # fmt: skip

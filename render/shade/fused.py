@@ -90,7 +90,6 @@ def _shade_rays(
     k = hit_rays.shape[0]
     n_blocks, n_jobs = _jobs(k, n_threads)
     for job in numba.prange(n_jobs):
-        work = np.empty((2, 3))
         for block in range(job, n_blocks, n_jobs):
             for i in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
                 r = hit_rays[i]
@@ -99,7 +98,7 @@ def _shade_rays(
                     continue
                 cell = compiled.shade_hit(
                     coords[i, 0], coords[i, 1], camera, mesh, face, material, lights,
-                    lit[:, i], work, radiance[r],
+                    lit, i, radiance, r,
                 )  # fmt: skip
                 if texel.shape[0] > 0:
                     texel[r] = cell

@@ -231,7 +231,7 @@ def _blocks(bvh, rows, prim, ray):
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _lit(bvh, rows, shadow, offsets, group, point, plus, minus, stack, lit):
-    """``lit`` (2, L) = 1.0 where light j reaches ``point`` (3,) from the + and the - side,
+    """``lit`` (L, 2) = 1.0 where light j reaches ``point`` (3,) from the + and the - side,
     0.0 where a primitive blocks its shadow ray (``shadow_rays``, answered as
     ``occluded_ray`` answers it). ``plus`` and ``minus``: the triangle each side sees (its
     ray skips it), -1 for a side not at this point (its row is left as it was).
@@ -243,20 +243,20 @@ def _lit(bvh, rows, shadow, offsets, group, point, plus, minus, stack, lit):
     kinds, vectors, traced = shadow[0], shadow[1], shadow[2]
     for j in range(kinds.shape[0]):
         if not traced:
-            lit[0, j] = lit[1, j] = 1.0
+            lit[j, 0] = lit[j, 1] = 1.0
             continue
         ray = _shadow_ray(kinds[j], vectors[j], offsets[group, j], point)
         if plus < 0:
-            lit[1, j] = 0.0 if occluded_ray(bvh, ray, minus, stack) else 1.0
+            lit[j, 1] = 0.0 if occluded_ray(bvh, ray, minus, stack) else 1.0
             continue
         blocked = occluded_ray(bvh, ray, plus, stack)
-        lit[0, j] = 0.0 if blocked else 1.0
+        lit[j, 0] = 0.0 if blocked else 1.0
         if minus >= 0:
             if not blocked:
                 blocked = _blocks(bvh, rows, plus, ray)
             elif _blocks(bvh, rows, minus, ray):
                 blocked = occluded_ray(bvh, ray, minus, stack)
-            lit[1, j] = 0.0 if blocked else 1.0
+            lit[j, 1] = 0.0 if blocked else 1.0
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
@@ -319,8 +319,7 @@ def side_factors_kernel(
             offsets[g, j] = max(epsilon_size, _ULP_SCALE * magnitude)
     for job in numba.prange(n_jobs):
         stack = np.empty(bvh.stack_size, np.int64)
-        lit = np.empty((2, kinds.shape[0]))
-        work = np.empty((2, 3))
+        lit = np.empty((kinds.shape[0], 2))  # per light, the two sides
         colour = np.empty((2, 3))
         m = 0
         mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
@@ -348,8 +347,8 @@ def side_factors_kernel(
                         mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
                         material = _material(materials, m)
                     shade_hit(
-                        xy[s, 0], xy[s, 1], camera, mesh, f, material, lights, lit[side],
-                        work, colour[side],
+                        xy[s, 0], xy[s, 1], camera, mesh, f, material, lights, lit, side,
+                        colour, side,
                     )  # fmt: skip
                 for c in range(3):
                     out[p, c] = scale[p] * (colour[0, c] - colour[1, c])
