@@ -66,7 +66,7 @@ def backward_rows(
         for chunk in range(job, CHUNKS, n_jobs):
             for i in range(chunk * size, min(k, (chunk + 1) * size)):
                 r = hit_rays[i]
-                p = r // spp
+                p = r if spp == 1 else r // spp
                 g0, g1, g2 = pixels[p, 0], pixels[p, 1], pixels[p, 2]
                 if spp > 1:  # the film's 1 / spp
                     g0, g1, g2 = g0 * scale, g1 * scale, g2 * scale
@@ -150,8 +150,10 @@ def _hit_adjoint(
     a0, a1, a2 = albedo[m, 0], albedo[m, 1], albedo[m, 2]
     k0, k1, k2 = specular[m, 0], specular[m, 1], specular[m, 2]
     shininess, lobe_on = shininess_of[m], lobe_of[m]
-    lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
-    vh0, vh1, vh2, inv_view = _unit(d0, d1, d2)  # the view is -vh
+    lobe_scale = vh0 = vh1 = vh2 = inv_view = 0.0
+    if lobe_on:  # a division and a square root per hit saved without
+        lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
+        vh0, vh1, vh2, inv_view = _unit(d0, d1, d2)  # the view is -vh
     # -- the lights, forward and back -----------------------------------------------------
     gn0 = gn1 = gn2 = 0.0  # the gradient of the facing normal n
     gp0 = gp1 = gp2 = 0.0  # of the point
@@ -162,13 +164,13 @@ def _hit_adjoint(
             continue
         base = FRAME + LIGHT_SIZE * j
         point = light_kind[j] == 0
-        o0 = o1 = o2 = inv_o = distance_sq = denominator = 0.0
+        o0 = o1 = o2 = inv_o = distance_sq = inv_distance_sq = 0.0
         if point:
             o0, o1 = light_vec[j, 0] - pt0, light_vec[j, 1] - pt1
             o2 = light_vec[j, 2] - pt2
             distance_sq = o0 * o0 + o1 * o1 + o2 * o2
-            denominator = 1.0 if distance_sq == 0 else distance_sq
-            irradiance = light_strength[j] / denominator
+            inv_distance_sq = 1.0 / (1.0 if distance_sq == 0 else distance_sq)
+            irradiance = light_strength[j] * inv_distance_sq
             l0, l1, l2, inv_o = _unit(o0, o1, o2)
         else:
             l0, l1, l2 = light_vec[j, 0], light_vec[j, 1], light_vec[j, 2]
@@ -220,8 +222,8 @@ def _hit_adjoint(
             gn0, gn1, gn2 = gn0 + g_cos * l0, gn1 + g_cos * l1, gn2 + g_cos * l2
             gl0, gl1, gl2 = gl0 + g_cos * n0, gl1 + g_cos * n1, gl2 + g_cos * n2
         if point:
-            sums[chunk, base + 3] += g_irradiance / denominator
-            g_dsq = 0.0 if distance_sq == 0 else -g_irradiance * irradiance / denominator
+            sums[chunk, base + 3] += g_irradiance * inv_distance_sq
+            g_dsq = 0.0 if distance_sq == 0 else -g_irradiance * irradiance * inv_distance_sq
             go0, go1, go2 = _unit_adjoint(l0, l1, l2, inv_o, gl0, gl1, gl2)
             go0, go1 = go0 + 2.0 * g_dsq * o0, go1 + 2.0 * g_dsq * o1
             go2 = go2 + 2.0 * g_dsq * o2
