@@ -34,6 +34,7 @@ import minidiff as md
 from minidiff import buffers
 from minidiff.tensor import record
 from render.scene.camera import plain_camera
+from render.scene.lights import POINT
 from render.scene.scene import Scene
 from render.shade import compiled, fused
 from render.shade.adjoint_kernels import (
@@ -110,8 +111,8 @@ def _inputs(scene: Scene, frame) -> _Inputs:
     ]
     lights = []
     for light in scene.lights:
-        vector = light.position if light.KIND == 0 else light.direction
-        strength = light.intensity if light.KIND == 0 else light.irradiance
+        vector = light.position if light.KIND == POINT else light.direction
+        strength = light.intensity if light.KIND == POINT else light.irradiance
         lights.append((vector, strength, light.color))
     vertices = [mesh.vertices for mesh in scene.meshes]
     return _Inputs(tuple(frame), vertices, normals, materials, lights, scene.background)
@@ -125,15 +126,45 @@ def image(scene: Scene, visibility: Visibility, frame, spp: int) -> md.Tensor:
     inputs = _inputs(scene, frame)
     camera = plain_camera(frame)
     values, _ = fused.image_values(scene, visibility, camera, spp)
-    flat = inputs.flat()
-    if not (md.is_grad_enabled() and any(t.requires_grad for t in flat)):
+    reaching = _reaching(scene, inputs, visibility)
+    used = [t for t, reaches in zip(inputs.flat(), reaching, strict=True) if reaches]
+    if not (md.is_grad_enabled() and any(t.requires_grad for t in used)):
         return md.Tensor(values)  # nothing to carry back: no node
     packed = _pack(scene, inputs, camera)
 
     def vjp(g_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
-        return _backward(scene, visibility, inputs, packed, spp, g_image)
+        grads = _backward(scene, visibility, inputs, packed, spp, g_image)
+        return tuple(g for g, reaches in zip(grads, reaching, strict=True) if reaches)
 
-    return record("shaded_image", values, flat, vjp, saves=flat)
+    return record("shaded_image", values, used, vjp, saves=used)
+
+
+def _reaching(scene: Scene, inputs: _Inputs, visibility: Visibility) -> list[bool]:
+    """Per input (``_Inputs.flat``'s order), whether the image depends on it as it does on
+    the tape: the background always; the camera and the lights where some ray hits; a
+    mesh's vertices, normals and material where some ray hits it, its shininess only with
+    a lobe (``lighting._nonzero(specular)``). An input that does not reach the image gets
+    no gradient (None, as from the tape), and one that alone is differentiated leaves the
+    image a constant."""
+    primary = visibility.primary
+    meshes = scene.meshes
+    faces_per_mesh = [mesh.num_faces for mesh in meshes]
+    if len(primary.hit_rays):
+        per_face = np.bincount(primary.prim_id[primary.hit_rays], minlength=sum(faces_per_mesh))
+        starts = np.cumsum([0] + faces_per_mesh[:-1])
+        hit = np.array(
+            [per_face[a : a + n].any() for a, n in zip(starts, faces_per_mesh, strict=True)]
+        )
+    else:
+        hit = np.zeros(len(meshes), bool)
+    anything = bool(np.any(hit))
+    reaching = [anything] * len(inputs.frame) + list(hit)
+    reaching += [bool(h) for h, n in zip(hit, inputs.normals, strict=True) if n is not None]
+    for h, mesh in zip(hit, meshes, strict=True):
+        lobe = bool(h) and _nonzero(mesh.material.specular)
+        reaching += [bool(h), bool(h), lobe, bool(h), bool(h)]
+    reaching += [anything] * (3 * len(inputs.lights))
+    return reaching + [True]
 
 
 @dataclass
@@ -296,7 +327,7 @@ def _light_grads(lights, tensors, totals) -> list:
     for j, (light, (vector, strength, colour)) in enumerate(zip(lights, tensors, strict=True)):
         base = FRAME + LIGHT_SIZE * j
         g_vector = totals[base : base + 3].copy()
-        if light.KIND != 0:
+        if light.KIND != POINT:
             w = np.asarray(vector.data, np.float64)
             length = math.sqrt(float(w @ w))
             unit = -w / length
