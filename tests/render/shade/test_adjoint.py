@@ -31,7 +31,7 @@ from render.trace.visibility import trace_visibility
 from tests.render_helpers import random_scene, run_on_two_threads
 
 #: Largest difference allowed, relative to the reference gradient's largest entry (seen:
-#: 3e-14, on a camera position whose gradient sums terms of both signs).
+#: 8e-14, on a camera position whose gradient sums terms of both signs).
 TOLERANCE = 1e-10
 
 #: Parameters the node does not take: a non-zero reflectance turns it off, UVs and
