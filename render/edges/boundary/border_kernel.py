@@ -59,7 +59,7 @@ def _cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _receiver_hit(rec, radius, frame, x, y, direction_first, out):
     """Where the camera ray through image-plane (x, y) meets the receiver (``rec`` (2, 3):
     its normal or centre, a point on its plane; ``radius``: -1 for a triangle), as
@@ -68,7 +68,9 @@ def _receiver_hit(rec, radius, frame, x, y, direction_first, out):
     the ray misses or runs along the plane). ``frame`` (4, 3): forward, right, up, eye.
     ``direction_first``: d summed as ``border_gradient`` sums it ((forward + x right) + y
     up), else as ``camera_directions`` does ((x right + y up) + forward). (Scalars and
-    indices only: array views in this loop cost more than its arithmetic.)"""
+    indices only: array views in this loop cost more than its arithmetic. Called, not
+    inlined, six times per point: inlined, ``border_points`` compiled in ~9 s instead of
+    ~5 s on a busy 2-core machine, to run ~0.2 ms faster on the teapot at 512x512.)"""
     for c in range(3):
         if direction_first:
             out[c] = (frame[0, c] + x * frame[1, c]) + y * frame[2, c]
