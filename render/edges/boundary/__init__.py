@@ -66,8 +66,15 @@ The package, one job per module:
   (finding the shadow borders) and ``shadow_border`` (their edge function): the shadow
   borders, a kind (``ShadowBorder``);
 * ``pixels``: curves cut into pixel pieces, quadrature points on them (Numba);
+  ``kind_points``: the points dealt back to their kinds (one compiled pass);
 * ``occlusion``: which curve points the camera sees (``Occluders``, ``hidden_points``);
 * ``radiance``: f_+ and f_- (``SideRadiance``; the direct renderer's ``DirectRadiance``);
+* ``edge_kernel``, ``border_kernel``: compiled, parallel twins of the two costliest
+  statements, a mesh edge's factors (both sides found, their shadow rays traced and their
+  radiance shaded in one pass) and the shadow borders' points (Newton steps and their
+  factors' geometry), each tied bit for bit to its NumPy statement by tests
+  (``tests/render/edges/test_edge_kernel.py``, ``test_border_kernel.py``); the statements
+  stay callable (``compiled=False``) and run where a scene is beyond the kernels;
 * ``term``: the loop over the kinds (``boundary_points``), the term on the tape
   (``boundary_term``), both for one render (``add_curve_terms``).
 
