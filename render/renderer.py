@@ -19,11 +19,10 @@
 5. Image (``render/film.py``): each pixel the mean of its samples, misses showing the
    background.
 
-When something is differentiated and nothing reflects, every object is a mesh without
-textures and pixel pairs are off, steps 2, 3 and 5 are one node on the tape
-(``render.shade.adjoint``): the compiled forward of a render that nothing differentiates,
-and a compiled, hand-written adjoint that re-evaluates every hit; the taped functions stay
-the reference it is tested against (and the path forward mode and other scenes take).
+Steps 2, 3 and 5 take compiled passes where they can (``render.shade.adjoint.route``):
+with nothing differentiated (``render.shade.fused``), and, for meshes without textures or
+mirrors whose hits move, as one tape node with a hand-written, compiled adjoint
+(``render.shade.adjoint``); the taped functions are the reference they are tested against.
 
 Gradients reach every continuous parameter through steps 2-5; step 1's decisions (and
 which primitive each mirror ray hits) are constants. With ``reuse_visibility=True`` (the
@@ -54,6 +53,7 @@ from render.shade import adjoint, fused
 from render.shade.hits import sample_colours, shade_camera_hits
 from render.shade.lighting import shade_mesh, shade_surface
 from render.shade.mirrors import Mirrors
+from render.trace.raster import rasterise_camera_rays
 from render.trace.visibility import trace_visibility
 
 __all__ = ["render", "RenderInfo", "shade_mesh", "shade_surface"]
@@ -99,7 +99,8 @@ def render(
         "raster" rasterises the primitives (``render.trace.raster``; the same hits bit for
         bit, faster while there are many rays per primitive), "auto" (default) rasterises
         when there are at least 16 camera rays per primitive
-        (``RASTER_RAYS_PER_PRIMITIVE``). With ``bvh=False`` both are brute force.
+        (``render.trace.raster.RASTER_RAYS_PER_PRIMITIVE``). With ``bvh=False`` both are
+        brute force.
     interior_samples: with "boundary", a mixed pixel's samples for its interior term
         (``render.edges.interior``); at most ``spp``: its own (~3x faster at 512x512).
 
@@ -132,33 +133,28 @@ def render(
     antialias = _check_antialias(antialias)
     inner = check_interior_samples(interior_samples)  # a mixed pixel's interior samples
     max_bounces = _check_bounces(max_bounces)
-    raster = _rasterise(scene, _check_primary(primary), spp) and bool(bvh)
+    raster = rasterise_camera_rays(scene, primary, spp) and bool(bvh)
     cache = cache_for(scene, reuse_visibility)
     world = placed(scene)  # 0: transformed objects in world space, on the tape
 
     visibility = trace_visibility(world, cache, bool(bvh), spp, bool(shadows), raster)  # 1
     pairs = antialias == "pairs"  # the pairs' shadow terms shade the hits' surfaces again
-    mirrors, edges = None, None
-    if not pairs and not differentiated(world) and fused.applies(world, max_bounces):
-        # 2, 3, 5 in compiled passes: nothing is differentiated, so no tape is needed.
+    route, mirrors, edges = adjoint.route(world, pairs, max_bounces), None, None
+    if route == "fused":  # 2, 3, 5 in compiled passes: nothing is differentiated, no tape
         values, texel = fused.image_values(world, visibility, plain_frame(world.camera), spp)
         image = md.Tensor(values)  # no copy
     else:
         frame = camera_frame(world.camera)
-        if not pairs and differentiated(world) and adjoint.applies(world, max_bounces):
-            # 2, 3, 5 as one node: compiled forward, hand-written adjoint (nothing reflects).
+        if route == "node":  # 2, 3, 5 as one node: compiled forward, hand-written adjoint
             image, texel = adjoint.image(world, visibility, frame, spp), None
         else:
             mirrors = Mirrors.of(world, visibility, max_bounces)
-            shading = shade_camera_hits(
-                world, visibility, frame, cache, mirrors, surfaces=pairs
-            )  # 2, 3
+            shading = shade_camera_hits(world, visibility, frame, cache, mirrors, pairs)  # 2, 3
             prim_id, texel = visibility.primary.prim_id, shading.texel
             if pairs:
                 samples = sample_colours(world, prim_id, shading.colour, shading.rays)
-                samples, edges = add_edge_terms(
-                    world, visibility, cache, samples, shading, frame, spp
-                )  # 4
+                samples, edges = add_edge_terms(world, visibility, cache, samples, shading,
+                                                frame, spp)  # 4  # fmt: skip
                 image = pixel_means(world, samples, spp)  # 5
             else:
                 image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
@@ -199,27 +195,6 @@ def _check_bounces(value) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
         raise ValueError(f"render: max_bounces must be an integer >= 0, got {value!r}")
     return int(value)
-
-
-def _check_primary(value) -> str:
-    if value not in ("auto", "raster", "bvh"):
-        raise ValueError(f'render: primary must be "auto", "raster" or "bvh", got {value!r}')
-    return value
-
-
-#: "auto" rasterises when rays / primitives >= RASTER_RAYS_PER_PRIMITIVE. Measured at 512x512
-#: (camera-ray hits alone, medians of 9): 1,536 triangles raster 2.8 ms / BVH 9.9 ms,
-#: 15,360: 10.1 / 12.1 ms, 99,840: 43.8 / 15.9 ms, 256,000: 134 / 27 ms.
-RASTER_RAYS_PER_PRIMITIVE = 16
-
-
-def _rasterise(scene: Scene, primary: str, spp: int) -> bool:
-    """Whether to rasterise the camera rays' hits (``render(primary=...)``)."""
-    if primary != "auto":
-        return primary == "raster"
-    rays = scene.camera.width * scene.camera.height * spp
-    primitives = sum(m.num_faces for m in scene.meshes) + len(scene.spheres)
-    return primitives * RASTER_RAYS_PER_PRIMITIVE <= rays
 
 
 @dataclass

@@ -47,7 +47,7 @@ from render.shade.adjoint_kernels import (
     vertex_order,
 )
 from render.shade.lighting import _nonzero
-from render.shade.surface import vertex_normals
+from render.shade.surface import moves_surface, vertex_normals
 from render.trace.visibility import Visibility
 
 
@@ -66,6 +66,30 @@ def applies(scene: Scene, max_bounces: int) -> bool:
     if any(t.dtype != np.float64 for t in parameters):
         return False
     return all(t.tangent is None for t in parameters)
+
+
+def route(scene: Scene, pairs: bool, max_bounces: int) -> str:
+    """Which code computes steps 2, 3 and 5 of a render of ``scene`` (in world space):
+
+    * "fused": nothing is differentiated and ``fused.applies``: compiled passes, no tape;
+    * "node": ``applies`` and something that moves the camera hits is differentiated (the
+      camera, a mesh's vertices or normals): ``image``, one node with a compiled adjoint;
+    * "tape": the reference (``shade_camera_hits`` + ``image_from_hits``): pixel pairs
+      (``pairs``), mirrors, spheres, textures, forward mode, and a scene where only lights
+      or materials move, whose hits' surfaces the tape reuses from the render cache
+      (faster there than re-evaluating every hit)."""
+    grad = md.is_grad_enabled()
+    moving = [p for p in scene.parameters() if p.tangent is not None or (grad and p.requires_grad)]
+    if pairs:
+        return "tape"
+    if not moving:
+        return "fused" if fused.applies(scene, max_bounces) else "tape"
+    camera = scene.camera
+    movers = [camera.position, camera.look_at, camera.up, camera.fov]
+    movers += [t for mesh in scene.meshes for t in moves_surface(mesh)]
+    if any(p.is_differentiated() for p in movers) and applies(scene, max_bounces):
+        return "node"
+    return "tape"
 
 
 @dataclass

@@ -283,6 +283,25 @@ def may_see(edges, x, y):
     return True
 
 
+#: ``render(primary="auto")`` rasterises when rays / primitives >= RASTER_RAYS_PER_PRIMITIVE.
+#: Measured at 512x512 (camera-ray hits alone, medians of 9): 1,536 triangles raster 2.8 ms /
+#: BVH 9.9 ms, 15,360: 10.1 / 12.1 ms, 99,840: 43.8 / 15.9 ms, 256,000: 134 / 27 ms.
+RASTER_RAYS_PER_PRIMITIVE = 16
+
+
+def rasterise_camera_rays(scene, primary: str, spp: int) -> bool:
+    """Whether a render rasterises its camera rays' hits (``render(primary=...)``: "raster",
+    "bvh", or "auto": when there are at least RASTER_RAYS_PER_PRIMITIVE rays per
+    primitive)."""
+    if primary not in ("auto", "raster", "bvh"):
+        raise ValueError(f'render: primary must be "auto", "raster" or "bvh", got {primary!r}')
+    if primary != "auto":
+        return primary == "raster"
+    rays = scene.camera.width * scene.camera.height * spp
+    primitives = sum(m.num_faces for m in scene.meshes) + len(scene.spheres)
+    return primitives * RASTER_RAYS_PER_PRIMITIVE <= rays
+
+
 def raster_closest_hit(
     triangles: np.ndarray,
     centers: np.ndarray,

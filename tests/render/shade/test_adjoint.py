@@ -182,7 +182,7 @@ def test_render_takes_the_node_with_the_fused_image(monkeypatch, spp):
     ``return_info`` still reports the decisions (no texture cells)."""
     scene = random_scene(8, sphere=False, smooth=True, lights=("point", "directional"))
     plain, plain_info = render.render(scene, spp=spp, reuse_visibility=False, return_info=True)
-    scene.lights[0].position.requires_grad = True
+    scene.camera.position.requires_grad = True
     calls = _calls(monkeypatch)
     image, info = render.render(scene, spp=spp, reuse_visibility=False, return_info=True)
     assert calls == [1] and image.node is not None
@@ -237,7 +237,12 @@ def test_where_the_node_does_not_apply(monkeypatch):
     assert calls == [] and image.tangent is not None
     render.render(plain, reuse_visibility=False)  # nothing differentiated: the fused passes
     assert calls == []
+    # Only a light moves: the tape, which reuses the hits' surfaces from the render cache.
     plain.lights[0].position.requires_grad = True
+    assert adjoint.route(placed(plain), pairs=False, max_bounces=2) == "tape"
+    render.render(plain, reuse_visibility=False)
+    assert calls == []
+    plain.meshes[0].vertices.requires_grad = True  # the hits move: the node
     render.render(plain, reuse_visibility=False)
     assert calls == [1]
 
