@@ -249,16 +249,24 @@ def _median(results: dict, name: str, label: str) -> float:
 
 def ratios(results: dict, ours: str, threads: list[int]) -> dict:
     """The ratios the targets are about, from medians of one run (NaN where missing)."""
+    out = {}
+    for prefix, label in (("", ours), ("baseline_", "baseline")):  # ours, and the baseline's
+        m = lambda name, label=label: _median(results, name, label)  # noqa: E731
+        for name in MITSUBA_WORKLOADS:
+            out[f"{prefix}{name}"] = m(name) / _median(results, name, "mitsuba")
+        for key, num, den in (
+            ("boundary_paper", "fb_boundary", "fb_plain"),
+            ("boundary_ground", "fb_boundary_ground", "fb_plain_ground"),
+            ("boundary16_paper", "fb_boundary16", "fb_plain"),
+            ("boundary16_ground", "fb_boundary16_ground", "fb_plain_ground"),
+            ("boundary_to_pairs", "fb_boundary", "fb_pairs"),
+            ("boundary16_to_pairs", "fb_boundary16", "fb_pairs"),
+            ("boundary_to_pairs_ground", "fb_boundary_ground", "fb_pairs_ground"),
+            ("camera_boundary", "camera_boundary", "camera_plain"),
+            ("camera_boundary16", "camera_boundary16", "camera_plain"),
+        ):
+            out[f"{prefix}{key}"] = m(num) / m(den)
     m = lambda name, label=ours: _median(results, name, label)  # noqa: E731
-    out = {name: m(name) / m(name, "mitsuba") for name in MITSUBA_WORKLOADS}
-    out["boundary_paper"] = m("fb_boundary") / m("fb_plain")
-    out["boundary_ground"] = m("fb_boundary_ground") / m("fb_plain_ground")
-    out["boundary16_paper"] = m("fb_boundary16") / m("fb_plain")
-    out["boundary16_ground"] = m("fb_boundary16_ground") / m("fb_plain_ground")
-    out["boundary_to_pairs"] = m("fb_boundary") / m("fb_pairs")
-    out["boundary_to_pairs_ground"] = m("fb_boundary_ground") / m("fb_pairs_ground")
-    out["camera_boundary"] = m("camera_boundary") / m("camera_plain")
-    out["camera_boundary16"] = m("camera_boundary16") / m("camera_plain")
     for n in (t for t in threads if t > 1 and 1 in threads):  # 1 -> n threads
         suffix = "" if n == 2 else f"_{n}"
         for key, name in (("forward", "forward"), ("boundary", "fb_boundary"),
