@@ -87,10 +87,12 @@ JOBS = {
 
 
 #: Seconds of compiling before the first result on a fresh clone (an empty Numba cache), one
-#: process: the renderer's kernels with the pair-sampled edge gradients (tracing, shading,
-#: edges), and with the boundary integral's kernels too (measured on a shared 2-core machine:
-#: 31 s and 61 s of CPU time; the quick run's compile stage took 27-45 s of wall time).
-COMPILE_SECONDS = {"pairs": 30, "boundary": 60}
+#: process: the renderer's kernels with the pair-sampled edge gradients (tracing, the fused
+#: passes, the compiled adjoint's node, edges), and with the boundary integral's kernels too
+#: (measured on a 2-core AMD EPYC, out/compile_stages.py-style, CPU time: 32 s forward, 23 s
+#: the node, 4 s pairs, 233 s the boundary term's kernels, most of it edge_kernel's
+#: side_factors_kernel; before issue 45's kernels: 31 s and 61 s).
+COMPILE_SECONDS = {"pairs": 60, "boundary": 290}
 
 
 def numba_cache_folder(source: Path) -> Path:
