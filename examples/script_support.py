@@ -89,9 +89,9 @@ JOBS = {
 #: Seconds of compiling before the first result on a fresh clone (an empty Numba cache), one
 #: process: the renderer's kernels with the pair-sampled edge gradients (tracing, the fused
 #: passes, the compiled adjoint's node, edges), and with the boundary integral's kernels too
-#: (measured on a 2-core AMD EPYC, out/compile_stages.py-style, CPU time: 32 s forward, 23 s
-#: the node, 4 s pairs, 233 s the boundary term's kernels, most of it edge_kernel's
-#: side_factors_kernel; before issue 45's kernels: 31 s and 61 s).
+#: (measured stage by stage with an empty NUMBA_CACHE_DIR on a 2-core AMD EPYC, CPU time:
+#: 32 s forward, 23 s the node, 4 s pairs, 233 s the boundary term's kernels, most of it
+#: edge_kernel's side_factors_kernel; before issue 45's kernels: 31 s and 61 s).
 COMPILE_SECONDS = {"pairs": 60, "boundary": 290}
 
 
