@@ -92,7 +92,7 @@ JOBS = {
 #: (measured stage by stage with an empty NUMBA_CACHE_DIR on a 2-core AMD EPYC, CPU time:
 #: 32 s forward, 23 s the node, 4 s pairs, 233 s the boundary term's kernels, most of it
 #: edge_kernel's side_factors_kernel; before issue 45's kernels: 31 s and 61 s).
-COMPILE_SECONDS = {"pairs": 60, "boundary": 290}
+COMPILE_SECONDS = {"pairs": 60, "boundary": 110}
 
 
 def numba_cache_folder(source: Path) -> Path:

@@ -38,7 +38,7 @@ from render.trace.intersect import (
     closest_hit_ray,
     intersect_prim,
     make_ray,
-    occluded_ray,
+    occluded_call,
 )
 from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS, Visibility
 
@@ -229,7 +229,9 @@ def _blocks(bvh, rows, prim, ray):
     return intersect_prim(bvh.leaf_prim, rows[prim], prim, bvh.n_tri, ray)[0] < ray.tmax
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+# A function of its own, not inlined (twice) into the kernel, and its traversals calls: the
+# kernel compiled for three minutes with them inlined (render.trace.intersect.occluded_call).
+@numba.njit(cache=True, error_model="numpy")
 def _lit(bvh, rows, shadow, offsets, group, point, plus, minus, stack, lit):
     """``lit`` (L, 2) = 1.0 where light j reaches ``point`` (3,) from the + and the - side,
     0.0 where a primitive blocks its shadow ray (``shadow_rays``, answered as
@@ -247,15 +249,15 @@ def _lit(bvh, rows, shadow, offsets, group, point, plus, minus, stack, lit):
             continue
         ray = _shadow_ray(kinds[j], vectors[j], offsets[group, j], point)
         if plus < 0:
-            lit[j, 1] = 0.0 if occluded_ray(bvh, ray, minus, stack) else 1.0
+            lit[j, 1] = 0.0 if occluded_call(bvh, ray, minus, stack) else 1.0
             continue
-        blocked = occluded_ray(bvh, ray, plus, stack)
+        blocked = occluded_call(bvh, ray, plus, stack)
         lit[j, 0] = 0.0 if blocked else 1.0
         if minus >= 0:
             if not blocked:
                 blocked = _blocks(bvh, rows, plus, ray)
             elif _blocks(bvh, rows, minus, ray):
-                blocked = occluded_ray(bvh, ray, minus, stack)
+                blocked = occluded_call(bvh, ray, minus, stack)
             lit[j, 1] = 0.0 if blocked else 1.0
 
 
