@@ -17,7 +17,7 @@ import numba
 import numpy as np
 
 from render.path.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
-from render.shade.compiled import _sample, _unit
+from render.shade.compiled import _unit, sample_rgb
 from render.trace.intersect import closest_hit_ray, make_ray, occluded_ray
 
 # --- random numbers: render.path.random.uniform for one path and dimension ------------------
@@ -206,13 +206,12 @@ def _look(albedo, specular, maps, texels, o, uv):
     if maps[o, 0, 0] >= 0:
         start, h, w = maps[o, 0, 0], maps[o, 0, 1], maps[o, 0, 2]
         t = texels[start : start + h * w].reshape((h, w, 3))
-        kd = (_sample(t, uv[0], uv[1], 0)[0], _sample(t, uv[0], uv[1], 1)[0],
-              _sample(t, uv[0], uv[1], 2)[0])  # fmt: skip
+        kd = sample_rgb(t, uv[0], uv[1])[:3]
     if maps[o, 1, 0] >= 0:
         start, h, w = maps[o, 1, 0], maps[o, 1, 1], maps[o, 1, 2]
         t = texels[start : start + h * w].reshape((h, w, 3))
-        ks = (ks[0] * _sample(t, uv[0], uv[1], 0)[0], ks[1] * _sample(t, uv[0], uv[1], 1)[0],
-              ks[2] * _sample(t, uv[0], uv[1], 2)[0])  # fmt: skip
+        m0, m1, m2, _ = sample_rgb(t, uv[0], uv[1])
+        ks = (ks[0] * m0, ks[1] * m1, ks[2] * m2)
     return kd, ks
 
 

@@ -119,9 +119,11 @@ def lights_pack(lights) -> tuple:
 
 
 @numba.njit(cache=True, inline="always")
-def _sample(texture, u, v, c):
-    """Component c of the bilinear lookup of an (H, W, 3) texture at UV (u, v), repeating
-    (``render.shade.lighting.sample_texture`` for one point); and the footprint's cell."""
+def sample_rgb(texture, u, v):
+    """The bilinear lookup of an (H, W, 3) texture at UV (u, v), repeating
+    (``render.shade.lighting.sample_texture`` for one point): its three channels, and the
+    footprint's cell. One inlined copy serves all three channels: a copy per channel made
+    every kernel that inlines ``shade_hit`` compile for longer."""
     height, width = texture.shape[0], texture.shape[1]
     x, y = u * width - 0.5, (1.0 - v) * height - 0.5
     # Floors kept as floats and wrapped before the cast (``lighting._wrapped``): Numba's
@@ -130,9 +132,20 @@ def _sample(texture, u, v, c):
     fx, fy = x - x0, y - y0
     ix0, iy0 = int(x0 % width), int(y0 % height)
     ix1, iy1 = (ix0 + 1) % width, (iy0 + 1) % height
+    return (
+        _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 0),
+        _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 1),
+        _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 2),
+        iy0 * width + ix0,
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, c):
+    """Channel c of ``sample_rgb``: the four texels' weighted sum."""
     top = texture[iy0, ix0, c] * (1.0 - fx) + texture[iy0, ix1, c] * fx
     bottom = texture[iy1, ix0, c] * (1.0 - fx) + texture[iy1, ix1, c] * fx
-    return top * (1.0 - fy) + bottom * fy, iy0 * width + ix0
+    return top * (1.0 - fy) + bottom * fy
 
 
 @numba.njit(cache=True, inline="always")
@@ -206,15 +219,13 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, i, out, r):
         uu = 0 + w0 * uvs[ia, 0] + u * uvs[ib, 0] + v * uvs[ic, 0]
         vv = 0 + w0 * uvs[ia, 1] + u * uvs[ib, 1] + v * uvs[ic, 1]
     if albedo_map.shape[0] > 0:
-        a0, texel = _sample(albedo_map, uu, vv, 0)
-        a1, a2 = _sample(albedo_map, uu, vv, 1)[0], _sample(albedo_map, uu, vv, 2)[0]
+        a0, a1, a2, texel = sample_rgb(albedo_map, uu, vv)
     else:
         a0, a1, a2 = albedo[0], albedo[1], albedo[2]
     k0, k1, k2 = specular[0], specular[1], specular[2]
     if specular_map.shape[0] > 0:
-        k0 = specular[0] * _sample(specular_map, uu, vv, 0)[0]
-        k1 = specular[1] * _sample(specular_map, uu, vv, 1)[0]
-        k2 = specular[2] * _sample(specular_map, uu, vv, 2)[0]
+        m0, m1, m2, _ = sample_rgb(specular_map, uu, vv)
+        k0, k1, k2 = specular[0] * m0, specular[1] * m1, specular[2] * m2
     # The lights (render.shade.lighting.shade), summed in the tape's order.
     lobe_scale = (shininess + 8.0) / (8.0 * math.pi)
     point = (eye[0] + t * d0, eye[1] + t * d1, eye[2] + t * d2)
@@ -247,9 +258,8 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, i, out, r):
         r0, r1, r2 = (t0, t1, t2) if j == 0 else (r0 + t0, r1 + t1, r2 + t2)
     if ambient_on:
         if ambient_map.shape[0] > 0:
-            r0 = r0 + ambient[0] * _sample(ambient_map, uu, vv, 0)[0]
-            r1 = r1 + ambient[1] * _sample(ambient_map, uu, vv, 1)[0]
-            r2 = r2 + ambient[2] * _sample(ambient_map, uu, vv, 2)[0]
+            m0, m1, m2, _ = sample_rgb(ambient_map, uu, vv)
+            r0, r1, r2 = r0 + ambient[0] * m0, r1 + ambient[1] * m1, r2 + ambient[2] * m2
         else:
             r0, r1, r2 = r0 + ambient[0], r1 + ambient[1], r2 + ambient[2]
     if emissive:
