@@ -222,6 +222,11 @@ def run_pose(
 # --------------------------------------------------------------------------------------
 
 
+#: The unit directions of ``dented_blob``'s three dents, c_k.
+DENT_CENTRES = np.array([[1.0, 0.3, 0.2], [-0.5, 0.2, 0.9], [-0.3, -0.6, -0.8]])
+DENT_CENTRES /= np.linalg.norm(DENT_CENTRES, axis=1, keepdims=True)
+
+
 def dented_blob(subdivisions: int = 5) -> tuple[np.ndarray, np.ndarray]:
     """A genus-0 test shape with concavities, generated in code: the unit icosphere with
     each vertex moved along its direction d to radius
@@ -230,9 +235,7 @@ def dented_blob(subdivisions: int = 5) -> tuple[np.ndarray, np.ndarray]:
     shading must)."""
     v, f = icosphere(subdivisions)
     d = v / np.linalg.norm(v, axis=1, keepdims=True)
-    centres = np.array([[1.0, 0.3, 0.2], [-0.5, 0.2, 0.9], [-0.3, -0.6, -0.8]])
-    centres /= np.linalg.norm(centres, axis=1, keepdims=True)
-    dents = sum(np.exp(-np.sum((d - c) ** 2, axis=1) / 0.12) for c in centres)
+    dents = sum(np.exp(-np.sum((d - c) ** 2, axis=1) / 0.12) for c in DENT_CENTRES)
     radius = 1.0 + 0.25 * d[:, 1] ** 2 - 0.35 * dents
     return d * radius[:, None], f
 
