@@ -201,8 +201,14 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 # ## Exercises
 #
 # 1. Add forward mode to `RenderLight`: a `jvp` static method (PyTorch calls it with
-#    `ctx` and the input's tangent) that returns `J t` from `f.jvp`; check it with
-#    `torch.func.jvp` against the dot-product test.
+#    `ctx` and the input's tangent) that returns `J t` from `f.jvp` (save the input for it
+#    with `ctx.save_for_forward`); check it against the dot-product test, pushing the
+#    tangent through with `torch.autograd.forward_ad` (`make_dual`, `unpack_dual`).
+#    Not with `torch.func.jvp`: its transforms accept only a Function written with a
+#    separate `setup_context` static method, and even then, inside `jvp` the tangent and
+#    the saved input are wrapped tensors whose `.numpy()` fails ("Cannot access data
+#    pointer of Tensor that doesn't have storage", PyTorch 2.13), while `f.jvp` needs NumPy
+#    arrays.
 # 2. With `render.jax.function`, take `jax.jit(jax.grad(...))` of the loss above and
 #    `jax.vmap` the image over three light positions. Is `vmap` faster than three calls,
 #    per render? Why not (see the README's "What to know")?

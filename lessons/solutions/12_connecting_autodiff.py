@@ -30,7 +30,10 @@ f8 = RenderFunction(render.paper_scene(8, 8), ["lights[0].position"])
 #
 # PyTorch's forward-mode AD (`torch.autograd.forward_ad`) calls a Function's `jvp` with
 # the input's tangent; the inputs it needs are saved with `ctx.save_for_forward`. The
-# dot-product test ties it to the backward.
+# dot-product test ties it to the backward. (`torch.func.jvp` refuses this Function: the
+# `torch.func` transforms need `setup_context`, and even with it the tangent and saved
+# input reaching `jvp` are wrapped tensors whose `.numpy()` fails, so a `jvp` that calls
+# NumPy stays with `forward_ad`.)
 
 
 # %%
