@@ -289,6 +289,20 @@ def strict_load(text: str):
     return json.loads(text, parse_constant=refuse)
 
 
+def count_calls(monkeypatch, module, name: str) -> list:
+    """Replace ``module.name`` (for the test's duration) by a spy that calls it and appends
+    1 to the returned list at each call: which code a render took."""
+    calls = []
+    original = getattr(module, name)
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, name, spy)
+    return calls
+
+
 # --------------------------------------------------------------------------------------
 # Thread-count independence
 # --------------------------------------------------------------------------------------
@@ -310,3 +324,26 @@ def run_on_two_threads(script: str) -> str:
                           text=True, timeout=300, cwd=root)  # fmt: skip
     assert done.returncode == 0, done.stderr
     return done.stdout.strip()
+
+
+#: What ``same_bits_on_one_and_two_threads`` appends to a script that defines ``run()``.
+_ONE_AND_TWO_THREADS = """
+import numba as _numba
+import numpy as _np
+_runs = []
+for _n in (1, 2):
+    _numba.set_num_threads(_n)
+    assert _numba.get_num_threads() == _n
+    _runs.append(list(run()))
+assert len(_runs[0]) == len(_runs[1]) > 0
+for _a, _b in zip(*_runs, strict=True):
+    assert _np.array_equal(_a, _b), "differ"
+print("same bits")
+"""
+
+
+def same_bits_on_one_and_two_threads(script: str) -> None:
+    """Fail unless ``script`` (Python that defines ``run()``, returning a sequence of
+    arrays) gives the same arrays bit for bit when ``run()`` is called on one and then on
+    two Numba threads, in one new process (``run_on_two_threads``)."""
+    assert run_on_two_threads(script + _ONE_AND_TWO_THREADS) == "same bits"

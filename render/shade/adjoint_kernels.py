@@ -28,6 +28,7 @@ import math
 import numba
 import numpy as np
 
+from render.shade.compiled import camera_hit
 from render.trace.intersect import BLOCK, _jobs
 
 #: The hit rows are summed in this many chunks (whatever the thread count).
@@ -112,7 +113,7 @@ def _hit_adjoint(
     """Hit row i through image-plane point (x, y) on face ``face``, its radiance's gradient
     (g0, g1, g2): re-evaluated as ``compiled.shade_hit`` shades it and carried back into
     ``sums[chunk]`` and the corner rows i (``backward_rows``)."""
-    eye, right, up, forward = camera
+    eye = camera[0]
     vertices, faces, vertex_normal, mesh_of, smooth_of = meshes
     albedo, specular, ambient, emission, shininess_of, lobe_of = materials
     light_kind, light_vec, light_strength, light_color = lights
@@ -120,20 +121,10 @@ def _hit_adjoint(
     m = mesh_of[face]
     base_m = FRAME + LIGHT_SIZE * light_kind.shape[0] + MATERIAL_SIZE * m
     # -- the forward values -------------------------------------------------------------
-    d0 = x * right[0] + y * up[0] + forward[0]
-    d1 = x * right[1] + y * up[1] + forward[1]
-    d2 = x * right[2] + y * up[2] + forward[2]
-    ia, ib, ic = faces[face, 0], faces[face, 1], faces[face, 2]
-    ax, ay, az = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
-    e10, e11, e12 = vertices[ib, 0] - ax, vertices[ib, 1] - ay, vertices[ib, 2] - az
-    e20, e21, e22 = vertices[ic, 0] - ax, vertices[ic, 1] - ay, vertices[ic, 2] - az
-    p0, p1, p2 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22, d0 * e21 - d1 * e20  # d x e2
-    inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
-    s0, s1, s2 = eye[0] - ax, eye[1] - ay, eye[2] - az
-    q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10  # s x e1
-    t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
-    u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
-    v = (d0 * q0 + d1 * q1 + d2 * q2) * inv_det
+    (
+        d0, d1, d2, ia, ib, ic, e10, e11, e12, e20, e21, e22, s0, s1, s2, p0, p1, p2,
+        q0, q1, q2, inv_det, t, u, v,
+    ) = camera_hit(x, y, camera, vertices, faces, face)  # fmt: skip
     c0, c1, c2 = e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20  # e1 x e2
     nu0, nu1, nu2, inv_m = _unit(c0, c1, c2)
     flip = -1.0 if nu0 * d0 + nu1 * d1 + nu2 * d2 > 0 else 1.0

@@ -157,6 +157,42 @@ def _unit(x0, x1, x2):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
+def camera_hit(x, y, camera, vertices, faces, face):
+    """The camera ray through image-plane point (x, y) and its Moller-Trumbore intersection
+    with row ``face`` of a mesh (``render.scene.camera.camera_directions``, then
+    ``render.shade.surface.intersect_edges``), in the tape code's order of operations:
+    d (the ray's direction), (ia, ib, ic) (the face's corners), e1 = b - a, e2 = c - a,
+    s = eye - a, p = d x e2, q = s x e1 (three numbers each), 1 / det, t, u, v: one flat
+    tuple of 25. Shared by
+    ``shade_hit`` and its adjoint (``render.shade.adjoint_kernels``), which needs the
+    intermediate values too. camera: (eye, right, up, forward); vertices (V, 3), faces
+    (F, 3)."""
+    eye, right, up, forward = camera
+    d0 = x * right[0] + y * up[0] + forward[0]
+    d1 = x * right[1] + y * up[1] + forward[1]
+    d2 = x * right[2] + y * up[2] + forward[2]
+    # Elements read one by one: a row view of a shared array counts a reference to it, an
+    # atomic operation that every thread contends for.
+    ia, ib, ic = faces[face, 0], faces[face, 1], faces[face, 2]
+    ax, ay, az = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
+    e10, e11, e12 = vertices[ib, 0] - ax, vertices[ib, 1] - ay, vertices[ib, 2] - az
+    e20, e21, e22 = vertices[ic, 0] - ax, vertices[ic, 1] - ay, vertices[ic, 2] - az
+    p0, p1, p2 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22, d0 * e21 - d1 * e20  # d x e2
+    inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
+    s0, s1, s2 = eye[0] - ax, eye[1] - ay, eye[2] - az
+    q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10  # s x e1
+    t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
+    u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
+    v = (d0 * q0 + d1 * q1 + d2 * q2) * inv_det
+    # One flat tuple: unpacking nested tuples in a parallel kernel fails Numba's array
+    # analysis ("Dimension mismatch").
+    return (
+        d0, d1, d2, ia, ib, ic, e10, e11, e12, e20, e21, e22, s0, s1, s2, p0, p1, p2,
+        q0, q1, q2, inv_det, t, u, v,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
 def shade_hit(x, y, camera, mesh, face, material, lights, lit, i, out, r):
     """The radiance of one camera ray through image-plane point (x, y) that hits row
     ``face`` of ``mesh``: what ``surface_at`` then ``shade_surface`` compute for one hit,
@@ -173,31 +209,16 @@ def shade_hit(x, y, camera, mesh, face, material, lights, lit, i, out, r):
     lights: (kind (L,) int64, vector (L, 3): a point light's position or the unit vector
         towards a directional light, strength (L,), colour (L, 3)) (``Light.shading_pack``).
     lit: (L, k) float64; column i: 1 where light j reaches the hit, 0 where it does not."""
-    eye, right, up, forward = camera
+    eye = camera[0]
     vertices, faces, vertex_normal, uvs, smooth, textured = mesh
     albedo_map, specular_map, ambient_map = material[0], material[1], material[2]
     albedo, specular, ambient, shininess, emission = material[3:8]
     specular_on, ambient_on, emissive = material[8], material[9], material[10]
     light_kind, light_vec, light_strength, light_color = lights
-    # The camera ray (render.scene.camera.camera_directions).
-    d0 = x * right[0] + y * up[0] + forward[0]
-    d1 = x * right[1] + y * up[1] + forward[1]
-    d2 = x * right[2] + y * up[2] + forward[2]
-    # Moller-Trumbore (render.shade.surface.intersect_edges).
-    # Elements read one by one: a row view of a shared array counts a reference to it, an
-    # atomic operation that every thread contends for.
-    ia, ib, ic = faces[face, 0], faces[face, 1], faces[face, 2]
-    ax, ay, az = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
-    e10, e11, e12 = vertices[ib, 0] - ax, vertices[ib, 1] - ay, vertices[ib, 2] - az
-    e20, e21, e22 = vertices[ic, 0] - ax, vertices[ic, 1] - ay, vertices[ic, 2] - az
-    p0, p1 = d1 * e22 - d2 * e21, d2 * e20 - d0 * e22
-    p2 = d0 * e21 - d1 * e20
-    inv_det = 1.0 / (e10 * p0 + e11 * p1 + e12 * p2)
-    s0, s1, s2 = eye[0] - ax, eye[1] - ay, eye[2] - az
-    q0, q1, q2 = s1 * e12 - s2 * e11, s2 * e10 - s0 * e12, s0 * e11 - s1 * e10
-    t = (e20 * q0 + e21 * q1 + e22 * q2) * inv_det
-    u = (s0 * p0 + s1 * p1 + s2 * p2) * inv_det
-    v = (d0 * q0 + d1 * q1 + d2 * q2) * inv_det
+    (
+        d0, d1, d2, ia, ib, ic, e10, e11, e12, e20, e21, e22, _, _, _, _, _, _,
+        _, _, _, _, t, u, v,
+    ) = camera_hit(x, y, camera, vertices, faces, face)  # fmt: skip
     # The normal, facing the ray (surface_at, toward_ray).
     n0, n1, n2 = _unit(e11 * e22 - e12 * e21, e12 * e20 - e10 * e22, e10 * e21 - e11 * e20)
     flip = -1.0 if n0 * d0 + n1 * d1 + n2 * d2 > 0 else 1.0

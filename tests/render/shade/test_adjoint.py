@@ -28,7 +28,7 @@ from render.scene.placement import placed
 from render.shade import adjoint
 from render.shade.hits import shade_camera_hits
 from render.trace.visibility import trace_visibility
-from tests.render_helpers import random_scene, run_on_two_threads
+from tests.render_helpers import count_calls, random_scene, same_bits_on_one_and_two_threads
 
 #: Largest difference allowed, relative to the reference gradient's largest entry (seen:
 #: 8e-14, on a camera position whose gradient sums terms of both signs).
@@ -163,19 +163,6 @@ def test_drawn_scenes(seed, spp, lights, smooth):
     assert _largest_difference(scene, spp) < TOLERANCE
 
 
-def _calls(monkeypatch) -> list:
-    """Count the calls of ``adjoint.image`` (the renderer imports the module)."""
-    calls = []
-    original = adjoint.image
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(adjoint, "image", spy)
-    return calls
-
-
 @pytest.mark.parametrize("spp", [1, 4])
 def test_render_takes_the_node_with_the_fused_image(monkeypatch, spp):
     """Its image is the fused passes' (a render that nothing differentiates), bit for bit;
@@ -183,7 +170,7 @@ def test_render_takes_the_node_with_the_fused_image(monkeypatch, spp):
     scene = random_scene(8, sphere=False, smooth=True, lights=("point", "directional"))
     plain, plain_info = render.render(scene, spp=spp, reuse_visibility=False, return_info=True)
     scene.camera.position.requires_grad = True
-    calls = _calls(monkeypatch)
+    calls = count_calls(monkeypatch, adjoint, "image")
     image, info = render.render(scene, spp=spp, reuse_visibility=False, return_info=True)
     assert calls == [1] and image.node is not None
     np.testing.assert_array_equal(image.data, plain.data)
@@ -203,7 +190,7 @@ def test_render_gradients_with_and_without_the_node(monkeypatch, antialias):
     def image():
         return render.render(scene, spp=4, antialias=antialias, reuse_visibility=False)
 
-    calls = _calls(monkeypatch)
+    calls = count_calls(monkeypatch, adjoint, "image")
     ours = _gradients(scene, names, weights, image)
     assert calls == [1]
     monkeypatch.setattr(adjoint, "applies", lambda *_: False)
@@ -216,7 +203,7 @@ def test_render_gradients_with_and_without_the_node(monkeypatch, antialias):
 
 def test_where_the_node_does_not_apply(monkeypatch):
     """Textures, spheres, mirrors, pixel pairs and forward-mode tangents take the tape."""
-    calls = _calls(monkeypatch)
+    calls = count_calls(monkeypatch, adjoint, "image")
     textured = random_scene(0, sphere=False, texture=True)
     spheres = random_scene(0)
     mirror = random_scene(1, sphere=False)
@@ -248,7 +235,7 @@ def test_where_the_node_does_not_apply(monkeypatch):
 
 
 _THREADS = """
-import numba, numpy as np, render, minidiff as md
+import numpy as np, render, minidiff as md
 scene = render.paper_scene(64, 48, ground=True)
 params = [scene.camera.position, scene.lights[0].position, scene.lights[0].intensity,
           scene.meshes[0].vertices, scene.meshes[1].vertices, scene.background,
@@ -256,21 +243,17 @@ params = [scene.camera.position, scene.lights[0].position, scene.lights[0].inten
 for p in params:
     p.requires_grad = True
 weights = np.random.default_rng(0).normal(size=(48, 64, 3))
-results = []
-for threads in (1, 2):
-    numba.set_num_threads(threads)
+def run():
     for p in params:
         p.grad = None
     md.sum(render.render(scene, spp=4, reuse_visibility=False) * weights).backward()
-    results.append([p.grad.copy() for p in params])
-same = all(np.array_equal(a, b) for a, b in zip(*results))
-print("same bits" if same else "differ")
+    return [p.grad.copy() for p in params]
 """
 
 
 @pytest.mark.new_processes
 def test_the_same_gradients_on_one_and_two_threads():
-    assert run_on_two_threads(_THREADS) == "same bits"
+    same_bits_on_one_and_two_threads(_THREADS)
 
 
 def test_what_no_ray_hits_gets_no_gradient():

@@ -11,20 +11,7 @@ import pytest
 import minidiff as md
 import render
 from render.shade import fused
-from tests.render_helpers import random_scene, run_on_two_threads
-
-
-def _taken(monkeypatch) -> list:
-    """Count the calls of ``fused.image_values`` (the renderer imports the module)."""
-    calls = []
-    original = fused.image_values
-
-    def spy(*args, **kwargs):
-        calls.append(1)
-        return original(*args, **kwargs)
-
-    monkeypatch.setattr(fused, "image_values", spy)
-    return calls
+from tests.render_helpers import count_calls, random_scene, same_bits_on_one_and_two_threads
 
 
 def _taped(scene, **options):
@@ -50,7 +37,7 @@ def _taped(scene, **options):
 )
 def test_the_fused_passes_give_the_taped_image(monkeypatch, options, spp):
     scene = random_scene(3, **options)
-    calls = _taken(monkeypatch)
+    calls = count_calls(monkeypatch, fused, "image_values")
     plain, info = render.render(scene, spp=spp, reuse_visibility=False, return_info=True)
     assert calls, "the fused passes did not run"
     taped, taped_info = _taped(scene, spp=spp)
@@ -65,7 +52,7 @@ def test_the_fused_passes_give_the_taped_image(monkeypatch, options, spp):
 def test_the_paper_scene_gives_the_taped_image(monkeypatch):
     """Lambertian, one sample per pixel: nothing rounds differently, the same bits."""
     scene = render.paper_scene(40, 40, ground=True)
-    calls = _taken(monkeypatch)
+    calls = count_calls(monkeypatch, fused, "image_values")
     plain = render.render(scene, reuse_visibility=False)
     assert calls
     np.testing.assert_array_equal(plain.data, _taped(scene)[0])
@@ -75,7 +62,7 @@ def test_where_the_fused_passes_do_not_apply(monkeypatch):
     """Spheres, mirrors and pixel pairs take the taped path. (A differentiated render of
     a scene the passes apply to takes them too, as the forward of
     ``render.shade.adjoint``'s node: ``test_adjoint.py``.)"""
-    calls = _taken(monkeypatch)
+    calls = count_calls(monkeypatch, fused, "image_values")
     render.render(random_scene(0), reuse_visibility=False)  # a sphere
     mirror = random_scene(1, sphere=False)
     mirror.objects[0].material.reflectance = md.tensor(0.5)
@@ -90,16 +77,13 @@ def test_where_the_fused_passes_do_not_apply(monkeypatch):
 
 
 _THREADS = """
-import numba, numpy as np, render
+import render
 scene = render.paper_scene(64, 48, ground=True)
-images = []
-for threads in (1, 2):
-    numba.set_num_threads(threads)
-    images.append(render.render(scene, spp=4, reuse_visibility=False).data.copy())
-print("same bits" if np.array_equal(images[0], images[1]) else "differ")
+def run():
+    return [render.render(scene, spp=4, reuse_visibility=False).data.copy()]
 """
 
 
 @pytest.mark.new_processes
 def test_the_same_bits_on_one_and_two_threads():
-    assert run_on_two_threads(_THREADS) == "same bits"
+    same_bits_on_one_and_two_threads(_THREADS)
