@@ -120,38 +120,29 @@ def _project(corners, eye, forward, right, up, width, height, offsets, boxes, ed
     n = corners.shape[1]
     xs, ys = np.empty(n), np.empty(n)
     for p in range(corners.shape[0]):
-        _project_one(corners, p, eye, forward, right, up, width, height, over_rr, over_uu,
-                     lo_ox, lo_oy, hi_ox, hi_oy, xs, ys, boxes, edges)  # fmt: skip
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _project_one(corners, p, eye, forward, right, up, width, height, over_rr, over_uu, lo_ox,
-                 lo_oy, hi_ox, hi_oy, xs, ys, boxes, edges):  # fmt: skip
-    """``_project`` for primitive p."""
-    n = corners.shape[1]
-    behind = False
-    for k in range(n):
-        qx = corners[p, k, 0] - eye[0]
-        qy = corners[p, k, 1] - eye[1]
-        qz = corners[p, k, 2] - eye[2]
-        depth = qx * forward[0] + qy * forward[1] + qz * forward[2]
-        # Image-plane x, y of a point: q = s (forward + x right + y up), right and up
-        # orthogonal to forward, so x = (q . right) / (|right|^2 depth).
-        inverse = 1.0 / depth
-        x = (qx * right[0] + qy * right[1] + qz * right[2]) * inverse * over_rr
-        y = (qx * up[0] + qy * up[1] + qz * up[2]) * inverse * over_uu
-        xs[k], ys[k] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
-        if not (depth > 0.0 and np.isfinite(xs[k]) and np.isfinite(ys[k])):
-            behind = True  # a projection would be meaningless: the whole screen
-    if behind:
-        boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = 0, 0, width - 1, height - 1
-        return
-    boxes[p, 0] = _pixel_in(np.floor(xs.min() - hi_ox), width)
-    boxes[p, 1] = _pixel_in(np.floor(ys.min() - hi_oy), height)
-    boxes[p, 2] = _pixel_in(np.floor(xs.max() - lo_ox), width)
-    boxes[p, 3] = _pixel_in(np.floor(ys.max() - lo_oy), height)
-    if n == 3:
-        _triangle_edges(xs, ys, edges[p])
+        behind = False
+        for k in range(n):
+            qx = corners[p, k, 0] - eye[0]
+            qy = corners[p, k, 1] - eye[1]
+            qz = corners[p, k, 2] - eye[2]
+            depth = qx * forward[0] + qy * forward[1] + qz * forward[2]
+            # Image-plane x, y of a point: q = s (forward + x right + y up), right and up
+            # orthogonal to forward, so x = (q . right) / (|right|^2 depth).
+            inverse = 1.0 / depth
+            x = (qx * right[0] + qy * right[1] + qz * right[2]) * inverse * over_rr
+            y = (qx * up[0] + qy * up[1] + qz * up[2]) * inverse * over_uu
+            xs[k], ys[k] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
+            if not (depth > 0.0 and np.isfinite(xs[k]) and np.isfinite(ys[k])):
+                behind = True  # a projection would be meaningless: the whole screen
+        if behind:
+            boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = 0, 0, width - 1, height - 1
+            continue
+        boxes[p, 0] = _pixel_in(np.floor(xs.min() - hi_ox), width)
+        boxes[p, 1] = _pixel_in(np.floor(ys.min() - hi_oy), height)
+        boxes[p, 2] = _pixel_in(np.floor(xs.max() - lo_ox), width)
+        boxes[p, 3] = _pixel_in(np.floor(ys.max() - lo_oy), height)
+        if n == 3:
+            _triangle_edges(xs, ys, edges[p])
 
 
 @njit(cache=True, error_model="numpy")
