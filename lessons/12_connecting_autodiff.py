@@ -184,6 +184,15 @@ if torch is not None:
         fit_losses.append(loss.item())
     torch_fit_error = float(np.linalg.norm(p.detach().numpy() - [2.5, 4.5, 3.5]))
     torch_loss_drop = fit_losses[0] / fit_losses[-1]
+    # Adam's ringing: the steps where the loss is a local maximum of the curve, and how far
+    # it climbs back after its first minimum.
+    fl = np.asarray(fit_losses)
+    loss_peaks = [i for i in range(1, len(fl) - 1) if fl[i - 1] < fl[i] >= fl[i + 1]]
+    first_minimum = int(np.argmax(np.diff(fl) > 0))
+    rebound = fl[loss_peaks[0]] / fl[first_minimum]
+    n_loss_peaks = len(loss_peaks)
+    print(f"loss minimum at step {first_minimum}, peaks at steps {loss_peaks}, first "
+          f"rebound x{rebound:.0f}")  # fmt: skip
     print(f"after 150 PyTorch Adam steps: light {p.detach().numpy().round(4)}, distance to "
           f"the truth {torch_fit_error:.4f}, loss / {torch_loss_drop:.0f}")  # fmt: skip
     figure = line_figure({"loss": (np.arange(len(fit_losses)), fit_losses)},
@@ -197,6 +206,16 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 # <!-- check: torch_fit_error < --> of the truth, the loss divided by more than `1000`
 # <!-- check: torch_loss_drop > --> (`torch_fit.png`): PyTorch's optimiser, minidiff's
 # derivative.
+#
+# The curve in `torch_fit.png` is not a steady fall: it *rings*. The loss reaches a first
+# minimum at step `11` <!-- check: first_minimum -->, then climbs more than `100`
+# <!-- check: rebound > --> times higher, and it swings up and down with `8`
+# <!-- check: n_loss_peaks --> peaks, each lower than the one before, 22 steps apart at
+# first and 14 by the end. That is Adam, not the renderer: its first moment (β₁ = 0.9) is
+# momentum, which carries the light past the truth, and its step is about `lr` whatever the
+# gradient's size, so near the minimum it overshoots and swings back. A smaller `lr`, a
+# decaying one (`torch.optim.lr_scheduler`) or a smaller β₁ damps the ringing; plain
+# gradient descent with a small enough step falls without it, but far more slowly.
 #
 # ## Exercises
 #
