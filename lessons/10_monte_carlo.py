@@ -35,9 +35,11 @@ import tracemalloc
 
 import numpy as np
 from course import figures_folder, save_and_show
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 import minidiff as md
-import render
+from minidiff import buffers
 from render.inverse.plot import line_figure
 from render.path import render_path, replay_gradient
 from render.path.random import uniform
@@ -135,10 +137,14 @@ for kind, values in rms.items():
 # * **Light sampling** (next-event estimation, NEE): a uniform point on the lamp, density
 #   `1/A` per area; converted to directions, the sample is `L_e cos θ cos θ' A / r²`.
 #   Excellent for a small lamp; for a large, near lamp `cos θ'/r²` varies wildly.
-# * **Multiple importance sampling** (MIS, Veach 1995): one sample of each, each weighted
-#   by `w_i = p_i² / (p_1² + p_2²)` (the power heuristic), both densities expressed in the
+# * **Multiple importance sampling** (MIS, Veach 1995): one sample of *each* technique
+#   (two samples, so it costs what two samples of one technique cost), each weighted by
+#   `w_i = p_i² / (p_1² + p_2²)` (the power heuristic), both densities expressed in the
 #   same measure. The weights sum to one for every direction, so the sum is unbiased, and
 #   each sample is trusted where its own technique is the likelier one.
+#
+# A fair comparison gives every estimator the same cost: two samples. So besides one sample
+# of BSDF or light sampling, the cell also takes the mean of two independent ones.
 
 # %%
 
@@ -154,19 +160,25 @@ def polygon_irradiance(corners: np.ndarray) -> float:
     return abs(total) / 2
 
 
-def lamp_estimates(half: float, n: int, technique: str) -> np.ndarray:
-    """``n`` one-sample estimates of the lamp's irradiance by ``technique``."""
-    ids = np.arange(n)
+def lamp_estimates(half: float, n: int, technique: str, stream: int = 0) -> np.ndarray:
+    """``n`` estimates of the lamp's irradiance by ``technique``: "bsdf" or "light" (one
+    sample each), "mis" (one of each), "2 bsdf" or "2 light" (the mean of two). ``stream``
+    picks independent random numbers (dimensions 4 * stream to 4 * stream + 3)."""
+    if technique.startswith("2 "):
+        one = technique[2:]
+        return (lamp_estimates(half, n, one, 2) + lamp_estimates(half, n, one, 3)) / 2
+    ids, d = np.arange(n), 4 * stream
     area = (2 * half) ** 2
     # Light sampling: a uniform point on the lamp (at height 1, facing down).
-    point = np.stack([half * (2 * uniform(3, ids, 0) - 1), half * (2 * uniform(3, ids, 1) - 1),
+    point = np.stack([half * (2 * uniform(3, ids, d) - 1), half * (2 * uniform(3, ids, d + 1) - 1),
                       np.ones(n)], axis=1)  # fmt: skip
     r2 = (point**2).sum(axis=1)
     cos_here = point[:, 2] / np.sqrt(r2)  # at the point, and at the lamp (parallel planes)
     p_light = r2 / (cos_here * area)  # 1/A per area, as a density per steradian
     light_value = cos_here / p_light  # L_e cos / p, L_e = 1
     # BSDF sampling: a cosine-weighted direction; does it reach the lamp's plane inside it?
-    w = cosine_hemisphere(uniform(3, ids, 2), uniform(3, ids, 3), np.repeat(n_z, n, axis=0))
+    u1, u2 = uniform(3, ids, d + 2), uniform(3, ids, d + 3)
+    w = cosine_hemisphere(u1, u2, np.repeat(n_z, n, axis=0))
     t = 1.0 / np.maximum(w[:, 2], 1e-300)
     hits = (np.abs(w[:, 0] * t) < half) & (np.abs(w[:, 1] * t) < half)
     p_bsdf = w[:, 2] / math.pi
@@ -184,15 +196,16 @@ def lamp_estimates(half: float, n: int, technique: str) -> np.ndarray:
 
 
 lamp_errors = {}
+TECHNIQUES = ("bsdf", "light", "2 bsdf", "2 light", "mis")
 for half in (0.05, 2.0):
     corners = np.array([[-half, -half, 1], [half, -half, 1], [half, half, 1], [-half, half, 1.0]])
     exact = polygon_irradiance(corners)
-    for technique in ("bsdf", "light", "mis"):
+    for technique in TECHNIQUES:
         samples = lamp_estimates(half, 200_000, technique)
         lamp_errors[half, technique] = (float(samples.mean() / exact - 1),
                                         float(samples.std() / exact))  # fmt: skip
-    print(f"lamp half-side {half}: E = {exact:.6f}; relative bias, relative std of one sample:")
-    for technique in ("bsdf", "light", "mis"):
+    print(f"lamp half-side {half}: E = {exact:.6f}; relative bias, relative std of one estimate:")
+    for technique in TECHNIQUES:
         bias, std = lamp_errors[half, technique]
         print(f"   {technique:5s} {bias:+.4f}  {std:.3f}")
 small_bsdf_std = lamp_errors[0.05, "bsdf"][1]
@@ -201,25 +214,85 @@ large_bsdf_std = lamp_errors[2.0, "bsdf"][1]
 large_light_std = lamp_errors[2.0, "light"][1]
 large_mis_std = lamp_errors[2.0, "mis"][1]
 small_mis_std = lamp_errors[0.05, "mis"][1]
+large_two_bsdf_std = lamp_errors[2.0, "2 bsdf"][1]
+small_two_light_std = lamp_errors[0.05, "2 light"][1]
+# At equal cost (two samples), MIS's noise over the better technique's, and the worse
+# technique's over the better one's, on each lamp.
+mis_over_best = max(large_mis_std / large_two_bsdf_std, small_mis_std / small_two_light_std)
+worst_over_best_small = lamp_errors[0.05, "2 bsdf"][1] / small_two_light_std
+worst_over_best_large = lamp_errors[2.0, "2 light"][1] / large_two_bsdf_std
 largest_bias = max(abs(b) for b, _ in lamp_errors.values())
 
 # %% [markdown]
-# All six estimators are unbiased: over 200,000 samples each mean is within `0.02`
+# All ten estimators are unbiased: over 200,000 samples each mean is within `0.02`
 # <!-- check: largest_bias < --> of the closed form (relative; the worst is BSDF sampling
 # of the small lamp, whose mean rests on a few hundred hits). Their noise is another
-# matter (the relative standard deviation of *one* sample; N samples divide it by √N):
+# matter (the relative standard deviation of *one* estimate; N estimates divide it by √N):
 #
 # * small lamp (half-side 0.05): BSDF sampling `17.6` <!-- check: small_bsdf_std --> (about
 #   one direction in 300 hits it), light sampling `0.002` <!-- check: small_light_std -->;
 # * large lamp (half-side 2): BSDF sampling `0.45` <!-- check: large_bsdf_std -->, light
 #   sampling `1.21` <!-- check: large_light_std --> (points far out on the lamp are seen at
 #   a grazing angle from far away: tiny contributions, drawn as often as the bright middle);
-# * MIS is close to the better one in both: `0.002` <!-- check: small_mis_std --> and
-#   `0.48` <!-- check: large_mis_std -->.
+# * MIS: `0.002` <!-- check: small_mis_std --> and `0.48` <!-- check: large_mis_std -->.
+#
+# But MIS spends two samples. At equal cost it is *not* the best on either lamp: two light
+# samples give `0.0015` <!-- check: small_two_light_std --> on the small lamp, two BSDF
+# samples `0.320` <!-- check: large_two_bsdf_std --> on the large one, and MIS is up to
+# `1.5` <!-- check: mis_over_best --> times noisier than the better technique. What MIS
+# buys is that it is never far from the better one. The worse technique, at the same
+# cost, is more than `8000` <!-- check: worst_over_best_small > --> times noisier on the
+# small lamp (BSDF) and `2.7` <!-- check: worst_over_best_large --> times on the large one
+# (light). A renderer
+# cannot choose per lamp and per pixel which technique to trust (a scene has small and large
+# lamps, glossy and matte surfaces, near and far), and a wrong choice is a disaster while
+# MIS costs at most a factor of about 1.5 here: robustness, not a free lunch.
 #
 # The path tracer (`render/path/tracer.py`) does exactly this at every bounce: one NEE
 # point on the area lights and one BSDF direction, MIS-weighted with the power heuristic;
 # point and directional lights, which no direction can hit, by NEE alone.
+#
+# ## Ending paths: Russian roulette
+#
+# A path could bounce forever; each bounce costs a ray and adds less light. Stopping at a
+# fixed depth biases the image (the light of longer paths is lost). **Russian roulette**
+# stops a path at random without bias: at a vertex, continue with probability `q` and divide
+# what the rest of the path brings, `X`, by `q`; stop (count 0) otherwise. The estimate
+# `X · 1{U < q} / q` has expectation `q · X / q + (1 − q) · 0 = X`, whatever `q` is.
+# It is not free: its variance is `E[X²]/q − E[X]²`, i.e. `Var X / q + E[X]² (1 − q)/q`,
+# larger than `Var X` by the coin's own noise (for a constant `X`: `X² (1 − q)/q`, from
+# zero). What it buys is the expected cost: the rest of the path is traced only with
+# probability `q`. Checked below with the library's random numbers, for `X` uniform in
+# [0, 1) (mean ½, variance 1/12) and `q = ¼`:
+
+# %%
+roulette_ids = np.arange(400_000)
+q = 0.25
+x = uniform(5, roulette_ids, 0)  # what the rest of the path would bring
+survives = uniform(5, roulette_ids, 1) < q
+with_roulette = np.where(survives, x / q, 0.0)
+roulette_standard_error = with_roulette.std() / math.sqrt(len(roulette_ids))
+roulette_bias_in_errors = abs(with_roulette.mean() - 0.5) / roulette_standard_error
+roulette_variance = float(with_roulette.var())
+roulette_variance_predicted = (1 / 12) / q + 0.5**2 * (1 - q) / q
+roulette_variance_growth = roulette_variance / float(x.var())
+traced_share = float(survives.mean())
+print(f"mean {with_roulette.mean():.4f} (X's: 0.5; {roulette_bias_in_errors:.1f} standard "
+      f"errors off); variance {roulette_variance:.4f}, predicted "
+      f"{roulette_variance_predicted:.4f} (X's own: {x.var():.4f}); paths traced on: "
+      f"{traced_share:.4f}")  # fmt: skip
+
+# %% [markdown]
+# The mean stays ½ (within `3` <!-- check: roulette_bias_in_errors < --> standard errors),
+# the variance is `1.081` <!-- check: roulette_variance --> against the formula's 1.0833:
+# `13.0` <!-- check: roulette_variance_growth --> times X's own, for tracing the rest of
+# only `0.249` <!-- check: traced_share --> of the paths. Here that is a bad trade (13 times
+# the variance for a quarter of the cost); it is a good one where `X` is small compared
+# with the rest of the pixel's light, which is why roulette is switched on only deep in a
+# path, and why `q` follows what the path still carries: in `render/path/kernel.py`, from
+# vertex `rr_depth` on (5 by default, as Mitsuba's), a path survives with probability equal
+# to its throughput's estimate clamped to [0.05, 0.95]. A path that carries little is cut
+# often; one that carries much rarely.
 #
 # ## A room rendered by paths
 #
@@ -246,9 +319,18 @@ with md.no_grad():
     pretty = render_path(cornell_box(48, 48), spp=64, max_depth=5, seed=1).data
     direct_only = render_path(cornell_box(48, 48), spp=64, max_depth=2, seed=1).data
 indirect_share = float(1 - direct_only.mean() / pretty.mean())
-strip = np.concatenate([direct_only, pretty], axis=1)
-render.save_image(np.repeat(np.repeat(np.clip(2 * strip, 0, 1) ** (1 / 2.2), 4, 0), 4, 1),
-                  OUT / "cornell_box.png")  # fmt: skip
+# Two labelled panels; the images are shown brightened twice and gamma-encoded for display.
+room_figure = Figure(figsize=(6.4, 3.6), dpi=100, layout="constrained")
+FigureCanvasAgg(room_figure)
+for i, (panel, title) in enumerate([
+    (direct_only, "direct light only\n(max_depth=2, 64 spp)"),
+    (pretty, "direct and indirect light\n(max_depth=5, 64 spp)"),
+]):  # fmt: skip
+    ax = room_figure.add_subplot(1, 2, i + 1)
+    ax.imshow(np.clip(2 * panel, 0, 1) ** (1 / 2.2), interpolation="nearest")
+    ax.set_title(title, fontsize=10)
+    ax.set_axis_off()
+save_and_show(room_figure, OUT / "cornell_box.png")
 print(
     "relative pixel noise at",
     list(path_spps),
@@ -309,8 +391,14 @@ print(f"d sum(W * I) / d emission: tape {tape_gradient.round(6)}, same-seed cent
 # correlated, and the expectation of their product is not the product of expectations: for
 # an emission scale `k` (so `∂I/∂k = I/k`) the gradient's mean is off by `2 Σ Var(I) / k`,
 # always upward. `render.path.replay_gradient` therefore renders the image with `seed` and
-# the gradient with `seed_grad` (default `seed + 1`, as Mitsuba 3 does). Measured over many
-# seeds at 1 spp, with the target the expected image (so the true gradient is zero):
+# the gradient with `seed_grad`, by default `seed + 1`. That is enough here because every
+# random number is a hash of (seed, path, dimension) (`render/path/random.py`: SplitMix64's
+# finaliser folds in the seed first), so `seed + 1` gives a stream unrelated to `seed`'s,
+# not a shifted copy of it; `seed_grad=seed` is allowed (it gives the correlated gradient,
+# measured below). Mitsuba 3's `mi.render` does it differently: with `seed_grad=0` (its
+# default) it derives the gradient's seed from `seed` by a hash (`sample_tea_32`), and it
+# raises an error when `seed_grad == seed`. Measured over many seeds at 1 spp, with the
+# target the expected image (so the true gradient is zero):
 
 # %%
 small = cornell_box(12, 12)
@@ -377,8 +465,13 @@ def mem_loss(image):
 
 
 def peak_mb(fn) -> float:
+    """The peak of the memory NumPy allocates while ``fn()`` runs, in MB. The renderer's
+    pool of reused arrays (``minidiff.buffers``) is off inside (``fresh``): an array the
+    pool hands back again is not a new allocation, so with it on the peak would depend on
+    what ran before."""
     tracemalloc.start()
-    fn()
+    with buffers.fresh():
+        fn()
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     return peak / 1e6
@@ -400,7 +493,7 @@ print({f"{k[0]} {k[1]} spp": round(v, 1) for k, v in memory.items()})
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
 # %% [markdown]
-# From 16 to 64 spp the tape's peak grows `2.6` <!-- check: tape_growth --> times (4 times
+# From 16 to 64 spp the tape's peak grows `2.5` <!-- check: tape_growth --> times (4 times
 # the samples, plus a fixed part), the replay's `1.0` <!-- check: replay_growth --> times.
 # Each batch still holds all the vertices of its paths, so replay's memory still grows with
 # `max_depth`; path replay (Vicini et al. 2021) removes that too, by walking each path
@@ -415,5 +508,13 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 # 3. Replace the power heuristic in `lamp_estimates` by the *balance* heuristic
 #    `w_i = p_i / (p_1 + p_2)`. Is it still unbiased? Compare its noise with the power
 #    heuristic's for both lamps.
+# 4. **Variance reduction for a gradient.** A pixel's value `I(θ) = ∫₀¹ e^(θx) dx` and its
+#    derivative `I'(θ) = ∫₀¹ x e^(θx) dx`, estimated at `θ = 1.5` as the mean of
+#    `x e^(θx)` over uniform `x` (`render.path.random.uniform`). At equal cost (the same
+#    number of evaluations of the integrand), reduce its variance (a) with *antithetic*
+#    pairs, `x` and `1 − x`, whose terms move in opposite directions; (b) with a *control
+#    variate*, a function `g` close to the integrand whose mean you know (its Taylor
+#    polynomial `x + θx²`, mean `½ + θ/3`): `x e^(θx) − c (g(x) − E[g])`, with `c` the
+#    regression coefficient. Check both against the closed form and measure the factors.
 #
 # Solutions: `lessons/solutions/10_monte_carlo.py`.
