@@ -181,6 +181,20 @@ supersampled_error_512 = supersampled_fd[512]
 # * **Projective sampling** (Zhang, Roussel, Jakob, SIGGRAPH Asia 2023; Mitsuba 3's
 #   `projective` integrator): finds silhouette edges by projecting samples onto them and
 #   samples the boundary term from those, with a guiding distribution.
+# * **Smoothing: soft rasterisers** (Rhodin, Robertini, Richardt, Seidel, Theobalt, ICCV
+#   2015, with Gaussian blobs; SoftRas, Liu, Li, Chen, Li, ICCV 2019; DIB-R, Chen, Ling,
+#   Gao, Smith, Lehtinen, Jacobson, Fidler, NeurIPS 2019): do not differentiate the image,
+#   differentiate a blurred one. SoftRas makes each triangle's coverage of a pixel a sigmoid
+#   of the pixel's signed distance to it, with a temperature σ, and blends the triangles
+#   by a softmax over depth with a second temperature; DIB-R interpolates attributes
+#   exactly for pixels a triangle covers and gives background pixels a soft silhouette
+#   (a coverage that decays with the distance to the nearest face). Every pixel near an
+#   edge then has a gradient, even one the edge has not reached yet, so the basin of
+#   convergence is wider (lesson 13 blurs its images for the same reason). The price: the
+#   image and its gradient are those of a different, blurred scene, biased by an amount
+#   set by the temperatures, which must be tuned, and usually lowered as the fit
+#   converges; occlusion is approximated by the softmax. The methods above estimate the
+#   derivative of the image itself.
 #
 # On the teapot, the camera's x position, 32 × 32 pixels, each method rendering 16 samples
 # per pixel (4 × 4, so that the interior term, too, is an average over the pixel rather
@@ -203,10 +217,36 @@ with md.no_grad():
         moved.camera.position.data = moved.camera.position.data + sign * step * along_x
         renders.append(render.render(moved, spp=4096).data)
 teapot_truth = (renders[0] - renders[1]) / (2 * step)
-method_errors = {
-    name: float(np.linalg.norm(g - teapot_truth) / np.linalg.norm(teapot_truth))
-    for name, g in method_gradients.items()
-}
+
+
+def relative_error(gradient: np.ndarray, truth: np.ndarray) -> float:
+    """|gradient - truth| / |truth| over the whole gradient image."""
+    return float(np.linalg.norm(gradient - truth) / np.linalg.norm(truth))
+
+
+method_errors = {name: relative_error(g, teapot_truth) for name, g in method_gradients.items()}
+
+# The truth is itself an estimate: another sample grid (60² to 70² samples per pixel) or
+# another step gives another truth. Five of them, to see how far the truths disagree.
+other_truths = []
+with md.no_grad():
+    for spp, other_step in ((3969, 0.02), (4096, 0.015), (3969, 0.025), (4900, 0.02),
+                            (3600, 0.02)):  # fmt: skip
+        pair = []
+        for sign in (1, -1):
+            moved = experiments.paper_scene(SIZE, SIZE)
+            moved.camera.position.data = moved.camera.position.data + sign * other_step * along_x
+            pair.append(render.render(moved, spp=spp).data)
+        other_truths.append((pair[0] - pair[1]) / (2 * other_step))
+truths_disagree = [relative_error(t, teapot_truth) for t in other_truths]
+truth_spread_low, truth_spread_high = min(truths_disagree), max(truths_disagree)
+boundary_against_others = [relative_error(method_gradients["boundary"], t) for t in other_truths]
+pairs_against_others = [relative_error(method_gradients["pairs"], t) for t in other_truths]
+boundary_error_high = max(boundary_against_others)
+pairs_error_low = min(pairs_against_others)
+print(f"the other truths differ from ours by {np.round(truths_disagree, 4)}; against them "
+      f"the boundary integral is off by {np.round(boundary_against_others, 4)}, the pairs "
+      f"by {np.round(pairs_against_others, 4)}")  # fmt: skip
 plain_teapot_error = method_errors["plain"]
 pairs_teapot_error = method_errors["pairs"]
 boundary_teapot_error = method_errors["boundary"]
@@ -214,7 +254,6 @@ print({name: round(e, 4) for name, e in method_errors.items()})
 rows = np.arange(SIZE)
 figure = line_figure(
     {
-        "truth (supersampled differences)": (rows, teapot_truth[SIZE // 2].sum(-1)),
         "plain renderer": (rows, method_gradients["plain"][SIZE // 2].sum(-1)),
         "pixel pairs": (rows, method_gradients["pairs"][SIZE // 2].sum(-1)),
         "boundary integral": (rows, method_gradients["boundary"][SIZE // 2].sum(-1)),
@@ -223,6 +262,15 @@ figure = line_figure(
     xlabel="pixel column",
     ylabel="derivative",
 )
+# The truth on top, as black dots, and the spread of the six truths as a grey band: the
+# boundary integral's line would hide a line drawn beneath it.
+ax = figure.axes[0]
+row_truths = np.stack([t[SIZE // 2].sum(-1) for t in [teapot_truth, *other_truths]])
+ax.fill_between(rows, row_truths.min(0), row_truths.max(0), color="0.8", zorder=0,
+                label="spread of six truths")  # fmt: skip
+ax.plot(rows, teapot_truth[SIZE // 2].sum(-1), "o", color="black", markersize=3.5, zorder=5,
+        label="truth (supersampled differences)")  # fmt: skip
+ax.legend(fontsize=8)
 save_and_show(figure, OUT / "teapot_row.png")
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
@@ -231,7 +279,17 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 # `0.9` <!-- check: plain_teapot_error > --> or more (it has only the interior term), the
 # pixel pairs by `0.29` <!-- check: pairs_teapot_error -->, the boundary integral by less
 # than `0.05` <!-- check: boundary_teapot_error < --> (`teapot_row.png`: one row of the
-# three against the truth). At this size the teapot is 20-odd pixels wide and dozens of
+# three against the truth, black dots).
+#
+# How good is that 0.05? The truth has an error of its own: the five other truths (other
+# sample grids, other steps) differ from ours by `0.038` <!-- check: truth_spread_low -->
+# to `0.085` <!-- check: truth_spread_high --> (the grey band in the figure), and against
+# them the boundary integral is off by at most `0.066` <!-- check: boundary_error_high <
+# -->. So the boundary integral agrees with the truth *to within the truth's own
+# uncertainty*: these renders cannot tell whether its error is 5 % or less, and a
+# better-looking number here would be luck, and giving the method more samples cannot
+# show more than the truths can. The pixel pairs, at `0.28` <!-- check: pairs_error_low > --> or more against every truth,
+# are well outside it. At this size the teapot is 20-odd pixels wide and dozens of
 # its facet edges cross every pixel: pairs of samples see few of them. With one sample per
 # pixel the pairs do far worse (exercise 3), and part of the boundary integral's remainder
 # is the interior term's: sampled at 16 points, not integrated. The README measures the
