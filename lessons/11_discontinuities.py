@@ -288,11 +288,12 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 # -->. So the boundary integral agrees with the truth *to within the truth's own
 # uncertainty*: these renders cannot tell whether its error is 5 % or less, and a
 # better-looking number here would be luck, and giving the method more samples cannot
-# show more than the truths can. The pixel pairs, at `0.28` <!-- check: pairs_error_low > --> or more against every truth,
-# are well outside it. At this size the teapot is 20-odd pixels wide and dozens of
-# its facet edges cross every pixel: pairs of samples see few of them. With one sample per
-# pixel the pairs do far worse (exercise 3), and part of the boundary integral's remainder
-# is the interior term's: sampled at 16 points, not integrated. The README measures the
+# show more than the truths can. The pixel pairs, at `0.28`
+# <!-- check: pairs_error_low > --> or more against every truth, are well outside it.
+# At this size the teapot is 20-odd pixels wide and dozens of its facet edges cross every
+# pixel: pairs of samples see few of them. With one sample per pixel the pairs do far
+# worse (exercise 3), and part of the boundary integral's remainder is the interior
+# term's: sampled at 16 points, not integrated. The README measures the
 # same comparison at 128 × 128 and 512 × 512.
 #
 # ## Exercises

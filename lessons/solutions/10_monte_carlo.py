@@ -156,7 +156,8 @@ assert antithetic_gain > 2 and control_gain > 10
 # %% [markdown]
 # At equal cost the antithetic pairs divide the variance by `6.5`
 # <!-- check: antithetic_gain -->, the control variate by more than `50`
-# <!-- check: control_gain > -->. In a renderer, antithetic pairs are mirrored sample positions in a pixel or
-# mirrored directions about a normal, and a control variate is an approximation whose
-# integral is known: a light's unshadowed irradiance, or the previous iteration's image in
-# an optimisation (the estimate then only carries the noise of the *change*).
+# <!-- check: control_gain > -->. In a renderer, antithetic pairs are mirrored sample
+# positions in a pixel or mirrored directions about a normal, and a control variate is an
+# approximation whose integral is known: a light's unshadowed irradiance, or the previous
+# iteration's image in an optimisation (the estimate then only carries the noise of the
+# *change*).
