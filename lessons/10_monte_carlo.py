@@ -130,7 +130,7 @@ for kind, values in rms.items():
 # A square lamp of side `2a` at height 1 above our point, facing down, radiance 1. Its
 # irradiance has a closed form (Lambert's polygon formula: `E = ½ Σ γ_k n·(v_k × v_k+1)
 # / |v_k × v_k+1|`, γ_k the angle the edge k subtends, v the unit vectors to the corners).
-# Three estimators of one sample each:
+# Three estimators; the first two take one sample, the third two:
 #
 # * **BSDF sampling**: a cosine-weighted direction; it counts `π L_e` if it hits the lamp,
 #   else 0. For a small lamp almost every sample misses: huge variance.
@@ -234,7 +234,7 @@ largest_bias = max(abs(b) for b, _ in lamp_errors.values())
 # * large lamp (half-side 2): BSDF sampling `0.45` <!-- check: large_bsdf_std -->, light
 #   sampling `1.21` <!-- check: large_light_std --> (points far out on the lamp are seen at
 #   a grazing angle from far away: tiny contributions, drawn as often as the bright middle);
-# * MIS: `0.002` <!-- check: small_mis_std --> and `0.48` <!-- check: large_mis_std -->.
+# * MIS: `0.002` <!-- check: small_mis_std --> and `0.475` <!-- check: large_mis_std -->.
 #
 # But MIS spends two samples. At equal cost it is *not* the best on either lamp: two light
 # samples give `0.0015` <!-- check: small_two_light_std --> on the small lamp, two BSDF
@@ -259,40 +259,58 @@ largest_bias = max(abs(b) for b, _ in lamp_errors.values())
 # stops a path at random without bias: at a vertex, continue with probability `q` and divide
 # what the rest of the path brings, `X`, by `q`; stop (count 0) otherwise. The estimate
 # `X · 1{U < q} / q` has expectation `q · X / q + (1 − q) · 0 = X`, whatever `q` is.
-# It is not free: its variance is `E[X²]/q − E[X]²`, i.e. `Var X / q + E[X]² (1 − q)/q`,
-# larger than `Var X` by the coin's own noise (for a constant `X`: `X² (1 − q)/q`, from
-# zero). What it buys is the expected cost: the rest of the path is traced only with
-# probability `q`. Checked below with the library's random numbers, for `X` uniform in
-# [0, 1) (mean ½, variance 1/12) and `q = ¼`:
+# It is not free. The estimate is `X/q` with probability `q` and 0 otherwise, so its square
+# has expectation `q · E[X²]/q² = E[X²]/q`, and its variance is `E[X²]/q − E[X]²`. For a
+# constant `X`, which has no noise of its own, that is `X²/q − X² = X² (1 − q)/q`: the
+# coin's noise alone. In general it is `Var X / q + E[X]² (1 − q)/q`: `X`'s own noise,
+# inflated by `1/q`, plus the coin's. What it buys is the expected cost: the rest of the
+# path is traced only with probability `q`. Played with the same `q` at every vertex, a
+# path makes `k` more bounces with probability `q^k (1 − q)`, `q/(1 − q)` more on average:
+# a path of unbounded length, with no depth limit and no bias, has a finite expected cost.
+# Checked below with the library's random numbers, for `q = ¼` and two `X`: the constant 1
+# (the formula: `(1 − q)/q = 3`), and `X` uniform in [0, 1) (mean ½, variance 1/12; the
+# formula: `(1/12)/q + ¼ (1 − q)/q = 1.0833`):
 
 # %%
 roulette_ids = np.arange(400_000)
 q = 0.25
+survives = uniform(5, roulette_ids, 1) < q  # the coin: continue with probability q
+coin_only = np.where(survives, 1.0 / q, 0.0)  # X = 1
+coin_variance = float(coin_only.var())
+coin_variance_error = abs(coin_variance / ((1 - q) / q) - 1)
 x = uniform(5, roulette_ids, 0)  # what the rest of the path would bring
-survives = uniform(5, roulette_ids, 1) < q
 with_roulette = np.where(survives, x / q, 0.0)
 roulette_standard_error = with_roulette.std() / math.sqrt(len(roulette_ids))
 roulette_bias_in_errors = abs(with_roulette.mean() - 0.5) / roulette_standard_error
 roulette_variance = float(with_roulette.var())
 roulette_variance_predicted = (1 / 12) / q + 0.5**2 * (1 - q) / q
+roulette_variance_error = abs(roulette_variance / roulette_variance_predicted - 1)
 roulette_variance_growth = roulette_variance / float(x.var())
 traced_share = float(survives.mean())
-print(f"mean {with_roulette.mean():.4f} (X's: 0.5; {roulette_bias_in_errors:.1f} standard "
-      f"errors off); variance {roulette_variance:.4f}, predicted "
-      f"{roulette_variance_predicted:.4f} (X's own: {x.var():.4f}); paths traced on: "
-      f"{traced_share:.4f}")  # fmt: skip
+print(f"X = 1: mean {coin_only.mean():.4f}, variance {coin_variance:.4f} (predicted "
+      f"{(1 - q) / q:.4f}); X uniform: mean {with_roulette.mean():.4f} (X's: 0.5; "
+      f"{roulette_bias_in_errors:.1f} standard errors off), variance {roulette_variance:.4f} "
+      f"(predicted {roulette_variance_predicted:.4f}, X's own: {x.var():.4f}); paths traced "
+      f"on: {traced_share:.4f}")  # fmt: skip
 
 # %% [markdown]
-# The mean stays ½ (within `3` <!-- check: roulette_bias_in_errors < --> standard errors),
-# the variance is `1.081` <!-- check: roulette_variance --> against the formula's 1.0833:
+# For `X = 1` the variance is `2.996` <!-- check: coin_variance --> against the formula's 3
+# (relative difference below `0.005` <!-- check: coin_variance_error < -->, the Monte Carlo
+# error of a variance from 400,000 samples). For `X` uniform the mean stays ½ (within `3`
+# <!-- check: roulette_bias_in_errors < --> standard errors) and the variance is `1.081`
+# <!-- check: roulette_variance --> against the formula's 1.0833 (below `0.005`
+# <!-- check: roulette_variance_error < --> relative):
 # `13.0` <!-- check: roulette_variance_growth --> times X's own, for tracing the rest of
 # only `0.249` <!-- check: traced_share --> of the paths. Here that is a bad trade (13 times
 # the variance for a quarter of the cost); it is a good one where `X` is small compared
 # with the rest of the pixel's light, which is why roulette is switched on only deep in a
-# path, and why `q` follows what the path still carries: in `render/path/kernel.py`, from
-# vertex `rr_depth` on (5 by default, as Mitsuba's), a path survives with probability equal
-# to its throughput's estimate clamped to [0.05, 0.95]. A path that carries little is cut
-# often; one that carries much rarely.
+# path, and why `q` follows what the path still carries. In `render/path/kernel.py` (and
+# its NumPy reference, `render/path/tracer.py`), from vertex `rr_depth` on (5 by default,
+# as in Mitsuba 3), a path continues with probability `q` = the product of the mean
+# reflectances of the surfaces it has met (an estimate of its throughput), clamped to
+# [0.05, 0.95] (`MIN_SURVIVAL`, `MAX_SURVIVAL` in `tracer.py`), and what it gathers after
+# that is divided by `q` (its next segment's weight is `1 / (pdf · q)`). A path that
+# carries little is cut often; one that carries much rarely.
 #
 # ## A room rendered by paths
 #
@@ -320,7 +338,7 @@ with md.no_grad():
     direct_only = render_path(cornell_box(48, 48), spp=64, max_depth=2, seed=1).data
 indirect_share = float(1 - direct_only.mean() / pretty.mean())
 # Two labelled panels; the images are shown brightened twice and gamma-encoded for display.
-room_figure = Figure(figsize=(6.4, 3.6), dpi=100, layout="constrained")
+room_figure = Figure(figsize=(6.4, 3.9), dpi=100, layout="constrained")
 FigureCanvasAgg(room_figure)
 for i, (panel, title) in enumerate([
     (direct_only, "direct light only\n(max_depth=2, 64 spp)"),
@@ -391,14 +409,37 @@ print(f"d sum(W * I) / d emission: tape {tape_gradient.round(6)}, same-seed cent
 # correlated, and the expectation of their product is not the product of expectations: for
 # an emission scale `k` (so `∂I/∂k = I/k`) the gradient's mean is off by `2 Σ Var(I) / k`,
 # always upward. `render.path.replay_gradient` therefore renders the image with `seed` and
-# the gradient with `seed_grad`, by default `seed + 1`. That is enough here because every
-# random number is a hash of (seed, path, dimension) (`render/path/random.py`: SplitMix64's
-# finaliser folds in the seed first), so `seed + 1` gives a stream unrelated to `seed`'s,
-# not a shifted copy of it; `seed_grad=seed` is allowed (it gives the correlated gradient,
-# measured below). Mitsuba 3's `mi.render` does it differently: with `seed_grad=0` (its
-# default) it derives the gradient's seed from `seed` by a hash (`sample_tea_32`), and it
-# raises an error when `seed_grad == seed`. Measured over many seeds at 1 spp, with the
-# target the expected image (so the true gradient is zero):
+# replays the paths for the gradient with `seed_grad`; left out, `seed_grad` is `seed + 1`
+# (`render/path/integrator.py`). One more is enough because no number comes from a running
+# generator: each is a hash of (seed, path id, dimension) (`render/path/random.py`:
+# SplitMix64's finaliser applied to the seed, then again after the path id and the
+# dimension are folded in). A seed one higher changes the key from the first step, so the
+# same path ids draw an unrelated stream, not a shifted copy of the old one; the cell below
+# measures it. `seed_grad=seed` is allowed: it gives the correlated gradient, measured
+# below, and it is what `render_path`'s own backward computes (its replay uses the image's
+# seed, so that it equals the tape's gradient: the derivative of *this* estimate).
+#
+# Mitsuba 3's `mi.render` does it differently: its `seed_grad` defaults to 0, which means
+# "derive one from `seed`", by a hash (`mi.sample_tea_32(seed, 1)`), and it raises an
+# error when `seed_grad == seed`. Both decorrelate for the same reason: the gradient's
+# random numbers come from a stream unrelated to the image's, ours because our generator
+# is keyed by the seed, Mitsuba's because its sampler is seeded with a hashed value.
+
+# %%
+stream_ids = np.arange(200_000)
+stream_correlation = max(
+    abs(float(np.corrcoef(uniform(s, stream_ids, d), uniform(s + 1, stream_ids, d))[0, 1]))
+    for s in (0, 3) for d in (0, 1)
+)  # fmt: skip
+print(f"largest |correlation| of seed s and s + 1 on the same path ids: {stream_correlation:.4f}")
+
+# %% [markdown]
+# The numbers that seeds `s` and `s + 1` give the same 200,000 path ids correlate by at most
+# `0.01` <!-- check: stream_correlation < --> (four pairs of streams; independent streams
+# would give about `1/√200000 ≈ 0.002`). Now the gradients, over 60 seeds at 1 spp (even
+# seeds, so that no run's gradient seed is another run's image seed), with the target the
+# expected image (so the true gradient is zero), once with `seed_grad=seed` and once with
+# the default:
 
 # %%
 small = cornell_box(12, 12)
@@ -406,7 +447,7 @@ with md.no_grad():
     expected = render_path(small, spp=1024, max_depth=3, seed=99).data
 
 
-def seed_gradient(seed: int, seed_grad: int) -> float:
+def seed_gradient(seed: int, seed_grad: int | None) -> float:
     emission = small.objects[5].material.emission
     emission.requires_grad, emission.grad = True, None
     replay_gradient(small, lambda image: md.sum((image - md.tensor(expected)) ** 2), spp=1,
@@ -416,16 +457,16 @@ def seed_gradient(seed: int, seed_grad: int) -> float:
     return grad
 
 
-correlated = np.array([seed_gradient(s, s) for s in range(60)])
-decorrelated = np.array([seed_gradient(s, s + 1000) for s in range(60)])
-correlated_mean, correlated_error = (
-    float(correlated.mean()),
-    float(correlated.std() / math.sqrt(60)),
-)
+gradient_seeds = range(0, 120, 2)
+correlated = np.array([seed_gradient(s, s) for s in gradient_seeds])
+decorrelated = np.array([seed_gradient(s, None) for s in gradient_seeds])  # seed + 1
+correlated_mean = float(correlated.mean())
+correlated_error = float(correlated.std() / math.sqrt(len(correlated)))
 decorrelated_mean = float(decorrelated.mean())
-decorrelated_error = float(decorrelated.std() / math.sqrt(60))
+decorrelated_error = float(decorrelated.std() / math.sqrt(len(decorrelated)))
 bias_in_errors = float((correlated_mean - decorrelated_mean)
                        / math.hypot(correlated_error, decorrelated_error))  # fmt: skip
+decorrelated_in_errors = abs(decorrelated_mean) / decorrelated_error
 print(f"correlated {correlated_mean:.3f} ± {correlated_error:.3f}; decorrelated "
       f"{decorrelated_mean:.3f} ± {decorrelated_error:.3f}")  # fmt: skip
 
@@ -435,9 +476,6 @@ print(f"correlated {correlated_mean:.3f} ± {correlated_error:.3f}; decorrelated
 # than `5` <!-- check: bias_in_errors > --> standard errors above it. An optimiser fed the
 # correlated gradient would settle where the image is too dark, by an amount that shrinks
 # only as the spp grows.
-
-# %%
-decorrelated_in_errors = abs(decorrelated_mean) / decorrelated_error
 
 # %% [markdown]
 # ## Trap 2: a tape that remembers every sample
@@ -493,11 +531,13 @@ print({f"{k[0]} {k[1]} spp": round(v, 1) for k, v in memory.items()})
 print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
 # %% [markdown]
-# From 16 to 64 spp the tape's peak grows `2.5` <!-- check: tape_growth --> times (4 times
-# the samples, plus a fixed part), the replay's `1.0` <!-- check: replay_growth --> times.
-# Each batch still holds all the vertices of its paths, so replay's memory still grows with
-# `max_depth`; path replay (Vicini et al. 2021) removes that too, by walking each path
-# again vertex by vertex with a running adjoint.
+# From 16 to 64 spp the tape's peak grows more than `2` <!-- check: tape_growth > --> times
+# (4 times the samples, plus a fixed part; printed above, about 2.5: the allocator's
+# bookkeeping moves it a little with what ran before), the replay's less than `1.1`
+# <!-- check: replay_growth < --> times. Each batch still holds all the vertices of its
+# paths, so this replay's memory still grows with `max_depth`; lesson 14 takes replay
+# further, to a compiled adjoint that walks each path again vertex by vertex and keeps a
+# few numbers per vertex (Vicini et al. 2021).
 #
 # ## Exercises
 #

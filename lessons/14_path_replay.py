@@ -25,11 +25,12 @@ import tracemalloc
 
 import numpy as np
 from course import figures_folder, save_and_show
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 from scipy.integrate import quad
 
 import minidiff as md
 from minidiff import buffers
-from render.inverse.plot import line_figure
 from render.path import render_path
 from render.path.random import uniform
 from render.scene.cornell import cornell_box
@@ -90,7 +91,11 @@ for gradient, parameter in WAYS.values():  # first calls load kernels and fill c
     gradient_peak_mb(gradient, parameter, 4, 2)
 spps, depths = [4, 16, 64], [2, 4, 8, 16]
 memory_by_spp = {w: [gradient_peak_mb(*WAYS[w], spp, 4) for spp in spps] for w in WAYS}
-memory_by_depth = {w: [gradient_peak_mb(*WAYS[w], 16, d) for d in depths] for w in WAYS}
+# 16 spp at max_depth 4 was measured just above: the depth sweep reuses it.
+memory_by_depth = {
+    w: [memory_by_spp[w][1] if d == 4 else gradient_peak_mb(*WAYS[w], 16, d) for d in depths]
+    for w in WAYS
+}
 for name in WAYS:
     print(f"{name:38s} spp {spps}: {np.round(memory_by_spp[name], 2)} MB; "
           f"max_depth {depths}: {np.round(memory_by_depth[name], 2)} MB")  # fmt: skip
@@ -108,14 +113,25 @@ per_pixel_sample_mb = (
 ) / (16 * 16 * (64 - 16))
 tape_at_512_gb = per_pixel_sample_mb * 512 * 512 * 256 / 1000
 print(f"the tape at 512 x 512, 256 spp, max_depth 4: about {tape_at_512_gb:.0f} GB")
-figure = line_figure(
-    {f"{name}, against spp (max_depth 4)": (spps, memory_by_spp[name]) for name in WAYS},
-    title="Peak memory of one gradient, Cornell box 16 × 16",
-    xlabel="samples per pixel",
-    ylabel="MB",
-    logx=True,
-    logy=True,
-)
+# Two panels, one y axis: against spp (max_depth 4) and against max_depth (16 spp).
+figure = Figure(figsize=(8.0, 3.6), dpi=100, layout="constrained")
+FigureCanvasAgg(figure)
+panels = figure.subplots(1, 2, sharey=True)
+for ax, xs, by, xlabel in (
+    (panels[0], spps, memory_by_spp, "samples per pixel (max_depth 4)"),
+    (panels[1], depths, memory_by_depth, "max_depth (16 samples per pixel)"),
+):
+    for name in WAYS:
+        ax.plot(xs, by[name], marker="o", markersize=4, label=name)
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xticks(xs, [str(x) for x in xs])
+    ax.minorticks_off()
+    ax.set_xlabel(xlabel)
+    ax.grid(True, color="0.9")
+panels[0].set_ylabel("peak memory (MB)")
+panels[1].legend(fontsize=8, frameon=False)
+figure.suptitle("Peak memory of one gradient, Cornell box 16 × 16", fontsize=10)
 save_and_show(figure, OUT / "memory.png")
 
 # %% [markdown]
@@ -127,10 +143,12 @@ save_and_show(figure, OUT / "memory.png")
 # less than `1.6` <!-- check: windows_depth_growth < --> times with the depth (the values
 # are printed above; the allocator's bookkeeping moves them by a percent from run to run):
 # it holds one batch of paths' *decisions* (which primitive, which lobe, which light),
-# never their tape. The compiled replay stays under `0.2` <!-- check: compiled_peak < -->
-# MB everywhere: it keeps a few
-# numbers per vertex of one path per thread. At 16 × 16 and a few samples the tape is the
-# cheaper (`memory.png`); scaled to 512 × 512 at 256 samples it would need more than `50`
+# never their tape. A batch is 16 samples per pixel by default (`batch_spp`), so below 16
+# it grows like the tape and above it stays flat. The compiled replay stays under `0.2`
+# <!-- check: compiled_peak < --> MB everywhere: it keeps a few numbers per vertex of one
+# path per thread. `memory.png` shows the three against spp (left) and against
+# `max_depth` (right). At 16 × 16 and a few samples the tape is the cheaper; scaled to
+# 512 × 512 at 256 samples it would need more than `50`
 # <!-- check: tape_at_512_gb > --> GB.
 #
 # ## 2. The adjoint idea: light going backwards
@@ -152,8 +170,8 @@ save_and_show(figure, OUT / "memory.png")
 # depends on θ it deposits `δ β_k (dC_k/dθ + dF_k/dθ R_k)`. That is **radiative
 # backpropagation** (Nimier-David et al. 2020): no tape, just a second transport
 # simulation. Its one difficulty is `R_k`, the radiance arriving at the vertex: radiative
-# backpropagation estimated it with a new, independent path from every vertex (quadratic in
-# the depth, and noisier). **Path replay backpropagation** (Vicini et al. 2021) instead
+# backpropagation estimated it with a new, independent path from every vertex (a cost
+# quadratic in the depth). **Path replay backpropagation** (Vicini et al. 2021) instead
 # traces the *same* path again, from the same random numbers (the library's counter-based
 # generator, `render/path/random.py`, gives every number from (seed, path, dimension), so
 # a replay draws exactly what the render drew), and gets `R_k` from the path's own total:
@@ -258,10 +276,13 @@ print(f"replay against the tape, Cornell box: {library_replay_difference:.1e} (r
 # %% [markdown]
 # They agree to `1e-12` <!-- check: library_replay_difference < --> (relative). One
 # detail differs from the hand-written replay above: dividing `remaining` by `ρ` fails
-# where a channel's albedo is 0 (a pure red wall has no green), so the library gets `R_k`
-# by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}` over a few numbers kept per vertex
-# of the one path being replayed (`docs/path_tracing.md`; Mitsuba's `prb` divides).
-# Exercise 1 asks why that matters.
+# where a channel's albedo is 0 (a pure red wall has no green). The compiled replay
+# therefore gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}`, over a few
+# numbers kept per vertex of the one path being replayed; the replay on the tape divides,
+# and where a factor is 0 it gathers `R_k` from the later windows and builds that window
+# again at the end (`docs/path_tracing.md`, `render/path/replay.py`). Mitsuba's `prb`
+# divides and takes the inverse of a zero as 0, which drops that term. Exercise 1 asks
+# why that matters.
 #
 # ## 4. Attached or detached samples
 #

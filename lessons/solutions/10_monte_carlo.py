@@ -105,6 +105,8 @@ for half, exact in ((0.05, 0.009967), (2.0, 2.610753)):  # lesson 10's closed fo
     assert abs(balance.mean() / exact - 1) < 0.01  # unbiased too
     if half < 1:
         assert balance.std() > 10 * power.std()  # the small lamp: far noisier
+        # The numbers the text states (relative std of one estimate).
+        assert (round(balance.std() / exact, 3), round(power.std() / exact, 3)) == (0.056, 0.002)
     else:
         assert abs(balance.std() / power.std() - 1) < 0.2  # the large lamp: close
 
@@ -152,6 +154,7 @@ for name, estimate in (("plain", plain_samples), ("antithetic", pairs),
 print(f"variance of the estimate, at equal cost: antithetic / {antithetic_gain:.1f}, "
       f"control variate / {control_gain:.1f}")  # fmt: skip
 assert antithetic_gain > 2 and control_gain > 10
+assert round(antithetic_gain, 1) == 6.5 and control_gain > 50  # the numbers stated below
 
 # %% [markdown]
 # At equal cost the antithetic pairs divide the variance by `6.5`

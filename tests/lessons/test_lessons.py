@@ -103,18 +103,26 @@ def test_lesson_runs_and_its_prose_states_its_numbers(path, tmp_path, monkeypatc
     markdown = markdown_text(path)
     checks = stated_checks(markdown)
     assert len(checks) >= 3, f"{path.name} states fewer than three checked numbers"
+    assert_stated_numbers(path, checks, namespace)
+    assert "Exercises" in markdown, f"{path.name} has no exercises cell"
+
+
+def assert_stated_numbers(path: Path, checks: list[tuple[str, str, str]], namespace: dict):
+    """Every number the prose states (``stated_checks``) agrees with the script's variable."""
     wrong = []
     for name, number, rel in checks:
         assert name in namespace, f"{path.name}: the prose checks {name!r}, the code has none"
         if not agrees(namespace[name], number, rel):
             wrong.append(f"{name} = {namespace[name]!r}, the prose says {rel} {number}")
     assert not wrong, f"{path.name}: " + "; ".join(wrong)
-    assert "Exercises" in markdown, f"{path.name} has no exercises cell"
 
 
 @pytest.mark.parametrize("path", SOLUTIONS, ids=[p.stem for p in SOLUTIONS])
-def test_solution_runs(path, tmp_path, monkeypatch):
-    run_script(path, tmp_path, monkeypatch)
+def test_solution_runs_and_its_prose_states_its_numbers(path, tmp_path, monkeypatch):
+    """A solution runs (its own asserts check its answers), and the numbers its text
+    states, where it marks them, agree with its variables as in a lesson."""
+    namespace = run_script(path, tmp_path, monkeypatch)
+    assert_stated_numbers(path, stated_checks(markdown_text(path)), namespace)
 
 
 def test_every_lesson_has_solutions_and_an_index_entry():
