@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 from course import figures_folder, save_and_show
+from matplotlib.figure import Figure
 
 import minidiff as md
 import render
 from render.inverse import experiments
-from render.inverse.plot import line_figure
 
 # This lesson's figures go to out/lessons/11_discontinuities/ (or under $LESSONS_OUT).
 OUT = figures_folder("11_discontinuities")
@@ -40,7 +40,8 @@ lesson_start = time.perf_counter()
 #     I(t) = ∫₀¹ f(x) H(x − t) dx = ∫ₜ¹ f(x) dx ,       H the step function.
 #
 # By the fundamental theorem of calculus `dI/dt = −f(t)`: moving the step right by `dt`
-# hides a sliver of width `dt` and height `f(t)`. At `t = 0.3`: `−1.09`.
+# hides a sliver of width `dt` and height `f(t)`. At `t = 0.3`: `-1.09`
+# <!-- check: exact_derivative -->.
 #
 # A renderer estimates `I` from samples: `I_N(t) = (1/N) Σ f(xᵢ) H(xᵢ − t)` at fixed
 # points `xᵢ`. Differentiate *that* with respect to `t` and every term is zero (`H` is flat
@@ -182,19 +183,97 @@ supersampled_error_512 = supersampled_fd[512]
 #   `projective` integrator): finds silhouette edges by projecting samples onto them and
 #   samples the boundary term from those, with a guiding distribution.
 # * **Smoothing: soft rasterisers** (Rhodin, Robertini, Richardt, Seidel, Theobalt, ICCV
-#   2015, with Gaussian blobs; SoftRas, Liu, Li, Chen, Li, ICCV 2019; DIB-R, Chen, Ling,
-#   Gao, Smith, Lehtinen, Jacobson, Fidler, NeurIPS 2019): do not differentiate the image,
-#   differentiate a blurred one. SoftRas makes each triangle's coverage of a pixel a sigmoid
-#   of the pixel's signed distance to it, with a temperature σ, and blends the triangles
-#   by a softmax over depth with a second temperature; DIB-R interpolates attributes
-#   exactly for pixels a triangle covers and gives background pixels a soft silhouette
-#   (a coverage that decays with the distance to the nearest face). Every pixel near an
-#   edge then has a gradient, even one the edge has not reached yet, so the basin of
-#   convergence is wider (lesson 13 blurs its images for the same reason). The price: the
-#   image and its gradient are those of a different, blurred scene, biased by an amount
-#   set by the temperatures, which must be tuned, and usually lowered as the fit
-#   converges; occlusion is approximated by the softmax. The methods above estimate the
-#   derivative of the image itself.
+#   2015, scenes of Gaussian blobs; SoftRas, Liu, Li, Chen, Li, ICCV 2019; DIB-R, Chen,
+#   Gao, Ling, Smith, Lehtinen, Jacobson, Fidler, NeurIPS 2019): do not differentiate the
+#   image, differentiate a blurred one. SoftRas makes each triangle's coverage of a pixel
+#   a sigmoid of the pixel's signed (squared) distance to the triangle, with a temperature
+#   σ, and blends the triangles by a softmax over depth with a second temperature; DIB-R
+#   interpolates attributes exactly for the pixels a triangle covers and gives background
+#   pixels a soft silhouette (a coverage that decays with the distance to the nearest
+#   face). Every pixel near an edge then has a gradient, even one the edge has not reached
+#   yet, so the basin of convergence is wider (lesson 13 blurs its images for the same
+#   reason). The price: the image and its gradient are those of a different, blurred
+#   scene, biased by an amount set by the temperatures, which must be tuned (and usually
+#   lowered as a fit converges); occlusion is approximated by the softmax. The methods
+#   above estimate the derivative of the image itself.
+#
+# The toy square, soft: each pixel's value is the square's soft coverage at the pixel's
+# centre, every edge's inside test `sigmoid(e / σ)` with `e` the signed distance to that
+# edge's line (positive inside) and `σ` a width in pixels, the four tests multiplied.
+# Near an edge and away from the corners that is a sigmoid of the signed distance to the
+# square, as in SoftRas (which divides the *squared* distance by its σ, an area; the
+# idea is the same). The soft image is smooth in `x₀`, so the tape differentiates it as
+# it is (`md.jvp`, forward mode: one parameter, a whole image of derivatives), and central
+# differences agree. Against the exact areas and the exact edge term, for a sharp, a
+# medium and a wide blur:
+
+
+# %%
+def relative_error(estimate: np.ndarray, truth: np.ndarray) -> float:
+    """|estimate - truth| / |truth| over the whole image: the error measure from here on."""
+    return float(np.linalg.norm(estimate - truth) / np.linalg.norm(truth))
+
+
+def soft_square_image(x0, y0, w, sigma):
+    """A soft coverage of the square at each pixel's centre: every edge's inside test a
+    sigmoid of the signed distance to that edge's line (in pixels) over sigma, the four
+    multiplied. A tensor function of x0."""
+    cx, cy = np.meshgrid(np.arange(W_PIX) + 0.5, np.arange(H_PIX) + 0.5)
+
+    def inside(distance):  # sigmoid(distance / sigma), 1/2 on the edge
+        return 0.5 + 0.5 * md.tanh(distance / (2 * sigma))
+
+    across = inside(md.tensor(cx) - x0) * inside(x0 + w - md.tensor(cx))
+    along = inside(md.tensor(cy - y0)) * inside(md.tensor(y0 + w - cy))
+    return across * along
+
+
+exact_image = square_image(X0, Y0, SIDE)
+FAR = (5, 1)  # a pixel 1.8 pixels left of the square: its true derivative is 0
+soft, soft_gradients = {}, {}
+for sigma in (0.05, 0.2, 1.0):
+    image, gradient = md.jvp(lambda x0, s=sigma: soft_square_image(x0, Y0, SIDE, s), (X0,), (1.0,))
+    soft_gradients[sigma] = gradient
+    soft[sigma] = {
+        "image bias": relative_error(image, exact_image),
+        "gradient error": relative_error(gradient, edge_term),
+        "pixels with a gradient": int((np.abs(gradient) > 1e-3).sum()),
+        "gradient 1.8 px out": float(gradient[FAR]),
+    }
+    print(f"sigma {sigma}:", {k: round(v, 5) for k, v in soft[sigma].items()})
+with md.no_grad():  # the soft image is smooth: central differences agree with the tape
+    plus, minus = (soft_square_image(X0 + s, Y0, SIDE, 0.2).data for s in (1e-6, -1e-6))
+soft_tape_vs_differences = float(np.abs((plus - minus) / 2e-6 - soft_gradients[0.2]).max())
+edge_term_pixels = int((edge_term != 0).sum())
+soft_sharp_error = soft[0.05]["gradient error"]
+soft_medium_error = soft[0.2]["gradient error"]
+soft_wide_error = soft[1.0]["gradient error"]
+soft_wide_bias = soft[1.0]["image bias"]
+soft_wide_pixels = soft[1.0]["pixels with a gradient"]
+soft_wide_far = soft[1.0]["gradient 1.8 px out"]
+soft_medium_far = soft[0.2]["gradient 1.8 px out"]
+
+# %% [markdown]
+# The tape and central differences of the soft image agree to `1e-6`
+# <!-- check: soft_tape_vs_differences < -->: nothing jumps any more. The exact edge term
+# is nonzero in `12` <!-- check: edge_term_pixels --> pixels, the ones the square's left
+# and right edges cross. With `σ = 1` pixel the soft gradient is above 10⁻³ in every one
+# of the `120` <!-- check: soft_wide_pixels --> pixels, and a pixel 1.8 pixels outside
+# the square, which the edge has not reached, gets `-0.10` <!-- check: soft_wide_far -->
+# (the true image's derivative there: 0): an optimiser there is told which way to move.
+# The price is bias: the soft image is `0.44` <!-- check: soft_wide_bias --> off the true
+# areas (relative, over the image) and its gradient `0.845` <!-- check: soft_wide_error -->
+# off the exact edge term. Lower the temperature and the gradient first improves, `0.19`
+# <!-- check: soft_medium_error --> at `σ = 0.2` (where the far pixel gets only `-0.0006`
+# <!-- check: soft_medium_far -->), then gets worse again, `3.0`
+# <!-- check: soft_sharp_error --> at `σ = 0.05`: a near-step sampled at pixel centres.
+# Column 8's centres lie on the right edge (`x₀ + w = 8.5`), where the sigmoid's slope
+# is `1/(4σ) = 5` against the edge term's 1; column 3's centres lie 0.2 inside the left
+# edge, where it is almost flat (−0.35 against −1). The plain renderer's problem comes
+# back. So σ is tuned, a compromise between reach and bias, and the gradient is never
+# the true image's.
+#
+# ## The methods on a real scene, and how exact the truth is
 #
 # On the teapot, the camera's x position, 32 × 32 pixels, each method rendering 16 samples
 # per pixel (4 × 4, so that the interior term, too, is an average over the pixel rather
@@ -209,93 +288,127 @@ method_gradients = {
     name: render.gradient_image(teapot, "camera.position", along_x, antialias=aa, spp=16)
     for name, aa in (("plain", False), ("pairs", True), ("boundary", "boundary"))
 }
-step = 0.02  # a pixel is about 0.14 units wide at the teapot: nine sample spacings
-renders = []
-with md.no_grad():
-    for sign in (1, -1):
-        moved = experiments.paper_scene(SIZE, SIZE)
-        moved.camera.position.data = moved.camera.position.data + sign * step * along_x
-        renders.append(render.render(moved, spp=4096).data)
-teapot_truth = (renders[0] - renders[1]) / (2 * step)
 
 
-def relative_error(gradient: np.ndarray, truth: np.ndarray) -> float:
-    """|gradient - truth| / |truth| over the whole gradient image."""
-    return float(np.linalg.norm(gradient - truth) / np.linalg.norm(truth))
-
-
-method_errors = {name: relative_error(g, teapot_truth) for name, g in method_gradients.items()}
-
-# The truth is itself an estimate: another sample grid (60² to 70² samples per pixel) or
-# another step gives another truth. Five of them, to see how far the truths disagree.
-other_truths = []
-with md.no_grad():
-    for spp, other_step in ((3969, 0.02), (4096, 0.015), (3969, 0.025), (4900, 0.02),
-                            (3600, 0.02)):  # fmt: skip
-        pair = []
+def supersampled_truth(spp: int, step: float) -> np.ndarray:
+    """Central differences of two ``spp``-sample renders, the camera moved by ± ``step``."""
+    renders = []
+    with md.no_grad():
         for sign in (1, -1):
             moved = experiments.paper_scene(SIZE, SIZE)
-            moved.camera.position.data = moved.camera.position.data + sign * other_step * along_x
-            pair.append(render.render(moved, spp=spp).data)
-        other_truths.append((pair[0] - pair[1]) / (2 * other_step))
-truths_disagree = [relative_error(t, teapot_truth) for t in other_truths]
-truth_spread_low, truth_spread_high = min(truths_disagree), max(truths_disagree)
-boundary_against_others = [relative_error(method_gradients["boundary"], t) for t in other_truths]
-pairs_against_others = [relative_error(method_gradients["pairs"], t) for t in other_truths]
-boundary_error_high = max(boundary_against_others)
-pairs_error_low = min(pairs_against_others)
-print(f"the other truths differ from ours by {np.round(truths_disagree, 4)}; against them "
-      f"the boundary integral is off by {np.round(boundary_against_others, 4)}, the pairs "
-      f"by {np.round(pairs_against_others, 4)}")  # fmt: skip
+            moved.camera.position.data = moved.camera.position.data + sign * step * along_x
+            renders.append(render.render(moved, spp=spp).data)
+    return (renders[0] - renders[1]) / (2 * step)
+
+
+# a pixel is about 0.14 units wide at the teapot: a step of 0.02 is nine sample spacings
+teapot_truth = supersampled_truth(4096, 0.02)
+method_errors = {name: relative_error(g, teapot_truth) for name, g in method_gradients.items()}
 plain_teapot_error = method_errors["plain"]
 pairs_teapot_error = method_errors["pairs"]
 boundary_teapot_error = method_errors["boundary"]
 print({name: round(e, 4) for name, e in method_errors.items()})
-rows = np.arange(SIZE)
-figure = line_figure(
-    {
-        "plain renderer": (rows, method_gradients["plain"][SIZE // 2].sum(-1)),
-        "pixel pairs": (rows, method_gradients["pairs"][SIZE // 2].sum(-1)),
-        "boundary integral": (rows, method_gradients["boundary"][SIZE // 2].sum(-1)),
-    },
-    title="d image / d camera x along the teapot's middle row (sum of RGB)",
-    xlabel="pixel column",
-    ylabel="derivative",
-)
-# The truth on top, as black dots, and the spread of the six truths as a grey band: the
-# boundary integral's line would hide a line drawn beneath it.
-ax = figure.axes[0]
-row_truths = np.stack([t[SIZE // 2].sum(-1) for t in [teapot_truth, *other_truths]])
-ax.fill_between(rows, row_truths.min(0), row_truths.max(0), color="0.8", zorder=0,
-                label="spread of six truths")  # fmt: skip
-ax.plot(rows, teapot_truth[SIZE // 2].sum(-1), "o", color="black", markersize=3.5, zorder=5,
-        label="truth (supersampled differences)")  # fmt: skip
-ax.legend(fontsize=8)
-save_and_show(figure, OUT / "teapot_row.png")
-print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 
 # %% [markdown]
 # Relative to the truth (over the whole gradient image), the plain renderer is off by
 # `0.9` <!-- check: plain_teapot_error > --> or more (it has only the interior term), the
-# pixel pairs by `0.29` <!-- check: pairs_teapot_error -->, the boundary integral by less
-# than `0.05` <!-- check: boundary_teapot_error < --> (`teapot_row.png`: one row of the
-# three against the truth, black dots).
+# pixel pairs by `0.29` <!-- check: pairs_teapot_error -->, the boundary integral by
+# `0.047` <!-- check: boundary_teapot_error -->.
 #
-# How good is that 0.05? The truth has an error of its own: the five other truths (other
-# sample grids, other steps) differ from ours by `0.038` <!-- check: truth_spread_low -->
-# to `0.085` <!-- check: truth_spread_high --> (the grey band in the figure), and against
-# them the boundary integral is off by at most `0.066` <!-- check: boundary_error_high <
-# -->. So the boundary integral agrees with the truth *to within the truth's own
-# uncertainty*: these renders cannot tell whether its error is 5 % or less, and a
-# better-looking number here would be luck, and giving the method more samples cannot
-# show more than the truths can. The pixel pairs, at `0.28`
-# <!-- check: pairs_error_low > --> or more against every truth, are well outside it.
+# How good is that 0.047? The truth is an estimate too: a regular grid of samples counts
+# an edge's coverage in steps of one sample spacing, and the step moves the edges by only
+# nine spacings. Another grid (63², 60² or 70² samples per pixel) or another step
+# gives another truth, with errors of its own. Five more of them:
+
+# %%
+# (samples per pixel, step): grids of 63², 64², 63², 70², 60² and steps of 0.015 to 0.025
+other_samplings = ((3969, 0.02), (4096, 0.015), (3969, 0.025), (4900, 0.02), (3600, 0.02))
+other_truths = [supersampled_truth(spp, other_step) for spp, other_step in other_samplings]
+truths_disagree = [relative_error(t, teapot_truth) for t in other_truths]
+truth_spread_low, truth_spread_high = min(truths_disagree), max(truths_disagree)
+boundary_against_others = [relative_error(method_gradients["boundary"], t) for t in other_truths]
+pairs_against_others = [relative_error(method_gradients["pairs"], t) for t in other_truths]
+boundary_error_low, boundary_error_high = min(boundary_against_others), max(boundary_against_others)
+pairs_error_low = min(pairs_against_others)
+print(f"the other truths differ from ours by {np.round(truths_disagree, 4)}; against them "
+      f"the boundary integral is off by {np.round(boundary_against_others, 4)}, the pairs "
+      f"by {np.round(pairs_against_others, 4)}")  # fmt: skip
+
+# The six truths' mean: a better truth, if their errors are independent (its noise about
+# 1/sqrt(6) of one truth's). Each truth against it, and the boundary integral with 16 and
+# with 64 samples per pixel.
+all_truths = [teapot_truth, *other_truths]
+mean_truth = np.mean(all_truths, axis=0)
+truths_from_mean = [relative_error(t, mean_truth) for t in all_truths]
+truth_from_mean_low, truth_from_mean_high = min(truths_from_mean), max(truths_from_mean)
+boundary_64 = render.gradient_image(teapot, "camera.position", along_x, antialias="boundary",
+                                    spp=64)  # fmt: skip
+boundary_64_error = relative_error(boundary_64, teapot_truth)
+boundary_from_mean = relative_error(method_gradients["boundary"], mean_truth)
+boundary_64_from_mean = relative_error(boundary_64, mean_truth)
+pairs_from_mean = relative_error(method_gradients["pairs"], mean_truth)
+print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the boundary "
+      f"integral at 16 spp {boundary_from_mean:.4f}, at 64 spp {boundary_64_from_mean:.4f} "
+      f"(from our truth: {boundary_64_error:.4f}); the pairs {pairs_from_mean:.4f}")  # fmt: skip
+
+# %% [markdown]
+# The five other truths differ from ours by `0.038` <!-- check: truth_spread_low --> to
+# just under `0.085` <!-- check: truth_spread_high < -->: **the truth's own uncertainty is
+# as large as the boundary integral's error**. Against the five, the boundary integral is
+# off by `0.038` <!-- check: boundary_error_low --> to `0.065`
+# <!-- check: boundary_error_high -->, no more than the truths are off one another: it
+# agrees with the truth to within the truth's own uncertainty, and its 0.047 measures the
+# reference as much as the method. The pixel pairs, `0.28`
+# <!-- check: pairs_error_low > --> or more off every truth, are far outside that
+# uncertainty: their error is their own, and so is the plain renderer's.
+#
+# Two consequences. More samples for the method cannot show more than the truth can: with
+# 64 samples per pixel the boundary integral is still `0.036`
+# <!-- check: boundary_64_error --> off our truth. A better truth can show more. The six
+# truths' mean has about 1/√6 of one truth's noise (if their errors are independent);
+# each truth is `0.026` <!-- check: truth_from_mean_low --> to `0.059`
+# <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
+# the boundary integral `0.029` <!-- check: boundary_from_mean --> with 16 samples, about
+# as close as the best single truth, and `0.019` <!-- check: boundary_64_from_mean -->
+# with 64, closer than any 4,096-sample truth. The pairs stay `0.29`
+# <!-- check: pairs_from_mean --> off. So the 0.047 above is mostly the reference's
+# error. What is the method's own, at 16 samples, is mostly the interior term's (sampled,
+# not integrated: it shrinks with 64 samples), and at 64 samples it is below what these
+# truths can resolve.
+#
 # At this size the teapot is 20-odd pixels wide and dozens of its facet edges cross every
 # pixel: pairs of samples see few of them. With one sample per pixel the pairs do far
-# worse (exercise 3), and part of the boundary integral's remainder is the interior
-# term's: sampled at 16 points, not integrated. The README measures the
-# same comparison at 128 × 128 and 512 × 512.
-#
+# worse (exercise 3). The README measures the same comparison at 128 × 128 and 512 × 512.
+# `teapot_row.png` shows two rows of the gradient image, the truth as black dots on top
+# and the six truths' range as a grey band. In the middle row the truths agree and the
+# boundary integral runs through the dots; in row 10 the truths spread by about as much
+# as the boundary integral misses them, while the pairs miss by far more in many pixels
+# and the plain renderer sees a fraction of the derivative.
+
+# %%
+columns = np.arange(SIZE)
+figure = Figure(figsize=(9.6, 3.8), dpi=100, layout="constrained")
+# Two rows: the middle one, and row 10, across the body, where the truths visibly differ.
+for ax, row in zip(figure.subplots(1, 2), (SIZE // 2, 10), strict=True):
+    row_truths = np.stack([t[row].sum(-1) for t in all_truths])  # sum of RGB
+    ax.fill_between(columns, row_truths.min(0), row_truths.max(0), color="0.75", zorder=0,
+                    label="range of the six truths")  # fmt: skip
+    for name, label in (("plain", "plain renderer"), ("pairs", "pixel pairs"),
+                        ("boundary", "boundary integral")):  # fmt: skip
+        ax.plot(columns, method_gradients[name][row].sum(-1), "--", marker=".",
+                linewidth=1, markersize=4, label=label)  # fmt: skip
+    # the truth last, on top: the boundary integral's line would hide a line beneath it
+    ax.plot(columns, teapot_truth[row].sum(-1), "o", color="black", markersize=5, zorder=5,
+            label="truth (4,096-sample differences)")  # fmt: skip
+    ax.set_title(f"row {row}: d image / d camera x (sum of RGB)", fontsize=10, loc="left")
+    ax.set_xlabel("pixel column")
+    ax.grid(alpha=0.3)
+figure.axes[0].set_ylabel("derivative")
+figure.axes[0].legend(fontsize=8)
+save_and_show(figure, OUT / "teapot_row.png")
+print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
+
+# %% [markdown]
 # ## Exercises
 #
 # 1. **A toy edge term of your own.** Turn the square by 30° about its centre. Write

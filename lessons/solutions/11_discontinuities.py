@@ -102,7 +102,9 @@ for h in (0.1, 0.01, 0.001):
 # only the edges between pixel centres; the teapot's many facet edges inside a pixel are
 # missed, and the blend approximates coverage far from where the samples are. The
 # boundary integral does not depend on the samples for its edges (it integrates along the
-# edges themselves), so its error changes only through the interior term.
+# edges themselves), so its error changes only through the interior term, and against one
+# 4,096-sample truth such a change is hidden: the lesson's other five truths differ from
+# this one by 0.038 to 0.085, about the boundary integral's error.
 
 # %%
 SIZE = 32
