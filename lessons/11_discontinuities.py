@@ -363,8 +363,8 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # uncertainty: their error is their own, and so is the plain renderer's.
 #
 # Two consequences. More samples for the method cannot show more than the truth can: with
-# 64 samples per pixel the boundary integral is still `0.036`
-# <!-- check: boundary_64_error --> off our truth. A better truth can show more. The six
+# 64 samples per pixel the boundary integral is still more than `0.035`
+# <!-- check: boundary_64_error > --> off our truth. A better truth can show more. The six
 # truths' mean has about 1/√6 of one truth's noise (if their errors are independent);
 # each truth is `0.026` <!-- check: truth_from_mean_low --> to `0.059`
 # <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
