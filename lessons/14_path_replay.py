@@ -58,10 +58,9 @@ lesson_start = time.perf_counter()
 
 
 # %%
-def gradient_peak_mb(gradient: str, parameter: str, spp: int, max_depth: int) -> float:
-    """The peak of traced allocations (MB) while rendering the Cornell box and
-    differentiating the mean of the squared image with respect to the left wall's albedo
-    ("albedo") or the lamp's position ("lamp")."""
+def room_with(parameter: str) -> tuple:
+    """The Cornell box at 16 × 16 and its parameter to differentiate, requiring grad: the
+    left wall's albedo ("albedo") or the lamp's position ("lamp")."""
     room = cornell_box(16, 16)
     p = (
         room.objects[0].material.albedo
@@ -69,6 +68,14 @@ def gradient_peak_mb(gradient: str, parameter: str, spp: int, max_depth: int) ->
         else room.objects[5].transform.translation
     )
     p.requires_grad = True
+    return room, p
+
+
+def gradient_peak_mb(gradient: str, parameter: str, spp: int, max_depth: int) -> float:
+    """The peak of traced allocations (MB) while rendering the Cornell box and
+    differentiating the mean of the squared image with respect to ``parameter``
+    (``room_with``)."""
+    room, _ = room_with(parameter)
     # Off: minidiff's pool of reused arrays (a reused array is no new allocation, so the
     # peak would depend on what ran before).
     tracemalloc.start()
@@ -254,13 +261,7 @@ print(f"L = {path_radiance(rho, emission):.6f}; by hand d/d rho {by_hand_rho.rou
 
 # %%
 def box_gradient(gradient: str, parameter: str) -> np.ndarray:
-    room = cornell_box(16, 16)
-    p = (
-        room.objects[0].material.albedo
-        if parameter == "albedo"
-        else room.objects[5].transform.translation
-    )
-    p.requires_grad = True
+    room, p = room_with(parameter)
     image = render_path(room, spp=8, max_depth=4, seed=3, gradient=gradient)
     md.mean(image * image).backward()
     return p.grad
