@@ -260,9 +260,10 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
 def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:
     """``_backpropagate``'s tape, a batch of ``batch_spp`` samples at a time. With the
     kernel (``kernel.applies``): its paths and radiance, replayed one depth at a time
-    (``render.path.replay``: memory flat in depth), at most REPLAY_PATHS paths at a time
-    (memory bounded whatever the image's size); else the reference sampler's paths, each
-    batch on one tape that its ``backward`` frees before the next batch is rendered."""
+    (``render.path.replay``: a tape flat in depth; the paths' records grow with it), at
+    most REPLAY_PATHS paths at a time (memory bounded whatever the image's size); else the
+    reference sampler's paths, each batch on one tape that its ``backward`` frees before
+    the next batch is rendered."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
     packed = kernel.pack(sampler) if kernel.applies(sampler.scene) else None

@@ -1,4 +1,4 @@
-"""Path replay backpropagation: a batch's gradient one depth at a time, memory flat in depth.
+"""Path replay backpropagation: a batch's gradient one depth at a time, its tape flat in depth.
 
 ``render.path.transport.path_radiance`` puts every depth of every path on one tape, so the
 memory of a batch's ``backward`` grows with ``max_depth``. Path replay (Vicini et al. 2021,
