@@ -42,6 +42,7 @@ import minidiff as md
 from minidiff import buffers
 from render.inverse.plot import line_figure
 from render.path import render_path, replay_gradient
+from render.path.emitters import polygon_irradiance
 from render.path.random import uniform
 from render.path.sampling import cosine_hemisphere
 from render.scene.cornell import cornell_box
@@ -129,8 +130,9 @@ for kind, values in rms.items():
 #
 # A square lamp of side `2a` at height 1 above our point, facing down, radiance 1. Its
 # irradiance has a closed form (Lambert's polygon formula: `E = ½ Σ γ_k n·(v_k × v_k+1)
-# / |v_k × v_k+1|`, γ_k the angle the edge k subtends, v the unit vectors to the corners).
-# Three estimators; the first two take one sample, the third two:
+# / |v_k × v_k+1|`, γ_k the angle the edge k subtends, v the unit vectors to the corners;
+# `render.path.emitters.polygon_irradiance`, which the library's tests also check its area
+# lights against). Three estimators; the first two take one sample, the third two:
 #
 # * **BSDF sampling**: a cosine-weighted direction; it counts `π L_e` if it hits the lamp,
 #   else 0. For a small lamp almost every sample misses: huge variance.
@@ -146,20 +148,8 @@ for kind, values in rms.items():
 # A fair comparison gives every estimator the same cost: two samples. So besides one sample
 # of BSDF or light sampling, the cell also takes the mean of two independent ones.
 
+
 # %%
-
-
-def polygon_irradiance(corners: np.ndarray) -> float:
-    """Irradiance at the origin (normal +z) from a polygon of radiance 1 (Lambert)."""
-    v = corners / np.linalg.norm(corners, axis=1, keepdims=True)
-    total = 0.0
-    for k in range(len(v)):
-        a, b = v[k], v[(k + 1) % len(v)]
-        cross = np.cross(a, b)
-        total += math.acos(np.clip(a @ b, -1, 1)) * cross[2] / np.linalg.norm(cross)
-    return abs(total) / 2
-
-
 def lamp_estimates(half: float, n: int, technique: str, stream: int = 0) -> np.ndarray:
     """``n`` estimates of the lamp's irradiance by ``technique``: "bsdf" or "light" (one
     sample each), "mis" (one of each), "2 bsdf" or "2 light" (the mean of two). ``stream``
@@ -199,7 +189,7 @@ lamp_errors = {}
 TECHNIQUES = ("bsdf", "light", "2 bsdf", "2 light", "mis")
 for half in (0.05, 2.0):
     corners = np.array([[-half, -half, 1], [half, -half, 1], [half, half, 1], [-half, half, 1.0]])
-    exact = polygon_irradiance(corners)
+    exact = polygon_irradiance(np.zeros(3), n_z[0], corners)  # the closed form
     for technique in TECHNIQUES:
         samples = lamp_estimates(half, 200_000, technique)
         lamp_errors[half, technique] = (float(samples.mean() / exact - 1),

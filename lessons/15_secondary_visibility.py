@@ -43,6 +43,7 @@ from matplotlib.figure import Figure
 import minidiff as md
 import render
 from render.path import render_path
+from render.path.emitters import polygon_irradiance
 from render.path.random import uniform
 from render.path.silhouettes import Curves, pick_reference
 from render.path.tracer import PathSampler
@@ -186,23 +187,12 @@ print(f"central differences: {truth:.4f} ± {truth_se:.4f} (seeds: {np.round(fd_
 # Take the floor point `x = (0, 0, 0.1)`, in the left penumbra. Its irradiance has a closed
 # form. Seen from `x`, the occluder's square projects onto the lamp's plane as a larger
 # square (scaled by height 1 over height 0.5), and the lamp's hidden part is the overlap of
-# two rectangles, another rectangle. Lambert's polygon formula (lesson 10) gives the
-# integral of `G` over each: `E = L_e (P(lamp) − P(overlap))`.
+# two rectangles, another rectangle. Lambert's polygon formula (lesson 10,
+# `render.path.emitters.polygon_irradiance`) gives the integral of `G` over each:
+# `E = L_e (P(lamp) − P(overlap))`.
 
 
 # %%
-def polygon_integral(points, corners):
-    """∫ cos θ cos θ' / r² dA over the polygons ``corners`` (n, k, 3) seen from floor points
-    ``points`` (n, 3) with normal +y (Lambert: ½ Σ γ_k n · (v_k × v_k+1) / |v_k × v_k+1|)."""
-    v = corners - points[:, None]
-    v = v / np.linalg.norm(v, axis=2, keepdims=True)
-    w = np.roll(v, -1, axis=1)
-    cross = np.cross(v, w)
-    length = np.linalg.norm(cross, axis=2)
-    gamma = np.arccos(np.clip(np.sum(v * w, axis=2), -1, 1))
-    return np.abs(np.sum(gamma * cross[..., 1] / np.where(length > 0, length, 1), axis=1)) / 2
-
-
 def rectangle(lo, hi):
     """The corners (n, 4, 3) of rectangles [lo, hi] (n, 2) in (x, z) on the lamp's plane."""
     xs = np.stack([lo[:, 0], hi[:, 0], hi[:, 0], lo[:, 0]], axis=1)
@@ -220,8 +210,8 @@ def irradiance(points, shift=(0.0, 0.0, 0.0)):
     lamp_lo = np.full(xz.shape, -LAMP_HALF)
     lo = np.maximum(xz + (centre - OCCLUDER_HALF - xz) * scale, lamp_lo)
     hi = np.minimum(xz + (centre + OCCLUDER_HALF - xz) * scale, -lamp_lo)
-    hidden = np.where(np.all(hi > lo, axis=1), polygon_integral(points, rectangle(lo, hi)), 0)
-    return RADIANCE * (polygon_integral(points, rectangle(lamp_lo, -lamp_lo)) - hidden)
+    hidden = np.where(np.all(hi > lo, axis=1), polygon_irradiance(points, Y, rectangle(lo, hi)), 0)
+    return RADIANCE * (polygon_irradiance(points, Y, rectangle(lamp_lo, -lamp_lo)) - hidden)
 
 
 POINT = np.array([[0.0, 0.0, 0.1]])

@@ -19,6 +19,7 @@ import numpy as np
 import minidiff as md
 import render
 from render.path import render_path
+from render.path.emitters import polygon_irradiance
 from render.path.silhouettes import Curves
 from render.path.tracer import PathSampler
 from render.scene.camera import camera_directions, plain_frame
@@ -62,17 +63,6 @@ def left_mean(image):
     return image[:, : image.shape[1] // 2].mean()
 
 
-def polygon_integral(points, corners):
-    """∫ cos θ cos θ' / r² dA over polygons (n, k, 3) from floor points (n, 3) (Lambert)."""
-    v = corners - points[:, None]
-    v = v / np.linalg.norm(v, axis=2, keepdims=True)
-    w = np.roll(v, -1, axis=1)
-    cross = np.cross(v, w)
-    length = np.linalg.norm(cross, axis=2)
-    gamma = np.arccos(np.clip(np.sum(v * w, axis=2), -1, 1))
-    return np.abs(np.sum(gamma * cross[..., 1] / np.where(length > 0, length, 1), axis=1)) / 2
-
-
 def rectangle(lo, hi):
     xs = np.stack([lo[:, 0], hi[:, 0], hi[:, 0], lo[:, 0]], axis=1)
     zs = np.stack([lo[:, 1], lo[:, 1], hi[:, 1], hi[:, 1]], axis=1)
@@ -90,8 +80,8 @@ def irradiance(points, shift=(0.0, 0.0, 0.0), lamp_x=0.0):
     lamp_hi = np.full(xz.shape, LAMP_HALF) + [lamp_x, 0]
     lo = np.maximum(xz + (centre - OCCLUDER_HALF - xz) * scale, lamp_lo)
     hi = np.minimum(xz + (centre + OCCLUDER_HALF - xz) * scale, lamp_hi)
-    hidden = np.where(np.all(hi > lo, axis=1), polygon_integral(points, rectangle(lo, hi)), 0)
-    return RADIANCE * (polygon_integral(points, rectangle(lamp_lo, lamp_hi)) - hidden)
+    hidden = np.where(np.all(hi > lo, axis=1), polygon_irradiance(points, Y, rectangle(lo, hi)), 0)
+    return RADIANCE * (polygon_irradiance(points, Y, rectangle(lamp_lo, lamp_hi)) - hidden)
 
 
 def geometry(x, lamp_point):

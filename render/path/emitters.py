@@ -6,6 +6,9 @@ measure (``pdf_area``), the same everywhere on the emitters, which keeps the wei
 multiple importance sampling simple. The point is recorded by its coordinates on its
 primitive (barycentrics (u, v) on a triangle, the unit direction from a sphere's centre),
 so that on the tape it moves with the primitive (``render.path.transport``).
+
+``polygon_irradiance`` is the closed form the estimators are checked against: the
+irradiance a flat polygon of uniform radiance gives a point (Lambert's formula).
 """
 
 from __future__ import annotations
@@ -105,3 +108,26 @@ def point_on(primitives, prims: np.ndarray, u1: np.ndarray, u2: np.ndarray):
     points[on_sphere] = centers[s] + radii[s, None] * d
     normals[on_sphere] = d
     return local, points, normals
+
+
+def polygon_irradiance(points, normals, corners, radiance: float = 1.0):
+    """The irradiance at ``points`` (n, 3) with unit ``normals`` (n, 3) or one (3,), from
+    flat polygons ``corners`` (n, k, 3) or one (k, 3) of uniform ``radiance``, each wholly
+    in front of its point: (n,), or a float for one point (3,). Lambert's formula:
+    E = L/2 |sum over edges of gamma_e n . u_e|, gamma_e the angle the edge subtends at the
+    point and u_e the unit normal of the plane through the point and the edge."""
+    one = np.ndim(points) == 1
+    points = np.atleast_2d(np.asarray(points, np.float64))
+    corners = np.asarray(corners, np.float64)
+    if corners.ndim == 2:
+        corners = np.broadcast_to(corners, (len(points), *corners.shape))
+    normals = np.broadcast_to(np.asarray(normals, np.float64), points.shape)
+    v = corners - points[:, None]
+    v = v / np.linalg.norm(v, axis=2, keepdims=True)
+    w = np.roll(v, -1, axis=1)  # each edge's second corner
+    cross = np.cross(v, w)
+    length = np.linalg.norm(cross, axis=2)
+    gamma = np.arctan2(length, np.sum(v * w, axis=2))
+    along = np.einsum("nkj,nj->nk", cross, normals) / np.where(length > 0, length, 1.0)
+    irradiance = 0.5 * radiance * np.abs(np.sum(gamma * along, axis=1))
+    return float(irradiance[0]) if one else irradiance

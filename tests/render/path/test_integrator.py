@@ -13,6 +13,7 @@ import minidiff as md
 import render
 from render.inverse.shape import icosphere
 from render.path import render_path, replay_gradient
+from render.path.emitters import polygon_irradiance
 from render.scene.cornell import cornell_box, grid_quad
 
 # --------------------------------------------------------------------------------------
@@ -69,21 +70,6 @@ def test_a_mirror_in_a_uniform_environment_reflects_reflectance_times_it():
     scene = render.Scene([mirror], [], camera, background=(1.0, 1.0, 1.0))
     image = render_path(scene, spp=2, max_depth=4, seed=0).data
     np.testing.assert_allclose(image[4, 4], [0.7, 0.7, 0.7], rtol=1e-12)
-
-
-def polygon_irradiance(point, normal, corners, radiance):
-    """Irradiance at ``point`` (normal ``normal``) from a polygon ``corners`` (n, 3) of
-    uniform radiance, all in front of the point (Lambert's formula: half the radiance
-    times the sum over edges of the angle they subtend times n . their plane's normal)."""
-    v = corners - point
-    v = v / np.linalg.norm(v, axis=1, keepdims=True)
-    total = 0.0
-    for i in range(len(v)):
-        a, b = v[i], v[(i + 1) % len(v)]
-        cross = np.cross(a, b)
-        angle = math.atan2(np.linalg.norm(cross), np.dot(a, b))
-        total += angle * np.dot(normal, cross / np.linalg.norm(cross))
-    return 0.5 * radiance * abs(total)
 
 
 LIGHT_CENTRE, LIGHT_HALF = np.array([0.3, 1.0, -0.2]), 0.4
@@ -386,3 +372,26 @@ def test_an_emitter_with_zero_area_is_refused():
     scene = render.Scene([light], [], render.Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 40, 4, 4))
     with pytest.raises(ValueError, match=r"objects\[0\] is emissive but has zero area"):
         render_path(scene, spp=1)
+
+
+def test_polygon_irradiance_against_its_limits():
+    """Lambert's formula (``emitters.polygon_irradiance``): a tiny square gives L A cos cos
+    / r^2; a huge square filling the hemisphere gives pi L; many points at once equal one
+    at a time, whatever the polygon's orientation."""
+    up = np.array([0.0, 0.0, 1.0])
+    tiny = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0]]) * 1e-3 + [0.3, 0.1, 2.0]
+    r2 = np.sum(np.array([0.3, 0.1, 2.0]) ** 2)
+    cos = 2.0 / math.sqrt(r2)
+    small = polygon_irradiance(np.zeros(3), up, tiny, 3.0)
+    np.testing.assert_allclose(small, 3.0 * 4e-6 * cos * cos / r2, rtol=1e-5)
+    huge = np.array([[-1, -1, 1e-3], [1, -1, 1e-3], [1, 1, 1e-3], [-1, 1, 1e-3]]) * [1e4, 1e4, 1]
+    np.testing.assert_allclose(polygon_irradiance(np.zeros(3), up, huge[::-1], 2.0),
+                               2.0 * math.pi, rtol=1e-4)  # fmt: skip
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-0.5, 0.5, (6, 3)) * [1, 1, 0]
+    normals = np.tile(up, (6, 1))
+    square = tiny * 200 - [60, 20, 399.6]  # side 0.4 at height 0.4, any winding
+    together = polygon_irradiance(points, normals, square)
+    one_by_one = [polygon_irradiance(p, n, square) for p, n in zip(points, normals, strict=True)]
+    np.testing.assert_allclose(together, one_by_one, rtol=1e-14)
+    assert np.all(together > 0)
