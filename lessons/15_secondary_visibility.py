@@ -200,18 +200,20 @@ def rectangle(lo, hi):
     return np.stack([xs, np.full(xs.shape, LAMP_HEIGHT), zs], axis=2)
 
 
-def irradiance(points, shift=(0.0, 0.0, 0.0)):
-    """E at floor points (n, 3) with the occluder moved by ``shift``: the lamp's, less the
-    part the occluder's square, projected from each point onto the lamp's plane, hides."""
+def irradiance(points, shift=(0.0, 0.0, 0.0), lamp_x: float = 0.0):
+    """E at floor points (n, 3) with the occluder moved by ``shift`` (and the lamp by
+    ``lamp_x`` along x, for the exercises): the lamp's, less the part the occluder's
+    square, projected from each point onto the lamp's plane, hides."""
     shift = np.asarray(shift, float)
     scale = LAMP_HEIGHT / (OCCLUDER_HEIGHT + shift[1])  # from a floor point at height 0
     xz = points[:, [0, 2]]
     centre = np.array([OCCLUDER_CENTRE + shift[0], shift[2]])
-    lamp_lo = np.full(xz.shape, -LAMP_HALF)
+    lamp_lo = np.full(xz.shape, -LAMP_HALF) + [lamp_x, 0]
+    lamp_hi = np.full(xz.shape, LAMP_HALF) + [lamp_x, 0]
     lo = np.maximum(xz + (centre - OCCLUDER_HALF - xz) * scale, lamp_lo)
-    hi = np.minimum(xz + (centre + OCCLUDER_HALF - xz) * scale, -lamp_lo)
+    hi = np.minimum(xz + (centre + OCCLUDER_HALF - xz) * scale, lamp_hi)
     hidden = np.where(np.all(hi > lo, axis=1), polygon_irradiance(points, Y, rectangle(lo, hi)), 0)
-    return RADIANCE * (polygon_irradiance(points, Y, rectangle(lamp_lo, -lamp_lo)) - hidden)
+    return RADIANCE * (polygon_irradiance(points, Y, rectangle(lamp_lo, lamp_hi)) - hidden)
 
 
 POINT = np.array([[0.0, 0.0, 0.1]])
@@ -352,31 +354,38 @@ def geometry(x, lamp_point):
     return to[..., 1] ** 2 / np.sum(to**2, axis=-1) ** 2
 
 
-x = POINT[0]
-edge_terms = {}
-for j in np.flatnonzero(curves.edge_object == 1):
-    a, b = curves.a[j], curves.b[j]
+def edge_term(x, a, b, side: float, direction) -> float:
+    """The boundary term at floor point ``x`` of the occluder's edge (a, b) moving along
+    ``direction`` (3,): the integral of (F₊ − F₋) ∂φ/∂θ / |∇_S φ| along the edge's shadow
+    on the lamp, by the midpoint rule on 2,000 points; ``side``: the side of the plane
+    through ``x`` and the edge that the edge's faces lie on (``Curves.silhouettes``)."""
     reach = (LAMP_HEIGHT - x[1]) / (OCCLUDER_HEIGHT - x[1])
     start, end = x + (a - x) * reach, x + (b - x) * reach  # the edge's shadow on the lamp
     u0, u1 = lamp_part(start, end)
     if u0 >= u1:
-        edge_terms[j] = 0.0  # its shadow misses the lamp
-        continue
+        return 0.0  # its shadow misses the lamp
     n = 2000
     u = u0 + (u1 - u0) * (np.arange(n) + 0.5) / n
     on_curve = start + u[:, None] * (end - start)
     dl = (u1 - u0) * np.linalg.norm(end - start) / n
     theta = md.tensor(0.0)
     with md.tangents({theta: 1.0}):
-        moved_a, moved_b = md.tensor(a) + theta * X, md.tensor(b) + theta * X
+        moved_a, moved_b = md.tensor(a) + theta * direction, md.tensor(b) + theta * direction
         normal = md.cross(moved_a - md.tensor(x), moved_b - md.tensor(x))
         phi = md.sum(md.tensor(on_curve - x) * normal, axis=1)
     dphi = phi.tangent  # ∂φ/∂θ at every point of the curve
     grad = np.cross(a - x, b - x)  # ∇φ; along the lamp: drop its y part
     across = np.linalg.norm(grad - grad[1] * Y)
     # F₊ − F₋: F is 0 on the side of the plane where the edge's faces are.
-    jump = -faces_side[0, j] * RADIANCE * geometry(x, on_curve)
-    edge_terms[j] = float(np.sum(jump * dphi / across) * dl)
+    jump = -side * RADIANCE * geometry(x, on_curve)
+    return float(np.sum(jump * dphi / across) * dl)
+
+
+x = POINT[0]
+edge_terms = {
+    j: edge_term(x, curves.a[j], curves.b[j], faces_side[0, j], X)
+    for j in np.flatnonzero(curves.edge_object == 1)
+}
 boundary_by_hand = sum(edge_terms.values())
 quadrature_error = abs(boundary_by_hand / point_exact - 1)
 print("each occluder edge's term:", {int(j): round(t, 6) for j, t in edge_terms.items()})

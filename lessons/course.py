@@ -1,4 +1,5 @@
-"""What every lesson shares: the folder its figures go to, and how a figure is kept.
+"""What every lesson shares: the folder its figures go to, how a figure is kept, and how a
+solution runs its lesson to reuse the lesson's functions.
 
 A lesson imports it as ``course``: Python puts a script's own folder (lessons/) on the import
 path, and a notebook's kernel starts in lessons/. A solution that runs its lesson puts
@@ -7,7 +8,10 @@ lessons/ on the path first.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
+import runpy
 from pathlib import Path
 
 from matplotlib.figure import Figure
@@ -31,3 +35,11 @@ def save_and_show(figure: Figure, path: Path) -> None:
     inline (a script only saves it)."""
     figure.savefig(path)
     show(figure)
+
+
+def run_lesson(lesson: str) -> dict:
+    """The module-level names of ``lessons/<lesson>.py`` after running it, its printout
+    hidden: how a solution reuses the functions its lesson wrote instead of writing them
+    again (the lesson's figures are written as usual)."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        return runpy.run_path(str(Path(__file__).resolve().parent / f"{lesson}.py"))

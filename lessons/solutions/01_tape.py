@@ -14,10 +14,7 @@
 # (`tanh`, `__pow__`) and, for exercise 2, a `topological_order` that forgets `seen`.
 
 # %%
-import contextlib
-import io
 import math
-import runpy
 import sys
 from pathlib import Path
 
@@ -26,11 +23,12 @@ import numpy as np
 import minidiff as md
 from minidiff.tensor import as_tensor, record
 
-with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
-    # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
-    here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
-    sys.path.insert(0, str(here.parent))  # the lesson imports lessons/course.py
-    Value = runpy.run_path(str(here.parent / "01_tape.py"))["Value"]
+# lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+sys.path.insert(0, str(here.parent))  # lessons/course.py
+from course import run_lesson  # noqa: E402
+
+Value = run_lesson("01_tape")["Value"]
 
 
 # Exercise 1: two more operations, each a value and its local derivative. They are added to

@@ -14,9 +14,6 @@
 # first (its figures go to its own output folder) and its functions taken from it.
 
 # %%
-import contextlib
-import io
-import runpy
 import sys
 from pathlib import Path
 
@@ -27,11 +24,12 @@ from render.scene.camera import primary_rays
 from render.trace.accel import Accelerator
 from render.trace.intersect import intersect_triangle, make_ray, pack_primitives
 
-with contextlib.redirect_stdout(io.StringIO()):  # the lesson's own printout is not needed
-    # lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
-    here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
-    sys.path.insert(0, str(here.parent))  # lessons/course.py, lessons/exercise_checks.py
-    lesson = runpy.run_path(str(here.parent / "04_bvh.py"))
+# lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+sys.path.insert(0, str(here.parent))  # lessons/course.py, lessons/exercise_checks.py
+from course import run_lesson  # noqa: E402
+
+lesson = run_lesson("04_bvh")
 closest_hit_counted, sah_cost = lesson["closest_hit_counted"], lesson["sah_cost"]
 triangles = lesson["triangles"]
 

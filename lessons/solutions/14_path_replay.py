@@ -11,20 +11,24 @@
 # # Solutions to lesson 14 (path replay)
 
 # %%
-import tracemalloc
+import sys
+from pathlib import Path
 
 import numpy as np
 
 import minidiff as md
-from minidiff import buffers
-from render.path import render_path
-from render.scene.cornell import cornell_box
 
-surfaces = np.array([0, 1, 0, 2])
-geometry = np.array([0.31, 0.12, 0.27, 0.05])
-last_hit_weight = 0.4
-emission = 6.0
-delta = 0.8
+# lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+sys.path.insert(0, str(here.parent))  # lessons/course.py
+from course import run_lesson  # noqa: E402
+
+# The lesson's path model (its surfaces, geometry factors, last hit's weight, emission and
+# the pixel's delta) and its memory measurement.
+lesson = run_lesson("14_path_replay")
+surfaces, geometry = lesson["surfaces"], lesson["geometry"]
+last_hit_weight, emission, delta = lesson["last_hit_weight"], lesson["emission"], lesson["delta"]
+gradient_peak_mb = lesson["gradient_peak_mb"]
 
 
 def taped_gradient(rho, emission, distance=None):
@@ -118,28 +122,8 @@ assert distance_difference < 1e-14
 
 
 # %%
-def peak_mb(gradient, parameter, depth):
-    room = cornell_box(16, 16)
-    p = (
-        room.objects[0].material.albedo
-        if parameter == "albedo"
-        else room.objects[5].transform.translation
-    )
-    p.requires_grad = True
-    # Off: minidiff's pool of reused arrays (a reused array is no new allocation, so the
-    # peak would depend on what ran before).
-    tracemalloc.start()
-    with buffers.fresh():
-        image = render_path(room, spp=16, max_depth=depth, seed=0, rr_depth=100, gradient=gradient)
-        md.mean(image * image).backward()
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    return peak / 1e6
-
-
-peak_mb("tape", "albedo", 2)  # warm up
-tape = {d: peak_mb("tape", "albedo", d) for d in (2, 32)}
-windows = {d: peak_mb("replay", "lamp", d) for d in (2, 32)}
+tape = {d: gradient_peak_mb("tape", "albedo", 16, d) for d in (2, 32)}
+windows = {d: gradient_peak_mb("replay", "lamp", 16, d) for d in (2, 32)}
 tape_growth_32 = tape[32] / tape[2]
 windows_growth_32 = windows[32] / windows[2]
 print(f"depth 2 -> 32: tape {tape[2]:.1f} -> {tape[32]:.1f} MB, replay on the tape "

@@ -10,27 +10,42 @@
 # %% [markdown]
 # # Solutions to lesson 15 (secondary visibility)
 #
-# The lesson's scene and closed form again, compactly (the measuring camera at 16 × 16
-# here, to keep the solutions quick).
+# The lesson runs first and lends its closed form, its measurement and its helpers; the
+# scene is built again with more occluders to choose from, the lamp able to move, and the
+# measuring camera at 16 × 16 to keep the solutions quick.
 
 # %%
+import sys
+from pathlib import Path
+
 import numpy as np
 
 import minidiff as md
 import render
-from render.path import render_path
-from render.path.emitters import polygon_irradiance
 from render.path.silhouettes import Curves
 from render.path.tracer import PathSampler
 from render.scene.camera import camera_directions, plain_frame
 from render.scene.cornell import box_mesh, grid_quad
 from render.scene.placement import placed
 
-X, Y, Z = np.eye(3)
-OCCLUDER_CENTRE, OCCLUDER_HALF, OCCLUDER_HEIGHT = 0.1, 0.15, 0.5
-LAMP_HALF, LAMP_HEIGHT, RADIANCE, ALBEDO = 0.25, 1.0, 5.0, 0.8
+# lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+sys.path.insert(0, str(here.parent))  # lessons/course.py
+from course import run_lesson  # noqa: E402
+
+# The lesson's sizes, its render and measurement, its closed form and its two helpers of
+# the quadrature (the lamp's part of an edge's shadow, and G).
+lesson = run_lesson("15_secondary_visibility")
+X, Y, Z = lesson["X"], lesson["Y"], lesson["Z"]
+OCCLUDER_CENTRE, OCCLUDER_HALF, OCCLUDER_HEIGHT = (
+    lesson[k] for k in ("OCCLUDER_CENTRE", "OCCLUDER_HALF", "OCCLUDER_HEIGHT")
+)
+LAMP_HALF, LAMP_HEIGHT, RADIANCE, ALBEDO = (
+    lesson[k] for k in ("LAMP_HALF", "LAMP_HEIGHT", "RADIANCE", "ALBEDO")
+)
+POINT, render_image, left_mean = lesson["POINT"], lesson["render_image"], lesson["left_mean"]
+irradiance, lamp_part, geometry = lesson["irradiance"], lesson["lamp_part"], lesson["geometry"]
 SIZE, SEEDS = 16, range(4)
-POINT = np.array([[0.0, 0.0, 0.1]])
 
 
 def shadow_scene(occluder: str = "square", shift=(0.0, 0.0, 0.0), lamp_shift=(0.0, 0.0, 0.0)):
@@ -55,54 +70,6 @@ def shadow_scene(occluder: str = "square", shift=(0.0, 0.0, 0.0), lamp_shift=(0.
     return render.Scene(objects, [], camera)
 
 
-def render_image(scene, spp, seed, antialias=False):
-    return render_path(scene, spp=spp, max_depth=2, seed=seed, rr_depth=100, antialias=antialias)
-
-
-def left_mean(image):
-    return image[:, : image.shape[1] // 2].mean()
-
-
-def rectangle(lo, hi):
-    xs = np.stack([lo[:, 0], hi[:, 0], hi[:, 0], lo[:, 0]], axis=1)
-    zs = np.stack([lo[:, 1], lo[:, 1], hi[:, 1], hi[:, 1]], axis=1)
-    return np.stack([xs, np.full(xs.shape, LAMP_HEIGHT), zs], axis=2)
-
-
-def irradiance(points, shift=(0.0, 0.0, 0.0), lamp_x=0.0):
-    """E at floor points (n, 3), the square occluder moved by ``shift``, the lamp by
-    ``lamp_x`` along x."""
-    shift = np.asarray(shift, float)
-    scale = LAMP_HEIGHT / (OCCLUDER_HEIGHT + shift[1])
-    xz = points[:, [0, 2]]
-    centre = np.array([OCCLUDER_CENTRE + shift[0], shift[2]])
-    lamp_lo = np.full(xz.shape, -LAMP_HALF) + [lamp_x, 0]
-    lamp_hi = np.full(xz.shape, LAMP_HALF) + [lamp_x, 0]
-    lo = np.maximum(xz + (centre - OCCLUDER_HALF - xz) * scale, lamp_lo)
-    hi = np.minimum(xz + (centre + OCCLUDER_HALF - xz) * scale, lamp_hi)
-    hidden = np.where(np.all(hi > lo, axis=1), polygon_irradiance(points, Y, rectangle(lo, hi)), 0)
-    return RADIANCE * (polygon_irradiance(points, Y, rectangle(lamp_lo, lamp_hi)) - hidden)
-
-
-def geometry(x, lamp_point):
-    to = lamp_point - x
-    return to[..., 1] ** 2 / np.sum(to**2, axis=-1) ** 2
-
-
-def lamp_part(start, end):
-    """(u0, u1): the part of the segment start -> end on the lamp's plane over the lamp."""
-    u0, u1 = 0.0, 1.0
-    for k in (0, 2):
-        d = end[k] - start[k]
-        if d == 0:
-            if abs(start[k]) > LAMP_HALF:
-                return 1.0, 0.0
-            continue
-        lo, hi = sorted(((-LAMP_HALF - start[k]) / d, (LAMP_HALF - start[k]) / d))
-        u0, u1 = max(u0, lo), min(u1, hi)
-    return u0, u1
-
-
 # %% [markdown]
 # ## Exercise 1: the occluder's height, by hand
 #
@@ -112,28 +79,10 @@ def lamp_part(start, end):
 curves = Curves.of(PathSampler(placed(shadow_scene()), 1, 2, 100, 0))
 angles, faces_side = curves.silhouettes(POINT)
 x = POINT[0]
-height_terms = {}
-for j in np.flatnonzero(curves.edge_object == 1):
-    a, b = curves.a[j], curves.b[j]
-    reach = (LAMP_HEIGHT - x[1]) / (OCCLUDER_HEIGHT - x[1])
-    start, end = x + (a - x) * reach, x + (b - x) * reach
-    u0, u1 = lamp_part(start, end)
-    if u0 >= u1:
-        height_terms[int(j)] = 0.0
-        continue
-    n = 2000
-    u = u0 + (u1 - u0) * (np.arange(n) + 0.5) / n
-    on_curve = start + u[:, None] * (end - start)
-    dl = (u1 - u0) * np.linalg.norm(end - start) / n
-    theta = md.tensor(0.0)
-    with md.tangents({theta: 1.0}):
-        moved_a, moved_b = md.tensor(a) + theta * Y, md.tensor(b) + theta * Y
-        normal = md.cross(moved_a - md.tensor(x), moved_b - md.tensor(x))
-        phi = md.sum(md.tensor(on_curve - x) * normal, axis=1)
-    grad = np.cross(a - x, b - x)
-    across = np.linalg.norm(grad - grad[1] * Y)
-    jump = -faces_side[0, j] * RADIANCE * geometry(x, on_curve)
-    height_terms[int(j)] = float(np.sum(jump * phi.tangent / across) * dl)
+height_terms = {
+    int(j): lesson["edge_term"](x, curves.a[j], curves.b[j], faces_side[0, j], Y)
+    for j in np.flatnonzero(curves.edge_object == 1)
+}
 height_by_hand = sum(height_terms.values())
 height_exact = float((irradiance(POINT, (0, 1e-6, 0)) - irradiance(POINT, (0, -1e-6, 0)))[0] / 2e-6)
 height_error = abs(height_by_hand / height_exact - 1)

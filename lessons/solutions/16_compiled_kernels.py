@@ -12,40 +12,31 @@
 
 # %%
 import math
-import time
+import sys
+from pathlib import Path
 
 import numba
 import numpy as np
 
 import minidiff as md
 import render
-from render.scene.camera import primary_rays
 from render.shade import fused
 from render.shade.adjoint_kernels import CHUNKS
-from render.shade.surface import surface_at
 
-TWO = min(2, numba.config.NUMBA_NUM_THREADS)
-THREAD_COUNTS = sorted({1, TWO})
+# lessons/ is this file's grandparent; in Jupyter (no __file__) the notebook's folder.
+here = Path(__file__).resolve().parent if "__file__" in globals() else Path.cwd()
+sys.path.insert(0, str(here.parent))  # lessons/course.py
+from course import run_lesson  # noqa: E402
 
-
-def median_ms(function, repeats: int = 7) -> float:
-    """The median wall time of ``repeats`` calls of ``function()``, in milliseconds."""
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append(time.perf_counter() - start)
-    return 1000 * float(np.median(times))
-
-
-def on_threads(threads: int, function):
-    """``function()`` with Numba's parallel loops on ``threads`` threads."""
-    before = numba.get_num_threads()
-    numba.set_num_threads(threads)
-    try:
-        return function()
-    finally:
-        numba.set_num_threads(before)
+# The lesson's timer, thread switch, fixed-chunk sum, and its real hits of a 256 x 256 view.
+lesson = run_lesson("16_compiled_kernels")
+median_ms, on_threads, sum_by_chunks = (
+    lesson[k] for k in ("median_ms", "on_threads", "sum_by_chunks")
+)
+view, points, normals, lit = (lesson[k] for k in ("view", "points", "normals", "lit"))
+position, intensity = lesson["position"], lesson["intensity"]
+albedo_sum = (lesson["albedo"] / math.pi).sum(axis=1)  # each hit's Σρ/π
+THREAD_COUNTS = sorted({1, lesson["TWO"]})
 
 
 # %% [markdown]
@@ -145,30 +136,10 @@ print(f"film of {n_pixels * spp:,} samples: passes {passes_ms:.2f} ms; kernel "
 #
 #     ∂v/∂p = I S ((n − c ω) / (r · r²) − 2 c o / r⁴).
 #
-# The hits (the lesson's code, again):
+# The hits are the lesson's (`points`, `normals`, `lit`, and `albedo_sum` from its `albedo`).
+
 
 # %%
-view = render.paper_scene(256, 256, ground=True)
-_, info = render.render(view, return_info=True)
-eye, directions = primary_rays(view.camera)
-prim = info.prim_id.reshape(-1)
-lit_ray = info.lit[0].reshape(-1)
-firsts = np.cumsum([0] + [mesh.num_faces for mesh in view.meshes])
-points, normals, albedo_sum, lit = [], [], [], []
-with md.no_grad():
-    for mesh, first, stop in zip(view.meshes, firsts[:-1], firsts[1:], strict=True):
-        on_mesh = np.flatnonzero((prim >= first) & (prim < stop))
-        surface = surface_at(mesh, prim[on_mesh] - first, md.tensor(eye),
-                             md.tensor(directions[on_mesh]))  # fmt: skip
-        points.append(surface.points.data)
-        normals.append(surface.normals.data)
-        albedo_sum.append(np.full(len(on_mesh), (mesh.material.albedo.data / math.pi).sum()))
-        lit.append(lit_ray[on_mesh].astype(np.float64))
-points, normals, albedo_sum, lit = (np.concatenate(x) for x in (points, normals, albedo_sum, lit))
-position = view.lights[0].position.data
-intensity = float(view.lights[0].intensity.data)
-
-
 @numba.njit(parallel=True, error_model="numpy")
 def position_gradient(points, normals, albedo_sum, lit, position, intensity, chunks):
     """d(sum over hits of the shading)/d(light position) (3,), summed over ``chunks`` fixed
@@ -227,23 +198,6 @@ assert position_values_differ == 0
 
 # %%
 terms = rng.uniform(0.0, 1.0, 400_003)
-
-
-@numba.njit(parallel=True)
-def sum_by_chunks(x, chunks):
-    """The lesson's fixed-chunk sum."""
-    n = x.shape[0]
-    size = (n + chunks - 1) // chunks
-    partial = np.zeros(chunks)
-    for c in numba.prange(chunks):
-        total = 0.0
-        for i in range(c * size, min(n, (c + 1) * size)):
-            total += x[i]
-        partial[c] = total
-    total = 0.0
-    for c in range(chunks):
-        total += partial[c]
-    return total
 
 
 # As many chunks as threads: the chunking, hence the bits, follows the thread count.
