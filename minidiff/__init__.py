@@ -18,7 +18,7 @@ gives the kernels' large outputs memory that earlier passes used and no longer r
     array(12.)
 """
 
-from minidiff import buffers, kernels, optim
+from minidiff import buffers, jitcache, kernels, optim  # noqa: F401  (jitcache: first)
 from minidiff.functional import check_grad, grad, jvp, numerical_grad, value_and_grad
 from minidiff.primitives import (
     abs,

@@ -31,7 +31,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from minidiff import buffers
+from minidiff import buffers, jitcache  # noqa: F401  (jitcache: before any kernel is cached)
 
 # Below this many elements (both operands together) NumPy's own operators are fast enough:
 # the compiled loops and reused memory only pay off on large arrays.

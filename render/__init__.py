@@ -24,6 +24,7 @@ lives in its own folder, and a folder imports only from the ones before it
 Command lines belong to the scripts (``examples/script_support.py``).
 """
 
+import minidiff  # noqa: F401  (first: its import makes Numba's cache see edits in any module)
 from render.inverse.gradient_image import gradient_image
 from render.inverse.optimize import FlatParameters, History, OptimizationError, image_loss, optimize
 from render.renderer import RenderInfo, render
