@@ -63,7 +63,6 @@ from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import next_vertex, path_radiance, vertex_on_tape, viewer_side
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
-from render.scene.lights import DirectionalLight, PointLight
 from render.shade.surface import column, geometric_normals, in_order
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import shadow_offset
@@ -221,8 +220,6 @@ def _seen_shadows(sampler, curves, paths, world, frame):
     width, height = camera.width, camera.height
     forward, right, up, eye = sampler.frame
     for j, light in enumerate(sampler.scene.lights):
-        if not isinstance(light, PointLight | DirectionalLight):
-            continue
         seed = sampler.seed ^ ((CHOICE_KEY * (j + 2 + len(sampler.scene.lights))) & (2**64 - 1))
         u = (uniform(seed, paths, 0), uniform(seed, paths, 1))
         at, cross = _from_light(sampler, curves, light, *u, np.ones(len(paths), bool),
@@ -340,8 +337,6 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
     if k + 1 > sampler.max_depth - 1:
         return
     for j, light in enumerate(sampler.scene.lights):
-        if not isinstance(light, PointLight | DirectionalLight):
-            continue
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
         u = (uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1))
         at, cross = _from_light(sampler, curves, light, *u, can, here)
@@ -392,15 +387,13 @@ def _from_light(sampler, curves, light, u_curve, u_point, active, viewer):
 
 
 def _apex(light, sampler: PathSampler):
-    """Where a light's shadows are cast from: a point light's position; for a directional
-    light, a point ``FAR`` scene sizes from the scene's centre towards it. (3,), on the
-    tape (the light's fields are tensors)."""
-    if isinstance(light, PointLight):
-        return light.position
+    """Where a light's shadows are cast from (``Light.shadow_apex``): a point light's
+    position; for a light at infinity, a point ``FAR`` scene sizes from the scene's centre
+    towards it. (3,), on the tape (the light's fields are tensors)."""
     triangles, centres, _ = sampler.primitives
     points = np.concatenate([triangles.reshape(-1, 3), centres])
     middle = 0.5 * (points.min(axis=0) + points.max(axis=0))
-    return md.tensor(middle) - md.normalize(light.direction) * (FAR * sampler.size)
+    return light.shadow_apex(middle, FAR * sampler.size)
 
 
 def _image_area(points, normals, frame) -> np.ndarray:

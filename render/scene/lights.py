@@ -133,6 +133,22 @@ class Light(HasFields, ABC):
         (its centre (3,), u1 (3,), u2 (3,)), its points centre + cos(phi) u1 + sin(phi) u2;
         None if the light cannot see it from outside."""
 
+    def shadow_apex(self, centre: np.ndarray, far: float) -> Tensor:
+        """Where the light casts its shadows from, (3,) on the tape: for a light at a point
+        (``shadow_ray_end`` 1), that point; for one at infinity, the point ``far`` away
+        from ``centre`` (3,) in its direction (its shadows' borders are those of a point
+        light there, to rounding). Written with ``towards``, so every light has it; a
+        light that is neither raises."""
+        here = md.tensor(np.asarray(centre, np.float64))
+        if self.shadow_ray_end == 1.0:
+            return here + self.towards(here)
+        if self.shadow_ray_end == math.inf:
+            return here + md.normalize(self.towards(here)) * far
+        raise TypeError(
+            f"{type(self).__name__}.shadow_ray_end is {self.shadow_ray_end!r}: the path "
+            "integrator's shadow borders need a light at a point (1.0) or at infinity (inf)"
+        )
+
 
 def _circle(centre: np.ndarray, radius: float, view: np.ndarray, shrink: float) -> Circle:
     """The circle where rays along ``view`` (3,) touch the sphere, ``shrink`` = r^2 / |view|^2
@@ -204,6 +220,9 @@ class PointLight(Light):
     def ray_to(self, points: Values) -> tuple[Values, Values]:
         position = _value(self.position, points)
         return position, points - position
+
+    def shadow_apex(self, centre: np.ndarray, far: float) -> Tensor:
+        return self.position  # the base class's formula, without its rounding
 
     def sphere_outline(self, centre: np.ndarray, radius: float) -> Circle | None:
         view = centre - self.location()

@@ -283,3 +283,37 @@ def test_vertices_after_a_mirror_are_where_the_tape_puts_them():
                                        2, np.float64).data  # fmt: skip
     want = points[1][np.searchsorted(record.rows, src)]
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-7)
+
+
+def _written_by_a_user(light_type: type) -> type:
+    """A direct subclass of ``render.Light`` with ``light_type``'s physics: its formulas,
+    none of its class identity, the base class's ``shadow_apex``."""
+    names = ("location", "towards", "incidence", "shadow_rays", "shadow_key", "pack",
+             "edge_plane", "ray_to", "sphere_outline", "__init__")  # fmt: skip
+    attrs = {name: getattr(light_type, name) for name in names}
+    attrs |= {k: getattr(light_type, k) for k in ("KIND", "shadow_ray_end", "FIELDS")}
+    return type(f"User{light_type.__name__}", (render.Light,), attrs)
+
+
+@pytest.mark.parametrize("case", ["point light after a bounce", "sun after a bounce"])
+def test_a_light_subclass_gets_the_term_its_twin_gets(case):
+    """Issue 55: a light the integrator does not know by name gets the secondary term (it
+    got none: a cube's shadow gradient was None). The same gradient as the library's own
+    light of that physics, same seed; the term is most of it (the plain gradient is 38 %
+    or more off: test above)."""
+    occluder, light, get, direction = CASES[case]
+
+    def gradient(user: bool) -> float:
+        scene = shadowed_floor(occluder, light)
+        if user:
+            own = scene.lights[0]
+            kind = _written_by_a_user(type(own))
+            scene.lights[0] = kind(*(getattr(own, f.name).data for f in own.FIELDS))
+        p = get(scene)
+        p.requires_grad = True
+        render_path(scene, spp=8, max_depth=3, seed=3, rr_depth=100,
+                    antialias="secondary").sum().backward()  # fmt: skip
+        return float(np.sum(p.grad * direction(p)))
+
+    ours, twin = gradient(True), gradient(False)
+    assert twin != 0 and abs(ours - twin) <= 1e-9 * abs(twin), (ours, twin)
