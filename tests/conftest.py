@@ -41,6 +41,36 @@ def pytest_configure(config: pytest.Config) -> None:
         "new_processes: the test starts new Python processes (scripts, process pools), "
         "which load Numba's compiled kernels from the on-disk cache; such tests run last.",
     )
+    if _xdist_controller(config):
+        _warm_kernels(config)
+
+
+def _xdist_controller(config: pytest.Config) -> bool:
+    """Whether this process is pytest-xdist's controller, about to start several workers."""
+    workers = getattr(config.option, "numprocesses", None)
+    return not hasattr(config, "workerinput") and workers not in (None, 0, "0")
+
+
+def _warm_kernels(config: pytest.Config) -> None:
+    """Compile the renderer's kernels into Numba's cache before the workers start, in two
+    processes sharing the work (``tests/warm_kernels.py`` says why), one Numba thread each.
+    A failure there is only reported: the tests that need those kernels will compile them
+    and show any error themselves."""
+    import subprocess
+    import tempfile
+    import time
+
+    start = time.perf_counter()
+    env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
+    with tempfile.TemporaryDirectory() as claims:
+        command = [sys.executable, "-m", "tests.warm_kernels", claims]
+        runs = [subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                                 stderr=subprocess.PIPE, text=True) for _ in range(2)]  # fmt: skip
+        errors = [run.communicate()[1] for run in runs if run.wait() != 0]
+    reporter = config.pluginmanager.get_plugin("terminalreporter")
+    if reporter is not None:
+        note = f"Numba kernels compiled or loaded in {time.perf_counter() - start:.0f} s"
+        reporter.write_line(note + ("" if not errors else f"; warm-up failed: {errors[0][-500:]}"))
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
