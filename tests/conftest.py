@@ -64,13 +64,26 @@ def _warm_kernels(config: pytest.Config) -> None:
     env = {**os.environ, "NUMBA_NUM_THREADS": "1"}
     with tempfile.TemporaryDirectory() as claims:
         command = [sys.executable, "-m", "tests.warm_kernels", claims]
-        runs = [subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
-                                 stderr=subprocess.PIPE, text=True) for _ in range(2)]  # fmt: skip
-        errors = [run.communicate()[1] for run in runs if run.wait() != 0]
-    reporter = config.pluginmanager.get_plugin("terminalreporter")
-    if reporter is not None:
-        note = f"Numba kernels compiled or loaded in {time.perf_counter() - start:.0f} s"
-        reporter.write_line(note + ("" if not errors else f"; warm-up failed: {errors[0][-500:]}"))
+        logs = [Path(claims, f"stderr{i}.txt") for i in range(2)]
+        with logs[0].open("w") as err0, logs[1].open("w") as err1:
+            runs = [subprocess.Popen(command, cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                                     stderr=err) for err in (err0, err1)]  # fmt: skip
+            codes = [run.wait() for run in runs]
+        errors = [log.read_text() for code, log in zip(codes, logs, strict=True) if code]
+    note = "Numba's kernels compiled or loaded before the workers started: {:.0f} s"
+    _WARM_UP.append(note.format(time.perf_counter() - start))
+    _WARM_UP.extend(
+        f"the warm-up failed (the tests compile on demand): {e[-2000:]}" for e in errors
+    )
+
+
+#: What ``_warm_kernels`` did, for the summary at the end (output is captured before it).
+_WARM_UP: list[str] = []
+
+
+def pytest_terminal_summary(terminalreporter) -> None:
+    for line in _WARM_UP:
+        terminalreporter.write_line(line)
 
 
 def pytest_collection_finish(session: pytest.Session) -> None:
