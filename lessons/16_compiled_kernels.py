@@ -304,7 +304,7 @@ print(f"of {len(bases):,} bases: x ** 2.0 differs in {square_values_differ}, x *
 #   `power`, `exp`, `log` and friends run its own vectorised (SVML) routines, which round
 #   differently from the C library.
 # * **Fused multiply-add.** A processor's FMA instruction computes `a · b + c` with one
-#   rounding instead of two. Numba never contracts `a * b + c` into one unless `fastmath`
+#   rounding instead of two. Numba does not contract `a * b + c` into one unless `fastmath`
 #   allows it: `(1 + 2⁻³⁰)² − (1 + 2⁻²⁹)` is `0` in plain Numba, as in NumPy
 #   (`0` <!-- check: fused_multiply_adds --> fused), while the `fastmath` version
 #   may keep the `2⁻⁶⁰` (printed). The library's kernels do not set `fastmath`.
