@@ -170,7 +170,7 @@ for ax, xs, by, xlabel in (
     ax.set_xlabel(xlabel)
     ax.grid(True, color="0.9")
 panels[0].set_ylabel("peak memory (MB)")
-panels[1].legend(fontsize=8, frameon=False)
+panels[1].legend(fontsize=8, frameon=False, loc="lower right", bbox_to_anchor=(1, 0.1))
 figure.suptitle("Peak memory of one gradient, Cornell box 16 × 16", fontsize=10)
 save_and_show(figure, OUT / "memory.png")
 
@@ -180,8 +180,9 @@ save_and_show(figure, OUT / "memory.png")
 # <!-- check: lamp_tape_spp_growth > --> times (four times the paths, plus a fixed part);
 # from depth 2 to 16 more than `2` <!-- check: tape_depth_growth > --> and `3`
 # <!-- check: lamp_tape_depth_growth > --> times (fewer than 8: a path that leaves the box
-# through its open front ends early). The lamp's tape is the larger at every point: it
-# holds the geometry of every shadow ray as well as the shading.
+# through its open front ends early). The lamp's tape is the larger at every point: the
+# lamp's position reaches more of each path's arithmetic (every light sample's point,
+# distance and cosines) than an albedo does.
 #
 # **The albedo**: the compiled replay stays under `0.2` <!-- check: compiled_peak < --> MB
 # everywhere (it keeps a few numbers per vertex of one path per thread), and the tape holds
@@ -200,12 +201,12 @@ save_and_show(figure, OUT / "memory.png")
 # as much at every spp measured) and more than `4` <!-- check: lamp_saving_at_64 > -->
 # times smaller at 64. Against depth, at 16 samples, the replay holds *more* than the tape
 # at depth 2 (the tape's peak is less than `0.9` <!-- check: lamp_saving_at_depth_2 < -->
-# times the replay's: each window rebuilds three vertices, and the decisions and windows
-# have fixed costs of their own), and less from depth `4`
-# <!-- check: replay_cheaper_from_depth --> on. `memory.png` shows the four against spp
-# (left) and against `max_depth` (right): blue the albedo, orange the lamp, solid lines
-# the tape, dashed the replay. Scaled to 512 × 512 at 256 samples, the albedo's tape would
-# need more than `50` <!-- check: tape_at_512_gb > --> GB.
+# times the replay's: a window spans three vertices, which at depth 2 is the whole path, so
+# a window is about the whole tape, and the replay keeps the decisions besides), and less
+# from depth `4` <!-- check: replay_cheaper_from_depth --> on. `memory.png` shows the
+# four against spp (left) and against `max_depth` (right): blue the albedo, orange the
+# lamp, solid lines the tape, dashed the replay. Scaled to 512 × 512 at 256 samples, the
+# albedo's tape would need more than `50` <!-- check: tape_at_512_gb > --> GB.
 #
 # ## 2. The adjoint idea: light going backwards
 #
