@@ -211,6 +211,8 @@ small_two_light_std = lamp_errors[0.05, "2 light"][1]
 mis_over_best = max(large_mis_std / large_two_bsdf_std, small_mis_std / small_two_light_std)
 worst_over_best_small = lamp_errors[0.05, "2 bsdf"][1] / small_two_light_std
 worst_over_best_large = lamp_errors[2.0, "2 light"][1] / large_two_bsdf_std
+# Variance is the standard deviation squared: the factor in samples for the same noise.
+mis_variance_over_best = mis_over_best**2
 largest_bias = max(abs(b) for b, _ in lamp_errors.values())
 
 # %% [markdown]
@@ -228,15 +230,18 @@ largest_bias = max(abs(b) for b, _ in lamp_errors.values())
 #
 # But MIS spends two samples. At equal cost it is *not* the best on either lamp: two light
 # samples give `0.0015` <!-- check: small_two_light_std --> on the small lamp, two BSDF
-# samples `0.320` <!-- check: large_two_bsdf_std --> on the large one, and MIS is up to
-# `1.5` <!-- check: mis_over_best --> times noisier than the better technique. What MIS
-# buys is that it is never far from the better one. The worse technique, at the same
-# cost, is more than `8000` <!-- check: worst_over_best_small > --> times noisier on the
-# small lamp (BSDF) and `2.7` <!-- check: worst_over_best_large --> times on the large one
-# (light). A renderer
+# samples `0.320` <!-- check: large_two_bsdf_std --> on the large one. MIS's standard
+# deviation is up to `1.5` <!-- check: mis_over_best --> times the better technique's, so
+# its variance is up to `2.2` <!-- check: mis_variance_over_best --> times as large: to
+# match the better technique's noise it needs 2.2 times the samples (the error falls as
+# 1/√N). What MIS buys is that it is never far from the better one. The worse technique,
+# at the same cost, has more than `8000` <!-- check: worst_over_best_small > --> times the
+# better one's standard deviation on the small lamp (BSDF) and `2.7`
+# <!-- check: worst_over_best_large --> times on the large one (light). A renderer
 # cannot choose per lamp and per pixel which technique to trust (a scene has small and large
 # lamps, glossy and matte surfaces, near and far), and a wrong choice is a disaster while
-# MIS costs at most a factor of about 1.5 here: robustness, not a free lunch.
+# MIS costs at most 1.5 times the standard deviation here (2.2 times the samples):
+# robustness, not a free lunch.
 #
 # The path tracer (`render/path/tracer.py`) does exactly this at every bounce: one NEE
 # point on the area lights and one BSDF direction, MIS-weighted with the power heuristic;

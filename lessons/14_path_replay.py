@@ -52,9 +52,18 @@ lesson_start = time.perf_counter()
 # node; its backward *replays* the paths (below) either in the compiled kernel
 # (`render/path/adjoint.py`: when only materials, lights' strengths or the environment are
 # differentiated) or on the tape one depth at a time (`render/path/replay.py`: anything
-# else, such as a light's position). The peak of NumPy's allocations during one gradient of
-# the Cornell box at 16 × 16, without Russian roulette (so paths really are `max_depth`
-# long):
+# else, such as a light's position). One depth at a time means *windows*: window `k` puts
+# on a fresh tape only what vertex `k` of the batch's paths adds and what its bounce
+# multiplies by (which needs vertices `k − 1`, `k` and `k + 1`), takes its share of the
+# gradient with its own `backward`, and is freed before window `k + 1` is built (section 3
+# says what it takes from the rest of the path).
+#
+# Which replay runs depends on the parameter, and so does the tape's size (a moving lamp
+# puts the geometry of every shadow ray on the tape, an albedo only the shading). So compare
+# like with like: the tape against the compiled replay for the left wall's albedo, and the
+# tape against the replay on the tape for the lamp's position. The peak of NumPy's
+# allocations during one gradient of the Cornell box at 16 × 16, without Russian roulette
+# (so paths really are `max_depth` long):
 
 
 # %%
@@ -89,13 +98,14 @@ def gradient_peak_mb(gradient: str, parameter: str, spp: int, max_depth: int) ->
     return peak / 1e6
 
 
-WAYS = {
-    "through the tape": ("tape", "albedo"),
-    "replay on the tape (lamp's position)": ("replay", "lamp"),
-    "compiled replay (albedo)": ("replay", "albedo"),
+WAYS = {  # the parameter, then how its gradient is taken
+    "albedo: through the tape": ("tape", "albedo"),
+    "albedo: compiled replay": ("replay", "albedo"),
+    "lamp's position: through the tape": ("tape", "lamp"),
+    "lamp's position: replay on the tape": ("replay", "lamp"),
 }
 for gradient, parameter in WAYS.values():  # first calls load kernels and fill caches
-    gradient_peak_mb(gradient, parameter, 4, 2)
+    gradient_peak_mb(gradient, parameter, 4, 4)  # (depth 4 loads some that depth 2 does not)
 spps, depths = [4, 16, 64], [2, 4, 8, 16]
 memory_by_spp = {w: [gradient_peak_mb(*WAYS[w], spp, 4) for spp in spps] for w in WAYS}
 # 16 spp at max_depth 4 was measured just above: the depth sweep reuses it.
@@ -106,18 +116,39 @@ memory_by_depth = {
 for name in WAYS:
     print(f"{name:38s} spp {spps}: {np.round(memory_by_spp[name], 2)} MB; "
           f"max_depth {depths}: {np.round(memory_by_depth[name], 2)} MB")  # fmt: skip
-tape_spp_growth = memory_by_spp["through the tape"][2] / memory_by_spp["through the tape"][1]
-tape_depth_growth = memory_by_depth["through the tape"][3] / memory_by_depth["through the tape"][0]
-windows = "replay on the tape (lamp's position)"
+albedo_tape, compiled = "albedo: through the tape", "albedo: compiled replay"
+lamp_tape, windows = "lamp's position: through the tape", "lamp's position: replay on the tape"
+tape_spp_growth = memory_by_spp[albedo_tape][2] / memory_by_spp[albedo_tape][1]
+tape_depth_growth = memory_by_depth[albedo_tape][3] / memory_by_depth[albedo_tape][0]
+lamp_tape_spp_growth = memory_by_spp[lamp_tape][2] / memory_by_spp[lamp_tape][1]
+lamp_tape_depth_growth = memory_by_depth[lamp_tape][3] / memory_by_depth[lamp_tape][0]
 windows_spp_growth = memory_by_spp[windows][2] / memory_by_spp[windows][1]
 windows_depth_growth = memory_by_depth[windows][3] / memory_by_depth[windows][0]
-compiled_peak = max(
-    memory_by_spp["compiled replay (albedo)"] + memory_by_depth["compiled replay (albedo)"]
+compiled_peak = max(memory_by_spp[compiled] + memory_by_depth[compiled])
+# Like with like: each parameter's tape over its replay, at each point measured.
+albedo_smallest_saving = min(
+    t / r
+    for by in (memory_by_spp, memory_by_depth)
+    for t, r in zip(by[albedo_tape], by[compiled], strict=True)
 )
+lamp_saving_by_spp, lamp_saving_by_depth = (
+    [t / r for t, r in zip(by[lamp_tape], by[windows], strict=True)]
+    for by in (memory_by_spp, memory_by_depth)
+)
+lamp_smallest_spp_saving = min(lamp_saving_by_spp)
+lamp_saving_at_64 = lamp_saving_by_spp[2]
+lamp_saving_at_depth_2 = lamp_saving_by_depth[0]
+# The first depth from which the replay on the tape holds less than the tape, at 16 spp.
+replay_cheaper_from_depth = next(
+    d for i, d in enumerate(depths) if all(s > 1 for s in lamp_saving_by_depth[i:])
+)
+print(f"lamp's position, tape / replay on the tape: spp {spps}: "
+      f"{np.round(lamp_saving_by_spp, 2)}; max_depth {depths}: "
+      f"{np.round(lamp_saving_by_depth, 2)}")  # fmt: skip
 # The tape's memory per pixel per sample, from 16 to 64 spp, scaled to 512 × 512 at 256 spp.
-per_pixel_sample_mb = (
-    memory_by_spp["through the tape"][2] - memory_by_spp["through the tape"][1]
-) / (16 * 16 * (64 - 16))
+per_pixel_sample_mb = (memory_by_spp[albedo_tape][2] - memory_by_spp[albedo_tape][1]) / (
+    16 * 16 * (64 - 16)
+)
 tape_at_512_gb = per_pixel_sample_mb * 512 * 512 * 256 / 1000
 print(f"the tape at 512 x 512, 256 spp, max_depth 4: about {tape_at_512_gb:.0f} GB")
 # Two panels, one y axis: against spp (max_depth 4) and against max_depth (16 spp).
@@ -128,8 +159,10 @@ for ax, xs, by, xlabel in (
     (panels[0], spps, memory_by_spp, "samples per pixel (max_depth 4)"),
     (panels[1], depths, memory_by_depth, "max_depth (16 samples per pixel)"),
 ):
-    for name in WAYS:
-        ax.plot(xs, by[name], marker="o", markersize=4, label=name)
+    for name, (gradient, parameter) in WAYS.items():
+        ax.plot(xs, by[name], marker="o", markersize=4, label=name,
+                color="tab:blue" if parameter == "albedo" else "tab:orange",
+                linestyle="-" if gradient == "tape" else "--")  # fmt: skip
     ax.set_xscale("log")
     ax.set_yscale("log")
     ax.set_xticks(xs, [str(x) for x in xs])
@@ -137,26 +170,43 @@ for ax, xs, by, xlabel in (
     ax.set_xlabel(xlabel)
     ax.grid(True, color="0.9")
 panels[0].set_ylabel("peak memory (MB)")
-panels[1].legend(fontsize=8, frameon=False)
+panels[1].legend(fontsize=8, frameon=False, loc="lower right", bbox_to_anchor=(1, 0.1))
 figure.suptitle("Peak memory of one gradient, Cornell box 16 × 16", fontsize=10)
 save_and_show(figure, OUT / "memory.png")
 
 # %% [markdown]
-# From 16 to 64 samples per pixel the tape's peak grows more than `2.5`
-# <!-- check: tape_spp_growth > --> times (four times the paths, plus a fixed part), and
-# from depth 2 to 16 more than `2` <!-- check: tape_depth_growth > --> times (fewer than 8:
-# a path that leaves the box through its open front ends early). The replay on the tape
-# grows less than `1.1` <!-- check: windows_spp_growth < --> times with the samples and
-# less than `1.6` <!-- check: windows_depth_growth < --> times with the depth (the values
-# are printed above; the allocator's bookkeeping moves them by a percent from run to run):
-# it holds one batch of paths' *decisions* (which primitive, which lobe, which light),
-# never their tape. A batch is 16 samples per pixel by default (`batch_spp`), so below 16
-# it grows like the tape and above it stays flat. The compiled replay stays under `0.2`
-# <!-- check: compiled_peak < --> MB everywhere: it keeps a few numbers per vertex of one
-# path per thread. `memory.png` shows the three against spp (left) and against
-# `max_depth` (right). At 16 × 16 and a few samples the tape is the cheaper; scaled to
-# 512 × 512 at 256 samples it would need more than `50`
-# <!-- check: tape_at_512_gb > --> GB.
+# The tapes first. From 16 to 64 samples per pixel the albedo's tape grows more than `2.5`
+# <!-- check: tape_spp_growth > --> times and the lamp's more than `3`
+# <!-- check: lamp_tape_spp_growth > --> times (four times the paths, plus a fixed part);
+# from depth 2 to 16 more than `2` <!-- check: tape_depth_growth > --> and `3`
+# <!-- check: lamp_tape_depth_growth > --> times (fewer than 8: a path that leaves the box
+# through its open front ends early). The lamp's tape is the larger at every point: the
+# lamp's position reaches more of each path's arithmetic (every light sample's point,
+# distance and cosines) than an albedo does.
+#
+# **The albedo**: the compiled replay stays under `0.2` <!-- check: compiled_peak < --> MB
+# everywhere (it keeps a few numbers per vertex of one path per thread), and the tape holds
+# more than `15` <!-- check: albedo_smallest_saving > --> times as much at every point
+# measured, 4 spp included.
+#
+# **The lamp's position**: the replay on the tape grows less than `1.1`
+# <!-- check: windows_spp_growth < --> times from 16 to 64 samples and less than `1.6`
+# <!-- check: windows_depth_growth < --> times from depth 2 to 16 (the values are printed
+# above; the allocator's bookkeeping moves them by a percent from run to run). It holds one
+# batch of paths' *decisions* (which primitive, which lobe, which light) and one window's
+# tape, never the whole batch's tape. A batch is 16 samples per pixel by default
+# (`batch_spp`), so below 16 it grows with the samples like the tape, and above it stays
+# flat. Against the lamp's own tape, at `max_depth` 4 it is the smaller already at 4
+# samples (the tape holds more than `1.2` <!-- check: lamp_smallest_spp_saving > --> times
+# as much at every spp measured) and more than `4` <!-- check: lamp_saving_at_64 > -->
+# times smaller at 64. Against depth, at 16 samples, the replay holds *more* than the tape
+# at depth 2 (the tape's peak is less than `0.9` <!-- check: lamp_saving_at_depth_2 < -->
+# times the replay's: a window spans three vertices, which at depth 2 is the whole path, so
+# a window is about the whole tape, and the replay keeps the decisions besides), and less
+# from depth `4` <!-- check: replay_cheaper_from_depth --> on. `memory.png` shows the
+# four against spp (left) and against `max_depth` (right): blue the albedo, orange the
+# lamp, solid lines the tape, dashed the replay. Scaled to 512 × 512 at 256 samples, the
+# albedo's tape would need more than `50` <!-- check: tape_at_512_gb > --> GB.
 #
 # ## 2. The adjoint idea: light going backwards
 #
