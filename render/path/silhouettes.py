@@ -28,7 +28,8 @@ import numpy as np
 from render.path.sampling import dot, unit
 from render.path.tracer import PathSampler
 from render.scene.scene import Mesh
-from render.trace.topology import mesh_edges
+from render.trace.seams import shared_edges
+from render.trace.topology import MeshEdges, mesh_edges
 
 #: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
 GRAZING = 1e-9
@@ -59,41 +60,16 @@ class Curves:
 
     @classmethod
     def of(cls, sampler: PathSampler) -> Curves:
-        parts, spheres = [], []
-        for o, obj in enumerate(sampler.objects):
-            if not isinstance(obj, Mesh):
-                spheres.append((o, obj.center.data, float(obj.radius.data)))
-                continue
-            vertices, faces = np.asarray(obj.vertices.data, np.float64), np.asarray(obj.faces)
-            # Welded: a box whose sides have their own vertices still has shared edges.
-            table = mesh_edges(vertices, faces).table
-            both = np.where(table.faces[:, 1:2] >= 0, table.faces[:, :2], table.faces[:, :1])
-            thirds = np.where(table.faces[:, 1:2] >= 0, table.thirds[:, :2], table.thirds[:, :1])
-            tri = vertices[faces]
-            normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            n1, n2 = normal[both[:, 0]], normal[both[:, 1]]
-            flat = (
-                (table.faces[:, 1] >= 0)
-                & (
-                    np.linalg.norm(np.cross(n1, n2), axis=1)
-                    <= 1e-9 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
-                )
-                & (dot(n1, n2) > 0)
-            )
-            middle = 0.5 * (vertices[table.i] + vertices[table.j])
-            keep = ~flat & ~_touching(middle, o, sampler)
-            e = np.stack([table.i[keep], table.j[keep]], axis=1)
-            parts.append((o, vertices, e, thirds[keep, 0], thirds[keep, 1]))
-        a = [v[e[:, 0]] for _, v, e, _, _ in parts]
-        b = [v[e[:, 1]] for _, v, e, _, _ in parts]
-        c = [np.stack([v[t1], v[t2]], axis=1) for _, v, _, t1, t2 in parts]
+        parts = [_group_edges(sampler, *group) for group in _welded_groups(sampler)]
+        spheres = [(o, obj) for o, obj in enumerate(sampler.objects) if not isinstance(obj, Mesh)]
         return cls(
-            _rows(a, (0, 3)), _rows(b, (0, 3)), _rows(c, (0, 2, 3)),
-            _rows([np.full(len(e), o) for o, _, e, _, _ in parts], (0,)).astype(np.int64),
-            _rows([e for _, _, e, _, _ in parts], (0, 2)).astype(np.int64),
-            np.array([s[1] for s in spheres], np.float64).reshape(-1, 3),
-            np.array([s[2] for s in spheres], np.float64),
-            np.array([s[0] for s in spheres], np.int64),
+            _rows([p[0] for p in parts], (0, 3)), _rows([p[1] for p in parts], (0, 3)),
+            _rows([p[2] for p in parts], (0, 2, 3)),
+            _rows([p[3] for p in parts], (0,)).astype(np.int64),
+            _rows([p[4] for p in parts], (0, 2)).astype(np.int64),
+            np.array([s.center.data for _, s in spheres], np.float64).reshape(-1, 3),
+            np.array([float(s.radius.data) for _, s in spheres], np.float64),
+            np.array([o for o, _ in spheres], np.int64),
         )  # fmt: skip
 
     @property
@@ -256,12 +232,85 @@ class Curves:
         return grad
 
 
-def _touching(points: np.ndarray, owner: int, sampler: PathSampler) -> np.ndarray:
-    """(k,) bool: which ``points`` (k, 3) of object ``owner`` lie on a triangle of another
-    object (within ``CONTACT`` of the scene's size)."""
+def _welded_groups(sampler: PathSampler) -> list[tuple[list[int], MeshEdges]]:
+    """The scene's meshes (object indices) in groups that are welded into one: meshes that
+    share an edge (``render.trace.seams``: a vertex of each at the same place, at both
+    ends), and the meshes that share one with those, and so on; each group (in the order
+    of its first mesh) with its welded ``MeshEdges``, the group's meshes taken as one
+    (their vertices, then their faces, concatenated in scene order)."""
+    meshes = [obj for obj in sampler.objects if isinstance(obj, Mesh)]  # objects 0..M-1
+    topology = [mesh_edges(*_arrays([obj])) for obj in meshes]
+    parent = list(range(len(meshes)))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    for k, shared in enumerate(shared_edges(sampler.scene, topology) or []):
+        faces = shared.faces[shared.faces >= 0]  # other meshes' faces on mesh k's edges
+        for o in np.unique(np.searchsorted(sampler.first, faces, side="right") - 1):
+            low, high = sorted((root(k), root(int(o))))
+            parent[high] = low
+    groups: dict[int, list[int]] = {}
+    for k in range(len(meshes)):
+        groups.setdefault(root(k), []).append(k)
+    return [
+        (
+            group,
+            topology[group[0]]
+            if len(group) == 1
+            else mesh_edges(*_arrays([meshes[o] for o in group])),
+        )
+        for group in sorted(groups.values())
+    ]
+
+
+def _arrays(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh."""
+    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+    vertices = np.concatenate([np.asarray(m.vertices.data, np.float64) for m in meshes])
+    faces = np.concatenate([np.asarray(m.faces) + s for m, s in zip(meshes, offsets, strict=False)])
+    return vertices, faces
+
+
+def _group_edges(sampler: PathSampler, group: list[int], edges: MeshEdges):
+    """The curves' edge arrays (a, b, c, object, ends: ``Curves``) of the meshes ``group``
+    (object indices) welded as one, with ``edges`` their ``MeshEdges``: every welded edge
+    but the flat ones and those that rest on another object's surface (``_touching``)."""
+    meshes = [sampler.objects[o] for o in group]
+    vertices, faces = _arrays(meshes)
+    table = edges.table
+    both = np.where(table.faces[:, 1:2] >= 0, table.faces[:, :2], table.faces[:, :1])
+    thirds = np.where(table.faces[:, 1:2] >= 0, table.thirds[:, :2], table.thirds[:, :1])
+    tri = vertices[faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n1, n2 = normal[both[:, 0]], normal[both[:, 1]]
+    flat = (
+        (table.faces[:, 1] >= 0)
+        & (
+            np.linalg.norm(np.cross(n1, n2), axis=1)
+            <= 1e-9 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
+        )
+        & (dot(n1, n2) > 0)
+    )
+    middle = 0.5 * (vertices[table.i] + vertices[table.j])
+    keep = ~flat & ~_touching(middle, group, sampler)
+    i, j = table.i[keep], table.j[keep]
+    # Both ends are corners of the edge's first face, hence of one mesh: its ids there.
+    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+    mesh = np.searchsorted(offsets, i, side="right") - 1
+    c = np.stack([vertices[thirds[keep, 0]], vertices[thirds[keep, 1]]], axis=1)
+    ends = np.stack([i, j], axis=1) - offsets[mesh][:, None]
+    return vertices[i], vertices[j], c, np.asarray(group, np.int64)[mesh], ends
+
+
+def _touching(points: np.ndarray, owners: list[int], sampler: PathSampler) -> np.ndarray:
+    """(k,) bool: which ``points`` (k, 3) of the objects ``owners`` lie on a triangle of
+    another object (within ``CONTACT`` of the scene's size)."""
     low, high = sampler.first, np.r_[sampler.first[1:], len(sampler.primitives[0])]
     other = np.ones(sampler.n_triangles, bool)
-    if owner < len(low):
+    for owner in owners:
         other[low[owner] : min(high[owner], sampler.n_triangles)] = False
     triangles = np.ascontiguousarray(sampler.primitives[0][other])
     out = np.zeros(len(points), bool)
