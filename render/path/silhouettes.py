@@ -12,6 +12,30 @@ every path vertex; here is where the curves come from (``Curves.of``) and how on
 * a point on it uniformly in that angle (``parameter``): drawn uniformly along the edge, a
   point near an apex close to the edge would carry a weight that grows as 1 / distance.
 
+Meshes that share an edge (a multi-material file read as one mesh per material, walls
+meeting at a corner) are welded into one (``_welded_groups``: ``render.trace.seams`` finds
+them, ``render.trace.topology`` welds the group), so that a shared edge has a face of each
+mesh, and is a silhouette where both lie on one side of the plane through apex and edge,
+as in one mesh: the same curves, in the same order, as the group's faces make as one mesh
+(so the same draws). Taken mesh by mesh, such an edge is a border of each (a silhouette
+from everywhere, counted twice), and it lies on the other mesh's face, so that the contact
+rule below dropped it: a cube split into meshes lost its shadow's gradient.
+
+Edges that rest on another object's surface without being one of its edges (a box standing
+on the floor, a fin standing on a plate inside it) are left out. A ray from the apex that
+grazes such an edge meets that surface at the edge itself, unless it runs in the surface's
+plane: the curve where visibility changes behind the edge is the edge, whether the edge is
+convex (the box's: nothing shows between box and floor) or concave (the fin's: its two
+sides see the plate on their own sides), and there is no surface beyond it to sample
+(``render.path.secondary`` wants one). What this leaves out (by this argument, not
+measured) is the contact line's own motion along the surface: a box sliding on the floor
+covers floor in front of it that a vertex off the floor's plane saw. While the line stays
+in place on the surface (the light moving, the occluder's other edges), nothing is missed;
+for a box lifted off the floor, the derivative given is the one-sided one of pressing it
+in. An edge lying along an edge of another object's face, with vertices of its own (not
+shared), is left out too, though it is a silhouette where the two objects' faces lie on one
+side (an L whose fin and plate are tessellated differently): a case not handled here.
+
 ``pick_reference`` composes the NumPy steps (n x E arrays: the version to read);
 ``Curves.pick`` does the same per apex in one parallel Numba loop over the curves (no
 n x E arrays; the version the renderer runs). ``tests/render/path/test_secondary.py``
@@ -43,11 +67,12 @@ class Curves:
     with their endpoints ``a``, ``b`` (E, 3), the third vertices ``c`` (E, 2, 3) of the
     faces on either side (a border edge: its one face twice), the owning object (E,) and
     the endpoints' vertex ids in it ``ends`` (E, 2) (coincident vertices welded, as
-    ``render.trace.topology`` does; where more than two faces meet, the first two); and
-    spheres (S): ``centre`` (S, 3), ``radius`` (S,), object (S,). Left out: edges between
-    two faces of one plane (never silhouettes) and edges that lie on another object's
-    surface (a box standing on the floor, the rims of walls meeting at a corner): nothing
-    shows between them and that surface while they touch."""
+    ``render.trace.topology`` does, across the meshes that share edges: an edge two meshes
+    share is one edge, its object the first of them; where more than two faces meet, the
+    first two); and spheres (S): ``centre`` (S, 3), ``radius`` (S,), object (S,). Left
+    out: edges between two faces of one plane (never silhouettes) and edges that rest on
+    another object's surface (a box standing on the floor: the module docstring says why
+    and what that leaves out)."""
 
     a: np.ndarray
     b: np.ndarray
