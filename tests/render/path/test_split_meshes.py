@@ -21,7 +21,7 @@ import render
 from render.path import render_path
 from render.path.silhouettes import Curves
 from render.path.tracer import PathSampler
-from render.scene.cornell import box_mesh, grid_quad
+from render.scene.cornell import box_mesh, cornell_box, grid_quad
 from render.scene.placement import placed
 
 X, Y, Z = np.eye(3)
@@ -174,3 +174,31 @@ def test_an_l_of_two_meshes_matches_central_differences():
             for s in seeds
         ])  # fmt: skip
     assert abs(np.mean(ours) - fd) <= 0.05 * abs(fd), (ours, fd)
+
+
+def test_a_split_box_standing_on_the_floor_keeps_its_contact_rule():
+    """Split into meshes, a box standing on the floor still leaves out its 4 bottom edges
+    (they rest inside the floor's face: a grazing ray meets the floor at the edge) and
+    keeps its 4 top edges and 4 upright ones, as one mesh does."""
+    box = box_mesh((0.1, 0.05, 0.0), (0.2, 0.05, 0.2), GREY)
+    _, parts, _ = split(box, np.repeat(np.arange(6), 2))  # one mesh per side
+    for occluders in ([box], parts):
+        curves = curves_of(occluders)
+        mine = (curves.edge_object >= 1) & (curves.edge_object <= len(occluders))
+        heights = np.sort(np.stack([curves.a[mine, 1], curves.b[mine, 1]], axis=1), axis=1)
+        assert len(heights) == 8
+        assert np.all(heights[:, 1] == 0.1)  # every edge left reaches the top
+
+
+def test_walls_meeting_at_a_corner_are_not_silhouettes_from_inside():
+    """The Cornell box's walls are one mesh each; the edges where they meet are shared, with
+    a face of each wall: concave seen from inside the room, so never a silhouette there
+    (taken wall by wall they were borders, silhouettes from everywhere)."""
+    curves = Curves.of(PathSampler(placed(cornell_box(4, 4, blocks=False)), 1, 2, 100, 0))
+    walls = curves.edge_object < 5
+    corner = walls & np.any(curves.c[:, 0] != curves.c[:, 1], axis=1)  # two faces: shared
+    assert corner.sum() == 8 and (walls & ~corner).sum() == 4  # 4 rims at the open front
+    apex = np.random.default_rng(0).uniform(-0.99, 0.99, (200, 3))
+    angle, _ = curves.silhouettes(apex)
+    assert np.all(angle[:, : curves.n_edges][:, corner] == 0)
+    assert np.all(angle[:, : curves.n_edges][:, walls & ~corner] > 0)
