@@ -295,11 +295,13 @@ def _arrays(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
     """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh."""
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
     vertices = np.concatenate([np.asarray(m.vertices.data, np.float64) for m in meshes])
-    faces = np.concatenate([np.asarray(m.faces) + s for m, s in zip(meshes, offsets, strict=False)])
-    return vertices, faces
+    faces = [np.asarray(m.faces) + s for m, s in zip(meshes, offsets[:-1], strict=True)]
+    return vertices, np.concatenate(faces)
 
 
-def _group_edges(sampler: PathSampler, group: list[int], edges: MeshEdges):
+def _group_edges(
+    sampler: PathSampler, group: list[int], edges: MeshEdges
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The curves' edge arrays (a, b, c, object, ends: ``Curves``) of the meshes ``group``
     (object indices) welded as one, with ``edges`` their ``MeshEdges``: every welded edge
     but the flat ones and those that rest on another object's surface (``_touching``)."""
