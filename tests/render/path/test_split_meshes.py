@@ -162,15 +162,15 @@ def light_derivative(two: bool, spp: int, seed: int, delta: float = 0.0, grad: b
 
 def test_an_l_of_two_meshes_matches_central_differences():
     """The L of two meshes: its soft shadow's gradient in the light's x is the one mesh's
-    bit for bit and within 5 % of central differences (measured: 0.5 %; seeds' spread
-    ~0.5 %); before, 15 % off (every shared edge dropped)."""
+    bit for bit and within 5 % of central differences (measured: 0.3 %; one seed's spread
+    ~2 %, the central differences' ~1 %); before, 15 % off (every shared edge dropped)."""
     seeds, h = (0, 1), 0.02
-    ours = [light_derivative(True, 128, s)[1] for s in seeds]
-    assert ours == [light_derivative(False, 128, s)[1] for s in seeds]
+    assert light_derivative(True, 16, 0)[1] == light_derivative(False, 16, 0)[1]
+    ours = [light_derivative(True, 256, s)[1] for s in seeds]
     with md.no_grad():
         fd = np.mean([
-            (light_derivative(True, 1024, s, h, False)[0]
-             - light_derivative(True, 1024, s, -h, False)[0]) / (2 * h)
+            (light_derivative(True, 2048, s, h, False)[0]
+             - light_derivative(True, 2048, s, -h, False)[0]) / (2 * h)
             for s in seeds
         ])  # fmt: skip
     assert abs(np.mean(ours) - fd) <= 0.05 * abs(fd), (ours, fd)
