@@ -53,7 +53,7 @@ from render.path.sampling import dot, unit
 from render.path.tracer import PathSampler
 from render.scene.scene import Mesh
 from render.trace.seams import shared_edges
-from render.trace.topology import MeshEdges, mesh_edges
+from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
 
 #: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
 GRAZING = 1e-9
@@ -308,8 +308,9 @@ def _group_edges(
     meshes = [sampler.objects[o] for o in group]
     vertices, faces = _arrays(meshes)
     table = edges.table
-    both = np.where(table.faces[:, 1:2] >= 0, table.faces[:, :2], table.faces[:, :1])
-    thirds = np.where(table.faces[:, 1:2] >= 0, table.thirds[:, :2], table.thirds[:, :1])
+    pick, fenced = _outer_faces(vertices, table)
+    both = np.take_along_axis(table.faces, pick, axis=1)
+    thirds = np.take_along_axis(table.thirds, pick, axis=1)
     tri = vertices[faces]
     normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     n1, n2 = normal[both[:, 0]], normal[both[:, 1]]
@@ -322,7 +323,7 @@ def _group_edges(
         & (dot(n1, n2) > 0)
     )
     middle = 0.5 * (vertices[table.i] + vertices[table.j])
-    keep = ~flat & ~_touching(middle, group, sampler)
+    keep = ~flat & ~fenced & ~_touching(middle, group, sampler)
     i, j = table.i[keep], table.j[keep]
     # Both ends are corners of the edge's first face, hence of one mesh: its ids there.
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
@@ -330,6 +331,33 @@ def _group_edges(
     c = np.stack([vertices[thirds[keep, 0]], vertices[thirds[keep, 1]]], axis=1)
     ends = np.stack([i, j], axis=1) - offsets[mesh][:, None]
     return vertices[i], vertices[j], c, np.asarray(group, np.int64)[mesh], ends
+
+
+def _outer_faces(vertices: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:
+    """Which two of each edge's faces (columns of ``table.faces``, (E, 2); a border edge:
+    its one face twice) decide whether it is a silhouette, and which edges never are (E,)
+    bool. An edge is a silhouette where all its faces lie on one side of the plane through
+    apex and edge. With two faces, those; where more meet (a fin standing on a plate's
+    edge between two of the plate's faces, a box on a floor whose grid runs along its
+    bottom edges), the faces' half-planes around the edge lie on one side of such a plane
+    only if they fit in a half turn: then the two that bound them decide it; if not (the
+    largest angle between neighbours around the edge is at most a half turn), it never
+    is one."""
+    count = np.sum(table.faces >= 0, axis=1)
+    pick = np.where(count[:, None] >= 2, [[0, 1]], [[0, 0]])
+    fenced = np.zeros(len(count), bool)
+    for row in np.flatnonzero(count > 2):  # few: non-manifold edges
+        a, b = vertices[table.i[row]], vertices[table.j[row]]
+        axis = unit((b - a)[None])[0]
+        w = vertices[table.thirds[row, : count[row]]] - a
+        w -= np.outer(w @ axis, axis)  # each face's direction away from the edge
+        angle = np.arctan2(np.cross(w[0], w) @ axis, w @ w[0])
+        order = np.argsort(angle)
+        gaps = np.diff(np.r_[angle[order], angle[order[0]] + 2 * np.pi])
+        widest = int(np.argmax(gaps))
+        fenced[row] = gaps[widest] <= np.pi * (1 + 1e-9)
+        pick[row] = order[(widest + 1) % len(order)], order[widest]
+    return pick, fenced
 
 
 def _touching(points: np.ndarray, owners: list[int], sampler: PathSampler) -> np.ndarray:

@@ -202,3 +202,34 @@ def test_walls_meeting_at_a_corner_are_not_silhouettes_from_inside():
     angle, _ = curves.silhouettes(apex)
     assert np.all(angle[:, : curves.n_edges][:, corner] == 0)
     assert np.all(angle[:, : curves.n_edges][:, walls & ~corner] > 0)
+
+
+def edges_at_height(curves: Curves, objects: list[int], y: float) -> int:
+    """How many of the curves' edges of ``objects`` lie at height y."""
+    mine = np.isin(curves.edge_object, objects)
+    return int(np.sum(mine & (curves.a[:, 1] == y) & (curves.b[:, 1] == y)))
+
+
+def test_where_more_than_two_faces_meet_the_outer_two_decide():
+    """A box on a floor whose grid runs along its bottom edges shares them with the floor:
+    four faces meet there (two of the floor's, two of the box's), spanning a half turn, so
+    they are never silhouettes, whichever mesh comes first; so is the foot of a fin standing
+    on a plate's inner edge (three faces). The fin's other edges are kept."""
+    v, f = grid_quad((0, 0, 0), 1.5 * X, -1.5 * Z, 3)  # grid lines at +-0.5
+    floor = render.Mesh(v, f, GREY)
+    box = box_mesh((0.0, 0.25, 0.0), (0.5, 0.25, 0.5), GREY)
+    for occluders, box_at in (([box], 1), ([box, floor], 1), ([floor, box], 2)):
+        scene = floor_scene(occluders, "area")
+        if len(occluders) == 2:
+            scene.objects = scene.objects[1:]  # the grid floor instead of the plain one
+            box_at -= 1
+        curves = Curves.of(PathSampler(placed(scene), 1, 2, 100, 0))
+        assert edges_at_height(curves, [box_at], 0.0) == 0
+        assert edges_at_height(curves, [box_at], 0.5) == 4
+    plate = grid_quad((0.1, 0.6, 0.0), 0.2 * X, -0.2 * Z, 2)  # an inner edge along x = 0.1
+    fin = grid_quad((0.1, 0.675, -0.1), 0.075 * Y, 0.1 * Z)  # standing on its half z < 0
+    curves = curves_of([render.Mesh(*plate, GREY), render.Mesh(*fin, GREY)])
+    on_line = (curves.a[:, 0] == 0.1) & (curves.b[:, 0] == 0.1)
+    assert edges_at_height(curves, [1, 2], 0.6) == 8  # the plate's rim, not the fin's foot
+    assert not np.any(on_line & (curves.a[:, 1] == 0.6) & (curves.b[:, 1] == 0.6))
+    assert np.sum(on_line & (np.maximum(curves.a[:, 1], curves.b[:, 1]) > 0.7)) == 3
