@@ -69,10 +69,11 @@ class Curves:
     the endpoints' vertex ids in it ``ends`` (E, 2) (coincident vertices welded, as
     ``render.trace.topology`` does, across the meshes that share edges: an edge two meshes
     share is one edge, its object the first of them; where more than two faces meet, the
-    first two); and spheres (S): ``centre`` (S, 3), ``radius`` (S,), object (S,). Left
-    out: edges between two faces of one plane (never silhouettes) and edges that rest on
-    another object's surface (a box standing on the floor: the module docstring says why
-    and what that leaves out)."""
+    two that bound the others around the edge, ``_outer_faces``); and spheres (S):
+    ``centre`` (S, 3), ``radius`` (S,), object (S,). Left out: edges between two faces of
+    one plane and edges whose faces span more than a half turn around them (never
+    silhouettes), and edges that rest on another object's surface (a box standing on the
+    floor: the module docstring says why and what that leaves out)."""
 
     a: np.ndarray
     b: np.ndarray
