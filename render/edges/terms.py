@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from minidiff.tensor import record
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
 from render.edges.boundary.curves import CurveKind
 from render.edges.boundary.mesh_edge import MeshEdge
@@ -125,6 +126,24 @@ def differentiated(scene: Scene) -> bool:
     one it would change nothing."""
     grad = md.is_grad_enabled()
     return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
+
+
+def on_every_parameter(image: md.Tensor, scene: Scene) -> md.Tensor:
+    """``image`` (any shape), recorded on the tape as depending on every parameter of
+    ``scene`` that requires grad (gradients enabled), with a zero derivative: ``backward``
+    gives each one a gradient, zeros where the image cannot depend on it (a mesh no ray
+    sees), whatever route computed the image. Without this a scene whose only
+    differentiated parameters cannot reach the image left it a constant, and ``backward``
+    said that no input required grad; a compiled route gave zeros."""
+    moving = [p for p in scene.parameters() if p.requires_grad] if md.is_grad_enabled() else []
+    if not moving:
+        return image
+
+    def vjp(g: np.ndarray) -> tuple[np.ndarray, ...]:
+        return (g,) + tuple(np.zeros(p.shape, p.dtype) for p in moving)
+
+    return record("on_every_parameter", image.data, [image, *moving], vjp, view_of=image,
+                  jvp=lambda tangent, *_: tangent)  # fmt: skip
 
 
 def primary_kinds(scene: Scene, occluders: Occluders, cache: RenderCache) -> list[CurveKind]:
