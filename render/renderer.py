@@ -39,16 +39,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import minidiff as md
+from render.edges import terms
 from render.edges.interior import INTERIOR_SAMPLES, add_interior_samples, check_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
-from render.edges.terms import (
-    EdgeDecisions,
-    add_boundary_term,
-    add_edge_terms,
-    differentiated,
-    on_every_parameter,
-)
+from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
 from render.film import image_from_hits, pixel_means
 from render.path.integrator import render_path
 from render.scene.cache import cache_for
@@ -168,7 +163,7 @@ def render(
             image = add_interior_samples(world, visibility, image, frame, spp, max_bounces, inner)
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
-    image = on_every_parameter(image, scene)  # zeros for what the image cannot depend on
+    image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on
     if not return_info:
         return image
     return image, RenderInfo.of(world, visibility, texel, spp, mirrors, edges)
