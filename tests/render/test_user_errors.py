@@ -203,14 +203,14 @@ def test_paths_longer_than_the_first_records_and_chains(names):
 # -- 6. second derivatives through the bridges -------------------------------------------
 
 BRIDGE_NAMES = ["lights[0].position", "objects[0].material.albedo"]
-POSITION, ALBEDO = np.array([2.0, 5.0, 3.0]), np.array([0.7, 0.3, 0.3])
+POSITION, ALBEDO = np.array([0.0, 1.0, 3.0]), np.array([0.7, 0.3, 0.3])
 
 
 def test_torch_hessian_is_refused_with_the_projects_message():
     torch = pytest.importorskip("torch")
     import render.torch as rtorch
 
-    f = rtorch.function(render.paper_scene(8, 8, ground=True), BRIDGE_NAMES)
+    f = rtorch.function(hidden_quad_scene(False), BRIDGE_NAMES)
     albedo = torch.tensor(ALBEDO)
 
     def loss(p):
@@ -236,7 +236,7 @@ def test_jax_hessian_is_refused_with_the_projects_message(mode):
     import render.jax as rjax
 
     with jax.enable_x64(True):
-        f = rjax.function(render.paper_scene(8, 8, ground=True), BRIDGE_NAMES, mode=mode)
+        f = rjax.function(hidden_quad_scene(False), BRIDGE_NAMES, mode=mode)
         albedo = jnp.asarray(ALBEDO)
 
         def loss(p):
