@@ -115,7 +115,8 @@ def render(
         defaults).
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
-    when the caller runs ``backward`` on a loss computed from the image.
+    when the caller runs ``backward`` on a loss computed from the image (zeros where the
+    image cannot depend on it, whichever route computed the image).
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
