@@ -54,12 +54,12 @@ def image_loss(image: md.Tensor, target: np.ndarray) -> md.Tensor:
 class History:
     """What happened during ``optimize``, one entry per iteration (per loss evaluation).
 
-        loss[i] is the loss at the parameters params[i] (before update i); seconds[i] the wall
-        time of iteration i (render + backward + update). ``converged`` is True if the loss
-        fell below the tolerance; ``stalled`` if the loss stopped depending on the parameters
-        (a gradient of zeros or none, e.g. nothing visible); ``iterations`` counts the
-        updates made. With many views, ``views[i]`` lists the views rendered in iteration
-        i (empty for one scene).
+    loss[i] is the loss at the parameters params[i] (before update i); seconds[i] the wall
+    time of iteration i (render + backward + update). ``converged`` is True if the loss
+    fell below the tolerance; ``stalled`` if the loss stopped depending on the parameters
+    (a gradient of zeros or none, e.g. nothing visible); ``iterations`` counts the
+    updates made. With many views, ``views[i]`` lists the views rendered in iteration
+    i (empty for one scene).
     """
 
     loss: list[float] = field(default_factory=list)
