@@ -18,6 +18,11 @@ rather than keeping the forward's tape: a gradient costs two renders and one bac
   render with tangents, and one without for the image): ``jax.jvp``, ``jax.jacfwd``. JAX
   cannot transpose a callback, so each mode supports only its own direction (reverse mode
   of a "forward" function raises an error naming ``mode``).
+* **Differentiable once**: the derivative is minidiff's tape, which JAX cannot see; a
+  second derivative (``jax.hessian``, ``jax.grad`` of ``jax.grad``, ``jax.jvp`` of
+  ``jax.grad``) raises the error ``SECOND_DERIVATIVES``, whatever the mode (every callback
+  is a ``custom_jvp`` whose JVP refuses, ``_first_order``), not JAX's "Pure callbacks do
+  not support JVP".
 * ``jax.vmap`` works through ``vmap_method="sequential"``: the callback is called once per
   batch element, one render after the other.
 * **dtypes**: values come and go in the function's dtype (``f.dtype``, float64 unless the
@@ -46,6 +51,12 @@ from render.scene.scene import Scene
 
 __all__ = ["function", "JaxRenderFunction"]
 
+SECOND_DERIVATIVES = (
+    "render.jax: the renderer's derivative is not differentiable again (it is minidiff's "
+    "tape, which JAX cannot see): no second derivatives (jax.hessian, grad of grad, jvp "
+    "of grad); differentiate the renderer once"
+)
+
 
 def function(
     scene: Scene | Sequence[Scene],
@@ -71,6 +82,7 @@ class JaxRenderFunction:
         self.core, self.mode = core, mode
         self.names, self.shapes, self.dtype = core.names, core.shapes, np.dtype(core.dtype)
         self._image = jax.ShapeDtypeStruct(core.image_shape, self.dtype)
+        self._render = _first_order(lambda *arrays: core(*map(np.asarray, arrays)), self._image)
         self._call = self._reverse() if mode == "reverse" else self._forward()
 
     def __repr__(self) -> str:
@@ -109,12 +121,7 @@ class JaxRenderFunction:
 
     def _primal(self, *values: jax.Array) -> jax.Array:
         """The image, by a callback into the renderer (no tape)."""
-        return jax.pure_callback(
-            lambda *arrays: self.core(*map(np.asarray, arrays)),
-            self._image,
-            *values,
-            vmap_method="sequential",
-        )
+        return self._render(*values)
 
     def _reverse(self) -> Callable[..., jax.Array]:
         core = self.core
@@ -137,9 +144,7 @@ class JaxRenderFunction:
                 grads = core.vjp([np.asarray(a) for a in arrays[:-1]], np.asarray(arrays[-1]))
                 return tuple(g for g, fl in zip(grads, floats, strict=True) if fl)
 
-            grads = iter(
-                jax.pure_callback(pullback, shapes, *values, d_image, vmap_method="sequential")
-            )
+            grads = iter(_first_order(pullback, shapes)(*values, d_image))
             return tuple(
                 next(grads) if fl else np.zeros(v.shape, dtype=jax.dtypes.float0)
                 for v, fl in zip(values, floats, strict=True)
@@ -176,6 +181,29 @@ class JaxRenderFunction:
         return f
 
 
+def _first_order(callback: Callable, result: Any) -> Callable:
+    """``jax.pure_callback(callback, result, *args)`` (``vmap_method="sequential"``) as a
+    function whose derivative is refused with ``SECOND_DERIVATIVES``: the callbacks are the
+    renderer and its derivatives, and only their first derivative exists (declared by
+    ``custom_vjp`` or ``custom_jvp`` around them)."""
+
+    @jax.custom_jvp
+    def call(*args):
+        return jax.pure_callback(callback, result, *args, vmap_method="sequential")
+
+    @call.defjvp
+    def _no_derivative(primals, tangents):
+        raise ValueError(SECOND_DERIVATIVES)
+
+    return call
+
+
+def _no_second_derivative(primals, tangents, *, push, image):
+    """The JVP of a ``mode="forward"`` function's tangent (``jax.jacfwd`` of ``jax.jacfwd``):
+    a clear error."""
+    raise ValueError(SECOND_DERIVATIVES)
+
+
 # The tangent of a mode="forward" function as a primitive of its own, linear in the
 # tangents: its value is the callback ``push`` (the primals and the tangents in, the image's
 # tangent ``image`` out); vmap maps it one batch element after the other (``lax.map``, as
@@ -185,7 +213,7 @@ _tangent_p = Primitive("render_jax_forward_tangent")
 
 
 def _tangent_impl(*arrays, push, image):
-    return jax.pure_callback(push, image, *arrays, vmap_method="sequential")
+    return _first_order(push, image)(*arrays)
 
 
 def _tangent_batch(args, dims, *, push, image):
@@ -217,3 +245,4 @@ _tangent_p.def_abstract_eval(lambda *_, push, image: ShapedArray(image.shape, im
 mlir.register_lowering(_tangent_p, mlir.lower_fun(_tangent_impl, multiple_results=False))
 batching.primitive_batchers[_tangent_p] = _tangent_batch
 ad.primitive_transposes[_tangent_p] = _no_reverse_mode
+ad.primitive_jvps[_tangent_p] = _no_second_derivative

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 import minidiff as md
+from render.edges import terms
 from render.edges.interior import INTERIOR_SAMPLES, add_interior_samples, check_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
@@ -114,7 +115,8 @@ def render(
         defaults).
 
     Every parameter of the scene that is a ``requires_grad`` tensor receives its gradient
-    when the caller runs ``backward`` on a loss computed from the image.
+    when the caller runs ``backward`` on a loss computed from the image (zeros where the
+    image cannot depend on it, whichever route computed the image).
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"render: scene must be a render.Scene, got {type(scene).__name__}")
@@ -162,6 +164,7 @@ def render(
             image = add_interior_samples(world, visibility, image, frame, spp, max_bounces, inner)
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
+    image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on
     if not return_info:
         return image
     return image, RenderInfo.of(world, visibility, texel, spp, mirrors, edges)

@@ -15,7 +15,8 @@ minidiff's forward mode, so ``torch.func.jvp`` and ``torch.autograd.forward_ad``
 ``forward`` and ``setup_context`` are kept apart, as ``torch.func`` requires.
 
 * **Differentiable once**: the backward is NumPy code, invisible to PyTorch, so a second
-  derivative raises an error (``_FirstOrder``). This is stated by the pullback being an
+  derivative raises an error (``_FirstOrder``), in reverse or forward mode
+  (``torch.func.hessian``). This is stated by the pullback being an
   ``autograd.Function`` whose own backward raises, not by ``@once_differentiable``: under
   ``torch.func.grad(torch.func.grad(f))`` that decorator turns the second derivative into
   a silent zero (measured with PyTorch 2.13), while the explicit error reaches both.
@@ -184,6 +185,13 @@ class _Render(torch.autograd.Function):
         return (torch.stack(images), _Pullback()), (0, None)
 
 
+SECOND_DERIVATIVES = (
+    "render.torch: the renderer's derivative is not differentiable again (it is minidiff's "
+    "tape, which PyTorch cannot see): no second derivatives (torch.func.hessian, grad of "
+    "grad, jvp of grad); differentiate the renderer once"
+)
+
+
 class _FirstOrder(torch.autograd.Function):
     """What ``_Pull`` and ``_Push`` share: nothing to save, and no derivative of their own
     (the renderer is differentiated once, by minidiff)."""
@@ -194,10 +202,14 @@ class _FirstOrder(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *_grads):
-        raise RuntimeError(
-            "render.torch: the renderer's derivative is not differentiable again (it is "
-            "minidiff's tape, which PyTorch cannot see): no second derivatives"
-        )
+        raise RuntimeError(SECOND_DERIVATIVES)
+
+    @staticmethod
+    def jvp(ctx, *_tangents):
+        """Forward mode over a derivative (``torch.func.hessian``, ``jacfwd(jacrev(f))``,
+        ``jvp(grad(f))``): refused like reverse mode over it, not with PyTorch's "You must
+        implement the jvp function"."""
+        raise RuntimeError(SECOND_DERIVATIVES)
 
 
 class _Pull(_FirstOrder):

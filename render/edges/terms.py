@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from minidiff.tensor import record
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
 from render.edges.boundary.curves import CurveKind
 from render.edges.boundary.mesh_edge import MeshEdge
@@ -125,6 +126,42 @@ def differentiated(scene: Scene) -> bool:
     one it would change nothing."""
     grad = md.is_grad_enabled()
     return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
+
+
+def on_every_parameter(image: md.Tensor, scene: Scene) -> md.Tensor:
+    """``image`` (any shape), so that ``backward`` gives every parameter of ``scene`` that
+    requires grad (gradients enabled) a gradient, zeros where the image cannot depend on it
+    (a mesh no ray sees), whatever route computed the image. Those the image's tape does
+    not reach are added as inputs of one more node, with a zero derivative; the image is
+    returned as it is when it reaches them all. Without this a scene whose only
+    differentiated parameters cannot reach the image left it a constant, and ``backward``
+    said that no input required grad, where a compiled route gave zeros."""
+    if not md.is_grad_enabled():
+        return image
+    reached = _leaves_reached(image)
+    missing = [p for p in scene.parameters() if p.requires_grad and id(p) not in reached]
+    if not missing:
+        return image
+
+    def vjp(g: np.ndarray) -> tuple[np.ndarray, ...]:
+        return (g,) + tuple(np.zeros(p.shape, p.dtype) for p in missing)
+
+    return record("on_every_parameter", image.data, [image, *missing], vjp, view_of=image,
+                  jvp=lambda tangent, *_: tangent)  # fmt: skip
+
+
+def _leaves_reached(output: md.Tensor) -> set[int]:
+    """The ids of the leaf tensors ``output``'s tape reaches (itself, if it is a leaf)."""
+    leaves, seen, stack = set(), set(), [output]
+    while stack:
+        tensor = stack.pop()
+        node = tensor.node
+        if node is None:
+            leaves.add(id(tensor))
+        elif id(node) not in seen:
+            seen.add(id(node))
+            stack.extend(node.inputs)
+    return leaves
 
 
 def primary_kinds(scene: Scene, occluders: Occluders, cache: RenderCache) -> list[CurveKind]:

@@ -54,11 +54,12 @@ def image_loss(image: md.Tensor, target: np.ndarray) -> md.Tensor:
 class History:
     """What happened during ``optimize``, one entry per iteration (per loss evaluation).
 
-        loss[i] is the loss at the parameters params[i] (before update i); seconds[i] the wall
-        time of iteration i (render + backward + update). ``converged`` is True if the loss
-        fell below the tolerance; ``stalled`` if the loss stopped depending on the parameters
-        (no gradient, e.g. nothing visible); ``iterations`` counts the updates made. With many
-    views, ``views[i]`` lists the views rendered in iteration i (empty for one scene).
+    loss[i] is the loss at the parameters params[i] (before update i); seconds[i] the wall
+    time of iteration i (render + backward + update). ``converged`` is True if the loss
+    fell below the tolerance; ``stalled`` if the loss stopped depending on the parameters
+    (a gradient of zeros or none, e.g. nothing visible); ``iterations`` counts the
+    updates made. With many views, ``views[i]`` lists the views rendered in iteration
+    i (empty for one scene).
     """
 
     loss: list[float] = field(default_factory=list)
@@ -310,13 +311,16 @@ def _iteration(it, loss, params, opt, tol, max_iters, history) -> bool:
     history.params.append([p.data.copy() for p in params])
     if value < tol:
         history.converged = True
-    if not loss.requires_grad:
-        # Nothing in view depends on the parameters (e.g. the object left the image):
-        # there is no gradient to follow.
+    if not loss.requires_grad:  # the loss depends on no parameter at all
         history.stalled = True
     stop = history.converged or history.stalled or it == max_iters
     if not stop:
         loss.backward()
+        # Nothing in view depends on the parameters (e.g. the object left the image): the
+        # renderer gives them zero gradients, and there is no gradient to follow.
+        history.stalled = not any(p.grad is not None and np.any(p.grad) for p in params)
+        if history.stalled:
+            return True
         opt.step()
         history.iterations += 1
     return stop

@@ -32,7 +32,7 @@ import numpy as np
 import minidiff as md
 from minidiff import buffers
 from minidiff.tensor import record
-from render.edges.terms import differentiated
+from render.edges.terms import differentiated, on_every_parameter
 from render.path import adjoint, kernel
 from render.path.edges import add_path_boundary_term
 from render.path.random import check_seed
@@ -99,8 +99,10 @@ def render_path(
     with buffers.fresh():
         options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
         if _replays(scene, gradient):
-            return _replayed_image(scene, *options)
-        return _render_path(scene, *options)
+            image = _replayed_image(scene, *options)
+        else:
+            image = _render_path(scene, *options)
+    return on_every_parameter(image, scene)  # zeros for what the image cannot depend on
 
 
 def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
@@ -238,7 +240,8 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     tape would, by replaying the image's paths (the same path ids and random numbers under
     ``seed``): compiled when only materials, lights' strengths and colours and the
     environment require grad (``render.path.adjoint``), else on the tape, a batch of
-    ``batch_spp`` samples at a time."""
+    ``batch_spp`` samples at a time. A parameter the image cannot depend on gets zeros, as
+    from the compiled replay, whichever way computed the others."""
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed)  # plain arrays: reused
     if adjoint.covers(world):
@@ -255,6 +258,14 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
             md.sum(term * d_image).backward()
     if edges[1] and differentiated(scene):
         backpropagate_secondary(lambda: placed(scene), sampler, d_image)
+    _zeros_where_missing(scene)
+
+
+def _zeros_where_missing(scene: Scene) -> None:
+    """Give every parameter of ``scene`` that requires grad and has no gradient a zero one."""
+    for p in scene.parameters():
+        if p.requires_grad and p.grad is None:
+            p.grad = np.zeros(p.shape, p.dtype)
 
 
 def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:
@@ -302,14 +313,18 @@ def replay_gradient(
     """Differentiate ``loss(image)`` by replay: adds d loss / d p to ``p.grad`` of every
     scene parameter that requires it (as ``backward`` would) and returns (the loss's value,
     the primal image (H, W, 3)). ``loss`` maps an (H, W, 3) tensor to a scalar tensor.
-    ``seed_grad``: the seed of the gradient pass (None: ``seed + 1``, decorrelated; pass
-    ``seed`` to reproduce the tape's gradient exactly). Peak memory is one batch's tape.
+    ``loss``'s value may have shape () or any shape of one element, e.g. (1,); a loss that
+    does not depend on the image gives the parameters zero gradients through it.
+    ``seed_grad``: the seed of the gradient pass (None: ``seed + 1`` modulo 2**64,
+    decorrelated; pass ``seed`` to reproduce the tape's gradient exactly). Peak memory is
+    one batch's tape.
     ``antialias``, ``edge_spp``: as ``render_path``; the boundary term is computed once,
     after the batches, with ``seed_grad``'s random numbers."""
     spp, max_depth, rr_depth = check_path_options(spp, max_depth, rr_depth)
     seed = check_seed(seed)
     edges, edge_spp = check_path_edges(antialias, edge_spp, spp)
-    seed_grad = check_seed(seed + 1 if seed_grad is None else seed_grad, "seed_grad")
+    # The default is derived from seed, already checked: it wraps rather than blame seed_grad.
+    seed_grad = (seed + 1) % 2**64 if seed_grad is None else check_seed(seed_grad, "seed_grad")
     with md.no_grad():
         image = render_path(scene, spp, max_depth, seed, rr_depth, batch_spp).data
     with buffers.fresh():  # as in render_path
@@ -321,8 +336,16 @@ def _replay(scene, loss, image, spp, max_depth, seed_grad, rr_depth, batch_spp, 
     pixels = md.tensor(image, requires_grad=True)
     value = loss(pixels)
     if not isinstance(value, md.Tensor) or value.data.size != 1:
-        raise TypeError("replay_gradient: loss must return a scalar minidiff tensor")
-    value.backward()
-    _backpropagate(scene, pixels.grad, spp, max_depth, seed_grad, rr_depth, batch_spp, edges,
-                   edge_spp)  # fmt: skip
-    return float(value.data), image
+        got = f"shape {value.shape}" if isinstance(value, md.Tensor) else type(value).__name__
+        raise TypeError(
+            "replay_gradient: loss must return a minidiff tensor of one element (the loss of "
+            f"the (H, W, 3) image it is given), got {got}"
+        )
+    if value.requires_grad:  # else a constant: it depends on no image and no parameter
+        value.backward()
+    if pixels.grad is None:  # the loss does not read the image: nothing to replay
+        _zeros_where_missing(scene)
+    else:
+        _backpropagate(scene, pixels.grad, spp, max_depth, seed_grad, rr_depth, batch_spp, edges,
+                       edge_spp)  # fmt: skip
+    return float(value.item()), image

@@ -98,15 +98,22 @@ __all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "samp
 #: partial gradient vector per job, then sums them in order: the same bits on any number
 #: of threads.
 CHUNKS = 64
+#: Path replay's chain starts with this many rows (at most max_depth) and doubles when a
+#: path is longer; ``sample_paths`` first records this many vertices per path, and traces
+#: again with room for the longest path's if one had more: memory by the paths' real
+#: lengths (Russian roulette ends most of them early), not by max_depth.
+CHAIN_ROWS = 32
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
                 stack_t, keep, row, rec_i, rec_f, rec_lit, delta, chain, grad):  # fmt: skip
-    """The radiance (3-tuple) of path id ``path`` through pixel (px, py). With ``keep``,
-    its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``).
+    """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2), its number of
+    vertices n (0: the camera ray missed) and its chain. With ``keep``, its decisions are
+    written to row ``row`` of the records (``_I_*``, ``_F_*``): its length n, and its first
+    vertices, as many as the records have room for.
 
-    Path replay (``grad`` non-empty, ``chain`` (max_depth, _C_FIELDS) zeroed, ``delta``
+    Path replay (``grad`` non-empty, ``chain`` (rows >= 1, _C_FIELDS) zeroed, ``delta``
     the pixel's dL/dimage / spp): the radiance is sum_k beta_k C_k with beta_{k+1} =
     beta_k F_k (C_k what vertex k adds, F_k its continuation factor, RGB), so d radiance
     = sum_k beta_k (dC_k + dF_k R_k), R_k = C_{k+1} + F_{k+1} R_{k+1} the radiance that
@@ -114,11 +121,13 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     added to ``grad`` (laid out by ``_G_*``) as the path is traced; each vertex's C_k, F_k,
     the environment seen after it and what dF_k needs go into the chain, and once the path
     has ended ``_replay_chain`` computes R_k and ``_factor_gradients`` adds the dF_k R_k
-    terms. One trace per path (the replay needs no second one: nothing in dF_k R_k but R_k
-    waits for the rest of the path), and memory of a few numbers per vertex of one path
-    (per block of pixels), not per path of the image. R_k from the recursion, not from
-    (radiance - what came before) / beta_{k+1} as Mitsuba's prb divides, stays exact where
-    a channel of F_k is 0 (an albedo channel at 0 still gets its derivative).
+    terms from its first n rows; the chain returned is a longer copy if the path had more
+    vertices than ``chain`` has rows. One trace per path (the replay needs no second one:
+    nothing in dF_k R_k but R_k waits for the rest of the path), and memory of a few
+    numbers per vertex of one path (per block of pixels), not per path of the image. R_k
+    from the recursion, not from (radiance - what came before) / beta_{k+1} as Mitsuba's
+    prb divides, stays exact where a channel of F_k is 0 (an albedo channel at 0 still
+    gets its derivative).
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -149,7 +158,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if adjoint:
             for c in range(3):
                 grad[g_background + c] += delta[c]
-        return background[0], background[1], background[2]
+        return background[0], background[1], background[2], 0, chain
     point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
     incoming = _divided(d[0], d[1], d[2])
     form, pdf, previous, estimate = CAMERA, 0.0, point, 1.0
@@ -159,6 +168,12 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     n_emit = e_prims.shape[0]
     depth = 1
     while True:
+        # Memory by the path's real length, not by max_depth: the records hold the vertices
+        # that fit (sample_paths traces again with deeper ones if a path had more), and
+        # the chain grows as the path does.
+        kept = keep and depth <= rec_i.shape[1]
+        if adjoint and depth > chain.shape[0]:
+            chain = _grown(chain, max_depth)
         o, ng, ns, uv, local = _surface(
             triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v
         )
@@ -192,7 +207,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 for c in range(3):
                     chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
                     grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
-        if keep:
+        if keep:  # the path's length so far, also past the records' depth
+            rec_i[row, 0, _I_COUNT] = depth
+        if kept:
             rec_i[row, depth - 1, _I_PRIM] = prim
             rec_i[row, depth - 1, _I_FORM] = form
             rec_i[row, depth - 1, _I_NEE_PRIM] = -1
@@ -203,7 +220,6 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             rec_f[row, depth - 1, _F_NEXT_PDF] = 1.0
             rec_f[row, depth - 1, _F_SURVIVE] = 1.0
             rec_i[row, depth - 1, _I_ESCAPE] = 0
-            rec_i[row, 0, _I_COUNT] = depth
         if depth == max_depth:
             break
         p_d, p_g, p_m = probability[o, 0], probability[o, 1], probability[o, 2]
@@ -222,7 +238,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             u1 = _uniform(key, _dim(depth, _EMITTER_POINT))
             u2 = _uniform(key, _dim(depth, _EMITTER_POINT) + 1)
             e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
-            if keep:  # recorded whether or not it is seen, as the sampler does
+            if kept:  # recorded whether or not it is seen, as the sampler does
                 _put(rec_f, row, depth - 1, _F_NEE_LOCAL, e_local)
             to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
             d2 = _dot(to, to)
@@ -237,7 +253,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 p_nee = e_probability[pick] / e_area[pick]
                 p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
                 nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
-                if keep:
+                if kept:
                     rec_i[row, depth - 1, _I_NEE_PRIM] = e_prim
                     rec_f[row, depth - 1, _F_NEE_WEIGHT] = nee_weight
                 # The radiance it brings (transport._at_vertex), from the tape's point.
@@ -292,7 +308,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                           point[2] + offset * wl[2])  # fmt: skip
                     lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
                 irradiance, per_strength = light_strength[j], 1.0
-            if keep:
+            if kept:
                 rec_lit[row, depth - 1, j] = lit
             if lit:
                 scalar = irradiance * max(_dot(nst, wl), 0.0)
@@ -341,14 +357,14 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             survive = min(max(estimate, MIN_SURVIVAL), MAX_SURVIVAL)
             go = go and _uniform(key, _dim(depth, _ROULETTE)) < survive
         wi = _divided(wi[0], wi[1], wi[2])
-        if keep:
+        if kept:
             rec_f[row, depth - 1, _F_SURVIVE] = survive
             _put(rec_f, row, depth - 1, _F_ESCAPE_DIR, wi)
         if not go:
             break
         scale = 1.0 / (next_pdf * survive)
         prim, t, u, v = _closest(bvh, origin, wi, stack, stack_t)
-        if keep:
+        if kept:
             rec_i[row, depth - 1, _I_NEXT] = MIRROR if mirror else AREA
             rec_f[row, depth - 1, _F_NEXT_PDF] = next_pdf
             rec_i[row, depth - 1, _I_ESCAPE] = prim < 0
@@ -404,13 +420,22 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         previous, point, xt, wot = point, point_next, x_next, wo_next
         incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
         depth += 1
-    return L0, L1, L2
+    return L0, L1, L2, depth, chain
 
 
-#: The records of ``sample_paths``: integer fields (N, max_depth, _I_FIELDS) ...
+@numba.njit(cache=True, error_model="numpy")
+def _grown(chain, max_depth):
+    """``chain`` (rows, _C_FIELDS) with twice the rows (at most ``max_depth``), the new
+    ones zero."""
+    out = np.zeros((min(2 * chain.shape[0], max_depth), chain.shape[1]))
+    out[: chain.shape[0]] = chain
+    return out
+
+
+#: The records of ``sample_paths``: integer fields (N, depth, _I_FIELDS) ...
 _I_PRIM, _I_FORM, _I_NEE_PRIM, _I_NEXT, _I_ESCAPE, _I_COUNT = range(6)
 _I_FIELDS = 6
-#: ... and float fields (N, max_depth, _F_FIELDS); _F_COORD (the camera ray's image-plane
+#: ... and float fields (N, depth, _F_FIELDS); _F_COORD (the camera ray's image-plane
 #: point) is kept at depth 0 only.
 _F_LOCAL, _F_EMIT, _F_NEE_LOCAL, _F_NEE_WEIGHT, _F_NEXT_PDF, _F_SURVIVE = 0, 3, 4, 7, 8, 9
 _F_ESCAPE_DIR, _F_COORD = 10, 13
@@ -433,7 +458,7 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
     not once per path."""
     image = paths.shape[0] == 0
     replay = grad.shape[0] > 0
-    chain = np.zeros((max_depth if replay else 0, _C_FIELDS))
+    chain = np.zeros((min(max_depth, CHAIN_ROWS) if replay else 0, _C_FIELDS))
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
@@ -444,14 +469,15 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
+            L0, L1, L2, n, chain = _trace_path(
+                bvh, s, seed_key, path, pixel % width, pixel // width, width, height, max_depth,
+                rr_depth, stack, stack_t, not image, i, rec_i, rec_f, rec_lit, delta, chain, grad,
+            )  # fmt: skip
+            L = (L0, L1, L2)
             if replay:
-                chain[:] = 0.0
-            L = _trace_path(bvh, s, seed_key, path, pixel % width, pixel // width, width, height,
-                            max_depth, rr_depth, stack, stack_t, not image, i, rec_i, rec_f,
-                            rec_lit, delta, chain, grad)  # fmt: skip
-            if replay:
-                _replay_chain(chain)
-                _factor_gradients(chain, delta, grad)
+                _replay_chain(chain[:n])
+                _factor_gradients(chain[:n], delta, grad)
+                chain[:n] = 0.0  # zero again for the next path
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
         if image and out.shape[0] > 0:
             inv = 1.0 / spp
@@ -516,16 +542,20 @@ def sample_paths(
     """The ``PathBatch`` of path ids ``paths`` (N,) int64, as ``sampler.sample(paths)``
     makes it, and each path's radiance (N, 3) float64, traced by the kernel."""
     packed = pack(sampler) if packed is None else packed
-    n, depth = len(paths), sampler.max_depth
-    rec_i = np.zeros((n, depth, _I_FIELDS), np.int64)
-    rec_f = np.zeros((n, depth, _F_FIELDS))
-    rec_lit = np.zeros((n, depth, max(packed.n_lights, 1)), np.bool_)
+    n, depth = len(paths), min(sampler.max_depth, CHAIN_ROWS)
     radiance = np.empty((n, 3))
     paths = np.ascontiguousarray(paths, np.int64)
     if n == 0:
         return PathBatch(paths, np.zeros((0, 2)), np.zeros(0, bool), []), radiance
-    _run(packed, sampler, paths=paths, radiance=radiance, records=(rec_i, rec_f, rec_lit))
-    count = rec_i[:, 0, _I_COUNT]
+    while True:
+        rec_i = np.zeros((n, depth, _I_FIELDS), np.int64)
+        rec_f = np.zeros((n, depth, _F_FIELDS))
+        rec_lit = np.zeros((n, depth, max(packed.n_lights, 1)), np.bool_)
+        _run(packed, sampler, paths=paths, radiance=radiance, records=(rec_i, rec_f, rec_lit))
+        count = rec_i[:, 0, _I_COUNT]
+        if count.max() <= depth:
+            break
+        depth = int(count.max())  # the same paths again, with room for every vertex
     vertices = []
     for k in range(depth):
         rows = np.flatnonzero(count > k)

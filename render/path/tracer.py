@@ -59,6 +59,9 @@ STOP = 0
 #: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
 #: at least MIN_SURVIVAL.
 MIN_SURVIVAL, MAX_SURVIVAL = 0.05, 0.95
+#: The largest max_depth and rr_depth: every bounce's random-number dimensions
+#: (``random.bounce_dimension``) then fit in an int64.
+MAX_DEPTH = 2**59
 
 
 @dataclass
@@ -416,9 +419,21 @@ class _State:
 
 
 def check_path_options(spp, max_depth, rr_depth) -> tuple[int, int, int]:
-    """spp >= 1, max_depth >= 1 and rr_depth >= 1, as ints, or a clear error."""
-    names = ("spp", "max_depth", "rr_depth")
-    return tuple(check_count(n, x) for n, x in zip(names, (spp, max_depth, rr_depth), strict=True))
+    """spp >= 1, max_depth and rr_depth in [1, MAX_DEPTH], as ints, or a clear error."""
+    spp = check_count("spp", spp)
+    max_depth, rr_depth = check_count("max_depth", max_depth), check_count("rr_depth", rr_depth)
+    # The kernel counts depths in int64 and draws bounce k's random numbers from dimension
+    # 2 + 8 (k - 1) + j: beyond MAX_DEPTH they would wrap around.
+    why = {
+        "max_depth": "deeper bounces would have no random numbers of their own",
+        "rr_depth": "to turn Russian roulette off, any rr_depth above max_depth will do",
+    }
+    for name, value in (("max_depth", max_depth), ("rr_depth", rr_depth)):
+        if value > MAX_DEPTH:
+            raise ValueError(
+                f"render: {name} must be an integer in [1, 2**59], got {value!r} ({why[name]})"
+            )
+    return spp, max_depth, rr_depth
 
 
 def check_count(name: str, value) -> int:
