@@ -45,7 +45,8 @@ plane's integral (``_seen_shadows``). Not covered: edges seen in a mirror (from 
 or from a vertex: the mirror's reflection has no area integral to carry them), an
 environment seen past an edge after a bounce, and occluders in contact with the surface
 behind them (a block standing on the floor: its bottom edges are left out, which is exact
-while the contact holds).
+while the contact holds, except for the contact line's own motion along the surface: a
+block sliding on the floor moves the dark line under it, and that term is missed).
 """
 
 from __future__ import annotations
