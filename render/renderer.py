@@ -40,7 +40,7 @@ import numpy as np
 
 import minidiff as md
 from render.edges import terms
-from render.edges.interior import INTERIOR_SAMPLES, add_interior_samples, check_interior_samples
+from render.edges.interior import INTERIOR_SAMPLES, antialias_mixed_pixels, check_interior_samples
 from render.edges.shadows import ShadowPairs
 from render.edges.silhouettes import EdgePairs
 from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
@@ -92,7 +92,9 @@ def render(
         True or "pairs": as just said. "boundary": silhouettes, creases, the lines where
         surfaces intersect and shadow borders get the exact edge derivative of
         box-filtered pixels instead (``render.edges.boundary``: the boundary integral, one
-        curve kind per kind of discontinuity; the image is the plain one, unchanged).
+        curve kind per kind of discontinuity), and pixels whose box is mixed become the
+        mean of ``interior_samples`` samples, in value and derivative
+        (``render.edges.interior``; the other pixels are the plain image's).
     max_bounces: how many mirror reflections a camera ray may take (RayTracer.jl's depth:
         the camera hit plus two reflections); 0 turns reflection off. Only hits on a
         material with a non-zero (or differentiated) ``reflectance`` spawn a mirror ray.
@@ -102,8 +104,8 @@ def render(
         when there are at least 16 camera rays per primitive
         (``render.trace.raster.RASTER_RAYS_PER_PRIMITIVE``). With ``bvh=False`` both are
         brute force.
-    interior_samples: with "boundary", a mixed pixel's samples for its interior term
-        (``render.edges.interior``); at most ``spp``: its own (~3x faster at 512x512).
+    interior_samples: with "boundary", a mixed pixel's samples, its value and interior
+        term (``render.edges.interior``); at most ``spp``: its own (~3x faster at 512x512).
 
     integrator: "direct" (default): the renderer above, the paper's; "path": a Monte Carlo
         path tracer with area lights (emissive materials), indirect light and the
@@ -160,8 +162,10 @@ def render(
                 image = pixel_means(world, samples, spp)  # 5
             else:
                 image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
-        if antialias == "boundary" and differentiated(scene):  # 4': zero in value
-            image = add_interior_samples(world, visibility, image, frame, spp, max_bounces, inner)
+    if antialias == "boundary":  # 4': mixed pixels from their 16 samples, on every route
+        frame = camera_frame(world.camera) if route == "fused" else frame
+        image = antialias_mixed_pixels(world, visibility, image, frame, spp, max_bounces, inner)
+        if differentiated(scene):  # the boundary term: zero in value
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
 
     image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on

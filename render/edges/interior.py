@@ -1,4 +1,4 @@
-"""The interior term where one sample cannot stand for its pixel (``antialias="boundary"``).
+"""The mixed pixels of ``antialias="boundary"``: their value and interior term from 4x4 samples.
 
 A box-filtered pixel's derivative has two parts (``render.edges.boundary``): the boundary
 term of the curves where the image jumps, and the interior term, the integral over the
@@ -11,8 +11,7 @@ in shadow) covers part of it. On a lit sphere over a ground plane at 96x96 this 
 gradient of the sphere's centre 15 % off on one axis at 1 sample per pixel (weights
 uniform in [0, 1]); faces smaller than a pixel (a teapot's) make it worse.
 
-So the interior term is estimated from more samples in just those pixels, without changing
-the image:
+So those pixels get more samples:
 
 1. Candidates: pixels whose own samples, or whose neighbours' first samples, do not all
    see the same primitive lit by the same lights (where a pixel's box is mixed, a
@@ -20,12 +19,16 @@ the image:
 2. Each candidate gets ``render(interior_samples=...)`` stratified samples (the
    renderer's own pattern for that spp; 4 x 4 by default), traced and shadow-tested like
    camera rays; it is *mixed* if they do not all see what its own first sample sees.
-3. The mixed pixels' samples are shaded on the tape, and the image gets
+3. The mixed pixels' samples are shaded on the tape, and each mixed pixel *becomes* the
+   mean of its samples, in value and in derivative. Everywhere else the render's own
+   samples stand.
 
-       (mean of the samples' colours - its value) - (the pixel's colour - its value),
-
-   zero in value; in derivative, the pixel's interior term becomes the mean over those
-   samples. Everywhere else the render's own samples stand.
+The image is then an antialiased one (mixed pixels from 16 samples, the others from the
+render's own) and the tape's derivative is the derivative of that image: for a parameter
+that moves no edge (an albedo, a light's intensity or colour) the gradient is exactly the
+image's, which finite differences (``torch.autograd.gradcheck`` through ``render.torch``)
+confirm. The mixed pixels are found and shaded whether or not anything is differentiated,
+so every route of steps 2, 3 and 5 (``render.shade.adjoint.route``) gives the same image.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ from render.scene.camera import (
     to_image_plane,
 )
 from render.scene.scene import Scene
-from render.shade.hits import sample_colours, shade_camera_hits
+from render.shade.hits import sample_colours, shade_camera_hits, working_dtype
 from render.shade.mirrors import Mirrors
 from render.trace.visibility import PrimaryHits, Visibility
 
@@ -98,7 +101,7 @@ def _restricted(seen: Visibility, rays: np.ndarray) -> Visibility:
     return replace(seen, primary=sub, lit=[mask[at] for mask in seen.lit])
 
 
-def add_interior_samples(
+def antialias_mixed_pixels(
     scene: Scene,
     visibility: Visibility,
     image: md.Tensor,
@@ -107,18 +110,45 @@ def add_interior_samples(
     max_bounces: int,
     grid_spp: int = INTERIOR_SAMPLES,
 ) -> md.Tensor:
-    """``image`` (H, W, 3) with the interior term of its mixed pixels taken from
-    ``grid_spp`` (a perfect square) stratified samples each (module docstring): the same
-    values. ``visibility``: the render's step 1 (``spp`` samples per pixel); ``frame``:
-    its camera frame. Nothing is added where ``grid_spp`` <= ``spp``."""
+    """``image`` (H, W, 3) with each mixed pixel replaced by the mean of its ``grid_spp``
+    (a perfect square) stratified samples, shaded on the tape (module docstring): value
+    and derivative from the same samples. ``visibility``: the render's step 1 (``spp``
+    samples per pixel); ``frame``: its camera frame (``camera_frame``). Nothing changes
+    where ``grid_spp`` <= ``spp``."""
+    camera = scene.camera
+    width, height = camera.width, camera.height
+    found = mixed_pixels(scene, visibility, spp, grid_spp)
+    if found is None:
+        return image
+    pixels, seen = found
+    # 3: the mixed pixels' samples on the tape.
+    mirrors = Mirrors.of(scene, seen, max_bounces)
+    shading = shade_camera_hits(scene, seen, frame, RenderCache(), mirrors, surfaces=False)
+    colours = sample_colours(scene, seen.primary.prim_id, shading.colour, shading.rays)
+    owner = np.repeat(np.arange(len(pixels)), grid_spp)
+    mean = md.scatter_add(colours, owner, len(pixels)) * (1.0 / grid_spp)
+    # The pixel's own value times 0 plus the mean: exactly the mean, in value and derivative.
+    keep = np.ones((width * height, 1), working_dtype(scene))
+    keep[pixels] = 0.0
+    flat = md.reshape(image, (width * height, 3)) * keep
+    return md.reshape(flat + md.scatter_add(mean, pixels, width * height), image.shape)
+
+
+def mixed_pixels(
+    scene: Scene, visibility: Visibility, spp: int, grid_spp: int = INTERIOR_SAMPLES
+) -> tuple[np.ndarray, Visibility] | None:
+    """Steps 1 and 2 of the module docstring, off the tape: the flat indices (m,) of the
+    mixed pixels, ascending, and their ``grid_spp`` samples' visibility (m * grid_spp rays,
+    pixel by pixel; ``visibility`` is the render's, ``spp`` per pixel). None when no pixel
+    is mixed, or ``grid_spp`` <= ``spp``."""
     camera = scene.camera
     width, height = camera.width, camera.height
     if spp >= grid_spp:
-        return image
+        return None
     own_prim, own_lit = what_is_seen(visibility, width * height * spp)
     pixels = candidate_pixels(own_prim, own_lit, width, height, spp)
     if len(pixels) == 0:
-        return image
+        return None
     # 2: the candidates' samples, traced and shadow-tested as camera rays are.
     offsets = subpixel_offsets(grid_spp)  # (G, 2)
     corner = np.stack([pixels % width, pixels // width], axis=1).astype(np.float64)
@@ -136,16 +166,6 @@ def add_interior_samples(
     )
     mixed = np.flatnonzero(~np.all(same, axis=1))
     if len(mixed) == 0:
-        return image
-    # 3: the mixed pixels' samples on the tape.
-    seen = _restricted(seen, (mixed[:, None] * grid_spp + np.arange(grid_spp)).reshape(-1))
-    mirrors = Mirrors.of(scene, seen, max_bounces)
-    shading = shade_camera_hits(scene, seen, frame, RenderCache(), mirrors, surfaces=False)
-    colours = sample_colours(scene, seen.primary.prim_id, shading.colour, shading.rays)
-    owner = np.repeat(np.arange(len(mixed)), grid_spp)
-    mean = md.scatter_add(colours, owner, len(mixed)) * (1.0 / grid_spp)
-    pixels = pixels[mixed]
-    centre = md.reshape(image, (width * height, 3))[pixels]
-    delta = (mean - md.tensor(mean.data)) - (centre - md.tensor(centre.data))
-    term = md.scatter_add(delta, pixels, width * height)
-    return image + md.reshape(term, image.shape)
+        return None
+    rays = (mixed[:, None] * grid_spp + np.arange(grid_spp)).reshape(-1)
+    return pixels[mixed], _restricted(seen, rays)

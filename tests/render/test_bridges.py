@@ -257,6 +257,29 @@ def test_torch_gradcheck_and_torch_func():
     assert torch.equal(batched, looped)
 
 
+def test_torch_gradcheck_with_boundary_antialiasing():
+    """With antialias="boundary" a mixed pixel's image is the mean of the 16 samples its
+    interior derivative comes from (``render.edges.interior``), so gradcheck passes for the
+    parameters that move no edge: an albedo, the light's intensity and colour, on a 12x12
+    teapot whose silhouette and shadow on the ground cross mixed pixels. (Its image was
+    the centre sample, its derivative the 16 samples' mean: gradcheck failed for all
+    three.) Fast mode (random projections of the Jacobian): a full check costs a render
+    per pixel."""
+    from render.edges.interior import mixed_pixels
+    from render.scene.cache import RenderCache
+    from render.trace.visibility import trace_visibility
+
+    scene = _scene(12)
+    seen = trace_visibility(scene, RenderCache(), True, 1, True)
+    pixels, samples = mixed_pixels(scene, seen, 1)
+    assert len(pixels) > 5 and not samples.lit[0].all()  # some samples hit in shadow
+    names = ["objects[0].material.albedo", "lights[0].intensity", "lights[0].color"]
+    f = rtorch.function(scene, names, antialias="boundary")
+    values = [[0.7, 0.3, 0.3], 100.0, [1.0, 0.9, 0.8]]
+    values = tuple(torch.tensor(v, dtype=torch.float64, requires_grad=True) for v in values)
+    assert torch.autograd.gradcheck(f, values, eps=1e-6, atol=1e-7, rtol=1e-5, fast_mode=True)
+
+
 def test_torch_func_jacobians_and_batched_gradients_equal_loops():
     """jacrev, jacfwd and vmap(grad(f)) raised "You tried to vmap over _Pull (_Push), but
     it does not have vmap support": the derivatives' operations now loop under vmap, and

@@ -16,7 +16,7 @@ import functools
 import numba
 import numpy as np
 
-from render.edges.boundary.pixels import GAUSS_POINTS, quadrature
+from render.edges.boundary.pixels import GAUSS_POINTS, border_share, quadrature
 from render.scene.camera import to_image_plane
 from render.trace.intersect import BLOCK, _jobs
 
@@ -56,9 +56,10 @@ def kind_points(p0, p1, pieces, counts, width: int, height: int) -> list[tuple]:
     nodes, weights = _rule()
     first = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     segment, start, end, pixel = pieces
+    p0, p1 = np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64)
     kind_start, own, coords, pixel_out, weight, key = _kind_points(
-        np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
-        start, end, pixel, nodes, weights, first, width, height, numba.get_num_threads(),
+        p0, p1, border_share(p0, p1), segment, start, end, pixel, nodes, weights, first,
+        width, height, numba.get_num_threads(),
     )  # fmt: skip
     return [
         (own[a:b], coords[a:b], pixel_out[a:b], weight[a:b], key[a:b])
@@ -77,9 +78,10 @@ def _kind_of(s, first):
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
 def _kind_points(
-    p0, p1, segment, start, end, pixel, nodes, weights, first, width, height, n_threads
+    p0, p1, share, segment, start, end, pixel, nodes, weights, first, width, height, n_threads
 ):  # fmt: skip
-    """The quadrature points (``nodes``, ``weights`` on [0, 1]) on the m pieces, grouped by
+    """The quadrature points (``nodes``, ``weights`` on [0, 1], times the ``share`` (n,) of
+    their segment: ``border_share``) on the m pieces, grouped by
     the kind of their segment (kind k's segments: first[k]:first[k + 1]), each kind's in
     the pieces' order: (where each kind's rows start (K + 1,), own segment index, coords
     (g, 2) in the image plane, pixel, weight, key: the point's row in piece order)."""
@@ -111,7 +113,7 @@ def _kind_points(
                 k = _kind_of(s, first)
                 d0, d1 = p1[s, 0] - p0[s, 0], p1[s, 1] - p0[s, 1]
                 span = end[i] - start[i]
-                length = np.sqrt(d0 * d0 + d1 * d1) * span
+                length = np.sqrt(d0 * d0 + d1 * d1) * span * share[s]
                 for q in range(g):
                     row = count[block, k]
                     count[block, k] += 1

@@ -7,6 +7,14 @@ cuts the pieces again where two pieces in one pixel cross or one ends on another
 ``quadrature`` puts Gauss-Legendre points on the parts. The cutting runs in Numba: the
 teapot at 512x512 has ~52k pieces, and the pair test inside crowded pixels is quadratic.
 ``pixel_gradient`` turns an edge function's image-plane gradient into pixel units.
+
+A segment lying on a pixel border (an axis-aligned edge seen by a centred camera: the
+commonest test scene) is shared: the box-filtered image has only one-sided derivatives
+there (moving the edge right changes the pixel on its right, moving it left the one on its
+left), and the boundary term takes the symmetric one, which central differences measure:
+each piece is given to both pixels beside the border with half its weight
+(``border_lines``, ``border_share``), and a segment on a horizontal and a vertical border
+at once (a degenerate one, at a pixel corner) to four, with a quarter.
 """
 
 from __future__ import annotations
@@ -35,6 +43,12 @@ GAUSS_POINTS = 1
 #: border must still be cut there (on one side of the junction it lies inside this
 #: shadow and jumps by nothing).
 JUNCTION = 1e-4
+#: A segment both of whose ends lie this close (pixels) to the same pixel border lies on it
+#: (``border_lines``): far above the rounding of projected pixel coordinates (~1e-13),
+#: far below any offset a finite difference could resolve.
+ON_BORDER = 1e-9
+#: ``border_lines``' entry for a segment on no border along that axis.
+NO_BORDER = np.iinfo(np.int64).min
 #: Pieces' bounding boxes are widened by this many pixels (and JUNCTION) before the pair
 #: test rejects pairs whose boxes are apart: far above the rounding of pixel coordinates
 #: (~1e-13), far below any piece's length that matters, so no pair the exact test accepts
@@ -79,8 +93,35 @@ def _crossings(a0, a1, t0, t1, out):
     return n
 
 
+def border_lines(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Per segment p0 -> p1 (k, 2) (pixel coordinates), the pixel border it lies on along
+    each axis: (k, 2) int64, column x = border[:, 0] (a vertical border) and row y =
+    border[:, 1] (a horizontal one), ``NO_BORDER`` where it lies on none (both ends within
+    ``ON_BORDER`` of the same integer)."""
+    line = np.rint(p0)
+    on = (np.abs(p0 - line) <= ON_BORDER) & (np.abs(p1 - line) <= ON_BORDER)
+    return np.where(on, line, NO_BORDER).astype(np.int64)
+
+
+def border_share(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    """Per segment p0 -> p1 (k, 2), the share (k,) of each pixel its pieces are given to: 1,
+    1/2 on a pixel border (the pixels either side each get half), 1/4 on two (a corner)."""
+    return np.prod(np.where(border_lines(p0, p1) == NO_BORDER, 1.0, 0.5), axis=1)
+
+
 @numba.njit(cache=True)
-def _count_pieces(p0, p1, width, height):
+def _cells(c, border):
+    """The pixel cells, along one axis, of a piece whose midpoint has coordinate ``c``: the
+    two cells beside ``border`` if the piece's segment lies on it (``border_lines``), else
+    the cell holding ``c`` (twice). Cells outside the image are skipped by the caller."""
+    if border != NO_BORDER:
+        return border - 1, border
+    cell = math.floor(c)
+    return cell, cell
+
+
+@numba.njit(cache=True)
+def _count_pieces(p0, p1, border, width, height):
     n = 0
     for s in range(p0.shape[0]):
         t0, t1 = _clip_box(p0[s, 0], p0[s, 1], p1[s, 0], p1[s, 1], width, height)
@@ -88,12 +129,14 @@ def _count_pieces(p0, p1, width, height):
             continue
         ax, ay = p0[s, 0] + t0 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t0 * (p1[s, 1] - p0[s, 1])
         bx, by = p0[s, 0] + t1 * (p1[s, 0] - p0[s, 0]), p0[s, 1] + t1 * (p1[s, 1] - p0[s, 1])
-        n += abs(math.floor(bx) - math.floor(ax)) + abs(math.floor(by) - math.floor(ay)) + 1
+        copies = (1 + (border[s, 0] != NO_BORDER)) * (1 + (border[s, 1] != NO_BORDER))
+        pieces = abs(math.floor(bx) - math.floor(ax)) + abs(math.floor(by) - math.floor(ay)) + 1
+        n += copies * pieces
     return n
 
 
 @numba.njit(cache=True)
-def _fill_pieces(p0, p1, width, height, segment, start, end, pixel):
+def _fill_pieces(p0, p1, border, width, height, segment, start, end, pixel):
     xs = np.empty(width + 2)
     ys = np.empty(height + 2)
     n = 0
@@ -118,11 +161,14 @@ def _fill_pieces(p0, p1, width, height, segment, start, end, pixel):
                 m = 0.5 * (a + b)
                 cx = p0[s, 0] + m * (p1[s, 0] - p0[s, 0])
                 cy = p0[s, 1] + m * (p1[s, 1] - p0[s, 1])
-                col, row = math.floor(cx), math.floor(cy)
-                if 0 <= col < width and 0 <= row < height:
-                    segment[n], start[n], end[n] = s, a, b
-                    pixel[n] = row * width + col
-                    n += 1
+                col0, col1 = _cells(cx, border[s, 0])
+                row0, row1 = _cells(cy, border[s, 1])
+                for row in range(row0, row1 + 1):
+                    for col in range(col0, col1 + 1):
+                        if 0 <= col < width and 0 <= row < height:
+                            segment[n], start[n], end[n] = s, a, b
+                            pixel[n] = row * width + col
+                            n += 1
             a = b
             if b >= t1:
                 break
@@ -132,12 +178,15 @@ def _fill_pieces(p0, p1, width, height, segment, start, end, pixel):
 def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
     """Cut 2-D segments p0 -> p1 (k, 2), in pixel coordinates, at pixel borders and at the
     image's border: per piece its segment (m,) int64, parameter range [start, end] (m,)
-    each along the segment, and pixel (m,) int64 (row * W + column)."""
+    each along the segment, and pixel (m,) int64 (row * W + column). A segment lying on a
+    pixel border gives each piece to both pixels beside it, in two rows (four at a corner;
+    ``border_share`` is the weight of each)."""
     p0, p1 = np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64)
-    bound = _count_pieces(p0, p1, width, height)
+    border = border_lines(p0, p1)
+    bound = _count_pieces(p0, p1, border, width, height)
     segment, pixel = np.empty(bound, np.int64), np.empty(bound, np.int64)
     start, end = np.empty(bound), np.empty(bound)
-    n = _fill_pieces(p0, p1, width, height, segment, start, end, pixel)
+    n = _fill_pieces(p0, p1, border, width, height, segment, start, end, pixel)
     return segment[:n], start[:n], end[:n], pixel[:n]
 
 
@@ -381,13 +430,15 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
 
 def quadrature(p0, p1, segment, start, end):
     """Gauss-Legendre points on the pieces: positions (m * GAUSS_POINTS, 2), their segment,
-    and weights (the rule's weight times the piece's length, in pixels)."""
+    and weights (the rule's weight times the piece's length, in pixels, times its
+    segment's ``border_share``)."""
     nodes, weights = np.polynomial.legendre.leggauss(GAUSS_POINTS)
     nodes, weights = (nodes + 1.0) / 2.0, weights / 2.0
     t = start[:, None] + (end - start)[:, None] * nodes[None, :]  # (m, g)
     first = np.take(p0, segment, axis=0)  # np.take: a faster gather than p0[segment]
     delta = np.take(p1, segment, axis=0) - first
     length = np.sqrt(np.einsum("ij,ij->i", delta, delta)) * (end - start)
+    length = length * border_share(p0, p1)[segment]
     points = first[:, None, :] + t[..., None] * delta[:, None, :]
     return (
         points.reshape(-1, 2),

@@ -366,17 +366,22 @@ def test_antialias_refuses_an_unknown_method():
         render(_scene("triangle", FLAT), antialias="exact")
 
 
-def test_boundary_term_leaves_the_image_unchanged():
-    """Zero in value, shadows included: the image is the plain one, bit for bit, and no
-    pairs of samples were blended. (Both on the tape: a render nothing differentiates is
+def test_boundary_term_leaves_the_image_unchanged(monkeypatch):
+    """Zero in value, shadows included: the image is the one without the boundary term,
+    bit for bit (the plain one where no pixel is mixed, ``interior_samples=1``), and no
+    pairs of samples were blended. (All on the tape: a render nothing differentiates is
     shaded by ``render.shade.compiled``, whose lobes may differ in the last bit.)"""
     scene = random_scene(5, lights=("point", "directional"))
     for tensor in scene.parameters():
         tensor.requires_grad = True
     plain = render(scene, reuse_visibility=False).data
     image, info = render(scene, antialias="boundary", return_info=True)
-    np.testing.assert_array_equal(image.data, plain)
+    own = render(scene, antialias="boundary", interior_samples=1)
+    assert image.requires_grad and own.requires_grad
+    np.testing.assert_array_equal(own.data, plain)
     assert info.pairs is None and info.shadow_pairs is None
+    monkeypatch.setattr("render.renderer.add_boundary_term", lambda *args: args[3])
+    np.testing.assert_array_equal(image.data, render(scene, antialias="boundary").data)
 
 
 def test_nothing_in_view_gives_no_boundary_term():

@@ -1,7 +1,7 @@
-"""The interior term of mixed pixels from more samples (``render.edges.interior``): the
-image is unchanged, every pixel whose box is mixed is found, and the one-sample gradient
-of a lit sphere over a ground plane is the box-filtered pixels' derivative (it was 27 %
-off at 48x48 before, 56 % on x)."""
+"""The mixed pixels from more samples (``render.edges.interior``): each is the mean of its
+samples in value and in derivative, every pixel whose box is mixed is found, and the
+one-sample gradient of a lit sphere over a ground plane is the box-filtered pixels'
+derivative (it was 27 % off at 48x48 before, 56 % on x)."""
 
 from __future__ import annotations
 
@@ -45,13 +45,42 @@ def test_every_mixed_pixel_is_a_candidate(size):
         assert np.isin(np.flatnonzero(mixed), found).all()
 
 
-def test_the_image_is_unchanged_and_mixed_pixels_get_their_samples_derivative():
-    scene = render.paper_scene(24, 24)
+def test_a_mixed_pixel_is_the_mean_of_its_samples_on_every_route():
+    """With "boundary", each mixed pixel of the image is the mean of its 4 x 4 samples (the
+    16-spp render's pixel: the same pattern), every other pixel the plain render's; the
+    same image whether or not anything is differentiated (the fused route, and the tape
+    with the light's position or the camera moving the hits: the adjoint node)."""
+    scene = render.paper_scene(24, 24, ground=True)
     plain = render.render(scene, reuse_visibility=False).data
+    dense = render.render(scene, spp=16, reuse_visibility=False).data
+    visibility = trace_visibility(scene, RenderCache(), True, 1, True)
+    pixels, _ = interior.mixed_pixels(scene, visibility, 1)
+    mixed = np.zeros(24 * 24, bool)
+    mixed[pixels] = True
+    mixed = mixed.reshape(24, 24)
+    images = {"fused": render.render(scene, antialias="boundary", reuse_visibility=False)}
+    for route, tensor in (("tape", scene.lights[0].position), ("node", scene.camera.position)):
+        tensor.requires_grad = True
+        images[route] = render.render(scene, antialias="boundary", reuse_visibility=False)
+        tensor.requires_grad = False
+    assert mixed.sum() > 20 and np.abs(dense - plain)[mixed].max() > 0.05
+    for route, image in images.items():
+        np.testing.assert_allclose(
+            image.data[mixed], dense[mixed], rtol=1e-12, atol=1e-15, err_msg=route
+        )
+        np.testing.assert_allclose(
+            image.data[~mixed], plain[~mixed], rtol=1e-12, atol=1e-15, err_msg=route
+        )
+    # The tape route's own pixels are the plain render's, bit for bit.
+    np.testing.assert_array_equal(images["tape"].data[~mixed], plain[~mixed])
+
+
+def test_mixed_pixels_get_their_samples_derivative():
+    """At 1 spp the mixed pixels' derivative comes from their 16 samples; at 16 spp the
+    render's own samples are the grid's and nothing is added: both gradients agree."""
+    scene = render.paper_scene(24, 24)
     scene.lights[0].position.requires_grad = True
     image = render.render(scene, antialias="boundary", reuse_visibility=False)
-    np.testing.assert_array_equal(image.data, plain)
-    # At 16 samples per pixel the render's own samples are the grid's: nothing is added.
     dense = render.render(scene, antialias="boundary", spp=16, reuse_visibility=False)
     assert interior.INTERIOR_SAMPLES == 16
     image.sum().backward()
