@@ -167,7 +167,6 @@ def render(
         image = antialias_mixed_pixels(world, visibility, image, frame, spp, max_bounces, inner)
         if differentiated(scene):  # the boundary term: zero in value
             image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
-
     image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on
     if not return_info:
         return image
