@@ -643,8 +643,10 @@ print(f"d(sum of the image)/dI: chunked {by_chunks[0]:.12f}, tape {tape_gradient
 # printed; two when the machine has two cores). The `prange` reduction's bits (printed in
 # hex, and how many differ) *may* change between one and two threads on your machine, or
 # not: nothing promises either, and that is the problem. Splitting the same terms into 1,
-# 2, ..., 8 chunks gives `7` <!-- check: distinct_sums --> different sums, so an order that
-# follows the thread count gives bits that follow it too. All of them are right to
+# 2, ..., 8 chunks gives more than `1` <!-- check: distinct_sums > --> different sum (the
+# run prints how many: 6 or 7 on the machines we tried, as the terms' last bits depend on
+# NumPy's build and the CPU), so an order that follows the thread count gives bits that
+# follow it too. All of them are right to
 # rounding: the chunked sum is within `1e-12` <!-- check: chunked_vs_tape < --> of the
 # tape's gradient `∂(Σ image)/∂I`, whose VJPs compute the same terms and add them in yet
 # another order.

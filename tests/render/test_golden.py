@@ -133,8 +133,9 @@ def machine_fingerprint() -> dict:
         "numpy": {
             "version": np.__version__,
             # The targets NumPy dispatches to on this CPU (NPY_DISABLE_CPU_FEATURES included).
-            "simd_baseline": simd["baseline"],
-            "simd_dispatched": simd["found"],
+            # NumPy leaves a key out when its list is empty (every target disabled).
+            "simd_baseline": simd.get("baseline", []),
+            "simd_dispatched": simd.get("found", []),
             "blas": f"{blas.get('name')} {blas.get('version')}",
             "blas_build": blas.get("openblas configuration", ""),
             "OPENBLAS_CORETYPE": os.environ.get("OPENBLAS_CORETYPE", ""),
