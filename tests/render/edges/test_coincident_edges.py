@@ -1,0 +1,139 @@
+"""Edges that lie on one curve without sharing vertices, repeated faces and thin boxes, in
+the boundary integral (``render.edges.boundary.mesh_edge``), checked against what it
+estimates: finite differences of supersampled renders (``render.inverse.reference``, as in
+tests/render/edges/test_shared_edges.py).
+
+Measured before these cases were handled (the issue's own figures on its scenes): a
+T-junction, a 1e-7 gap or a 1e-3 flat overlap between two meshes' seams counted the seam
+twice (4.74 against 2.79), a T-junction on a crease inside one mesh too (-8.96 against
+-5.91); on these scenes, a 1e-6 thin box showed its far edges through its near face
+(17.6 against 5.3).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+
+import minidiff as md
+from render import Camera, Material, Mesh, PointLight, Scene, Transform
+from render.inverse.reference import window_difference, window_mean_gradient
+
+SIZE = 16
+RED, GREEN = Material(albedo=(0.8, 0.1, 0.1)), Material(albedo=(0.1, 0.8, 0.2))
+LIGHT = PointLight((1.0, 4.0, 2.0), 40.0)
+
+
+def _grid(xs, ys, z=0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Quads over the grid of x coordinates ``xs`` and y coordinates ``ys`` at depth z,
+    two triangles each (vertex r * len(xs) + c at (xs[c], ys[r]))."""
+    vertices = np.array([[x, y, z] for y in ys for x in xs], float)
+    n, faces = len(xs), []
+    for r in range(len(ys) - 1):
+        for c in range(n - 1):
+            a = r * n + c
+            faces += [[a, a + 1, a + n + 1], [a, a + n + 1, a + n]]
+    return vertices, np.array(faces)
+
+
+def _camera(position=(0.3, 0.4, 3.0)) -> Camera:
+    return Camera(position=position, look_at=(0, 0, 0), width=SIZE, height=SIZE)
+
+
+def _seam_scene(how: str, width: float, crease: bool, t) -> Scene:
+    """A red and a green half meeting along x = 0, under one moved ``Transform``: as two
+    meshes whose seams do not share vertices ("junction": the green half split at the
+    seam's middle; "gap": the green half ``width`` to the right; "overlap": ``width`` over
+    the red half), or as one mesh with a T-junction on a crease ("crease": one material,
+    the right half folded back)."""
+    left = _grid([-1.0, 0.0], [-0.7, 0.7])
+    right = _grid([0.0, 1.0], [-0.7, 0.0, 0.7] if how in ("junction", "crease") else [-0.7, 0.7])
+    shift = {"gap": width, "overlap": -width}.get(how, 0.0)
+    right[0][:, 0] += shift
+    if crease or how == "crease":
+        right[0][:, 2] += 0.6 * (right[0][:, 0] - shift)
+    moved = md.tensor(np.asarray(t, float), requires_grad=True)
+    place = Transform(translation=moved)
+    if how == "crease":
+        vertices = np.concatenate([left[0], right[0]])
+        faces = np.concatenate([left[1], right[1] + len(left[0])])
+        objects = [Mesh(vertices, faces, RED, transform=place)]
+    else:
+        objects = [Mesh(*left, RED, transform=place), Mesh(*right, GREEN, transform=place)]
+    scene = Scene(objects, [LIGHT], _camera())
+    scene.moved = moved
+    return scene
+
+
+def _box_scene(thickness: float, t) -> Scene:
+    """A closed box 1.6 x ``thickness`` x 1, seen from above, moved by a ``Transform``."""
+    low, high = np.array([-0.8, -0.2, -0.5]), np.array([0.8, -0.2 + thickness, 0.5])
+    corners = np.array([[x, y, z] for x in (low[0], high[0]) for y in (low[1], high[1])
+                        for z in (low[2], high[2])])  # fmt: skip
+    faces = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+             [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]  # fmt: skip
+    moved = md.tensor(np.asarray(t, float), requires_grad=True)
+    mesh = Mesh(corners, faces, RED, transform=Transform(translation=moved))
+    scene = Scene([mesh], [LIGHT], _camera((0.3, 0.9, 3.0)))
+    scene.moved = moved
+    return scene
+
+
+def _repeated_scene(t) -> Scene:
+    """A lit quad one of whose faces is listed twice, moved by a ``Transform``."""
+    vertices = np.array([[-1.0, -0.7, 0], [0.8, -0.6, 0], [0.9, 0.7, 0], [-1, 0.7, 0]])
+    moved = md.tensor(np.asarray(t, float), requires_grad=True)
+    mesh = Mesh(vertices, [[0, 1, 2], [0, 2, 3], [0, 1, 2]], RED,
+                transform=Transform(translation=moved))  # fmt: skip
+    scene = Scene([mesh], [LIGHT], _camera())
+    scene.moved = moved
+    return scene
+
+
+def _error(build, axes=(0, 1, 2)) -> tuple[float, list, list]:
+    """The relative error of our window-mean translation gradient against the supersampled
+    central difference, over ``axes`` (the norm of the difference over the norm of the
+    truth), and both."""
+    weights = np.random.default_rng(1).uniform(0.0, 1.0, (SIZE, SIZE, 3))
+    truth, ours = [], []
+    for axis in axes:
+        direction = np.eye(3)[axis]
+
+        def make(s, direction=direction):
+            scene = build(s * direction)
+            return scene, scene.moved, direction
+
+        truth.append(window_difference(make, weights, 0.02, 256))
+        ours.append(window_mean_gradient(make, weights, 0.02, "boundary", 8))
+    return np.linalg.norm(np.subtract(ours, truth)) / np.linalg.norm(truth), ours, truth
+
+
+@settings(max_examples=4, deadline=None)
+@given(
+    how=st.sampled_from(["junction", "gap", "overlap", "crease"]),
+    exponent=st.floats(-9.0, -3.0),
+    crease=st.booleans(),
+)
+@example(how="junction", exponent=-9.0, crease=False)
+@example(how="gap", exponent=-7.0, crease=False)
+@example(how="overlap", exponent=-3.0, crease=False)
+@example(how="crease", exponent=-9.0, crease=True)
+def test_a_seam_without_shared_vertices_is_counted_once(how, exponent, crease):
+    """Gaps and overlaps from 1e-9 to 1e-3 of the scene's size (about 3), T-junctions."""
+    width = 3.0 * 10.0**exponent
+    error, ours, truth = _error(lambda t: _seam_scene(how, width, crease, t))
+    assert error < 0.05, (ours, truth)
+
+
+@settings(max_examples=3, deadline=None)
+@given(exponent=st.floats(-9.0, -2.0))
+@example(exponent=-6.0)
+def test_a_thin_box_hides_its_far_edges(exponent):
+    error, ours, truth = _error(lambda t: _box_scene(10.0**exponent, t))
+    assert error < 0.05, (ours, truth)
+
+
+def test_a_repeated_face_is_counted_once():
+    error, ours, truth = _error(_repeated_scene)
+    assert error < 0.05, (ours, truth)
