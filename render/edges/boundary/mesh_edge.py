@@ -283,8 +283,14 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = Tru
     )  # fmt: skip
     seen = np.flatnonzero(~hidden)
     faces = _faces_on(kind, shared_faces)[edges[seen]]  # (n, K) global ids, -1 padding
-    seen = seen[~_thinly_hidden(view, directions[seen], depth[seen], faces)]
     open_row = _open_rows(kind, shared_faces)
+    occluder = _thin_occluder(view, directions[seen], depth[seen], faces)
+    # An open edge just behind a face that draws the same curve is that curve: which of the
+    # two counts it is ``_counted_elsewhere``'s choice, made as if neither hid the other.
+    near = np.flatnonzero((occluder >= 0) & open_row[edges[seen]])
+    points = eye + depth[seen[near], None] * directions[seen[near]]
+    occluder[near[_coincident(view, kind, edges[seen[near]], points, occluder[near])]] = -1
+    seen = seen[occluder < 0]
     step = _beyond_steps(view, open_row, edges, directions, depth, step, seen)
     mine = seen[open_row[edges[seen]]]  # only open boundaries can lie on another's edge
     elsewhere = _counted_elsewhere(view, kind, *(np.take(x, mine, axis=0) for x in (
@@ -326,19 +332,19 @@ def _faces_on(kind: MeshEdge, shared_faces: np.ndarray) -> np.ndarray:
     return np.concatenate([np.where(own >= 0, own + kind.first_prim, -1), shared_faces], axis=1)
 
 
-def _thinly_hidden(view: View, directions, depth, faces) -> np.ndarray:
-    """(n,) bool: which of n edge points seen along camera directions (n, 3) at ``depth``
-    (n,), visible to ``hidden_points``, are hidden after all by a primitive other than their
-    edge's ``faces`` (n, K) between THIN and 1e-6 of their depth in front of them: the
-    other side of a box thinner than a millionth of its distance (without this, its far
-    edges showed through: a 1e-6 thick box translated gave 17.6 against 5.3)."""
+def _thin_occluder(view: View, directions, depth, faces) -> np.ndarray:
+    """(n,) int64: for n edge points seen along camera directions (n, 3) at ``depth`` (n,),
+    visible to ``hidden_points``, a primitive other than their edge's ``faces`` (n, K)
+    that hides them after all, between THIN and 1e-6 of their depth in front of them (-1:
+    none): the other side of a box thinner than a millionth of its distance (without this,
+    its far edges showed through: a 1e-6 thick box translated gave 17.6 against 5.3)."""
     if len(depth) == 0:
-        return np.zeros(0, bool)
+        return np.zeros(0, np.int64)
     eye = view.frame[3]
     prim, _, _, _ = view.occluders.accelerator().closest_hit(
         np.broadcast_to(eye, directions.shape), directions, tmax=depth * (1.0 - THIN)
     )
-    return (prim >= 0) & ~np.any(faces == prim[:, None], axis=1)
+    return np.where(np.any(faces == prim[:, None], axis=1), -1, prim)
 
 
 def _open_rows(kind: MeshEdge, shared_faces: np.ndarray) -> np.ndarray:
@@ -368,15 +374,11 @@ def _counted_elsewhere(view: View, kind: MeshEdge, rows, coords, directions, dep
     (n,), image-plane coords (n, 2), camera directions (n, 3), depth (n,), ``step`` (n, 2)
     and ``chosen`` (n, 2) of ``edge_sides_kernel``) another edge counts instead.
 
-    The ray just beyond the edge meets a face q whose plane holds the edge point, and
-    either one of q's edges lies on the edge's line (a T-junction, a seam whose vertices
-    do not coincide, a gap or overlap narrower than COINCIDENT times the scene's size) or q
-    is parallel to the edge's own face (a flat overlap: each edge lies inside the other's
-    face). Then q's edge sees this edge's face beyond it in turn, and both would count the
-    one jump in the image: the edge whose face has the lower global id keeps it (the same
-    choice seen from either side), with q as what lies beyond."""
-    n = len(rows)
-    if n == 0:
+    The ray just beyond the edge meets a face q that is ``_coincident`` with the edge: q's
+    edge sees this edge's face beyond it in turn, and both would count the one jump in the
+    image. The edge whose face has the lower global id keeps it (the same choice seen from
+    either side), with q as what lies beyond."""
+    if len(rows) == 0:
         return np.zeros(0, bool)
     forward, right, up, eye = view.frame
     side = np.where(chosen[:, 0] < 0, 1.0, -1.0)  # towards the side without a face
@@ -384,36 +386,37 @@ def _counted_elsewhere(view: View, kind: MeshEdge, rows, coords, directions, dep
     q, _, _, _ = view.occluders.accelerator().closest_hit(
         np.broadcast_to(eye, beyond.shape), beyond
     )
+    own = kind.table.faces[rows, 0] + kind.first_prim
+    return _coincident(view, kind, rows, eye + depth[:, None] * directions, q) & (q < own)
+
+
+def _coincident(view: View, kind: MeshEdge, rows, point, q) -> np.ndarray:
+    """(n,) bool: whether face q (n,) (global ids; -1 or a sphere: no) draws the same curve
+    as the open edges ``rows`` (n,) of ``kind.table`` at their points ``point`` (n, 3): the
+    point lies on q's plane (within COINCIDENT times the scene's size) and either one of
+    q's edges lies on the edge's line (a T-junction, a seam whose vertices do not coincide,
+    a gap or overlap narrower than that) or q is parallel to the edge's own face (a flat
+    overlap: each edge lies inside the other's face)."""
     triangles = view.occluders.primitives[0]
     own = kind.table.faces[rows, 0] + kind.first_prim
-    if len(triangles) == 0:
-        return np.zeros(n, bool)
+    if len(triangles) == 0 or len(rows) == 0:
+        return np.zeros(len(rows), bool)
     tri = triangles[np.clip(q, 0, len(triangles) - 1)]  # (n, 3, 3)
     tolerance = COINCIDENT * view.size
-    point = eye + depth[:, None] * directions
     normal = _unit(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]))
     on_q = np.abs(np.sum((point - tri[:, 0]) * normal, axis=1)) <= tolerance
     face = triangles[own]
-    parallel = (
-        np.linalg.norm(
-            np.cross(_unit(np.cross(face[:, 1] - face[:, 0], face[:, 2] - face[:, 0])), normal),
-            axis=1,
-        )
-        <= COINCIDENT
-    )
+    face_normal = _unit(np.cross(face[:, 1] - face[:, 0], face[:, 2] - face[:, 0]))
+    parallel = np.linalg.norm(np.cross(face_normal, normal), axis=1) <= COINCIDENT
     vertices = np.asarray(view.scene.meshes[kind.index].vertices.data, np.float64)
-    a, u = (
-        vertices[kind.table.i[rows]],
-        _unit(vertices[kind.table.j[rows]] - vertices[kind.table.i[rows]]),
-    )
+    a, b = vertices[kind.table.i[rows]], vertices[kind.table.j[rows]]
+    u = _unit(b - a)[:, None]
     off = tri - a[:, None]  # (n, 3, 3): q's corners from a
-    off_line = np.linalg.norm(
-        off - np.sum(off * u[:, None], axis=2, keepdims=True) * u[:, None], axis=2
-    )
+    off_line = np.linalg.norm(off - np.sum(off * u, axis=2, keepdims=True) * u, axis=2)
     near = off_line <= tolerance  # (n, 3): which corners of q lie on the edge's line
     in_line = np.any(near & np.roll(near, -1, axis=1), axis=1)  # two corners: one of q's edges
     q_face = (q >= 0) & (q < len(triangles)) & (q != own)
-    return q_face & on_q & (in_line | parallel) & (q < own)
+    return q_face & on_q & (in_line | parallel)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
