@@ -19,6 +19,7 @@ from hypothesis import strategies as st
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Transform
 from render.inverse.reference import window_difference, window_mean_gradient
+from render.trace.topology import mesh_edges, repeated_faces
 
 SIZE = 16
 RED = Material(albedo=(0.8, 0.1, 0.1))
@@ -87,13 +88,20 @@ def _box_scene(thickness: float, t) -> Scene:
     return scene
 
 
-def _repeated_scene(t) -> Scene:
-    """A lit quad one of whose faces is listed twice, moved by a ``Transform``."""
-    vertices = np.array([[-1.0, -0.7, 0], [0.8, -0.6, 0], [0.9, 0.7, 0], [-1, 0.7, 0]])
+def _repeated_scene(face: int, turn: int, flip: bool, t) -> Scene:
+    """A lit quad casting a shadow on the ground, face ``face`` of its two listed again
+    (its corners turned by ``turn``, wound the other way with ``flip``), moved by a
+    ``Transform``."""
+    vertices = np.array([[-0.6, -0.2, -0.4], [0.5, -0.1, -0.5], [0.6, 0.0, 0.5], [-0.5, -0.1, 0.4]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    again = np.roll(faces[face], turn)
+    faces = np.concatenate([faces, [again[::-1] if flip else again]])
     moved = md.tensor(np.asarray(t, float), requires_grad=True)
-    mesh = Mesh(vertices, [[0, 1, 2], [0, 2, 3], [0, 1, 2]], RED,
-                transform=Transform(translation=moved))  # fmt: skip
-    scene = Scene([mesh], [LIGHT], _camera())
+    mesh = Mesh(vertices, faces, RED, transform=Transform(translation=moved))
+    ground = Mesh(np.array([[-3, -1, -3], [3, -1, -3], [3, -1, 3], [-3, -1, 3.0]]),
+                  [[0, 2, 1], [0, 3, 2]], Material(albedo=(0.6, 0.6, 0.6)))  # fmt: skip
+    camera = Camera(position=(0.3, 1.5, 3.0), look_at=(0, -0.5, 0), width=24, height=24)
+    scene = Scene([mesh, ground], [PointLight((0.5, 4.0, 1.0), 40.0)], camera)
     scene.moved = moved
     return scene
 
@@ -139,7 +147,7 @@ def test_a_t_junction_on_a_crease_is_counted_once():
     assert error < 0.05, (ours, truth)
 
 
-@settings(max_examples=2, deadline=None)
+@settings(max_examples=1, deadline=None)
 @given(exponent=st.floats(-9.0, -2.0))
 @example(exponent=-6.0)
 def test_a_thin_box_hides_its_far_edges(exponent):
@@ -149,6 +157,22 @@ def test_a_thin_box_hides_its_far_edges(exponent):
     assert error < 0.05, (ours, truth)
 
 
-def test_a_repeated_face_is_counted_once():
-    error, ours, truth = _error(_repeated_scene)
+@settings(max_examples=1, deadline=None)
+@given(face=st.integers(0, 1), turn=st.integers(0, 2), flip=st.booleans())
+@example(face=0, turn=1, flip=False)
+def test_a_repeated_face_is_counted_once(face, turn, flip):
+    """Before: a repeated face (same winding) made its edges two-faced, neither open nor
+    a silhouette from the light, and the shadow's border was lost (x: 18.0 against -2.45
+    on this scene)."""
+    error, ours, truth = _error(lambda t: _repeated_scene(face, turn, flip, t), size=24)
     assert error < 0.05, (ours, truth)
+
+
+def test_repeated_faces_are_left_out_of_the_edge_table():
+    """The same triangle listed again from another corner is left out of the topology;
+    wound the other way, it stays (the back of a two-sided sheet)."""
+    faces = np.array([[0, 1, 2], [0, 2, 3], [2, 0, 1], [2, 1, 0], [3, 0, 2]])
+    np.testing.assert_array_equal(repeated_faces(faces), [False, False, True, False, True])
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    table = mesh_edges(vertices, faces).table
+    assert set(table.faces.reshape(-1)) - {-1} == {0, 1, 3}
