@@ -12,6 +12,14 @@ nearest there of the faces on that side (``edge_sides_kernel``), shaded at the e
 a side without a face (a silhouette's outside) is what a ray just beyond the edge sees.
 Both sides are shaded, shadows included, in one compiled pass (``edge_kernel``) where the
 scene allows, else by the render's ``SideRadiance`` (``_side_factors``, the reference).
+
+Edges that lie on one curve without sharing vertices (a T-junction, inside a mesh or
+between two; a seam whose two sides were cut differently; a gap or overlap narrower than
+COINCIDENT of the scene; two faces overlapping flat) would each count the jump that the
+ray beyond the other sees: the one curve twice (the translation gradient of a plane split
+at a T-junction was 4.74 against 2.79). Where the ray beyond an open edge meets such a
+face, one of the two edges counts the curve (``_counted_elsewhere``); edges that share
+their vertices are matched across meshes before (``render.trace.seams``).
 """
 
 from __future__ import annotations
@@ -258,7 +266,9 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = Tru
     with no face (a silhouette's outside, an open boundary) is what a ray just beyond the
     edge sees. A crease has one face on each side, a silhouette both on one. The faces
     other meshes have on these edges (``kind.shared``) are candidates on either side as
-    the mesh's own are.
+    the mesh's own are. A point is hidden too by what lies in front of it closer than
+    ``hidden_points`` looks (``_thin_occluder``), and an open edge's point is left to the
+    edge of another face that draws the same curve (``_counted_elsewhere``).
 
     With ``compiled`` the sides are shaded by ``edge_kernel.side_factors`` where it
     applies to the scene (``edge_kernel.pack_scene``), the rest by ``_side_factors`` (the
