@@ -31,8 +31,8 @@ class MeshEdges:
     """Each face's three edges grouped by the welded edge they lie on.
 
     edge_group (F, 3) int64: edge k of face f (corners k and k+1 mod 3) lies on welded edge
-        ``edge_group[f, k]``; -1 for the edges of degenerate faces (never silhouettes, and
-        they are nobody's neighbour).
+        ``edge_group[f, k]``; -1 for the edges of degenerate and repeated faces (``welding``:
+        never silhouettes, and they are nobody's neighbour).
     n_groups: the number of welded edges.
     neighbour (F, 3) int64: the other face on edge k of face f when exactly two
         non-degenerate faces share it; -1 otherwise (a boundary or non-manifold edge).
@@ -56,7 +56,7 @@ class MeshEdges:
 @dataclass
 class EdgeTable:
     """The welded edges of one mesh, one row per edge, with every face on it (degenerate
-    faces left out).
+    and repeated faces left out).
 
     i, j (E,) int64: the edge's vertex ids (as its first face has them).
     faces (E, K) int64: the faces on the edge (local ids), -1 padding: one on an open
@@ -137,9 +137,11 @@ def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
 
 def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """All that ``mesh_edges`` needs from the vertex positions: each corner's welded vertex
-    id (F, 3) int64 and which faces are degenerate (F,) bool (a welded edge, or an area
-    below ``_DEGENERATE_AREA`` of the mesh's squared size). While a shape moves, these
-    rarely change, so the rest (``edge_structure``) can be reused."""
+    id (F, 3) int64 and which faces are degenerate (F,) bool (a welded edge, an area below
+    ``_DEGENERATE_AREA`` of the mesh's squared size, or a repeat of an earlier face with
+    the same welded corners in the same winding: the surface is there once, and its edges
+    are open or shared as if it were listed once). While a shape moves, these rarely
+    change, so the rest (``edge_structure``) can be reused."""
     scale = _scale(vertices)
     ids = welded_ids(vertices)[faces]  # (F, 3) welded vertex ids
     corners = vertices[faces]
@@ -149,7 +151,21 @@ def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     degenerate = (
         (ids[:, 0] == ids[:, 1]) | (ids[:, 1] == ids[:, 2]) | (ids[:, 2] == ids[:, 0])
     ) | (area <= _DEGENERATE_AREA * scale * scale)
-    return ids, degenerate
+    return ids, degenerate | repeated_faces(ids)
+
+
+def repeated_faces(ids: np.ndarray) -> np.ndarray:
+    """(F,) bool: the faces whose corners ``ids`` (F, 3) (welded vertex ids) repeat an
+    earlier face's in the same cyclic order (the same triangle, wound the same way; a copy
+    wound the other way is the back of a two-sided sheet, and stays)."""
+    if len(ids) == 0:
+        return np.zeros(0, bool)
+    start = np.argmin(ids, axis=1)[:, None]  # each face read from its lowest id on
+    turned = np.take_along_axis(ids, (start + np.arange(3)) % 3, axis=1)
+    group = row_ids(turned)
+    first = np.full(int(group.max()) + 1, len(ids))
+    np.minimum.at(first, group, np.arange(len(ids)))
+    return first[group] != np.arange(len(ids))
 
 
 def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -> MeshEdges:
