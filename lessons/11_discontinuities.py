@@ -313,9 +313,9 @@ print({name: round(e, 4) for name, e in method_errors.items()})
 # Relative to the truth (over the whole gradient image), the plain renderer is off by
 # `0.9` <!-- check: plain_teapot_error > --> or more (it has only the interior term), the
 # pixel pairs by `0.29` <!-- check: pairs_teapot_error -->, the boundary integral by
-# `0.047` <!-- check: boundary_teapot_error -->.
+# `0.045` <!-- check: boundary_teapot_error -->.
 #
-# How good is that 0.047? The truth is an estimate too: a regular grid of samples counts
+# How good is that 0.045? The truth is an estimate too: a regular grid of samples counts
 # an edge's coverage in steps of one sample spacing, and the step moves the edges by only
 # nine spacings. Another grid (63², 60² or 70² samples per pixel) or another step
 # gives another truth, with errors of its own. Five more of them:
@@ -355,23 +355,23 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # The five other truths differ from ours by `0.038` <!-- check: truth_spread_low --> to
 # just under `0.085` <!-- check: truth_spread_high < -->: **the truth's own uncertainty is
 # as large as the boundary integral's error**. Against the five, the boundary integral is
-# off by `0.038` <!-- check: boundary_error_low --> to `0.065`
+# off by `0.036` <!-- check: boundary_error_low --> to `0.069`
 # <!-- check: boundary_error_high -->, no more than the truths are off one another: it
-# agrees with the truth to within the truth's own uncertainty, and its 0.047 measures the
+# agrees with the truth to within the truth's own uncertainty, and its 0.045 measures the
 # reference as much as the method. The pixel pairs, `0.28`
 # <!-- check: pairs_error_low > --> or more off every truth, are far outside that
 # uncertainty: their error is their own, and so is the plain renderer's.
 #
 # Two consequences. More samples for the method cannot show more than the truth can: with
-# 64 samples per pixel the boundary integral is still more than `0.035`
+# 64 samples per pixel the boundary integral is still more than `0.034`
 # <!-- check: boundary_64_error > --> off our truth. A better truth can show more. The six
 # truths' mean has about 1/√6 of one truth's noise (if their errors are independent);
 # each truth is `0.026` <!-- check: truth_from_mean_low --> to `0.059`
 # <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
-# the boundary integral `0.029` <!-- check: boundary_from_mean --> with 16 samples, about
-# as close as the best single truth, and `0.019` <!-- check: boundary_64_from_mean -->
+# the boundary integral `0.030` <!-- check: boundary_from_mean --> with 16 samples, about
+# as close as the best single truth, and `0.021` <!-- check: boundary_64_from_mean -->
 # with 64, closer than any 4,096-sample truth. The pairs stay `0.29`
-# <!-- check: pairs_from_mean --> off. So the 0.047 above is mostly the reference's
+# <!-- check: pairs_from_mean --> off. So the 0.045 above is mostly the reference's
 # error. What is the method's own, at 16 samples, is mostly the interior term's (sampled,
 # not integrated: it shrinks with 64 samples), and at 64 samples it is below what these
 # truths can resolve.
