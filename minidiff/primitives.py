@@ -45,12 +45,62 @@ image-sized results); how it is made fast is not this file's business.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
 
-from minidiff import kernels
+from minidiff import ir, kernels, trace
 from minidiff.tensor import Tensor, as_tensor, record
+
+# ---------------------------------------------------------------------------------------------
+# Traced forms (minidiff.compile)
+# ---------------------------------------------------------------------------------------------
+# While ``minidiff.compile`` traces a function (``trace.py``), its arrays are ``Traced``: no
+# values, only each element's lanes of scalar program values (``ir.py``). Every primitive
+# below then runs its *traced form* instead of its array form. For an elementwise primitive
+# that is its *scalar form*, written just above it: one element's value from the ``ir``
+# operations, and for each input its slope ``d -> d * dy/dx`` -- the same rule as the
+# array VJP and JVP beside it, which the code generator applies to gradients (reverse
+# mode) and to tangents (forward mode). Vector primitives are traced as the composition of
+# elementwise ones they are (dot = sum of products), shape operations as rearrangements of
+# lanes. A primitive without a traced form (matmul, linear, ...) refuses a traced argument.
+
+
+def _traces_as(form):
+    """Decorator: when an argument is a traced array, run ``form`` (the traced form)
+    instead of the array form below it."""
+
+    def wrap(array_form):
+        @functools.wraps(array_form)
+        def primitive(*args, **kwargs):
+            if trace.is_traced(args) or trace.is_traced(kwargs.values()):
+                return form(*args, **kwargs)
+            return array_form(*args, **kwargs)
+
+        primitive.traced_form = form
+        return primitive
+
+    return wrap
+
+
+def _elementwise_form(name: str, scalar_form, differentiable=None):
+    """The traced form of an elementwise primitive: its scalar form, lane by lane."""
+    return lambda *args: trace.elementwise(name, scalar_form, *args, differentiable=differentiable)
+
+
+def _not_traceable(name: str):
+    """The traced form of a primitive a compiled function cannot contain."""
+
+    def refuse(*args, **kwargs):
+        raise trace.CompileError(
+            f"compile: '{name}' is not supported inside a compiled function (supported: "
+            "elementwise arithmetic and functions, where, clip, maximum, minimum, dot, cross, "
+            "norm, normalize, sums over an element's axes, shape operations, gathers)"
+        )
+
+    return refuse
+
 
 # ---------------------------------------------------------------------------------------------
 # Helpers
@@ -172,6 +222,11 @@ def _join(name: str, join, tensors, axis: int, mismatch: str) -> tuple[tuple, np
 # ---------------------------------------------------------------------------------------------
 
 
+def _add_scalar(a, b):
+    return a + b, (lambda d: d, lambda d: d)
+
+
+@_traces_as(_elementwise_form("add", _add_scalar))
 def add(a: Any, b: Any) -> Tensor:
     """a + b with broadcasting.  d/da = 1, d/db = 1."""
     a, b = _pair(a, b)
@@ -179,6 +234,11 @@ def add(a: Any, b: Any) -> Tensor:
     return record("add", out, (a, b), lambda g: (g, g), jvp=_plus)
 
 
+def _subtract_scalar(a, b):
+    return a - b, (lambda d: d, lambda d: -d)
+
+
+@_traces_as(_elementwise_form("subtract", _subtract_scalar))
 def subtract(a: Any, b: Any) -> Tensor:
     """a - b with broadcasting.  d/da = 1, d/db = -1."""
     a, b = _pair(a, b)
@@ -192,6 +252,11 @@ def subtract(a: Any, b: Any) -> Tensor:
     )
 
 
+def _multiply_scalar(a, b):
+    return a * b, (lambda d: d * b, lambda d: d * a)
+
+
+@_traces_as(_elementwise_form("multiply", _multiply_scalar))
 def multiply(a: Any, b: Any) -> Tensor:
     """a * b with broadcasting.  d/da = b, d/db = a."""
     a, b = _pair(a, b)
@@ -206,6 +271,12 @@ def multiply(a: Any, b: Any) -> Tensor:
     )
 
 
+def _divide_scalar(a, b):
+    y = a / b
+    return y, (lambda d: d / b, lambda d: -(d / b) * y)
+
+
+@_traces_as(_elementwise_form("divide", _divide_scalar))
 def divide(a: Any, b: Any) -> Tensor:
     """a / b with broadcasting.  d/da = 1/b, d/db = -a/b^2 = -out/b."""
     a, b = _pair(a, b)
@@ -221,12 +292,28 @@ def divide(a: Any, b: Any) -> Tensor:
     return record("divide", out, (a, b), vjp, saves=(b,), saves_output=b.requires_grad, jvp=jvp)
 
 
+def _negative_scalar(x):
+    return -x, (lambda d: -d,)
+
+
+@_traces_as(_elementwise_form("negative", _negative_scalar))
 def negative(x: Any) -> Tensor:
     """-x."""
     x = as_tensor(x)
     return record("negative", -x._data, (x,), lambda g: (-g,), jvp=lambda t: -t)
 
 
+def _power_scalar(a, b):
+    y = ir.call("pow", a, b)
+    b_is_0 = ir.compare("eq", b, 0.0)  # a^0 = 1 is constant (see the array form's docstring)
+    a_is_0 = ir.compare("eq", a, 0.0) & (b >= 0.0)  # weight 0 on log(0) = -inf
+    return y, (
+        lambda d: ir.select(b_is_0, 0.0, d * b * ir.call("pow", a, b - 1.0)),
+        lambda d: ir.select(a_is_0, 0.0, d * y * ir.call("log", a)),
+    )
+
+
+@_traces_as(_elementwise_form("power", _power_scalar))
 def power(a: Any, b: Any) -> Tensor:
     """a ** b.  d/da = b a^(b-1);  d/db = a^b log(a).
 
@@ -277,6 +364,7 @@ def power(a: Any, b: Any) -> Tensor:
     return record("power", out, (a, b), vjp, saves=saves, saves_output=b.requires_grad, jvp=jvp)
 
 
+@_traces_as(_not_traceable("matmul"))
 def matmul(a: Any, b: Any) -> Tensor:
     """Matrix product a @ b (NumPy semantics, including 1-D vectors and batches).
 
@@ -313,6 +401,7 @@ def matmul(a: Any, b: Any) -> Tensor:
     return record("matmul", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
+@_traces_as(_not_traceable("linear"))
 def linear(apply, adjoint, x: Any) -> Tensor:
     """y = A x for a constant linear map A given as two functions of arrays: ``apply``
     (x -> A x) and ``adjoint`` (g -> A^T g). A may be anything a function can apply: a
@@ -333,6 +422,12 @@ def linear(apply, adjoint, x: Any) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 
 
+def _exp_scalar(x):
+    y = ir.call("exp", x)
+    return y, (lambda d: d * y,)
+
+
+@_traces_as(_elementwise_form("exp", _exp_scalar))
 def exp(x: Any) -> Tensor:
     """e^x.  d/dx = e^x (the output itself)."""
     x = as_tensor(x)
@@ -352,12 +447,23 @@ def _elementwise(name: str, x: Tensor, y: np.ndarray, times_slope, reads: str) -
     )  # fmt: skip
 
 
+def _log_scalar(x):
+    return ir.call("log", x), (lambda d: d / x,)
+
+
+@_traces_as(_elementwise_form("log", _log_scalar))
 def log(x: Any) -> Tensor:
     """Natural log (x > 0).  d/dx = 1/x."""
     x = as_tensor(x)
     return _elementwise("log", x, np.log(x._data), lambda d: d / x._data, reads="x")
 
 
+def _sqrt_scalar(x):
+    y = ir.call("sqrt", x)
+    return y, (lambda d: d * 0.5 / y,)
+
+
+@_traces_as(_elementwise_form("sqrt", _sqrt_scalar))
 def sqrt(x: Any) -> Tensor:
     """Square root (x >= 0).  d/dx = 1 / (2 sqrt(x)).
 
@@ -371,18 +477,34 @@ def sqrt(x: Any) -> Tensor:
     return _elementwise("sqrt", x, y, lambda d: d * 0.5 / y, reads="y")
 
 
+def _sin_scalar(x):
+    return ir.call("sin", x), (lambda d: d * ir.call("cos", x),)
+
+
+@_traces_as(_elementwise_form("sin", _sin_scalar))
 def sin(x: Any) -> Tensor:
     """sin x.  d/dx = cos x."""
     x = as_tensor(x)
     return _elementwise("sin", x, np.sin(x._data), lambda d: d * np.cos(x._data), reads="x")
 
 
+def _cos_scalar(x):
+    return ir.call("cos", x), (lambda d: -d * ir.call("sin", x),)
+
+
+@_traces_as(_elementwise_form("cos", _cos_scalar))
 def cos(x: Any) -> Tensor:
     """cos x.  d/dx = -sin x."""
     x = as_tensor(x)
     return _elementwise("cos", x, np.cos(x._data), lambda d: -d * np.sin(x._data), reads="x")
 
 
+def _tan_scalar(x):
+    y = ir.call("tan", x)
+    return y, (lambda d: d * (1.0 + y * y),)
+
+
+@_traces_as(_elementwise_form("tan", _tan_scalar))
 def tan(x: Any) -> Tensor:
     """tan x.  d/dx = 1 + tan^2 x."""
     x = as_tensor(x)
@@ -390,6 +512,12 @@ def tan(x: Any) -> Tensor:
     return _elementwise("tan", x, y, lambda d: d * (1.0 + y * y), reads="y")
 
 
+def _tanh_scalar(x):
+    y = ir.call("tanh", x)
+    return y, (lambda d: d * (1.0 - y * y),)
+
+
+@_traces_as(_elementwise_form("tanh", _tanh_scalar))
 def tanh(x: Any) -> Tensor:
     """tanh x.  d/dx = 1 - tanh^2 x."""
     x = as_tensor(x)
@@ -397,12 +525,31 @@ def tanh(x: Any) -> Tensor:
     return _elementwise("tanh", x, y, lambda d: d * (1.0 - y * y), reads="y")
 
 
+def _abs_scalar(x):
+    return ir.call("fabs", x), (lambda d: d * ir.sign(x),)
+
+
+@_traces_as(_elementwise_form("abs", _abs_scalar))
 def abs(x: Any) -> Tensor:
     """|x|.  d/dx = sign(x); at x = 0 we use the subgradient 0."""
     x = as_tensor(x)
     return _elementwise("abs", x, np.abs(x._data), lambda d: d * np.sign(x._data), reads="x")
 
 
+def _pick_scalar(a_wins, a, b):
+    """maximum's and minimum's scalar form: a where ``a_wins``, else b; the derivative
+    goes to the input picked (as the array forms' np.where)."""
+    return ir.select(a_wins, a, b), (
+        lambda d: ir.select(a_wins, d, 0.0),
+        lambda d: ir.select(a_wins, 0.0, d),
+    )
+
+
+def _maximum_scalar(a, b):
+    return _pick_scalar((a >= b) | ir.is_nan(a), a, b)  # a tie, or a is NaN
+
+
+@_traces_as(_elementwise_form("maximum", _maximum_scalar))
 def maximum(a: Any, b: Any) -> Tensor:
     """Elementwise max(a, b). Subgradient at a tie (a == b): all of it goes to ``a`` (one
     side, not split: PyTorch splits, JAX too; one side keeps the renderer's clamps
@@ -427,6 +574,11 @@ def maximum(a: Any, b: Any) -> Tensor:
     return record("maximum", out, (a, b), vjp, saves=(a, b), jvp=jvp)
 
 
+def _minimum_scalar(a, b):
+    return _pick_scalar((a <= b) | ir.is_nan(a), a, b)  # a tie, or a is NaN
+
+
+@_traces_as(_elementwise_form("minimum", _minimum_scalar))
 def minimum(a: Any, b: Any) -> Tensor:
     """Elementwise min(a, b). Subgradient at a tie (a == b): all of it goes to ``a``. NaN
     propagates, and its gradient goes to the NaN input, as for ``maximum``."""
@@ -447,6 +599,16 @@ def minimum(a: Any, b: Any) -> Tensor:
     return record("minimum", out, (a, b), vjp, saves=(a, b), jvp=jvp)
 
 
+def _clip_scalar(x, lo, hi):
+    # np.clip(x, lo, hi): min(max(x, lo), hi), NaN propagating; slope 1 where the value
+    # is x itself (bounds included), as the array form's VJP
+    above = ir.select((x >= lo) | ir.is_nan(x), x, lo)
+    y = ir.select((above <= hi) | ir.is_nan(above), above, hi)
+    inside = ir.compare("eq", y, x)
+    return y, (lambda d: ir.select(inside, d, 0.0), None, None)
+
+
+@_traces_as(_elementwise_form("clip", _clip_scalar, differentiable=(True, False, False)))
 def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     """x limited to [lo, hi] (lo, hi constants). d/dx = 1 inside [lo, hi] (bounds included),
     0 outside."""
@@ -470,6 +632,24 @@ def clip(x: Any, lo: Any, hi: Any) -> Tensor:
     return record("clip", out, (x,), vjp, saves=(x,), saves_output=True, jvp=jvp)
 
 
+def _where_scalar(condition, a, b):
+    return ir.select(condition, a, b), (
+        None,
+        lambda d: ir.select(condition, d, 0.0),
+        lambda d: ir.select(condition, 0.0, d),
+    )
+
+
+def _where_traced(condition, a, b):
+    condition = trace.traced(condition)
+    if condition.dtype != np.bool_:
+        raise trace.CompileError(f"where: the condition must be boolean, got {condition.dtype}")
+    return trace.elementwise(
+        "where", _where_scalar, condition, a, b, differentiable=(False, True, True)
+    )
+
+
+@_traces_as(_where_traced)
 def where(condition: Any, a: Any, b: Any) -> Tensor:
     """Pick a where ``condition`` (a boolean array, not differentiable) is true, else b.
 
@@ -512,6 +692,7 @@ def where(condition: Any, a: Any, b: Any) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 
 
+@_traces_as(lambda x, axis=None, keepdims=False: trace.reduce_lanes(x, axis, keepdims, add, "sum"))
 def sum(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Sum over ``axis`` (all axes if None). Every summed element gets the output's gradient."""
     x = as_tensor(x)
@@ -525,6 +706,14 @@ def sum(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     )
 
 
+def _mean_traced(x, axis=None, keepdims=False):
+    x = trace.traced(x)
+    total = trace.reduce_lanes(x, axis, keepdims, add, "mean")
+    count = int(np.prod(x.lane_shape)) // int(np.prod(total.lane_shape))
+    return divide(total, float(count))  # np.mean: the sum, then one division
+
+
+@_traces_as(_mean_traced)
 def mean(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Mean over ``axis``. Like sum, with the gradient divided by the element count."""
     x = as_tensor(x)
@@ -544,6 +733,7 @@ def mean(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     )
 
 
+@_traces_as(_not_traceable("mean_squared_error"))
 def mean_squared_error(a: Any, b: Any) -> Tensor:
     """mean((a - b)^2) over all elements, a and b of one shape (an image loss: no
     broadcasting).  d/da = 2 (a - b) / n = -d/db.
@@ -576,6 +766,37 @@ def mean_squared_error(a: Any, b: Any) -> Tensor:
     return record("mean_squared_error", out, (a, b), vjp, jvp=jvp)
 
 
+def _max_scalar(*xs):
+    """max's scalar form over one element's lanes: the largest (NaN if any is NaN); the
+    derivative split equally among the lanes that tie for it (or are NaN), as the array
+    form's."""
+    y = xs[0]
+    for x in xs[1:]:
+        y = ir.select((y >= x) | ir.is_nan(y), y, x)
+    winners = [ir.compare("eq", x, y) | ir.is_nan(x) for x in xs]
+    ties = ir.to_float(winners[0])
+    for w in winners[1:]:
+        ties = ties + ir.to_float(w)
+    return y, tuple((lambda d, w=w: ir.select(w, d / ties, 0.0)) for w in winners)
+
+
+def _max_traced(x, axis=None, keepdims=False):
+    x = trace.traced(x)
+    axes = range(x.ndim) if axis is None else ((axis,) if isinstance(axis, int) else axis)
+    moved = x
+    for a in sorted((a % x.ndim for a in axes), reverse=True):  # reduce one axis at a time
+        lane_axis = trace._lane_axis(moved, a, "max")
+        parts = [
+            trace.with_lanes(moved, np.take(moved.lanes, j, axis=lane_axis))
+            for j in range(moved.lanes.shape[lane_axis])
+        ]
+        moved = trace.elementwise("max", _max_scalar, *parts)
+        if keepdims:
+            moved = trace.with_lanes(moved, np.expand_dims(moved.lanes, lane_axis))
+    return moved
+
+
+@_traces_as(_max_traced)
 def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
     """Maximum over ``axis``. Subgradient: when several elements tie for the maximum, the
     gradient is split equally among them (so the total is preserved; PyTorch's ``amax``
@@ -603,6 +824,7 @@ def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 
 
+@_traces_as(lambda a, b: sum(multiply(a, b), axis=-1))  # a0 b0 + a1 b1 + ..., in order
 def dot(a: Any, b: Any) -> Tensor:
     """Dot product along the last axis, broadcasting the others: (..., n) . (..., n) -> (...).
 
@@ -623,6 +845,18 @@ def dot(a: Any, b: Any) -> Tensor:
     )
 
 
+def _cross_traced(a, b):
+    a, b = trace.traced(a), trace.traced(b)
+    if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
+        raise trace.CompileError(
+            f"cross: both inputs need a last axis of size 3, got {a.shape}, {b.shape}"
+        )
+    a0, a1, a2 = (a[..., j] for j in range(3))
+    b0, b1, b2 = (b[..., j] for j in range(3))
+    return stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+@_traces_as(_cross_traced)
 def cross(a: Any, b: Any) -> Tensor:
     """Cross product of 3-vectors along the last axis, broadcasting the others.
 
@@ -643,6 +877,14 @@ def cross(a: Any, b: Any) -> Tensor:
     return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
+def _norm_traced(x, axis=-1, keepdims=False):
+    squared = sum(multiply(x, x), axis=axis, keepdims=keepdims)
+    positive = squared > 0.0
+    # the "double where" (see ``where``): at |x| = 0 the derivative is the subgradient 0
+    return where(positive, sqrt(where(positive, squared, 1.0)), 0.0)
+
+
+@_traces_as(_norm_traced)
 def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
     """Euclidean length along ``axis`` (default last). d/dx = g x / |x|; at |x| = 0 we use
     the subgradient 0 (never NaN)."""
@@ -666,6 +908,13 @@ def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
     return record("norm", out, (x,), vjp, saves=(x,), saves_output=True, jvp=jvp)
 
 
+def _normalize_traced(x):
+    length = norm(x, keepdims=True)
+    positive = length > 0.0
+    return multiply(x, where(positive, divide(1.0, where(positive, length, 1.0)), 0.0))
+
+
+@_traces_as(_normalize_traced)
 def normalize(x: Any) -> Tensor:
     """x / |x| along the last axis. The zero vector maps to the zero vector, with zero
     gradient (and zero tangent): never NaN. (x / |x| is undefined at 0; PyTorch's
@@ -692,6 +941,7 @@ def normalize(x: Any) -> Tensor:
 # ---------------------------------------------------------------------------------------------
 
 
+@_traces_as(trace.reshape)
 def reshape(x: Any, shape) -> Tensor:
     """Same values, new shape. The gradient is reshaped back."""
     x = as_tensor(x)
@@ -705,6 +955,7 @@ def reshape(x: Any, shape) -> Tensor:
     )  # fmt: skip
 
 
+@_traces_as(trace.transpose)
 def transpose(x: Any, axes=None) -> Tensor:
     """Permute axes (reverse them if ``axes`` is None). The gradient is permuted back."""
     x = as_tensor(x)
@@ -718,6 +969,7 @@ def transpose(x: Any, axes=None) -> Tensor:
     )  # fmt: skip
 
 
+@_traces_as(trace.broadcast_to)
 def broadcast_to(x: Any, shape) -> Tensor:
     """Broadcast to ``shape``; backward sums the repeated axes away."""
     x = as_tensor(x)
@@ -732,6 +984,7 @@ def broadcast_to(x: Any, shape) -> Tensor:
     )  # fmt: skip
 
 
+@_traces_as(lambda tensors, axis=0: trace.join(np.stack, tensors, axis, "stack"))
 def stack(tensors, axis: int = 0) -> Tensor:
     """Stack equal-shaped tensors along a new axis; the gradient is split back into slices."""
     mismatch = "all inputs need the same shape, got {shapes}"
@@ -746,6 +999,7 @@ def stack(tensors, axis: int = 0) -> Tensor:
     return record("stack", out, tensors, vjp, jvp=jvp)
 
 
+@_traces_as(lambda tensors, axis=0: trace.join(np.concatenate, tensors, axis, "concatenate"))
 def concatenate(tensors, axis: int = 0) -> Tensor:
     """Join tensors along an existing axis; the gradient is cut back into the pieces."""
     mismatch = "shapes {shapes} do not match off axis " + str(axis)
@@ -782,6 +1036,7 @@ def _has_integer_array(index: Any) -> bool:
     return False
 
 
+@_traces_as(lambda x, index: trace.getitem(trace.traced(x), index))
 def getitem(x: Any, index: Any) -> Tensor:
     """x[index] for basic slices, integer-array gathers and boolean masks.
 
@@ -827,6 +1082,7 @@ def getitem(x: Any, index: Any) -> Tensor:
     return record("getitem", np.asarray(out), (x,), vjp, view_of=x, jvp=jvp)
 
 
+@_traces_as(_not_traceable("scatter_add"))
 def scatter_add(values: Any, index: Any, size: int) -> Tensor:
     """out = zeros((size, ...)); out[index[i]] += values[i]  (rows; repeats accumulate).
 

@@ -1,0 +1,435 @@
+"""Code generation: a traced scalar program (``ir.Graph``) becomes an LLVM function that loops
+over the elements of a batch, in one of three modes.
+
+- ``forward``: each element's outputs from its inputs.
+- ``vjp`` (reverse mode): each element's program, then the same program backwards: every
+  differentiable line hands its gradient to its inputs through its slopes (``d -> d *
+  dy/dx``, the primitive's own rule), summed in a fixed order. The gradient of a batched
+  input is written per element; a shared input's is summed per *chunk* of elements into
+  its own row of a buffer (the chunks' rows are added afterwards, always in the same order,
+  so the result does not depend on how many threads ran the chunks); a table's, gathered
+  at an index, is written per element and added into the table's rows afterwards
+  (``compiler.py``), again in a fixed order.
+- ``jvp`` (forward mode): each element's program with a tangent beside every value, the
+  slopes applied to the inputs' tangents.
+
+The function's signature is the same in every mode::
+
+    i64 kernel(ptr buffers, i64 n, i64 first_chunk, i64 end_chunk)
+
+``buffers`` is an array of pointers, laid out by ``Layout``; the function runs the chunks
+[first_chunk, end_chunk) of ``CHUNK`` elements each (the last may be short) and returns 0,
+or 1 + the element whose gather index was out of range. Everything is straight-line code
+in one loop body; LLVM's optimiser removes what is computed twice and keeps values in
+registers. Variables that live across elements (the loop counter, a chunk's sums) are
+``alloca`` slots, which LLVM turns into registers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from minidiff import ir
+from minidiff.trace import Slot
+
+CHUNK = 1024  # elements per chunk: the unit of work of a thread, and of a shared gradient's sums
+
+_LLVM_TYPES = {"f64": "double", "i64": "i64", "i1": "i1"}
+_LOAD_TYPES = {"f64": "double", "i64": "i64", "i1": "i8"}  # booleans are stored as bytes
+
+
+@dataclass(frozen=True)
+class Program:
+    """What is compiled: the traced ``graph``, its argument ``slots``, and per output the
+    ids of its lanes (row-major, one element's worth)."""
+
+    graph: ir.Graph
+    slots: tuple[Slot, ...]
+    outputs: tuple[tuple[int, ...], ...]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """Where each buffer sits in the kernel's pointer array, for one mode.
+
+    inputs: one per slot. forward: one per output. vjp: the outputs' cotangents, then for
+    each differentiated slot its gradient (batched: (n, lanes)), its chunk sums (shared:
+    (chunks, size)) and, per gathered index, a contribution buffer (n, columns) (``gathers``
+    lists (slot, index id) in buffer order). jvp: each differentiated slot's tangent (its
+    own shape), then one per output."""
+
+    mode: str
+    wrt: tuple[int, ...]
+    gathers: tuple[tuple[int, int], ...]
+
+
+def _names(mode: str, program: Program, wrt: tuple[int, ...]):
+    """Pointer positions: inputs, then mode-specific buffers (see ``Layout``)."""
+    position = {("in", s): s for s in range(len(program.slots))}
+    k = len(program.slots)
+    if mode in ("forward", "vjp"):
+        for o in range(len(program.outputs)):
+            position[("out" if mode == "forward" else "cot", o)] = k
+            k += 1
+    gathers = []
+    if mode == "vjp":
+        for s in wrt:
+            if program.slots[s].batched:
+                position[("grad", s)] = k
+            else:
+                position[("sums", s)] = k
+            k += 1
+        for node in program.graph.nodes:
+            if (
+                node.op == "gather"
+                and node.attrs[0] in wrt
+                and (node.attrs[0], node.args[0]) not in gathers
+            ):
+                gathers.append((node.attrs[0], node.args[0]))
+        for g in gathers:
+            position[("contrib", g)] = k
+            k += 1
+    if mode == "jvp":
+        for s in wrt:
+            position[("tan", s)] = k
+            k += 1
+        for o in range(len(program.outputs)):
+            position[("out", o)] = k
+            k += 1
+    return position, Layout(mode, wrt, tuple(gathers))
+
+
+class _Emitter:
+    """Writes one kernel's LLVM IR text."""
+
+    def __init__(self, program: Program, graph: ir.Graph, position: dict):
+        self.program, self.graph, self.position = program, graph, position
+        self.entry: list[str] = []  # once per call: buffer pointers, shared loads
+        self.body: list[str] = []  # once per element: the values
+        self.tail: list[str] = []  # once per element, after the values: the stores
+        self.chunk_start: list[str] = []
+        self.chunk_end: list[str] = []
+        self.sums_allocas: list[str] = []  # a chunk's running sum per shared lane (vjp)
+        self.temp = 0
+        self.emitted: set[int] = set()
+
+    def fresh(self) -> str:
+        self.temp += 1
+        return f"%t{self.temp}"
+
+    def pointer(self, key) -> str:
+        return f"%b{self.position[key]}"
+
+    def name(self, vid: int) -> str:
+        node = self.graph.nodes[vid]
+        if node.op == "const":
+            return ir.llvm_constant(node.attrs[0], node.type)
+        return f"%v{vid}"
+
+    def element_address(
+        self, lines, base: str, stride: int, offset: int, index: str, type_: str
+    ) -> str:
+        """The address of ``base[index * stride + offset]`` (a ``type_`` array)."""
+        flat = index
+        if stride != 1:
+            flat = self.fresh()
+            lines.append(f"  {flat} = mul i64 {index}, {stride}")
+        if offset:
+            moved = self.fresh()
+            lines.append(f"  {moved} = add i64 {flat}, {offset}")
+            flat = moved
+        address = self.fresh()
+        lines.append(f"  {address} = getelementptr {type_}, ptr {base}, i64 {flat}")
+        return address
+
+    def load(self, lines, target: str, address: str, type_: str) -> None:
+        if type_ == "i1":
+            byte = self.fresh()
+            lines.append(f"  {byte} = load i8, ptr {address}")
+            lines.append(f"  {target} = icmp ne i8 {byte}, 0")
+        else:
+            lines.append(f"  {target} = load {_LLVM_TYPES[type_]}, ptr {address}")
+
+    def emit(self, vid: int) -> None:
+        """Mark line ``vid`` and the lines it reads as needed; needed lines are written in
+        the program's order (``text``), before the stores."""
+        stack = [vid]
+        while stack:  # iterative: programs can be thousands of lines deep
+            top = stack.pop()
+            if top not in self.emitted:
+                self.emitted.add(top)
+                stack.extend(self.graph.nodes[top].args)
+
+    def _emit_one(self, vid: int) -> None:
+        node = self.graph.nodes[vid]
+        op, target = node.op, f"%v{vid}"
+        args = [self.name(a) for a in node.args]
+        if op == "const":
+            return
+        if op in ("load", "tload"):  # lane of a batched slot, or of its tangent
+            slot, lane = node.attrs
+            lanes = max(1, _size(self.program.slots[slot].shape))
+            base = self.pointer(("in", slot) if op == "load" else ("tan", slot))
+            address = self.element_address(
+                self.body, base, lanes, lane, "%i", _LOAD_TYPES[node.type]
+            )
+            self.load(self.body, target, address, node.type)
+        elif op in ("uniform", "tuniform"):  # element of a shared slot: read once per call
+            slot, j = node.attrs
+            base = self.pointer(("in", slot) if op == "uniform" else ("tan", slot))
+            address = self.fresh()
+            self.entry.append(
+                f"  {address} = getelementptr {_LOAD_TYPES[node.type]}, ptr {base}, i64 {j}"
+            )
+            self.load(self.entry, target, address, node.type)
+        elif op in ("gather", "tgather"):
+            slot, column, columns, rows = node.attrs
+            base = self.pointer(("in", slot) if op == "gather" else ("tan", slot))
+            row = self.checked_row(args[0], rows)
+            address = self.element_address(
+                self.body, base, columns, column, row, _LOAD_TYPES[node.type]
+            )
+            self.load(self.body, target, address, node.type)
+        elif op == "cot":  # an output's cotangent (vjp)
+            output, lane = node.attrs
+            lanes = len(self.program.outputs[output])
+            address = self.element_address(
+                self.body, self.pointer(("cot", output)), lanes, lane, "%i", "double"
+            )
+            self.body.append(f"  {target} = load double, ptr {address}")
+        elif op in ir.FLOAT_COMPARISONS:
+            kind = self.graph.nodes[node.args[0]].type
+            if kind == "f64":
+                self.body.append(
+                    f"  {target} = fcmp {ir.FLOAT_COMPARISONS[op]} double {args[0]}, {args[1]}"
+                )
+            else:
+                compare = ir.INT_COMPARISONS[op]
+                self.body.append(f"  {target} = icmp {compare} i64 {args[0]}, {args[1]}")
+        elif op == "select":
+            t = _LLVM_TYPES[node.type]
+            self.body.append(f"  {target} = select i1 {args[0]}, {t} {args[1]}, {t} {args[2]}")
+        elif op == "tofloat":
+            kind = self.graph.nodes[node.args[0]].type
+            cast = "uitofp i1" if kind == "i1" else "sitofp i64"
+            self.body.append(f"  {target} = {cast} {args[0]} to double")
+        else:
+            self.body.append(f"  {target} = " + ir.INSTRUCTIONS[op].format(*args))
+
+    def checked_row(self, row: str, rows: int) -> str:
+        """A gather's row: negative counts from the end; out of range returns the element."""
+        negative, wrapped, inside = self.fresh(), self.fresh(), self.fresh()
+        shifted = self.fresh()
+        self.body.append(f"  {negative} = icmp slt i64 {row}, 0")
+        self.body.append(f"  {shifted} = add i64 {row}, {rows}")
+        self.body.append(f"  {wrapped} = select i1 {negative}, i64 {shifted}, i64 {row}")
+        self.body.append(f"  {inside} = icmp ult i64 {wrapped}, {rows}")
+        label = self.fresh()[1:]
+        self.body.append(f"  br i1 {inside}, label %ok{label}, label %bad")
+        self.body.append(f"ok{label}:")
+        return wrapped
+
+    def store(self, key, lanes: int, lane: int, value: str) -> None:
+        address = self.element_address(self.tail, self.pointer(key), lanes, lane, "%i", "double")
+        self.tail.append(f"  store double {value}, ptr {address}")
+
+    def text(self, n_pointers: int) -> str:
+        for vid in sorted(self.emitted):
+            self._emit_one(vid)
+        pointers = []
+        for k in range(n_pointers):
+            pointers.append(f"  %p{k} = getelementptr ptr, ptr %buffers, i64 {k}")
+            pointers.append(f"  %b{k} = load ptr, ptr %p{k}")
+        return "\n".join(
+            [
+                "define i64 @kernel(ptr %buffers, i64 %n, i64 %first, i64 %end) {",
+                "entry:",
+                "  %chunk.slot = alloca i64",
+                "  %i.slot = alloca i64",
+                *self.sums_allocas,
+                *pointers,
+                *self.entry,
+                "  store i64 %first, ptr %chunk.slot",
+                "  br label %chunk.head",
+                "chunk.head:",
+                "  %c = load i64, ptr %chunk.slot",
+                "  %more.chunks = icmp slt i64 %c, %end",
+                "  br i1 %more.chunks, label %chunk.body, label %done",
+                "chunk.body:",
+                f"  %start = mul i64 %c, {CHUNK}",
+                f"  %stop.full = add i64 %start, {CHUNK}",
+                "  %short = icmp slt i64 %n, %stop.full",
+                "  %stop = select i1 %short, i64 %n, i64 %stop.full",
+                *self.chunk_start,
+                "  store i64 %start, ptr %i.slot",
+                "  br label %element.head",
+                "element.head:",
+                "  %i = load i64, ptr %i.slot",
+                "  %more = icmp slt i64 %i, %stop",
+                "  br i1 %more, label %element.body, label %chunk.tail",
+                "element.body:",
+                *self.body,
+                *self.tail,
+                "  %i.next = add i64 %i, 1",
+                "  store i64 %i.next, ptr %i.slot",
+                "  br label %element.head",
+                "chunk.tail:",
+                *self.chunk_end,
+                "  %c.next = add i64 %c, 1",
+                "  store i64 %c.next, ptr %chunk.slot",
+                "  br label %chunk.head",
+                "done:",
+                "  ret i64 0",
+                "bad:",
+                "  %bad.i = load i64, ptr %i.slot",
+                "  %bad.code = add i64 %bad.i, 1",
+                "  ret i64 %bad.code",
+                "}",
+                ir.DECLARATIONS,
+            ]
+        )
+
+
+def _size(shape) -> int:
+    total = 1
+    for s in shape:
+        total *= s
+    return total
+
+
+def _depends_on(graph: ir.Graph, leaves) -> set[int]:
+    """Ids of the differentiable lines whose value depends on a line in ``leaves``."""
+    active = set(leaves)
+    for vid, node in enumerate(graph.nodes):
+        if node.parents and any(p in active for p in node.parents):
+            active.add(vid)
+    return active
+
+
+def _is_leaf_of(node: ir.Node, wrt) -> bool:
+    return node.op in ("load", "uniform", "gather") and node.attrs[0] in wrt and node.type == "f64"
+
+
+def generate(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> tuple[str, Layout]:
+    """The LLVM IR text of ``program``'s kernel in ``mode`` ("forward", "vjp", "jvp") with
+    derivatives for the slots ``wrt``, and the layout of its buffers."""
+    position, layout = _names(mode, program, wrt)
+    graph = program.graph.extended()
+    emitter = _Emitter(program, graph, position)
+    with graph.building():
+        if mode == "forward":
+            for o, lanes in enumerate(program.outputs):
+                for lane, vid in enumerate(lanes):
+                    emitter.emit(vid)
+                    emitter.store(("out", o), len(lanes), lane, emitter.name(vid))
+        elif mode == "vjp":
+            _reverse(program, graph, emitter, wrt, layout)
+        elif mode == "jvp":
+            _tangents(program, graph, emitter, wrt)
+        else:
+            raise ValueError(f"codegen: unknown mode {mode!r}")
+    return emitter.text(len(position)), layout
+
+
+def _reverse(program: Program, graph: ir.Graph, emitter: _Emitter, wrt, layout: Layout) -> None:
+    """The VJP: cotangents of the outputs, pushed back line by line through the slopes."""
+    traced = len(program.graph.nodes)
+    leaves = [v for v in range(traced) if _is_leaf_of(graph.nodes[v], wrt)]
+    active = _depends_on(graph, leaves)
+    adjoint: dict[int, ir.Value] = {}
+
+    def give(vid: int, d: ir.Value) -> None:
+        adjoint[vid] = d if vid not in adjoint else adjoint[vid] + d
+
+    for o, lanes in enumerate(program.outputs):
+        for lane, vid in enumerate(lanes):
+            if vid in active:
+                give(vid, graph.add("cot", (), "f64", (o, lane)))
+    for vid in range(traced - 1, -1, -1):
+        node = graph.nodes[vid]
+        if vid not in adjoint or not node.parents:
+            continue
+        d = adjoint[vid]
+        for parent, slope in zip(node.parents, node.slopes, strict=True):
+            if slope is not None and parent in active:
+                give(parent, slope(d))
+    # Leaves: write or sum each input's gradient. A table row gathered twice at the same
+    # index by the same element gets the sum of both gradients.
+    gathered: dict[tuple, ir.Value] = {}
+    for vid in leaves:
+        node = graph.nodes[vid]
+        if vid in adjoint and node.op == "gather":
+            key = (node.attrs, node.args[0])
+            gathered[key] = adjoint[vid] if key not in gathered else gathered[key] + adjoint[vid]
+    first_gather = {}
+    for vid in leaves:
+        node = graph.nodes[vid]
+        if node.op == "gather":
+            first_gather.setdefault((node.attrs, node.args[0]), vid)
+    for vid in leaves:
+        if vid not in adjoint:
+            continue
+        node, d = graph.nodes[vid], adjoint[vid]
+        if node.op == "gather":
+            key = (node.attrs, node.args[0])
+            if first_gather[key] != vid:
+                continue
+            d = gathered[key]
+        emitter.emit(d.id)
+        if node.op == "load":
+            slot, lane = node.attrs
+            emitter.store(
+                ("grad", slot), max(1, _size(program.slots[slot].shape)), lane, emitter.name(d.id)
+            )
+        elif node.op == "uniform":
+            slot, j = node.attrs
+            total = f"%sum{vid}"
+            emitter.sums_allocas.append(f"  {total} = alloca double")
+            emitter.chunk_start.append(f"  store double 0.0, ptr {total}")
+            old, new = emitter.fresh(), emitter.fresh()
+            emitter.tail += [
+                f"  {old} = load double, ptr {total}",
+                f"  {new} = fadd double {old}, {emitter.name(d.id)}",
+                f"  store double {new}, ptr {total}",
+            ]
+            size = _size(program.slots[slot].shape)
+            final = emitter.fresh()
+            emitter.chunk_end.append(f"  {final} = load double, ptr {total}")
+            address = emitter.element_address(
+                emitter.chunk_end, emitter.pointer(("sums", slot)), size, j, "%c", "double"
+            )
+            emitter.chunk_end.append(f"  store double {final}, ptr {address}")
+        else:  # a gather: this element's share of the table row, added in afterwards
+            slot, column, columns, _ = node.attrs
+            emitter.store(("contrib", (slot, node.args[0])), columns, column, emitter.name(d.id))
+
+
+def _tangents(program: Program, graph: ir.Graph, emitter: _Emitter, wrt) -> None:
+    """The JVP: a tangent beside each value, from the inputs' tangents through the slopes."""
+    traced = len(program.graph.nodes)
+    tangent: dict[int, ir.Value] = {}
+    for vid in range(traced):
+        node = graph.nodes[vid]
+        if _is_leaf_of(node, wrt):
+            op = "t" + node.op
+            args = tuple(ir.Value(a, graph.nodes[a].type) for a in node.args)
+            tangent[vid] = graph.add(op, args, "f64", node.attrs)
+        elif node.parents:
+            terms = [
+                slope(tangent[p])
+                for p, slope in zip(node.parents, node.slopes, strict=True)
+                if slope is not None and p in tangent
+            ]
+            if terms:
+                total = terms[0]
+                for t in terms[1:]:
+                    total = total + t
+                tangent[vid] = total
+    for o, lanes in enumerate(program.outputs):
+        for lane, vid in enumerate(lanes):
+            if vid in tangent:
+                emitter.emit(tangent[vid].id)
+                value = emitter.name(tangent[vid].id)
+            else:
+                value = "0.0"
+            emitter.store(("out", o), len(lanes), lane, value)

@@ -1,0 +1,378 @@
+"""``minidiff.compile``: a function of minidiff arrays, traced once, run as fused machine code.
+
+    >>> import numpy as np, minidiff as md
+    >>> @md.compile(shared=("light",))
+    ... def lambert(normals, points, light):
+    ...     to_light = md.normalize(light - points)
+    ...     return md.maximum(md.dot(normals, to_light), 0.0)
+
+The first call with a new signature (argument shapes and dtypes, and any non-array
+arguments, which are passed to the function as they are) *traces* the function
+(``trace.py``): it runs once on traced arrays and records each element's arithmetic as a
+scalar program (``ir.py``). ``codegen.py`` writes that program as one loop over the batch,
+``backend.py`` compiles it. Later calls with the same signature only run machine code.
+
+On the tape the compiled function is **one node** (``record``): its VJP runs the program
+backwards (``codegen`` mode "vjp"), its JVP forwards with tangents ("jvp"), both generated
+from each primitive's own scalar rules, so it composes with everything else in minidiff,
+in reverse and in forward mode. Without the tape (``md.no_grad()``, or nothing requiring
+grad) it is just the forward kernel.
+
+The plain function stays what it was: calling ``lambert.function(...)`` runs it on the tape,
+primitive by primitive, which is how the course reads it and how the tests check the
+compiled one.
+
+Arguments: arrays (Tensors, NumPy arrays, Python floats) are *batched* (their first axis is
+the batch, the same length n for all) unless named in ``shared`` (the same for every
+element). Anything else (ints, strings, None, tuples...) is a static argument: part of the
+signature, passed to the function unchanged. Arrays are float64, integer (indices) or
+boolean; float32 is refused (the program is written in double precision).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import inspect
+import threading
+from collections import OrderedDict
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numba
+import numpy as np
+
+from minidiff import backend, codegen, ir
+from minidiff.tensor import Tensor, as_tensor, is_grad_enabled, record
+from minidiff.trace import CompileError, Slot, Traced, traced
+
+MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
+
+
+@dataclass
+class _Trace:
+    """One signature's program and what it needs at run time."""
+
+    program: codegen.Program
+    batch: int
+    output_shapes: tuple[tuple[int, ...], ...]  # per output, one element's shape
+    single: bool  # the function returned one array (not a tuple)
+    kernels: dict
+
+    def kernel(self, mode: str, wrt: tuple[int, ...]):
+        key = (mode, wrt)
+        if key not in self.kernels:
+            text, layout = codegen.generate(self.program, mode, wrt)
+            self.kernels[key] = (backend.compile_ir(text), layout, text)
+        return self.kernels[key]
+
+
+class CompiledFunction:
+    """A function of minidiff arrays, compiled per signature (see the module docstring)."""
+
+    def __init__(self, function: Callable, shared=()):
+        self.function = function
+        self.signature = inspect.signature(function)
+        unknown = set(shared) - set(self.signature.parameters)
+        if unknown:
+            raise ValueError(
+                f"compile: shared names {sorted(unknown)} are not parameters of "
+                f"{function.__name__}{self.signature}"
+            )
+        self.shared = frozenset(shared)
+        self._traces: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        functools.update_wrapper(self, function)
+
+    # ----------------------------------------------------------------------------------------
+    def __call__(self, *args, **kwargs):
+        names, values = self._bind(args, kwargs)
+        arrays, statics, key = self._classify(names, values)
+        trace = self._trace_for(key, names, values, arrays, statics)
+        tensors = [value for value, _ in arrays]
+        data = [_contiguous(t) for t in tensors]
+        outputs = self._forward(trace, data)
+        needs_tape = is_grad_enabled() and any(
+            t.requires_grad or t.tangent is not None for t in tensors
+        )
+        if not needs_tape:
+            results = [Tensor(o) for o in outputs]
+        else:
+            results = self._on_tape(trace, tensors, data, outputs)
+        return results[0] if trace.single else tuple(results)
+
+    def trace(self, *args, **kwargs) -> codegen.Program:
+        """The scalar program this function becomes for these arguments (for reading)."""
+        names, values = self._bind(args, kwargs)
+        arrays, statics, key = self._classify(names, values)
+        return self._trace_for(key, names, values, arrays, statics).program
+
+    def source(self, *args, mode: str = "forward", **kwargs) -> str:
+        """The LLVM IR of the kernel for these arguments in ``mode`` ("forward", "vjp" with
+        respect to every float argument, "jvp" likewise)."""
+        names, values = self._bind(args, kwargs)
+        arrays, statics, key = self._classify(names, values)
+        trace = self._trace_for(key, names, values, arrays, statics)
+        wrt = () if mode == "forward" else _floats(trace.program.slots)
+        return codegen.generate(trace.program, mode, wrt)[0]
+
+    # ----------------------------------------------------------------------------------------
+    def _bind(self, args, kwargs):
+        try:
+            bound = self.signature.bind(*args, **kwargs)
+        except TypeError as error:
+            raise TypeError(f"{self.function.__name__}: {error}") from None
+        bound.apply_defaults()
+        return list(bound.arguments), list(bound.arguments.values())
+
+    def _classify(self, names, values):
+        """Array arguments as (Tensor, Slot) and the key of this call's signature."""
+        arrays, statics, key = [], {}, []
+        batch = None
+        for name, value in zip(names, values, strict=True):
+            if isinstance(value, (Tensor, np.ndarray, float, np.floating, np.integer, np.bool_)):
+                t = value if isinstance(value, Tensor) else as_tensor(np.asarray(value))
+                dtype = t.dtype
+                if dtype.kind == "f" and dtype != np.float64:
+                    raise TypeError(
+                        f"{self.function.__name__}: argument '{name}' is {dtype}; a compiled "
+                        "function takes float64 arrays (convert with .astype(np.float64))"
+                    )
+                if dtype.kind not in "fiub":
+                    raise TypeError(
+                        f"{self.function.__name__}: argument '{name}' has dtype {dtype}"
+                    )
+                batched = name not in self.shared
+                if batched:
+                    if t.ndim == 0:
+                        raise ValueError(
+                            f"{self.function.__name__}: batched argument '{name}' is a 0-d "
+                            "array; it needs a first (batch) axis, or name it in shared="
+                        )
+                    if batch is not None and t.shape[0] != batch:
+                        raise ValueError(
+                            f"{self.function.__name__}: batched argument '{name}' has "
+                            f"{t.shape[0]} elements, others {batch}"
+                        )
+                    batch = t.shape[0]
+                type_ = {"f": "f64", "i": "i64", "u": "i64", "b": "i1"}[dtype.kind]
+                slot = Slot(batched, t.shape[1:] if batched else t.shape, type_)
+                arrays.append((t, slot))
+                key.append((name, slot, t.shape[0] if batched else None))
+            else:
+                try:
+                    hash(value)
+                except TypeError:
+                    raise TypeError(
+                        f"{self.function.__name__}: argument '{name}' ({type(value).__name__}) is "
+                        "neither an array nor hashable; a static argument must be hashable"
+                    ) from None
+                statics[name] = value
+                key.append((name, "static", type(value), value))
+        if batch is None:
+            raise ValueError(f"{self.function.__name__}: needs at least one batched array argument")
+        return arrays, statics, tuple(key)
+
+    def _trace_for(self, key, names, values, arrays, statics) -> _Trace:
+        with self._lock:
+            trace = self._traces.get(key)
+            if trace is not None:
+                self._traces.move_to_end(key)
+                return trace
+        trace = self._trace(names, values, arrays, statics)
+        with self._lock:
+            self._traces[key] = trace
+            while len(self._traces) > MAX_TRACES:
+                self._traces.popitem(last=False)
+        return trace
+
+    def _trace(self, names, values, arrays, statics) -> _Trace:
+        graph = ir.Graph()
+        slots = tuple(slot for _, slot in arrays)
+        batch = next(t.shape[0] for t, slot in arrays if slot.batched)
+        with graph.building():
+            call_args, k = [], 0
+            for name in names:
+                if name in statics:
+                    call_args.append(statics[name])
+                    continue
+                t, slot = arrays[k]
+                call_args.append(_argument(graph, k, slot, t, batch))
+                k += 1
+            result = self.function(*call_args)
+            single = not isinstance(result, (tuple, list))
+            results = [result] if single else list(result)
+            outputs, shapes = [], []
+            for j, r in enumerate(results):
+                r = traced(r)
+                if r.dtype.kind != "f":
+                    raise CompileError(
+                        f"compile: output {j} of {self.function.__name__} is {r.dtype}; outputs "
+                        "must be float (use md.where(condition, 1.0, 0.0) for a mask)"
+                    )
+                if r.batch is not None and r.batch != batch:
+                    raise CompileError(f"compile: output {j} has batch {r.batch}, inputs {batch}")
+                lanes = r.lanes
+                outputs.append(tuple(v.id for v in lanes.ravel().tolist()))
+                shapes.append(tuple(lanes.shape))
+        program = codegen.Program(graph, slots, tuple(outputs))
+        return _Trace(program, batch, tuple(shapes), single, {})
+
+    # ----------------------------------------------------------------------------------------
+    def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray]) -> None:
+        kernel, _, _ = trace.kernel(mode, wrt)
+        pointers = (ctypes.c_void_p * len(buffers))(*(b.ctypes.data for b in buffers))
+        n = trace.batch
+        chunks = -(-n // codegen.CHUNK)
+        status = kernel.run(pointers, n, chunks, numba.get_num_threads())
+        if status:
+            raise IndexError(
+                f"{self.function.__name__}: element {status - 1} gathers a row out of range "
+                "of a table argument"
+            )
+
+    def _forward(self, trace: _Trace, data) -> list[np.ndarray]:
+        outputs = [np.empty((trace.batch, *shape)) for shape in trace.output_shapes]
+        self._run(trace, "forward", (), [*data, *outputs])
+        return outputs
+
+    def _vjp(self, trace: _Trace, data, wrt, cotangents) -> list[np.ndarray | None]:
+        """Gradients of sum(cotangent * output) for the slots ``wrt``: one array per slot,
+        None for the others."""
+        _, layout, _ = trace.kernel("vjp", wrt)
+        slots = trace.program.slots
+        n, chunks = trace.batch, -(-trace.batch // codegen.CHUNK)
+        grads, sums = {}, {}
+        buffers = [*data, *(np.ascontiguousarray(g, dtype=np.float64) for g in cotangents)]
+        for s in wrt:
+            if slots[s].batched:
+                grads[s] = np.zeros((n, *slots[s].shape))
+                buffers.append(grads[s])
+            else:
+                sums[s] = np.zeros((chunks, *slots[s].shape))
+                buffers.append(sums[s])
+        contributions = []
+        for slot, _ in layout.gathers:
+            columns = int(np.prod(slots[slot].shape[1:]))
+            contributions.append(np.zeros((n, columns)))
+        buffers += contributions
+        self._run(trace, "vjp", wrt, buffers)
+        for s in sums:  # each chunk's sum, added in chunk order
+            grads[s] = sums[s].sum(axis=0)
+        for (slot, index_id), share in zip(layout.gathers, contributions, strict=True):
+            shape = slots[slot].shape
+            rows = _gather_rows(trace.program, data, index_id, n)
+            rows = np.where(rows < 0, rows + shape[0], rows)  # as the kernel read them
+            added = np.stack(
+                [
+                    np.bincount(rows, weights=share[:, c], minlength=shape[0])
+                    for c in range(share.shape[1])
+                ],
+                axis=1,
+            )  # in element order: the same sums whatever the threads did
+            grads[slot] = grads[slot] + added.reshape(shape)
+        return [grads.get(s) for s in range(len(slots))]
+
+    def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:
+        wrt = tuple(s for s, t in enumerate(tangents) if t is not None)
+        outputs = [np.empty((trace.batch, *shape)) for shape in trace.output_shapes]
+        ts = [
+            np.ascontiguousarray(np.broadcast_to(tangents[s], data[s].shape), dtype=np.float64)
+            for s in wrt
+        ]
+        self._run(trace, "jvp", wrt, [*data, *ts, *outputs])
+        return outputs
+
+    def _on_tape(self, trace: _Trace, tensors, data, outputs) -> list[Tensor]:
+        """The forward result as one tape node (outputs packed side by side, then split
+        by views), with the compiled VJP and JVP."""
+        n = trace.batch
+        sizes = [int(np.prod(s)) for s in trace.output_shapes]
+        packed = np.concatenate([o.reshape(n, -1) for o in outputs], axis=1)
+        floats = _floats(trace.program.slots)
+
+        def vjp(g):
+            cuts = np.cumsum(sizes)[:-1]
+            cotangents = [
+                c.reshape(n, *shape)
+                for c, shape in zip(np.split(g, cuts, axis=1), trace.output_shapes, strict=True)
+            ]
+            wrt = tuple(s for s in floats if tensors[s].requires_grad)
+            return tuple(self._vjp(trace, data, wrt, cotangents))
+
+        def jvp(*tangents):
+            ts = [t if s in floats else None for s, t in enumerate(tangents)]
+            if all(t is None for t in ts):
+                return None
+            return np.concatenate([o.reshape(n, -1) for o in self._jvp(trace, data, ts)], axis=1)
+
+        node = record(
+            f"compiled {self.function.__name__}",
+            packed,
+            tuple(tensors),
+            vjp,
+            saves=tuple(tensors),
+            jvp=jvp,
+        )
+        results, start = [], 0
+        for size, shape in zip(sizes, trace.output_shapes, strict=True):
+            piece = node[:, start : start + size] if len(sizes) > 1 else node
+            results.append(piece.reshape((n, *shape)))
+            start += size
+        return results
+
+
+def _floats(slots) -> tuple[int, ...]:
+    return tuple(s for s, slot in enumerate(slots) if slot.type == "f64")
+
+
+def _contiguous(t: Tensor) -> np.ndarray:
+    data = t._data
+    if data.dtype.kind in "iu":
+        return np.ascontiguousarray(data, dtype=np.int64)
+    if data.dtype.kind == "b":
+        return np.ascontiguousarray(data, dtype=np.uint8)
+    return np.ascontiguousarray(data, dtype=np.float64)
+
+
+def _argument(graph: ir.Graph, k: int, slot: Slot, t: Tensor, batch: int) -> Traced:
+    """The traced array standing for argument ``k``."""
+    dtype = {"f64": np.float64, "i64": np.int64, "i1": np.bool_}[slot.type]
+    if not slot.batched:
+        return Traced(None, None, dtype, slot=k, shape=slot.shape)
+    size = int(np.prod(slot.shape))
+    lanes = np.empty(size, dtype=object)
+    lanes[:] = [graph.add("load", (), slot.type, (k, j)) for j in range(size)]
+    return Traced(lanes.reshape(slot.shape), batch, dtype)
+
+
+def _gather_rows(program: codegen.Program, data, index_id: int, n: int) -> np.ndarray:
+    """The row each element gathered at line ``index_id`` (an integer value: an argument's
+    lane, or a gather from an integer table), as NumPy computes it, negatives wrapped."""
+    node = program.graph.nodes[index_id]
+    if node.op == "load":
+        slot, lane = node.attrs
+        rows = data[slot].reshape(n, -1)[:, lane]
+    elif node.op == "uniform":
+        slot, j = node.attrs
+        rows = np.full(n, data[slot].ravel()[j])
+    elif node.op == "gather":
+        slot, column, columns, count = node.attrs
+        inner = _gather_rows(program, data, node.args[0], n)
+        inner = np.where(inner < 0, inner + count, inner)
+        rows = data[slot].reshape(count, columns)[inner, column]
+    else:
+        raise CompileError(
+            "compile: a table's gradient needs its gather index to be an integer argument "
+            f"or a gather from an integer table, not the result of '{node.op}'"
+        )
+    return rows.astype(np.int64)
+
+
+def compile(function: Callable | None = None, *, shared=()) -> Any:
+    """Compile ``function`` (or, without it, a decorator that does): see the module
+    docstring. ``shared`` names the arguments that are the same for every element."""
+    if function is None:
+        return lambda f: CompiledFunction(f, shared)
+    return CompiledFunction(function, shared)

@@ -1,0 +1,244 @@
+"""The scalar program a compiled function becomes: one element's arithmetic, in SSA form.
+
+``minidiff.compile`` runs a function of minidiff arrays once on *traced* arrays
+(``trace.py``): every element of an array there is a ``Value``, one line of a straight-line
+program held by a ``Graph``. ``x * y`` on two Values appends the line ``v7 = mul v3 v5`` to
+the graph being built and returns ``v7``. The program is the same for every element of the
+batch; ``codegen.py`` turns it into a loop over the elements.
+
+Values are plain arithmetic here: they know nothing of derivatives. A primitive's *scalar
+form* (in ``primitives.py``, beside its array form) builds its value from these operations
+and says, for each input, its *slope*: a function ``d -> d * (dy/dx)`` written with the same
+operations (``trace.elementwise`` attaches it to the value). The code generator calls the
+slopes with gradients (reverse mode) or tangents (forward mode) to write the derivative
+program.
+
+Three scalar types: ``f64`` (double), ``i64`` (integer indices) and ``i1`` (a comparison's
+result). Every operation lists the LLVM instruction it becomes in ``INSTRUCTIONS`` below.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import math
+import struct
+from collections.abc import Callable
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+
+# The graph that Values are appended to, per thread (a contextvar: two threads can trace
+# at once, each into its own graph).
+_building: contextvars.ContextVar[Graph | None] = contextvars.ContextVar("building", default=None)
+
+
+@dataclass
+class Node:
+    """One line of the program: ``op`` applied to the values ``args`` (ids of earlier
+    lines), of scalar ``type``; ``attrs`` hold what the op needs besides values (a
+    constant's number; an input's slot and lane). ``parents`` and ``slopes`` are set for
+    a differentiable primitive's result: its inputs, and for each the function
+    ``d -> d * dy/dx`` (None where the input takes no derivative)."""
+
+    op: str
+    args: tuple[int, ...]
+    type: str
+    attrs: tuple = ()
+    parents: tuple[int, ...] = ()
+    slopes: tuple[Callable | None, ...] = ()
+
+
+@dataclass
+class Graph:
+    """A straight-line scalar program: ``nodes`` in the order they were built (so every
+    argument comes before its use)."""
+
+    nodes: list[Node] = field(default_factory=list)
+
+    def add(self, op: str, args: tuple[Value, ...], type_: str, attrs: tuple = ()) -> Value:
+        """Append ``op(args)`` and return its Value."""
+        self.nodes.append(Node(op, tuple(a.id for a in args), type_, attrs))
+        return Value(len(self.nodes) - 1, type_)
+
+    def extended(self) -> Graph:
+        """A copy to append derivative lines to; the original stays as traced."""
+        return Graph(list(self.nodes))
+
+    @contextmanager
+    def building(self):
+        """Within the block, operations on Values append to this graph."""
+        token = _building.set(self)
+        try:
+            yield self
+        finally:
+            _building.reset(token)
+
+
+def active() -> Graph:
+    """The graph being built in this thread."""
+    graph = _building.get()
+    if graph is None:
+        raise RuntimeError("minidiff.ir: operations on Values need a graph being built")
+    return graph
+
+
+@dataclass(frozen=True)
+class Value:
+    """A scalar of one element: line ``id`` of the graph being built, of scalar ``type``.
+    Arithmetic on Values appends lines (Python numbers become constants)."""
+
+    id: int
+    type: str
+
+    def __add__(self, other):
+        return _binary("add", self, other)
+
+    def __radd__(self, other):
+        return _binary("add", other, self)
+
+    def __sub__(self, other):
+        return _binary("sub", self, other)
+
+    def __rsub__(self, other):
+        return _binary("sub", other, self)
+
+    def __mul__(self, other):
+        return _binary("mul", self, other)
+
+    def __rmul__(self, other):
+        return _binary("mul", other, self)
+
+    def __truediv__(self, other):
+        return _binary("div", self, other)
+
+    def __rtruediv__(self, other):
+        return _binary("div", other, self)
+
+    def __neg__(self):
+        return active().add("neg", (self,), "f64")
+
+    def __lt__(self, other):
+        return compare("lt", self, other)
+
+    def __le__(self, other):
+        return compare("le", self, other)
+
+    def __gt__(self, other):
+        return compare("gt", self, other)
+
+    def __ge__(self, other):
+        return compare("ge", self, other)
+
+    def __and__(self, other):
+        return active().add("and", (self, other), "i1")
+
+    def __or__(self, other):
+        return active().add("or", (self, other), "i1")
+
+    def __invert__(self):
+        return active().add("not", (self,), "i1")
+
+
+def const(x: float | int | bool, type_: str = "f64") -> Value:
+    """A constant of ``type_``."""
+    value = {"f64": float, "i64": int, "i1": bool}[type_](x)
+    return active().add("const", (), type_, (value,))
+
+
+def _as_value(x, type_: str = "f64") -> Value:
+    return x if isinstance(x, Value) else const(x, type_)
+
+
+def _binary(op: str, a, b) -> Value:
+    a, b = _as_value(a), _as_value(b)
+    return active().add(op, (a, b), "f64")
+
+
+def compare(op: str, a, b) -> Value:
+    """``a op b`` (op: lt, le, gt, ge, eq, ne) on two f64 or two i64 values: an i1. As in
+    NumPy, every comparison with a NaN is false except ``ne``."""
+    kind = a.type if isinstance(a, Value) else b.type
+    return active().add(op, (_as_value(a, kind), _as_value(b, kind)), "i1")
+
+
+def select(condition: Value, a, b) -> Value:
+    """``a`` where ``condition`` (an i1) holds, else ``b``: both are computed, one is
+    kept (LLVM's ``select``)."""
+    kind = a.type if isinstance(a, Value) else (b.type if isinstance(b, Value) else "f64")
+    return active().add("select", (condition, _as_value(a, kind), _as_value(b, kind)), kind)
+
+
+def call(function: str, *args) -> Value:
+    """A math function of f64 values: exp, log, sqrt, sin, cos, tan, tanh, fabs, floor,
+    pow (two arguments)."""
+    return active().add(function, tuple(_as_value(a) for a in args), "f64")
+
+
+def to_float(x: Value) -> Value:
+    """An i1 (0 or 1) or an i64 as an f64."""
+    return active().add("tofloat", (x,), "f64")
+
+
+def is_nan(x: Value) -> Value:
+    """True where x is NaN (the only value unequal to itself)."""
+    return compare("ne", x, x)
+
+
+def sign(x: Value) -> Value:
+    """NumPy's sign: -1, 0 or 1, and NaN for NaN."""
+    return select(x > 0.0, 1.0, select(x < 0.0, -1.0, select(is_nan(x), x, 0.0)))
+
+
+# The LLVM instruction of each operation: a format string over the arguments' names
+# (``{0}``, ``{1}``, ...) giving the right-hand side of ``%vN = ...``. Math functions are
+# LLVM intrinsics (or the C library's tan and tanh), which compute what NumPy's do to
+# within an ulp. No fast-math flags: NaN and inf propagate, and nothing is reordered, so
+# the program's rounding is the program's.
+INSTRUCTIONS = {
+    "add": "fadd double {0}, {1}",
+    "sub": "fsub double {0}, {1}",
+    "mul": "fmul double {0}, {1}",
+    "div": "fdiv double {0}, {1}",
+    "neg": "fneg double {0}",
+    "exp": "call double @llvm.exp.f64(double {0})",
+    "log": "call double @llvm.log.f64(double {0})",
+    "sqrt": "call double @llvm.sqrt.f64(double {0})",
+    "sin": "call double @llvm.sin.f64(double {0})",
+    "cos": "call double @llvm.cos.f64(double {0})",
+    "tan": "call double @tan(double {0})",
+    "tanh": "call double @tanh(double {0})",
+    "fabs": "call double @llvm.fabs.f64(double {0})",
+    "floor": "call double @llvm.floor.f64(double {0})",
+    "pow": "call double @llvm.pow.f64(double {0}, double {1})",
+    "and": "and i1 {0}, {1}",
+    "or": "or i1 {0}, {1}",
+    "not": "xor i1 {0}, true",
+}
+
+# Comparisons: ordered (false with a NaN) except "ne", as NumPy's operators.
+FLOAT_COMPARISONS = {"lt": "olt", "le": "ole", "gt": "ogt", "ge": "oge", "eq": "oeq", "ne": "une"}
+INT_COMPARISONS = {"lt": "slt", "le": "sle", "gt": "sgt", "ge": "sge", "eq": "eq", "ne": "ne"}
+
+DECLARATIONS = """declare double @llvm.exp.f64(double)
+declare double @llvm.log.f64(double)
+declare double @llvm.sqrt.f64(double)
+declare double @llvm.sin.f64(double)
+declare double @llvm.cos.f64(double)
+declare double @llvm.fabs.f64(double)
+declare double @llvm.floor.f64(double)
+declare double @llvm.pow.f64(double, double)
+declare double @tan(double)
+declare double @tanh(double)
+"""
+
+
+def llvm_constant(value, type_: str) -> str:
+    """A constant as LLVM IR writes it: doubles in hexadecimal, exactly (inf and NaN
+    included)."""
+    if type_ == "f64":
+        if math.isnan(value):
+            return "0x7FF8000000000000"
+        bits = struct.unpack("<Q", struct.pack("<d", value))[0]
+        return f"0x{bits:016X}"
+    if type_ == "i1":
+        return "true" if value else "false"
+    return str(int(value))
