@@ -35,7 +35,7 @@ GENERATOR_VERSION = "1"
 
 _lock = threading.Lock()  # LLVM's global state is not thread-safe: one compile at a time
 _compiled: dict[str, Kernel] = {}
-_machine = None
+_machine: tuple[str, str] | None = None  # (cpu name, features), read once
 _pool: ThreadPoolExecutor | None = None
 
 KERNEL_TYPE = ctypes.CFUNCTYPE(
@@ -78,15 +78,17 @@ def _executor() -> ThreadPoolExecutor:
 
 
 def _target_machine():
+    """A new target machine for this CPU. One per engine: an execution engine owns its
+    target machine and frees it with itself, so sharing one would leave the others with a
+    dangling one."""
     global _machine
     if _machine is None:
         llvm.initialize_native_target()
         llvm.initialize_native_asmprinter()
-        target = llvm.Target.from_default_triple()
-        _machine = target.create_target_machine(
-            cpu=llvm.get_host_cpu_name(), features=llvm.get_host_cpu_features().flatten(), opt=3
-        )
-    return _machine
+        _machine = (llvm.get_host_cpu_name(), llvm.get_host_cpu_features().flatten())
+    cpu, features = _machine
+    target = llvm.Target.from_default_triple()
+    return target.create_target_machine(cpu=cpu, features=features, opt=3)
 
 
 def cache_dir() -> Path:

@@ -52,51 +52,100 @@ class Program:
 class Layout:
     """Where each buffer sits in the kernel's pointer array, for one mode.
 
-    inputs: one per slot. forward: one per output. vjp: the outputs' cotangents, then for
-    each differentiated slot its gradient (batched: (n, lanes)), its chunk sums (shared:
-    (chunks, size)) and, per gathered index, a contribution buffer (n, columns) (``gathers``
-    lists (slot, index id) in buffer order). jvp: each differentiated slot's tangent (its
-    own shape), then one per output."""
+    inputs: one per slot, in every mode. Then:
+
+    - forward: one per output, (n, lanes).
+    - vjp: the outputs' cotangents (n, lanes); each differentiated batched slot's gradient
+      (n, lanes); the *frontier* sums (chunks, len(frontier)); per gathered index, a
+      contribution buffer (n, columns) (``gathers`` lists (slot, index id) in order).
+    - vjp_shared: the frontier totals (len(frontier),); each differentiated shared slot's
+      gradient (its shape).
+    - jvp: each differentiated slot's tangent (its own shape); one per output (n, lanes).
+
+    The frontier is the shared values (those computed from shared arguments and constants
+    only) that batched values read, or that are outputs: the tape computes them once and
+    sums the gradients reaching them over the whole batch *before* going further back, so
+    the compiled VJP does too: the element kernel stops there and sums (``vjp``), and a
+    one-element kernel takes the totals back to the shared arguments (``vjp_shared``)."""
 
     mode: str
     wrt: tuple[int, ...]
     gathers: tuple[tuple[int, int], ...]
+    frontier: tuple[int, ...]
+
+
+def shared_values(graph: ir.Graph) -> set[int]:
+    """Ids of the lines computed from shared arguments and constants only."""
+    shared = set()
+    for vid, node in enumerate(graph.nodes):
+        if node.op in ("const", "uniform") or (
+            node.op not in ("load", "gather", "cot") and all(a in shared for a in node.args)
+        ):
+            shared.add(vid)
+    return shared
+
+
+def _frontier(program: Program, wrt) -> tuple[int, ...]:
+    """The shared values where the element kernel's VJP stops (see ``Layout``)."""
+    graph = program.graph
+    shared = shared_values(graph)
+    leaves = [v for v, node in enumerate(graph.nodes) if _is_leaf_of(node, wrt)]
+    active = _depends_on(graph, leaves)
+    # the lines a gradient reaches from the outputs (as on the tape: only those)
+    reached = {v for lanes in program.outputs for v in lanes if v in active}
+    frontier = {v for v in reached if v in shared}
+    for vid in range(len(graph.nodes) - 1, -1, -1):
+        node = graph.nodes[vid]
+        if vid in reached and vid not in shared:
+            for p, slope in zip(node.parents, node.slopes, strict=True):
+                if slope is not None and p in active:
+                    reached.add(p)
+                    if p in shared:
+                        frontier.add(p)
+    return tuple(sorted(frontier))
 
 
 def _names(mode: str, program: Program, wrt: tuple[int, ...]):
     """Pointer positions: inputs, then mode-specific buffers (see ``Layout``)."""
     position = {("in", s): s for s in range(len(program.slots))}
     k = len(program.slots)
-    if mode in ("forward", "vjp"):
+
+    def add(key):
+        nonlocal k
+        position[key] = k
+        k += 1
+
+    frontier = _frontier(program, wrt) if mode in ("vjp", "vjp_shared") else ()
+    gathers: list[tuple[int, int]] = []
+    if mode == "forward":
         for o in range(len(program.outputs)):
-            position[("out" if mode == "forward" else "cot", o)] = k
-            k += 1
-    gathers = []
-    if mode == "vjp":
+            add(("out", o))
+    elif mode == "vjp":
+        for o in range(len(program.outputs)):
+            add(("cot", o))
         for s in wrt:
             if program.slots[s].batched:
-                position[("grad", s)] = k
-            else:
-                position[("sums", s)] = k
-            k += 1
+                add(("grad", s))
+        add(("frontier",))
         for node in program.graph.nodes:
-            if (
-                node.op == "gather"
-                and node.attrs[0] in wrt
-                and (node.attrs[0], node.args[0]) not in gathers
-            ):
-                gathers.append((node.attrs[0], node.args[0]))
+            key = (node.attrs[0], node.args[0]) if node.op == "gather" else None
+            if key and key[0] in wrt and key not in gathers:
+                gathers.append(key)
         for g in gathers:
-            position[("contrib", g)] = k
-            k += 1
-    if mode == "jvp":
+            add(("contrib", g))
+    elif mode == "vjp_shared":
+        add(("frontier",))
         for s in wrt:
-            position[("tan", s)] = k
-            k += 1
+            if not program.slots[s].batched:
+                add(("grad", s))
+    elif mode == "jvp":
+        for s in wrt:
+            add(("tan", s))
         for o in range(len(program.outputs)):
-            position[("out", o)] = k
-            k += 1
-    return position, Layout(mode, wrt, tuple(gathers))
+            add(("out", o))
+    else:
+        raise ValueError(f"codegen: unknown mode {mode!r}")
+    return position, Layout(mode, wrt, tuple(gathers), frontier)
 
 
 class _Emitter:
@@ -190,6 +239,10 @@ class _Emitter:
                 self.body, base, columns, column, row, _LOAD_TYPES[node.type]
             )
             self.load(self.body, target, address, node.type)
+        elif op == "total":  # a frontier value's gradient, summed over the batch (vjp_shared)
+            address, base = self.fresh(), self.pointer(("frontier",))
+            self.body.append(f"  {address} = getelementptr double, ptr {base}, i64 {node.attrs[0]}")
+            self.body.append(f"  {target} = load double, ptr {address}")
         elif op == "cot":  # an output's cotangent (vjp)
             output, lane = node.attrs
             lanes = len(self.program.outputs[output])
@@ -228,6 +281,23 @@ class _Emitter:
         self.body.append(f"  br i1 {inside}, label %ok{label}, label %bad")
         self.body.append(f"ok{label}:")
         return wrapped
+
+    def accumulate(self, f: int, count: int, value: str) -> None:
+        """Add ``value`` to this chunk's sum number ``f`` (of ``count``), written to the
+        frontier buffer's row for the chunk when the chunk ends."""
+        total = f"%sum{f}"
+        self.sums_allocas.append(f"  {total} = alloca double")
+        self.chunk_start.append(f"  store double 0.0, ptr {total}")
+        old, new, final = self.fresh(), self.fresh(), self.fresh()
+        self.tail += [
+            f"  {old} = load double, ptr {total}",
+            f"  {new} = fadd double {old}, {value}",
+            f"  store double {new}, ptr {total}",
+        ]
+        self.chunk_end.append(f"  {final} = load double, ptr {total}")
+        base = self.pointer(("frontier",))
+        address = self.element_address(self.chunk_end, base, count, f, "%c", "double")
+        self.chunk_end.append(f"  store double {final}, ptr {address}")
 
     def store(self, key, lanes: int, lane: int, value: str) -> None:
         address = self.element_address(self.tail, self.pointer(key), lanes, lane, "%i", "double")
@@ -311,8 +381,8 @@ def _is_leaf_of(node: ir.Node, wrt) -> bool:
 
 
 def generate(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> tuple[str, Layout]:
-    """The LLVM IR text of ``program``'s kernel in ``mode`` ("forward", "vjp", "jvp") with
-    derivatives for the slots ``wrt``, and the layout of its buffers."""
+    """The LLVM IR text of ``program``'s kernel in ``mode`` ("forward", "vjp",
+    "vjp_shared", "jvp") with derivatives for the slots ``wrt``, and its buffers' layout."""
     position, layout = _names(mode, program, wrt)
     graph = program.graph.extended()
     emitter = _Emitter(program, graph, position)
@@ -323,85 +393,84 @@ def generate(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> tuple[st
                     emitter.emit(vid)
                     emitter.store(("out", o), len(lanes), lane, emitter.name(vid))
         elif mode == "vjp":
-            _reverse(program, graph, emitter, wrt, layout)
-        elif mode == "jvp":
-            _tangents(program, graph, emitter, wrt)
+            _reverse_elements(program, graph, emitter, wrt, layout)
+        elif mode == "vjp_shared":
+            _reverse_shared(program, graph, emitter, wrt, layout)
         else:
-            raise ValueError(f"codegen: unknown mode {mode!r}")
+            _tangents(program, graph, emitter, wrt)
     return emitter.text(len(position)), layout
 
 
-def _reverse(program: Program, graph: ir.Graph, emitter: _Emitter, wrt, layout: Layout) -> None:
-    """The VJP: cotangents of the outputs, pushed back line by line through the slopes."""
-    traced = len(program.graph.nodes)
-    leaves = [v for v in range(traced) if _is_leaf_of(graph.nodes[v], wrt)]
-    active = _depends_on(graph, leaves)
-    adjoint: dict[int, ir.Value] = {}
-
-    def give(vid: int, d: ir.Value) -> None:
-        adjoint[vid] = d if vid not in adjoint else adjoint[vid] + d
-
-    for o, lanes in enumerate(program.outputs):
-        for lane, vid in enumerate(lanes):
-            if vid in active:
-                give(vid, graph.add("cot", (), "f64", (o, lane)))
-    for vid in range(traced - 1, -1, -1):
+def _sweep(graph: ir.Graph, adjoint: dict, lines, active: set[int]) -> None:
+    """Reverse sweep over ``lines`` (descending): each line with a gradient gives its
+    parents ``slope(gradient)``, added in this fixed order."""
+    for vid in lines:
         node = graph.nodes[vid]
         if vid not in adjoint or not node.parents:
             continue
         d = adjoint[vid]
         for parent, slope in zip(node.parents, node.slopes, strict=True):
             if slope is not None and parent in active:
-                give(parent, slope(d))
-    # Leaves: write or sum each input's gradient. A table row gathered twice at the same
-    # index by the same element gets the sum of both gradients.
+                _give(adjoint, parent, slope(d))
+
+
+def _give(adjoint: dict, vid: int, d: ir.Value) -> None:
+    adjoint[vid] = d if vid not in adjoint else adjoint[vid] + d
+
+
+def _reverse_elements(program: Program, graph: ir.Graph, emitter: _Emitter, wrt, layout) -> None:
+    """The element kernel of the VJP: the outputs' cotangents pushed back line by line
+    through the slopes, down to the batched arguments, the gathers, and the frontier."""
+    traced = len(program.graph.nodes)
+    shared = shared_values(program.graph)
+    leaves = [v for v in range(traced) if _is_leaf_of(graph.nodes[v], wrt)]
+    active = _depends_on(graph, leaves)
+    adjoint: dict[int, ir.Value] = {}
+    for o, lanes in enumerate(program.outputs):
+        for lane, vid in enumerate(lanes):
+            if vid in active:
+                _give(adjoint, vid, graph.add("cot", (), "f64", (o, lane)))
+    batched_lines = [v for v in range(traced - 1, -1, -1) if v not in shared]
+    _sweep(graph, adjoint, batched_lines, active)
+    # A table row gathered twice at the same index by one element gets both gradients.
     gathered: dict[tuple, ir.Value] = {}
     for vid in leaves:
         node = graph.nodes[vid]
         if vid in adjoint and node.op == "gather":
-            key = (node.attrs, node.args[0])
-            gathered[key] = adjoint[vid] if key not in gathered else gathered[key] + adjoint[vid]
-    first_gather = {}
+            _give(gathered, (node.attrs, node.args[0]), adjoint[vid])
+    for key, d in gathered.items():
+        (slot, column, columns, _), index = key
+        emitter.emit(d.id)
+        emitter.store(("contrib", (slot, index)), columns, column, emitter.name(d.id))
     for vid in leaves:
         node = graph.nodes[vid]
-        if node.op == "gather":
-            first_gather.setdefault((node.attrs, node.args[0]), vid)
-    for vid in leaves:
-        if vid not in adjoint:
-            continue
-        node, d = graph.nodes[vid], adjoint[vid]
-        if node.op == "gather":
-            key = (node.attrs, node.args[0])
-            if first_gather[key] != vid:
-                continue
-            d = gathered[key]
-        emitter.emit(d.id)
-        if node.op == "load":
+        if vid in adjoint and node.op == "load":
             slot, lane = node.attrs
-            emitter.store(
-                ("grad", slot), max(1, _size(program.slots[slot].shape)), lane, emitter.name(d.id)
-            )
-        elif node.op == "uniform":
-            slot, j = node.attrs
-            total = f"%sum{vid}"
-            emitter.sums_allocas.append(f"  {total} = alloca double")
-            emitter.chunk_start.append(f"  store double 0.0, ptr {total}")
-            old, new = emitter.fresh(), emitter.fresh()
-            emitter.tail += [
-                f"  {old} = load double, ptr {total}",
-                f"  {new} = fadd double {old}, {emitter.name(d.id)}",
-                f"  store double {new}, ptr {total}",
-            ]
+            emitter.emit(adjoint[vid].id)
+            lanes = max(1, _size(program.slots[slot].shape))
+            emitter.store(("grad", slot), lanes, lane, emitter.name(adjoint[vid].id))
+    for f, vid in enumerate(layout.frontier):  # this chunk's sum of each frontier gradient
+        if vid in adjoint:
+            emitter.emit(adjoint[vid].id)
+            emitter.accumulate(f, len(layout.frontier), emitter.name(adjoint[vid].id))
+
+
+def _reverse_shared(program: Program, graph: ir.Graph, emitter: _Emitter, wrt, layout) -> None:
+    """The one-element kernel of the VJP: the frontier's totals pushed back through the
+    shared lines to the shared arguments."""
+    shared = shared_values(program.graph)
+    leaves = [v for v in sorted(shared) if _is_leaf_of(graph.nodes[v], wrt)]
+    active = _depends_on(graph, leaves)
+    adjoint: dict[int, ir.Value] = {}
+    for f, vid in enumerate(layout.frontier):
+        _give(adjoint, vid, graph.add("total", (), "f64", (f,)))
+    _sweep(graph, adjoint, sorted(shared, reverse=True), active)
+    for vid in leaves:
+        if vid in adjoint:
+            slot, j = graph.nodes[vid].attrs
+            emitter.emit(adjoint[vid].id)
             size = _size(program.slots[slot].shape)
-            final = emitter.fresh()
-            emitter.chunk_end.append(f"  {final} = load double, ptr {total}")
-            address = emitter.element_address(
-                emitter.chunk_end, emitter.pointer(("sums", slot)), size, j, "%c", "double"
-            )
-            emitter.chunk_end.append(f"  store double {final}, ptr {address}")
-        else:  # a gather: this element's share of the table row, added in afterwards
-            slot, column, columns, _ = node.attrs
-            emitter.store(("contrib", (slot, node.args[0])), columns, column, emitter.name(d.id))
+            emitter.store(("grad", slot), size, j, emitter.name(adjoint[vid].id))
 
 
 def _tangents(program: Program, graph: ir.Graph, emitter: _Emitter, wrt) -> None:

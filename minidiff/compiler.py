@@ -31,6 +31,8 @@ boolean; float32 is refused (the program is written in double precision).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import ctypes
 import functools
 import inspect
@@ -48,6 +50,22 @@ from minidiff.tensor import Tensor, as_tensor, is_grad_enabled, record
 from minidiff.trace import CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
+
+# Threads a compiled kernel may use in this thread (context); None: Numba's setting.
+_threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
+
+
+@contextlib.contextmanager
+def using_threads(count: int):
+    """Within the block, compiled functions called from this thread run on ``count``
+    threads (results are the same for any count; this only changes the speed)."""
+    if not isinstance(count, int) or count < 1:
+        raise ValueError(f"using_threads: count must be a positive int, got {count!r}")
+    token = _threads.set(count)
+    try:
+        yield
+    finally:
+        _threads.reset(token)
 
 
 @dataclass
@@ -220,12 +238,13 @@ class CompiledFunction:
         return _Trace(program, batch, tuple(shapes), single, {})
 
     # ----------------------------------------------------------------------------------------
-    def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray]) -> None:
+    def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray], batch=None) -> None:
         kernel, _, _ = trace.kernel(mode, wrt)
         pointers = (ctypes.c_void_p * len(buffers))(*(b.ctypes.data for b in buffers))
-        n = trace.batch
+        n = trace.batch if batch is None else batch
         chunks = -(-n // codegen.CHUNK)
-        status = kernel.run(pointers, n, chunks, numba.get_num_threads())
+        threads = _threads.get() or numba.get_num_threads()
+        status = kernel.run(pointers, n, chunks, threads)
         if status:
             raise IndexError(
                 f"{self.function.__name__}: element {status - 1} gathers a row out of range "
@@ -239,27 +258,22 @@ class CompiledFunction:
 
     def _vjp(self, trace: _Trace, data, wrt, cotangents) -> list[np.ndarray | None]:
         """Gradients of sum(cotangent * output) for the slots ``wrt``: one array per slot,
-        None for the others."""
+        None for the others. The element kernel, then the shared kernel on the batch's
+        totals at the frontier (``codegen.Layout``), then the gathers' scatter-adds."""
         _, layout, _ = trace.kernel("vjp", wrt)
         slots = trace.program.slots
         n, chunks = trace.batch, -(-trace.batch // codegen.CHUNK)
-        grads, sums = {}, {}
-        buffers = [*data, *(np.ascontiguousarray(g, dtype=np.float64) for g in cotangents)]
-        for s in wrt:
-            if slots[s].batched:
-                grads[s] = np.zeros((n, *slots[s].shape))
-                buffers.append(grads[s])
-            else:
-                sums[s] = np.zeros((chunks, *slots[s].shape))
-                buffers.append(sums[s])
-        contributions = []
-        for slot, _ in layout.gathers:
-            columns = int(np.prod(slots[slot].shape[1:]))
-            contributions.append(np.zeros((n, columns)))
-        buffers += contributions
+        grads = {s: np.zeros((n, *slots[s].shape)) for s in wrt if slots[s].batched}
+        sums = np.zeros((chunks, max(1, len(layout.frontier))))
+        contributions = [np.zeros((n, int(np.prod(slots[s].shape[1:])))) for s, _ in layout.gathers]
+        cotangents = [np.ascontiguousarray(g, dtype=np.float64) for g in cotangents]
+        buffers = [*data, *cotangents, *grads.values(), sums, *contributions]
         self._run(trace, "vjp", wrt, buffers)
-        for s in sums:  # each chunk's sum, added in chunk order
-            grads[s] = sums[s].sum(axis=0)
+        shared = {s: np.zeros(slots[s].shape) for s in wrt if not slots[s].batched}
+        if shared and layout.frontier:
+            totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
+            self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
+        grads.update(shared)
         for (slot, index_id), share in zip(layout.gathers, contributions, strict=True):
             shape = slots[slot].shape
             rows = _gather_rows(trace.program, data, index_id, n)

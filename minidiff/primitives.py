@@ -777,7 +777,8 @@ def _max_scalar(*xs):
     ties = ir.to_float(winners[0])
     for w in winners[1:]:
         ties = ties + ir.to_float(w)
-    return y, tuple((lambda d, w=w: ir.select(w, d / ties, 0.0)) for w in winners)
+    # the 0/1 mask times the gradient, as the array form (so a NaN gradient reaches all)
+    return y, tuple((lambda d, w=w: ir.to_float(w) * d / ties) for w in winners)
 
 
 def _max_traced(x, axis=None, keepdims=False):
@@ -877,11 +878,29 @@ def cross(a: Any, b: Any) -> Tensor:
     return record("cross", out, (a, b), vjp, saves=_each_reads_the_other(a, b), jvp=jvp)
 
 
+def _length_scalar(xs):
+    """One vector's length, and where it is positive the safe divisor (as in the array
+    forms of norm and normalize)."""
+    squared = xs[0] * xs[0]
+    for x in xs[1:]:
+        squared = squared + x * x
+    length = ir.call("sqrt", squared)
+    positive = length > 0.0
+    return length, positive, ir.select(positive, length, 1.0)
+
+
+def _norm_scalar(xs):
+    """norm's scalar form: |x|, with slopes d x_j / |x| (0 at |x| = 0)."""
+    length, positive, safe = _length_scalar(xs)
+    return [length], [[(lambda d, x=x: ir.select(positive, d / safe, 0.0) * x) for x in xs]]
+
+
 def _norm_traced(x, axis=-1, keepdims=False):
-    squared = sum(multiply(x, x), axis=axis, keepdims=keepdims)
-    positive = squared > 0.0
-    # the "double where" (see ``where``): at |x| = 0 the derivative is the subgradient 0
-    return where(positive, sqrt(where(positive, squared, 1.0)), 0.0)
+    x = trace.traced(x)
+    if axis not in (-1, x.ndim - 1):
+        raise trace.CompileError("norm: inside a compiled function only along the last axis")
+    length = trace.along_last_axis("norm", _norm_scalar, x)
+    return length if keepdims else trace.with_lanes(length, length.lanes[..., 0])
 
 
 @_traces_as(_norm_traced)
@@ -899,22 +918,32 @@ def norm(x: Any, axis: int = -1, keepdims: bool = False) -> Tensor:
         safe = np.where(length > 0, length, 1.0)
         return (np.where(length > 0, g / safe, 0.0) * x._data,)
 
-    def jvp(t):  # (x . t) / |x|, and 0 at |x| = 0 as in the VJP
+    def jvp(t):  # (x . t) / |x|, and 0 at |x| = 0 as in the VJP (NaN for a NaN x, too)
         safe = np.where(length > 0, length, 1.0)
-        d = np.where(length > 0, np.sum(x._data * t, axis=axis, keepdims=True) / safe, 0.0)
+        along = np.sum(x._data * t, axis=axis, keepdims=True)
+        d = np.where(length > 0, along / safe, along * 0.0)
         return d if keepdims else np.squeeze(d, axis=axis)
 
     # ``out`` is ``length`` or a view of it: the VJP reads the output.
     return record("norm", out, (x,), vjp, saves=(x,), saves_output=True, jvp=jvp)
 
 
-def _normalize_traced(x):
-    length = norm(x, keepdims=True)
-    positive = length > 0.0
-    return multiply(x, where(positive, divide(1.0, where(positive, length, 1.0)), 0.0))
+def _normalize_scalar(xs):
+    """normalize's scalar form: y = x / |x| (0 at 0), and the tape's slope
+    d -> d (I - y y^T) / |x| as a matrix of lanes."""
+    _, positive, safe = _length_scalar(xs)
+    inv = ir.select(positive, 1.0 / safe, 0.0)
+    ys = [x * inv for x in xs]
+
+    def slope(i, j):
+        if i == j:
+            return lambda d: (d - d * ys[i] * ys[j]) * inv
+        return lambda d: (-(d * ys[i] * ys[j])) * inv
+
+    return ys, [[slope(i, j) for j in range(len(xs))] for i in range(len(xs))]
 
 
-@_traces_as(_normalize_traced)
+@_traces_as(lambda x: trace.along_last_axis("normalize", _normalize_scalar, x))
 def normalize(x: Any) -> Tensor:
     """x / |x| along the last axis. The zero vector maps to the zero vector, with zero
     gradient (and zero tangent): never NaN. (x / |x| is undefined at 0; PyTorch's

@@ -351,6 +351,32 @@ def elementwise(name: str, form, *args, differentiable=None) -> Traced:
     return Traced(out, batch, np.float64)
 
 
+def along_last_axis(name: str, form, x) -> Traced:
+    """Apply a vector primitive's scalar ``form`` to each element's last axis.
+
+    ``form(xs) -> (ys, slopes)``: the m lanes of one vector in, k lanes out (k = m, or 1 for
+    a length), and ``slopes[i][j]`` the slope ``d -> d * dy_i/dx_j`` (None: zero). Used
+    where the tape's rule has special cases the composition would not reproduce (a zero
+    vector, a NaN)."""
+    x = traced(x)
+    if x.dtype.kind != "f" or not x.lane_shape:
+        raise CompileError(f"{name}: needs float vectors (..., m) inside a compiled function")
+    graph = ir.active()
+    lanes = x.lanes
+    out = None
+    for position in np.ndindex(lanes.shape[:-1]):
+        xs = list(lanes[position])
+        ys, slopes = form(xs)
+        for y, row in zip(ys, slopes, strict=True):
+            node = graph.nodes[y.id]
+            node.parents = tuple(v.id for v in xs)
+            node.slopes = tuple(row)
+        if out is None:
+            out = np.empty(lanes.shape[:-1] + (len(ys),), dtype=object)
+        out[position] = ys
+    return Traced(out, x.batch, np.float64)
+
+
 def _map(function, *args, dtype=np.bool_) -> Traced:
     """A non-differentiable elementwise operation (comparisons, logic) lane by lane."""
     arrays = [traced(a) for a in args]

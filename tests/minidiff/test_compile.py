@@ -1,0 +1,382 @@
+"""minidiff.compile: the traced kernels against the tape they were traced from.
+
+Every check runs a function twice: compiled (``f``) and on the tape primitive by primitive
+(``f.function``), and compares the forward values, the VJP (reverse mode through ``backward``)
+and the JVP (forward mode through ``md.jvp``). Programs are drawn by Hypothesis from every
+supported primitive, with broadcasting between batched and shared arguments, gathers with
+repeated and negative indices, and inputs that include NaN and inf.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import minidiff as md
+from minidiff import backend, compiler
+from minidiff.trace import CompileError
+
+RTOL = 1e-12
+
+
+def assert_close(actual, expected, what: str, sparse_zeros: bool = False) -> None:
+    """Equal to 1e-12 of the expected array's scale; NaN where and only where it is NaN;
+    the same infinities.
+
+    ``sparse_zeros`` (derivatives with NaN inputs): the tape works on whole arrays, so a
+    lane the result never reads still gets a zero gradient, which a NaN slope turns into
+    NaN (x[:, 1] of exp(x) with x[0, 0] = NaN: 0 * exp(NaN)), and a sum that includes it
+    is NaN too. The compiled program works lane by lane and never forms those products.
+    So where the tape's derivative is NaN the compiled one may be anything; everywhere
+    else they must agree as usual (and the compiled one must not be NaN)."""
+    actual, expected = np.asarray(actual, float), np.asarray(expected, float)
+    assert actual.shape == expected.shape, (what, actual.shape, expected.shape)
+    nan = np.isnan(expected)
+    if sparse_zeros:
+        actual = np.where(nan, np.nan, actual)
+    assert np.array_equal(np.isnan(actual), nan), f"{what}: NaN at different places"
+    inf = np.isinf(expected)
+    assert np.array_equal(actual[inf], expected[inf]), f"{what}: infinities differ"
+    finite = ~nan & ~inf
+    if finite.any():
+        scale = max(1.0, float(np.abs(expected[finite]).max()))
+        error = float(np.abs(actual[finite] - expected[finite]).max())
+        assert error <= RTOL * scale, f"{what}: off by {error:.3g} at scale {scale:.3g}"
+
+
+# ---------------------------------------------------------------------------------------------
+# Random programs
+# ---------------------------------------------------------------------------------------------
+# A program is a list of steps, each applying one primitive to earlier values (by position
+# in a pool that starts with the arguments). Values are (n, 3) or (n, 1) batched, (3,) or ()
+# shared; reductions keep a trailing axis of 1 (x[..., None]) so that everything
+# broadcasts with everything.
+
+UNARY = ["negative", "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "normalize",
+         "norm", "sum", "mean", "max", "clip", "square", "lane"]  # fmt: skip
+BINARY = ["add", "subtract", "multiply", "divide", "power", "maximum", "minimum", "where",
+          "dot", "cross", "stack"]  # fmt: skip
+
+
+def _unary(op: str, x):
+    vector = x.ndim >= 1 and x.shape[-1] == 3
+    if op in ("normalize", "norm", "sum", "mean", "max", "lane") and not vector:
+        return md.exp(x * 0.5)
+    if op == "normalize":
+        return md.normalize(x)
+    if op == "norm":
+        return md.norm(x)[..., None]
+    if op in ("sum", "mean", "max"):
+        return getattr(md, op)(x, axis=-1)[..., None]
+    if op == "clip":
+        return md.clip(x, -1.0, 2.0)
+    if op == "square":
+        return x**2.0
+    if op == "lane":
+        return x[..., 1:2]
+    return getattr(md, op)(x)
+
+
+def _binary(op: str, a, b):
+    vectors = all(v.ndim >= 1 and v.shape[-1] == 3 for v in (a, b))
+    if op in ("dot", "cross", "stack") and not vectors or op == "stack" and a.shape != b.shape:
+        return a * b + 1.0
+    if op == "dot":
+        return md.dot(a, b)[..., None]
+    if op == "cross":
+        return md.cross(a, b)
+    if op == "stack":
+        return md.stack([a[..., 0], b[..., 2], a[..., 1]], axis=-1)
+    if op == "where":
+        return md.where(a > b, a, b * 2.0)
+    return getattr(md, op)(a, b)
+
+
+def make_program(steps):
+    def program(x, y, s, t):
+        pool = [x, y, s, t]
+        for op, i, j in steps:
+            a, b = pool[i % len(pool)], pool[j % len(pool)]
+            pool.append(_unary(op, a) if op in UNARY else _binary(op, a, b))
+        return pool[-1] + 0.0 * x, pool[-2] * y
+
+    return md.compile(program, shared=("s", "t"))
+
+
+# Magnitudes from 1e-3 to 3 (or 0): gradients that cancel (x / y * y) then agree to 1e-12
+# of the terms' size, which stays near the result's size; NaN and inf come from `special`.
+values = st.one_of(st.just(0.0), st.floats(1e-3, 3), st.floats(-3, -1e-3))
+special = st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -0.0])
+
+
+@st.composite
+def arrays(draw, shape, specials: bool):
+    size = int(np.prod(shape))
+    flat = np.array(draw(st.lists(values, min_size=size, max_size=size)), float)
+    if specials and size and draw(st.booleans()):
+        flat[draw(st.integers(0, size - 1))] = draw(special)
+    return flat.reshape(shape)
+
+
+steps_strategy = st.lists(
+    st.tuples(st.sampled_from(UNARY + BINARY), st.integers(0, 50), st.integers(0, 50)),
+    min_size=1,
+    max_size=12,
+)
+
+
+def _inputs(draw, n, specials):
+    return [draw(arrays(shape, specials)) for shape in ((n, 3), (n, 1), (3,), ())]
+
+
+def _tape(fn, inputs, weights):
+    tensors = [md.tensor(a, requires_grad=True) for a in inputs]
+    outs = fn(*tensors)
+    loss = (outs[0] * weights[0]).sum() + (outs[1] * weights[1]).sum()
+    loss.backward()
+    # an argument the result does not depend on: None on the tape, zeros from the compiled
+    # function (one node, all of whose inputs get a gradient)
+    grads = [np.zeros(t.shape) if t.grad is None else t.grad for t in tensors]
+    return [o.data for o in outs], grads
+
+
+def _check(f, inputs, weights, tangents, specials=False) -> None:
+    with np.errstate(all="ignore"):
+        expected, expected_grads = _tape(f.function, inputs, weights)
+        actual, actual_grads = _tape(f, inputs, weights)
+        for k in range(2):
+            assert_close(actual[k], expected[k], f"output {k}")
+        for name, a, e in zip("xyst", actual_grads, expected_grads, strict=True):
+            assert_close(a, e, f"gradient of {name}", sparse_zeros=specials)
+        _, expected_t = md.jvp(lambda *a: f.function(*a)[0], inputs, tangents)
+        _, actual_t = md.jvp(lambda *a: f(*a)[0], inputs, tangents)
+        assert_close(actual_t, expected_t, "tangent", sparse_zeros=specials)
+
+
+@settings(max_examples=40)
+@given(st.data(), steps_strategy, st.integers(1, 7))
+def test_random_programs_equal_the_tape(data, steps, n):
+    f = make_program(steps)
+    inputs = _inputs(data.draw, n, specials=False)
+    weights = [data.draw(arrays((n, 3), False)), data.draw(arrays((n, 3), False))]
+    tangents = _inputs(data.draw, n, specials=False)
+    _check(f, inputs, weights, tangents)
+
+
+@settings(max_examples=25)
+@given(st.data(), steps_strategy, st.integers(1, 5))
+def test_nan_and_inf_propagate_as_on_the_tape(data, steps, n):
+    f = make_program(steps)
+    inputs = _inputs(data.draw, n, specials=True)
+    weights = [data.draw(arrays((n, 3), False)), data.draw(arrays((n, 3), False))]
+    tangents = _inputs(data.draw, n, specials=False)
+    _check(f, inputs, weights, tangents, specials=True)
+
+
+def test_ties_and_kinks_take_the_tapes_subgradients():
+    """maximum/minimum ties, clip at its bounds, abs and norm at 0, max with tied lanes."""
+
+    @md.compile(shared=("s",))
+    def kinks(x, s):
+        return (
+            md.maximum(x, s) + md.minimum(s, x) + md.clip(x, 0.0, 1.0) + md.abs(x),
+            md.max(x, axis=-1)[:, None] + md.norm(x * 0.0 + x)[:, None] + md.normalize(x * 0.0),
+        )
+
+    x = np.array([[0.0, 1.0, 1.0], [0.5, 0.5, -2.0], [0.0, 0.0, 0.0]])
+    s = np.array([0.0, 1.0, 0.5])
+    w = np.arange(9.0).reshape(3, 3) - 4
+    for fn in (kinks, kinks.function):
+        tensors = [md.tensor(x, requires_grad=True), md.tensor(s, requires_grad=True)]
+        a, b = fn(*tensors)
+        ((a * w).sum() + (b * w).sum()).backward()
+        if fn is kinks:
+            compiled = [tensors[0].grad, tensors[1].grad]
+        else:
+            assert_close(compiled[0], tensors[0].grad, "x")
+            assert_close(compiled[1], tensors[1].grad, "s")
+
+
+# ---------------------------------------------------------------------------------------------
+# Gathers
+# ---------------------------------------------------------------------------------------------
+
+
+@md.compile(shared=("vertices", "faces"))
+def centroid_light(vertices, faces, hit, weights):
+    corners = vertices[faces[hit]]  # (n, 3, 3): a table gathered through an integer table
+    centre = md.mean(corners, axis=1)
+    return md.normalize(centre) * weights[:, None] + vertices[hit] * 0.5
+
+
+@settings(max_examples=20)
+@given(st.data(), st.integers(1, 40), st.integers(1, 6))
+def test_gathers_with_repeated_and_negative_indices(data, n, rows):
+    vertices = data.draw(arrays((rows, 3), False))
+    corner = st.integers(-rows, rows - 1)
+    face = st.lists(corner, min_size=3, max_size=3)
+    faces = np.array(data.draw(st.lists(face, min_size=rows, max_size=rows)))
+    hit = np.array(data.draw(st.lists(st.integers(-rows, rows - 1), min_size=n, max_size=n)))
+    weights = data.draw(arrays((n,), False))
+    cot = data.draw(arrays((n, 3), False))
+    grads = []
+    for fn in (centroid_light, centroid_light.function):
+        ts = [md.tensor(vertices, requires_grad=True), md.tensor(weights, requires_grad=True)]
+        out = fn(ts[0], faces, hit, ts[1])
+        (out * cot).sum().backward()
+        grads.append((out.data, ts[0].grad, ts[1].grad))
+    for a, e, what in zip(grads[0], grads[1], ("value", "d/dvertices", "d/dweights"), strict=True):
+        assert_close(a, e, what)
+    tangent = data.draw(arrays((rows, 3), False))
+    _, t1 = md.jvp(lambda v: centroid_light(v, faces, hit, weights), (vertices,), (tangent,))
+    _, t2 = md.jvp(
+        lambda v: centroid_light.function(v, faces, hit, weights), (vertices,), (tangent,)
+    )
+    assert_close(t1, t2, "tangent")
+
+
+def test_a_gather_out_of_range_is_an_index_error():
+    vertices = np.zeros((4, 3))
+    faces = np.array([[0, 1, 2], [1, 2, 3]])
+    with pytest.raises(IndexError, match="element 2 gathers a row out of range"):
+        centroid_light(vertices, faces, np.array([0, 1, 2]), np.ones(3))
+    bad = np.array([[0, 1, 7], [1, 2, 3]])
+    with pytest.raises(IndexError, match="element 0"):
+        centroid_light(vertices, bad, np.array([0, 1]), np.ones(2))
+
+
+# ---------------------------------------------------------------------------------------------
+# Threads, the tape, the cache
+# ---------------------------------------------------------------------------------------------
+
+
+@md.compile(shared=("light",))
+def shading(normals, points, light):
+    to_light = light - points
+    r2 = md.dot(to_light, to_light)
+    cosine = md.maximum(md.dot(normals, md.normalize(to_light)), 0.0)
+    return (cosine / r2)[:, None] * md.exp(-points * points)
+
+
+def _scene(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=3) * 3
+
+
+def test_the_same_bits_on_any_number_of_threads():
+    normals, points, light = _scene(5 * 1024 + 17)  # six chunks, the last one short
+    results = []
+    for threads in (1, 2, 3):
+        with compiler.using_threads(threads):
+            ts = [md.tensor(a, requires_grad=True) for a in (normals, points, light)]
+            out = shading(*ts)
+            (out * out).sum().backward()
+            _, tangent = md.jvp(lambda lt: shading(normals, points, lt), (light,), (np.ones(3),))
+            results.append([out.data, *(t.grad for t in ts), tangent])
+    for other in results[1:]:
+        for a, b in zip(results[0], other, strict=True):
+            assert np.array_equal(a, b)
+
+
+def test_composes_with_the_tape_in_both_modes():
+    normals, points, light = _scene(50)
+    error, _, _ = md.check_grad(
+        lambda p, lt: (shading(normals, p, lt) ** 2.0).sum(), points, light, argnums=(0, 1)
+    )
+    assert error < 1e-6  # against central differences
+    value, tangent = md.jvp(
+        lambda lt: md.sum(shading(normals, points, lt)), (light,), (np.array([1.0, 0, 0]),)
+    )
+    expected = md.jvp(
+        lambda lt: md.sum(shading.function(normals, points, lt)), (light,), (np.array([1.0, 0, 0]),)
+    )
+    assert_close(value, expected[0], "value")
+    assert_close(tangent, expected[1], "tangent")
+
+
+def test_without_the_tape_it_returns_a_constant():
+    normals, points, light = _scene(8)
+    with md.no_grad():
+        out = shading(md.tensor(normals, requires_grad=True), points, light)
+    assert out.node is None and not out.requires_grad
+    assert_close(out.data, shading.function(normals, points, light).data, "value")
+
+
+def test_calls_from_several_threads_agree():
+    normals, points, light = _scene(3000, seed=4)
+    expected = shading.function(normals, points, light).data
+    results, errors = {}, []
+
+    def work(k):
+        try:
+            m = 1000 + 500 * k  # different batch sizes: different traces, the same kernel
+            results[k] = shading(normals[:m], points[:m], light).data
+        except Exception as error:  # noqa: BLE001 (reported below)
+            errors.append(error)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(5)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors
+    for k, value in results.items():
+        assert_close(value, expected[: 1000 + 500 * k], f"thread {k}")
+
+
+def test_kernels_are_kept_on_disk_and_a_damaged_file_is_recompiled(tmp_path, monkeypatch):
+    monkeypatch.setenv("MINIDIFF_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(backend, "_compiled", {})
+
+    @md.compile
+    def fresh(x):
+        return md.tanh(x * 1.25) + 0.125  # constants no other test uses: a new kernel
+
+    x = np.linspace(-2, 2, 7)[:, None]
+    expected = np.tanh(x * 1.25) + 0.125
+    assert_close(fresh(x).data, expected, "first")
+    files = list((tmp_path / "kernels").glob("*.o"))
+    assert len(files) == 1
+    monkeypatch.setattr(backend, "_compiled", {})  # as a new process would start
+    fresh._traces.clear()
+    assert_close(fresh(x).data, expected, "from disk")
+    files[0].write_bytes(files[0].read_bytes()[:-9] + b"corrupted")
+    monkeypatch.setattr(backend, "_compiled", {})
+    fresh._traces.clear()
+    assert_close(fresh(x).data, expected, "after damage")
+    assert backend._read_object(files[0]) is not None  # rewritten whole
+
+
+# ---------------------------------------------------------------------------------------------
+# What cannot be compiled is refused at trace time, by name
+# ---------------------------------------------------------------------------------------------
+
+
+def _refuses(function, match, *args, shared=()):
+    with pytest.raises((CompileError, TypeError, ValueError), match=match):
+        md.compile(function, shared=shared)(*args)
+
+
+def test_refusals_name_the_operation():
+    x = np.ones((4, 3))
+    _refuses(lambda x: md.matmul(x, x), "'matmul' is not supported", x)
+    _refuses(lambda x: md.sum(x), "along the batch axis", x)
+    _refuses(lambda x: md.sum(x, axis=0), "along the batch axis", x)
+    _refuses(lambda x: x * 2.0 if x > 0 else x, "Python control flow", x)
+    _refuses(lambda x: np.asarray(x) * 2.0, "NumPy function", x)
+    _refuses(lambda x: x.data, r"\.data", x)
+    _refuses(lambda x: x[0], "batch axis must be kept whole", x)
+    weight = md.tensor(np.ones(3), requires_grad=True)
+    _refuses(lambda x: x * weight, "pass it as an argument", x)
+    _refuses(lambda x: x * np.ones((4000, 3)), "pass it as an argument", x)
+    _refuses(lambda x, y: x + y, "3 elements, others 4", x, np.ones((3, 3)))
+    _refuses(lambda x: x, "float32", x.astype(np.float32))
+    _refuses(lambda x: x > 0, "outputs must be float", x)
+    _refuses(lambda x, t: t * x, "spans the batch axis", x, np.ones((4, 3)), shared=("t",))
+    _refuses(lambda x, t: md.where(t, x, x), "batched argument 't' is a 0-d", x, np.float64(1))
+    with pytest.raises(ValueError, match="not parameters"):
+        md.compile(lambda x: x, shared=("y",))
