@@ -33,6 +33,7 @@ import numpy as np
 import minidiff as md
 from minidiff import Tensor, buffers
 from minidiff.either import cross_last
+from minidiff.trace import Traced
 from render.scene.fields import IN_RANGE, ArrayLike, Field, HasFields, normalisable
 
 __all__ = ["DIRECTIONAL", "POINT", "DirectionalLight", "Light", "PointLight"]
@@ -59,8 +60,11 @@ WHITE = (1.0, 1.0, 1.0)
 
 
 def _value(param: Tensor, like: Any) -> Values:
-    """``param`` itself when ``like`` is a tensor (on the tape), else its values, float64."""
-    return param if isinstance(like, Tensor) else np.asarray(param.data, np.float64)
+    """``param`` itself when ``like`` is a tensor (on the tape, or traced by
+    ``minidiff.compile``), else its values, float64."""
+    if isinstance(like, (Tensor, Traced)):
+        return param
+    return np.asarray(param.data, np.float64)
 
 
 class Light(HasFields, ABC):
@@ -193,7 +197,7 @@ class PointLight(Light):
         # zeros are replaced, so that any distance, however small the scene, is used as it
         # is (a fixed floor was not scale-invariant: issue 9).
         distance_sq = md.dot(offset, offset)
-        distance_sq = md.where(distance_sq.data == 0, 1.0, distance_sq)
+        distance_sq = md.where(distance_sq == 0.0, 1.0, distance_sq)
         return md.normalize(offset), self.intensity / distance_sq
 
     def shadow_rays(self, points: np.ndarray, offset: float) -> Rays:
