@@ -2,11 +2,13 @@
 against the same formulas on the NumPy tape.
 
 Run:  python benchmarks/bench_compiler.py [--out DIR] [--quick] [--repeats 7] [--hits 1000000]
+(--quick: 100,000 hits, 3 repeats, one latency sample)
 
-Workload (``hit_radiance`` below): for each of ``--hits`` camera rays that hit a triangle
-mesh, gather the triangle's corners by the hit's primitive id (a shared table), recompute
-the hit (``render.shade.surface.intersect_edges``: Moller-Trumbore), the face normal
-turned towards the ray, the direction and irradiance of two point lights
+Workload (``hit_radiance`` below): for each of ``--hits`` rays that hit the paper's teapot
+(finely tessellated: 24,576 triangles; rays in triangle order, as an image's are), gather
+the triangle's corners by the hit's primitive id (a shared table), recompute the hit
+(``render.shade.surface.intersect_edges``: Moller-Trumbore), the face normal turned
+towards the ray, the direction and irradiance of two point lights
 (``render.scene.lights.PointLight.incidence``) and the Lambert + Blinn-Phong BRDF
 (``render.shade.lighting.brdf``): the library's own formulas, called on traced arrays. The
 loss is the sum of the radiance times a fixed weight image; gradients go to the vertices,
@@ -25,9 +27,7 @@ Reported (medians, the two routes timed in turns in one process; this machine's 
 
 from __future__ import annotations
 
-import argparse
 import copy
-import json
 import math
 import os
 import random
@@ -35,13 +35,14 @@ import statistics
 import tempfile
 import time
 import tracemalloc
-from pathlib import Path
 
 import numpy as np
+import timing
 
 import minidiff as md
 from minidiff import backend, compiler
 from render.scene.lights import PointLight
+from render.scene.teapot import teapot_geometry
 from render.shade.lighting import Appearance, brdf
 from render.shade.surface import face_normals, intersect_edges
 
@@ -82,22 +83,26 @@ def hit_radiance(vertices, faces, prim, eye, directions, positions, intensities,
 
 
 def scene(hits: int, seed: int = 0):
-    """A random mesh and ``hits`` rays from the eye into it (hit ids drawn uniformly)."""
+    """The paper's teapot (``teapot_geometry(16, 24)``: 24,576 triangles) and ``hits`` rays
+    from the eye to random points on it, in triangle order (in an image, neighbouring
+    pixels hit neighbouring triangles)."""
     rng = np.random.default_rng(seed)
-    vertices = rng.normal(size=(20_000, 3))
-    faces = rng.integers(0, len(vertices), size=(40_000, 3))
-    prim = rng.integers(0, len(faces), size=hits)
-    eye = np.array([0.0, 0.0, 8.0])
-    centres = vertices[faces[prim]].mean(axis=1)
-    directions = centres - eye
+    vertices, faces = teapot_geometry(16, 24)
+    a, b, c = np.moveaxis(vertices[faces], 1, 0)
+    proper = np.flatnonzero(np.linalg.norm(np.cross(b - a, c - a), axis=1) > 0)  # no poles
+    prim = np.sort(rng.choice(proper, size=hits))
+    eye = np.array([0.0, 1.0, 8.0])
+    weights = rng.dirichlet(np.ones(3), size=hits)  # barycentric points on the triangles
+    targets = np.einsum("kj,kjc->kc", weights, vertices[faces[prim]])
+    directions = targets - eye
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     parameters = dict(
         vertices=vertices, positions=np.array([l.position.data for l in LIGHTS]),
         intensities=np.array([float(l.intensity.data) for l in LIGHTS]),
         albedo=np.array([0.7, 0.5, 0.3]), specular=np.array([0.2, 0.2, 0.2]),
     )  # fmt: skip
-    weights = rng.random((hits, 3))
-    return parameters, dict(faces=faces, prim=prim, eye=eye, directions=directions), weights
+    image_weights = rng.random((hits, 3))
+    return parameters, dict(faces=faces, prim=prim, eye=eye, directions=directions), image_weights
 
 
 def forward_backward(function, parameters, constants, weights) -> None:
@@ -129,18 +134,24 @@ def compile_latency(seed: int) -> tuple[float, float]:
     program with an empty disk cache, then to get them again in a fresh function from disk."""
     x = [np.linspace(0.1, 1, 64)[:, None] * (k + 1) for k in range(4)]
     leaves = [md.tensor(v, requires_grad=True) for v in x]
+    before = os.environ.get("MINIDIFF_CACHE_DIR")
     with tempfile.TemporaryDirectory() as cache:
         os.environ["MINIDIFF_CACHE_DIR"] = cache
-        backend._compiled.clear()
-        start = time.perf_counter()
-        random_program(seed)(*leaves).sum().backward()
-        fresh = time.perf_counter() - start
-        backend._compiled.clear()  # as a new process: only the disk cache is left
-        leaves = [md.tensor(v, requires_grad=True) for v in x]
-        start = time.perf_counter()
-        random_program(seed)(*leaves).sum().backward()
-        cached = time.perf_counter() - start
-        del os.environ["MINIDIFF_CACHE_DIR"]
+        try:
+            backend._compiled.clear()
+            start = time.perf_counter()
+            random_program(seed)(*leaves).sum().backward()
+            fresh = time.perf_counter() - start
+            backend._compiled.clear()  # as a new process: only the disk cache is left
+            leaves = [md.tensor(v, requires_grad=True) for v in x]
+            start = time.perf_counter()
+            random_program(seed)(*leaves).sum().backward()
+            cached = time.perf_counter() - start
+        finally:
+            if before is None:
+                del os.environ["MINIDIFF_CACHE_DIR"]
+            else:
+                os.environ["MINIDIFF_CACHE_DIR"] = before
     return fresh, cached
 
 
@@ -152,52 +163,81 @@ def peak_bytes(function, *args) -> int:
     return peak
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--out", default="out/bench_compiler")
-    parser.add_argument("--hits", type=int, default=1_000_000)
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--quick", action="store_true", help="100,000 hits, 3 repeats")
-    args = parser.parse_args()
-    hits, repeats = (100_000, 3) if args.quick else (args.hits, args.repeats)
+def run(args) -> dict:
+    hits = 100_000 if args.quick else args.hits
     parameters, constants, weights = scene(hits)
     tape = hit_radiance.function
     with md.no_grad():
-        graph = hit_radiance.trace(**parameters, **constants)
-    nodes = _count_tape_nodes(tape, parameters, constants)
-    times = {"tape": [], "compiled, 1 thread": [], "compiled, 2 threads": []}
+        lines = len(hit_radiance.trace(**parameters, **constants).graph.nodes)
     forward_backward(hit_radiance, parameters, constants, weights)  # compile, outside timing
-    for _ in range(repeats):
-        for name in times:
-            threads = 2 if "2 threads" in name else 1
-            function = tape if name == "tape" else hit_radiance
+
+    def route(function, threads):
+        def call():
             with compiler.using_threads(threads):
-                start = time.perf_counter()
                 forward_backward(function, parameters, constants, weights)
-                times[name].append(time.perf_counter() - start)
-    medians = {k: statistics.median(v) for k, v in times.items()}
-    latency = [compile_latency(seed) for seed in range(3)]
-    result = {
+
+        return call
+
+    results = timing.measure_interleaved(
+        {"tape": route(tape, 1), "compiled_1": route(hit_radiance, 1),
+         "compiled_2": route(hit_radiance, 2)},
+        repeats=args.repeats,
+    )  # fmt: skip
+    latency = [compile_latency(seed) for seed in range(1 if args.quick else 3)]
+    r = {
         "hits": hits,
-        "tape_primitives_per_forward": nodes,
-        "scalar_program_lines": len(graph.graph.nodes),
-        "median_seconds": medians,
-        "compiled_speedup_1_thread": medians["tape"] / medians["compiled, 1 thread"],
-        "compiled_threads_gain": medians["compiled, 1 thread"] / medians["compiled, 2 threads"],
-        "peak_bytes_tape": peak_bytes(forward_backward, tape, parameters, constants, weights),
-        "peak_bytes_compiled": peak_bytes(forward_backward, hit_radiance, parameters, constants, weights),
-        "compile_seconds_new_200_primitive_program": statistics.median(f for f, _ in latency),
-        "fetch_seconds_from_disk": statistics.median(c for _, c in latency),
-        "cpu_count": os.cpu_count(),
+        "tape_primitives_per_forward": _count_tape_nodes(tape, parameters, constants),
+        "scalar_program_lines": lines,
+        "results": results,
+        "speedup_1_thread": results["tape"]["median_ms"] / results["compiled_1"]["median_ms"],
+        "threads_gain": results["compiled_1"]["median_ms"] / results["compiled_2"]["median_ms"],
+        "peak_mb_tape": peak_bytes(forward_backward, tape, parameters, constants, weights) / 2**20,
+        "peak_mb_compiled": peak_bytes(
+            forward_backward, hit_radiance, parameters, constants, weights
+        )
+        / 2**20,
+        "compile_s": statistics.median(f for f, _ in latency),
+        "fetch_s": statistics.median(c for _, c in latency),
+        "repeats": args.repeats,
     }
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "bench_compiler.json").write_text(json.dumps(result, indent=2))
-    print(json.dumps(result, indent=2))
+    r["report"] = make_report(r)
+    return r
+
+
+def make_report(r: dict) -> dict:
+    res = r["results"]
+    rows = [
+        timing.row("forward+VJP on the tape, 1 thread", timing.ms(res["tape"])),
+        timing.row("forward+VJP compiled, 1 thread", timing.ms(res["compiled_1"])),
+        timing.row("forward+VJP compiled, 2 threads", timing.ms(res["compiled_2"])),
+        timing.row("tape / compiled, 1 thread", f"{r['speedup_1_thread']:.2f}x", "target >= 5x",
+                   "met" if r["speedup_1_thread"] >= 5 else "not met"),
+        timing.row("compiled, 1 -> 2 threads", f"{r['threads_gain']:.2f}x", "target >= 1.8x",
+                   "met" if r["threads_gain"] >= 1.8 else "not met"),
+        timing.row("peak NumPy memory of a f+b, tape / compiled",
+                   f"{r['peak_mb_tape']:.1f} / {r['peak_mb_compiled']:.1f} MB"),
+        timing.target_row("new 200-primitive kernel (forward + VJP), s", f"{r['compile_s']:.3f}",
+                          r["compile_s"], 0.5, "target <= 0.5 s"),
+        timing.target_row("the same from the disk cache, s", f"{r['fetch_s']:.4f}",
+                          r["fetch_s"], 0.010, "target <= 0.01 s"),
+        timing.row("shading graph: tape primitives / scalar program lines",
+                   f"{r['tape_primitives_per_forward']} / {r['scalar_program_lines']}"),
+    ]  # fmt: skip
+    notes = [f"{r['hits']:,} hits on the teapot, medians of {r['repeats']} calls, in turns."]
+    return timing.report_section("minidiff.compile (bench_compiler.py)", rows, notes, [])
+
+
+def main(argv=None) -> dict:
+    return timing.main(
+        "bench_compiler", __doc__, run, argv, repeats=7,
+        options={"--hits": dict(type=int, default=1_000_000, help="rays (default 10^6)")},
+    )  # fmt: skip
 
 
 def _count_tape_nodes(function, parameters, constants) -> int:
-    leaves = {k: md.tensor(v[:1] if k == "prim" else v, requires_grad=True) for k, v in parameters.items()}
+    leaves = {
+        k: md.tensor(v[:1] if k == "prim" else v, requires_grad=True) for k, v in parameters.items()
+    }
     small = {k: (v[:8] if k in ("prim", "directions") else v) for k, v in constants.items()}
     out = function(**leaves, **small)
     seen, stack = set(), [out.node]

@@ -30,6 +30,7 @@ HERE = Path(__file__).resolve().parent
 SCRIPTS = [
     "bench_visibility",
     "bench_minidiff",
+    "bench_compiler",
     "bench_render",
     "bench_mitsuba",
     "fig2_bvh",

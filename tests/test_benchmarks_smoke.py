@@ -46,6 +46,10 @@ EXPECTED = {
         for dtype in ("float64", "float32")
         for key in ("ratio_forward", "ratio_forward_backward")
     ],
+    "bench_compiler": [
+        ("results", route, "median_ms") for route in ("tape", "compiled_1", "compiled_2")
+    ]
+    + [("speedup_1_thread",), ("threads_gain",), ("compile_s",), ("fetch_s",), ("peak_mb_tape",)],
     "bench_render": [
         ("visibility", "build", "median_ms"),
         ("forward", "median_ms"),
