@@ -34,6 +34,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import ctypes
+import dataclasses
 import functools
 import inspect
 import threading
@@ -177,7 +178,7 @@ class CompiledFunction:
                 type_ = {"f": "f64", "i": "i64", "u": "i64", "b": "i1"}[dtype.kind]
                 slot = Slot(batched, t.shape[1:] if batched else t.shape, type_)
                 arrays.append((t, slot))
-                key.append((name, slot, t.shape[0] if batched else None))
+                key.append((name, slot))
             else:
                 try:
                     hash(value)
@@ -190,20 +191,23 @@ class CompiledFunction:
                 key.append((name, "static", type(value), value))
         if batch is None:
             raise ValueError(f"{self.function.__name__}: needs at least one batched array argument")
-        return arrays, statics, tuple(key)
+        return arrays, statics, (tuple(key), batch)
 
     def _trace_for(self, key, names, values, arrays, statics) -> _Trace:
+        """The trace for this signature: one for every batch length n, unless the function
+        read n while traced (``ir.Graph.reads_batch``), then one per n."""
+        signature, n = key
         with self._lock:
-            trace = self._traces.get(key)
+            trace = self._traces.get(signature) or self._traces.get(key)
             if trace is not None:
-                self._traces.move_to_end(key)
-                return trace
-        trace = self._trace(names, values, arrays, statics)
-        with self._lock:
-            self._traces[key] = trace
-            while len(self._traces) > MAX_TRACES:
-                self._traces.popitem(last=False)
-        return trace
+                self._traces.move_to_end(signature if signature in self._traces else key)
+        if trace is None:
+            trace = self._trace(names, values, arrays, statics)
+            with self._lock:
+                self._traces[key if trace.program.graph.reads_batch else signature] = trace
+                while len(self._traces) > MAX_TRACES:
+                    self._traces.popitem(last=False)
+        return trace if trace.batch == n else dataclasses.replace(trace, batch=n)
 
     def _trace(self, names, values, arrays, statics) -> _Trace:
         graph = ir.Graph()

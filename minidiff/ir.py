@@ -53,6 +53,9 @@ class Graph:
     argument comes before its use)."""
 
     nodes: list[Node] = field(default_factory=list)
+    # Whether the traced function read the batch length n (a batched array's shape, len,
+    # size): then its program may depend on n, and is kept per n (compiler.py).
+    reads_batch: bool = False
 
     def add(self, op: str, args: tuple[Value, ...], type_: str, attrs: tuple = ()) -> Value:
         """Append ``op(args)`` and return its Value."""
@@ -61,7 +64,7 @@ class Graph:
 
     def extended(self) -> Graph:
         """A copy to append derivative lines to; the original stays as traced."""
-        return Graph(list(self.nodes))
+        return Graph(list(self.nodes), self.reads_batch)
 
     @contextmanager
     def building(self):

@@ -848,10 +848,9 @@ def dot(a: Any, b: Any) -> Tensor:
 
 def _cross_traced(a, b):
     a, b = trace.traced(a), trace.traced(b)
-    if a.shape[-1:] != (3,) or b.shape[-1:] != (3,):
-        raise trace.CompileError(
-            f"cross: both inputs need a last axis of size 3, got {a.shape}, {b.shape}"
-        )
+    if a.full_shape[-1:] != (3,) or b.full_shape[-1:] != (3,):
+        shapes = f"{a.full_shape}, {b.full_shape}"
+        raise trace.CompileError(f"cross: both inputs need a last axis of size 3, got {shapes}")
     a0, a1, a2 = (a[..., j] for j in range(3))
     b0, b1, b2 = (b[..., j] for j in range(3))
     return stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)

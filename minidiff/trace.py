@@ -104,11 +104,22 @@ class Traced:
 
     @property
     def shape(self) -> tuple[int, ...]:
+        """The array's shape, batch axis first. Reading a batched array's shape tells the
+        compiler that the program may depend on n (``ir.Graph.reads_batch``)."""
+        if self.batch is not None:
+            graph = ir._building.get()
+            if graph is not None:
+                graph.reads_batch = True
+        return self.full_shape
+
+    @property
+    def full_shape(self) -> tuple[int, ...]:
+        """``shape``, without telling the compiler (for minidiff's own checks)."""
         return self._shape if self.batch is None else (self.batch, *self._shape)
 
     @property
     def ndim(self) -> int:
-        return len(self.shape)
+        return len(self._shape) + (self.batch is not None)
 
     @property
     def size(self) -> int:
@@ -119,7 +130,7 @@ class Traced:
 
     def __repr__(self) -> str:
         kind = "shared" if self.batch is None else "batched"
-        return f"Traced({kind}, shape={self.shape}, dtype={self.dtype})"
+        return f"Traced({kind}, shape={self.full_shape}, dtype={self.dtype})"
 
     # Values do not exist at trace time: refuse what would need them, saying what to do.
     def _no_values(self, what: str):
@@ -303,7 +314,7 @@ def _element_lanes(a: Traced, batch: int | None, rank: int) -> np.ndarray:
     if a.batch is None and batch is not None and lanes.ndim > rank:
         if lanes.ndim > rank + 1 or lanes.shape[0] != 1:
             raise CompileError(
-                f"compile: a shared array of shape {a.shape} spans the batch axis of a "
+                f"compile: a shared array of shape {a.full_shape} spans the batch axis of a "
                 f"batched one (n = {batch}); pass it as a batched argument"
             )
         lanes = lanes[0]
@@ -319,7 +330,7 @@ def broadcast(arrays: list[Traced], name: str) -> tuple[list[np.ndarray], int | 
     try:
         return list(np.broadcast_arrays(*lanes)), batch
     except ValueError:
-        shapes = " and ".join(str(a.shape) for a in arrays)
+        shapes = " and ".join(str(a.full_shape) for a in arrays)
         raise CompileError(f"{name}: cannot broadcast shapes {shapes} together") from None
 
 
@@ -430,7 +441,7 @@ def reshape(x: Traced, shape) -> Traced:
         return with_lanes(x, x.lanes.reshape(shape))
     if not shape or shape[0] not in (x.batch, -1):
         raise CompileError(
-            f"reshape: a batched array of shape {x.shape} must keep its batch axis first, "
+            f"reshape: a batched array of shape {x.full_shape} must keep its batch axis first, "
             f"got {shape}"
         )
     if shape[0] == -1 and -1 in shape[1:]:
@@ -456,7 +467,7 @@ def broadcast_to(x: Traced, shape) -> Traced:
         return Traced(np.broadcast_to(x.lanes, shape[1:]), shape[0], x.dtype)
     if batch is not None:
         if shape[0] != batch:
-            raise CompileError(f"broadcast_to: cannot broadcast {x.shape} to {shape}")
+            raise CompileError(f"broadcast_to: cannot broadcast {x.full_shape} to {shape}")
         shape = shape[1:]
     return with_lanes(x, np.broadcast_to(x.lanes, shape))
 

@@ -380,3 +380,25 @@ def test_refusals_name_the_operation():
     _refuses(lambda x, t: md.where(t, x, x), "batched argument 't' is a 0-d", x, np.float64(1))
     with pytest.raises(ValueError, match="not parameters"):
         md.compile(lambda x: x, shared=("y",))
+
+
+def test_one_trace_serves_every_batch_length_unless_the_function_reads_it():
+    calls = []
+
+    @md.compile(shared=("c",))
+    def blind(x, c):
+        calls.append("blind")
+        return x * c
+
+    @md.compile(shared=("c",))
+    def reads(x, c):
+        calls.append("reads")
+        return md.broadcast_to(c, (x.shape[0], 3)) * 2.0 + x * 0.0  # n becomes a constant
+
+    c = np.array([1.0, 2.0, 3.0])
+    for n in (1, 5, 9, 5):
+        x = np.arange(3.0 * n).reshape(n, 3)
+        assert_close(blind(x, c).data, x * c, f"blind n={n}")
+        assert_close(reads(x, c).data, np.broadcast_to(c * 2.0, (n, 3)), f"reads n={n}")
+    assert calls.count("blind") == 1  # traced once, for n = 1
+    assert calls.count("reads") == 3  # once per n it saw
