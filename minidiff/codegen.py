@@ -19,7 +19,7 @@ The function's signature is the same in every mode::
 
 ``buffers`` is an array of pointers, laid out by ``Layout``; the function runs the chunks
 [first_chunk, end_chunk) of ``CHUNK`` elements each (the last may be short) and returns 0,
-or 1 + the element whose gather index was out of range. Everything is straight-line code
+or 1 + the first element whose gather index was out of range. Everything is straight-line code
 in one loop body; LLVM's optimiser removes what is computed twice and keeps values in
 registers. Variables that live across elements (the loop counter, a chunk's sums) are
 ``alloca`` slots, which LLVM turns into registers.
@@ -33,6 +33,7 @@ from minidiff import ir
 from minidiff.trace import Slot
 
 CHUNK = 1024  # elements per chunk: the unit of work of a thread, and of a shared gradient's sums
+BLOCK = 64  # elements per block of a chunk, whose frontier gradients are summed after it
 
 _LLVM_TYPES = {"f64": "double", "i64": "i64", "i1": "i1"}
 _LOAD_TYPES = {"f64": "double", "i64": "i64", "i1": "i8"}  # booleans are stored as bytes
@@ -158,7 +159,10 @@ class _Emitter:
         self.tail: list[str] = []  # once per element, after the values: the stores
         self.chunk_start: list[str] = []
         self.chunk_end: list[str] = []
-        self.sums_allocas: list[str] = []  # a chunk's running sum per shared lane (vjp)
+        self.sums_allocas: list[str] = []  # a chunk's running sum per frontier value (vjp)
+        self.inside: list[str] = []  # per gather, whether its row was in range
+        self.reduce: list[str] = []  # per element of a block: add its scratch row (vjp)
+        self.frontier_count = 0
         self.temp = 0
         self.emitted: set[int] = set()
 
@@ -270,30 +274,41 @@ class _Emitter:
             self.body.append(f"  {target} = " + ir.INSTRUCTIONS[op].format(*args))
 
     def checked_row(self, row: str, rows: int) -> str:
-        """A gather's row: negative counts from the end; out of range returns the element."""
-        negative, wrapped, inside = self.fresh(), self.fresh(), self.fresh()
-        shifted = self.fresh()
+        """A gather's row: negative counts from the end. Out of range, row 0 is read instead
+        and the element is remembered (the kernel returns the first such one): no branch,
+        so that LLVM may vectorise the loop."""
+        negative, shifted, wrapped = self.fresh(), self.fresh(), self.fresh()
+        inside, safe = self.fresh(), self.fresh()
         self.body.append(f"  {negative} = icmp slt i64 {row}, 0")
         self.body.append(f"  {shifted} = add i64 {row}, {rows}")
         self.body.append(f"  {wrapped} = select i1 {negative}, i64 {shifted}, i64 {row}")
         self.body.append(f"  {inside} = icmp ult i64 {wrapped}, {rows}")
-        label = self.fresh()[1:]
-        self.body.append(f"  br i1 {inside}, label %ok{label}, label %bad")
-        self.body.append(f"ok{label}:")
-        return wrapped
+        self.body.append(f"  {safe} = select i1 {inside}, i64 {wrapped}, i64 0")
+        self.inside.append(inside)
+        return safe
 
     def accumulate(self, f: int, count: int, value: str) -> None:
         """Add ``value`` to this chunk's sum number ``f`` (of ``count``), written to the
-        frontier buffer's row for the chunk when the chunk ends."""
+        frontier buffer's row for the chunk when the chunk ends.
+
+        The element loop only stores the value in a scratch row (no dependence from one
+        element to the next, so LLVM can vectorise it); a second loop after each block of
+        ``BLOCK`` elements adds the rows into the sums in element order."""
         total = f"%sum{f}"
         self.sums_allocas.append(f"  {total} = alloca double")
         self.chunk_start.append(f"  store double 0.0, ptr {total}")
-        old, new, final = self.fresh(), self.fresh(), self.fresh()
-        self.tail += [
+        self.frontier_count = count
+        address = self.element_address(self.tail, "%scratch", count, f, "%i.block", "double")
+        self.tail.append(f"  store double {value}, ptr {address}")
+        piece, old, new = self.fresh(), self.fresh(), self.fresh()
+        address = self.element_address(self.reduce, "%scratch", count, f, "%j.block", "double")
+        self.reduce += [
+            f"  {piece} = load double, ptr {address}",
             f"  {old} = load double, ptr {total}",
-            f"  {new} = fadd double {old}, {value}",
+            f"  {new} = fadd double {old}, {piece}",
             f"  store double {new}, ptr {total}",
         ]
+        final = self.fresh()
         self.chunk_end.append(f"  {final} = load double, ptr {total}")
         base = self.pointer(("frontier",))
         address = self.element_address(self.chunk_end, base, count, f, "%c", "double")
@@ -306,18 +321,48 @@ class _Emitter:
     def text(self, n_pointers: int) -> str:
         for vid in sorted(self.emitted):
             self._emit_one(vid)
-        pointers = []
+        checks = []
+        if self.inside:  # remember the first element with a row out of range
+            all_inside = self.inside[0]
+            for flag in self.inside[1:]:
+                both = self.fresh()
+                checks.append(f"  {both} = and i1 {all_inside}, {flag}")
+                all_inside = both
+            checks += [  # a min-reduction, which LLVM can vectorise
+                f"  %bad.here = select i1 {all_inside}, i64 %n, i64 %i",
+                "  %bad.old = load i64, ptr %bad.slot",
+                "  %bad.new = call i64 @llvm.smin.i64(i64 %bad.old, i64 %bad.here)",
+                "  store i64 %bad.new, ptr %bad.slot",
+            ]
+        # The work is a function of the buffers as separate ``noalias`` pointers (each
+        # buffer is its own array: what the kernel writes, nothing else reads), which lets
+        # LLVM keep values in registers across stores; ``kernel`` unpacks the array of
+        # pointers and calls it (inlined).
+        pointers, arguments = [], []
         for k in range(n_pointers):
             pointers.append(f"  %p{k} = getelementptr ptr, ptr %buffers, i64 {k}")
             pointers.append(f"  %b{k} = load ptr, ptr %p{k}")
+            arguments.append(f"ptr noalias %b{k}")
+        scalars = ["i64 %n", "i64 %first", "i64 %end"]
+        call = ", ".join([f"ptr %b{k}" for k in range(n_pointers)] + scalars)
         return "\n".join(
             [
                 "define i64 @kernel(ptr %buffers, i64 %n, i64 %first, i64 %end) {",
                 "entry:",
+                *pointers,
+                f"  %result = call i64 @work({call})",
+                "  ret i64 %result",
+                "}",
+                f"define internal i64 @work({', '.join([*arguments, *scalars])}) {{",
+                "entry:",
                 "  %chunk.slot = alloca i64",
                 "  %i.slot = alloca i64",
+                "  %bad.slot = alloca i64",
+                "  store i64 %n, ptr %bad.slot",
                 *self.sums_allocas,
-                *pointers,
+                f"  %scratch = alloca double, i64 {max(1, BLOCK * self.frontier_count)}",
+                "  %block.slot = alloca i64",
+                "  %j.slot = alloca i64",
                 *self.entry,
                 "  store i64 %first, ptr %chunk.slot",
                 "  br label %chunk.head",
@@ -331,29 +376,57 @@ class _Emitter:
                 "  %short = icmp slt i64 %n, %stop.full",
                 "  %stop = select i1 %short, i64 %n, i64 %stop.full",
                 *self.chunk_start,
-                "  store i64 %start, ptr %i.slot",
+                "  store i64 %start, ptr %block.slot",
+                "  br label %block.head",
+                "block.head:",
+                "  %block = load i64, ptr %block.slot",
+                "  %more.blocks = icmp slt i64 %block, %stop",
+                "  br i1 %more.blocks, label %block.body, label %chunk.tail",
+                "block.body:",
+                f"  %block.end.full = add i64 %block, {BLOCK}",
+                "  %block.short = icmp slt i64 %stop, %block.end.full",
+                "  %block.end = select i1 %block.short, i64 %stop, i64 %block.end.full",
+                "  store i64 %block, ptr %i.slot",
                 "  br label %element.head",
                 "element.head:",
                 "  %i = load i64, ptr %i.slot",
-                "  %more = icmp slt i64 %i, %stop",
-                "  br i1 %more, label %element.body, label %chunk.tail",
+                "  %more = icmp slt i64 %i, %block.end",
+                "  br i1 %more, label %element.body, label %reduce.start",
                 "element.body:",
+                "  %i.block = sub i64 %i, %block",
                 *self.body,
                 *self.tail,
+                *checks,
                 "  %i.next = add i64 %i, 1",
                 "  store i64 %i.next, ptr %i.slot",
                 "  br label %element.head",
+                "reduce.start:",
+                "  store i64 %block, ptr %j.slot",
+                "  br label %reduce.head",
+                "reduce.head:",
+                "  %j = load i64, ptr %j.slot",
+                "  %more.j = icmp slt i64 %j, %block.end",
+                "  br i1 %more.j, label %reduce.body, label %block.next",
+                "reduce.body:",
+                "  %j.block = sub i64 %j, %block",
+                *self.reduce,
+                "  %j.next = add i64 %j, 1",
+                "  store i64 %j.next, ptr %j.slot",
+                "  br label %reduce.head",
+                "block.next:",
+                "  store i64 %block.end, ptr %block.slot",
+                "  br label %block.head",
                 "chunk.tail:",
                 *self.chunk_end,
                 "  %c.next = add i64 %c, 1",
                 "  store i64 %c.next, ptr %chunk.slot",
                 "  br label %chunk.head",
                 "done:",
-                "  ret i64 0",
-                "bad:",
-                "  %bad.i = load i64, ptr %i.slot",
-                "  %bad.code = add i64 %bad.i, 1",
-                "  ret i64 %bad.code",
+                "  %bad = load i64, ptr %bad.slot",
+                "  %any.bad = icmp slt i64 %bad, %n",
+                "  %bad.code = add i64 %bad, 1",
+                "  %code = select i1 %any.bad, i64 %bad.code, i64 0",
+                "  ret i64 %code",
                 "}",
                 ir.DECLARATIONS,
             ]

@@ -231,6 +231,7 @@ declare double @llvm.floor.f64(double)
 declare double @llvm.pow.f64(double, double)
 declare double @tan(double)
 declare double @tanh(double)
+declare i64 @llvm.smin.i64(i64, i64)
 """
 
 
