@@ -68,13 +68,24 @@ class Kernel:
 
 
 def _executor() -> ThreadPoolExecutor:
+    """The shared thread pool (made on first use)."""
     global _pool
     with _lock:
         if _pool is None:
-            _pool = ThreadPoolExecutor(
-                max_workers=os.cpu_count() or 1, thread_name_prefix="minidiff"
-            )
+            workers = os.cpu_count() or 1
+            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="minidiff")
         return _pool
+
+
+def _after_fork_in_child() -> None:
+    """A forked child's copy of the pool has no threads left, and its copy of the lock may
+    be held by a thread that no longer exists: start both afresh."""
+    global _pool, _lock
+    _pool, _lock = None, threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
 
 
 def _target_machine():

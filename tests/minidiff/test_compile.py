@@ -402,3 +402,21 @@ def test_one_trace_serves_every_batch_length_unless_the_function_reads_it():
         assert_close(reads(x, c).data, np.broadcast_to(c * 2.0, (n, 3)), f"reads n={n}")
     assert calls.count("blind") == 1  # traced once, for n = 1
     assert calls.count("reads") == 3  # once per n it saw
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_a_forked_child_gets_its_own_thread_pool():
+    import multiprocessing
+
+    normals, points, light = _scene(3 * 1024)
+    with compiler.using_threads(2):
+        expected = shading(normals, points, light).data  # the parent's pool now exists
+    context = multiprocessing.get_context("fork")
+    with context.Pool(1) as pool:
+        got = pool.apply(_shade_on_two_threads, (normals, points, light))
+    assert np.array_equal(got, expected)
+
+
+def _shade_on_two_threads(normals, points, light):
+    with compiler.using_threads(2):
+        return shading(normals, points, light).data
