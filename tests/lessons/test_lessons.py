@@ -75,8 +75,8 @@ def agrees(value: float, number: str, rel: str) -> bool:
     return abs(v - stated) <= half_unit(number) * Decimal("1.000001")
 
 
-#: Each lesson's module-level names once its test has run it and checked its numbers, for the
-#: solution's test in the same process (``reuse_lesson_runs``).
+#: A lesson's module-level names once its test has run it and checked its numbers, for its
+#: solution's test in the same process (``reuse_lesson_runs``), which takes them out.
 LESSON_RUNS: dict[str, dict] = {}
 
 
@@ -111,7 +111,9 @@ def test_lesson_runs_and_its_prose_states_its_numbers(path, tmp_path, monkeypatc
     assert len(checks) >= 3, f"{path.name} states fewer than three checked numbers"
     assert_stated_numbers(path, checks, namespace)
     assert "Exercises" in markdown, f"{path.name} has no exercises cell"
-    LESSON_RUNS[path.stem] = namespace
+    solution = ROOT / "lessons" / "solutions" / path.name
+    if solution.exists() and f'run_lesson("{path.stem}")' in solution.read_text("utf-8"):
+        LESSON_RUNS[path.stem] = namespace  # kept only for a solution that will take it
 
 
 def assert_stated_numbers(path: Path, checks: list[tuple[str, str, str]], namespace: dict):
@@ -142,7 +144,9 @@ def reuse_lesson_runs(monkeypatch) -> None:
     monkeypatch.syspath_prepend(str(ROOT / "lessons"))
     course = importlib.import_module("course")
     run = course.run_lesson
-    monkeypatch.setattr(course, "run_lesson", lambda lesson: LESSON_RUNS.get(lesson) or run(lesson))
+    monkeypatch.setattr(
+        course, "run_lesson", lambda lesson: LESSON_RUNS.pop(lesson, None) or run(lesson)
+    )
 
 
 def test_every_lesson_has_solutions_and_an_index_entry():
