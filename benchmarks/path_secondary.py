@@ -304,7 +304,7 @@ def markdown(result: dict) -> str:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = timing.make_parser(
-        __doc__, out=Path("out/path_secondary"), quick="2 seeds at 4 spp, 2 timed calls"
+        __doc__, out=Path("out/path_secondary"), quick="2 seeds at 1 spp, 1 timed call"
     )
     parser.add_argument("--seeds", type=int, default=64)
     parser.add_argument("--spp", type=int, default=32)
@@ -313,7 +313,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--antialias", default="primary,boundary",
                         help="the modes compared, comma-separated")  # fmt: skip
     args = parser.parse_args(argv)
-    seeds, spp, repeats = (2, 4, 2) if args.quick else (args.seeds, args.spp, args.repeats)
+    seeds, spp, repeats = (2, 1, 1) if args.quick else (args.seeds, args.spp, args.repeats)
     modes = args.antialias.split(",")
     start = time.perf_counter()
     rows = []

@@ -47,13 +47,15 @@ import io
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import trimesh
 
 from render.scene.image import load_image
 from render.scene.scene import Material, Mesh
+
+if TYPE_CHECKING:  # at run time imported where a file is read (trimesh, with SciPy: ~1.1 s)
+    import trimesh
 
 __all__ = ["load_mesh", "SUPPORTED_MESH_EXTENSIONS", "DEFAULT_ALBEDO"]
 
@@ -105,6 +107,8 @@ def load_mesh(
 
     if path.stat().st_size == 0:
         raise ValueError(f"load_mesh: {path} is empty")
+    import trimesh  # here, not at the top: ``import render`` stays ~1.1 s faster
+
     source: Any = str(path)
     resolver = None
     if ext == ".obj":
@@ -493,6 +497,8 @@ def _texture(file: Path | None, obj_path: Path) -> np.ndarray | None:
 
 def _trimesh_material(geom: trimesh.Trimesh, ambient_light: np.ndarray) -> Material:
     """Material from trimesh's visual (GLB PBR base colour/texture, simple materials)."""
+    import trimesh  # already imported by ``load_mesh``, its caller
+
     mat = getattr(geom.visual, "material", None)
     if mat is None:
         return Material(albedo=DEFAULT_ALBEDO)

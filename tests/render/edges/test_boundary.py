@@ -505,10 +505,17 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     # (rows k..2k-1 hold no point); its first face the mesh's own (first_prim 0), the rest
     # another mesh's (ids and positions).
     table = [np.concatenate([x, x]) for x in (i, j, faces, third_ids, thirds)]
+    # Arrays typed as the renderer passes them (contiguous; the camera's frame read-only),
+    # so that the test runs the renderer's compiled kernel instead of compiling variants of
+    # its own (two, ~30 s each on an empty cache).
+    frame = [np.array(v) for v in (eye, forward, right, up)]
+    for v in frame:
+        v.flags.writeable = False
+    c = np.ascontiguousarray
     fast = edge_sides_kernel(
-        eye, forward, right, up, vertices, table[0], table[1], table[2][:, :1],
-        table[3][:, :1], 0, table[2][:, 1:], table[4][:, 1:], np.arange(k)[::-1].copy(),
-        coords[::-1].copy(), 40, 30, 1,
+        *frame, vertices, table[0], table[1], c(table[2][:, :1]), c(table[3][:, :1]), 0,
+        c(table[2][:, 1:]), c(table[4][:, 1:]), np.arange(k)[::-1].copy(), coords[::-1].copy(),
+        40, 30, 1,
     )  # fmt: skip
     fast = [x[::-1] for x in fast]
     for name, a, b in zip(
