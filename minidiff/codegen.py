@@ -58,7 +58,8 @@ class Layout:
     - forward: one per output, (n, lanes).
     - vjp: the outputs' cotangents (n, lanes); each differentiated batched slot's gradient
       (n, lanes); the *frontier* sums (chunks, len(frontier)); per gathered index, a
-      contribution buffer (n, columns) (``gathers`` lists (slot, index id) in order).
+      contribution buffer (n, columns) and the row each element gathered (n,) int64
+      (``gathers`` lists (slot, index id) in order).
     - vjp_shared: the frontier totals (len(frontier),); each differentiated shared slot's
       gradient (its shape).
     - jvp: each differentiated slot's tangent (its own shape); one per output (n, lanes).
@@ -134,6 +135,7 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
                 gathers.append(key)
         for g in gathers:
             add(("contrib", g))
+            add(("rows", g))
     elif mode == "vjp_shared":
         add(("frontier",))
         for s in wrt:
@@ -511,10 +513,18 @@ def _reverse_elements(program: Program, graph: ir.Graph, emitter: _Emitter, wrt,
         node = graph.nodes[vid]
         if vid in adjoint and node.op == "gather":
             _give(gathered, (node.attrs, node.args[0]), adjoint[vid])
+    rows_written = set()
     for key, d in gathered.items():
         (slot, column, columns, _), index = key
         emitter.emit(d.id)
         emitter.store(("contrib", (slot, index)), columns, column, emitter.name(d.id))
+        if (slot, index) not in rows_written:  # the row it was gathered from, as given
+            rows_written.add((slot, index))
+            emitter.emit(index)
+            address = emitter.element_address(
+                emitter.tail, emitter.pointer(("rows", (slot, index))), 1, 0, "%i", "i64"
+            )
+            emitter.tail.append(f"  store i64 {emitter.name(index)}, ptr {address}")
     for vid in leaves:
         node = graph.nodes[vid]
         if vid in adjoint and node.op == "load":
@@ -575,3 +585,61 @@ def _tangents(program: Program, graph: ir.Graph, emitter: _Emitter, wrt) -> None
             else:
                 value = "0.0"
             emitter.store(("out", o), len(lanes), lane, value)
+
+
+def scatter_add(columns: int) -> str:
+    """The kernel that adds a gather's contributions into its table's gradient: buffers
+    (rows (n,) int64, contributions (n, columns), gradient (table rows, columns), the table's
+    row count (1,) int64); serial, in element order (so the same sums on any thread count);
+    a negative row counts from the end, as the gather read it."""
+    adds = []
+    for c in range(columns):
+        adds += [
+            f"  %src{c} = getelementptr double, ptr %contrib, i64 %at{c}",
+            f"  %dst{c} = getelementptr double, ptr %grad, i64 %to{c}",
+            f"  %x{c} = load double, ptr %src{c}",
+            f"  %old{c} = load double, ptr %dst{c}",
+            f"  %new{c} = fadd double %old{c}, %x{c}",
+            f"  store double %new{c}, ptr %dst{c}",
+        ]
+    offsets = []
+    for c in range(columns):
+        offsets += [f"  %at{c} = add i64 %from, {c}", f"  %to{c} = add i64 %base, {c}"]
+    return "\n".join(
+        [
+            "define i64 @kernel(ptr %buffers, i64 %n, i64 %first, i64 %end) {",
+            "entry:",
+            "  %p0 = getelementptr ptr, ptr %buffers, i64 0",
+            "  %rows = load ptr, ptr %p0",
+            "  %p1 = getelementptr ptr, ptr %buffers, i64 1",
+            "  %contrib = load ptr, ptr %p1",
+            "  %p2 = getelementptr ptr, ptr %buffers, i64 2",
+            "  %grad = load ptr, ptr %p2",
+            "  %p3 = getelementptr ptr, ptr %buffers, i64 3",
+            "  %count.ptr = load ptr, ptr %p3",
+            "  %count = load i64, ptr %count.ptr",
+            "  %i.slot = alloca i64",
+            "  store i64 0, ptr %i.slot",
+            "  br label %head",
+            "head:",
+            "  %i = load i64, ptr %i.slot",
+            "  %more = icmp slt i64 %i, %n",
+            "  br i1 %more, label %body, label %done",
+            "body:",
+            "  %r.ptr = getelementptr i64, ptr %rows, i64 %i",
+            "  %r.given = load i64, ptr %r.ptr",
+            "  %negative = icmp slt i64 %r.given, 0",
+            "  %r.shifted = add i64 %r.given, %count",
+            "  %r = select i1 %negative, i64 %r.shifted, i64 %r.given",
+            f"  %from = mul i64 %i, {columns}",
+            f"  %base = mul i64 %r, {columns}",
+            *offsets,
+            *adds,
+            "  %i.next = add i64 %i, 1",
+            "  store i64 %i.next, ptr %i.slot",
+            "  br label %head",
+            "done:",
+            "  ret i64 0",
+            "}",
+        ]
+    )

@@ -270,26 +270,23 @@ class CompiledFunction:
         grads = {s: np.zeros((n, *slots[s].shape)) for s in wrt if slots[s].batched}
         sums = np.zeros((chunks, max(1, len(layout.frontier))))
         contributions = [np.zeros((n, int(np.prod(slots[s].shape[1:])))) for s, _ in layout.gathers]
+        rows = [np.zeros(n, np.int64) for _ in layout.gathers]
         cotangents = [np.ascontiguousarray(g, dtype=np.float64) for g in cotangents]
-        buffers = [*data, *cotangents, *grads.values(), sums, *contributions]
+        per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
+        buffers = [*data, *cotangents, *grads.values(), sums, *per_gather]
         self._run(trace, "vjp", wrt, buffers)
         shared = {s: np.zeros(slots[s].shape) for s in wrt if not slots[s].batched}
         if shared and layout.frontier:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
             self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
         grads.update(shared)
-        for (slot, index_id), share in zip(layout.gathers, contributions, strict=True):
-            shape = slots[slot].shape
-            rows = _gather_rows(trace.program, data, index_id, n)
-            rows = np.where(rows < 0, rows + shape[0], rows)  # as the kernel read them
-            added = np.stack(
-                [
-                    np.bincount(rows, weights=share[:, c], minlength=shape[0])
-                    for c in range(share.shape[1])
-                ],
-                axis=1,
-            )  # in element order: the same sums whatever the threads did
-            grads[slot] = grads[slot] + added.reshape(shape)
+        for (slot, _), share, where in zip(layout.gathers, contributions, rows, strict=True):
+            table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
+            count = np.array([slots[slot].shape[0]], np.int64)
+            kernel = backend.compile_ir(codegen.scatter_add(share.shape[1]))
+            buffers = [where, share, table, count]
+            pointers = (ctypes.c_void_p * 4)(*(b.ctypes.data for b in buffers))
+            kernel.run(pointers, n, 1, 1)  # one pass, in element order
         return [grads.get(s) for s in range(len(slots))]
 
     def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:
@@ -363,29 +360,6 @@ def _argument(graph: ir.Graph, k: int, slot: Slot, t: Tensor, batch: int) -> Tra
     lanes = np.empty(size, dtype=object)
     lanes[:] = [graph.add("load", (), slot.type, (k, j)) for j in range(size)]
     return Traced(lanes.reshape(slot.shape), batch, dtype)
-
-
-def _gather_rows(program: codegen.Program, data, index_id: int, n: int) -> np.ndarray:
-    """The row each element gathered at line ``index_id`` (an integer value: an argument's
-    lane, or a gather from an integer table), as NumPy computes it, negatives wrapped."""
-    node = program.graph.nodes[index_id]
-    if node.op == "load":
-        slot, lane = node.attrs
-        rows = data[slot].reshape(n, -1)[:, lane]
-    elif node.op == "uniform":
-        slot, j = node.attrs
-        rows = np.full(n, data[slot].ravel()[j])
-    elif node.op == "gather":
-        slot, column, columns, count = node.attrs
-        inner = _gather_rows(program, data, node.args[0], n)
-        inner = np.where(inner < 0, inner + count, inner)
-        rows = data[slot].reshape(count, columns)[inner, column]
-    else:
-        raise CompileError(
-            "compile: a table's gradient needs its gather index to be an integer argument "
-            f"or a gather from an integer table, not the result of '{node.op}'"
-        )
-    return rows.astype(np.int64)
 
 
 def compile(function: Callable | None = None, *, shared=()) -> Any:
