@@ -52,6 +52,7 @@ WRITTEN = [
     "docs/bridges.md",
     "docs/paper_scene.md",
     "docs/architecture.md",
+    "docs/compiler.md",
 ]
 
 #: Generated pages whose script builds the text in ``main``: every number must be in the JSON.
