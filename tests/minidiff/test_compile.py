@@ -404,19 +404,39 @@ def test_one_trace_serves_every_batch_length_unless_the_function_reads_it():
     assert calls.count("reads") == 3  # once per n it saw
 
 
+FORK_SCRIPT = """
+import multiprocessing
+import numpy as np
+import minidiff as md
+from minidiff import compiler
+
+@md.compile(shared=("light",))
+def shading(normals, points, light):
+    return md.maximum(md.dot(normals, md.normalize(light - points)), 0.0)[:, None] * points
+
+def on_two_threads(*args):
+    with compiler.using_threads(2):
+        return shading(*args).data
+
+rng = np.random.default_rng(0)
+args = (rng.normal(size=(3 * 1024, 3)), rng.normal(size=(3 * 1024, 3)), np.ones(3))
+expected = on_two_threads(*args)  # the parent's thread pool now exists
+with multiprocessing.get_context("fork").Pool(1) as pool:
+    got = pool.apply(on_two_threads, args)
+assert np.array_equal(got, expected)
+print("ok")
+"""
+
+
 @pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
 def test_a_forked_child_gets_its_own_thread_pool():
-    import multiprocessing
+    """A child forked after the thread pool started still runs compiled functions (its copy
+    of the pool has no threads). In a new process that imports minidiff only: forking a
+    process with other libraries' threads (JAX's, in the test session) is unsafe itself."""
+    import subprocess
+    import sys
 
-    normals, points, light = _scene(3 * 1024)
-    with compiler.using_threads(2):
-        expected = shading(normals, points, light).data  # the parent's pool now exists
-    context = multiprocessing.get_context("fork")
-    with context.Pool(1) as pool:
-        got = pool.apply(_shade_on_two_threads, (normals, points, light))
-    assert np.array_equal(got, expected)
-
-
-def _shade_on_two_threads(normals, points, light):
-    with compiler.using_threads(2):
-        return shading(normals, points, light).data
+    result = subprocess.run(
+        [sys.executable, "-c", FORK_SCRIPT], capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0 and "ok" in result.stdout, result.stderr[-2000:]
