@@ -48,7 +48,7 @@ import numpy as np
 
 from minidiff import backend, codegen, ir
 from minidiff.tensor import Tensor, as_tensor, is_grad_enabled, record
-from minidiff.trace import CompileError, Slot, Traced, traced
+from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
 
@@ -175,7 +175,7 @@ class CompiledFunction:
                             f"{t.shape[0]} elements, others {batch}"
                         )
                     batch = t.shape[0]
-                type_ = {"f": "f64", "i": "i64", "u": "i64", "b": "i1"}[dtype.kind]
+                type_ = TYPES[dtype.kind]
                 slot = Slot(batched, t.shape[1:] if batched else t.shape, type_)
                 arrays.append((t, slot))
                 key.append((name, slot))
@@ -353,7 +353,7 @@ def _contiguous(t: Tensor) -> np.ndarray:
 
 def _argument(graph: ir.Graph, k: int, slot: Slot, t: Tensor, batch: int) -> Traced:
     """The traced array standing for argument ``k``."""
-    dtype = {"f64": np.float64, "i64": np.int64, "i1": np.bool_}[slot.type]
+    dtype = DTYPES[slot.type]
     if not slot.batched:
         return Traced(None, None, dtype, slot=k, shape=slot.shape)
     size = int(np.prod(slot.shape))

@@ -42,7 +42,8 @@ from minidiff import ir
 # tables, read by gathers (a program with one line per texel would be slow to compile).
 MAX_LANES = 1024
 
-TYPES = {"f": "f64", "i": "i64", "u": "i64", "b": "i1"}
+TYPES = {"f": "f64", "i": "i64", "u": "i64", "b": "i1"}  # NumPy dtype kind -> scalar type
+DTYPES = {"f64": np.float64, "i64": np.int64, "i1": np.bool_}  # scalar type -> NumPy dtype
 
 
 class CompileError(TypeError):
@@ -295,8 +296,7 @@ def traced(x: Any, batch: int | None = None) -> Traced:
         )
     type_ = TYPES[array.dtype.kind]
     flat = [ir.const(v, type_) for v in array.ravel().tolist()]
-    dtype = {"f64": np.float64, "i64": np.int64, "i1": np.bool_}[type_]
-    return Traced(_object_array(flat, array.shape), None, dtype)
+    return Traced(_object_array(flat, array.shape), None, DTYPES[type_])
 
 
 def _batch_of(arrays: list[Traced]) -> int | None:

@@ -157,24 +157,26 @@ def _check(f, inputs, weights, tangents, specials=False) -> None:
         assert_close(actual_t, expected_t, "tangent", sparse_zeros=specials)
 
 
+def _draw_and_check(data, steps, n, specials: bool) -> None:
+    """A random program, its inputs (with NaN/inf if ``specials``), cotangents and tangents
+    (finite), checked against the tape."""
+    f = make_program(steps)
+    inputs = _inputs(data.draw, n, specials=specials)
+    weights = [data.draw(arrays((n, 3), False)), data.draw(arrays((n, 3), False))]
+    tangents = _inputs(data.draw, n, specials=False)
+    _check(f, inputs, weights, tangents, specials=specials)
+
+
 @settings(max_examples=40)
 @given(st.data(), steps_strategy, st.integers(1, 7))
 def test_random_programs_equal_the_tape(data, steps, n):
-    f = make_program(steps)
-    inputs = _inputs(data.draw, n, specials=False)
-    weights = [data.draw(arrays((n, 3), False)), data.draw(arrays((n, 3), False))]
-    tangents = _inputs(data.draw, n, specials=False)
-    _check(f, inputs, weights, tangents)
+    _draw_and_check(data, steps, n, specials=False)
 
 
 @settings(max_examples=25)
 @given(st.data(), steps_strategy, st.integers(1, 5))
 def test_nan_and_inf_propagate_as_on_the_tape(data, steps, n):
-    f = make_program(steps)
-    inputs = _inputs(data.draw, n, specials=True)
-    weights = [data.draw(arrays((n, 3), False)), data.draw(arrays((n, 3), False))]
-    tangents = _inputs(data.draw, n, specials=False)
-    _check(f, inputs, weights, tangents, specials=True)
+    _draw_and_check(data, steps, n, specials=True)
 
 
 def test_ties_and_kinks_take_the_tapes_subgradients():
