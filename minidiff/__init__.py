@@ -19,7 +19,7 @@ gives the kernels' large outputs memory that earlier passes used and no longer r
 """
 
 from minidiff import buffers, jitcache, kernels, optim  # noqa: F401  (jitcache: first)
-from minidiff.compiler import CompiledFunction, compile  # noqa: A004
+from minidiff.compiler import CompiledFunction, compile, tape_only  # noqa: A004
 from minidiff.functional import check_grad, grad, jvp, numerical_grad, value_and_grad
 from minidiff.primitives import (
     abs,
@@ -73,7 +73,7 @@ from minidiff.tensor import (
 __all__ = [
     "Tensor", "tensor", "as_tensor", "no_grad", "enable_grad", "detect_anomaly", "is_grad_enabled",
     "unbroadcast", "kernels", "buffers", "grad", "value_and_grad", "check_grad",
-    "numerical_grad", "optim", "jvp", "tangents", "compile", "CompiledFunction",
+    "numerical_grad", "optim", "jvp", "tangents", "compile", "CompiledFunction", "tape_only",
     "add", "subtract", "multiply", "divide", "negative", "power", "matmul", "linear",
     "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "maximum", "minimum", "clip",
     "where", "sum", "mean", "mean_squared_error", "max", "dot", "cross", "norm", "normalize",

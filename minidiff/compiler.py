@@ -24,9 +24,13 @@ compiled one.
 
 Arguments: arrays (Tensors, NumPy arrays, Python floats) are *batched* (their first axis is
 the batch, the same length n for all) unless named in ``shared`` (the same for every
-element). Anything else (ints, strings, None, tuples...) is a static argument: part of the
-signature, passed to the function unchanged. Arrays are float64, integer (indices) or
-boolean; float32 is refused (the program is written in double precision).
+element). A tuple or list argument is taken apart: each Tensor or NumPy array in it (at any
+depth) is an array argument of its own (batched, or shared if the argument's name is in
+``shared``), the rest of it static; so a variable number of arrays (a scene's lights) can
+be passed as one argument. Anything else (ints, strings, None, classes...) is a static
+argument: part of the signature, passed to the function unchanged. Arrays are float64,
+integer (indices) or boolean; float32 is refused (the program is written in double
+precision).
 """
 
 from __future__ import annotations
@@ -54,6 +58,8 @@ MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dr
 
 # Threads a compiled kernel may use in this thread (context); None: Numba's setting.
 _threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
+# Whether compiled functions run their plain function on the tape in this thread (context).
+_on_the_tape: contextvars.ContextVar[bool] = contextvars.ContextVar("on_the_tape", default=False)
 
 
 @contextlib.contextmanager
@@ -67,6 +73,40 @@ def using_threads(count: int):
         yield
     finally:
         _threads.reset(token)
+
+
+_ARRAYS = (Tensor, np.ndarray, float, np.floating, np.integer, np.bool_)
+
+
+@contextlib.contextmanager
+def tape_only():
+    """Within the block, compiled functions called from this thread (context) run their
+    plain function instead, primitive by primitive on the tape: the readable reference the
+    compiled kernels are tested against (and the course's path). Other threads keep
+    their kernels."""
+    token = _on_the_tape.set(True)
+    try:
+        yield
+    finally:
+        _on_the_tape.reset(token)
+
+
+@dataclass(frozen=True)
+class _Leaf:
+    """An array argument (or an array in a tuple or list argument): its index among the
+    call's arrays and its slot."""
+
+    index: int
+    slot: Slot
+
+
+@dataclass(frozen=True)
+class _Static:
+    """A static value, passed to the function as it is (part of the signature, with its
+    type: 1, 1.0 and True are different signatures)."""
+
+    kind: type
+    value: Any
 
 
 @dataclass
@@ -106,9 +146,11 @@ class CompiledFunction:
 
     # ----------------------------------------------------------------------------------------
     def __call__(self, *args, **kwargs):
+        if _on_the_tape.get():
+            return self.function(*args, **kwargs)
         names, values = self._bind(args, kwargs)
-        arrays, statics, key = self._classify(names, values)
-        trace = self._trace_for(key, names, values, arrays, statics)
+        arrays, trees, key = self._classify(names, values)
+        trace = self._trace_for(key, arrays, trees)
         tensors = [value for value, _ in arrays]
         data = [_contiguous(t) for t in tensors]
         outputs = self._forward(trace, data)
@@ -124,15 +166,15 @@ class CompiledFunction:
     def trace(self, *args, **kwargs) -> codegen.Program:
         """The scalar program this function becomes for these arguments (for reading)."""
         names, values = self._bind(args, kwargs)
-        arrays, statics, key = self._classify(names, values)
-        return self._trace_for(key, names, values, arrays, statics).program
+        arrays, trees, key = self._classify(names, values)
+        return self._trace_for(key, arrays, trees).program
 
     def source(self, *args, mode: str = "forward", **kwargs) -> str:
         """The LLVM IR of the kernel for these arguments in ``mode`` ("forward", "vjp" with
         respect to every float argument, "jvp" likewise)."""
         names, values = self._bind(args, kwargs)
-        arrays, statics, key = self._classify(names, values)
-        trace = self._trace_for(key, names, values, arrays, statics)
+        arrays, trees, key = self._classify(names, values)
+        trace = self._trace_for(key, arrays, trees)
         wrt = () if mode == "forward" else _floats(trace.program.slots)
         return codegen.generate(trace.program, mode, wrt)[0]
 
@@ -146,54 +188,63 @@ class CompiledFunction:
         return list(bound.arguments), list(bound.arguments.values())
 
     def _classify(self, names, values):
-        """Array arguments as (Tensor, Slot) and the key of this call's signature."""
-        arrays, statics, key = [], {}, []
-        batch = None
-        for name, value in zip(names, values, strict=True):
-            if isinstance(value, (Tensor, np.ndarray, float, np.floating, np.integer, np.bool_)):
-                t = value if isinstance(value, Tensor) else as_tensor(np.asarray(value))
-                dtype = t.dtype
-                if dtype.kind == "f" and dtype != np.float64:
-                    raise TypeError(
-                        f"{self.function.__name__}: argument '{name}' is {dtype}; a compiled "
-                        "function takes float64 arrays (convert with .astype(np.float64))"
-                    )
-                if dtype.kind not in "fiub":
-                    raise TypeError(
-                        f"{self.function.__name__}: argument '{name}' has dtype {dtype}"
-                    )
-                batched = name not in self.shared
-                if batched:
-                    if t.ndim == 0:
-                        raise ValueError(
-                            f"{self.function.__name__}: batched argument '{name}' is a 0-d "
-                            "array; it needs a first (batch) axis, or name it in shared="
-                        )
-                    if batch is not None and t.shape[0] != batch:
-                        raise ValueError(
-                            f"{self.function.__name__}: batched argument '{name}' has "
-                            f"{t.shape[0]} elements, others {batch}"
-                        )
-                    batch = t.shape[0]
-                type_ = TYPES[dtype.kind]
-                slot = Slot(batched, t.shape[1:] if batched else t.shape, type_)
-                arrays.append((t, slot))
-                key.append((name, slot))
-            else:
+        """Array arguments as (Tensor, Slot), each argument's *tree* (``_Leaf``s of array
+        arguments in tuples and lists, static values elsewhere), and the key of this
+        call's signature."""
+        arrays, trees, batch = [], [], [None]
+
+        def leaf(name: str, value, inside: bool = False) -> Any:
+            if isinstance(value, (tuple, list)):  # arrays in containers: each its own slot
+                return type(value)(leaf(name, v, True) for v in value)
+            if not isinstance(value, (Tensor, np.ndarray) if inside else _ARRAYS):
                 try:
                     hash(value)
                 except TypeError:
                     raise TypeError(
-                        f"{self.function.__name__}: argument '{name}' ({type(value).__name__}) is "
-                        "neither an array nor hashable; a static argument must be hashable"
+                        f"{self.function.__name__}: argument '{name}' holds a "
+                        f"{type(value).__name__}, neither an array nor hashable; a static "
+                        "argument must be hashable"
                     ) from None
-                statics[name] = value
-                key.append((name, "static", type(value), value))
-        if batch is None:
-            raise ValueError(f"{self.function.__name__}: needs at least one batched array argument")
-        return arrays, statics, (tuple(key), batch)
+                return _Static(type(value), value)
+            slot, t = self._slot(name, value, batch)
+            arrays.append((t, slot))
+            return _Leaf(len(arrays) - 1, slot)
 
-    def _trace_for(self, key, names, values, arrays, statics) -> _Trace:
+        for name, value in zip(names, values, strict=True):
+            trees.append(leaf(name, value))
+        if batch[0] is None:
+            raise ValueError(f"{self.function.__name__}: needs at least one batched array argument")
+        key = tuple(zip(names, trees, strict=True))
+        return arrays, trees, (key, batch[0])
+
+    def _slot(self, name: str, value, batch: list) -> tuple[Slot, Tensor]:
+        """The slot of array argument ``name`` (in ``shared``, or batched: then its first
+        axis must have the length ``batch[0]`` of the others, which it sets if unset)."""
+        t = value if isinstance(value, Tensor) else as_tensor(np.asarray(value))
+        dtype = t.dtype
+        if dtype.kind == "f" and dtype != np.float64:
+            raise TypeError(
+                f"{self.function.__name__}: argument '{name}' is {dtype}; a compiled "
+                "function takes float64 arrays (convert with .astype(np.float64))"
+            )
+        if dtype.kind not in "fiub":
+            raise TypeError(f"{self.function.__name__}: argument '{name}' has dtype {dtype}")
+        batched = name not in self.shared
+        if batched:
+            if t.ndim == 0:
+                raise ValueError(
+                    f"{self.function.__name__}: batched argument '{name}' is a 0-d "
+                    "array; it needs a first (batch) axis, or name it in shared="
+                )
+            if batch[0] is not None and t.shape[0] != batch[0]:
+                raise ValueError(
+                    f"{self.function.__name__}: batched argument '{name}' has "
+                    f"{t.shape[0]} elements, others {batch[0]}"
+                )
+            batch[0] = t.shape[0]
+        return Slot(batched, t.shape[1:] if batched else t.shape, TYPES[dtype.kind]), t
+
+    def _trace_for(self, key, arrays, trees) -> _Trace:
         """The trace for this signature: one for every batch length n, unless the function
         read n while traced (``ir.Graph.reads_batch``), then one per n."""
         signature, n = key
@@ -202,26 +253,28 @@ class CompiledFunction:
             if trace is not None:
                 self._traces.move_to_end(signature if signature in self._traces else key)
         if trace is None:
-            trace = self._trace(names, values, arrays, statics)
+            trace = self._trace(arrays, trees)
             with self._lock:
                 self._traces[key if trace.program.graph.reads_batch else signature] = trace
                 while len(self._traces) > MAX_TRACES:
                     self._traces.popitem(last=False)
         return trace if trace.batch == n else dataclasses.replace(trace, batch=n)
 
-    def _trace(self, names, values, arrays, statics) -> _Trace:
+    def _trace(self, arrays, trees) -> _Trace:
         graph = ir.Graph()
         slots = tuple(slot for _, slot in arrays)
         batch = next(t.shape[0] for t, slot in arrays if slot.batched)
         with graph.building():
-            call_args, k = [], 0
-            for name in names:
-                if name in statics:
-                    call_args.append(statics[name])
-                    continue
-                t, slot = arrays[k]
-                call_args.append(_argument(graph, k, slot, t, batch))
-                k += 1
+
+            def rebuild(tree):
+                if isinstance(tree, _Static):
+                    return tree.value
+                if isinstance(tree, _Leaf):
+                    t, slot = arrays[tree.index]
+                    return _argument(graph, tree.index, slot, t, batch)
+                return type(tree)(rebuild(part) for part in tree)
+
+            call_args = [rebuild(tree) for tree in trees]
             result = self.function(*call_args)
             single = not isinstance(result, (tuple, list))
             results = [result] if single else list(result)

@@ -286,8 +286,10 @@ def divide(a: Any, b: Any) -> Tensor:
         ga = g / b._data
         return (ga if a.requires_grad else None, -ga * out if b.requires_grad else None)
 
-    def jvp(ta, tb):  # (ta - out tb) / b
-        return _plus(ta, _scaled(tb, -out)) / b._data
+    def jvp(ta, tb):  # ta / b - (tb / b) out: the VJP's (and the scalar form's) products
+        return _plus(
+            None if ta is None else ta / b._data, None if tb is None else -(tb / b._data) * out
+        )
 
     return record("divide", out, (a, b), vjp, saves=(b,), saves_output=b.requires_grad, jvp=jvp)
 

@@ -133,6 +133,11 @@ class Traced:
         kind = "shared" if self.batch is None else "batched"
         return f"Traced({kind}, shape={self.full_shape}, dtype={self.dtype})"
 
+    def is_differentiated(self) -> bool:
+        """True: the program is written once for every call, with or without derivatives,
+        so code that drops a term on constants (``Tensor.is_differentiated``) keeps it."""
+        return True
+
     # Values do not exist at trace time: refuse what would need them, saying what to do.
     def _no_values(self, what: str):
         raise CompileError(
@@ -339,9 +344,10 @@ def elementwise(name: str, form, *args, differentiable=None) -> Traced:
 
     ``form(*values) -> (y, slopes)``: the element's value and, per argument, its slope
     ``d -> d * dy/dx`` (None: no derivative). ``differentiable`` says which arguments take
-    derivatives (default: all float ones).
+    derivatives (default: all float ones). A Python int among the arguments is a float
+    constant, as NumPy's promotion makes it beside a float array (``sum`` starts from 0).
     """
-    arrays = [traced(a) for a in args]
+    arrays = [traced(float(a) if type(a) is int else a) for a in args]
     for a, wanted in zip(arrays, differentiable or [True] * len(arrays), strict=True):
         if wanted and a.dtype.kind != "f":
             raise CompileError(

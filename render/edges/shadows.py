@@ -353,7 +353,7 @@ def shadow_terms(scene: Scene, pairs: ShadowPairs, prim_id, shaded: dict[int, Hi
 def _unoccluded(surface: Surface, rows: np.ndarray, material, light) -> md.Tensor:
     """One light's unoccluded contribution (k, 3) at some rows of a Surface."""
     uv = surface.uv[rows] if surface.uv is not None else None
-    look = appearance(material, uv, len(rows))
+    look = appearance(material, uv)
     return light_contribution(
         surface.points[rows], surface.normals[rows], surface.directions[rows], look, light
     )

@@ -77,6 +77,7 @@ from render.path.scalar import (
     _surface,
     _to_world,
     _uniform,
+    _unit,
 )
 from render.path.tracer import (
     AREA,
@@ -89,7 +90,6 @@ from render.path.tracer import (
     PathSampler,
     Vertices,
 )
-from render.shade.compiled import _unit
 from render.trace.intersect import BLOCK
 
 __all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "sample_paths"]

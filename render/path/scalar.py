@@ -17,8 +17,46 @@ import numba
 import numpy as np
 
 from render.path.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
-from render.shade.compiled import _unit, sample_rgb
 from render.trace.intersect import closest_hit_ray, make_ray, occluded_ray
+
+
+@numba.njit(cache=True, inline="always")
+def sample_rgb(texture, u, v):
+    """The bilinear lookup of an (H, W, 3) texture at UV (u, v), repeating
+    (``render.shade.lighting.sample_texture`` for one point): its three channels, and the
+    footprint's cell. One inlined copy serves all three channels: a copy per channel made
+    every kernel that inlines it compile for longer."""
+    height, width = texture.shape[0], texture.shape[1]
+    x, y = u * width - 0.5, (1.0 - v) * height - 0.5
+    # Floors kept as floats and wrapped before the cast (``lighting._wrapped``): Numba's
+    # math.floor returns int64, which a UV of 1e100 overflows.
+    x0, y0 = np.floor(x), np.floor(y)
+    fx, fy = x - x0, y - y0
+    ix0, iy0 = int(x0 % width), int(y0 % height)
+    ix1, iy1 = (ix0 + 1) % width, (iy0 + 1) % height
+    return (
+        _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 0),
+        _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 1),
+        _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 2),
+        iy0 * width + ix0,
+    )
+
+
+@numba.njit(cache=True, inline="always")
+def _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, c):
+    """Channel c of ``sample_rgb``: the four texels' weighted sum."""
+    top = texture[iy0, ix0, c] * (1.0 - fx) + texture[iy0, ix1, c] * fx
+    bottom = texture[iy1, ix0, c] * (1.0 - fx) + texture[iy1, ix1, c] * fx
+    return top * (1.0 - fy) + bottom * fy
+
+
+@numba.njit(cache=True, inline="always")
+def _unit(x0, x1, x2):
+    """``md.normalize`` of one 3-vector: x times 1 / |x| (the zero vector stays zero)."""
+    length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
+    inv = 1.0 / length if length > 0 else 0.0
+    return x0 * inv, x1 * inv, x2 * inv
+
 
 # --- random numbers: render.path.random.uniform for one path and dimension ------------------
 

@@ -273,7 +273,7 @@ def object_of(sampler: PathSampler, prims: np.ndarray) -> np.ndarray:
 
 def _material(material, uv, k: int) -> dict:
     """The material at k vertices as per-vertex tensors (k, 3) (shininess (k,))."""
-    look = appearance(material, uv, k)
+    look = appearance(material, uv)
     return {
         "albedo": md.broadcast_to(look.albedo, (k, 3)),
         "specular": md.broadcast_to(look.specular, (k, 3)),

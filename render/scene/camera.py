@@ -32,6 +32,7 @@ import numpy as np
 import minidiff as md
 from minidiff import buffers
 from minidiff.kernels import sum_rows
+from minidiff.trace import Traced
 from render.scene.cache import same
 from render.scene.scene import Camera, check_ray_count
 
@@ -117,9 +118,12 @@ def ray_directions(frame, coords: np.ndarray) -> md.Tensor:
     Not ``[x, y, 1] @ B``: NumPy hands a tall product to OpenBLAS, whose threads then
     spin beside Numba's and slow the kernels after them (on the teapot and its ground, a
     forward+backward took 40-45 ms with it and 33-35 ms without; with the boundary term
-    113-150 against 82-86 ms).
+    113-150 against 82-86 ms). In a compiled function (``minidiff.compile``), where
+    ``coords`` is traced, the formula itself is traced.
     """
     forward, right, up, _ = frame
+    if isinstance(coords, Traced):
+        return camera_directions(coords, right, up, forward)
     x, y = coords[:, :1], coords[:, 1:2]
 
     def apply(basis: np.ndarray) -> np.ndarray:

@@ -223,6 +223,16 @@ class HasFields:
                 raise ValueError(f"{owner}: {f.name} must be {f.constraint[1]}, got {shown}")
         return data
 
+    @classmethod
+    def holding(cls, **values: Any):
+        """An instance whose attributes are ``values``, unchecked and without a call to
+        ``__init__``: how a compiled function (``minidiff.compile``) runs the class's own
+        formulas on traced arrays (``render.shade.compiled``)."""
+        instance = cls.__new__(cls)
+        for name, value in values.items():
+            setattr(instance, name, value)
+        return instance
+
     def named_parameters(self, prefix: str = "") -> dict[str, Tensor]:
         """The set continuous parameters by name, e.g. ``{"position": <Tensor>, ...}``."""
         fields = {f.name: getattr(self, f.name) for f in self.FIELDS}

@@ -9,9 +9,9 @@ to ``max_bounces`` reflections).
 ``shade_camera_hits`` feeds it the camera rays' hits, object by object: each object's
 Surface is recomputed from the camera frame and the primitive ids of step 1, or reused
 from the render cache when nothing that moves it is differentiated and its values are
-unchanged (e.g. while only a light or a material is optimised). A mesh whose colour nothing
-differentiates is shaded off the tape instead, in one compiled pass
-(``render.shade.compiled``), when the caller does not need its Surface.
+unchanged (e.g. while only a light or a material is optimised). A mesh the compiled shading
+takes (``render.shade.compiled``: the same functions traced into one kernel, one node on
+the tape) is shaded by it instead, when the caller does not need its Surface.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ def working_dtype(scene: Scene) -> np.dtype:
 
 def shade_hits(
     scene: Scene, hits: Hits, mirrors: Mirrors | None, bounce: int
-) -> tuple[md.Tensor, np.ndarray]:
-    """The radiance (k, 3) leaving k ``hits`` towards their rays, and each hit's texture
-    cell (k,) int64 (-1: untextured). ``bounce`` counts the mirror reflections before these
-    hits (0 for camera hits); a reflective material adds ``reflectance`` times what its
+) -> tuple[md.Tensor, np.ndarray | None]:
+    """The radiance (k, 3) leaving k ``hits`` towards their rays, and each hit's diffuse
+    texture cell (k,) int64 (None: no diffuse texture). ``bounce`` counts the mirror
+    reflections before these hits (0 for camera hits); a reflective material adds ``reflectance`` times what its
     mirror rays see while ``bounce < mirrors.max_bounces``."""
     material = hits.obj.material
     colour, cells = shade_surface(hits.surface, material, scene.lights, hits.lit)
@@ -93,9 +93,9 @@ def shade_camera_hits(
     ``frame`` (``render.scene.camera.camera_frame``) and shaded by ``shade_hits``.
 
     surfaces: whether the caller needs every object's ``Hits`` with its Surface (the pixel
-    pairs' shadow terms shade them again). Without, a mesh whose colour nothing
-    differentiates is shaded off the tape in one compiled pass
-    (``render.shade.compiled``, the same values) and left out of ``CameraShading.hits``."""
+    pairs' shadow terms shade them again). Without, a mesh the compiled shading takes is
+    shaded by it (``render.shade.compiled``: the same functions, compiled; one node on the
+    tape) and left out of ``CameraShading.hits``."""
     primary = visibility.primary
     texel = None  # made when a textured object is hit (filling it costs a pass)
     colours, rays, shaded = [], [], {}
@@ -107,12 +107,10 @@ def shade_camera_hits(
         prims, obj_rays = hit_prims[in_obj], primary.hit_rays[in_obj]
         reflects = mirrors is not None and mirrors.max_bounces > 0 and obj.material.reflective
         if not surfaces and compiled.applies(scene, obj, reflects):
-            values, cells = compiled.shade_mesh_values(
-                obj, prims - first, [t.data for t in frame],
-                md.kernels.gather_rows(primary.coords, in_obj), scene.lights,
-                [md.kernels.gather_rows(mask, in_obj) for mask in visibility.lit],
-            )  # fmt: skip
-            colour = md.tensor(values)
+            colour, cells = compiled.shade_mesh(
+                obj, prims - first, frame, md.kernels.gather_rows(primary.coords, in_obj),
+                scene.lights, [md.kernels.gather_rows(mask, in_obj) for mask in visibility.lit],
+            ), None  # fmt: skip
         else:
             hits = object_hits(scene, visibility, frame, cache, index, in_obj, prims)
             colour, cells = shade_hits(scene, hits, mirrors, 0)

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from minidiff import buffers
 from render.scene.scene import Light, Material, Mesh
 from render.shade.surface import Surface, column, surface_at
 
@@ -80,21 +79,20 @@ def sample_texture(texture, uv) -> md.Tensor:
 class Appearance:
     """A material's values at k hits, its textures sampled at their UVs: ``albedo`` (3,)
     or (k, 3); ``specular`` and ``ambient`` (), (3,) or (k, 3); ``shininess`` (); and
-    ``texel`` (k,) int64, the diffuse texture's cell at each hit (-1: untextured)."""
+    ``texel`` (k,) int64, the diffuse texture's cell at each hit (None: untextured)."""
 
     albedo: md.Tensor
     specular: md.Tensor
     ambient: md.Tensor
     shininess: md.Tensor
-    texel: np.ndarray
+    texel: np.ndarray | None
 
 
-def appearance(material: Material, uv, k: int) -> Appearance:
+def appearance(material: Material, uv) -> Appearance:
     """The material at k hits with UVs ``uv`` (k, 2) (None when untextured): ``texture``
     replaces the albedo; ``specular_texture`` and ``ambient_texture`` multiply Ks and Ka,
     as an MTL file's map_Kd, map_Ks and map_Ka do."""
-    albedo, texel = material.albedo, buffers.empty((k,), np.int64)
-    texel.fill(-1)  # no texture cell
+    albedo, texel = material.albedo, None
     if material.texture is not None:
         albedo = sample_texture(material.texture, uv)
         texel = texel_cell(material.texture.shape, uv.data)
@@ -159,7 +157,7 @@ def shade(points, normals, directions, look: Appearance, lights, lit) -> md.Tens
         contribution = _light_term(points, normals, view, diffuse_brdf, look, light, visible)
         radiance = contribution if radiance is None else radiance + contribution
     if radiance is None:  # no lights: only the ambient term
-        radiance = md.broadcast_to(md.as_tensor(np.zeros(3)), (points.shape[0], 3))
+        radiance = 0.0 * points  # zeros, one row per hit (written so that it compiles)
     if _nonzero(look.ambient):
         radiance = radiance + look.ambient
     return radiance
@@ -167,15 +165,15 @@ def shade(points, normals, directions, look: Appearance, lights, lit) -> md.Tens
 
 def shade_surface(
     surface: Surface, material: Material, lights, lit
-) -> tuple[md.Tensor, np.ndarray]:
-    """Shade k hits: the radiance (k, 3) and the texture cell of each hit (k,) int64 (-1
-    when untextured). lit[j] (k,) float visibility of light j. An emissive material adds
-    its emission where the ray meets its front (it lights nothing here: that takes the
-    path integrator, ``render.path``)."""
-    look = appearance(material, surface.uv, surface.points.shape[0])
+) -> tuple[md.Tensor, np.ndarray | None]:
+    """Shade k hits: the radiance (k, 3) and the diffuse texture's cell at each hit (k,)
+    int64 (None when there is no diffuse texture). lit[j] (k,) float visibility of light
+    j. An emissive material adds its emission where the ray meets its front (it lights
+    nothing here: that takes the path integrator, ``render.path``)."""
+    look = appearance(material, surface.uv)
     radiance = shade(surface.points, surface.normals, surface.directions, look, lights, lit)
     if material.emissive:
-        radiance = radiance + column(surface.front.astype(radiance.dtype)) * material.emission
+        radiance = radiance + column(surface.front) * material.emission
     return radiance, look.texel
 
 

@@ -106,18 +106,18 @@ def geometric_normals(primitives, prims: np.ndarray, points: np.ndarray) -> np.n
     return normals / np.where(length > 0, length, 1.0)
 
 
-def toward_ray(normals, directions) -> np.ndarray:
-    """(k, 1) constant signs that flip normals to face the incoming ray (two-sided shading).
+def toward_ray(normals, directions):
+    """(k, 1) constant signs that flip normals to face the incoming ray (two-sided shading),
+    in the normals' dtype.
 
     A normal facing away from the viewer has dot(n, d) > 0. The sign is a discrete choice
-    (like visibility), so it is a constant on the tape.
+    (like visibility), so it is a constant on the tape (and in a compiled function a
+    comparison, which carries no derivative).
     """
-    normals = md.as_tensor(normals).data
-    facing_away = md.kernels.dot_last(normals, directions.data) > 0
-    signs = md.buffers.empty((len(facing_away), 1), normals.dtype)  # reused memory
-    signs.fill(1.0)
-    np.copyto(signs[:, 0], -1.0, where=facing_away)
-    return signs
+    one = np.asarray(1.0, normals.dtype)
+    with md.no_grad():
+        away = md.dot(normals, directions) > 0.0
+    return column(md.where(away, -one, one))
 
 
 # --------------------------------------------------------------------------------------
@@ -138,8 +138,8 @@ class Surface:
 
     For points found by rays: directions (k, 3), the rays' directions; normals (k, 3), the
     shading normals turned to face the rays (two-sided shading: what the direct renderer
-    shades with); front (k,) bool, whether the ray meets the side the geometric normal
-    points to (the side an emissive material emits from). For points placed on their
+    shades with); front (k,) 1 where the ray meets the side the geometric normal points to
+    (the side an emissive material emits from), else 0 (a constant). For points placed on their
     primitive (by coordinates on it): stretch (k,), the area element's scale, dA = stretch
     du dv on a triangle (|(b - a) x (c - a)|, twice its area) and dA = stretch dw on a
     sphere (r^2, w the unit direction from its centre). The others are None."""
@@ -150,7 +150,7 @@ class Surface:
     uv: md.Tensor | None = None
     directions: md.Tensor | None = None
     normals: md.Tensor | None = None
-    front: np.ndarray | None = None
+    front: md.Tensor | None = None
     stretch: md.Tensor | None = None
 
 
@@ -219,14 +219,22 @@ def surface_at(
         flip = toward_ray(surface.geometric, directions)
         surface.directions = directions
         surface.normals = surface.shading * flip
-        surface.front = flip[:, 0] > 0
+        surface.front = md.maximum(flip[:, 0], 0.0)  # 1 or 0, in the normals' dtype
     return surface
+
+
+def face_corners(table, faces) -> list:
+    """The vertex ids (k,) of corners a, b and c of faces ``faces`` (k,) of the face
+    ``table`` (F, 3) (traced arrays in a compiled function: a gather)."""
+    if isinstance(faces, np.ndarray):  # plain arrays: column by column, in reused memory
+        return [md.kernels.gather_rows(table[:, i], faces) for i in range(3)]
+    rows = table[faces]
+    return [rows[:, i] for i in range(3)]
 
 
 def _on_mesh(mesh: Mesh, faces: np.ndarray, origins, directions, local, divide) -> Surface:
     """``surface_at`` on a mesh's faces ``faces`` (k,) (local ids)."""
-    # The vertex ids of the hit faces' corners, (k,) each (gathered into reused memory).
-    corners = [md.kernels.gather_rows(mesh.faces[:, i], faces) for i in range(3)]
+    corners = face_corners(mesh.faces, faces)
     a, b, c = (mesh.vertices[ids] for ids in corners)
     e1, e2 = b - a, c - a
     # Barycentrics are needed only to interpolate vertex normals or UVs.

@@ -1,21 +1,25 @@
-"""Mesh edges' factors in one compiled pass: both sides of every visible edge point found,
-their shadow rays traced and their radiance shaded, the factor written.
+"""Mesh edges' factors: both sides of every visible edge point found and their shadow rays
+traced in one compiled pass, their radiance shaded by the compiled shading, the factor
+written.
 
 ``render.edges.boundary.mesh_edge._edge_factors`` states the factor of a mesh edge's
 quadrature point, w (f_+ - f_-) / |grad e|, with NumPy passes and the renderer's general
 shading (``DirectRadiance``: ``seen_through`` -> shadow rays per light, ``Mirrors``,
-``shade_camera_hits``). For the common scene, ``side_factors_kernel`` computes the same
-numbers point by point in one parallel Numba function: per side, the hit (the face at the
-edge point, or the closest hit of the ray ``EPSILON`` pixels beside the edge), the shadow
-ray towards each light (``render.trace.visibility.shadow_rays``' offset and ignored
-primitive, answered by the BVH's any-hit traversal: the render's answers), and the colour
-(``render.shade.compiled.shade_hit``, the compiled shading of camera hits).
+``shade_camera_hits``). For the common scene, ``side_factors`` computes the same numbers
+in two steps: the discrete work in one parallel Numba function (``side_hits_kernel``: per
+side, the hit (the face at the edge point, or the closest hit of the ray ``EPSILON``
+pixels beside the edge) and the shadow ray towards each light
+(``render.trace.visibility.shadow_rays``' offset and ignored primitive, answered by the
+BVH's any-hit traversal: the render's answers)), then the colour of every side's hit by
+the camera hits' own compiled shading (``render.shade.compiled.shade_mesh``, the readable
+formulas traced), mesh by mesh.
 
 It applies (``pack_scene`` returns a ``PackedScene``) where the reference would shade every
 mesh hit with the compiled shading: a ``DirectRadiance``, every light one that
 ``Light.compiled_shading`` covers, and every mesh one ``render.shade.compiled.applies``
-takes (float64, no mirror rays leaving it). Spheres may be in the scene: they block rays;
-a side whose ray beside the edge hits one is left to the reference (``needs_reference``).
+takes (float64, untextured, no mirror rays leaving it). Spheres may be in the scene: they
+block rays; a side whose ray beside the edge hits one is left to the reference
+(``needs_reference``).
 """
 
 from __future__ import annotations
@@ -28,9 +32,8 @@ import numpy as np
 import minidiff as md
 from render.edges.boundary.radiance import EPSILON, DirectRadiance
 from render.scene.lights import POINT
-from render.scene.scene import Scene
+from render.scene.scene import Mesh, Scene
 from render.shade import compiled
-from render.shade.compiled import shade_hit
 from render.trace.intersect import (
     BLOCK,
     FlatBVH,
@@ -40,6 +43,7 @@ from render.trace.intersect import (
     make_ray,
     occluded_call,
 )
+from render.trace.primitives import primitive_ranges
 from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS, Visibility
 
 #: ``shadow_offset``'s SHADOW_ULPS units in the last place, per unit of magnitude.
@@ -48,104 +52,40 @@ _ULP_SCALE = SHADOW_ULPS * np.finfo(np.float64).eps
 
 @dataclass
 class PackedScene:
-    """What the kernel reads of a render (plain arrays): ``bvh`` its accelerator's tree;
-    ``meshes`` (vertices (V, 3), faces (T, 3) global vertex ids, vertex normals (V, 3), UVs
-    (V, 2), per mesh smooth (M,) and textured (M,) bool, the mesh of every triangle (T,))
-    over all meshes, concatenated; ``materials`` (albedo, specular, ambient (M, 3),
-    shininess (M,), emission (M, 3), flags (M, 3) bool (specular_on, ambient_on, emissive),
-    texels (n,) flat, maps (M, 3, 3) int64 (offset, height, width) of the albedo, specular
-    and ambient maps (height 0: none)); ``lights`` (``compiled.lights_pack``); ``shadow``
-    (kind (L,) int64, vector (L, 3): a point light's position or the unit direction of a
-    directional light's shadow rays, whether shadow rays are traced at all, the
-    scene-size part of the shadow offset); ``background`` (3,). ``rows`` (P,) the row of each
-    primitive in the tree's leaf table."""
+    """What ``side_factors`` reads of a render: ``bvh`` its accelerator's tree, ``rows``
+    (P,) the row of each primitive in the tree's leaf table; ``shadow`` (kind (L,) int64,
+    vector (L, 3): a point light's position or the unit direction of a directional light's
+    shadow rays, whether shadow rays are traced at all, the scene-size part of the shadow
+    offset); the ``scene`` (its meshes and lights shade the sides) and its ``background``
+    (3,)."""
 
     bvh: FlatBVH
     rows: np.ndarray
-    meshes: tuple
-    materials: tuple
-    lights: tuple
     shadow: tuple
+    scene: Scene
     background: np.ndarray
 
 
 def pack_scene(scene: Scene, radiance) -> PackedScene | None:
-    """The render's scene as ``side_factors_kernel`` reads it, or None where the kernel
-    does not apply (the module docstring): the reference computes the factors then."""
+    """The render's scene as ``side_factors`` reads it, or None where it does not apply
+    (the module docstring): the reference computes the factors then."""
     if type(radiance) is not DirectRadiance or not scene.meshes:
-        return None
-    if not all(light.compiled_shading for light in scene.lights):
         return None
     # As DirectRadiance.seen decides: mirror rays only where some reflectance is not zero.
     bounces = radiance.max_bounces
     if not any(np.any(obj.material.reflectance.data) for obj in scene.objects):
         bounces = 0
-    with md.no_grad():
-        for mesh in scene.meshes:
-            reflects = bounces > 0 and mesh.material.reflective
-            if not compiled.applies(scene, mesh, reflects):
-                return None
-    background = np.asarray(scene.background.data, np.float64)
-    if background.dtype != np.float64 or background.shape != (3,):
-        background = np.broadcast_to(background, (3,)).astype(np.float64)
+    for mesh in scene.meshes:
+        reflects = bounces > 0 and mesh.material.reflective
+        if not compiled.applies(scene, mesh, reflects):
+            return None
+    background = np.broadcast_to(np.asarray(scene.background.data, np.float64), (3,))
     visibility: Visibility = radiance.visibility
     bvh = visibility.accelerator().flat_tree()
     rows = np.empty(len(bvh.leaf_ids), np.int64)
     rows[bvh.leaf_ids] = np.arange(len(bvh.leaf_ids))
-    return PackedScene(
-        bvh,
-        rows,
-        _pack_meshes(scene),
-        _pack_materials(scene),
-        compiled.lights_pack(scene.lights),
-        _pack_shadows(scene, visibility),
-        np.ascontiguousarray(background),
-    )
-
-
-def _pack_meshes(scene: Scene) -> tuple:
-    """``PackedScene.meshes``: every mesh's ``compiled.mesh_pack``, concatenated."""
-    packs = [compiled.mesh_pack(mesh) for mesh in scene.meshes]
-    offsets = np.cumsum([0] + [len(p[0]) for p in packs])
-    vertices = np.concatenate([p[0] for p in packs]).astype(np.float64)
-    faces = np.concatenate([p[1] + o for p, o in zip(packs, offsets, strict=False)])
-    normals = np.concatenate([p[2] if p[4] else np.zeros((len(p[0]), 3)) for p in packs]).astype(
-        np.float64
-    )
-    uvs = np.concatenate([p[3] if p[5] else np.zeros((len(p[0]), 2)) for p in packs])
-    smooth = np.array([p[4] for p in packs], np.bool_)
-    textured = np.array([p[5] for p in packs], np.bool_)
-    counts = [len(p[1]) for p in packs]
-    prim_mesh = np.repeat(np.arange(len(packs), dtype=np.int64), counts)
-    return (
-        np.ascontiguousarray(vertices),
-        np.ascontiguousarray(faces, np.int64),
-        np.ascontiguousarray(normals),
-        np.ascontiguousarray(uvs, np.float64),
-        smooth,
-        textured,
-        prim_mesh,
-    )
-
-
-def _pack_materials(scene: Scene) -> tuple:
-    """``PackedScene.materials``: every mesh's ``compiled.material_pack``, stacked."""
-    packs = [compiled.material_pack(mesh.material) for mesh in scene.meshes]
-    n = len(packs)
-    maps = np.zeros((n, 3, 3), np.int64)
-    texels, offset = [], 0
-    for m, pack in enumerate(packs):
-        for k in range(3):
-            data = np.ascontiguousarray(pack[k], np.float64)
-            maps[m, k] = offset, data.shape[0], data.shape[1]
-            texels.append(data.reshape(-1))
-            offset += data.size
-    albedo, specular, ambient, emission = (
-        np.array([np.broadcast_to(p[i], (3,)) for p in packs], np.float64) for i in (3, 4, 5, 7)
-    )
-    shininess = np.array([p[6] for p in packs], np.float64)
-    flags = np.array([[p[8], p[9], p[10]] for p in packs], np.bool_)
-    return albedo, specular, ambient, shininess, emission, flags, np.concatenate(texels), maps
+    shadow = _pack_shadows(scene, visibility)
+    return PackedScene(bvh, rows, shadow, scene, np.ascontiguousarray(background))
 
 
 def _pack_shadows(scene: Scene, visibility: Visibility) -> tuple:
@@ -172,19 +112,33 @@ def side_factors(
     point's depth, step (n, 2) the image-plane step from the edge towards its + side,
     chosen (n, 2) the face seen on the + and - side (global ids, -1: none), scale (n,)
     w / |grad e|."""
-    forward, right, up, eye = frame
-    n = len(coords)
-    out = np.zeros((n, 3))
+    n, n_lights = len(coords), len(packed.scene.lights)
     needs_reference = np.zeros(n, np.bool_)
-    if n:
-        side_factors_kernel(
-            packed.bvh, packed.rows, (eye, right, up, forward), packed.meshes, packed.materials,
-            packed.lights, packed.shadow, packed.background,
-            np.ascontiguousarray(coords, np.float64), np.ascontiguousarray(depth, np.float64),
-            np.ascontiguousarray(step, np.float64), np.ascontiguousarray(chosen, np.int64),
-            np.ascontiguousarray(scale, np.float64), numba.get_num_threads(),
-            out, needs_reference,
-        )  # fmt: skip
+    if not n:
+        return np.zeros((0, 3)), needs_reference
+    forward, right, up, eye = (np.asarray(getattr(t, "data", t), np.float64) for t in frame)
+    # Side s of point p is row s * n + p (+ side 0, - side 1).
+    xy, prim, lit = np.empty((2 * n, 2)), np.empty(2 * n, np.int64), np.ones((2 * n, n_lights))
+    side_hits_kernel(
+        packed.bvh, packed.rows, (eye, right, up, forward), packed.shadow,
+        np.ascontiguousarray(coords, np.float64), np.ascontiguousarray(depth, np.float64),
+        np.ascontiguousarray(step, np.float64), np.ascontiguousarray(chosen, np.int64),
+        numba.get_num_threads(), xy, prim, lit, needs_reference,
+    )  # fmt: skip
+    colour = np.empty((2 * n, 3))
+    colour[...] = packed.background
+    shaded = (prim >= 0) & ~np.concatenate([needs_reference, needs_reference])
+    with md.no_grad():
+        for obj, first, count in primitive_ranges(packed.scene):
+            rows = np.flatnonzero(shaded & (prim >= first) & (prim < first + count))
+            if len(rows) and isinstance(obj, Mesh):
+                masks = [lit[rows, j] for j in range(n_lights)]
+                colour[rows] = compiled.shade_mesh(
+                    obj, prim[rows] - first, (forward, right, up, eye), xy[rows],
+                    packed.scene.lights, masks,
+                ).data  # fmt: skip
+    out = np.asarray(scale, np.float64)[:, None] * (colour[:n] - colour[n:])
+    out[needs_reference] = 0.0
     return out, needs_reference
 
 
@@ -262,24 +216,22 @@ def _lit(bvh, rows, shadow, offsets, group, point, plus, minus, stack, lit):
 
 
 @numba.njit(cache=True, error_model="numpy", parallel=True)
-def side_factors_kernel(
-    bvh, rows, camera, meshes, materials, lights, shadow, background,
-    coords, depth, step, chosen, scale, n_threads, out, needs_reference,
+def side_hits_kernel(
+    bvh, rows, camera, shadow, coords, depth, step, chosen, n_threads, xy, prim, lit_out,
+    needs_reference,
 ):  # fmt: skip
-    """``side_factors``' work, points shared out over ``n_threads`` as the ray kernels
-    share rays (``render.trace.intersect._jobs``). Side s of point p is row s * n + p (+
-    side 0, - side 1) of the scratch arrays. Two passes, as the reference's two batches of
-    rays need: the first finds every side's hit (the face at the edge point, or the
-    closest hit of the camera ray ``EPSILON`` pixels beside the edge) and its point; then
-    the shadow offset of each batch (``shadow_offset``: faced sides, then the sides
-    traced beside the edge) from the largest coordinate among its points; the second
-    traces the shadow rays, shades both sides and writes the factor."""
+    """``side_factors``' discrete work, points shared out over ``n_threads`` as the ray
+    kernels share rays (``render.trace.intersect._jobs``). Side s of point p is row
+    s * n + p (+ side 0, - side 1) of ``xy`` (2n, 2) (its image-plane point), ``prim``
+    (2n,) (the primitive it sees, -1: none) and ``lit_out`` (2n, L) (1.0 where light j
+    reaches its point). Two passes, as the reference's two batches of rays need: the first
+    finds every side's hit (the face at the edge point, or the closest hit of the camera
+    ray ``EPSILON`` pixels beside the edge) and its point; then the shadow offset of each
+    batch (``shadow_offset``: faced sides, then the sides traced beside the edge) from the
+    largest coordinate among its points; the second traces the shadow rays."""
     eye, right, up, forward = camera
-    vertices, faces, normals, uvs, smooth, textured, prim_mesh = meshes
     n = coords.shape[0]
     n_tri = bvh.n_tri
-    xy = np.empty((2 * n, 2))
-    prim = np.empty(2 * n, np.int64)
     points = np.zeros((2 * n, 3))
     group = np.full(2 * n, -1, np.int64)  # 0: seen at the edge point, 1: traced beside it
     n_blocks, n_jobs = _jobs(n, n_threads)
@@ -322,10 +274,6 @@ def side_factors_kernel(
     for job in numba.prange(n_jobs):
         stack = np.empty(bvh.stack_size, np.int64)
         lit = np.empty((kinds.shape[0], 2))  # per light, the two sides
-        colour = np.empty((2, 3))
-        m = 0
-        mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
-        material = _material(materials, m)
         for block in range(job, n_blocks, n_jobs):
             for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
                 if needs_reference[p]:
@@ -339,37 +287,9 @@ def side_factors_kernel(
                     s = side * n + p
                     f = prim[s]
                     if f < 0:
-                        colour[side, :] = background
                         continue
                     if chosen[p, side] < 0:  # traced beside the edge: a point of its own
                         plus, minus = (f, -1) if side == 0 else (-1, f)
                         _lit(bvh, rows, shadow, offsets, 1, points[s], plus, minus, stack, lit)
-                    if prim_mesh[f] != m:  # views made once per run of hits on one mesh
-                        m = prim_mesh[f]
-                        mesh = (vertices, faces, normals, uvs, smooth[m], textured[m])
-                        material = _material(materials, m)
-                    shade_hit(
-                        xy[s, 0], xy[s, 1], camera, mesh, f, material, lights, lit, side,
-                        colour, side,
-                    )  # fmt: skip
-                for c in range(3):
-                    out[p, c] = scale[p] * (colour[0, c] - colour[1, c])
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _map(texels, maps, m, k):
-    """Map k (albedo, specular, ambient) of mesh m as an (H, W, 3) view of ``texels``
-    ((0, 0, 3) for none)."""
-    offset, height, width = maps[m, k, 0], maps[m, k, 1], maps[m, k, 2]
-    return texels[offset : offset + height * width * 3].reshape((height, width, 3))
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _material(materials, m):
-    """``shade_hit``'s material tuple of mesh m, from ``PackedScene.materials``."""
-    albedo, specular, ambient, shininess, emission, flags, texels, maps = materials
-    return (
-        _map(texels, maps, m, 0), _map(texels, maps, m, 1), _map(texels, maps, m, 2),
-        albedo[m], specular[m], ambient[m], shininess[m], emission[m],
-        flags[m, 0], flags[m, 1], flags[m, 2],
-    )  # fmt: skip
+                    for j in range(kinds.shape[0]):
+                        lit_out[s, j] = lit[j, side]

@@ -1,7 +1,7 @@
-"""``render.shade.fused``: a render that nothing differentiates, shaded and averaged into
-pixels in two compiled passes, gives the taped pipeline's image (to rounding: the same
-per-hit arithmetic; a pixel's samples are summed in another order), and the same bits on
-any number of threads."""
+"""``render.shade.fused``: a render that nothing differentiates, shaded by the compiled
+shading and averaged into pixels off the tape, gives the taped pipeline's image (the same
+functions run on the tape, ``minidiff.tape_only``; to rounding: a pixel's samples are
+summed in another order), and the same bits on any number of threads."""
 
 from __future__ import annotations
 
@@ -16,11 +16,12 @@ from tests.render_helpers import count_calls, random_scene, same_bits_on_one_and
 
 def _taped(scene, **options):
     """The same render on the tape: a light's intensity requires grad (the image's values
-    do not depend on that)."""
+    do not depend on that), the compiled functions run on the tape."""
     light = scene.lights[0]
     strength = light.intensity if isinstance(light, render.PointLight) else light.irradiance
     strength.requires_grad = True
-    image, info = render.render(scene, reuse_visibility=False, return_info=True, **options)
+    with md.tape_only():
+        image, info = render.render(scene, reuse_visibility=False, return_info=True, **options)
     assert image.node is not None  # the tape code ran
     strength.requires_grad = False
     return image.data, info
@@ -30,7 +31,7 @@ def _taped(scene, **options):
 @pytest.mark.parametrize(
     "options",
     [
-        dict(lights=("point", "directional"), texture=True, smooth=True, sphere=False),
+        dict(lights=("point", "directional"), smooth=True, sphere=False),
         dict(lights=("directional",), sphere=False, background=(0.3, 0.2, 0.1)),
         dict(lights=("point", "point"), sphere=False, pyramid=True),
     ],
@@ -42,7 +43,7 @@ def test_the_fused_passes_give_the_taped_image(monkeypatch, options, spp):
     assert calls, "the fused passes did not run"
     taped, taped_info = _taped(scene, spp=spp)
     # A few ulps of the largest value: the Blinn-Phong lobes' powers (NumPy's vectorised
-    # power against the C library's pow) and, with spp > 1, the order of the sums.
+    # power against LLVM's pow) and, with spp > 1, the order of the sums.
     scale = np.abs(taped).max()
     np.testing.assert_allclose(plain.data, taped, rtol=0, atol=8 * np.finfo(float).eps * scale)
     np.testing.assert_array_equal(info.texel, taped_info.texel)
@@ -59,9 +60,9 @@ def test_the_paper_scene_gives_the_taped_image(monkeypatch):
 
 
 def test_where_the_fused_passes_do_not_apply(monkeypatch):
-    """Spheres, mirrors and pixel pairs take the taped path. (A differentiated render of
-    a scene the passes apply to takes them too, as the forward of
-    ``render.shade.adjoint``'s node: ``test_adjoint.py``.)"""
+    """Spheres, mirrors, textures, pixel pairs and differentiated renders take the taped
+    path (whose meshes the compiled shading shades too, as one node:
+    ``test_compiled_shading.py``)."""
     calls = count_calls(monkeypatch, fused, "image_values")
     render.render(random_scene(0), reuse_visibility=False)  # a sphere
     mirror = random_scene(1, sphere=False)
@@ -69,6 +70,11 @@ def test_where_the_fused_passes_do_not_apply(monkeypatch):
     render.render(mirror, reuse_visibility=False)
     plain = random_scene(2, sphere=False)
     render.render(plain, reuse_visibility=False, antialias=True)
+    textured = random_scene(2, sphere=False, texture=True)
+    render.render(textured, reuse_visibility=False)
+    plain.lights[0].color.requires_grad = True
+    render.render(plain, reuse_visibility=False)
+    plain.lights[0].color.requires_grad = False
     assert calls == []
     render.render(plain, reuse_visibility=False)
     assert calls == [1]

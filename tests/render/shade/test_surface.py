@@ -69,7 +69,7 @@ def test_normals_face_the_rays_and_front_says_which_side_they_meet():
     cos = np.sum(found.normals.data * directions.data, axis=1)
     assert np.all(cos < 0)  # towards where the ray came from
     meets_front = np.sum(found.geometric.data * directions.data, axis=1) < 0
-    np.testing.assert_array_equal(found.front, meets_front)
+    np.testing.assert_array_equal(found.front.data, meets_front * 1.0)
     assert meets_front.any() and not meets_front.all()  # both sides were met
 
 
@@ -99,12 +99,12 @@ def test_a_sphere_point_by_ray_and_by_direction_from_the_centre():
     found = surface_at(sphere, np.zeros(16, np.int64), origins, directions)
     np.testing.assert_allclose(found.points.data, placed.points.data, atol=1e-12)
     np.testing.assert_allclose(found.geometric.data, w, atol=1e-12)
-    assert found.front.all()
+    assert np.all(found.front.data == 1.0)
     # From the centre (inside): the far root, met from the back.
     centre = md.tensor(np.broadcast_to(sphere.center.data, (16, 3)).copy())
     inside = surface_at(sphere, np.zeros(16, np.int64), centre, md.tensor(w))
     np.testing.assert_allclose(inside.points.data, placed.points.data, atol=1e-12)
-    assert not inside.front.any()
+    assert np.all(inside.front.data == 0.0)
 
 
 def test_plain_geometric_normals_are_the_taped_ones():
