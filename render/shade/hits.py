@@ -44,8 +44,8 @@ def shade_hits(
 ) -> tuple[md.Tensor, np.ndarray | None]:
     """The radiance (k, 3) leaving k ``hits`` towards their rays, and each hit's diffuse
     texture cell (k,) int64 (None: no diffuse texture). ``bounce`` counts the mirror
-    reflections before these hits (0 for camera hits); a reflective material adds ``reflectance`` times what its
-    mirror rays see while ``bounce < mirrors.max_bounces``."""
+    reflections before these hits (0 for camera hits); a reflective material adds
+    ``reflectance`` times what its mirror rays see while ``bounce < mirrors.max_bounces``."""
     material = hits.obj.material
     colour, cells = shade_surface(hits.surface, material, scene.lights, hits.lit)
     if mirrors is not None and material.reflective and bounce < mirrors.max_bounces:
