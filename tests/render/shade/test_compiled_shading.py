@@ -170,6 +170,7 @@ def test_one_trace_per_kind_of_mesh_material_and_lights():
     """A new batch length, new values, another mesh of the same kind: no new trace; a
     lobe switched on, or another light, makes one."""
     scene = random_scene(5, lights=("point",), sphere=False)
+    compiled._shade._traces.clear()  # (other tests in this process traced other kinds)
     render.render(scene, reuse_visibility=False)
     before = len(compiled._shade._traces)
     scene.camera.position.data[...] += 0.01
