@@ -65,6 +65,11 @@ def main(argv=None) -> dict:
         "--threads": {"default": "1,2", "help": "Numba thread counts for ours (default 1,2)"},
         "--only": {"help": "comma-separated workloads to time (default: all)"},
         "--no-mitsuba": {"action": "store_true", "help": "leave Mitsuba 3 out"},
+        "--mitsuba-site": {
+            "type": Path,
+            "help": "a site-packages folder with mitsuba and drjit (e.g. the virtualenv of "
+            "setup_mitsuba.sh), added after the worker's own packages",
+        },
     }
     return timing.main("bench_speed", __doc__, run, argv, options, repeats=15, size=(512, 64))
 
@@ -152,7 +157,8 @@ def worker(kind: str, size: int, wanted: str) -> None:
 
 
 _WORKER = (
-    "import sys; sys.path[:0] = [sys.argv[1], sys.argv[2]]; import bench_speed; "
+    "import os, sys; sys.path[:0] = [sys.argv[1], sys.argv[2]]; "
+    "sys.path += [p for p in [os.environ.get('BENCH_EXTRA_SITE')] if p]; import bench_speed; "
     "bench_speed.worker(sys.argv[3], int(sys.argv[4]), sys.argv[5])"
 )
 
@@ -162,11 +168,14 @@ class Worker:
     ``threads`` its Numba threads."""
 
     def __init__(
-        self, label: str, kind: str, source: Path, threads: int, size: int, wanted: list[str]
-    ) -> None:
+        self, label: str, kind: str, source: Path, threads: int, size: int, wanted: list[str],
+        extra_site: Path | None = None,
+    ) -> None:  # fmt: skip
         # Idle OpenMP threads sleep rather than spin (as run_all.py sets for the suite):
         # a spinning worker would slow the next one's turn.
         env = {"OMP_WAIT_POLICY": "passive", **os.environ, "NUMBA_NUM_THREADS": str(threads)}
+        if extra_site is not None:
+            env["BENCH_EXTRA_SITE"] = str(extra_site)
         cmd = [sys.executable, "-c", _WORKER, str(source), str(HERE), kind, str(size),
                ",".join(wanted)]  # fmt: skip
         self.label, self.threads = label, threads
@@ -219,7 +228,7 @@ def run(args) -> dict:
         source = Path(args.baseline).resolve()
         workers.append(Worker("baseline", "ours", source, most, args.size, names))
     if not args.no_mitsuba:
-        mitsuba = Worker("mitsuba", "mitsuba", ROOT, most, args.size, names)
+        mitsuba = Worker("mitsuba", "mitsuba", ROOT, most, args.size, names, args.mitsuba_site)
         if mitsuba.names:
             workers.append(mitsuba)
         else:

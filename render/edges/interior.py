@@ -28,7 +28,7 @@ render's own) and the tape's derivative is the derivative of that image: for a p
 that moves no edge (an albedo, a light's intensity or colour) the gradient is exactly the
 image's, which finite differences (``torch.autograd.gradcheck`` through ``render.torch``)
 confirm. The mixed pixels are found and shaded whether or not anything is differentiated,
-so every route of steps 2, 3 and 5 (``render.shade.adjoint.route``) gives the same image.
+so every route of steps 2, 3 and 5 (compiled or on the tape) gives the same image.
 """
 
 from __future__ import annotations

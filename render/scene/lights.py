@@ -8,8 +8,8 @@ A light answers, for the stages that trace, shade and differentiate edges, in on
   (``render.trace.visibility``); ``shadow_ray_end``: the end of a ray along ``towards``;
   ``location()``: where it is, if it is anywhere (the shadow rays' offset, the light's view);
 * ``shadow_key()``: what its shadow rays depend on (``render.scene.cache``);
-* ``pack()`` / ``shading_pack()``: its kind code and values for the compiled kernels
-  (``render.edges.boundary.shadow_tracing``, ``render.shade.compiled``);
+* ``pack()`` / ``shading_pack()``: its kind code and values for the hand-written kernels
+  (``render.edges.boundary.shadow_tracing``, the path integrator's ``render.path.packed``);
 * ``edge_plane(v_i, v_j)``: the plane an occluder's edge sweeps in its light, the shadow's
   border; ``ray_to(points)``: its ray to points, for a sphere occluder; ``sphere_outline``:
   a sphere's silhouette as the light sees it (``render.edges``, ``render.path``).
@@ -77,8 +77,9 @@ class Light(HasFields, ABC):
     #: The parameter t at which a shadow ray from ``shadow_rays`` (or one along
     #: ``towards``) reaches the light: 1.0 for a light at a point, inf for one at infinity.
     shadow_ray_end: ClassVar[float]
-    #: Whether ``render.shade.compiled``'s kernel shades it (``shading_pack``): its KIND's
-    #: formula there is this light's ``incidence``. A new light type starts without.
+    #: Whether the compiled kernels shade it: ``render.shade.compiled`` traces this class's
+    #: own ``incidence`` (``minidiff.compile``), the path integrator's kernel switches on
+    #: ``KIND`` (``shading_pack``). A new light type starts without (the tape shades it).
     compiled_shading: ClassVar[bool] = False
     color: Tensor
 
@@ -113,7 +114,7 @@ class Light(HasFields, ABC):
         directional light's direction of travel as given (``unit``: divided by its length)."""
 
     def shading_pack(self) -> tuple[int, np.ndarray, float]:
-        """(KIND, (3,) float64, strength) for ``render.shade.compiled``: the position, or the
+        """(KIND, (3,) float64, strength) for ``render.path.packed``: the position, or the
         unit vector towards the light as ``incidence`` computes it; the intensity or
         irradiance. Only for a light with ``compiled_shading`` (the others are shaded on
         the tape only)."""

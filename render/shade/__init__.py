@@ -6,5 +6,7 @@
   light giving its own direction and irradiance (``Light.incidence``);
 * ``hits``: the one function that shades hits, camera hits or mirror hits;
   ``mirrors``: the reflected rays of mirror materials;
-* ``compiled``: the same colours in one Numba pass where nothing is differentiated.
+* ``compiled``: ``surface`` and ``lighting``'s functions for a mesh's camera hits, compiled
+  by ``minidiff.compile`` (one node on the tape); ``fused``: the image off the tape where
+  nothing is differentiated.
 """
