@@ -45,7 +45,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numba
 import numpy as np
@@ -91,22 +91,29 @@ def tape_only():
         _on_the_tape.reset(token)
 
 
-@dataclass(frozen=True)
-class _Leaf:
+class _Leaf(NamedTuple):
     """An array argument (or an array in a tuple or list argument): its index among the
-    call's arrays and its slot."""
+    call's arrays and its slot. (Named tuples: a signature's key is hashed on every call.)"""
 
     index: int
     slot: Slot
 
 
-@dataclass(frozen=True)
-class _Static:
+class _Static(NamedTuple):
     """A static value, passed to the function as it is (part of the signature, with its
     type: 1, 1.0 and True are different signatures)."""
 
     kind: type
     value: Any
+    tag: str = "static"  # (a length of its own: never equal to a _Leaf)
+
+
+class _Container(NamedTuple):
+    """A tuple or list argument taken apart: its type and the trees of its items."""
+
+    kind: type
+    parts: tuple
+    tag: str = "container"
 
 
 @dataclass
@@ -195,7 +202,7 @@ class CompiledFunction:
 
         def leaf(name: str, value, inside: bool = False) -> Any:
             if isinstance(value, (tuple, list)):  # arrays in containers: each its own slot
-                return type(value)(leaf(name, v, True) for v in value)
+                return _Container(type(value), tuple(leaf(name, v, True) for v in value))
             if not isinstance(value, (Tensor, np.ndarray) if inside else _ARRAYS):
                 try:
                     hash(value)
@@ -272,7 +279,8 @@ class CompiledFunction:
                 if isinstance(tree, _Leaf):
                     t, slot = arrays[tree.index]
                     return _argument(graph, tree.index, slot, t, batch)
-                return type(tree)(rebuild(part) for part in tree)
+                parts = [rebuild(part) for part in tree.parts]
+                return tree.kind(*parts) if hasattr(tree.kind, "_fields") else tree.kind(parts)
 
             call_args = [rebuild(tree) for tree in trees]
             result = self.function(*call_args)

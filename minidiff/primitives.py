@@ -779,8 +779,8 @@ def _max_scalar(*xs):
     ties = ir.to_float(winners[0])
     for w in winners[1:]:
         ties = ties + ir.to_float(w)
-    # the 0/1 mask times the gradient, as the array form (so a NaN gradient reaches all)
-    return y, tuple((lambda d, w=w: ir.to_float(w) * d / ties) for w in winners)
+    # the gradient selected for the winners, as the array form's (a NaN elsewhere stays there)
+    return y, tuple((lambda d, w=w: ir.select(w, d / ties, 0.0)) for w in winners)
 
 
 def _max_traced(x, axis=None, keepdims=False):
@@ -810,9 +810,10 @@ def max(x: Any, axis=None, keepdims: bool = False) -> Tensor:
 
     def vjp(g):
         peak = _expand_reduced(out, x.shape, axis, keepdims)
-        winners = ((x._data == peak) | (x._data != x._data)).astype(x.dtype)  # NaN wins
-        ties = np.sum(winners, axis=axis, keepdims=True)
-        return (winners * _expand_reduced(g, x.shape, axis, keepdims) / ties,)
+        winners = (x._data == peak) | (x._data != x._data)  # NaN wins
+        ties = np.sum(winners, axis=axis, keepdims=True, dtype=x.dtype)
+        share = _expand_reduced(g, x.shape, axis, keepdims) / ties
+        return (np.where(winners, share, 0.0),)  # selected: a NaN g reaches the winners only
 
     def jvp(t):  # the mean of the tied maxima's tangents: the transpose of the equal split
         winners = (x._data == _expand_reduced(out, x.shape, axis, keepdims)) | (x._data != x._data)

@@ -31,8 +31,7 @@ gradient would be lost: pass it as an argument).
 from __future__ import annotations
 
 import builtins
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -50,8 +49,7 @@ class CompileError(TypeError):
     """What a function does cannot be compiled (raised at trace time, naming what)."""
 
 
-@dataclass(frozen=True)
-class Slot:
+class Slot(NamedTuple):
     """One array argument of a compiled function: ``batched`` (its first axis is the
     batch) or shared; ``shape`` of one element (batched) or of the whole array (shared);
     ``type`` the scalar type of its elements."""

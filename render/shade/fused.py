@@ -27,6 +27,7 @@ import minidiff as md
 from minidiff import buffers
 from render.scene.scene import Scene
 from render.shade import compiled
+from render.shade.hits import object_rows, pick
 from render.trace.intersect import BLOCK, _jobs
 from render.trace.primitives import primitive_ranges
 from render.trace.visibility import Visibility
@@ -54,17 +55,19 @@ def image_values(scene: Scene, visibility: Visibility, camera: tuple, spp: int) 
     float64 (3,) each, the camera frame's values. Only where ``applies``."""
     primary = visibility.primary
     radiance = buffers.empty((primary.prim_id.size, 3), np.float64)
-    hit_prims = primary.prim_id[primary.hit_rays]
+    hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
+    ranges = primitive_ranges(scene)
     with md.no_grad():
-        for obj, first, count in primitive_ranges(scene):
-            rows = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
-            if len(rows) == 0:
+        for obj, first, count in ranges:
+            rows = object_rows(hit_prims, first, count, len(ranges))
+            faces = pick(hit_prims, rows)
+            if len(faces) == 0:
                 continue
             colour = compiled.shade_mesh(
-                obj, hit_prims[rows] - first, camera, primary.coords[rows], scene.lights,
-                [mask[rows] for mask in visibility.lit],
+                obj, faces - first if first else faces, camera, pick(primary.coords, rows),
+                scene.lights, [pick(mask, rows) for mask in visibility.lit],
             )  # fmt: skip
-            radiance[primary.hit_rays[rows]] = colour.data
+            radiance[pick(primary.hit_rays, rows)] = colour.data
     # Reused memory (minidiff.buffers): a fresh 512x512 image costs ~1.5 ms of page faults.
     image = buffers.empty((scene.camera.height, scene.camera.width, 3), np.float64)
     background = np.broadcast_to(np.asarray(scene.background.data, np.float64), (3,))

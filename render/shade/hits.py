@@ -100,18 +100,21 @@ def shade_camera_hits(
     texel = None  # made when a textured object is hit (filling it costs a pass)
     colours, rays, shaded = [], [], {}
     hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
-    for index, (obj, first, count) in enumerate(primitive_ranges(scene)):
-        in_obj = np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
-        if len(in_obj) == 0:
+    ranges = primitive_ranges(scene)
+    for index, (obj, first, count) in enumerate(ranges):
+        in_obj = object_rows(hit_prims, first, count, len(ranges))
+        prims, obj_rays = pick(hit_prims, in_obj), pick(primary.hit_rays, in_obj)
+        if len(prims) == 0:
             continue
-        prims, obj_rays = hit_prims[in_obj], primary.hit_rays[in_obj]
         reflects = mirrors is not None and mirrors.max_bounces > 0 and obj.material.reflective
         if not surfaces and compiled.applies(scene, obj, reflects):
             colour, cells = compiled.shade_mesh(
-                obj, prims - first, frame, md.kernels.gather_rows(primary.coords, in_obj),
-                scene.lights, [md.kernels.gather_rows(mask, in_obj) for mask in visibility.lit],
+                obj, prims - first if first else prims, frame, pick(primary.coords, in_obj),
+                scene.lights, [pick(mask, in_obj) for mask in visibility.lit],
             ), None  # fmt: skip
         else:
+            if isinstance(in_obj, slice):
+                in_obj = np.arange(len(prims))
             hits = object_hits(scene, visibility, frame, cache, index, in_obj, prims)
             colour, cells = shade_hits(scene, hits, mirrors, 0)
             shaded[index] = hits
@@ -126,6 +129,21 @@ def shade_camera_hits(
         return CameraShading(None, np.zeros(0, np.int64), texel, shaded)
     colour = colours[0] if len(colours) == 1 else md.concatenate(colours)
     return CameraShading(colour, np.concatenate(rays), texel, shaded)
+
+
+def object_rows(hit_prims: np.ndarray, first: int, count: int, n_objects: int):
+    """The rows of the hits (primitive ids ``hit_prims`` (k,)) on the object whose
+    primitives are [first, first + count): an index array, or ``slice(None)`` (every row,
+    nothing to pick) when it is the scene's only object (``n_objects``)."""
+    if n_objects == 1:
+        return slice(None)
+    return np.flatnonzero((hit_prims >= first) & (hit_prims < first + count))
+
+
+def pick(values: np.ndarray, rows) -> np.ndarray:
+    """``values[rows]`` for ``object_rows``' rows: gathered in parallel into reused memory
+    (``minidiff.kernels.gather_rows``), or ``values`` itself for every row."""
+    return values if isinstance(rows, slice) else md.kernels.gather_rows(values, rows)
 
 
 def object_hits(

@@ -442,3 +442,59 @@ def test_a_forked_child_gets_its_own_thread_pool():
         [sys.executable, "-c", FORK_SCRIPT], capture_output=True, text=True, timeout=300
     )
     assert result.returncode == 0 and "ok" in result.stdout, result.stderr[-2000:]
+
+
+def test_tuple_arguments_are_taken_apart_and_their_gradients_returned():
+    """A tuple (or list, or named tuple) argument: each array in it a slot of its own
+    (shared here, by the argument's name), the rest static; a changed static part or a
+    longer tuple is a new signature."""
+
+    def lit(points, lights, scale):
+        total = 0.0 * points[:, 0]
+        for position, strength in lights:
+            offset = position - points
+            total = total + strength / md.dot(offset, offset)
+        return total * scale[0]
+
+    compiled = md.compile(lit, shared=("lights",))
+    rng = np.random.default_rng(7)
+    points = rng.normal(size=(50, 3))
+    lights = [(md.tensor(rng.normal(size=3) + 3.0, requires_grad=True),
+               md.tensor(2.0 + k, requires_grad=True)) for k in range(2)]  # fmt: skip
+    grads = []
+    for function in (compiled, lit):
+        for position, strength in lights:
+            position.grad = strength.grad = None
+        md.sum(function(points, lights, (1.5,)) ** 2).backward()
+        grads.append([t.grad.copy() for light in lights for t in light])
+    for g_compiled, g_tape in zip(*grads, strict=True):
+        assert_close(g_compiled, g_tape, "a light's gradient")
+    before = len(compiled._traces)
+    compiled(points, lights, (2.5,))
+    compiled(points, lights[:1], (1.5,))
+    assert len(compiled._traces) == before + 2
+
+
+def test_tape_only_runs_the_plain_function_in_this_thread_only():
+    normals, points, light = _scene(200, seed=5)
+    calls = []
+    plain = shading.function
+
+    def counted(normals, points, light):
+        calls.append(threading.get_ident())
+        return plain(normals, points, light)
+
+    wrapped = md.compile(counted, shared=("light",))
+    results = {}
+    with md.tape_only():
+        results["here"] = wrapped(normals, points, light).data
+        other = threading.Thread(
+            target=lambda: results.setdefault("there", wrapped(normals, points, light).data)
+        )
+        other.start()
+        other.join()
+    # Here the plain function ran on arrays; there it ran once, to be traced, then the kernel.
+    assert calls[0] == threading.get_ident() and len(calls) == 2
+    assert calls[1] != calls[0]
+    assert_close(results["there"], results["here"], "the kernel against the plain function")
+    assert wrapped(normals, points, light).data is not None and len(calls) == 2  # kernel now
