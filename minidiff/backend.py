@@ -19,6 +19,7 @@ load a partial file.
 from __future__ import annotations
 
 import ctypes
+import functools
 import hashlib
 import os
 import tempfile
@@ -108,14 +109,20 @@ def cache_dir() -> Path:
     return Path(root) / "kernels"
 
 
-def _key(text: str) -> str:
+@functools.cache
+def _this_cpu() -> tuple[str, ...]:
+    """The process's triple, CPU name and features and LLVM's version (asked of LLVM once)."""
     _target_machine()  # initialises LLVM's view of this CPU
-    cpu = [
+    return (
         llvm.get_process_triple(),
         llvm.get_host_cpu_name(),
         llvm.get_host_cpu_features().flatten(),
-    ]
-    stamp = "\n".join([GENERATOR_VERSION, *cpu, str(llvm.llvm_version_info), text])
+        str(llvm.llvm_version_info),
+    )
+
+
+def _key(text: str) -> str:
+    stamp = "\n".join([GENERATOR_VERSION, *_this_cpu(), text])
     return hashlib.sha256(stamp.encode()).hexdigest()
 
 

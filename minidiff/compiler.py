@@ -344,7 +344,7 @@ class CompiledFunction:
         for (slot, _), share, where in zip(layout.gathers, contributions, rows, strict=True):
             table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
             count = np.array([slots[slot].shape[0]], np.int64)
-            kernel = backend.compile_ir(codegen.scatter_add(share.shape[1]))
+            kernel = _scatter_kernel(share.shape[1])
             buffers = [where, share, table, count]
             pointers = (ctypes.c_void_p * 4)(*(b.ctypes.data for b in buffers))
             kernel.run(pointers, n, 1, 1)  # one pass, in element order
@@ -365,7 +365,7 @@ class CompiledFunction:
         by views), with the compiled VJP and JVP."""
         n = trace.batch
         sizes = [int(np.prod(s)) for s in trace.output_shapes]
-        packed = np.concatenate([o.reshape(n, -1) for o in outputs], axis=1)
+        packed = _side_by_side(outputs, n)
         floats = _floats(trace.program.slots)
 
         def vjp(g):
@@ -381,7 +381,7 @@ class CompiledFunction:
             ts = [t if s in floats else None for s, t in enumerate(tangents)]
             if all(t is None for t in ts):
                 return None
-            return np.concatenate([o.reshape(n, -1) for o in self._jvp(trace, data, ts)], axis=1)
+            return _side_by_side(self._jvp(trace, data, ts), n)
 
         node = record(
             f"compiled {self.function.__name__}",
@@ -397,6 +397,21 @@ class CompiledFunction:
             results.append(piece.reshape((n, *shape)))
             start += size
         return results
+
+
+@functools.cache
+def _scatter_kernel(columns: int) -> backend.Kernel:
+    """The serial kernel that adds gathered rows' gradients into their table, in element
+    order (``codegen.scatter_add``), for tables of ``columns`` columns."""
+    return backend.compile_ir(codegen.scatter_add(columns))
+
+
+def _side_by_side(outputs: list[np.ndarray], n: int) -> np.ndarray:
+    """The outputs (n, ...) each, as the columns of one (n, m) array (one output: itself,
+    not copied)."""
+    if len(outputs) == 1:
+        return outputs[0].reshape(n, -1)
+    return np.concatenate([o.reshape(n, -1) for o in outputs], axis=1)
 
 
 def _floats(slots) -> tuple[int, ...]:
