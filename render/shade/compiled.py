@@ -5,11 +5,12 @@ Moller-Trumbore, the normal, flat or interpolated, turned towards the ray) and t
 (``render.shade.lighting.shade_surface``: every light's ``incidence``, the Lambert +
 Blinn-Phong BRDF, the ambient and the emitted radiance) are written once, on minidiff
 arrays. ``shade_mesh`` runs exactly that text through ``minidiff.compile``: traced once per
-kind of mesh, material and lights (``_form``) into one loop over the hits, whose forward,
-VJP and JVP the compiler generates from each primitive's own rules. Nothing here restates
-the mathematics; this module only says what is shared by every hit (the camera frame, the
-mesh's vertices, faces and vertex normals, the material's and the lights' parameters) and
-what each hit has of its own (its image-plane point, its face, its lit masks).
+kind of mesh, material and lights (``_shade``'s static ``form``) into one loop over the
+hits, whose forward, VJP and JVP the compiler generates from each primitive's own rules.
+Nothing here restates the mathematics; this module only says what is shared by every hit
+(the camera frame, the mesh's vertices, faces and vertex normals, the material's and the
+lights' parameters) and what each hit has of its own (its image-plane point, its face, its
+lit masks).
 
 On the tape the result is one node: gradients reach the camera frame, the vertices (the
 gathers' scatter-add, in hit order), the normals, the material and every light, and forward

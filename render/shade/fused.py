@@ -7,8 +7,8 @@ colours into pixels, counting the misses. When nothing is differentiated and eve
 is a mesh the compiled shading takes (``applies``), ``image_values`` does the same in
 fewer passes over plain arrays:
 
-1. every mesh's hits shaded by ``render.shade.compiled.shade_mesh`` (the readable
-   formulas, compiled) straight into a per-ray buffer;
+1. every mesh's hits shaded by ``shade_camera_hits``, whose meshes all take the compiled
+   shading here (``render.shade.compiled.shade_mesh``), copied into a per-ray buffer;
 2. ``_film``: every pixel (in parallel) the mean of its samples, the background where a
    sample hit nothing.
 
@@ -25,11 +25,11 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
+from render.scene.cache import RenderCache
 from render.scene.scene import Scene
 from render.shade import compiled
-from render.shade.hits import object_rows, pick
+from render.shade.hits import shade_camera_hits
 from render.trace.intersect import BLOCK, _jobs
-from render.trace.primitives import primitive_ranges
 from render.trace.visibility import Visibility
 
 
@@ -54,20 +54,11 @@ def image_values(scene: Scene, visibility: Visibility, camera: tuple, spp: int) 
     ``spp`` per pixel, their hits and lit masks). ``camera``: (forward, right, up, eye)
     float64 (3,) each, the camera frame's values. Only where ``applies``."""
     primary = visibility.primary
+    with md.no_grad():  # every mesh shaded by the compiled shading (``applies``)
+        shading = shade_camera_hits(scene, visibility, camera, RenderCache(), None, False)
     radiance = buffers.empty((primary.prim_id.size, 3), np.float64)
-    hit_prims = md.kernels.gather_rows(primary.prim_id, primary.hit_rays)
-    ranges = primitive_ranges(scene)
-    with md.no_grad():
-        for obj, first, count in ranges:
-            rows = object_rows(hit_prims, first, count, len(ranges))
-            faces = pick(hit_prims, rows)
-            if len(faces) == 0:
-                continue
-            colour = compiled.shade_mesh(
-                obj, faces - first if first else faces, camera, pick(primary.coords, rows),
-                scene.lights, [pick(mask, rows) for mask in visibility.lit],
-            )  # fmt: skip
-            radiance[pick(primary.hit_rays, rows)] = colour.data
+    if shading.colour is not None:
+        radiance[shading.rays] = shading.colour.data
     # Reused memory (minidiff.buffers): a fresh 512x512 image costs ~1.5 ms of page faults.
     image = buffers.empty((scene.camera.height, scene.camera.width, 3), np.float64)
     background = np.broadcast_to(np.asarray(scene.background.data, np.float64), (3,))
