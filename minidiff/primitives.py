@@ -449,6 +449,21 @@ def _elementwise(name: str, x: Tensor, y: np.ndarray, times_slope, reads: str) -
     )  # fmt: skip
 
 
+def _detach_scalar(x):
+    # A new value equal to x (a form must make one), with no slope: LLVM folds the select.
+    return ir.select(ir.const(True, "i1"), x, x), (None,)
+
+
+@_traces_as(lambda x: trace.elementwise("detach", _detach_scalar, x, differentiable=(False,)))
+def detach(x: Any) -> Tensor:
+    """x's value as a constant: d/dx = 0 (PyTorch's ``detach``, JAX's ``stop_gradient``).
+
+    ``x / detach(x)`` is 1 with the derivative dx / x: how an estimator keeps a factor's
+    derivative without its value (a change of measure, ``render.path.transport``). Inside
+    a compiled function it is the same value with no slope."""
+    return Tensor(as_tensor(x)._data)
+
+
 def _log_scalar(x):
     return ir.call("log", x), (lambda d: d / x,)
 

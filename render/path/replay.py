@@ -51,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from render.path import window
 from render.path.tracer import AREA, CAMERA, MIRROR, PathBatch, PathSampler, Vertices
 from render.path.transport import Vertex, _at_vertex, vertex_on_tape
 from render.scene.camera import ray_directions
@@ -89,7 +90,10 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         seen = md.sum(md.broadcast_to(window_world.background, (len(missed), 3)) * weights[missed])
         seen.backward()
     vertices = [v for v in batch.vertices if len(v.rows)]
-    paths = _Paths(window_world, window_frame, sampler, batch, vertices, dtype)
+    tables = None
+    if window.applies(window_world, sampler, batch):  # the windows compiled
+        tables = window.Tables.of(window_world, window_frame)
+    paths = _Paths(window_world, window_frame, sampler, batch, vertices, dtype, tables)
     n_paths = len(batch.paths)
     beta = np.ones((n_paths, 3), dtype)  # the throughput before each path's current vertex
     gathered = np.zeros((n_paths, 3), dtype)  # sum_{j<=k} beta_j C_j, plain
@@ -98,17 +102,17 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
     for k, record in enumerate(vertices):
         if k > 0:
             anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
-        window = _Window(paths, k, record.rows, anchor[record.rows])
+        here_window = _window(paths, k, record.rows, anchor[record.rows])
         # The constants of this window's objective, from its values.
-        here = window.added(n_paths)  # C_k (N, 3), zero for the paths not at vertex k
+        here = here_window.added(n_paths)  # C_k (N, 3), zero for the paths not at vertex k
         gathered += beta * here
         pending.gather(here)
         objective = [
             md.sum(part * (weights[rows] * beta[rows]))
-            for part, rows in zip(window.parts, window.rows_of, strict=True)
+            for part, rows in zip(here_window.parts, here_window.rows_of, strict=True)
         ]
-        if window.factors:
-            factor, rows = window.factor()
+        if here_window.factors:
+            factor, rows = here_window.factor()
             after = beta[rows] * factor.data  # beta_{k+1}
             arriving = np.divide(radiance[rows] - gathered[rows], after,
                                  out=np.zeros_like(after), where=after != 0)  # fmt: skip
@@ -117,8 +121,10 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
             pending.open(k, rows, anchor[rows], beta[rows], after)
             beta[rows] = after
         _backward(objective)
-        del window, objective  # this window's tape, before the next is built
+        del here_window, objective  # this window's tape, before the next is built
     pending.close(paths, weights)
+    if tables is not None:  # the tables' gradients, through the tape they were built on
+        tables.carry()
 
     carried = [md.sum(t * copies[id(t)].grad) for t in originals if copies[id(t)].grad is not None]
     _backward(carried)
@@ -173,8 +179,8 @@ class _Pending:
             mine = self.depth == e  # (N, 3)
             rows = np.flatnonzero(mine.any(axis=1))
             anchor = self.anchor[rows, np.argmax(mine[rows], axis=1)]
-            window = _Window(paths, int(e), rows, anchor)
-            factor, going = window.factor()  # every one of ``rows`` goes on
+            # Every one of ``rows`` goes on.
+            factor, going = _window(paths, int(e), rows, anchor).factor()
             scale = np.where(mine, weights * self.beta * self.arriving, 0.0)[going]
             _backward([md.sum(factor * scale)])
 
@@ -231,6 +237,16 @@ class _Paths:
     batch: PathBatch
     vertices: list[Vertices]
     dtype: np.dtype
+    tables: window.Tables | None  # the scene's tables when the windows are compiled
+
+
+def _window(paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
+    """Window k of the paths ``rows`` (``_Window``'s interface): compiled when the paths'
+    ``tables`` are set (``render.path.window``), else on the tape."""
+    if paths.tables is not None:
+        return window.CompiledWindow(paths.tables, paths.batch, paths.vertices, k, rows,
+                                     paths.sampler)  # fmt: skip
+    return _Window(paths, k, rows, anchors)
 
 
 class _Window:

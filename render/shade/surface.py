@@ -244,7 +244,9 @@ def _on_mesh(mesh: Mesh, faces: np.ndarray, origins, directions, local, divide) 
         t, u, v = intersect_edges(origins, directions, a, e1, e2, barycentrics=interpolated)
         points = origins + column(t) * directions
     else:
-        u, v = (md.tensor(local[:, i].astype(a.dtype)) for i in (0, 1))
+        if isinstance(local, np.ndarray):  # else already an array of the caller's
+            local = md.tensor(local.astype(a.dtype))
+        u, v = local[:, 0], local[:, 1]
         points = a + column(u) * e1 + column(v) * e2
     n = md.cross(e1, e2)
     stretch = None

@@ -57,7 +57,7 @@ def assert_close(actual, expected, what: str, sparse_zeros: bool = False) -> Non
 # broadcasts with everything.
 
 UNARY = ["negative", "exp", "log", "sqrt", "sin", "cos", "tan", "tanh", "abs", "normalize",
-         "norm", "sum", "mean", "max", "clip", "square", "lane"]  # fmt: skip
+         "norm", "sum", "mean", "max", "clip", "square", "lane", "detach"]  # fmt: skip
 BINARY = ["add", "subtract", "multiply", "divide", "power", "maximum", "minimum", "where",
           "dot", "cross", "stack"]  # fmt: skip
 

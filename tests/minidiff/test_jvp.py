@@ -334,11 +334,25 @@ CASES["power"].append(binary_case("pow_operator"))
 for _name in ("sum", "mean", "max"):
     CASES[_name] = [reduction_case(_name)]
 
+# detach is left out: its output is a constant, without a tangent (its own test below).
 PRIMITIVES = sorted(
     name
     for name in md.__all__
-    if inspect.isfunction(getattr(md, name)) and getattr(md, name).__module__ == primitives.__name__
+    if inspect.isfunction(getattr(md, name))
+    and getattr(md, name).__module__ == primitives.__name__
+    and name != "detach"
 )
+
+
+def test_detach_carries_no_tangent():
+    """detach's output is a constant: no tangent (zero), and x * detach(x)'s tangent is
+    detach(x) t."""
+    x = md.tensor([1.5, -2.0])
+    with md.tangents({x: np.array([1.0, 3.0])}):
+        held = md.detach(x)
+        product = x * held
+    assert held.tangent is None
+    np.testing.assert_array_equal(product.tangent, [1.5, -6.0])
 
 
 def test_every_exported_primitive_has_a_jvp_case():

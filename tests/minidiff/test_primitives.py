@@ -836,3 +836,24 @@ def test_tall_broadcast_gradients(shapes, seed):
     fd = (plus - minus) / (2 * h)
     ad = float(np.sum(x.grad * dx) + np.sum(y.grad * dy))
     assert abs(ad - fd) <= 1e-6 * max(1.0, abs(fd)), (ad, fd)
+
+
+# ---------------------------------------------------------------------------------------------
+# detach: a value without a derivative
+# ---------------------------------------------------------------------------------------------
+
+
+@SETTINGS
+@given(data=st.data(), shape=shapes)
+def test_detach_keeps_the_value_and_drops_the_derivative(data, shape):
+    """x * detach(x) has x's square as value and derivative detach(x) (not 2x): central
+    differences of the same product with the detached factor held fixed."""
+    x = data.draw(away_from_zero(shape))
+    t = md.tensor(x, requires_grad=True)
+    held = md.detach(t)
+    assert not held.requires_grad
+    np.testing.assert_array_equal(held.data, x)
+    out = md.sum(t * held)
+    out.backward()
+    np.testing.assert_allclose(t.grad, x, rtol=1e-14)
+    assert_grad_matches(lambda y: y * md.tensor(x), x)
