@@ -91,7 +91,7 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         seen.backward()
     vertices = [v for v in batch.vertices if len(v.rows)]
     tables = None
-    if window.applies(window_world, sampler, batch):  # the windows compiled
+    if window.applies(window_world, batch):  # the windows compiled
         tables = window.Tables.of(window_world, window_frame)
     paths = _Paths(window_world, window_frame, sampler, batch, vertices, dtype, tables)
     n_paths = len(batch.paths)
@@ -244,8 +244,7 @@ def _window(paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
     """Window k of the paths ``rows`` (``_Window``'s interface): compiled when the paths'
     ``tables`` are set (``render.path.window``), else on the tape."""
     if paths.tables is not None:
-        return window.CompiledWindow(paths.tables, paths.batch, paths.vertices, k, rows,
-                                     paths.sampler)  # fmt: skip
+        return window.CompiledWindow(paths.tables, paths.batch, paths.vertices, k, rows)
     return _Window(paths, k, rows, anchors)
 
 

@@ -35,10 +35,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.tracer import CAMERA, MIRROR, PathBatch, PathSampler, Vertices
+from render.path.tracer import CAMERA, MIRROR, PathBatch, Vertices
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
-from render.scene.scene import Mesh, Scene
+from render.scene.scene import Mesh, Scene, Sphere
 from render.shade.lighting import Appearance, _nonzero, brdf, light_contribution
 from render.shade.surface import column, surface_at, toward_ray, vertex_normals
 from render.trace.primitives import primitive_ranges
@@ -47,11 +47,11 @@ from render.trace.primitives import primitive_ranges
 MATERIAL_FIELDS = ("albedo", "specular", "shininess", "emission")
 
 
-def applies(world: Scene, sampler: PathSampler, batch: PathBatch) -> bool:
-    """Whether the compiled windows replay ``batch``: every object a mesh without textures,
-    no ``MIRROR`` vertex or bounce among its paths, float64 parameters and lights whose
+def applies(world: Scene, batch: PathBatch) -> bool:
+    """Whether the compiled windows replay ``batch``: no object with a texture, no
+    ``MIRROR`` vertex or bounce among its paths, float64 parameters and lights whose
     shading compiles (``Light.compiled_shading``)."""
-    if not all(isinstance(obj, Mesh) and not obj.material.textures for obj in world.objects):
+    if any(obj.material.textures for obj in world.objects):
         return False
     if not all(light.compiled_shading for light in world.lights):
         return False
@@ -62,16 +62,22 @@ def applies(world: Scene, sampler: PathSampler, batch: PathBatch) -> bool:
 
 @dataclass
 class Tables:
-    """The scene as every path reads it: ``vertices`` (V, 3) and vertex ``normals`` (V, 3)
-    of all meshes (a flat mesh's rows are a constant, never used), ``faces`` (F, 3) int64
-    with global vertex ids (row p is primitive p), ``smooth`` (O,) bool per object, the
-    materials' ``albedo``, ``specular``, ``emission`` (O, 3) and ``shininess`` (O,), the
-    lights' parameters and kinds, the environment and the camera frame. The tensors are
-    leaves; ``built`` holds what they were computed from on the tape."""
+    """The scene as every path reads it. Meshes: ``vertices`` (V, 3) and vertex ``normals``
+    (V, 3) of all of them (a flat mesh's rows are a constant, never used), ``faces`` (F, 3)
+    int64 with global vertex ids (row p is primitive p); spheres: ``centers`` (S, 3) and
+    ``radii`` (S,) (None without spheres); per object (``primitive_ranges``' order)
+    ``smooth`` (O,) bool and the materials' ``albedo``, ``specular``, ``emission`` (O, 3)
+    and ``shininess`` (O,); the lights' parameters and kinds, the environment and the camera
+    frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
+    computed from on the tape. Plain: ``first`` (O,) each object's first primitive id,
+    ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
+    ``inside`` (S,) whether the camera is inside each sphere, ``glossy``."""
 
-    vertices: md.Tensor
-    normals: md.Tensor
-    faces: np.ndarray
+    vertices: md.Tensor | None
+    normals: md.Tensor | None
+    faces: np.ndarray | None
+    centers: md.Tensor | None
+    radii: md.Tensor | None
     smooth: np.ndarray
     materials: tuple
     lights: tuple
@@ -79,28 +85,20 @@ class Tables:
     background: md.Tensor
     frame: tuple
     glossy: bool
+    first: np.ndarray
+    n_triangles: int
+    spare_face: int
+    inside: np.ndarray
     built: list
 
     @classmethod
     def of(cls, world: Scene, frame: tuple) -> Tables:
         """The tables of ``world`` (the replay's leaf copies) and its camera ``frame``."""
-        meshes = [obj for obj, _, _ in primitive_ranges(world)]  # the leaf copies, in order
-        offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-        faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=False)])
-        normals = []
-        for m in meshes:
-            if not m.smooth:  # any unit vector: where() picks the geometric normal
-                normals.append(md.tensor(np.tile([0.0, 0.0, 1.0], (len(m.vertices.data), 1))))
-            elif m.normals is not None:
-                normals.append(m.normals)
-            else:
-                normals.append(vertex_normals(m.vertices, m.faces))
-        columns = {
-            name: md.stack([md.broadcast_to(getattr(m.material, name), (3,)) for m in meshes])
-            for name in ("albedo", "specular", "emission")
-        }
-        columns["shininess"] = md.stack([m.material.shininess for m in meshes])
-        built, leaves = [], {}
+        ranges = primitive_ranges(world)
+        objects = [obj for obj, _, _ in ranges]  # meshes first, then spheres
+        meshes = [obj for obj in objects if isinstance(obj, Mesh)]
+        spheres = [obj for obj in objects if not isinstance(obj, Mesh)]
+        built = []
 
         def leaf(t):
             """A leaf copy of ``t``; ``t`` kept for ``carry`` if it is differentiated."""
@@ -109,22 +107,54 @@ class Tables:
                 built.append((t, copy))
             return copy
 
-        for name, t in columns.items():
-            leaves[name] = leaf(t)
-        glossy = any(_nonzero(m.material.specular) for m in meshes)
+        vertices = normals = faces = centers = radii = None
+        spare_face = 0
+        if meshes:
+            offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+            faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=False)])
+            vertices = leaf(md.concatenate([m.vertices for m in meshes]))
+            normals = leaf(md.concatenate([_normals(m) for m in meshes]))
+            a, b, c = (vertices.data[faces[:, i]] for i in range(3))
+            spare_face = int(np.argmax(np.linalg.norm(np.cross(b - a, c - a), axis=1)))
+        inside = np.zeros(0, bool)
+        if spheres:
+            centers = leaf(md.stack([s.center for s in spheres]))
+            radii = leaf(md.stack([s.radius for s in spheres]))
+            eye = frame[3].data if isinstance(frame[3], md.Tensor) else np.asarray(frame[3])
+            inside = np.linalg.norm(eye - centers.data, axis=1) < radii.data
+        columns = {
+            name: md.stack([md.broadcast_to(getattr(o.material, name), (3,)) for o in objects])
+            for name in ("albedo", "specular", "emission")
+        }
+        columns["shininess"] = md.stack([o.material.shininess for o in objects])
         return cls(
-            vertices=leaf(md.concatenate([m.vertices for m in meshes])),
-            normals=leaf(md.concatenate(normals)),
-            faces=np.ascontiguousarray(faces, np.int64),
-            smooth=np.array([bool(m.smooth) for m in meshes]),
-            materials=tuple(leaves[name] for name in MATERIAL_FIELDS),
+            vertices=vertices, normals=normals,
+            faces=None if faces is None else np.ascontiguousarray(faces, np.int64),
+            centers=centers, radii=radii,
+            smooth=np.array([isinstance(o, Mesh) and bool(o.smooth) for o in objects]),
+            materials=tuple(leaf(columns[name]) for name in MATERIAL_FIELDS),
             lights=tuple(tuple(light.named_parameters().values()) for light in world.lights),
             kinds=tuple((type(light), tuple(light.named_parameters())) for light in world.lights),
-            background=world.background,
-            frame=tuple(frame),
-            glossy=glossy,
-            built=built,
-        )
+            background=world.background, frame=tuple(frame),
+            glossy=any(_nonzero(o.material.specular) for o in objects),
+            first=np.array([first for _, first, _ in ranges], np.int64),
+            n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
+            inside=inside, built=built,
+        )  # fmt: skip
+
+    def role(self, prims: np.ndarray, local: np.ndarray) -> tuple:
+        """What a compiled window reads of points on primitives ``prims`` (n,) at ``local``
+        (n, 3): (face (n,), sphere (n,), on a sphere (n,) bool, object (n,), local), face
+        and sphere None where the scene has none; a point on a sphere reads the spare face,
+        a point on a triangle sphere 0 (harmless values, never selected)."""
+        obj = np.searchsorted(self.first, prims, side="right") - 1
+        on_sphere = prims >= self.n_triangles
+        face = sphere = None
+        if self.faces is not None:
+            face = np.where(on_sphere, self.spare_face, prims)
+        if self.centers is not None:
+            sphere = np.where(on_sphere, prims - self.n_triangles, 0)
+        return face, sphere, on_sphere, obj, local
 
     def carry(self) -> None:
         """Backward, through the tape the tables were built on, of what the windows put
@@ -137,20 +167,28 @@ class Tables:
             total.backward()
 
 
+def _normals(mesh: Mesh) -> md.Tensor:
+    """The vertex normals a mesh's shading reads: its own or computed (smooth), else a
+    constant unit vector (flat: ``where`` picks the geometric normal)."""
+    if not mesh.smooth:
+        return md.tensor(np.tile([0.0, 0.0, 1.0], (len(mesh.vertices.data), 1)))
+    return mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+
+
 class CompiledWindow:
     """``replay._Window``'s C_k and F_k for the batch's paths ``rows`` (sorted, reaching
     vertex k), by one compiled call (``_window``): ``parts``/``rows_of`` C_k (m, 3) and its
     rows, ``factors``/``factor_rows`` F_k of the paths that go on and their rows."""
 
     def __init__(self, tables: Tables, batch: PathBatch, vertices: list[Vertices], k: int,
-                 rows: np.ndarray, sampler: PathSampler):  # fmt: skip
+                 rows: np.ndarray):  # fmt: skip
         record = _at(vertices[k], rows)
         n = len(rows)
-        following = vertices[k + 1] if k + 1 < len(vertices) else None
-        going = np.zeros(n, bool)
-        if following is not None:
-            going = np.isin(rows, following.rows, assume_unique=True)
-        nxt = _at(following, rows[going]) if going.any() else None
+        going, next_at = np.zeros(n, bool), None
+        if k + 1 < len(vertices):
+            following = vertices[k + 1]
+            next_at = np.minimum(np.searchsorted(following.rows, rows), len(following.rows) - 1)
+            going = following.rows[next_at] == rows
         scale = 1.0 / (record.next_pdf * record.survive)  # constants of the continuation
         escape = record.escape & (record.next != 0)
 
@@ -159,38 +197,42 @@ class CompiledWindow:
             coords = np.ascontiguousarray(batch.coords[rows], np.float64)
         case = "camera" if k == 0 else "after_camera" if coords is not None else "after_area"
         if k > 0:
-            before = _at(vertices[k - 1], rows)
-            previous = (before.prim, _object(sampler, before.prim), before.local)
+            before = vertices[k - 1]
+            at = np.searchsorted(before.rows, rows)
+            previous = (before.prim[at], before.local[at])
         # Paths without NEE (or that do not go on) read a harmless point: their weight is 0.
         has_nee = record.nee_weight > 0
         nee_prim = np.where(has_nee, record.nee_prim, record.prim)
         nee_local = np.where(has_nee[:, None], record.nee_local, 1.0 / 3.0)
         next_prim, next_local = record.prim.copy(), np.full((n, 3), 1.0 / 3.0)
-        if nxt is not None:
-            next_prim[going], next_local[going] = nxt.prim, nxt.local
+        if going.any():
+            at = next_at[going]
+            next_prim[going], next_local[going] = following.prim[at], following.local[at]
         lit = None
         if len(tables.lights):
-            lit = np.ascontiguousarray(record.lit.T, np.float64)
+            lit = record.lit.T.astype(np.float64)
+        camera_prim = record.prim if k == 0 else previous[0] if case == "after_camera" else None
+        far = None
+        if camera_prim is not None and tables.centers is not None:  # the camera inside a sphere
+            on_sphere = camera_prim >= tables.n_triangles
+            far = (
+                on_sphere & tables.inside[np.where(on_sphere, camera_prim - tables.n_triangles, 0)]
+            )
         batched = (
             coords,
-            previous,
-            (record.prim, _object(sampler, record.prim), record.local),
+            far,
+            None if previous is None else tables.role(previous[0], previous[1]),
+            tables.role(record.prim, record.local),
             lit,
-            record.emit_weight.astype(np.float64),
-            (nee_prim, _object(sampler, nee_prim), nee_local, record.nee_weight.astype(np.float64)),
-            (np.where(escape, scale, 0.0), record.escape_dir.astype(np.float64)),
-            (
-                next_prim,
-                _object(sampler, next_prim),
-                next_local,
-                np.where(going, scale, 0.0),
-                going,
-            ),
+            record.emit_weight,
+            (*tables.role(nee_prim, nee_local), record.nee_weight),
+            (np.where(escape, scale, 0.0), record.escape_dir),
+            (*tables.role(next_prim, next_local), np.where(going, scale, 0.0), going),
         )
         added, factor = _window(
             *_contiguous(batched), tables.frame, tables.vertices, tables.normals, tables.faces,
-            tables.smooth, tables.materials, tables.lights, tables.background,
-            (case, tables.kinds, tables.glossy),
+            tables.centers, tables.radii, tables.smooth, tables.materials, tables.lights,
+            tables.background, (case, tables.kinds, tables.glossy),
         )  # fmt: skip
         self.parts, self.rows_of = [added], [rows]
         self.factors, self.factor_rows = [], []
@@ -210,7 +252,10 @@ class CompiledWindow:
 
 
 def _at(record: Vertices, rows: np.ndarray) -> Vertices:
-    """The record's fields of the batch's paths ``rows`` (all among ``record.rows``)."""
+    """The record's fields of the batch's paths ``rows`` (sorted, all among
+    ``record.rows``)."""
+    if len(rows) == len(record.rows):  # then all of them
+        return record
     at = np.searchsorted(record.rows, rows)
     return Vertices(
         rows, record.prim[at], record.local[at], record.form[at], record.emit_weight[at],
@@ -218,11 +263,6 @@ def _at(record: Vertices, rows: np.ndarray) -> Vertices:
         record.next[at], record.next_pdf[at], record.survive[at], record.escape[at],
         record.escape_dir[at],
     )  # fmt: skip
-
-
-def _object(sampler: PathSampler, prims: np.ndarray) -> np.ndarray:
-    """(k,) the index of the object owning each primitive id."""
-    return np.searchsorted(sampler.first, prims, side="right") - 1
 
 
 def _contiguous(value):
@@ -238,8 +278,8 @@ def _contiguous(value):
 @dataclass
 class _Vertex:
     """Path vertices inside the compiled window: points, unit geometric and shading
-    normals (k, 3), the area element's ``stretch`` (k,), the direction back ``wo`` (k, 3)
-    and the object each lies on (k,) int64."""
+    normals (k, 3), the area element's ``stretch`` (k,) (1 for points found by rays), the
+    direction back ``wo`` (k, 3) (set by the caller) and the object each lies on (k,)."""
 
     points: object
     geometric: object
@@ -249,28 +289,72 @@ class _Vertex:
     obj: object
 
 
-def _surface(mesh, smooth, prim, obj, local=None, origins=None, directions=None) -> _Vertex:
-    """Points on the world's triangles ``prim``: at coordinates ``local`` (an ``AREA``
-    vertex, ``stretch`` its area element) or where rays meet them (stretch 1); ``wo`` left
-    to the caller. ``surface_at`` on the concatenated mesh, whose shading normal is then
-    the geometric one on flat objects."""
-    found = surface_at(mesh, prim, origins, directions, local=local, divide=True)
-    shading = md.where(column(smooth[obj]), found.shading, found.geometric)
-    stretch = found.stretch if local is not None else 1.0
-    return _Vertex(found.points, found.geometric, shading, stretch, None, obj)
+def _surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
+    """Points on the primitives of ``role`` (``Tables.role``): at its coordinates ``local``
+    (an ``AREA`` vertex) or where the rays meet them (``far``: which rays meet a sphere's far
+    side). ``surface_at`` on the concatenated mesh and on the spheres, each point taking its
+    own primitive's; a flat mesh's shading normal is its geometric one."""
+    mesh, smooth, centers, radii = world
+    face, sphere, on_sphere, obj, local = role
+    if origins is not None:
+        local = None
+    found = []
+    if face is not None:
+        tri = surface_at(mesh, face, origins, directions, local=local, divide=True)
+        tri.shading = md.where(column(smooth[obj]), tri.shading, tri.geometric)
+        found.append(tri)
+    if sphere is not None:
+        ball = Sphere.holding(center=centers[sphere], radius=radii[sphere], material=mesh.material)
+        found.append(surface_at(ball, sphere, origins, directions, local=local, far_root=far))
+    if len(found) == 1:
+        only = found[0]
+        points, geometric, shading, stretch = (
+            only.points,
+            only.geometric,
+            only.shading,
+            only.stretch,
+        )
+    else:
+        tri, ball = found
+        pick = column(on_sphere)
+        points = md.where(pick, ball.points, tri.points)
+        geometric = md.where(pick, ball.geometric, tri.geometric)
+        shading = md.where(pick, ball.shading, tri.shading)
+        stretch = None if local is None else md.where(on_sphere, ball.stretch, tri.stretch)
+    return _Vertex(points, geometric, shading, 1.0 if local is None else stretch, None, obj)
 
 
-@md.compile(shared=("frame", "vertices", "normals", "faces", "smooth", "materials", "lights",
-                    "background"))  # fmt: skip
-def _window(coords, previous, here, lit, emit_weight, nee, escape, going, frame, vertices,
-            normals, faces, smooth, materials, lights, background, form):  # fmt: skip
+@md.compile(shared=("frame", "vertices", "normals", "faces", "centers", "radii", "smooth",
+                    "materials", "lights", "background"))  # fmt: skip
+def _window(
+    coords,
+    far,
+    previous,
+    here,
+    lit,
+    emit_weight,
+    nee,
+    escape,
+    going,
+    frame,
+    vertices,
+    normals,
+    faces,
+    centers,
+    radii,
+    smooth,
+    materials,
+    lights,
+    background,
+    form,
+):
     """One window of one path: (C_k (n, 3), F_k (n, 3)), ``transport._at_vertex``'s terms
     for a vertex reached without a mirror. Batched (n paths): coords (n, 2) the camera ray's
-    image-plane point (when vertex k or k - 1 is the camera's), previous (prim, object,
-    local) of vertex k - 1 when it is an ``AREA`` one, here (prim, object, local) of vertex
-    k, lit (n, L), emit_weight (n,), nee (prim, object, local, weight), escape (scale, unit
-    direction) and going (prim, object, local, scale, flag) of the next vertex. Shared:
-    the tables (``Tables``). Static ``form``: (which vertex the camera's ray meets:
+    image-plane point (when vertex k or k - 1 is the camera's) and far (n,) whether it meets
+    a sphere's far side; previous, here: vertices k - 1 (when an ``AREA`` one) and k
+    (``Tables.role``); lit (n, L); emit_weight (n,); nee (role, weight) the point on an
+    area light; escape (scale, unit direction); going (role, scale, flag) the next vertex.
+    Shared: the tables (``Tables``). Static ``form``: (which vertex the camera's ray meets:
     "camera" (vertex k), "after_camera" (k - 1) or "after_area" (none), the lights'
     classes and parameter names, whether any material is glossy)."""
     case, kinds, glossy = form
@@ -279,24 +363,23 @@ def _window(coords, previous, here, lit, emit_weight, nee, escape, going, frame,
     look_of = Material.holding(texture=None, specular_texture=None, ambient_texture=None)
     mesh = Mesh.holding(vertices=vertices, faces=faces, normals=normals, uvs=None, smooth=True,
                         material=look_of, transform=None)  # fmt: skip
+    world = (mesh, smooth, centers, radii)
     scene_lights = [
         cls.holding(**dict(zip(names, params, strict=True)))
         for (cls, names), params in zip(kinds, lights, strict=True)
     ]
-    prim, obj, local = here
     if case == "camera":  # vertex k where the camera's ray meets it
         directions = ray_directions(frame, coords)
-        v = _surface(mesh, smooth, prim, obj, origins=frame[3], directions=directions)
+        v = _surface(world, here, frame[3], directions, far)
         v.wo = -md.normalize(directions)
     else:
-        v = _surface(mesh, smooth, prim, obj, local=local)
+        v = _surface(world, here)
         if case == "after_camera":
-            directions = ray_directions(frame, coords)
-            back = _surface(mesh, smooth, previous[0], previous[1], origins=frame[3],
-                            directions=directions).points  # fmt: skip
+            back = _surface(world, previous, frame[3], ray_directions(frame, coords), far).points
         else:
-            back = _surface(mesh, smooth, previous[0], previous[1], local=previous[2]).points
+            back = _surface(world, previous).points
         v.wo = md.normalize(back - v.points)
+    obj = v.obj
 
     side = toward_ray(v.geometric, -v.wo)  # two-sided: the shading normal faces the viewer
     ns = v.shading * side
@@ -322,23 +405,25 @@ def _window(coords, previous, here, lit, emit_weight, nee, escape, going, frame,
         cos = md.maximum(md.dot(ns, wi), 0.0)
         return brdf(ns, view, wi, diffuse, look) * column(cos * scale)
 
-    # Next-event estimation on the area lights: a point on an emitting triangle.
-    nee_prim, nee_obj, nee_local, nee_weight = nee
-    light = _surface(mesh, smooth, nee_prim, nee_obj, local=nee_local)
+    # Next-event estimation on the area lights: a point on an emitting primitive, whose
+    # area is half the stretch on a triangle, 4 pi times it on a sphere.
+    *nee_role, nee_weight = nee
+    light = _surface(world, nee_role)
     wi, d2 = toward(light.points, nee_weight > 0.0)
     cos_x = md.maximum(md.dot(ns, wi), 0.0)
     cos_z = md.abs(md.dot(light.geometric, wi))
     f = brdf(ns, view, wi, diffuse, look)
-    scale = cos_x * cos_z / d2 * (light.stretch * 0.5) * nee_weight  # area: half the stretch
-    added = added + f * column(scale) * emission[nee_obj]
+    area = light.stretch * md.where(nee_role[2], 4.0 * np.pi, 0.5)
+    scale = cos_x * cos_z / d2 * area * nee_weight
+    added = added + f * column(scale) * emission[light.obj]
 
     # Paths that leave the scene see the environment.
     escape_scale, escape_dir = escape
     added = added + bounce_weight(escape_dir, escape_scale) * background
 
     # The factor of the segment to the next vertex, with the change of measure to its area.
-    next_prim, next_obj, next_local, next_scale, goes = going
-    nxt = _surface(mesh, smooth, next_prim, next_obj, local=next_local)
+    *next_role, next_scale, goes = going
+    nxt = _surface(world, next_role)
     wi, d2 = toward(nxt.points, goes)
     geometry = md.where(goes, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
     factor = bounce_weight(wi, next_scale) * column(geometry / md.detach(geometry))

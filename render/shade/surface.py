@@ -65,10 +65,13 @@ def intersect_spheres(origin, direction, center, radius, far_root: np.ndarray):
     c = md.dot(oc, oc) - radius * radius
     # At a grazing hit the discriminant is ~0 and sqrt's derivative blows up; clamping keeps
     # the value (it is ~0 anyway) and gives a finite gradient. The floor is relative to b^2
-    # (the discriminant's scale), so that it means the same for a sphere of any size.
-    floor = np.maximum((b * b).data * 1e-16, np.finfo(b.dtype).tiny)
-    root = md.sqrt(md.maximum(b * b - a * c, floor))
-    sign = np.where(far_root, 1.0, -1.0).astype(a.dtype)
+    # (the discriminant's scale), so that it means the same for a sphere of any size; it
+    # is a constant (detach), and never below the smallest normal number.
+    b2 = b * b
+    floor = md.maximum(md.detach(b2) * 1e-16, np.asarray(np.finfo(b.dtype).tiny, b.dtype))
+    root = md.sqrt(md.maximum(b2 - a * c, floor))
+    one = np.asarray(1.0, a.dtype)
+    sign = md.where(far_root, one, -one)
     return (-b + sign * root) / a
 
 
@@ -195,6 +198,7 @@ def surface_at(
     *,
     local: np.ndarray | None = None,
     traced_from: np.ndarray | None = None,
+    far_root=None,
     divide: bool = False,
 ) -> Surface:
     """The ``Surface`` of k points on one object, on the tape (or plain values under
@@ -206,7 +210,9 @@ def surface_at(
 
     traced_from (k, 3): where the tracer started the rays (plain; by default ``origins``'
     values): a ray that starts inside a sphere meets its far side (a reflected ray starting
-    *on* the sphere passes the side it was traced from). divide: a triangle's unit normal
+    *on* the sphere passes the side it was traced from). far_root (k,) bool: which rays meet
+    a sphere's far side, given rather than found from ``traced_from`` (a compiled function,
+    where the rays' values are not known). divide: a triangle's unit normal
     as n / |n| rather than ``md.normalize``'s n * (1 / |n|) (the two differ in the last
     bit; the path integrator divides, sharing |n| with ``stretch``; points placed by
     ``local`` always do).
@@ -214,7 +220,7 @@ def surface_at(
     if isinstance(obj, Mesh):
         surface = _on_mesh(obj, prims, origins, directions, local, divide)
     else:
-        surface = _on_sphere(obj, origins, directions, local, traced_from)
+        surface = _on_sphere(obj, origins, directions, local, traced_from, far_root)
     if directions is not None:
         flip = toward_ray(surface.geometric, directions)
         surface.directions = directions
@@ -266,18 +272,20 @@ def _on_mesh(mesh: Mesh, faces: np.ndarray, origins, directions, local, divide) 
     return Surface(points=points, geometric=geometric, shading=shading, uv=uv, stretch=stretch)
 
 
-def _on_sphere(sphere: Sphere, origins, directions, local, traced_from) -> Surface:
-    """``surface_at`` on a sphere."""
+def _on_sphere(sphere: Sphere, origins, directions, local, traced_from, far_root) -> Surface:
+    """``surface_at`` on a sphere: its ``center`` (3,) and ``radius`` (), or per point (k, 3)
+    and (k,) (a compiled function's gathers from all spheres)."""
     if sphere.material.textures:
         raise ValueError("render: spheres carry no UVs, so their material cannot have a texture")
     if local is not None:
-        w = md.tensor(local.astype(sphere.center.dtype))
-        points = sphere.center + sphere.radius * w
-        stretch = md.broadcast_to(sphere.radius * sphere.radius, (len(local),))
+        w = md.tensor(local.astype(sphere.center.dtype)) if isinstance(local, np.ndarray) else local
+        points = sphere.center + column(sphere.radius) * w
+        stretch = md.broadcast_to(sphere.radius * sphere.radius, (w.shape[0],))
         return Surface(points=points, geometric=w, shading=w, stretch=stretch)
-    starts = origins.data if traced_from is None else traced_from
-    inside = np.linalg.norm(starts - sphere.center.data, axis=-1) < sphere.radius.data
-    far_root = np.broadcast_to(inside, (directions.shape[0],))
+    if far_root is None:
+        starts = origins.data if traced_from is None else traced_from
+        inside = np.linalg.norm(starts - sphere.center.data, axis=-1) < sphere.radius.data
+        far_root = np.broadcast_to(inside, (directions.shape[0],))
     t = intersect_spheres(origins, directions, sphere.center, sphere.radius, far_root)
     points = origins + column(t) * directions
     normals = md.normalize(points - sphere.center)
