@@ -280,7 +280,9 @@ def _on_sphere(sphere: Sphere, origins, directions, local, traced_from, far_root
     if local is not None:
         w = md.tensor(local.astype(sphere.center.dtype)) if isinstance(local, np.ndarray) else local
         points = sphere.center + column(sphere.radius) * w
-        stretch = md.broadcast_to(sphere.radius * sphere.radius, (w.shape[0],))
+        stretch = sphere.radius * sphere.radius  # one per point: () -> (k,)
+        if stretch.ndim == 0:
+            stretch = md.broadcast_to(stretch, (len(local),))
         return Surface(points=points, geometric=w, shading=w, stretch=stretch)
     if far_root is None:
         starts = origins.data if traced_from is None else traced_from

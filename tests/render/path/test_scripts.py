@@ -61,6 +61,13 @@ def test_bench_secondary_quick(tmp_path, load_script):
     assert result["variance"]["std"] >= 0
 
 
+def test_bench_path_kinds_quick(tmp_path, load_script):
+    load_script("benchmarks/bench_path_kinds.py").main(["--quick", "--out", str(tmp_path)])
+    result = json.loads((tmp_path / "kinds.json").read_text())
+    for row in result["cost"]:
+        assert row["over_albedo"]["albedo"] == 1.0 and row["light_position"] > 0
+
+
 def test_path_secondary_quick(tmp_path, load_script):
     load_script("benchmarks/path_secondary.py").main(["--quick", "--out", str(tmp_path)])
     text = (tmp_path / "secondary.md").read_text()
