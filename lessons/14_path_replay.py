@@ -51,17 +51,20 @@ lesson_start = time.perf_counter()
 # `gradient="replay"`, renders the image with the compiled kernel and hands the tape one
 # node; its backward *replays* the paths (below) either in the compiled kernel
 # (`render/path/adjoint.py`: when only materials, lights' strengths or the environment are
-# differentiated) or on the tape one depth at a time (`render/path/replay.py`: anything
-# else, such as a light's position). One depth at a time means *windows*: window `k` puts
-# on a fresh tape only what vertex `k` of the batch's paths adds and what its bounce
-# multiplies by (which needs vertices `k − 1`, `k` and `k + 1`), takes its share of the
-# gradient with its own `backward`, and is freed before window `k + 1` is built (section 3
-# says what it takes from the rest of the path).
+# differentiated) or one depth at a time (`render/path/replay.py`: anything else, such as a
+# light's position). One depth at a time means *windows*: window `k` computes only what
+# vertex `k` of the batch's paths adds and what its bounce multiplies by (which needs
+# vertices `k − 1`, `k` and `k + 1`), takes its share of the gradient with its own
+# `backward`, and is freed before window `k + 1` is built (section 3 says what it takes
+# from the rest of the path). A window is one call of a compiled function
+# (`render/path/window.py`: the readable formulas of the tape, traced by lesson 16's
+# compiler, forward and VJP in parallel over the paths); where that does not apply (a
+# mirror, a texture) it is a fresh tape.
 #
 # Which replay runs depends on the parameter, and so does the tape's size (a moving lamp
 # puts the geometry of every shadow ray on the tape, an albedo only the shading). So compare
 # like with like: the tape against the compiled replay for the left wall's albedo, and the
-# tape against the replay on the tape for the lamp's position. The peak of NumPy's
+# tape against the replay by windows for the lamp's position. The peak of NumPy's
 # allocations during one gradient of the Cornell box at 16 × 16, without Russian roulette
 # (so paths really are `max_depth` long):
 
@@ -102,7 +105,7 @@ WAYS = {  # the parameter, then how its gradient is taken
     "albedo: through the tape": ("tape", "albedo"),
     "albedo: compiled replay": ("replay", "albedo"),
     "lamp's position: through the tape": ("tape", "lamp"),
-    "lamp's position: replay on the tape": ("replay", "lamp"),
+    "lamp's position: replay by windows": ("replay", "lamp"),
 }
 for gradient, parameter in WAYS.values():  # first calls load kernels and fill caches
     gradient_peak_mb(gradient, parameter, 4, 4)  # (depth 4 loads some that depth 2 does not)
@@ -117,7 +120,7 @@ for name in WAYS:
     print(f"{name:38s} spp {spps}: {np.round(memory_by_spp[name], 2)} MB; "
           f"max_depth {depths}: {np.round(memory_by_depth[name], 2)} MB")  # fmt: skip
 albedo_tape, compiled = "albedo: through the tape", "albedo: compiled replay"
-lamp_tape, windows = "lamp's position: through the tape", "lamp's position: replay on the tape"
+lamp_tape, windows = "lamp's position: through the tape", "lamp's position: replay by windows"
 tape_spp_growth = memory_by_spp[albedo_tape][2] / memory_by_spp[albedo_tape][1]
 tape_depth_growth = memory_by_depth[albedo_tape][3] / memory_by_depth[albedo_tape][0]
 lamp_tape_spp_growth = memory_by_spp[lamp_tape][2] / memory_by_spp[lamp_tape][1]
@@ -138,11 +141,11 @@ lamp_saving_by_spp, lamp_saving_by_depth = (
 lamp_smallest_spp_saving = min(lamp_saving_by_spp)
 lamp_saving_at_64 = lamp_saving_by_spp[2]
 lamp_saving_at_depth_2 = lamp_saving_by_depth[0]
-# The first depth from which the replay on the tape holds less than the tape, at 16 spp.
+# The first depth from which the replay by windows holds less than the tape, at 16 spp.
 replay_cheaper_from_depth = next(
     d for i, d in enumerate(depths) if all(s > 1 for s in lamp_saving_by_depth[i:])
 )
-print(f"lamp's position, tape / replay on the tape: spp {spps}: "
+print(f"lamp's position, tape / replay by windows: spp {spps}: "
       f"{np.round(lamp_saving_by_spp, 2)}; max_depth {depths}: "
       f"{np.round(lamp_saving_by_depth, 2)}")  # fmt: skip
 # The tape's memory per pixel per sample, from 16 to 64 spp, scaled to 512 × 512 at 256 spp.
@@ -189,24 +192,25 @@ save_and_show(figure, OUT / "memory.png")
 # more than `15` <!-- check: albedo_smallest_saving > --> times as much at every point
 # measured, 4 spp included.
 #
-# **The lamp's position**: the replay on the tape grows less than `1.1`
-# <!-- check: windows_spp_growth < --> times from 16 to 64 samples and less than `1.6`
+# **The lamp's position**: the replay by windows grows less than `1.1`
+# <!-- check: windows_spp_growth < --> times from 16 to 64 samples and less than `3.2`
 # <!-- check: windows_depth_growth < --> times from depth 2 to 16 (the values are printed
 # above; the allocator's bookkeeping moves them by a percent from run to run). It holds one
-# batch of paths' *decisions* (which primitive, which lobe, which light) and one window's
-# tape, never the whole batch's tape. A batch is 16 samples per pixel by default
+# batch of paths' *decisions* (which primitive, which lobe, which light: a few hundred
+# bytes per vertex) and one window, never the whole batch's tape. A compiled window holds a
+# few arrays per path, so the decisions are most of the peak, and they grow with the
+# paths' length: that is the growth with depth. A batch is 16 samples per pixel by default
 # (`batch_spp`), so below 16 it grows with the samples like the tape, and above it stays
-# flat. Against the lamp's own tape, at `max_depth` 4 it is the smaller already at 4
-# samples (the tape holds more than `1.2` <!-- check: lamp_smallest_spp_saving > --> times
-# as much at every spp measured) and more than `4` <!-- check: lamp_saving_at_64 > -->
-# times smaller at 64. Against depth, at 16 samples, the replay holds *more* than the tape
-# at depth 2 (the tape's peak is less than `0.9` <!-- check: lamp_saving_at_depth_2 < -->
-# times the replay's: a window spans three vertices, which at depth 2 is the whole path, so
-# a window is about the whole tape, and the replay keeps the decisions besides), and less
-# from depth `4` <!-- check: replay_cheaper_from_depth --> on. `memory.png` shows the
-# four against spp (left) and against `max_depth` (right): blue the albedo, orange the
-# lamp, solid lines the tape, dashed the replay. Scaled to 512 × 512 at 256 samples, the
-# albedo's tape would need more than `50` <!-- check: tape_at_512_gb > --> GB.
+# flat. Against the lamp's own tape it is the smaller at every point measured: the tape
+# holds more than `2` <!-- check: lamp_smallest_spp_saving > --> times as much at every
+# spp, more than `6` <!-- check: lamp_saving_at_64 > --> times at 64, and more than `1.3`
+# <!-- check: lamp_saving_at_depth_2 > --> times at depth 2, so the replay is the cheaper
+# from depth `2` <!-- check: replay_cheaper_from_depth --> on. (When windows were tapes of
+# their own, a window spanned three vertices, which at depth 2 is the whole path: there the
+# replay held more than the tape.) `memory.png` shows the four against spp (left) and
+# against `max_depth` (right): blue the albedo, orange the lamp, solid lines the tape,
+# dashed the replay. Scaled to 512 × 512 at 256 samples, the albedo's tape would need more
+# than `50` <!-- check: tape_at_512_gb > --> GB.
 #
 # ## 2. The adjoint idea: light going backwards
 #
@@ -329,7 +333,7 @@ print(f"replay against the tape, Cornell box: {library_replay_difference:.1e} (r
 # detail differs from the hand-written replay above: dividing `remaining` by `ρ` fails
 # where a channel's albedo is 0 (a pure red wall has no green). The compiled replay
 # therefore gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}`, over a few
-# numbers kept per vertex of the one path being replayed; the replay on the tape divides,
+# numbers kept per vertex of the one path being replayed; the replay by windows divides,
 # and where a factor is 0 it gathers `R_k` from the later windows and builds that window
 # again at the end (`docs/path_tracing.md`, `render/path/replay.py`). Mitsuba's `prb`
 # divides and takes the inverse of a zero as 0, which drops that term. Exercise 1 asks
@@ -400,7 +404,7 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 #    `g_k = a_k / d²`, and add `d/dd` to the hand-written adjoint (only the `C_k` depend on
 #    `d`). Check against the tape.
 # 3. **Memory at depth.** Extend the depth sweep of section 1 to `max_depth` 32 for the
-#    tape and the replay on the tape. Which one grows, by how much, and what grows in the
+#    tape and the replay by windows. Which one grows, by how much, and what grows in the
 #    replay (see `docs/path_tracing.md`)?
 #
 # Solutions: `lessons/solutions/14_path_replay.py`.

@@ -198,31 +198,37 @@ class CompiledFunction:
         """Array arguments as (Tensor, Slot), each argument's *tree* (``_Leaf``s of array
         arguments in tuples and lists, static values elsewhere), and the key of this
         call's signature."""
-        arrays, trees, batch = [], [], [None]
-
-        def leaf(name: str, value, inside: bool = False) -> Any:
-            if isinstance(value, (tuple, list)):  # arrays in containers: each its own slot
-                return _Container(type(value), tuple(leaf(name, v, True) for v in value))
-            if not isinstance(value, (Tensor, np.ndarray) if inside else _ARRAYS):
-                try:
-                    hash(value)
-                except TypeError:
-                    raise TypeError(
-                        f"{self.function.__name__}: argument '{name}' holds a "
-                        f"{type(value).__name__}, neither an array nor hashable; a static "
-                        "argument must be hashable"
-                    ) from None
-                return _Static(type(value), value)
-            slot, t = self._slot(name, value, batch)
-            arrays.append((t, slot))
-            return _Leaf(len(arrays) - 1, slot)
-
-        for name, value in zip(names, values, strict=True):
-            trees.append(leaf(name, value))
+        arrays, batch = [], [None]
+        trees = [
+            self._tree(name, value, False, arrays, batch)
+            for name, value in zip(names, values, strict=True)
+        ]
         if batch[0] is None:
             raise ValueError(f"{self.function.__name__}: needs at least one batched array argument")
         key = tuple(zip(names, trees, strict=True))
         return arrays, trees, (key, batch[0])
+
+    def _tree(self, name: str, value, inside: bool, arrays: list, batch: list) -> Any:
+        """The tree of argument ``name``'s ``value`` (``inside`` a tuple or list), its
+        arrays appended to ``arrays``. (A method, not a recursive closure: a closure that
+        calls itself is a reference cycle, which would keep every call's arrays alive
+        until the cyclic garbage collector runs.)"""
+        if isinstance(value, (tuple, list)):  # arrays in containers: each its own slot
+            parts = tuple(self._tree(name, v, True, arrays, batch) for v in value)
+            return _Container(type(value), parts)
+        if not isinstance(value, (Tensor, np.ndarray) if inside else _ARRAYS):
+            try:
+                hash(value)
+            except TypeError:
+                raise TypeError(
+                    f"{self.function.__name__}: argument '{name}' holds a "
+                    f"{type(value).__name__}, neither an array nor hashable; a static "
+                    "argument must be hashable"
+                ) from None
+            return _Static(type(value), value)
+        slot, t = self._slot(name, value, batch)
+        arrays.append((t, slot))
+        return _Leaf(len(arrays) - 1, slot)
 
     def _slot(self, name: str, value, batch: list) -> tuple[Slot, Tensor]:
         """The slot of array argument ``name`` (in ``shared``, or batched: then its first

@@ -120,8 +120,8 @@ assert distance_difference < 1e-14
 #
 # ## Exercise 3: memory at depth 32
 #
-# Like with like: the tape and the replay on the tape, both for the lamp's position (the
-# replay on the tape is what the library runs for it).
+# Like with like: the tape and the replay by windows, both for the lamp's position (the
+# replay by windows is what the library runs for it).
 
 
 # %%
@@ -130,18 +130,18 @@ windows = {d: gradient_peak_mb("replay", "lamp", 16, d) for d in (2, 32)}
 tape_growth_32 = tape[32] / tape[2]
 windows_growth_32 = windows[32] / windows[2]
 tape_over_windows_32 = tape[32] / windows[32]
-print(f"depth 2 -> 32: tape {tape[2]:.1f} -> {tape[32]:.1f} MB, replay on the tape "
+print(f"depth 2 -> 32: tape {tape[2]:.1f} -> {tape[32]:.1f} MB, replay by windows "
       f"{windows[2]:.1f} -> {windows[32]:.1f} MB")  # fmt: skip
 
 # %% [markdown]
 # From depth 2 to 32 the tape grows more than `3.5` <!-- check: tape_growth_32 > --> times,
-# and the replay on the tape more than `2.2` <!-- check: windows_growth_32 > --> times
-# (printed above). At depth 2 the replay holds more than the tape (lesson 14, section 1);
-# at depth 32 the tape holds `1.3` <!-- check: tape_over_windows_32 --> times as much.
-# What grows in the replay is the batch's *records*: every vertex's decisions (primitive,
-# lobe, light sample) for all the batch's paths, which the windows read and which are kept
-# for the whole batch (`docs/path_tracing.md`); the windows' own tape holds three vertices
-# whatever the depth. So the replay on the tape is flat in the number of samples, not in
+# and the replay by windows more than `4.5` <!-- check: windows_growth_32 > --> times
+# (printed above); at depth 32 the tape holds `1.3` <!-- check: tape_over_windows_32 -->
+# times as much. What grows in the replay is the batch's *records*: every vertex's
+# decisions (primitive, lobe, light sample) for all the batch's paths, which the windows
+# read and which are kept for the whole batch (`docs/path_tracing.md`); a window itself
+# holds a few arrays per path of one depth (a compiled window) or three vertices' tape,
+# whatever the depth. So the replay by windows is flat in the number of samples, not in
 # depth; only the compiled replay, which keeps a few numbers per vertex of one path per
 # thread, is flat in both. (Many paths leave the open box long before depth 32, so nothing
 # grows sixteen-fold.)

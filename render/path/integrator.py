@@ -289,6 +289,7 @@ def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int)
                 batch, radiance = kernel.sample_paths(sampler, paths[chunk], packed)
                 backpropagate_paths(world, camera_frame(world.camera), sampler, batch,
                                     radiance, per_path[chunk])  # fmt: skip
+                del batch, radiance  # before the next chunk's records are made
             continue
         world = placed(scene)  # a fresh tape per batch: placement is on it too
         frame = camera_frame(world.camera)

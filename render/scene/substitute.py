@@ -24,29 +24,33 @@ def substituted(scene: Scene, new: dict[int, md.Tensor], memo: dict[int, Any]) -
     ``memo`` so that views sharing an object share its copy; the copy uses the scene's
     render cache."""
 
-    def owner(obj):
-        if obj is None:
-            return None
-        if id(obj) not in memo:
-            out = copy.copy(obj)
-            for f in obj.FIELDS:
-                t = getattr(obj, f.name)
-                if t is not None and id(t) in new:
-                    setattr(out, f.name, new[id(t)])
-            for part in ("material", "transform"):
-                if hasattr(obj, part):
-                    setattr(out, part, owner(getattr(obj, part)))
-            if hasattr(obj, "material"):  # an object: caches keyed on it know the copy
-                out.source_id = getattr(obj, "source_id", id(obj))
-            memo[id(obj)] = out
-        return memo[id(obj)]
-
     background = new.get(id(scene.background), scene.background)
     out = Scene(
-        [owner(o) for o in scene.objects],
-        [owner(light) for light in scene.lights],
-        owner(scene.camera),
+        [_owner(o, new, memo) for o in scene.objects],
+        [_owner(light, new, memo) for light in scene.lights],
+        _owner(scene.camera, new, memo),
         background,
     )
     share_cache(out, cache_for(scene, True))
     return out
+
+
+def _owner(obj, new: dict[int, md.Tensor], memo: dict[int, Any]):
+    """``obj``'s copy for ``substituted`` (memoised), its material and transform copied too.
+    (A function of its own, not a recursive closure: that would be a reference cycle keeping
+    every copied tensor alive until the cyclic garbage collector runs.)"""
+    if obj is None:
+        return None
+    if id(obj) not in memo:
+        out = copy.copy(obj)
+        for f in obj.FIELDS:
+            t = getattr(obj, f.name)
+            if t is not None and id(t) in new:
+                setattr(out, f.name, new[id(t)])
+        for part in ("material", "transform"):
+            if hasattr(obj, part):
+                setattr(out, part, _owner(getattr(obj, part), new, memo))
+        if hasattr(obj, "material"):  # an object: caches keyed on it know the copy
+            out.source_id = getattr(obj, "source_id", id(obj))
+        memo[id(obj)] = out
+    return memo[id(obj)]
