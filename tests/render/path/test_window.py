@@ -37,7 +37,7 @@ def triangle_scenes(draw) -> render.Scene:
         normals = None
         if shading == "own normals":
             rng = np.random.default_rng(draw(st.integers(0, 9)))
-            normals = rng.normal(size=block.vertices.shape) + 2.0 * block.vertices.data
+            normals = 0.3 * rng.normal(size=block.vertices.shape) + 2.0 * block.vertices.data
         block = render.Mesh(block.vertices.data, block.faces, block.material, normals=normals,
                             smooth=True)  # fmt: skip
     scene.objects.append(block)

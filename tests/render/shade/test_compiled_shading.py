@@ -11,7 +11,7 @@ import contextlib
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 import minidiff as md
@@ -45,6 +45,16 @@ def _mesh(rng, smooth: bool, normals: bool, specular: bool, emission: bool):
     )  # fmt: skip
 
 
+def _smallest_vertex_normal(mesh) -> float:
+    """The shortest of the mesh's summed face normals at its vertices (before normalising)."""
+    v, faces = mesh.vertices.data, mesh.faces
+    n = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+    summed = np.zeros_like(v)
+    for corner in range(3):
+        np.add.at(summed, faces[:, corner], n)
+    return float(np.linalg.norm(summed[np.unique(faces)], axis=1).min())
+
+
 def _lights(rng, kinds):
     lights = []
     for kind in kinds:
@@ -76,6 +86,9 @@ def test_shade_mesh_equals_surface_at_then_shade_surface_in_value_gradient_and_t
 ):
     rng = np.random.default_rng(seed)
     mesh = _mesh(rng, smooth, normals and smooth, specular, emission)
+    # Faces drawn at random can cancel at a vertex (a face and its reverse): its computed
+    # normal is then rounding noise, and so is its gradient, on the tape and compiled alike.
+    assume(not (smooth and not normals) or _smallest_vertex_normal(mesh) > 1e-6)
     lights = _lights(rng, kinds)
     k = 40
     faces = rng.integers(0, mesh.num_faces, k)
