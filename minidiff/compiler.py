@@ -311,7 +311,7 @@ class CompiledFunction:
     # ----------------------------------------------------------------------------------------
     def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray], batch=None) -> None:
         kernel, _, _ = trace.kernel(mode, wrt)
-        pointers = (ctypes.c_void_p * len(buffers))(*(b.ctypes.data for b in buffers))
+        pointers = _addresses(buffers)
         n = trace.batch if batch is None else batch
         chunks = -(-n // codegen.CHUNK)
         threads = _threads.get() or numba.get_num_threads()
@@ -352,7 +352,7 @@ class CompiledFunction:
             count = np.array([slots[slot].shape[0]], np.int64)
             kernel = _scatter_kernel(share.shape[1])
             buffers = [where, share, table, count]
-            pointers = (ctypes.c_void_p * 4)(*(b.ctypes.data for b in buffers))
+            pointers = _addresses(buffers)
             kernel.run(pointers, n, 1, 1)  # one pass, in element order
         return [grads.get(s) for s in range(len(slots))]
 
@@ -403,6 +403,14 @@ class CompiledFunction:
             results.append(piece.reshape((n, *shape)))
             start += size
         return results
+
+
+def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:
+    """The arrays' data addresses, as the kernel's pointer argument. (Read from
+    ``__array_interface__``: NumPy's ``.ctypes`` makes objects in a reference cycle that
+    hold the array, which then stays alive until the cyclic garbage collector runs. The
+    caller keeps ``buffers`` alive for the call.)"""
+    return (ctypes.c_void_p * len(buffers))(*(b.__array_interface__["data"][0] for b in buffers))
 
 
 @functools.cache

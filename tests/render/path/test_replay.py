@@ -205,9 +205,11 @@ def _peak_mb(scene, gradient: str, spp: int) -> float:
 
 def test_memory_does_not_grow_with_spp():
     """4x more samples: the tape's peak grows with them, the replay's stays that of one
-    batch (measured at 8x8, batches of 2: replay 1.6 and 1.7 MB at 4 and 16 spp, tape 2.7
-    and 11 MB)."""
-    scene = cornell_box(8, 8)
+    batch (measured at 16x16, batches of 2: replay 1.11 and 1.18 MB at 4 and 16 spp, tape
+    5.9 and 23 MB). Not smaller: with compiled windows a batch of 8x8 paths holds so little
+    that what the interpreter holds between calls until its next garbage collection is a
+    fifth of it."""
+    scene = cornell_box(16, 16)
     for p in scene.parameters():
         p.requires_grad = True
     _peak_mb(scene, "replay", 4)  # first-call allocations (compiled code, caches) not counted
