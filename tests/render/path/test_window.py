@@ -153,3 +153,33 @@ def test_compiled_windows_do_not_depend_on_the_thread_count(threads):
         return light.grad
 
     np.testing.assert_array_equal(gradient(threads), gradient(1))
+
+
+def test_spheres_only_with_the_camera_inside_one(monkeypatch):
+    """A scene without triangles, the camera inside a sphere (its rays meet the far side),
+    a glowing sphere NEE samples: every gradient is the tape's."""
+    scene = render.Scene(
+        [
+            render.Sphere((0, 0, 0), 6.0, render.Material((0.7, 0.5, 0.3), specular=0.2)),
+            render.Sphere((0.5, 0.5, -1.0), 0.7, render.Material((0.2, 0.6, 0.3), emission=3.0)),
+        ],
+        [render.PointLight((1, 2, 1), 10.0)],
+        render.Camera((0, 0, 3), (0, 0, 0), (0, 1, 0), 60.0, 8, 8),
+    )
+    for p in scene.parameters():
+        p.requires_grad = True
+    weights = np.random.default_rng(0).normal(size=(8, 8, 3))
+    calls = []
+    original = window.CompiledWindow.__init__
+    monkeypatch.setattr(
+        window.CompiledWindow, "__init__", lambda s, *a: calls.append(1) or original(s, *a)
+    )
+    replayed = _gradients(scene, weights, spp=3, max_depth=4, seed=2)
+    assert calls
+    taped = _gradients(scene, weights, spp=3, max_depth=4, seed=2, gradient="tape")
+    assert np.any(taped["objects[0].center"]) and np.any(taped["camera.position"])
+    for name, tape in taped.items():
+        if tape is not None:
+            scale = max(np.abs(tape).max(), 1e-300)
+            np.testing.assert_allclose(replayed[name], tape, rtol=0, atol=GRAD_RTOL * scale,
+                                       err_msg=name)  # fmt: skip
