@@ -17,7 +17,8 @@ everything continuous on it:
   lights' shadows, indirect occlusion, by edge sampling from every path vertex, with the
   curves and their draws in ``silhouettes``;
 * ``kernel`` (with ``scalar``, ``packed``, ``chain``, ``adjoint``, ``replay``): the
-  compiled path tracer and path replay beside the reference.
+  compiled path tracer and path replay beside the reference; ``window``: the replay's
+  windows, ``transport``'s formulas for one path compiled by ``minidiff.compile``.
 
 ``docs/path_tracing.md`` walks through them.
 """
