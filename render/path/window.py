@@ -69,7 +69,7 @@ class Tables:
     ``smooth`` (O,) bool and the materials' ``albedo``, ``specular``, ``emission`` (O, 3)
     and ``shininess`` (O,); the lights' parameters and kinds, the environment and the camera
     frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
-    computed from on the tape. Plain: ``first`` (O,) each object's first primitive id,
+    computed from on the tape. Plain: ``owner`` (P,) the object of each primitive,
     ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
     ``inside`` (S,) whether the camera is inside each sphere, ``glossy``."""
 
@@ -85,7 +85,7 @@ class Tables:
     background: md.Tensor
     frame: tuple
     glossy: bool
-    first: np.ndarray
+    owner: np.ndarray
     n_triangles: int
     spare_face: int
     inside: np.ndarray
@@ -137,7 +137,7 @@ class Tables:
             kinds=tuple((type(light), tuple(light.named_parameters())) for light in world.lights),
             background=world.background, frame=tuple(frame),
             glossy=any(_nonzero(o.material.specular) for o in objects),
-            first=np.array([first for _, first, _ in ranges], np.int64),
+            owner=np.repeat(np.arange(len(objects)), [count for _, _, count in ranges]),
             n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
             inside=inside, built=built,
         )  # fmt: skip
@@ -147,7 +147,7 @@ class Tables:
         (n, 3): (face (n,), sphere (n,), on a sphere (n,) bool, object (n,), local), face
         and sphere None where the scene has none; a point on a sphere reads the spare face,
         a point on a triangle sphere 0 (harmless values, never selected)."""
-        obj = np.searchsorted(self.first, prims, side="right") - 1
+        obj = self.owner[prims]
         on_sphere = prims >= self.n_triangles
         face = sphere = None
         if self.faces is not None:
@@ -184,11 +184,12 @@ class CompiledWindow:
                  rows: np.ndarray):  # fmt: skip
         record = _at(vertices[k], rows)
         n = len(rows)
+        size = len(batch.paths)
         going, next_at = np.zeros(n, bool), None
         if k + 1 < len(vertices):
             following = vertices[k + 1]
-            next_at = np.minimum(np.searchsorted(following.rows, rows), len(following.rows) - 1)
-            going = following.rows[next_at] == rows
+            next_at = _positions(following.rows, rows, size)
+            going = next_at >= 0
         scale = 1.0 / (record.next_pdf * record.survive)  # constants of the continuation
         escape = record.escape & (record.next != 0)
 
@@ -198,7 +199,7 @@ class CompiledWindow:
         case = "camera" if k == 0 else "after_camera" if coords is not None else "after_area"
         if k > 0:
             before = vertices[k - 1]
-            at = np.searchsorted(before.rows, rows)
+            at = _positions(before.rows, rows, size)  # all there: rows reached vertex k
             previous = (before.prim[at], before.local[at])
         # Paths without NEE (or that do not go on) read a harmless point: their weight is 0.
         has_nee = record.nee_weight > 0
@@ -263,6 +264,14 @@ def _at(record: Vertices, rows: np.ndarray) -> Vertices:
         record.next[at], record.next_pdf[at], record.survive[at], record.escape[at],
         record.escape_dir[at],
     )  # fmt: skip
+
+
+def _positions(among: np.ndarray, rows: np.ndarray, size: int) -> np.ndarray:
+    """(n,) where each of the batch's paths ``rows`` stands in ``among`` (both sorted row
+    numbers below ``size``), -1 where it is not there."""
+    where = np.full(size, -1, np.int64)
+    where[among] = np.arange(len(among))
+    return where[rows]
 
 
 def _contiguous(value):
