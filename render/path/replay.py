@@ -45,7 +45,6 @@ built again for those paths at the end (``_Pending``), so the gradient stays exa
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -53,7 +52,7 @@ import numpy as np
 import minidiff as md
 from render.path import window
 from render.path.tracer import AREA, CAMERA, MIRROR, PathBatch, PathSampler, Vertices
-from render.path.transport import Vertex, _at_vertex, vertex_on_tape
+from render.path.transport import Vertex, _at_vertex, vertex_on_tape, viewer_side
 from render.scene.camera import ray_directions
 from render.scene.substitute import substituted
 from render.shade.surface import column
@@ -124,7 +123,7 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         del here_window, objective  # this window's tape, before the next is built
     pending.close(paths, weights)
     if tables is not None:  # the tables' gradients, through the tape they were built on
-        tables.carry()
+        _backward(tables.carried())
 
     carried = [md.sum(t * copies[id(t)].grad) for t in originals if copies[id(t)].grad is not None]
     _backward(carried)
@@ -219,13 +218,6 @@ def _anchors(vertices: list[Vertices], k: int, before: np.ndarray) -> np.ndarray
     return np.where(alone, k - 1, before)
 
 
-def _take(record: Vertices, at: np.ndarray) -> Vertices:
-    """The record's paths at positions ``at`` (the lights' visibility is (L, n))."""
-    fields = {f.name: getattr(record, f.name) for f in dataclasses.fields(record)}
-    return Vertices(**{name: (value[:, at] if name == "lit" else value[at])
-                       for name, value in fields.items()})  # fmt: skip
-
-
 @dataclass
 class _Paths:
     """What the windows read: the world and camera frame of the leaf copies, the sampler,
@@ -282,7 +274,7 @@ class _Window:
         sub = None
         if following is not None:
             going = np.flatnonzero(np.isin(following.rows, group, assume_unique=True))
-            sub = _take(following, going) if len(going) else None
+            sub = following.take(going) if len(going) else None
         factor, _ = _at_vertex(self.world, self.sampler, record, sub, vertex, None, self.parts,
                                self.rows_of, self.dtype)  # fmt: skip
         if factor is not None:
@@ -297,8 +289,7 @@ class _Window:
 
     def _record(self, j: int, group: np.ndarray) -> Vertices:
         """Vertex j's record of the paths ``group``."""
-        record = self.vertices[j]
-        return _take(record, np.searchsorted(record.rows, group))
+        return self.vertices[j].of_rows(group)
 
     def _standalone(self, group: np.ndarray, start: int) -> Vertex:
         """Vertex ``start`` of the paths ``group``, built from nothing before it: the camera
@@ -320,8 +311,7 @@ class _Window:
         mirror = record.form == MIRROR
         directions = None
         if mirror.any():  # the reflected ray, as in _at_vertex (shading normal facing wo)
-            side = np.where(md.kernels.dot_last(v.geometric.data, v.wo.data) < 0, -1.0, 1.0)
-            ns = v.shading * side.astype(self.dtype)[:, None]
+            ns = v.shading * viewer_side(v).astype(self.dtype)
             directions = 2.0 * column(md.dot(v.wo, ns)) * ns - v.wo
         return vertex_on_tape(self.world, self.sampler, record.prim, record.local, record.form,
                               v.points, directions)  # fmt: skip

@@ -30,6 +30,7 @@ of a batch do not depend on which other paths are in it.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -95,6 +96,18 @@ class Vertices:
     survive: np.ndarray
     escape: np.ndarray
     escape_dir: np.ndarray
+
+    def take(self, at: np.ndarray) -> Vertices:
+        """The paths at positions ``at`` of this record (the lights' visibility is (L, n))."""
+        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        return Vertices(**{name: (value[:, at] if name == "lit" else value[at])
+                           for name, value in fields.items()})  # fmt: skip
+
+    def of_rows(self, rows: np.ndarray) -> Vertices:
+        """The record of the batch's paths ``rows`` (sorted, all among ``self.rows``)."""
+        if len(rows) == len(self.rows):  # then all of them
+            return self
+        return self.take(np.searchsorted(self.rows, rows))
 
 
 @dataclass

@@ -44,7 +44,7 @@ import minidiff as md
 from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler
 from render.scene.camera import ray_directions
 from render.shade.lighting import Appearance, appearance, brdf, light_contribution
-from render.shade.surface import Surface, column, in_order, surface_at
+from render.shade.surface import Surface, column, in_order, surface_at, toward_ray
 from render.trace.primitives import primitive_ranges
 
 
@@ -220,7 +220,8 @@ def next_vertex(world, sampler: PathSampler, v: Vertex, ns, at: np.ndarray, reco
 def viewer_side(v: Vertex) -> np.ndarray:
     """(k, 1): +1 where the geometric normal of ``v`` faces the viewer (``wo``), else -1:
     surfaces are two-sided, and their normals are turned to face the viewer."""
-    return np.where(md.kernels.dot_last(v.geometric.data, v.wo.data) < 0, -1.0, 1.0)[:, None]
+    with md.no_grad():
+        return toward_ray(v.geometric, -v.wo).data
 
 
 def _area_factor(sampler: PathSampler, prims: np.ndarray, dtype) -> np.ndarray:

@@ -21,7 +21,7 @@ The scene is read as tables shared by every path (``Tables``): all meshes' verti
 normals and faces concatenated (a primitive id is a row of the face table), and per object
 its material. They are built once per replay on the tape from the parameters, then handed
 to the windows as leaves whose gradients add up window after window; one last ``backward``
-carries them to the parameters (``Tables.carry``).
+carries them to the parameters (``Tables.carried``).
 
 It applies (``applies``) to meshes without textures, no mirror bounce among the batch's
 paths, float64 and lights whose shading compiles; otherwise the windows take the tape.
@@ -39,6 +39,7 @@ from render.path.tracer import CAMERA, MIRROR, PathBatch, Vertices
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere
+from render.shade.compiled import held_lights, light_arguments
 from render.shade.lighting import Appearance, _nonzero, brdf, light_contribution
 from render.shade.surface import column, surface_at, toward_ray, vertex_normals
 from render.trace.primitives import primitive_ranges
@@ -101,7 +102,7 @@ class Tables:
         built = []
 
         def leaf(t):
-            """A leaf copy of ``t``; ``t`` kept for ``carry`` if it is differentiated."""
+            """A leaf copy of ``t``; ``t`` kept for ``carried`` if it is differentiated."""
             copy = md.tensor(t.data, requires_grad=t.requires_grad)
             if t.requires_grad:
                 built.append((t, copy))
@@ -127,14 +128,14 @@ class Tables:
             for name in ("albedo", "specular", "emission")
         }
         columns["shininess"] = md.stack([o.material.shininess for o in objects])
+        light_parameters, kinds = light_arguments(world.lights)
         return cls(
             vertices=vertices, normals=normals,
             faces=None if faces is None else np.ascontiguousarray(faces, np.int64),
             centers=centers, radii=radii,
             smooth=np.array([isinstance(o, Mesh) and bool(o.smooth) for o in objects]),
             materials=tuple(leaf(columns[name]) for name in MATERIAL_FIELDS),
-            lights=tuple(tuple(light.named_parameters().values()) for light in world.lights),
-            kinds=tuple((type(light), tuple(light.named_parameters())) for light in world.lights),
+            lights=light_parameters, kinds=kinds,
             background=world.background, frame=tuple(frame),
             glossy=any(_nonzero(o.material.specular) for o in objects),
             owner=np.repeat(np.arange(len(objects)), [count for _, _, count in ranges]),
@@ -156,15 +157,10 @@ class Tables:
             sphere = np.where(on_sphere, prims - self.n_triangles, 0)
         return face, sphere, on_sphere, obj, local
 
-    def carry(self) -> None:
-        """Backward, through the tape the tables were built on, of what the windows put
-        into their leaves' ``grad``."""
-        terms = [md.sum(t * copy.grad) for t, copy in self.built if copy.grad is not None]
-        if terms:
-            total = terms[0]
-            for term in terms[1:]:
-                total = total + term
-            total.backward()
+    def carried(self) -> list[md.Tensor]:
+        """The terms whose ``backward`` carries what the windows put into the leaves'
+        ``grad`` through the tape the tables were built on."""
+        return [md.sum(t * copy.grad) for t, copy in self.built if copy.grad is not None]
 
 
 def _normals(mesh: Mesh) -> md.Tensor:
@@ -182,7 +178,7 @@ class CompiledWindow:
 
     def __init__(self, tables: Tables, batch: PathBatch, vertices: list[Vertices], k: int,
                  rows: np.ndarray):  # fmt: skip
-        record = _at(vertices[k], rows)
+        record = vertices[k].of_rows(rows)
         n = len(rows)
         size = len(batch.paths)
         going, next_at = np.zeros(n, bool), None
@@ -193,14 +189,14 @@ class CompiledWindow:
         scale = 1.0 / (record.next_pdf * record.survive)  # constants of the continuation
         escape = record.escape & (record.next != 0)
 
-        previous = coords = None
+        back = coords = None
         if k == 0 or vertices[k - 1].form[0] == CAMERA:
             coords = np.ascontiguousarray(batch.coords[rows], np.float64)
         case = "camera" if k == 0 else "after_camera" if coords is not None else "after_area"
         if k > 0:
             before = vertices[k - 1]
             at = _positions(before.rows, rows, size)  # all there: rows reached vertex k
-            previous = (before.prim[at], before.local[at])
+            back = tables.role(before.prim[at], before.local[at])
         # Paths without NEE (or that do not go on) read a harmless point: their weight is 0.
         has_nee = record.nee_weight > 0
         nee_prim = np.where(has_nee, record.nee_prim, record.prim)
@@ -212,18 +208,17 @@ class CompiledWindow:
         lit = None
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)
-        camera_prim = record.prim if k == 0 else previous[0] if case == "after_camera" else None
-        far = None
-        if camera_prim is not None and tables.centers is not None:  # the camera inside a sphere
-            on_sphere = camera_prim >= tables.n_triangles
-            far = (
-                on_sphere & tables.inside[np.where(on_sphere, camera_prim - tables.n_triangles, 0)]
-            )
+        here = tables.role(record.prim, record.local)
+        far = None  # which camera rays meet a sphere's far side: the camera is inside it
+        camera = here if k == 0 else back if case == "after_camera" else None
+        if camera is not None and tables.centers is not None:
+            _, sphere, on_sphere, _, _ = camera
+            far = on_sphere & tables.inside[sphere]
         batched = (
             coords,
             far,
-            None if previous is None else tables.role(previous[0], previous[1]),
-            tables.role(record.prim, record.local),
+            back,
+            here,
             lit,
             record.emit_weight,
             (*tables.role(nee_prim, nee_local), record.nee_weight),
@@ -250,20 +245,6 @@ class CompiledWindow:
     def factor(self) -> tuple[md.Tensor, np.ndarray]:
         """F_k (m, 3) of the paths that go on, and their rows (m,)."""
         return self.factors[0], self.factor_rows[0]
-
-
-def _at(record: Vertices, rows: np.ndarray) -> Vertices:
-    """The record's fields of the batch's paths ``rows`` (sorted, all among
-    ``record.rows``)."""
-    if len(rows) == len(record.rows):  # then all of them
-        return record
-    at = np.searchsorted(record.rows, rows)
-    return Vertices(
-        rows, record.prim[at], record.local[at], record.form[at], record.emit_weight[at],
-        record.nee_prim[at], record.nee_local[at], record.nee_weight[at], record.lit[:, at],
-        record.next[at], record.next_pdf[at], record.survive[at], record.escape[at],
-        record.escape_dir[at],
-    )  # fmt: skip
 
 
 def _positions(among: np.ndarray, rows: np.ndarray, size: int) -> np.ndarray:
@@ -373,10 +354,7 @@ def _window(
     mesh = Mesh.holding(vertices=vertices, faces=faces, normals=normals, uvs=None, smooth=True,
                         material=look_of, transform=None)  # fmt: skip
     world = (mesh, smooth, centers, radii)
-    scene_lights = [
-        cls.holding(**dict(zip(names, params, strict=True)))
-        for (cls, names), params in zip(kinds, lights, strict=True)
-    ]
+    scene_lights = held_lights(kinds, lights)
     if case == "camera":  # vertex k where the camera's ray meets it
         directions = ray_directions(frame, coords)
         v = _surface(world, here, frame[3], directions, far)

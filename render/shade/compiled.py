@@ -65,7 +65,7 @@ def shade_mesh(mesh: Mesh, faces: np.ndarray, frame, coords: np.ndarray, lights,
         if normals is None:
             normals = vertex_normals(mesh.vertices, mesh.faces)
     present = tuple(name for name in MATERIAL_FIELDS if _present(material, name))
-    kinds = tuple((type(light), tuple(light.named_parameters())) for light in lights)
+    parameters, kinds = light_arguments(lights)
     visible = None
     if lights:
         visible = np.empty((len(faces), len(lights)))
@@ -75,9 +75,26 @@ def shade_mesh(mesh: Mesh, faces: np.ndarray, frame, coords: np.ndarray, lights,
         np.ascontiguousarray(coords, np.float64), np.ascontiguousarray(faces, np.int64),
         visible, tuple(frame), (mesh.vertices, mesh.faces, normals),
         tuple(getattr(material, name) for name in present),
-        tuple(tuple(light.named_parameters().values()) for light in lights),
+        parameters,
         (present, kinds),
     )  # fmt: skip
+
+
+def light_arguments(lights) -> tuple[tuple, tuple]:
+    """How a compiled function takes lights: (each light's parameters, a shared argument;
+    each light's class and parameter names, static), for ``held_lights`` inside it."""
+    parameters = tuple(tuple(light.named_parameters().values()) for light in lights)
+    kinds = tuple((type(light), tuple(light.named_parameters())) for light in lights)
+    return parameters, kinds
+
+
+def held_lights(kinds: tuple, parameters: tuple) -> list:
+    """The lights rebuilt around (traced) ``parameters`` (``light_arguments``), so that their
+    own code (``Light.incidence``) runs on them."""
+    return [
+        cls.holding(**dict(zip(names, params, strict=True)))
+        for (cls, names), params in zip(kinds, parameters, strict=True)
+    ]
 
 
 def _present(material: Material, name: str) -> bool:
@@ -113,10 +130,7 @@ def _shade(coords, faces, lit, frame, mesh, material, lights, form):
         vertices=vertices, faces=table, normals=normals, uvs=None, smooth=normals is not None,
         material=look, transform=None,
     )  # fmt: skip
-    scene_lights = [
-        cls.holding(**dict(zip(names, params, strict=True)))
-        for (cls, names), params in zip(kinds, lights, strict=True)
-    ]
+    scene_lights = held_lights(kinds, lights)
     masks = [lit[:, j] for j in range(len(scene_lights))]
     directions = ray_directions(frame, coords)
     surface = surface_at(shape, faces, frame[3], directions)
