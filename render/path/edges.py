@@ -25,8 +25,8 @@ import minidiff as md
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.term import add_curve_terms
 from render.edges.terms import primary_kinds
+from render.path.replay import radiance_of
 from render.path.tracer import PathSampler
-from render.path.transport import path_radiance
 from render.scene.cache import cache_for
 from render.scene.camera import project, to_image_plane
 from render.scene.scene import Scene
@@ -94,8 +94,7 @@ class PathRadiance:
             paths = (self.first_id + key[rows, None] * n + np.arange(n)[None, :]).ravel()
             given = () if prim is None else (np.repeat(prim[rows], n), np.repeat(depth[rows], n))
             batch = self.sampler.start(paths, np.repeat(coords[rows], n, axis=0), *given)
-            with md.no_grad():
-                radiance = path_radiance(self.world, self.frame, self.sampler, batch).data
+            radiance = radiance_of(self.world, self.frame, self.sampler, batch)
             out[rows] = radiance.reshape(k, n, 3).mean(axis=1)
         return out
 

@@ -72,6 +72,33 @@ def backpropagate_paths(
         _backpropagate(world, frame, sampler, batch, radiance, weights)
 
 
+def radiance_of(world, frame, sampler: PathSampler, batch: PathBatch) -> np.ndarray:
+    """(N, 3) plain: the radiance each path of ``batch`` carries, the value of
+    ``transport.path_radiance``, summed window by window (L = sum_k beta_k C_k, the module
+    docstring): the windows compiled and parallel over the paths where they apply
+    (``window.applies``), else on the tape without recording. For the constants of the
+    boundary terms (``render.path.secondary``, ``render.path.edges``)."""
+    with md.no_grad():
+        dtype = np.result_type(*[t.dtype for t in world.parameters()])
+        n_paths = len(batch.paths)
+        total = np.zeros((n_paths, 3), dtype)
+        total[batch.missed] = world.background.data  # camera rays that see the environment
+        vertices = [v for v in batch.vertices if len(v.rows)]
+        tables = window.Tables.of(world, frame) if window.applies(world, batch) else None
+        paths = _Paths(world, frame, sampler, batch, vertices, dtype, tables)
+        beta = np.ones((n_paths, 3), dtype)
+        anchor = np.zeros(n_paths, np.int64)
+        for k, record in enumerate(vertices):
+            if k > 0:
+                anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
+            here = _window(paths, k, record.rows, anchor[record.rows])
+            total += beta * here.added(n_paths)
+            if here.factors:
+                factor, rows = here.factor()
+                beta[rows] *= factor.data
+    return total
+
+
 def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
     """``backpropagate_paths``, with the tape on."""
     dtype = np.result_type(*[t.dtype for t in world.parameters()])

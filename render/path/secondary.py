@@ -35,9 +35,9 @@ light at l casts hard shadows: its NEE at x' jumps where the segment x' -> l gra
 silhouette seen from l, a curve on the surfaces, in the integral over x' from x_k. The
 same construction with l as the apex samples it; the jump is the light's contribution at
 x'. A directional light is a point light ``FAR`` scene sizes away. Everything but
-dphi/dtheta is a constant computed off the tape (``path_radiance`` under ``no_grad`` for
-beta_k f_k G L); phi is recomputed on the tape from x_k, x' (their places on their
-surfaces), the curve and the light, so ``backward`` reaches every parameter that moves
+dphi/dtheta is a constant computed off the tape (beta_k f_k G L by ``replay.radiance_of``:
+the compiled windows' values); phi is recomputed on the tape from x_k, x' (their places on
+their surfaces), the curve and the light, so ``backward`` reaches every parameter that moves
 them. Each sample's value is phi - phi = 0: the term adds nothing to the image.
 
 The lights' shadows that the camera sees directly are the same curves in the image
@@ -59,10 +59,11 @@ import numpy as np
 import minidiff as md
 from render.path import kernel
 from render.path.random import bounce_dimension, uniform
+from render.path.replay import radiance_of
 from render.path.sampling import dot, unit
 from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
-from render.path.transport import next_vertex, path_radiance, vertex_on_tape, viewer_side
+from render.path.transport import next_vertex, vertex_on_tape, viewer_side
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
 from render.shade.surface import column, geometric_normals, in_order
 from render.trace.primitives import primitive_ranges
@@ -240,8 +241,7 @@ def _seen_shadows(sampler, curves, paths, world, frame):
         first = _quiet(np.arange(m), hit.prim, hit.local, np.full(m, CAMERA, np.int8), lit)
         rays = PathBatch(paths[np.flatnonzero(cross.valid)[inside]], coords, np.zeros(m, bool),
                          [first])  # fmt: skip
-        with md.no_grad():
-            radiance = path_radiance(world, frame, sampler, rays).data
+        radiance = radiance_of(world, frame, sampler, rays)
         stretch = _image_area(hit.points, hit.normal, sampler.frame)
         # Every pixel's estimate divides by N = W H spp (1 / spp is the caller's) and by the
         # pixel's area in the image plane, 4 / (W H).
@@ -455,8 +455,7 @@ def _value(world, frame, sampler, curves, batch, k, src, hit, records, light):
     """(m, 3) on the tape: each sample's constant F |dx'/dt| / |grad_S phi| / P * sign
     (F: the radiance of the path ``records``, computed off the tape) times phi - phi."""
     rays = PathBatch(batch.paths[src], batch.coords[src], np.zeros(len(src), bool), records)
-    with md.no_grad():
-        radiance = path_radiance(world, frame, sampler, rays).data
+    radiance = radiance_of(world, frame, sampler, rays)
     dtype = radiance.dtype
     if light is None:  # the apex is x_k itself
         apex = _vertex_points(world, frame, sampler, batch, src, k, dtype)

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from render.path import render_path, window
+from render.path.tracer import MIRROR
 from render.scene.cornell import box_mesh, cornell_box
 
 #: |compiled - tape| <= GRAD_RTOL * max |tape| per parameter (issue 57: 1e-10). The two
@@ -184,3 +185,30 @@ def test_spheres_only_with_the_camera_inside_one(monkeypatch):
             scale = max(np.abs(tape).max(), 1e-300)
             np.testing.assert_allclose(replayed[name], tape, rtol=0, atol=GRAD_RTOL * scale,
                                        err_msg=name)  # fmt: skip
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(scene=triangle_scenes(), depth=st.integers(1, 5), seed=st.integers(0, 2**32),
+       mirror=st.booleans())  # fmt: skip
+def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
+    """``replay.radiance_of`` (the boundary terms' constants, window by window: compiled,
+    or on the tape where a mirror bounce is met) equals ``transport.path_radiance``."""
+    from render.path.replay import radiance_of
+    from render.path.tracer import PathSampler
+    from render.path.transport import path_radiance
+    from render.scene.camera import camera_frame
+    from render.scene.placement import placed
+
+    if mirror:
+        scene.objects[1].material = render.Material((0.5, 0.5, 0.5), reflectance=0.6)
+    with md.no_grad():
+        world = placed(scene)
+        frame = camera_frame(world.camera)
+        batch = PathSampler(world, 2, depth, 3, seed).sample(np.arange(72, dtype=np.int64))
+        bounces = [np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in batch.vertices]
+        assert window.applies(world, batch) == (not any(bounces))
+        expected = path_radiance(world, frame, PathSampler(world, 2, depth, 3, seed), batch).data
+    got = radiance_of(world, frame, PathSampler(world, 2, depth, 3, seed), batch)
+    scale = max(np.abs(expected).max(), 1e-300)
+    np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * scale)
+    assert depth == 1 or np.any(expected)  # light reaches some path
