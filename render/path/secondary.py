@@ -57,7 +57,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path import kernel
+from render.path import kernel, window
 from render.path.random import bounce_dimension, uniform
 from render.path.replay import radiance_of
 from render.path.sampling import dot, unit
@@ -65,8 +65,7 @@ from render.path.silhouettes import CONTACT, Curves
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import next_vertex, vertex_on_tape, viewer_side
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
-from render.shade.surface import column, geometric_normals, in_order
-from render.trace.primitives import primitive_ranges
+from render.shade.surface import column, geometric_normals
 from render.trace.visibility import shadow_offset
 
 #: The boundary paths' seed is the render's seed XOR this (independent of the image's).
@@ -195,13 +194,14 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
     else:
         batch = sampler.sample(paths)
     points = _points(sampler, batch)
+    tables = window.Tables.of(world, frame, leaves=False)  # what phi reads, on this tape
     values, pixels = [], []
     for k in range(1, min(len(batch.vertices), sampler.max_depth - 1) + 1):
-        for term in _terms_at(sampler, curves, batch, points, k, world, frame):
+        for term in _terms_at(sampler, curves, batch, points, k, world, frame, tables):
             values.append(term[0])
             pixels.append(batch.paths[term[1]] // sampler.spp)
     if sampler.max_depth >= 2:  # the lights' shadows seen by the camera
-        for value, pixel in _seen_shadows(sampler, curves, paths, world, frame):
+        for value, pixel in _seen_shadows(sampler, curves, paths, world, frame, tables):
             values.append(value)
             pixels.append(pixel)
     if not values:
@@ -210,7 +210,7 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
     return joined, np.concatenate(pixels)
 
 
-def _seen_shadows(sampler, curves, paths, world, frame):
+def _seen_shadows(sampler, curves, paths, world, frame, tables):
     """The borders of point and directional lights' shadows that the camera sees, one
     sample per boundary path and light: a point x on a shadow's border drawn from the light
     (as ``_terms_at`` does for later vertices), seen by the camera at the image-plane point
@@ -246,13 +246,24 @@ def _seen_shadows(sampler, curves, paths, world, frame):
         # Every pixel's estimate divides by N = W H spp (1 / spp is the caller's) and by the
         # pixel's area in the image plane, 4 / (W H).
         weight = hit.weight * stretch / 4.0
-        directions = ray_directions(frame, coords.astype(radiance.dtype))
-        origins = md.broadcast_to(frame[3], (m, 3))
-        seen = vertex_on_tape(world, sampler, hit.prim, hit.local, np.full(m, CAMERA, np.int8),
-                              origins, directions).points  # fmt: skip
-        phi = _phi(world, curves, hit.index,
-                   md.broadcast_to(_apex(world.lights[j], sampler), (m, 3)), seen)  # fmt: skip
-        moved = phi - md.tensor(phi.data)
+        apex = _apex(world.lights[j], sampler)
+        there = (hit.prim, hit.local, coords)
+        if _compiles(world):
+            phi = _level_sets(tables, curves, hit.index, apex, None, there, ("light", "camera"))
+        else:
+            directions = ray_directions(frame, coords.astype(radiance.dtype))
+            origins = md.broadcast_to(frame[3], (m, 3))
+            seen = vertex_on_tape(
+                world,
+                sampler,
+                hit.prim,
+                hit.local,
+                np.full(m, CAMERA, np.int8),
+                origins,
+                directions,
+            ).points
+            phi = _phi(tables, curves, hit.index, md.broadcast_to(apex, (m, 3)), seen)
+        moved = phi - md.detach(phi)
         pixel = np.minimum(px[inside].astype(np.int64), [width - 1, height - 1])
         yield (md.tensor(radiance * weight[:, None]) * column(moved),
                pixel[:, 1] * width + pixel[:, 0])  # fmt: skip
@@ -276,7 +287,7 @@ def _points(sampler, batch: PathBatch) -> list[np.ndarray]:
     return out
 
 
-def _terms_at(sampler, curves, batch, points, k: int, world, frame):
+def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables):
     """The boundary samples at the paths' k-th vertices: behind silhouettes seen from
     them (the next segment's visibility) and, for every point or directional light,
     behind silhouettes seen from the light (its shadow at the next vertex). Yields
@@ -328,11 +339,13 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         cross = _cross(sampler, curves, here, index, density, faces, t, here, origin)
         sub = np.flatnonzero(cross.valid)
         keep = (dot(normal[sub], cross.points - here[sub]) > 0) & (cross.prim == target[sub])
-        yield from _samples(world, frame, sampler, curves, batch, k, cross, keep, here, "emission")
+        yield from _samples(
+            world, frame, tables, sampler, curves, batch, k, cross, keep, here, "emission"
+        )
 
     cross = _cross(sampler, curves, here, *whole[:3], whole[3], here, origin)
     front = dot(normal[cross.valid], cross.points - here[cross.valid]) > 0
-    yield from _samples(world, frame, sampler, curves, batch, k, cross, front, here, "rest")
+    yield from _samples(world, frame, tables, sampler, curves, batch, k, cross, front, here, "rest")
 
     # Point lights' shadows at x' seen from x_k (x' must still get the light's NEE).
     if k + 1 > sampler.max_depth - 1:
@@ -346,10 +359,13 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame):
         ok = (dot(normal[sub], to) > 0) & (dot(cross.normal, at - cross.points) > 0)
         ok &= ~sampler.accelerator.occluded(origin[sub], cross.points - origin[sub],
                                             1.0 - 1e-7, tmin=0.0)  # fmt: skip
-        yield from _samples(world, frame, sampler, curves, batch, k, cross, ok, here, "light", j)
+        yield from _samples(
+            world, frame, tables, sampler, curves, batch, k, cross, ok, here, "light", j
+        )
 
 
-def _samples(world, frame, sampler, curves, batch, k, cross, keep, here, part, light=None):
+def _samples(world, frame, tables, sampler, curves, batch, k, cross, keep, here, part,
+             light=None):  # fmt: skip
     """The samples behind silhouettes that ``keep`` selects among ``cross``'s valid ones,
     their jump F at x' being: ``part`` "emission", x''s emission alone; "rest", the path
     continued from x' but for the emitters' emission (the other estimator's); "light",
@@ -372,7 +388,8 @@ def _samples(world, frame, sampler, curves, batch, k, cross, keep, here, part, l
             lit[light] = True
         tail = [_quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lit)]
         tail[0].emit_weight[:] = 1.0 if part == "emission" else 0.0
-    yield _value(world, frame, sampler, curves, batch, k, src, hit, prefix + tail, light), src
+    records = prefix + tail
+    yield _value(world, frame, tables, sampler, curves, batch, k, src, hit, records, light), src
 
 
 def _from_light(sampler, curves, light, u_curve, u_point, active, viewer):
@@ -451,20 +468,28 @@ def _prefix(sampler, batch, k, src, here, hit: _Crossing) -> list[Vertices]:
     return records
 
 
-def _value(world, frame, sampler, curves, batch, k, src, hit, records, light):
+def _value(world, frame, tables, sampler, curves, batch, k, src, hit, records, light):
     """(m, 3) on the tape: each sample's constant F |dx'/dt| / |grad_S phi| / P * sign
     (F: the radiance of the path ``records``, computed off the tape) times phi - phi."""
     rays = PathBatch(batch.paths[src], batch.coords[src], np.zeros(len(src), bool), records)
     radiance = radiance_of(world, frame, sampler, rays)
-    dtype = radiance.dtype
-    if light is None:  # the apex is x_k itself
-        apex = _vertex_points(world, frame, sampler, batch, src, k, dtype)
-    else:
-        apex = md.broadcast_to(_apex(world.lights[light], sampler), (len(src), 3))
-    far = vertex_on_tape(world, sampler, hit.prim, hit.local, np.full(len(src), AREA, np.int8),
-                         None, None).points  # fmt: skip
-    phi = _phi(world, curves, hit.index, apex, far)
-    moved = phi - md.tensor(phi.data)  # zero, with phi's derivative
+    here = _Rows(batch.vertices[k - 1], src)
+    apex = None if light is None else _apex(world.lights[light], sampler)
+    if _compiles(world) and (apex is not None or not np.any(here.form == MIRROR)):
+        # The apex is a light, or x_k: where the camera's ray meets it (k = 1) or its place.
+        kinds = ("light" if apex is not None else "camera" if k == 1 else "area", "area")
+        vertex = None if apex is not None else (here.prim, here.local, batch.coords[src])
+        there = (hit.prim, hit.local, None)
+        phi = _level_sets(tables, curves, hit.index, apex, vertex, there, kinds)
+    else:  # on the tape: after a mirror, x_k is where the reflected ray meets it
+        if apex is None:
+            points = _vertex_points(world, frame, sampler, batch, src, k, radiance.dtype)
+        else:
+            points = md.broadcast_to(apex, (len(src), 3))
+        far = vertex_on_tape(world, sampler, hit.prim, hit.local,
+                             np.full(len(src), AREA, np.int8), None, None).points  # fmt: skip
+        phi = _phi(tables, curves, hit.index, points, far)
+    moved = phi - md.detach(phi)  # zero, with phi's derivative
     return md.tensor(radiance * hit.weight[:, None]) * column(moved)
 
 
@@ -496,26 +521,104 @@ class _Rows:
         self.prim, self.local, self.form = record.prim[pos], record.local[pos], record.form[pos]
 
 
-def _phi(world, curves: Curves, index, apex, far) -> md.Tensor:
-    """(m,) on the tape: the level set function phi (module docstring) of curves ``index``
-    (m,) seen from ``apex`` (m, 3), at the points ``far`` (m, 3)."""
-    owners = [obj for obj, _, _ in primitive_ranges(world)]
-    parts, order = [], []
-    edge = index < curves.n_edges
-    for o in np.unique(curves.edge_object[index[edge]]):
-        rows = np.flatnonzero(edge & (curves.edge_object[np.where(edge, index, 0)] == o))
-        ends = curves.ends[index[rows]]
-        vertices = owners[o].vertices
-        p = apex[rows]
-        normal = md.cross(vertices[ends[:, 0]] - p, vertices[ends[:, 1]] - p)
-        parts.append(md.dot(far[rows] - p, normal))
-        order.append(rows)
-    for s in np.unique(index[~edge] - curves.n_edges):
-        rows = np.flatnonzero(index == curves.n_edges + s)
-        sphere = owners[curves.sphere_object[s]]
-        p = apex[rows]
-        w, q = far[rows] - p, md.broadcast_to(sphere.center, (len(rows), 3)) - p
-        across = md.cross(w, q)
-        parts.append(md.sqrt(md.dot(across, across) / md.dot(w, w)) - sphere.radius)
-        order.append(rows)
-    return in_order(parts, order)
+def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
+    """(m,) the level set function phi (module docstring) at the points ``far`` (m, 3) of
+    curves seen from ``apex`` (m, 3): the edge (``a``, ``b``, (m, 3) each) where ``is_edge``
+    (m,), else the sphere (``centre`` (m, 3), ``radius`` (m,)). Each row reads both kinds'
+    arguments, which need only be finite where unused; None: the scene has no such curve."""
+    w = far - apex
+    edge = sphere = None
+    if a is not None:
+        edge = md.dot(w, md.cross(a - apex, b - apex))
+    if centre is not None:
+        across = md.cross(w, centre - apex)
+        ratio = md.dot(across, across) / md.dot(w, w)
+        if edge is not None:  # 1 on the edges' rows: the root's derivative at 0 is infinite
+            ratio = md.where(is_edge, 1.0, ratio)
+        sphere = md.sqrt(ratio) - radius
+    if edge is None or sphere is None:
+        return sphere if edge is None else edge
+    return md.where(is_edge, edge, sphere)
+
+
+def _compiles(world) -> bool:
+    """Whether phi is compiled (``_level_sets``): every parameter float64."""
+    return all(t.dtype == np.float64 for t in world.parameters())
+
+
+def _curve_rows(tables: window.Tables, curves: Curves, index: np.ndarray) -> tuple:
+    """Of curves ``index`` (m,): each edge's endpoints as rows of ``tables.vertices`` (two
+    (m,) int64), each sphere's row of ``tables.centers`` (m,) and which are edges (m,) bool
+    (0 in the rows of the other kind: a harmless value, never selected)."""
+    is_edge = index < curves.n_edges
+    m = len(index)
+    start, end = np.zeros(m, np.int64), np.zeros(m, np.int64)
+    if curves.n_edges:
+        e = index[is_edge]
+        first = tables.first_vertex[curves.edge_object[e]]
+        start[is_edge], end[is_edge] = first + curves.ends[e, 0], first + curves.ends[e, 1]
+    ball = np.where(is_edge, 0, index - curves.n_edges)
+    return start, end, ball, is_edge
+
+
+def _phi(tables: window.Tables, curves: Curves, index, apex, far) -> md.Tensor:
+    """(m,) on the tape: phi of curves ``index`` (m,) seen from ``apex`` (m, 3) at the points
+    ``far`` (m, 3), by ``level_set``, the curves read from ``tables``."""
+    start, end, ball, is_edge = _curve_rows(tables, curves, index)
+    a = b = centre = radius = None
+    if tables.vertices is not None:
+        a, b = tables.vertices[start], tables.vertices[end]
+    if tables.centers is not None:
+        centre, radius = tables.centers[ball], tables.radii[ball]
+    return level_set(apex, far, a, b, centre, radius, is_edge)
+
+
+def _level_sets(tables: window.Tables, curves: Curves, index, apex, here, there, kinds):
+    """(m,) on the tape: phi of curves ``index`` (m,) at x' seen from the apex, compiled
+    (``_compiled_phi``). The apex: a light's, ``apex`` (3,), or the vertices ``here``; x':
+    ``there``; each of those (prim (m,), local (m, 3), the camera ray's image-plane point
+    (m, 2) or None). ``kinds``: the apex's ("light", "camera": where the camera's ray meets
+    it, or "area": at its place) and x''s ("camera" or "area")."""
+
+    def point(place, kind):
+        if place is None:
+            return None
+        prim, local, coords = place
+        role = tables.role(prim, local)
+        far = None  # the camera's ray meets a sphere's far side: the camera is inside it
+        if kind == "camera" and tables.centers is not None:
+            far = role[2] & tables.inside[role[1]]
+        return role, None if kind != "camera" else coords, far
+
+    start, end, ball, is_edge = _curve_rows(tables, curves, index)
+    return _compiled_phi(
+        point(here, kinds[0]), point(there, kinds[1]), (start, end, ball, is_edge), apex,
+        tables.frame, tables.vertices, tables.normals, tables.faces, tables.centers,
+        tables.radii, tables.smooth, kinds,
+    )  # fmt: skip
+
+
+@md.compile(shared=("apex", "frame", "vertices", "normals", "faces", "centers", "radii",
+                    "smooth"))  # fmt: skip
+def _compiled_phi(here, there, curve, apex, frame, vertices, normals, faces, centers, radii,
+                  smooth, kinds):  # fmt: skip
+    """phi of one boundary sample (``_level_sets``). Batched: here, there (``Tables.role``,
+    the camera ray's image-plane point, whether it meets a sphere's far side; here None
+    when the apex is a light's); curve (the edge's endpoints' rows, the sphere's row,
+    whether it is an edge). Shared: apex (3,) (a light's, else None) and the tables."""
+    world = window.held_world(vertices, normals, faces, centers, radii, smooth)
+
+    def place(point, kind):
+        role, coords, far = point
+        if kind == "camera":
+            return window.surface(world, role, frame[3], ray_directions(frame, coords), far).points
+        return window.surface(world, role).points
+
+    p = apex if kinds[0] == "light" else place(here, kinds[0])
+    start, end, ball, is_edge = curve
+    a = b = centre = radius = None
+    if vertices is not None:
+        a, b = vertices[start], vertices[end]
+    if centers is not None:
+        centre, radius = centers[ball], radii[ball]
+    return level_set(p, place(there, kinds[1]), a, b, centre, radius, is_edge)

@@ -72,7 +72,8 @@ class Tables:
     frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
     computed from on the tape. Plain: ``owner`` (P,) the object of each primitive,
     ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
-    ``inside`` (S,) whether the camera is inside each sphere, ``glossy``."""
+    ``inside`` (S,) whether the camera is inside each sphere, ``first_vertex`` (O,) each
+    mesh's first row of ``vertices``, ``glossy``."""
 
     vertices: md.Tensor | None
     normals: md.Tensor | None
@@ -90,11 +91,14 @@ class Tables:
     n_triangles: int
     spare_face: int
     inside: np.ndarray
+    first_vertex: np.ndarray
     built: list
 
     @classmethod
-    def of(cls, world: Scene, frame: tuple) -> Tables:
-        """The tables of ``world`` (the replay's leaf copies) and its camera ``frame``."""
+    def of(cls, world: Scene, frame: tuple, leaves: bool = True) -> Tables:
+        """The tables of ``world`` (the replay's leaf copies) and its camera ``frame``.
+        ``leaves`` False: the tables are on the caller's tape (nothing to carry), for one
+        ``backward`` through them."""
         ranges = primitive_ranges(world)
         objects = [obj for obj, _, _ in ranges]  # meshes first, then spheres
         meshes = [obj for obj in objects if isinstance(obj, Mesh)]
@@ -103,6 +107,8 @@ class Tables:
 
         def leaf(t):
             """A leaf copy of ``t``; ``t`` kept for ``carried`` if it is differentiated."""
+            if not leaves:
+                return t
             copy = md.tensor(t.data, requires_grad=t.requires_grad)
             if t.requires_grad:
                 built.append((t, copy))
@@ -110,8 +116,10 @@ class Tables:
 
         vertices = normals = faces = centers = radii = None
         spare_face = 0
+        first_vertex = np.zeros(len(objects), np.int64)  # meshes come first
         if meshes:
             offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+            first_vertex[: len(meshes)] = offsets[:-1]
             faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=False)])
             vertices = leaf(md.concatenate([m.vertices for m in meshes]))
             normals = leaf(md.concatenate([_normals(m) for m in meshes]))
@@ -140,7 +148,7 @@ class Tables:
             glossy=any(_nonzero(o.material.specular) for o in objects),
             owner=np.repeat(np.arange(len(objects)), [count for _, _, count in ranges]),
             n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
-            inside=inside, built=built,
+            inside=inside, first_vertex=first_vertex, built=built,
         )  # fmt: skip
 
     def role(self, prims: np.ndarray, local: np.ndarray) -> tuple:
@@ -279,7 +287,17 @@ class _Vertex:
     obj: object
 
 
-def _surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
+def held_world(vertices, normals, faces, centers, radii, smooth) -> tuple:
+    """What ``surface`` reads, from the tables' (traced) arrays: (all meshes as one
+    ``Mesh`` (smooth; ``smooth`` (O,) says which objects are), smooth, the spheres'
+    centres and radii)."""
+    look = Material.holding(texture=None, specular_texture=None, ambient_texture=None)
+    mesh = Mesh.holding(vertices=vertices, faces=faces, normals=normals, uvs=None, smooth=True,
+                        material=look, transform=None)  # fmt: skip
+    return mesh, smooth, centers, radii
+
+
+def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
     """Points on the primitives of ``role`` (``Tables.role``): at its coordinates ``local``
     (an ``AREA`` vertex) or where the rays meet them (``far``: which rays meet a sphere's far
     side). ``surface_at`` on the concatenated mesh and on the spheres, each point taking its
@@ -350,21 +368,18 @@ def _window(
     case, kinds, glossy = form
     albedo, specular, shininess, emission = materials
     zero = md.tensor(0.0)
-    look_of = Material.holding(texture=None, specular_texture=None, ambient_texture=None)
-    mesh = Mesh.holding(vertices=vertices, faces=faces, normals=normals, uvs=None, smooth=True,
-                        material=look_of, transform=None)  # fmt: skip
-    world = (mesh, smooth, centers, radii)
+    world = held_world(vertices, normals, faces, centers, radii, smooth)
     scene_lights = held_lights(kinds, lights)
     if case == "camera":  # vertex k where the camera's ray meets it
         directions = ray_directions(frame, coords)
-        v = _surface(world, here, frame[3], directions, far)
+        v = surface(world, here, frame[3], directions, far)
         v.wo = -md.normalize(directions)
     else:
-        v = _surface(world, here)
+        v = surface(world, here)
         if case == "after_camera":
-            back = _surface(world, previous, frame[3], ray_directions(frame, coords), far).points
+            back = surface(world, previous, frame[3], ray_directions(frame, coords), far).points
         else:
-            back = _surface(world, previous).points
+            back = surface(world, previous).points
         v.wo = md.normalize(back - v.points)
     obj = v.obj
 
@@ -395,7 +410,7 @@ def _window(
     # Next-event estimation on the area lights: a point on an emitting primitive, whose
     # area is half the stretch on a triangle, 4 pi times it on a sphere.
     *nee_role, nee_weight = nee
-    light = _surface(world, nee_role)
+    light = surface(world, nee_role)
     wi, d2 = toward(light.points, nee_weight > 0.0)
     cos_x = md.maximum(md.dot(ns, wi), 0.0)
     cos_z = md.abs(md.dot(light.geometric, wi))
@@ -410,7 +425,7 @@ def _window(
 
     # The factor of the segment to the next vertex, with the change of measure to its area.
     *next_role, next_scale, goes = going
-    nxt = _surface(world, next_role)
+    nxt = surface(world, next_role)
     wi, d2 = toward(nxt.points, goes)
     geometry = md.where(goes, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
     factor = bounce_weight(wi, next_scale) * column(geometry / md.detach(geometry))

@@ -317,3 +317,48 @@ def test_a_light_subclass_gets_the_term_its_twin_gets(case):
 
     ours, twin = gradient(True), gradient(False)
     assert twin != 0 and abs(ours - twin) <= 1e-9 * abs(twin), (ours, twin)
+
+
+@pytest.mark.parametrize("lights", ["area", "point and sun"])
+def test_compiled_phi_is_the_tapes(monkeypatch, lights):
+    """phi compiled (``secondary._level_sets``: the apex at a camera vertex, at a later one
+    or at a light; x' at its place or seen by the camera) gives the gradient phi on the tape
+    gives (``_phi``, the same ``level_set``), for every parameter of the Cornell box with its
+    blocks (meshes and a sphere)."""
+    from render.path import secondary
+
+    scene = cornell_box(10, 10, blocks=True)
+    if lights != "area":
+        scene.lights = [render.PointLight((0.3, 0.6, 0.4), 1.5),
+                        render.DirectionalLight((0.1, -0.3, -1.0), 0.5)]  # fmt: skip
+    for name, p in scene.named_parameters().items():
+        p.requires_grad = "emission" not in name or bool(np.any(p.data))
+    weights = md.tensor(np.random.default_rng(1).normal(size=(10, 10, 3)))
+    calls = []
+    original = secondary._compiled_phi
+
+    def gradients(antialias="secondary"):
+        for p in scene.parameters():
+            p.grad = None
+        image = render_path(scene, spp=4, max_depth=4, seed=3, antialias=antialias)
+        md.sum(image * weights).backward()
+        return {n: p.grad for n, p in scene.named_parameters().items()}
+
+    monkeypatch.setattr(secondary, "_compiled_phi", lambda *a: calls.append(a[-1]) or original(*a))
+    compiled = gradients()
+    kinds = set(calls)
+    monkeypatch.setattr(secondary, "_compiles", lambda world: False)
+    taped = gradients()
+    expected = {("camera", "area"), ("area", "area"), ("light", "camera"), ("light", "area")}
+    assert kinds == (expected if lights != "area" else {("camera", "area"), ("area", "area")})
+    plain = gradients(antialias=False)
+    moved = 0
+    for name, tape in taped.items():
+        if tape is None:
+            assert compiled[name] is None or not np.any(compiled[name]), name
+            continue
+        scale = max(np.abs(tape).max(), 1e-300)
+        np.testing.assert_allclose(compiled[name], tape, rtol=0, atol=1e-9 * scale, err_msg=name)
+        # The term is not a rounding of the gradient: it moves it.
+        moved += np.abs(tape - plain[name]).max() > 0.01 * scale
+    assert moved >= 3
