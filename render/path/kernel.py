@@ -150,11 +150,11 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     d = (x * right[0] + y * up[0] + forward[0], x * right[1] + y * up[1] + forward[1],
          x * right[2] + y * up[2] + forward[2])  # fmt: skip
     if keep:
-        rec_f[row, 0, _F_COORD], rec_f[row, 0, _F_COORD + 1] = x, y
+        rec_f[0, row, _F_COORD], rec_f[0, row, _F_COORD + 1] = x, y
     prim, t, u, v = _closest(bvh, eye, d, stack, stack_t)
     if prim < 0:
         if keep:
-            rec_i[row, 0, _I_COUNT] = 0
+            rec_i[0, row, _I_COUNT] = 0
         if adjoint:
             for c in range(3):
                 grad[g_background + c] += delta[c]
@@ -171,7 +171,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         # Memory by the path's real length, not by max_depth: the records hold the vertices
         # that fit (sample_paths traces again with deeper ones if a path had more), and
         # the chain grows as the path does.
-        kept = keep and depth <= rec_i.shape[1]
+        kept = keep and depth <= rec_i.shape[0]
         if adjoint and depth > chain.shape[0]:
             chain = _grown(chain, max_depth)
         o, ng, ns, uv, local = _surface(
@@ -208,18 +208,18 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
                     grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
         if keep:  # the path's length so far, also past the records' depth
-            rec_i[row, 0, _I_COUNT] = depth
+            rec_i[0, row, _I_COUNT] = depth
         if kept:
-            rec_i[row, depth - 1, _I_PRIM] = prim
-            rec_i[row, depth - 1, _I_FORM] = form
-            rec_i[row, depth - 1, _I_NEE_PRIM] = -1
-            rec_i[row, depth - 1, _I_NEXT] = STOP
-            _put(rec_f, row, depth - 1, _F_LOCAL, local)
-            rec_f[row, depth - 1, _F_EMIT] = weight
-            rec_f[row, depth - 1, _F_NEE_WEIGHT] = 0.0
-            rec_f[row, depth - 1, _F_NEXT_PDF] = 1.0
-            rec_f[row, depth - 1, _F_SURVIVE] = 1.0
-            rec_i[row, depth - 1, _I_ESCAPE] = 0
+            rec_i[depth - 1, row, _I_PRIM] = prim
+            rec_i[depth - 1, row, _I_FORM] = form
+            rec_i[depth - 1, row, _I_NEE_PRIM] = -1
+            rec_i[depth - 1, row, _I_NEXT] = STOP
+            _put(rec_f, depth - 1, row, _F_LOCAL, local)
+            rec_f[depth - 1, row, _F_EMIT] = weight
+            rec_f[depth - 1, row, _F_NEE_WEIGHT] = 0.0
+            rec_f[depth - 1, row, _F_NEXT_PDF] = 1.0
+            rec_f[depth - 1, row, _F_SURVIVE] = 1.0
+            rec_i[depth - 1, row, _I_ESCAPE] = 0
         if depth == max_depth:
             break
         p_d, p_g, p_m = probability[o, 0], probability[o, 1], probability[o, 2]
@@ -239,7 +239,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             u2 = _uniform(key, _dim(depth, _EMITTER_POINT) + 1)
             e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
             if kept:  # recorded whether or not it is seen, as the sampler does
-                _put(rec_f, row, depth - 1, _F_NEE_LOCAL, e_local)
+                _put(rec_f, depth - 1, row, _F_NEE_LOCAL, e_local)
             to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
             d2 = _dot(to, to)
             root = math.sqrt(d2 if d2 > 0 else 1.0)
@@ -254,8 +254,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
                 nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
                 if kept:
-                    rec_i[row, depth - 1, _I_NEE_PRIM] = e_prim
-                    rec_f[row, depth - 1, _F_NEE_WEIGHT] = nee_weight
+                    rec_i[depth - 1, row, _I_NEE_PRIM] = e_prim
+                    rec_f[depth - 1, row, _F_NEE_WEIGHT] = nee_weight
                 # The radiance it brings (transport._at_vertex), from the tape's point.
                 to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
                 d2 = _dot(to, to)
@@ -309,7 +309,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
                 irradiance, per_strength = light_strength[j], 1.0
             if kept:
-                rec_lit[row, depth - 1, j] = lit
+                rec_lit[depth - 1, row, j] = lit
             if lit:
                 scalar = irradiance * max(_dot(nst, wl), 0.0)
                 f = _brdf(nst, wot, wl, kd, ks, shin, lobe)
@@ -358,16 +358,16 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             go = go and _uniform(key, _dim(depth, _ROULETTE)) < survive
         wi = _divided(wi[0], wi[1], wi[2])
         if kept:
-            rec_f[row, depth - 1, _F_SURVIVE] = survive
-            _put(rec_f, row, depth - 1, _F_ESCAPE_DIR, wi)
+            rec_f[depth - 1, row, _F_SURVIVE] = survive
+            _put(rec_f, depth - 1, row, _F_ESCAPE_DIR, wi)
         if not go:
             break
         scale = 1.0 / (next_pdf * survive)
         prim, t, u, v = _closest(bvh, origin, wi, stack, stack_t)
         if kept:
-            rec_i[row, depth - 1, _I_NEXT] = MIRROR if mirror else AREA
-            rec_f[row, depth - 1, _F_NEXT_PDF] = next_pdf
-            rec_i[row, depth - 1, _I_ESCAPE] = prim < 0
+            rec_i[depth - 1, row, _I_NEXT] = MIRROR if mirror else AREA
+            rec_f[depth - 1, row, _F_NEXT_PDF] = next_pdf
+            rec_i[depth - 1, row, _I_ESCAPE] = prim < 0
         point_next = (origin[0] + t * wi[0], origin[1] + t * wi[1], origin[2] + t * wi[2])
         if mirror:
             factor = (reflectance[o, 0] * scale, reflectance[o, 1] * scale,
@@ -432,10 +432,11 @@ def _grown(chain, max_depth):
     return out
 
 
-#: The records of ``sample_paths``: integer fields (N, depth, _I_FIELDS) ...
+#: The records of ``sample_paths``, depth first (a depth's paths are contiguous rows):
+#: integer fields (depth, N, _I_FIELDS) ...
 _I_PRIM, _I_FORM, _I_NEE_PRIM, _I_NEXT, _I_ESCAPE, _I_COUNT = range(6)
 _I_FIELDS = 6
-#: ... and float fields (N, depth, _F_FIELDS); _F_COORD (the camera ray's image-plane
+#: ... and float fields (depth, N, _F_FIELDS); _F_COORD (the camera ray's image-plane
 #: point) is kept at depth 0 only.
 _F_LOCAL, _F_EMIT, _F_NEE_LOCAL, _F_NEE_WEIGHT, _F_NEXT_PDF, _F_SURVIVE = 0, 3, 4, 7, 8, 9
 _F_ESCAPE_DIR, _F_COORD = 10, 13
@@ -515,8 +516,8 @@ def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, out, r
 def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=None, records=None,
          d_image=None, grads=None) -> None:  # fmt: skip
     """``_kernel`` with empty arrays for what this call does not use."""
-    none_i = np.zeros((0, 1, _I_FIELDS), np.int64)
-    none_f, none_lit = np.zeros((0, 1, _F_FIELDS)), np.zeros((0, 1, 1), bool)
+    none_i = np.zeros((1, 0, _I_FIELDS), np.int64)
+    none_f, none_lit = np.zeros((1, 0, _F_FIELDS)), np.zeros((1, 0, 1), bool)
     rec_i, rec_f, rec_lit = records or (none_i, none_f, none_lit)
     _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
             packed.height, sampler.max_depth, sampler.rr_depth,
@@ -548,11 +549,11 @@ def sample_paths(
     if n == 0:
         return PathBatch(paths, np.zeros((0, 2)), np.zeros(0, bool), []), radiance
     while True:
-        rec_i = np.zeros((n, depth, _I_FIELDS), np.int64)
-        rec_f = np.zeros((n, depth, _F_FIELDS))
-        rec_lit = np.zeros((n, depth, max(packed.n_lights, 1)), np.bool_)
+        rec_i = np.zeros((depth, n, _I_FIELDS), np.int64)
+        rec_f = np.zeros((depth, n, _F_FIELDS))
+        rec_lit = np.zeros((depth, n, max(packed.n_lights, 1)), np.bool_)
         _run(packed, sampler, paths=paths, radiance=radiance, records=(rec_i, rec_f, rec_lit))
-        count = rec_i[:, 0, _I_COUNT]
+        count = rec_i[0, :, _I_COUNT]
         if count.max() <= depth:
             break
         depth = int(count.max())  # the same paths again, with room for every vertex
@@ -561,7 +562,10 @@ def sample_paths(
         rows = np.flatnonzero(count > k)
         if len(rows) == 0:
             break
-        i, f = rec_i[rows, k], rec_f[rows, k]
+        if len(rows) == n:  # every path: views, not copies (the windows copy what they read)
+            i, f, lit = rec_i[k], rec_f[k], rec_lit[k]
+        else:
+            i, f, lit = rec_i[k][rows], rec_f[k][rows], rec_lit[k][rows]
         vertices.append(
             Vertices(
                 rows,
@@ -572,7 +576,7 @@ def sample_paths(
                 i[:, _I_NEE_PRIM],
                 f[:, _F_NEE_LOCAL : _F_NEE_LOCAL + 3],
                 f[:, _F_NEE_WEIGHT],
-                rec_lit[rows, k, : packed.n_lights].T.copy(),
+                lit[:, : packed.n_lights].T.copy(),
                 i[:, _I_NEXT].astype(np.int8),
                 f[:, _F_NEXT_PDF],
                 f[:, _F_SURVIVE],
@@ -580,7 +584,7 @@ def sample_paths(
                 f[:, _F_ESCAPE_DIR : _F_ESCAPE_DIR + 3],
             )  # fmt: skip
         )
-    coords = rec_f[:, 0, _F_COORD : _F_COORD + 2].copy()
+    coords = rec_f[0, :, _F_COORD : _F_COORD + 2].copy()
     return PathBatch(paths, coords, count == 0, vertices), radiance
 
 

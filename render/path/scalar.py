@@ -112,11 +112,11 @@ def _divided(x0, x1, x2):
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _put(records, row, k, column, x):
-    """Write the 3-tuple x to records[row, k, column:column + 3]."""
-    records[row, k, column] = x[0]
-    records[row, k, column + 1] = x[1]
-    records[row, k, column + 2] = x[2]
+def _put(records, k, row, column, x):
+    """Write the 3-tuple x to records[k, row, column:column + 3]."""
+    records[k, row, column] = x[0]
+    records[k, row, column + 1] = x[1]
+    records[k, row, column + 2] = x[2]
 
 
 @numba.njit(cache=True, error_model="numpy")
