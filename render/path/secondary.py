@@ -61,7 +61,7 @@ from render.path import kernel, window
 from render.path.random import bounce_dimension, uniform
 from render.path.replay import radiance_of
 from render.path.sampling import dot, unit
-from render.path.silhouettes import CONTACT, Curves
+from render.path.silhouettes import CONTACT, Curves, level_set
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import next_vertex, vertex_on_tape, viewer_side
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
@@ -519,26 +519,6 @@ class _Rows:
     def __init__(self, record: Vertices, src: np.ndarray):
         pos = np.searchsorted(record.rows, src)
         self.prim, self.local, self.form = record.prim[pos], record.local[pos], record.form[pos]
-
-
-def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
-    """(m,) the level set function phi (module docstring) at the points ``far`` (m, 3) of
-    curves seen from ``apex`` (m, 3): the edge (``a``, ``b``, (m, 3) each) where ``is_edge``
-    (m,), else the sphere (``centre`` (m, 3), ``radius`` (m,)). Each row reads both kinds'
-    arguments, which need only be finite where unused; None: the scene has no such curve."""
-    w = far - apex
-    edge = sphere = None
-    if a is not None:
-        edge = md.dot(w, md.cross(a - apex, b - apex))
-    if centre is not None:
-        across = md.cross(w, centre - apex)
-        ratio = md.dot(across, across) / md.dot(w, w)
-        if edge is not None:  # 1 on the edges' rows: the root's derivative at 0 is infinite
-            ratio = md.where(is_edge, 1.0, ratio)
-        sphere = md.sqrt(ratio) - radius
-    if edge is None or sphere is None:
-        return sphere if edge is None else edge
-    return md.where(is_edge, edge, sphere)
 
 
 def _compiles(world) -> bool:

@@ -49,6 +49,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+import minidiff as md
 from render.path.sampling import dot, unit
 from render.path.tracer import PathSampler
 from render.scene.scene import Mesh
@@ -59,6 +60,28 @@ from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
 GRAZING = 1e-9
 #: A surface closer than this (a fraction of the scene's size) to an edge touches it.
 CONTACT = 1e-5
+
+
+def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
+    """(m,) the level set function phi (``render.path.secondary``'s docstring) at the points
+    ``far`` (m, 3) of curves seen from ``apex`` (m, 3): the edge (``a``, ``b``, (m, 3) each)
+    where ``is_edge`` (m,), else the sphere (``centre`` (m, 3), ``radius`` (m,)). Each row
+    reads both kinds' arguments, which need only be finite where unused; None: the scene
+    has no such curve. The one text of phi: the boundary samples' derivative (compiled or
+    on the tape) and the curves' gradient (``Curves.gradient``) both come from it."""
+    w = far - apex
+    edge = sphere = None
+    if a is not None:
+        edge = md.dot(w, md.cross(a - apex, b - apex))
+    if centre is not None:
+        across = md.cross(w, centre - apex)
+        ratio = md.dot(across, across) / md.dot(w, w)
+        if edge is not None:  # 1 on the edges' rows: the root's derivative at 0 is infinite
+            ratio = md.where(is_edge, 1.0, ratio)
+        sphere = md.sqrt(ratio) - radius
+    if edge is None or sphere is None:
+        return sphere if edge is None else edge
+    return md.where(is_edge, edge, sphere)
 
 
 @dataclass
@@ -242,20 +265,21 @@ class Curves:
         return out
 
     def gradient(self, apex, index, points) -> np.ndarray:
-        """(n, 3): the gradient in x' of the curve's level set function phi (module
-        docstring) at ``points`` x' (n, 3), seen from ``apex`` (n, 3)."""
-        grad = np.zeros((len(index), 3))
-        edge = index < self.n_edges
-        j = index[edge]
-        grad[edge] = np.cross(self.a[j] - apex[edge], self.b[j] - apex[edge])
-        ball = ~edge
-        w, q = points[ball] - apex[ball], self.centre[index[ball] - self.n_edges] - apex[ball]
-        ww, wq = dot(w, w), dot(w, q)
-        distance = np.linalg.norm(np.cross(w, q), axis=1) / np.sqrt(ww)
-        grad[ball] = -(wq / (np.maximum(distance, 1e-300) * ww))[:, None] * (
-            q - (wq / ww)[:, None] * w
-        )
-        return grad
+        """(n, 3): the gradient in x' of the level set function phi of curves ``index`` (n,)
+        seen from ``apex`` (n, 3) at ``points`` x' (n, 3): ``level_set``'s own derivative
+        (minidiff, off the caller's tape)."""
+        is_edge = index < self.n_edges
+        a = b = centre = radius = None
+        if self.n_edges:
+            edge = np.where(is_edge, index, 0)
+            a, b = self.a[edge], self.b[edge]
+        if len(self.radius):
+            ball = np.where(is_edge, 0, index - self.n_edges)
+            centre, radius = self.centre[ball], self.radius[ball]
+        with md.enable_grad():  # its own tape, also inside a caller's no_grad()
+            x = md.tensor(np.asarray(points, np.float64), requires_grad=True)
+            md.sum(level_set(md.tensor(apex), x, a, b, centre, radius, is_edge)).backward()
+        return x.grad
 
 
 def _welded_groups(sampler: PathSampler) -> list[tuple[list[int], MeshEdges]]:

@@ -362,3 +362,34 @@ def test_compiled_phi_is_the_tapes(monkeypatch, lights):
         # The term is not a rounding of the gradient: it moves it.
         moved += np.abs(tape - plain[name]).max() > 0.01 * scale
     assert moved >= 3
+
+
+@settings(max_examples=10, deadline=None)
+@given(st.integers(0, 2**31 - 1))
+def test_curve_gradient_is_central_differences_of_phi(seed):
+    """``Curves.gradient`` (the derivative of ``level_set`` in x', by minidiff) against
+    central differences of phi, on the Cornell box's edges and sphere."""
+    from render.path.silhouettes import level_set
+
+    curves, _ = cornell_curves()
+    rng = np.random.default_rng(seed)
+    n = 64
+    index = rng.integers(0, curves.n_edges + len(curves.radius), n)
+    index[:4] = curves.n_edges  # the sphere's outline in every draw
+    apex, points = rng.normal(size=(n, 3)), rng.normal(size=(n, 3)) + 2.0
+    is_edge = index < curves.n_edges
+    edge, ball = np.where(is_edge, index, 0), np.where(is_edge, 0, index - curves.n_edges)
+
+    def phi(x):
+        with md.no_grad():
+            return level_set(md.tensor(apex), md.tensor(x), curves.a[edge], curves.b[edge],
+                             curves.centre[ball], curves.radius[ball], is_edge).data  # fmt: skip
+
+    h = 1e-6
+    expected = np.stack(
+        [(phi(points + h * e) - phi(points - h * e)) / (2 * h) for e in np.eye(3)], axis=1
+    )
+    got = curves.gradient(apex, index, points)
+    scale = np.abs(expected).max(axis=1, keepdims=True)
+    error = np.abs(got - expected) / np.maximum(scale, 1e-3)  # relative to each row's size
+    assert error.max() < 1e-6, error.max()
