@@ -280,8 +280,8 @@ save_and_show(figure, OUT / "one_point.png")
 #
 #     φ(x') = (x' − x) · ((a − x) × (b − x)) ,
 #
-# positive on one side of that plane and negative on the other (`render/path/secondary.py`,
-# `_phi`). Write the integrand as `F₊ H(φ) + F₋ (1 − H(φ))`, with `H` the step function and
+# positive on one side of that plane and negative on the other (`render/path/silhouettes.py`,
+# `level_set`). Write the integrand as `F₊ H(φ) + F₋ (1 − H(φ))`, with `H` the step function and
 # `F₊`, `F₋` the integrand on the two sides (here `L_e G` on the side the lamp is seen,
 # 0 on the occluder's). Differentiating under the integral, `H'(φ) = δ(φ)`, and the delta
 # function turns the area integral into one along the curve (lesson 11's Reynolds
@@ -496,11 +496,12 @@ print(
 #
 # `render_path(..., antialias="secondary")` does this for every vertex of every path
 # (`add_secondary_term`), with `F` the whole path through `x'` estimated by the path tracer
-# (`path_radiance` under `no_grad`), and for the shadows of point lights (the same
-# construction with the light as the apex). Everything in a sample but `∂φ/∂θ` is a
-# constant computed off the tape; φ is recomputed on the tape from `x`, `x'` and the edge's
-# vertices, and the sample is the constant times `φ − detach(φ)`: its value is zero, its
-# derivative is the term. So the image does not change:
+# (`replay.radiance_of`: the replay's compiled windows, values only), and for the shadows of
+# point lights (the same construction with the light as the apex). Everything in a sample
+# but `∂φ/∂θ` is a constant computed off the tape; φ is recomputed from `x`, `x'` and the
+# edge's vertices (`level_set` again, compiled per sample: one node on the tape), and the
+# sample is the constant times `φ − detach(φ)`: its value is zero, its derivative is the
+# term. So the image does not change:
 
 # %%
 with md.no_grad():
