@@ -105,16 +105,8 @@ def cost(size: int, spp: int, threads: list[int], repeats: int) -> list[dict]:
 
 
 def main(argv=None) -> None:
-    parser = timing.make_parser(__doc__, out=Path("out/bench_path_kinds"), quick="a smoke run")
-    parser.add_argument("--threads", default=None, help="e.g. 1,2,4,8,16 (default: 1 and all)")
-    parser.add_argument("--size", type=int, default=32)
-    parser.add_argument("--spp", type=int, default=16)
-    parser.add_argument("--repeats", type=int, default=9)
-    args = parser.parse_args(argv)
-    threads = (
-        [int(t) for t in args.threads.split(",")]
-        if args.threads
-        else sorted({1, numba.get_num_threads()})
+    args, threads = timing.path_thread_options(
+        __doc__, Path("out/bench_path_kinds"), size=32, repeats=9, argv=argv
     )
     size, spp, repeats = (8, 2, 1) if args.quick else (args.size, args.spp, args.repeats)
     result = {

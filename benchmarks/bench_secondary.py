@@ -121,16 +121,8 @@ def variance(size: int, spp: int, seeds: int) -> dict:
 
 
 def main(argv=None) -> None:
-    parser = timing.make_parser(__doc__, out=Path("out/bench_secondary"), quick="a smoke run")
-    parser.add_argument("--threads", default=None, help="e.g. 1,2,4,8,16 (default: 1 and all)")
-    parser.add_argument("--size", type=int, default=64)
-    parser.add_argument("--spp", type=int, default=16)
-    parser.add_argument("--repeats", type=int, default=7)
-    args = parser.parse_args(argv)
-    threads = (
-        [int(t) for t in args.threads.split(",")]
-        if args.threads
-        else sorted({1, numba.get_num_threads()})
+    args, threads = timing.path_thread_options(
+        __doc__, Path("out/bench_secondary"), size=64, repeats=7, argv=argv
     )
     size, spp, repeats, seeds = (
         (16, 2, 2, 3) if args.quick else (args.size, args.spp, args.repeats, 16)

@@ -336,6 +336,23 @@ def make_parser(
 QUICK_REPEATS = 3  # timed calls per measurement with --quick
 
 
+def path_thread_options(doc: str, out: Path, size: int, repeats: int, argv=None):
+    """The command line of the path integrator's thread-scaling scripts: ``make_parser``'s
+    with ``--threads``, ``--size``, ``--spp`` and ``--repeats``, read from ``argv``; returns
+    (the parsed arguments, the thread counts: ``--threads`` or 1 and all of Numba's)."""
+    import numba
+
+    parser = make_parser(doc, out=out, quick="a smoke run")
+    parser.add_argument("--threads", default=None, help="e.g. 1,2,4,8,16 (default: 1 and all)")
+    parser.add_argument("--size", type=int, default=size)
+    parser.add_argument("--spp", type=int, default=16)
+    parser.add_argument("--repeats", type=int, default=repeats)
+    args = parser.parse_args(argv)
+    if args.threads:
+        return args, [int(t) for t in args.threads.split(",")]
+    return args, sorted({1, numba.get_num_threads()})
+
+
 def main(
     name: str,
     doc: str,

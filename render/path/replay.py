@@ -79,18 +79,15 @@ def radiance_of(world, frame, sampler: PathSampler, batch: PathBatch) -> np.ndar
     (``window.applies``), else on the tape without recording. For the constants of the
     boundary terms (``render.path.secondary``, ``render.path.edges``)."""
     with md.no_grad():
-        dtype = np.result_type(*[t.dtype for t in world.parameters()])
+        paths = _Paths.of(world, frame, sampler, batch)
         n_paths = len(batch.paths)
-        total = np.zeros((n_paths, 3), dtype)
+        total = np.zeros((n_paths, 3), paths.dtype)
         total[batch.missed] = world.background.data  # camera rays that see the environment
-        vertices = [v for v in batch.vertices if len(v.rows)]
-        tables = window.Tables.of(world, frame) if window.applies(world, batch) else None
-        paths = _Paths(world, frame, sampler, batch, vertices, dtype, tables)
-        beta = np.ones((n_paths, 3), dtype)
+        beta = np.ones((n_paths, 3), paths.dtype)
         anchor = np.zeros(n_paths, np.int64)
-        for k, record in enumerate(vertices):
+        for k, record in enumerate(paths.vertices):
             if k > 0:
-                anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
+                anchor[record.rows] = _anchors(paths.vertices, k, anchor[record.rows])
             here = _window(paths, k, record.rows, anchor[record.rows])
             total += beta * here.added(n_paths)
             if here.factors:
@@ -115,11 +112,8 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
     if len(missed) and window_world.background.requires_grad:  # camera rays seeing the sky
         seen = md.sum(md.broadcast_to(window_world.background, (len(missed), 3)) * weights[missed])
         seen.backward()
-    vertices = [v for v in batch.vertices if len(v.rows)]
-    tables = None
-    if window.applies(window_world, batch):  # the windows compiled
-        tables = window.Tables.of(window_world, window_frame)
-    paths = _Paths(window_world, window_frame, sampler, batch, vertices, dtype, tables)
+    paths = _Paths.of(window_world, window_frame, sampler, batch)
+    vertices, tables = paths.vertices, paths.tables
     n_paths = len(batch.paths)
     beta = np.ones((n_paths, 3), dtype)  # the throughput before each path's current vertex
     gathered = np.zeros((n_paths, 3), dtype)  # sum_{j<=k} beta_j C_j, plain
@@ -257,6 +251,15 @@ class _Paths:
     vertices: list[Vertices]
     dtype: np.dtype
     tables: window.Tables | None  # the scene's tables when the windows are compiled
+
+    @classmethod
+    def of(cls, world, frame, sampler: PathSampler, batch: PathBatch) -> _Paths:
+        """The windows' view of ``batch`` in ``world`` (its dtype, the depths some path
+        reaches), with the scene's tables where the windows compile (``window.applies``)."""
+        dtype = np.result_type(*[t.dtype for t in world.parameters()])
+        vertices = [v for v in batch.vertices if len(v.rows)]
+        tables = window.Tables.of(world, frame) if window.applies(world, batch) else None
+        return cls(world, frame, sampler, batch, vertices, dtype, tables)
 
 
 def _window(paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):

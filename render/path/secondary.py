@@ -254,15 +254,9 @@ def _seen_shadows(sampler, curves, paths, world, frame, tables):
         else:
             directions = ray_directions(frame, coords.astype(radiance.dtype))
             origins = md.broadcast_to(frame[3], (m, 3))
-            seen = vertex_on_tape(
-                world,
-                sampler,
-                hit.prim,
-                hit.local,
-                np.full(m, CAMERA, np.int8),
-                origins,
-                directions,
-            ).points
+            camera = np.full(m, CAMERA, np.int8)
+            seen = vertex_on_tape(world, sampler, hit.prim, hit.local, camera, origins,
+                                  directions).points  # fmt: skip
             phi = _phi(tables, curves, hit.index, md.broadcast_to(apex, (m, 3)), seen)
         moved = phi - md.detach(phi)
         pixel = np.minimum(px[inside].astype(np.int64), [width - 1, height - 1])
@@ -544,13 +538,21 @@ def _curve_rows(tables: window.Tables, curves: Curves, index: np.ndarray) -> tup
 
 def _phi(tables: window.Tables, curves: Curves, index, apex, far) -> md.Tensor:
     """(m,) on the tape: phi of curves ``index`` (m,) seen from ``apex`` (m, 3) at the points
-    ``far`` (m, 3), by ``level_set``, the curves read from ``tables``."""
-    start, end, ball, is_edge = _curve_rows(tables, curves, index)
+    ``far`` (m, 3), the curves read from ``tables``."""
+    curve = _curve_rows(tables, curves, index)
+    return _phi_of(apex, far, curve, tables.vertices, tables.centers, tables.radii)
+
+
+def _phi_of(apex, far, curve, vertices, centers, radii) -> md.Tensor:
+    """``level_set`` of the curves ``curve`` (``_curve_rows``), their edges' endpoints and
+    spheres read from the tables ``vertices``, ``centers``, ``radii`` (None: none such), on
+    the tape or traced."""
+    start, end, ball, is_edge = curve
     a = b = centre = radius = None
-    if tables.vertices is not None:
-        a, b = tables.vertices[start], tables.vertices[end]
-    if tables.centers is not None:
-        centre, radius = tables.centers[ball], tables.radii[ball]
+    if vertices is not None:
+        a, b = vertices[start], vertices[end]
+    if centers is not None:
+        centre, radius = centers[ball], radii[ball]
     return level_set(apex, far, a, b, centre, radius, is_edge)
 
 
@@ -566,14 +568,12 @@ def _level_sets(tables: window.Tables, curves: Curves, index, apex, here, there,
             return None
         prim, local, coords = place
         role = tables.role(prim, local)
-        far = None  # the camera's ray meets a sphere's far side: the camera is inside it
-        if kind == "camera" and tables.centers is not None:
-            far = role[2] & tables.inside[role[1]]
-        return role, None if kind != "camera" else coords, far
+        if kind != "camera":
+            return role, None, None
+        return role, coords, tables.far_side(role)
 
-    start, end, ball, is_edge = _curve_rows(tables, curves, index)
     return _compiled_phi(
-        point(here, kinds[0]), point(there, kinds[1]), (start, end, ball, is_edge), apex,
+        point(here, kinds[0]), point(there, kinds[1]), _curve_rows(tables, curves, index), apex,
         tables.frame, tables.vertices, tables.normals, tables.faces, tables.centers,
         tables.radii, tables.smooth, kinds,
     )  # fmt: skip
@@ -596,10 +596,4 @@ def _compiled_phi(here, there, curve, apex, frame, vertices, normals, faces, cen
         return window.surface(world, role).points
 
     p = apex if kinds[0] == "light" else place(here, kinds[0])
-    start, end, ball, is_edge = curve
-    a = b = centre = radius = None
-    if vertices is not None:
-        a, b = vertices[start], vertices[end]
-    if centers is not None:
-        centre, radius = centers[ball], radii[ball]
-    return level_set(p, place(there, kinds[1]), a, b, centre, radius, is_edge)
+    return _phi_of(p, place(there, kinds[1]), curve, vertices, centers, radii)

@@ -165,6 +165,14 @@ class Tables:
             sphere = np.where(on_sphere, prims - self.n_triangles, 0)
         return face, sphere, on_sphere, obj, local
 
+    def far_side(self, role: tuple) -> np.ndarray | None:
+        """(n,) which camera rays meeting the points of ``role`` (``role``) meet a sphere's
+        far side, the camera being inside it (None without spheres)."""
+        if self.centers is None:
+            return None
+        _, sphere, on_sphere, _, _ = role
+        return on_sphere & self.inside[sphere]
+
     def carried(self) -> list[md.Tensor]:
         """The terms whose ``backward`` carries what the windows put into the leaves'
         ``grad`` through the tape the tables were built on."""
@@ -217,11 +225,8 @@ class CompiledWindow:
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)
         here = tables.role(record.prim, record.local)
-        far = None  # which camera rays meet a sphere's far side: the camera is inside it
         camera = here if k == 0 else back if case == "after_camera" else None
-        if camera is not None and tables.centers is not None:
-            _, sphere, on_sphere, _, _ = camera
-            far = on_sphere & tables.inside[sphere]
+        far = None if camera is None else tables.far_side(camera)
         batched = (
             coords,
             far,
