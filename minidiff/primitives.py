@@ -74,7 +74,7 @@ def _traces_as(form):
     def wrap(array_form):
         @functools.wraps(array_form)
         def primitive(*args, **kwargs):
-            if trace.is_traced(args) or trace.is_traced(kwargs.values()):
+            if trace.is_traced(args) or (kwargs and trace.is_traced(kwargs.values())):
                 return form(*args, **kwargs)
             return array_form(*args, **kwargs)
 

@@ -471,6 +471,8 @@ def _check_supported_float(where: str, dtype: np.dtype) -> None:
 def _check_differentiable_dtype(where: str, dtype: np.dtype) -> None:
     """Gradients are real numbers: an integer or boolean tensor would truncate them to 0,
     a complex one has no gradient in minidiff's (real) sense."""
+    if dtype in SUPPORTED_FLOATS:  # the common case, checked first: every primitive's output
+        return
     if dtype.kind == "c":
         raise TypeError(
             f"{where}: only floating-point tensors can require grad; a complex tensor "
@@ -623,7 +625,7 @@ def record(
     """
     if _anomaly_mode.get() and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
         raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
-    if _grad_enabled.get() and any(x.requires_grad for x in inputs):
+    if _grad_enabled.get() and any(x._requires_grad for x in inputs):
         for t in saves:
             t.mark_saved()
         node = Node(name, tuple(inputs), vjp, tuple(saves))

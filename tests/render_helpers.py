@@ -212,7 +212,7 @@ def _same_edge_pairs(now, ref, same, spp) -> np.ndarray:
 
 
 def masked_gradient_check(
-    scene, params, h_rel=1e-6, order=4, seed=1234, mask=True, **render_kwargs
+    scene, params, h_rel=1e-6, order=4, seed=1234, mask=True, directions=None, **render_kwargs
 ):
     """Compare the tape gradient of loss = sum(image * W) with central differences.
 
@@ -227,6 +227,14 @@ def masked_gradient_check(
     grazes a sphere depends on the square root of a nearly zero discriminant: its higher
     derivatives are huge, and the O(h^2) term alone reached 5e-5 relative on one random
     scene in 40 (h = 1e-6), while the tape gradient is exact there.
+
+    ``directions``: None differentiates along each scalar of the parameters in turn (g_ad
+    and g_fd are the gradient, all parameters flattened and concatenated); k > 0 along k
+    random directions u_j instead (seeded by ``seed``; g_ad and g_fd are the k derivatives
+    g . u_j). With u_j = D v_j, v_j ~ N(0, I / k) and D the elements' step scales
+    max(1, |x|), E |(g_ad - g_fd) . u|^2 over the draws is |D (g_ad - g_fd)|^2 / k: k
+    directions see the same relative error as all n scalars, in expectation, for 4k renders
+    instead of 4n (24 vertex coordinates: 96 renders, 16 with k = 4).
     """
     kwargs = dict(render_kwargs, return_info=True)
     with md.no_grad():
@@ -234,32 +242,50 @@ def masked_gradient_check(
     height, width = image.shape[:2]
     weights = np.random.default_rng(seed).standard_normal(image.shape)
     multiples = {2: (1,), 4: (1, 2)}[order]
+    flats = [p.data.reshape(-1) for p in params]
+    assert all(np.shares_memory(f, p.data) for f, p in zip(flats, params, strict=True)), (
+        "parameter data must be contiguous"
+    )
+    x = np.concatenate([f.copy() for f in flats])
+    scale = h_rel * np.maximum(1.0, np.abs(x))  # each scalar's step h
+    if directions is None:
+        steps = np.diag(scale)  # one scalar at a time
+    else:
+        draws = np.random.default_rng(seed + 1).standard_normal((directions, x.size))
+        steps = draws / np.sqrt(directions) * scale
+
+    ends = np.cumsum([f.size for f in flats])[:-1]
+
+    def put(values):
+        for f, part in zip(flats, np.split(values, ends), strict=True):
+            f[:] = part
 
     same = np.ones((height, width), dtype=bool)
-    quotients = []  # per scalar parameter and step multiple: (f(x+mh) - f(x-mh)) / step
-    for p in params:
-        flat = p.data.reshape(-1)
-        assert np.shares_memory(flat, p.data), "parameter data must be contiguous"
-        for k in range(flat.size):
-            x = flat[k]
-            h = h_rel * max(1.0, abs(float(x)))
+    quotients, taken = [], []  # per direction and step multiple: (f(x+m s) - f(x-m s)) / m
+    try:
+        for step in steps:
             per_multiple = []
             for m in multiples:
-                images = []
-                for value in (x + m * h, x - m * h):
-                    flat[k] = value
+                images, stored = [], []
+                for value in (x + m * step, x - m * step):
+                    put(value)
+                    stored.append(np.concatenate([f.copy() for f in flats]))
                     with md.no_grad():
                         img, info = render.render(scene, **kwargs)
                     if mask:
                         same &= _same_visibility(info, reference)
                     images.append(img.data)
-                step = (x + m * h) - (x - m * h)  # the step actually taken (as stored)
-                per_multiple.append((images[0] - images[1]) / step)
-            flat[k] = x
+                per_multiple.append((images[0] - images[1]) / m)
+                if m == 1:  # the step as stored (rounded), whose derivative is compared
+                    taken.append((stored[0] - stored[1]) / 2.0)
             quotients.append(per_multiple)
+    finally:
+        put(x)
 
     masked = weights * same[:, :, None]
     fd = np.array([[np.sum(q * masked) for q in per_multiple] for per_multiple in quotients])
+    lengths = np.array([np.abs(t).max() for t in taken])  # each step's length, to divide by
+    fd = fd / (2.0 * lengths[:, None])
     g_fd = fd[:, 0] if order == 2 else (4.0 * fd[:, 0] - fd[:, 1]) / 3.0
 
     saved = [(p.requires_grad, p.grad) for p in params]
@@ -269,12 +295,13 @@ def masked_gradient_check(
         img = render.render(scene, **render_kwargs)
         if img.requires_grad:  # else nothing in view depends on the parameters
             (img * md.tensor(masked)).sum().backward()
-        g_ad = np.concatenate(
+        gradient = np.concatenate(
             [np.ravel(p.grad if p.grad is not None else np.zeros_like(p.data)) for p in params]
         )
     finally:
         for p, (requires_grad, grad) in zip(params, saved, strict=True):
             p.requires_grad, p.grad = requires_grad, grad
+    g_ad = np.array([gradient @ t for t in taken]) / lengths
     rel = float(np.linalg.norm(g_ad - g_fd) / (np.linalg.norm(g_fd) + 1e-8))
     return GradientCheck(rel, g_ad, g_fd, int(same.sum()), height * width)
 

@@ -8,6 +8,9 @@ lights, a ~32 x 28 image, all positions drawn within sensible ranges), take the 
 central differences in float64, h = 1e-6 relative: D(h) = (loss(x + h) - loss(x - h)) / 2h
 extrapolated to (4 D(h) - D(2h)) / 3 (fourth order; a ray grazing a sphere makes the O(h^2)
 error of D(h) alone exceed the tolerance now and then, see ``masked_gradient_check``).
+Parameters of more than ``DIRECTIONS_ABOVE`` scalars (a mesh's vertices) are differentiated
+along 4 random directions instead of scalar by scalar: as sensitive to an error in any
+scalar, in expectation (``masked_gradient_check``), for a fraction of the renders.
 The error measure is the paper's Eq. 3, ``||g_ad - g_fd|| / (||g_fd|| + 1e-8)``, which must
 stay below 1e-5; the finite-difference gradient must also be clearly non-zero, so that a
 renderer that forgot a dependency cannot pass.
@@ -63,7 +66,14 @@ SEEDS = st.integers(0, 2**32 - 1)
 FEW = settings(max_examples=4, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
 
+#: Parameters with more scalars than this are checked along random directions (4 of them,
+#: ``masked_gradient_check``): as sensitive in expectation, 4 x 4 renders instead of 4 each.
+DIRECTIONS_ABOVE = 8
+
+
 def assert_gradient_matches(scene, params, min_norm=1e-3, tolerance=TOLERANCE, **kwargs):
+    if sum(p.data.size for p in params) > DIRECTIONS_ABOVE:
+        kwargs.setdefault("directions", 4)
     result = masked_gradient_check(scene, params, **kwargs)
     # The mask must not hide the comparison: almost every pixel is compared.
     assert result.kept >= 0.9 * result.pixels, f"only {result.kept}/{result.pixels} pixels kept"
@@ -402,3 +412,24 @@ def test_all_float32_scene_renders_a_float32_image():
     assert render.render(scene).dtype == np.float64
     scene.meshes[0].uvs.data = scene.meshes[0].uvs.data.astype(np.float32)
     assert render.render(scene).dtype == np.float32
+
+
+def test_random_directions_are_the_projections_of_the_scalar_by_scalar_check():
+    """``directions=k`` compares derivatives along k directions: they are the per-scalar
+    finite differences projected on those directions, and so are the tape's."""
+    scene = random_scene(3)
+    params = [pyramid(scene).vertices]
+    each = masked_gradient_check(scene, params)
+    along = masked_gradient_check(scene, params, directions=3)
+    assert len(along.g_fd) == 3 and len(each.g_fd) == params[0].data.size
+    assert along.rel_error < TOLERANCE and each.rel_error < TOLERANCE
+    x = params[0].data.reshape(-1)
+    draws = np.random.default_rng(1234 + 1).standard_normal((3, x.size)) / np.sqrt(3)
+    u = draws * 1e-6 * np.maximum(1.0, np.abs(x))
+    u /= np.abs(u).max(axis=1, keepdims=True)
+    np.testing.assert_allclose(
+        along.g_fd, u @ each.g_fd, rtol=1e-6, atol=1e-9 * np.abs(each.g_fd).max()
+    )
+    np.testing.assert_allclose(
+        along.g_ad, u @ each.g_ad, rtol=1e-9, atol=1e-12 * np.abs(each.g_ad).max()
+    )
