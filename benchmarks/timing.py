@@ -333,7 +333,7 @@ def make_parser(
     return parser
 
 
-QUICK_REPEATS = 3  # timed calls per measurement with --quick
+QUICK_REPEATS = 1  # timed calls per measurement with --quick (a smoke run: each runs)
 
 
 def path_thread_options(doc: str, out: Path, size: int, repeats: int, argv=None):

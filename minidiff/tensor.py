@@ -362,17 +362,20 @@ class Tensor:
 
         tape = _tape_reaching(self)  # checks versions: raises before any gradient is added
         self._node.grad = seed
+        anomaly = _anomaly_mode.get()
         for node in reversed(tape):  # reverse recording order: every user before its inputs
             g = node.grad
             if g is not None:
                 input_grads = node.vjp(g)
                 for x, gx in zip(node.inputs, input_grads, strict=True):
-                    if gx is None or not x.requires_grad:
+                    if gx is None or not x._requires_grad:
                         continue
                     # A gradient has its input's dtype: a float32 leaf used with a float64
                     # constant still gets a float32 .grad (also after accumulating).
-                    gx = unbroadcast(gx, x.shape).astype(x.dtype, copy=False)
-                    if _anomaly_mode.get() and not np.isfinite(gx).all():
+                    gx = unbroadcast(gx, x._data.shape)
+                    if gx.dtype != x._data.dtype:
+                        gx = gx.astype(x._data.dtype)
+                    if anomaly and not np.isfinite(gx).all():
                         raise FloatingPointError(
                             f"anomaly: the VJP of '{node.name}' produced NaN/inf in the "
                             f"gradient of an input of shape {x.shape}"
