@@ -22,10 +22,10 @@ checks that the next process runs the new code.
 
 from __future__ import annotations
 
-import ast
 import functools
 import hashlib
 import os
+import re
 import warnings
 from pathlib import Path
 
@@ -46,27 +46,43 @@ def _module_file(dotted: str) -> Path | None:
     return None
 
 
+#: ``import a.b, c as d`` at the start of a line: group 1 the modules.
+_IMPORT = re.compile(r"^[ \t]*import[ \t]+([^\n#;]+)", re.M)
+#: ``from .a import b, c`` / ``from a import (b,\n c)`` / with backslash continuations:
+#: group 1 the module (leading dots: relative), group 2 the names.
+_FROM = re.compile(
+    r"^[ \t]*from[ \t]+(\.*[\w.]*)[ \t]+import[ \t]+(\([^)]*\)|(?:[^\n#\\]|\\\n)*)", re.M
+)
+
+
 @functools.cache
 def _imports(path: Path, mtime_ns: int, size: int) -> tuple[Path, ...]:
     """The project modules' files that the module at ``path`` imports (its ``import`` and
     ``from ... import`` statements, anywhere in the file). ``mtime_ns`` and ``size`` key the
-    memo, so an edited file is read again."""
-    tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+    memo, so an edited file is read again.
+
+    Read with two regular expressions, not ``ast.parse`` (0.75 s for the project's 100
+    files, in every new process): a statement-like line inside a string counts too, which
+    can only add a module (one more recompile after its edits), never miss one;
+    ``tests/minidiff/test_jitcache.py`` checks that nothing ``ast`` finds is missed."""
+    text = path.read_text(encoding="utf-8")
     package = path.relative_to(_BASE).with_suffix("").parts[:-1]
     if path.name == "__init__.py":
         package = path.relative_to(_BASE).parts[:-1]
     found = []
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            found += [_module_file(alias.name) for alias in node.names]
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:  # relative: from the importing module's package upwards
-                head = package[: len(package) - node.level + 1]
-                base = ".".join([*head, *([base] if base else [])])
-            # ``from a.b import c``: c is a module of its own, or a name defined in a.b.
-            for alias in node.names:
-                found.append(_module_file(f"{base}.{alias.name}") or _module_file(base))
+    for modules in _IMPORT.findall(text):
+        found += [_module_file(m.split()[0]) for m in modules.split(",") if m.strip()]
+    for base, names in _FROM.findall(text):
+        level = len(base) - len(base.lstrip("."))
+        base = base[level:]
+        if level:  # relative: from the importing module's package upwards
+            head = package[: len(package) - level + 1]
+            base = ".".join([*head, *([base] if base else [])])
+        # ``from a.b import c``: c is a module of its own, or a name defined in a.b.
+        names = re.sub(r"#[^\n]*", "", names).strip("()").replace("\\", " ")
+        for name in names.split(","):
+            name = name.split()[0] if name.split() else ""
+            found.append((name and _module_file(f"{base}.{name}")) or _module_file(base))
     return tuple(sorted({f for f in found if f is not None}))
 
 

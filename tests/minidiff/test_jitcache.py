@@ -96,3 +96,55 @@ def test_the_locator_is_installed_first() -> None:
     assert getattr(impl._locator_classes[0], "_diffrt", False)
     assert jitcache.install()  # a second call changes nothing
     assert sum(getattr(c, "_diffrt", False) for c in impl._locator_classes) == 1
+
+
+def _imports_by_ast(path: Path) -> set[Path]:
+    """What ``jitcache._imports`` must find at least: the modules of the file's ``import``
+    statements as Python's parser reads them."""
+    import ast
+
+    package = path.relative_to(jitcache._BASE).with_suffix("").parts[:-1]
+    if path.name == "__init__.py":
+        package = path.relative_to(jitcache._BASE).parts[:-1]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            found |= {jitcache._module_file(alias.name) for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                head = package[: len(package) - node.level + 1]
+                base = ".".join([*head, *([base] if base else [])])
+            for alias in node.names:
+                name = f"{base}.{alias.name}"
+                found.add(jitcache._module_file(name) or jitcache._module_file(base))
+    return found - {None}
+
+
+def test_the_import_scan_finds_every_import_the_parser_finds(tmp_path: Path) -> None:
+    """On every project file, and on the forms a file can take (relative, parenthesised over
+    lines, backslash-continued, aliased, indented): nothing Python's parser reads as an
+    import of a project module is missed."""
+    root = jitcache._BASE
+    files = [f for name in jitcache.PACKAGES for f in (root / name).rglob("*.py")]
+    for path in files:
+        scanned = set(jitcache._imports(*jitcache._file_key(path)))
+        assert _imports_by_ast(path) <= scanned, path
+    forms = (
+        "import render.path.scalar as s, minidiff.kernels\n"
+        "from .. import kernels\n"
+        "from ..scene import (\n    lights,  # a comment\n    camera as c,\n)\n"
+        "from render.trace import \\\n    bvh, intersect\n"
+        "def f():\n    from render.path import packed\n"
+    )
+    probe = root / "render" / "path" / f"_probe_{os.getpid()}.py"
+    probe.write_text(forms, encoding="utf-8")
+    try:
+        scanned = set(jitcache._imports(*jitcache._file_key(probe)))
+        names = {str(p.relative_to(root)) for p in scanned}
+        assert _imports_by_ast(probe) <= scanned
+        assert {"render/path/scalar.py", "minidiff/kernels.py", "render/scene/lights.py",
+                "render/scene/camera.py", "render/trace/bvh.py", "render/trace/intersect.py",
+                "render/path/packed.py"} <= names, names  # fmt: skip
+    finally:
+        probe.unlink()
