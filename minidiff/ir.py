@@ -84,6 +84,13 @@ def active() -> Graph:
     return graph
 
 
+def operators(fn: Callable) -> tuple[Callable, Callable]:
+    """The two methods behind a binary operator: ``x op y`` calls ``fn(x, y)``, and the
+    reflected one (Python's ``y op x`` when y is not of the class) calls ``fn(y, x)``. For a
+    comparison the reflected method is its mirror: ``__lt__, __gt__ = operators(less)``."""
+    return (lambda self, other: fn(self, other)), (lambda self, other: fn(other, self))
+
+
 @dataclass(frozen=True)
 class Value:
     """A scalar of one element: line ``id`` of the graph being built, of scalar ``type``.
@@ -92,44 +99,15 @@ class Value:
     id: int
     type: str
 
-    def __add__(self, other):
-        return _binary("add", self, other)
-
-    def __radd__(self, other):
-        return _binary("add", other, self)
-
-    def __sub__(self, other):
-        return _binary("sub", self, other)
-
-    def __rsub__(self, other):
-        return _binary("sub", other, self)
-
-    def __mul__(self, other):
-        return _binary("mul", self, other)
-
-    def __rmul__(self, other):
-        return _binary("mul", other, self)
-
-    def __truediv__(self, other):
-        return _binary("div", self, other)
-
-    def __rtruediv__(self, other):
-        return _binary("div", other, self)
+    __add__, __radd__ = operators(lambda x, y: _binary("add", x, y))
+    __sub__, __rsub__ = operators(lambda x, y: _binary("sub", x, y))
+    __mul__, __rmul__ = operators(lambda x, y: _binary("mul", x, y))
+    __truediv__, __rtruediv__ = operators(lambda x, y: _binary("div", x, y))
+    __lt__, __gt__ = operators(lambda x, y: compare("lt", x, y))
+    __le__, __ge__ = operators(lambda x, y: compare("le", x, y))
 
     def __neg__(self):
         return active().add("neg", (self,), "f64")
-
-    def __lt__(self, other):
-        return compare("lt", self, other)
-
-    def __le__(self, other):
-        return compare("le", self, other)
-
-    def __gt__(self, other):
-        return compare("gt", self, other)
-
-    def __ge__(self, other):
-        return compare("ge", self, other)
 
     def __and__(self, other):
         return active().add("and", (self, other), "i1")

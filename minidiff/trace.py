@@ -161,65 +161,22 @@ class Traced:
         self._no_values(".item()")
 
     # Arithmetic goes through minidiff's primitives, which trace it (primitives.py).
-    def __add__(self, other):
-        return _md().add(self, other)
-
-    def __radd__(self, other):
-        return _md().add(other, self)
-
-    def __sub__(self, other):
-        return _md().subtract(self, other)
-
-    def __rsub__(self, other):
-        return _md().subtract(other, self)
-
-    def __mul__(self, other):
-        return _md().multiply(self, other)
-
-    def __rmul__(self, other):
-        return _md().multiply(other, self)
-
-    def __truediv__(self, other):
-        return _md().divide(self, other)
-
-    def __rtruediv__(self, other):
-        return _md().divide(other, self)
-
-    def __pow__(self, other):
-        return _md().power(self, other)
-
-    def __rpow__(self, other):
-        return _md().power(other, self)
+    __add__, __radd__ = ir.operators(lambda x, y: _md().add(x, y))
+    __sub__, __rsub__ = ir.operators(lambda x, y: _md().subtract(x, y))
+    __mul__, __rmul__ = ir.operators(lambda x, y: _md().multiply(x, y))
+    __truediv__, __rtruediv__ = ir.operators(lambda x, y: _md().divide(x, y))
+    __pow__, __rpow__ = ir.operators(lambda x, y: _md().power(x, y))
+    __matmul__, __rmatmul__ = ir.operators(lambda x, y: _md().matmul(x, y))
+    __lt__, __gt__ = ir.operators(lambda x, y: compare("lt", x, y))
+    __le__, __ge__ = ir.operators(lambda x, y: compare("le", x, y))
+    __eq__ = ir.operators(lambda x, y: compare("eq", x, y))[0]  # type: ignore[assignment]
+    __ne__ = ir.operators(lambda x, y: compare("ne", x, y))[0]  # type: ignore[assignment]
 
     def __neg__(self):
         return _md().negative(self)
 
-    def __matmul__(self, other):
-        return _md().matmul(self, other)
-
-    def __rmatmul__(self, other):
-        return _md().matmul(other, self)
-
     def __getitem__(self, index):
         return _md().getitem(self, index)
-
-    def __lt__(self, other):
-        return compare("lt", self, other)
-
-    def __le__(self, other):
-        return compare("le", self, other)
-
-    def __gt__(self, other):
-        return compare("gt", self, other)
-
-    def __ge__(self, other):
-        return compare("ge", self, other)
-
-    def __eq__(self, other):  # type: ignore[override]
-        return compare("eq", self, other)
-
-    def __ne__(self, other):  # type: ignore[override]
-        return compare("ne", self, other)
 
     def __and__(self, other):
         return logical("and", self, other)
