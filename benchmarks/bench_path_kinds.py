@@ -36,7 +36,6 @@ import numpy as np
 import timing
 
 import minidiff as md
-from render.inverse.jsonio import write_json
 from render.path import render_path
 from render.scene.cornell import cornell_box
 
@@ -110,12 +109,12 @@ def main(argv=None) -> None:
     )
     size, spp, repeats = (8, 2, 1) if args.quick else (args.size, args.spp, args.repeats)
     result = {
-        "size": size, "spp": spp, "max_depth": DEPTH, "machine": timing.machine(),
+        "size": size,
+        "spp": spp,
+        "max_depth": DEPTH,
         "cost": cost(size, spp, threads, repeats),
-    }  # fmt: skip
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "kinds.json", result)
+    }
+    timing.write_json(args.out, "kinds", result)  # with the machine's description
 
 
 if __name__ == "__main__":

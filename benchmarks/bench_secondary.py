@@ -33,7 +33,6 @@ import timing
 from path_gradients import DIRECTIONS, scene_for
 
 import minidiff as md
-from render.inverse.jsonio import write_json
 from render.path import render_path
 
 DEPTH = 4
@@ -127,13 +126,10 @@ def main(argv=None) -> None:
     size, spp, repeats, seeds = (
         (16, 2, 2, 3) if args.quick else (args.size, args.spp, args.repeats, 16)
     )
-    result = {
-        "size": size, "spp": spp, "max_depth": DEPTH, "machine": timing.machine(),
-        "cost": cost(size, spp, threads, repeats), "variance": variance(size, spp, seeds),
-    }  # fmt: skip
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_json(out / "cost.json", result)
+    timed = cost(size, spp, threads, repeats)
+    result = {"size": size, "spp": spp, "max_depth": DEPTH, "cost": timed}
+    result["variance"] = variance(size, spp, seeds)
+    timing.write_json(args.out, "cost", result)  # with the machine's description
 
 
 if __name__ == "__main__":
