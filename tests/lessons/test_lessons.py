@@ -75,11 +75,6 @@ def agrees(value: float, number: str, rel: str) -> bool:
     return abs(v - stated) <= half_unit(number) * Decimal("1.000001")
 
 
-#: A lesson's module-level names once its test has run it and checked its numbers, for its
-#: solution's test in the same process (``reuse_lesson_runs``), which takes them out.
-LESSON_RUNS: dict[str, dict] = {}
-
-
 def run_script(path: Path, out: Path, monkeypatch) -> dict:
     monkeypatch.setenv("LESSONS_OUT", str(out))
     monkeypatch.setattr(sys, "argv", [str(path)])
@@ -112,8 +107,16 @@ def test_lesson_runs_and_its_prose_states_its_numbers(path, tmp_path, monkeypatc
     assert_stated_numbers(path, checks, namespace)
     assert "Exercises" in markdown, f"{path.name} has no exercises cell"
     solution = ROOT / "lessons" / "solutions" / path.name
-    if solution.exists() and f'run_lesson("{path.stem}")' in solution.read_text("utf-8"):
-        LESSON_RUNS[path.stem] = namespace  # kept only for a solution that will take it
+    if solution.exists() and runs_its_lesson(solution):
+        check_solution(solution, tmp_path / "solution", monkeypatch, {path.stem: namespace})
+
+
+def runs_its_lesson(solution: Path) -> bool:
+    """Whether a solution reuses its lesson's functions by running it (``course.run_lesson``):
+    such a solution is checked by its lesson's test, with the names the lesson's run left
+    (the same code, run once: lessons 14 and 15 take ~15 and ~10 s), the others by
+    ``test_solution_runs_and_its_prose_states_its_numbers``."""
+    return f'run_lesson("{solution.stem}")' in solution.read_text("utf-8")
 
 
 def assert_stated_numbers(path: Path, checks: list[tuple[str, str, str]], namespace: dict):
@@ -126,27 +129,26 @@ def assert_stated_numbers(path: Path, checks: list[tuple[str, str, str]], namesp
     assert not wrong, f"{path.name}: " + "; ".join(wrong)
 
 
-@pytest.mark.parametrize("path", SOLUTIONS, ids=[p.stem for p in SOLUTIONS])
+ALONE = [p for p in SOLUTIONS if not runs_its_lesson(p)]
+
+
+@pytest.mark.parametrize("path", ALONE, ids=[p.stem for p in ALONE])
 def test_solution_runs_and_its_prose_states_its_numbers(path, tmp_path, monkeypatch):
     """A solution runs (its own asserts check its answers), and the numbers its text
     states, where it marks them, agree with its variables as in a lesson."""
-    reuse_lesson_runs(monkeypatch)
-    namespace = run_script(path, tmp_path, monkeypatch)
-    assert_stated_numbers(path, stated_checks(markdown_text(path)), namespace)
+    check_solution(path, tmp_path, monkeypatch, {})
 
 
-def reuse_lesson_runs(monkeypatch) -> None:
-    """A solution that runs its lesson (``course.run_lesson``) gets the names its lesson's
-    test computed, where that test ran and passed in this process (the lessons come first in
-    the collection, and pytest-xdist hands out neighbouring tests to one worker): the same
-    code, run and checked once instead of twice (lessons 14, 15 and 16 take ~16, 9 and 6 s).
-    Elsewhere the solution runs its lesson itself."""
+def check_solution(path: Path, out: Path, monkeypatch, runs: dict[str, dict]) -> None:
+    """Run the solution at ``path`` (figures under ``out``) and check its stated numbers;
+    ``course.run_lesson`` answers from ``runs`` (lesson name -> the names its run left)
+    where it can, else runs the lesson."""
     monkeypatch.syspath_prepend(str(ROOT / "lessons"))
     course = importlib.import_module("course")
     run = course.run_lesson
-    monkeypatch.setattr(
-        course, "run_lesson", lambda lesson: LESSON_RUNS.pop(lesson, None) or run(lesson)
-    )
+    monkeypatch.setattr(course, "run_lesson", lambda lesson: runs.get(lesson) or run(lesson))
+    namespace = run_script(path, out, monkeypatch)
+    assert_stated_numbers(path, stated_checks(markdown_text(path)), namespace)
 
 
 def test_every_lesson_has_solutions_and_an_index_entry():
