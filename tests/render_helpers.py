@@ -157,6 +157,7 @@ class GradientCheck:
     g_fd: np.ndarray
     kept: int  # pixels compared (same visibility in every perturbed render)
     pixels: int
+    directions: np.ndarray  # (k, n): g_ad and g_fd are the derivatives along these rows
 
 
 def _same_visibility(info, reference) -> np.ndarray:
@@ -269,7 +270,7 @@ def masked_gradient_check(
                 images, stored = [], []
                 for value in (x + m * step, x - m * step):
                     put(value)
-                    stored.append(np.concatenate([f.copy() for f in flats]))
+                    stored.append(np.concatenate(flats))  # as stored: rounded
                     with md.no_grad():
                         img, info = render.render(scene, **kwargs)
                     if mask:
@@ -301,9 +302,10 @@ def masked_gradient_check(
     finally:
         for p, (requires_grad, grad) in zip(params, saved, strict=True):
             p.requires_grad, p.grad = requires_grad, grad
-    g_ad = np.array([gradient @ t for t in taken]) / lengths
+    along = np.array(taken) / lengths[:, None]  # (k, n): the directions compared
+    g_ad = along @ gradient
     rel = float(np.linalg.norm(g_ad - g_fd) / (np.linalg.norm(g_fd) + 1e-8))
-    return GradientCheck(rel, g_ad, g_fd, int(same.sum()), height * width)
+    return GradientCheck(rel, g_ad, g_fd, int(same.sum()), height * width, along)
 
 
 def strict_load(text: str):

@@ -67,16 +67,13 @@ def direct_routes() -> None:
 
 def direct_raster() -> None:
     """The rasteriser and the light's view on the random scenes of the tests (a sphere, both
-    light kinds), and the rasterised occlusion of the boundary term's points."""
+    light kinds; a fresh clone compiled them inside ``test_coordinate_range``)."""
     from tests.render_helpers import random_scene
 
     with md.no_grad():
         for seed in (1, 4):
             for primary in ("raster", "bvh"):
                 render.render(random_scene(seed, width=14, height=12), primary=primary)
-        for scene in (render.paper_scene(128, 128, ground=True),
-                      random_scene(1, pyramid=False, texture=True)):  # fmt: skip
-            render.render(scene, antialias="boundary")
 
 
 #: Largest first, so that the two processes end together.
