@@ -507,31 +507,41 @@ def _reverse_elements(program: Program, graph: ir.Graph, emitter: _Emitter, wrt,
                 _give(adjoint, vid, graph.add("cot", (), "f64", (o, lane)))
     batched_lines = [v for v in range(traced - 1, -1, -1) if v not in shared]
     _sweep(graph, adjoint, batched_lines, active)
-    # A table row gathered twice at the same index by one element gets both gradients.
+    # Every element writes every lane of its gradient buffers (0.0 where no gradient
+    # reaches), so that they need not be zeroed first. A table row gathered twice at the
+    # same index by one element gets both gradients.
     gathered: dict[tuple, ir.Value] = {}
-    for vid in leaves:
+    columns_of: dict[tuple, int] = {}
+    for vid in range(traced):
         node = graph.nodes[vid]
-        if vid in adjoint and node.op == "gather":
-            _give(gathered, (node.attrs, node.args[0]), adjoint[vid])
-    rows_written = set()
-    for key, d in gathered.items():
-        (slot, column, columns, _), index = key
-        emitter.emit(d.id)
-        emitter.store(("contrib", (slot, index)), columns, column, emitter.name(d.id))
-        if (slot, index) not in rows_written:  # the row it was gathered from, as given
-            rows_written.add((slot, index))
-            emitter.emit(index)
-            address = emitter.element_address(
-                emitter.tail, emitter.pointer(("rows", (slot, index))), 1, 0, "%i", "i64"
-            )
-            emitter.tail.append(f"  store i64 {emitter.name(index)}, ptr {address}")
-    for vid in leaves:
-        node = graph.nodes[vid]
-        if vid in adjoint and node.op == "load":
-            slot, lane = node.attrs
-            emitter.emit(adjoint[vid].id)
+        if node.op == "gather" and _is_leaf_of(node, wrt):
+            slot, column, columns, _ = node.attrs
+            columns_of[slot, node.args[0]] = columns
+            if vid in adjoint:
+                _give(gathered, (slot, node.args[0], column), adjoint[vid])
+    for (slot, index), columns in columns_of.items():
+        for column in range(columns):
+            d = gathered.get((slot, index, column))
+            value = "0.0" if d is None else emitter.name(d.id)
+            if d is not None:
+                emitter.emit(d.id)
+            emitter.store(("contrib", (slot, index)), columns, column, value)
+        emitter.emit(index)  # the row it was gathered from, as given
+        address = emitter.element_address(
+            emitter.tail, emitter.pointer(("rows", (slot, index))), 1, 0, "%i", "i64"
+        )
+        emitter.tail.append(f"  store i64 {emitter.name(index)}, ptr {address}")
+    loaded = {graph.nodes[v].attrs: adjoint[v] for v in leaves if graph.nodes[v].op == "load"
+              and v in adjoint}  # fmt: skip
+    for slot in wrt:
+        if program.slots[slot].batched:
             lanes = max(1, _size(program.slots[slot].shape))
-            emitter.store(("grad", slot), lanes, lane, emitter.name(adjoint[vid].id))
+            for lane in range(lanes):
+                d = loaded.get((slot, lane))
+                if d is not None:
+                    emitter.emit(d.id)
+                value = "0.0" if d is None else emitter.name(d.id)
+                emitter.store(("grad", slot), lanes, lane, value)
     for f, vid in enumerate(layout.frontier):  # this chunk's sum of each frontier gradient
         if vid in adjoint:
             emitter.emit(adjoint[vid].id)
@@ -590,8 +600,12 @@ def _tangents(program: Program, graph: ir.Graph, emitter: _Emitter, wrt) -> None
 def scatter_add(columns: int) -> str:
     """The kernel that adds a gather's contributions into its table's gradient: buffers
     (rows (n,) int64, contributions (n, columns), gradient (table rows, columns), the table's
-    row count (1,) int64); serial, in element order (so the same sums on any thread count);
-    a negative row counts from the end, as the gather read it."""
+    row count (1,) int64); a negative row counts from the end, as the gather read it.
+
+    A call adds the contributions to the table rows [first, end) (its "chunks" are the
+    table's rows): each call reads every element's row and takes its own, in element order.
+    So threads given different row ranges never write the same row, and each row's sum is
+    made in element order whatever the split: the same bits on any thread count."""
     adds = []
     for c in range(columns):
         adds += [
@@ -631,10 +645,17 @@ def scatter_add(columns: int) -> str:
             "  %negative = icmp slt i64 %r.given, 0",
             "  %r.shifted = add i64 %r.given, %count",
             "  %r = select i1 %negative, i64 %r.shifted, i64 %r.given",
+            "  %below = icmp slt i64 %r, %first",
+            "  %above = icmp sge i64 %r, %end",
+            "  %elsewhere = or i1 %below, %above",
+            "  br i1 %elsewhere, label %next, label %add",
+            "add:",
             f"  %from = mul i64 %i, {columns}",
             f"  %base = mul i64 %r, {columns}",
             *offsets,
             *adds,
+            "  br label %next",
+            "next:",
             "  %i.next = add i64 %i, 1",
             "  store i64 %i.next, ptr %i.slot",
             "  br label %head",

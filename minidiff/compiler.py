@@ -55,6 +55,9 @@ from minidiff.tensor import Tensor, as_tensor, is_grad_enabled, record
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
+# Batches from this size add gathered rows' gradients on threads (each a range of table
+# rows, every one reading all elements' rows); below it, starting threads costs more.
+PARALLEL_SCATTER = 1 << 16
 
 # Threads a compiled kernel may use in this thread (context); None: Numba's setting.
 _threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
@@ -334,10 +337,11 @@ class CompiledFunction:
         _, layout, _ = trace.kernel("vjp", wrt)
         slots = trace.program.slots
         n, chunks = trace.batch, -(-trace.batch // codegen.CHUNK)
-        grads = {s: np.zeros((n, *slots[s].shape)) for s in wrt if slots[s].batched}
+        # the kernel writes every element of these (codegen._reverse_elements): not zeroed
+        grads = {s: np.empty((n, *slots[s].shape)) for s in wrt if slots[s].batched}
         sums = np.zeros((chunks, max(1, len(layout.frontier))))
-        contributions = [np.zeros((n, int(np.prod(slots[s].shape[1:])))) for s, _ in layout.gathers]
-        rows = [np.zeros(n, np.int64) for _ in layout.gathers]
+        contributions = [np.empty((n, int(np.prod(slots[s].shape[1:])))) for s, _ in layout.gathers]
+        rows = [np.empty(n, np.int64) for _ in layout.gathers]
         cotangents = [np.ascontiguousarray(g, dtype=np.float64) for g in cotangents]
         per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
         buffers = [*data, *cotangents, *grads.values(), sums, *per_gather]
@@ -347,13 +351,14 @@ class CompiledFunction:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
             self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
         grads.update(shared)
+        threads = (_threads.get() or numba.get_num_threads()) if n >= PARALLEL_SCATTER else 1
         for (slot, _), share, where in zip(layout.gathers, contributions, rows, strict=True):
             table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
             count = np.array([slots[slot].shape[0]], np.int64)
             kernel = _scatter_kernel(share.shape[1])
             buffers = [where, share, table, count]
             pointers = _addresses(buffers)
-            kernel.run(pointers, n, 1, 1)  # one pass, in element order
+            kernel.run(pointers, n, len(table), threads)  # threads take ranges of table rows
         return [grads.get(s) for s in range(len(slots))]
 
     def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:

@@ -154,6 +154,28 @@ def call(function: str, *args) -> Value:
     return active().add(function, tuple(_as_value(a) for a in args), "f64")
 
 
+def constant(x: Value) -> float | int | bool | None:
+    """The number of ``x`` if it is a constant line, else None (then its value is known only
+    when the kernel runs)."""
+    node = active().nodes[x.id]
+    return node.attrs[0] if node.op == "const" else None
+
+
+def integer_power(x: Value, k: int) -> Value:
+    """``x ** k`` for an integer ``k >= 0`` as products, by repeated squaring (``x ** 31`` is
+    x^16 x^8 x^4 x^2 x: 8 products). Each product rounds, so the result is within about
+    ``k`` ulps of a correctly rounded power (NumPy's ``pow``), but it is plain arithmetic,
+    which LLVM vectorises, where ``pow`` is a library call per element."""
+    result, square = None, x
+    while k:
+        if k & 1:
+            result = square if result is None else result * square
+        k >>= 1
+        if k:
+            square = square * square
+    return const(1.0) if result is None else result
+
+
 def to_float(x: Value) -> Value:
     """An i1 (0 or 1) or an i64 as an f64."""
     return active().add("tofloat", (x,), "f64")

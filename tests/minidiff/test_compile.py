@@ -241,6 +241,24 @@ def test_gathers_with_repeated_and_negative_indices(data, n, rows):
     assert_close(t1, t2, "tangent")
 
 
+def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits():
+    """From ``compiler.PARALLEL_SCATTER`` elements each thread adds a range of the table's
+    rows: the same bits as one thread, and the tape's gradient to rounding."""
+    rng = np.random.default_rng(3)
+    n = compiler.PARALLEL_SCATTER + 1000
+    vertices, faces = rng.normal(size=(50, 3)), rng.integers(-50, 50, size=(30, 3))
+    hit, weights = rng.integers(-30, 30, size=n), rng.normal(size=n)
+    cot = rng.normal(size=(n, 3))
+    grads = []
+    for threads, fn in ((1, centroid_light), (2, centroid_light), (1, centroid_light.function)):
+        with compiler.using_threads(threads):
+            t = md.tensor(vertices, requires_grad=True)
+            (fn(t, faces, hit, weights) * cot).sum().backward()
+            grads.append(t.grad)
+    assert np.array_equal(grads[0], grads[1])
+    assert_close(grads[0], grads[2], "d/dvertices")
+
+
 def test_a_gather_out_of_range_is_an_index_error():
     vertices = np.zeros((4, 3))
     faces = np.array([[0, 1, 2], [1, 2, 3]])
@@ -361,6 +379,47 @@ def test_kernels_are_kept_on_disk_and_a_damaged_file_is_recompiled(tmp_path, mon
 def _refuses(function, match, *args, shared=()):
     with pytest.raises((CompileError, TypeError, ValueError), match=match):
         md.compile(function, shared=shared)(*args)
+
+
+@pytest.mark.parametrize("exponent", [1.0, 2.0, 3.0, 31.0, 32.0, 64.0])
+def test_integer_constant_powers_are_products_within_ulps_of_pow(exponent):
+    """``x ** n`` for a constant integer n in [1, 64] is compiled as products (no ``pow``
+    call): within about n ulps of NumPy's power, with its infinities, NaN and signed zeros
+    (overflow included), and the derivative n x^(n-1)."""
+
+    @md.compile
+    def power(x):
+        return x**exponent
+
+    x = np.array([0.3, -1.7, 2.5, 0.999, -0.0, 0.0, np.inf, -np.inf, np.nan, 1e200, -3e-5])
+    x = np.concatenate([x, np.random.default_rng(0).uniform(-2, 2, 100)])
+    assert "call double @llvm.pow" not in power.source(x)
+    with np.errstate(all="ignore"):
+        for fn in (power, power.function):
+            t = md.tensor(x, requires_grad=True)
+            y = fn(t)
+            y.sum().backward()
+            if fn is power:
+                value, slope = y.data, t.grad
+        expected, expected_slope = np.power(x, exponent), exponent * np.power(x, exponent - 1)
+    assert np.array_equal(np.signbit(value), np.signbit(expected))
+    for actual, wanted in ((value, expected), (slope, expected_slope)):
+        assert np.array_equal(np.isnan(actual), np.isnan(wanted))
+        assert np.array_equal(actual[np.isinf(wanted)], wanted[np.isinf(wanted)])
+        finite = np.isfinite(wanted)
+        ulps = np.abs(actual[finite] - wanted[finite]) / np.spacing(np.abs(wanted[finite]))
+        assert ulps.max() <= exponent + 1
+
+
+def test_other_powers_call_pow():
+    """A non-integer or larger constant exponent, or one known only when the kernel runs,
+    stays ``pow``, NumPy's function."""
+    x = np.linspace(0.1, 2.0, 7)
+    assert "call double @llvm.pow" in md.compile(lambda x: x**2.5).source(x)
+    assert "call double @llvm.pow" in md.compile(lambda x: x**65.0).source(x)
+    assert "call double @llvm.pow" in md.compile(lambda x, b: x**b, shared=("b",)).source(
+        x, np.array(3.0)
+    )
 
 
 def test_refusals_name_the_operation():
