@@ -316,6 +316,13 @@ class _Emitter:
         address = self.element_address(self.chunk_end, base, count, f, "%c", "double")
         self.chunk_end.append(f"  store double {final}, ptr {address}")
 
+    def value_or_zero(self, d: ir.Value | None) -> str:
+        """The name of ``d``, marked as needed; "0.0" for None (no gradient reaches)."""
+        if d is None:
+            return "0.0"
+        self.emit(d.id)
+        return self.name(d.id)
+
     def store(self, key, lanes: int, lane: int, value: str) -> None:
         address = self.element_address(self.tail, self.pointer(key), lanes, lane, "%i", "double")
         self.tail.append(f"  store double {value}, ptr {address}")
@@ -512,35 +519,32 @@ def _reverse_elements(program: Program, graph: ir.Graph, emitter: _Emitter, wrt,
     # same index by one element gets both gradients.
     gathered: dict[tuple, ir.Value] = {}
     columns_of: dict[tuple, int] = {}
-    for vid in range(traced):
+    for vid in leaves:
         node = graph.nodes[vid]
-        if node.op == "gather" and _is_leaf_of(node, wrt):
+        if node.op == "gather":
             slot, column, columns, _ = node.attrs
             columns_of[slot, node.args[0]] = columns
             if vid in adjoint:
                 _give(gathered, (slot, node.args[0], column), adjoint[vid])
     for (slot, index), columns in columns_of.items():
         for column in range(columns):
-            d = gathered.get((slot, index, column))
-            value = "0.0" if d is None else emitter.name(d.id)
-            if d is not None:
-                emitter.emit(d.id)
+            value = emitter.value_or_zero(gathered.get((slot, index, column)))
             emitter.store(("contrib", (slot, index)), columns, column, value)
         emitter.emit(index)  # the row it was gathered from, as given
         address = emitter.element_address(
             emitter.tail, emitter.pointer(("rows", (slot, index))), 1, 0, "%i", "i64"
         )
         emitter.tail.append(f"  store i64 {emitter.name(index)}, ptr {address}")
-    loaded = {graph.nodes[v].attrs: adjoint[v] for v in leaves if graph.nodes[v].op == "load"
-              and v in adjoint}  # fmt: skip
+    loaded = {  # (slot, lane) of a batched argument: its gradient
+        graph.nodes[v].attrs: adjoint[v]
+        for v in leaves
+        if graph.nodes[v].op == "load" and v in adjoint
+    }
     for slot in wrt:
         if program.slots[slot].batched:
             lanes = max(1, _size(program.slots[slot].shape))
             for lane in range(lanes):
-                d = loaded.get((slot, lane))
-                if d is not None:
-                    emitter.emit(d.id)
-                value = "0.0" if d is None else emitter.name(d.id)
+                value = emitter.value_or_zero(loaded.get((slot, lane)))
                 emitter.store(("grad", slot), lanes, lane, value)
     for f, vid in enumerate(layout.frontier):  # this chunk's sum of each frontier gradient
         if vid in adjoint:
