@@ -81,7 +81,7 @@ def irradiance_estimates(kind: str, n: int, repeats: int) -> np.ndarray:
         cos = u1
         values = 2 * math.pi * cos**2
     else:
-        cos = cosine_hemisphere(u1, u2, np.repeat(n_z, len(ids), axis=0))[:, 2]
+        cos = cosine_hemisphere(u1, u2, np.repeat(n_z, len(ids), axis=0)).data[:, 2]
         values = math.pi * cos
     return values.reshape(repeats, n).mean(axis=1)
 
@@ -168,7 +168,7 @@ def lamp_estimates(half: float, n: int, technique: str, stream: int = 0) -> np.n
     light_value = cos_here / p_light  # L_e cos / p, L_e = 1
     # BSDF sampling: a cosine-weighted direction; does it reach the lamp's plane inside it?
     u1, u2 = uniform(3, ids, d + 2), uniform(3, ids, d + 3)
-    w = cosine_hemisphere(u1, u2, np.repeat(n_z, n, axis=0))
+    w = cosine_hemisphere(u1, u2, np.repeat(n_z, n, axis=0)).data
     t = 1.0 / np.maximum(w[:, 2], 1e-300)
     hits = (np.abs(w[:, 0] * t) < half) & (np.abs(w[:, 1] * t) < half)
     p_bsdf = w[:, 2] / math.pi

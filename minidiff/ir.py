@@ -136,9 +136,19 @@ def _binary(op: str, a, b) -> Value:
 
 def compare(op: str, a, b) -> Value:
     """``a op b`` (op: lt, le, gt, ge, eq, ne) on two f64 or two i64 values: an i1. As in
-    NumPy, every comparison with a NaN is false except ``ne``."""
-    kind = a.type if isinstance(a, Value) else b.type
-    return active().add(op, (_as_value(a, kind), _as_value(b, kind)), "i1")
+    NumPy, every comparison with a NaN is false except ``ne``. Values of two types (a float
+    against an integer constant: ``z >= 0``) are compared as f64, as NumPy compares them."""
+    kinds = {x.type for x in (a, b) if isinstance(x, Value)}
+    kind = kinds.pop() if len(kinds) == 1 else "f64"
+    return active().add(op, (_of_type(a, kind), _of_type(b, kind)), "i1")
+
+
+def _of_type(x, kind: str) -> Value:
+    """``x`` (a Value or a number) as a Value of type ``kind``; a Value of another type only
+    becomes an f64 (``to_float``)."""
+    if isinstance(x, Value) and x.type != kind:
+        return to_float(x)
+    return _as_value(x, kind)
 
 
 def select(condition: Value, a, b) -> Value:

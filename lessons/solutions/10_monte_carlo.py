@@ -33,7 +33,7 @@ from render.scene.cornell import cornell_box
 # %%
 ids = np.arange(100_000)
 u1, u2 = uniform(11, ids, 0), uniform(11, ids, 1)
-cos = cosine_hemisphere(u1, u2, np.tile([0.0, 0.0, 1.0], (len(ids), 1)))[:, 2]
+cos = cosine_hemisphere(u1, u2, np.tile([0.0, 0.0, 1.0], (len(ids), 1))).data[:, 2]
 cosine_samples = 1.0 * cos / (cos / math.pi)  # L cos / p with L = 1, p = cos / pi
 uniform_samples = 1.0 * u1 / (1 / (2 * math.pi))  # cos theta = u1 uniform, p = 1 / (2 pi)
 relative_std = uniform_samples.std() / math.pi
@@ -87,7 +87,8 @@ def lamp(half: float, n: int, power: float) -> np.ndarray:
     r2 = (point**2).sum(axis=1)
     cos_here = point[:, 2] / np.sqrt(r2)
     p_light = r2 / (cos_here * area)
-    w = cosine_hemisphere(uniform(3, ids, 2), uniform(3, ids, 3), np.tile([0.0, 0.0, 1.0], (n, 1)))
+    up = np.tile([0.0, 0.0, 1.0], (n, 1))
+    w = cosine_hemisphere(uniform(3, ids, 2), uniform(3, ids, 3), up).data
     t = 1.0 / np.maximum(w[:, 2], 1e-300)
     hits = (np.abs(w[:, 0] * t) < half) & (np.abs(w[:, 1] * t) < half)
     p_bsdf = w[:, 2] / math.pi

@@ -51,6 +51,7 @@ from render.path.chain import (
     _factor_gradients,
     _replay_chain,
 )
+from render.path.choices import MAX_SURVIVAL, MIN_SURVIVAL
 from render.path.packed import Packed, applies, pack
 from render.path.scalar import (
     _DIRECTION,
@@ -82,8 +83,6 @@ from render.path.scalar import (
 from render.path.tracer import (
     AREA,
     CAMERA,
-    MAX_SURVIVAL,
-    MIN_SURVIVAL,
     MIRROR,
     STOP,
     PathBatch,

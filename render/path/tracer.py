@@ -36,17 +36,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.emitters import Emitters, point_on
+from render.path.choices import Geometry, vertex_choices
+from render.path.emitters import Emitters
 from render.path.random import bounce_dimension, uniform
-from render.path.sampling import (
-    blinn_phong_lobe,
-    blinn_phong_pdf,
-    cosine_hemisphere,
-    cosine_pdf,
-    dot,
-    power_heuristic,
-    unit,
-)
+from render.path.sampling import dot, unit
 from render.scene.camera import camera_directions, plain_frame, to_image_plane
 from render.scene.scene import Mesh, Scene
 from render.shade.surface import geometric_normals, vertex_normals
@@ -57,9 +50,6 @@ from render.trace.visibility import scene_size, shadow_offset, shadow_rays
 #: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
 CAMERA, AREA, MIRROR = 0, 1, 2
 STOP = 0
-#: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
-#: at least MIN_SURVIVAL.
-MIN_SURVIVAL, MAX_SURVIVAL = 0.05, 0.95
 #: The largest max_depth and rr_depth: every bounce's random-number dimensions
 #: (``random.bounce_dimension``) then fit in an int64.
 MAX_DEPTH = 2**59
@@ -96,6 +86,14 @@ class Vertices:
     survive: np.ndarray
     escape: np.ndarray
     escape_dir: np.ndarray
+
+    @classmethod
+    def none(cls, n_lights: int) -> Vertices:
+        """The record of no path."""
+        i, f = np.zeros(0, np.int64), np.zeros(0)
+        return cls(i, i, np.zeros((0, 3)), np.zeros(0, np.int8), f, i, np.zeros((0, 3)), f,
+                   np.zeros((n_lights, 0), bool), np.zeros(0, np.int8), f, f,
+                   np.zeros(0, bool), np.zeros((0, 3)))  # fmt: skip
 
     def take(self, at: np.ndarray) -> Vertices:
         """The paths at positions ``at`` of this record (the lights' visibility is (L, n))."""
@@ -173,6 +171,7 @@ class PathSampler:
                     else vertex_normals(md.tensor(obj.vertices.data), obj.faces).data)
                 for o, obj in enumerate(self.objects) if isinstance(obj, Mesh) and obj.smooth
             }  # fmt: skip
+        self.geometry = Geometry.of(self.primitives, self.objects, self.first, self.normals)
         self.frame = plain_frame(world.camera)
 
     def sample(self, paths: np.ndarray) -> PathBatch:
@@ -246,72 +245,65 @@ class PathSampler:
 
     def _vertex(self, paths, depth: int, s: _State):
         """Everything that happens at the paths' ``depth``-th vertex: a ``Vertices`` record
-        and the state at the next vertex (None when no path goes on)."""
+        and the state at the next vertex (None when no path goes on). The continuous work
+        is one compiled call (``render.path.choices``); here are the random numbers, the
+        emitter picked, and the rays."""
         n = len(s.rows)
+        if n == 0:
+            return Vertices.none(len(self.scene.lights)), None
         ids = paths[s.rows]
-        ng, ns = self._normals(s.prim, s.points, s.local)
-        wo = -s.incoming
-        side = np.where(dot(ng, wo) < 0, -1.0, 1.0)[:, None]  # two-sided: face the viewer
-        ng, ns = side * ng, side * ns
-        emit_weight = self._emission_weight(s, ng)
+        last = depth == self.max_depth
+        has_emitters = len(self.emitters) > 0
         obj = object_index_of(self.scene, s.prim)
+        material = (self.lobes.probability[obj], self.lobes.shininess[obj],
+                    self.lobes.reflectance[obj])  # fmt: skip
+        nee = numbers = None
+        if has_emitters:
+            pick = np.zeros(n, np.int64)
+            if not last:
+                pick = self.emitters.pick(
+                    uniform(self.seed, ids, bounce_dimension(depth, "emitter"))
+                )
+            prims = self.emitters.prims[pick]
+            nee = (prims, self.emitters.probability[pick], self.emitters.area[pick],
+                   prims != s.prim, self.emitters.pdf_area(s.prim))  # fmt: skip
+        if not last:
+            e = bounce_dimension(depth, "emitter_point")
+            d = bounce_dimension(depth, "direction")
+            numbers = tuple(
+                uniform(self.seed, ids, dim)
+                for dim in (e, e + 1, d, d + 1, bounce_dimension(depth, "lobe"),
+                            bounce_dimension(depth, "roulette"))
+            )  # fmt: skip
+        path = (s.points, s.incoming, s.form == AREA, s.pdf, s.previous, s.throughput)
+        offset = shadow_offset(s.points, self.size)
+        form = (has_emitters, last, depth >= self.rr_depth)
+        c = vertex_choices(
+            self.geometry, (s.prim, s.local), path, material, nee, numbers, offset, form
+        )
         record = Vertices(
-            s.rows, s.prim, s.local, s.form, emit_weight,
+            s.rows, s.prim, s.local, s.form, c.emit_weight,
             np.full(n, -1, np.int64), np.zeros((n, 3)), np.zeros(n),
             np.zeros((len(self.scene.lights), n), bool), np.full(n, STOP, np.int8),
             np.ones(n), np.ones(n), np.zeros(n, bool), np.zeros((n, 3)),
         )  # fmt: skip
-        if depth == self.max_depth or n == 0:
+        if last:
             return record, None
-        probability = self.lobes.probability[obj]
-        shininess = self.lobes.shininess[obj]
-        offset = shadow_offset(s.points, self.size)
-        self._next_event(record, ids, depth, s, ng, ns, wo, probability, shininess, offset)
-        self._lights(record, s, ng)
-        return record, self._continue(record, ids, depth, s, ng, ns, wo, obj, offset)
+        if has_emitters:
+            self._next_event(record, s, nee[0], c)
+        self._lights(record, s, c.ng)
+        return record, self._continue(record, s, c)
 
-    def _emission_weight(self, s: _State, ng: np.ndarray) -> np.ndarray:
-        """MIS weight of the emission at vertices reached by a sampled direction (``AREA``)
-        against NEE's density of the same point, both in area measure; 1 elsewhere."""
-        weight = np.ones(len(s.rows))
-        if len(self.emitters) == 0:
-            return weight
-        area = np.flatnonzero(s.form == AREA)
-        p_nee = self.emitters.pdf_area(s.prim[area])
-        to = s.points[area] - s.previous[area]
-        d2 = dot(to, to)
-        cos = np.abs(dot(ng[area], to)) / np.sqrt(np.where(d2 > 0, d2, 1.0))
-        p_bsdf = s.pdf[area] * cos / np.where(d2 > 0, d2, 1.0)
-        weight[area] = np.where(p_nee > 0, power_heuristic(p_bsdf, p_nee), 1.0)
-        return weight
-
-    def _next_event(self, record, ids, depth, s, ng, ns, wo, probability, shininess, offset):
-        """One point on the area lights per vertex: its shadow ray and MIS weight."""
-        if len(self.emitters) == 0:
-            return
-        pick = self.emitters.pick(uniform(self.seed, ids, bounce_dimension(depth, "emitter")))
-        prims = self.emitters.prims[pick]
-        u1 = uniform(self.seed, ids, bounce_dimension(depth, "emitter_point"))
-        u2 = uniform(self.seed, ids, bounce_dimension(depth, "emitter_point") + 1)
-        local, z, nz = point_on(self.primitives, prims, u1, u2)
-        to = z - s.points
-        d2 = dot(to, to)
-        wi = to / np.sqrt(np.where(d2 > 0, d2, 1.0))[:, None]
-        cos_z = -dot(nz, wi)
-        ok = (probability[:, 0] + probability[:, 1] > 0) & (cos_z > 0) & (dot(ng, wi) > 0)
-        ok &= (d2 > 0) & (prims != s.prim)
-        origins = s.points + offset * ng
+    def _next_event(self, record, s: _State, prims: np.ndarray, c) -> None:
+        """NEE's shadow rays: the point drawn on an area light is seen, or its weight is 0."""
         ignore = np.where(s.prim < self.n_triangles, s.prim, -1)
         blocked = self.accelerator.occluded(
-            origins, z - origins, 1.0 - 1e-7, tmin=0.0, ignore_prim=ignore
+            c.origin, c.nee_point - c.origin, 1.0 - 1e-7, tmin=0.0, ignore_prim=ignore
         )
-        p_nee = self.emitters.probability[pick] / self.emitters.area[pick]
-        p_bsdf = self._pdf(probability, shininess, ns, wo, wi) * cos_z / np.where(d2 > 0, d2, 1.0)
-        weight = power_heuristic(p_nee, p_bsdf) / self.emitters.probability[pick]
-        visible = ok & ~blocked
+        visible = c.nee_ok & ~blocked
         record.nee_prim[:] = np.where(visible, prims, -1)
-        record.nee_local[:] = local
-        record.nee_weight[:] = np.where(visible, weight, 0.0)
+        record.nee_local[:] = c.nee_local
+        record.nee_weight[:] = np.where(visible, c.nee_weight, 0.0)
 
     def _lights(self, record, s: _State, ng: np.ndarray) -> None:
         """Which of the scene's lights reach each vertex (from its front side)."""
@@ -323,51 +315,22 @@ class PathSampler:
             )
             record.lit[j] = ~blocked & (dot(ng, towards) > 0)
 
-    def _pdf(self, probability, shininess, ns, wo, wi) -> np.ndarray:
-        """(n,) density per steradian of the diffuse-or-glossy choice at directions wi."""
-        return probability[:, 0] * cosine_pdf(ns, wi) + probability[:, 1] * blinn_phong_pdf(
-            ns, wo, wi, shininess
-        )
-
-    def _continue(self, record, ids, depth, s, ng, ns, wo, obj, offset):
-        """Pick a lobe and a direction, play Russian roulette, trace: the next state."""
-        probability, shininess = self.lobes.probability[obj], self.lobes.shininess[obj]
-        n = len(s.rows)
-        dim = bounce_dimension(depth, "direction")
-        u1, u2 = uniform(self.seed, ids, dim), uniform(self.seed, ids, dim + 1)
-        pick = uniform(self.seed, ids, bounce_dimension(depth, "lobe"))
-        glossy = (pick >= probability[:, 0]) & (pick < probability[:, 0] + probability[:, 1])
-        mirror = pick >= probability[:, 0] + probability[:, 1]
-        wi = cosine_hemisphere(u1, u2, ns)
-        if glossy.any():
-            wi[glossy] = blinn_phong_lobe(
-                u1[glossy], u2[glossy], ns[glossy], wo[glossy], shininess[glossy]
-            )
-        wi[mirror] = 2.0 * dot(wo[mirror], ns[mirror])[:, None] * ns[mirror] - wo[mirror]
-        pdf = np.where(mirror, probability[:, 2], self._pdf(probability, shininess, ns, wo, wi))
-        lobe_sum = probability.sum(axis=1)
-        go = (lobe_sum > 0) & (pdf > 0) & (dot(ng, wi) > 0)
-        throughput = s.throughput * self.lobes.reflectance[obj]
-        survive = np.ones(n)
-        if depth >= self.rr_depth:
-            survive = np.clip(throughput, MIN_SURVIVAL, MAX_SURVIVAL)
-            go &= uniform(self.seed, ids, bounce_dimension(depth, "roulette")) < survive
-        wi = unit(wi)
-        origins = s.points + offset * ng
-        prim, t, u, v = self.accelerator.closest_hit(origins, wi)
-        record.next[:] = np.where(go, np.where(mirror, MIRROR, AREA), STOP)
-        record.next_pdf[:] = np.where(go, pdf, 1.0)
-        record.survive[:] = survive
-        record.escape[:] = go & (prim < 0)
-        record.escape_dir[:] = wi
-        on = np.flatnonzero(go & (prim >= 0))
+    def _continue(self, record, s: _State, c):
+        """Trace the continuation rays of the paths that go on: the next state."""
+        prim, t, u, v = self.accelerator.closest_hit(c.origin, c.wi)
+        record.next[:] = np.where(c.go, np.where(c.mirror, MIRROR, AREA), STOP)
+        record.next_pdf[:] = np.where(c.go, c.pdf, 1.0)
+        record.survive[:] = c.survive
+        record.escape[:] = c.go & (prim < 0)
+        record.escape_dir[:] = c.wi
+        on = np.flatnonzero(c.go & (prim >= 0))
         if len(on) == 0:
             return None
-        points = origins[on] + t[on, None] * wi[on]
+        points = c.origin[on] + t[on, None] * c.wi[on]
         return _State(
-            s.rows[on], prim[on], self._local(prim[on], points, u[on], v[on]), points, wi[on],
-            np.where(mirror[on], MIRROR, AREA).astype(np.int8), pdf[on], s.points[on],
-            throughput[on],
+            s.rows[on], prim[on], self._local(prim[on], points, u[on], v[on]), points,
+            c.wi[on], np.where(c.mirror[on], MIRROR, AREA).astype(np.int8), c.pdf[on],
+            s.points[on], c.throughput[on],
         )  # fmt: skip
 
     # --- plain geometry --------------------------------------------------------------------
@@ -393,24 +356,6 @@ class PathSampler:
         det = np.where(det != 0, det, 1.0)
         u[on_tri], v[on_tri] = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
         return u, v
-
-    def _normals(self, prim, points, local) -> tuple[np.ndarray, np.ndarray]:
-        """Unit geometric and shading normals (k, 3) at hit points (not yet facing the
-        viewer): a smooth mesh's shading normal interpolates its vertex normals."""
-        ng = geometric_normals(self.primitives, prim, points)
-        ns = ng.copy()
-        obj = object_index_of(self.scene, prim)
-        for o, normals in self.normals.items():
-            rows = np.flatnonzero(obj == o)
-            faces = self.objects[o].faces[prim[rows] - self.first[o]]
-            u, v = local[rows, :1], local[rows, 1:2]
-            mixed = (
-                (1 - u - v) * normals[faces[:, 0]]
-                + u * normals[faces[:, 1]]
-                + v * normals[faces[:, 2]]
-            )
-            ns[rows] = unit(mixed)
-        return ng, ns
 
 
 @dataclass

@@ -411,6 +411,22 @@ def test_integer_constant_powers_are_products_within_ulps_of_pow(exponent):
         assert ulps.max() <= exponent + 1
 
 
+def test_a_float_compared_with_an_integer_is_compared_as_numpy_compares_them():
+    """``z >= 0`` (an integer constant) and an integer array against a float: f64
+    comparisons, as NumPy makes them (the generator once compared an f64 as an i64)."""
+
+    def f(z, k):
+        return md.where(z >= 0, z, -2.0 * z) + md.where(k > 0.5, 1.0, 0.0) + md.where(
+            z < k, 10.0, 0.0
+        )
+
+    z = np.array([-1.5, -0.0, 0.0, 0.25, 2.0, np.nan])
+    k = np.array([0, 1, 2, 0, 3, 1], np.int64)
+    expected = f(z, k).data
+    np.testing.assert_array_equal(md.compile(f)(z, k).data, expected)
+    np.testing.assert_array_equal(expected, [13.0, 11.0, 11.0, 0.25, 13.0, np.nan])
+
+
 def test_other_powers_call_pow():
     """A non-integer or larger constant exponent, or one known only when the kernel runs,
     stays ``pow``, NumPy's function."""

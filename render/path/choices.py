@@ -1,0 +1,261 @@
+"""What a path does at a vertex, computed by one compiled function per depth.
+
+``render.path.tracer.PathSampler`` walks a batch of paths one depth at a time. At each
+depth the discrete work stays where it is done best (the random numbers' hash, picking an
+emitter from its table, the BVH's rays, the lights' own shadow rays); everything continuous
+in between is ``vertex_choices``, written once on minidiff arrays with the formulas of
+``render.path.sampling`` and compiled by ``minidiff.compile`` into one fused loop over the
+paths (no array between the steps, parallel, the same bits on any number of threads):
+
+* the vertex's geometric and shading normals, turned to face the path (two-sided);
+* the multiple importance sampling (MIS) weight of the emission seen there;
+* next-event estimation: a uniform point on the emitter drawn outside, its direction and
+  the MIS weight of that strategy (the shadow ray is traced afterwards);
+* continuation: a lobe (diffuse, Blinn-Phong or mirror) chosen by a uniform number, a
+  direction drawn from it, its density, Russian roulette.
+
+The tables are one ``Geometry`` per sampler: every triangle's corners and (for smooth
+meshes) corner normals, the spheres' centres and radii.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+import minidiff as md
+from render.path.sampling import (
+    blinn_phong_lobe,
+    blinn_phong_pdf,
+    cosine_hemisphere,
+    cosine_pdf,
+    normalized,
+    power_heuristic,
+    sphere_direction,
+    triangle_point,
+)
+
+#: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
+#: at least MIN_SURVIVAL.
+MIN_SURVIVAL, MAX_SURVIVAL = 0.05, 0.95
+
+
+@dataclass
+class Geometry:
+    """The scene's primitives as the compiled choices read them (plain float64 tables,
+    each at least one row so that a scene without triangles or spheres still gathers):
+    corners (3,) of (T, 3) arrays, the triangles' corners a, b, c; corner_normals (3,) of
+    (T, 3), their vertex normals (zero for a flat mesh); smooth (T,) bool; centers (S, 3)
+    and radii (S,); n_tri T the number of real triangles."""
+
+    corners: tuple
+    corner_normals: tuple
+    smooth: np.ndarray
+    centers: np.ndarray
+    radii: np.ndarray
+    n_tri: int
+
+    @classmethod
+    def of(cls, primitives, objects, first: np.ndarray, normals: dict) -> Geometry:
+        """From ``scene_primitives``' (triangles, centres, radii), the objects in primitive
+        order with their first primitive ids, and the vertex normals of the smooth meshes
+        (``{object index: (V, 3)}``)."""
+        triangles, centers, radii = primitives
+        n_tri = len(triangles)
+        corner_normals = np.zeros((max(n_tri, 1), 3, 3))
+        smooth = np.zeros(max(n_tri, 1), bool)
+        for o, vertex_normals in normals.items():
+            faces = objects[o].faces
+            rows = slice(first[o], first[o] + len(faces))
+            corner_normals[rows] = vertex_normals[faces]
+            smooth[rows] = True
+        corners = np.zeros((max(n_tri, 1), 3, 3))
+        corners[:n_tri] = triangles
+        return cls(
+            tuple(np.ascontiguousarray(corners[:, i], np.float64) for i in range(3)),
+            tuple(np.ascontiguousarray(corner_normals[:, i]) for i in range(3)),
+            smooth,
+            np.ascontiguousarray(centers if len(centers) else np.zeros((1, 3)), np.float64),
+            np.ascontiguousarray(radii if len(radii) else np.ones(1), np.float64),
+            n_tri,
+        )
+
+    def rows(self, prims: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(triangle row, sphere row, on a sphere) per primitive id (k,): each row valid
+        (0 where the primitive is of the other kind)."""
+        on_sphere = prims >= self.n_tri
+        return (
+            np.where(on_sphere, 0, prims),
+            np.where(on_sphere, prims - self.n_tri, 0),
+            on_sphere,
+        )
+
+
+def _column(x):
+    return md.reshape(x, (-1, 1))
+
+
+def _pick(condition, a, b):
+    """Rows of a where ``condition`` (k,), else of b: (k, 3) vectors."""
+    return md.where(_column(condition), a, b)
+
+
+def _geometric_normal(tri, sph, on_sphere, points, a, b, c, centers):
+    """``render.shade.surface.geometric_normals``: a triangle's unit (b - a) x (c - a), a
+    sphere's unit outward normal at ``points``."""
+    face = md.cross(b[tri] - a[tri], c[tri] - a[tri])
+    return normalized(_pick(on_sphere, points - centers[sph], face))
+
+
+def _lobe_pdf(probability, shininess, ns, wo, wi):
+    """(k,) the density per steradian of the diffuse-or-glossy choice at directions wi."""
+    return probability[:, 0] * cosine_pdf(ns, wi) + probability[:, 1] * blinn_phong_pdf(
+        ns, wo, wi, shininess
+    )
+
+
+@md.compile(shared=("corners", "corner_normals", "smooth", "centers", "radii", "offset"))
+def _choices(here, path, material, nee, numbers, corners, corner_normals, smooth, centers,
+             radii, offset, form):  # fmt: skip
+    """The choices of k paths at their vertex (module docstring), all (k, ...) float64.
+
+    here: (triangle row, sphere row, on a sphere, local (k, 3)) the vertex's primitive and
+    its coordinates on it; path: (point, incoming unit direction, reached by a sampled
+    direction (bool), that direction's density, previous point, Russian roulette's
+    throughput estimate); material: (lobe probabilities (k, 3), shininess, mean
+    reflectance); nee: (the emitter's rows as ``here``'s first three, its picking
+    probability, its area, whether it is another primitive than the vertex's, NEE's area
+    density at the vertex's own primitive); numbers: (emitter point u1, u2, direction u1,
+    u2, lobe, roulette). Shared: the ``Geometry`` tables; offset (): how far above the
+    surface the rays start. Static form: (whether the scene has emitters, whether this is
+    the last vertex (only the normal and the emission weight), whether Russian roulette
+    plays here).
+
+    Returns (ng, emit_weight (with emitters), origin) at the last vertex; else also, with
+    emitters, (nee_local, nee_point, nee_ok, nee_weight), then (wi, pdf, mirror, go,
+    throughput, survive (with roulette)): flags as 0.0 / 1.0."""
+    has_emitters, last, roulette = form
+    tri, sph, on_sphere, local = here
+    points, incoming, by_area, pdf, previous, throughput = path
+    a, b, c = corners
+    ng = _geometric_normal(tri, sph, on_sphere, points, a, b, c, centers)
+    u, v = _column(local[:, 0]), _column(local[:, 1])
+    na, nb, nc = corner_normals
+    mixed = normalized((1.0 - u - v) * na[tri] + u * nb[tri] + v * nc[tri])
+    ns = _pick(smooth[tri] & ~on_sphere, mixed, ng)
+    wo = -incoming
+    side = _column(md.where(md.dot(ng, wo) < 0, -1.0, 1.0))  # two-sided: face the viewer
+    ng, ns = side * ng, side * ns
+    outputs = (ng,)
+    e_tri, e_sph, e_on_sphere, e_probability, e_area, e_other, p_here = nee
+
+    # The emission seen here, if reached by a sampled direction: MIS against NEE's density
+    # of the same point, both in area measure.
+    if has_emitters:
+        to = points - previous
+        d2 = md.dot(to, to)
+        cos = md.abs(md.dot(ng, to)) / md.sqrt(md.where(d2 > 0, d2, 1.0))
+        p_bsdf = pdf * cos / md.where(d2 > 0, d2, 1.0)
+        weight = md.where(p_here > 0, power_heuristic(p_bsdf, p_here), 1.0)
+        outputs += (md.where(by_area, weight, 1.0),)
+    outputs += (points + offset * ng,)  # where rays leaving the vertex start
+    if last:
+        return outputs
+    probability, shininess, reflectance = material
+    e_u1, e_u2, u1, u2, u_lobe, u_roulette = numbers
+
+    if has_emitters:  # a uniform point on the picked emitter, and NEE's MIS weight
+        uv = triangle_point(e_u1, e_u2)
+        ball = sphere_direction(e_u1, e_u2)
+        e_on = _column(e_on_sphere)
+        nee_local = md.where(e_on, ball, md.concatenate([uv, 0.0 * uv[:, :1]], axis=1))
+        e_a = a[e_tri]
+        on_triangle = e_a + uv[:, 0:1] * (b[e_tri] - e_a) + uv[:, 1:2] * (c[e_tri] - e_a)
+        z = md.where(e_on, centers[e_sph] + _column(radii[e_sph]) * ball, on_triangle)
+        nz = _geometric_normal(e_tri, e_sph, e_on_sphere, z, a, b, c, centers)
+        to = z - points
+        d2 = md.dot(to, to)
+        wi = to / _column(md.sqrt(md.where(d2 > 0, d2, 1.0)))
+        cos_z = -md.dot(nz, wi)
+        ok = (probability[:, 0] + probability[:, 1] > 0) & (cos_z > 0) & (md.dot(ng, wi) > 0)
+        ok = ok & (d2 > 0) & e_other
+        p_nee = e_probability / e_area
+        p_bsdf = _lobe_pdf(probability, shininess, ns, wo, wi) * cos_z / md.where(d2 > 0, d2, 1.0)
+        weight = power_heuristic(p_nee, p_bsdf) / e_probability
+        outputs += (nee_local, z, md.where(ok, 1.0, 0.0), weight)
+
+    # Continuation: a lobe, a direction from it, its density, Russian roulette.
+    glossy = (u_lobe >= probability[:, 0]) & (u_lobe < probability[:, 0] + probability[:, 1])
+    mirror = u_lobe >= probability[:, 0] + probability[:, 1]
+    wi = cosine_hemisphere(u1, u2, ns)
+    wi = _pick(glossy, blinn_phong_lobe(u1, u2, ns, wo, shininess), wi)
+    wi = _pick(mirror, 2.0 * _column(md.dot(wo, ns)) * ns - wo, wi)
+    pdf = md.where(mirror, probability[:, 2], _lobe_pdf(probability, shininess, ns, wo, wi))
+    lobe_sum = probability[:, 0] + probability[:, 1] + probability[:, 2]
+    go = (lobe_sum > 0) & (pdf > 0) & (md.dot(ng, wi) > 0)
+    throughput = throughput * reflectance
+    outputs += (normalized(wi), pdf, md.where(mirror, 1.0, 0.0))
+    if roulette:
+        survive = md.clip(throughput, MIN_SURVIVAL, MAX_SURVIVAL)
+        go = go & (u_roulette < survive)
+        return (*outputs, md.where(go, 1.0, 0.0), throughput, survive)
+    return (*outputs, md.where(go, 1.0, 0.0), throughput)
+
+
+@dataclass
+class Choices:
+    """``_choices``' outputs for k paths, as plain arrays: ng (k, 3) the facing geometric
+    normal; emit_weight (k,); origin (k, 3) where rays leaving the vertex start; NEE:
+    nee_local (k, 3), nee_point (k, 3), nee_ok (k,) bool (before its shadow ray),
+    nee_weight (k,); continuation: wi (k, 3) unit, pdf (k,), mirror (k,) bool, go (k,) bool
+    (before its ray), throughput (k,), survive (k,). Fields a vertex does not compute are
+    None (NEE without emitters, continuation at the last vertex); emit_weight and survive
+    are ones where they do not apply."""
+
+    ng: np.ndarray
+    emit_weight: np.ndarray
+    origin: np.ndarray
+    nee_local: np.ndarray | None = None
+    nee_point: np.ndarray | None = None
+    nee_ok: np.ndarray | None = None
+    nee_weight: np.ndarray | None = None
+    wi: np.ndarray | None = None
+    pdf: np.ndarray | None = None
+    mirror: np.ndarray | None = None
+    go: np.ndarray | None = None
+    throughput: np.ndarray | None = None
+    survive: np.ndarray | None = None
+
+
+def vertex_choices(geometry: Geometry, here, path, material, nee, numbers, offset: float,
+                   form: tuple) -> Choices:  # fmt: skip
+    """``_choices`` on plain arrays (its arguments, but ``here`` = (primitive ids (k,),
+    local (k, 3)) and ``nee`` = (the emitters' primitive ids, picking probabilities,
+    areas, whether each is another primitive than the vertex's, NEE's area density at the
+    vertex's own primitive), or None without emitters; ``numbers`` None at the last
+    vertex)."""
+    has_emitters, last, roulette = form
+    prims, local = here
+    n = len(prims)
+    ones = np.ones(n)
+    if nee is None:
+        nee = (np.zeros(n, np.int64), ones, ones, np.zeros(n, bool), ones)
+    e_prims, *rest = nee
+    data = [md.as_tensor(out).data for out in _choices(
+        (*geometry.rows(prims), local), path, material, (*geometry.rows(e_prims), *rest),
+        numbers if numbers is not None else (ones,) * 6,
+        geometry.corners, geometry.corner_normals, geometry.smooth, geometry.centers,
+        geometry.radii, np.asarray(offset, np.float64), form,
+    )]  # fmt: skip
+    ng, emit_weight = data.pop(0), (data.pop(0) if has_emitters else ones)
+    found = Choices(ng, emit_weight, data.pop(0))
+    if last:
+        return found
+    if has_emitters:
+        found.nee_local, found.nee_point = data.pop(0), data.pop(0)
+        found.nee_ok, found.nee_weight = data.pop(0) > 0, data.pop(0)
+    found.wi, found.pdf, found.mirror = data.pop(0), data.pop(0), data.pop(0) > 0
+    found.go, found.throughput = data.pop(0) > 0, data.pop(0)
+    found.survive = data.pop(0) if roulette else ones
+    return found
