@@ -416,8 +416,8 @@ def test_a_float_compared_with_an_integer_is_compared_as_numpy_compares_them():
     comparisons, as NumPy makes them (the generator once compared an f64 as an i64)."""
 
     def f(z, k):
-        return md.where(z >= 0, z, -2.0 * z) + md.where(k > 0.5, 1.0, 0.0) + md.where(
-            z < k, 10.0, 0.0
+        return (
+            md.where(z >= 0, z, -2.0 * z) + md.where(k > 0.5, 1.0, 0.0) + md.where(z < k, 10.0, 0.0)
         )
 
     z = np.array([-1.5, -0.0, 0.0, 0.25, 2.0, np.nan])
