@@ -14,8 +14,9 @@ paths (no array between the steps, parallel, the same bits on any number of thre
 * continuation: a lobe (diffuse, Blinn-Phong or mirror) chosen by a uniform number, a
   direction drawn from it, its density, Russian roulette.
 
-The tables are one ``Geometry`` per sampler: every triangle's corners and (for smooth
-meshes) corner normals, the spheres' centres and radii.
+The scene is read as the path integrator's tables (``render.path.tables.Tables``): the
+meshes' vertices, vertex normals and faces, the spheres' centres and radii, which objects
+are smooth.
 """
 
 from __future__ import annotations
@@ -35,61 +36,11 @@ from render.path.sampling import (
     sphere_direction,
     triangle_point,
 )
+from render.path.tables import Tables
 
 #: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
 #: at least MIN_SURVIVAL.
 MIN_SURVIVAL, MAX_SURVIVAL = 0.05, 0.95
-
-
-@dataclass
-class Geometry:
-    """The scene's primitives as the compiled choices read them (plain float64 tables,
-    each at least one row so that a scene without triangles or spheres still gathers):
-    corners (3,) of (T, 3) arrays, the triangles' corners a, b, c; corner_normals (3,) of
-    (T, 3), their vertex normals (zero for a flat mesh); smooth (T,) bool; centers (S, 3)
-    and radii (S,); n_tri T the number of real triangles."""
-
-    corners: tuple
-    corner_normals: tuple
-    smooth: np.ndarray
-    centers: np.ndarray
-    radii: np.ndarray
-    n_tri: int
-
-    @classmethod
-    def of(cls, primitives, objects, first: np.ndarray, normals: dict) -> Geometry:
-        """From ``scene_primitives``' (triangles, centres, radii), the objects in primitive
-        order with their first primitive ids, and the vertex normals of the smooth meshes
-        (``{object index: (V, 3)}``)."""
-        triangles, centers, radii = primitives
-        n_tri = len(triangles)
-        corner_normals = np.zeros((max(n_tri, 1), 3, 3))
-        smooth = np.zeros(max(n_tri, 1), bool)
-        for o, vertex_normals in normals.items():
-            faces = objects[o].faces
-            rows = slice(first[o], first[o] + len(faces))
-            corner_normals[rows] = vertex_normals[faces]
-            smooth[rows] = True
-        corners = np.zeros((max(n_tri, 1), 3, 3))
-        corners[:n_tri] = triangles
-        return cls(
-            tuple(np.ascontiguousarray(corners[:, i], np.float64) for i in range(3)),
-            tuple(np.ascontiguousarray(corner_normals[:, i]) for i in range(3)),
-            smooth,
-            np.ascontiguousarray(centers if len(centers) else np.zeros((1, 3)), np.float64),
-            np.ascontiguousarray(radii if len(radii) else np.ones(1), np.float64),
-            n_tri,
-        )
-
-    def rows(self, prims: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(triangle row, sphere row, on a sphere) per primitive id (k,): each row valid
-        (0 where the primitive is of the other kind)."""
-        on_sphere = prims >= self.n_tri
-        return (
-            np.where(on_sphere, 0, prims),
-            np.where(on_sphere, prims - self.n_tri, 0),
-            on_sphere,
-        )
 
 
 def _column(x):
@@ -101,11 +52,17 @@ def _pick(condition, a, b):
     return md.where(_column(condition), a, b)
 
 
-def _geometric_normal(tri, sph, on_sphere, points, a, b, c, centers):
+def _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers):
     """``render.shade.surface.geometric_normals``: a triangle's unit (b - a) x (c - a), a
     sphere's unit outward normal at ``points``."""
-    face = md.cross(b[tri] - a[tri], c[tri] - a[tri])
-    return normalized(_pick(on_sphere, points - centers[sph], face))
+    a, b, c = _corners(vertices, faces, face)
+    return normalized(_pick(on_sphere, points - centers[sphere], md.cross(b - a, c - a)))
+
+
+def _corners(table, faces, face):
+    """The rows of ``table`` (V, 3) at the three corners of faces ``face`` (k,)."""
+    corner = faces[face]
+    return table[corner[:, 0]], table[corner[:, 1]], table[corner[:, 2]]
 
 
 def _lobe_pdf(probability, shininess, ns, wo, wi):
@@ -115,19 +72,20 @@ def _lobe_pdf(probability, shininess, ns, wo, wi):
     )
 
 
-@md.compile(shared=("corners", "corner_normals", "smooth", "centers", "radii", "offset"))
-def _choices(here, path, material, nee, numbers, corners, corner_normals, smooth, centers,
+@md.compile(shared=("vertices", "normals", "faces", "smooth", "centers", "radii", "offset"))
+def _choices(here, path, material, nee, numbers, vertices, normals, faces, smooth, centers,
              radii, offset, form):  # fmt: skip
     """The choices of k paths at their vertex (module docstring), all (k, ...) float64.
 
-    here: (triangle row, sphere row, on a sphere, local (k, 3)) the vertex's primitive and
-    its coordinates on it; path: (point, incoming unit direction, reached by a sampled
+    here: (face, sphere, on a sphere, object, local (k, 3)) the vertex's primitive and its
+    coordinates on it (``Tables.role``); path: (point, incoming unit direction, reached by a sampled
     direction (bool), that direction's density, previous point, Russian roulette's
     throughput estimate); material: (lobe probabilities (k, 3), shininess, mean
-    reflectance); nee: (the emitter's rows as ``here``'s first three, its picking
+    reflectance); nee: (the emitter's role as ``here``'s first three, its picking
     probability, its area, whether it is another primitive than the vertex's, NEE's area
     density at the vertex's own primitive); numbers: (emitter point u1, u2, direction u1,
-    u2, lobe, roulette). Shared: the ``Geometry`` tables; offset (): how far above the
+    u2, lobe, roulette). Shared: the ``Tables``' meshes and spheres (at least one row each);
+    offset (): how far above the
     surface the rays start. Static form: (whether the scene has emitters, whether this is
     the last vertex (only the normal and the emission weight), whether Russian roulette
     plays here).
@@ -136,19 +94,17 @@ def _choices(here, path, material, nee, numbers, corners, corner_normals, smooth
     emitters, (nee_local, nee_point, nee_ok, nee_weight), then (wi, pdf, mirror, go,
     throughput, survive (with roulette)): flags as 0.0 / 1.0."""
     has_emitters, last, roulette = form
-    tri, sph, on_sphere, local = here
+    face, sphere, on_sphere, obj, local = here
     points, incoming, by_area, pdf, previous, throughput = path
-    a, b, c = corners
-    ng = _geometric_normal(tri, sph, on_sphere, points, a, b, c, centers)
+    ng = _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers)
     u, v = _column(local[:, 0]), _column(local[:, 1])
-    na, nb, nc = corner_normals
-    mixed = normalized((1.0 - u - v) * na[tri] + u * nb[tri] + v * nc[tri])
-    ns = _pick(smooth[tri] & ~on_sphere, mixed, ng)
+    na, nb, nc = _corners(normals, faces, face)
+    ns = _pick(smooth[obj] & ~on_sphere, normalized((1.0 - u - v) * na + u * nb + v * nc), ng)
     wo = -incoming
     side = _column(md.where(md.dot(ng, wo) < 0, -1.0, 1.0))  # two-sided: face the viewer
     ng, ns = side * ng, side * ns
     outputs = (ng,)
-    e_tri, e_sph, e_on_sphere, e_probability, e_area, e_other, p_here = nee
+    e_face, e_sphere, e_on_sphere, e_probability, e_area, e_other, p_here = nee
 
     # The emission seen here, if reached by a sampled direction: MIS against NEE's density
     # of the same point, both in area measure.
@@ -170,10 +126,10 @@ def _choices(here, path, material, nee, numbers, corners, corner_normals, smooth
         ball = sphere_direction(e_u1, e_u2)
         e_on = _column(e_on_sphere)
         nee_local = md.where(e_on, ball, md.concatenate([uv, 0.0 * uv[:, :1]], axis=1))
-        e_a = a[e_tri]
-        on_triangle = e_a + uv[:, 0:1] * (b[e_tri] - e_a) + uv[:, 1:2] * (c[e_tri] - e_a)
-        z = md.where(e_on, centers[e_sph] + _column(radii[e_sph]) * ball, on_triangle)
-        nz = _geometric_normal(e_tri, e_sph, e_on_sphere, z, a, b, c, centers)
+        a, b, c = _corners(vertices, faces, e_face)
+        on_triangle = a + uv[:, 0:1] * (b - a) + uv[:, 1:2] * (c - a)
+        z = md.where(e_on, centers[e_sphere] + _column(radii[e_sphere]) * ball, on_triangle)
+        nz = _geometric_normal(e_face, e_sphere, e_on_sphere, z, vertices, faces, centers)
         to = z - points
         d2 = md.dot(to, to)
         wi = to / _column(md.sqrt(md.where(d2 > 0, d2, 1.0)))
@@ -228,25 +184,26 @@ class Choices:
     survive: np.ndarray | None = None
 
 
-def vertex_choices(geometry: Geometry, here, path, material, nee, numbers, offset: float,
+def vertex_choices(tables: Tables, here, path, material, nee, numbers, offset: float,
                    form: tuple) -> Choices:  # fmt: skip
     """``_choices`` on plain arrays (its arguments, but ``here`` = (primitive ids (k,),
     local (k, 3)) and ``nee`` = (the emitters' primitive ids, picking probabilities,
     areas, whether each is another primitive than the vertex's, NEE's area density at the
     vertex's own primitive), or None without emitters; ``numbers`` None at the last
-    vertex)."""
+    vertex); ``tables`` plain (built under ``no_grad``)."""
     has_emitters, last, roulette = form
     prims, local = here
     n = len(prims)
     ones = np.ones(n)
     if nee is None:
-        nee = (np.zeros(n, np.int64), ones, ones, np.zeros(n, bool), ones)
+        nee = (prims, ones, ones, np.zeros(n, bool), ones)
     e_prims, *rest = nee
-    data = [md.as_tensor(out).data for out in _choices(
-        (*geometry.rows(prims), local), path, material, (*geometry.rows(e_prims), *rest),
-        numbers if numbers is not None else (ones,) * 6,
-        geometry.corners, geometry.corner_normals, geometry.smooth, geometry.centers,
-        geometry.radii, np.asarray(offset, np.float64), form,
+    path = tuple(np.asarray(x, np.float64) if x.dtype.kind == "f" else x for x in path)
+    here = _role(tables, prims, np.asarray(local, np.float64))
+    data = [md.as_tensor(out).data for out in _choices(  # plain in, plain out (tape_only)
+        here, path, material, (*_role(tables, e_prims)[:3], *rest),
+        numbers if numbers is not None else (ones,) * 6, *_padded(tables),
+        np.asarray(offset, np.float64), form,
     )]  # fmt: skip
     ng, emit_weight = data.pop(0), (data.pop(0) if has_emitters else ones)
     found = Choices(ng, emit_weight, data.pop(0))
@@ -259,3 +216,25 @@ def vertex_choices(geometry: Geometry, here, path, material, nee, numbers, offse
     found.go, found.throughput = data.pop(0) > 0, data.pop(0)
     found.survive = data.pop(0) if roulette else ones
     return found
+
+
+def _role(tables: Tables, prims: np.ndarray, local: np.ndarray | None = None) -> tuple:
+    """``Tables.role`` with a row 0 where the scene has no face or no sphere (``_padded``)."""
+    face, sphere, on_sphere, obj, local = tables.role(prims, local)
+    zero = np.zeros(len(prims), np.int64)
+    return (zero if face is None else face, zero if sphere is None else sphere, on_sphere, obj,
+            local)  # fmt: skip
+
+
+def _padded(tables: Tables) -> tuple:
+    """The tables ``_choices`` reads, plain, with one harmless row where the scene has no
+    mesh or no sphere: (vertices, normals, faces, smooth, centres, radii)."""
+    none = tables.faces is None
+    vertices = np.zeros((1, 3)) if none else tables.vertices.data
+    normals = np.zeros((1, 3)) if none else tables.normals.data
+    faces = np.zeros((1, 3), np.int64) if none else tables.faces
+    centers = np.zeros((1, 3)) if tables.centers is None else tables.centers.data
+    radii = np.ones(1) if tables.radii is None else tables.radii.data
+    floats = (np.asarray(x, np.float64) for x in (vertices, normals, centers, radii))
+    vertices, normals, centers, radii = floats  # a float32 scene's, in double precision
+    return vertices, normals, faces, tables.smooth, centers, radii

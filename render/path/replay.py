@@ -51,6 +51,7 @@ import numpy as np
 
 import minidiff as md
 from render.path import window
+from render.path.tables import Tables
 from render.path.tracer import AREA, CAMERA, MIRROR, PathBatch, PathSampler, Vertices
 from render.path.transport import Vertex, _at_vertex, vertex_on_tape, viewer_side
 from render.scene.camera import ray_directions
@@ -250,7 +251,7 @@ class _Paths:
     batch: PathBatch
     vertices: list[Vertices]
     dtype: np.dtype
-    tables: window.Tables | None  # the scene's tables when the windows are compiled
+    tables: Tables | None  # the scene's tables when the windows are compiled
 
     @classmethod
     def of(cls, world, frame, sampler: PathSampler, batch: PathBatch) -> _Paths:
@@ -258,7 +259,7 @@ class _Paths:
         reaches), with the scene's tables where the windows compile (``window.applies``)."""
         dtype = np.result_type(*[t.dtype for t in world.parameters()])
         vertices = [v for v in batch.vertices if len(v.rows)]
-        tables = window.Tables.of(world, frame) if window.applies(world, batch) else None
+        tables = Tables.of(world, frame) if window.applies(world, batch) else None
         return cls(world, frame, sampler, batch, vertices, dtype, tables)
 
 

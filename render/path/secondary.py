@@ -63,6 +63,7 @@ from render.path.random import bounce_dimension, uniform
 from render.path.replay import radiance_of
 from render.path.sampling import dot, unit
 from render.path.silhouettes import CONTACT, Curves, level_set
+from render.path.tables import Tables
 from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.transport import next_vertex, vertex_on_tape, viewer_side
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
@@ -195,7 +196,7 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
     else:
         batch = sampler.sample(paths)
     points = _points(sampler, batch)
-    tables = window.Tables.of(world, frame, leaves=False)  # what phi reads, on this tape
+    tables = Tables.of(world, frame, leaves=False)  # what phi reads, on this tape
     values, pixels = [], []
     for k in range(1, min(len(batch.vertices), sampler.max_depth - 1) + 1):
         for term in _terms_at(sampler, curves, batch, points, k, world, frame, tables):
@@ -521,7 +522,7 @@ def _compiles(world) -> bool:
     return all(t.dtype == np.float64 for t in world.parameters())
 
 
-def _curve_rows(tables: window.Tables, curves: Curves, index: np.ndarray) -> tuple:
+def _curve_rows(tables: Tables, curves: Curves, index: np.ndarray) -> tuple:
     """Of curves ``index`` (m,): each edge's endpoints as rows of ``tables.vertices`` (two
     (m,) int64), each sphere's row of ``tables.centers`` (m,) and which are edges (m,) bool
     (0 in the rows of the other kind: a harmless value, never selected)."""
@@ -536,7 +537,7 @@ def _curve_rows(tables: window.Tables, curves: Curves, index: np.ndarray) -> tup
     return start, end, ball, is_edge
 
 
-def _phi(tables: window.Tables, curves: Curves, index, apex, far) -> md.Tensor:
+def _phi(tables: Tables, curves: Curves, index, apex, far) -> md.Tensor:
     """(m,) on the tape: phi of curves ``index`` (m,) seen from ``apex`` (m, 3) at the points
     ``far`` (m, 3), the curves read from ``tables``."""
     curve = _curve_rows(tables, curves, index)
@@ -556,7 +557,7 @@ def _phi_of(apex, far, curve, vertices, centers, radii) -> md.Tensor:
     return level_set(apex, far, a, b, centre, radius, is_edge)
 
 
-def _level_sets(tables: window.Tables, curves: Curves, index, apex, here, there, kinds):
+def _level_sets(tables: Tables, curves: Curves, index, apex, here, there, kinds):
     """(m,) on the tape: phi of curves ``index`` (m,) at x' seen from the apex, compiled
     (``_compiled_phi``). The apex: a light's, ``apex`` (3,), or the vertices ``here``; x':
     ``there``; each of those (prim (m,), local (m, 3), the camera ray's image-plane point

@@ -36,15 +36,16 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.choices import Geometry, vertex_choices
+from render.path.choices import vertex_choices
 from render.path.emitters import Emitters
 from render.path.random import bounce_dimension, uniform
 from render.path.sampling import dot, unit
+from render.path.tables import Tables
 from render.scene.camera import camera_directions, plain_frame, to_image_plane
 from render.scene.scene import Mesh, Scene
 from render.shade.surface import geometric_normals, vertex_normals
 from render.trace.accel import Accelerator
-from render.trace.primitives import object_index_of, primitive_ranges, scene_primitives
+from render.trace.primitives import primitive_ranges, scene_primitives
 from render.trace.visibility import scene_size, shadow_offset, shadow_rays
 
 #: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
@@ -171,7 +172,8 @@ class PathSampler:
                     else vertex_normals(md.tensor(obj.vertices.data), obj.faces).data)
                 for o, obj in enumerate(self.objects) if isinstance(obj, Mesh) and obj.smooth
             }  # fmt: skip
-        self.geometry = Geometry.of(self.primitives, self.objects, self.first, self.normals)
+        with md.no_grad():  # the tables of the compiled choices, plain
+            self.tables = Tables.of(world, plain_frame(world.camera), leaves=False)
         self.frame = plain_frame(world.camera)
 
     def sample(self, paths: np.ndarray) -> PathBatch:
@@ -254,7 +256,7 @@ class PathSampler:
         ids = paths[s.rows]
         last = depth == self.max_depth
         has_emitters = len(self.emitters) > 0
-        obj = object_index_of(self.scene, s.prim)
+        obj = self.tables.owner[s.prim]
         material = (self.lobes.probability[obj], self.lobes.shininess[obj],
                     self.lobes.reflectance[obj])  # fmt: skip
         nee = numbers = None
@@ -279,7 +281,7 @@ class PathSampler:
         offset = shadow_offset(s.points, self.size)
         form = (has_emitters, last, depth >= self.rr_depth)
         c = vertex_choices(
-            self.geometry, (s.prim, s.local), path, material, nee, numbers, offset, form
+            self.tables, (s.prim, s.local), path, material, nee, numbers, offset, form
         )
         record = Vertices(
             s.rows, s.prim, s.local, s.form, c.emit_weight,

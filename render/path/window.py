@@ -17,11 +17,11 @@ that does not go on, has its terms multiplied by a zero weight, and the values t
 divide by are made safe first (``md.where`` twice), so that neither value nor gradient
 sees a NaN.
 
-The scene is read as tables shared by every path (``Tables``): all meshes' vertices, shading
-normals and faces concatenated (a primitive id is a row of the face table), and per object
-its material. They are built once per replay on the tape from the parameters, then handed
-to the windows as leaves whose gradients add up window after window; one last ``backward``
-carries them to the parameters (``Tables.carried``).
+The scene is read as tables shared by every path (``render.path.tables.Tables``): all
+meshes' vertices, shading normals and faces concatenated (a primitive id is a row of the
+face table), and per object its material. They are built once per replay on the tape from
+the parameters, then handed to the windows as leaves whose gradients add up window after
+window; one last ``backward`` carries them to the parameters (``Tables.carried``).
 
 It applies (``applies``) to meshes without textures, no mirror bounce among the batch's
 paths, float64 and lights whose shading compiles; otherwise the windows take the tape.
@@ -35,17 +35,14 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from render.path.tables import Tables
 from render.path.tracer import CAMERA, MIRROR, PathBatch, Vertices
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere
-from render.shade.compiled import held_lights, light_arguments
-from render.shade.lighting import Appearance, _nonzero, brdf, light_contribution
-from render.shade.surface import column, surface_at, toward_ray, vertex_normals
-from render.trace.primitives import primitive_ranges
-
-#: The material's parameters a path reads, as per-object tables.
-MATERIAL_FIELDS = ("albedo", "specular", "shininess", "emission")
+from render.shade.compiled import held_lights
+from render.shade.lighting import Appearance, brdf, light_contribution
+from render.shade.surface import column, surface_at, toward_ray
 
 
 def applies(world: Scene, batch: PathBatch) -> bool:
@@ -59,132 +56,6 @@ def applies(world: Scene, batch: PathBatch) -> bool:
     if any(t.dtype != np.float64 for t in world.parameters()):
         return False
     return not any(np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in batch.vertices)
-
-
-@dataclass
-class Tables:
-    """The scene as every path reads it. Meshes: ``vertices`` (V, 3) and vertex ``normals``
-    (V, 3) of all of them (a flat mesh's rows are a constant, never used), ``faces`` (F, 3)
-    int64 with global vertex ids (row p is primitive p); spheres: ``centers`` (S, 3) and
-    ``radii`` (S,) (None without spheres); per object (``primitive_ranges``' order)
-    ``smooth`` (O,) bool and the materials' ``albedo``, ``specular``, ``emission`` (O, 3)
-    and ``shininess`` (O,); the lights' parameters and kinds, the environment and the camera
-    frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
-    computed from on the tape. Plain: ``owner`` (P,) the object of each primitive,
-    ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
-    ``inside`` (S,) whether the camera is inside each sphere, ``first_vertex`` (O,) each
-    mesh's first row of ``vertices``, ``glossy``."""
-
-    vertices: md.Tensor | None
-    normals: md.Tensor | None
-    faces: np.ndarray | None
-    centers: md.Tensor | None
-    radii: md.Tensor | None
-    smooth: np.ndarray
-    materials: tuple
-    lights: tuple
-    kinds: tuple
-    background: md.Tensor
-    frame: tuple
-    glossy: bool
-    owner: np.ndarray
-    n_triangles: int
-    spare_face: int
-    inside: np.ndarray
-    first_vertex: np.ndarray
-    built: list
-
-    @classmethod
-    def of(cls, world: Scene, frame: tuple, leaves: bool = True) -> Tables:
-        """The tables of ``world`` (the replay's leaf copies) and its camera ``frame``.
-        ``leaves`` False: the tables are on the caller's tape (nothing to carry), for one
-        ``backward`` through them."""
-        ranges = primitive_ranges(world)
-        objects = [obj for obj, _, _ in ranges]  # meshes first, then spheres
-        meshes = [obj for obj in objects if isinstance(obj, Mesh)]
-        spheres = [obj for obj in objects if not isinstance(obj, Mesh)]
-        built = []
-
-        def leaf(t):
-            """A leaf copy of ``t``; ``t`` kept for ``carried`` if it is differentiated."""
-            if not leaves:
-                return t
-            copy = md.tensor(t.data, requires_grad=t.requires_grad)
-            if t.requires_grad:
-                built.append((t, copy))
-            return copy
-
-        vertices = normals = faces = centers = radii = None
-        spare_face = 0
-        first_vertex = np.zeros(len(objects), np.int64)  # meshes come first
-        if meshes:
-            offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-            first_vertex[: len(meshes)] = offsets[:-1]
-            faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=False)])
-            vertices = leaf(md.concatenate([m.vertices for m in meshes]))
-            normals = leaf(md.concatenate([_normals(m) for m in meshes]))
-            a, b, c = (vertices.data[faces[:, i]] for i in range(3))
-            spare_face = int(np.argmax(np.linalg.norm(np.cross(b - a, c - a), axis=1)))
-        inside = np.zeros(0, bool)
-        if spheres:
-            centers = leaf(md.stack([s.center for s in spheres]))
-            radii = leaf(md.stack([s.radius for s in spheres]))
-            eye = frame[3].data if isinstance(frame[3], md.Tensor) else np.asarray(frame[3])
-            inside = np.linalg.norm(eye - centers.data, axis=1) < radii.data
-        columns = {
-            name: md.stack([md.broadcast_to(getattr(o.material, name), (3,)) for o in objects])
-            for name in ("albedo", "specular", "emission")
-        }
-        columns["shininess"] = md.stack([o.material.shininess for o in objects])
-        light_parameters, kinds = light_arguments(world.lights)
-        return cls(
-            vertices=vertices, normals=normals,
-            faces=None if faces is None else np.ascontiguousarray(faces, np.int64),
-            centers=centers, radii=radii,
-            smooth=np.array([isinstance(o, Mesh) and bool(o.smooth) for o in objects]),
-            materials=tuple(leaf(columns[name]) for name in MATERIAL_FIELDS),
-            lights=light_parameters, kinds=kinds,
-            background=world.background, frame=tuple(frame),
-            glossy=any(_nonzero(o.material.specular) for o in objects),
-            owner=np.repeat(np.arange(len(objects)), [count for _, _, count in ranges]),
-            n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
-            inside=inside, first_vertex=first_vertex, built=built,
-        )  # fmt: skip
-
-    def role(self, prims: np.ndarray, local: np.ndarray) -> tuple:
-        """What a compiled window reads of points on primitives ``prims`` (n,) at ``local``
-        (n, 3): (face (n,), sphere (n,), on a sphere (n,) bool, object (n,), local), face
-        and sphere None where the scene has none; a point on a sphere reads the spare face,
-        a point on a triangle sphere 0 (harmless values, never selected)."""
-        obj = self.owner[prims]
-        on_sphere = prims >= self.n_triangles
-        face = sphere = None
-        if self.faces is not None:
-            face = np.where(on_sphere, self.spare_face, prims)
-        if self.centers is not None:
-            sphere = np.where(on_sphere, prims - self.n_triangles, 0)
-        return face, sphere, on_sphere, obj, local
-
-    def far_side(self, role: tuple) -> np.ndarray | None:
-        """(n,) which camera rays meeting the points of ``role`` (``role``) meet a sphere's
-        far side, the camera being inside it (None without spheres)."""
-        if self.centers is None:
-            return None
-        _, sphere, on_sphere, _, _ = role
-        return on_sphere & self.inside[sphere]
-
-    def carried(self) -> list[md.Tensor]:
-        """The terms whose ``backward`` carries what the windows put into the leaves'
-        ``grad`` through the tape the tables were built on."""
-        return [md.sum(t * copy.grad) for t, copy in self.built if copy.grad is not None]
-
-
-def _normals(mesh: Mesh) -> md.Tensor:
-    """The vertex normals a mesh's shading reads: its own or computed (smooth), else a
-    constant unit vector (flat: ``where`` picks the geometric normal)."""
-    if not mesh.smooth:
-        return md.tensor(np.tile([0.0, 0.0, 1.0], (len(mesh.vertices.data), 1)))
-    return mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
 
 
 class CompiledWindow:
