@@ -19,7 +19,10 @@ medians) on each thread count (``numba.set_num_threads``, which the compiled ker
   (``render.path.window``) where they apply (here: everywhere);
 * ``light_position_secondary``: the light's position with ``antialias="secondary"``
   (the soft shadows' boundary term);
-* ``forward``: the image alone.
+* ``forward``: the image alone (the compiled kernel, ``render.path.kernel``);
+* ``sampler``: the reference sampler's decisions for the image's paths
+  (``PathSampler.sample``: the rays, and its compiled choices, ``render.path.choices``),
+  which the tape's gradient and the secondary term's continued paths use.
 
 Reported per row: the median (ms), its ratio to the albedo's on the same thread count
 (target: at most 1.5), the secondary row over the plain light-position row (target: at
@@ -37,7 +40,10 @@ import timing
 
 import minidiff as md
 from render.path import render_path
+from render.path.integrator import RR_DEPTH
+from render.path.tracer import PathSampler
 from render.scene.cornell import cornell_box
+from render.scene.placement import placed
 
 DEPTH = 4
 
@@ -70,9 +76,15 @@ def _rows(size: int, spp: int) -> dict:
         with md.no_grad():
             render_path(scene, spp=spp, max_depth=DEPTH, seed=0)
 
+    def sampler():
+        world = placed(cornell_box(size, size, blocks=True))
+        paths = np.arange(size * size * spp, dtype=np.int64)  # pixel * spp + sample
+        PathSampler(world, spp, DEPTH, RR_DEPTH, 0).sample(paths)
+
     rows = {name: gradient(name) for name in PARAMETERS}
     rows["light_position_secondary"] = gradient("light_position", "secondary")
     rows["forward"] = forward
+    rows["sampler"] = sampler
     return rows
 
 

@@ -53,6 +53,7 @@ from render.path.chain import (
 )
 from render.path.choices import MAX_SURVIVAL, MIN_SURVIVAL
 from render.path.packed import Packed, applies, pack
+from render.path.random import mix, uniform_of
 from render.path.scalar import (
     _DIRECTION,
     _EMITTER,
@@ -68,7 +69,6 @@ from render.path.scalar import (
     _dot,
     _local,
     _look,
-    _mix,
     _pdf,
     _placed,
     _point_on,
@@ -77,7 +77,6 @@ from render.path.scalar import (
     _reintersect,
     _surface,
     _to_world,
-    _uniform,
     _unit,
 )
 from render.path.tracer import (
@@ -141,10 +140,10 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     adjoint = grad.shape[0] > 0  # path replay: dC_k now, the rest into the chain
     g_light = _G_OBJECT * albedo.shape[0]  # where the lights' and the environment's are
     g_background = g_light + _G_LIGHT * light_kind.shape[0]
-    key = _mix(seed_key ^ np.uint64(path))
+    key = mix(seed_key ^ np.uint64(path))
     # The camera ray (PathSampler.sample, to_image_plane, camera_directions).
-    fx = px + _uniform(key, 0)
-    fy = py + _uniform(key, 1)
+    fx = px + uniform_of(key, 0)
+    fy = py + uniform_of(key, 1)
     x, y = 2.0 * fx / width - 1.0, 1.0 - 2.0 * fy / height
     d = (x * right[0] + y * up[0] + forward[0], x * right[1] + y * up[1] + forward[1],
          x * right[2] + y * up[2] + forward[2])  # fmt: skip
@@ -230,12 +229,12 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         ignore = prim if prim < n_tri else -1
         # Next-event estimation: one point on the area lights (PathSampler._next_event).
         if n_emit > 0:
-            pick = np.searchsorted(e_cdf, _uniform(key, _dim(depth, _EMITTER)) * e_cdf[-1],
+            pick = np.searchsorted(e_cdf, uniform_of(key, _dim(depth, _EMITTER)) * e_cdf[-1],
                                    side="right")  # fmt: skip
             pick = min(pick, n_emit - 1)
             e_prim = e_prims[pick]
-            u1 = _uniform(key, _dim(depth, _EMITTER_POINT))
-            u2 = _uniform(key, _dim(depth, _EMITTER_POINT) + 1)
+            u1 = uniform_of(key, _dim(depth, _EMITTER_POINT))
+            u2 = uniform_of(key, _dim(depth, _EMITTER_POINT) + 1)
             e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
             if kept:  # recorded whether or not it is seen, as the sampler does
                 _put(rec_f, depth - 1, row, _F_NEE_LOCAL, e_local)
@@ -328,9 +327,9 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                         grad[g] += delta[c] * beta[c] * per_strength * f[c] * light_color[j, c]
                         grad[g + 1 + c] += delta[c] * beta[c] * scalar * f[c]
         # How the path goes on (PathSampler._continue).
-        u1 = _uniform(key, _dim(depth, _DIRECTION))
-        u2 = _uniform(key, _dim(depth, _DIRECTION) + 1)
-        pick_lobe = _uniform(key, _dim(depth, _LOBE))
+        u1 = uniform_of(key, _dim(depth, _DIRECTION))
+        u2 = uniform_of(key, _dim(depth, _DIRECTION) + 1)
+        pick_lobe = uniform_of(key, _dim(depth, _LOBE))
         mirror = pick_lobe >= p_d + p_g
         if mirror:
             c2 = 2.0 * _dot(wo, ns)
@@ -354,7 +353,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         survive = 1.0
         if depth >= rr_depth:
             survive = min(max(estimate, MIN_SURVIVAL), MAX_SURVIVAL)
-            go = go and _uniform(key, _dim(depth, _ROULETTE)) < survive
+            go = go and uniform_of(key, _dim(depth, _ROULETTE)) < survive
         wi = _divided(wi[0], wi[1], wi[2])
         if kept:
             rec_f[depth - 1, row, _F_SURVIVE] = survive
@@ -502,7 +501,7 @@ def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, out, r
     n_blocks = (n + BLOCK - 1) // BLOCK
     replay = grads.shape[1] > 0
     n_jobs = np.int64(grads.shape[0] if replay else min(n_blocks, CHUNKS))
-    seed_key = _mix(np.uint64(seed))
+    seed_key = mix(np.uint64(seed))
     for job in numba.prange(n_jobs):
         stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
         grad = grads[np.int64(job) if replay else 0]  # (0,) when there is no replay

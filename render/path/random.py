@@ -14,6 +14,7 @@ fold in the three integers; its outputs pass BigCrush, far more than a renderer 
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 #: Dimensions 0 and 1 place the camera ray in its pixel; bounce k (k = 1, 2, ...) uses
@@ -31,24 +32,42 @@ BOUNCE_DIMENSIONS = {
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
 _M2 = np.uint64(0x94D049BB133111EB)
+_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
 
 
-def _mix(z: np.ndarray) -> np.ndarray:
-    """SplitMix64's step on uint64 arrays (wrapping arithmetic, as intended)."""
+# The hash is discrete work, written once for Numba: the kernels that trace whole paths
+# (``render.path.kernel``) inline these two, and ``uniform`` runs them over arrays.
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def mix(z):
+    """SplitMix64's step on a uint64 (wrapping arithmetic, as intended)."""
     z = z + _GOLDEN
-    z = (z ^ (z >> np.uint64(30))) * _M1
-    z = (z ^ (z >> np.uint64(27))) * _M2
-    return z ^ (z >> np.uint64(31))
+    z = (z ^ (z >> _S30)) * _M1
+    z = (z ^ (z >> _S27)) * _M2
+    return z ^ (z >> _S31)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def uniform_of(key, dimension):
+    """The random number of one path for one ``dimension``, given its key =
+    mix(mix(seed) ^ path id): 53 random bits as a float64 in [0, 1)."""
+    z = mix(key ^ np.uint64(dimension))
+    return np.float64(z >> _S11) * (1.0 / 9007199254740992.0)
+
+
+@numba.njit(cache=True, error_model="numpy", parallel=True)
+def _uniforms(seed, paths, dimension, out):
+    seed_key = mix(np.uint64(seed))
+    for i in numba.prange(paths.shape[0]):
+        out[i] = uniform_of(mix(seed_key ^ np.uint64(paths[i])), dimension)
 
 
 def uniform(seed: int, paths: np.ndarray, dimension: int) -> np.ndarray:
     """(n,) float64 in [0, 1): the random number of each path id in ``paths`` (n,) for one
     ``dimension``, under ``seed``. 53 random bits each (the float64 mantissa)."""
-    with np.errstate(over="ignore"):
-        key = _mix(np.full(1, seed, np.uint64))
-        key = _mix(key ^ np.asarray(paths, np.uint64))
-        key = _mix(key ^ np.uint64(dimension))
-    return (key >> np.uint64(11)).astype(np.float64) * (1.0 / 9007199254740992.0)
+    paths = np.ascontiguousarray(paths, np.uint64)
+    out = np.empty(len(paths))
+    _uniforms(np.uint64(seed), paths, np.uint64(dimension), out)
+    return out
 
 
 def bounce_dimension(bounce: int, name: str) -> int:

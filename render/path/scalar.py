@@ -58,28 +58,7 @@ def _unit(x0, x1, x2):
     return x0 * inv, x1 * inv, x2 * inv
 
 
-# --- random numbers: render.path.random.uniform for one path and dimension ------------------
-
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-_S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _mix(z):
-    z = z + _GOLDEN
-    z = (z ^ (z >> _S30)) * _M1
-    z = (z ^ (z >> _S27)) * _M2
-    return z ^ (z >> _S31)
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _uniform(key, dimension):
-    """``uniform(seed, path, dimension)`` given key = mix(mix(seed) ^ path)."""
-    z = _mix(key ^ np.uint64(dimension))
-    return np.float64(z >> _S11) * (1.0 / 9007199254740992.0)
-
+# --- random numbers: render.path.random's hash for one path and dimension -------------------
 
 _LOBE = BOUNCE_DIMENSIONS["lobe"]
 _DIRECTION = BOUNCE_DIMENSIONS["direction"]
