@@ -8,9 +8,8 @@ estimation with its shadow ray, point and directional lights, multiple importanc
 Russian roulette, and the radiance each path carries.
 
 It makes the same decisions as the sampler, from the same random numbers
-(``render.path.random``: a hash of seed, path id and dimension, written here for Numba with
-the same bits), and computes the same radiance, up to the order of floating-point
-operations. Two uses:
+(``render.path.random``'s hash of seed, path id and dimension, inlined), and computes the
+same radiance, up to the order of floating-point operations. Two uses:
 
 * ``render_image``: the image, when nothing is differentiated (a forward render). Each
   pixel's samples are summed in sample order, so the image is the same bit for bit on any

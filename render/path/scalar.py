@@ -1,9 +1,9 @@
-"""The compiled path tracer's per-path arithmetic (Numba, one path at a time): random
-numbers, vectors, the sampling densities, the BRDF, the surface at a hit, the textures, and
-the two ray queries. Each function is the scalar twin of a NumPy or tape function named in
-its docstring (``render.path.random``, ``render.path.sampling``, ``render.path.tracer``,
-``render.shade.lighting``, ``render.shade.surface``), the same formula in the same order of
-operations where the order matters.
+"""The compiled path tracer's per-path arithmetic (Numba, one path at a time): vectors, the
+sampling densities, the BRDF, the surface at a hit, the textures, and the two ray queries.
+Each function is the scalar twin of a minidiff or tape function named in its docstring
+(``render.path.sampling``, ``render.path.choices``, ``render.shade.lighting``,
+``render.shade.surface``), the same formula in the same order of operations where the
+order matters. (The random numbers are ``render.path.random``'s own Numba hash.)
 
 The arrays are ``render.path.packed.Packed``'s (each function takes the ones it reads:
 handed over one by one, not as the whole tuple, which Numba would copy at every call).
