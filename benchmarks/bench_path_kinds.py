@@ -22,7 +22,9 @@ medians) on each thread count (``numba.set_num_threads``, which the compiled ker
 * ``forward``: the image alone (the compiled kernel, ``render.path.kernel``);
 * ``sampler``: the reference sampler's decisions for the image's paths
   (``PathSampler.sample``: the rays, and its compiled choices, ``render.path.choices``),
-  which the tape's gradient and the secondary term's continued paths use.
+  which the tape's gradient and the secondary term's continued paths use;
+* ``wavefront``: the image's radiance without the kernel: the sampler's decisions, then
+  the replay's compiled windows summing each path's radiance (``replay.radiance_of``).
 
 Reported per row: the median (ms), its ratio to the albedo's on the same thread count
 (target: at most 1.5), the secondary row over the plain light-position row (target: at
@@ -41,7 +43,9 @@ import timing
 import minidiff as md
 from render.path import render_path
 from render.path.integrator import RR_DEPTH
+from render.path.replay import radiance_of
 from render.path.tracer import PathSampler
+from render.scene.camera import camera_frame
 from render.scene.cornell import cornell_box
 from render.scene.placement import placed
 
@@ -76,15 +80,19 @@ def _rows(size: int, spp: int) -> dict:
         with md.no_grad():
             render_path(scene, spp=spp, max_depth=DEPTH, seed=0)
 
-    def sampler():
+    def sampler(radiance: bool = False):
         world = placed(cornell_box(size, size, blocks=True))
         paths = np.arange(size * size * spp, dtype=np.int64)  # pixel * spp + sample
-        PathSampler(world, spp, DEPTH, RR_DEPTH, 0).sample(paths)
+        decisions = PathSampler(world, spp, DEPTH, RR_DEPTH, 0)
+        batch = decisions.sample(paths)
+        if radiance:
+            radiance_of(world, camera_frame(world.camera), decisions, batch)
 
     rows = {name: gradient(name) for name in PARAMETERS}
     rows["light_position_secondary"] = gradient("light_position", "secondary")
     rows["forward"] = forward
     rows["sampler"] = sampler
+    rows["wavefront"] = lambda: sampler(radiance=True)
     return rows
 
 

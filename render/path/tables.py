@@ -95,10 +95,10 @@ class Tables:
             eye = frame[3].data if isinstance(frame[3], md.Tensor) else np.asarray(frame[3])
             inside = np.linalg.norm(eye - centers.data, axis=1) < radii.data
         columns = {
-            name: md.stack([md.broadcast_to(getattr(o.material, name), (3,)) for o in objects])
+            name: _stacked([md.broadcast_to(getattr(o.material, name), (3,)) for o in objects], 3)
             for name in ("albedo", "specular", "emission")
         }
-        columns["shininess"] = md.stack([o.material.shininess for o in objects])
+        columns["shininess"] = _stacked([o.material.shininess for o in objects], None)
         light_parameters, kinds = light_arguments(world.lights)
         return cls(
             vertices=vertices, normals=normals,
@@ -148,3 +148,11 @@ def _normals(mesh: Mesh) -> md.Tensor:
     if not mesh.smooth:
         return md.tensor(np.tile([0.0, 0.0, 1.0], (len(mesh.vertices.data), 1)))
     return mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+
+
+def _stacked(values: list, width: int | None) -> md.Tensor:
+    """``md.stack`` of per-object values, each (width,) or a scalar (``width`` None); an
+    empty table for a scene without objects."""
+    if values:
+        return md.stack(values)
+    return md.tensor(np.zeros((0,) if width is None else (0, width)))
