@@ -37,19 +37,16 @@ from render.path.sampling import (
     triangle_point,
 )
 from render.path.tables import Tables
+from render.shade.surface import column
 
 #: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
 #: at least MIN_SURVIVAL.
 MIN_SURVIVAL, MAX_SURVIVAL = 0.05, 0.95
 
 
-def _column(x):
-    return md.reshape(x, (-1, 1))
-
-
 def _pick(condition, a, b):
     """Rows of a where ``condition`` (k,), else of b: (k, 3) vectors."""
-    return md.where(_column(condition), a, b)
+    return md.where(column(condition), a, b)
 
 
 def _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers):
@@ -97,11 +94,11 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
     face, sphere, on_sphere, obj, local = here
     points, incoming, by_area, pdf, previous, throughput = path
     ng = _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers)
-    u, v = _column(local[:, 0]), _column(local[:, 1])
+    u, v = column(local[:, 0]), column(local[:, 1])
     na, nb, nc = _corners(normals, faces, face)
     ns = _pick(smooth[obj] & ~on_sphere, normalized((1.0 - u - v) * na + u * nb + v * nc), ng)
     wo = -incoming
-    side = _column(md.where(md.dot(ng, wo) < 0, -1.0, 1.0))  # two-sided: face the viewer
+    side = column(md.where(md.dot(ng, wo) < 0, -1.0, 1.0))  # two-sided: face the viewer
     ng, ns = side * ng, side * ns
     outputs = (ng,)
     e_face, e_sphere, e_on_sphere, e_probability, e_area, e_other, p_here = nee
@@ -124,15 +121,15 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
     if has_emitters:  # a uniform point on the picked emitter, and NEE's MIS weight
         uv = triangle_point(e_u1, e_u2)
         ball = sphere_direction(e_u1, e_u2)
-        e_on = _column(e_on_sphere)
+        e_on = column(e_on_sphere)
         nee_local = md.where(e_on, ball, md.concatenate([uv, 0.0 * uv[:, :1]], axis=1))
         a, b, c = _corners(vertices, faces, e_face)
         on_triangle = a + uv[:, 0:1] * (b - a) + uv[:, 1:2] * (c - a)
-        z = md.where(e_on, centers[e_sphere] + _column(radii[e_sphere]) * ball, on_triangle)
+        z = md.where(e_on, centers[e_sphere] + column(radii[e_sphere]) * ball, on_triangle)
         nz = _geometric_normal(e_face, e_sphere, e_on_sphere, z, vertices, faces, centers)
         to = z - points
         d2 = md.dot(to, to)
-        wi = to / _column(md.sqrt(md.where(d2 > 0, d2, 1.0)))
+        wi = to / column(md.sqrt(md.where(d2 > 0, d2, 1.0)))
         cos_z = -md.dot(nz, wi)
         ok = (probability[:, 0] + probability[:, 1] > 0) & (cos_z > 0) & (md.dot(ng, wi) > 0)
         ok = ok & (d2 > 0) & e_other
@@ -146,7 +143,7 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
     mirror = u_lobe >= probability[:, 0] + probability[:, 1]
     wi = cosine_hemisphere(u1, u2, ns)
     wi = _pick(glossy, blinn_phong_lobe(u1, u2, ns, wo, shininess), wi)
-    wi = _pick(mirror, 2.0 * _column(md.dot(wo, ns)) * ns - wo, wi)
+    wi = _pick(mirror, 2.0 * column(md.dot(wo, ns)) * ns - wo, wi)
     pdf = md.where(mirror, probability[:, 2], _lobe_pdf(probability, shininess, ns, wo, wi))
     lobe_sum = probability[:, 0] + probability[:, 1] + probability[:, 2]
     go = (lobe_sum > 0) & (pdf > 0) & (md.dot(ng, wi) > 0)

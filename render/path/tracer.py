@@ -166,15 +166,17 @@ class PathSampler:
         self.first = np.array([first for _, first, _ in ranges], np.int64)
         self.lobes = _Lobes.of(self.objects)
         self.emitters = Emitters.of(world, self.primitives)
-        with md.no_grad():  # plain shading normals of smooth meshes, per object index
+        # Plain shading normals of smooth meshes, per object index (``render.path.packed``
+        # hands them to the kernel).
+        with md.no_grad():
             self.normals = {
                 o: (obj.normals.data if obj.normals is not None
                     else vertex_normals(md.tensor(obj.vertices.data), obj.faces).data)
                 for o, obj in enumerate(self.objects) if isinstance(obj, Mesh) and obj.smooth
             }  # fmt: skip
-        with md.no_grad():  # the tables of the compiled choices, plain
-            self.tables = Tables.of(world, plain_frame(world.camera), leaves=False)
         self.frame = plain_frame(world.camera)
+        with md.no_grad():  # the tables the compiled choices read, plain
+            self.tables = Tables.of(world, self.frame, leaves=False)
 
     def sample(self, paths: np.ndarray) -> PathBatch:
         """The ``PathBatch`` of path ids ``paths`` (N,) int64."""
