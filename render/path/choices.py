@@ -74,18 +74,17 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
              radii, offset, form):  # fmt: skip
     """The choices of k paths at their vertex (module docstring), all (k, ...) float64.
 
-    here: (face, sphere, on a sphere, object, local (k, 3)) the vertex's primitive and its
-    coordinates on it (``Tables.role``); path: (point, incoming unit direction, reached by a sampled
-    direction (bool), that direction's density, previous point, Russian roulette's
-    throughput estimate); material: (lobe probabilities (k, 3), shininess, mean
+    here: (face, sphere, on a sphere, object, local (k, 3)), the vertex's primitive and its
+    coordinates on it (``Tables.role``); path: (point, incoming unit direction, reached by
+    a sampled direction (bool), that direction's density, previous point, Russian
+    roulette's throughput estimate); material: (lobe probabilities (k, 3), shininess, mean
     reflectance); nee: (the emitter's role as ``here``'s first three, its picking
     probability, its area, whether it is another primitive than the vertex's, NEE's area
     density at the vertex's own primitive); numbers: (emitter point u1, u2, direction u1,
-    u2, lobe, roulette). Shared: the ``Tables``' meshes and spheres (at least one row each);
-    offset (): how far above the
-    surface the rays start. Static form: (whether the scene has emitters, whether this is
-    the last vertex (only the normal and the emission weight), whether Russian roulette
-    plays here).
+    u2, lobe, roulette). Shared: the ``Tables``' meshes and spheres (at least one row
+    each); offset (): how far above the surface the rays start. Static form: (whether the
+    scene has emitters, whether this is the last vertex (only the normal and the emission
+    weight), whether Russian roulette plays here).
 
     Returns (ng, emit_weight (with emitters), origin) at the last vertex; else also, with
     emitters, (nee_local, nee_point, nee_ok, nee_weight), then (wi, pdf, mirror, go,
