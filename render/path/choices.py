@@ -31,13 +31,12 @@ from render.path.sampling import (
     blinn_phong_pdf,
     cosine_hemisphere,
     cosine_pdf,
-    normalized,
     power_heuristic,
     sphere_direction,
     triangle_point,
 )
 from render.path.tables import Tables
-from render.shade.surface import column
+from render.shade.surface import column, divided_unit, face_normals
 
 #: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),
 #: at least MIN_SURVIVAL.
@@ -50,10 +49,10 @@ def _pick(condition, a, b):
 
 
 def _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers):
-    """``render.shade.surface.geometric_normals``: a triangle's unit (b - a) x (c - a), a
-    sphere's unit outward normal at ``points``."""
-    a, b, c = _corners(vertices, faces, face)
-    return normalized(_pick(on_sphere, points - centers[sphere], md.cross(b - a, c - a)))
+    """``render.shade.surface.geometric_normals`` from the tables: a triangle's unit face
+    normal, a sphere's unit outward normal at ``points``."""
+    face_normal = face_normals(*_corners(vertices, faces, face))
+    return divided_unit(_pick(on_sphere, points - centers[sphere], face_normal))
 
 
 def _corners(table, faces, face):
@@ -95,7 +94,7 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
     ng = _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers)
     u, v = column(local[:, 0]), column(local[:, 1])
     na, nb, nc = _corners(normals, faces, face)
-    ns = _pick(smooth[obj] & ~on_sphere, normalized((1.0 - u - v) * na + u * nb + v * nc), ng)
+    ns = _pick(smooth[obj] & ~on_sphere, divided_unit((1.0 - u - v) * na + u * nb + v * nc), ng)
     wo = -incoming
     side = column(md.where(md.dot(ng, wo) < 0, -1.0, 1.0))  # two-sided: face the viewer
     ng, ns = side * ng, side * ns
@@ -147,7 +146,7 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
     lobe_sum = probability[:, 0] + probability[:, 1] + probability[:, 2]
     go = (lobe_sum > 0) & (pdf > 0) & (md.dot(ng, wi) > 0)
     throughput = throughput * reflectance
-    outputs += (normalized(wi), pdf, md.where(mirror, 1.0, 0.0))
+    outputs += (divided_unit(wi), pdf, md.where(mirror, 1.0, 0.0))
     if roulette:
         survive = md.clip(throughput, MIN_SURVIVAL, MAX_SURVIVAL)
         go = go & (u_roulette < survive)

@@ -1,11 +1,13 @@
-"""Area lights: the emissive triangles and spheres of a scene, and how to pick a point on them.
+"""Area lights: the emissive triangles and spheres of a scene, and how one is picked.
 
 Next-event estimation picks one emissive primitive with probability proportional to its
-area, then a uniform point on it: the density of a point is P(primitive) / area in area
-measure (``pdf_area``), the same everywhere on the emitters, which keeps the weights of
-multiple importance sampling simple. The point is recorded by its coordinates on its
-primitive (barycentrics (u, v) on a triangle, the unit direction from a sphere's centre),
-so that on the tape it moves with the primitive (``render.path.transport``).
+area (``Emitters.pick``), then a uniform point on it (``render.path.choices``, with
+``render.path.sampling``'s ``triangle_point`` and ``sphere_direction``): the density of a
+point is P(primitive) / area in area measure (``pdf_area``), the same everywhere on the
+emitters, which keeps the weights of multiple importance sampling simple. The point is
+recorded by its coordinates on its primitive (barycentrics (u, v) on a triangle, the unit
+direction from a sphere's centre), so that on the tape it moves with the primitive
+(``render.path.transport``).
 
 ``polygon_irradiance`` is the closed form the estimators are checked against: the
 irradiance a flat polygon of uniform radiance gives a point (Lambert's formula).
@@ -18,9 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render.path.sampling import sphere_direction, triangle_point
 from render.scene.scene import Mesh, Scene
-from render.shade.surface import geometric_normals
 from render.trace.primitives import primitive_ranges
 
 
@@ -84,30 +84,6 @@ class Emitters:
         ok = (prims >= 0) & (rows >= 0)
         safe = np.maximum(rows, 0)
         return np.where(ok, self.probability[safe] / self.area[safe], 0.0)
-
-
-def point_on(primitives, prims: np.ndarray, u1: np.ndarray, u2: np.ndarray):
-    """Uniform points on primitives ``prims`` (k,): their coordinates on the primitive
-    ``local`` (k, 3) ((u, v, 0) on a triangle, a unit direction on a sphere), the points
-    (k, 3) and the unit outward normals (k, 3) (a triangle's (b - a) x (c - a))."""
-    triangles, centers, radii = primitives
-    n_tri = len(triangles)
-    local = np.zeros((len(prims), 3))
-    points, normals = np.empty((len(prims), 3)), np.empty((len(prims), 3))
-    on_tri = prims < n_tri
-    uv = triangle_point(u1[on_tri], u2[on_tri])
-    local[on_tri, :2] = uv
-    tri = triangles[prims[on_tri]]
-    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-    points[on_tri] = tri[:, 0] + uv[:, :1] * e1 + uv[:, 1:] * e2
-    normals[on_tri] = geometric_normals(primitives, prims[on_tri], points[on_tri])
-    on_sphere = ~on_tri
-    d = sphere_direction(u1[on_sphere], u2[on_sphere])
-    s = prims[on_sphere] - n_tri
-    local[on_sphere] = d
-    points[on_sphere] = centers[s] + radii[s, None] * d
-    normals[on_sphere] = d
-    return local, points, normals
 
 
 def polygon_irradiance(points, normals, corners, radiance: float = 1.0):

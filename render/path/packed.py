@@ -55,7 +55,10 @@ def pack(sampler: PathSampler) -> Packed:
     texels, n_texels = [], 0
     smooth = np.zeros(n_obj, np.bool_)
     corners = np.zeros((sampler.n_triangles, 3), np.int64)  # global vertex ids
-    normals, uvs, n_vertices = [], [], 0
+    uvs, n_vertices = [], 0
+    # The vertex normals of every mesh (a smooth mesh's own; a flat one's are never read).
+    tables = sampler.tables
+    normals = np.zeros((0, 3)) if tables.normals is None else tables.normals.data
     for o, obj in enumerate(objects):
         m = obj.material
         albedo[o] = np.broadcast_to(m.albedo.data, (3,))
@@ -76,7 +79,6 @@ def pack(sampler: PathSampler) -> Packed:
             count = obj.vertices.shape[0]
             if obj.smooth:
                 smooth[o] = True
-            normals.append(sampler.normals.get(o, np.zeros((count, 3))))
             uvs.append(obj.uvs.data if obj.uvs is not None else np.zeros((count, 2)))
             n_vertices += count
     e = sampler.emitters
@@ -101,7 +103,7 @@ def pack(sampler: PathSampler) -> Packed:
         albedo, specular, shininess, reflectance, emission,
         sampler.lobes.probability, sampler.lobes.reflectance, maps,
         np.concatenate(texels) if texels else np.zeros((0, 3)), smooth, corners,
-        np.concatenate(normals) if normals else np.zeros((0, 3)),
+        normals,
         np.concatenate(uvs) if uvs else np.zeros((0, 2)),
         e.prims, e.cdf, e.probability, e.area, e.row_of,
         light_kind, light_vec, light_strength, light_color,

@@ -8,7 +8,7 @@ The sampler (``render.path.choices``) runs them inside one compiled function per
 called on plain arrays they run primitive by primitive and return minidiff tensors (``.data``
 for the array). Shapes: k samples per call, directions and normals (k, 3) unit vectors.
 
-``dot`` and ``unit`` are the plain NumPy helpers of the code around the sampler (shadow and
+``dot`` and ``unit`` are plain helpers for the code around the sampler (shadow and
 silhouette geometry off the tape).
 """
 
@@ -19,6 +19,7 @@ import math
 import numpy as np
 
 import minidiff as md
+from render.shade.surface import divided_unit
 
 
 def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -27,16 +28,8 @@ def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def unit(v: np.ndarray) -> np.ndarray:
-    """Plain (k, 3) rows scaled to unit length (zero rows stay zero)."""
-    n = np.linalg.norm(v, axis=1, keepdims=True)
-    return v / np.where(n > 0, n, 1.0)
-
-
-def normalized(v):
-    """``unit`` on minidiff arrays: (k, 3) rows divided by their length (zero rows stay
-    zero)."""
-    n = md.norm(v)
-    return v / md.reshape(md.where(n > 0, n, 1.0), (-1, 1))
+    """Plain (k, 3) rows scaled to unit length (zero rows stay zero): ``divided_unit``'s."""
+    return divided_unit(v).data
 
 
 def orthonormal_basis(n):
@@ -86,7 +79,7 @@ def blinn_phong_lobe(u1, u2, n, view, shininess):
 def blinn_phong_pdf(n, view, w, shininess):
     """(k,) the density of ``blinn_phong_lobe`` at directions w (k, 3), per steradian: the
     half vector's density over the Jacobian 4 |view . h| of the reflection."""
-    h = normalized(view + w)
+    h = divided_unit(view + w)
     cos_h = md.maximum(md.dot(n, h), 0.0)
     vh = md.abs(md.dot(view, h))
     pdf_h = (shininess + 1.0) / (2.0 * math.pi) * cos_h**shininess

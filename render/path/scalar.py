@@ -234,8 +234,9 @@ def _look(albedo, specular, maps, texels, o, uv):
 
 @numba.njit(cache=True, error_model="numpy")
 def _point_on(triangles, centers, radii, prim, u1, u2):
-    """``render.path.emitters.point_on`` for one primitive: local, point, unit normal (a
-    uniform point by Turk's square-root warp on a triangle, by Archimedes on a sphere)."""
+    """NEE's point on an emitter (``render.path.choices``) for one primitive: local, point,
+    unit normal (a uniform point by Turk's square-root warp on a triangle, by Archimedes on
+    a sphere)."""
     if prim < triangles.shape[0]:
         root = math.sqrt(u1)
         local = (u2 * root, 1.0 - root, 0.0)

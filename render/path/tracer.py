@@ -42,8 +42,8 @@ from render.path.random import bounce_dimension, uniform
 from render.path.sampling import dot, unit
 from render.path.tables import Tables
 from render.scene.camera import camera_directions, plain_frame, to_image_plane
-from render.scene.scene import Mesh, Scene
-from render.shade.surface import geometric_normals, vertex_normals
+from render.scene.scene import Scene
+from render.shade.surface import geometric_normals
 from render.trace.accel import Accelerator
 from render.trace.primitives import primitive_ranges, scene_primitives
 from render.trace.visibility import scene_size, shadow_offset, shadow_rays
@@ -166,14 +166,6 @@ class PathSampler:
         self.first = np.array([first for _, first, _ in ranges], np.int64)
         self.lobes = _Lobes.of(self.objects)
         self.emitters = Emitters.of(world, self.primitives)
-        # Plain shading normals of smooth meshes, per object index (``render.path.packed``
-        # hands them to the kernel).
-        with md.no_grad():
-            self.normals = {
-                o: (obj.normals.data if obj.normals is not None
-                    else vertex_normals(md.tensor(obj.vertices.data), obj.faces).data)
-                for o, obj in enumerate(self.objects) if isinstance(obj, Mesh) and obj.smooth
-            }  # fmt: skip
         self.frame = plain_frame(world.camera)
         with md.no_grad():  # the tables the compiled choices read, plain
             self.tables = Tables.of(world, self.frame, leaves=False)

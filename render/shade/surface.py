@@ -101,12 +101,18 @@ def geometric_normals(primitives, prims: np.ndarray, points: np.ndarray) -> np.n
     n_tri = len(triangles)
     normals = np.empty_like(points)
     on_tri = prims < n_tri
-    a, b, c = np.moveaxis(triangles[prims[on_tri]], 1, 0)
-    normals[on_tri] = np.cross(b - a, c - a)
+    normals[on_tri] = face_normals(*np.moveaxis(triangles[prims[on_tri]], 1, 0)).data
     on_sphere = ~on_tri
     normals[on_sphere] = points[on_sphere] - centers[prims[on_sphere] - n_tri]
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals / np.where(length > 0, length, 1.0)
+    return divided_unit(normals).data
+
+
+def divided_unit(v):
+    """Rows of ``v`` (k, 3) divided by their length (zero rows stay zero), on minidiff or
+    plain arrays: the unit vectors the tracers decide with (``md.normalize``, the tape's,
+    multiplies by the inverse length instead, which rounds differently)."""
+    length = md.norm(v)
+    return v / column(md.where(length > 0, length, 1.0))
 
 
 def toward_ray(normals, directions):
