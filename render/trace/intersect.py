@@ -510,19 +510,6 @@ def occluded_ray(bvh, ray, ignore, stack):
     return False
 
 
-# The any-hit traversal as a call, not inlined: for kernels that trace a few shadow rays per
-# point among much other work. Each inlined copy of a traversal grows the kernel's Numba IR,
-# and its compile time grows faster than the IR: the mesh edges' kernel
-# (render.edges.boundary.edge_kernel), with six inlined copies, compiled for three minutes;
-# calling this, in 29 s (a call costs it ~20% of its run time, 0.7 ms a render).
-
-
-@njit(cache=True, error_model="numpy")
-def occluded_call(bvh, ray, ignore, stack):
-    """``occluded_ray``, compiled once as a function of its own."""
-    return occluded_ray(bvh, ray, ignore, stack)
-
-
 # --------------------------------------------------------------------------------------------
 # Parallel kernels over ray arrays
 # --------------------------------------------------------------------------------------------

@@ -69,12 +69,10 @@ The package, one job per module:
   ``kind_points``: the points dealt back to their kinds (one compiled pass);
 * ``occlusion``: which curve points the camera sees (``Occluders``, ``hidden_points``);
 * ``radiance``: f_+ and f_- (``SideRadiance``; the direct renderer's ``DirectRadiance``);
-* ``edge_kernel``, ``border_kernel``: compiled, parallel twins of the two costliest
-  statements, a mesh edge's factors (both sides found, their shadow rays traced and their
-  radiance shaded in one pass) and the shadow borders' points (Newton steps and their
-  factors' geometry), each tied bit for bit to its NumPy statement by tests
-  (``tests/render/edges/test_edge_kernel.py``, ``test_border_kernel.py``); the statements
-  stay callable (``compiled=False``) and run where a scene is beyond the kernels;
+* ``border_kernel``: a compiled, parallel twin of the shadow borders' points (Newton
+  steps, stopped by a tolerance, and their factors' geometry), tied bit for bit to its
+  NumPy statement by ``tests/render/edges/test_border_kernel.py``; the statement stays
+  callable (``compiled=False``) and runs where a scene is beyond the kernel;
 * ``term``: the loop over the kinds (``boundary_points``), the term on the tape
   (``boundary_term``), both for one render (``add_curve_terms``).
 

@@ -10,8 +10,9 @@ clipped to the eye's near plane). At each quadrature point the edge point is whe
 camera ray meets the edge; the face seen just beside the edge on either side is the
 nearest there of the faces on that side (``edge_sides_kernel``), shaded at the edge point;
 a side without a face (a silhouette's outside) is what a ray just beyond the edge sees.
-Both sides are shaded, shadows included, in one compiled pass (``edge_kernel``) where the
-scene allows, else by the render's ``SideRadiance`` (``_side_factors``, the reference).
+Both sides are shaded, shadows included, by the render's ``SideRadiance``
+(``_side_factors``): for the direct renderer its batched BVH queries and the camera hits'
+compiled shading, the formulas written once.
 
 Edges that lie on one curve without sharing vertices (a T-junction, inside a mesh or
 between two; a seam whose two sides were cut differently; a gap or overlap narrower than
@@ -30,7 +31,6 @@ import numba
 import numpy as np
 
 from minidiff.either import cross_last, dot_last
-from render.edges.boundary import edge_kernel
 from render.edges.boundary.curves import (
     NEAR,
     CurvePoints,
@@ -254,7 +254,7 @@ def edge_sides_kernel(
     return directions, depth, norm, step, chosen
 
 
-def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = True) -> np.ndarray:
+def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     """(g, 3): w (f_+ - f_-) / |grad e| for the quadrature points ``on`` the edges of mesh
     ``kind.index`` (labels: rows of its table), zero where the edge point is hidden.
 
@@ -268,11 +268,8 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = Tru
     other meshes have on these edges (``kind.shared``) are candidates on either side as
     the mesh's own are. A point is hidden too by what lies in front of it closer than
     ``hidden_points`` looks (``_thin_occluder``), and an open edge's point is left to the
-    edge of another face that draws the same curve (``_counted_elsewhere``).
-
-    With ``compiled`` the sides are shaded by ``edge_kernel.side_factors`` where it
-    applies to the scene (``edge_kernel.pack_scene``), the rest by ``_side_factors`` (the
-    reference, ``view.radiance``); without, all by the reference."""
+    edge of another face that draws the same curve (``_counted_elsewhere``). The sides
+    are shaded by ``view.radiance`` (``_side_factors``)."""
     scene, table, first_prim, shared = view.scene, kind.table, kind.first_prim, kind.shared
     edges, coords, pixel, weight, keys = on.label, on.coords, on.pixel, on.weight, on.key
     camera = scene.camera
@@ -309,16 +306,7 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves, compiled: bool = Tru
     coords, depth, step, chosen = (np.take(x, seen, axis=0) for x in (coords, depth, step, chosen))
     scale, keys = weight[seen] / norm[seen], keys[seen]
     out = np.zeros((len(hidden), 3))
-    packed = edge_kernel.pack_scene(scene, view.radiance) if compiled and len(seen) else None
-    if packed is None:
-        out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale)
-        return out
-    factor, rest = edge_kernel.side_factors(packed, view.frame, coords, depth, step, chosen, scale)
-    out[seen] = factor
-    if np.any(rest):  # sides that see a sphere: the reference shades those points
-        rest = np.flatnonzero(rest)
-        parts = (np.take(x, rest, axis=0) for x in (coords, depth, step, chosen, keys, scale))
-        out[seen[rest]] = _side_factors(view, *parts)
+    out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale)
     return out
 
 
