@@ -66,7 +66,7 @@ The package, one job per module:
   (finding the shadow borders) and ``shadow_border`` (their edge function): the shadow
   borders, a kind (``ShadowBorder``);
 * ``pixels``: curves cut into pixel pieces, quadrature points on them (Numba);
-  ``kind_points``: the points dealt back to their kinds (one compiled pass);
+  ``kind_points``: the points dealt back to their kinds;
 * ``occlusion``: which curve points the camera sees (``Occluders``, ``hidden_points``);
 * ``radiance``: f_+ and f_- (``SideRadiance``; the direct renderer's ``DirectRadiance``);
 * ``border_kernel``: a compiled, parallel twin of the shadow borders' points (Newton

@@ -16,7 +16,7 @@ import numpy as np
 
 import minidiff as md
 from render.edges.boundary.curves import CurveKind, CurvePoints, OnCurves, View
-from render.edges.boundary.kind_points import kind_points, kind_points_reference
+from render.edges.boundary.kind_points import kind_points
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.pixels import pixel_pieces, split_at_crossings
 from render.edges.boundary.radiance import SideRadiance
@@ -25,14 +25,11 @@ from render.scene.scene import Scene
 from render.shade.hits import working_dtype
 
 
-def boundary_points(
-    view: View, kinds: Sequence[CurveKind], compiled: bool = True
-) -> list[CurvePoints]:
+def boundary_points(view: View, kinds: Sequence[CurveKind]) -> list[CurvePoints]:
     """Each kind's quadrature points with their constant factors (``CurvePoints``, one per
     kind, in the order of ``kinds``). A point's key (its name for the ``SideRadiance``) is
     its row among all kinds' points before any are dropped: it depends on the order of
-    ``kinds``, which the caller keeps fixed. The points are dealt to the kinds by one
-    compiled pass (``kind_points``), or with ``compiled`` False by its NumPy statement."""
+    ``kinds``, which the caller keeps fixed (``kind_points`` deals them out)."""
     camera = view.scene.camera
     width, height = camera.width, camera.height
     curves = [kind.curves(view) for kind in kinds]
@@ -40,10 +37,9 @@ def boundary_points(
     p1 = np.concatenate([np.zeros((0, 2))] + [c.end for c in curves])
     pieces = split_at_crossings(p0, p1, *pixel_pieces(p0, p1, width, height))
     counts = np.array([len(c.start) for c in curves], np.int64)
-    deal = kind_points if compiled else kind_points_reference
     found = []
     for kind, mine, (segment, coords, pixel, weight, rows) in zip(
-        kinds, curves, deal(p0, p1, pieces, counts, width, height), strict=True
+        kinds, curves, kind_points(p0, p1, pieces, counts, width, height), strict=True
     ):
         on = OnCurves(mine.label[segment], coords, pixel, weight, rows)
         if len(rows):

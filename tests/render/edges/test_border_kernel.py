@@ -5,9 +5,8 @@ points onto their borders and finds their factors' geometry in one pass;
 ``shadow_border.shadow_points(..., compiled=False)`` is the NumPy statement it must agree
 with (``_moved_points``, ``_border_factors``). ``pixels.split_at_crossings`` groups the
 pieces by a counting sort and splits the groups in parallel blocks; ``pixel_order`` and
-a group-at-a-time loop are its statement. ``kind_points`` deals the points on the pieces
-to the curve kinds; ``kind_points_reference`` is its statement. All must give the same
-results on any number of threads.
+a group-at-a-time loop are its statement. All must give the same results on any number
+of threads (with ``kind_points``, which deals the points on the pieces to their kinds).
 """
 
 from __future__ import annotations
@@ -18,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import render
-from render.edges.boundary import border_kernel, kind_points, pixels
+from render.edges.boundary import border_kernel, pixels
 from render.edges.boundary import shadow_border as sb
 from render.scene.lights import PointLight
 from render.scene.teapot import paper_scene
@@ -180,28 +179,6 @@ def test_split_at_crossings_is_its_statement(seed, n, size):
     # here and on its own in the statement, has differed in the last bit).
     np.testing.assert_allclose(got[1], want[1], rtol=0, atol=1e-14)
     np.testing.assert_allclose(got[2], want[2], rtol=0, atol=1e-14)
-
-
-@settings(max_examples=8, deadline=None)
-@given(st.integers(0, 2**32 - 1), st.lists(st.integers(0, 40), min_size=1, max_size=4))
-def test_kind_points_is_its_statement(seed, counts):
-    """Random segments of up to four kinds (some with none) cut into pixels and at their
-    crossings: the compiled pass deals each kind the points its NumPy statement does, with
-    the same bits."""
-    rng = np.random.default_rng(seed)
-    width, height = 7, 5
-    n = sum(counts)
-    p0 = rng.uniform(-0.5, 1.1, (n, 2)) * [width, height]
-    p1 = p0 + rng.normal(0.0, 2.0, (n, 2))
-    pieces = pixels.split_at_crossings(p0, p1, *pixels.pixel_pieces(p0, p1, width, height))
-    counts = np.array(counts, np.int64)
-    got = kind_points.kind_points(p0, p1, pieces, counts, width, height)
-    want = kind_points.kind_points_reference(p0, p1, pieces, counts, width, height)
-    assert len(got) == len(want) == len(counts)
-    for mine, theirs in zip(got, want, strict=True):
-        for a, b in zip(mine, theirs, strict=True):
-            assert a.dtype == b.dtype
-            np.testing.assert_array_equal(a, b)
 
 
 #: The compiled passes on 1 and 2 threads in one process: the teapot's shadow points, a

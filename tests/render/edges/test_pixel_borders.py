@@ -33,7 +33,7 @@ import pytest
 
 import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Transform, render
-from render.edges.boundary.kind_points import kind_points, kind_points_reference
+from render.edges.boundary.kind_points import kind_points
 from render.edges.boundary.pixels import (
     border_share,
     pixel_pieces,
@@ -111,8 +111,8 @@ def test_a_piece_on_a_border_is_shared_by_the_pixels_beside_it():
     """A vertical segment on x = 3 gives each of its pieces to columns 2 and 3 with half the
     weight, a horizontal one on the image's top border half to row 0 alone (there is no row
     above), a degenerate one on a pixel corner a quarter to each of four; one off the grid
-    keeps its whole weight in one pixel; the compiled ``kind_points`` agrees with its NumPy
-    statement."""
+    keeps its whole weight in one pixel; ``kind_points`` deals each kind its pieces'
+    points with those weights."""
     p0 = np.array([[3.0, 1.5], [0.5, 0.0], [5.0, 5.0], [1.2, 1.5]])
     p1 = np.array([[3.0, 3.5], [1.5, 0.0], [5.0, 5.0 + 1e-12], [1.2, 2.5]])
     width = height = 8
@@ -128,11 +128,11 @@ def test_a_piece_on_a_border_is_shared_by_the_pixels_beside_it():
     corner = {(int(p) // width, int(p) % width) for p in pixel[segment == 2]}
     assert corner == {(4, 4), (4, 5), (5, 4), (5, 5)}
     assert set(pixel[segment == 3]) == {1 * width + 1, 2 * width + 1}
-    # The compiled pass that deals the points to their kinds weighs them alike.
+    # Dealt to two kinds (segment 0, then 1-3): each kind's own segments, their weights.
     pieces = split_at_crossings(p0, p1, segment, start, end, pixel)
-    counts = np.array([1, 3])
-    compiled = kind_points(p0, p1, pieces, counts, width, height)
-    reference = kind_points_reference(p0, p1, pieces, counts, width, height)
-    for got, want in zip(compiled, reference, strict=True):
-        for a, b in zip(got, want, strict=True):
-            np.testing.assert_array_equal(a, b)
+    dealt = kind_points(p0, p1, pieces, np.array([1, 3]), width, height)
+    assert [len(np.unique(own)) for own, *_ in dealt] == [1, 3]
+    for *_, rows in dealt:  # each kind's points in the pieces' order
+        assert np.all(np.diff(rows) > 0)
+    np.testing.assert_allclose(np.bincount(dealt[0][0], weights=dealt[0][3]), total[:1])
+    np.testing.assert_allclose(np.bincount(dealt[1][0], weights=dealt[1][3]), total[1:])
