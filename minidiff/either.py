@@ -1,6 +1,7 @@
 """Functions of tensors or plain arrays, so that a formula is written once for both.
 
-Given a ``Tensor`` (either argument), each records on the tape like the primitive it names;
+Given a ``Tensor`` (either argument), each records on the tape like the primitive it names
+(and inside a function ``minidiff.compile`` traces, on traced arrays, it is that primitive);
 given plain arrays, it computes with NumPy (or minidiff's compiled kernels) and returns a
 plain array. The renderer writes its edge functions and its lights' geometry with these, and
 evaluates the same formulas on the tape (to differentiate them) and off it (to find points
@@ -14,10 +15,13 @@ import numpy as np
 from minidiff import kernels
 from minidiff.primitives import cross, dot, reshape, sqrt
 from minidiff.tensor import Tensor
+from minidiff.trace import Traced
 
 
 def _taped(*values) -> bool:
-    return any(isinstance(v, Tensor) for v in values)
+    """Whether any value is a Tensor, or a traced array inside ``minidiff.compile`` (then
+    the primitives record the formula for the compiler)."""
+    return any(isinstance(v, (Tensor, Traced)) for v in values)
 
 
 def dot_last(a, b):

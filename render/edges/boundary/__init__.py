@@ -64,15 +64,12 @@ The package, one job per module:
 * ``mesh_edge`` (``MeshEdge``), ``crossing`` (``SurfaceCrossing``), ``sphere``
   (``SphereOutline``, ``SphereCut``): the kinds of primary visibility; ``shadow_tracing``
   (finding the shadow borders) and ``shadow_border`` (their edge function): the shadow
-  borders, a kind (``ShadowBorder``);
+  borders, a kind (``ShadowBorder``: its points moved onto the borders by one pass of
+  ``minidiff.compile`` per light);
 * ``pixels``: curves cut into pixel pieces, quadrature points on them (Numba);
   ``kind_points``: the points dealt back to their kinds;
 * ``occlusion``: which curve points the camera sees (``Occluders``, ``hidden_points``);
 * ``radiance``: f_+ and f_- (``SideRadiance``; the direct renderer's ``DirectRadiance``);
-* ``border_kernel``: a compiled, parallel twin of the shadow borders' points (Newton
-  steps, stopped by a tolerance, and their factors' geometry), tied bit for bit to its
-  NumPy statement by ``tests/render/edges/test_border_kernel.py``; the statement stays
-  callable (``compiled=False``) and runs where a scene is beyond the kernel;
 * ``term``: the loop over the kinds (``boundary_points``), the term on the tape
   (``boundary_term``), both for one render (``add_curve_terms``).
 

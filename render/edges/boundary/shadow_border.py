@@ -18,48 +18,39 @@ meets on the receiver, the border in the image is the zero set of
 
 smooth in every parameter: the receiver's vertices or sphere (through P: ``plane_depth``,
 ``sphere_depth``), the camera (through the ray), the occluder and the light. These
-functions take NumPy arrays or minidiff tensors alike (as ``render.edges.geometry``'s
-``_sphere_quadratic`` does): off the tape they move each quadrature point from its chord
-onto the border (Newton on e, ``onto_border``), on the tape they give e(x_g; theta)
-(``shadow_term``). The boundary term of a pixel is then, as for outlines, the sum over
-quadrature points on the border's pieces inside it of w (f_+ - f_-) / |grad_x e|
+functions are written once, with ``minidiff.either``'s functions: on the tape they give
+e(x_g; theta) (``shadow_term``); off it, traced by ``minidiff.compile`` into one parallel
+pass per light (``_onto_border``), they move each quadrature point from its chord onto the
+border (Newton on e) and find its factors' geometry (|grad e| in pixels, the receiver's
+depth just either side). The boundary term of a pixel is then, as for outlines, the sum
+over quadrature points on the border's pieces inside it of w (f_+ - f_-) / |grad_x e|
 de/dtheta: f_+ and f_- are the radiance on the receiver just either side (``radiance``'s
 ``seen``), zero where the camera does not see the border point (``hidden_points``) or it
 lies in another shadow of the same light (f_+ = f_- there). ``ShadowBorder`` is the curve
 kind that hands all this to the term (``render.edges.boundary.curves``).
 
-The functions above are the NumPy statement (``shadow_points(..., compiled=False)``); a
-render moves its points by one compiled, parallel pass, ``border_kernel.border_points``,
-which gathers each point's receiver and occluder, takes the Newton steps and finds |grad e|
-in pixels and the receiver's depth just either side, with the same operations (the
-points and factors come out bit for bit on the paper teapot and its ground,
-``tests/render/edges/test_border_kernel.py``). A first compiled Newton pass, judged at
-128x128 (0.54 against 2.5 ms on 6,068 points), did not pay for its second statement of the
-formulas. Counting what the NumPy statement costs besides the steps (gathering the rows,
-the sides' depths, the occlusion rays without a first guess), ``shadow_points`` takes 3.8
-ms against 8.7 ms on the paper teapot at 128x128 (6,152 points), 4.8 against 12.9 ms at
-512x512 (9,499) and 8.1 against 16.0 ms with the ground (11,847), on one thread of a busy
-shared machine (medians of 21 calls in one process); what is left is the occlusion rays
-and the radiance either side (``DirectRadiance``).
+The compiled pass replaced a hand-written Numba twin of the same formulas (244 lines, ~15
+s of compiling on a fresh install); it gives that twin's points and factors bit for bit
+on the paper teapot and its ground, and its own function on the tape
+(``shadow_points(..., compiled=False)``) gives them bit for bit too
+(``tests/render/edges/test_border_points.py``).
 """
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last, square_root
-from render.edges.boundary.border_kernel import border_points, kernel_lights
 from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
 from render.edges.boundary.occlusion import Occluders, hidden_points, seen_in
-from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON, SideRadiance
 from render.edges.boundary.shadow_tracing import BorderChords, border_chords
 from render.edges.geometry import plane_normal, triangle_corners
-from render.scene.camera import camera_directions, plain_camera, ray_directions
+from render.scene.camera import plain_camera, ray_directions
 from render.scene.lights import Light
 from render.scene.scene import Scene
 from render.shade.hits import working_dtype
@@ -144,7 +135,7 @@ def sphere_ray(light: Light, centre, p):
 # ---------------------------------------------------------------------------------------
 
 
-def _sphere_border_gradient(oc, u, radius, at_point: bool) -> np.ndarray:
+def _sphere_border_gradient(oc, u, radius, at_point: bool):
     """de/dP (k, 3) of ``sphere_border``: P moves the ray's direction u = P - origin from a
     light at a point (``at_point``), the ray's origin P from a light at infinity."""
     ou = dot_last(u, oc)
@@ -154,58 +145,111 @@ def _sphere_border_gradient(oc, u, radius, at_point: bool) -> np.ndarray:
     return as_column(2.0 * ou) * u - as_column(2.0 * dot_last(u, u)) * oc
 
 
-def _receiver_hits(receivers, d, eye, dot=dot_last):
+def _receiver_hits(receivers, d, eye):
     """Depth t (k,), point P (k, 3) and surface normal n (k, 3) where rays eye + t d (d (k,
     3)) meet the planes of triangle receivers, or the near side of sphere receivers
     (``receivers``: ``_receiver_rows``); t is NaN where they miss or run along the plane."""
     normal_or_centre, corner, radius = receivers
-    t, normal = np.empty(len(d)), normal_or_centre.copy()
-    tri, sph = np.flatnonzero(radius < 0), np.flatnonzero(radius >= 0)
-    centre = np.take(normal_or_centre, sph, axis=0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t[tri] = plane_depth(
-            np.take(normal, tri, axis=0), np.take(corner, tri, axis=0), eye,
-            np.take(d, tri, axis=0), dot,
-        )  # fmt: skip
-        t[sph] = sphere_depth(centre, radius[sph], eye, np.take(d, sph, axis=0), dot)
-    t[~np.isfinite(t)] = np.nan
+    triangle = radius < 0
+    t = md.where(
+        triangle,
+        plane_depth(normal_or_centre, corner, eye, d),
+        sphere_depth(normal_or_centre, radius, eye, d),
+    )
+    t = md.where(md.abs(t) < np.inf, t, np.nan)  # NaN where not finite
     points = eye + as_column(t) * d
-    normal[sph] = np.take(points, sph, axis=0) - centre
-    return t, points, normal
+    return t, points, md.where(as_column(triangle), normal_or_centre, points - normal_or_centre)
 
 
-def border_gradient(frame, receivers, occluders, light, coords):
-    """e (k,), its gradient with respect to image-plane (x, y) (k, 2), and the receiver
-    points P (k, 3) and their depths t (k,), at image-plane points ``coords`` (k, 2)
+def _border_at(frame, receivers, occluders, light, x, y):
+    """e (k,), its gradient with respect to image-plane (x, y) (gx, gy: (k,) each), and the
+    receiver points P (k, 3) and their depths t (k,), at image-plane points (x, y)
     (``receivers``, ``occluders``, ``light``: ``_border_rows``; ``frame``: the plain
     camera). P(d) = C + t(d) d on a surface with normal n at P has dP/dd = t (I - d n^T /
     (n . d))."""
     forward, right, up, eye = frame
     kind, m, base, size = occluders
-    d = forward + as_column(coords[:, 0]) * right + as_column(coords[:, 1]) * up
+    at_point, w = light
+    d = forward + as_column(x) * right + as_column(y) * up
     t, points, normal = _receiver_hits(receivers, d, eye)
-    e, g = edge_border(m, base, points), m.copy()
-    rows = np.flatnonzero(kind == 1)  # the spheres'
-    if len(rows):
-        ray = sphere_ray(light, np.take(base, rows, axis=0), np.take(points, rows, axis=0))
-        e[rows] = sphere_border(*ray, size[rows])
-        g[rows] = _sphere_border_gradient(*ray, size[rows], light.location() is not None)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        gd = as_column(t) * (g - as_column(dot_last(g, d) / dot_last(normal, d)) * normal)
-    return e, np.stack([dot_last(gd, right), dot_last(gd, up)], axis=1), points, t
+    # A sphere's border: the light's ray reaching P (``Light.ray_to``), from the light at a
+    # point w towards P, or along the direction w from P for a light at infinity.
+    oc, u = (w - base, points - w) if at_point else (points - base, w)
+    sphere = kind == 1
+    e = md.where(sphere, sphere_border(oc, u, size), edge_border(m, base, points))
+    g = md.where(as_column(sphere), _sphere_border_gradient(oc, u, size, at_point), m)
+    gd = as_column(t) * (g - as_column(dot_last(g, d) / dot_last(normal, d)) * normal)
+    return e, dot_last(gd, right), dot_last(gd, up), points, t
+
+
+@md.compile(shared=("frame", "light", "pixel"))
+def _onto_border(coords, receivers, occluders, frame, light, pixel, form):
+    """k points ``coords`` (k, 2) moved onto their borders and the factors' geometry there,
+    in one compiled pass (``minidiff.compile``): ``form`` = (the light is at a point,
+    Newton steps); ``light`` = (w,): its position or direction of travel (``_border_rows``);
+    ``pixel`` (2,): (2 / W, -2 / H), pixel units per image-plane unit.
+
+    Returns x, y (k,) the moved points; e, gx, gy (k,) there (``_border_at``); P (k, 3); t
+    (k,); |grad e| in pixels (k,) (``pixel_gradient``); the camera direction there (k, 3)
+    (``camera_directions``' order); the points ``EPSILON`` pixels either side along grad e,
+    x+, y+, x-, y- (k,); and the depths (k,) at which the camera rays there meet the
+    receiver, + side then - side."""
+    at_point, steps = form
+    light = (at_point, light[0])
+    forward, right, up, eye = frame
+    x, y = coords[:, 0], coords[:, 1]
+    for _ in range(steps):  # Newton on e along its image-plane gradient
+        e, gx, gy, _, _ = _border_at(frame, receivers, occluders, light, x, y)
+        norm2 = gx * gx + gy * gy
+        shift = md.where(norm2 > 0, e / md.where(norm2 > 0, norm2, 1.0), 0.0)
+        x, y = x - shift * gx, y - shift * gy
+    e, gx, gy, points, t = _border_at(frame, receivers, occluders, light, x, y)
+    # pixel_gradient: |grad e| in pixels, the image-plane step of one pixel along it
+    px, py = gx * pixel[0], gy * pixel[1]
+    norm = md.sqrt(px * px + py * py)
+    scale = md.where(norm > 0, norm, 1.0)
+    step_x, step_y = (px / scale) * pixel[0], (py / scale) * pixel[1]
+    direction = as_column(x) * right + as_column(y) * up + forward
+    sides = [x + EPSILON * step_x, y + EPSILON * step_y, x - EPSILON * step_x, y - EPSILON * step_y]
+    # Both sides seen on the receiver itself (the border point is seen on it): rays traced
+    # there would cross any curve of primary visibility within EPSILON of the border and
+    # add its jump. Where a triangle passes through a sphere, the sphere's shadow border on
+    # it is tangent to the curve of the cut, and along a stretch traced rays saw the
+    # triangle on one side and the sphere on the other.
+    depths = [
+        _receiver_hits(receivers, as_column(sx) * right + as_column(sy) * up + forward, eye)[0]
+        for sx, sy in (sides[:2], sides[2:])
+    ]
+    return (x, y, e, gx, gy, points, t, norm, direction, *sides, *depths)
+
+
+def _border_points(frame, receivers, occluders, light, coords, steps: int, pixel=(1.0, 1.0)):
+    """``_onto_border`` on plain arrays, as plain arrays (its outputs, in its order)."""
+    at_point, w = light
+    with np.errstate(divide="ignore", invalid="ignore"):  # the plain route, on the tape
+        out = _onto_border(
+            np.asarray(coords, np.float64), receivers, occluders, tuple(frame),
+            (np.asarray(w, np.float64),), np.asarray(pixel, np.float64), (at_point, steps),
+        )  # fmt: skip
+    return [md.as_tensor(o).data for o in out]
+
+
+def border_gradient(frame, receivers, occluders, light, coords):
+    """e (k,), its gradient with respect to image-plane (x, y) (k, 2), and the receiver
+    points P (k, 3) and their depths t (k,), at image-plane points ``coords`` (k, 2)
+    (``_border_at``, compiled)."""
+    _, _, e, gx, gy, points, t = _border_points(frame, receivers, occluders, light, coords, 0)[:7]
+    return e, np.stack([gx, gy], axis=1), points, t
 
 
 def onto_border(frame, receivers, occluders, light, coords, steps: int = NEWTON_STEPS):
     """The image-plane points ``coords`` (k, 2) moved onto the border by ``steps`` Newton
     steps along grad e, and there ``border_gradient``'s e (k,), gradient (k, 2), points P
     (k, 3) and depths t (k,)."""
-    for _ in range(steps):
-        e, grad = border_gradient(frame, receivers, occluders, light, coords)[:2]
-        norm2 = grad[:, 0] * grad[:, 0] + grad[:, 1] * grad[:, 1]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            shift = np.where(norm2 > 0, e / norm2, 0.0)
-        coords = coords - as_column(shift) * grad
-    return (coords, *border_gradient(frame, receivers, occluders, light, coords))
+    x, y, e, gx, gy, points, t = _border_points(frame, receivers, occluders, light, coords, steps)[
+        :7
+    ]
+    return np.stack([x, y], axis=1), e, np.stack([gx, gy], axis=1), points, t
 
 
 def _receiver_rows(scene, visibility, receiver):
@@ -229,7 +273,8 @@ def _border_rows(scene, visibility, light, occluder, receiver):
     receiver (plane normal or sphere centre (k, 3), a point on the plane (k, 3), radius
     (k,): -1 for a triangle) and occluder (kind (k,): 0 an edge, 1 a sphere; m (k, 3) and
     base (k, 3) of an edge's e = m . (P - base); a sphere's centre (k, 3) and radius
-    (k,)), and the light itself."""
+    (k,)), and the light's rays (whether it is at a point; its position, or its direction
+    of travel: ``Light.ray_to``'s)."""
     k = len(receiver)
     normal, corner, radius = _receiver_rows(scene, visibility, receiver)
     kind, m, base, size = np.zeros(k, np.int64), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k)
@@ -242,7 +287,9 @@ def _border_rows(scene, visibility, light, occluder, receiver):
         rows = np.flatnonzero((occluder[:, 0] < 0) & (occluder[:, 1] == index))
         kind[rows], base[rows] = 1, np.asarray(sphere.center.data, np.float64)
         size[rows] = float(sphere.radius.data)
-    return (normal, corner, radius), (kind, m, base, size), light
+    at = light.location()
+    w = at if at is not None else np.asarray(light.ray_to(np.zeros((1, 3)))[1], np.float64)
+    return (normal, corner, radius), (kind, m, base, size), (at is not None, w.reshape(3))
 
 
 def shadow_points(
@@ -258,74 +305,36 @@ def shadow_points(
     (``BoundaryPoints``): ``pieces`` = (chord (m,), image-plane coords (m, 2), weight (m,),
     pixel (m,)) of the points on ``chords`` (cut with the other curves at pixel borders
     and crossings); ``radiance``: what the camera sees either side. The points are moved
-    onto their borders by one compiled pass (``border_kernel.border_points``) or, with
-    ``compiled`` False or a light the pass does not know, light by light by the NumPy
-    statement (``onto_border``, ``_border_factors``: the reference); the radiance on either
-    side is asked for all of them at once."""
+    onto their borders, light by light, by one compiled pass each (``_onto_border``), or
+    with ``compiled`` False by the same function on the tape, primitive by primitive
+    (``minidiff.tape_only``: the reference); the radiance on either side is asked for all
+    of them at once."""
     plain = plain_camera(frame)
     chord, coords, weight, pixel = pieces
     light, occluder = chords.light[chord], np.take(chords.occluder, chord, axis=0)
     receiver = chords.receiver[chord]
-    lights = kernel_lights(scene) if compiled else None
-    if lights is None:
-        moved, grad, t = _moved_points(scene, visibility, plain, light, occluder, receiver, coords)
-        factor = _border_factors(
-            scene, visibility, plain, receiver, moved, grad, t, weight, radiance
-        )
-    else:
-        moved, factor = _compiled_points(
-            scene, visibility, plain, (light, occluder, receiver), (coords, weight, pixel),
-            radiance, lights,
-        )  # fmt: skip
-    keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
-    return ShadowPoints(np.take(moved, keep, axis=0), pixel[keep], np.take(factor, keep, axis=0),
-                        light[keep], receiver[keep], np.take(occluder, keep, axis=0))  # fmt: skip
-
-
-def _moved_points(scene, visibility, frame, light, occluder, receiver, coords):
-    """The NumPy statement of the points' move onto their borders, light by light: the
-    moved image-plane coords (k, 2), grad e there (k, 2) and the depths t (k,)."""
-    moved, t = coords.copy(), np.full(len(light), np.nan)
-    grad = np.zeros((len(light), 2))
-    for j, source in enumerate(scene.lights):
-        rows = np.flatnonzero(light == j)
-        if len(rows) == 0:
-            continue
-        rows_of = _border_rows(scene, visibility, source, np.take(occluder, rows, axis=0),
-                               receiver[rows])  # fmt: skip
-        moved[rows], _, grad[rows], _, t[rows] = onto_border(
-            frame, *rows_of, np.take(coords, rows, axis=0)
-        )
-    return moved, grad, t
-
-
-def _compiled_points(scene, visibility, frame, labels, pieces, radiance, lights):
-    """``_moved_points`` and ``_border_factors`` with the geometry in one compiled pass
-    (``border_points``): the moved coords (k, 2) and the factors (k, 3). ``labels`` =
-    (light (k,), occluder (k, 3), receiver (k,)); ``pieces`` = (coords (k, 2), weight
-    (k,), pixel (k,)); ``lights``: ``kernel_lights``."""
-    light, occluder, receiver = labels
-    coords, weight, pixel = pieces
     k = len(light)
-    out = (np.empty((k, 2)), np.empty((k, 2)), np.empty(k), np.empty(k), np.empty((k, 3)),
-           np.empty((k, 2, 2)), np.empty((k, 2)))  # fmt: skip
-    vertices = [np.asarray(mesh.vertices.data, np.float64) for mesh in scene.meshes]
-    first = np.cumsum([0] + [len(v) for v in vertices[:-1]]).astype(np.int64)
-    meshes = (np.concatenate(vertices) if vertices else np.zeros((0, 3)), first)
-    spheres = (
-        np.array([s.center.data for s in scene.spheres], np.float64).reshape(-1, 3),
-        np.array([float(s.radius.data) for s in scene.spheres], np.float64),
-    )
+    moved, side, side_depth = coords.copy(), np.full((k, 2, 2), np.nan), np.full((k, 2), np.nan)
+    t, norm, direction = np.full(k, np.nan), np.zeros(k), np.zeros((k, 3))
     camera = scene.camera
-    border_points(
-        coords, light, occluder, receiver, lights, meshes, spheres, visibility.primitives,
-        np.stack(frame), camera.width, camera.height, NEWTON_STEPS, numba.get_num_threads(), out,
-    )  # fmt: skip
-    moved, _, t, norm, direction, side, side_depth = out
-    rows = np.flatnonzero(np.isfinite(t) & (t > 0) & (norm > 0))
+    scale = (2.0 / camera.width, -2.0 / camera.height)
+    with contextlib.nullcontext() if compiled else md.tape_only():
+        for j, source in enumerate(scene.lights):
+            rows = np.flatnonzero(light == j)
+            if len(rows) == 0:
+                continue
+            parts = _border_rows(
+                scene, visibility, source, np.take(occluder, rows, axis=0), receiver[rows]
+            )
+            out = _border_points(plain, *parts, coords[rows], NEWTON_STEPS, scale)
+            x, y, _, _, _, _, t[rows], norm[rows], direction[rows] = out[:9]
+            moved[rows] = np.stack([x, y], axis=1)
+            side[rows] = np.stack(out[9:13], axis=1).reshape(-1, 2, 2)
+            side_depth[rows] = np.stack(out[13:], axis=1)
     # What hides a point is most often what the camera sees in its pixel: tried first.
+    rows = np.flatnonzero(np.isfinite(t) & (t > 0) & (norm > 0))
     hidden = hidden_points(
-        visibility, frame, camera, np.take(moved, rows, axis=0),
+        visibility, plain, camera, np.take(moved, rows, axis=0),
         np.take(direction, rows, axis=0), t[rows], norm[rows], receiver[rows],
         seen_in(Occluders.of(visibility), pixel[rows], scene),
     )  # fmt: skip
@@ -333,44 +342,10 @@ def _compiled_points(scene, visibility, frame, labels, pieces, radiance, lights)
     sides = np.take(side, rows, axis=0)
     both = np.concatenate([sides[:, 0], sides[:, 1]])
     depth = np.take(side_depth, rows, axis=0).T.reshape(-1)
-    return moved, _jumps(radiance, rows, both, receiver, depth, weight, norm, k)
-
-
-def _einsum_dot(a, b):
-    return np.einsum("ij,ij->i", a, b)
-
-
-def _border_factors(
-    scene, visibility, frame, receiver, coords, grad, t, weight, radiance
-) -> np.ndarray:
-    """(k, 3): w (f_+ - f_-) / |grad e| at k points ``coords`` (k, 2) on the borders, where
-    e has the image-plane gradient ``grad`` (k, 2) and the camera ray meets the
-    ``receiver`` (k,) at depth ``t`` (k,) (``border_gradient``); zero where the camera
-    does not see the receiver there or the border is degenerate."""
-    forward, right, up, eye = frame
-    norm, step = pixel_gradient(grad, scene.camera.width, scene.camera.height)
-    seen = np.isfinite(t) & (t > 0) & (norm > 0)
-    rows = np.flatnonzero(seen)
-    at = np.take(coords, rows, axis=0)
-    hidden = hidden_points(
-        visibility, frame, scene.camera, at, camera_directions(at, right, up, forward), t[rows],
-        norm[rows], receiver[rows],
-    )  # fmt: skip
-    rows, at = rows[~hidden], at[~hidden]
-    shift = EPSILON * np.take(step, rows, axis=0)
-    both = np.concatenate([at + shift, at - shift])
-    # Both sides shaded on the receiver itself (the border point is seen on it): rays
-    # traced there would cross any curve of primary visibility within EPSILON of the
-    # border and add its jump. Where a triangle passes through a sphere, the sphere's
-    # shadow border on it is tangent to the curve of the cut, and along a stretch the
-    # traced rays saw the triangle on one side and the sphere on the other. (The sides'
-    # depths are summed by einsum, as they always were: the images stay bit for bit.)
-    on = np.concatenate([receiver[rows], receiver[rows]])
-    depth, _, _ = _receiver_hits(
-        _receiver_rows(scene, visibility, on), camera_directions(both, right, up, forward), eye,
-        _einsum_dot,
-    )  # fmt: skip
-    return _jumps(radiance, rows, both, receiver, depth, weight, norm, len(coords))
+    factor = _jumps(radiance, rows, both, receiver, depth, weight, norm, k)
+    keep = np.flatnonzero(np.any(factor != 0.0, axis=1))
+    return ShadowPoints(np.take(moved, keep, axis=0), pixel[keep], np.take(factor, keep, axis=0),
+                        light[keep], receiver[keep], np.take(occluder, keep, axis=0))  # fmt: skip
 
 
 def _jumps(radiance, rows, both, receiver, depth, weight, norm, k) -> np.ndarray:

@@ -223,21 +223,20 @@ def _border_inputs(seed, monkeypatch):
     receivers, ``_border_rows``' parts, the chord points (k, 2)), and the plain camera."""
     from render.edges.boundary import shadow_border as sb
 
-    seen, rows_of, onto = [], sb._border_rows, sb.onto_border
+    seen, rows_of, onto = [], sb._border_rows, sb._border_points
 
     def keep_rows(scene, visibility, light, occluder, receiver):
         parts = rows_of(scene, visibility, light, occluder, receiver)
         seen.append([scene, visibility, light, occluder, receiver, parts])
         return parts
 
-    def keep_points(frame, receivers, occluders, light, coords, steps=sb.NEWTON_STEPS):
+    def keep_points(frame, receivers, occluders, light, coords, *rest):
         seen[-1].append(coords)
         seen[-1].append(frame)
-        return onto(frame, receivers, occluders, light, coords, steps)
+        return onto(frame, receivers, occluders, light, coords, *rest)
 
     monkeypatch.setattr(sb, "_border_rows", keep_rows)
-    monkeypatch.setattr(sb, "onto_border", keep_points)
-    monkeypatch.setattr(sb, "kernel_lights", lambda scene: None)  # the NumPy statement
+    monkeypatch.setattr(sb, "_border_points", keep_points)
     scene = random_scene(seed, lights=("point", "directional"))
     scene.lights[0].position.requires_grad = True
     render.render(scene, antialias="boundary").sum().backward()
@@ -319,7 +318,6 @@ def _chord_inputs(seed, monkeypatch):
 
     monkeypatch.setattr(st, "bisect_chords", keep)
     monkeypatch.setattr(sb, "_border_rows", keep_visibility)
-    monkeypatch.setattr(sb, "kernel_lights", lambda scene: None)  # the NumPy statement
     scene = random_scene(seed, lights=("point", "directional"))
     scene.lights[0].position.requires_grad = True
     render.render(scene, antialias="boundary")

@@ -1,15 +1,19 @@
-"""The boundary term's compiled passes against their NumPy statements.
+"""The shadow borders' points, compiled, against the same function on the tape; and the
+boundary term's compiled discrete passes against their NumPy statements.
 
-``render.edges.boundary.border_kernel.border_points`` moves the shadow borders' quadrature
-points onto their borders and finds their factors' geometry in one pass;
-``shadow_border.shadow_points(..., compiled=False)`` is the NumPy statement it must agree
-with (``_moved_points``, ``_border_factors``). ``pixels.split_at_crossings`` groups the
-pieces by a counting sort and splits the groups in parallel blocks; ``pixel_order`` and
-a group-at-a-time loop are its statement. All must give the same results on any number
-of threads (with ``kind_points``, which deals the points on the pieces to their kinds).
+``render.edges.boundary.shadow_border.shadow_points`` moves the shadow borders' quadrature
+points onto their borders and finds their factors' geometry with one compiled function
+(``_onto_border``, traced by ``minidiff.compile``); ``shadow_points(..., compiled=False)``
+runs that function on the tape, primitive by primitive (``minidiff.tape_only``), the
+reference it must agree with. ``pixels.split_at_crossings`` groups the pieces by a
+counting sort and splits the groups in parallel blocks; ``pixel_order`` and a
+group-at-a-time loop are its statement. All must give the same results on any number of
+threads (with ``kind_points``, which deals the points on the pieces to their kinds).
 """
 
 from __future__ import annotations
+
+import functools
 
 import numpy as np
 import pytest
@@ -17,7 +21,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import render
-from render.edges.boundary import border_kernel, pixels
+from render.edges.boundary import pixels
 from render.edges.boundary import shadow_border as sb
 from render.scene.lights import PointLight
 from render.scene.teapot import paper_scene
@@ -79,32 +83,31 @@ def _assert_close(got, want):
 
 
 @pytest.mark.parametrize("name", list(_scenes()))
-def test_compiled_points_are_the_numpy_statements(name, monkeypatch):
+def test_compiled_points_are_the_tapes(name, monkeypatch):
     """``shadow_points``: the compiled pass keeps the same points, with the same pixels,
-    labels, coordinates and factors (to rounding) as the NumPy statement."""
+    labels, coordinates and factors as its function run on the tape, to the last bit."""
     scene = _scenes()[name]()
     _differentiable(scene)
     args = _shadow_inputs(scene, monkeypatch)
     got, want = sb.shadow_points(*args), sb.shadow_points(*args, compiled=False)
     assert len(want.pixel) > 0 and np.abs(want.weight).max() > 0
-    for label in ("pixel", "light", "receiver", "occluder"):
+    for label in ("pixel", "light", "receiver", "occluder", "coords", "weight"):
         np.testing.assert_array_equal(getattr(got, label), getattr(want, label))
-    _assert_close(got.coords, want.coords)
-    _assert_close(got.weight, want.weight)
 
 
 @pytest.mark.parametrize("name", ["teapot 64", "pyramid and sphere, both lights"])
 def test_the_gradient_is_the_reference_gradient(name, monkeypatch):
-    """The whole ``render(..., antialias="boundary")`` gradient with the compiled passes
-    equals the one with the NumPy statements (``kernel_lights`` None: the reference),
-    to ~1e-12 of each parameter's largest entry."""
+    """The whole ``render(..., antialias="boundary")`` gradient with the compiled points
+    equals the one with their function on the tape (the reference), to ~1e-12 of each
+    parameter's largest entry."""
     grads = []
     for compiled in (True, False):
         scene = _scenes()[name]()
         leaves = _differentiable(scene)
         with monkeypatch.context() as patch:
             if not compiled:
-                patch.setattr(sb, "kernel_lights", lambda scene: None)
+                reference = functools.partial(sb.shadow_points, compiled=False)
+                patch.setattr(sb, "shadow_points", reference)
             image = render.render(scene, antialias="boundary")
             (image * image).sum().backward()
         grads.append([leaf.grad.copy() for leaf in leaves])
@@ -114,25 +117,23 @@ def test_the_gradient_is_the_reference_gradient(name, monkeypatch):
 
 
 class _OtherPointLight(PointLight):
-    """A light class the compiled pass does not know."""
+    """A light class the renderer does not name: a point light's physics."""
 
 
-def test_an_unknown_light_takes_the_numpy_statement(monkeypatch):
-    """``kernel_lights`` knows point and directional lights only: with another light class
-    the points are moved by the NumPy statement (the kernel is never called)."""
-    scene = random_scene(4, pyramid=False)
-    light = scene.lights[0]
-    scene.lights[0] = _OtherPointLight(light.position.data, light.intensity.data)
-    assert border_kernel.kernel_lights(scene) is None
-    assert border_kernel.kernel_lights(random_scene(4, pyramid=False)) is not None
-
-    def refuse(*args):
-        raise AssertionError("the kernel was called")
-
-    monkeypatch.setattr(sb, "border_points", refuse)
-    scene.lights[0].position.requires_grad = True
-    render.render(scene, antialias="boundary").sum().backward()
-    assert np.abs(scene.lights[0].position.grad).max() > 0
+def test_any_light_at_a_point_gets_a_point_lights_borders(monkeypatch):
+    """The points are moved onto the borders with what the light says of itself (where it
+    is, ``Light.location``; its rays, ``Light.ray_to``; its edge planes), not its class: a
+    subclass of ``PointLight`` gives the same points and factors, bit for bit."""
+    found = []
+    for make in (PointLight, _OtherPointLight):
+        scene = random_scene(4, pyramid=False)
+        light = scene.lights[0]
+        scene.lights[0] = make(light.position.data, light.intensity.data)
+        _differentiable(scene)
+        found.append(sb.shadow_points(*_shadow_inputs(scene, monkeypatch)))
+    assert len(found[0].pixel) > 0
+    for label in ("pixel", "coords", "weight"):
+        np.testing.assert_array_equal(getattr(found[0], label), getattr(found[1], label))
 
 
 def _split_reference(p0, p1, segment, start, end, pixel):
