@@ -90,9 +90,10 @@ JOBS = {
 #: process: the renderer's kernels with the pair-sampled edge gradients (tracing, the fused
 #: passes, the compiled adjoint's node, edges), and with the boundary integral's kernels too
 #: (measured stage by stage with an empty NUMBA_CACHE_DIR on a 2-core AMD EPYC, CPU time:
-#: 32 s forward, 23 s the node, 4 s pairs, 233 s the boundary term's kernels, most of it
-#: edge_kernel's side_factors_kernel; before issue 45's kernels: 31 s and 61 s).
-COMPILE_SECONDS = {"pairs": 60, "boundary": 110}
+#: 32 s forward, 23 s the node, 4 s pairs; before issue 45's kernels: 31 s and 61 s). With
+#: the boundary term: the paper scene's first boundary gradient at 64x64 took 77.8 s in all
+#: (134.9 s before issue 57 deleted three of its kernels' twins, in the same hour).
+COMPILE_SECONDS = {"pairs": 60, "boundary": 80}
 
 
 def numba_cache_folder(source: Path) -> Path:
