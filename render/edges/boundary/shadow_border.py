@@ -226,7 +226,9 @@ def _onto_border(coords, receivers, occluders, frame, light, pixel, form):
 def _border_points(frame, receivers, occluders, light, coords, steps: int, pixel=(1.0, 1.0)):
     """``_onto_border`` on plain arrays, as plain arrays (its outputs, in its order)."""
     at_point, w = light
-    with np.errstate(divide="ignore", invalid="ignore"):  # the plain route, on the tape
+    # (Only the reference route, on the tape, computes in NumPy and could warn: the rows'
+    # other kind's formula divides by zero or takes a negative square root, unused.)
+    with np.errstate(divide="ignore", invalid="ignore"):
         out = _onto_border(
             np.asarray(coords, np.float64), receivers, occluders, tuple(frame),
             (np.asarray(w, np.float64),), np.asarray(pixel, np.float64), (at_point, steps),
@@ -246,9 +248,8 @@ def onto_border(frame, receivers, occluders, light, coords, steps: int = NEWTON_
     """The image-plane points ``coords`` (k, 2) moved onto the border by ``steps`` Newton
     steps along grad e, and there ``border_gradient``'s e (k,), gradient (k, 2), points P
     (k, 3) and depths t (k,)."""
-    x, y, e, gx, gy, points, t = _border_points(frame, receivers, occluders, light, coords, steps)[
-        :7
-    ]
+    out = _border_points(frame, receivers, occluders, light, coords, steps)
+    x, y, e, gx, gy, points, t = out[:7]
     return np.stack([x, y], axis=1), e, np.stack([gx, gy], axis=1), points, t
 
 
