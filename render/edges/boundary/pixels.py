@@ -24,6 +24,7 @@ import math
 import numba
 import numpy as np
 
+import minidiff as md
 from minidiff import buffers
 from render.trace.intersect import BLOCK, _jobs
 
@@ -447,11 +448,18 @@ def quadrature(p0, p1, segment, start, end):
     )
 
 
+def pixel_step(grad, scale):
+    """A gradient (k, 2) with respect to the image-plane (x, y) in pixel units, ``scale``
+    (2,) = (2 / W, -2 / H) (x = 2 px / W - 1, y = 1 - 2 py / H): its length in pixel units
+    (k,), and the image-plane step (k, 2) that moves a point one pixel along it. On minidiff
+    arrays (traced inside ``minidiff.compile`` too); plain arrays give tensors."""
+    grad_px = grad * scale
+    norm = md.norm(grad_px)
+    unit = grad_px / md.reshape(md.where(norm > 0, norm, 1.0), (-1, 1))
+    return norm, unit * scale
+
+
 def pixel_gradient(grad: np.ndarray, width: int, height: int):
-    """A gradient (k, 2) with respect to the image-plane (x, y) in pixel units (x = 2 px /
-    W - 1, y = 1 - 2 py / H): its length in pixel units (k,), and the image-plane step (k, 2)
-    that moves a point one pixel along it."""
-    grad_px = grad * np.array([2.0 / width, -2.0 / height])
-    norm = np.linalg.norm(grad_px, axis=1)
-    unit = grad_px / np.where(norm > 0, norm, 1.0)[:, None]
-    return norm, unit * np.array([2.0 / width, -2.0 / height])
+    """``pixel_step`` of a plain gradient (k, 2) for a W x H image, as plain arrays."""
+    norm, step = pixel_step(grad, np.array([2.0 / width, -2.0 / height]))
+    return norm.data, step.data

@@ -47,6 +47,7 @@ import minidiff as md
 from minidiff.either import as_column, dot_last, square_root
 from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
 from render.edges.boundary.occlusion import Occluders, hidden_points, seen_in
+from render.edges.boundary.pixels import pixel_step
 from render.edges.boundary.radiance import EPSILON, SideRadiance
 from render.edges.boundary.shadow_tracing import BorderChords, border_chords
 from render.edges.geometry import plane_normal, triangle_corners
@@ -190,7 +191,7 @@ def _onto_border(coords, receivers, occluders, frame, light, pixel, form):
     ``pixel`` (2,): (2 / W, -2 / H), pixel units per image-plane unit.
 
     Returns x, y (k,) the moved points; e, gx, gy (k,) there (``_border_at``); P (k, 3); t
-    (k,); |grad e| in pixels (k,) (``pixel_gradient``); the camera direction there (k, 3)
+    (k,); |grad e| in pixels (k,) (``pixel_step``); the camera direction there (k, 3)
     (``camera_directions``' order); the points ``EPSILON`` pixels either side along grad e,
     x+, y+, x-, y- (k,); and the depths (k,) at which the camera rays there meet the
     receiver, + side then - side."""
@@ -204,11 +205,8 @@ def _onto_border(coords, receivers, occluders, frame, light, pixel, form):
         shift = md.where(norm2 > 0, e / md.where(norm2 > 0, norm2, 1.0), 0.0)
         x, y = x - shift * gx, y - shift * gy
     e, gx, gy, points, t = _border_at(frame, receivers, occluders, light, x, y)
-    # pixel_gradient: |grad e| in pixels, the image-plane step of one pixel along it
-    px, py = gx * pixel[0], gy * pixel[1]
-    norm = md.sqrt(px * px + py * py)
-    scale = md.where(norm > 0, norm, 1.0)
-    step_x, step_y = (px / scale) * pixel[0], (py / scale) * pixel[1]
+    norm, step = pixel_step(md.stack([gx, gy], axis=1), pixel)
+    step_x, step_y = step[:, 0], step[:, 1]
     direction = as_column(x) * right + as_column(y) * up + forward
     sides = [x + EPSILON * step_x, y + EPSILON * step_y, x - EPSILON * step_x, y - EPSILON * step_y]
     # Both sides seen on the receiver itself (the border point is seen on it): rays traced
