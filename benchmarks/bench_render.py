@@ -34,7 +34,8 @@ Measured (medians after a warm-up, see ``timing.py``), on the scene of ``docs/pa
   passive, the workqueue layer, one thread) and with glibc told to keep freed memory
   (``MALLOC_MMAP_THRESHOLD_`` and ``MALLOC_TRIM_THRESHOLD_``: ``timing.KEEP_FREED_MEMORY``),
   plus the cost of launching an empty parallel kernel, which the renderer does ~5 times per
-  render.
+  render. (Since the kernels run on ``minidiff.threads``'s pool, not Numba's ``prange``,
+  Numba's threading layer and OpenMP's settings no longer reach them: those rows show it.)
 
 Where rows are compared with each other (forward against forward+backward, with and without
 antialiasing or visibility reuse, 0, 1 or 2 bounces, gradient images against a render), the
@@ -422,15 +423,22 @@ THREADING_VARIANTS = {
 
 
 def threading_worker(size: int, repeats: int) -> dict:
-    """Forward render time and the launch cost of an empty parallel kernel, this process."""
-    from numba import njit, prange
+    """Forward render time and the launch cost of an empty parallel kernel (a ``nogil``
+    Numba function run as one job per thread by ``minidiff.threads``, as the renderer's
+    kernels are), this process."""
+    from numba import njit
 
-    @njit(parallel=True)
-    def empty_kernel(a):
+    from minidiff.threads import run_jobs, thread_count
+
+    @njit(nogil=True)
+    def empty_job(job, n_jobs, a):
         s = 0.0
-        for i in prange(a.shape[0]):
+        for i in range(job, a.shape[0], n_jobs):
             s += a[i]
         return s
+
+    def empty_kernel(a):
+        return run_jobs(empty_job, thread_count(), a)
 
     scene = paper_scene(size, size)
     small = paper_scene(64, 64)

@@ -5,8 +5,8 @@ machine (``docs/compiler.md``), Numba spends most of a compile in its own type i
 and parallel-loop pass (0.36 s serial, 1.17 s parallel for a 200-operation loop), where
 llvmlite (which Numba itself uses, so nothing new is installed) parses, optimises and emits
 the same loop in tens of milliseconds. Threads come from Python instead of Numba's
-``prange``: a ctypes call releases the GIL, so a thread pool runs a kernel's chunks
-side by side.
+``prange``: a ctypes call releases the GIL, so the thread pool of ``minidiff.threads``
+runs a kernel's chunks side by side.
 
 Compiled kernels are kept twice: in memory for this process, and as object code on disk
 (``MINIDIFF_CACHE_DIR``, default ``~/.cache/minidiff``) for the next one, keyed by a hash
@@ -24,11 +24,12 @@ import hashlib
 import os
 import tempfile
 import threading
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import llvmlite.binding as llvm
 import numpy as np
+
+from minidiff import threads
 
 # Part of every cache key: bump it whenever codegen.py or ir.py changes what they emit for
 # the same program in a way the IR text would not show (the text itself is hashed).
@@ -37,7 +38,6 @@ GENERATOR_VERSION = "1"
 _lock = threading.Lock()  # LLVM's global state is not thread-safe: one compile at a time
 _compiled: dict[str, Kernel] = {}
 _machine: tuple[str, str] | None = None  # (cpu name, features), read once
-_pool: ThreadPoolExecutor | None = None
 
 KERNEL_TYPE = ctypes.CFUNCTYPE(
     ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64, ctypes.c_int64, ctypes.c_int64
@@ -45,44 +45,34 @@ KERNEL_TYPE = ctypes.CFUNCTYPE(
 
 
 class Kernel:
-    """A compiled kernel: ``run(pointers, n, chunks, threads)`` calls it over chunks
-    [0, chunks) of ``n`` elements, split into contiguous ranges, one per thread."""
+    """A compiled kernel: ``run(pointers, n, chunks, n_threads)`` calls it over chunks
+    [0, chunks) of ``n`` elements, split into contiguous ranges, one per thread
+    (``minidiff.threads``)."""
 
     def __init__(self, engine, key: str):
         self._engine = engine  # keeps the machine code alive
         self.key = key
         self._function = KERNEL_TYPE(engine.get_function_address("kernel"))
 
-    def run(self, pointers: ctypes.Array, n: int, chunks: int, threads: int) -> int:
+    def run(self, pointers: ctypes.Array, n: int, chunks: int, n_threads: int) -> int:
         """0, or 1 + the first element (of the first failing range) whose gather index was out
-        of range. Every chunk is computed the same whatever ``threads`` is."""
+        of range. Every chunk is computed the same whatever ``n_threads`` is."""
         if n == 0:
             return 0
-        threads = max(1, min(threads, chunks))
-        if threads == 1:
-            return self._function(pointers, n, 0, chunks)
-        bounds = np.linspace(0, chunks, threads + 1).astype(np.int64)
-        ranges = [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:], strict=True) if b > a]
-        results = list(_executor().map(lambda r: self._function(pointers, n, r[0], r[1]), ranges))
-        failed = [r for r in results if r]
+        n_jobs = max(1, min(n_threads, chunks))
+        bounds = np.linspace(0, chunks, n_jobs + 1).astype(np.int64)
+
+        def job(j: int, _: int) -> int:
+            return self._function(pointers, n, int(bounds[j]), int(bounds[j + 1]))
+
+        failed = [r for r in threads.run_jobs(job, n_jobs) if r]
         return min(failed) if failed else 0
 
 
-def _executor() -> ThreadPoolExecutor:
-    """The shared thread pool (made on first use)."""
-    global _pool
-    with _lock:
-        if _pool is None:
-            workers = os.cpu_count() or 1
-            _pool = ThreadPoolExecutor(max_workers=workers, thread_name_prefix="minidiff")
-        return _pool
-
-
 def _after_fork_in_child() -> None:
-    """A forked child's copy of the pool has no threads left, and its copy of the lock may
-    be held by a thread that no longer exists: start both afresh."""
-    global _pool, _lock
-    _pool, _lock = None, threading.Lock()
+    """A forked child's copy of the lock may be held by a thread that no longer exists."""
+    global _lock
+    _lock = threading.Lock()
 
 
 if hasattr(os, "register_at_fork"):

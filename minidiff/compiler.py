@@ -47,11 +47,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
-import numba
 import numpy as np
 
 from minidiff import backend, codegen, ir
 from minidiff.tensor import Tensor, as_tensor, is_grad_enabled, record
+from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-exported)
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
@@ -59,23 +59,8 @@ MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dr
 # rows, every one reading all elements' rows); below it, starting threads costs more.
 PARALLEL_SCATTER = 1 << 16
 
-# Threads a compiled kernel may use in this thread (context); None: Numba's setting.
-_threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
 # Whether compiled functions run their plain function on the tape in this thread (context).
 _on_the_tape: contextvars.ContextVar[bool] = contextvars.ContextVar("on_the_tape", default=False)
-
-
-@contextlib.contextmanager
-def using_threads(count: int):
-    """Within the block, compiled functions called from this thread run on ``count``
-    threads (results are the same for any count; this only changes the speed)."""
-    if not isinstance(count, int) or count < 1:
-        raise ValueError(f"using_threads: count must be a positive int, got {count!r}")
-    token = _threads.set(count)
-    try:
-        yield
-    finally:
-        _threads.reset(token)
 
 
 _ARRAYS = (Tensor, np.ndarray, float, np.floating, np.integer, np.bool_)
@@ -317,7 +302,7 @@ class CompiledFunction:
         pointers = _addresses(buffers)
         n = trace.batch if batch is None else batch
         chunks = -(-n // codegen.CHUNK)
-        threads = _threads.get() or numba.get_num_threads()
+        threads = thread_count()
         status = kernel.run(pointers, n, chunks, threads)
         if status:
             raise IndexError(
@@ -351,7 +336,7 @@ class CompiledFunction:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
             self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
         grads.update(shared)
-        threads = (_threads.get() or numba.get_num_threads()) if n >= PARALLEL_SCATTER else 1
+        threads = (thread_count()) if n >= PARALLEL_SCATTER else 1
         for (slot, _), share, where in zip(layout.gathers, contributions, rows, strict=True):
             table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
             count = np.array([slots[slot].shape[0]], np.int64)

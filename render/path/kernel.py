@@ -2,7 +2,7 @@
 
 ``render.path.tracer`` (the sampler) and ``render.path.transport`` (the radiance on the
 tape) are the readable reference: a wavefront of NumPy passes, one depth at a time. This
-module does the same work path by path, in parallel over pixels (``prange``), with no array
+module does the same work path by path, in parallel over pixels (on threads), with no array
 between the steps: the camera ray, the BVH, the lobe and direction choices, next-event
 estimation with its shadow ray, point and directional lights, multiple importance sampling,
 Russian roulette, and the radiance each path carries.
@@ -28,6 +28,7 @@ import math
 import numba
 import numpy as np
 
+from minidiff.threads import job_count, kernel, run_jobs, share
 from render.path.chain import (
     _C_ADDED,
     _C_BETA,
@@ -486,22 +487,24 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
             radiance[i, 0], radiance[i, 1], radiance[i, 2] = total
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
-def _kernel(bvh, s, seed, spp, width, height, max_depth, rr_depth, paths, out, radiance, rec_i,
-            rec_f, rec_lit, d_image, grads):  # fmt: skip
+@kernel
+def _kernel(worker, n_workers, bvh, s, seed, spp, width, height, max_depth, rr_depth, paths,
+            out, radiance, rec_i, rec_f, rec_lit, d_image, grads):  # fmt: skip
     """``_trace_block`` over every pixel (``paths`` empty) or every path of ``paths``, in
-    blocks of BLOCK dealt to min(blocks, CHUNKS) jobs: job j takes blocks j, j + jobs, ...
-    (``prange`` gives each thread a contiguous run of jobs, so each thread's blocks are
-    spread over the whole image: with one job per thread, the left and the right halves of
-    a 128-pixel-wide image went to different threads, which take different times). Path
-    replay (``grads`` (jobs, G), G > 0; else (1, 0)): each job adds to its own row, so the
-    sums' order, and so the gradient's bits, do not depend on the threads."""
+    blocks of BLOCK dealt to min(blocks, CHUNKS) jobs: job j takes blocks j, j + jobs, ...;
+    ``worker`` of ``n_workers`` (``minidiff.threads.run_jobs``) runs a contiguous run of
+    jobs, so each thread's blocks are spread over the whole image (with one job per thread,
+    the left and the right halves of a 128-pixel-wide image went to different threads,
+    which take different times). Path replay (``grads`` (jobs, G), G > 0; else (1, 0)):
+    each job adds to its own row, so the sums' order, and so the gradient's bits, do not
+    depend on the threads."""
     n = width * height if paths.shape[0] == 0 else paths.shape[0]
     n_blocks = (n + BLOCK - 1) // BLOCK
     replay = grads.shape[1] > 0
     n_jobs = np.int64(grads.shape[0] if replay else min(n_blocks, CHUNKS))
     seed_key = mix(np.uint64(seed))
-    for job in numba.prange(n_jobs):
+    first, stop = share(worker, n_workers, n_jobs)
+    for job in range(first, stop):
         stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
         grad = grads[np.int64(job) if replay else 0]  # (0,) when there is no replay
         for b in range(job, n_blocks, n_jobs):
@@ -516,8 +519,10 @@ def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=No
     none_i = np.zeros((1, 0, _I_FIELDS), np.int64)
     none_f, none_lit = np.zeros((1, 0, _F_FIELDS)), np.zeros((1, 0, 1), bool)
     rec_i, rec_f, rec_lit = records or (none_i, none_f, none_lit)
-    _kernel(packed.bvh, packed.arrays, np.uint64(sampler.seed), sampler.spp, packed.width,
-            packed.height, sampler.max_depth, sampler.rr_depth,
+    n = packed.width * packed.height if paths is None else len(paths)
+    jobs = len(grads) if grads is not None else min(-(-n // BLOCK), CHUNKS)
+    run_jobs(_kernel, job_count(jobs), packed.bvh, packed.arrays, np.uint64(sampler.seed),
+            sampler.spp, packed.width, packed.height, sampler.max_depth, sampler.rr_depth,
             np.zeros(0, np.int64) if paths is None else paths,
             np.zeros((0, 0, 3)) if out is None else out,
             np.zeros((0, 3)) if radiance is None else radiance, rec_i, rec_f, rec_lit,

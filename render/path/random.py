@@ -17,6 +17,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from minidiff.threads import job_count, kernel, run_jobs, share
+
 #: Dimensions 0 and 1 place the camera ray in its pixel; bounce k (k = 1, 2, ...) uses
 #: dimensions ``2 + DIMENSIONS_PER_BOUNCE * (k - 1) + j`` (``BOUNCE_DIMENSIONS``).
 DIMENSIONS_PER_BOUNCE = 8
@@ -54,10 +56,13 @@ def uniform_of(key, dimension):
     return np.float64(z >> _S11) * (1.0 / 9007199254740992.0)
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
-def _uniforms(seed, paths, dimension, out):
+@kernel
+def _uniforms(job, n_jobs, seed, paths, dimension, out):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``uniform``: its share
+    of the paths."""
     seed_key = mix(np.uint64(seed))
-    for i in numba.prange(paths.shape[0]):
+    first, stop = share(job, n_jobs, paths.shape[0])
+    for i in range(first, stop):
         out[i] = uniform_of(mix(seed_key ^ np.uint64(paths[i])), dimension)
 
 
@@ -66,7 +71,8 @@ def uniform(seed: int, paths: np.ndarray, dimension: int) -> np.ndarray:
     ``dimension``, under ``seed``. 53 random bits each (the float64 mantissa)."""
     paths = np.ascontiguousarray(paths, np.uint64)
     out = np.empty(len(paths))
-    _uniforms(np.uint64(seed), paths, np.uint64(dimension), out)
+    run_jobs(_uniforms, job_count(len(paths), 65536), np.uint64(seed), paths,
+             np.uint64(dimension), out)  # fmt: skip
     return out
 
 

@@ -50,6 +50,7 @@ import numba
 import numpy as np
 
 import minidiff as md
+from minidiff.threads import job_count, kernel, run_jobs, share
 from render.path.sampling import dot, unit
 from render.path.tracer import PathSampler
 from render.scene.scene import Mesh
@@ -197,8 +198,9 @@ class Curves:
         u_point = np.stack([whole[1], second[1]]).astype(float)
         active = np.stack([whole[2], second[2]]).astype(bool)
         out = np.empty((2, 4, n))
-        _pick(np.ascontiguousarray(apex, float), self.a, self.b, self.c, self.centre,
-              self.radius, tri, clip, active, u_curve, u_point, GRAZING, out)  # fmt: skip
+        run_jobs(_pick, job_count(n, 256), np.ascontiguousarray(apex, float), self.a, self.b,
+                 self.c, self.centre, self.radius, tri, clip, active, u_curve, u_point, GRAZING,
+                 out)  # fmt: skip
         draws = [(o[0].astype(np.int64), o[1], o[2], o[3]) for o in out]
         return draws[0], draws[1] if clip else None
 
@@ -394,14 +396,18 @@ def _touching(points: np.ndarray, owners: list[int], sampler: PathSampler) -> np
         other[low[owner] : min(high[owner], sampler.n_triangles)] = False
     triangles = np.ascontiguousarray(sampler.primitives[0][other])
     out = np.zeros(len(points), bool)
-    _touch(np.ascontiguousarray(points), triangles, CONTACT * sampler.size, out)
+    run_jobs(_touch, job_count(len(points), 256), np.ascontiguousarray(points), triangles,
+             CONTACT * sampler.size, out)  # fmt: skip
     return out
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
-def _touch(points, triangles, tolerance, out):
-    """out[i]: point i is within ``tolerance`` of some triangle (its plane, inside it)."""
-    for i in numba.prange(len(points)):
+@kernel
+def _touch(job, n_jobs, points, triangles, tolerance, out):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``), for its share of the
+    points: out[i], point i is within ``tolerance`` of some triangle (its plane, inside
+    it)."""
+    first, stop = share(job, n_jobs, len(points))
+    for i in range(first, stop):
         p = (points[i, 0], points[i, 1], points[i, 2])
         for f in range(len(triangles)):
             v0 = (triangles[f, 0, 0], triangles[f, 0, 1], triangles[f, 0, 2])
@@ -612,16 +618,20 @@ def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
     return circle * (hi - lo), 0.0, lo, hi
 
 
-@numba.njit(parallel=True, cache=True, error_model="numpy")
-def _pick(apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point, grazing, out):
-    """``pick_reference`` per apex (row i of ``apex``, or row 0 if it has one), twice:
+@kernel
+def _pick(
+    job, n_jobs, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point, grazing, out
+):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): for its share of the
+    draws, ``pick_reference`` per apex (row i of ``apex``, or row 0 if it has one), twice:
     ``out[0]`` from whole curves (rows ``active[0]``, uniforms ``u_curve[0]``,
     ``u_point[0]``) and, with ``clip``, ``out[1]`` from the curves' parts towards the
     triangles ``tri`` (rows ``active[1]``, the uniforms' row 1). out (2, 4, n): index,
     density, side, t. One pass over the curves serves both (their silhouette tests)."""
     count = a.shape[0] + centre.shape[0]
     each_apex, each_tri = int(apex.shape[0] > 1), int(tri.shape[0] > 1)  # else row 0 for all
-    for i in numba.prange(u_curve.shape[1]):
+    first, stop = share(job, n_jobs, u_curve.shape[1])
+    for i in range(first, stop):
         for s in range(2):
             out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
         if count == 0:

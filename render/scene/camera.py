@@ -32,6 +32,7 @@ import numpy as np
 import minidiff as md
 from minidiff import buffers
 from minidiff.kernels import sum_rows
+from minidiff.threads import job_count, kernel, run_jobs, share
 from minidiff.trace import Traced
 from render.scene.cache import same
 from render.scene.scene import Camera, check_ray_count
@@ -156,11 +157,13 @@ def pixel_ray(px, py, ox, oy, width, height, forward, right, up):
     )
 
 
-@numba.njit(parallel=True, cache=True)
-def _primary_directions(width, height, offsets, forward, right, up):
+@kernel
+def _primary_directions(job, n_jobs, width, height, offsets, forward, right, up, out):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): the directions (into
+    ``out`` (H * W * spp, 3)) of the camera rays of its share of the image's rows."""
     spp = offsets.shape[0]
-    out = np.empty((height * width * spp, 3))
-    for py in numba.prange(height):
+    first, stop = share(job, n_jobs, height)
+    for py in range(first, stop):
         for px in range(width):
             for s in range(spp):
                 r = (py * width + px) * spp + s
@@ -168,7 +171,6 @@ def _primary_directions(width, height, offsets, forward, right, up):
                     px, py, offsets[s, 0], offsets[s, 1], width, height, forward, right, up
                 )
                 out[r, 0], out[r, 1], out[r, 2] = d
-    return out
 
 
 def plain_frame(camera: Camera) -> PlainFrame:
@@ -212,17 +214,20 @@ def hits_along_rays(
     points = buffers.empty((len(ids), 3), np.float64)
     coords = buffers.empty((len(ids), 2), np.float64)
     offsets = subpixel_offsets(spp)
-    _hits_along_rays(ids, t, camera.width, camera.height, offsets, forward, right, up, eye,
-                     points, coords)  # fmt: skip
+    run_jobs(_hits_along_rays, job_count(len(ids), 65536), ids, t, camera.width, camera.height,
+             offsets, forward, right, up, eye, points, coords)  # fmt: skip
     return points, coords
 
 
-@numba.njit(cache=True, parallel=True)
-def _hits_along_rays(ray_ids, t, width, height, offsets, forward, right, up, eye, points, coords):
-    """Per ray, in parallel (each ray's arithmetic on one thread: any thread count gives
-    the same bits)."""
+@kernel
+def _hits_along_rays(
+    job, n_jobs, ray_ids, t, width, height, offsets, forward, right, up, eye, points, coords
+):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): its share of the rays
+    (each ray's arithmetic on one thread: any thread count gives the same bits)."""
     spp = offsets.shape[0]
-    for i in numba.prange(ray_ids.shape[0]):
+    first, stop = share(job, n_jobs, ray_ids.shape[0])
+    for i in range(first, stop):
         r = ray_ids[i]
         pixel, s = divmod(r, spp)
         py, px = divmod(pixel, width)
@@ -240,7 +245,10 @@ def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """
     forward, right, up, eye = plain_frame(camera)
     offsets = subpixel_offsets(spp)
-    directions = _primary_directions(camera.width, camera.height, offsets, forward, right, up)
+    width, height = camera.width, camera.height
+    directions = np.empty((height * width * len(offsets), 3))
+    run_jobs(_primary_directions, job_count(height, 128), width, height, offsets, forward, right,
+             up, directions)  # fmt: skip
     return eye, directions
 
 

@@ -27,12 +27,12 @@ import math
 from abc import ABC, abstractmethod
 from typing import Any, ClassVar
 
-import numba
 import numpy as np
 
 import minidiff as md
 from minidiff import Tensor, buffers
 from minidiff.either import cross_last
+from minidiff.threads import job_count, kernel, run_jobs, share
 from minidiff.trace import Traced
 from render.scene.fields import IN_RANGE, ArrayLike, Field, HasFields, normalisable
 
@@ -206,7 +206,8 @@ class PointLight(Light):
         origins = buffers.empty(points.shape, np.float64)
         directions = buffers.empty(points.shape, np.float64)
         tmax = buffers.empty(points.shape[:1], np.float64)
-        _point_light_rays(self.location(), points, offset, origins, directions, tmax)
+        run_jobs(_point_light_rays, job_count(len(points), 65536), self.location(), points,
+                 offset, origins, directions, tmax)  # fmt: skip
         return origins, directions, tmax
 
     def shadow_key(self) -> list[np.ndarray]:
@@ -298,11 +299,13 @@ class DirectionalLight(Light):
         return _circle(centre, radius, np.asarray(self.direction.data, np.float64), 0.0)
 
 
-@numba.njit(cache=True, parallel=True)
-def _point_light_rays(position, points, offset, origins, directions, tmax):
-    """Shadow rays towards a point light, one parallel pass over the points (k, 3): each
-    starts ``offset`` towards the light and ends just before it (``PointLight.shadow_rays``)."""
-    for i in numba.prange(points.shape[0]):
+@kernel
+def _point_light_rays(job, n_jobs, position, points, offset, origins, directions, tmax):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): shadow rays towards a
+    point light from its share of the points (k, 3): each starts ``offset`` towards the
+    light and ends just before it (``PointLight.shadow_rays``)."""
+    first, stop = share(job, n_jobs, points.shape[0])
+    for i in range(first, stop):
         tx = position[0] - points[i, 0]
         ty = position[1] - points[i, 1]
         tz = position[2] - points[i, 2]

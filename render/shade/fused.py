@@ -20,16 +20,16 @@ only matters for spp > 1); ``tests/render/shade/test_fused.py`` ties the two tog
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 import minidiff as md
 from minidiff import buffers
+from minidiff.threads import job_count, kernel, run_jobs
 from render.scene.cache import RenderCache
 from render.scene.scene import Scene
 from render.shade import compiled
 from render.shade.hits import shade_camera_hits
-from render.trace.intersect import BLOCK, _jobs
+from render.trace.intersect import BLOCK, n_blocks
 from render.trace.visibility import Visibility
 
 
@@ -62,26 +62,26 @@ def image_values(scene: Scene, visibility: Visibility, camera: tuple, spp: int) 
     # Reused memory (minidiff.buffers): a fresh 512x512 image costs ~1.5 ms of page faults.
     image = buffers.empty((scene.camera.height, scene.camera.width, 3), np.float64)
     background = np.broadcast_to(np.asarray(scene.background.data, np.float64), (3,))
-    _film(primary.prim_id, radiance, spp, np.ascontiguousarray(background),
-          numba.get_num_threads(), image.reshape(-1, 3))  # fmt: skip
+    pixels = image.reshape(-1, 3)
+    run_jobs(_film, job_count(len(pixels), 65536), primary.prim_id, radiance, spp,
+             np.ascontiguousarray(background), pixels)  # fmt: skip
     return image
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
-def _film(prim_id, radiance, spp, background, n_threads, image):
-    """Every pixel (row of ``image`` (H * W, 3)) the mean of its ``spp`` samples' radiance
-    (N, 3), ``background`` (3,) where a sample's ``prim_id`` (N,) is -1: the samples summed
-    in order, times 1 / spp."""
+@kernel
+def _film(job, n_jobs, prim_id, radiance, spp, background, image):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): each pixel of its blocks
+    (rows of ``image`` (H * W, 3)) the mean of its ``spp`` samples' radiance (N, 3),
+    ``background`` (3,) where a sample's ``prim_id`` (N,) is -1: the samples summed in
+    order, times 1 / spp."""
     n = image.shape[0]
     scale = 1.0 / spp
-    n_blocks, n_jobs = _jobs(n, n_threads)
-    for job in numba.prange(n_jobs):
-        for block in range(job, n_blocks, n_jobs):
-            for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
-                for c in range(3):
-                    total = 0.0
-                    for s in range(spp):
-                        r = p * spp + s
-                        value = background[c] if prim_id[r] < 0 else radiance[r, c]
-                        total = value if s == 0 else total + value
-                    image[p, c] = total if spp == 1 else total * scale
+    for block in range(job, n_blocks(n), n_jobs):
+        for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            for c in range(3):
+                total = 0.0
+                for s in range(spp):
+                    r = p * spp + s
+                    value = background[c] if prim_id[r] < 0 else radiance[r, c]
+                    total = value if s == 0 else total + value
+                image[p, c] = total if spp == 1 else total * scale

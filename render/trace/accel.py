@@ -28,13 +28,14 @@ from __future__ import annotations
 
 import time
 
-import numba
 import numpy as np
 from numba import njit
 
+from minidiff.threads import job_count, run_jobs
 from render.scene.scene import MAX_COORD
 from render.trace.bvh import N_BINS, build_bvh, one_leaf, primitive_bounds
 from render.trace.intersect import (
+    RAYS_PER_JOB,
     FlatBVH,
     Rays,
     closest_hit_bvh,
@@ -315,9 +316,8 @@ class Accelerator:
         out_u = np.empty(n)
         out_v = np.empty(n)
         if n:
-            closest_hit_bvh(
-                self._tree(), rays, numba.get_num_threads(), out_id, out_t, out_u, out_v
-            )
+            jobs = job_count(n, RAYS_PER_JOB)
+            run_jobs(closest_hit_bvh, jobs, self._tree(), rays, out_id, out_t, out_u, out_v)
         return out_id, out_t, out_u, out_v
 
     def _prim_ids(self, name: str, values, n: int) -> np.ndarray:
@@ -366,5 +366,6 @@ class Accelerator:
             first_row = self._leaf_row[self._prim_ids("first_try", first_try, n)]
         out = np.empty(n, np.bool_)
         if n:
-            occluded_bvh(self._tree(), rays, numba.get_num_threads(), ignore, first_row, out)
+            jobs = job_count(n, RAYS_PER_JOB)
+            run_jobs(occluded_bvh, jobs, self._tree(), rays, ignore, first_row, out)
         return out

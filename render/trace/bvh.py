@@ -31,9 +31,10 @@ side by side (:func:`build_bvh`).  The tree is the one the serial loop makes, no
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-from numba import njit, prange
+from numba import njit
+
+from minidiff.threads import kernel, run_jobs, thread_count
 
 #: Cost of one node visit (two box tests) relative to one primitive test (the SAH unit).
 C_TRAV = 1.0
@@ -365,24 +366,25 @@ def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred,
     return next_free, depth, n_deferred
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@kernel
 def _subdivide_in_parallel(
-    tasks, task_level, task_worker, task_free, task_end, task_depth, tree, boxes, rule
-):
-    """Build the subtrees under the nodes ``tasks`` at once, one ``_subdivide`` each.
+    job, n_jobs, tasks, task_level, task_worker, task_free, task_end, task_depth, tree, boxes,
+    rule,
+):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of building the subtrees
+    under the nodes ``tasks`` at once, one ``_subdivide`` each.
 
     They are independent: each owns its range of ``order`` and allocates its nodes from its
     own region ``task_free[i]`` on; ``task_end[i]`` and ``task_depth[i]`` receive where the
-    region's used part ends and the subtree's depth.  Thread ``w`` builds the tasks with
+    region's used part ends and the subtree's depth.  Job ``w`` builds the tasks with
     ``task_worker == w`` (a static schedule of unequal tasks would leave a core idle).
     """
     unused = np.empty(0, np.int64)
-    for w in prange(task_worker.max() + 1):
-        for i in range(tasks.shape[0]):
-            if task_worker[i] == w:
-                task_end[i], task_depth[i], _ = _subdivide(
-                    tasks[i], task_level[i], task_free[i], tree, boxes, rule, 0, unused, unused
-                )
+    for i in range(tasks.shape[0]):
+        if task_worker[i] == job:
+            task_end[i], task_depth[i], _ = _subdivide(
+                tasks[i], task_level[i], task_free[i], tree, boxes, rule, 0, unused, unused
+            )
 
 
 @njit(cache=True, error_model="numpy")
@@ -460,8 +462,10 @@ def build_bvh(
         task_free = nodes_used + np.cumsum(region) - region
         task_end = np.empty(n_tasks, np.int64)
         task_depth = np.empty(n_tasks, np.int64)
-        workers = deal_out(node_count[tasks], numba.get_num_threads())
-        _subdivide_in_parallel(
+        workers = deal_out(node_count[tasks], thread_count())
+        run_jobs(
+            _subdivide_in_parallel,
+            int(workers.max()) + 1,
             tasks,
             task_level[:n_tasks],
             workers,

@@ -39,7 +39,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
+
+from minidiff.threads import job_count, kernel, run_jobs, share
 
 #: Row width of the primitive table (16 float64 = two 64-byte cache lines).
 PRIM_WIDTH = 16
@@ -54,6 +56,10 @@ DEGENERATE_TOL = 1e-7
 
 #: Rays are dealt to the threads in blocks of this many consecutive rays (see the kernels).
 BLOCK = 64
+
+#: A second thread is used from this many rays a job on: starting a job on the pool costs
+#: about 46 us (``minidiff.threads``), a thousand rays through the BVH some 100 us.
+RAYS_PER_JOB = 1024
 
 
 class FlatBVH(NamedTuple):
@@ -136,15 +142,19 @@ def pack_primitives(
     """
     if order is None:
         order = np.arange(len(triangles) + len(sphere_centers))
-    return _pack_rows(triangles, sphere_centers, sphere_radii, order)
+    data = np.zeros((len(order), PRIM_WIDTH))
+    n_jobs = job_count(len(order), 16384)
+    run_jobs(_pack_rows, n_jobs, triangles, sphere_centers, sphere_radii, order, data)
+    return data
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
-def _pack_rows(triangles, sphere_centers, sphere_radii, order):
-    """The loop of :func:`pack_primitives` (rows are independent: on all threads)."""
+@kernel
+def _pack_rows(job, n_jobs, triangles, sphere_centers, sphere_radii, order, data):
+    """Job ``job`` of ``n_jobs`` of the loop of :func:`pack_primitives`: its share of the
+    rows of ``data`` (rows are independent)."""
     T = triangles.shape[0]
-    data = np.zeros((order.shape[0], PRIM_WIDTH))
-    for i in prange(order.shape[0]):
+    start, stop = share(job, n_jobs, order.shape[0])
+    for i in range(start, stop):
         p = order[i]
         if p >= T:
             s = p - T
@@ -172,7 +182,6 @@ def _pack_rows(triangles, sphere_centers, sphere_radii, order):
         if np.sqrt(nx * nx + ny * ny + nz * nz) <= cut:
             cut = np.inf
         data[i, 12] = cut
-    return data
 
 
 # --------------------------------------------------------------------------------------------
@@ -513,65 +522,59 @@ def occluded_ray(bvh, ray, ignore, stack):
 # --------------------------------------------------------------------------------------------
 # Parallel kernels over ray arrays
 # --------------------------------------------------------------------------------------------
-# One job per thread: job j takes blocks j, j + n_jobs, j + 2 n_jobs, ... of BLOCK consecutive
-# rays, in order.  The interleave shares the image out evenly (prange splits its range
-# statically: a contiguous split would give one thread all the sky and the other all the
-# teapot), and walking each thread's rays in order keeps consecutive rays alike, whose
-# branches go the same way: brute force on every 16th camera ray of the teapot (1 thread)
-# took 98 ms when the blocks were dealt to 64 jobs (a jump of 64 blocks after each), 76 ms
-# in order; the BVH's camera rays 12.0 against 10.4 ms, its shadow rays 4.8 against 4.0 ms
-# (the same per-ray code, dealt either way).
+# Jobs run on the threads of ``minidiff.threads`` (``threads.run_jobs(kernel, n_jobs, ...)``
+# calls ``kernel(job, n_jobs, ...)`` once per job; ``threads.job_count(N, BLOCK)`` jobs:
+# one per thread). Job j takes blocks j, j + n_jobs, j + 2 n_jobs, ... of BLOCK consecutive
+# rays, in order.  The interleave shares the image out evenly (a contiguous split would give
+# one thread all the sky and the other all the teapot), and walking each thread's rays in
+# order keeps consecutive rays alike, whose branches go the same way: brute force on every
+# 16th camera ray of the teapot (1 thread) took 98 ms when the blocks were dealt to 64 jobs
+# (a jump of 64 blocks after each), 76 ms in order; the BVH's camera rays 12.0 against
+# 10.4 ms, its shadow rays 4.8 against 4.0 ms (the same per-ray code, dealt either way).
 # Each job allocates its traversal stack once.
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _jobs(n_rays, n_threads):
-    """``(n_blocks, n_jobs)`` for N rays: blocks of BLOCK rays, one job per thread (fewer if
-    there are fewer blocks).  The caller passes Numba's thread count: asked for inside the
-    kernel, it would keep the kernel from being cached."""
-    n_blocks = (n_rays + BLOCK - 1) // BLOCK
-    return n_blocks, max(1, min(n_blocks, n_threads))
+@njit(cache=True, inline="always")
+def n_blocks(n_rays):
+    """How many blocks of BLOCK rays N rays make."""
+    return (n_rays + BLOCK - 1) // BLOCK
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
-def closest_hit_bvh(bvh, rays, n_threads, out_id, out_t, out_u, out_v):
-    """Closest hits of N rays (a :class:`Rays`) in ``bvh`` (a :class:`FlatBVH`), rays in
-    parallel on ``n_threads`` (``numba.get_num_threads()``): written to out_id (N,) int64,
+@kernel
+def closest_hit_bvh(job, n_jobs, bvh, rays, out_id, out_t, out_u, out_v):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of the closest hits of N
+    rays (a :class:`Rays`) in ``bvh`` (a :class:`FlatBVH`): written to out_id (N,) int64,
     out_t, out_u, out_v (N,) float64 (see :func:`closest_hit_ray`)."""
     n = out_id.shape[0]
-    n_blocks, n_jobs = _jobs(n, n_threads)
-    for job in prange(n_jobs):
-        stack = np.empty(bvh.stack_size, np.int64)
-        stack_t = np.empty(bvh.stack_size, np.float64)
-        for b in range(job, n_blocks, n_jobs):
-            for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
-                out_id[i], out_t[i], out_u[i], out_v[i] = closest_hit_ray(
-                    bvh, ray_at(rays, i), stack, stack_t
-                )
+    stack = np.empty(bvh.stack_size, np.int64)
+    stack_t = np.empty(bvh.stack_size, np.float64)
+    for b in range(job, n_blocks(n), n_jobs):
+        for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
+            out_id[i], out_t[i], out_u[i], out_v[i] = closest_hit_ray(
+                bvh, ray_at(rays, i), stack, stack_t
+            )
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
-def occluded_bvh(bvh, rays, n_threads, ignore, first_row, out):
-    """Any-hit of N shadow rays (a :class:`Rays`) in ``bvh`` (a :class:`FlatBVH`), each
-    ignoring primitive ``ignore[i]`` (N,) int64 (-1: none), on ``n_threads``: written to
-    out (N,) bool (see :func:`occluded_ray`).
+@kernel
+def occluded_bvh(job, n_jobs, bvh, rays, ignore, first_row, out):
+    """Job ``job`` of ``n_jobs`` of the any-hit of N shadow rays (a :class:`Rays`) in
+    ``bvh`` (a :class:`FlatBVH`), each ignoring primitive ``ignore[i]`` (N,) int64 (-1:
+    none): written to out (N,) bool (see :func:`occluded_ray`).
 
     ``first_row`` (N,) int64, or empty: a row of the leaf table to test before the
     traversal (-1: none). A ray that primitive blocks is blocked, and needs no traversal;
     the answer is the traversal's, which would test that primitive too (its leaf's box
     holds it)."""
     n = out.shape[0]
-    n_blocks, n_jobs = _jobs(n, n_threads)
     hinted = first_row.shape[0] > 0
-    for job in prange(n_jobs):
-        stack = np.empty(bvh.stack_size, np.int64)
-        for b in range(job, n_blocks, n_jobs):
-            for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
-                ray = ray_at(rays, i)
-                k = first_row[i] if hinted else -1
-                if k >= 0 and _blocked_by_row(
-                    bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, k, ray, ignore[i]
-                ):
-                    out[i] = True
-                else:
-                    out[i] = occluded_ray(bvh, ray, ignore[i], stack)
+    stack = np.empty(bvh.stack_size, np.int64)
+    for b in range(job, n_blocks(n), n_jobs):
+        for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
+            ray = ray_at(rays, i)
+            k = first_row[i] if hinted else -1
+            if k >= 0 and _blocked_by_row(
+                bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, k, ray, ignore[i]
+            ):
+                out[i] = True
+            else:
+                out[i] = occluded_ray(bvh, ray, ignore[i], stack)

@@ -26,11 +26,18 @@ against every primitive.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from render.trace.intersect import BLOCK, _jobs, intersect_prim, make_ray, pack_primitives
+from minidiff.threads import job_count, kernel, run_jobs
+from render.trace.intersect import (
+    BLOCK,
+    RAYS_PER_JOB,
+    intersect_prim,
+    make_ray,
+    n_blocks,
+    pack_primitives,
+)
 from render.trace.raster import (
     EDGE_MARGIN,
     bin_to_tiles,
@@ -93,8 +100,8 @@ def occluded_towards_light(
     # wholly farther from the light than the ray's start.
     start, ids = bin_to_tiles(boxes, width, height, 1, np.argsort(near, kind="stable"))
     prim_data = pack_primitives(triangles, centers, radii)
-    _occluded_by_cell(prim_data, len(triangles), start, ids, near, edges, view, close, origins,
-                      directions, tmax, ignore, out, numba.get_num_threads())  # fmt: skip
+    run_jobs(_occluded_by_cell, job_count(len(out), RAYS_PER_JOB), prim_data, len(triangles), start,
+             ids, near, edges, view, close, origins, directions, tmax, ignore, out)  # fmt: skip
     return out
 
 
@@ -151,27 +158,24 @@ def bounding_box(points):
     return lo, hi
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
-def _occluded_by_cell(prim_data, n_tri, start, ids, near, edges, view, close, origins,
-                      directions, tmax, ignore, out, n_threads):  # fmt: skip
-    """Any-hit of every ray against the list of its cell of the light's ``view`` (tmin = 0,
-    as the shadow rays), nearest first, up to the first primitive wholly beyond the ray's
-    start, skipping those whose ``edges`` rule it out; against every primitive if the ray
-    starts within depth ``close`` of the light."""
+@kernel
+def _occluded_by_cell(job, n_jobs, prim_data, n_tri, start, ids, near, edges, view, close,
+                      origins, directions, tmax, ignore, out):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): any-hit of its rays
+    against the list of its cell of the light's ``view`` (tmin = 0, as the shadow rays),
+    nearest first, up to the first primitive wholly beyond the ray's start, skipping those
+    whose ``edges`` rule it out; against every primitive if the ray starts within depth
+    ``close`` of the light."""
     light, forward, right, up, width, height = view
     rr, uu = right @ right, up @ up
     eps = np.finfo(np.float64).eps
     light_size = max(abs(light[0]), abs(light[1]), abs(light[2]))
-    # Blocks of rays dealt round-robin to the threads (``intersect._jobs``): prange's
-    # contiguous halves gave one thread the shadowed rows of the image and the other the
-    # lit ones.
-    n_blocks, n_jobs = _jobs(out.shape[0], n_threads)
-    for job in prange(n_jobs):
-        for block in range(job, n_blocks, n_jobs):
-            for i in range(block * BLOCK, min(out.shape[0], (block + 1) * BLOCK)):
-                _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origins,
-                              directions, tmax, ignore, out, i, rr, uu, eps,
-                              light_size)  # fmt: skip
+    # Blocks of rays dealt round-robin to the jobs (``render.trace.intersect``): contiguous
+    # halves gave one thread the shadowed rows of the image and the other the lit ones.
+    for block in range(job, n_blocks(out.shape[0]), n_jobs):
+        for i in range(block * BLOCK, min(out.shape[0], (block + 1) * BLOCK)):
+            _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origins,
+                          directions, tmax, ignore, out, i, rr, uu, eps, light_size)  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -193,16 +197,23 @@ def _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origin
         # The segment's points are no deeper than its start (exactly: (1 - t) times its
         # depth), so primitives wholly beyond that depth cannot block it.
         rounding = 64.0 * eps * (light_size + max(abs(ox), abs(oy), abs(oz)))
-        ray = make_ray(origins[i], directions[i], 0.0, tmax[i])
-        everything = depth <= close  # rounding could put the ray in the wrong cell
-        first, last = (0, near.shape[0]) if everything else (start[c], start[c + 1])
-        for j in range(first, last):
-            pid = j if everything else ids[j]
-            if not everything and wholly_beyond(near[pid], depth, rounding):
+        origin = (origins[i, 0], origins[i, 1], origins[i, 2])
+        ray = make_ray(origin, (directions[i, 0], directions[i, 1], directions[i, 2]), 0.0, tmax[i])
+        if depth <= close:  # rounding could put the ray in the wrong cell: test them all
+            for pid in range(near.shape[0]):
+                if (
+                    pid != ignore[i]
+                    and intersect_prim(prim_data, pid, pid, n_tri, ray)[0] < ray.tmax
+                ):
+                    out[i] = True
+                    break
+            return
+        for j in range(start[c], start[c + 1]):
+            pid = ids[j]
+            if wholly_beyond(near[pid], depth, rounding):
                 break
-            if pid == ignore[i] or not (everything or may_see(edges[pid], px, py)):
+            if pid == ignore[i] or not may_see(edges, pid, px, py):
                 continue
-            t, _, _ = intersect_prim(prim_data, pid, pid, n_tri, ray)
-            if t < ray.tmax:
+            if intersect_prim(prim_data, pid, pid, n_tri, ray)[0] < ray.tmax:
                 out[i] = True
                 break

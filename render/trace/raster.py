@@ -35,14 +35,21 @@ end. The shadow rays towards a point light are answered the same way, seen from 
 
 from __future__ import annotations
 
-import numba
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from minidiff import buffers
+from minidiff.threads import job_count, kernel, run_jobs
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.scene.scene import Camera
-from render.trace.intersect import BLOCK, _jobs, intersect_prim, make_ray, pack_primitives
+from render.trace.intersect import (
+    BLOCK,
+    RAYS_PER_JOB,
+    intersect_prim,
+    make_ray,
+    n_blocks,
+    pack_primitives,
+)
 
 #: Side of a binning tile, in pixels.
 TILE = 16
@@ -203,55 +210,50 @@ def bin_to_tiles(boxes, tiles_x, tiles_y, tile, order):
     return start, ids
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@kernel
 def _raster_closest_hit(
-    prim_data, n_tri, boxes, edges, near, rounding, start, ids, tiles_x, width, height, offsets,
-    eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
+    job, n_jobs, prim_data, n_tri, boxes, edges, near, rounding, start, ids, tiles_x, width,
+    height, offsets, eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
 ):  # fmt: skip
-    """Step 3 of the module docstring; ray r = (py * width + px) * spp + sample, its
-    direction made on the spot (``render.scene.camera.pixel_ray``, the tracer's very bits)."""
+    """Step 3 of the module docstring for job ``job`` of ``n_jobs``
+    (``minidiff.threads.run_jobs``); ray r = (py * width + px) * spp + sample, its
+    direction made on the spot (``render.scene.camera.pixel_ray``, the tracer's very bits).
+    out_id, out_t (and out_u, out_v if ``with_uv``) hold -1, inf (and 0) on entry."""
     spp = offsets.shape[0]
-    out_id[:] = -1
-    out_t[:] = np.inf
-    if with_uv:
-        out_u[:] = 0.0
-        out_v[:] = 0.0
     n_tiles = start.shape[0] - 1
-    # Tiles dealt round-robin to jobs: prange splits its range in contiguous parts, which
-    # would give one thread the sky and the other the object.
-    n_jobs = min(n_tiles, 64)
-    for job in prange(n_jobs):
-        for tile in range(job, n_tiles, n_jobs):
-            tx0 = (tile % tiles_x) * TILE
-            ty0 = (tile // tiles_x) * TILE
-            for j in range(start[tile], start[tile + 1]):
-                pid = ids[j]
-                x0 = max(boxes[pid, 0], tx0)
-                x1 = min(boxes[pid, 2], tx0 + TILE - 1, width - 1)
-                y0 = max(boxes[pid, 1], ty0)
-                y1 = min(boxes[pid, 3], ty0 + TILE - 1, height - 1)
-                for py in range(y0, y1 + 1):
-                    for px in range(x0, x1 + 1):
-                        for s in range(spp):
-                            if not may_see(edges[pid], px + offsets[s, 0], py + offsets[s, 1]):
-                                continue
-                            r = (py * width + px) * spp + s
-                            if wholly_beyond(near[pid], out_t[r], rounding):
-                                continue  # wholly behind what the ray already hit
-                            direction = pixel_ray(
-                                px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
-                                right, up,
-                            )  # fmt: skip
-                            ray = make_ray(eye, direction, 0.0, np.inf)
-                            t, u, v = intersect_prim(prim_data, pid, pid, n_tri, ray)
-                            # The BVH's order: (t, id); a miss is t = inf and never accepted.
-                            best = out_t[r]
-                            if t < best or (t == best and pid < out_id[r]):
-                                out_id[r] = pid
-                                out_t[r] = t
-                                if with_uv:
-                                    out_u[r] = u
-                                    out_v[r] = v
+    # Tiles dealt round-robin to jobs: contiguous parts would give one thread the sky and
+    # the other the object.
+    for tile in range(job, n_tiles, n_jobs):
+        tx0 = (tile % tiles_x) * TILE
+        ty0 = (tile // tiles_x) * TILE
+        for j in range(start[tile], start[tile + 1]):
+            pid = ids[j]
+            x0 = max(boxes[pid, 0], tx0)
+            x1 = min(boxes[pid, 2], tx0 + TILE - 1, width - 1)
+            y0 = max(boxes[pid, 1], ty0)
+            y1 = min(boxes[pid, 3], ty0 + TILE - 1, height - 1)
+            for py in range(y0, y1 + 1):
+                for px in range(x0, x1 + 1):
+                    for s in range(spp):
+                        if not may_see(edges, pid, px + offsets[s, 0], py + offsets[s, 1]):
+                            continue
+                        r = (py * width + px) * spp + s
+                        if wholly_beyond(near[pid], out_t[r], rounding):
+                            continue  # wholly behind what the ray already hit
+                        direction = pixel_ray(
+                            px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
+                            right, up,
+                        )  # fmt: skip
+                        ray = make_ray(eye, direction, 0.0, np.inf)
+                        t, u, v = intersect_prim(prim_data, pid, pid, n_tri, ray)
+                        # The BVH's order: (t, id); a miss is t = inf and never accepted.
+                        best = out_t[r]
+                        if t < best or (t == best and pid < out_id[r]):
+                            out_id[r] = pid
+                            out_t[r] = t
+                            if with_uv:
+                                out_u[r] = u
+                                out_v[r] = v
 
 
 @njit(cache=True, inline="always")
@@ -263,11 +265,12 @@ def wholly_beyond(near, depth, rounding):
 
 
 @njit(cache=True, inline="always")
-def may_see(edges, x, y):
-    """Whether a sample at continuous pixel position (x, y) passes a primitive's three edge
-    tests (``screen_boxes``)."""
+def may_see(edges, pid, x, y):
+    """Whether a sample at continuous pixel position (x, y) passes primitive ``pid``'s three
+    edge tests (``screen_boxes``). (Elements read one by one: a row view ``edges[pid]``
+    would count references, atomically, on every test.)"""
     for k in range(3):
-        if edges[k, 0] * x + edges[k, 1] * y + edges[k, 2] < -EDGE_MARGIN:
+        if edges[pid, k, 0] * x + edges[pid, k, 1] * y + edges[pid, k, 2] < -EDGE_MARGIN:
             return False
     return True
 
@@ -321,10 +324,13 @@ def raster_closest_hit(
     n = width * height * spp
     # Reused memory (minidiff.buffers): fresh 2 MB arrays per render cost page faults.
     out_id, out_t = buffers.empty((n,), np.int64), buffers.empty((n,), np.float64)
-    out_u, out_v = (np.empty(n), np.empty(n)) if with_uv else (np.empty(1), np.empty(1))
-    _raster_closest_hit(
-        prim_data, len(triangles), boxes, edges, near, rounding, start, ids, tiles_x, width,
-        height, offsets, eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
+    out_u, out_v = (np.zeros(n), np.zeros(n)) if with_uv else (np.empty(1), np.empty(1))
+    out_id.fill(-1)
+    out_t.fill(np.inf)
+    run_jobs(
+        _raster_closest_hit, job_count(len(start) - 1, 16), prim_data, len(triangles), boxes,
+        edges, near, rounding, start, ids, tiles_x, width, height, offsets, eye, forward,
+        right, up, out_id, out_t, out_u, out_v, with_uv,
     )  # fmt: skip
     if not with_uv:
         return out_id, out_t, None, None
@@ -383,31 +389,30 @@ def raster_occluded(
         primitives, frame, width, height, anywhere, tile
     )
     out = np.zeros(len(coords), np.bool_)
-    _raster_occluded(
+    run_jobs(
+        _raster_occluded, job_count(len(out), RAYS_PER_JOB),
         pack_primitives(triangles, centers, radii), len(triangles), edges, near, rounding,
         start, ids, tile, tiles_x, width, height, eye, forward, np.ascontiguousarray(coords),
-        np.ascontiguousarray(directions), tmax, ignore, numba.get_num_threads(), out,
+        np.ascontiguousarray(directions), tmax, ignore, out,
     )  # fmt: skip
     return out
 
 
-@njit(cache=True, parallel=True, error_model="numpy")
+@kernel
 def _raster_occluded(
-    prim_data, n_tri, edges, near, rounding, start, ids, tile_size, tiles_x, width, height,
-    eye, forward, coords, directions, tmax, ignore, n_threads, out,
+    job, n_jobs, prim_data, n_tri, edges, near, rounding, start, ids, tile_size, tiles_x,
+    width, height, eye, forward, coords, directions, tmax, ignore, out,
 ):  # fmt: skip
-    """``raster_occluded``'s test, rays shared out over ``n_threads`` as the tracer's
-    kernels share them (``render.trace.intersect._jobs``): each against its tile's list,
-    or against every primitive if it lies outside the image (no tile holds what it may
+    """``raster_occluded``'s test for job ``job`` of ``n_jobs``, rays dealt as the tracer's
+    kernels deal them (``render.trace.intersect``): each against its tile's list, or
+    against every primitive if it lies outside the image (no tile holds what it may
     meet)."""
-    n_blocks, n_jobs = _jobs(out.shape[0], n_threads)
-    for job in prange(n_jobs):
-        for block in range(job, n_blocks, n_jobs):
-            for i in range(block * BLOCK, min(out.shape[0], (block + 1) * BLOCK)):
-                out[i] = _occluded_in_tile(
-                    prim_data, n_tri, edges, near, rounding, start, ids, tile_size, tiles_x,
-                    width, height, eye, forward, coords, directions, tmax, ignore, i,
-                )  # fmt: skip
+    for block in range(job, n_blocks(out.shape[0]), n_jobs):
+        for i in range(block * BLOCK, min(out.shape[0], (block + 1) * BLOCK)):
+            out[i] = _occluded_in_tile(
+                prim_data, n_tri, edges, near, rounding, start, ids, tile_size, tiles_x,
+                width, height, eye, forward, coords, directions, tmax, ignore, i,
+            )  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -430,7 +435,7 @@ def _occluded_in_tile(
         pid = ids[j] if inside else j
         if inside and wholly_beyond(near[pid], depth, rounding):
             return False  # this one and the rest lie wholly beyond the ray's end
-        if pid == ignore[i] or (inside and not may_see(edges[pid], x, y)):
+        if pid == ignore[i] or (inside and not may_see(edges, pid, x, y)):
             continue
         if intersect_prim(prim_data, pid, pid, n_tri, ray)[0] < ray.tmax:
             return True

@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from minidiff.threads import job_count, kernel, run_jobs, share
+
 # Vertices closer than this fraction of the mesh's size (its bounding box diagonal) are one
 # position when welding.
 _WELD_TOLERANCE = 1e-9
@@ -314,19 +316,16 @@ def _edge_values(vertices, a, b, eye, directional, near, far):
     return e_near, e_far
 
 
-@numba.njit(cache=True, parallel=True)
-def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, jumps, start, eye,
-                 d_near, d_far, max_steps, directional):  # fmt: skip
-    """``walk_to_silhouette`` one segment at a time (same steps, same tie-breaking: the
-    lowest edge index wins)."""
-    n = start.shape[0]
-    face = start.copy()
-    edge = np.full(n, -2, dtype=np.int64)
-    s_out = np.full(n, np.nan)
-    mid_face = np.full(n, -1, dtype=np.int64)
-    mid_k = np.full(n, -1, dtype=np.int64)
-    mid_s = np.full(n, np.nan)
-    for i in numba.prange(n):
+@kernel
+def _walk_kernel(job, n_jobs, vertices, faces, neighbour, neighbour_edge, silhouette, jumps,
+                 start, eye, d_near, d_far, max_steps, directional, face, edge, s_out,
+                 mid_face, mid_k, mid_s):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``walk_to_silhouette``,
+    one segment at a time (same steps, same tie-breaking: the lowest edge index wins); the
+    outputs (face, edge, s_out, mid_face, mid_k, mid_s) hold start, -2, nan, -1, -1, nan on
+    entry."""
+    first, stop = share(job, n_jobs, start.shape[0])
+    for i in range(first, stop):
         f = start[i]
         entry = -1
         s_entry = 0.0
@@ -358,7 +357,6 @@ def _walk_kernel(vertices, faces, neighbour, neighbour_edge, silhouette, jumps, 
             f = nb
             s_entry = best_s
         face[i] = f
-    return face, edge, s_out, mid_face, mid_k, mid_s
 
 
 def walk_to_silhouette_fast(
@@ -367,11 +365,16 @@ def walk_to_silhouette_fast(
 ):  # fmt: skip
     """``walk_to_silhouette`` (same arguments, same results) as one Numba kernel."""
     jumps = np.zeros(silhouette.shape, bool) if jumps is None else jumps
-    face, edge, s, mid_face, mid_k, mid_s = _walk_kernel(
-        np.ascontiguousarray(vertices, dtype=np.float64), faces, edges.neighbour,
-        edges.neighbour_edge, np.ascontiguousarray(silhouette), np.ascontiguousarray(jumps),
-        np.asarray(start, np.int64),
-        np.asarray(eye, np.float64), np.ascontiguousarray(d_near, dtype=np.float64),
-        np.ascontiguousarray(d_far, dtype=np.float64), max_steps, directional,
+    start = np.array(start, np.int64)
+    n = len(start)
+    face, edge, s = start.copy(), np.full(n, -2, np.int64), np.full(n, np.nan)
+    mid_face, mid_k, mid_s = np.full(n, -1, np.int64), np.full(n, -1, np.int64), np.full(n, np.nan)
+    run_jobs(
+        _walk_kernel, job_count(n, 256), np.ascontiguousarray(vertices, dtype=np.float64),
+        faces, edges.neighbour, edges.neighbour_edge, np.ascontiguousarray(silhouette),
+        np.ascontiguousarray(jumps), start, np.asarray(eye, np.float64),
+        np.ascontiguousarray(d_near, dtype=np.float64),
+        np.ascontiguousarray(d_far, dtype=np.float64), max_steps, directional, face, edge, s,
+        mid_face, mid_k, mid_s,
     )  # fmt: skip
     return face, edge, s, (mid_face, mid_k, mid_s)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import threading
 
-import numba
 import numpy as np
 
 import minidiff as md
@@ -96,9 +95,31 @@ def test_threads_rendering_different_scenes_with_backward_match_the_work_done_al
         assert_identical(together[job], expected)
     assert modes == {i: True for i in range(N_THREADS)}
     assert md.is_grad_enabled()
-    # Numba's thread-safe layers (its fallback, workqueue, aborts on concurrent launches:
-    # docs/architecture.md).
-    assert numba.threading_layer() in ("omp", "tbb")
+
+
+def test_no_kernel_uses_numbas_parallel_loops():
+    """Every Numba kernel of the renderer and of minidiff runs on ``minidiff.threads``'s
+    pool (``nogil``), none through Numba's ``parallel=True``: Numba's fallback threading
+    layer (workqueue) aborts the process when two threads launch parallel kernels at once
+    (docs/architecture.md)."""
+    import importlib
+    import pkgutil
+
+    from numba.core.registry import CPUDispatcher
+
+    kernels, parallel = 0, []
+    for package in ("render", "minidiff"):
+        root = importlib.import_module(package)
+        for info in pkgutil.walk_packages(root.__path__, package + "."):
+            if info.name in ("render.torch", "render.jax"):
+                continue  # optional bridges: their frameworks may be absent
+            module = importlib.import_module(info.name)
+            for value in vars(module).values():
+                if isinstance(value, CPUDispatcher) and value.py_func.__module__ == info.name:
+                    kernels += 1
+                    if value.targetoptions.get("parallel"):
+                        parallel.append(info.name + "." + value.py_func.__name__)
+    assert kernels > 50 and parallel == []
 
 
 def test_threads_rendering_one_shared_scene_read_only_match_a_render_alone():

@@ -31,6 +31,7 @@ import numba
 import numpy as np
 
 from minidiff.either import cross_last, dot_last
+from minidiff.threads import job_count, kernel, run_jobs
 from render.edges.boundary.curves import (
     NEAR,
     CurvePoints,
@@ -43,7 +44,7 @@ from render.edges.boundary.occlusion import hidden_points, seen_in
 from render.edges.boundary.radiance import EPSILON
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
-from render.trace.intersect import BLOCK, _jobs
+from render.trace.intersect import BLOCK, n_blocks
 from render.trace.seams import SharedEdges
 from render.trace.topology import EdgeTable
 
@@ -137,10 +138,9 @@ def cross3(x, y, out):
     out[2] = x[0] * y[1] - x[1] * y[0]
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
 def edge_sides_kernel(
     eye, forward, right, up, vertices, i, j, own_faces, own_thirds, first_prim, shared_faces,
-    shared_thirds, edges, coords, width, height, n_threads,
+    shared_thirds, edges, coords, width, height,
 ):  # fmt: skip
     """``edge_sides`` of k points on the edges of an ``EdgeTable``: the same arithmetic, in
     scalars instead of a dozen (k, 3) temporaries.
@@ -154,104 +154,128 @@ def edge_sides_kernel(
     (k, 2), chosen (k, 2) (``edge_sides``).
 
     What depends on the edge alone (its plane, |grad e|, the step, each face's side and
-    normal) is computed once per edge the points lie on, then each point's own part;
-    both passes share their work out over ``n_threads`` (``numba.get_num_threads()``) as
-    the ray kernels share rays (``render.trace.intersect._jobs``: every result is the same
-    on any number of threads). tests/render/edges/test_boundary.py ties it to its NumPy
-    statement (``edge_sides`` there)."""
-    k, n_own = edges.shape[0], own_faces.shape[1]
-    n_faces = n_own + shared_faces.shape[1]
+    normal) is computed once per edge the points lie on (``_per_edge``), then each point's
+    own part (``_per_point``); both share their work out in jobs as the ray kernels share
+    rays (``render.trace.intersect``: every result is the same on any number of threads).
+    tests/render/edges/test_boundary.py ties it to its NumPy statement (``edge_sides``
+    there)."""
+    k = len(edges)
     # The edges the points lie on, each given a slot in the order the points first name it.
-    slot = np.full(i.shape[0], -1, np.int64)
-    rows = np.empty(k, np.int64)
-    n = 0
-    for p in range(k):
-        if slot[edges[p]] < 0:
-            slot[edges[p]], rows[n] = n, edges[p]
-            n += 1
+    named, first = np.unique(edges, return_index=True)
+    rows = named[np.argsort(first)]
+    slot = np.full(len(i), -1, np.int64)
+    slot[rows] = np.arange(len(rows))
+    n, n_faces = len(rows), own_faces.shape[1] + shared_faces.shape[1]
     u, w0, normal = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, n_faces, 3))
     uu, uw, length = np.empty(n), np.empty(n), np.empty(n)
     step_e, ng = np.empty((n, 2)), np.empty((n, n_faces))
     face = np.full((n, n_faces), -1, np.int64)  # -1: none, or on neither side
     plus = np.zeros((n, n_faces), np.bool_)
-    sx, sy = 2.0 / width, -2.0 / height
-    n_blocks, n_jobs = _jobs(n, n_threads)
-    for job in numba.prange(n_jobs):
-        am, bm, m, towards = np.empty(3), np.empty(3), np.empty(3), np.empty(3)  # per thread
-        t, third, cut = np.empty(3), np.empty(3), np.empty(3)
-        for block in range(job, n_blocks, n_jobs):
-            for e in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
-                row = rows[e]
-                ia, ib = i[row], j[row]
-                for c in range(3):
-                    am[c], bm[c] = vertices[ia, c] - eye[c], vertices[ib, c] - eye[c]
-                    u[e, c], w0[e, c] = vertices[ib, c] - vertices[ia, c], eye[c] - vertices[ia, c]
-                cross3(am, bm, m)
-                uu[e], uw[e] = dot3(u[e], u[e]), dot3(u[e], w0[e])
-                # pixel_gradient of grad e = (m . right, m . up)
-                gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
-                length[e] = math.sqrt(gx * gx + gy * gy)
-                scale = length[e] if length[e] > 0 else 1.0
-                step_e[e, 0], step_e[e, 1] = gx / scale * sx, gy / scale * sy
-                for c in range(3):
-                    towards[c] = step_e[e, 0] * right[c] + step_e[e, 1] * up[c]
-                for f in range(n_faces):  # each face's side and normal
-                    if f < n_own:
-                        if own_faces[row, f] < 0:
-                            continue
-                        for c in range(3):
-                            third[c] = vertices[own_thirds[row, f], c]
-                        global_id = own_faces[row, f] + first_prim
-                    else:
-                        global_id = shared_faces[row, f - n_own]
-                        if global_id < 0:
-                            continue
-                        for c in range(3):
-                            third[c] = shared_thirds[row, f - n_own, c]
-                    for c in range(3):
-                        t[c] = third[c] - vertices[ia, c]
-                    side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
-                    side = side + (third[2] - eye[2]) * m[2]
-                    if side == 0 or side != side:
-                        continue
-                    face[e, f], plus[e, f] = global_id, side > 0
-                    cross3(u[e], t, cut)
-                    normal[e, f] = cut
-                    ng[e, f] = dot3(cut, towards)
-    directions = np.empty((k, 3))
-    depth, norm = np.empty(k), np.empty(k)
-    step = np.empty((k, 2))
-    chosen = np.full((k, 2), -1, np.int64)
-    n_blocks, n_jobs = _jobs(k, n_threads)
-    for job in numba.prange(n_jobs):
-        for block in range(job, n_blocks, n_jobs):
-            for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
-                # Elements read one by one: row views of shared arrays would count
-                # references, atomically, in every thread.
-                e, x, y = slot[edges[p]], coords[p, 0], coords[p, 1]
-                d0 = x * right[0] + y * up[0] + forward[0]
-                d1 = x * right[1] + y * up[1] + forward[1]
-                d2 = x * right[2] + y * up[2] + forward[2]
-                directions[p, 0], directions[p, 1], directions[p, 2] = d0, d1, d2
-                # _edge_points: the depth along d of the point nearest the line through a and b
-                dd = d0 * d0 + d1 * d1 + d2 * d2
-                du = d0 * u[e, 0] + d1 * u[e, 1] + d2 * u[e, 2]
-                dw = d0 * w0[e, 0] + d1 * w0[e, 1] + d2 * w0[e, 2]
-                det = dd * uu[e] - du * du
-                depth[p] = (du * uw[e] - uu[e] * dw) / (det if det > 0 else 1.0)
-                norm[p], step[p, 0], step[p, 1] = length[e], step_e[e, 0], step_e[e, 1]
-                # the nearest face on either side (approach; ties go to the first, as np.argmax)
-                best_plus, best_minus = -np.inf, -np.inf
-                for f in range(n_faces):
-                    if face[e, f] < 0:
-                        continue
-                    nd = normal[e, f, 0] * d0 + normal[e, f, 1] * d1 + normal[e, f, 2] * d2
-                    rate = ng[e, f] / nd if nd != 0 else ng[e, f] / np.inf
-                    if plus[e, f] and (chosen[p, 0] < 0 or rate > best_plus):
-                        best_plus, chosen[p, 0] = rate, face[e, f]
-                    elif not plus[e, f] and (chosen[p, 1] < 0 or -rate > best_minus):
-                        best_minus, chosen[p, 1] = -rate, face[e, f]
+    per_edge = (u, w0, normal, uu, uw, length, step_e, ng, face, plus)
+    run_jobs(
+        _per_edge, job_count(n, 1024), eye, right, up, vertices, i, j, own_faces, own_thirds,
+        first_prim, shared_faces, shared_thirds, rows, width, height, *per_edge,
+    )  # fmt: skip
+    directions, depth, norm = np.empty((k, 3)), np.empty(k), np.empty(k)
+    step, chosen = np.empty((k, 2)), np.full((k, 2), -1, np.int64)
+    run_jobs(
+        _per_point, job_count(k, 4096), forward, right, up, slot, edges, coords, *per_edge,
+        directions, depth, norm, step, chosen,
+    )  # fmt: skip
     return directions, depth, norm, step, chosen
+
+
+@kernel
+def _per_edge(
+    job, n_jobs, eye, right, up, vertices, i, j, own_faces, own_thirds, first_prim,
+    shared_faces, shared_thirds, rows, width, height, u, w0, normal, uu, uw, length, step_e,
+    ng, face, plus,
+):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` of ``edge_sides_kernel``'s first pass: per edge ``rows[e]``
+    of its blocks, u = b - a, w0 = eye - a, their products, |grad e| in pixels, the step
+    across the edge and each face's side and normal (``face`` -1, ``plus`` False on entry)."""
+    n, n_own = rows.shape[0], own_faces.shape[1]
+    n_faces = n_own + shared_faces.shape[1]
+    sx, sy = 2.0 / width, -2.0 / height
+    am, bm, m, towards = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    t, third, cut = np.empty(3), np.empty(3), np.empty(3)
+    for block in range(job, n_blocks(n), n_jobs):
+        for e in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
+            row = rows[e]
+            ia, ib = i[row], j[row]
+            for c in range(3):
+                am[c], bm[c] = vertices[ia, c] - eye[c], vertices[ib, c] - eye[c]
+                u[e, c], w0[e, c] = vertices[ib, c] - vertices[ia, c], eye[c] - vertices[ia, c]
+            cross3(am, bm, m)
+            uu[e], uw[e] = dot3(u[e], u[e]), dot3(u[e], w0[e])
+            # pixel_gradient of grad e = (m . right, m . up)
+            gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
+            length[e] = math.sqrt(gx * gx + gy * gy)
+            scale = length[e] if length[e] > 0 else 1.0
+            step_e[e, 0], step_e[e, 1] = gx / scale * sx, gy / scale * sy
+            for c in range(3):
+                towards[c] = step_e[e, 0] * right[c] + step_e[e, 1] * up[c]
+            for f in range(n_faces):  # each face's side and normal
+                if f < n_own:
+                    if own_faces[row, f] < 0:
+                        continue
+                    for c in range(3):
+                        third[c] = vertices[own_thirds[row, f], c]
+                    global_id = own_faces[row, f] + first_prim
+                else:
+                    global_id = shared_faces[row, f - n_own]
+                    if global_id < 0:
+                        continue
+                    for c in range(3):
+                        third[c] = shared_thirds[row, f - n_own, c]
+                for c in range(3):
+                    t[c] = third[c] - vertices[ia, c]
+                side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
+                side = side + (third[2] - eye[2]) * m[2]
+                if side == 0 or side != side:
+                    continue
+                face[e, f], plus[e, f] = global_id, side > 0
+                cross3(u[e], t, cut)
+                normal[e, f] = cut
+                ng[e, f] = dot3(cut, towards)
+
+
+@kernel
+def _per_point(
+    job, n_jobs, forward, right, up, slot, edges, coords, u, w0, normal, uu, uw, length,
+    step_e, ng, face, plus, directions, depth, norm, step, chosen,
+):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` of ``edge_sides_kernel``'s second pass: each point's
+    direction, depth, |grad e|, step and nearest face either side (``chosen`` -1 on
+    entry)."""
+    k, n_faces = edges.shape[0], face.shape[1]
+    for block in range(job, n_blocks(k), n_jobs):
+        for p in range(block * BLOCK, min(k, (block + 1) * BLOCK)):
+            # Elements read one by one: row views of shared arrays would count
+            # references, atomically, in every thread.
+            e, x, y = slot[edges[p]], coords[p, 0], coords[p, 1]
+            d0 = x * right[0] + y * up[0] + forward[0]
+            d1 = x * right[1] + y * up[1] + forward[1]
+            d2 = x * right[2] + y * up[2] + forward[2]
+            directions[p, 0], directions[p, 1], directions[p, 2] = d0, d1, d2
+            # _edge_points: the depth along d of the point nearest the line through a and b
+            dd = d0 * d0 + d1 * d1 + d2 * d2
+            du = d0 * u[e, 0] + d1 * u[e, 1] + d2 * u[e, 2]
+            dw = d0 * w0[e, 0] + d1 * w0[e, 1] + d2 * w0[e, 2]
+            det = dd * uu[e] - du * du
+            depth[p] = (du * uw[e] - uu[e] * dw) / (det if det > 0 else 1.0)
+            norm[p], step[p, 0], step[p, 1] = length[e], step_e[e, 0], step_e[e, 1]
+            # the nearest face on either side (approach; ties go to the first, as np.argmax)
+            best_plus, best_minus = -np.inf, -np.inf
+            for f in range(n_faces):
+                if face[e, f] < 0:
+                    continue
+                nd = normal[e, f, 0] * d0 + normal[e, f, 1] * d1 + normal[e, f, 2] * d2
+                rate = ng[e, f] / nd if nd != 0 else ng[e, f] / np.inf
+                if plus[e, f] and (chosen[p, 0] < 0 or rate > best_plus):
+                    best_plus, chosen[p, 0] = rate, face[e, f]
+                elif not plus[e, f] and (chosen[p, 1] < 0 or -rate > best_minus):
+                    best_minus, chosen[p, 1] = -rate, face[e, f]
 
 
 def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
@@ -281,7 +305,7 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     directions, depth, norm, step, chosen = edge_sides_kernel(
         eye, forward, right, up, vertices, table.i, table.j, table.faces, table.thirds,
         first_prim, shared_faces, np.asarray(shared_thirds, np.float64), edges,
-        np.ascontiguousarray(coords), camera.width, camera.height, numba.get_num_threads(),
+        np.ascontiguousarray(coords), camera.width, camera.height,
     )  # fmt: skip
     ignore = table.faces[edges, 0] + first_prim
     hidden = hidden_points(

@@ -26,7 +26,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from render.trace.intersect import BLOCK, _jobs
+from minidiff.threads import job_count, kernel, run_jobs
+from render.trace.intersect import BLOCK, n_blocks
 
 #: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
 #: pieces are first cut wherever another curve crosses them in the pixel
@@ -292,63 +293,63 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
     return n
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
-def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out, n_threads):
+def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out):
     """Every pixel's group of pieces split (``_split_group``): the groups (pieces
-    order[bounds[g]:bounds[g + 1]]) in blocks of BLOCK, shared out over ``n_threads`` as
-    ``render.trace.intersect._jobs`` deals rays (the crowded pixels lie together in pixel
+    order[bounds[g]:bounds[g + 1]]) in blocks of BLOCK, dealt to jobs as
+    ``render.trace.intersect`` deals rays (the crowded pixels lie together in pixel
     order). A group of k pieces has at most k * k parts (``slots``: their running sum):
     each job writes its groups' parts one after the other into its own stretch of a
     scratch table ``out`` (slots[-1] rows at least; the parts packed, not each group at
-    its slot, since rows spread over the whole table missed the caches), and a second pass
-    copies them out in group order: the same rows, in the same order, on any number of
+    its slot, since rows spread over the whole table missed the caches), and they are then
+    copied out in group order: the same rows, in the same order, on any number of
     threads. Returns the parts' (segment, start, end, pixel) (m,) each."""
     n_groups = len(bounds) - 1
     count, at = np.empty(n_groups, np.int64), np.empty(n_groups, np.int64)
+    n_jobs = job_count(n_groups, BLOCK)
+    # Where each job's stretch of ``out`` starts: the slots of the blocks dealt before it.
+    firsts = np.arange(0, n_groups, BLOCK)
+    sizes = slots[np.minimum(firsts + BLOCK, n_groups)] - slots[firsts]
+    stretch = np.zeros(n_jobs + 1, np.int64)
+    np.add.at(stretch, np.arange(len(firsts)) % n_jobs + 1, sizes)
+    stretch = np.cumsum(stretch)
+    widest = int(np.diff(bounds).max(initial=0))
     geometry = np.empty((len(order), 9))
-    widest = 0
-    for g in range(n_groups):
-        widest = max(widest, bounds[g + 1] - bounds[g])
-    n_blocks, n_jobs = _jobs(n_groups, n_threads)
-    stretch = np.zeros(n_jobs + 1, np.int64)  # where each job's stretch of ``out`` starts
-    for b in range(n_blocks):
-        last = min(n_groups, (b + 1) * BLOCK)
-        stretch[b % n_jobs + 1] += slots[last] - slots[b * BLOCK]
-    for job in range(n_jobs):
-        stretch[job + 1] += stretch[job]
-    for job in numba.prange(n_jobs):
-        ts = np.empty(widest + 1)  # per thread
-        row = stretch[job]
-        for b in range(job, n_blocks, n_jobs):
-            for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
-                lo, hi = bounds[g], bounds[g + 1]
-                at[g] = row
-                if hi - lo == 1:  # nothing to cut: the common case
-                    i = order[lo]
-                    out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
-                    out[row, 3] = pixel[i]
-                    row += 1
-                else:
-                    _piece_geometry(p0, p1, segment, start, end, order, lo, hi, geometry)
-                    row = _split_group(
-                        geometry, segment, start, end, pixel, order, lo, hi, out, row, ts
-                    )  # fmt: skip
-                count[g] = row - at[g]
-    first = np.empty(n_groups + 1, np.int64)  # where each group's parts go
-    first[0] = 0
-    for g in range(n_groups):
-        first[g + 1] = first[g] + count[g]
-    m = first[n_groups]
-    seg_out, start_out = np.empty(m, np.int64), np.empty(m)
-    end_out, pixel_out = np.empty(m), np.empty(m, np.int64)
-    for job in numba.prange(n_jobs):
-        for b in range(job, n_blocks, n_jobs):
-            for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
-                for r in range(count[g]):
-                    row, to = at[g] + r, first[g] + r
-                    seg_out[to], start_out[to] = np.int64(out[row, 0]), out[row, 1]
-                    end_out[to], pixel_out[to] = out[row, 2], np.int64(out[row, 3])
-    return seg_out, start_out, end_out, pixel_out
+    run_jobs(
+        _split_groups, n_jobs, p0, p1, segment, start, end, pixel, order, bounds, out, stretch,
+        widest, geometry, count, at,
+    )  # fmt: skip
+    # Group g's parts are rows at[g], ..., at[g] + count[g] - 1 of ``out``.
+    rows = np.repeat(at - (np.cumsum(count) - count), count) + np.arange(int(count.sum()))
+    parts = out[rows]
+    return parts[:, 0].astype(np.int64), parts[:, 1], parts[:, 2], parts[:, 3].astype(np.int64)
+
+
+@kernel
+def _split_groups(
+    job, n_jobs, p0, p1, segment, start, end, pixel, order, bounds, out, stretch, widest,
+    geometry, count, at,
+):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``_split_all``: its
+    blocks of groups split, their parts written from row ``stretch[job]`` of ``out`` on;
+    group g's first row to at[g], its number of parts to count[g]."""
+    n_groups = bounds.shape[0] - 1
+    ts = np.empty(widest + 1)
+    row = stretch[job]
+    for b in range(job, n_blocks(n_groups), n_jobs):
+        for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
+            lo, hi = bounds[g], bounds[g + 1]
+            at[g] = row
+            if hi - lo == 1:  # nothing to cut: the common case
+                i = order[lo]
+                out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
+                out[row, 3] = pixel[i]
+                row += 1
+            else:
+                _piece_geometry(p0, p1, segment, start, end, order, lo, hi, geometry)
+                row = _split_group(
+                    geometry, segment, start, end, pixel, order, lo, hi, out, row, ts
+                )  # fmt: skip
+            count[g] = row - at[g]
 
 
 def pixel_order(pixel: np.ndarray) -> np.ndarray:
@@ -425,7 +426,7 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
     scratch = buffers.empty((1 << int(slots[-1]).bit_length(), 4), np.float64)
     return _split_all(
         np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
-        start, end, pixel, order, bounds, slots, scratch, numba.get_num_threads(),
+        start, end, pixel, order, bounds, slots, scratch,
     )  # fmt: skip
 
 

@@ -28,10 +28,11 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from minidiff.threads import job_count, kernel, run_jobs
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
-from render.trace.intersect import BLOCK, _jobs, closest_hit_ray, make_ray
+from render.trace.intersect import BLOCK, closest_hit_ray, make_ray, n_blocks
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
 
@@ -235,10 +236,9 @@ CHORDS_PER_START = 8
 SPARE_ROWS = 1024
 
 
-@numba.njit(cache=True, error_model="numpy", parallel=True)
 def bisect_chords(
-    bvh, curves, where, point, own, start, frame, width, height, size, first_sphere, n_threads,
-    room,
+    bvh, curves, where, point, own, start, frame, width, height, size, first_sphere,
+    room: int = 0,
 ):  # fmt: skip
     """The border's chords, bisected: each starting chord (``start`` = curve (n,), u0 (n,),
     u1 (n,)) followed depth first, one grazing ray at a time (traced in ``bvh``): a chord
@@ -249,43 +249,49 @@ def bisect_chords(
     (m, 2), curve (m,), receiver (m,)). ``tests/render/edges/shadow_reference.py`` states
     the same bisection round by round in NumPy, and test_shadow_edges.py ties the two.
 
-    The starting chords are cut into blocks of BLOCK, dealt to ``n_threads`` threads
-    (``numba.get_num_threads()``) in turn as ``render.trace.intersect._jobs`` deals rays
-    (the work per chord varies: a chord over a busy receiver is cut many times); each block
-    writes its chords to its own rows of shared arrays (arrays, not a list of parts: Numba
-    does not support lists written in a prange), and the blocks are read back in block
-    order: the same rows in the same order on any number of threads."""
+    The starting chords are cut into blocks of BLOCK, dealt to the jobs in turn as
+    ``render.trace.intersect`` deals rays (the work per chord varies: a chord over a busy
+    receiver is cut many times); each block writes its chords to its own ``room`` rows of
+    shared arrays, and the blocks are read back in block order: the same rows in the same
+    order on any number of threads. ``room``: rows per block at first; 0 sizes them from
+    ``n`` (a positive value, for the tests, forces that many)."""
     n = len(start[0])
-    n_blocks, n_jobs = _jobs(n, n_threads)
-    n_blocks = max(1, n_blocks)
-    # ``room``: rows per block at first; 0 (the renderer) sizes them from ``n``, a positive
-    # value (the tests) forces that many. A required argument: a default would make Numba
-    # compile a second signature (the call with it omitted), ~5 s more on every fresh install.
+    blocks = max(1, -(-n // BLOCK))
     if room <= 0:
         room = CHORDS_PER_START * min(n, BLOCK) + SPARE_ROWS
     while True:
-        x0s, x1s = np.empty((n_blocks * room, 2)), np.empty((n_blocks * room, 2))
-        curve_out = np.empty(n_blocks * room, np.int64)
-        receiver_out = np.empty(n_blocks * room, np.int64)
-        count = np.empty(n_blocks, np.int64)
-        for job in numba.prange(n_jobs):
-            for block in range(job, n_blocks, n_jobs):
-                count[block] = _bisect_block(
-                    bvh, curves, where, point, own, start, block * BLOCK,
-                    min(n, (block + 1) * BLOCK),
-                    frame, width, height, size, first_sphere,
-                    (x0s, x1s, curve_out, receiver_out), block * room, room,
-                )  # fmt: skip
+        out = (np.empty((blocks * room, 2)), np.empty((blocks * room, 2)),
+               np.empty(blocks * room, np.int64), np.empty(blocks * room, np.int64))  # fmt: skip
+        count = np.empty(blocks, np.int64)
+        run_jobs(
+            _bisect_blocks, job_count(n, BLOCK), bvh, curves, where, point, own, start, frame,
+            width, height, size, first_sphere, out, room, count,
+        )  # fmt: skip
         if np.all(count >= 0):
             break
         room *= 4  # some block ran out of rows: again, with more (the same chords)
-    keep = np.empty(np.sum(count), np.int64)
-    m = 0
-    for block in range(n_blocks):
-        for r in range(count[block]):  # (a slice copy here would be a parallel launch)
-            keep[m + r] = block * room + r
-        m += count[block]
-    return x0s[keep], x1s[keep], curve_out[keep], receiver_out[keep]
+    # Each block's first count[block] rows, block after block.
+    total = int(count.sum())
+    keep = np.repeat(np.arange(blocks) * room - (np.cumsum(count) - count), count) + np.arange(
+        total
+    )
+    return tuple(x[keep] for x in out)
+
+
+@kernel
+def _bisect_blocks(
+    job, n_jobs, bvh, curves, where, point, own, start, frame, width, height, size,
+    first_sphere, out, room, count,
+):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``bisect_chords``: its
+    blocks of starting chords, block ``k``'s chords written to rows k * room, ... of ``out``
+    and their number to ``count[k]`` (-1 if they need more than ``room`` rows)."""
+    n = start[0].shape[0]
+    for block in range(job, max(1, n_blocks(n)), n_jobs):
+        count[block] = _bisect_block(
+            bvh, curves, where, point, own, start, block * BLOCK, min(n, (block + 1) * BLOCK),
+            frame, width, height, size, first_sphere, out, block * room, room,
+        )  # fmt: skip
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -393,6 +399,5 @@ def border_chords(
     x0, x1, curve, receiver = bisect_chords(
         visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
         own, start, plain, camera.width, camera.height, size, first_sphere_id(scene),
-        numba.get_num_threads(), 0,
     )  # fmt: skip
     return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)

@@ -515,7 +515,7 @@ def test_edge_sides_kernel_computes_what_the_numpy_reference_does(seed, k, n_fac
     fast = edge_sides_kernel(
         *frame, vertices, table[0], table[1], c(table[2][:, :1]), c(table[3][:, :1]), 0,
         c(table[2][:, 1:]), c(table[4][:, 1:]), np.arange(k)[::-1].copy(), coords[::-1].copy(),
-        40, 30, 1,
+        40, 30,
     )  # fmt: skip
     fast = [x[::-1] for x in fast]
     for name, a, b in zip(

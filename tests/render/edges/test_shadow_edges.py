@@ -15,6 +15,7 @@ import pytest
 
 import minidiff as md
 import render
+from minidiff.threads import using_threads
 from tests.render_helpers import masked_gradient_check, random_scene
 
 SIZE, FOV, CAMERA_HEIGHT = 40, 50.0, 0.8
@@ -354,10 +355,11 @@ def test_bisect_chords_gives_the_same_chords_when_its_blocks_run_out_of_rows(mon
     block runs out, several times) gives the same chords in the same order, on one job and
     on several."""
     bisect, args, _ = _chord_inputs(0, monkeypatch)
-    args = args[:-2]  # all but n_threads and room
-    roomy = bisect(*args, 1, 0)
+    with using_threads(1):
+        roomy = bisect(*args)
     assert len(roomy[2]) > 50
     for threads in (1, 3):
-        tight = bisect(*args, threads, 1)
+        with using_threads(threads):
+            tight = bisect(*args, room=1)
         for a, b in zip(roomy, tight, strict=True):
             np.testing.assert_array_equal(a, b)
