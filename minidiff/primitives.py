@@ -784,10 +784,11 @@ def mean_squared_error(a: Any, b: Any) -> Tensor:
     out = np.asarray(np.mean(kernels.multiply(diff, diff)))  # mean(diff * diff)
 
     def vjp(g):
-        # multiply's VJP for d * d gives (g/n) d + (g/n) d. Doubling is exact in binary
-        # floating point, so d * (2 (g/n)) is the same number bit for bit, in one pass over
-        # the image instead of two.
-        grad = kernels.multiply(diff, 2.0 * (g / n))  # diff * (2 g / n)
+        # multiply's VJP for d * d gives (g/n) d + (g/n) d: formed the same way, so that
+        # the bits agree. (d (2 g/n) is the same number except where (g/n) d is subnormal:
+        # rounding it first, then doubling, differs there.)
+        grad = kernels.multiply(diff, g / n)
+        np.add(grad, grad, out=grad)
         return grad, (-grad if b.requires_grad else None)
 
     def jvp(ta, tb):
