@@ -93,7 +93,7 @@ JOBS = {
 #: 32 s forward, 23 s the node, 4 s pairs; before issue 45's kernels: 31 s and 61 s). With
 #: the boundary term: the paper scene's first boundary gradient at 64x64 took 77.8 s in all
 #: (134.9 s before issue 57 deleted three of its kernels' twins, in the same hour).
-COMPILE_SECONDS = {"pairs": 60, "boundary": 80}
+COMPILE_SECONDS = {"pairs": 60, "boundary": 50}
 
 
 def numba_cache_folder(source: Path) -> Path:
