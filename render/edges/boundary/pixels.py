@@ -320,8 +320,8 @@ def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out):
     )  # fmt: skip
     # Group g's parts are rows at[g], ..., at[g] + count[g] - 1 of ``out``.
     rows = np.repeat(at - (np.cumsum(count) - count), count) + np.arange(int(count.sum()))
-    parts = out[rows]
-    return parts[:, 0].astype(np.int64), parts[:, 1], parts[:, 2], parts[:, 3].astype(np.int64)
+    columns = np.ascontiguousarray(out[rows].T)  # each returned array contiguous, as before
+    return columns[0].astype(np.int64), columns[1], columns[2], columns[3].astype(np.int64)
 
 
 @kernel
