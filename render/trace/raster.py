@@ -213,17 +213,25 @@ def bin_to_tiles(boxes, tiles_x, tiles_y, tile, order):
 @kernel
 def _raster_closest_hit(
     job, n_jobs, prim_data, n_tri, boxes, edges, near, rounding, start, ids, tiles_x, width,
-    height, offsets, eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv,
+    height, offsets, eye, forward, right, up, out_id, out_t, out_u, out_v, with_uv, slot,
+    given, busy,
 ):  # fmt: skip
     """Step 3 of the module docstring for job ``job`` of ``n_jobs``
     (``minidiff.threads.run_jobs``); ray r = (py * width + px) * spp + sample, its
     direction made on the spot (``render.scene.camera.pixel_ray``, the tracer's very bits).
-    out_id, out_t (and out_u, out_v if ``with_uv``) hold -1, inf (and 0) on entry."""
+    out_id, out_t (and out_u, out_v if ``with_uv``) hold -1, inf (and 0) on entry.
+
+    Some pixels only, when ``slot`` (H W,) int64 is not empty: pixel p's samples are rays
+    r = slot[p] * spp + sample (none where slot[p] < 0), their directions ``given`` (rows
+    r, (k, 3)); ``busy`` (n_tiles,) bool says which tiles hold such a pixel."""
     spp = offsets.shape[0]
     n_tiles = start.shape[0] - 1
+    some = slot.shape[0] > 0
     # Tiles dealt round-robin to jobs: contiguous parts would give one thread the sky and
     # the other the object.
     for tile in range(job, n_tiles, n_jobs):
+        if some and not busy[tile]:
+            continue
         tx0 = (tile % tiles_x) * TILE
         ty0 = (tile // tiles_x) * TILE
         for j in range(start[tile], start[tile + 1]):
@@ -234,16 +242,24 @@ def _raster_closest_hit(
             y1 = min(boxes[pid, 3], ty0 + TILE - 1, height - 1)
             for py in range(y0, y1 + 1):
                 for px in range(x0, x1 + 1):
+                    first = (py * width + px) * spp
+                    if some:
+                        if slot[py * width + px] < 0:
+                            continue
+                        first = slot[py * width + px] * spp
                     for s in range(spp):
                         if not may_see(edges, pid, px + offsets[s, 0], py + offsets[s, 1]):
                             continue
-                        r = (py * width + px) * spp + s
+                        r = first + s
                         if wholly_beyond(near[pid], out_t[r], rounding):
                             continue  # wholly behind what the ray already hit
-                        direction = pixel_ray(
-                            px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
-                            right, up,
-                        )  # fmt: skip
+                        if some:
+                            direction = (given[r, 0], given[r, 1], given[r, 2])
+                        else:
+                            direction = pixel_ray(
+                                px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
+                                right, up,
+                            )  # fmt: skip
                         ray = make_ray(eye, direction, 0.0, np.inf)
                         t, u, v = intersect_prim(prim_data, pid, pid, n_tri, ray)
                         # The BVH's order: (t, id); a miss is t = inf and never accepted.
@@ -301,6 +317,8 @@ def raster_closest_hit(
     camera: Camera,
     spp: int = 1,
     with_uv: bool = True,
+    pixels: np.ndarray | None = None,
+    directions: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
     """The nearest hit of every camera ray of ``camera`` (``spp`` per pixel), like
     ``Accelerator.closest_hit`` of ``render.scene.camera.primary_rays``: (prim_id, t, u, v),
@@ -309,6 +327,12 @@ def raster_closest_hit(
 
     triangles (T, 3, 3), centers (S, 3), radii (S,): the scene's primitives
     (``render.trace.visibility.scene_primitives``).
+
+    Or the hits of the ``spp`` samples of some pixels only: ``pixels`` (m,) distinct flat
+    pixel indices, ``directions`` (m * spp, 3) their rays' directions from the eye, pixel
+    by pixel (sample s of ``pixels[i]`` is row i * spp + s, through its sub-pixel offset
+    ``subpixel_offsets(spp)[s]``): each (m * spp,), the hits ``Accelerator.closest_hit``
+    finds for those rays (the mixed pixels' samples, ``render.edges.interior``).
     """
     forward, right, up, eye = plain_frame(camera)
     width, height = camera.width, camera.height
@@ -321,7 +345,8 @@ def raster_closest_hit(
         primitives, (forward, right, up, eye), width, height, offsets, TILE
     )
     prim_data = pack_primitives(triangles, centers, radii)
-    n = width * height * spp
+    slot, given, busy = _some_pixels(pixels, directions, width, height, spp, tiles_x, len(start))
+    n = width * height * spp if pixels is None else len(given)
     # Reused memory (minidiff.buffers): fresh 2 MB arrays per render cost page faults.
     out_id, out_t = buffers.empty((n,), np.int64), buffers.empty((n,), np.float64)
     out_u, out_v = (np.zeros(n), np.zeros(n)) if with_uv else (np.empty(1), np.empty(1))
@@ -330,11 +355,38 @@ def raster_closest_hit(
     run_jobs(
         _raster_closest_hit, job_count(len(start) - 1, 16), prim_data, len(triangles), boxes,
         edges, near, rounding, start, ids, tiles_x, width, height, offsets, eye, forward,
-        right, up, out_id, out_t, out_u, out_v, with_uv,
+        right, up, out_id, out_t, out_u, out_v, with_uv, slot, given, busy,
     )  # fmt: skip
     if not with_uv:
         return out_id, out_t, None, None
     return out_id, out_t, out_u, out_v
+
+
+def _some_pixels(
+    pixels, directions, width: int, height: int, spp: int, tiles_x: int, n_tiles_plus_one: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``_raster_closest_hit``'s (slot, given, busy) for the samples of ``pixels`` (empty
+    arrays: every pixel), checked."""
+    if pixels is None:
+        empty = np.zeros(0, np.int64)
+        return empty, np.zeros((0, 3)), np.zeros(0, np.bool_)
+    pixels = np.asarray(pixels)
+    if pixels.ndim != 1 or not np.issubdtype(pixels.dtype, np.integer):
+        raise ValueError(f"pixels must be a (m,) integer array, got {pixels.dtype} {pixels.shape}")
+    if len(pixels) and (pixels.min() < 0 or pixels.max() >= width * height):
+        raise ValueError(f"pixels must be flat pixel indices in [0, {width * height - 1}]")
+    given = np.ascontiguousarray(directions, np.float64)
+    if given.shape != (len(pixels) * spp, 3):
+        raise ValueError(
+            f"directions must have shape (m * spp, 3) = ({len(pixels) * spp}, 3), got {given.shape}"
+        )
+    slot = np.full(width * height, -1, np.int64)
+    slot[pixels] = np.arange(len(pixels))
+    if np.count_nonzero(slot >= 0) != len(pixels):
+        raise ValueError("pixels must be distinct")
+    busy = np.zeros(n_tiles_plus_one - 1, np.bool_)
+    busy[(pixels // width // TILE) * tiles_x + (pixels % width) // TILE] = True
+    return slot, given, busy
 
 
 def _binned(primitives, frame, width: int, height: int, offsets: np.ndarray, tile: int):

@@ -75,6 +75,28 @@ def test_a_mixed_pixel_is_the_mean_of_its_samples_on_every_route():
     np.testing.assert_array_equal(images["tape"].data[~mixed], plain[~mixed])
 
 
+@pytest.mark.parametrize("size", [24, 64])
+def test_candidates_rasterised_or_traced_give_the_same_mixed_pixels(size, monkeypatch):
+    """The candidates' samples are rasterised when there are many rays per primitive, else
+    traced by the accelerator: the same mixed pixels, hits, depths and lit masks, bit for
+    bit (the raster answers the very rays the accelerator would be given)."""
+    for scene in (render.paper_scene(size, size, ground=True), _sphere_scene(size)):
+        visibility = trace_visibility(scene, RenderCache(), True, 1, True)
+        found = {}
+        for route, rays_per_primitive in (("raster", 0), ("traced", 10**9)):
+            monkeypatch.setattr(interior, "RASTER_RAYS_PER_PRIMITIVE", rays_per_primitive)
+            found[route] = interior.mixed_pixels(scene, visibility, 1)
+        (pixels, seen), (traced_pixels, traced) = found["raster"], found["traced"]
+        assert len(pixels) > 10
+        np.testing.assert_array_equal(pixels, traced_pixels)
+        for name in ("prim_id", "hit_rays", "depth", "points", "coords"):
+            np.testing.assert_array_equal(
+                getattr(seen.primary, name), getattr(traced.primary, name), err_msg=name
+            )
+        for mask, other in zip(seen.lit, traced.lit, strict=True):
+            np.testing.assert_array_equal(mask, other)
+
+
 def test_mixed_pixels_get_their_samples_derivative():
     """At 1 spp the mixed pixels' derivative comes from their 16 samples; at 16 spp the
     render's own samples are the grid's and nothing is added: both gradients agree."""

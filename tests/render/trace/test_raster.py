@@ -15,6 +15,8 @@ from render.scene.camera import (
     image_plane_coords,
     plain_frame,
     primary_rays,
+    subpixel_offsets,
+    to_image_plane,
 )
 from render.trace.accel import Accelerator
 from render.trace.primitives import scene_primitives
@@ -71,6 +73,49 @@ def test_random_soups_and_spheres_match_the_bvh(soup, eye, fov, spp):
     look_at = eye + np.array([0.3, -0.2, -1.0])
     camera = render.Camera(eye, look_at, fov=fov, width=23, height=17)
     assert_raster_equals_bvh(*soup, camera, spp)
+
+
+@SETTINGS
+@given(
+    soup=soups(3.0, 4, 2.0, 1.5),
+    eye=points(1, -4.0, 4.0),
+    spp=st.sampled_from([1, 4, 16]),
+    chosen=st.lists(st.integers(0, 23 * 17 - 1), unique=True, max_size=60),
+)
+def test_some_pixels_samples_match_the_bvh(soup, eye, spp, chosen):
+    """``pixels=``: the samples of some pixels only (the mixed pixels' candidates), in the
+    order given, along the caller's directions (camera_directions' bits, not the raster's
+    own): the accelerator's hits for those very rays."""
+    eye = eye[0]
+    camera = render.Camera(eye, eye + np.array([0.3, -0.2, -1.0]), fov=60.0, width=23, height=17)
+    pixels = np.array(chosen, np.int64)
+    offsets = subpixel_offsets(spp)
+    corner = np.stack([pixels % 23, pixels // 23], axis=1).astype(np.float64)
+    coords = to_image_plane((corner[:, None] + offsets).reshape(-1, 2), 23, 17)
+    forward, right, up, origin = plain_frame(camera)
+    directions = camera_directions(coords, right, up, forward)
+    raster = raster_closest_hit(*soup, camera, spp, pixels=pixels, directions=directions)
+    bvh = Accelerator(*soup).closest_hit(np.broadcast_to(origin, directions.shape), directions)
+    for name, a, b in zip(("prim_id", "t", "u", "v"), raster, bvh, strict=True):
+        np.testing.assert_array_equal(a, b, err_msg=name)
+
+
+def test_some_pixels_are_checked():
+    """Bad ``pixels``/``directions`` are refused, naming the argument."""
+    camera = render.Camera((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=8, height=6)
+    primitives = scene_primitives(render.paper_scene(8, 6))
+    with pytest.raises(ValueError, match="pixels must be flat pixel indices"):
+        raster_closest_hit(*primitives, camera, 1, pixels=np.array([48]),
+                           directions=np.zeros((1, 3)))  # fmt: skip
+    with pytest.raises(ValueError, match="pixels must be distinct"):
+        raster_closest_hit(*primitives, camera, 1, pixels=np.array([3, 3]),
+                           directions=np.zeros((2, 3)))  # fmt: skip
+    with pytest.raises(ValueError, match=r"directions must have shape \(m \* spp, 3\)"):
+        raster_closest_hit(*primitives, camera, 4, pixels=np.array([3]),
+                           directions=np.zeros((1, 3)))  # fmt: skip
+    with pytest.raises(ValueError, match="pixels must be a"):
+        raster_closest_hit(*primitives, camera, 1, pixels=np.array([0.5]),
+                           directions=np.zeros((1, 3)))  # fmt: skip
 
 
 @pytest.mark.parametrize("spp", [1, 4, 9])
