@@ -28,10 +28,21 @@
 #
 # The ray hits the triangle if `u ≥ 0`, `v ≥ 0`, `u + v ≤ 1` and `t > t_min`; the hit is
 # `(1 − u − v)·a + u·b + v·c`. If `det ≈ 0` the ray is parallel to the plane (or the
-# triangle has no area): a miss. `render.trace.intersect.intersect_triangle` computes the same
-# numbers in an equivalent arrangement (the normal `n = e1 × e2` is precomputed per
-# triangle, `det = d·n`, one cross product per test), and
-# `render.shade.surface.intersect_edges` computes the arrangement above on the minidiff tape.
+# triangle has no area): a miss. `render.shade.surface.intersect_edges` computes exactly
+# this on the minidiff tape.
+#
+# The tracer, `render.trace.intersect.intersect_triangle`, finds the same `t, u, v` (to
+# rounding) another way, because of what rounding does at a shared edge: a ray through a
+# point of the edge between two triangles gets `u` from one and `v` (or `1 − u − v`) from
+# the other, each rounded its own way, and if both come out a hair negative the ray passes
+# between them into a closed mesh. (On an octahedron, 4 of 66 rays aimed at edges did,
+# before the tracer changed; `tests/render/trace/test_watertight.py`.) So the tracer uses
+# the *watertight* test of Woop, Benthin and Wald (2013): it moves the corners into the
+# ray's frame (the ray's origin at 0, its direction sheared onto the z axis) and asks on
+# which side of each edge the ray passes, a 2-D cross product of the edge's two corners.
+# Each corner's coordinates there depend on that corner alone, and swapping an edge's ends
+# negates its cross product exactly, so two triangles sharing an edge always agree on the
+# ray's side of it: one of them is hit.
 
 # %%
 import time
@@ -54,7 +65,7 @@ OUT = figures_folder("04_bvh")
 a, b, c = np.array([0.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
 origin, direction = np.array([0.5, 0.25, 3.0]), np.array([0.1, 0.05, -1.0])
 
-# The Numba kernel reads a packed row per triangle: v0, e1, e2, normal, degeneracy cut.
+# The Numba kernel reads a packed row per triangle: a, b, c, normal, degeneracy cut.
 table = pack_primitives(np.stack([a, b, c])[None], np.zeros((0, 3)), np.zeros(0))
 ray = make_ray(origin, direction, 0.0, np.inf)  # o + t d for 0 < t < inf
 t_numba, u_numba, v_numba = intersect_triangle(table, 0, ray)

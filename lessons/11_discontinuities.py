@@ -355,7 +355,7 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # The five other truths differ from ours by `0.038` <!-- check: truth_spread_low --> to
 # just under `0.085` <!-- check: truth_spread_high < -->: **the truth's own uncertainty is
 # as large as the boundary integral's error**. Against the five, the boundary integral is
-# off by `0.036` <!-- check: boundary_error_low --> to `0.069`
+# off by `0.036` <!-- check: boundary_error_low --> to `0.070`
 # <!-- check: boundary_error_high -->, no more than the truths are off one another: it
 # agrees with the truth to within the truth's own uncertainty, and its 0.045 measures the
 # reference as much as the method. The pixel pairs, `0.28`
@@ -369,7 +369,7 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # each truth is `0.026` <!-- check: truth_from_mean_low --> to `0.059`
 # <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
 # the boundary integral `0.030` <!-- check: boundary_from_mean --> with 16 samples, about
-# as close as the best single truth, and `0.021` <!-- check: boundary_64_from_mean -->
+# as close as the best single truth, and `0.022` <!-- check: boundary_64_from_mean -->
 # with 64, closer than any 4,096-sample truth. The pairs stay `0.29`
 # <!-- check: pairs_from_mean --> off. So the 0.045 above is mostly the reference's
 # error. What is the method's own, at 16 samples, is mostly the interior term's (sampled,

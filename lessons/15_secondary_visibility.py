@@ -594,7 +594,7 @@ print(
 
 # %% [markdown]
 # With the boundary term, d left_mean / dx = `0.421` <!-- check: ours --> (four seeds of
-# 64 samples per pixel, standard error `0.002` <!-- check: ours_se < -->), against the
+# 64 samples per pixel, standard error `0.003` <!-- check: ours_se < -->), against the
 # central differences' `0.416`: within `0.03` <!-- check: ours_vs_truth < --> of them
 # (relative). `backward` on seed 0 agrees with forward mode to `1e-9`
 # <!-- check: backward_vs_forward < -->. The tape alone gives a derivative image whose
@@ -616,9 +616,9 @@ print(
 # noiseless version of them, is noise: `1.7` <!-- check: noise_part_in_se --> of their
 # standard errors, not unusual for a mean of four seeds.
 #
-# The boundary term's mean over its four seeds is `0.05` <!-- check: ours_vs_exact_percent -->
-# % from the exact value, and its standard error is `0.24` <!-- check: ours_se_percent -->
-# %: it agrees within its noise, and an error as small as 0.05 % is partly luck (expect
+# The boundary term's mean over its four seeds is `0.04` <!-- check: ours_vs_exact_percent -->
+# % from the exact value, and its standard error is `0.53` <!-- check: ours_se_percent -->
+# %: it agrees within its noise, and an error as small as 0.04 % is partly luck (expect
 # about a standard error). Even so, with 64 samples per pixel against the differences'
 # 2 × 1,024, it is closer to the exact value than the reference it is usually checked
 # against, whose error is mostly noise and partly its step.

@@ -46,12 +46,13 @@ from minidiff.threads import job_count, kernel, run_jobs, share
 #: Row width of the primitive table (16 float64 = two 64-byte cache lines).
 PRIM_WIDTH = 16
 
-#: A triangle is a miss for a ray when |det| <= DEGENERATE_TOL * |d| * |e1| * |e2|, i.e. when
-#: sin(angle between the edges) * cos(angle between ray and normal) is below the tolerance.
-#: This catches zero-area triangles (sin ~ 0) and rays in the triangle's plane (cos ~ 0), the
-#: two cases where the Moller-Trumbore divisions would blow up (or give 0/0 = NaN).  It also
-#: bounds the rounding error of an accepted hit point to about 1e-9 of the ray length, far
-#: below the BVH box padding, which is what makes BVH == brute force exact.
+#: A triangle is a miss for a ray when |d . n| <= DEGENERATE_TOL * |d| * |e1| * |e2|, i.e.
+#: when sin(angle between the edges) * cos(angle between ray and normal) is below the
+#: tolerance. This catches zero-area triangles (sin ~ 0) and rays in the triangle's plane
+#: (cos ~ 0), the two cases where the division by the determinant would blow up (or give
+#: 0/0 = NaN).  It also bounds the rounding error of an accepted hit point to about 1e-9 of
+#: the ray length, far below the BVH box padding, which is what makes BVH == brute force
+#: exact.
 DEGENERATE_TOL = 1e-7
 
 #: Rays are dealt to the threads in blocks of this many consecutive rays (see the kernels).
@@ -86,7 +87,9 @@ class Ray(NamedTuple):
 
     origin, direction: (x, y, z) floats (the direction of any nonzero length: t is in its
     units); inverse: 1 / direction for the slab test (:func:`safe_inverse`); length:
-    |direction| (the triangle test's tolerance scales with it).  Made by :func:`make_ray`.
+    |direction| (the triangle test's tolerance scales with it); axes (kx, ky, kz), shear
+    (sx, sy, sz) and the origin's coordinates in that order: the frame of the watertight
+    triangle test (:func:`intersect_triangle`).  Made by :func:`make_ray`.
     """
 
     origin: tuple[float, float, float]
@@ -95,6 +98,9 @@ class Ray(NamedTuple):
     length: float
     tmin: float
     tmax: float
+    axes: tuple[int, int, int]
+    shear: tuple[float, float, float]
+    sheared_origin: tuple[float, float, float]
 
 
 class Rays(NamedTuple):
@@ -132,13 +138,11 @@ def pack_primitives(
     row ``k`` for primitive ``order[k]`` (ids: triangles ``0..T-1``, then the spheres; by
     default in id order).  A BVH passes its leaf order, so that a leaf's rows are contiguous.
 
-    Triangle row: ``v0[0:3], e1[3:6], e2[6:9], n[9:12], cut[12]`` with ``e1 = v1 - v0``,
-    ``e2 = v2 - v0``, geometric normal ``n = e1 x e2`` and ``cut = DEGENERATE_TOL*|e1|*|e2|``
+    Triangle row: ``a[0:3], b[3:6], c[6:9], n[9:12], cut[12]``: the corners as given (the
+    watertight test needs each corner's own coordinates: a + (b - a) need not be b), the
+    geometric normal ``n = (b - a) x (c - a)`` and ``cut = DEGENERATE_TOL*|b - a|*|c - a|``
     (``inf`` for a degenerate triangle, so that it can never be hit).
-    Sphere row: ``centre[0:3], radius[3], radius**2[4]``.
-
-    Storing edges and normal instead of the three vertices saves two subtractions and a cross
-    product per ray-triangle test; the test itself reads one 128-byte row.
+    Sphere row: ``centre[0:3], radius[3], radius**2[4]``. A test reads one 128-byte row.
     """
     if order is None:
         order = np.arange(len(triangles) + len(sphere_centers))
@@ -163,11 +167,11 @@ def _pack_rows(job, n_jobs, triangles, sphere_centers, sphere_radii, order, data
             data[i, 4] = sphere_radii[s] * sphere_radii[s]
             continue
         for a in range(3):
-            data[i, a] = triangles[p, 0, a]  # v0
-            data[i, 3 + a] = triangles[p, 1, a] - triangles[p, 0, a]  # e1
-            data[i, 6 + a] = triangles[p, 2, a] - triangles[p, 0, a]  # e2
-        e1x, e1y, e1z = data[i, 3], data[i, 4], data[i, 5]
-        e2x, e2y, e2z = data[i, 6], data[i, 7], data[i, 8]
+            data[i, a] = triangles[p, 0, a]
+            data[i, 3 + a] = triangles[p, 1, a]
+            data[i, 6 + a] = triangles[p, 2, a]
+        e1x, e1y, e1z = data[i, 3] - data[i, 0], data[i, 4] - data[i, 1], data[i, 5] - data[i, 2]
+        e2x, e2y, e2z = data[i, 6] - data[i, 0], data[i, 7] - data[i, 1], data[i, 8] - data[i, 2]
         nx = e1y * e2z - e1z * e2y
         ny = e1z * e2x - e1x * e2z
         nz = e1x * e2y - e1y * e2x
@@ -203,6 +207,13 @@ def make_ray(origin, direction, tmin, tmax):
     """The :class:`Ray` ``origin + t * direction``, ``tmin < t < tmax``; origin and direction
     are three numbers each (an array row or a tuple)."""
     dx, dy, dz = direction[0], direction[1], direction[2]
+    # The watertight test's frame: z along the direction's largest component, x and y the
+    # other two in turn (swapped where that component is negative, to keep the winding).
+    kz = 0 if abs(dx) >= abs(dy) and abs(dx) >= abs(dz) else (1 if abs(dy) >= abs(dz) else 2)
+    kx, ky = (kz + 1) % 3, (kz + 2) % 3
+    d = (dx, dy, dz)
+    if d[kz] < 0.0:
+        kx, ky = ky, kx
     return Ray(
         (origin[0], origin[1], origin[2]),
         (dx, dy, dz),
@@ -210,6 +221,9 @@ def make_ray(origin, direction, tmin, tmax):
         np.sqrt(dx * dx + dy * dy + dz * dz),
         tmin,
         tmax,
+        (kx, ky, kz),
+        (d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]),
+        (origin[kx], origin[ky], origin[kz]),
     )
 
 
@@ -231,44 +245,56 @@ def ray_at(rays, i):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def intersect_triangle(prim, k, ray):
-    """Moller-Trumbore test of ``ray`` (a :class:`Ray`) against row ``k`` of ``prim`` (P, 16).
+    """Watertight test of ``ray`` (a :class:`Ray`) against row ``k`` of ``prim`` (P, 16)
+    (Woop, Benthin and Wald 2013, "Watertight Ray/Triangle Intersection").
 
     Returns ``(t, u, v)`` with ``t > ray.tmin``; ``t = inf`` for a miss (the caller compares
-    t with its own upper bound).  The hit point is ``v0 + u*e1 + v*e2 = (1-u-v)*a + u*b +
-    v*c``.  Edges are inclusive (u >= 0, v >= 0, u + v <= 1) so a ray through a shared edge
-    hits both neighbours and never slips through the crack; the (t, id) order then picks one
-    deterministically.
+    t with its own upper bound).  The hit point is ``(1-u-v)*a + u*b + v*c``.
 
-    This is the Cramer's-rule form used by Embree: with C = v0 - o and R = d x C,
-    det = d.n, t = C.n / det, u = -R.e2 / det, v = R.e1 / det.  One cross product per test
-    because the normal n is precomputed.
-    """
-    ox, oy, oz = ray.origin
+    The corners are moved into the ray's frame (``make_ray``: origin at the ray's, the
+    direction sheared onto the z axis), where the ray is the point (0, 0) and its side of
+    each edge is a 2-D cross product of the edge's two corners: ``e_u``, ``e_v``, ``e_w``
+    for the edges b-c, c-a and a-b. A corner's coordinates there depend on that corner
+    alone, and an edge's product with its ends swapped is exactly the negative (``x*y -
+    z*w = -(z*w - x*y)`` in floating point), so two triangles sharing an edge always agree
+    on which side of it the ray passes: a ray through a closed mesh's edge or corner hits
+    a face there, never slips between them (``tests/render/trace/test_watertight.py``;
+    Moller-Trumbore, which this replaced, let 4 of 66 such rays through an octahedron's
+    edges). The sides are inclusive (0 is inside; either winding is a face) and the (t,
+    id) order picks one where several are hit.
+
+    Misses: rays within DEGENERATE_TOL of the triangle's plane (relative to its edges,
+    by the normal ``n``: where t's rounding would be unbounded, which is what keeps the
+    BVH's answers equal to brute force's) and degenerate triangles (``cut = inf``)."""
+    kx, ky, kz = ray.axes
+    sx, sy, sz = ray.shear
+    ox, oy, oz = ray.sheared_origin  # (a tuple indexed by a variable is slow in Numba)
+    az, bz, cz = prim[k, kz] - oz, prim[k, 3 + kz] - oz, prim[k, 6 + kz] - oz
+    bx = (prim[k, 3 + kx] - ox) - sx * bz
+    by = (prim[k, 3 + ky] - oy) - sy * bz
+    cx = (prim[k, 6 + kx] - ox) - sx * cz
+    cy = (prim[k, 6 + ky] - oy) - sy * cz
+    e_u = cx * by - cy * bx
+    ax = (prim[k, kx] - ox) - sx * az
+    ay = (prim[k, ky] - oy) - sy * az
+    e_v = ax * cy - ay * cx
+    # Sides of opposite signs: outside (most rays leave here, before the third side).
+    if (e_u < 0.0 and e_v > 0.0) or (e_u > 0.0 and e_v < 0.0):
+        return np.inf, 0.0, 0.0
+    e_w = bx * ay - by * ax
+    if (e_u < 0.0 or e_v < 0.0 or e_w < 0.0) and (e_u > 0.0 or e_v > 0.0 or e_w > 0.0):
+        return np.inf, 0.0, 0.0
     dx, dy, dz = ray.direction
-    nx = prim[k, 9]
-    ny = prim[k, 10]
-    nz = prim[k, 11]
-    det = dx * nx + dy * ny + dz * nz
-    # Degenerate triangle or ray (nearly) in the triangle's plane: a miss, never a NaN.
-    if abs(det) <= ray.length * prim[k, 12]:
+    if abs(dx * prim[k, 9] + dy * prim[k, 10] + dz * prim[k, 11]) <= ray.length * prim[k, 12]:
         return np.inf, 0.0, 0.0
-    cx = prim[k, 0] - ox
-    cy = prim[k, 1] - oy
-    cz = prim[k, 2] - oz
-    rx = dy * cz - dz * cy
-    ry = dz * cx - dx * cz
-    rz = dx * cy - dy * cx
+    det = e_u + e_v + e_w
+    if det == 0.0:
+        return np.inf, 0.0, 0.0
     inv = 1.0 / det
-    u = -(rx * prim[k, 6] + ry * prim[k, 7] + rz * prim[k, 8]) * inv
-    if u < 0.0 or u > 1.0:
-        return np.inf, 0.0, 0.0
-    v = (rx * prim[k, 3] + ry * prim[k, 4] + rz * prim[k, 5]) * inv
-    if v < 0.0 or u + v > 1.0:
-        return np.inf, 0.0, 0.0
-    t = (cx * nx + cy * ny + cz * nz) * inv
+    t = (e_u * (sz * az) + e_v * (sz * bz) + e_w * (sz * cz)) * inv
     if not t > ray.tmin:
         return np.inf, 0.0, 0.0
-    return t, u, v
+    return t, e_v * inv, e_w * inv
 
 
 @njit(cache=True, error_model="numpy", inline="always")

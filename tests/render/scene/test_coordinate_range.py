@@ -142,7 +142,10 @@ def test_the_widest_accepted_geometry_renders_the_same_on_both_paths_shadows_inc
     scene = wall_scene(MAX_EXTENT_RELATIVE * 5.0 * 0.99)  # the diagonal a little longer
     raster = render_info(scene, "raster")
     np.testing.assert_array_equal(raster.prim_id, render_info(scene, "bvh").prim_id)
-    np.testing.assert_array_equal(raster.prim_id, reference.prim_id)
+    # The same object (two triangles each: ids 0-1 the ground, 2-3 the wall) in every
+    # pixel: a ray exactly through the ground's diagonal meets both of its triangles, at t
+    # rounded each its own way (the watertight test's), and the long one may be the nearer.
+    np.testing.assert_array_equal(raster.prim_id // 2, reference.prim_id // 2)
     np.testing.assert_array_equal(raster.lit, reference.lit)
 
 
