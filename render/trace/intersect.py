@@ -100,7 +100,7 @@ class Ray(NamedTuple):
     tmax: float
     axes: tuple[int, int, int]
     shear: tuple[float, float, float]
-    sheared_origin: tuple[float, float, float]
+    axis_origin: tuple[float, float, float]
 
 
 class Rays(NamedTuple):
@@ -268,7 +268,7 @@ def intersect_triangle(prim, k, ray):
     BVH's answers equal to brute force's) and degenerate triangles (``cut = inf``)."""
     kx, ky, kz = ray.axes
     sx, sy, sz = ray.shear
-    ox, oy, oz = ray.sheared_origin  # (a tuple indexed by a variable is slow in Numba)
+    ox, oy, oz = ray.axis_origin  # (a tuple indexed by a variable is slow in Numba)
     az, bz, cz = prim[k, kz] - oz, prim[k, 3 + kz] - oz, prim[k, 6 + kz] - oz
     bx = (prim[k, 3 + kx] - ox) - sx * bz
     by = (prim[k, 3 + ky] - oy) - sy * bz
