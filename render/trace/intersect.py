@@ -207,23 +207,28 @@ def make_ray(origin, direction, tmin, tmax):
     """The :class:`Ray` ``origin + t * direction``, ``tmin < t < tmax``; origin and direction
     are three numbers each (an array row or a tuple)."""
     dx, dy, dz = direction[0], direction[1], direction[2]
+    ox, oy, oz = origin[0], origin[1], origin[2]
     # The watertight test's frame: z along the direction's largest component, x and y the
     # other two in turn (swapped where that component is negative, to keep the winding).
-    kz = 0 if abs(dx) >= abs(dy) and abs(dx) >= abs(dz) else (1 if abs(dy) >= abs(dz) else 2)
-    kx, ky = (kz + 1) % 3, (kz + 2) % 3
-    d = (dx, dy, dz)
-    if d[kz] < 0.0:
-        kx, ky = ky, kx
+    # Written out: a tuple indexed by a variable is slow in Numba.
+    if abs(dx) >= abs(dy) and abs(dx) >= abs(dz):
+        axes, (a, b, c), (oa, ob, oc) = (1, 2, 0), (dy, dz, dx), (oy, oz, ox)
+    elif abs(dy) >= abs(dz):
+        axes, (a, b, c), (oa, ob, oc) = (2, 0, 1), (dz, dx, dy), (oz, ox, oy)
+    else:
+        axes, (a, b, c), (oa, ob, oc) = (0, 1, 2), (dx, dy, dz), (ox, oy, oz)
+    if c < 0.0:
+        axes, a, b, oa, ob = (axes[1], axes[0], axes[2]), b, a, ob, oa
     return Ray(
-        (origin[0], origin[1], origin[2]),
+        (ox, oy, oz),
         (dx, dy, dz),
         (safe_inverse(dx), safe_inverse(dy), safe_inverse(dz)),
         np.sqrt(dx * dx + dy * dy + dz * dz),
         tmin,
         tmax,
-        (kx, ky, kz),
-        (d[kx] / d[kz], d[ky] / d[kz], 1.0 / d[kz]),
-        (origin[kx], origin[ky], origin[kz]),
+        axes,
+        (a / c, b / c, 1.0 / c),
+        (oa, ob, oc),
     )
 
 
