@@ -8,7 +8,8 @@ Woop, Benthin and Wald's watertight test) makes the two agree exactly; Moller-Tr
 which it replaced, let 4 of the 66 rays of this test's first failing draw through an
 octahedron's edges (seed 0, the identity's half turn about z). These draws hold the tracer
 to it on convex meshes far from the origin (rounding grows with the coordinates), with
-coordinates that are float64 or float32 values, by the BVH and by brute force.
+coordinates that are float64 or float32 values, and on bumpy closed meshes that need not
+be convex, by the BVH and by brute force; both tests fail on Moller-Trumbore.
 """
 
 from __future__ import annotations
@@ -83,3 +84,68 @@ def test_rays_through_edges_and_corners_of_a_closed_mesh_hit_it(
         # there to the far side.
         assert np.all(prim >= 0), (use_bvh, np.flatnonzero(prim < 0))
         np.testing.assert_allclose(t, 1.0, rtol=0, atol=1e-6, err_msg=f"use_bvh={use_bvh}")
+
+
+def _midpoint(corners: list, middle: dict, i: int, j: int) -> int:
+    """The index of the midpoint of corners i and j, added to ``corners`` the first time."""
+    key = (min(i, j), max(i, j))
+    if key not in middle:
+        middle[key] = len(corners)
+        corners.append((corners[i] + corners[j]) / 2)
+    return middle[key]
+
+
+def _subdivided(levels: int) -> tuple[np.ndarray, np.ndarray]:
+    """The octahedron's faces split in four ``levels`` times, its corners pushed onto the
+    unit sphere: (corners (V, 3), faces (F, 3)), wound outwards as the octahedron is."""
+    corners, faces = list(CORNERS), [tuple(f) for f in FACES]
+    for _ in range(levels):
+        middle: dict[tuple[int, int], int] = {}
+        split = []
+        for a, b, c in faces:
+            ab = _midpoint(corners, middle, a, b)
+            bc = _midpoint(corners, middle, b, c)
+            ca = _midpoint(corners, middle, c, a)
+            split += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        faces = split
+    corners = np.array(corners)
+    return corners / np.linalg.norm(corners, axis=1)[:, None], np.array(faces)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**32 - 1), bumps=st.floats(0.0, 0.4), distance=st.floats(0.0, 4.0))
+def test_rays_through_edges_and_corners_of_a_bumpy_closed_mesh_stop_there(seed, bumps, distance):
+    """A closed mesh that need not be convex (a sphere of 128 faces, each corner's radius
+    drawn within ``bumps`` of 1): a ray from outside through a point of an edge, or a
+    corner, whose faces there all face it crosses the surface there, so its first hit is
+    there or nearer (t <= 1), never beyond through a crack."""
+    rng = np.random.default_rng(seed)
+    corners, faces = _subdivided(2)
+    corners = corners * rng.uniform(1.0 - bumps, 1.0 + bumps, (len(corners), 1))
+    offset = rng.normal(size=3)
+    corners += offset / np.linalg.norm(offset) * 10.0**distance
+    triangles = corners[faces]
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]],
+                                              faces[:, [2, 0]]]), axis=1), axis=0)  # fmt: skip
+    k = 400
+    edge = edges[rng.integers(0, len(edges), k)]
+    along = rng.random(k)
+    along[: k // 4] = 0.0  # a quarter at corners
+    targets = corners[edge[:, 0]] + along[:, None] * (corners[edge[:, 1]] - corners[edge[:, 0]])
+    directions = rng.normal(size=(k, 3))
+    origins = targets - directions * rng.uniform(3.0, 30.0, (k, 1))
+    keep = np.zeros(k, bool)
+    for i in range(k):  # the faces at the edge (at the corner) all face the ray
+        meets = (faces == edge[i, 0]).any(axis=1)
+        at = meets if along[i] == 0.0 else meets & (faces == edge[i, 1]).any(axis=1)
+        n = normals[at]
+        cosine = -(n @ directions[i]) / (np.linalg.norm(n, axis=1) * np.linalg.norm(directions[i]))
+        keep[i] = np.all(cosine > 1e-3)
+    assume(keep.sum() > 20)
+    for use_bvh in (True, False):
+        prim, t, _, _ = Accelerator(triangles, use_bvh=use_bvh).closest_hit(
+            origins[keep], targets[keep] - origins[keep]
+        )
+        assert np.all(prim >= 0), (use_bvh, np.flatnonzero(prim < 0))
+        assert np.all(t <= 1.0 + 1e-6), (use_bvh, t[t > 1.0 + 1e-6])
