@@ -5,8 +5,8 @@ of the faces that meet there: the faces either side of an edge each test the ray
 that edge with their own arithmetic, and if both rounded it to their outside, the ray would
 pass through a crack. The tracer's test (``render.trace.intersect.intersect_triangle``,
 Woop, Benthin and Wald's watertight test) makes the two agree exactly; Moller-Trumbore,
-which it replaced, let 4 of the 66 rays of this test's first failing draw through an
-octahedron's edges (seed 0, the identity's half turn about z). These draws hold the tracer
+which it replaced, let rays through (in one draw of this test's first version, 4 of the 66
+aimed at an octahedron's edges). These draws hold the tracer
 to it on convex meshes far from the origin (rounding grows with the coordinates), with
 coordinates that are float64 or float32 values, and on bumpy closed meshes that need not
 be convex, by the BVH and by brute force; both tests fail on Moller-Trumbore.
@@ -24,8 +24,44 @@ from render.trace.accel import Accelerator
 CORNERS = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1.0]])
 FACES = np.array([[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5],
                   [0, 3, 5]])  # fmt: skip
-EDGES = np.unique(np.sort(np.concatenate([FACES[:, [0, 1]], FACES[:, [1, 2]],
-                                          FACES[:, [2, 0]]]), axis=1), axis=0)  # fmt: skip
+
+
+def _edges_of(faces: np.ndarray) -> np.ndarray:
+    """The (E, 2) corner pairs of the faces' edges, each once."""
+    pairs = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    return np.unique(np.sort(pairs, axis=1), axis=0)
+
+
+def _hits_through_edges(corners, faces, rng, reach) -> list[tuple[bool, np.ndarray, np.ndarray]]:
+    """Rays from outside through random points of the mesh's edges (a quarter of them at
+    corners), each from a direction that every face at its point faces, from
+    ``reach`` = (nearest, farthest) away along its direction; aimed so that t = 1 at the
+    point. Their closest hits by the BVH and by brute force: [(use_bvh, prim, t)]."""
+    triangles = corners[faces]
+    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    edges = _edges_of(faces)
+    k = 300
+    edge = edges[rng.integers(0, len(edges), k)]
+    along = rng.random(k)
+    along[: k // 4] = 0.0
+    targets = corners[edge[:, 0]] + along[:, None] * (corners[edge[:, 1]] - corners[edge[:, 0]])
+    directions = rng.normal(size=(k, 3))
+    origins = targets - directions * rng.uniform(*reach, (k, 1))
+    keep = np.zeros(k, bool)
+    for i in range(k):  # the faces at the edge (at the corner) all face the ray
+        meets = (faces == edge[i, 0]).any(axis=1)
+        at = meets if along[i] == 0.0 else meets & (faces == edge[i, 1]).any(axis=1)
+        n = normals[at]
+        cosine = -(n @ directions[i]) / (np.linalg.norm(n, axis=1) * np.linalg.norm(directions[i]))
+        keep[i] = np.all(cosine > 1e-3)
+    assume(keep.sum() > 20)
+    found = []
+    for use_bvh in (True, False):
+        prim, t, _, _ = Accelerator(triangles, use_bvh=use_bvh).closest_hit(
+            origins[keep], targets[keep] - origins[keep]
+        )
+        found.append((use_bvh, prim, t))
+    return found
 
 
 def _rotation(q: np.ndarray) -> np.ndarray:
@@ -58,28 +94,9 @@ def test_rays_through_edges_and_corners_of_a_closed_mesh_hit_it(
     corners += offset / np.linalg.norm(offset) * 10.0**distance
     if single:  # coordinates a float32 mesh file would hold
         corners = corners.astype(np.float32).astype(np.float64)
-    triangles = corners[FACES]
-    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    k = 300
-    edge = EDGES[rng.integers(0, len(EDGES), k)]
-    along = rng.random(k)
-    along[: k // 4] = 0.0  # a quarter at corners
-    targets = corners[edge[:, 0]] + along[:, None] * (corners[edge[:, 1]] - corners[edge[:, 0]])
-    directions = rng.normal(size=(k, 3))
-    origins = targets - directions * rng.uniform(2.0, 50.0, (k, 1)) * max(scales)
-    keep = np.zeros(k, bool)
-    for i in range(k):  # the faces at the edge (at the corner) all face the ray
-        at_corner = along[i] == 0.0
-        meets = (FACES == edge[i, 0]).any(axis=1)
-        faces = meets if at_corner else meets & (FACES == edge[i, 1]).any(axis=1)
-        n = normals[faces]
-        cosine = -(n @ directions[i]) / (np.linalg.norm(n, axis=1) * np.linalg.norm(directions[i]))
-        keep[i] = np.all(cosine > 1e-3)
-    assume(keep.sum() > 20)
-    for use_bvh in (True, False):
-        prim, t, _, _ = Accelerator(triangles, use_bvh=use_bvh).closest_hit(
-            origins[keep], targets[keep] - origins[keep]
-        )
+    for use_bvh, prim, t in _hits_through_edges(
+        corners, FACES, rng, (2.0 * max(scales), 50.0 * max(scales))
+    ):
         # The mesh is convex: the ray enters it at the target (t = 1), not through a crack
         # there to the far side.
         assert np.all(prim >= 0), (use_bvh, np.flatnonzero(prim < 0))
@@ -124,28 +141,6 @@ def test_rays_through_edges_and_corners_of_a_bumpy_closed_mesh_stop_there(seed, 
     corners = corners * rng.uniform(1.0 - bumps, 1.0 + bumps, (len(corners), 1))
     offset = rng.normal(size=3)
     corners += offset / np.linalg.norm(offset) * 10.0**distance
-    triangles = corners[faces]
-    normals = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
-    edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]],
-                                              faces[:, [2, 0]]]), axis=1), axis=0)  # fmt: skip
-    k = 400
-    edge = edges[rng.integers(0, len(edges), k)]
-    along = rng.random(k)
-    along[: k // 4] = 0.0  # a quarter at corners
-    targets = corners[edge[:, 0]] + along[:, None] * (corners[edge[:, 1]] - corners[edge[:, 0]])
-    directions = rng.normal(size=(k, 3))
-    origins = targets - directions * rng.uniform(3.0, 30.0, (k, 1))
-    keep = np.zeros(k, bool)
-    for i in range(k):  # the faces at the edge (at the corner) all face the ray
-        meets = (faces == edge[i, 0]).any(axis=1)
-        at = meets if along[i] == 0.0 else meets & (faces == edge[i, 1]).any(axis=1)
-        n = normals[at]
-        cosine = -(n @ directions[i]) / (np.linalg.norm(n, axis=1) * np.linalg.norm(directions[i]))
-        keep[i] = np.all(cosine > 1e-3)
-    assume(keep.sum() > 20)
-    for use_bvh in (True, False):
-        prim, t, _, _ = Accelerator(triangles, use_bvh=use_bvh).closest_hit(
-            origins[keep], targets[keep] - origins[keep]
-        )
+    for use_bvh, prim, t in _hits_through_edges(corners, faces, rng, (3.0, 30.0)):
         assert np.all(prim >= 0), (use_bvh, np.flatnonzero(prim < 0))
         assert np.all(t <= 1.0 + 1e-6), (use_bvh, t[t > 1.0 + 1e-6])
