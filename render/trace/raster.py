@@ -345,7 +345,8 @@ def raster_closest_hit(
         primitives, (forward, right, up, eye), width, height, offsets, TILE
     )
     prim_data = pack_primitives(triangles, centers, radii)
-    slot, given, busy = _some_pixels(pixels, directions, width, height, spp, tiles_x, len(start))
+    slot, given, busy = _some_pixels(pixels, directions, width, height, spp, tiles_x,
+                                     len(start) - 1)  # fmt: skip
     n = width * height * spp if pixels is None else len(given)
     # Reused memory (minidiff.buffers): fresh 2 MB arrays per render cost page faults.
     out_id, out_t = buffers.empty((n,), np.int64), buffers.empty((n,), np.float64)
@@ -363,10 +364,12 @@ def raster_closest_hit(
 
 
 def _some_pixels(
-    pixels, directions, width: int, height: int, spp: int, tiles_x: int, n_tiles_plus_one: int
+    pixels, directions, width: int, height: int, spp: int, tiles_x: int, n_tiles: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``_raster_closest_hit``'s (slot, given, busy) for the samples of ``pixels`` (empty
     arrays: every pixel), checked."""
+    if (pixels is None) != (directions is None):
+        raise ValueError("pixels and directions must be given together (or neither)")
     if pixels is None:
         empty = np.zeros(0, np.int64)
         return empty, np.zeros((0, 3)), np.zeros(0, np.bool_)
@@ -384,7 +387,7 @@ def _some_pixels(
     slot[pixels] = np.arange(len(pixels))
     if np.count_nonzero(slot >= 0) != len(pixels):
         raise ValueError("pixels must be distinct")
-    busy = np.zeros(n_tiles_plus_one - 1, np.bool_)
+    busy = np.zeros(n_tiles, np.bool_)
     busy[(pixels // width // TILE) * tiles_x + (pixels % width) // TILE] = True
     return slot, given, busy
 

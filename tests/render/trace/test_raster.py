@@ -113,6 +113,8 @@ def test_some_pixels_are_checked():
     with pytest.raises(ValueError, match=r"directions must have shape \(m \* spp, 3\)"):
         raster_closest_hit(*primitives, camera, 4, pixels=np.array([3]),
                            directions=np.zeros((1, 3)))  # fmt: skip
+    with pytest.raises(ValueError, match="pixels and directions must be given together"):
+        raster_closest_hit(*primitives, camera, 1, pixels=np.array([3]))
     with pytest.raises(ValueError, match="pixels must be a"):
         raster_closest_hit(*primitives, camera, 1, pixels=np.array([0.5]),
                            directions=np.zeros((1, 3)))  # fmt: skip
