@@ -8,8 +8,11 @@ By default (``gradient="replay"``) the image is the kernel's, one node on the ta
 VJP (``_backpropagate``) replays the image's paths with the caller's dL/dimage: compiled
 (``render.path.adjoint``) when only materials, lights' strengths and colours and the
 environment are differentiated, else on the tape one depth at a time
-(``render.path.replay``). ``backward`` gives the tape's gradient (to rounding), no path is
-kept between the render and the ``backward``, and memory does not grow with spp.
+(``render.path.replay``). ``backward`` gives the tape's gradient (to rounding), and
+memory does not grow with spp. An image whose paths the replay on the tape takes in one go
+(one batch of at most ``REPLAY_PATHS`` paths) keeps their records from the render to the
+``backward`` (``_KeptPaths``), which its replay would make anyway: its paths are traced
+once, not twice. A larger image keeps nothing: its replay traces its paths again.
 
 ``replay_gradient`` is the same adjoint for a loss given as a function (the structure of
 radiative backpropagation, Nimier-David et al. 2020): a primal pass without a tape gives
@@ -105,13 +108,59 @@ def render_path(
     return on_every_parameter(image, scene)  # zeros for what the image cannot depend on
 
 
-def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
+def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp, kept=None):
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
     if not differentiated(scene) and kernel.applies(world):
         # Nothing to differentiate: the compiled kernel alone (render.path.kernel).
-        return md.tensor(kernel.render_image(sampler))
+        if kept is None:
+            return md.tensor(kernel.render_image(sampler))
+        return md.tensor(kept.image(sampler))
     return _taped_image(scene, world, sampler, spp, batch_spp, edges, edge_spp)
+
+
+class _KeptPaths:
+    """The records and radiance of an image's paths, from the render (``image``) to the
+    replay's ``backward`` (``take``), which would trace the same paths to make them: kept
+    only where the replay on the tape takes every path in one go (``wanted``), so they are
+    what its one chunk holds anyway."""
+
+    def __init__(self) -> None:
+        self._paths: tuple | None = None
+
+    @staticmethod
+    def wanted(scene: Scene, spp: int, batch_spp: int) -> bool:
+        """Whether ``_backpropagate_on_tape`` would replay ``scene``'s image (its parameters
+        requiring grad as they will in the ``backward``) from the kernel's records of all
+        its paths at once: one batch, at most ``REPLAY_PATHS`` paths."""
+        camera = scene.camera
+        if spp > batch_spp or camera.width * camera.height * spp > REPLAY_PATHS:
+            return False
+        with md.enable_grad():  # placed as in the backward, which the moving leaves reach
+            world = placed(scene)
+        return kernel.applies(world) and not adjoint.covers(world)
+
+    def image(self, sampler: PathSampler) -> np.ndarray:
+        """The (H, W, 3) image of ``kernel.render_image(sampler)``, bit for bit (each
+        pixel's samples summed in sample order, times 1 / spp), from the records it
+        keeps."""
+        camera = sampler.scene.camera
+        paths = _batch_paths(sampler.scene, sampler, 0, sampler.spp)
+        batch, radiance = kernel.sample_paths(sampler, paths)
+        self._paths = paths, batch, radiance
+        per_pixel = radiance.reshape(camera.height, camera.width, sampler.spp, 3)
+        total = per_pixel[:, :, 0]
+        for sample in range(1, sampler.spp):
+            total = total + per_pixel[:, :, sample]
+        return total * (1.0 / sampler.spp)
+
+    def take(self, paths: np.ndarray) -> tuple | None:
+        """(batch, radiance) of ``paths`` if they are the kept ones (then forgotten: a
+        second ``backward`` traces them again), else None."""
+        kept, self._paths = self._paths, None
+        if kept is None or not np.array_equal(kept[0], paths):
+            return None
+        return kept[1], kept[2]
 
 
 def _taped_image(scene, world, sampler, spp, batch_spp, edges, edge_spp):
@@ -219,8 +268,9 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
             tangent = _render_path(frozen, *options).tangent
     for leaf in leaves:
         leaf.requires_grad = True
+    kept = _KeptPaths() if _KeptPaths.wanted(frozen, spp, batch_spp) else None
     with md.no_grad():  # the value: the kernel's image when it applies, as without tangents
-        image = _render_path(frozen, *options)
+        image = _render_path(frozen, *options, kept=kept)
 
     def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
         for leaf in leaves:  # every moving copy, as differentiated as on the tape
@@ -228,26 +278,28 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
         # Recorded even when the caller's backward runs under no_grad().
         with md.enable_grad(), buffers.fresh():
             _backpropagate(frozen, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges,
-                           edge_spp)  # fmt: skip
+                           edge_spp, kept)  # fmt: skip
         return tuple(leaf.grad for leaf in leaves)  # None: the image does not depend on it
 
     return record("path_image", image.data, moving, vjp, jvp=lambda *_: tangent)
 
 
-def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
+def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp,
+                   kept=None):  # fmt: skip
     """Add d_image . d image / d p (``d_image`` (H, W, 3): dL/dimage) to ``p.grad`` of every
     parameter of ``scene`` that requires grad, as ``backward`` through ``_render_path``'s
     tape would, by replaying the image's paths (the same path ids and random numbers under
     ``seed``): compiled when only materials, lights' strengths and colours and the
     environment require grad (``render.path.adjoint``), else on the tape, a batch of
-    ``batch_spp`` samples at a time. A parameter the image cannot depend on gets zeros, as
-    from the compiled replay, whichever way computed the others."""
+    ``batch_spp`` samples at a time (from ``kept``'s records where it holds them). A
+    parameter the image cannot depend on gets zeros, as from the compiled replay, whichever
+    way computed the others."""
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed)  # plain arrays: reused
     if adjoint.covers(world):
         adjoint.backpropagate(world, sampler, d_image)
     else:
-        _backpropagate_on_tape(scene, sampler, d_image, batch_spp)
+        _backpropagate_on_tape(scene, sampler, d_image, batch_spp, kept)
     if edges[0] and differentiated(scene):
         world = placed(scene)
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
@@ -268,13 +320,15 @@ def _zeros_where_missing(scene: Scene) -> None:
             p.grad = np.zeros(p.shape, p.dtype)
 
 
-def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int) -> None:
+def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int,
+                           kept: _KeptPaths | None = None) -> None:  # fmt: skip
     """``_backpropagate``'s tape, a batch of ``batch_spp`` samples at a time. With the
     kernel (``kernel.applies``): its paths and radiance, replayed one depth at a time
     (``render.path.replay``: a tape flat in depth; the paths' records grow with it), at
     most REPLAY_PATHS paths at a time (memory bounded whatever the image's size); else the
     reference sampler's paths, each batch on one tape that its ``backward`` frees before
-    the next batch is rendered."""
+    the next batch is rendered. ``kept``: the render's records of the paths, if it kept
+    them (``_KeptPaths``)."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
     packed = kernel.pack(sampler) if kernel.applies(sampler.scene) else None
@@ -286,10 +340,13 @@ def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int)
             for start in range(0, len(paths), REPLAY_PATHS):
                 world = placed(scene)  # a fresh tape each time: placement is on it too
                 chunk = slice(start, start + REPLAY_PATHS)
-                batch, radiance = kernel.sample_paths(sampler, paths[chunk], packed)
+                traced = kept.take(paths[chunk]) if kept is not None else None
+                if traced is None:
+                    traced = kernel.sample_paths(sampler, paths[chunk], packed)
+                batch, radiance = traced
                 backpropagate_paths(world, camera_frame(world.camera), sampler, batch,
                                     radiance, per_path[chunk])  # fmt: skip
-                del batch, radiance  # before the next chunk's records are made
+                del batch, radiance, traced  # before the next chunk's records are made
             continue
         world = placed(scene)  # a fresh tape per batch: placement is on it too
         frame = camera_frame(world.camera)

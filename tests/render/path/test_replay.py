@@ -237,3 +237,29 @@ def test_the_replay_on_the_tape_takes_a_batch_in_chunks_of_paths(monkeypatch):
     monkeypatch.setattr(integrator, "REPLAY_PATHS", 37)  # 128 paths a batch: 4 chunks
     _, chunked = _gradients(scene, weights, **options)
     _assert_same_gradients(chunked, taped)
+
+
+@pytest.mark.parametrize("replay_paths", [2**17, 37])
+def test_an_image_replayed_in_one_go_traces_its_paths_once(monkeypatch, replay_paths):
+    """One batch of at most ``REPLAY_PATHS`` paths: the records the render makes serve its
+    ``backward`` (``integrator._KeptPaths``), so the kernel traces the paths once, not
+    twice; a batch taken in chunks keeps nothing and traces them again. Either way the
+    image is the plain render's, bit for bit, and the gradient is the tape's."""
+    from render.path import integrator, kernel
+
+    scene = every_kind()
+    weights = np.random.default_rng(6).normal(size=(8, 8, 3))
+    options = {"spp": 4, "max_depth": 3, "seed": 5, "batch_spp": 4}
+    taped_image, taped = _gradients(scene, weights, gradient="tape", **options)
+    with md.no_grad():
+        plain = render_path(scene, **options)
+    monkeypatch.setattr(integrator, "REPLAY_PATHS", replay_paths)
+    runs = []  # the kernel's runs: the image's, then the replay's chunks'
+    run = kernel._run
+    monkeypatch.setattr(kernel, "_run", lambda *a, **k: runs.append(k.get("paths")) or run(*a, **k))
+    image, replayed = _gradients(scene, weights, **options)
+    np.testing.assert_array_equal(image.data, plain.data)
+    _assert_same_image(image, taped_image)
+    _assert_same_gradients(replayed, taped)
+    traced = [None if paths is None else len(paths) for paths in runs]
+    assert traced == ([8 * 8 * 4] if replay_paths == 2**17 else [None] + [37] * 6 + [34])
