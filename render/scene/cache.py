@@ -65,6 +65,14 @@ class RenderCache:
                 self._entries[slot] = entry
             return entry[1], entry[2]
 
+    def latest(self, slot: Hashable) -> Any:
+        """The value last stored in ``slot`` whatever its key (None if none): what a stage
+        may start from when its key has changed (the BVH refitted to moved vertices,
+        ``render.trace.accel.updated``). Read-only, as every value here."""
+        with self._lock:
+            entry = self._entries.get(slot)
+            return None if entry is None else entry[1]
+
 
 # One cache per scene, dropped with the scene; the dictionary itself is guarded.
 _CACHES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -26,6 +26,7 @@ Design notes
 
 from __future__ import annotations
 
+import copy
 import time
 
 import numpy as np
@@ -33,7 +34,15 @@ from numba import njit
 
 from minidiff.threads import job_count, run_jobs
 from render.scene.scene import MAX_COORD
-from render.trace.bvh import N_BINS, build_bvh, one_leaf, primitive_bounds
+from render.trace.bvh import (
+    C_TRAV,
+    N_BINS,
+    build_bvh,
+    one_leaf,
+    primitive_bounds,
+    refit_bounds,
+    sah_cost,
+)
 from render.trace.intersect import (
     RAYS_PER_JOB,
     FlatBVH,
@@ -53,6 +62,11 @@ MIN_DIRECTION = 1e-60
 #: with ``ignore_prim`` it removes shadow acne.  (The renderer starts its shadow rays off the
 #: surface instead and passes tmin=0: see ``render.trace.visibility.shadow_rays``.)
 SHADOW_TMIN = 1e-6
+
+#: ``updated`` refits a tree while its SAH cost stays below this many times the cost it had
+#: when it was built, and builds a new one beyond (primitives that moved apart from their
+#: leaf-mates make its boxes overlap; see ``docs/architecture.md``).
+REBUILD_RATIO = 1.5
 
 
 # --------------------------------------------------------------------------------------------
@@ -166,12 +180,17 @@ def _check_rays(origins, directions, tmin, tmax) -> tuple[Rays, int]:
 
 
 def _check_coordinates(name: str, a: np.ndarray) -> None:
-    """Finite values of magnitude at most MAX_COORD, else ValueError."""
-    if not np.isfinite(a).all():
+    """Finite values of magnitude at most MAX_COORD, else ValueError. From the smallest and
+    the largest value (NumPy's reductions: no temporary array; a NaN or an infinity shows
+    in one of them), not from ``np.abs(a)`` (94 MB for 1.3M triangles)."""
+    if a.size == 0:
+        return
+    low, high = float(a.min()), float(a.max())
+    if not (np.isfinite(low) and np.isfinite(high)):
         raise ValueError(f"{name} must be finite (found NaN or inf)")
-    if a.size and np.abs(a).max() > MAX_COORD:
+    if max(-low, high) > MAX_COORD:
         raise ValueError(
-            f"{name} must be at most {MAX_COORD:g} in magnitude, got {np.abs(a).max():g}"
+            f"{name} must be at most {MAX_COORD:g} in magnitude, got {max(-low, high):g}"
         )
 
 
@@ -186,6 +205,31 @@ def _check_scalar(name: str, x, allow_inf: bool) -> float:
     if np.isnan(f) or (np.isinf(f) and not allow_inf):
         raise ValueError(f"{name} must be {'not NaN' if allow_inf else 'finite'}, got {f}")
     return f
+
+
+def _checked_primitives(triangles, sphere_centers, sphere_radii):
+    """(triangles (T, 3, 3), centres (S, 3), radii (S,)) as contiguous float64 arrays, each
+    checked (finite, at most MAX_COORD, radii > 0), else a ValueError naming it."""
+    tri = _as_float_array("triangles", triangles, "(T, 3, 3)", 3, (3, 3))
+    if (sphere_centers is None) != (sphere_radii is None):
+        raise ValueError("sphere_centers and sphere_radii must be given together")
+    if sphere_centers is None:
+        centers = np.zeros((0, 3))
+        radii = np.zeros(0)
+    else:
+        centers = _as_float_array("sphere_centers", sphere_centers, "(S, 3)", 2, (3,))
+        radii = _as_float_array("sphere_radii", sphere_radii, "(S,)", 1, ())
+        if radii.shape[0] != centers.shape[0]:
+            raise ValueError(
+                f"sphere_radii must have shape (S,) = ({centers.shape[0]},) to match "
+                f"sphere_centers, got {radii.shape}"
+            )
+    _check_coordinates("triangles", tri)
+    _check_coordinates("sphere_centers", centers)
+    _check_coordinates("sphere_radii", radii)
+    if not (radii > 0).all():
+        raise ValueError("sphere_radii must be > 0")
+    return tri, centers, radii
 
 
 # --------------------------------------------------------------------------------------------
@@ -206,8 +250,10 @@ class Accelerator:
     ``leaf_prim`` (see ``render.trace.intersect``).  Build statistics: ``n_triangles``,
     ``n_spheres``, ``n_prims``, ``n_nodes``, ``n_leaves``, ``depth`` (levels, root = 1; 0 for
     an empty scene),
-    ``build_seconds`` (wall time of ``__init__``; the first build in a process also loads the
-    compiled kernels), ``use_bvh``.
+    ``build_seconds`` (wall time of ``__init__``, or of ``refitted``; the first build in a
+    process also loads the compiled kernels), ``use_bvh``; ``sah_cost`` (the tree's SAH cost,
+    ``render.trace.bvh.sah_cost``), ``built_cost`` (its cost when its topology was built) and
+    ``refits`` (how many times it was refitted since).
     """
 
     def __init__(
@@ -219,25 +265,7 @@ class Accelerator:
         n_bins: int = N_BINS,
     ) -> None:
         t0 = time.perf_counter()
-        tri = _as_float_array("triangles", triangles, "(T, 3, 3)", 3, (3, 3))
-        if (sphere_centers is None) != (sphere_radii is None):
-            raise ValueError("sphere_centers and sphere_radii must be given together")
-        if sphere_centers is None:
-            centers = np.zeros((0, 3))
-            radii = np.zeros(0)
-        else:
-            centers = _as_float_array("sphere_centers", sphere_centers, "(S, 3)", 2, (3,))
-            radii = _as_float_array("sphere_radii", sphere_radii, "(S,)", 1, ())
-            if radii.shape[0] != centers.shape[0]:
-                raise ValueError(
-                    f"sphere_radii must have shape (S,) = ({centers.shape[0]},) to match "
-                    f"sphere_centers, got {radii.shape}"
-                )
-        _check_coordinates("triangles", tri)
-        _check_coordinates("sphere_centers", centers)
-        _check_coordinates("sphere_radii", radii)
-        if not (radii > 0).all():
-            raise ValueError("sphere_radii must be > 0")
+        tri, centers, radii = _checked_primitives(triangles, sphere_centers, sphere_radii)
         if isinstance(n_bins, bool) or not isinstance(n_bins, int | np.integer) or n_bins < 2:
             raise ValueError(f"n_bins must be an integer >= 2, got {n_bins!r}")
 
@@ -260,7 +288,52 @@ class Accelerator:
         self.depth = int(depth)
         self.n_nodes = int(self.node_bounds.shape[0])
         self.n_leaves = int(np.count_nonzero(self.node_count))
+        self.sah_cost = self.built_cost = self._cost()
+        self.refits = 0
         self.build_seconds = time.perf_counter() - t0
+
+    def _cost(self) -> float:
+        """The tree's SAH cost (0 for brute force: one leaf, which every ray enters)."""
+        if not self.use_bvh:
+            return 0.0
+        return float(sah_cost(self.node_bounds, self.node_first, self.node_count, C_TRAV))
+
+    def refitted(
+        self,
+        triangles: np.ndarray,
+        sphere_centers: np.ndarray | None = None,
+        sphere_radii: np.ndarray | None = None,
+    ) -> Accelerator:
+        """This tree over moved primitives: an Accelerator for ``triangles`` (T, 3, 3) and
+        spheres (the same T and S as this one's) with this tree's topology and leaf order
+        and new boxes (``render.trace.bvh.refit_bounds``: each node's, over its primitives'
+        new places). This one is not changed (the render cache shares it read-only).
+
+        Its rays get the same answers as from a tree built anew, and as from brute force,
+        bit for bit: a box only decides which primitives a ray tests, and each box still
+        holds its primitives. What moving costs is speed: primitives that drift apart from
+        their leaf-mates stretch the boxes, and ``sah_cost`` grows over ``built_cost``
+        (``updated`` builds anew beyond ``REBUILD_RATIO``)."""
+        tri, centers, radii = _checked_primitives(triangles, sphere_centers, sphere_radii)
+        if (len(tri), len(centers)) != (self.n_triangles, self.n_spheres):
+            raise ValueError(
+                f"refitted: the tree holds {self.n_triangles} triangles and {self.n_spheres} "
+                f"spheres, got {len(tri)} and {len(centers)}: build a new Accelerator"
+            )
+        return self._refit(tri, centers, radii)
+
+    def _refit(self, tri: np.ndarray, centers: np.ndarray, radii: np.ndarray) -> Accelerator:
+        """``refitted`` for checked arrays of this tree's counts."""
+        t0 = time.perf_counter()
+        out = copy.copy(self)  # the topology's arrays shared: nobody writes into them
+        if self.use_bvh:
+            out.node_bounds = refit_bounds(self.node_first, self.node_count, self.leaf_ids,
+                                           tri, centers, radii)  # fmt: skip
+        out.leaf_prim = pack_primitives(tri, centers, radii, self.leaf_ids)
+        out.sah_cost = out._cost()
+        out.refits = self.refits + 1
+        out.build_seconds = time.perf_counter() - t0
+        return out
 
     def __repr__(self) -> str:
         kind = (
@@ -268,9 +341,10 @@ class Accelerator:
             if self.use_bvh
             else "brute force"
         )
+        made = f"refitted ({self.refits})" if self.refits else "built"
         return (
             f"Accelerator({self.n_triangles} triangles, {self.n_spheres} spheres, {kind}, "
-            f"built in {self.build_seconds * 1e3:.1f} ms)"
+            f"{made} in {self.build_seconds * 1e3:.1f} ms)"
         )
 
     # ----------------------------------------------------------------------------------------
@@ -369,3 +443,27 @@ class Accelerator:
             jobs = job_count(n, RAYS_PER_JOB)
             run_jobs(occluded_bvh, jobs, self._tree(), rays, ignore, first_row, out)
         return out
+
+
+def updated(
+    previous: Accelerator | None,
+    triangles: np.ndarray,
+    sphere_centers: np.ndarray | None = None,
+    sphere_radii: np.ndarray | None = None,
+    use_bvh: bool = True,
+) -> Accelerator:
+    """An Accelerator for these primitives: ``previous`` refitted (``Accelerator.refitted``)
+    if it holds as many triangles and spheres, with the same ``use_bvh``, and the refitted
+    tree's SAH cost stays within ``REBUILD_RATIO`` of the cost ``previous``'s topology had
+    when it was built; else a new one. The answers are the same either way (bit for bit);
+    for loops that move vertices (shape and pose fits), a refit is a fraction of a build."""
+    tri, centers, radii = _checked_primitives(triangles, sphere_centers, sphere_radii)
+    if (
+        previous is not None
+        and previous.use_bvh == bool(use_bvh)
+        and (previous.n_triangles, previous.n_spheres) == (len(tri), len(centers))
+    ):
+        refit = previous._refit(tri, centers, radii)
+        if refit.sah_cost <= REBUILD_RATIO * refit.built_cost:
+            return refit
+    return Accelerator(tri, centers, radii, use_bvh=use_bvh)

@@ -89,16 +89,23 @@ def primitive_bounds(triangles, sphere_centers, sphere_radii):
         for a in range(3):
             lo[a] = min(lo[a], prim_min[i, a])
             hi[a] = max(hi[a], prim_max[i, a])
-    extent = max(hi[0] - lo[0], max(hi[1] - lo[1], hi[2] - lo[2]))
-    magnitude = 0.0
-    for a in range(3):
-        magnitude = max(magnitude, max(abs(lo[a]), abs(hi[a])))
-    pad = PAD_RELATIVE * extent + 64.0 * np.finfo(np.float64).eps * magnitude
+    pad = _pad(lo, hi)
     for i in range(T + S):
         for a in range(3):
             prim_min[i, a] -= pad
             prim_max[i, a] += pad
     return prim_min, prim_max
+
+
+@njit(cache=True, error_model="numpy")
+def _pad(lo, hi):
+    """How far every box grows (``primitive_bounds`` says why), for a scene whose primitives
+    span ``lo`` to ``hi`` (3,): 1e-5 of its extent plus 64 ulps of its largest coordinate."""
+    extent = max(hi[0] - lo[0], max(hi[1] - lo[1], hi[2] - lo[2]))
+    magnitude = 0.0
+    for a in range(3):
+        magnitude = max(magnitude, max(abs(lo[a]), abs(hi[a])))
+    return PAD_RELATIVE * extent + 64.0 * np.finfo(np.float64).eps * magnitude
 
 
 @njit(cache=True, error_model="numpy")
@@ -487,6 +494,73 @@ def build_bvh(
     node_first.resize(nodes_used, refcheck=False)
     node_count.resize(nodes_used, refcheck=False)
     return node_bounds, node_first, node_count, order, int(depth)
+
+
+@njit(cache=True, error_model="numpy")
+def refit_bounds(node_first, node_count, order, triangles, sphere_centers, sphere_radii):
+    """The node boxes of a tree of ``build_bvh``'s form (``node_first``, ``node_count``,
+    ``order`` (P,)) over the primitives triangles (T, 3, 3), spheres (S, 3), (S,) (T + S =
+    P): each leaf's box the union of its primitives' (straight from their corners and
+    spheres), all grown by ``primitive_bounds``' pad, then each interior node's the union
+    of its two children's, from the last node to the root (a child always comes after its
+    parent). Returns node_bounds (M, 6): the boxes ``build_bvh`` gives these nodes over
+    ``primitive_bounds`` of the same primitives, bit for bit (min and max are exact, and a
+    rounded subtraction of the same pad keeps their order)."""
+    n_tri = triangles.shape[0]
+    n_nodes = node_first.shape[0]
+    node_bounds = np.empty((n_nodes, 6))
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for node in range(n_nodes):
+        if node_count[node] == 0:
+            continue
+        box = node_bounds[node]
+        box[:3], box[3:] = np.inf, -np.inf
+        for k in range(node_first[node], node_first[node] + node_count[node]):
+            p = order[k]
+            for a in range(3):
+                if p < n_tri:
+                    low = min(triangles[p, 0, a], min(triangles[p, 1, a], triangles[p, 2, a]))
+                    high = max(triangles[p, 0, a], max(triangles[p, 1, a], triangles[p, 2, a]))
+                else:
+                    low = sphere_centers[p - n_tri, a] - sphere_radii[p - n_tri]
+                    high = sphere_centers[p - n_tri, a] + sphere_radii[p - n_tri]
+                box[a], box[3 + a] = min(box[a], low), max(box[3 + a], high)
+        for a in range(3):
+            lo[a], hi[a] = min(lo[a], box[a]), max(hi[a], box[3 + a])
+    pad = _pad(lo, hi)
+    for node in range(n_nodes - 1, -1, -1):
+        box = node_bounds[node]
+        if node_count[node] > 0:
+            for a in range(3):
+                box[a] -= pad
+                box[3 + a] += pad
+        else:
+            left = node_first[node]
+            for a in range(3):
+                box[a] = min(node_bounds[left, a], node_bounds[left + 1, a])
+                box[3 + a] = max(node_bounds[left, 3 + a], node_bounds[left + 1, 3 + a])
+    return node_bounds
+
+
+@njit(cache=True, error_model="numpy")
+def sah_cost(node_bounds, node_first, node_count, c_trav):
+    """The tree's SAH cost, in primitive tests: the expected work of a ray through the root
+    box, sum over interior nodes of ``c_trav`` A(node) / A(root) plus over leaves of their
+    primitive count times A(leaf) / A(root) (A: surface area). 0 for an empty tree or a
+    root without area (one flat primitive)."""
+    if node_first.shape[0] == 0:
+        return 0.0
+    root = node_bounds[0]
+    area = _half_area(root[0], root[1], root[2], root[3], root[4], root[5])
+    if not area > 0.0:
+        return 0.0
+    total = 0.0
+    for node in range(node_first.shape[0]):
+        b = node_bounds[node]
+        share = _half_area(b[0], b[1], b[2], b[3], b[4], b[5]) / area
+        total += share * (node_count[node] if node_count[node] > 0 else c_trav)
+    return total
 
 
 def one_leaf(n_prims: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:

@@ -27,7 +27,7 @@ import numpy as np
 from render.scene.cache import RenderCache, camera_key, light_key
 from render.scene.camera import hits_along_rays, primary_rays
 from render.scene.scene import Camera, Light, Scene
-from render.trace.accel import Accelerator
+from render.trace.accel import Accelerator, updated
 from render.trace.light_view import bounding_box, occluded_towards_light
 from render.trace.primitives import Primitives, scene_primitives
 from render.trace.raster import raster_closest_hit
@@ -248,10 +248,11 @@ def trace_visibility(
     size = scene_size(primitives)
 
     def accelerator() -> Accelerator:
-        """The scene's accelerator, built when first needed, kept while the geometry is."""
-        return cache.get(
-            ("accelerator", bvh), [geometry], lambda: Accelerator(*primitives, use_bvh=bvh)
-        )[0]
+        """The scene's accelerator, made when first needed, kept while the geometry is: the
+        last one refitted to moved primitives, or built anew (``accel.updated``)."""
+        slot = ("accelerator", bvh)
+        previous = cache.latest(slot)
+        return cache.get(slot, [geometry], lambda: updated(previous, *primitives, use_bvh=bvh))[0]
 
     primary, traced = cache.get(
         "primary",
