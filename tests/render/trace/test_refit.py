@@ -6,6 +6,8 @@ cache."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -131,3 +133,11 @@ def test_a_render_of_moved_vertices_refits_the_cached_tree_and_is_the_fresh_rend
     assert cache_for(scene, True).latest(("accelerator", True)).refits == 1
     for cached, fresh in zip(*results, strict=True):
         np.testing.assert_array_equal(cached, fresh)
+
+
+def test_bench_refit_quick(tmp_path, load_script):
+    """The benchmark runs (tiny sizes) and reports finite times and costs."""
+    load_script("benchmarks/bench_refit.py").main(["--quick", "--out", str(tmp_path)])
+    data = json.loads((tmp_path / "refit.json").read_text(encoding="utf-8"))
+    assert data["meshes"][0]["refit_ms"] > 0 and data["meshes"][0]["sah_refit"] > 0
+    assert data["shape_fit"]["renders"] > 0 and data["shape_fit"]["sah_over_fresh_max"] > 0
