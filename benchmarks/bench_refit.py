@@ -20,6 +20,12 @@ Run:  python benchmarks/bench_refit.py [--out out/bench_refit] [--quick] [--repe
    total time of each, the number of rebuilds, the refitted tree's SAH cost over a fresh
    build's at each step (largest and last), and the closest hits of 65,536 rays from the
    views' cameras at the last step on the chain's tree and on a fresh one (medians).
+3. **A path-traced gradient with a large mesh.** The Cornell box (32 x 32) with the
+   81,920-triangle bumpy sphere (radius 0.3) in it, 16 spp, depth 4: render + backward of
+   the light's position, the scene's tree kept in its cache (as ``render_path`` does:
+   the render and its backward share it) against a tree built at every render (a fresh
+   cache each time: the render's and the backward's builds), in turns, on 1 thread and on
+   all of Numba's.
 """
 
 from __future__ import annotations
@@ -27,11 +33,17 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import numba
 import numpy as np
 import timing
 
+import minidiff as md
 from render.inverse.reconstruction import dented_blob, run_shape, view_cameras
+from render.path import integrator, render_path
+from render.scene.cache import RenderCache
 from render.scene.camera import primary_rays
+from render.scene.cornell import cornell_box
+from render.scene.scene import Material, Mesh
 from render.trace import visibility
 from render.trace.accel import REBUILD_RATIO, Accelerator, updated
 
@@ -137,6 +149,44 @@ def replay(steps: list[np.ndarray], size: int, repeats: int) -> dict:
     }
 
 
+def path_gradient(repeats: int, n_theta: int, n_phi: int) -> list[dict]:
+    """Part 3: the light-position gradient with the scene's tree kept, and built anew."""
+    corners = (0.3 * bumpy_sphere(n_theta, n_phi)).reshape(-1, 3) + [0.0, -0.5, 0.0]
+    scene = cornell_box(32, 32)
+    scene.objects.append(Mesh(corners, np.arange(len(corners)).reshape(-1, 3),
+                              Material((0.6, 0.6, 0.6))))  # fmt: skip
+    light = scene.objects[5].transform.translation
+    light.requires_grad = True
+    weights = md.tensor(np.random.default_rng(0).normal(size=(32, 32, 3)))
+
+    def step() -> None:
+        light.grad = None
+        md.sum(render_path(scene, spp=16, max_depth=4, seed=0) * weights).backward()
+
+    def built_every_time() -> None:
+        kept = integrator.cache_for
+        integrator.cache_for = lambda scene, reuse: RenderCache()
+        try:
+            step()
+        finally:
+            integrator.cache_for = kept
+
+    rows, default = [], numba.get_num_threads()
+    for threads in sorted({1, default}):
+        numba.set_num_threads(threads)
+        try:
+            times = timing.measure_interleaved({"kept": step, "built": built_every_time}, repeats)
+        finally:
+            numba.set_num_threads(default)
+        rows.append({"threads": threads, "triangles": len(corners) // 3,
+                     "kept_ms": times["kept"]["median_ms"],
+                     "built_ms": times["built"]["median_ms"]})  # fmt: skip
+        kept, built = times["kept"]["median_ms"], times["built"]["median_ms"]
+        print(f"path gradient, {threads} thread(s): tree kept {kept:.1f} ms, built at every "
+              f"render {built:.1f} ms", flush=True)  # fmt: skip
+    return rows
+
+
 def main(argv=None) -> None:
     parser = timing.make_parser(__doc__, out=Path("out/bench_refit"))
     parser.add_argument("--repeats", type=int, default=5)
@@ -154,8 +204,9 @@ def main(argv=None) -> None:
           f"{fit['sah_over_fresh_max']:.3f}, last {fit['sah_over_fresh_last']:.3f}; "
           f"{fit['rays']:,} camera rays {fit['closest_hit_chain_ms']:.2f} ms on the chain's "
           f"tree, {fit['closest_hit_fresh_ms']:.2f} ms on a fresh one", flush=True)  # fmt: skip
+    path = path_gradient(repeats, *((8, 16) if quick else (128, 320)))
     timing.write_json(args.out, "refit", {"rebuild_ratio": REBUILD_RATIO, "meshes": meshes,
-                                          "shape_fit": fit})  # fmt: skip
+                                          "shape_fit": fit, "path_gradient": path})  # fmt: skip
 
 
 if __name__ == "__main__":

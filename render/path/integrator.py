@@ -43,6 +43,7 @@ from render.path.replay import backpropagate_paths
 from render.path.secondary import add_secondary_term, backpropagate_secondary
 from render.path.tracer import PathSampler, check_count, check_path_options
 from render.path.transport import path_radiance
+from render.scene.cache import cache_for
 from render.scene.camera import camera_frame
 from render.scene.placement import placed
 from render.scene.scene import MAX_RAYS, Scene, check_ray_count
@@ -110,7 +111,7 @@ def render_path(
 
 def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp, kept=None):
     world = placed(scene)
-    sampler = PathSampler(world, spp, max_depth, rr_depth, seed)
+    sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     if not differentiated(scene) and kernel.applies(world):
         # Nothing to differentiate: the compiled kernel alone (render.path.kernel).
         if kept is None:
@@ -295,7 +296,7 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     parameter the image cannot depend on gets zeros, as from the compiled replay, whichever
     way computed the others."""
     world = placed(scene)
-    sampler = PathSampler(world, spp, max_depth, rr_depth, seed)  # plain arrays: reused
+    sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     if adjoint.covers(world):
         adjoint.backpropagate(world, sampler, d_image)
     else:

@@ -41,12 +41,19 @@ from render.path.emitters import Emitters
 from render.path.random import bounce_dimension, uniform
 from render.path.sampling import dot, unit
 from render.path.tables import Tables
+from render.scene.cache import RenderCache
 from render.scene.camera import camera_directions, plain_frame, to_image_plane
 from render.scene.scene import Scene
 from render.shade.surface import geometric_normals
 from render.trace.accel import Accelerator
 from render.trace.primitives import primitive_ranges, scene_primitives
-from render.trace.visibility import scene_size, shadow_offset, shadow_rays
+from render.trace.visibility import (
+    cached_accelerator,
+    geometry_stamp,
+    scene_size,
+    shadow_offset,
+    shadow_rays,
+)
 
 #: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
 CAMERA, AREA, MIRROR = 0, 1, 2
@@ -151,16 +158,24 @@ class _Lobes:
 
 class PathSampler:
     """Samples batches of paths in one scene (world space, ``render.scene.placement``):
-    its primitives, BVH, emitters and materials' lobes, read once as plain arrays."""
+    its primitives, BVH, emitters and materials' lobes, read once as plain arrays. With a
+    ``cache`` (the scene's ``RenderCache``) the BVH is the one kept there while the
+    geometry is unchanged, refitted when it moved (``visibility.cached_accelerator``);
+    without, built anew."""
 
-    def __init__(self, world: Scene, spp: int, max_depth: int, rr_depth: int, seed: int):
+    def __init__(self, world: Scene, spp: int, max_depth: int, rr_depth: int, seed: int,
+                 cache: RenderCache | None = None):  # fmt: skip
         self.scene, self.spp, self.max_depth, self.rr_depth, self.seed = (
             world, spp, max_depth, rr_depth, seed,
         )  # fmt: skip
         self.primitives = scene_primitives(world)
         self.n_triangles = len(self.primitives[0])
         self.size = max(scene_size(self.primitives), 1e-300)
-        self.accelerator = Accelerator(*self.primitives)
+        if cache is None:
+            self.accelerator = Accelerator(*self.primitives)
+        else:
+            geometry = geometry_stamp(cache, self.primitives)
+            self.accelerator = cached_accelerator(cache, self.primitives, geometry)
         ranges = primitive_ranges(world)
         self.objects = [obj for obj, _, _ in ranges]
         self.first = np.array([first for _, first, _ in ranges], np.int64)

@@ -237,6 +237,23 @@ class Visibility:
         )
 
 
+def geometry_stamp(cache: RenderCache, primitives: Primitives) -> np.ndarray:
+    """The stamp of ``primitives`` (``scene_primitives``) in ``cache``: the same while they
+    keep their values, a new one when they change."""
+    return cache.get("geometry", list(primitives), lambda: None)[1]
+
+
+def cached_accelerator(
+    cache: RenderCache, primitives: Primitives, geometry: np.ndarray, bvh: bool = True
+) -> Accelerator:
+    """The accelerator of ``primitives`` (whose stamp is ``geometry``), kept in ``cache``
+    while they keep their values: the last one refitted to moved primitives, or built anew
+    (``accel.updated``). The direct renderer and the path integrator share it."""
+    slot = ("accelerator", bvh)
+    previous = cache.latest(slot)
+    return cache.get(slot, [geometry], lambda: updated(previous, *primitives, use_bvh=bvh))[0]
+
+
 def trace_visibility(
     scene: Scene, cache: RenderCache, bvh: bool, spp: int, shadows: bool, raster: bool = False
 ) -> Visibility:
@@ -244,15 +261,12 @@ def trace_visibility(
     ``scene``, each reused from ``cache`` while the values it depends on are unchanged (a
     later stage depends on the earlier). The accelerator is built only when a ray needs it."""
     primitives = scene_primitives(scene)
-    _, geometry = cache.get("geometry", list(primitives), lambda: None)  # its stamp
+    geometry = geometry_stamp(cache, primitives)
     size = scene_size(primitives)
 
     def accelerator() -> Accelerator:
-        """The scene's accelerator, made when first needed, kept while the geometry is: the
-        last one refitted to moved primitives, or built anew (``accel.updated``)."""
-        slot = ("accelerator", bvh)
-        previous = cache.latest(slot)
-        return cache.get(slot, [geometry], lambda: updated(previous, *primitives, use_bvh=bvh))[0]
+        """The scene's accelerator, made when first needed (``cached_accelerator``)."""
+        return cached_accelerator(cache, primitives, geometry, bvh)
 
     primary, traced = cache.get(
         "primary",

@@ -141,3 +141,34 @@ def test_bench_refit_quick(tmp_path, load_script):
     data = json.loads((tmp_path / "refit.json").read_text(encoding="utf-8"))
     assert data["meshes"][0]["refit_ms"] > 0 and data["meshes"][0]["sah_refit"] > 0
     assert data["shape_fit"]["renders"] > 0 and data["shape_fit"]["sah_over_fresh_max"] > 0
+
+
+def test_the_path_integrator_keeps_the_scenes_tree_and_refits_it(monkeypatch):
+    """Path-traced gradient steps: the render and its backward share the scene's cached
+    tree (one build for both), the next step's moved vertices refit it, and image and
+    gradient are those of the same scene rendered with a cache of its own, bit for bit."""
+    from render.path import render_path
+    from render.scene.cornell import cornell_box
+
+    builds = []
+    build = Accelerator.__init__
+    monkeypatch.setattr(Accelerator, "__init__", lambda self, *a, **k: builds.append(1)
+                        or build(self, *a, **k))  # fmt: skip
+
+    def step(scene, shift):
+        block = scene.objects[6]
+        block.vertices = md.tensor(block.vertices.data + shift, requires_grad=True)
+        image = render_path(scene, spp=2, max_depth=3, seed=4)
+        md.sum(image * image).backward()
+        return image.data, block.vertices.grad
+
+    scene = cornell_box(8, 8, blocks=True)
+    cache = cache_for(scene, True)
+    first = step(scene, 0.0)
+    assert len(builds) == 1 and cache.latest(("accelerator", True)).refits == 0
+    moved = step(scene, 1e-3)
+    assert len(builds) == 1 and cache.latest(("accelerator", True)).refits == 1
+    for ours, theirs in zip(moved, step(cornell_box(8, 8, blocks=True), 1e-3), strict=True):
+        np.testing.assert_array_equal(ours, theirs)
+    assert len(builds) == 2  # the other scene's cache built its own
+    assert not np.array_equal(first[0], moved[0])  # the block moved in the image
