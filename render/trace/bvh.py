@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from minidiff.threads import kernel, run_jobs, thread_count
+from minidiff.threads import job_count, kernel, run_jobs, share, thread_count
 
 #: Cost of one node visit (two box tests) relative to one primitive test (the SAH unit).
 C_TRAV = 1.0
@@ -496,22 +496,35 @@ def build_bvh(
     return node_bounds, node_first, node_count, order, int(depth)
 
 
-@njit(cache=True, error_model="numpy")
 def refit_bounds(node_first, node_count, order, triangles, sphere_centers, sphere_radii):
     """The node boxes of a tree of ``build_bvh``'s form (``node_first``, ``node_count``,
     ``order`` (P,)) over the primitives triangles (T, 3, 3), spheres (S, 3), (S,) (T + S =
     P): each leaf's box the union of its primitives' (straight from their corners and
-    spheres), all grown by ``primitive_bounds``' pad, then each interior node's the union
-    of its two children's, from the last node to the root (a child always comes after its
-    parent). Returns node_bounds (M, 6): the boxes ``build_bvh`` gives these nodes over
-    ``primitive_bounds`` of the same primitives, bit for bit (min and max are exact, and a
-    rounded subtraction of the same pad keeps their order)."""
+    spheres; ``_leaf_boxes``, on all threads), all grown by ``primitive_bounds``' pad, then
+    each interior node's the union of its two children's (``_pad_and_join``). Returns
+    node_bounds (M, 6): the boxes ``build_bvh`` gives these nodes over ``primitive_bounds``
+    of the same primitives, bit for bit, on any number of threads (min and max are exact,
+    and a rounded subtraction of the same pad keeps their order)."""
+    node_bounds = np.empty((node_first.shape[0], 6))
+    jobs = job_count(node_first.shape[0], 16384)
+    spans = np.empty((jobs, 6))
+    run_jobs(_leaf_boxes, jobs, node_first, node_count, order, triangles, sphere_centers,
+             sphere_radii, node_bounds, spans)  # fmt: skip
+    _pad_and_join(node_first, node_count, node_bounds, spans)
+    return node_bounds
+
+
+@kernel
+def _leaf_boxes(job, n_jobs, node_first, node_count, order, triangles, sphere_centers,
+                sphere_radii, node_bounds, spans):  # fmt: skip
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``refit_bounds``: the
+    unpadded boxes of the leaves among its share of the nodes, and their union in
+    ``spans[job]`` (6,)."""
     n_tri = triangles.shape[0]
-    n_nodes = node_first.shape[0]
-    node_bounds = np.empty((n_nodes, 6))
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
-    for node in range(n_nodes):
+    span = spans[job]
+    span[:3], span[3:] = np.inf, -np.inf
+    start, stop = share(job, n_jobs, node_first.shape[0])
+    for node in range(start, stop):
         if node_count[node] == 0:
             continue
         box = node_bounds[node]
@@ -527,9 +540,21 @@ def refit_bounds(node_first, node_count, order, triangles, sphere_centers, spher
                     high = sphere_centers[p - n_tri, a] + sphere_radii[p - n_tri]
                 box[a], box[3 + a] = min(box[a], low), max(box[3 + a], high)
         for a in range(3):
-            lo[a], hi[a] = min(lo[a], box[a]), max(hi[a], box[3 + a])
+            span[a], span[3 + a] = min(span[a], box[a]), max(span[3 + a], box[3 + a])
+
+
+@njit(cache=True, error_model="numpy")
+def _pad_and_join(node_first, node_count, node_bounds, spans):
+    """``refit_bounds``' second pass: every leaf's box grown by the pad of the scene's span
+    (the union of ``spans`` (jobs, 6)), then each interior node's box the union of its
+    children's, from the last node to the root."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for job in range(spans.shape[0]):
+        for a in range(3):
+            lo[a], hi[a] = min(lo[a], spans[job, a]), max(hi[a], spans[job, 3 + a])
     pad = _pad(lo, hi)
-    for node in range(n_nodes - 1, -1, -1):
+    for node in range(node_first.shape[0] - 1, -1, -1):
         box = node_bounds[node]
         if node_count[node] > 0:
             for a in range(3):
@@ -540,7 +565,6 @@ def refit_bounds(node_first, node_count, order, triangles, sphere_centers, spher
             for a in range(3):
                 box[a] = min(node_bounds[left, a], node_bounds[left + 1, a])
                 box[3 + a] = max(node_bounds[left, 3 + a], node_bounds[left + 1, 3 + a])
-    return node_bounds
 
 
 @njit(cache=True, error_model="numpy")

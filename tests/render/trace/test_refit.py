@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 import minidiff as md
 import render
+from minidiff.threads import using_threads
 from render.scene.cache import cache_for
 from render.trace.accel import REBUILD_RATIO, Accelerator, updated
 from render.trace.bvh import build_bvh, primitive_bounds, refit_bounds, sah_cost
@@ -41,6 +42,18 @@ def test_refit_to_the_same_primitives_gives_the_builds_boxes(data, tris, paralle
     lo, hi = primitive_bounds(tris, centers, radii)
     bounds, first, count, order, _ = build_bvh(lo, hi, parallel_min_prims=1 if parallel else 10**9)
     np.testing.assert_array_equal(refit_bounds(first, count, order, tris, centers, radii), bounds)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_a_large_refit_gives_the_builds_boxes_on_any_number_of_threads(threads):
+    """A mesh of 12,800 triangles (over 16,384 nodes: the leaves' boxes are shared out
+    among the threads), jittered: the same boxes as the build over the jittered corners."""
+    tris = sphere_mesh(80, 80) + 1e-3 * np.random.default_rng(1).normal(size=(12800, 3, 3))
+    lo, hi = primitive_bounds(tris, *NO_SPHERES)
+    bounds, first, count, order, _ = build_bvh(lo, hi)
+    with using_threads(threads):
+        refit = refit_bounds(first, count, order, tris, *NO_SPHERES)
+    np.testing.assert_array_equal(refit, bounds)
 
 
 @SETTINGS
