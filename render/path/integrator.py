@@ -332,10 +332,10 @@ def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int,
     them (``_KeptPaths``)."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
-    packed = kernel.pack(sampler) if kernel.applies(sampler.scene) else None
+    compiled, packed = kernel.applies(sampler.scene), None  # packed once it is needed
     for first in range(0, spp, batch_spp):
         last = min(first + batch_spp, spp)
-        if packed is not None:
+        if compiled:
             paths = _batch_paths(sampler.scene, sampler, first, last)
             per_path = np.repeat(weights.reshape(-1, 3), last - first, axis=0)
             for start in range(0, len(paths), REPLAY_PATHS):
@@ -343,6 +343,7 @@ def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int,
                 chunk = slice(start, start + REPLAY_PATHS)
                 traced = kept.take(paths[chunk]) if kept is not None else None
                 if traced is None:
+                    packed = kernel.pack(sampler) if packed is None else packed
                     traced = kernel.sample_paths(sampler, paths[chunk], packed)
                 batch, radiance = traced
                 backpropagate_paths(world, camera_frame(world.camera), sampler, batch,

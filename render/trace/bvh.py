@@ -70,17 +70,9 @@ def primitive_bounds(triangles, sphere_centers, sphere_radii):
     S = sphere_centers.shape[0]
     prim_min = np.empty((T + S, 3))
     prim_max = np.empty((T + S, 3))
-    for i in range(T):
+    for i in range(T + S):
         for a in range(3):
-            x0 = triangles[i, 0, a]
-            x1 = triangles[i, 1, a]
-            x2 = triangles[i, 2, a]
-            prim_min[i, a] = min(x0, min(x1, x2))
-            prim_max[i, a] = max(x0, max(x1, x2))
-    for j in range(S):
-        for a in range(3):
-            prim_min[T + j, a] = sphere_centers[j, a] - sphere_radii[j]
-            prim_max[T + j, a] = sphere_centers[j, a] + sphere_radii[j]
+            prim_min[i, a], prim_max[i, a] = _extent(i, a, triangles, sphere_centers, sphere_radii)
     if T + S == 0:
         return prim_min, prim_max
     lo = np.full(3, np.inf)
@@ -95,6 +87,18 @@ def primitive_bounds(triangles, sphere_centers, sphere_radii):
             prim_min[i, a] -= pad
             prim_max[i, a] += pad
     return prim_min, prim_max
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _extent(p, a, triangles, sphere_centers, sphere_radii):
+    """(low, high): primitive ``p``'s unpadded extent along axis ``a`` (ids: the triangles,
+    then the spheres)."""
+    n_tri = triangles.shape[0]
+    if p < n_tri:
+        x0, x1, x2 = triangles[p, 0, a], triangles[p, 1, a], triangles[p, 2, a]
+        return min(x0, min(x1, x2)), max(x0, max(x1, x2))
+    return (sphere_centers[p - n_tri, a] - sphere_radii[p - n_tri],
+            sphere_centers[p - n_tri, a] + sphere_radii[p - n_tri])  # fmt: skip
 
 
 @njit(cache=True, error_model="numpy")
@@ -520,7 +524,6 @@ def _leaf_boxes(job, n_jobs, node_first, node_count, order, triangles, sphere_ce
     """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``refit_bounds``: the
     unpadded boxes of the leaves among its share of the nodes, and their union in
     ``spans[job]`` (6,)."""
-    n_tri = triangles.shape[0]
     span = spans[job]
     span[:3], span[3:] = np.inf, -np.inf
     start, stop = share(job, n_jobs, node_first.shape[0])
@@ -530,14 +533,8 @@ def _leaf_boxes(job, n_jobs, node_first, node_count, order, triangles, sphere_ce
         box = node_bounds[node]
         box[:3], box[3:] = np.inf, -np.inf
         for k in range(node_first[node], node_first[node] + node_count[node]):
-            p = order[k]
             for a in range(3):
-                if p < n_tri:
-                    low = min(triangles[p, 0, a], min(triangles[p, 1, a], triangles[p, 2, a]))
-                    high = max(triangles[p, 0, a], max(triangles[p, 1, a], triangles[p, 2, a]))
-                else:
-                    low = sphere_centers[p - n_tri, a] - sphere_radii[p - n_tri]
-                    high = sphere_centers[p - n_tri, a] + sphere_radii[p - n_tri]
+                low, high = _extent(order[k], a, triangles, sphere_centers, sphere_radii)
                 box[a], box[3 + a] = min(box[a], low), max(box[3 + a], high)
         for a in range(3):
             span[a], span[3 + a] = min(span[a], box[a]), max(span[3 + a], box[3 + a])
