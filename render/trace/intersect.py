@@ -4,10 +4,9 @@ Everything here works on flat NumPy arrays so that Numba can compile it:
 
 * ``leaf_prim`` (P, 16) float64 -- one row per primitive, see :func:`pack_primitives`.
   Triangles and spheres share the table; a row with global id ``< n_tri`` is a triangle.
-* ``node_bounds`` (M, 6) float64 -- per BVH node ``(min x, min y, min z, max x, max y, max z)``.
-* ``node_first`` (M,) int64 -- leaf: first index into the leaf-ordered primitive arrays;
-  interior node: index of the left child (the right child is ``left + 1``).
-* ``node_count`` (M,) int64 -- number of primitives in a leaf, 0 for an interior node.
+* ``boxes`` (W, 24) float32, ``child`` (W, 4) int64, ``leaf_start`` (L + 1,) int64 -- the
+  4-wide BVH (``render.trace.wide``): four children's boxes a node, each child a node or a
+  leaf, a leaf a range of rows of the leaf-ordered primitive table.
 
 A ray is ``origin + t * direction`` with ``tmin < t < tmax``: one :class:`Ray` record per ray
 (:func:`make_ray`), ``Rays`` for the arrays of N rays the parallel kernels take.
@@ -42,6 +41,8 @@ import numpy as np
 from numba import njit
 
 from minidiff.threads import job_count, kernel, run_jobs, share
+from render.trace.simd import enter4
+from render.trace.wide import WIDTH
 
 #: Row width of the primitive table (16 float64 = two 64-byte cache lines).
 PRIM_WIDTH = 16
@@ -66,16 +67,17 @@ RAYS_PER_JOB = 1024
 class FlatBVH(NamedTuple):
     """A BVH flattened for the kernels, passed as one argument (``closest_hit_ray(bvh, ...)``).
 
-    node_bounds (M, 6), node_first (M,), node_count (M,): the nodes (see the module
-    docstring); leaf_prim (P, 16) / leaf_ids (P,): the primitive table and the global ids in
-    leaf order; n_tri: ids below it are triangles; stack_size: the traversal stack's length,
-    the tree depth + 2 (near-first traversal pushes at most one node per level below the
-    root, and the root's level needs one more).
+    boxes (W, 24) float32, child (W, 4), leaf_start (L + 1,): the 4-wide tree (see
+    ``render.trace.wide``); leaf_prim (P, 16) / leaf_ids (P,): the primitive table and the
+    global ids in leaf order; n_tri: ids below it are triangles; stack_size: the traversal
+    stack's length, 3 per level of the binary tree it was collapsed from, plus 2 (near-first
+    traversal pushes at most three nodes per level, and a wide level is at least one binary
+    level).
     """
 
-    node_bounds: np.ndarray
-    node_first: np.ndarray
-    node_count: np.ndarray
+    boxes: np.ndarray
+    child: np.ndarray
+    leaf_start: np.ndarray
     leaf_prim: np.ndarray
     leaf_ids: np.ndarray
     n_tri: int
@@ -357,32 +359,29 @@ def intersect_prim(prim, k, pid, n_tri, ray):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def intersect_box(bounds, n, ray, t_far):
-    """Slab test of ``ray`` against box ``n`` of ``bounds`` (M, 6).
+def enter_slot(boxes, w, k, ray, t_far):
+    """Slab test of ``ray`` against slot ``k`` of wide node ``w`` of ``boxes`` (W, 24)
+    (``render.trace.wide``): the plain version of ``render.trace.simd.enter4``, which tests
+    the four slots at once with the same arithmetic (``tests/render/trace/test_wide.py``).
 
     Returns the entry distance ``max(tmin, t_enter)`` if the ray overlaps the box somewhere in
-    ``[ray.tmin, t_far]`` (both ends inclusive, see the tie rule), else ``inf``.  The slab
-    distances are ``(plane - origin) / d``, computed with the ray's inverse direction: a
-    multiplication is much cheaper than a division.
+    ``[ray.tmin, t_far]`` (both ends inclusive, see the tie rule), else ``inf`` (an empty
+    slot's box, both corners at +inf, is always missed). The slab distances are ``(plane -
+    origin) / d``, computed with the ray's inverse direction (a product is much cheaper than
+    a division) in float64, from the float32 planes.
     """
     ox, oy, oz = ray.origin
     ix, iy, iz = ray.inverse
-    t1 = (bounds[n, 0] - ox) * ix
-    t2 = (bounds[n, 3] - ox) * ix
-    tlo = min(t1, t2)
-    thi = max(t1, t2)
-    t1 = (bounds[n, 1] - oy) * iy
-    t2 = (bounds[n, 4] - oy) * iy
-    tlo = max(tlo, min(t1, t2))
-    thi = min(thi, max(t1, t2))
-    t1 = (bounds[n, 2] - oz) * iz
-    t2 = (bounds[n, 5] - oz) * iz
-    tlo = max(tlo, min(t1, t2))
-    thi = min(thi, max(t1, t2))
-    tlo = max(tlo, ray.tmin)
-    thi = min(thi, t_far)
-    if tlo <= thi:
-        return tlo
+    x0 = (boxes[w, k] - ox) * ix
+    x1 = (boxes[w, 3 * WIDTH + k] - ox) * ix
+    y0 = (boxes[w, WIDTH + k] - oy) * iy
+    y1 = (boxes[w, 4 * WIDTH + k] - oy) * iy
+    z0 = (boxes[w, 2 * WIDTH + k] - oz) * iz
+    z1 = (boxes[w, 5 * WIDTH + k] - oz) * iz
+    t_enter = max(max(min(x0, x1), min(y0, y1)), max(min(z0, z1), ray.tmin))
+    t_leave = min(min(max(x0, x1), max(y0, y1)), min(max(z0, z1), t_far))
+    if t_enter <= t_leave:
+        return t_enter
     return np.inf
 
 
@@ -397,35 +396,38 @@ def intersect_box(bounds, n, ray, t_far):
 @njit(cache=True, error_model="numpy", inline="always")
 def _pop(stack, stack_t, sp, best_t):
     """Pop the most recently pushed node that can still hold an accepted hit (entry distance
-    ``<= best_t``; equal is kept for the tie rule).  Returns ``(node, sp)``, node = -1 when the
-    stack runs empty."""
+    ``<= best_t``; equal is kept for the tie rule).  Returns ``(code, sp)`` (a child code of
+    ``render.trace.wide``); ``sp = -1`` when the stack runs empty."""
     while sp > 0:
         sp -= 1
         if stack_t[sp] <= best_t:
             return stack[sp], sp
-    return -1, 0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _misses_tree(bvh, ray, t_far):
-    """Whether ``ray`` misses the root's box before ``t_far`` (an empty tree: always)."""
-    return bvh.node_bounds.shape[0] == 0 or intersect_box(bvh.node_bounds, 0, ray, t_far) == np.inf
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _leaf_rows(bvh, node):
-    """Rows ``start:stop`` of the leaf-ordered table that leaf ``node`` holds; an empty range
-    (start == stop) for an interior node."""
-    start = bvh.node_first[node]
-    return start, start + bvh.node_count[node]
+    return 0, -1
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _next(stack, sp):
-    """Pop the most recently pushed node: ``(node, sp)``, node = -1 when the stack is empty."""
+    """Pop the most recently pushed node: ``(code, sp)``, ``sp = -1`` when the stack is
+    empty."""
     if sp == 0:
-        return -1, 0
+        return 0, -1
     return stack[sp - 1], sp - 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _push_if(stack, sp, code, entry):
+    """Push ``code`` if its box was entered (``entry`` finite); returns the new ``sp``."""
+    if entry != np.inf:
+        stack[sp] = code
+        return sp + 1
+    return sp
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _leaf_rows(bvh, code):
+    """Rows ``start:stop`` of the leaf-ordered table that the leaf of child code ``code`` (<
+    0) holds."""
+    return bvh.leaf_start[~code], bvh.leaf_start[~code + 1]
 
 
 # The closest-hit loop over a leaf's primitives is a function of its own, not inlined: so it
@@ -481,39 +483,53 @@ def closest_hit_ray(bvh, ray, stack, stack_t):
     float64 (``bvh.stack_size``,) are scratch space supplied by the caller (allocating them
     per ray would dominate the cost).
 
-    Iterative traversal, near child first: at an interior node both children's boxes are
-    tested; we descend into the nearer one and push the farther one with its entry distance.
-    Visiting near boxes first finds a close hit early, which shrinks ``best_t`` and lets us
-    skip the far boxes when they are popped (their entry distance is then > best_t).
+    Iterative traversal, near child first: at a node all four children's boxes are tested,
+    sorted by entry distance (five compare-exchanges), the farther ones that were hit are
+    pushed with their entry distances and the nearest is taken next. Visiting near boxes
+    first finds a close hit early, which shrinks ``best_t`` and lets us skip the far boxes
+    when they are popped (their entry distance is then > best_t).
     """
     # -1 as an int64, not the literal -1: the leaf loop compiles for one type of ``best``
     # (the literal gave it a second signature, a second compile of the same code).
     best = (np.int64(-1), ray.tmax, 0.0, 0.0)
-    if _misses_tree(bvh, ray, ray.tmax):
+    if bvh.child.shape[0] == 0:
         return -1, np.inf, 0.0, 0.0
-    node = 0
+    boxes, child = bvh.boxes, bvh.child
+    code = 0
     sp = 0
-    while node >= 0:
-        start, stop = _leaf_rows(bvh, node)
-        if start < stop:
+    while sp >= 0:
+        if code < 0:
+            start, stop = _leaf_rows(bvh, code)
             best = _closest_in_leaf(bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, start, stop, ray, best)
-            node, sp = _pop(stack, stack_t, sp, best[1])
-        else:
-            d1 = intersect_box(bvh.node_bounds, start, ray, best[1])
-            d2 = intersect_box(bvh.node_bounds, start + 1, ray, best[1])
-            c1 = start
-            c2 = start + 1
-            if d2 < d1:
-                d1, d2 = d2, d1
-                c1, c2 = c2, c1
-            if d1 == np.inf:  # both children missed
-                node, sp = _pop(stack, stack_t, sp, best[1])
-            else:
-                node = c1
-                if d2 != np.inf:
-                    stack[sp] = c2
-                    stack_t[sp] = d2
-                    sp += 1
+            code, sp = _pop(stack, stack_t, sp, best[1])
+            continue
+        w = code
+        d0, d1, d2, d3 = enter4(boxes, w, ray.origin, ray.inverse, ray.tmin, best[1])
+        c0, c1, c2, c3 = child[w, 0], child[w, 1], child[w, 2], child[w, 3]
+        # Sort the four (entry, child) pairs by entry; misses (inf) go last.
+        if d1 < d0:
+            d0, d1, c0, c1 = d1, d0, c1, c0
+        if d3 < d2:
+            d2, d3, c2, c3 = d3, d2, c3, c2
+        if d2 < d0:
+            d0, d2, c0, c2 = d2, d0, c2, c0
+        if d3 < d1:
+            d1, d3, c1, c3 = d3, d1, c3, c1
+        if d2 < d1:
+            d1, d2, c1, c2 = d2, d1, c2, c1
+        if d0 == np.inf:  # every child missed
+            code, sp = _pop(stack, stack_t, sp, best[1])
+            continue
+        if d3 != np.inf:
+            stack[sp], stack_t[sp] = c3, d3
+            sp += 1
+        if d2 != np.inf:
+            stack[sp], stack_t[sp] = c2, d2
+            sp += 1
+        if d1 != np.inf:
+            stack[sp], stack_t[sp] = c1, d1
+            sp += 1
+        code = c0
     if best[0] < 0:
         return -1, np.inf, 0.0, 0.0
     return best
@@ -523,30 +539,27 @@ def closest_hit_ray(bvh, ray, stack, stack_t):
 def occluded_ray(bvh, ray, ignore, stack):
     """Any-hit query of a shadow ``ray`` in ``bvh``: True if some primitive other than
     ``ignore`` is hit with ``ray.tmin < t < ray.tmax``.  Stops at the first such hit.  Same
-    structure as :func:`closest_hit_ray` (children tested at the parent) but without
-    near-first ordering: most shadow rays are *not* blocked and must visit every overlapping
-    node anyway, so sorting the children would cost more than the earlier exit saves
-    (measured).  ``stack`` (``bvh.stack_size``,) int64 is scratch space."""
-    if _misses_tree(bvh, ray, ray.tmax):
+    structure as :func:`closest_hit_ray` but without near-first ordering: most shadow rays
+    are *not* blocked and must visit every overlapping node anyway, so sorting the children
+    would cost more than the earlier exit saves (measured on the binary tree).  ``stack``
+    (``bvh.stack_size``,) int64 is scratch space."""
+    if bvh.child.shape[0] == 0:
         return False
-    node = 0
+    code = 0
     sp = 0
-    while node >= 0:
-        start, stop = _leaf_rows(bvh, node)
-        if start < stop:
+    while sp >= 0:
+        if code < 0:
+            start, stop = _leaf_rows(bvh, code)
             if _blocked_in_leaf(bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, start, stop, ray, ignore):
                 return True
-            node, sp = _next(stack, sp)
         else:
-            left = intersect_box(bvh.node_bounds, start, ray, ray.tmax) < np.inf
-            right = intersect_box(bvh.node_bounds, start + 1, ray, ray.tmax) < np.inf
-            if left and right:
-                stack[sp] = start + 1
-                sp += 1
-            if left or right:
-                node = start if left else start + 1
-            else:
-                node, sp = _next(stack, sp)
+            d0, d1, d2, d3 = enter4(bvh.boxes, code, ray.origin, ray.inverse, ray.tmin, ray.tmax)
+            # (written out: a tuple indexed by a variable is slow in Numba)
+            sp = _push_if(stack, sp, bvh.child[code, 0], d0)
+            sp = _push_if(stack, sp, bvh.child[code, 1], d1)
+            sp = _push_if(stack, sp, bvh.child[code, 2], d2)
+            sp = _push_if(stack, sp, bvh.child[code, 3], d3)
+        code, sp = _next(stack, sp)
     return False
 
 

@@ -1,0 +1,161 @@
+"""A 4-wide BVH with float32 boxes, collapsed from the binary SAH tree of ``render.trace.bvh``.
+
+The traversal (``render.trace.intersect``) walks this tree; the binary tree stays the one
+that is built, refitted and costed, and this one is made from it in one pass over its nodes
+(:func:`collapse`), its boxes gathered from the binary boxes again after a refit
+(:func:`wide_boxes`).
+
+Why wider: a binary tree tests two boxes a node and pushes or pops about once per level; a
+4-wide one tests four boxes of one node side by side (the loads of one 96-byte row, which
+LLVM turns into vector instructions) and halves the levels, the pushes and the pops (Embree's
+BVH4, tinybvh's BVH4_CPU: "Shallow Bounding Volume Hierarchies for Fast SIMD Ray Tracing of
+Incoherent Rays", Dammertz et al. 2008).  Why float32: the boxes are half the memory (a node
+is 96 bytes of boxes, where four binary children took 192), and the traversal's time is much
+of it waiting for memory.  The slab test still computes in float64 (a float32 box converts
+exactly), so what decides a hit is unchanged.
+
+The layout, W nodes:
+
+* ``boxes`` (W, 24) float32 -- column ``side * 12 + axis * 4 + slot``: side 0 the low
+  corner, 1 the high; the four children's boxes of a node side by side per coordinate.
+  Each float32 bound is the float64 one rounded outward (low down, high up), so a wide box
+  holds its binary box: a ray that reaches a primitive through the binary tree reaches it
+  through this one, and the hits stay bit for bit brute force's (``intersect``'s module
+  docstring).  An empty slot has the box low = +inf, high = -inf, which no ray enters.
+* ``child`` (W, 4) int64 -- ``c >= 0``: the wide node ``c``; ``c < 0``: the leaf ``~c``
+  (``-1 - c``).
+* ``leaf_start`` (L + 1,) int64 -- leaf ``l`` holds rows ``leaf_start[l] : leaf_start[l+1]``
+  of the leaf-ordered primitive table: the binary leaves' ranges partition it, so the leaves
+  numbered by their first row need one array.
+
+Node 0 is the root, the others in depth-first order (a node's subtree follows it in memory).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: Children a node of the wide tree holds at most.
+WIDTH = 4
+
+
+@njit(cache=True, error_model="numpy")
+def collapse(node_bounds, node_first, node_count):
+    """The 4-wide tree of a binary tree of ``build_bvh``'s form (``node_bounds`` (M, 6),
+    ``node_first``, ``node_count`` (M,)): returns ``child`` (W, 4), ``leaf_start`` (L + 1,)
+    and ``slot_node`` (W, 4) int64, the binary node each slot stands for (-1: empty), from
+    which :func:`wide_boxes` makes the boxes.
+
+    Each wide node takes a binary interior node's two children, then replaces the child of
+    largest surface area that is not a leaf by its two children, until it holds four or only
+    leaves (the greedy collapse of Wald et al. 2008 and of Embree's BVH4 builder: the boxes
+    a ray is likeliest to enter are opened at once).  A tree that is one leaf becomes a root
+    with that one slot.  An empty tree (M = 0) gives no node.
+    """
+    M = node_first.shape[0]
+    # The binary leaves numbered in the order of their first rows.
+    is_leaf = node_count > 0
+    firsts = np.sort(node_first[is_leaf])
+    n_leaves = firsts.shape[0]
+    leaf_start = np.empty(n_leaves + 1, np.int64)
+    leaf_start[:n_leaves] = firsts
+    rank = np.empty(M, np.int64)  # binary leaf -> its number
+    total = 0
+    for n in range(M):
+        if is_leaf[n]:
+            rank[n] = np.searchsorted(firsts, node_first[n])
+            total += node_count[n]
+    leaf_start[n_leaves] = total
+    # At most one wide node per binary interior node (and the root).
+    size = max(1, M - n_leaves) if M else 0
+    child = np.zeros((size, WIDTH), np.int64)
+    slot_node = np.full((size, WIDTH), -1, np.int64)
+    if M == 0:
+        return child[:0], leaf_start, slot_node[:0]
+    if is_leaf[0]:
+        child[0, 0] = ~rank[0]
+        slot_node[0, 0] = 0
+        return child[:1], leaf_start, slot_node[:1]
+    # A stack of binary interior nodes still to become wide nodes, each with the slot
+    # (parent wide node, slot) that will point to it. A node is numbered when it is taken:
+    # its subtree is numbered before its next sibling's (depth-first order).
+    todo = np.empty((size * WIDTH + 1, 3), np.int64)
+    todo[0] = (0, -1, 0)
+    n_todo, used = 1, 0
+    kids = np.empty(WIDTH, np.int64)
+    while n_todo:
+        n_todo -= 1
+        b, parent, slot = todo[n_todo]
+        w = used
+        used += 1
+        if parent >= 0:
+            child[parent, slot] = w
+        kids[0], kids[1], n_kids = node_first[b], node_first[b] + 1, 2
+        while n_kids < WIDTH:
+            widest, widest_area = -1, -1.0
+            for k in range(n_kids):
+                if not is_leaf[kids[k]]:
+                    area = _half_area(node_bounds[kids[k]])
+                    if area > widest_area:
+                        widest, widest_area = k, area
+            if widest < 0:
+                break
+            opened = kids[widest]
+            kids[widest] = node_first[opened]
+            kids[n_kids] = node_first[opened] + 1
+            n_kids += 1
+        for k in range(n_kids - 1, -1, -1):  # pushed last, taken first: slot 0's subtree next
+            slot_node[w, k] = kids[k]
+            if is_leaf[kids[k]]:
+                child[w, k] = ~rank[kids[k]]
+            else:
+                todo[n_todo] = (kids[k], w, k)
+                n_todo += 1
+    return child[:used], leaf_start, slot_node[:used]
+
+
+@njit(cache=True, error_model="numpy")
+def _half_area(box):
+    """Half the surface area of ``box`` (6,) (low corner, high corner)."""
+    ex, ey, ez = box[3] - box[0], box[4] - box[1], box[5] - box[2]
+    return ex * ey + ey * ez + ez * ex
+
+
+@njit(cache=True, error_model="numpy")
+def wide_boxes(node_bounds, slot_node):
+    """The wide tree's ``boxes`` (W, 24) float32 (module docstring): slot ``(w, k)``'s box is
+    binary node ``slot_node[w, k]``'s box of ``node_bounds`` (M, 6) rounded outward to
+    float32; an empty slot (-1) gets the empty box (low +inf, high -inf)."""
+    W = slot_node.shape[0]
+    boxes = np.empty((W, 6 * WIDTH), np.float32)
+    for w in range(W):
+        for k in range(WIDTH):
+            n = slot_node[w, k]
+            for a in range(3):
+                if n < 0:
+                    boxes[w, a * WIDTH + k] = np.inf
+                    boxes[w, 3 * WIDTH + a * WIDTH + k] = np.inf
+                else:
+                    boxes[w, a * WIDTH + k] = _down(node_bounds[n, a])
+                    boxes[w, 3 * WIDTH + a * WIDTH + k] = _up(node_bounds[n, 3 + a])
+    return boxes
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _down(x):
+    """The largest float32 <= x (float32(x) rounds to nearest: one step down where that
+    went up)."""
+    y = np.float32(x)
+    if np.float64(y) > x:
+        y = np.nextafter(y, np.float32(-np.inf))
+    return y
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _up(x):
+    """The smallest float32 >= x."""
+    y = np.float32(x)
+    if np.float64(y) < x:
+        y = np.nextafter(y, np.float32(np.inf))
+    return y
