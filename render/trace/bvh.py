@@ -39,8 +39,11 @@ from minidiff.threads import job_count, kernel, run_jobs, share, thread_count
 #: Cost of one node visit (two box tests) relative to one primitive test (the SAH unit).
 C_TRAV = 1.0
 #: Leaves never hold more than this many primitives unless their centroids coincide exactly
-#: (duplicated triangles), in which case they are split by index.
-MAX_LEAF_SIZE = 8
+#: (duplicated triangles), in which case they are split by index. 4 since the rays walk a
+#: 4-wide tree (``render.trace.wide``), whose box tests are cheaper than the binary tree's:
+#: the 82k-triangle scene's camera rays took 41.3 ms with leaves of up to 4, 42.0 ms with 6
+#: and 47.8 ms with 8 (one thread; ``benchmarks/bench_embree.py``'s scene).
+MAX_LEAF_SIZE = 4
 #: Default number of SAH bins per axis.
 N_BINS = 12
 #: Builds of at least this many primitives build the subtrees below the top of the tree on
