@@ -139,9 +139,13 @@ def embree(embree_python: str, cases_path: str, repeats: int) -> dict | None:
         return None
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "embree.json"
-        script = str(Path(__file__).with_name("embree_rays.py"))
-        subprocess.run([embree_python, script, cases_path, str(out), str(repeats)], check=True,
-                       env={**os.environ, "OMP_NUM_THREADS": "1"})  # fmt: skip
+        run = (
+            "import sys; sys.path.insert(0, sys.argv[1]); import embree_rays; "
+            "embree_rays.main(*sys.argv[2:])"
+        )
+        command = [embree_python, "-c", run, str(Path(__file__).parent), cases_path, str(out),
+                   str(repeats)]  # fmt: skip
+        subprocess.run(command, check=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
         return json.loads(out.read_text(encoding="utf-8"))
 
 
@@ -220,9 +224,17 @@ def run(args) -> dict:
 
 
 def main(argv=None) -> dict:
-    return timing.main("bench_embree", __doc__, run, argv, repeats=7, options={
-        "--embree-python": {"default": ".venv-mitsuba/bin/python",
-                            "help": "the Python of Embree's environment (embreex)"}})  # fmt: skip
+    parser = timing.make_parser(__doc__, out=Path("out/bench_embree"))
+    parser.add_argument("--repeats", type=int, default=7, help="timed calls per measurement")
+    parser.add_argument("--embree-python", default=".venv-mitsuba/bin/python",
+                        help="the Python of Embree's environment (embreex)")  # fmt: skip
+    args = parser.parse_args(argv)
+    if args.quick:
+        args.repeats = timing.QUICK_REPEATS
+    result = run(args)
+    print(f"wrote {timing.write_json(args.out, 'bench_embree', result)}")
+    timing.print_report(result["report"], timing.machine())
+    return result
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """The Embree side of ``bench_embree.py``, run by that script in Embree's own environment
 (numpy and embreex only: nothing of this project is imported, nor needed there).
 
-Run:  EMBREE_PYTHON benchmarks/embree_rays.py CASES.npz RESULT.json REPEATS
+``bench_embree.py`` runs ``main(CASES.npz, RESULT.json, REPEATS)`` in Embree's Python.
 
 ``CASES.npz`` holds ``triangles`` (T, 3, 3) and, per case name ``c`` in ``cases``, its
 rays ``c_origins``, ``c_directions`` (N, 3), ``c_far`` (N,) and its query ``c_query``:
@@ -16,12 +16,9 @@ milliseconds, and each case's answers (primitive ids, or occluded flags) for
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 import numpy as np
-from embreex import rtcore_scene
-from embreex.mesh_construction import TriangleMesh
 
 
 def median_ms(fn, repeats: int) -> float:
@@ -35,6 +32,10 @@ def median_ms(fn, repeats: int) -> float:
 
 
 def main(cases_path: str, result_path: str, repeats: int) -> None:
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    repeats = int(repeats)
     data = np.load(cases_path)
     triangles = data["triangles"].astype(np.float32)
     one = np.zeros((1, 3), np.float32)
@@ -71,7 +72,3 @@ def main(cases_path: str, result_path: str, repeats: int) -> None:
         }
     with open(result_path, "w", encoding="utf-8") as f:
         json.dump(result, f)
-
-
-if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2], int(sys.argv[3]))
