@@ -36,6 +36,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from minidiff.threads import job_count, kernel, run_jobs, share
+
 #: Children a node of the wide tree holds at most.
 WIDTH = 4
 
@@ -122,14 +124,22 @@ def _half_area(box):
     return ex * ey + ey * ez + ez * ex
 
 
-@njit(cache=True, error_model="numpy")
-def wide_boxes(node_bounds, slot_node):
+def wide_boxes(node_bounds: np.ndarray, slot_node: np.ndarray) -> np.ndarray:
     """The wide tree's ``boxes`` (W, 24) float32 (module docstring): slot ``(w, k)``'s box is
     binary node ``slot_node[w, k]``'s box of ``node_bounds`` (M, 6) rounded outward to
-    float32; an empty slot (-1) gets the empty box (low +inf, high -inf)."""
-    W = slot_node.shape[0]
-    boxes = np.empty((W, 6 * WIDTH), np.float32)
-    for w in range(W):
+    float32; an empty slot (-1) gets the empty box (both corners at +inf). On all threads
+    (the nodes are independent): a refit gathers them again."""
+    boxes = np.empty((slot_node.shape[0], 6 * WIDTH), np.float32)
+    run_jobs(_fill_boxes, job_count(slot_node.shape[0], 4096), node_bounds, slot_node, boxes)
+    return boxes
+
+
+@kernel
+def _fill_boxes(job, n_jobs, node_bounds, slot_node, boxes):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``wide_boxes``: its share
+    of the nodes."""
+    start, stop = share(job, n_jobs, slot_node.shape[0])
+    for w in range(start, stop):
         for k in range(WIDTH):
             n = slot_node[w, k]
             for a in range(3):
@@ -139,7 +149,6 @@ def wide_boxes(node_bounds, slot_node):
                 else:
                     boxes[w, a * WIDTH + k] = _down(node_bounds[n, a])
                     boxes[w, 3 * WIDTH + a * WIDTH + k] = _up(node_bounds[n, 3 + a])
-    return boxes
 
 
 @njit(cache=True, error_model="numpy", inline="always")
