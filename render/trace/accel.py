@@ -51,7 +51,7 @@ from render.trace.intersect import (
     occluded_bvh,
     pack_primitives,
 )
-from render.trace.wide import collapse, wide_boxes
+from render.trace.wide import collapse, wide_nodes
 
 #: Largest accepted magnitude of any coordinate, radius or direction component: the scene's
 #: supported range (``render.scene.scene.MAX_COORD``), checked again for direct users.
@@ -249,7 +249,7 @@ class Accelerator:
 
     The tree (attributes): the binary tree that is built, refitted and costed,
     ``node_bounds``, ``node_first``, ``node_count`` (``render.trace.bvh``); the 4-wide tree
-    collapsed from it that rays traverse, ``wide_boxes``, ``wide_child``, ``leaf_start``
+    collapsed from it that rays traverse, ``wide_nodes``, ``leaf_start``
     (``render.trace.wide``); ``leaf_ids`` and ``leaf_prim`` (``render.trace.intersect``).
     Build statistics: ``n_triangles``, ``n_spheres``, ``n_prims``, ``n_nodes``, ``n_leaves``
     (of the binary tree), ``depth`` (its levels, root = 1; 0 for an empty scene),
@@ -289,10 +289,10 @@ class Accelerator:
         self._leaf_row[order] = np.arange(len(order))
         self.leaf_prim = pack_primitives(tri, centers, radii, order)
         self.depth = int(depth)
-        self.wide_child, self.leaf_start, self._slot_node = collapse(
+        self._wide_child, self.leaf_start, self._slot_node = collapse(
             self.node_bounds, self.node_first, self.node_count
         )
-        self.wide_boxes = wide_boxes(self.node_bounds, self._slot_node)
+        self.wide_nodes = wide_nodes(self.node_bounds, self._slot_node, self._wide_child)
         self.n_nodes = int(self.node_bounds.shape[0])
         self.n_leaves = int(np.count_nonzero(self.node_count))
         self.sah_cost = self.built_cost = self._cost()
@@ -336,7 +336,7 @@ class Accelerator:
         if self.use_bvh:
             out.node_bounds = refit_bounds(self.node_first, self.node_count, self.leaf_ids,
                                            tri, centers, radii)  # fmt: skip
-            out.wide_boxes = wide_boxes(out.node_bounds, self._slot_node)
+            out.wide_nodes = wide_nodes(out.node_bounds, self._slot_node, self._wide_child)
         out.leaf_prim = pack_primitives(tri, centers, radii, self.leaf_ids)
         out.sah_cost = out._cost()
         out.refits = self.refits + 1
@@ -365,8 +365,8 @@ class Accelerator:
     def _tree(self) -> FlatBVH:
         """The flat tree as the traversal kernels take it (one argument)."""
         return FlatBVH(
-            self.wide_boxes,
-            self.wide_child,
+            self.wide_nodes,
+            self.wide_nodes.view(np.int32),
             self.leaf_start,
             self.leaf_prim,
             self.leaf_ids,

@@ -4,9 +4,9 @@ Everything here works on flat NumPy arrays so that Numba can compile it:
 
 * ``leaf_prim`` (P, 16) float64 -- one row per primitive, see :func:`pack_primitives`.
   Triangles and spheres share the table; a row with global id ``< n_tri`` is a triangle.
-* ``boxes`` (W, 24) float32, ``child`` (W, 4) int64, ``leaf_start`` (L + 1,) int64 -- the
-  4-wide BVH (``render.trace.wide``): four children's boxes a node, each child a node or a
-  leaf, a leaf a range of rows of the leaf-ordered primitive table.
+* ``boxes`` (W, 32) float32 (``child``: the same rows read as int32), ``leaf_start`` (L + 1,)
+  int64 -- the 4-wide BVH (``render.trace.wide``): four children's boxes a node, each child
+  a node or a leaf, a leaf a range of rows of the leaf-ordered primitive table.
 
 A ray is ``origin + t * direction`` with ``tmin < t < tmax``: one :class:`Ray` record per ray
 (:func:`make_ray`), ``Rays`` for the arrays of N rays the parallel kernels take.
@@ -42,7 +42,7 @@ from numba import njit
 
 from minidiff.threads import job_count, kernel, run_jobs, share
 from render.trace.simd import enter4
-from render.trace.wide import WIDTH
+from render.trace.wide import CHILD, WIDTH
 
 #: Row width of the primitive table (16 float64 = two 64-byte cache lines).
 PRIM_WIDTH = 16
@@ -67,12 +67,12 @@ RAYS_PER_JOB = 1024
 class FlatBVH(NamedTuple):
     """A BVH flattened for the kernels, passed as one argument (``closest_hit_ray(bvh, ...)``).
 
-    boxes (W, 24) float32, child (W, 4), leaf_start (L + 1,): the 4-wide tree (see
-    ``render.trace.wide``); leaf_prim (P, 16) / leaf_ids (P,): the primitive table and the
-    global ids in leaf order; n_tri: ids below it are triangles; stack_size: the traversal
-    stack's length, 3 per level of the binary tree it was collapsed from, plus 2 (near-first
-    traversal pushes at most three nodes per level, and a wide level is at least one binary
-    level).
+    boxes (W, 32) float32 and child, the same memory as int32, and leaf_start (L + 1,): the
+    4-wide tree (see ``render.trace.wide``: a row's columns ``CHILD``.. are its children);
+    leaf_prim (P, 16) / leaf_ids (P,): the primitive table and the global ids in leaf order;
+    n_tri: ids below it are triangles; stack_size: the traversal stack's length, 3 per
+    level of the binary tree it was collapsed from, plus 2 (near-first traversal pushes at
+    most three nodes per level, and a wide level is at least one binary level).
     """
 
     boxes: np.ndarray
@@ -360,7 +360,7 @@ def intersect_prim(prim, k, pid, n_tri, ray):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def enter_slot(boxes, w, k, ray, t_far):
-    """Slab test of ``ray`` against slot ``k`` of wide node ``w`` of ``boxes`` (W, 24)
+    """Slab test of ``ray`` against slot ``k`` of wide node ``w`` of ``boxes`` (W, 32)
     (``render.trace.wide``): the plain version of ``render.trace.simd.enter4``, which tests
     the four slots at once with the same arithmetic (``tests/render/trace/test_wide.py``).
 
@@ -506,7 +506,8 @@ def closest_hit_ray(bvh, ray, stack, stack_t):
             continue
         w = code
         d0, d1, d2, d3 = enter4(boxes, w, ray.origin, ray.inverse, ray.tmin, best[1])
-        c0, c1, c2, c3 = child[w, 0], child[w, 1], child[w, 2], child[w, 3]
+        c0, c1 = child[w, CHILD], child[w, CHILD + 1]
+        c2, c3 = child[w, CHILD + 2], child[w, CHILD + 3]
         # Sort the four (entry, child) pairs by entry; misses (inf) go last.
         if d1 < d0:
             d0, d1, c0, c1 = d1, d0, c1, c0
@@ -556,10 +557,10 @@ def occluded_ray(bvh, ray, ignore, stack):
         else:
             d0, d1, d2, d3 = enter4(bvh.boxes, code, ray.origin, ray.inverse, ray.tmin, ray.tmax)
             # (written out: a tuple indexed by a variable is slow in Numba)
-            sp = _push_if(stack, sp, bvh.child[code, 0], d0)
-            sp = _push_if(stack, sp, bvh.child[code, 1], d1)
-            sp = _push_if(stack, sp, bvh.child[code, 2], d2)
-            sp = _push_if(stack, sp, bvh.child[code, 3], d3)
+            sp = _push_if(stack, sp, bvh.child[code, CHILD], d0)
+            sp = _push_if(stack, sp, bvh.child[code, CHILD + 1], d1)
+            sp = _push_if(stack, sp, bvh.child[code, CHILD + 2], d2)
+            sp = _push_if(stack, sp, bvh.child[code, CHILD + 3], d3)
         code, sp = _next(stack, sp)
     return False
 

@@ -50,10 +50,10 @@ def _max(builder: ir.IRBuilder, a: ir.Value, b: ir.Value) -> ir.Value:
 @intrinsic
 def enter4(typingctx, boxes, w, origin, inverse, t_min, t_far):
     """Entry distances of one ray into the four boxes of wide node ``w`` of ``boxes`` (W,
-    24) float32, C-contiguous: a tuple of four float64, each ``max(t_min, t_enter)`` where
-    the ray overlaps that box within ``[t_min, t_far]`` and ``inf`` where it does not (an
-    empty slot: always). ``origin`` and ``inverse`` are the ray's (x, y, z) origin and
-    inverse direction, float64."""
+    32) float32, C-contiguous (its columns 0 to 23, ``render.trace.wide``): a tuple of
+    four float64, each ``max(t_min, t_enter)`` where the ray overlaps that box within
+    ``[t_min, t_far]`` and ``inf`` where it does not (an empty slot: always). ``origin``
+    and ``inverse`` are the ray's (x, y, z) origin and inverse direction, float64."""
     if not (
         isinstance(boxes, types.Array)
         and boxes.dtype == types.float32

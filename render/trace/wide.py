@@ -3,30 +3,32 @@
 The traversal (``render.trace.intersect``) walks this tree; the binary tree stays the one
 that is built, refitted and costed, and this one is made from it in one pass over its nodes
 (:func:`collapse`), its boxes gathered from the binary boxes again after a refit
-(:func:`wide_boxes`).
+(:func:`wide_nodes`).
 
 Why wider: a binary tree tests two boxes a node and pushes or pops about once per level; a
-4-wide one tests four boxes of one node side by side (the loads of one 96-byte row, which
-LLVM turns into vector instructions) and halves the levels, the pushes and the pops (Embree's
+4-wide one tests four boxes of one node side by side (six loads of four float32, as vector
+instructions: ``render.trace.simd``) and halves the levels, the pushes and the pops (Embree's
 BVH4, tinybvh's BVH4_CPU: "Shallow Bounding Volume Hierarchies for Fast SIMD Ray Tracing of
 Incoherent Rays", Dammertz et al. 2008).  Why float32: the boxes are half the memory (a node
 is 96 bytes of boxes, where four binary children took 192), and the traversal's time is much
 of it waiting for memory.  The slab test still computes in float64 (a float32 box converts
 exactly), so what decides a hit is unchanged.
 
-The layout, W nodes:
+The layout, W nodes, one row of ``nodes`` (W, 32) float32 each: 128 bytes, two cache
+lines, the array aligned to 64 bytes, so that a node's boxes and its children's codes
+arrive together:
 
-* ``boxes`` (W, 24) float32 -- column ``side * 12 + axis * 4 + slot``: side 0 the low
-  corner, 1 the high; the four children's boxes of a node side by side per coordinate.
-  Each float32 bound is the float64 one rounded outward (low down, high up), so a wide box
-  holds its binary box: a ray that reaches a primitive through the binary tree reaches it
-  through this one, and the hits stay bit for bit brute force's (``intersect``'s module
-  docstring).  An empty slot has the box low = +inf, high = -inf, which no ray enters.
-* ``child`` (W, 4) int64 -- ``c >= 0``: the wide node ``c``; ``c < 0``: the leaf ``~c``
-  (``-1 - c``).
-* ``leaf_start`` (L + 1,) int64 -- leaf ``l`` holds rows ``leaf_start[l] : leaf_start[l+1]``
-  of the leaf-ordered primitive table: the binary leaves' ranges partition it, so the leaves
-  numbered by their first row need one array.
+* columns ``side * 12 + axis * 4 + slot`` (0 to 23) -- the boxes: side 0 the low corner,
+  1 the high; the four children's boxes side by side per coordinate. Each float32 bound is
+  the float64 one rounded outward (low down, high up), so a wide box holds its binary box:
+  a ray that reaches a primitive through the binary tree reaches it through this one, and
+  the hits stay bit for bit brute force's (``intersect``'s module docstring).  An empty
+  slot's box has both corners at +inf, which no ray enters.
+* columns ``CHILD + slot`` (24 to 27), read as int32 (``nodes.view(np.int32)``) -- the
+  children: ``c >= 0`` the wide node ``c``; ``c < 0`` the leaf ``~c`` (``-1 - c``).
+* ``leaf_start`` (L + 1,) int64, an array of its own -- leaf ``l`` holds rows
+  ``leaf_start[l] : leaf_start[l+1]`` of the leaf-ordered primitive table: the binary
+  leaves' ranges partition it, so the leaves numbered by their first row need one array.
 
 Node 0 is the root, the others in depth-first order (a node's subtree follows it in memory).
 """
@@ -40,6 +42,10 @@ from minidiff.threads import job_count, kernel, run_jobs, share
 
 #: Children a node of the wide tree holds at most.
 WIDTH = 4
+#: A node's row: the boxes (6 * WIDTH float32), then the children's codes (WIDTH int32),
+#: then padding to 128 bytes.
+CHILD = 6 * WIDTH
+NODE_COLUMNS = 32
 
 
 @njit(cache=True, error_model="numpy")
@@ -47,7 +53,7 @@ def collapse(node_bounds, node_first, node_count):
     """The 4-wide tree of a binary tree of ``build_bvh``'s form (``node_bounds`` (M, 6),
     ``node_first``, ``node_count`` (M,)): returns ``child`` (W, 4), ``leaf_start`` (L + 1,)
     and ``slot_node`` (W, 4) int64, the binary node each slot stands for (-1: empty), from
-    which :func:`wide_boxes` makes the boxes.
+    which :func:`wide_nodes` makes the boxes.
 
     Each wide node takes a binary interior node's two children, then replaces the child of
     largest surface area that is not a leaf by its two children, until it holds four or only
@@ -124,20 +130,27 @@ def _half_area(box):
     return ex * ey + ey * ez + ez * ex
 
 
-def wide_boxes(node_bounds: np.ndarray, slot_node: np.ndarray) -> np.ndarray:
-    """The wide tree's ``boxes`` (W, 24) float32 (module docstring): slot ``(w, k)``'s box is
-    binary node ``slot_node[w, k]``'s box of ``node_bounds`` (M, 6) rounded outward to
-    float32; an empty slot (-1) gets the empty box (both corners at +inf). On all threads
-    (the nodes are independent): a refit gathers them again."""
-    boxes = np.empty((slot_node.shape[0], 6 * WIDTH), np.float32)
-    run_jobs(_fill_boxes, job_count(slot_node.shape[0], 4096), node_bounds, slot_node, boxes)
-    return boxes
+def wide_nodes(node_bounds: np.ndarray, slot_node: np.ndarray, child: np.ndarray) -> np.ndarray:
+    """The wide tree's ``nodes`` (W, 32) float32, each row 128 bytes on a 64-byte boundary
+    (module docstring): slot ``(w, k)``'s box is binary node ``slot_node[w, k]``'s box of
+    ``node_bounds`` (M, 6) rounded outward to float32, an empty slot's (-1) the empty box
+    (both corners at +inf); columns ``CHILD``.. hold ``child`` (W, 4) as int32 bits. On all
+    threads (the nodes are independent): a refit gathers them again."""
+    W = slot_node.shape[0]
+    # 64-byte aligned: a node is exactly two cache lines, read together.
+    memory = np.empty(W * NODE_COLUMNS + 16, np.float32)
+    skip = (-memory.ctypes.data % 64) // 4
+    nodes = memory[skip : skip + W * NODE_COLUMNS].reshape(W, NODE_COLUMNS)
+    nodes[:, CHILD + WIDTH :] = 0.0
+    nodes.view(np.int32)[:, CHILD : CHILD + WIDTH] = child
+    run_jobs(_fill_boxes, job_count(W, 4096), node_bounds, slot_node, nodes)
+    return nodes
 
 
 @kernel
 def _fill_boxes(job, n_jobs, node_bounds, slot_node, boxes):
-    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``wide_boxes``: its share
-    of the nodes."""
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``wide_nodes``: the boxes
+    of its share of the nodes."""
     start, stop = share(job, n_jobs, slot_node.shape[0])
     for w in range(start, stop):
         for k in range(WIDTH):

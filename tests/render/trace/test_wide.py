@@ -14,7 +14,7 @@ from render.trace.accel import Accelerator
 from render.trace.bvh import build_bvh, one_leaf, primitive_bounds
 from render.trace.intersect import enter_slot, make_ray
 from render.trace.simd import enter4
-from render.trace.wide import WIDTH, collapse, wide_boxes
+from render.trace.wide import CHILD, WIDTH, collapse, wide_nodes
 from tests.render.trace.test_accel import assert_same_hits, rays_for, soups
 
 SETTINGS = settings(max_examples=40, deadline=None)
@@ -38,7 +38,10 @@ def _slot_box(boxes, w, k):
 def test_the_collapse_keeps_every_leaf_once_under_boxes_that_hold_the_binary_ones(tris):
     bounds, first, count, order, depth = _tree(tris)
     child, leaf_start, slot_node = collapse(bounds, first, count)
-    boxes = wide_boxes(bounds, slot_node)
+    boxes = wide_nodes(bounds, slot_node, child)
+    # Each row: the boxes, then the children's codes as int32; 64-byte aligned.
+    np.testing.assert_array_equal(boxes.view(np.int32)[:, CHILD : CHILD + WIDTH], child)
+    assert boxes.shape[1] * 4 == 128 and boxes.ctypes.data % 64 == 0
     leaves = first[count > 0]
     # The leaves, numbered by first row, partition the table.
     np.testing.assert_array_equal(leaf_start, np.r_[np.sort(leaves), len(order)])
@@ -77,7 +80,7 @@ def test_the_collapse_keeps_every_leaf_once_under_boxes_that_hold_the_binary_one
 def test_brute_force_and_empty_trees():
     child, leaf_start, slot_node = collapse(*one_leaf(7)[:3])
     assert child.tolist() == [[-1, 0, 0, 0]] and leaf_start.tolist() == [0, 7]
-    lo, hi = _slot_box(wide_boxes(one_leaf(7)[0], slot_node), 0, 0)
+    lo, hi = _slot_box(wide_nodes(one_leaf(7)[0], slot_node, child), 0, 0)
     assert np.all(lo == -np.inf) and np.all(hi == np.inf)
     child, leaf_start, slot_node = collapse(*one_leaf(0)[:3])
     assert child.shape == (0, WIDTH) and leaf_start.tolist() == [0]
@@ -118,7 +121,8 @@ def test_the_vector_box_test_is_the_scalar_one(tris, origins, axis_aligned, on_c
     corners (where a ray that leaves a box enters and leaves it at t = 0: inclusive ends),
     with finite and infinite far ends."""
     bounds, first, count, _, _ = _tree(tris)
-    boxes = wide_boxes(bounds, collapse(bounds, first, count)[2])
+    child, _, slot_node = collapse(bounds, first, count)
+    boxes = wide_nodes(bounds, slot_node, child)
     o = np.array(origins, np.float64)
     if on_corners:
         slots = np.argwhere(~_empty_slots(boxes))
@@ -139,6 +143,7 @@ def test_the_vector_box_test_is_the_scalar_one(tris, origins, axis_aligned, on_c
 
 def _empty_slots(boxes):
     """(W, 4) bool: the slots whose box is empty (all corners at +inf)."""
+    boxes = boxes[:, :CHILD]
     return np.stack([boxes[:, a * WIDTH : (a + 1) * WIDTH] == np.inf for a in range(6)]).all(0)
 
 
@@ -152,7 +157,7 @@ def test_a_refitted_wide_tree_answers_as_brute_force(tris, data):
         data.draw(st.integers(0, 99))
     ).normal(size=tris.shape)
     refit = built.refitted(moved)
-    assert refit.wide_child is built.wide_child
+    assert refit._wide_child is built._wide_child
     brute = Accelerator(moved, use_bvh=False)
     o, d = data.draw(rays_for(moved, NO_SPHERES[0], 64))
     assert_same_hits(refit.closest_hit(o, d), brute.closest_hit(o, d))
