@@ -19,7 +19,6 @@ from __future__ import annotations
 
 from llvmlite import ir
 from numba import types
-from numba.core import cgutils
 from numba.core.errors import TypingError
 from numba.extending import intrinsic
 
@@ -68,12 +67,10 @@ def enter4(typingctx, boxes, w, origin, inverse, t_min, t_far):
     def codegen(context, builder, sig, args):
         boxes_v, w_v, origin_v, inverse_v, t_min_v, t_far_v = args
         array = context.make_array(sig.args[0])(context, builder, boxes_v)
-        row = cgutils.get_item_pointer2(
-            context, builder, data=array.data,
-            shape=cgutils.unpack_tuple(builder, array.shape),
-            strides=cgutils.unpack_tuple(builder, array.strides),
-            layout="C", inds=[w_v, ir.Constant(ir.IntType(64), 0)],
-        )  # fmt: skip
+        # Row w starts w * (the row stride, in bytes) past the data pointer.
+        offset = builder.mul(w_v, builder.extract_value(array.strides, 0))
+        start = builder.gep(builder.bitcast(array.data, ir.IntType(8).as_pointer()), [offset])
+        row = builder.bitcast(start, ir.FloatType().as_pointer())
 
         def column(c: int) -> ir.Value:
             """The four float32 at column ``c`` of the row, widened to float64."""
