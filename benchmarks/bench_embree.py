@@ -3,13 +3,17 @@ one thread against two, and the tree's memory.
 
 Run:  python benchmarks/bench_embree.py [--out out/bench_embree] [--quick] [--repeats 7]
           [--embree-python .venv-mitsuba/bin/python]
-(the committed results in docs/benchmarks/embree/ were made with
-``--out docs/benchmarks/embree``)
+(``docs/benchmarks/embree/bench_embree.json`` is this script's output; ``--out
+docs/benchmarks/embree`` writes it there)
 
-Embree is not a dependency of this project: ``../shared/tools/setup_mitsuba.sh`` installs
-embreex (Embree 4.4's ray queries) into its own virtualenv, default ``.venv-mitsuba``. Its
-side runs there (``benchmarks/embree_rays.py``: numpy and embreex only); without it the
-script measures ours alone and says so.
+Embree is not a dependency of this project. Install embreex (Embree 4.4's ray queries) in
+a virtualenv of its own, e.g.
+
+    python -m venv .venv-mitsuba
+    .venv-mitsuba/bin/pip install embreex==4.4.0.post1 numpy
+
+Its side runs there (``benchmarks/embree_rays.py``: numpy and embreex only); without it
+the script measures ours alone and says so.
 
 **The scenes.** A bumpy sphere (``bench_refit.bumpy_sphere``) of 81,920 or 1,310,720
 triangles inside a closed room (a cube of side 8, 12 triangles). **The rays**, the same
