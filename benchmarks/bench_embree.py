@@ -127,14 +127,14 @@ def ours(cases_path: str, repeats: int) -> dict:
 
 def memory(accel) -> dict:
     """Bytes per triangle of the tree's arrays: the binary tree (built, refitted, costed),
-    the 4-wide one the rays walk (with the slot map and the child codes its refit reads)
+    the 4-wide one the rays walk (with the slot map its refit reads)
     and the leaf-ordered primitive table."""
     n = accel.n_triangles
     binary = accel.node_bounds.nbytes + accel.node_first.nbytes + accel.node_count.nbytes
     wide = accel.wide_nodes.nbytes + accel.leaf_start.nbytes
     table = accel.leaf_prim.nbytes + accel.leaf_ids.nbytes
     return {"binary_tree": binary / n, "wide_tree": wide / n,
-            "wide_slot_map": (accel._slot_node.nbytes + accel._wide_child.nbytes) / n,
+            "wide_slot_map": accel._slot_node.nbytes / n,
             "primitive_table": table / n}  # fmt: skip
 
 

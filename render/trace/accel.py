@@ -51,7 +51,7 @@ from render.trace.intersect import (
     occluded_bvh,
     pack_primitives,
 )
-from render.trace.wide import collapse, wide_nodes
+from render.trace.wide import CHILD, WIDTH, collapse, wide_nodes
 
 #: Largest accepted magnitude of any coordinate, radius or direction component: the scene's
 #: supported range (``render.scene.scene.MAX_COORD``), checked again for direct users.
@@ -289,15 +289,19 @@ class Accelerator:
         self._leaf_row[order] = np.arange(len(order))
         self.leaf_prim = pack_primitives(tri, centers, radii, order)
         self.depth = int(depth)
-        self._wide_child, self.leaf_start, self._slot_node = collapse(
+        child, self.leaf_start, self._slot_node = collapse(
             self.node_bounds, self.node_first, self.node_count
         )
-        self.wide_nodes = wide_nodes(self.node_bounds, self._slot_node, self._wide_child)
+        self.wide_nodes = wide_nodes(self.node_bounds, self._slot_node, child)
         self.n_nodes = int(self.node_bounds.shape[0])
         self.n_leaves = int(np.count_nonzero(self.node_count))
         self.sah_cost = self.built_cost = self._cost()
         self.refits = 0
         self.build_seconds = time.perf_counter() - t0
+
+    def _wide_child(self) -> np.ndarray:
+        """(W, 4) int32: the wide tree's child codes, read from its nodes' rows."""
+        return self.wide_nodes.view(np.int32)[:, CHILD : CHILD + WIDTH]
 
     def _cost(self) -> float:
         """The tree's SAH cost (0 for brute force: one leaf, which every ray enters)."""
@@ -336,7 +340,7 @@ class Accelerator:
         if self.use_bvh:
             out.node_bounds = refit_bounds(self.node_first, self.node_count, self.leaf_ids,
                                            tri, centers, radii)  # fmt: skip
-            out.wide_nodes = wide_nodes(out.node_bounds, self._slot_node, self._wide_child)
+            out.wide_nodes = wide_nodes(out.node_bounds, self._slot_node, self._wide_child())
         out.leaf_prim = pack_primitives(tri, centers, radii, self.leaf_ids)
         out.sah_cost = out._cost()
         out.refits = self.refits + 1

@@ -41,8 +41,9 @@ C_TRAV = 1.0
 #: Leaves never hold more than this many primitives unless their centroids coincide exactly
 #: (duplicated triangles), in which case they are split by index. 4 since the rays walk a
 #: 4-wide tree (``render.trace.wide``), whose box tests are cheaper than the binary tree's:
-#: the 82k-triangle scene's camera rays took 41.3 ms with leaves of up to 4, 42.0 ms with 6
-#: and 47.8 ms with 8 (one thread; ``benchmarks/bench_embree.py``'s scene).
+#: 262,144 camera rays at a bumpy sphere of 82,024 triangles in a room (a scene like
+#: ``benchmarks/bench_embree.py``'s) took 41.3 ms with leaves of up to 4, 42.0 ms with 6
+#: and 47.8 ms with 8, one thread.
 MAX_LEAF_SIZE = 4
 #: Default number of SAH bins per axis.
 N_BINS = 12
@@ -116,7 +117,7 @@ def _pad(lo, hi):
 
 
 @njit(cache=True, error_model="numpy")
-def _half_area(lx, ly, lz, hx, hy, hz):
+def half_area(lx, ly, lz, hx, hy, hz):
     """Half the surface area of the box [lx, hx] x [ly, hy] x [lz, hz] (the factor 2 cancels
     in the SAH ratios).  An empty box (lo > hi) has area 0."""
     ex = hx - lx
@@ -243,7 +244,7 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav,
                 hy = max(hy, bin_box[a, i - 1, 4])
                 hz = max(hz, bin_box[a, i - 1, 5])
             left_count[i] = n
-            left_area[i] = _half_area(lx, ly, lz, hx, hy, hz)
+            left_area[i] = half_area(lx, ly, lz, hx, hy, hz)
         # Sweep right to left, growing the right side, and evaluate each plane.
         lx = ly = lz = np.inf
         hx = hy = hz = -np.inf
@@ -261,7 +262,7 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav,
                 continue  # not a split: one side would be empty
             # SAH: the cost of visiting this node plus testing each child's primitives,
             # weighted by the probability that a ray through the node enters that child.
-            right_area = _half_area(lx, ly, lz, hx, hy, hz)
+            right_area = half_area(lx, ly, lz, hx, hy, hz)
             cost = c_trav + (left_count[i] * left_area[i] + n * right_area) / area
             if cost < best_cost:
                 best_cost = cost
@@ -343,7 +344,7 @@ def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred,
         if count <= 1:
             continue
         b = node_bounds[node]
-        area = max(_half_area(b[0], b[1], b[2], b[3], b[4], b[5]), 1e-300)
+        area = max(half_area(b[0], b[1], b[2], b[3], b[4], b[5]), 1e-300)
         axis, split_bin, cmin, scale, cost = _find_split(
             first, count, order, prim_min, prim_max, centroid, area, c_trav, scratch
         )
@@ -576,13 +577,13 @@ def sah_cost(node_bounds, node_first, node_count, c_trav):
     if node_first.shape[0] == 0:
         return 0.0
     root = node_bounds[0]
-    area = _half_area(root[0], root[1], root[2], root[3], root[4], root[5])
+    area = half_area(root[0], root[1], root[2], root[3], root[4], root[5])
     if not area > 0.0:
         return 0.0
     total = 0.0
     for node in range(node_first.shape[0]):
         b = node_bounds[node]
-        share = _half_area(b[0], b[1], b[2], b[3], b[4], b[5]) / area
+        share = half_area(b[0], b[1], b[2], b[3], b[4], b[5]) / area
         total += share * (node_count[node] if node_count[node] > 0 else c_trav)
     return total
 

@@ -39,6 +39,7 @@ import numpy as np
 from numba import njit
 
 from minidiff.threads import job_count, kernel, run_jobs, share
+from render.trace.bvh import half_area
 
 #: Children a node of the wide tree holds at most.
 WIDTH = 4
@@ -104,7 +105,8 @@ def collapse(node_bounds, node_first, node_count):
             widest, widest_area = -1, -1.0
             for k in range(n_kids):
                 if not is_leaf[kids[k]]:
-                    area = _half_area(node_bounds[kids[k]])
+                    b = node_bounds[kids[k]]
+                    area = half_area(b[0], b[1], b[2], b[3], b[4], b[5])
                     if area > widest_area:
                         widest, widest_area = k, area
             if widest < 0:
@@ -121,13 +123,6 @@ def collapse(node_bounds, node_first, node_count):
                 todo[n_todo] = (kids[k], w, k)
                 n_todo += 1
     return child[:used], leaf_start, slot_node[:used]
-
-
-@njit(cache=True, error_model="numpy")
-def _half_area(box):
-    """Half the surface area of ``box`` (6,) (low corner, high corner)."""
-    ex, ey, ez = box[3] - box[0], box[4] - box[1], box[5] - box[2]
-    return ex * ey + ey * ez + ez * ex
 
 
 def wide_nodes(node_bounds: np.ndarray, slot_node: np.ndarray, child: np.ndarray) -> np.ndarray:

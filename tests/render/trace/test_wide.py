@@ -72,6 +72,18 @@ def test_the_collapse_keeps_every_leaf_once_under_boxes_that_hold_the_binary_one
                         assert np.all(clo >= lo) and np.all(chi <= hi)
     assert sorted(seen_leaves) == sorted(np.flatnonzero(count > 0))
     assert sorted(seen_nodes) == list(range(1, len(child)))
+    # Depth-first: a node's subtree is the block of rows that starts at it, its children's
+    # subtrees one after the other in slot order.
+    size = np.ones(len(child), np.int64)
+    for w in range(len(child) - 1, -1, -1):
+        size[w] += sum(size[c] for c in child[w] if c > 0)
+    for w in range(len(child)):
+        at = w + 1
+        for c in child[w]:
+            if c > 0:
+                assert c == at
+                at += size[c]
+        assert at == w + size[w]
     # Each node has at least two children unless the tree is one leaf.
     filled = (slot_node >= 0).sum(axis=1)
     assert np.all(filled >= (1 if len(bounds) == 1 else 2))
@@ -157,7 +169,8 @@ def test_a_refitted_wide_tree_answers_as_brute_force(tris, data):
         data.draw(st.integers(0, 99))
     ).normal(size=tris.shape)
     refit = built.refitted(moved)
-    assert refit._wide_child is built._wide_child
+    assert refit._slot_node is built._slot_node
+    np.testing.assert_array_equal(refit._wide_child(), built._wide_child())
     brute = Accelerator(moved, use_bvh=False)
     o, d = data.draw(rays_for(moved, NO_SPHERES[0], 64))
     assert_same_hits(refit.closest_hit(o, d), brute.closest_hit(o, d))
