@@ -8,7 +8,7 @@ Run:  python benchmarks/bench_path.py [--out out/bench_path] [--quick] [--part m
   4, for three ways: through the tape (render, loss, backward: the tape holds every path
   until the backward), the replay on the tape (``render.path.replay_gradient``, batches of
   16 samples, the light's position and five albedos differentiated) and the compiled replay
-  (the five albedos alone: ``render.path.adjoint``), from 16 to 1,024 spp; then both
+  (the five albedos alone: ``render.path.twin.adjoint``), from 16 to 1,024 spp; then both
   replays from max_depth 2 to 8 at 64 spp (``rr_depth`` 100: paths go deep). The tape's
   peak is measured up to 256 spp and its growth per sample reported.
 * Time: the Cornell box at 128x128, max_depth 4, 16 spp, medians after a warm-up, as

@@ -13,15 +13,15 @@ medians) on each thread count (``numba.set_num_threads``, which the compiled ker
 ``minidiff.compile`` follow too):
 
 * ``albedo``: the red wall's albedo (the hand-written compiled replay,
-  ``render.path.adjoint``);
+  ``render.path.twin.adjoint``);
 * ``light_position``, ``block_vertices``, ``sphere_centre``, ``camera_position``: the
-  replay one depth at a time (``render.path.replay``), its windows compiled
-  (``render.path.window``) where they apply (here: everywhere);
+  replay one depth at a time (``render.path.gradient.replay``), its windows compiled
+  (``render.path.gradient.window``) where they apply (here: everywhere);
 * ``light_position_secondary``: the light's position with ``antialias="secondary"``
   (the soft shadows' boundary term);
-* ``forward``: the image alone (the compiled kernel, ``render.path.kernel``);
+* ``forward``: the image alone (the compiled kernel, ``render.path.twin.kernel``);
 * ``sampler``: the reference sampler's decisions for the image's paths
-  (``PathSampler.sample``: the rays, and its compiled choices, ``render.path.choices``),
+  (``PathSampler.sample``: the rays, and its compiled choices, ``render.path.sample.choices``),
   which the tape's gradient and the secondary term's continued paths use;
 * ``wavefront``: the image's radiance without the kernel: the sampler's decisions, then
   the replay's compiled windows summing each path's radiance (``replay.radiance_of``).
@@ -42,9 +42,9 @@ import timing
 
 import minidiff as md
 from render.path import render_path
+from render.path.gradient.replay import radiance_of
 from render.path.integrator import RR_DEPTH
-from render.path.replay import radiance_of
-from render.path.tracer import PathSampler
+from render.path.sample.tracer import PathSampler
 from render.scene.camera import camera_frame
 from render.scene.cornell import cornell_box
 from render.scene.placement import placed

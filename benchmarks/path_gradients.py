@@ -21,7 +21,7 @@ agree seed by seed to rounding. The light's position and the wall's vertex move 
 shadows' (secondary visibility) in the room with blocks; where the light is in view, its
 outline (primary visibility). The camera's position and the sphere's centre move
 silhouettes (primary visibility), the sphere its shadow too. Rows with ``antialias`` =
-boundary add primary visibility's boundary term (``render.path.edges``); what no row
+boundary add primary visibility's boundary term (``render.path.boundary.primary``); what no row
 includes is secondary visibility's (shadows, indirect occlusion), and the differences
 measure it. The camera looks at the lower part of the room unless ``light_in_view``.
 """

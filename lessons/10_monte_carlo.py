@@ -42,9 +42,9 @@ import minidiff as md
 from minidiff import buffers
 from render.inverse.plot import line_figure
 from render.path import render_path, replay_gradient
-from render.path.emitters import polygon_irradiance
-from render.path.random import uniform
-from render.path.sampling import cosine_hemisphere
+from render.path.sample.emitters import polygon_irradiance
+from render.path.sample.random import uniform
+from render.path.sample.sampling import cosine_hemisphere
 from render.scene.cornell import cornell_box
 
 # This lesson's figures go to out/lessons/10_monte_carlo/ (or under $LESSONS_OUT).
@@ -60,10 +60,10 @@ lesson_start = time.perf_counter()
 #
 # * **uniform** directions on the hemisphere, `p = 1/(2π)`: each sample is
 #   `2π cos² θ`;
-# * **cosine-weighted** directions, `p = cos θ / π` (`render/path/sampling.py`'s
+# * **cosine-weighted** directions, `p = cos θ / π` (`render/path/sample/sampling.py`'s
 #   `cosine_hemisphere`, Malley's method): each sample is `π cos θ`, smoother.
 #
-# The random numbers come from `render.path.random.uniform(seed, ids, dimension)`, a hash
+# The random numbers come from `render.path.sample.random.uniform(seed, ids, dimension)`, a hash
 # of three integers: the same (seed, id, dimension) gives the same number wherever and in
 # whatever order it is computed. That is how the path tracer makes the same image with any
 # number of threads, and how its gradient pass can *replay* a sample exactly (below).
@@ -131,7 +131,7 @@ for kind, values in rms.items():
 # A square lamp of side `2a` at height 1 above our point, facing down, radiance 1. Its
 # irradiance has a closed form (Lambert's polygon formula: `E = ½ Σ γ_k n·(v_k × v_k+1)
 # / |v_k × v_k+1|`, γ_k the angle the edge k subtends, v the unit vectors to the corners;
-# `render.path.emitters.polygon_irradiance`, which the library's tests also check its area
+# `render.path.sample.emitters.polygon_irradiance`, which the library's tests also check its area
 # lights against). Three estimators; the first two take one sample, the third two:
 #
 # * **BSDF sampling**: a cosine-weighted direction; it counts `π L_e` if it hits the lamp,
@@ -243,7 +243,7 @@ largest_bias = max(abs(b) for b, _ in lamp_errors.values())
 # MIS costs at most 1.5 times the standard deviation here (2.2 times the samples):
 # robustness, not a free lunch.
 #
-# The path tracer (`render/path/tracer.py`) does exactly this at every bounce: one NEE
+# The path tracer (`render/path/sample/tracer.py`) does exactly this at every bounce: one NEE
 # point on the area lights and one BSDF direction, MIS-weighted with the power heuristic;
 # point and directional lights, which no direction can hit, by NEE alone.
 #
@@ -299,8 +299,8 @@ print(f"X = 1: mean {coin_only.mean():.4f}, variance {coin_variance:.4f} (predic
 # only `0.249` <!-- check: traced_share --> of the paths. Here that is a bad trade (13 times
 # the variance for a quarter of the cost); it is a good one where `X` is small compared
 # with the rest of the pixel's light, which is why roulette is switched on only deep in a
-# path, and why `q` follows what the path still carries. In `render/path/kernel.py` (and
-# its NumPy reference, `render/path/tracer.py`), from vertex `rr_depth` on (5 by default,
+# path, and why `q` follows what the path still carries. In `render/path/twin/kernel.py` (and
+# its NumPy reference, `render/path/sample/tracer.py`), from vertex `rr_depth` on (5 by default,
 # as in Mitsuba 3), a path continues with probability `q` = the product of the mean
 # reflectances of the surfaces it has met (an estimate of its throughput), clamped to
 # [0.05, 0.95] (`MIN_SURVIVAL`, `MAX_SURVIVAL` in `tracer.py`), and what it gathers after
@@ -406,7 +406,7 @@ print(f"d sum(W * I) / d emission: tape {tape_gradient.round(6)}, same-seed cent
 # always upward. `render.path.replay_gradient` therefore renders the image with `seed` and
 # replays the paths for the gradient with `seed_grad`; left out, `seed_grad` is `seed + 1`
 # (`render/path/integrator.py`). One more is enough because no number comes from a running
-# generator: each is a hash of (seed, path id, dimension) (`render/path/random.py`:
+# generator: each is a hash of (seed, path id, dimension) (`render/path/sample/random.py`:
 # SplitMix64's finaliser applied to the seed, then again after the path id and the
 # dimension are folded in). A seed one higher changes the key from the first step, so the
 # same path ids draw an unrelated stream, not a shifted copy of the old one; the cell below
@@ -545,7 +545,7 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 #    heuristic's for both lamps.
 # 4. **Variance reduction for a gradient.** A pixel's value `I(θ) = ∫₀¹ e^(θx) dx` and its
 #    derivative `I'(θ) = ∫₀¹ x e^(θx) dx`, estimated at `θ = 1.5` as the mean of
-#    `x e^(θx)` over uniform `x` (`render.path.random.uniform`). At equal cost (the same
+#    `x e^(θx)` over uniform `x` (`render.path.sample.random.uniform`). At equal cost (the same
 #    number of evaluations of the integrand), reduce its variance (a) with *antithetic*
 #    pairs, `x` and `1 − x`, whose terms move in opposite directions; (b) with a *control
 #    variate*, a function `g` close to the integrand whose mean you know (its Taylor

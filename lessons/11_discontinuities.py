@@ -166,7 +166,7 @@ supersampled_error_512 = supersampled_fd[512]
 #   `render/edges/boundary/`): every edge that can be a silhouette or crease, cut into
 #   pieces per pixel, one quadrature point per piece, occlusion tested with a ray. Exact
 #   for straight edges up to the quadrature; for a Monte Carlo jump, the path integrator's
-#   `render/path/edges.py` (lesson 10) traces both sides.
+#   `render/path/boundary/primary.py` (lesson 10) traces both sides.
 # * **Pairs of samples** (nvdiffrast's `antialias`, Laine, Hellsten, Karras, Seol,
 #   Lehtinen, Aila, SIGGRAPH Asia 2020; this library's `antialias=True`): where two
 #   neighbouring samples see different surfaces, blend them by where the edge crosses the

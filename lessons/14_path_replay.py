@@ -32,7 +32,7 @@ from scipy.integrate import quad
 import minidiff as md
 from minidiff import buffers
 from render.path import render_path
-from render.path.random import uniform
+from render.path.sample.random import uniform
 from render.scene.cornell import cornell_box
 
 # This lesson's figures go to out/lessons/14_path_replay/ (or under $LESSONS_OUT).
@@ -50,14 +50,14 @@ lesson_start = time.perf_counter()
 # `render_path(..., gradient="tape")` does exactly that. The library's default,
 # `gradient="replay"`, renders the image with the compiled kernel and hands the tape one
 # node; its backward *replays* the paths (below) either in the compiled kernel
-# (`render/path/adjoint.py`: when only materials, lights' strengths or the environment are
-# differentiated) or one depth at a time (`render/path/replay.py`: anything else, such as a
+# (`render/path/twin/adjoint.py`: when only materials, lights' strengths or the environment are
+# differentiated) or one depth at a time (`render/path/gradient/replay.py`: anything else, such as a
 # light's position). One depth at a time means *windows*: window `k` computes only what
 # vertex `k` of the batch's paths adds and what its bounce multiplies by (which needs
 # vertices `k − 1`, `k` and `k + 1`), takes its share of the gradient with its own
 # `backward`, and is freed before window `k + 1` is built (section 3 says what it takes
 # from the rest of the path). A window is one call of a compiled function
-# (`render/path/window.py`: the readable formulas of the tape, traced by lesson 16's
+# (`render/path/gradient/window.py`: the readable formulas of the tape, traced by lesson 16's
 # compiler, forward and VJP in parallel over the paths); where that does not apply (a
 # mirror, a texture) it is a fresh tape.
 #
@@ -234,7 +234,7 @@ save_and_show(figure, OUT / "memory.png")
 # backpropagation estimated it with a new, independent path from every vertex (a cost
 # quadratic in the depth). **Path replay backpropagation** (Vicini et al. 2021) instead
 # traces the *same* path again, from the same random numbers (the library's counter-based
-# generator, `render/path/random.py`, gives every number from (seed, path, dimension), so
+# generator, `render/path/sample/random.py`, gives every number from (seed, path, dimension), so
 # a replay draws exactly what the render drew), and gets `R_k` from the path's own total:
 # after subtracting what the vertices up to `k` added, what remains is `β_k F_k R_k`.
 #
@@ -335,7 +335,7 @@ print(f"replay against the tape, Cornell box: {library_replay_difference:.1e} (r
 # therefore gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}`, over a few
 # numbers kept per vertex of the one path being replayed; the replay by windows divides,
 # and where a factor is 0 it gathers `R_k` from the later windows and builds that window
-# again at the end (`docs/path_tracing.md`, `render/path/replay.py`). Mitsuba's `prb`
+# again at the end (`docs/path_tracing.md`, `render/path/gradient/replay.py`). Mitsuba's `prb`
 # divides and takes the inverse of a zero as 0, which drops that term. Exercise 1 asks
 # why that matters.
 #
@@ -381,7 +381,7 @@ variance_ratio = float(detached.var() / attached.var())
 # map must be differentiable, and the samples move, so visibility can change under them).
 # The wrong one gives 0.
 #
-# The library is **detached**: `render/path/transport.py` writes every sampled vertex as a
+# The library is **detached**: `render/path/gradient/transport.py` writes every sampled vertex as a
 # fixed place on its surface and every density as a constant, and differentiates `f`,
 # the cosines and the change of measure. A material's lobe then moves under its fixed
 # samples, and the direction's *density* never needs a derivative. Mitsuba's `prb` is

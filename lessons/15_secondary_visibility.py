@@ -28,7 +28,7 @@
 #
 # This lesson measures what a renderer that differentiates its samples gets for a soft
 # shadow (nothing), writes the boundary term at one floor point by hand (three ways),
-# checks the library's estimate of it (`render/path/secondary.py`,
+# checks the library's estimate of it (`render/path/boundary/secondary.py`,
 # `antialias="secondary"`) on a whole image against central differences and against a
 # closed form, and places the method among its alternatives.
 
@@ -43,10 +43,10 @@ from matplotlib.figure import Figure
 import minidiff as md
 import render
 from render.path import render_path
-from render.path.emitters import polygon_irradiance
-from render.path.random import uniform
-from render.path.silhouettes import Curves, pick_reference
-from render.path.tracer import PathSampler
+from render.path.boundary.silhouettes import Curves, pick_reference
+from render.path.sample.emitters import polygon_irradiance
+from render.path.sample.random import uniform
+from render.path.sample.tracer import PathSampler
 from render.scene.camera import camera_directions, plain_frame, project
 from render.scene.cornell import grid_quad
 from render.scene.placement import placed
@@ -188,7 +188,7 @@ print(f"central differences: {truth:.4f} ± {truth_se:.4f} (seeds: {np.round(fd_
 # form. Seen from `x`, the occluder's square projects onto the lamp's plane as a larger
 # square (scaled by height 1 over height 0.5), and the lamp's hidden part is the overlap of
 # two rectangles, another rectangle. Lambert's polygon formula (lesson 10,
-# `render.path.emitters.polygon_irradiance`) gives the integral of `G` over each:
+# `render.path.sample.emitters.polygon_irradiance`) gives the integral of `G` over each:
 # `E = L_e (P(lamp) − P(overlap))`.
 
 
@@ -280,12 +280,13 @@ save_and_show(figure, OUT / "one_point.png")
 #
 #     φ(x') = (x' − x) · ((a − x) × (b − x)) ,
 #
-# positive on one side of that plane and negative on the other (`render/path/silhouettes.py`,
-# `level_set`). Write the integrand as `F₊ H(φ) + F₋ (1 − H(φ))`, with `H` the step function and
-# `F₊`, `F₋` the integrand on the two sides (here `L_e G` on the side the lamp is seen,
-# 0 on the occluder's). Differentiating under the integral, `H'(φ) = δ(φ)`, and the delta
-# function turns the area integral into one along the curve (lesson 11's Reynolds
-# transport theorem in its level-set form):
+# positive on one side of that plane and negative on the other
+# (`render/path/boundary/silhouettes.py`, `level_set`). Write the integrand as
+# `F₊ H(φ) + F₋ (1 − H(φ))`, with `H` the step function and `F₊`, `F₋` the integrand on the
+# two sides (here `L_e G` on the side the lamp is seen, 0 on the occluder's).
+# Differentiating under the integral, `H'(φ) = δ(φ)`, and the delta function turns the area
+# integral into one along the curve (lesson 11's Reynolds transport theorem in its
+# level-set form):
 #
 #     dE/dθ = ∫_lamp ∂F/∂θ dA  +  ∫_curve (F₊ − F₋) (∂φ/∂θ) / |∇_S φ| dl .
 #
@@ -297,7 +298,7 @@ save_and_show(figure, OUT / "one_point.png")
 # **Which edges.** Only silhouettes seen from `x` make `V` jump: an edge whose two faces
 # lie on one side of the plane through `x` and the edge (a border edge always). An edge
 # between a face `x` sees and a face it does not see is on the outline; an edge between two
-# faces it sees is inside the outline. `render.path.silhouettes.Curves` lists every
+# faces it sees is inside the outline. `render.path.boundary.silhouettes.Curves` lists every
 # candidate curve of the scene (mesh edges, spheres' outlines) and, for any *apex* (the
 # point the edges are seen from: here the floor point `x`; in the renderer each path
 # vertex), the angle each subtends there, 0 where it is no silhouette:
@@ -403,10 +404,10 @@ nonzero_edges = sum(t != 0 for t in edge_terms.values())
 # 2, the scale 1 / 0.5, uncovering a strip of `L_e G` per unit length.)
 #
 # **The estimator.** A renderer cannot integrate along every curve at every shading point;
-# `render/path/secondary.py` takes one sample per path vertex:
+# `render/path/boundary/secondary.py` takes one sample per path vertex:
 #
 # 1. pick a silhouette with probability proportional to the angle it subtends at `x`, and a
-#    point `m` on it uniformly *in that angle* (`render/path/silhouettes.py`; uniform along
+#    point `m` on it uniformly *in that angle* (`render/path/boundary/silhouettes.py`; uniform along
 #    the edge, points near an apex close to the edge would carry weights growing as one over
 #    the distance);
 # 2. trace the ray from `x` through `m` to the first surface beyond it, `x'` (`_cross`);

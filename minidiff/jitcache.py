@@ -35,7 +35,7 @@ _BASE = Path(__file__).resolve().parent.parent
 
 
 def _module_file(dotted: str) -> Path | None:
-    """The source file of project module ``dotted`` (``render.path.scalar``), if any."""
+    """The source file of project module ``dotted`` (``render.path.twin.scalar``), if any."""
     parts = dotted.split(".")
     if parts[0] not in PACKAGES:
         return None

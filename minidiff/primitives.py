@@ -473,7 +473,7 @@ def detach(x: Any) -> Tensor:
     """x's value as a constant: d/dx = 0 (PyTorch's ``detach``, JAX's ``stop_gradient``).
 
     ``x / detach(x)`` is 1 with the derivative dx / x: how an estimator keeps a factor's
-    derivative without its value (a change of measure, ``render.path.transport``). Inside
+    derivative without its value (a change of measure, ``render.path.gradient.transport``). Inside
     a compiled function it is the same value with no slope."""
     return Tensor(as_tensor(x)._data)
 

@@ -115,7 +115,7 @@ def render(
         background as a constant environment (``render.path.render_path``: ``spp`` paths
         per pixel, any integer >= 1, and its options ``max_depth``, ``seed``,
         ``rr_depth``, ``batch_spp``, ``edge_spp`` as keywords; ``antialias`` may be
-        False or "boundary" (primary visibility's boundary term, ``render.path.edges``);
+        False or "boundary" (primary visibility's boundary term, ``render.path.boundary.primary``);
         the other options above belong to the direct renderer and must keep their
         defaults).
 

@@ -59,6 +59,32 @@ def test_no_stage_imports_from_a_later_one():
     assert wrong == []
 
 
+#: The path integrator's concerns in order (``render/path/``): where paths go (off the
+#: tape), what they carry and its gradient, the hand-written twin of both, the boundary
+#: terms, and the integrator that chooses among them.
+PATH_STAGES = ["sample", "gradient", "twin", "boundary", "integrator", "path"]
+
+
+def path_stage_of(module: str) -> int:
+    parts = module.split(".")
+    return PATH_STAGES.index(parts[2] if len(parts) > 2 else "path")
+
+
+def test_the_path_integrator_imports_its_concerns_in_order():
+    """``render/path/`` is split by concern: the sampler imports none of the others, the
+    gradient routes only the sampler, the twin the sampler alone, the boundary terms any
+    of those, and only ``integrator`` all of them."""
+    path_modules = {m: d for m, d in render_imports().items() if m.startswith("render.path")}
+    assert {m.split(".")[2] for m in path_modules if m.count(".") >= 2} == set(PATH_STAGES[:-1])
+    wrong = [
+        f"{module} imports {dep}"
+        for module, deps in path_modules.items()
+        for dep in deps
+        if dep.startswith("render.path") and path_stage_of(dep) > path_stage_of(module)
+    ]
+    assert wrong == []
+
+
 def test_no_import_cycle_inside_render():
     graph = render_imports()
     state: dict[str, int] = {}  # 1: on the current path, 2: done

@@ -17,8 +17,8 @@ import numpy as np
 
 import minidiff as md
 from render.path import render_path
-from render.path.random import uniform
-from render.path.sampling import cosine_hemisphere
+from render.path.sample.random import uniform
+from render.path.sample.sampling import cosine_hemisphere
 from render.scene.cornell import cornell_box
 
 # %% [markdown]

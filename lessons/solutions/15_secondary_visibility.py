@@ -22,8 +22,8 @@ import numpy as np
 
 import minidiff as md
 import render
-from render.path.silhouettes import Curves
-from render.path.tracer import PathSampler
+from render.path.boundary.silhouettes import Curves
+from render.path.sample.tracer import PathSampler
 from render.scene.camera import camera_directions, plain_frame
 from render.scene.cornell import box_mesh, grid_quad
 from render.scene.placement import placed

@@ -18,6 +18,6 @@
 
 The boundary term asks what the camera sees on either side of a curve through a
 ``boundary.radiance.SideRadiance``: the direct renderer's shading (``DirectRadiance``), or
-the path integrator's path-traced estimate (``render.path.edges.PathRadiance``, which
+the path integrator's path-traced estimate (``render.path.boundary.primary.PathRadiance``, which
 reuses the term for primary visibility through that interface).
 """

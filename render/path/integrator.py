@@ -1,14 +1,14 @@
 """The path integrator: an image from sampled paths, and its gradient.
 
 ``render_path`` renders ``spp`` paths per pixel. Nothing differentiated: the compiled
-kernel's image (``render.path.kernel``). With ``gradient="tape"`` the reference samples
+kernel's image (``render.path.twin.kernel``). With ``gradient="tape"`` the reference samples
 batches of ``batch_spp`` samples and every batch stays on the tape until the caller's
 ``backward``: memory grows with spp x depth (plain reverse mode, the readable reference).
 By default (``gradient="replay"``) the image is the kernel's, one node on the tape whose
 VJP (``_backpropagate``) replays the image's paths with the caller's dL/dimage: compiled
-(``render.path.adjoint``) when only materials, lights' strengths and colours and the
+(``render.path.twin.adjoint``) when only materials, lights' strengths and colours and the
 environment are differentiated, else on the tape one depth at a time
-(``render.path.replay``). ``backward`` gives the tape's gradient (to rounding), and
+(``render.path.gradient.replay``). ``backward`` gives the tape's gradient (to rounding), and
 memory does not grow with spp. An image whose paths the replay on the tape takes in one go
 (one batch of at most ``REPLAY_PATHS`` paths) keeps their records from the render to the
 ``backward`` (``_KeptPaths``), which its replay would make anyway: its paths are traced
@@ -36,13 +36,13 @@ import minidiff as md
 from minidiff import buffers
 from minidiff.tensor import record
 from render.edges.terms import differentiated, on_every_parameter
-from render.path import adjoint, kernel
-from render.path.edges import add_path_boundary_term
-from render.path.random import check_seed
-from render.path.replay import backpropagate_paths
-from render.path.secondary import add_secondary_term, backpropagate_secondary
-from render.path.tracer import PathSampler, check_count, check_path_options
-from render.path.transport import path_radiance
+from render.path.boundary.primary import add_path_boundary_term
+from render.path.boundary.secondary import add_secondary_term, backpropagate_secondary
+from render.path.gradient.replay import backpropagate_paths
+from render.path.gradient.transport import path_radiance
+from render.path.sample.random import check_seed
+from render.path.sample.tracer import PathSampler, check_count, check_path_options
+from render.path.twin import adjoint, kernel
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame
 from render.scene.placement import placed
@@ -80,10 +80,10 @@ def render_path(
 
     antialias: False (default): no edge term, the motion of silhouettes and shadows has no
     gradient; "boundary": add the boundary terms of primary and secondary visibility (zero
-    in value): the camera's silhouettes (``render.path.edges``, its jumps estimated with
+    in value): the camera's silhouettes (``render.path.boundary.primary``, its jumps estimated with
     ``edge_spp`` paths per side of each edge point; None: ``spp``) and the edges of
     shadows and indirect occlusion seen from the paths' vertices
-    (``render.path.secondary``, ``spp`` boundary paths per pixel); "primary" or
+    (``render.path.boundary.secondary``, ``spp`` boundary paths per pixel); "primary" or
     "secondary": one of the two.
 
     gradient: how ``backward`` reaches the parameters (reverse mode; forward mode's tangents
@@ -113,7 +113,7 @@ def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_s
     world = placed(scene)
     sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     if not differentiated(scene) and kernel.applies(world):
-        # Nothing to differentiate: the compiled kernel alone (render.path.kernel).
+        # Nothing to differentiate: the compiled kernel alone (render.path.twin.kernel).
         if kept is None:
             return md.tensor(kernel.render_image(sampler))
         return md.tensor(kept.image(sampler))
@@ -291,7 +291,7 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     parameter of ``scene`` that requires grad, as ``backward`` through ``_render_path``'s
     tape would, by replaying the image's paths (the same path ids and random numbers under
     ``seed``): compiled when only materials, lights' strengths and colours and the
-    environment require grad (``render.path.adjoint``), else on the tape, a batch of
+    environment require grad (``render.path.twin.adjoint``), else on the tape, a batch of
     ``batch_spp`` samples at a time (from ``kept``'s records where it holds them). A
     parameter the image cannot depend on gets zeros, as from the compiled replay, whichever
     way computed the others."""
@@ -325,7 +325,7 @@ def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int,
                            kept: _KeptPaths | None = None) -> None:  # fmt: skip
     """``_backpropagate``'s tape, a batch of ``batch_spp`` samples at a time. With the
     kernel (``kernel.applies``): its paths and radiance, replayed one depth at a time
-    (``render.path.replay``: a tape flat in depth; the paths' records grow with it), at
+    (``render.path.gradient.replay``: a tape flat in depth; the paths' records grow with it), at
     most REPLAY_PATHS paths at a time (memory bounded whatever the image's size); else the
     reference sampler's paths, each batch on one tape that its ``backward`` frees before
     the next batch is rendered. ``kept``: the render's records of the paths, if it kept

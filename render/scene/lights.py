@@ -9,7 +9,7 @@ A light answers, for the stages that trace, shade and differentiate edges, in on
   ``location()``: where it is, if it is anywhere (the shadow rays' offset, the light's view);
 * ``shadow_key()``: what its shadow rays depend on (``render.scene.cache``);
 * ``pack()`` / ``shading_pack()``: its kind code and values for the hand-written kernels
-  (``render.edges.boundary.shadow_tracing``, the path integrator's ``render.path.packed``);
+  (``render.edges.boundary.shadow_tracing``, the path integrator's ``render.path.twin.packed``);
 * ``edge_plane(v_i, v_j)``: the plane an occluder's edge sweeps in its light, the shadow's
   border; ``ray_to(points)``: its ray to points, for a sphere occluder; ``sphere_outline``:
   a sphere's silhouette as the light sees it (``render.edges``, ``render.path``).
@@ -114,7 +114,7 @@ class Light(HasFields, ABC):
         directional light's direction of travel as given (``unit``: divided by its length)."""
 
     def shading_pack(self) -> tuple[int, np.ndarray, float]:
-        """(KIND, (3,) float64, strength) for ``render.path.packed``: the position, or the
+        """(KIND, (3,) float64, strength) for ``render.path.twin.packed``: the position, or the
         unit vector towards the light as ``incidence`` computes it; the intensity or
         irradiance. Only for a light with ``compiled_shading`` (the others are shaded on
         the tape only)."""

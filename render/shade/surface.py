@@ -10,7 +10,7 @@ One surface interaction serves both integrators: ``surface_at`` builds a ``Surfa
 normals, UVs, and either the rays that found the points or the area element of points placed
 on their primitive) for meshes and spheres; the direct renderer shades it
 (``render.shade.hits``, ``render.shade.mirrors``), the path integrator's vertices are
-Surfaces too (``render.path.transport.Vertex``). ``geometric_normals`` is the plain normal
+Surfaces too (``render.path.gradient.transport.Vertex``). ``geometric_normals`` is the plain normal
 the tracers decide with.
 """
 

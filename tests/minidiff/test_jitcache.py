@@ -82,10 +82,10 @@ def test_dependencies_follow_imports_transitively() -> None:
     import (the lights, the BVH), and not the modules that only use it."""
     root = Path(minidiff.__file__).resolve().parent.parent
     names = {
-        str(p.relative_to(root)) for p in jitcache.dependencies(root / "render/path/kernel.py")
+        str(p.relative_to(root)) for p in jitcache.dependencies(root / "render/path/twin/kernel.py")
     }
-    assert {"render/path/scalar.py", "render/path/packed.py", "render/scene/lights.py",
-            "render/trace/intersect.py", "render/path/kernel.py"} <= names  # fmt: skip
+    assert {"render/path/twin/scalar.py", "render/path/twin/packed.py", "render/scene/lights.py",
+            "render/trace/intersect.py", "render/path/twin/kernel.py"} <= names  # fmt: skip
     assert "render/path/integrator.py" not in names and "render/renderer.py" not in names
 
 
@@ -131,17 +131,22 @@ def test_the_import_scan_finds_every_import_the_parser_finds(tmp_path: Path, mon
         scanned = set(jitcache._imports(*jitcache._file_key(path)))
         assert _imports_by_ast(path) <= scanned, path
     forms = (
-        "import render.path.scalar as s, minidiff.kernels\n"
+        "import render.path.twin.scalar as s, minidiff.kernels\n"
         "from .. import kernels\n"
         "from ..scene import (\n    lights,  # a comment\n    camera as c,\n)\n"
         "from render.trace import \\\n    bvh, intersect\n"
-        "def f():\n    from render.path import packed\n"
+        "def f():\n    from render.path.twin import packed\n"
     )
     # The probe and the modules it names, in a tree of their own (not the project's).
-    names = ["render/path/scalar.py", "minidiff/kernels.py", "render/scene/lights.py",
+    names = ["render/path/twin/scalar.py", "minidiff/kernels.py", "render/scene/lights.py",
              "render/scene/camera.py", "render/trace/bvh.py", "render/trace/intersect.py",
-             "render/path/packed.py"]  # fmt: skip
-    for name in [*names, "render/__init__.py", "render/path/__init__.py"]:
+             "render/path/twin/packed.py"]  # fmt: skip
+    for name in [
+        *names,
+        "render/__init__.py",
+        "render/path/__init__.py",
+        "render/path/twin/__init__.py",
+    ]:
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).touch()
     probe = tmp_path / "render" / "path" / "probe.py"

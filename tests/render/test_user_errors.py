@@ -24,8 +24,9 @@ import pytest
 
 import minidiff as md
 import render
-from render.path import kernel, render_path, replay_gradient
-from render.path.tracer import PathSampler
+from render.path import render_path, replay_gradient
+from render.path.sample.tracer import PathSampler
+from render.path.twin import kernel
 from render.scene.cornell import box_mesh, cornell_box
 from render.scene.placement import placed
 from tests.render_helpers import QUAD_FACES

@@ -73,7 +73,7 @@ The package, one job per module:
 * ``term``: the loop over the kinds (``boundary_points``), the term on the tape
   (``boundary_term``), both for one render (``add_curve_terms``).
 
-``render.edges.terms`` lists the direct renderer's kinds; ``render.path.edges`` hands the
+``render.edges.terms`` lists the direct renderer's kinds; ``render.path.boundary.primary`` hands the
 same term its own ``SideRadiance`` (path-traced) and the kinds of primary visibility.
 """
 

@@ -6,7 +6,7 @@ a ``SideRadiance``, in one of two forms: ``seen`` where the primitive seen on a 
 (a mesh edge's face, one of two crossing triangles: shaded at the curve's point), ``along``
 where it is not (a ray ``EPSILON`` pixels beside the curve, traced). The direct renderer's
 is ``DirectRadiance`` (its own shading of the rays either side); the path
-integrator's is ``render.path.edges.PathRadiance`` (path-traced estimates).
+integrator's is ``render.path.boundary.primary.PathRadiance`` (path-traced estimates).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Path replay compiled (``render.path.adjoint``, ``kernel.replay_gradient``): when only
+"""Path replay compiled (``render.path.twin.adjoint``, ``kernel.replay_gradient``): when only
 materials, lights' strengths and colours and the environment require grad, ``backward`` on
 ``render_path``'s image runs the kernel's path replay instead of a tape. Its gradient must
 be the tape's (``gradient="tape"``, the same seed) to rounding, for linear and non-linear
@@ -29,8 +29,8 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from minidiff import buffers
-from render.path import adjoint, kernel
-from render.path.tracer import PathSampler
+from render.path.sample.tracer import PathSampler
+from render.path.twin import adjoint, kernel
 from render.scene.cornell import box_mesh, cornell_box
 from render.scene.placement import placed
 from tests.render.path.test_kernel import UncompiledPointLight, drawn_view
@@ -330,8 +330,8 @@ def test_an_albedo_and_a_vertex_take_the_tape():
 #: of 64) on 1 and 2 threads in one process.
 _THREADS = """
 import numba, numpy as np
-from render.path import kernel
-from render.path.tracer import PathSampler
+from render.path.twin import kernel
+from render.path.sample.tracer import PathSampler
 from render.scene.placement import placed
 from tests.render.path.test_replay import every_kind
 sampler = PathSampler(placed(every_kind(24)), 2, 5, 2, 4)

@@ -1,5 +1,5 @@
-"""The sampler's compiled choices (``render.path.choices``) and the densities they use
-(``render.path.sampling``): the compiled call is its formulas run primitive by primitive,
+"""The sampler's compiled choices (``render.path.sample.choices``) and the densities they use
+(``render.path.sample.sampling``): the compiled call is its formulas run primitive by primitive,
 and every density is the density of the directions drawn with it."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minidiff as md
-from render.path import sampling
 from render.path.integrator import _batch_paths
-from render.path.tracer import PathSampler
+from render.path.sample import sampling
+from render.path.sample.tracer import PathSampler
 from render.scene.cornell import cornell_box
 from render.scene.placement import placed
 from tests.render.path.test_kernel import assert_same_decisions, small_scenes

@@ -1,4 +1,4 @@
-"""Primary visibility's boundary term in the path integrator (``render.path.edges``): its
+"""Primary visibility's boundary term in the path integrator (``render.path.boundary.primary``): its
 jumps against the direct renderer's where both are exact, the camera's gradient against
 central differences of high-spp renders, replay against the tape, bad input."""
 
@@ -170,7 +170,7 @@ def test_both_integrators_radiances_are_side_radiances():
     import inspect
 
     from render.edges.boundary.radiance import DirectRadiance, SideRadiance
-    from render.path.edges import PathRadiance
+    from render.path.boundary.primary import PathRadiance
 
     for method in ("seen", "along"):
         want = inspect.signature(getattr(SideRadiance, method))

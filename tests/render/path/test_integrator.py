@@ -13,7 +13,7 @@ import minidiff as md
 import render
 from render.inverse.shape import icosphere
 from render.path import render_path, replay_gradient
-from render.path.emitters import polygon_irradiance
+from render.path.sample.emitters import polygon_irradiance
 from render.scene.cornell import cornell_box, grid_quad
 
 # --------------------------------------------------------------------------------------

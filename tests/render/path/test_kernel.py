@@ -1,6 +1,6 @@
-"""The compiled path tracer (``render.path.kernel``) against the readable reference: the
-NumPy sampler (``render.path.tracer.PathSampler``) for every decision of every path, and the
-radiance on the tape (``render.path.transport.path_radiance``) for what each path carries.
+"""The compiled path tracer (``render.path.twin.kernel``) against the readable reference: the
+NumPy sampler (``render.path.sample.tracer.PathSampler``) for every decision of every path, and the
+radiance on the tape (``render.path.gradient.transport.path_radiance``) for what each path carries.
 
 The kernel must make the same decisions from the same random numbers (integers and flags
 exactly, coordinates and weights to rounding) and compute the same radiance up to the order
@@ -22,9 +22,10 @@ from hypothesis import strategies as st
 
 import minidiff as md
 import render
-from render.path import kernel, render_path
-from render.path.tracer import CAMERA, MIRROR, PathBatch, PathSampler
-from render.path.transport import path_radiance
+from render.path import render_path
+from render.path.gradient.transport import path_radiance
+from render.path.sample.tracer import CAMERA, MIRROR, PathBatch, PathSampler
+from render.path.twin import kernel
 from render.scene.camera import camera_frame
 from render.scene.cornell import box_mesh, cornell_box
 from render.scene.placement import placed
@@ -258,8 +259,8 @@ def test_drawn_scenes_give_the_samplers_decisions_and_the_tapes_radiance(
 #: blocks of 64: two jobs share them) and 288 paths (five blocks).
 _THREADS = """
 import numba, numpy as np
-from render.path import kernel
-from render.path.tracer import PathSampler
+from render.path.twin import kernel
+from render.path.sample.tracer import PathSampler
 from render.scene.cornell import cornell_box
 from render.scene.placement import placed
 sampler = PathSampler(placed(cornell_box(12, 12)), 2, 5, 2, 4)

@@ -1,4 +1,4 @@
-"""The counter-based random numbers (``render.path.random``): SplitMix64's published
+"""The counter-based random numbers (``render.path.sample.random``): SplitMix64's published
 finaliser, folded over (seed, path, dimension), the same bits on any thread count."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from render.path.random import mix, uniform
+from render.path.sample.random import mix, uniform
 
 MASK = 2**64 - 1
 

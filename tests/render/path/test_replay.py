@@ -1,6 +1,6 @@
 """The path integrator's default gradient: ``backward`` on a path-traced image replays its
 samples a batch at a time (``render_path(..., gradient="replay")``) instead of keeping them
-all on the tape. Its image is the compiled kernel's (``render.path.kernel``), the tape's to
+all on the tape. Its image is the compiled kernel's (``render.path.twin.kernel``), the tape's to
 rounding (``IMAGE_RTOL``); its gradient is the tape's to rounding for every kind of
 parameter, with the boundary term and in forward mode; its memory must not grow with spp."""
 
@@ -245,7 +245,8 @@ def test_an_image_replayed_in_one_go_traces_its_paths_once(monkeypatch, replay_p
     ``backward`` (``integrator._KeptPaths``), so the kernel traces the paths once, not
     twice; a batch taken in chunks keeps nothing and traces them again. Either way the
     image is the plain render's, bit for bit, and the gradient is the tape's."""
-    from render.path import integrator, kernel
+    from render.path import integrator
+    from render.path.twin import kernel
 
     scene = every_kind()
     weights = np.random.default_rng(6).normal(size=(8, 8, 3))

@@ -1,7 +1,8 @@
-"""Path replay backpropagation (``render.path.replay.backpropagate_paths``): one batch's
+"""Path replay backpropagation (``render.path.gradient.replay.backpropagate_paths``): one batch's
 gradient one depth at a time equals the gradient through the tape of all its depths
-(``render.path.transport.path_radiance``) for every kind of parameter, through mirror chains
-and Russian roulette, and its memory does not grow with ``max_depth`` while the tape's does."""
+(``render.path.gradient.transport.path_radiance``) for every kind of parameter, through mirror
+chains and Russian roulette, and its memory does not grow with ``max_depth`` while the tape's
+does."""
 
 from __future__ import annotations
 
@@ -15,9 +16,9 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from minidiff import buffers
-from render.path.replay import backpropagate_paths
-from render.path.tracer import MIRROR, PathSampler
-from render.path.transport import path_radiance
+from render.path.gradient.replay import backpropagate_paths
+from render.path.gradient.transport import path_radiance
+from render.path.sample.tracer import MIRROR, PathSampler
 from render.scene.camera import camera_frame
 from render.scene.cornell import cornell_box
 from render.scene.placement import placed

@@ -1,8 +1,8 @@
-"""Secondary visibility's boundary term (``render.path.secondary``): soft shadows of an area
-light, a point light's hard shadow seen after a bounce, checked against central differences
+"""Secondary visibility's boundary term (``render.path.boundary.secondary``): soft shadows of
+an area light, a point light's hard shadow seen after a bounce, checked against central differences
 of renders with many more samples (common random numbers), on small scenes where the
 shadow's edge carries most of the derivative (so that a missing or wrong term fails); the
-compiled curve draws (``render.path.silhouettes``) against their NumPy reference; the
+compiled curve draws (``render.path.boundary.silhouettes``) against their NumPy reference; the
 replay against the tape; errors."""
 
 from __future__ import annotations
@@ -15,8 +15,8 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from render.path import render_path
-from render.path.silhouettes import Curves, pick_reference
-from render.path.tracer import PathSampler
+from render.path.boundary.silhouettes import Curves, pick_reference
+from render.path.sample.tracer import PathSampler
 from render.scene.cornell import box_mesh, cornell_box, grid_quad
 from render.scene.placement import placed
 from tests.render_helpers import same_bits_on_one_and_two_threads
@@ -206,7 +206,7 @@ def test_replay_equals_the_tape():
 
 
 def test_chunks_do_not_change_the_gradient(monkeypatch):
-    import render.path.secondary as secondary
+    import render.path.boundary.secondary as secondary
 
     def gradient():
         scene = shadowed_floor("sphere")
@@ -241,7 +241,7 @@ def test_memory_does_not_grow_with_spp(monkeypatch):
     and 1.69 MB at 16, 64 and 256 spp)."""
     import tracemalloc
 
-    import render.path.secondary as secondary
+    import render.path.boundary.secondary as secondary
 
     monkeypatch.setattr(secondary, "CHUNK_PATHS", 512)
 
@@ -264,7 +264,7 @@ def test_vertices_after_a_mirror_are_where_the_tape_puts_them():
     """A vertex reached through a mirror is an apex too: the tape replays its path from
     the camera (``_vertex_points``); its value is the sampler's point, to the offset the
     sampler's rays leave their surfaces by (measured: 4.4e-9)."""
-    import render.path.secondary as secondary
+    import render.path.boundary.secondary as secondary
     from render.scene.camera import camera_frame
 
     scene = shadowed_floor("square")
@@ -325,7 +325,7 @@ def test_compiled_phi_is_the_tapes(monkeypatch, lights):
     or at a light; x' at its place or seen by the camera) gives the gradient phi on the tape
     gives (``_phi``, the same ``level_set``), for every parameter of the Cornell box with its
     blocks (meshes and a sphere)."""
-    from render.path import secondary
+    from render.path.boundary import secondary
 
     scene = cornell_box(10, 10, blocks=True)
     if lights != "area":
@@ -369,7 +369,7 @@ def test_compiled_phi_is_the_tapes(monkeypatch, lights):
 def test_curve_gradient_is_central_differences_of_phi(seed):
     """``Curves.gradient`` (the derivative of ``level_set`` in x', by minidiff) against
     central differences of phi, on the Cornell box's edges and sphere."""
-    from render.path.silhouettes import level_set
+    from render.path.boundary.silhouettes import level_set
 
     curves, _ = cornell_curves()
     rng = np.random.default_rng(seed)

@@ -1,5 +1,5 @@
 """The path integrator's secondary term where several meshes share edges
-(``render.path.silhouettes``: meshes that share an edge are welded into one), as a
+(``render.path.boundary.silhouettes``: meshes that share an edge are welded into one), as a
 multi-material file's meshes do (``render.load_mesh``: one per material).
 
 A closed mesh split into meshes by any partition of its faces must give the gradient of the
@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from render.path import render_path
-from render.path.silhouettes import Curves
-from render.path.tracer import PathSampler
+from render.path.boundary.silhouettes import Curves
+from render.path.sample.tracer import PathSampler
 from render.scene.cornell import box_mesh, cornell_box, grid_quad
 from render.scene.placement import placed
 

@@ -1,4 +1,4 @@
-"""Path replay's compiled windows (``render.path.window``) against the tape.
+"""Path replay's compiled windows (``render.path.gradient.window``) against the tape.
 
 On scenes of triangle meshes without mirrors or textures, ``backward`` on a path-traced
 image replays its paths through one compiled kernel per depth. Its gradient must be the
@@ -15,8 +15,9 @@ from hypothesis import strategies as st
 
 import minidiff as md
 import render
-from render.path import render_path, window
-from render.path.tracer import MIRROR
+from render.path import render_path
+from render.path.gradient import window
+from render.path.sample.tracer import MIRROR
 from render.scene.cornell import box_mesh, cornell_box
 
 #: |compiled - tape| <= GRAD_RTOL * max |tape| per parameter (issue 57: 1e-10). The two
@@ -120,7 +121,7 @@ def test_compiled_windows_give_the_tapes_gradient_for_every_parameter(
 
 def test_windows_take_the_tape_where_they_do_not_apply():
     """A texture or a mirror bounce: the windows are the tape's (``applies`` is False)."""
-    from render.path.tracer import MIRROR, PathSampler
+    from render.path.sample.tracer import MIRROR, PathSampler
     from render.scene.placement import placed
 
     def applies(scene):
@@ -193,9 +194,9 @@ def test_spheres_only_with_the_camera_inside_one(monkeypatch):
 def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
     """``replay.radiance_of`` (the boundary terms' constants, window by window: compiled,
     or on the tape where a mirror bounce is met) equals ``transport.path_radiance``."""
-    from render.path.replay import radiance_of
-    from render.path.tracer import PathSampler
-    from render.path.transport import path_radiance
+    from render.path.gradient.replay import radiance_of
+    from render.path.gradient.transport import path_radiance
+    from render.path.sample.tracer import PathSampler
     from render.scene.camera import camera_frame
     from render.scene.placement import placed
 

@@ -38,7 +38,7 @@ _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(
 
 
 # The hash is discrete work, written once for Numba: the kernels that trace whole paths
-# (``render.path.kernel``) inline these two, and ``uniform`` runs them over arrays.
+# (``render.path.twin.kernel``) inline these two, and ``uniform`` runs them over arrays.
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def mix(z):
     """SplitMix64's step on a uint64 (wrapping arithmetic, as intended)."""

@@ -1,11 +1,11 @@
 """The compiled path tracer's per-path arithmetic (Numba, one path at a time): vectors, the
 sampling densities, the BRDF, the surface at a hit, the textures, and the two ray queries.
 Each function is the scalar twin of a minidiff or tape function named in its docstring
-(``render.path.sampling``, ``render.path.choices``, ``render.shade.lighting``,
+(``render.path.sample.sampling``, ``render.path.sample.choices``, ``render.shade.lighting``,
 ``render.shade.surface``), the same formula in the same order of operations where the
-order matters. (The random numbers are ``render.path.random``'s own Numba hash.)
+order matters. (The random numbers are ``render.path.sample.random``'s own Numba hash.)
 
-The arrays are ``render.path.packed.Packed``'s (each function takes the ones it reads:
+The arrays are ``render.path.twin.packed.Packed``'s (each function takes the ones it reads:
 handed over one by one, not as the whole tuple, which Numba would copy at every call).
 """
 
@@ -16,7 +16,7 @@ import math
 import numba
 import numpy as np
 
-from render.path.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
+from render.path.sample.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
 from render.trace.intersect import closest_hit_ray, make_ray, occluded_ray
 
 
@@ -58,7 +58,7 @@ def _unit(x0, x1, x2):
     return x0 * inv, x1 * inv, x2 * inv
 
 
-# --- random numbers: render.path.random's hash for one path and dimension -------------------
+# --- random numbers: render.path.sample.random's hash for one path and dimension -----------
 
 _LOBE = BOUNCE_DIMENSIONS["lobe"]
 _DIRECTION = BOUNCE_DIMENSIONS["direction"]
@@ -69,7 +69,7 @@ _EMITTER_POINT = BOUNCE_DIMENSIONS["emitter_point"]
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _dim(depth, j):
-    """``render.path.random.bounce_dimension``."""
+    """``render.path.sample.random.bounce_dimension``."""
     return 2 + DIMENSIONS_PER_BOUNCE * (depth - 1) + j
 
 
@@ -100,7 +100,7 @@ def _put(records, k, row, column, x):
 
 @numba.njit(cache=True, error_model="numpy")
 def _basis(n):
-    """``render.path.sampling.orthonormal_basis`` of one unit normal."""
+    """``render.path.sample.sampling.orthonormal_basis`` of one unit normal."""
     sign = 1.0 if n[2] >= 0 else -1.0
     a = -1.0 / (sign + n[2])
     b = n[0] * n[1] * a
@@ -127,7 +127,7 @@ def _power(p, q):
 
 @numba.njit(cache=True, error_model="numpy")
 def _glossy_pdf(n, view, w, shininess):
-    """``render.path.sampling.blinn_phong_pdf`` of one direction."""
+    """``render.path.sample.sampling.blinn_phong_pdf`` of one direction."""
     h = _divided(view[0] + w[0], view[1] + w[1], view[2] + w[2])
     cos_h = max(_dot(n, h), 0.0)
     vh = abs(_dot(view, h))
@@ -234,7 +234,7 @@ def _look(albedo, specular, maps, texels, o, uv):
 
 @numba.njit(cache=True, error_model="numpy")
 def _point_on(triangles, centers, radii, prim, u1, u2):
-    """NEE's point on an emitter (``render.path.choices``) for one primitive: local, point,
+    """NEE's point on an emitter (``render.path.sample.choices``) for one primitive: local, point,
     unit normal (a uniform point by Turk's square-root warp on a triangle, by Archimedes on
     a sphere)."""
     if prim < triangles.shape[0]:

@@ -3,8 +3,8 @@ arrays.
 
 These choose *where* a path goes (discrete, like visibility: constants on the tape). Every
 density is the one the samples were drawn with, so that an estimate f / p is unbiased;
-``render.path.transport`` recomputes f on the tape and divides by these p as constants.
-The sampler (``render.path.choices``) runs them inside one compiled function per vertex;
+``render.path.gradient.transport`` recomputes f on the tape and divides by these p as constants.
+The sampler (``render.path.sample.choices``) runs them inside one compiled function per vertex;
 called on plain arrays they run primitive by primitive and return minidiff tensors (``.data``
 for the array). Shapes: k samples per call, directions and normals (k, 3) unit vectors.
 

@@ -2,7 +2,7 @@
 environment, with no tape.
 
 When every parameter that requires grad is one of these (``covers``), the adjoint of a
-path-traced image needs no vertex on a tape: ``render.path.kernel``'s path replay traces
+path-traced image needs no vertex on a tape: ``render.path.twin.kernel``'s path replay traces
 each path, replays it with its radiance and the pixel's dL/dimage, and adds each vertex's
 share to one gradient vector (``kernel.replay_gradient``), in memory independent of spp and
 of the paths' depth. ``backpropagate`` adds that vector to the parameters' ``.grad``.
@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 import minidiff as md
-from render.path import chain, kernel
-from render.path.tracer import PathSampler
+from render.path.sample.tracer import PathSampler
+from render.path.twin import chain, kernel
 from render.scene.lights import DIRECTIONAL, POINT
 from render.scene.scene import Scene
 

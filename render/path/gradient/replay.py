@@ -1,6 +1,6 @@
 """Path replay backpropagation: a batch's gradient one depth at a time, its tape flat in depth.
 
-``render.path.transport.path_radiance`` puts every depth of every path on one tape, so the
+``render.path.gradient.transport.path_radiance`` puts every depth of every path on one tape, so the
 memory of a batch's ``backward`` grows with ``max_depth``. Path replay (Vicini et al. 2021,
 "Path Replay Backpropagation"; Mitsuba 3's ``prb.py``) gives the same gradient with one
 depth on the tape at a time. A path's radiance is, componentwise in RGB,
@@ -50,10 +50,10 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path import window
-from render.path.tables import Tables
-from render.path.tracer import AREA, CAMERA, MIRROR, PathBatch, PathSampler, Vertices
-from render.path.transport import Vertex, _at_vertex, vertex_on_tape, viewer_side
+from render.path.gradient import window
+from render.path.gradient.transport import Vertex, _at_vertex, vertex_on_tape, viewer_side
+from render.path.sample.tables import Tables
+from render.path.sample.tracer import AREA, CAMERA, MIRROR, PathBatch, PathSampler, Vertices
 from render.scene.camera import ray_directions
 from render.scene.substitute import substituted
 from render.shade.surface import column
@@ -78,7 +78,7 @@ def radiance_of(world, frame, sampler: PathSampler, batch: PathBatch) -> np.ndar
     ``transport.path_radiance``, summed window by window (L = sum_k beta_k C_k, the module
     docstring): the windows compiled and parallel over the paths where they apply
     (``window.applies``), else on the tape without recording. For the constants of the
-    boundary terms (``render.path.secondary``, ``render.path.edges``)."""
+    boundary terms (``render.path.boundary.secondary``, ``render.path.boundary.primary``)."""
     with md.no_grad():
         paths = _Paths.of(world, frame, sampler, batch)
         n_paths = len(batch.paths)
@@ -265,7 +265,7 @@ class _Paths:
 
 def _window(paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
     """Window k of the paths ``rows`` (``_Window``'s interface): compiled when the paths'
-    ``tables`` are set (``render.path.window``), else on the tape."""
+    ``tables`` are set (``render.path.gradient.window``), else on the tape."""
     if paths.tables is not None:
         return window.CompiledWindow(paths.tables, paths.batch, paths.vertices, k, rows)
     return _Window(paths, k, rows, anchors)

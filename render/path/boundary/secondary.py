@@ -1,15 +1,14 @@
 """Secondary visibility's boundary term for the path integrator: soft shadows, hard shadows
 seen after a bounce, and indirect occlusion.
 
-``render.path.transport`` writes a path in area measure: every vertex after the camera's is a
-fixed place on its surface (barycentrics), so the integral over the next vertex x' of a
-vertex x is over surfaces that move with the parameters, and the only discontinuities left
-inside it are those of visibility V(x, x'). Where the segment x -> x' grazes an occluder's
-silhouette (a mesh edge whose two faces lie on one side of the plane through x and the
-edge, a mesh's border, a sphere's outline as seen from x), V jumps between 1 and 0 along a
-curve on the surfaces behind, and that curve moves with the parameters. Reynolds'
-transport theorem gives the derivative of the integral: the interior term the tape
-computes, plus
+``render.path.gradient.transport`` writes a path in area measure: every vertex after the camera's is
+a fixed place on its surface (barycentrics), so the integral over the next vertex x' of a vertex x
+is over surfaces that move with the parameters, and the only discontinuities left inside it are
+those of visibility V(x, x'). Where the segment x -> x' grazes an occluder's silhouette (a mesh edge
+whose two faces lie on one side of the plane through x and the edge, a mesh's border, a sphere's
+outline as seen from x), V jumps between 1 and 0 along a curve on the surfaces behind, and that
+curve moves with the parameters. Reynolds' transport theorem gives the derivative of the integral:
+the interior term the tape computes, plus
 
     int_curve  (F_+ - F_-) dphi/dtheta / |grad_S phi|  dl
 
@@ -23,7 +22,7 @@ one more x' in the same area measure, and its MIS weight and the BSDF-sampled on
 
 The estimator, per vertex x_k of a path (k >= 1; after a mirror too): pick a
 silhouette with probability proportional to the angle it subtends at x_k, a point m on it
-uniformly in that angle (``render.path.silhouettes``), trace the ray x_k -> m (it must
+uniformly in that angle (``render.path.boundary.silhouettes``), trace the ray x_k -> m (it must
 reach m) and on beyond m to x'; the sample is
 
     beta_k f_k G(x_k, x') L(x' -> x_k) |dx'/dt| / |grad_S phi| / p(curve, t) * sign * dphi/dtheta,
@@ -58,14 +57,15 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path import kernel, window
-from render.path.random import bounce_dimension, uniform
-from render.path.replay import radiance_of
-from render.path.sampling import dot, unit
-from render.path.silhouettes import CONTACT, Curves, level_set
-from render.path.tables import Tables
-from render.path.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
-from render.path.transport import next_vertex, vertex_on_tape, viewer_side
+from render.path.boundary.silhouettes import CONTACT, Curves, level_set
+from render.path.gradient import window
+from render.path.gradient.replay import radiance_of
+from render.path.gradient.transport import next_vertex, vertex_on_tape, viewer_side
+from render.path.sample.random import bounce_dimension, uniform
+from render.path.sample.sampling import dot, unit
+from render.path.sample.tables import Tables
+from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
+from render.path.twin import kernel
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
 from render.shade.surface import column, geometric_normals
 from render.trace.visibility import shadow_offset

@@ -1,6 +1,6 @@
 """The radiance that sampled paths carry, on the tape.
 
-``render.path.tracer`` decided where every path goes; here each vertex is recomputed from
+``render.path.sample.tracer`` decided where every path goes; here each vertex is recomputed from
 the scene's parameters and the path's contribution is written as one product per vertex,
 so that a ``backward`` reaches every parameter the radiance depends on: emission, albedo,
 light positions, vertex positions, the camera.
@@ -41,7 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler
+from render.path.sample.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler
 from render.scene.camera import ray_directions
 from render.shade.lighting import Appearance, appearance, brdf, light_contribution
 from render.shade.surface import Surface, column, in_order, surface_at, toward_ray

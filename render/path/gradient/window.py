@@ -1,6 +1,6 @@
 """Path replay's windows, compiled: one traced kernel per depth for every parameter.
 
-``render.path.replay`` differentiates a batch of paths one depth at a time: window k
+``render.path.gradient.replay`` differentiates a batch of paths one depth at a time: window k
 recomputes vertex k from the scene's parameters (and the vertex before it, which its
 direction back depends on), and gives what it adds to the path, C_k, and the factor of the
 segment after it, F_k. On the tape (``replay._Window``) that is ``transport``'s code, object
@@ -17,7 +17,7 @@ that does not go on, has its terms multiplied by a zero weight, and the values t
 divide by are made safe first (``md.where`` twice), so that neither value nor gradient
 sees a NaN.
 
-The scene is read as tables shared by every path (``render.path.tables.Tables``): all
+The scene is read as tables shared by every path (``render.path.sample.tables.Tables``): all
 meshes' vertices, shading normals and faces concatenated (a primitive id is a row of the
 face table), and per object its material. They are built once per replay on the tape from
 the parameters, then handed to the windows as leaves whose gradients add up window after
@@ -35,8 +35,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.tables import Tables
-from render.path.tracer import CAMERA, MIRROR, PathBatch, Vertices
+from render.path.sample.tables import Tables
+from render.path.sample.tracer import CAMERA, MIRROR, PathBatch, Vertices
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere

@@ -14,7 +14,7 @@ image's own samples. The estimate of each jump is unbiased, so the boundary term
 added to the image with value zero, as the direct renderer's is.
 
 Secondary visibility's boundary terms (soft shadows, lights' shadows, indirect occlusion)
-are ``render.path.secondary``'s.
+are ``render.path.boundary.secondary``'s.
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ import minidiff as md
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.term import add_curve_terms
 from render.edges.terms import primary_kinds
-from render.path.replay import radiance_of
-from render.path.tracer import PathSampler
+from render.path.gradient.replay import radiance_of
+from render.path.sample.tracer import PathSampler
 from render.scene.cache import cache_for
 from render.scene.camera import project, to_image_plane
 from render.scene.scene import Scene

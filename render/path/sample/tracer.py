@@ -2,7 +2,7 @@
 
 A path starts at a random point of its pixel and bounces through the scene. At each vertex
 it gets light three ways, each recorded here as discrete choices and constant weights
-(``render.path.transport`` then computes the radiance they carry on the tape):
+(``render.path.gradient.transport`` then computes the radiance they carry on the tape):
 
 * **emission** of the surface it reached (seen directly, or reached by a sampled direction:
   then weighted by multiple importance sampling (MIS) against next-event estimation);
@@ -21,10 +21,10 @@ Vertices are reached in one of three forms, which say how the tape recomputes th
 moves with the camera or the mirror, as in the direct renderer); ``AREA`` vertices, reached
 by a sampled direction, are the recorded point *on* the primitive (its barycentrics), so
 they move with it, and the sampled density is converted to area measure (see
-``render.path.transport`` for why this keeps the derivative of area lights and of moving
+``render.path.gradient.transport`` for why this keeps the derivative of area lights and of moving
 geometry right).
 
-Every random number is ``render.path.random.uniform(seed, path id, dimension)``: the paths
+Every random number is ``render.path.sample.random.uniform(seed, path id, dimension)``: the paths
 of a batch do not depend on which other paths are in it.
 """
 
@@ -36,11 +36,11 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.choices import vertex_choices
-from render.path.emitters import Emitters
-from render.path.random import bounce_dimension, uniform
-from render.path.sampling import dot, unit
-from render.path.tables import Tables
+from render.path.sample.choices import vertex_choices
+from render.path.sample.emitters import Emitters
+from render.path.sample.random import bounce_dimension, uniform
+from render.path.sample.sampling import dot, unit
+from render.path.sample.tables import Tables
 from render.scene.cache import RenderCache
 from render.scene.camera import camera_directions, plain_frame, to_image_plane
 from render.scene.scene import Scene
@@ -209,7 +209,7 @@ class PathSampler:
         """The ``PathBatch`` of paths ``paths`` (N,) whose camera rays pass through the
         image-plane points ``coords`` (N, 2): traced (``prim`` None), or given their first
         hit, primitive ``prim`` (N,) (-1: none) at ``depth`` (N,) along the view axis (the
-        sides of an edge, ``render.path.edges``)."""
+        sides of an edge, ``render.path.boundary.primary``)."""
         forward, right, up, eye = self.frame
         directions = camera_directions(coords, right, up, forward)
         if prim is None:
@@ -235,7 +235,7 @@ class PathSampler:
         """The records of depths ``depth``, ``depth + 1``, ... of paths ``paths`` (n,) that
         are at ``points`` (n, 3) on primitives ``prim`` (n,) (coordinates ``local`` (n, 3)),
         reached from ``previous`` (n, 3) as ``AREA`` vertices: the continuation of a path
-        from a given point (``render.path.secondary``). The first record's ``emit_weight``
+        from a given point (``render.path.boundary.secondary``). The first record's ``emit_weight``
         is MIS against a direction density of 1 per steradian: the caller sets its own."""
         n = len(paths)
         state = _State(np.arange(n), prim, local, points, unit(points - previous),
@@ -257,7 +257,7 @@ class PathSampler:
     def _vertex(self, paths, depth: int, s: _State):
         """Everything that happens at the paths' ``depth``-th vertex: a ``Vertices`` record
         and the state at the next vertex (None when no path goes on). The continuous work
-        is one compiled call (``render.path.choices``); here are the random numbers, the
+        is one compiled call (``render.path.sample.choices``); here are the random numbers, the
         emitter picked, and the rays."""
         n = len(s.rows)
         if n == 0:

@@ -1,4 +1,4 @@
-"""A scene as the compiled path tracer reads it (``render.path.kernel``): plain arrays.
+"""A scene as the compiled path tracer reads it (``render.path.twin.kernel``): plain arrays.
 
 ``pack`` reads a ``PathSampler``'s world once: its primitives and BVH, emitters and lobe
 probabilities (the sampler's own), and per object its material, smooth normals, UVs and
@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render.path.tracer import PathSampler
+from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh, Scene
 from render.trace.intersect import FlatBVH
 from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
@@ -49,7 +49,7 @@ def pack(sampler: PathSampler) -> Packed:
     albedo, specular, reflectance, emission = (np.zeros((n_obj, 3)) for _ in range(4))
     shininess = np.zeros(n_obj)
     # Whether the Blinn-Phong lobe is computed: a non-zero or differentiated specular
-    # (render.path.transport computes it then; its derivative needs it when zero).
+    # (render.path.gradient.transport computes it then; its derivative needs it when zero).
     lobe_on = np.zeros(n_obj, np.bool_)
     maps = np.full((n_obj, 2, 3), -1, np.int64)  # (offset, height, width) of map_Kd, map_Ks
     texels, n_texels = [], 0

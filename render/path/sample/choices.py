@@ -1,10 +1,10 @@
 """What a path does at a vertex, computed by one compiled function per depth.
 
-``render.path.tracer.PathSampler`` walks a batch of paths one depth at a time. At each
+``render.path.sample.tracer.PathSampler`` walks a batch of paths one depth at a time. At each
 depth the discrete work stays where it is done best (the random numbers' hash, picking an
 emitter from its table, the BVH's rays, the lights' own shadow rays); everything continuous
 in between is ``vertex_choices``, written once on minidiff arrays with the formulas of
-``render.path.sampling`` and compiled by ``minidiff.compile`` into one fused loop over the
+``render.path.sample.sampling`` and compiled by ``minidiff.compile`` into one fused loop over the
 paths (no array between the steps, parallel, the same bits on any number of threads):
 
 * the vertex's geometric and shading normals, turned to face the path (two-sided);
@@ -14,7 +14,7 @@ paths (no array between the steps, parallel, the same bits on any number of thre
 * continuation: a lobe (diffuse, Blinn-Phong or mirror) chosen by a uniform number, a
   direction drawn from it, its density, Russian roulette.
 
-The scene is read as the path integrator's tables (``render.path.tables.Tables``): the
+The scene is read as the path integrator's tables (``render.path.sample.tables.Tables``): the
 meshes' vertices, vertex normals and faces, the spheres' centres and radii, which objects
 are smooth.
 """
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.sampling import (
+from render.path.sample.sampling import (
     blinn_phong_lobe,
     blinn_phong_pdf,
     cosine_hemisphere,
@@ -35,7 +35,7 @@ from render.path.sampling import (
     sphere_direction,
     triangle_point,
 )
-from render.path.tables import Tables
+from render.path.sample.tables import Tables
 from render.shade.surface import column, divided_unit, face_normals
 
 #: Russian roulette keeps a path with probability min(MAX_SURVIVAL, throughput estimate),

@@ -1,21 +1,21 @@
 """The path tracer compiled: whole paths, one after the other, in one Numba kernel per batch.
 
-``render.path.tracer`` (the sampler) and ``render.path.transport`` (the radiance on the
-tape) are the readable reference: a wavefront of NumPy passes, one depth at a time. This
-module does the same work path by path, in parallel over pixels (on threads), with no array
-between the steps: the camera ray, the BVH, the lobe and direction choices, next-event
-estimation with its shadow ray, point and directional lights, multiple importance sampling,
-Russian roulette, and the radiance each path carries.
+``render.path.sample.tracer`` (the sampler) and ``render.path.gradient.transport`` (the radiance on
+the tape) are the readable reference: a wavefront of NumPy passes, one depth at a time. This module
+does the same work path by path, in parallel over pixels (on threads), with no array between the
+steps: the camera ray, the BVH, the lobe and direction choices, next-event estimation with its
+shadow ray, point and directional lights, multiple importance sampling, Russian roulette, and the
+radiance each path carries.
 
 It makes the same decisions as the sampler, from the same random numbers
-(``render.path.random``'s hash of seed, path id and dimension, inlined), and computes the
+(``render.path.sample.random``'s hash of seed, path id and dimension, inlined), and computes the
 same radiance, up to the order of floating-point operations. Two uses:
 
 * ``render_image``: the image, when nothing is differentiated (a forward render). Each
   pixel's samples are summed in sample order, so the image is the same bit for bit on any
   number of threads.
 * ``sample_paths``: the sampler's ``PathBatch`` (every vertex's decisions, what the tape
-  recomputes) and each path's radiance, for the gradients (``render.path.replay``).
+  recomputes) and each path's radiance, for the gradients (``render.path.gradient.replay``).
 
 ``tests/render/path/test_kernel.py`` ties both to the reference: the same decisions, and
 the radiance to rounding.
@@ -29,7 +29,18 @@ import numba
 import numpy as np
 
 from minidiff.threads import job_count, kernel, run_jobs, share
-from render.path.chain import (
+from render.path.sample.choices import MAX_SURVIVAL, MIN_SURVIVAL
+from render.path.sample.random import mix, uniform_of
+from render.path.sample.tracer import (
+    AREA,
+    CAMERA,
+    MIRROR,
+    STOP,
+    PathBatch,
+    PathSampler,
+    Vertices,
+)
+from render.path.twin.chain import (
     _C_ADDED,
     _C_BETA,
     _C_COS,
@@ -51,10 +62,8 @@ from render.path.chain import (
     _factor_gradients,
     _replay_chain,
 )
-from render.path.choices import MAX_SURVIVAL, MIN_SURVIVAL
-from render.path.packed import Packed, applies, pack
-from render.path.random import mix, uniform_of
-from render.path.scalar import (
+from render.path.twin.packed import Packed, applies, pack
+from render.path.twin.scalar import (
     _DIRECTION,
     _EMITTER,
     _EMITTER_POINT,
@@ -78,15 +87,6 @@ from render.path.scalar import (
     _surface,
     _to_world,
     _unit,
-)
-from render.path.tracer import (
-    AREA,
-    CAMERA,
-    MIRROR,
-    STOP,
-    PathBatch,
-    PathSampler,
-    Vertices,
 )
 from render.trace.intersect import BLOCK
 

@@ -3,7 +3,7 @@
 Seen from a point (the apex: a path vertex, or a point light), visibility jumps across the
 silhouettes of the occluders: a mesh edge whose two faces lie on one side of the plane
 through the apex and the edge (a border edge always), and the circle where the cone from
-the apex touches a sphere. ``render.path.secondary`` samples a point on such a curve for
+the apex touches a sphere. ``render.path.boundary.secondary`` samples a point on such a curve for
 every path vertex; here is where the curves come from (``Curves.of``) and how one is drawn:
 
 * a curve with probability proportional to the angle it subtends at the apex (its share of
@@ -27,7 +27,7 @@ grazes such an edge meets that surface at the edge itself, unless it runs in the
 plane: the curve where visibility changes behind the edge is the edge, whether the edge is
 convex (the box's: nothing shows between box and floor) or concave (the fin's: its two
 sides see the plate on their own sides), and there is no surface beyond it to sample
-(``render.path.secondary`` wants one). What this leaves out (by this argument, not
+(``render.path.boundary.secondary`` wants one). What this leaves out (by this argument, not
 measured) is the contact line's own motion along the surface: a box sliding on the floor
 covers floor in front of it that a vertex off the floor's plane saw. While the line stays
 in place on the surface (the light moving, the occluder's other edges), nothing is missed;
@@ -51,8 +51,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff.threads import job_count, kernel, run_jobs, share
-from render.path.sampling import dot, unit
-from render.path.tracer import PathSampler
+from render.path.sample.sampling import dot, unit
+from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh
 from render.trace.seams import shared_edges
 from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
@@ -64,12 +64,12 @@ CONTACT = 1e-5
 
 
 def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
-    """(m,) the level set function phi (``render.path.secondary``'s docstring) at the points
-    ``far`` (m, 3) of curves seen from ``apex`` (m, 3): the edge (``a``, ``b``, (m, 3) each)
-    where ``is_edge`` (m,), else the sphere (``centre`` (m, 3), ``radius`` (m,)). Each row
-    reads both kinds' arguments, which need only be finite where unused; None: the scene
-    has no such curve. The one text of phi: the boundary samples' derivative (compiled or
-    on the tape) and the curves' gradient (``Curves.gradient``) both come from it."""
+    """(m,) the level set function phi (``render.path.boundary.secondary``'s docstring) at
+    the points ``far`` (m, 3) of curves seen from ``apex`` (m, 3): the edge (``a``, ``b``, (m, 3)
+    each) where ``is_edge`` (m,), else the sphere (``centre`` (m, 3), ``radius`` (m,)). Each row
+    reads both kinds' arguments, which need only be finite where unused; None: the scene has no such
+    curve. The one text of phi: the boundary samples' derivative (compiled or on the tape) and the
+    curves' gradient (``Curves.gradient``) both come from it."""
     w = far - apex
     edge = sphere = None
     if a is not None:

@@ -1,13 +1,13 @@
 """Area lights: the emissive triangles and spheres of a scene, and how one is picked.
 
 Next-event estimation picks one emissive primitive with probability proportional to its
-area (``Emitters.pick``), then a uniform point on it (``render.path.choices``, with
-``render.path.sampling``'s ``triangle_point`` and ``sphere_direction``): the density of a
+area (``Emitters.pick``), then a uniform point on it (``render.path.sample.choices``, with
+``render.path.sample.sampling``'s ``triangle_point`` and ``sphere_direction``): the density of a
 point is P(primitive) / area in area measure (``pdf_area``), the same everywhere on the
 emitters, which keeps the weights of multiple importance sampling simple. The point is
 recorded by its coordinates on its primitive (barycentrics (u, v) on a triangle, the unit
 direction from a sphere's centre), so that on the tape it moves with the primitive
-(``render.path.transport``).
+(``render.path.gradient.transport``).
 
 ``polygon_irradiance`` is the closed form the estimators are checked against: the
 irradiance a flat polygon of uniform radiance gives a point (Lambert's formula).

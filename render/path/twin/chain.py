@@ -1,4 +1,4 @@
-"""Path replay's bookkeeping for the compiled path tracer (``render.path.kernel``): the
+"""Path replay's bookkeeping for the compiled path tracer (``render.path.twin.kernel``): the
 chain of one path's vertices, and the gradient vector its replay adds to.
 
 A path's radiance is sum_k beta_k C_k with beta_{k+1} = beta_k F_k, so its derivative is
@@ -7,7 +7,7 @@ vertex k from the rest of the path (``docs/path_tracing.md``). The kernel adds t
 terms as it traces the path and writes each vertex's row of the chain (the layout
 ``_C_*``); when the path has ended, ``_replay_chain`` computes R_k and
 ``_factor_gradients`` adds the dF_k R_k terms to the gradient vector (the layout ``_G_*``,
-which ``render.path.adjoint`` maps onto the scene's parameters).
+which ``render.path.twin.adjoint`` maps onto the scene's parameters).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from render.path.scalar import _brdf_adjoint
+from render.path.twin.scalar import _brdf_adjoint
 
 #: Path replay's gradient vector: per object (``_G_OBJECT`` entries from ``_G_OBJECT * o``)
 #: albedo (3), specular (3), shininess, reflectance (3), emission (3); then per light
