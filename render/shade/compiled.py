@@ -32,7 +32,7 @@ import minidiff as md
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene
-from render.shade.lighting import _nonzero, shade_surface
+from render.shade.lighting import shade_surface, term_present
 from render.shade.surface import surface_at, vertex_normals
 
 #: The material's parameters the shading reads (its textures are refused by ``applies``).
@@ -99,13 +99,13 @@ def held_lights(kinds: tuple, parameters: tuple) -> list:
 
 def _present(material: Material, name: str) -> bool:
     """Whether the shading reads the material's parameter ``name``: the albedo always, the
-    others when they are non-zero or differentiated (``lighting._nonzero``), the shininess
+    others when they are non-zero or differentiated (``lighting.term_present``), the shininess
     with a Blinn-Phong lobe. An absent one is left out of the program."""
     if name == "albedo":
         return True
     if name == "shininess":
-        return _nonzero(material.specular)
-    return _nonzero(getattr(material, name))
+        return term_present(material.specular)
+    return term_present(getattr(material, name))
 
 
 @md.compile(shared=("frame", "mesh", "material", "lights"))

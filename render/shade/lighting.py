@@ -104,7 +104,7 @@ def appearance(material: Material, uv) -> Appearance:
     return Appearance(albedo, specular, ambient, material.shininess, texel)
 
 
-def _nonzero(x: md.Tensor) -> bool:
+def term_present(x: md.Tensor) -> bool:
     """Whether a term is present: non-zero somewhere, or being differentiated."""
     return x.is_differentiated() or bool(np.any(x.data))
 
@@ -118,7 +118,7 @@ def light_contribution(points, normals, directions, look: Appearance, light, vis
     discrete), or None for the unoccluded contribution (the shadow-edge term needs it where
     the light is blocked too).
     """
-    view = -md.normalize(directions) if _nonzero(look.specular) else None
+    view = -md.normalize(directions) if term_present(look.specular) else None
     return _light_term(points, normals, view, look.albedo * (1.0 / math.pi), look, light, visible)
 
 
@@ -151,14 +151,14 @@ def shade(points, normals, directions, look: Appearance, lights, lit) -> md.Tens
     """Outgoing radiance (k, 3) at k hit points: every light's ``light_contribution``
     (lit[j] (k,) float, 1 where light j is unoccluded) plus the material's ambient term."""
     diffuse_brdf = look.albedo * (1.0 / math.pi)
-    view = -md.normalize(directions) if _nonzero(look.specular) else None  # towards the eye
+    view = -md.normalize(directions) if term_present(look.specular) else None  # towards the eye
     radiance = None
     for light, visible in zip(lights, lit, strict=True):
         contribution = _light_term(points, normals, view, diffuse_brdf, look, light, visible)
         radiance = contribution if radiance is None else radiance + contribution
     if radiance is None:  # no lights: only the ambient term
         radiance = 0.0 * points  # zeros, one row per hit (written so that it compiles)
-    if _nonzero(look.ambient):
+    if term_present(look.ambient):
         radiance = radiance + look.ambient
     return radiance
 

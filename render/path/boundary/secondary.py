@@ -117,7 +117,7 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     rows, m, tangent, direction = rows[ok], m[ok], tangent[ok], direction[ok]
     prim, far, u, v = prim[ok], far[ok], u[ok], v[ok]
     points = m + far[:, None] * direction
-    local = sampler._local(prim, points, u, v)
+    local = sampler.local_coordinates(prim, points, u, v)
     normal = geometric_normals(sampler.primitives, prim, points)
     normal *= np.where(dot(normal, viewer[rows] - points) < 0, -1.0, 1.0)[:, None]
     # |dx'/dt|: x' is m projected from the apex onto the plane of x'.

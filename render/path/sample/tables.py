@@ -16,7 +16,7 @@ import numpy as np
 import minidiff as md
 from render.scene.scene import Mesh, Scene
 from render.shade.compiled import light_arguments
-from render.shade.lighting import _nonzero
+from render.shade.lighting import term_present
 from render.shade.surface import vertex_normals
 from render.trace.primitives import primitive_ranges
 
@@ -108,7 +108,7 @@ class Tables:
             materials=tuple(leaf(columns[name]) for name in MATERIAL_FIELDS),
             lights=light_parameters, kinds=kinds,
             background=world.background, frame=tuple(frame),
-            glossy=any(_nonzero(o.material.specular) for o in objects),
+            glossy=any(term_present(o.material.specular) for o in objects),
             owner=np.repeat(np.arange(len(objects)), [count for _, _, count in ranges]),
             n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
             inside=inside, first_vertex=first_vertex, built=built,

@@ -218,11 +218,13 @@ class PathSampler:
             )
             rows = np.flatnonzero(prim >= 0)
             points = eye + t[rows, None] * directions[rows]
-            local = self._local(prim[rows], points, u[rows], v[rows])
+            local = self.local_coordinates(prim[rows], points, u[rows], v[rows])
         else:
             rows = np.flatnonzero(prim >= 0)
             points = eye + depth[rows, None] * directions[rows]
-            local = self._local(prim[rows], points, *self._barycentric(prim[rows], points))
+            local = self.local_coordinates(
+                prim[rows], points, *self._barycentric(prim[rows], points)
+            )
         state = _State(rows, prim[rows], local, points, unit(directions[rows]),
                        np.full(len(rows), CAMERA, np.int8), np.zeros(len(rows)), points,
                        np.ones(len(rows)))  # fmt: skip
@@ -339,14 +341,14 @@ class PathSampler:
             return None
         points = c.origin[on] + t[on, None] * c.wi[on]
         return _State(
-            s.rows[on], prim[on], self._local(prim[on], points, u[on], v[on]), points,
+            s.rows[on], prim[on], self.local_coordinates(prim[on], points, u[on], v[on]), points,
             c.wi[on], np.where(c.mirror[on], MIRROR, AREA).astype(np.int8), c.pdf[on],
             s.points[on], c.throughput[on],
         )  # fmt: skip
 
     # --- plain geometry --------------------------------------------------------------------
 
-    def _local(self, prim, points, u, v) -> np.ndarray:
+    def local_coordinates(self, prim, points, u, v) -> np.ndarray:
         """(k, 3) coordinates of hit points on their primitives (``Vertices.local``)."""
         local = np.zeros((len(prim), 3))
         on_tri = prim < self.n_triangles
@@ -356,7 +358,8 @@ class PathSampler:
 
     def _barycentric(self, prim, points) -> tuple[np.ndarray, np.ndarray]:
         """(u, v) (k,) each: the barycentrics of ``points`` (k, 3) in the planes of their
-        triangles ``prim`` (k,) (anything for spheres' rows: ``_local`` ignores them)."""
+        triangles ``prim`` (k,) (anything for spheres' rows: ``local_coordinates`` ignores
+        them)."""
         u, v = np.zeros(len(prim)), np.zeros(len(prim))
         on_tri = np.flatnonzero(prim < self.n_triangles)
         tri = self.primitives[0][prim[on_tri]]

@@ -308,8 +308,8 @@ def _blocked(bvh, origin, direction, tmax, ignore, stack):
 
 @numba.njit(cache=True, error_model="numpy")
 def _local(triangles, centers, prim, point, u, v):
-    """``PathSampler._local``: (u, v, 0) on a triangle, the unit direction from a sphere's
-    centre."""
+    """``PathSampler.local_coordinates``: (u, v, 0) on a triangle, the unit direction from
+    a sphere's centre."""
     if prim < triangles.shape[0]:
         return (u, v, 0.0)
     k = prim - triangles.shape[0]
