@@ -34,6 +34,15 @@ def test_bench_path_quick(tmp_path, load_script):
     assert again["speed"]["forward"]["us_per_sample_per_pixel"] > 0
 
 
+def test_bench_path_rays_quick(tmp_path, load_script):
+    """The rays/rest split: the recorded rays are the kernel's (NEE's only where it traces
+    one), so there are at least one camera ray and at most 1 + 2 (max_depth - 1) a sample."""
+    load_script("benchmarks/bench_path_rays.py").main(["--quick", "--out", str(tmp_path)])
+    rows = json.loads((tmp_path / "path_rays.json").read_text())["rows"]
+    assert rows and all(row["all_ms"] > 0 and row["rays_ms"] > 0 for row in rows)
+    assert all(1.0 <= row["rays_per_sample"] <= 1 + 2 * (row["max_depth"] - 1) for row in rows)
+
+
 def test_path_gradients_quick(tmp_path, load_script):
     load_script("benchmarks/path_gradients.py").main(["--quick", "--out", str(tmp_path)])
     rows = json.loads((tmp_path / "gradients.json").read_text())["rows"]
