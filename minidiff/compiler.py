@@ -325,8 +325,7 @@ class CompiledFunction:
         # the kernel writes every element of these (codegen._reverse_elements): not zeroed
         grads = {s: np.empty((n, *slots[s].shape)) for s in wrt if slots[s].batched}
         sums = np.zeros((chunks, max(1, len(layout.frontier))))
-        contributions = [np.empty((n, int(np.prod(slots[s].shape[1:])))) for s, _ in layout.gathers]
-        rows = [np.empty(n, np.int64) for _ in layout.gathers]
+        blocks, contributions, rows = _gather_blocks(layout.gathers, slots, n)
         cotangents = [np.ascontiguousarray(g, dtype=np.float64) for g in cotangents]
         per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
         buffers = [*data, *cotangents, *grads.values(), sums, *per_gather]
@@ -336,14 +335,14 @@ class CompiledFunction:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
             self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
         grads.update(shared)
-        threads = (thread_count()) if n >= PARALLEL_SCATTER else 1
-        for (slot, _), share, where in zip(layout.gathers, contributions, rows, strict=True):
+        for slot, (share, where) in blocks.items():
             table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
             count = np.array([slots[slot].shape[0]], np.int64)
             kernel = _scatter_kernel(share.shape[1])
             buffers = [where, share, table, count]
             pointers = _addresses(buffers)
-            kernel.run(pointers, n, len(table), threads)  # threads take ranges of table rows
+            threads = thread_count() if len(where) >= PARALLEL_SCATTER else 1
+            kernel.run(pointers, len(where), len(table), threads)  # threads: ranges of rows
         return [grads.get(s) for s in range(len(slots))]
 
     def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:
@@ -393,6 +392,29 @@ class CompiledFunction:
             results.append(piece.reshape((n, *shape)))
             start += size
         return results
+
+
+def _gather_blocks(gathers, slots, n: int):
+    """The VJP's buffers for its gathers' contributions: per table slot gathered, one block
+    (contributions (g n, columns), rows (g n,)) for its g gathers, in their order, and each
+    gather's (n, columns) and (n,) part of it. The table's gradient is then one scatter-add
+    over the block, which adds gather after gather, each in element order: the order the
+    gathers' own scatter-adds took one after the other, in one call instead of g."""
+    count: dict[int, int] = {}
+    for slot, _ in gathers:
+        count[slot] = count.get(slot, 0) + 1
+    blocks = {
+        slot: (np.empty((g * n, int(np.prod(slots[slot].shape[1:])))), np.empty(g * n, np.int64))
+        for slot, g in count.items()
+    }
+    contributions, rows, used = [], [], dict.fromkeys(count, 0)
+    for slot, _ in gathers:
+        share, where = blocks[slot]
+        k = used[slot]
+        used[slot] += 1
+        contributions.append(share[k * n : (k + 1) * n])
+        rows.append(where[k * n : (k + 1) * n])
+    return blocks, contributions, rows
 
 
 def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:

@@ -83,7 +83,7 @@ class CompiledWindow:
         if k > 0:
             before = vertices[k - 1]
             at = _positions(before.rows, rows, size)  # all there: rows reached vertex k
-            back = tables.role(before.prim[at], before.local[at])
+            back = tables.role(before.prim[at], np.take(before.local, at, axis=0))
         # Paths without NEE (or that do not go on) read a harmless point: their weight is 0.
         has_nee = record.nee_weight > 0
         nee_prim = np.where(has_nee, record.nee_prim, record.prim)
@@ -91,7 +91,8 @@ class CompiledWindow:
         next_prim, next_local = record.prim.copy(), np.full((n, 3), 1.0 / 3.0)
         if going.any():
             at = next_at[going]
-            next_prim[going], next_local[going] = following.prim[at], following.local[at]
+            next_prim[going] = following.prim[at]
+            next_local[going] = np.take(following.local, at, axis=0)
         lit = None
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)

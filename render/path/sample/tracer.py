@@ -104,9 +104,11 @@ class Vertices:
                    np.zeros(0, bool), np.zeros((0, 3)))  # fmt: skip
 
     def take(self, at: np.ndarray) -> Vertices:
-        """The paths at positions ``at`` of this record (the lights' visibility is (L, n))."""
+        """The paths at positions ``at`` of this record (the lights' visibility is (L, n)).
+        (``np.take`` along an axis: for rows of an (n, 3) array, several times faster than
+        indexing with ``at``, for the same values.)"""
         fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return Vertices(**{name: (value[:, at] if name == "lit" else value[at])
+        return Vertices(**{name: np.take(value, at, axis=1 if name == "lit" else 0)
                            for name, value in fields.items()})  # fmt: skip
 
     def of_rows(self, rows: np.ndarray) -> Vertices:

@@ -567,7 +567,7 @@ def sample_paths(
         if len(rows) == n:  # every path: views, not copies (the windows copy what they read)
             i, f, lit = rec_i[k], rec_f[k], rec_lit[k]
         else:
-            i, f, lit = rec_i[k][rows], rec_f[k][rows], rec_lit[k][rows]
+            i, f, lit = (np.take(r[k], rows, axis=0) for r in (rec_i, rec_f, rec_lit))
         vertices.append(
             Vertices(
                 rows,
