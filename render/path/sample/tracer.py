@@ -337,15 +337,20 @@ class PathSampler:
         record.next_pdf[:] = np.where(c.go, c.pdf, 1.0)
         record.survive[:] = c.survive
         record.escape[:] = c.go & (prim < 0)
-        record.escape_dir[:] = c.wi
+        record.escape_dir = c.wi  # the compiled call's own array: nothing else writes it
         on = np.flatnonzero(c.go & (prim >= 0))
         if len(on) == 0:
             return None
-        points = c.origin[on] + t[on, None] * c.wi[on]
+
+        def kept(values):  # the rows of the paths that go on (np.take: see Vertices.take)
+            return np.take(values, on, axis=0)
+
+        hit, wi = kept(prim), kept(c.wi)
+        points = kept(c.origin) + kept(t)[:, None] * wi
         return _State(
-            s.rows[on], prim[on], self.local_coordinates(prim[on], points, u[on], v[on]), points,
-            c.wi[on], np.where(c.mirror[on], MIRROR, AREA).astype(np.int8), c.pdf[on],
-            s.points[on], c.throughput[on],
+            kept(s.rows), hit, self.local_coordinates(hit, points, kept(u), kept(v)), points,
+            wi, np.where(kept(c.mirror), MIRROR, AREA).astype(np.int8), kept(c.pdf),
+            kept(s.points), kept(c.throughput),
         )  # fmt: skip
 
     # --- plain geometry --------------------------------------------------------------------
@@ -354,8 +359,11 @@ class PathSampler:
         """(k, 3) coordinates of hit points on their primitives (``Vertices.local``)."""
         local = np.zeros((len(prim), 3))
         on_tri = prim < self.n_triangles
-        local[on_tri, 0], local[on_tri, 1] = u[on_tri], v[on_tri]
-        local[~on_tri] = geometric_normals(self.primitives, prim[~on_tri], points[~on_tri])
+        local[:, 0], local[:, 1] = np.where(on_tri, u, 0.0), np.where(on_tri, v, 0.0)
+        on_sphere = np.flatnonzero(~on_tri)
+        if len(on_sphere):
+            at = np.take(points, on_sphere, axis=0)
+            local[on_sphere] = geometric_normals(self.primitives, prim[on_sphere], at)
         return local
 
     def _barycentric(self, prim, points) -> tuple[np.ndarray, np.ndarray]:
