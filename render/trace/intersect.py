@@ -565,6 +565,23 @@ def occluded_ray(bvh, ray, ignore, stack):
     return False
 
 
+@njit(cache=True, error_model="numpy")
+def closest_hit_one(bvh, origin, direction, tmin, stack, stack_t):
+    """:func:`closest_hit_ray` of the ray ``origin + t direction``, ``t > tmin`` (origin and
+    direction (x, y, z) floats): (prim, t, u, v). For kernels that trace a ray among other
+    work (the path kernel, the shadow borders' chords): a function of its own, not inlined,
+    so that the traversal is compiled once for all of them (an inlined copy costs seconds
+    of compiling each)."""
+    return closest_hit_ray(bvh, make_ray(origin, direction, tmin, np.inf), stack, stack_t)
+
+
+@njit(cache=True, error_model="numpy")
+def occluded_one(bvh, origin, direction, tmax, ignore, stack):
+    """:func:`occluded_ray` of the ray ``origin + t direction``, ``0 < t < tmax``, ignoring
+    primitive ``ignore``; one compiled copy, as :func:`closest_hit_one`."""
+    return occluded_ray(bvh, make_ray(origin, direction, 0.0, tmax), ignore, stack)
+
+
 # --------------------------------------------------------------------------------------------
 # Parallel kernels over ray arrays
 # --------------------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from minidiff.threads import job_count, kernel, run_jobs
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
-from render.trace.intersect import BLOCK, closest_hit_ray, make_ray, n_blocks
+from render.trace.intersect import BLOCK, closest_hit_one, n_blocks
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
 
@@ -197,9 +197,9 @@ def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, sta
     ``where``: the light's position if ``point``, else its unit direction. (Scalars and
     tuples only: arrays allocated per ray cost more than the arithmetic around the trace.)"""
     forward, right, up, eye = frame
-    # One traversal for both kinds of light (each inlined copy of it costs seconds of
-    # compiling): from a light at a point the ray leaves the light towards s, from a light
-    # at infinity it leaves s along the light's direction.
+    # One traversal for both kinds of light (``closest_hit_one``: the one compiled copy the
+    # path kernel calls too): from a light at a point the ray leaves the light towards s,
+    # from a light at infinity it leaves s along the light's direction.
     if point:
         o = (where[0], where[1], where[2])
         d = (s[0] - where[0], s[1] - where[1], s[2] - where[2])
@@ -208,7 +208,7 @@ def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, sta
         o = (s[0], s[1], s[2])
         d = (where[0], where[1], where[2])
         tmin = START * size
-    prim, t, _, _ = closest_hit_ray(bvh, make_ray(o, d, tmin, np.inf), stack, stack_t)
+    prim, t, _, _ = closest_hit_one(bvh, o, d, tmin, stack, stack_t)
     t_hit = t if prim >= 0 else 0.0
     h0, h1, h2 = o[0] + t_hit * d[0], o[1] + t_hit * d[1], o[2] + t_hit * d[2]
     if prim < 0:

@@ -69,10 +69,8 @@ from render.path.twin.scalar import (
     _EMITTER_POINT,
     _LOBE,
     _ROULETTE,
-    _blocked,
     _brdf,
     _brdf_adjoint,
-    _closest,
     _dim,
     _divided,
     _dot,
@@ -88,7 +86,7 @@ from render.path.twin.scalar import (
     _to_world,
     _unit,
 )
-from render.trace.intersect import BLOCK
+from render.trace.intersect import BLOCK, closest_hit_one, occluded_one
 
 __all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "sample_paths"]
 
@@ -149,7 +147,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
          x * right[2] + y * up[2] + forward[2])  # fmt: skip
     if keep:
         rec_f[0, row, _F_COORD], rec_f[0, row, _F_COORD + 1] = x, y
-    prim, t, u, v = _closest(bvh, eye, d, stack, stack_t)
+    prim, t, u, v = closest_hit_one(bvh, (eye[0], eye[1], eye[2]), d, 0.0, stack, stack_t)
     if prim < 0:
         if keep:
             rec_i[0, row, _I_COUNT] = 0
@@ -246,7 +244,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
             if ok:
                 to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
-                ok = not _blocked(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
+                ok = not occluded_one(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
             if ok:
                 p_nee = e_probability[pick] / e_area[pick]
                 p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
@@ -289,7 +287,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     so = (point[0] + fraction * tx, point[1] + fraction * ty,
                           point[2] + fraction * tz)  # fmt: skip
                     to = (light_vec[j, 0] - so[0], light_vec[j, 1] - so[1], light_vec[j, 2] - so[2])
-                    lit = not _blocked(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
+                    lit = not occluded_one(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
                                        stack)  # fmt: skip
                 tx = light_vec[j, 0] - xt[0]
                 ty = light_vec[j, 1] - xt[1]
@@ -304,7 +302,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 if lit:
                     so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
                           point[2] + offset * wl[2])  # fmt: skip
-                    lit = not _blocked(bvh, so, wl, np.inf, ignore, stack)
+                    lit = not occluded_one(bvh, so, wl, np.inf, ignore, stack)
                 irradiance, per_strength = light_strength[j], 1.0
             if kept:
                 rec_lit[depth - 1, row, j] = lit
@@ -361,7 +359,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if not go:
             break
         scale = 1.0 / (next_pdf * survive)
-        prim, t, u, v = _closest(bvh, origin, wi, stack, stack_t)
+        prim, t, u, v = closest_hit_one(bvh, origin, wi, 0.0, stack, stack_t)
         if kept:
             rec_i[depth - 1, row, _I_NEXT] = MIRROR if mirror else AREA
             rec_f[depth - 1, row, _F_NEXT_PDF] = next_pdf

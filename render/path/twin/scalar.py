@@ -17,7 +17,6 @@ import numba
 import numpy as np
 
 from render.path.sample.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
-from render.trace.intersect import closest_hit_ray, make_ray, occluded_ray
 
 
 @numba.njit(cache=True, inline="always")
@@ -288,22 +287,6 @@ def _reintersect(triangles, centers, radii, prim, o, d):
         t = (-b2 + sign * root) / a2
         u = v = 0.0
     return (o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]), u, v
-
-
-# The traversals are called through these two functions, not inlined where they are used:
-# one compiled copy each keeps the kernel's compile time down.
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _closest(bvh, origin, direction, stack, stack_t):
-    """``closest_hit_ray`` of the ray origin + t direction, t > 0: (prim, t, u, v)."""
-    return closest_hit_ray(bvh, make_ray(origin, direction, 0.0, np.inf), stack, stack_t)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _blocked(bvh, origin, direction, tmax, ignore, stack):
-    """``occluded_ray`` of the ray origin + t direction, 0 < t < tmax, ignoring ``ignore``."""
-    return occluded_ray(bvh, make_ray(origin, direction, 0.0, tmax), ignore, stack)
 
 
 @numba.njit(cache=True, error_model="numpy")
