@@ -95,7 +95,7 @@ class Tables:
             eye = frame[3].data if isinstance(frame[3], md.Tensor) else np.asarray(frame[3])
             inside = np.linalg.norm(eye - centers.data, axis=1) < radii.data
         columns = {
-            name: _stacked([md.broadcast_to(getattr(o.material, name), (3,)) for o in objects], 3)
+            name: _stacked([getattr(o.material, name) for o in objects], 3)
             for name in ("albedo", "specular", "emission")
         }
         columns["shininess"] = _stacked([o.material.shininess for o in objects], None)
@@ -151,8 +151,13 @@ def _normals(mesh: Mesh) -> md.Tensor:
 
 
 def _stacked(values: list, width: int | None) -> md.Tensor:
-    """``md.stack`` of per-object values, each (width,) or a scalar (``width`` None); an
+    """The per-object ``values`` (tensors), each broadcast to (width,) (a scalar for
+    ``width`` None), stacked: on the tape where one is differentiated, else the same values
+    as a constant (a table of a dozen rows is cheap; its dozens of tape steps were not); an
     empty table for a scene without objects."""
-    if values:
-        return md.stack(values)
-    return md.tensor(np.zeros((0,) if width is None else (0, width)))
+    shape = () if width is None else (width,)
+    if not values:
+        return md.tensor(np.zeros((0, *shape)))
+    if any(v.is_differentiated() for v in values):
+        return md.stack([md.broadcast_to(v, shape) for v in values])
+    return md.tensor(np.stack([np.broadcast_to(v.data, shape) for v in values]))
