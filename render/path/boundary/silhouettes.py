@@ -596,26 +596,41 @@ def _sphere_towards(p, centre, tri):
 @numba.njit(cache=True, error_model="numpy")
 def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
     """Curve j seen from p: (weight, side, lo, hi) as ``pick_reference`` has them."""
+    weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
+    if weight == 0.0 or not clip:
+        return weight, side, 0.0, 1.0
+    return _clipped(p, j, a, b, centre, weight, side, tri)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _whole(p, j, a, b, c, centre, radius, grazing):
+    """Curve j seen from p, whole: (weight, side): an edge's angle if it is a silhouette
+    (``_edge``), a sphere's outline's 2 pi r / distance unless p is inside; 0 else."""
     n_edges = a.shape[0]
     if j < n_edges:
-        angle, side = _edge(p, a[j], b[j], c[j, 0], c[j, 1], grazing)
-        if angle == 0.0 or not clip:
-            return angle, side, 0.0, 1.0
+        return _edge(p, a[j], b[j], c[j, 0], c[j, 1], grazing)
+    s = j - n_edges
+    distance = _norm(_sub(centre[s], p))
+    if not radius[s] < distance * (1 - 1e-9):
+        return 0.0, 0.0
+    return 2 * np.pi * radius[s] / max(distance, 1e-300), 0.0
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _clipped(p, j, a, b, centre, weight, side, tri):
+    """Curve j seen from p, whose whole weight ``weight`` (> 0) and side are known: (its
+    weight, side, lo, hi) clipped to the part whose rays meet triangle ``tri``, as
+    ``_curve(..., clip=True)`` gives them (the same operations)."""
+    n_edges = a.shape[0]
+    if j < n_edges:
         lo, hi = _edge_towards(p, a[j], b[j], tri)
         e = _sub(b[j], a[j])
         start = (a[j][0] + lo * e[0] - p[0], a[j][1] + lo * e[1] - p[1],
                  a[j][2] + lo * e[2] - p[2])  # fmt: skip
         end = (a[j][0] + hi * e[0] - p[0], a[j][1] + hi * e[1] - p[1], a[j][2] + hi * e[2] - p[2])
         return np.arctan2(_norm(_cross(start, end)), _dot(start, end)), side, lo, hi
-    s = j - n_edges
-    distance = _norm(_sub(centre[s], p))
-    if not radius[s] < distance * (1 - 1e-9):
-        return 0.0, 0.0, 0.0, 1.0
-    circle = 2 * np.pi * radius[s] / max(distance, 1e-300)
-    if not clip:
-        return circle, 0.0, 0.0, 1.0
-    lo, hi = _sphere_towards(p, centre[s], tri)
-    return circle * (hi - lo), 0.0, lo, hi
+    lo, hi = _sphere_towards(p, centre[j - n_edges], tri)
+    return weight * (hi - lo), 0.0, lo, hi
 
 
 @kernel
@@ -631,6 +646,7 @@ def _pick(
     count = a.shape[0] + centre.shape[0]
     each_apex, each_tri = int(apex.shape[0] > 1), int(tri.shape[0] > 1)  # else row 0 for all
     first, stop = share(job, n_jobs, u_curve.shape[1])
+    weights = np.zeros((2, count))  # one apex's weights, filled anew for each
     for i in range(first, stop):
         for s in range(2):
             out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
@@ -639,13 +655,12 @@ def _pick(
         row = i * each_apex
         p = (apex[row, 0], apex[row, 1], apex[row, 2])
         triangle = tri[i * each_tri]
-        weights = np.zeros((2, count))
         for j in range(count):
-            weight, side, lo, hi = _curve(p, j, a, b, c, centre, radius, triangle, False, grazing)
-            if active[0, i]:
-                weights[0, j] = weight
-            if clip and active[1, i] and weight > 0:
-                weights[1, j] = _curve(p, j, a, b, c, centre, radius, triangle, True, grazing)[0]
+            weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
+            weights[0, j] = weight if active[0, i] else 0.0
+            weights[1, j] = 0.0
+            if clip and active[1, i] and weight > 0:  # the part towards the triangle
+                weights[1, j] = _clipped(p, j, a, b, centre, weight, side, triangle)[0]
         for s in range(2 if clip else 1):
             _draw(p, weights[s], u_curve[s, i], u_point[s, i], a, b, c, centre, radius,
                   triangle, s == 1, grazing, out[s, :, i])  # fmt: skip
