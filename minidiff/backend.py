@@ -27,7 +27,6 @@ import threading
 from pathlib import Path
 
 import llvmlite.binding as llvm
-import numpy as np
 
 from minidiff import threads
 
@@ -60,10 +59,10 @@ class Kernel:
         if n == 0:
             return 0
         n_jobs = max(1, min(n_threads, chunks))
-        bounds = np.linspace(0, chunks, n_jobs + 1).astype(np.int64)
+        bounds = [j * chunks // n_jobs for j in range(n_jobs + 1)]  # whole chunks a job
 
         def job(j: int, _: int) -> int:
-            return self._function(pointers, n, int(bounds[j]), int(bounds[j + 1]))
+            return self._function(pointers, n, bounds[j], bounds[j + 1])
 
         failed = [r for r in threads.run_jobs(job, n_jobs) if r]
         return min(failed) if failed else 0
