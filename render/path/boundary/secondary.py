@@ -1,14 +1,15 @@
 """Secondary visibility's boundary term for the path integrator: soft shadows, hard shadows
 seen after a bounce, and indirect occlusion.
 
-``render.path.gradient.transport`` writes a path in area measure: every vertex after the camera's is
-a fixed place on its surface (barycentrics), so the integral over the next vertex x' of a vertex x
-is over surfaces that move with the parameters, and the only discontinuities left inside it are
-those of visibility V(x, x'). Where the segment x -> x' grazes an occluder's silhouette (a mesh edge
-whose two faces lie on one side of the plane through x and the edge, a mesh's border, a sphere's
-outline as seen from x), V jumps between 1 and 0 along a curve on the surfaces behind, and that
-curve moves with the parameters. Reynolds' transport theorem gives the derivative of the integral:
-the interior term the tape computes, plus
+``render.path.gradient.transport`` writes a path in area measure: every vertex after the
+camera's is a fixed place on its surface (barycentrics), so the integral over the next
+vertex x' of a vertex x is over surfaces that move with the parameters, and the only
+discontinuities left inside it are those of visibility V(x, x'). Where the segment x -> x'
+grazes an occluder's silhouette (a mesh edge whose two faces lie on one side of the plane
+through x and the edge, a mesh's border, a sphere's outline as seen from x), V jumps between
+1 and 0 along a curve on the surfaces behind, and that curve moves with the parameters.
+Reynolds' transport theorem gives the derivative of the integral: the interior term the tape
+computes, plus
 
     int_curve  (F_+ - F_-) dphi/dtheta / |grad_S phi|  dl
 

@@ -3,8 +3,9 @@
 Seen from a point (the apex: a path vertex, or a point light), visibility jumps across the
 silhouettes of the occluders: a mesh edge whose two faces lie on one side of the plane
 through the apex and the edge (a border edge always), and the circle where the cone from
-the apex touches a sphere. ``render.path.boundary.secondary`` samples a point on such a curve for
-every path vertex; here is where the curves come from (``Curves.of``) and how one is drawn:
+the apex touches a sphere. ``render.path.boundary.secondary`` samples a point on such a
+curve for every path vertex; here is where the curves come from (``Curves.of``) and how
+one is drawn:
 
 * a curve with probability proportional to the angle it subtends at the apex (its share of
   what the apex sees), or to the angle of its part whose rays meet a given triangle (an
@@ -65,11 +66,12 @@ CONTACT = 1e-5
 
 def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
     """(m,) the level set function phi (``render.path.boundary.secondary``'s docstring) at
-    the points ``far`` (m, 3) of curves seen from ``apex`` (m, 3): the edge (``a``, ``b``, (m, 3)
-    each) where ``is_edge`` (m,), else the sphere (``centre`` (m, 3), ``radius`` (m,)). Each row
-    reads both kinds' arguments, which need only be finite where unused; None: the scene has no such
-    curve. The one text of phi: the boundary samples' derivative (compiled or on the tape) and the
-    curves' gradient (``Curves.gradient``) both come from it."""
+    the points ``far`` (m, 3) of curves seen from ``apex`` (m, 3): the edge (``a``, ``b``,
+    (m, 3) each) where ``is_edge`` (m,), else the sphere (``centre`` (m, 3), ``radius``
+    (m,)). Each row reads both kinds' arguments, which need only be finite where unused;
+    None: the scene has no such curve. The one text of phi: the boundary samples'
+    derivative (compiled or on the tape) and the curves' gradient (``Curves.gradient``) both
+    come from it."""
     w = far - apex
     edge = sphere = None
     if a is not None:

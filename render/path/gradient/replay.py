@@ -1,9 +1,9 @@
 """Path replay backpropagation: a batch's gradient one depth at a time, its tape flat in depth.
 
-``render.path.gradient.transport.path_radiance`` puts every depth of every path on one tape, so the
-memory of a batch's ``backward`` grows with ``max_depth``. Path replay (Vicini et al. 2021,
-"Path Replay Backpropagation"; Mitsuba 3's ``prb.py``) gives the same gradient with one
-depth on the tape at a time. A path's radiance is, componentwise in RGB,
+``render.path.gradient.transport.path_radiance`` puts every depth of every path on one tape,
+so the memory of a batch's ``backward`` grows with ``max_depth``. Path replay (Vicini et al.
+2021, "Path Replay Backpropagation"; Mitsuba 3's ``prb.py``) gives the same gradient with
+one depth on the tape at a time. A path's radiance is, componentwise in RGB,
 
     L = sum_k beta_k C_k,    beta_0 = 1,  beta_{k+1} = beta_k F_k,
 

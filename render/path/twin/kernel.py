@@ -1,11 +1,11 @@
 """The path tracer compiled: whole paths, one after the other, in one Numba kernel per batch.
 
-``render.path.sample.tracer`` (the sampler) and ``render.path.gradient.transport`` (the radiance on
-the tape) are the readable reference: a wavefront of NumPy passes, one depth at a time. This module
-does the same work path by path, in parallel over pixels (on threads), with no array between the
-steps: the camera ray, the BVH, the lobe and direction choices, next-event estimation with its
-shadow ray, point and directional lights, multiple importance sampling, Russian roulette, and the
-radiance each path carries.
+``render.path.sample.tracer`` (the sampler) and ``render.path.gradient.transport`` (the
+radiance on the tape) are the readable reference: a wavefront of NumPy passes, one depth at
+a time. This module does the same work path by path, in parallel over pixels (on threads),
+with no array between the steps: the camera ray, the BVH, the lobe and direction choices,
+next-event estimation with its shadow ray, point and directional lights, multiple importance
+sampling, Russian roulette, and the radiance each path carries.
 
 It makes the same decisions as the sampler, from the same random numbers
 (``render.path.sample.random``'s hash of seed, path id and dimension, inlined), and computes the
