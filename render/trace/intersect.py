@@ -543,8 +543,10 @@ def occluded_ray(bvh, ray, ignore, stack):
     ``ignore`` is hit with ``ray.tmin < t < ray.tmax``.  Stops at the first such hit.  Same
     structure as :func:`closest_hit_ray` but without near-first ordering: most shadow rays
     are *not* blocked and must visit every overlapping node anyway, so sorting the children
-    would cost more than the earlier exit saves (measured on the binary tree).  ``stack``
-    (``bvh.stack_size``,) int64 is scratch space."""
+    costs more than the earlier exit saves (measured on the binary tree, and on this one:
+    ``benchmarks/bench_embree.py``'s shadow rays at 1.3M triangles took 48.5 ms sorted
+    against 40.2 ms, one thread; pushing the leaf children last, to test them first, was
+    slower too).  ``stack`` (``bvh.stack_size``,) int64 is scratch space."""
     if bvh.child.shape[0] == 0:
         return False
     code = 0

@@ -105,8 +105,8 @@ def collapse(node_bounds, node_first, node_count):
             widest, widest_area = -1, -1.0
             for k in range(n_kids):
                 if not is_leaf[kids[k]]:
-                    b = node_bounds[kids[k]]
-                    area = half_area(b[0], b[1], b[2], b[3], b[4], b[5])
+                    box = node_bounds[kids[k]]
+                    area = half_area(box[0], box[1], box[2], box[3], box[4], box[5])
                     if area > widest_area:
                         widest, widest_area = k, area
             if widest < 0:
