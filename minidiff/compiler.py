@@ -30,7 +30,8 @@ depth) is an array argument of its own (batched, or shared if the argument's nam
 be passed as one argument. Anything else (ints, strings, None, classes...) is a static
 argument: part of the signature, passed to the function unchanged. Arrays are float64,
 integer (indices) or boolean; float32 is refused (the program is written in double
-precision).
+precision). An empty batch (n = 0) runs the plain function on the tape: there is nothing
+to compile for, and it gives the outputs' shapes.
 """
 
 from __future__ import annotations
@@ -145,6 +146,8 @@ class CompiledFunction:
             return self.function(*args, **kwargs)
         names, values = self._bind(args, kwargs)
         arrays, trees, key = self._classify(names, values)
+        if key[1] == 0:  # an empty batch: nothing to compile for; the tape gives its shapes
+            return self.function(*args, **kwargs)
         trace = self._trace_for(key, arrays, trees)
         tensors = [value for value, _ in arrays]
         data = [_contiguous(t) for t in tensors]
@@ -435,9 +438,8 @@ def _scatter_kernel(columns: int) -> backend.Kernel:
 def _side_by_side(outputs: list[np.ndarray], n: int) -> np.ndarray:
     """The outputs (n, ...) each, as the columns of one (n, m) array (one output: itself,
     not copied)."""
-    if len(outputs) == 1:
-        return outputs[0].reshape(n, -1)
-    return np.concatenate([o.reshape(n, -1) for o in outputs], axis=1)
+    columns = [o.reshape(n, int(np.prod(o.shape[1:]))) for o in outputs]  # n may be 0
+    return columns[0] if len(columns) == 1 else np.concatenate(columns, axis=1)
 
 
 def _floats(slots) -> tuple[int, ...]:

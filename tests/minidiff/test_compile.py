@@ -329,6 +329,19 @@ def test_without_the_tape_it_returns_a_constant():
     assert_close(out.data, shading.function(normals, points, light).data, "value")
 
 
+def test_an_empty_batch_gives_empty_outputs_and_gradients():
+    # A batch that selection left empty (no boundary sample survived, say) is a batch.
+    normals, points, light = (np.zeros((0, 3)), np.zeros((0, 3)), np.ones(3))
+    with md.no_grad():
+        assert shading(normals, points, light).data.shape == (0, 3)
+    p = md.tensor(points, requires_grad=True)
+    lt = md.tensor(light, requires_grad=True)
+    md.sum(shading(normals, p, lt)).backward()
+    assert p.grad.shape == (0, 3) and np.array_equal(lt.grad, np.zeros(3))
+    _, tangent = md.jvp(lambda x: md.sum(shading(normals, x, light)), (p,), (points,))
+    assert tangent.shape == ()
+
+
 def test_calls_from_several_threads_agree():
     normals, points, light = _scene(3000, seed=4)
     expected = shading.function(normals, points, light).data

@@ -62,8 +62,9 @@ from render.path.boundary.silhouettes import CONTACT, Curves, level_set
 from render.path.gradient import window
 from render.path.gradient.replay import radiance_of
 from render.path.gradient.transport import next_vertex, vertex_on_tape, viewer_side
+from render.path.sample.choices import geometric_normal, padded_role, padded_tables
 from render.path.sample.random import bounce_dimension, uniform
-from render.path.sample.sampling import dot, unit
+from render.path.sample.sampling import dot
 from render.path.sample.tables import Tables
 from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
 from render.path.twin import kernel
@@ -103,41 +104,62 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     (n, 3): the point at t (n,) on the curve must be seen from the apex (rays leave from
     ``origin`` (n, 3), the apex lifted off its surface), and the first surface beyond it,
     x', must not touch the curve; its normal is turned to face ``viewer`` (n, 3).
-    ``probability`` (n,): the density of the sample, P(curve) times the density of t."""
-    valid = (index >= 0) & (probability > 0)
-    rows = np.flatnonzero(valid)
-    m, tangent = curves.point(apex[rows], index[rows], t[rows])
+    ``probability`` (n,): the density of the sample, P(curve) times the density of t.
+    The arithmetic on either side of the rays is compiled (``Curves.aim``, ``_weigh``)."""
+    rows = np.flatnonzero((index >= 0) & (probability > 0))
+
+    def of(values, at):  # rows of (n, ...) arrays (np.take: see tracer.Vertices.take)
+        return np.take(values, at, axis=0)
+
+    apex, index, side = of(apex, rows), index[rows], side[rows]
     size = sampler.size
-    # The rays pass a hair off the occluder, on the side that is not hidden: a ray through
-    # the very point m could meet the sphere it touches or the faces at the edge again.
-    off = m + 1e-9 * size * curves.away(apex[rows], index[rows], side[rows], m)
-    seen = ~sampler.accelerator.occluded(origin[rows], off - origin[rows], 1.0, tmin=0.0)
-    direction = unit(m - apex[rows])
+    m, tangent, off, direction = curves.aim(apex, index, side, t[rows], 1e-9 * size)
+    start = of(origin, rows)
+    seen = ~sampler.accelerator.occluded(start, off - start, 1.0, tmin=0.0)
     prim, far, u, v = sampler.accelerator.closest_hit(off, direction, tmin=0.0)
-    ok = seen & (prim >= 0) & (far > CONTACT * size)
-    rows, m, tangent, direction = rows[ok], m[ok], tangent[ok], direction[ok]
-    prim, far, u, v = prim[ok], far[ok], u[ok], v[ok]
-    points = m + far[:, None] * direction
-    local = sampler.local_coordinates(prim, points, u, v)
-    normal = geometric_normals(sampler.primitives, prim, points)
-    normal *= np.where(dot(normal, viewer[rows] - points) < 0, -1.0, 1.0)[:, None]
-    # |dx'/dt|: x' is m projected from the apex onto the plane of x'.
-    w = m - apex[rows]
-    stretch = np.linalg.norm(points - apex[rows], axis=1) / np.linalg.norm(w, axis=1)
-    wn = dot(w, normal)
-    along = stretch * np.linalg.norm(
-        tangent - (dot(tangent, normal) / np.where(wn != 0, wn, 1.0))[:, None] * w, axis=1
+    ok = np.flatnonzero(seen & (prim >= 0) & (far > CONTACT * size))
+    rows, apex, index, side, m, tangent, direction, prim, far, u, v = (
+        of(x, ok) for x in (rows, apex, index, side, m, tangent, direction, prim, far, u, v)
     )
-    grad = curves.gradient(apex[rows], index[rows], points)
-    across = np.linalg.norm(grad - dot(grad, normal)[:, None] * normal, axis=1)
-    # Edges: F is 0 on the faces' side of phi; spheres: inside the cone (phi < 0).
-    sign = np.where(index[rows] < curves.n_edges, -side[rows], 1.0)
-    good = (wn != 0) & (across > 0)
-    weight = np.where(good, along / np.where(good, across, 1.0), 0.0) * sign / probability[rows]
-    valid = np.zeros(len(index), bool)
+    points = m + far[:, None] * direction
+    grad = curves.gradient(apex, index, points)
+    face, sphere, on_sphere, _, _ = padded_role(sampler.tables, prim)
+    vertices, _, faces, _, centers, _ = padded_tables(sampler.tables)
+    normal, weight, good = (x.data for x in _weigh(
+        apex, m, tangent, points, of(viewer, rows), grad, np.where(index < curves.n_edges,
+        -side, 1.0), probability[rows], face, sphere, on_sphere, vertices, faces, centers,
+    ))  # fmt: skip
+    good = good > 0
+    valid = np.zeros(len(probability), bool)
     valid[rows] = good
-    return _Crossing(valid, prim[good], local[good], points[good], normal[good], weight[good],
-                     index[rows][good])  # fmt: skip
+    prim, points = prim[good], points[good]
+    local = sampler.local_coordinates(prim, points, u[good], v[good])
+    return _Crossing(valid, prim, local, points, normal[good], weight[good], index[good])
+
+
+@md.compile(shared=("vertices", "faces", "centers"))
+def _weigh(apex, m, tangent, points, viewer, grad, sign, probability, face, sphere, on_sphere,
+           vertices, faces, centers):  # fmt: skip
+    """The boundary samples' x' (``points`` (n, 3), beyond the curve points m (n, 3) seen
+    from ``apex`` (n, 3), dm/dt ``tangent``): their geometric normals facing ``viewer``
+    (the primitive's: ``face``, ``sphere``, ``on_sphere`` into the path tables), and the
+    constant weight |dx'/dt| / |grad_S phi| / P(curve) * sign (``grad``: phi's gradient in
+    x'; ``sign``: -1 or +1 by the side F is zero on; ``probability``: the sample's density),
+    with 1.0 where that is defined (0.0: leave the sample out)."""
+    normal = geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers)
+    normal = normal * column(md.where(md.dot(normal, viewer - points) < 0, -1.0, 1.0))
+    # |dx'/dt|: x' is m projected from the apex onto the plane of x'.
+    w = m - apex
+    stretch = md.norm(points - apex) / md.norm(w)
+    wn = md.dot(w, normal)
+    along = stretch * md.norm(
+        tangent - column(md.dot(tangent, normal) / md.where(wn != 0, wn, 1.0)) * w
+    )
+    across = md.norm(grad - column(md.dot(grad, normal)) * normal)
+    # Edges: F is 0 on the faces' side of phi; spheres: inside the cone (phi < 0).
+    good = (wn != 0) & (across > 0)
+    weight = md.where(good, along / md.where(good, across, 1.0), 0.0) * sign / probability
+    return normal, weight, md.where(good, 1.0, 0.0)
 
 
 def add_secondary_term(world, image: md.Tensor, frame, sampler: PathSampler) -> md.Tensor:

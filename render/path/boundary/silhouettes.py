@@ -55,6 +55,7 @@ from minidiff.threads import job_count, kernel, run_jobs, share
 from render.path.sample.sampling import dot, unit
 from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh
+from render.shade.surface import column, divided_unit
 from render.trace.seams import shared_edges
 from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
 
@@ -172,8 +173,7 @@ class Curves:
         edge_hi = np.where(two, np.clip(np.nanmax(np.where(two[..., None], ts, 0), 2), 0, 1), 0)
         q = self.centre[None] - apex[:, None]  # (n, S, 3)
         d = q / np.maximum(np.linalg.norm(q, axis=2, keepdims=True), 1e-300)
-        u1, u2 = _basis(d.reshape(-1, 3))
-        u1, u2 = u1.reshape(d.shape), u2.reshape(d.shape)
+        u1, u2 = (x.data.reshape(d.shape) for x in basis(d.reshape(-1, 3)))
         azimuth = np.arctan2(np.einsum("nsk,nvk->nsv", u2, v[:, 0]),
                              np.einsum("nsk,nvk->nsv", u1, v[:, 0]))  # fmt: skip
         azimuth = np.sort(azimuth, axis=2)
@@ -232,58 +232,98 @@ class Curves:
         density[edge] = rate / np.where(total > 0, total, 1.0)
         return t, density
 
-    def point(self, apex: np.ndarray, index: np.ndarray, t: np.ndarray):
-        """The point m (n, 3) at parameter t (n,) on curves ``index`` (n,) (all valid), and
-        dm/dt (n, 3): along an edge from a (t = 0) to b (t = 1); around the circle where the
-        cone from the apex (n, 3) touches a sphere (azimuth 2 pi t)."""
-        m, tangent = np.zeros((len(index), 3)), np.zeros((len(index), 3))
-        edge = index < self.n_edges
-        j = index[edge]
-        tangent[edge] = self.b[j] - self.a[j]
-        m[edge] = self.a[j] + t[edge, None] * tangent[edge]
-        ball = ~edge
-        s = index[ball] - self.n_edges
-        q = self.centre[s] - apex[ball]
-        d2 = dot(q, q)
-        r = self.radius[s]
-        centre = apex[ball] + q * (1 - r * r / d2)[:, None]
-        rho = r * np.sqrt(d2 - r * r) / np.sqrt(d2)
-        u1, u2 = _basis(q / np.sqrt(d2)[:, None])
-        tau = 2 * np.pi * t[ball]
-        cos, sin = np.cos(tau)[:, None], np.sin(tau)[:, None]
-        m[ball] = centre + rho[:, None] * (cos * u1 + sin * u2)
-        tangent[ball] = 2 * np.pi * rho[:, None] * (cos * u2 - sin * u1)
-        return m, tangent
+    def rows(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Of curves ``index`` (n,) (all valid): each one's row in the edges' table, in the
+        spheres' table (0 in the rows of the other kind: a harmless row, never selected),
+        and which are edges (n,) bool (``padded``'s tables)."""
+        is_edge = index < self.n_edges
+        return np.where(is_edge, index, 0), np.where(is_edge, 0, index - self.n_edges), is_edge
 
-    def away(self, apex, index, side, m) -> np.ndarray:
-        """(n, 3) unit vectors from the curve points m (n, 3) towards the side that the
-        occluder does not hide: out of a sphere; across the plane through apex and edge,
-        away from the edge's faces (on ``side`` (n,) of it)."""
-        out = np.zeros((len(index), 3))
-        edge = index < self.n_edges
-        j = index[edge]
-        normal = np.cross(self.a[j] - apex[edge], self.b[j] - apex[edge])
-        out[edge] = -side[edge, None] * unit(normal)
-        ball = ~edge
-        out[ball] = unit(m[ball] - self.centre[index[ball] - self.n_edges])
-        return out
+    @property
+    def padded(self) -> tuple:
+        """(a, b, centre, radius) with one harmless row where the scene has no edge or no
+        sphere: the tables the compiled functions below gather from."""
+        a, b = (self.a, self.b) if self.n_edges else (np.zeros((1, 3)), np.ones((1, 3)))
+        if len(self.radius):
+            return a, b, self.centre, self.radius
+        return a, b, np.zeros((1, 3)), np.ones(1)
+
+    def aim(self, apex, index, side, t, lift: float) -> tuple[np.ndarray, ...]:
+        """For curves ``index`` (n,) (all valid) seen from ``apex`` (n, 3): the point m at
+        parameter t (n,), dm/dt, m lifted by ``lift`` towards the side the occluder does not
+        hide (edges: faces on ``side`` (n,) of the plane through apex and edge) and the unit
+        direction from the apex to m, each (n, 3): ``_aim``, compiled."""
+        found = _aim(np.ascontiguousarray(apex, np.float64), np.asarray(t, np.float64),
+                     np.asarray(side, np.float64), *self.rows(index),
+                     np.asarray(lift, np.float64), *self.padded)  # fmt: skip
+        return tuple(x.data for x in found)
 
     def gradient(self, apex, index, points) -> np.ndarray:
         """(n, 3): the gradient in x' of the level set function phi of curves ``index`` (n,)
         seen from ``apex`` (n, 3) at ``points`` x' (n, 3): ``level_set``'s own derivative
-        (minidiff, off the caller's tape)."""
-        is_edge = index < self.n_edges
-        a = b = centre = radius = None
-        if self.n_edges:
-            edge = np.where(is_edge, index, 0)
-            a, b = self.a[edge], self.b[edge]
-        if len(self.radius):
-            ball = np.where(is_edge, 0, index - self.n_edges)
-            centre, radius = self.centre[ball], self.radius[ball]
+        (the compiled VJP of ``_level_set_of``, off the caller's tape)."""
         with md.enable_grad():  # its own tape, also inside a caller's no_grad()
             x = md.tensor(np.asarray(points, np.float64), requires_grad=True)
-            md.sum(level_set(md.tensor(apex), x, a, b, centre, radius, is_edge)).backward()
+            phi = _level_set_of(np.ascontiguousarray(apex, np.float64), x, *self.rows(index),
+                                *self.padded)  # fmt: skip
+            phi.backward(np.ones(phi.shape))
         return x.grad
+
+
+def curve_points(apex, t, a, b, centre, radius, is_edge):
+    """The point m (n, 3) at parameter t (n,) on each row's curve seen from ``apex`` (n, 3),
+    and dm/dt (n, 3): along the edge (``a``, ``b`` (n, 3)) from a (t = 0) to b (t = 1)
+    where ``is_edge`` (n,), else around the circle where the cone from the apex touches the
+    sphere (``centre`` (n, 3), ``radius`` (n,)) (azimuth 2 pi t, about the axis apex ->
+    centre, from ``basis``'s first vector). Minidiff arrays; each row reads both kinds'
+    arguments, which need only be finite where unused."""
+    e = b - a
+    q = centre - apex
+    d2 = md.dot(q, q)
+    rho = radius * md.sqrt(d2 - radius * radius) / md.sqrt(d2)
+    middle = apex + q * column(1.0 - radius * radius / d2)
+    u1, u2 = basis(q / column(md.sqrt(d2)))
+    tau = 2.0 * np.pi * t
+    cos, sin = column(md.cos(tau)), column(md.sin(tau))
+    edge = column(is_edge)
+    m = md.where(edge, a + column(t) * e, middle + column(rho) * (cos * u1 + sin * u2))
+    tangent = md.where(edge, e, column(2.0 * np.pi * rho) * (cos * u2 - sin * u1))
+    return m, tangent
+
+
+def away_from_occluder(apex, side, m, a, b, centre, is_edge):
+    """(n, 3) unit vectors from the curve points m (n, 3) towards the side that the
+    occluder does not hide: across the plane through apex and edge, away from the edge's
+    faces (on ``side`` (n,) of it), where ``is_edge``; else out of the sphere."""
+    across = column(-side) * divided_unit(md.cross(a - apex, b - apex))
+    return md.where(column(is_edge), across, divided_unit(m - centre))
+
+
+def basis(n):
+    """Two unit vectors (k, 3) orthogonal to the unit n (k, 3) and to each other (the
+    azimuths' axes of ``curve_points``, and of the pick kernel's ``_axes``)."""
+    helper = md.where(column(md.abs(n[:, 0]) > 0.9), np.array([0.0, 1.0, 0.0]),
+                      np.array([1.0, 0.0, 0.0]))  # fmt: skip
+    u1 = divided_unit(md.cross(n, helper))
+    return u1, md.cross(n, u1)
+
+
+@md.compile(shared=("lift", "a", "b", "centre", "radius"))
+def _aim(apex, t, side, edge, ball, is_edge, lift, a, b, centre, radius):
+    """``Curves.aim`` for rows of curves: ``edge``, ``ball``, ``is_edge`` (``Curves.rows``)
+    into the tables a, b, centre, radius (``Curves.padded``)."""
+    ends, sphere = (a[edge], b[edge]), (centre[ball], radius[ball])
+    m, tangent = curve_points(apex, t, *ends, *sphere, is_edge)
+    off = m + lift * away_from_occluder(apex, side, m, *ends, sphere[0], is_edge)
+    # The rays pass a hair off the occluder, on the side that is not hidden: a ray through
+    # the very point m could meet the sphere it touches or the faces at the edge again.
+    return m, tangent, off, divided_unit(m - apex)
+
+
+@md.compile(shared=("a", "b", "centre", "radius"))
+def _level_set_of(apex, far, edge, ball, is_edge, a, b, centre, radius):
+    """``level_set`` of rows of curves (``Curves.rows`` into ``Curves.padded``)."""
+    return level_set(apex, far, a[edge], b[edge], centre[ball], radius[ball], is_edge)
 
 
 def _welded_groups(sampler: PathSampler) -> list[tuple[list[int], MeshEdges]]:
@@ -437,13 +477,6 @@ def _rows(parts: list[np.ndarray], empty: tuple) -> np.ndarray:
     return np.concatenate(parts) if parts else np.zeros(empty)
 
 
-def _basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (k, 3) orthogonal to the unit n (k, 3) and to each other."""
-    helper = np.where(np.abs(n[:, :1]) > 0.9, [[0.0, 1.0, 0.0]], [[1.0, 0.0, 0.0]])
-    u1 = unit(np.cross(n, helper))
-    return u1, np.cross(n, u1)
-
-
 def _choose(weights: np.ndarray, u: np.ndarray, side: np.ndarray):
     """A curve per row, picked with probability proportional to ``weights`` (n or 1,
     E + S) by uniforms u (n,): its index (n,) (-1: none had weight), the probability (n,)
@@ -565,7 +598,7 @@ def _edge_towards(p, a, b, tri):
 
 @numba.njit(cache=True, error_model="numpy")
 def _axes(n):
-    """``_basis`` for one unit vector."""
+    """``basis`` for one unit vector."""
     helper = (0.0, 1.0, 0.0) if abs(n[0]) > 0.9 else (1.0, 0.0, 0.0)
     u1 = _cross(n, helper)
     length = _norm(u1)

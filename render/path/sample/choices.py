@@ -48,7 +48,7 @@ def _pick(condition, a, b):
     return md.where(column(condition), a, b)
 
 
-def _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers):
+def geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers):
     """``render.shade.surface.geometric_normals`` from the tables: a triangle's unit face
     normal, a sphere's unit outward normal at ``points``."""
     face_normal = face_normals(*_corners(vertices, faces, face))
@@ -91,7 +91,7 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
     has_emitters, last, roulette = form
     face, sphere, on_sphere, obj, local = here
     points, incoming, by_area, pdf, previous, throughput = path
-    ng = _geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers)
+    ng = geometric_normal(face, sphere, on_sphere, points, vertices, faces, centers)
     u, v = column(local[:, 0]), column(local[:, 1])
     na, nb, nc = _corners(normals, faces, face)
     ns = _pick(smooth[obj] & ~on_sphere, divided_unit((1.0 - u - v) * na + u * nb + v * nc), ng)
@@ -124,7 +124,7 @@ def _choices(here, path, material, nee, numbers, vertices, normals, faces, smoot
         a, b, c = _corners(vertices, faces, e_face)
         on_triangle = a + uv[:, 0:1] * (b - a) + uv[:, 1:2] * (c - a)
         z = md.where(e_on, centers[e_sphere] + column(radii[e_sphere]) * ball, on_triangle)
-        nz = _geometric_normal(e_face, e_sphere, e_on_sphere, z, vertices, faces, centers)
+        nz = geometric_normal(e_face, e_sphere, e_on_sphere, z, vertices, faces, centers)
         to = z - points
         d2 = md.dot(to, to)
         wi = to / column(md.sqrt(md.where(d2 > 0, d2, 1.0)))
@@ -194,10 +194,10 @@ def vertex_choices(tables: Tables, here, path, material, nee, numbers, offset: f
         nee = (prims, ones, ones, np.zeros(n, bool), ones)
     e_prims, *rest = nee
     path = tuple(np.asarray(x, np.float64) if x.dtype.kind == "f" else x for x in path)
-    here = _role(tables, prims, np.asarray(local, np.float64))
+    here = padded_role(tables, prims, np.asarray(local, np.float64))
     data = [md.as_tensor(out).data for out in _choices(  # plain in, plain out (tape_only)
-        here, path, material, (*_role(tables, e_prims)[:3], *rest),
-        numbers if numbers is not None else (ones,) * 6, *_padded(tables),
+        here, path, material, (*padded_role(tables, e_prims)[:3], *rest),
+        numbers if numbers is not None else (ones,) * 6, *padded_tables(tables),
         np.asarray(offset, np.float64), form,
     )]  # fmt: skip
     ng, emit_weight = data.pop(0), (data.pop(0) if has_emitters else ones)
@@ -213,15 +213,15 @@ def vertex_choices(tables: Tables, here, path, material, nee, numbers, offset: f
     return found
 
 
-def _role(tables: Tables, prims: np.ndarray, local: np.ndarray | None = None) -> tuple:
-    """``Tables.role`` with a row 0 where the scene has no face or no sphere (``_padded``)."""
+def padded_role(tables: Tables, prims: np.ndarray, local: np.ndarray | None = None) -> tuple:
+    """``Tables.role`` with a row 0 where the scene has no face or no sphere (``padded_tables``)."""
     face, sphere, on_sphere, obj, local = tables.role(prims, local)
     zero = np.zeros(len(prims), np.int64)
     return (zero if face is None else face, zero if sphere is None else sphere, on_sphere, obj,
             local)  # fmt: skip
 
 
-def _padded(tables: Tables) -> tuple:
+def padded_tables(tables: Tables) -> tuple:
     """The tables ``_choices`` reads, plain, with one harmless row where the scene has no
     mesh or no sphere: (vertices, normals, faces, smooth, centres, radii)."""
     none = tables.faces is None
