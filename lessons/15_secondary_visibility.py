@@ -436,7 +436,7 @@ def boundary_samples(seed: int, triangle=None, triangle_probability: float = 1.0
     ok = index >= 0
     index, density, side, t = index[ok], density[ok] * triangle_probability, side[ok], t[ok]
     apex = np.repeat(POINT, len(index), axis=0)
-    m, tangent = curves.point(apex, index, t)  # the point on the curve and dm/dt
+    m, tangent = curves.aim(apex, index, side, t, lift=0.0)[:2]  # the point on it, dm/dt
     w = m - apex
     beyond = apex + w * ((LAMP_HEIGHT - apex[:, 1]) / w[:, 1])[:, None]  # x', lamp's plane
     on_lamp = (w[:, 1] > 0) & np.all(np.abs(beyond[:, [0, 2]]) <= LAMP_HALF, axis=1)

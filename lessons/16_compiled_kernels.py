@@ -263,11 +263,11 @@ print("refused:", refused)
 #
 # Tracing is Python (milliseconds for a small function), and LLVM compiles the text to
 # machine code (a fraction of a second). The machine code is kept in memory for the
-# process (any function that traces to the same text gets it) and on disk
-# (`~/.cache/minidiff/kernels`, or `$MINIDIFF_CACHE_DIR`), keyed by a
-# hash of the LLVM text, the generator's version, LLVM's version and the CPU: the next
-# process, or another function that traces to the same program, fetches it instead of
-# compiling.
+# process (any function that traces to the same program gets it) and on disk
+# (`~/.cache/minidiff/kernels`, or `$MINIDIFF_CACHE_DIR`), keyed by a hash of the traced
+# program, of minidiff's code that turns a program into LLVM text (an edit there is a new
+# key), LLVM's version and the CPU: the next process, or another function that traces to
+# the same program, loads the machine code instead of writing the text and compiling it.
 
 # %%
 timings = {}

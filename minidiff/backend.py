@@ -11,9 +11,11 @@ runs a kernel's chunks side by side.
 Compiled kernels are kept twice: in memory for this process, and as object code on disk
 (``MINIDIFF_CACHE_DIR``, default ``~/.cache/minidiff``) for the next one, keyed by a hash
 of the IR text, the generator's version and the CPU (object code for one CPU may use
-instructions another lacks). A file is written under a temporary name then renamed, and
-carries a checksum of its contents, so concurrent processes and interrupted writes never
-load a partial file.
+instructions another lacks); or, for a compiled function's kernels, of the traced program
+(``codegen.program_text``) and minidiff's own source, so that a kernel on disk is found
+without writing or parsing its IR (``cached``). A file is written under a temporary name
+then renamed, and carries a checksum of its contents, so concurrent processes and
+interrupted writes never load a partial file.
 """
 
 from __future__ import annotations
@@ -110,9 +112,26 @@ def _this_cpu() -> tuple[str, ...]:
     )
 
 
-def _key(text: str) -> str:
-    stamp = "\n".join([GENERATOR_VERSION, *_this_cpu(), text])
+def _key(text: str, program: str | None = None) -> str:
+    """The cache key of a kernel: its IR ``text``'s, or, given the ``program`` text that
+    determines it (``codegen.program_text``), that one's with minidiff's source."""
+    parts = [text] if program is None else ["program", _source(), program]
+    stamp = "\n".join([GENERATOR_VERSION, *_this_cpu(), *parts])
     return hashlib.sha256(stamp.encode()).hexdigest()
+
+
+#: The modules that turn a traced program into IR: the primitives' scalar forms and
+#: derivative rules, the tracer that applies them, the scalar operations, the generator.
+SOURCE_FILES = ("primitives.py", "trace.py", "ir.py", "codegen.py")
+
+
+@functools.cache
+def _source() -> str:
+    """A hash of ``SOURCE_FILES``, whose edits a program's text does not show."""
+    digest = hashlib.sha256()
+    for name in SOURCE_FILES:
+        digest.update(name.encode() + b"\0" + (Path(__file__).parent / name).read_bytes())
+    return digest.hexdigest()
 
 
 def _read_object(path: Path) -> bytes | None:
@@ -137,10 +156,33 @@ def _write_object(path: Path, payload: bytes) -> None:
         pass
 
 
-def compile_ir(text: str) -> Kernel:
+def cached(program: str) -> Kernel | None:
+    """The kernel of the ``program`` text (``codegen.program_text``) if this process or
+    the disk cache has it, else None: loaded from its object code, its IR neither written
+    nor parsed."""
+    key = _key("", program)
+    kernel = _compiled.get(key)
+    if kernel is not None:
+        return kernel
+    stored = _read_object(cache_dir() / f"{key}.o")
+    if stored is None:
+        return None
+    with _lock:
+        kernel = _compiled.get(key)
+        if kernel is None:
+            engine = llvm.create_mcjit_compiler(llvm.parse_assembly(""), _target_machine())
+            engine.add_object_file(llvm.ObjectFileRef.from_data(stored))
+            engine.finalize_object()
+            kernel = _compiled[key] = Kernel(engine, key)
+    return kernel
+
+
+def compile_ir(text: str, program: str | None = None) -> Kernel:
     """The kernel for IR ``text``: from memory, from disk, or compiled now (optimised at
-    LLVM's -O3 pipeline, for this CPU)."""
-    key = _key(text)
+    LLVM's -O3 pipeline, for this CPU). ``program``: the program text that determines
+    ``text`` (``codegen.program_text``), under whose key the kernel is then kept (and
+    found again by ``cached``); None: keyed by ``text``."""
+    key = _key(text, program)
     kernel = _compiled.get(key)
     if kernel is not None:
         return kernel

@@ -462,6 +462,38 @@ def _is_leaf_of(node: ir.Node, wrt) -> bool:
     return node.op in ("load", "uniform", "gather") and node.attrs[0] in wrt and node.type == "f64"
 
 
+def layout(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> Layout:
+    """The buffers' layout of ``program``'s kernel in ``mode``, as ``generate`` gives it
+    (without writing the kernel: for a kernel fetched from the cache by ``program_text``)."""
+    return _names(mode, program, wrt)[1]
+
+
+def program_text(program: Program, mode: str, wrt: tuple[int, ...] = (), lines=None) -> str | None:
+    """A text that determines the kernel ``generate`` writes for ``program`` in ``mode``
+    (with minidiff's own source, which the cache key adds: ``backend._source``): the mode,
+    then ``program_lines`` (given as ``lines`` if already made). Cheaper than the kernel's
+    text, so that a kernel already on disk is found without writing it. None when a line's
+    derivative rule comes from outside minidiff: such a kernel is keyed by its IR text."""
+    lines = program_lines(program) if lines is None else lines
+    return None if lines is None else f"{mode} {wrt}\n{lines}"
+
+
+def program_lines(program: Program) -> str | None:
+    """``program`` as text: the slots, the outputs, and every line (op, arguments, type,
+    attributes, its parents and the scalar form each one's derivative rule comes from);
+    None when a rule comes from outside minidiff (a scalar form written elsewhere, whose
+    edits minidiff's source would not show)."""
+    lines = [f"{program.slots} {program.outputs}"]
+    for node in program.graph.nodes:
+        rules = []  # which scalar form's rule each parent takes
+        for slope in node.slopes:
+            if slope is not None and not slope.__module__.startswith("minidiff."):
+                return None
+            rules.append("-" if slope is None else slope.__qualname__)
+        lines.append(f"{node.op} {node.args} {node.type} {node.attrs!r} {node.parents} {rules}")
+    return "\n".join(lines)
+
+
 def generate(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> tuple[str, Layout]:
     """The LLVM IR text of ``program``'s kernel in ``mode`` ("forward", "vjp",
     "vjp_shared", "jvp") with derivatives for the slots ``wrt``, and its buffers' layout."""

@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from minidiff import backend, codegen, ir
-from minidiff.tensor import Tensor, as_tensor, is_grad_enabled, record
+from minidiff.tensor import Tensor, is_grad_enabled, record
 from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-exported)
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
@@ -114,12 +114,24 @@ class _Trace:
     output_shapes: tuple[tuple[int, ...], ...]  # per output, one element's shape
     single: bool  # the function returned one array (not a tuple)
     kernels: dict
+    lines: str | None = ""  # codegen.program_lines, made on first use ("": not yet)
 
-    def kernel(self, mode: str, wrt: tuple[int, ...]):
+    def kernel(self, mode: str, wrt: tuple[int, ...]) -> tuple[backend.Kernel, codegen.Layout]:
+        """The kernel for ``mode`` and ``wrt``, and its buffers' layout: kept by this trace,
+        else from the cache by the program's text (``codegen.program_text``: cheaper than
+        writing the kernel), else written and compiled."""
         key = (mode, wrt)
         if key not in self.kernels:
-            text, layout = codegen.generate(self.program, mode, wrt)
-            self.kernels[key] = (backend.compile_ir(text), layout, text)
+            if self.lines == "":
+                self.lines = codegen.program_lines(self.program)  # once for every mode
+            program = codegen.program_text(self.program, mode, wrt, self.lines)
+            kernel = None if program is None else backend.cached(program)
+            if kernel is None:
+                text, layout = codegen.generate(self.program, mode, wrt)
+                kernel = backend.compile_ir(text, program)
+            else:
+                layout = codegen.layout(self.program, mode, wrt)
+            self.kernels[key] = (kernel, layout)
         return self.kernels[key]
 
 
@@ -136,6 +148,13 @@ class CompiledFunction:
                 f"{function.__name__}{self.signature}"
             )
         self.shared = frozenset(shared)
+        # The parameters' names, when each can be given by position (no *args, **kwargs).
+        kinds = {p.kind for p in self.signature.parameters.values()}
+        plain = kinds <= {
+            inspect.Parameter.POSITIONAL_ONLY,
+            inspect.Parameter.POSITIONAL_OR_KEYWORD,
+        }
+        self._names = list(self.signature.parameters) if plain else None
         self._traces: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
         functools.update_wrapper(self, function)
@@ -149,15 +168,16 @@ class CompiledFunction:
         if key[1] == 0:  # an empty batch: nothing to compile for; the tape gives its shapes
             return self.function(*args, **kwargs)
         trace = self._trace_for(key, arrays, trees)
-        tensors = [value for value, _ in arrays]
-        data = [_contiguous(t) for t in tensors]
+        given = [value for value, _ in arrays]  # Tensors, or the NumPy arrays passed
+        data = [_contiguous(v) for v in given]
         outputs = self._forward(trace, data)
         needs_tape = is_grad_enabled() and any(
-            t.requires_grad or t.tangent is not None for t in tensors
+            isinstance(v, Tensor) and (v.requires_grad or v.tangent is not None) for v in given
         )
         if not needs_tape:
             results = [Tensor(o) for o in outputs]
         else:
+            tensors = [v if isinstance(v, Tensor) else Tensor(v) for v in given]
             results = self._on_tape(trace, tensors, data, outputs)
         return results[0] if trace.single else tuple(results)
 
@@ -178,6 +198,8 @@ class CompiledFunction:
 
     # ----------------------------------------------------------------------------------------
     def _bind(self, args, kwargs):
+        if not kwargs and self._names is not None and len(args) == len(self._names):
+            return self._names, list(args)
         try:
             bound = self.signature.bind(*args, **kwargs)
         except TypeError as error:
@@ -205,7 +227,7 @@ class CompiledFunction:
         calls itself is a reference cycle, which would keep every call's arrays alive
         until the cyclic garbage collector runs.)"""
         if isinstance(value, (tuple, list)):  # arrays in containers: each its own slot
-            parts = tuple(self._tree(name, v, True, arrays, batch) for v in value)
+            parts = tuple([self._tree(name, v, True, arrays, batch) for v in value])
             return _Container(type(value), parts)
         if not isinstance(value, (Tensor, np.ndarray) if inside else _ARRAYS):
             try:
@@ -221,11 +243,15 @@ class CompiledFunction:
         arrays.append((t, slot))
         return _Leaf(len(arrays) - 1, slot)
 
-    def _slot(self, name: str, value, batch: list) -> tuple[Slot, Tensor]:
+    def _slot(self, name: str, value, batch: list) -> tuple[Slot, Tensor | np.ndarray]:
         """The slot of array argument ``name`` (in ``shared``, or batched: then its first
-        axis must have the length ``batch[0]`` of the others, which it sets if unset)."""
-        t = value if isinstance(value, Tensor) else as_tensor(np.asarray(value))
-        dtype = t.dtype
+        axis must have the length ``batch[0]`` of the others, which it sets if unset), and
+        the argument as a Tensor or NumPy array (a Tensor is made only for the tape)."""
+        if isinstance(value, Tensor):
+            array = value._data
+        else:
+            value = array = value if isinstance(value, np.ndarray) else np.asarray(value)
+        dtype = array.dtype
         if dtype.kind == "f" and dtype != np.float64:
             raise TypeError(
                 f"{self.function.__name__}: argument '{name}' is {dtype}; a compiled "
@@ -233,20 +259,21 @@ class CompiledFunction:
             )
         if dtype.kind not in "fiub":
             raise TypeError(f"{self.function.__name__}: argument '{name}' has dtype {dtype}")
+        shape = array.shape
         batched = name not in self.shared
         if batched:
-            if t.ndim == 0:
+            if not shape:
                 raise ValueError(
                     f"{self.function.__name__}: batched argument '{name}' is a 0-d "
                     "array; it needs a first (batch) axis, or name it in shared="
                 )
-            if batch[0] is not None and t.shape[0] != batch[0]:
+            if batch[0] is not None and shape[0] != batch[0]:
                 raise ValueError(
                     f"{self.function.__name__}: batched argument '{name}' has "
-                    f"{t.shape[0]} elements, others {batch[0]}"
+                    f"{shape[0]} elements, others {batch[0]}"
                 )
-            batch[0] = t.shape[0]
-        return Slot(batched, t.shape[1:] if batched else t.shape, TYPES[dtype.kind]), t
+            batch[0] = shape[0]
+        return Slot(batched, shape[1:] if batched else shape, TYPES[dtype.kind]), value
 
     def _trace_for(self, key, arrays, trees) -> _Trace:
         """The trace for this signature: one for every batch length n, unless the function
@@ -301,7 +328,7 @@ class CompiledFunction:
 
     # ----------------------------------------------------------------------------------------
     def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray], batch=None) -> None:
-        kernel, _, _ = trace.kernel(mode, wrt)
+        kernel, _ = trace.kernel(mode, wrt)
         pointers = _addresses(buffers)
         n = trace.batch if batch is None else batch
         chunks = -(-n // codegen.CHUNK)
@@ -322,7 +349,7 @@ class CompiledFunction:
         """Gradients of sum(cotangent * output) for the slots ``wrt``: one array per slot,
         None for the others. The element kernel, then the shared kernel on the batch's
         totals at the frontier (``codegen.Layout``), then the gathers' scatter-adds."""
-        _, layout, _ = trace.kernel("vjp", wrt)
+        _, layout = trace.kernel("vjp", wrt)
         slots = trace.program.slots
         n, chunks = trace.batch, -(-trace.batch // codegen.CHUNK)
         # the kernel writes every element of these (codegen._reverse_elements): not zeroed
@@ -446,8 +473,8 @@ def _floats(slots) -> tuple[int, ...]:
     return tuple(s for s, slot in enumerate(slots) if slot.type == "f64")
 
 
-def _contiguous(t: Tensor) -> np.ndarray:
-    data = t._data
+def _contiguous(t: Tensor | np.ndarray) -> np.ndarray:
+    data = t._data if isinstance(t, Tensor) else t
     if data.dtype.kind in "iu":
         return np.ascontiguousarray(data, dtype=np.int64)
     if data.dtype.kind == "b":

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 _building: contextvars.ContextVar[Graph | None] = contextvars.ContextVar("building", default=None)
 
 
-@dataclass
+@dataclass(slots=True)
 class Node:
     """One line of the program: ``op`` applied to the values ``args`` (ids of earlier
     lines), of scalar ``type``; ``attrs`` hold what the op needs besides values (a
@@ -91,13 +91,28 @@ def operators(fn: Callable) -> tuple[Callable, Callable]:
     return (lambda self, other: fn(self, other)), (lambda self, other: fn(other, self))
 
 
-@dataclass(frozen=True)
 class Value:
     """A scalar of one element: line ``id`` of the graph being built, of scalar ``type``.
-    Arithmetic on Values appends lines (Python numbers become constants)."""
+    Arithmetic on Values appends lines (Python numbers become constants). Equal when both
+    are equal, like a frozen dataclass; a plain class with slots because a trace makes one
+    per line (a frozen dataclass's ``__init__`` costs several times as much)."""
 
-    id: int
-    type: str
+    __slots__ = ("id", "type")
+
+    def __init__(self, id: int, type: str):  # noqa: A002 (the fields' names)
+        self.id = id
+        self.type = type
+
+    def __repr__(self) -> str:
+        return f"Value(id={self.id!r}, type={self.type!r})"
+
+    def __eq__(self, other) -> bool:
+        if other.__class__ is not Value:
+            return NotImplemented
+        return self.id == other.id and self.type == other.type
+
+    def __hash__(self) -> int:
+        return hash((self.id, self.type))
 
     __add__, __radd__ = operators(lambda x, y: _binary("add", x, y))
     __sub__, __rsub__ = operators(lambda x, y: _binary("sub", x, y))

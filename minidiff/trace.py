@@ -287,6 +287,8 @@ def broadcast(arrays: list[Traced], name: str) -> tuple[list[np.ndarray], int | 
     batch = _batch_of(arrays)
     rank = builtins.max(len(a.lane_shape) for a in arrays if a.batch is not None) if batch else 0
     lanes = [_element_lanes(a, batch, rank) for a in arrays]
+    if all(lane.shape == lanes[0].shape for lane in lanes):
+        return lanes, batch  # nothing to broadcast
     try:
         return list(np.broadcast_arrays(*lanes)), batch
     except ValueError:
@@ -302,25 +304,26 @@ def elementwise(name: str, form, *args, differentiable=None) -> Traced:
     derivatives (default: all float ones). A Python int among the arguments is a float
     constant, as NumPy's promotion makes it beside a float array (``sum`` starts from 0).
     """
-    arrays = [traced(float(a) if type(a) is int else a) for a in args]
+    arrays = [a if type(a) is Traced else traced(float(a) if type(a) is int else a) for a in args]
     for a, wanted in zip(arrays, differentiable or [True] * len(arrays), strict=True):
         if wanted and a.dtype.kind != "f":
             raise CompileError(
                 f"{name}: needs float arrays inside a compiled function, got {a.dtype}"
             )
     lanes, batch = broadcast(arrays, name)
-    graph = ir.active()
-    out = np.empty(lanes[0].shape if lanes else (), dtype=object)
-    for position in np.ndindex(out.shape):
-        values = [lane[position] for lane in lanes]
+    nodes = ir.active().nodes
+    shape = lanes[0].shape if lanes else ()
+    columns = [lane.ravel().tolist() for lane in lanes]  # each lane's Values, row-major
+    out = []
+    for values in zip(*columns, strict=True) if columns else [()]:
         y, slopes = form(*values)
-        node = graph.nodes[y.id]
+        node = nodes[y.id]
         if node.parents:  # a form must make a new value (not hand back an argument)
             raise AssertionError(f"{name}: the scalar form returned a value it did not make")
         node.parents = tuple(v.id for v in values)
         node.slopes = tuple(slopes)
-        out[position] = y
-    return Traced(out, batch, np.float64)
+        out.append(y)
+    return Traced(_object_array(out, shape), batch, np.float64)
 
 
 def along_last_axis(name: str, form, x) -> Traced:

@@ -379,12 +379,40 @@ def test_kernels_are_kept_on_disk_and_a_damaged_file_is_recompiled(tmp_path, mon
     assert len(files) == 1
     monkeypatch.setattr(backend, "_compiled", {})  # as a new process would start
     fresh._traces.clear()
-    assert_close(fresh(x).data, expected, "from disk")
+    with monkeypatch.context() as m:  # found by the traced program: no IR written
+        m.setattr(compiler.codegen, "generate", None)
+        assert_close(fresh(x).data, expected, "from disk")
     files[0].write_bytes(files[0].read_bytes()[:-9] + b"corrupted")
     monkeypatch.setattr(backend, "_compiled", {})
     fresh._traces.clear()
     assert_close(fresh(x).data, expected, "after damage")
     assert backend._read_object(files[0]) is not None  # rewritten whole
+    # An edit of minidiff's own source (a primitive's rule, the generator) is a new key.
+    monkeypatch.setattr(backend, "_source", lambda: "an edited minidiff")
+    monkeypatch.setattr(backend, "_compiled", {})
+    fresh._traces.clear()
+    assert_close(fresh(x).data, expected, "after an edit")
+    assert len(list((tmp_path / "kernels").glob("*.o"))) == 2
+
+
+def test_a_scalar_form_from_outside_minidiff_keys_its_kernel_by_its_ir():
+    from minidiff import codegen, ir, trace
+
+    def cube(x):  # an elementwise primitive written here: its rule is not minidiff's source
+        y = x * x * x
+        return y, (lambda d: d * 3.0 * x * x,)
+
+    @md.compile
+    def f(x):
+        return trace.elementwise("cube", cube, x) if trace.is_traced((x,)) else x**3.0
+
+    x = np.linspace(-1, 1, 5)[:, None]
+    program = f.trace(x)
+    assert codegen.program_lines(program) is None
+    assert isinstance(program.graph.nodes[0], ir.Node)
+    t = md.tensor(x, requires_grad=True)
+    md.sum(f(t)).backward()
+    assert_close(t.grad, 3.0 * x * x, "gradient")
 
 
 # ---------------------------------------------------------------------------------------------
