@@ -43,7 +43,7 @@ import numpy as np
 import timing
 
 import minidiff as md
-from minidiff import backend, compiler
+from minidiff import backend, codegen, compiler
 from render.scene.lights import PointLight
 from render.scene.teapot import teapot_geometry
 from render.shade.lighting import Appearance, brdf
@@ -141,21 +141,47 @@ def compile_latency(seed: int) -> tuple[float, float]:
     with tempfile.TemporaryDirectory() as cache:
         os.environ["MINIDIFF_CACHE_DIR"] = cache
         try:
-            backend._compiled.clear()
+            _as_new_process()
             start = time.perf_counter()
             random_program(seed)(*leaves).sum().backward()
             fresh = time.perf_counter() - start
-            backend._compiled.clear()  # as a new process: only the disk cache is left
+            _as_new_process()  # only the disk cache is left
             leaves = [md.tensor(v, requires_grad=True) for v in x]
             start = time.perf_counter()
             random_program(seed)(*leaves).sum().backward()
             cached = time.perf_counter() - start
+            split = _fetch_split(seed, leaves)
         finally:
             if before is None:
                 del os.environ["MINIDIFF_CACHE_DIR"]
             else:
                 os.environ["MINIDIFF_CACHE_DIR"] = before
-    return fresh, cached
+    return fresh, cached, split
+
+
+def _as_new_process() -> None:
+    """Forget this process's compiled kernels (and the engine holding them): as a new
+    process starts, with only the disk cache."""
+    backend._compiled.clear()
+    backend._shared = None
+
+
+def _fetch_split(seed: int, leaves) -> dict:
+    """Where a fetch from the disk cache goes, its steps timed apart (ms): tracing the
+    function again, the traced program's text (the key, both kernels), loading both kernels'
+    object code."""
+    _as_new_process()
+    start = time.perf_counter()
+    program = random_program(seed).trace(*leaves)
+    traced = time.perf_counter()
+    keys = [codegen.program_text(program, mode, wrt) for mode, wrt in (("forward", ()),
+            ("vjp", tuple(range(len(leaves)))))]  # fmt: skip
+    keyed = time.perf_counter()
+    for key in keys:
+        backend.cached(key)
+    loaded = time.perf_counter()
+    return {"trace_ms": 1e3 * (traced - start), "key_ms": 1e3 * (keyed - traced),
+            "load_ms": 1e3 * (loaded - keyed)}  # fmt: skip
 
 
 def peak_bytes(function, *args) -> int:
@@ -233,8 +259,11 @@ def run(args) -> dict:
             forward_backward, hit_radiance, parameters, constants, weights
         )
         / 2**20,
-        "compile_s": statistics.median(f for f, _ in latency),
-        "fetch_s": statistics.median(c for _, c in latency),
+        "compile_s": statistics.median(f for f, _, _ in latency),
+        "fetch_s": statistics.median(c for _, c, _ in latency),
+        "fetch_split_ms": {
+            k: statistics.median(s[k] for _, _, s in latency) for k in latency[0][2]
+        },
         "repeats": args.repeats,
     }
     r["report"] = make_report(r)

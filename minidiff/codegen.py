@@ -327,7 +327,7 @@ class _Emitter:
         address = self.element_address(self.tail, self.pointer(key), lanes, lane, "%i", "double")
         self.tail.append(f"  store double {value}, ptr {address}")
 
-    def text(self, n_pointers: int) -> str:
+    def text(self, n_pointers: int, name: str = "kernel") -> str:
         for vid in sorted(self.emitted):
             self._emit_one(vid)
         checks = []
@@ -356,7 +356,7 @@ class _Emitter:
         call = ", ".join([f"ptr %b{k}" for k in range(n_pointers)] + scalars)
         return "\n".join(
             [
-                "define i64 @kernel(ptr %buffers, i64 %n, i64 %first, i64 %end) {",
+                f"define i64 @{name}(ptr %buffers, i64 %n, i64 %first, i64 %end) {{",
                 "entry:",
                 *pointers,
                 f"  %result = call i64 @work({call})",
@@ -494,9 +494,12 @@ def program_lines(program: Program) -> str | None:
     return "\n".join(lines)
 
 
-def generate(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> tuple[str, Layout]:
+def generate(
+    program: Program, mode: str, wrt: tuple[int, ...] = (), name: str = "kernel"
+) -> tuple[str, Layout]:
     """The LLVM IR text of ``program``'s kernel in ``mode`` ("forward", "vjp",
-    "vjp_shared", "jvp") with derivatives for the slots ``wrt``, and its buffers' layout."""
+    "vjp_shared", "jvp") with derivatives for the slots ``wrt``, and its buffers' layout.
+    ``name``: the kernel function's (``backend.kernel_name``)."""
     position, layout = _names(mode, program, wrt)
     graph = program.graph.extended()
     emitter = _Emitter(program, graph, position)
@@ -512,7 +515,7 @@ def generate(program: Program, mode: str, wrt: tuple[int, ...] = ()) -> tuple[st
             _reverse_shared(program, graph, emitter, wrt, layout)
         else:
             _tangents(program, graph, emitter, wrt)
-    return emitter.text(len(position)), layout
+    return emitter.text(len(position), name), layout
 
 
 def _sweep(graph: ir.Graph, adjoint: dict, lines, active: set[int]) -> None:

@@ -127,7 +127,8 @@ class _Trace:
             program = codegen.program_text(self.program, mode, wrt, self.lines)
             kernel = None if program is None else backend.cached(program)
             if kernel is None:
-                text, layout = codegen.generate(self.program, mode, wrt)
+                name = "kernel" if program is None else backend.kernel_name(program)
+                text, layout = codegen.generate(self.program, mode, wrt, name)
                 kernel = backend.compile_ir(text, program)
             else:
                 layout = codegen.layout(self.program, mode, wrt)

@@ -367,6 +367,7 @@ def test_calls_from_several_threads_agree():
 def test_kernels_are_kept_on_disk_and_a_damaged_file_is_recompiled(tmp_path, monkeypatch):
     monkeypatch.setenv("MINIDIFF_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(backend, "_compiled", {})
+    monkeypatch.setattr(backend, "_shared", None)
 
     @md.compile
     def fresh(x):
@@ -378,18 +379,21 @@ def test_kernels_are_kept_on_disk_and_a_damaged_file_is_recompiled(tmp_path, mon
     files = list((tmp_path / "kernels").glob("*.o"))
     assert len(files) == 1
     monkeypatch.setattr(backend, "_compiled", {})  # as a new process would start
+    monkeypatch.setattr(backend, "_shared", None)
     fresh._traces.clear()
     with monkeypatch.context() as m:  # found by the traced program: no IR written
         m.setattr(compiler.codegen, "generate", None)
         assert_close(fresh(x).data, expected, "from disk")
     files[0].write_bytes(files[0].read_bytes()[:-9] + b"corrupted")
     monkeypatch.setattr(backend, "_compiled", {})
+    monkeypatch.setattr(backend, "_shared", None)
     fresh._traces.clear()
     assert_close(fresh(x).data, expected, "after damage")
     assert backend._read_object(files[0]) is not None  # rewritten whole
     # An edit of minidiff's own source (a primitive's rule, the generator) is a new key.
     monkeypatch.setattr(backend, "_source", lambda: "an edited minidiff")
     monkeypatch.setattr(backend, "_compiled", {})
+    monkeypatch.setattr(backend, "_shared", None)
     fresh._traces.clear()
     assert_close(fresh(x).data, expected, "after an edit")
     assert len(list((tmp_path / "kernels").glob("*.o"))) == 2
