@@ -71,7 +71,7 @@ def _arithmetic(code: int, ufunc, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     * Reused memory for the result (``buffers.py``): what matters for the image-sized arrays
       of a loss, which fresh would be page-faulted in again on every pass.
     """
-    if x.dtype != y.dtype or x.dtype not in _FLOATS or x.size + y.size < _SMALL:
+    if x.size + y.size < _SMALL or x.dtype != y.dtype or x.dtype not in _FLOATS:
         return ufunc(x, y)  # small, or a result dtype that NumPy's promotion decides
     out = buffers.empty(np.broadcast_shapes(x.shape, y.shape), x.dtype)  # raises as ufunc
     if out.ndim != 2 or out.shape[1] != 3 or x.ndim > 2 or y.ndim > 2:

@@ -100,7 +100,7 @@ class Node:
         self.grad: np.ndarray | None = None
         self.freed = False
         self.saved = saved
-        self.versions = tuple(t.version for t in saved)
+        self.versions = tuple([t.version for t in saved]) if saved else ()
         self.output_version: int | None = None  # set by record() if the VJP reads the output
 
     def free(self) -> None:
@@ -168,8 +168,9 @@ class Tensor:
         self._copy: np.ndarray | None = None  # the values handed out by .data, to compare
         self._saved = False  # a node saved this tensor since the last change of data
         self._base: Tensor | None = None  # the tensor whose array ours is a view of
-        self._requires_grad = False
-        self.requires_grad = requires_grad  # the setter checks the dtype
+        if requires_grad:  # as the setter does (checks the dtype)
+            _check_differentiable_dtype("Tensor", self._data.dtype)
+        self._requires_grad = bool(requires_grad)
         self._node = _node
         self.grad: np.ndarray | None = None
         self._tangent: np.ndarray | None = None  # forward mode; None means zero
@@ -372,9 +373,11 @@ class Tensor:
                         continue
                     # A gradient has its input's dtype: a float32 leaf used with a float64
                     # constant still gets a float32 .grad (also after accumulating).
-                    gx = unbroadcast(gx, x._data.shape)
-                    if gx.dtype != x._data.dtype:
-                        gx = gx.astype(x._data.dtype)
+                    data = x._data
+                    if gx.shape != data.shape:
+                        gx = unbroadcast(gx, data.shape)
+                    if gx.dtype != data.dtype:
+                        gx = gx.astype(data.dtype)
                     if anomaly and not np.isfinite(gx).all():
                         raise FloatingPointError(
                             f"anomaly: the VJP of '{node.name}' produced NaN/inf in the "
@@ -516,7 +519,7 @@ def _tape_reaching(output: Tensor) -> list[Node]:
     Each node's saved tensors are checked on the way (``Node.check_versions``), so that a
     changed tensor stops ``backward`` before any gradient has been added anywhere."""
     output._node.check_versions(output)
-    seen = {id(output._node)}
+    seen = {output._node}  # nodes hash by identity
     stack = [output._node]
     nodes = []
     while stack:
@@ -524,14 +527,17 @@ def _tape_reaching(output: Tensor) -> list[Node]:
         nodes.append(node)
         for x in node.inputs:
             parent = x._node
-            if parent is not None and id(parent) not in seen:
+            if parent is not None and parent not in seen:
                 if parent.freed:
                     raise RuntimeError(_FREED_MESSAGE.format(name=parent.name))
                 parent.check_versions(x)
-                seen.add(id(parent))
+                seen.add(parent)
                 stack.append(parent)
-    nodes.sort(key=lambda n: n.seq)
+    nodes.sort(key=_SEQ)
     return nodes
+
+
+_SEQ = operator.attrgetter("seq")
 
 
 def unbroadcast(g: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -628,7 +634,13 @@ def record(
     """
     if _anomaly_mode.get() and np.issubdtype(out.dtype, np.inexact) and not np.isfinite(out).all():
         raise FloatingPointError(f"anomaly: forward of '{name}' produced NaN/inf")
-    if _grad_enabled.get() and any(x._requires_grad for x in inputs):
+    grad_enabled = _grad_enabled.get()
+    differentiated = tangents = False
+    if grad_enabled:  # one pass over the inputs: does one require grad, carry a tangent?
+        for x in inputs:
+            differentiated = differentiated or x._requires_grad
+            tangents = tangents or x._tangent is not None
+    if differentiated:
         for t in saves:
             t.mark_saved()
         node = Node(name, tuple(inputs), vjp, tuple(saves))
@@ -642,7 +654,7 @@ def record(
     if node is not None and saves_output:
         result.mark_saved()
         node.output_version = result.version
-    if _grad_enabled.get() and any(x._tangent is not None for x in inputs):
+    if tangents:
         result._tangent = _output_tangent(name, out, inputs, jvp)
     return result
 
