@@ -129,17 +129,19 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         gathered += beta * here
         pending.gather(here)
         objective = [
-            md.sum(part * (weights[rows] * beta[rows]))
+            md.sum(part * (np.take(weights, rows, axis=0) * np.take(beta, rows, axis=0)))
             for part, rows in zip(here_window.parts, here_window.rows_of, strict=True)
         ]
         if here_window.factors:
             factor, rows = here_window.factor()
-            after = beta[rows] * factor.data  # beta_{k+1}
-            arriving = np.divide(radiance[rows] - gathered[rows], after,
-                                 out=np.zeros_like(after), where=after != 0)  # fmt: skip
-            objective.append(md.sum(factor * (weights[rows] * beta[rows] * arriving)))
+            before = np.take(beta, rows, axis=0)  # beta_k (np.take: see Vertices.take)
+            after = before * factor.data  # beta_{k+1}
+            left = np.take(radiance, rows, axis=0) - np.take(gathered, rows, axis=0)
+            arriving = np.divide(left, after, out=np.zeros_like(after), where=after != 0)
+            scale = np.take(weights, rows, axis=0) * before * arriving
+            objective.append(md.sum(factor * scale))
             pending.carry(rows, factor.data)
-            pending.open(k, rows, anchor[rows], beta[rows], after)
+            pending.open(k, rows, anchor[rows], before, after)
             beta[rows] = after
         _backward(objective)
         del here_window, objective  # this window's tape, before the next is built
@@ -166,6 +168,7 @@ class _Pending:
     beta: np.ndarray
     gamma: np.ndarray
     arriving: np.ndarray
+    open_any: bool = False  # whether any channel is pending (else gather and carry wait)
 
     @classmethod
     def none(cls, n: int, dtype) -> _Pending:
@@ -175,11 +178,14 @@ class _Pending:
 
     def gather(self, here: np.ndarray) -> None:
         """Add what the current vertices add (C_k (N, 3)) to the radiance arriving."""
-        self.arriving += np.where(self.depth >= 0, self.gamma * here, 0.0)
+        if self.open_any:
+            self.arriving += np.where(self.depth >= 0, self.gamma * here, 0.0)
 
     def carry(self, rows: np.ndarray, factor: np.ndarray) -> None:
-        """The paths ``rows`` go on with factors F_k ``factor`` (m, 3)."""
-        self.gamma[rows] *= factor
+        """The paths ``rows`` go on with factors F_k ``factor`` (m, 3). (Only pending
+        channels read gamma; ``open`` sets a channel's to 1.)"""
+        if self.open_any:
+            self.gamma[rows] *= factor
 
     def open(self, k: int, rows, anchor, beta, after) -> None:
         """Channels of the paths ``rows`` (m,) that go on with throughput ``after``
@@ -187,6 +193,7 @@ class _Pending:
         new = (after == 0) & (beta != 0)
         if not new.any():
             return
+        self.open_any = True
         at, channel = np.nonzero(new)
         row = rows[at]
         self.depth[row, channel], self.anchor[row, channel] = k, anchor[at]

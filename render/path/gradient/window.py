@@ -78,7 +78,7 @@ class CompiledWindow:
 
         back = coords = None
         if k == 0 or vertices[k - 1].form[0] == CAMERA:
-            coords = np.ascontiguousarray(batch.coords[rows], np.float64)
+            coords = np.take(batch.coords, rows, axis=0)
         case = "camera" if k == 0 else "after_camera" if coords is not None else "after_area"
         if k > 0:
             before = vertices[k - 1]
@@ -88,11 +88,13 @@ class CompiledWindow:
         has_nee = record.nee_weight > 0
         nee_prim = np.where(has_nee, record.nee_prim, record.prim)
         nee_local = np.where(has_nee[:, None], record.nee_local, 1.0 / 3.0)
-        next_prim, next_local = record.prim.copy(), np.full((n, 3), 1.0 / 3.0)
-        if going.any():
-            at = next_at[going]
-            next_prim[going] = following.prim[at]
-            next_local[going] = np.take(following.local, at, axis=0)
+        next_prim, next_local = record.prim, np.full((n, 3), 1.0 / 3.0)
+        if going.any():  # one gather from the next record with a spare last row
+            at = np.where(going, next_at, len(following.rows))
+            next_prim = np.take(np.append(following.prim, 0), at)
+            next_prim = np.where(going, next_prim, record.prim)
+            spare = np.concatenate([following.local, np.full((1, 3), 1.0 / 3.0)])
+            next_local = np.take(spare, at, axis=0)
         lit = None
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)
@@ -111,7 +113,7 @@ class CompiledWindow:
             (*tables.role(next_prim, next_local), np.where(going, scale, 0.0), going),
         )
         added, factor = _window(
-            *_contiguous(batched), tables.frame, tables.vertices, tables.normals, tables.faces,
+            *batched, tables.frame, tables.vertices, tables.normals, tables.faces,
             tables.centers, tables.radii, tables.smooth, tables.materials, tables.lights,
             tables.background, (case, tables.kinds, tables.glossy),
         )  # fmt: skip
@@ -138,16 +140,6 @@ def _positions(among: np.ndarray, rows: np.ndarray, size: int) -> np.ndarray:
     where = np.full(size, -1, np.int64)
     where[among] = np.arange(len(among))
     return where[rows]
-
-
-def _contiguous(value):
-    """Arrays (in nested tuples) as contiguous float64 / int64 / bool arrays."""
-    if isinstance(value, tuple):
-        return tuple(_contiguous(v) for v in value)
-    if value is None:
-        return None
-    kind = {"f": np.float64, "i": np.int64, "u": np.int64, "b": np.bool_}[value.dtype.kind]
-    return np.ascontiguousarray(value, kind)
 
 
 @dataclass
