@@ -74,6 +74,12 @@ def _traces_as(form):
     def wrap(array_form):
         @functools.wraps(array_form)
         def primitive(*args, **kwargs):
+            for a in args:  # the common case first: Tensors only (a Tensor is never traced)
+                if type(a) is not Tensor:
+                    break
+            else:
+                if not kwargs:
+                    return array_form(*args)
             if trace.is_traced(args) or (kwargs and trace.is_traced(kwargs.values())):
                 return form(*args, **kwargs)
             return array_form(*args, **kwargs)
@@ -133,6 +139,8 @@ def _or_zeros(ts: tuple, tensors: tuple[Tensor, ...]) -> list[np.ndarray]:
 def _pair(a: Any, b: Any) -> tuple[Tensor, Tensor]:
     """Both operands as tensors. A Python number takes the dtype of the other operand, so
     that ``x32 * 2`` stays float32 (NumPy would make the 0-d int64 array win)."""
+    if type(a) is Tensor and type(b) is Tensor:
+        return a, b
     if isinstance(a, (int, float)) and isinstance(b, Tensor):
         a = np.asarray(a, dtype=np.result_type(b.dtype, np.float32))
     elif isinstance(b, (int, float)) and isinstance(a, Tensor):
@@ -155,7 +163,9 @@ def _each_reads_the_other(a: Tensor, b: Tensor) -> tuple[Tensor, ...]:
     """What a product-like VJP (multiply, matmul, dot, cross) reads: the gradient of each
     operand is made from the *other* one, so b is needed if a requires grad, and a if b
     does."""
-    return tuple(t for t, needed in ((b, a.requires_grad), (a, b.requires_grad)) if needed)
+    if a.requires_grad:
+        return (b, a) if b.requires_grad else (b,)
+    return (a,) if b.requires_grad else ()
 
 
 def _each_times_the_other(g: np.ndarray, a: Tensor, b: Tensor) -> tuple:
