@@ -161,7 +161,9 @@ def steps_to_fit(kind: str, target: np.ndarray, start: np.ndarray, cap: int = 10
         optimizer.zero_grad()
         m = matrix_of(kind, p)
         md.sum((m - target) ** 2).backward()
-        if np.degrees(Rotation.from_matrix(m.data @ target.T).magnitude()) < 0.1:
+        # The angle of the rotation R R*^T between the two: its trace is 1 + 2 cos(angle).
+        cosine = np.clip((np.trace(m.data @ target.T) - 1.0) / 2.0, -1.0, 1.0)
+        if np.degrees(np.arccos(cosine)) < 0.1:
             return step, along, drift, np.linalg.norm(p.data)
         before = p.data.copy()
         if kind == "quaternion":
