@@ -399,6 +399,29 @@ def test_kernels_are_kept_on_disk_and_a_damaged_file_is_recompiled(tmp_path, mon
     assert len(list((tmp_path / "kernels").glob("*.o"))) == 2
 
 
+def test_the_cache_key_names_the_rule_each_line_is_differentiated_by():
+    # x * x and x ** 2 trace to the same product line, whose derivatives are two different
+    # rules (d x + d x against d 2 x): the kernels' keys must tell them apart.
+    from minidiff import codegen
+
+    @md.compile
+    def square(x):
+        return x * x
+
+    @md.compile
+    def power(x):
+        return x**2.0
+
+    x = np.linspace(-1.0, 1.0, 5)[:, None]
+    lines = [codegen.program_lines(f.trace(x)).splitlines()[-1] for f in (square, power)]
+    assert lines[0].split()[:3] == lines[1].split()[:3] == ["mul", "(0,", "0)"]
+    assert lines[0] != lines[1]
+    for f in (square, power):
+        t = md.tensor(x, requires_grad=True)
+        md.sum(f(t)).backward()
+        assert_close(t.grad, 2.0 * x, f"{f.__name__}'s gradient")
+
+
 def test_a_scalar_form_from_outside_minidiff_keys_its_kernel_by_its_ir():
     from minidiff import codegen, ir, trace
 
