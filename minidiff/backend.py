@@ -158,7 +158,7 @@ def _write_object(path: Path, payload: bytes) -> None:
 
 def kernel_name(program: str) -> str:
     """The function name of the kernel of the ``program`` text: its key's, unique among the
-    kernels that share one execution engine (``_shared_engine``)."""
+    kernels that share one execution engine (``_add_shared``)."""
     return "k" + _key("", program)
 
 

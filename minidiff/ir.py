@@ -93,9 +93,10 @@ def operators(fn: Callable) -> tuple[Callable, Callable]:
 
 class Value:
     """A scalar of one element: line ``id`` of the graph being built, of scalar ``type``.
-    Arithmetic on Values appends lines (Python numbers become constants). Equal when both
-    are equal, like a frozen dataclass; a plain class with slots because a trace makes one
-    per line (a frozen dataclass's ``__init__`` costs several times as much)."""
+    Arithmetic on Values appends lines (Python numbers become constants). Two Values are
+    equal when their ids and types are, as a frozen dataclass's would be; a plain class with
+    slots because a trace makes one per line (a frozen dataclass's ``__init__`` costs
+    several times as much)."""
 
     __slots__ = ("id", "type")
 
