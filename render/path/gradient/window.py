@@ -89,12 +89,10 @@ class CompiledWindow:
         nee_prim = np.where(has_nee, record.nee_prim, record.prim)
         nee_local = np.where(has_nee[:, None], record.nee_local, 1.0 / 3.0)
         next_prim, next_local = record.prim, np.full((n, 3), 1.0 / 3.0)
-        if going.any():  # one gather from the next record with a spare last row
-            at = np.where(going, next_at, len(following.rows))
-            next_prim = np.take(np.append(following.prim, 0), at)
-            next_prim = np.where(going, next_prim, record.prim)
-            spare = np.concatenate([following.local, np.full((1, 3), 1.0 / 3.0)])
-            next_local = np.take(spare, at, axis=0)
+        if going.any():  # gathered from the next record (row 0 for the others: unused)
+            at = np.where(going, next_at, 0)
+            next_prim = np.where(going, np.take(following.prim, at), record.prim)
+            next_local = np.where(going[:, None], np.take(following.local, at, axis=0), next_local)
         lit = None
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)
