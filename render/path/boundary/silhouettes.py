@@ -554,49 +554,58 @@ def _norm(a):
     return np.sqrt(_dot(a, a))
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _edge(p, a, b, c0, c1, grazing):
     """An edge seen from p: (the angle it subtends, 0 if no silhouette; its faces' side)."""
     pa, pb = _sub(a, p), _sub(b, p)
     normal = _cross(pa, pb)
-    size = _norm(normal)
     d0, d1 = _sub(c0, p), _sub(c1, p)
     s0, s1 = _dot(d0, normal), _dot(d1, normal)
-    if not (abs(s0) > grazing * size * _norm(d0) and abs(s1) > grazing * size * _norm(d1)):
-        return 0.0, 0.0
+    # Most edges of a closed mesh are not silhouettes: their faces' far corners lie on
+    # opposite sides. Tested first, it spares them the three square roots below (either
+    # test alone gives 0; NaN fails both).
     if np.sign(s0) != np.sign(s1):
+        return 0.0, 0.0
+    size = _norm(normal)
+    if not (abs(s0) > grazing * size * _norm(d0) and abs(s1) > grazing * size * _norm(d1)):
         return 0.0, 0.0
     return np.arctan2(size, _dot(pa, pb)), np.sign(s0)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _edge_towards(p, a, b, tri):
-    """(lo, hi): the part of edge a -> b through which rays from p meet triangle ``tri``
-    (3, 3) (``Curves.towards``); lo = hi = 0 if none."""
+    """(lo, hi): the part of edge a -> b through which rays from p meet the triangle ``tri``
+    (its three corners) (``Curves.towards``); lo = hi = 0 if none."""
     e, pa = _sub(b, a), _sub(a, p)
     normal = _cross(pa, _sub(b, p))
-    lo, hi, found = 0.0, 0.0, 0
-    for i in range(3):
-        j = (i + 1) % 3
-        vi, vj = _sub(tri[i], p), _sub(tri[j], p)
-        di, dj = _dot(vi, normal), _dot(vj, normal)
-        if di * dj < 0:
-            f = di / (di - dj)
-            q = (vi[0] + f * (vj[0] - vi[0]), vi[1] + f * (vj[1] - vi[1]),
-                 vi[2] + f * (vj[2] - vi[2]))  # fmt: skip
-            exq = _cross(e, q)
-            t = _dot(_cross((-pa[0], -pa[1], -pa[2]), q), exq) / max(_dot(exq, exq), 1e-300)
-            if found == 0:
-                lo, hi = t, t
-            else:
-                lo, hi = min(lo, t), max(hi, t)
-            found += 1
+    v0, v1, v2 = _sub(tri[0], p), _sub(tri[1], p), _sub(tri[2], p)
+    # The triangle's sides in turn (written out: a tuple indexed by a variable is slow).
+    lo, hi, found = _side_crossing(v0, v1, normal, e, pa, 0.0, 0.0, 0)
+    lo, hi, found = _side_crossing(v1, v2, normal, e, pa, lo, hi, found)
+    lo, hi, found = _side_crossing(v2, v0, normal, e, pa, lo, hi, found)
     if found < 2:
         return 0.0, 0.0
     return min(max(lo, 0.0), 1.0), min(max(hi, 0.0), 1.0)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
+    """``_edge_towards``'s (lo, hi, found) extended by the triangle's side vi -> vj (corners
+    from p), if the plane through p and the edge (``normal``) crosses it: the parameter t
+    on the edge a + t e where the ray from p through the crossing meets it."""
+    di, dj = _dot(vi, normal), _dot(vj, normal)
+    if not di * dj < 0:
+        return lo, hi, found
+    f = di / (di - dj)
+    q = (vi[0] + f * (vj[0] - vi[0]), vi[1] + f * (vj[1] - vi[1]), vi[2] + f * (vj[2] - vi[2]))
+    exq = _cross(e, q)
+    t = _dot(_cross((-pa[0], -pa[1], -pa[2]), q), exq) / max(_dot(exq, exq), 1e-300)
+    if found == 0:
+        return t, t, 1
+    return min(lo, t), max(hi, t), found + 1
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _axes(n):
     """``basis`` for one unit vector."""
     helper = (0.0, 1.0, 0.0) if abs(n[0]) > 0.9 else (1.0, 0.0, 0.0)
@@ -606,26 +615,38 @@ def _axes(n):
     return u1, _cross(n, u1)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _sphere_towards(p, centre, tri):
-    """(lo, hi): the azimuths (over 2 pi) about p -> centre that triangle ``tri`` spans."""
+    """(lo, hi): the azimuths (over 2 pi) about p -> centre that the triangle ``tri`` (its
+    three corners) spans."""
     q = _sub(centre, p)
     length = max(_norm(q), 1e-300)
     u1, u2 = _axes((q[0] / length, q[1] / length, q[2] / length))
-    az = np.empty(3)
-    for i in range(3):
-        v = _sub(tri[i], p)
-        az[i] = np.arctan2(_dot(u2, v), _dot(u1, v))
-    az.sort()
-    gaps = (az[1] - az[0], az[2] - az[1], az[0] + 2 * np.pi - az[2])
-    widest = 0
-    for i in range(1, 3):
-        if gaps[i] > gaps[widest]:
-            widest = i
-    if gaps[widest] <= np.pi:
+    v0, v1, v2 = _sub(tri[0], p), _sub(tri[1], p), _sub(tri[2], p)
+    z0 = np.arctan2(_dot(u2, v0), _dot(u1, v0))
+    z1 = np.arctan2(_dot(u2, v1), _dot(u1, v1))
+    z2 = np.arctan2(_dot(u2, v2), _dot(u1, v2))
+    z0, z1 = _in_order(z0, z1)  # sorted as np.sort sorts (NaN last)
+    z1, z2 = _in_order(z1, z2)
+    z0, z1 = _in_order(z0, z1)
+    # The widest gap between neighbours (the first of equal ones) and the azimuth after it.
+    widest, start = z1 - z0, z1
+    if z2 - z1 > widest:
+        widest, start = z2 - z1, z2
+    if z0 + 2 * np.pi - z2 > widest:
+        widest, start = z0 + 2 * np.pi - z2, z0
+    if widest <= np.pi:
         return 0.0, 1.0
-    lo = np.mod(az[(widest + 1) % 3], 2 * np.pi) / (2 * np.pi)
-    return lo, lo + (2 * np.pi - gaps[widest]) / (2 * np.pi)
+    lo = np.mod(start, 2 * np.pi) / (2 * np.pi)
+    return lo, lo + (2 * np.pi - widest) / (2 * np.pi)
+
+
+@numba.njit(cache=True, inline="always", error_model="numpy")
+def _in_order(x, y):
+    """(x, y) in ascending order, NaN after every number (np.sort's order)."""
+    if y < x or (x != x and y == y):
+        return y, x
+    return x, y
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -637,7 +658,7 @@ def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
     return _clipped(p, j, a, b, centre, weight, side, tri)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _whole(p, j, a, b, c, centre, radius, grazing):
     """Curve j seen from p, whole: (weight, side): an edge's angle if it is a silhouette
     (``_edge``), a sphere's outline's 2 pi r / distance unless p is inside; 0 else."""
@@ -651,7 +672,7 @@ def _whole(p, j, a, b, c, centre, radius, grazing):
     return 2 * np.pi * radius[s] / max(distance, 1e-300), 0.0
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(cache=True, inline="always", error_model="numpy")
 def _clipped(p, j, a, b, centre, weight, side, tri):
     """Curve j seen from p, whose whole weight ``weight`` (> 0) and side are known: (its
     weight, side, lo, hi) clipped to the part whose rays meet triangle ``tri``, as
@@ -687,9 +708,11 @@ def _pick(
             out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
         if count == 0:
             continue
-        row = i * each_apex
+        row, r = i * each_apex, i * each_tri
         p = (apex[row, 0], apex[row, 1], apex[row, 2])
-        triangle = tri[i * each_tri]
+        triangle = ((tri[r, 0, 0], tri[r, 0, 1], tri[r, 0, 2]),
+                    (tri[r, 1, 0], tri[r, 1, 1], tri[r, 1, 2]),
+                    (tri[r, 2, 0], tri[r, 2, 1], tri[r, 2, 2]))  # fmt: skip
         for j in range(count):
             weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
             weights[0, j] = weight if active[0, i] else 0.0
