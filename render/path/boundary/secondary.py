@@ -60,7 +60,7 @@ import numpy as np
 import minidiff as md
 from render.path.boundary.silhouettes import CONTACT, Curves, level_set
 from render.path.gradient import window
-from render.path.gradient.replay import radiance_of
+from render.path.gradient.replay import plain_tables, radiance_of
 from render.path.gradient.transport import next_vertex, vertex_on_tape, viewer_side
 from render.path.sample.choices import geometric_normal, padded_role, padded_tables
 from render.path.sample.random import bounce_dimension, uniform
@@ -193,11 +193,12 @@ def backpropagate_secondary(placed_world, sampler: PathSampler, d_image: np.ndar
 
 def _boundary_sampler(sampler: PathSampler):
     """What every chunk of boundary paths shares: the render's sampler with the boundary
-    paths' seed (``SEED_KEY``), the scene's curves, and the kernel's arrays (None where the
-    kernel does not apply)."""
+    paths' seed (``SEED_KEY``), the scene's curves (kept from the last gradient while the
+    shapes stay, ``Curves.kept``), and the kernel's arrays (None where the kernel does not
+    apply)."""
     own = copy.copy(sampler)
     own.seed = (sampler.seed ^ SEED_KEY) & (2**64 - 1)
-    return own, Curves.of(own), kernel.pack(own) if kernel.applies(own.scene) else None
+    return own, Curves.kept(own), kernel.pack(own) if kernel.applies(own.scene) else None
 
 
 def _paths(sampler: PathSampler):
@@ -220,13 +221,14 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
         batch = sampler.sample(paths)
     points = _points(sampler, batch)
     tables = Tables.of(world, frame, leaves=False)  # what phi reads, on this tape
+    plain = plain_tables(world, frame)  # what the samples' radiance reads, made once
     values, pixels = [], []
     for k in range(1, min(len(batch.vertices), sampler.max_depth - 1) + 1):
-        for term in _terms_at(sampler, curves, batch, points, k, world, frame, tables):
+        for term in _terms_at(sampler, curves, batch, points, k, world, frame, tables, plain):
             values.append(term[0])
             pixels.append(batch.paths[term[1]] // sampler.spp)
     if sampler.max_depth >= 2:  # the lights' shadows seen by the camera
-        for value, pixel in _seen_shadows(sampler, curves, paths, world, frame, tables):
+        for value, pixel in _seen_shadows(sampler, curves, paths, world, frame, tables, plain):
             values.append(value)
             pixels.append(pixel)
     if not values:
@@ -235,7 +237,7 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
     return joined, np.concatenate(pixels)
 
 
-def _seen_shadows(sampler, curves, paths, world, frame, tables):
+def _seen_shadows(sampler, curves, paths, world, frame, tables, plain):
     """The borders of point and directional lights' shadows that the camera sees, one
     sample per boundary path and light: a point x on a shadow's border drawn from the light
     (as ``_terms_at`` does for later vertices), seen by the camera at the image-plane point
@@ -266,7 +268,7 @@ def _seen_shadows(sampler, curves, paths, world, frame, tables):
         first = _quiet(np.arange(m), hit.prim, hit.local, np.full(m, CAMERA, np.int8), lit)
         rays = PathBatch(paths[np.flatnonzero(cross.valid)[inside]], coords, np.zeros(m, bool),
                          [first])  # fmt: skip
-        radiance = radiance_of(world, frame, sampler, rays)
+        radiance = radiance_of(world, frame, sampler, rays, plain)
         stretch = _image_area(hit.points, hit.normal, sampler.frame)
         # Every pixel's estimate divides by N = W H spp (1 / spp is the caller's) and by the
         # pixel's area in the image plane, 4 / (W H).
@@ -306,7 +308,7 @@ def _points(sampler, batch: PathBatch) -> list[np.ndarray]:
     return out
 
 
-def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables):
+def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables, plain):
     """The boundary samples at the paths' k-th vertices: behind silhouettes seen from
     them (the next segment's visibility) and, for every point or directional light,
     behind silhouettes seen from the light (its shadow at the next vertex). Yields
@@ -359,12 +361,14 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables):
         sub = np.flatnonzero(cross.valid)
         keep = (dot(normal[sub], cross.points - here[sub]) > 0) & (cross.prim == target[sub])
         yield from _samples(
-            world, frame, tables, sampler, curves, batch, k, cross, keep, here, "emission"
+            world, frame, tables, plain, sampler, curves, batch, k, cross, keep, here, "emission"
         )
 
     cross = _cross(sampler, curves, here, *whole[:3], whole[3], here, origin)
     front = dot(normal[cross.valid], cross.points - here[cross.valid]) > 0
-    yield from _samples(world, frame, tables, sampler, curves, batch, k, cross, front, here, "rest")
+    yield from _samples(
+        world, frame, tables, plain, sampler, curves, batch, k, cross, front, here, "rest"
+    )
 
     # Point lights' shadows at x' seen from x_k (x' must still get the light's NEE).
     if k + 1 > sampler.max_depth - 1:
@@ -379,17 +383,18 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables):
         ok &= ~sampler.accelerator.occluded(origin[sub], cross.points - origin[sub],
                                             1.0 - 1e-7, tmin=0.0)  # fmt: skip
         yield from _samples(
-            world, frame, tables, sampler, curves, batch, k, cross, ok, here, "light", j
+            world, frame, tables, plain, sampler, curves, batch, k, cross, ok, here, "light", j
         )
 
 
-def _samples(world, frame, tables, sampler, curves, batch, k, cross, keep, here, part,
+def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep, here, part,
              light=None):  # fmt: skip
     """The samples behind silhouettes that ``keep`` selects among ``cross``'s valid ones,
     their jump F at x' being: ``part`` "emission", x''s emission alone; "rest", the path
     continued from x' but for the emitters' emission (the other estimator's); "light",
     light ``light``'s contribution at x' (its shadow's border). Yields (values (M, 3),
-    rows in the batch (M,))."""
+    rows in the batch (M,)). ``tables``: the tables on the tape, what phi reads; ``plain``:
+    the same off the tape, what the samples' radiance reads."""
     record = batch.vertices[k - 1]
     sub = np.flatnonzero(cross.valid)[keep]
     if len(sub) == 0:
@@ -408,7 +413,10 @@ def _samples(world, frame, tables, sampler, curves, batch, k, cross, keep, here,
         tail = [_quiet(np.arange(m), hit.prim, hit.local, np.full(m, AREA, np.int8), lit)]
         tail[0].emit_weight[:] = 1.0 if part == "emission" else 0.0
     records = prefix + tail
-    yield _value(world, frame, tables, sampler, curves, batch, k, src, hit, records, light), src
+    yield (
+        _value(world, frame, tables, plain, sampler, curves, batch, k, src, hit, records, light),
+        src,
+    )
 
 
 def _from_light(sampler, curves, light, u_curve, u_point, active, viewer):
@@ -487,11 +495,11 @@ def _prefix(sampler, batch, k, src, here, hit: _Crossing) -> list[Vertices]:
     return records
 
 
-def _value(world, frame, tables, sampler, curves, batch, k, src, hit, records, light):
+def _value(world, frame, tables, plain, sampler, curves, batch, k, src, hit, records, light):
     """(m, 3) on the tape: each sample's constant F |dx'/dt| / |grad_S phi| / P * sign
     (F: the radiance of the path ``records``, computed off the tape) times phi - phi."""
     rays = PathBatch(batch.paths[src], batch.coords[src], np.zeros(len(src), bool), records)
-    radiance = radiance_of(world, frame, sampler, rays)
+    radiance = radiance_of(world, frame, sampler, rays, plain)
     here = _Rows(batch.vertices[k - 1], src)
     apex = None if light is None else _apex(world.lights[light], sampler)
     if _compiles(world) and (apex is not None or not np.any(here.form == MIRROR)):

@@ -125,6 +125,20 @@ class Curves:
             np.array([o for o, _ in spheres], np.int64),
         )  # fmt: skip
 
+    @classmethod
+    def kept(cls, sampler: PathSampler) -> Curves:
+        """``Curves.of(sampler)``, kept in the sampler's render cache while the scene's
+        objects keep their shapes (every mesh's vertices and faces, every sphere's centre
+        and radius: all the curves are made of): a fit of materials or lights finds them
+        again at every step. Read-only, as everything in the cache."""
+        if sampler.cache is None:
+            return cls.of(sampler)
+        key = []
+        for obj in sampler.objects:
+            shape = (obj.vertices, obj.faces) if isinstance(obj, Mesh) else (obj.center, obj.radius)
+            key.extend(np.array(getattr(part, "data", part)) for part in shape)
+        return sampler.cache.get("silhouette curves", key, lambda: cls.of(sampler))[0]
+
     @property
     def n_edges(self) -> int:
         return len(self.a)

@@ -73,14 +73,18 @@ def backpropagate_paths(
         _backpropagate(world, frame, sampler, batch, radiance, weights)
 
 
-def radiance_of(world, frame, sampler: PathSampler, batch: PathBatch) -> np.ndarray:
+def radiance_of(
+    world, frame, sampler: PathSampler, batch: PathBatch, tables: Tables | None = None
+) -> np.ndarray:
     """(N, 3) plain: the radiance each path of ``batch`` carries, the value of
     ``transport.path_radiance``, summed window by window (L = sum_k beta_k C_k, the module
     docstring): the windows compiled and parallel over the paths where they apply
     (``window.applies``), else on the tape without recording. For the constants of the
-    boundary terms (``render.path.boundary.secondary``, ``render.path.boundary.primary``)."""
+    boundary terms (``render.path.boundary.secondary``, ``render.path.boundary.primary``).
+    ``tables``: ``plain_tables(world, frame)`` if the caller has them (a caller asking
+    about many batches of one world makes them once)."""
     with md.no_grad():
-        paths = _Paths.of(world, frame, sampler, batch)
+        paths = _Paths.of(world, frame, sampler, batch, tables)
         n_paths = len(batch.paths)
         total = np.zeros((n_paths, 3), paths.dtype)
         total[batch.missed] = world.background.data  # camera rays that see the environment
@@ -261,13 +265,24 @@ class _Paths:
     tables: Tables | None  # the scene's tables when the windows are compiled
 
     @classmethod
-    def of(cls, world, frame, sampler: PathSampler, batch: PathBatch) -> _Paths:
+    def of(cls, world, frame, sampler: PathSampler, batch: PathBatch, tables=None) -> _Paths:
         """The windows' view of ``batch`` in ``world`` (its dtype, the depths some path
-        reaches), with the scene's tables where the windows compile (``window.applies``)."""
+        reaches), with the scene's tables where the windows compile (``window.applies``):
+        ``tables`` if given (made by ``Tables.of(world, frame)``), else made here."""
         dtype = np.result_type(*[t.dtype for t in world.parameters()])
         vertices = [v for v in batch.vertices if len(v.rows)]
-        tables = Tables.of(world, frame) if window.applies(world, batch) else None
+        if not window.applies(world, batch):
+            tables = None
+        elif tables is None:
+            tables = Tables.of(world, frame)
         return cls(world, frame, sampler, batch, vertices, dtype, tables)
+
+
+def plain_tables(world, frame) -> Tables:
+    """The tables ``radiance_of`` reads for ``world`` and its camera ``frame``, off the
+    tape."""
+    with md.no_grad():
+        return Tables.of(world, frame)
 
 
 def _window(paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):

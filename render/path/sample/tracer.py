@@ -170,6 +170,7 @@ class PathSampler:
         self.scene, self.spp, self.max_depth, self.rr_depth, self.seed = (
             world, spp, max_depth, rr_depth, seed,
         )  # fmt: skip
+        self.cache = cache  # the scene's render cache, if any (read by the boundary terms)
         self.primitives = scene_primitives(world)
         self.n_triangles = len(self.primitives[0])
         self.size = max(scene_size(self.primitives), 1e-300)

@@ -140,6 +140,37 @@ def cornell_curves():
     return Curves.of(sampler), sampler
 
 
+def test_kept_curves_follow_the_shapes():
+    """``Curves.kept`` gives the curves ``Curves.of`` makes, the same object again while
+    the shapes keep their values, and new ones (never stale) once a vertex or a sphere
+    moves, or a mesh's faces change."""
+    from render.scene.cache import RenderCache
+
+    scene, cache = cornell_box(8, 8, blocks=True), RenderCache()
+
+    def kept():
+        return Curves.kept(PathSampler(placed(scene), 1, 3, 100, 0, cache))
+
+    first = kept()
+    assert kept() is first
+    fresh = Curves.of(PathSampler(placed(scene), 1, 3, 100, 0))
+    for got, want in zip(vars(first).values(), vars(fresh).values(), strict=True):
+        np.testing.assert_array_equal(got, want)
+    block, sphere = scene.objects[6], scene.objects[7]
+    for move in (
+        lambda: block.vertices.data.__setitem__((0, 1), block.vertices.data[0, 1] + 0.05),
+        lambda: sphere.center.data.__setitem__(0, sphere.center.data[0] + 0.01),
+        lambda: setattr(block, "faces", block.faces[:, ::-1].copy()),
+    ):
+        before = kept()
+        move()
+        after = kept()
+        assert after is not before
+        want = Curves.of(PathSampler(placed(scene), 1, 3, 100, 0))
+        for got, expected in zip(vars(after).values(), vars(want).values(), strict=True):
+            np.testing.assert_array_equal(got, expected)
+
+
 @settings(max_examples=4, deadline=None)
 @given(st.integers(0, 2**31 - 1), st.booleans())
 def test_compiled_draws_equal_the_reference(seed, towards):
