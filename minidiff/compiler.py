@@ -57,7 +57,11 @@ from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
 # Batches from this size add gathered rows' gradients on threads (each a range of table
-# rows, every one reading all elements' rows); below it, starting threads costs more.
+# rows, every one reading all elements' rows); below it, starting threads costs more. Only
+# where each gather's rows come in ascending order (a gather by the hits' triangles of rays
+# in triangle order): a thread skips the elements of the others' rows at a branch that
+# random rows mispredict half the time (1M random rows of a 2,000-row table: 1.5 ms on one
+# thread, 9.4 ms on two; 1M ascending rows of a 24,576-row table: 8.2 and 3.2 ms).
 PARALLEL_SCATTER = 1 << 16
 
 # Whether compiled functions run their plain function on the tape in this thread (context).
@@ -373,6 +377,9 @@ class CompiledFunction:
             buffers = [where, share, table, count]
             pointers = _addresses(buffers)
             threads = thread_count() if len(where) >= PARALLEL_SCATTER else 1
+            by_gather = where.reshape(-1, n)  # the block's gathers, one after the other
+            if threads > 1 and not bool(np.all(by_gather[:, 1:] >= by_gather[:, :-1])):
+                threads = 1  # (the same bits either way: each row's sum in element order)
             kernel.run(pointers, len(where), len(table), threads)  # threads: ranges of rows
         return [grads.get(s) for s in range(len(slots))]
 

@@ -244,13 +244,17 @@ def test_gathers_with_repeated_and_negative_indices(data, n, rows):
     assert_close(t1, t2, "tangent")
 
 
-def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits():
-    """From ``compiler.PARALLEL_SCATTER`` elements each thread adds a range of the table's
-    rows: the same bits as one thread, and the tape's gradient to rounding."""
+@pytest.mark.parametrize("ascending", [False, True])
+def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(ascending):
+    """From ``compiler.PARALLEL_SCATTER`` elements whose rows come in ascending order each
+    thread adds a range of the table's rows (rows in any order: one thread): the same bits
+    as one thread, and the tape's gradient to rounding."""
     rng = np.random.default_rng(3)
     n = compiler.PARALLEL_SCATTER + 1000
     vertices, faces = rng.normal(size=(50, 3)), rng.integers(-50, 50, size=(30, 3))
     hit, weights = rng.integers(-30, 30, size=n), rng.normal(size=n)
+    if ascending:  # every gather's rows ascending: the faces' by hit, the vertices' by face
+        faces, hit = np.sort(faces, axis=0), np.sort(rng.integers(0, 30, size=n))
     cot = rng.normal(size=(n, 3))
     grads = []
     for threads, fn in ((1, centroid_light), (2, centroid_light), (1, centroid_light.function)):
