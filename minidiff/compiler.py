@@ -58,10 +58,11 @@ from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
 # Batches from this size add gathered rows' gradients on threads (each a range of table
 # rows, every one reading all elements' rows); below it, starting threads costs more. Only
-# where each gather's rows come in ascending order (a gather by the hits' triangles of rays
-# in triangle order): a thread skips the elements of the others' rows at a branch that
-# random rows mispredict half the time (1M random rows of a 2,000-row table: 1.5 ms on one
-# thread, 9.4 ms on two; 1M ascending rows of a 24,576-row table: 8.2 and 3.2 ms).
+# where each gather's rows mostly ascend (a gather by the hits' triangles of rays in
+# triangle order; at most one row in 8 below the one before): a thread skips the elements
+# of the others' rows at a branch that random rows mispredict half the time (1M random
+# rows of a 2,000-row table: 1.5 ms on one thread, 9.4 ms on two; 1M ascending rows of a
+# 24,576-row table: 8.2 and 3.2 ms).
 PARALLEL_SCATTER = 1 << 16
 
 # Whether compiled functions run their plain function on the tape in this thread (context).
@@ -377,8 +378,7 @@ class CompiledFunction:
             buffers = [where, share, table, count]
             pointers = _addresses(buffers)
             threads = thread_count() if len(where) >= PARALLEL_SCATTER else 1
-            by_gather = where.reshape(-1, n)  # the block's gathers, one after the other
-            if threads > 1 and not bool(np.all(by_gather[:, 1:] >= by_gather[:, :-1])):
+            if threads > 1 and _descents(where.reshape(-1, n)) > len(where) // 8:
                 threads = 1  # (the same bits either way: each row's sum in element order)
             kernel.run(pointers, len(where), len(table), threads)  # threads: ranges of rows
         return [grads.get(s) for s in range(len(slots))]
@@ -461,6 +461,11 @@ def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:
     hold the array, which then stays alive until the cyclic garbage collector runs. The
     caller keeps ``buffers`` alive for the call.)"""
     return (ctypes.c_void_p * len(buffers))(*(b.__array_interface__["data"][0] for b in buffers))
+
+
+def _descents(rows: np.ndarray) -> int:
+    """How many elements of ``rows`` (g, n) are below the one before them in their row."""
+    return int(np.count_nonzero(rows[:, 1:] < rows[:, :-1]))
 
 
 @functools.cache
