@@ -24,12 +24,11 @@ import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from minidiff.threads import job_count, kernel, run_jobs
+from minidiff.threads import job_count, kernel, run_jobs, share
 from render.scene.cache import RenderCache
 from render.scene.scene import Scene
 from render.shade import compiled
 from render.shade.hits import shade_camera_hits
-from render.trace.intersect import BLOCK, n_blocks
 from render.trace.visibility import Visibility
 
 
@@ -70,18 +69,19 @@ def image_values(scene: Scene, visibility: Visibility, camera: tuple, spp: int) 
 
 @kernel
 def _film(job, n_jobs, prim_id, radiance, spp, background, image):
-    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): each pixel of its blocks
-    (rows of ``image`` (H * W, 3)) the mean of its ``spp`` samples' radiance (N, 3),
-    ``background`` (3,) where a sample's ``prim_id`` (N,) is -1: the samples summed in
-    order, times 1 / spp."""
-    n = image.shape[0]
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): each pixel of its
+    contiguous share (rows of ``image`` (H * W, 3)) the mean of its ``spp`` samples'
+    radiance (N, 3), ``background`` (3,) where a sample's ``prim_id`` (N,) is -1: the
+    samples summed in order, times 1 / spp. (Every pixel costs the same: a contiguous share
+    streams through memory, where blocks dealt in turn took 0.79 against 0.53 ms at 512x512
+    on 2 threads.)"""
     scale = 1.0 / spp
-    for block in range(job, n_blocks(n), n_jobs):
-        for p in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
-            for c in range(3):
-                total = 0.0
-                for s in range(spp):
-                    r = p * spp + s
-                    value = background[c] if prim_id[r] < 0 else radiance[r, c]
-                    total = value if s == 0 else total + value
-                image[p, c] = total if spp == 1 else total * scale
+    first, stop = share(job, n_jobs, image.shape[0])
+    for p in range(first, stop):
+        for c in range(3):
+            total = 0.0
+            for s in range(spp):
+                r = p * spp + s
+                value = background[c] if prim_id[r] < 0 else radiance[r, c]
+                total = value if s == 0 else total + value
+            image[p, c] = total if spp == 1 else total * scale
