@@ -255,7 +255,7 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
     reference on the tape and nothing is recorded; the image's tangent is the tape's."""
     parameters = scene.parameters()
     copies = {id(p): md.tensor(p.data) for p in parameters}
-    frozen = substituted(scene, copies, {})
+    frozen = substituted(scene, copies, {}, copies=True)  # validated on entry, copied since
     moving = [p for p in parameters if p.requires_grad or p.tangent is not None]
     leaves = [copies[id(p)] for p in moving]
     options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)

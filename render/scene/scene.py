@@ -223,12 +223,15 @@ class Scene:
         lights: Iterable[Light],
         camera: Camera,
         background: ArrayLike = (0, 0, 0),
+        *,
+        _checked: bool = False,
     ) -> None:
         self.objects = _as_list(objects, "objects")
         self.lights = _as_list(lights, "lights")
         self.camera = camera
         self.background = as_parameter(background, "Scene", "background")
-        self.validate()
+        if not _checked:  # (internal: parts of a validated scene holding copies of its values)
+            self.validate()
 
     @property
     def meshes(self) -> list[Mesh]:

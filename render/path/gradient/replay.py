@@ -110,7 +110,7 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
     if not originals:
         return
     copies = {id(t): md.tensor(t.data, requires_grad=True) for t in originals}
-    window_world = substituted(world, copies, {})
+    window_world = substituted(world, copies, {}, copies=True)
     window_frame = tuple(copies.get(id(t), t) for t in frame)
 
     missed = np.flatnonzero(batch.missed)
