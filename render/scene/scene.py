@@ -268,8 +268,24 @@ class Scene:
 
     def parameters(self) -> list[Tensor]:
         """Every continuous parameter tensor of the scene, each once, in the order of
-        ``named_parameters``."""
-        return list(self.named_parameters().values())
+        ``named_parameters`` (the same walk without the names: the path integrator asks
+        a dozen times a gradient)."""
+        owners = [self.camera, *self.lights]
+        for obj in self.objects:
+            owners.append(obj)
+            if obj.transform is not None:
+                owners.append(obj.transform)
+            owners.append(obj.material)
+        seen, out = set(), []
+        for owner in owners:
+            for field in owner.FIELDS:
+                t = getattr(owner, field.name)
+                if t is not None and id(t) not in seen:
+                    seen.add(id(t))
+                    out.append(t)
+        if id(self.background) not in seen:
+            out.append(self.background)
+        return out
 
     def with_camera(self, camera: Camera) -> Scene:
         """Another view of this scene: a Scene with ``camera`` and the *same* objects,

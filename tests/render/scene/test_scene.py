@@ -8,7 +8,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minidiff
-from render.scene.scene import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere
+from render.scene.scene import (
+    Camera,
+    DirectionalLight,
+    Material,
+    Mesh,
+    PointLight,
+    Scene,
+    Sphere,
+    Transform,
+)
 
 TRI_V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 TRI_F = np.array([[0, 1, 2]])
@@ -218,8 +227,15 @@ def test_named_parameters_name_every_parameter_once_in_parameters_order():
     assert "objects[1].material.albedo" not in named  # shared: first name only
     assert "objects[0].normals" not in named  # unset optional fields are not parameters
     assert named["background"] is scene.background
-    assert list(named.values()) == scene.parameters()
     assert len({id(t) for t in named.values()}) == len(named)
+    # parameters() walks the same owners without the names: the same tensors, in order,
+    # also with a transform, a second light and a tensor shared across owners.
+    mesh.transform = Transform(translation=(0.1, 0.0, 0.0))
+    scene.lights.append(DirectionalLight((0, -1, 0), 1.0, color=mesh.material.albedo))
+    for case in (scene, Scene([mesh, sphere], scene.lights, camera(), shared.albedo)):
+        listed = case.parameters()
+        assert len(listed) == len(case.named_parameters())
+        assert all(a is b for a, b in zip(listed, case.named_parameters().values(), strict=True))
 
 
 def test_a_named_size_must_agree_across_fields():
