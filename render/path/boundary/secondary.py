@@ -215,10 +215,15 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
     or None if none."""
     if curves.n_edges + len(curves.radius) == 0:
         return None
+    # The samples stand at vertices 1 .. max_depth - 1 and read only where the prefix went
+    # (a vertex's place, and how the path left the ones before it): traced one vertex
+    # short, the same records up to there, without the last vertex's lights and rays.
+    short = copy.copy(sampler)
+    short.max_depth = max(1, sampler.max_depth - 1)
     if packed is not None:
-        batch, _ = kernel.sample_paths(sampler, paths, packed)
+        batch, _ = kernel.sample_paths(short, paths, packed)
     else:
-        batch = sampler.sample(paths)
+        batch = short.sample(paths)
     points = _points(sampler, batch)
     tables = Tables.of(world, frame, leaves=False)  # what phi reads, on this tape
     plain = plain_tables(world, frame)  # what the samples' radiance reads, made once
