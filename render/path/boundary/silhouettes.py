@@ -569,9 +569,9 @@ def _norm(a):
 
 
 # The draws' helpers: those run per curve and apex are inlined by Numba (``_edge``,
-# ``_whole``, ``_clipped``, ``_edge_towards``: as calls, the Cornell box's draws took about
-# a third longer); the others are plain calls, which LLVM inlines by itself (Numba's
-# inlining of them doubled the kernel's cold compile, 4 -> 9 s, for no speed).
+# ``_whole``, ``_clipped``, ``_edge_towards``: as calls, the Cornell box's draws took a
+# fifth to a third longer); the others are plain calls, which LLVM inlines by itself
+# (Numba's inlining of them doubled the kernel's cold compile, 4 -> 9 s, for no speed).
 @numba.njit(cache=True, inline="always", error_model="numpy")
 def _edge(p, a, b, c0, c1, grazing):
     """An edge seen from p: (the angle it subtends, 0 if no silhouette; its faces' side)."""
