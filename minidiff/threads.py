@@ -33,7 +33,7 @@ from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.ir_utils import simplify
 from numba.core.typed_passes import NopythonRewrites
 
-__all__ = ["using_threads", "thread_count", "run_jobs", "job_count", "share", "kernel"]
+__all__ = ["using_threads", "thread_count", "run_jobs", "job_count", "share", "kernel", "borrowing"]
 
 # Threads a kernel may use in this thread (context); None: Numba's setting.
 _threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
@@ -126,6 +126,21 @@ def kernel(function: Callable) -> Callable:
     return numba.njit(cache=True, nogil=True, error_model="numpy", pipeline_class=_KernelPipeline)(
         function
     )
+
+
+def borrowing(function: Callable) -> Callable:
+    """A Numba function for a kernel's inner loop that allocates nothing: compiled without
+    Numba's reference counting (``_nrt=False``), so the arrays it is handed stay borrowed
+    from its caller, which keeps them alive.
+
+    Why: Numba counts the references to every array a function receives or passes on, with
+    an atomic add and subtract on the array's shared count; where it cannot pair them up
+    (across loops and calls) they stay, at each call, each inlined assignment, each path.
+    The path kernel spent 65 % of its time (one thread, the Cornell box) on them, and
+    threads that share a scene's arrays contend for their counts. Numba refuses to compile
+    a function with this flag that would allocate (``np.empty``, a new array): such work
+    stays in the kernel that calls it (``kernel``, counted as usual)."""
+    return numba.njit(cache=True, error_model="numpy", _nrt=False)(function)
 
 
 @numba.njit(cache=True, inline="always")

@@ -40,7 +40,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from minidiff.threads import job_count, kernel, run_jobs, share
+from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
 from render.trace.simd import enter4
 from render.trace.wide import CHILD, WIDTH
 
@@ -469,7 +469,7 @@ def _blocked_in_leaf(table, ids, n_tri, start, stop, ray, ignore):
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@borrowing
 def _blocked_by_row(table, ids, n_tri, k, ray, ignore):
     """``_blocked_in_leaf`` of the one row ``k``: a function of its own, not inlined (the
     hint is tested once per ray; a second inlined copy of the primitive tests doubled the
@@ -567,7 +567,7 @@ def occluded_ray(bvh, ray, ignore, stack):
     return False
 
 
-@njit(cache=True, error_model="numpy")
+@borrowing
 def closest_hit_one(bvh, origin, direction, tmin, stack, stack_t):
     """:func:`closest_hit_ray` of the ray ``origin + t direction``, ``t > tmin`` (origin and
     direction (x, y, z) floats): (prim, t, u, v). For kernels that trace a ray among other
@@ -577,7 +577,7 @@ def closest_hit_one(bvh, origin, direction, tmin, stack, stack_t):
     return closest_hit_ray(bvh, make_ray(origin, direction, tmin, np.inf), stack, stack_t)
 
 
-@njit(cache=True, error_model="numpy")
+@borrowing
 def occluded_one(bvh, origin, direction, tmax, ignore, stack):
     """:func:`occluded_ray` of the ray ``origin + t direction``, ``0 < t < tmax``, ignoring
     primitive ``ignore``; one compiled copy, as :func:`closest_hit_one`."""

@@ -186,8 +186,8 @@ def closed_room() -> render.Scene:
 )
 def test_paths_longer_than_the_first_records_and_chains(names):
     """40 vertices per path, more than the kernel first makes room for (``CHAIN_ROWS``):
-    the records are traced again deeper, the replay's chain grows, and the gradient is
-    still the tape's (the reference's) to rounding."""
+    the records are traced again deeper, the replay runs its jobs again with a longer chain,
+    and the gradient is still the tape's (the reference's) to rounding."""
     assert kernel.CHAIN_ROWS < 40
     options = {"max_depth": 40, "rr_depth": 41}
     sampler = PathSampler(placed(closed_room()), 1, 40, 41, 0)

@@ -12,9 +12,9 @@ which ``render.path.twin.adjoint`` maps onto the scene's parameters).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
+from minidiff.threads import borrowing
 from render.path.twin.scalar import _brdf_adjoint
 
 #: Path replay's gradient vector: per object (``_G_OBJECT`` entries from ``_G_OBJECT * o``)
@@ -35,7 +35,7 @@ _C_SPECULAR, _C_SHININESS, _C_LOBE, _C_TEXTURED, _C_BETA = 24, 27, 28, 29, 30
 _C_FIELDS = 33
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _replay_chain(chain):
     """Fill chain[k, _C_REST:] with R_k = E_k + C_{k+1} + F_{k+1} R_{k+1}: the radiance
     that reaches vertex k from the rest of its path (E_k: the environment, if the path
@@ -50,7 +50,7 @@ def _replay_chain(chain):
             chain[k, _C_REST + c] = rest
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _factor_gradients(chain, delta, grad):
     """Add each vertex's delta . beta_k dF_k R_k to ``grad``, from the chain that
     ``_trace_path`` recorded and ``_replay_chain`` completed (rows of vertices that did

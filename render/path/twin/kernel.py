@@ -28,7 +28,7 @@ import math
 import numba
 import numpy as np
 
-from minidiff.threads import job_count, kernel, run_jobs, share
+from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
 from render.path.sample.choices import MAX_SURVIVAL, MIN_SURVIVAL
 from render.path.sample.random import mix, uniform_of
 from render.path.sample.tracer import (
@@ -105,9 +105,9 @@ CHAIN_ROWS = 32
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
                 stack_t, keep, row, rec_i, rec_f, rec_lit, delta, chain, grad):  # fmt: skip
     """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2), its number of
-    vertices n (0: the camera ray missed) and its chain. With ``keep``, its decisions are
-    written to row ``row`` of the records (``_I_*``, ``_F_*``): its length n, and its first
-    vertices, as many as the records have room for.
+    vertices n (0: the camera ray missed) and whether its chain had room (below). With
+    ``keep``, its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``):
+    its length n, and its first vertices, as many as the records have room for.
 
     Path replay (``grad`` non-empty, ``chain`` (rows >= 1, _C_FIELDS) zeroed, ``delta``
     the pixel's dL/dimage / spp): the radiance is sum_k beta_k C_k with beta_{k+1} =
@@ -117,10 +117,12 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     added to ``grad`` (laid out by ``_G_*``) as the path is traced; each vertex's C_k, F_k,
     the environment seen after it and what dF_k needs go into the chain, and once the path
     has ended ``_replay_chain`` computes R_k and ``_factor_gradients`` adds the dF_k R_k
-    terms from its first n rows; the chain returned is a longer copy if the path had more
-    vertices than ``chain`` has rows. One trace per path (the replay needs no second one:
+    terms from its first n rows. A path with more vertices than ``chain`` has rows stops
+    there, returning False (``_kernel`` then runs its job again with a longer chain: an
+    allocation, which this function, compiled without reference counts, may not make). One
+    trace per path (the replay needs no second one:
     nothing in dF_k R_k but R_k waits for the rest of the path), and memory of a few
-    numbers per vertex of one path (per block of pixels), not per path of the image. R_k
+    numbers per vertex of one path (per job), not per path of the image. R_k
     from the recursion, not from (radiance - what came before) / beta_{k+1} as Mitsuba's
     prb divides, stays exact where a channel of F_k is 0 (an albedo channel at 0 still
     gets its derivative).
@@ -154,7 +156,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if adjoint:
             for c in range(3):
                 grad[g_background + c] += delta[c]
-        return background[0], background[1], background[2], 0, chain
+        return background[0], background[1], background[2], 0, True
     point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
     incoming = _divided(d[0], d[1], d[2])
     form, pdf, previous, estimate = CAMERA, 0.0, point, 1.0
@@ -169,7 +171,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         # the chain grows as the path does.
         kept = keep and depth <= rec_i.shape[0]
         if adjoint and depth > chain.shape[0]:
-            chain = _grown(chain, max_depth)
+            return L0, L1, L2, depth, False  # _kernel runs the job again with a longer chain
         o, ng, ns, uv, local = _surface(
             triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v
         )
@@ -416,16 +418,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         previous, point, xt, wot = point, point_next, x_next, wo_next
         incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
         depth += 1
-    return L0, L1, L2, depth, chain
-
-
-@numba.njit(cache=True, error_model="numpy")
-def _grown(chain, max_depth):
-    """``chain`` (rows, _C_FIELDS) with twice the rows (at most ``max_depth``), the new
-    ones zero."""
-    out = np.zeros((min(2 * chain.shape[0], max_depth), chain.shape[1]))
-    out[: chain.shape[0]] = chain
-    return out
+    return L0, L1, L2, depth, True
 
 
 #: The records of ``sample_paths``, depth first (a depth's paths are contiguous rows):
@@ -439,23 +432,24 @@ _F_ESCAPE_DIR, _F_COORD = 10, 13
 _F_FIELDS = 15
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, start, stop, paths,
-                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit, d_image,
+                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit, d_image, chain,
                  grad):  # fmt: skip
     """Items start..stop-1, one of three ways:
 
     * pixels (``paths`` and ``grad`` empty): each pixel's mean over its spp paths, summed
       in sample order, into ``out`` (H, W, 3);
     * paths ``paths[i]``: their radiance into ``radiance`` (N, 3) and their records;
-    * pixels, path replay (``grad`` non-empty): each of their paths traced once, adding
-      to ``grad`` its share of the pixel's ``d_image`` (dL/dimage / spp) . d image / d q.
+    * pixels, path replay (``grad`` non-empty, ``chain`` zeroed): each of their paths traced
+      once, adding to ``grad`` its share of the pixel's ``d_image`` (dL/dimage / spp) .
+      d image / d q.
 
     One call per block of items, so that the scene's arrays are handed over once per block,
-    not once per path."""
+    not once per path. False as soon as a path had more vertices than ``chain`` has rows
+    (``_trace_path``), True when the block is done."""
     image = paths.shape[0] == 0
     replay = grad.shape[0] > 0
-    chain = np.zeros((min(max_depth, CHAIN_ROWS) if replay else 0, _C_FIELDS))
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
@@ -466,10 +460,12 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
-            L0, L1, L2, n, chain = _trace_path(
+            L0, L1, L2, n, fits = _trace_path(
                 bvh, s, seed_key, path, pixel % width, pixel // width, width, height, max_depth,
                 rr_depth, stack, stack_t, not image, i, rec_i, rec_f, rec_lit, delta, chain, grad,
             )  # fmt: skip
+            if not fits:
+                return False
             L = (L0, L1, L2)
             if replay:
                 _replay_chain(chain[:n])
@@ -483,6 +479,7 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
             out[y, x, 2] = total[2] * inv
         elif not image:
             radiance[i, 0], radiance[i, 1], radiance[i, 2] = total
+    return True
 
 
 @kernel
@@ -495,20 +492,32 @@ def _kernel(worker, n_workers, bvh, s, seed, spp, width, height, max_depth, rr_d
     the left and the right halves of a 128-pixel-wide image went to different threads,
     which take different times). Path replay (``grads`` (jobs, G), G > 0; else (1, 0)):
     each job adds to its own row, so the sums' order, and so the gradient's bits, do not
-    depend on the threads."""
+    depend on the threads. A job whose chain was too short for one of its paths runs
+    again from its first block, its row zeroed, with twice the rows: the same sums in the
+    same order."""
     n = width * height if paths.shape[0] == 0 else paths.shape[0]
     n_blocks = (n + BLOCK - 1) // BLOCK
     replay = grads.shape[1] > 0
     n_jobs = np.int64(grads.shape[0] if replay else min(n_blocks, CHUNKS))
     seed_key = mix(np.uint64(seed))
     first, stop = share(worker, n_workers, n_jobs)
+    stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
+    rows = min(max_depth, CHAIN_ROWS) if replay else 0
     for job in range(first, stop):
-        stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
         grad = grads[np.int64(job) if replay else 0]  # (0,) when there is no replay
-        for b in range(job, n_blocks, n_jobs):
-            _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, b * BLOCK,
-                         min(n, (b + 1) * BLOCK), paths, stack, stack_t, out, radiance, rec_i,
-                         rec_f, rec_lit, d_image, grad)  # fmt: skip
+        done = False
+        while not done:
+            chain = np.zeros((rows, _C_FIELDS))
+            done = True
+            for b in range(job, n_blocks, n_jobs):
+                if not _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth,
+                                    b * BLOCK, min(n, (b + 1) * BLOCK), paths, stack, stack_t,
+                                    out, radiance, rec_i, rec_f, rec_lit, d_image, chain,
+                                    grad):  # fmt: skip
+                    done = False
+                    rows = min(2 * rows, max_depth)
+                    grad[:] = 0.0
+                    break
 
 
 def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=None, records=None,

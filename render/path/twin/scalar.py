@@ -16,6 +16,7 @@ import math
 import numba
 import numpy as np
 
+from minidiff.threads import borrowing
 from render.path.sample.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
 
 
@@ -97,7 +98,7 @@ def _put(records, k, row, column, x):
     records[k, row, column + 2] = x[2]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _basis(n):
     """``render.path.sample.sampling.orthonormal_basis`` of one unit normal."""
     sign = 1.0 if n[2] >= 0 else -1.0
@@ -108,7 +109,7 @@ def _basis(n):
     return s, t
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _to_world(l0, l1, l2, n):
     s, t = _basis(n)
     return (
@@ -124,7 +125,7 @@ def _power(p, q):
     return p * p / total if total > 0 else 0.0
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _glossy_pdf(n, view, w, shininess):
     """``render.path.sample.sampling.blinn_phong_pdf`` of one direction."""
     h = _divided(view[0] + w[0], view[1] + w[1], view[2] + w[2])
@@ -135,15 +136,15 @@ def _glossy_pdf(n, view, w, shininess):
     return (shininess + 1.0) / (2.0 * math.pi) * cos_h**shininess / (4.0 * vh)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _pdf(p_diffuse, p_glossy, shininess, ns, wo, wi):
-    """``PathSampler._pdf``: the density of the diffuse-or-glossy choice at wi."""
-    return p_diffuse * (max(_dot(ns, wi), 0.0) / math.pi) + p_glossy * _glossy_pdf(
-        ns, wo, wi, shininess
-    )
+    """``PathSampler._pdf``: the density of the diffuse-or-glossy choice at wi (the glossy
+    lobe's, and its power, only where the material has one: 0 x its finite pdf is 0)."""
+    glossy = _glossy_pdf(ns, wo, wi, shininess) if p_glossy > 0 else 0.0
+    return p_diffuse * (max(_dot(ns, wi), 0.0) / math.pi) + p_glossy * glossy
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _lobe(ns, view, wi, shininess):
     """The Blinn-Phong lobe's n.h (clamped as the tape clamps it, >= 1e-12) and
     (n.h)^shininess."""
@@ -152,7 +153,7 @@ def _lobe(ns, view, wi, shininess):
     return n_dot_h, n_dot_h**shininess
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _brdf(ns, view, wi, albedo, specular, shininess, lobe_on):
     """``render.shade.lighting.brdf`` (3-tuple): albedo / pi plus the energy-normalised
     Blinn-Phong lobe specular (n + 8) / (8 pi) (n.h)^n where ``lobe_on`` (the material's
@@ -166,7 +167,7 @@ def _brdf(ns, view, wi, albedo, specular, shininess, lobe_on):
     return f0, f1, f2
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _brdf_adjoint(ns, view, wi, specular, shininess, lobe_on, textured, w, grad, base):
     """Add sum_c w[c] d f_c / d (albedo (3), specular (3), shininess) of ``_brdf`` to
     grad[base : base + 7]: 1 / pi (none if ``textured``: a texture replaces the albedo),
@@ -185,7 +186,7 @@ def _brdf_adjoint(ns, view, wi, specular, shininess, lobe_on, textured, w, grad,
         grad[base + 6] += d_lobe * (w[0] * specular[0] + w[1] * specular[1] + w[2] * specular[2])
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _surface(triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v):
     """At a point on primitive ``prim`` (barycentrics u, v on a triangle): the object, the
     unit geometric normal, the shading normal and the UV, and the coordinates ``local``."""
@@ -214,7 +215,7 @@ def _surface(triangles, centers, prim_object, smooth, corners, normals, uvs, pri
     return o, ng, ns, uv, local
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _look(albedo, specular, maps, texels, o, uv):
     """The albedo and specular colours of object o at UV ``uv`` (its textures sampled)."""
     kd = (albedo[o, 0], albedo[o, 1], albedo[o, 2])
@@ -231,7 +232,7 @@ def _look(albedo, specular, maps, texels, o, uv):
     return kd, ks
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _point_on(triangles, centers, radii, prim, u1, u2):
     """NEE's point on an emitter (``render.path.sample.choices``) for one primitive: local, point,
     unit normal (a uniform point by Turk's square-root warp on a triangle, by Archimedes on
@@ -249,7 +250,7 @@ def _point_on(triangles, centers, radii, prim, u1, u2):
     return local, _placed(triangles, centers, radii, prim, local), normal
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _triangle_normal(triangles, prim):
     """The unit normal (b - a) x (c - a) / |.| of triangle ``prim``."""
     a, b, c = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
@@ -260,7 +261,7 @@ def _triangle_normal(triangles, prim):
     )
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _reintersect(triangles, centers, radii, prim, o, d):
     """Where the ray o + t d meets primitive ``prim`` as the tape finds it
     (``surface_at`` from rays: the triangle's plane, or the sphere's root on the far side
@@ -289,7 +290,7 @@ def _reintersect(triangles, centers, radii, prim, o, d):
     return (o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]), u, v
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _local(triangles, centers, prim, point, u, v):
     """``PathSampler.local_coordinates``: (u, v, 0) on a triangle, the unit direction from
     a sphere's centre."""
@@ -299,7 +300,7 @@ def _local(triangles, centers, prim, point, u, v):
     return _divided(point[0] - centers[k, 0], point[1] - centers[k, 1], point[2] - centers[k, 2])
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _placed(triangles, centers, radii, prim, local):
     """The point at coordinates ``local`` on primitive ``prim`` (``surface_at(local=)``)."""
     n_tri = triangles.shape[0]
