@@ -51,7 +51,7 @@ import numba
 import numpy as np
 
 import minidiff as md
-from minidiff.threads import job_count, kernel, run_jobs, share
+from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
 from render.path.sample.sampling import dot, unit
 from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh
@@ -667,7 +667,7 @@ def _in_order(x, y):
     return x, y
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
 def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
     """Curve j seen from p: (weight, side, lo, hi) as ``pick_reference`` has them."""
     weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
@@ -717,32 +717,41 @@ def _pick(
     ``u_point[0]``) and, with ``clip``, ``out[1]`` from the curves' parts towards the
     triangles ``tri`` (rows ``active[1]``, the uniforms' row 1). out (2, 4, n): index,
     density, side, t. One pass over the curves serves both (their silhouette tests)."""
-    count = a.shape[0] + centre.shape[0]
-    each_apex, each_tri = int(apex.shape[0] > 1), int(tri.shape[0] > 1)  # else row 0 for all
     first, stop = share(job, n_jobs, u_curve.shape[1])
-    weights = np.zeros((2, count))  # one apex's weights, filled anew for each
+    weights = np.zeros((2, a.shape[0] + centre.shape[0]))  # one apex's weights, filled anew
     for i in range(first, stop):
-        for s in range(2):
-            out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
-        if count == 0:
-            continue
-        row, r = i * each_apex, i * each_tri
-        p = (apex[row, 0], apex[row, 1], apex[row, 2])
-        triangle = ((tri[r, 0, 0], tri[r, 0, 1], tri[r, 0, 2]),
-                    (tri[r, 1, 0], tri[r, 1, 1], tri[r, 1, 2]),
-                    (tri[r, 2, 0], tri[r, 2, 1], tri[r, 2, 2]))  # fmt: skip
-        for j in range(count):
-            weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
-            weights[0, j] = weight if active[0, i] else 0.0
-            weights[1, j] = 0.0
-            if clip and active[1, i] and weight > 0:  # the part towards the triangle
-                weights[1, j] = _clipped(p, j, a, b, centre, weight, side, triangle)[0]
-        for s in range(2 if clip else 1):
-            _draw(p, weights[s], u_curve[s, i], u_point[s, i], a, b, c, centre, radius,
-                  triangle, s == 1, grazing, out[s, :, i])  # fmt: skip
+        _pick_one(i, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point,
+                  grazing, weights, out)  # fmt: skip
 
 
-@numba.njit(cache=True, error_model="numpy")
+@borrowing
+def _pick_one(i, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point, grazing,
+              weights, out):  # fmt: skip
+    """``_pick``'s draw i, its curves' ``weights`` (2, count) as room (compiled without
+    reference counts: its loop over the curves takes a view of each one's row)."""
+    for s in range(2):
+        out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
+    count = weights.shape[1]
+    if count == 0:
+        return
+    each_apex, each_tri = int(apex.shape[0] > 1), int(tri.shape[0] > 1)  # else row 0 for all
+    row, r = i * each_apex, i * each_tri
+    p = (apex[row, 0], apex[row, 1], apex[row, 2])
+    triangle = ((tri[r, 0, 0], tri[r, 0, 1], tri[r, 0, 2]),
+                (tri[r, 1, 0], tri[r, 1, 1], tri[r, 1, 2]),
+                (tri[r, 2, 0], tri[r, 2, 1], tri[r, 2, 2]))  # fmt: skip
+    for j in range(count):
+        weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
+        weights[0, j] = weight if active[0, i] else 0.0
+        weights[1, j] = 0.0
+        if clip and active[1, i] and weight > 0:  # the part towards the triangle
+            weights[1, j] = _clipped(p, j, a, b, centre, weight, side, triangle)[0]
+    for s in range(2 if clip else 1):
+        _draw(p, weights[s], u_curve[s, i], u_point[s, i], a, b, c, centre, radius, triangle,
+              s == 1, grazing, out[s, :, i])  # fmt: skip
+
+
+@borrowing
 def _draw(p, weights, u_curve, u_point, a, b, c, centre, radius, triangle, clip, grazing, out):
     """One curve drawn by its ``weights`` (count,) and a point on it, into out (4,)."""
     total = 0.0
