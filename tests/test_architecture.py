@@ -111,3 +111,18 @@ def test_the_renderer_is_one_screen_of_calls():
     assert len(lines) <= 260
     start = next(i for i, line in enumerate(lines) if line.startswith("def render("))
     assert start < 130
+
+
+#: The longest a function in ``render/`` may be, docstring included (issue 57).
+LONGEST_FUNCTION = 150
+
+
+def test_no_function_in_render_is_longer_than_the_limit():
+    long = []
+    for path in RENDER.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+                lines = node.end_lineno - node.lineno + 1
+                if lines > LONGEST_FUNCTION:
+                    long.append(f"{module_name(path)}.{node.name}: {lines} lines")
+    assert not long, long

@@ -117,15 +117,12 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     added to ``grad`` (laid out by ``_G_*``) as the path is traced; each vertex's C_k, F_k,
     the environment seen after it and what dF_k needs go into the chain, and once the path
     has ended ``_replay_chain`` computes R_k and ``_factor_gradients`` adds the dF_k R_k
-    terms from its first n rows. A path with more vertices than ``chain`` has rows stops
-    there, returning False (``_kernel`` then runs its job again with a longer chain: an
-    allocation, which this function, compiled without reference counts, may not make). One
-    trace per path (the replay needs no second one:
-    nothing in dF_k R_k but R_k waits for the rest of the path), and memory of a few
-    numbers per vertex of one path (per job), not per path of the image. R_k
-    from the recursion, not from (radiance - what came before) / beta_{k+1} as Mitsuba's
-    prb divides, stays exact where a channel of F_k is 0 (an albedo channel at 0 still
-    gets its derivative).
+    terms from its first n rows (a longer path stops there, returning False: ``_kernel``
+    runs the job again with a longer chain). One trace per path (nothing in dF_k R_k but
+    R_k waits for the rest of the path), and memory of a few numbers per vertex of one
+    path per job. R_k from the recursion, not from (radiance - what came before) /
+    beta_{k+1} as Mitsuba's prb divides, stays exact where a channel of F_k is 0 (an
+    albedo channel at 0 still gets its derivative).
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -138,8 +135,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
      light_strength, light_color, forward, right, up, eye, background, offset,
      n_tri, lobe_on) = s  # fmt: skip
     adjoint = grad.shape[0] > 0  # path replay: dC_k now, the rest into the chain
-    g_light = _G_OBJECT * albedo.shape[0]  # where the lights' and the environment's are
-    g_background = g_light + _G_LIGHT * light_kind.shape[0]
+    g_background = _G_OBJECT * albedo.shape[0] + _G_LIGHT * light_kind.shape[0]
     key = mix(seed_key ^ np.uint64(path))
     # The camera ray (PathSampler.sample, to_image_plane, camera_directions).
     fx = px + uniform_of(key, 0)
@@ -162,16 +158,15 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     form, pdf, previous, estimate = CAMERA, 0.0, point, 1.0
     xt, ut, vt, wot = point, u, v, _unit(-d[0], -d[1], -d[2])
     beta = (1.0, 1.0, 1.0)
-    L0 = L1 = L2 = 0.0
-    n_emit = e_prims.shape[0]
+    L = (0.0, 0.0, 0.0)
     depth = 1
     while True:
-        # Memory by the path's real length, not by max_depth: the records hold the vertices
-        # that fit (sample_paths traces again with deeper ones if a path had more), and
-        # the chain grows as the path does.
+        # Memory by the paths' real lengths, not by max_depth: the records hold the vertices
+        # that fit (sample_paths traces again with deeper ones if a path had more), and so
+        # does the chain (_kernel runs the job again with a longer one).
         kept = keep and depth <= rec_i.shape[0]
         if adjoint and depth > chain.shape[0]:
-            return L0, L1, L2, depth, False  # _kernel runs the job again with a longer chain
+            return L[0], L[1], L[2], depth, False
         o, ng, ns, uv, local = _surface(
             triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v
         )
@@ -188,166 +183,35 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         nst = (side_t * nst[0], side_t * nst[1], side_t * nst[2])
         # Emission seen here, MIS-weighted against NEE (PathSampler._emission_weight).
         weight = 1.0
-        if n_emit > 0 and form == AREA:
-            r = e_row_of[prim]
-            p_nee = e_probability[r] / e_area[r] if r >= 0 else 0.0
-            to = (point[0] - previous[0], point[1] - previous[1], point[2] - previous[2])
-            d2 = _dot(to, to)
-            d2 = d2 if d2 > 0 else 1.0
-            cos = abs(_dot(ng, to)) / math.sqrt(d2)
-            if p_nee > 0:
-                weight = _power(pdf * cos / d2, p_nee)
+        if e_prims.shape[0] > 0 and form == AREA:
+            weight = _emission_weight(
+                e_row_of, e_probability, e_area, prim, point, previous, ng, pdf
+            )
         if side_t > 0:
-            L0 += beta[0] * (emission[o, 0] * weight)
-            L1 += beta[1] * (emission[o, 1] * weight)
-            L2 += beta[2] * (emission[o, 2] * weight)
-            if adjoint:
-                for c in range(3):
-                    chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
-                    grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
+            L = _emitted(L, beta, emission, o, weight, depth, chain, adjoint, delta, grad)
         if keep:  # the path's length so far, also past the records' depth
             rec_i[0, row, _I_COUNT] = depth
         if kept:
-            rec_i[depth - 1, row, _I_PRIM] = prim
-            rec_i[depth - 1, row, _I_FORM] = form
-            rec_i[depth - 1, row, _I_NEE_PRIM] = -1
-            rec_i[depth - 1, row, _I_NEXT] = STOP
-            _put(rec_f, depth - 1, row, _F_LOCAL, local)
-            rec_f[depth - 1, row, _F_EMIT] = weight
-            rec_f[depth - 1, row, _F_NEE_WEIGHT] = 0.0
-            rec_f[depth - 1, row, _F_NEXT_PDF] = 1.0
-            rec_f[depth - 1, row, _F_SURVIVE] = 1.0
-            rec_i[depth - 1, row, _I_ESCAPE] = 0
+            _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight)
         if depth == max_depth:
             break
         p_d, p_g, p_m = probability[o, 0], probability[o, 1], probability[o, 2]
-        shin = shininess[o]
         kd, ks = _look(albedo, specular, maps, texels, o, uvt)
-        lobe, textured = lobe_on[o], maps[o, 0, 0] >= 0
-        g_object = _G_OBJECT * o
-        origin = (point[0] + offset * ng[0], point[1] + offset * ng[1], point[2] + offset * ng[2])
+        # What the lights' terms read of the vertex and its surface.
         ignore = prim if prim < n_tri else -1
-        # Next-event estimation: one point on the area lights (PathSampler._next_event).
-        if n_emit > 0:
-            pick = np.searchsorted(e_cdf, uniform_of(key, _dim(depth, _EMITTER)) * e_cdf[-1],
-                                   side="right")  # fmt: skip
-            pick = min(pick, n_emit - 1)
-            e_prim = e_prims[pick]
-            u1 = uniform_of(key, _dim(depth, _EMITTER_POINT))
-            u2 = uniform_of(key, _dim(depth, _EMITTER_POINT) + 1)
-            e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
-            if kept:  # recorded whether or not it is seen, as the sampler does
-                _put(rec_f, depth - 1, row, _F_NEE_LOCAL, e_local)
-            to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
-            d2 = _dot(to, to)
-            root = math.sqrt(d2 if d2 > 0 else 1.0)
-            wi = (to[0] / root, to[1] / root, to[2] / root)
-            cos_z = -_dot(nz, wi)
-            ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
-            if ok:
-                to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
-                ok = not occluded_one(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
-            if ok:
-                p_nee = e_probability[pick] / e_area[pick]
-                p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
-                nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
-                if kept:
-                    rec_i[depth - 1, row, _I_NEE_PRIM] = e_prim
-                    rec_f[depth - 1, row, _F_NEE_WEIGHT] = nee_weight
-                # The radiance it brings (transport._at_vertex), from the tape's point.
-                to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
-                d2 = _dot(to, to)
-                root = math.sqrt(d2)
-                wi = (to[0] / root, to[1] / root, to[2] / root)
-                eo = prim_object[e_prim]
-                scale = max(_dot(nst, wi), 0.0) * abs(_dot(nz, wi)) / d2 * e_area[pick]
-                scale = scale * nee_weight
-                f = _brdf(nst, wot, wi, kd, ks, shin, lobe)
-                L0 += beta[0] * (f[0] * scale * emission[eo, 0])
-                L1 += beta[1] * (f[1] * scale * emission[eo, 1])
-                L2 += beta[2] * (f[2] * scale * emission[eo, 2])
-                if adjoint:
-                    for c in range(3):
-                        chain[depth - 1, _C_ADDED + c] += f[c] * scale * emission[eo, c]
-                    w = (delta[0] * beta[0] * scale * emission[eo, 0],
-                         delta[1] * beta[1] * scale * emission[eo, 1],
-                         delta[2] * beta[2] * scale * emission[eo, 2])  # fmt: skip
-                    _brdf_adjoint(nst, wot, wi, ks, shin, lobe, textured, w, grad, g_object)
-                    g = _G_OBJECT * eo + _G_EMISSION
-                    for c in range(3):
-                        grad[g + c] += delta[c] * beta[c] * f[c] * scale
-        # Point and directional lights (PathSampler._lights, lighting.light_contribution).
-        for j in range(light_kind.shape[0]):
-            if light_kind[j] == 0:
-                tx = light_vec[j, 0] - point[0]
-                ty = light_vec[j, 1] - point[1]
-                tz = light_vec[j, 2] - point[2]
-                distance = math.sqrt(tx * tx + ty * ty + tz * tz)
-                lit = ng[0] * tx + ng[1] * ty + ng[2] * tz > 0
-                if lit and distance > 2.0 * offset:
-                    fraction = offset / distance
-                    so = (point[0] + fraction * tx, point[1] + fraction * ty,
-                          point[2] + fraction * tz)  # fmt: skip
-                    to = (light_vec[j, 0] - so[0], light_vec[j, 1] - so[1], light_vec[j, 2] - so[2])
-                    lit = not occluded_one(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
-                                       stack)  # fmt: skip
-                tx = light_vec[j, 0] - xt[0]
-                ty = light_vec[j, 1] - xt[1]
-                tz = light_vec[j, 2] - xt[2]
-                distance_sq = tx * tx + ty * ty + tz * tz
-                per_strength = 1.0 / (1.0 if distance_sq == 0 else distance_sq)
-                irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
-                wl = _unit(tx, ty, tz)
-            else:
-                wl = (light_vec[j, 0], light_vec[j, 1], light_vec[j, 2])
-                lit = _dot(ng, wl) > 0
-                if lit:
-                    so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
-                          point[2] + offset * wl[2])  # fmt: skip
-                    lit = not occluded_one(bvh, so, wl, np.inf, ignore, stack)
-                irradiance, per_strength = light_strength[j], 1.0
-            if kept:
-                rec_lit[depth - 1, row, j] = lit
-            if lit:
-                scalar = irradiance * max(_dot(nst, wl), 0.0)
-                f = _brdf(nst, wot, wl, kd, ks, shin, lobe)
-                L0 += beta[0] * (scalar * (f[0] * light_color[j, 0]))
-                L1 += beta[1] * (scalar * (f[1] * light_color[j, 1]))
-                L2 += beta[2] * (scalar * (f[2] * light_color[j, 2]))
-                if adjoint:
-                    for c in range(3):
-                        chain[depth - 1, _C_ADDED + c] += scalar * (f[c] * light_color[j, c])
-                    w = (delta[0] * beta[0] * scalar * light_color[j, 0],
-                         delta[1] * beta[1] * scalar * light_color[j, 1],
-                         delta[2] * beta[2] * scalar * light_color[j, 2])  # fmt: skip
-                    _brdf_adjoint(nst, wot, wl, ks, shin, lobe, textured, w, grad, g_object)
-                    g = g_light + _G_LIGHT * j
-                    per_strength = per_strength * max(_dot(nst, wl), 0.0)  # d scalar / d I
-                    for c in range(3):
-                        grad[g] += delta[c] * beta[c] * per_strength * f[c] * light_color[j, c]
-                        grad[g + 1 + c] += delta[c] * beta[c] * scalar * f[c]
+        here = (point, xt, ng, nst, wot, prim, ignore, o, depth, kept)
+        look = (kd, ks, shininess[o], lobe_on[o], maps[o, 0, 0] >= 0, p_d, p_g)
+        origin = (point[0] + offset * ng[0], point[1] + offset * ng[1], point[2] + offset * ng[2])
+        if e_prims.shape[0] > 0:  # next-event estimation: one point on the area lights
+            L = _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object,
+                            emission, e_prims, e_cdf, e_probability, e_area, key, origin, ns,
+                            wo, here, look, row, rec_i, rec_f, chain, adjoint, delta,
+                            grad)  # fmt: skip
+        L = _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_color,
+                    offset, _G_OBJECT * albedo.shape[0], here, look, row, rec_lit, chain,
+                    adjoint, delta, grad)  # fmt: skip
         # How the path goes on (PathSampler._continue).
-        u1 = uniform_of(key, _dim(depth, _DIRECTION))
-        u2 = uniform_of(key, _dim(depth, _DIRECTION) + 1)
-        pick_lobe = uniform_of(key, _dim(depth, _LOBE))
-        mirror = pick_lobe >= p_d + p_g
-        if mirror:
-            c2 = 2.0 * _dot(wo, ns)
-            wi = (c2 * ns[0] - wo[0], c2 * ns[1] - wo[1], c2 * ns[2] - wo[2])
-            next_pdf = p_m
-        else:
-            if pick_lobe >= p_d:  # glossy
-                cos_h = u1 ** (1.0 / (shin + 1.0))
-                sin_h = math.sqrt(max(1.0 - cos_h**2, 0.0))
-                phi = 2.0 * math.pi * u2
-                h = _to_world(sin_h * math.cos(phi), sin_h * math.sin(phi), cos_h, ns)
-                c2 = 2.0 * _dot(wo, h)
-                wi = (c2 * h[0] - wo[0], c2 * h[1] - wo[1], c2 * h[2] - wo[2])
-            else:
-                r, phi = math.sqrt(u1), 2.0 * math.pi * u2
-                wi = _to_world(r * math.cos(phi), r * math.sin(phi),
-                               math.sqrt(max(1.0 - u1, 0.0)), ns)  # fmt: skip
-            next_pdf = _pdf(p_d, p_g, shin, ns, wo, wi)
+        mirror, wi, next_pdf = _direction(key, depth, wo, ns, p_d, p_g, p_m, shininess[o])
         go = (p_d + p_g + p_m > 0) and next_pdf > 0 and _dot(ng, wi) > 0
         estimate = estimate * lobe_reflectance[o]
         survive = 1.0
@@ -367,50 +231,19 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             rec_f[depth - 1, row, _F_NEXT_PDF] = next_pdf
             rec_i[depth - 1, row, _I_ESCAPE] = prim < 0
         point_next = (origin[0] + t * wi[0], origin[1] + t * wi[1], origin[2] + t * wi[2])
-        if mirror:
-            factor = (reflectance[o, 0] * scale, reflectance[o, 1] * scale,
-                      reflectance[o, 2] * scale)  # fmt: skip
-            f = (scale, scale, scale)  # d factor / d reflectance
-            c2 = 2.0 * _dot(wot, nst)  # the tape's reflected ray, from its own point
-            reflected = (c2 * nst[0] - wot[0], c2 * nst[1] - wot[1], c2 * nst[2] - wot[2])
-            if prim >= 0:
-                x_next, ut, vt = _reintersect(triangles, centers, radii, prim, xt, reflected)
-            wo_next = _unit(-reflected[0], -reflected[1], -reflected[2])
-        else:
-            wn = wi  # the direction sampled; to a new vertex, the one between the points
-            if prim >= 0:
-                x_next = _placed(
-                    triangles,
-                    centers,
-                    radii,
-                    prim,
-                    _local(triangles, centers, prim, point_next, u, v),
-                )
-                to = (x_next[0] - xt[0], x_next[1] - xt[1], x_next[2] - xt[2])
-                root = math.sqrt(_dot(to, to))
-                wn = (to[0] / root, to[1] / root, to[2] / root)
-                wo_next = _unit(-wn[0], -wn[1], -wn[2])
-            cos = max(_dot(nst, wn), 0.0) * scale
-            f = _brdf(nst, wot, wn, kd, ks, shin, lobe)
-            factor = (f[0] * cos, f[1] * cos, f[2] * cos)
+        factor, cos, wn, x_next, ut, vt, wo_next = _segment(
+            triangles, centers, radii, (reflectance[o, 0], reflectance[o, 1], reflectance[o, 2]),
+            prim, mirror, scale, wi, point_next, u, v, xt, ut, vt, wot, nst, look,
+        )  # fmt: skip
         before = beta
         beta = (beta[0] * factor[0], beta[1] * factor[1], beta[2] * factor[2])
         if adjoint:  # F_k, and what dF_k needs once R_k is known (_factor_gradients)
-            at = depth - 1
-            chain[at, _C_OBJECT], chain[at, _C_MIRROR] = o, 1.0 if mirror else 0.0
-            chain[at, _C_COS] = scale if mirror else cos
-            chain[at, _C_SHININESS], chain[at, _C_LOBE] = shin, 1.0 if lobe else 0.0
-            chain[at, _C_TEXTURED] = 1.0 if textured else 0.0
-            for c in range(3):
-                chain[at, _C_FACTOR + c] = factor[c]
-                chain[at, _C_ESCAPE + c] = background[c] if prim < 0 else 0.0
-                chain[at, _C_NORMAL + c], chain[at, _C_VIEW + c] = nst[c], wot[c]
-                chain[at, _C_DIRECTION + c] = wi[c] if mirror else wn[c]
-                chain[at, _C_SPECULAR + c], chain[at, _C_BETA + c] = ks[c], before[c]
+            escape = (background[0], background[1], background[2]) if prim < 0 else (0.0, 0.0, 0.0)
+            _chain_factor(chain, depth - 1, o, mirror, cos, look, factor, escape, nst, wot, wn,
+                          before)  # fmt: skip
         if prim < 0:  # the environment
-            L0 += beta[0] * background[0]
-            L1 += beta[1] * background[1]
-            L2 += beta[2] * background[2]
+            L = (L[0] + beta[0] * background[0], L[1] + beta[1] * background[1],
+                 L[2] + beta[2] * background[2])  # fmt: skip
             if adjoint:
                 for c in range(3):
                     grad[g_background + c] += delta[c] * beta[c]
@@ -418,7 +251,252 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         previous, point, xt, wot = point, point_next, x_next, wo_next
         incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
         depth += 1
-    return L0, L1, L2, depth, True
+    return L[0], L[1], L[2], depth, True
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _emission_weight(e_row_of, e_probability, e_area, prim, point, previous, ng, pdf):
+    """MIS weight of the emission seen at an ``AREA`` vertex ``point`` on ``prim``, reached
+    from ``previous`` by a direction of density ``pdf``, against NEE's choice of the same
+    point (``PathSampler._emission_weight``; 1 where NEE cannot pick it)."""
+    r = e_row_of[prim]
+    p_nee = e_probability[r] / e_area[r] if r >= 0 else 0.0
+    to = (point[0] - previous[0], point[1] - previous[1], point[2] - previous[2])
+    d2 = _dot(to, to)
+    d2 = d2 if d2 > 0 else 1.0
+    cos = abs(_dot(ng, to)) / math.sqrt(d2)
+    if p_nee > 0:
+        return _power(pdf * cos / d2, p_nee)
+    return 1.0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _emitted(L, beta, emission, o, weight, depth, chain, adjoint, delta, grad):
+    """``L`` plus the emission of object ``o`` seen at vertex ``depth`` with MIS weight
+    ``weight``, through throughput ``beta``; with path replay its dC_k and C_k."""
+    L = (L[0] + beta[0] * (emission[o, 0] * weight), L[1] + beta[1] * (emission[o, 1] * weight),
+         L[2] + beta[2] * (emission[o, 2] * weight))  # fmt: skip
+    if adjoint:
+        for c in range(3):
+            chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
+            grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
+    return L
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight):
+    """Vertex ``depth`` of the path of row ``row`` into the records, its NEE, lights and
+    continuation as if none (what follows overwrites them)."""
+    rec_i[depth - 1, row, _I_PRIM] = prim
+    rec_i[depth - 1, row, _I_FORM] = form
+    rec_i[depth - 1, row, _I_NEE_PRIM] = -1
+    rec_i[depth - 1, row, _I_NEXT] = STOP
+    _put(rec_f, depth - 1, row, _F_LOCAL, local)
+    rec_f[depth - 1, row, _F_EMIT] = weight
+    rec_f[depth - 1, row, _F_NEE_WEIGHT] = 0.0
+    rec_f[depth - 1, row, _F_NEXT_PDF] = 1.0
+    rec_f[depth - 1, row, _F_SURVIVE] = 1.0
+    rec_i[depth - 1, row, _I_ESCAPE] = 0
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emission, e_prims,
+                e_cdf, e_probability, e_area, key, origin, ns, wo, here, look, row, rec_i, rec_f,
+                chain, adjoint, delta, grad):  # fmt: skip
+    """``L`` plus next-event estimation at the vertex ``here``: one point drawn on the area
+    lights (the ``e_`` arrays), its shadow ray from ``origin``, MIS against the BSDF's density
+    (its shading normal ``ns`` facing ``wo``) (PathSampler._next_event), and the radiance
+    it brings (transport._at_vertex, from the tape's point); with path replay its dC_k and
+    C_k."""
+    point, xt, ng, nst, wot, prim, ignore, o, depth, kept = here
+    kd, ks, shin, lobe, textured, p_d, p_g = look
+    n_emit = e_prims.shape[0]
+    pick = np.searchsorted(e_cdf, uniform_of(key, _dim(depth, _EMITTER)) * e_cdf[-1],
+                           side="right")  # fmt: skip
+    pick = min(pick, n_emit - 1)
+    e_prim = e_prims[pick]
+    u1 = uniform_of(key, _dim(depth, _EMITTER_POINT))
+    u2 = uniform_of(key, _dim(depth, _EMITTER_POINT) + 1)
+    e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
+    if kept:  # recorded whether or not it is seen, as the sampler does
+        _put(rec_f, depth - 1, row, _F_NEE_LOCAL, e_local)
+    to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
+    d2 = _dot(to, to)
+    root = math.sqrt(d2 if d2 > 0 else 1.0)
+    wi = (to[0] / root, to[1] / root, to[2] / root)
+    cos_z = -_dot(nz, wi)
+    ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
+    if ok:
+        to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
+        ok = not occluded_one(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
+    if not ok:
+        return L
+    p_nee = e_probability[pick] / e_area[pick]
+    p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
+    nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
+    if kept:
+        rec_i[depth - 1, row, _I_NEE_PRIM] = e_prim
+        rec_f[depth - 1, row, _F_NEE_WEIGHT] = nee_weight
+    # The radiance it brings (transport._at_vertex), from the tape's point.
+    to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
+    d2 = _dot(to, to)
+    root = math.sqrt(d2)
+    wi = (to[0] / root, to[1] / root, to[2] / root)
+    eo = prim_object[e_prim]
+    scale = max(_dot(nst, wi), 0.0) * abs(_dot(nz, wi)) / d2 * e_area[pick]
+    scale = scale * nee_weight
+    f = _brdf(nst, wot, wi, kd, ks, shin, lobe)
+    L = (L[0] + beta[0] * (f[0] * scale * emission[eo, 0]),
+         L[1] + beta[1] * (f[1] * scale * emission[eo, 1]),
+         L[2] + beta[2] * (f[2] * scale * emission[eo, 2]))  # fmt: skip
+    if adjoint:
+        for c in range(3):
+            chain[depth - 1, _C_ADDED + c] += f[c] * scale * emission[eo, c]
+        w = (delta[0] * beta[0] * scale * emission[eo, 0],
+             delta[1] * beta[1] * scale * emission[eo, 1],
+             delta[2] * beta[2] * scale * emission[eo, 2])  # fmt: skip
+        _brdf_adjoint(nst, wot, wi, ks, shin, lobe, textured, w, grad, _G_OBJECT * o)
+        g = _G_OBJECT * eo + _G_EMISSION
+        for c in range(3):
+            grad[g + c] += delta[c] * beta[c] * f[c] * scale
+    return L
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_color, offset,
+            g_light, here, look, row, rec_lit, chain, adjoint, delta, grad):  # fmt: skip
+    """``L`` plus the point and directional lights that reach the vertex ``here``
+    (PathSampler._lights, lighting.light_contribution), their shadow rays from the sampler's
+    point and their light from the tape's; with path replay their dC_k (the lights'
+    gradients from ``g_light`` on) and C_k."""
+    point, xt, ng, nst, wot, prim, ignore, o, depth, kept = here
+    kd, ks, shin, lobe, textured, _, _ = look
+    for j in range(light_kind.shape[0]):
+        if light_kind[j] == 0:
+            tx = light_vec[j, 0] - point[0]
+            ty = light_vec[j, 1] - point[1]
+            tz = light_vec[j, 2] - point[2]
+            distance = math.sqrt(tx * tx + ty * ty + tz * tz)
+            lit = ng[0] * tx + ng[1] * ty + ng[2] * tz > 0
+            if lit and distance > 2.0 * offset:
+                fraction = offset / distance
+                so = (point[0] + fraction * tx, point[1] + fraction * ty,
+                      point[2] + fraction * tz)  # fmt: skip
+                to = (light_vec[j, 0] - so[0], light_vec[j, 1] - so[1], light_vec[j, 2] - so[2])
+                lit = not occluded_one(bvh, so, to, 1.0 - fraction / (1.0 - fraction), ignore,
+                                       stack)  # fmt: skip
+            tx = light_vec[j, 0] - xt[0]
+            ty = light_vec[j, 1] - xt[1]
+            tz = light_vec[j, 2] - xt[2]
+            distance_sq = tx * tx + ty * ty + tz * tz
+            per_strength = 1.0 / (1.0 if distance_sq == 0 else distance_sq)
+            irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
+            wl = _unit(tx, ty, tz)
+        else:
+            wl = (light_vec[j, 0], light_vec[j, 1], light_vec[j, 2])
+            lit = _dot(ng, wl) > 0
+            if lit:
+                so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
+                      point[2] + offset * wl[2])  # fmt: skip
+                lit = not occluded_one(bvh, so, wl, np.inf, ignore, stack)
+            irradiance, per_strength = light_strength[j], 1.0
+        if kept:
+            rec_lit[depth - 1, row, j] = lit
+        if not lit:
+            continue
+        scalar = irradiance * max(_dot(nst, wl), 0.0)
+        f = _brdf(nst, wot, wl, kd, ks, shin, lobe)
+        L = (L[0] + beta[0] * (scalar * (f[0] * light_color[j, 0])),
+             L[1] + beta[1] * (scalar * (f[1] * light_color[j, 1])),
+             L[2] + beta[2] * (scalar * (f[2] * light_color[j, 2])))  # fmt: skip
+        if adjoint:
+            for c in range(3):
+                chain[depth - 1, _C_ADDED + c] += scalar * (f[c] * light_color[j, c])
+            w = (delta[0] * beta[0] * scalar * light_color[j, 0],
+                 delta[1] * beta[1] * scalar * light_color[j, 1],
+                 delta[2] * beta[2] * scalar * light_color[j, 2])  # fmt: skip
+            _brdf_adjoint(nst, wot, wl, ks, shin, lobe, textured, w, grad, _G_OBJECT * o)
+            g = g_light + _G_LIGHT * j
+            per_strength = per_strength * max(_dot(nst, wl), 0.0)  # d scalar / d I
+            for c in range(3):
+                grad[g] += delta[c] * beta[c] * per_strength * f[c] * light_color[j, c]
+                grad[g + 1 + c] += delta[c] * beta[c] * scalar * f[c]
+    return L
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _direction(key, depth, wo, ns, p_d, p_g, p_m, shin):
+    """The lobe picked at vertex ``depth`` (diffuse, glossy or mirror with probabilities
+    ``p_d``, ``p_g``, ``p_m``) and the direction it draws about the shading normal ``ns``
+    facing ``wo``: (mirror, wi, its density) (PathSampler._continue)."""
+    u1 = uniform_of(key, _dim(depth, _DIRECTION))
+    u2 = uniform_of(key, _dim(depth, _DIRECTION) + 1)
+    pick_lobe = uniform_of(key, _dim(depth, _LOBE))
+    if pick_lobe >= p_d + p_g:  # the mirror
+        c2 = 2.0 * _dot(wo, ns)
+        return True, (c2 * ns[0] - wo[0], c2 * ns[1] - wo[1], c2 * ns[2] - wo[2]), p_m
+    if pick_lobe >= p_d:  # glossy
+        cos_h = u1 ** (1.0 / (shin + 1.0))
+        sin_h = math.sqrt(max(1.0 - cos_h**2, 0.0))
+        phi = 2.0 * math.pi * u2
+        h = _to_world(sin_h * math.cos(phi), sin_h * math.sin(phi), cos_h, ns)
+        c2 = 2.0 * _dot(wo, h)
+        wi = (c2 * h[0] - wo[0], c2 * h[1] - wo[1], c2 * h[2] - wo[2])
+    else:
+        r, phi = math.sqrt(u1), 2.0 * math.pi * u2
+        wi = _to_world(r * math.cos(phi), r * math.sin(phi),
+                       math.sqrt(max(1.0 - u1, 0.0)), ns)  # fmt: skip
+    return False, wi, _pdf(p_d, p_g, shin, ns, wo, wi)
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, point_next, u, v,
+             xt, ut, vt, wot, nst, look):  # fmt: skip
+    """The segment from the tape's point ``xt`` to the next vertex, which the ray ``wi``
+    found at ``point_next`` on ``prim`` (barycentrics u, v; -1: none): (F_k, the cosine
+    times ``scale`` (a mirror: ``scale``), the direction it leaves along, the tape's next
+    point and its (ut, vt), the direction back from it). A mirror's reflected ray starts
+    at the surface (the object's ``reflectance``); another lobe's next vertex is placed on
+    its primitive, the direction between the two points (``look``: the BRDF's arguments)."""
+    kd, ks, shin, lobe, _, _, _ = look
+    x_next, wo_next = xt, wot  # (both read only when a vertex follows)
+    if mirror:
+        factor = (reflectance[0] * scale, reflectance[1] * scale, reflectance[2] * scale)
+        c2 = 2.0 * _dot(wot, nst)  # the tape's reflected ray, from its own point
+        reflected = (c2 * nst[0] - wot[0], c2 * nst[1] - wot[1], c2 * nst[2] - wot[2])
+        if prim >= 0:
+            x_next, ut, vt = _reintersect(triangles, centers, radii, prim, xt, reflected)
+        wo_next = _unit(-reflected[0], -reflected[1], -reflected[2])
+        return factor, scale, wi, x_next, ut, vt, wo_next
+    wn = wi  # the direction sampled; to a new vertex, the one between the points
+    if prim >= 0:
+        x_next = _placed(triangles, centers, radii, prim,
+                         _local(triangles, centers, prim, point_next, u, v))  # fmt: skip
+        to = (x_next[0] - xt[0], x_next[1] - xt[1], x_next[2] - xt[2])
+        root = math.sqrt(_dot(to, to))
+        wn = (to[0] / root, to[1] / root, to[2] / root)
+        wo_next = _unit(-wn[0], -wn[1], -wn[2])
+    cos = max(_dot(nst, wn), 0.0) * scale
+    f = _brdf(nst, wot, wn, kd, ks, shin, lobe)
+    return (f[0] * cos, f[1] * cos, f[2] * cos), cos, wn, x_next, ut, vt, wo_next
+
+
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _chain_factor(chain, at, o, mirror, cos, look, factor, escape, nst, wot, direction, before):
+    """Row ``at`` of the path replay's chain: F_k and what dF_k needs once R_k is known
+    (``_factor_gradients``): the object, lobe and BRDF's arguments, the environment seen
+    after the vertex ``escape``, and the throughput ``before`` it."""
+    _, ks, shin, lobe, textured, _, _ = look
+    chain[at, _C_OBJECT], chain[at, _C_MIRROR] = o, 1.0 if mirror else 0.0
+    chain[at, _C_COS] = cos
+    chain[at, _C_SHININESS], chain[at, _C_LOBE] = shin, 1.0 if lobe else 0.0
+    chain[at, _C_TEXTURED] = 1.0 if textured else 0.0
+    for c in range(3):
+        chain[at, _C_FACTOR + c] = factor[c]
+        chain[at, _C_ESCAPE + c] = escape[c]
+        chain[at, _C_NORMAL + c], chain[at, _C_VIEW + c] = nst[c], wot[c]
+        chain[at, _C_DIRECTION + c] = direction[c]
+        chain[at, _C_SPECULAR + c], chain[at, _C_BETA + c] = ks[c], before[c]
 
 
 #: The records of ``sample_paths``, depth first (a depth's paths are contiguous rows):
