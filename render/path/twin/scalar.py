@@ -50,7 +50,7 @@ def _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, c):
     return top * (1.0 - fy) + bottom * fy
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _unit(x0, x1, x2):
     """``md.normalize`` of one 3-vector: x times 1 / |x| (the zero vector stays zero)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -67,7 +67,7 @@ _EMITTER = BOUNCE_DIMENSIONS["emitter"]
 _EMITTER_POINT = BOUNCE_DIMENSIONS["emitter_point"]
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _dim(depth, j):
     """``render.path.sample.random.bounce_dimension``."""
     return 2 + DIMENSIONS_PER_BOUNCE * (depth - 1) + j
@@ -76,12 +76,12 @@ def _dim(depth, j):
 # --- small vector helpers ----------------------------------------------------------------------
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _divided(x0, x1, x2):
     """x / |x| (``np.linalg.norm`` then a division, as the sampler's ``unit``)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -90,7 +90,7 @@ def _divided(x0, x1, x2):
     return x0, x1, x2
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@borrowing
 def _put(records, k, row, column, x):
     """Write the 3-tuple x to records[k, row, column:column + 3]."""
     records[k, row, column] = x[0]
@@ -119,7 +119,7 @@ def _to_world(l0, l1, l2, n):
     )
 
 
-@numba.njit(cache=True, error_model="numpy", inline="always")
+@numba.njit(cache=True, error_model="numpy")
 def _power(p, q):
     total = p * p + q * q
     return p * p / total if total > 0 else 0.0
