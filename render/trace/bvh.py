@@ -364,8 +364,12 @@ def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred,
         node_first[left + 1] = first + n_left
         node_count[left + 1] = count - n_left
         if axis >= 0:
-            node_bounds[left] = scratch[-1][0]  # the boxes _find_split made from its bins
-            node_bounds[left + 1] = scratch[-1][1]
+            # The boxes _find_split made from its bins, element by element (a row
+            # assignment compiles Numba's shape checks: a second of a cold start).
+            child_box = scratch[-1]
+            for j in range(6):
+                node_bounds[left, j] = child_box[0, j]
+                node_bounds[left + 1, j] = child_box[1, j]
         else:
             _set_bounds(left, first, n_left, order, prim_min, prim_max, node_bounds)
             _set_bounds(

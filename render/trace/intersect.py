@@ -164,7 +164,10 @@ def _pack_rows(job, n_jobs, triangles, sphere_centers, sphere_radii, order, data
         p = order[i]
         if p >= T:
             s = p - T
-            data[i, 0:3] = sphere_centers[s]
+            # Element by element: a slice assignment compiles Numba's shape checks (over a
+            # second of a cold start).
+            for a in range(3):
+                data[i, a] = sphere_centers[s, a]
             data[i, 3] = sphere_radii[s]
             data[i, 4] = sphere_radii[s] * sphere_radii[s]
             continue

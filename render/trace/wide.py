@@ -63,18 +63,26 @@ def collapse(node_bounds, node_first, node_count):
     with that one slot.  An empty tree (M = 0) gives no node.
     """
     M = node_first.shape[0]
-    # The binary leaves numbered in the order of their first rows.
+    # The binary leaves numbered in the order of their first rows: each leaf marked at its
+    # first row, the rows then read in order (their ranges are disjoint; no sort to compile).
     is_leaf = node_count > 0
-    firsts = np.sort(node_first[is_leaf])
-    n_leaves = firsts.shape[0]
-    leaf_start = np.empty(n_leaves + 1, np.int64)
-    leaf_start[:n_leaves] = firsts
-    rank = np.empty(M, np.int64)  # binary leaf -> its number
-    total = 0
+    total = n_leaves = 0
     for n in range(M):
         if is_leaf[n]:
-            rank[n] = np.searchsorted(firsts, node_first[n])
             total += node_count[n]
+            n_leaves += 1
+    starting = np.full(total, -1, np.int64)  # row -> the leaf that starts there
+    for n in range(M):
+        if is_leaf[n]:
+            starting[node_first[n]] = n
+    leaf_start = np.empty(n_leaves + 1, np.int64)
+    rank = np.empty(M, np.int64)  # binary leaf -> its number
+    r = 0
+    for row in range(total):
+        if starting[row] >= 0:
+            rank[starting[row]] = r
+            leaf_start[r] = row
+            r += 1
     leaf_start[n_leaves] = total
     # At most one wide node per binary interior node (and the root).
     size = max(1, M - n_leaves) if M else 0
@@ -89,13 +97,15 @@ def collapse(node_bounds, node_first, node_count):
     # A stack of binary interior nodes still to become wide nodes, each with the slot
     # (parent wide node, slot) that will point to it. A node is numbered when it is taken:
     # its subtree is numbered before its next sibling's (depth-first order).
+    # (Its rows written and read element by element: a tuple assigned to a row compiles
+    # Numba's shape checks, over a second of a cold start.)
     todo = np.empty((size * WIDTH + 1, 3), np.int64)
-    todo[0] = (0, -1, 0)
+    todo[0, 0], todo[0, 1], todo[0, 2] = 0, -1, 0
     n_todo, used = 1, 0
     kids = np.empty(WIDTH, np.int64)
     while n_todo:
         n_todo -= 1
-        b, parent, slot = todo[n_todo]
+        b, parent, slot = todo[n_todo, 0], todo[n_todo, 1], todo[n_todo, 2]
         w = used
         used += 1
         if parent >= 0:
@@ -120,7 +130,7 @@ def collapse(node_bounds, node_first, node_count):
             if is_leaf[kids[k]]:
                 child[w, k] = ~rank[kids[k]]
             else:
-                todo[n_todo] = (kids[k], w, k)
+                todo[n_todo, 0], todo[n_todo, 1], todo[n_todo, 2] = kids[k], w, k
                 n_todo += 1
     return child[:used], leaf_start, slot_node[:used]
 
