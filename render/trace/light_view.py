@@ -46,6 +46,7 @@ from render.trace.raster import (
     screen_boxes,
     wholly_beyond,
 )
+from render.trace.vec3 import cross3
 
 #: Shadow rays per cell of the light's grid: fewer cells mean longer lists per ray, more
 #: cells more binning per primitive.
@@ -127,9 +128,10 @@ def _light_view(light, origins, min_cosine):
     forward /= np.sqrt(forward @ forward)
     # Any unit vector perpendicular to forward, then the third axis.
     helper = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    side = np.cross(forward, helper)
+    side, upward = np.empty(3), np.empty(3)
+    cross3(forward, helper, side)
     side /= np.sqrt(side @ side)
-    upward = np.cross(side, forward)
+    cross3(side, forward, upward)
     depth = corners @ forward
     fits = np.isfinite(forward).all()  # False if the box's middle is the light
     reach_x = reach_y = 0.0

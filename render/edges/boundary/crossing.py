@@ -15,12 +15,13 @@ import numpy as np
 
 from minidiff.either import as_column, cross_last, dot_last
 from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
-from render.edges.boundary.mesh_edge import approach, cross3, dot3
+from render.edges.boundary.mesh_edge import approach
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import boxes_apart, pixel_gradient
 from render.edges.geometry import plane_normal, triangle_corners
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
+from render.trace.vec3 import cross3, dot3
 
 
 class SurfaceCrossing:

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 from minidiff.either import cross_last, dot_last
@@ -47,6 +46,7 @@ from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, n_blocks
 from render.trace.seams import SharedEdges
 from render.trace.topology import EdgeTable
+from render.trace.vec3 import cross3, dot3
 
 
 def edge_plane(a, b, eye):
@@ -122,20 +122,6 @@ def continuous_creases(mesh, table: EdgeTable, eye: np.ndarray) -> np.ndarray:
     thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
     side = np.einsum("ekj,ej->ek", thirds - eye, m)
     return two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
-
-
-@numba.njit(cache=True, error_model="numpy")
-def dot3(x, y):
-    """x . y of two 3-vectors, summed left to right."""
-    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-
-
-@numba.njit(cache=True, error_model="numpy")
-def cross3(x, y, out):
-    """out = x cross y, three 3-vectors."""
-    out[0] = x[1] * y[2] - x[2] * y[1]
-    out[1] = x[2] * y[0] - x[0] * y[2]
-    out[2] = x[0] * y[1] - x[1] * y[0]
 
 
 def edge_sides_kernel(
@@ -236,7 +222,8 @@ def _per_edge(
                     continue
                 face[e, f], plus[e, f] = global_id, side > 0
                 cross3(u[e], t, cut)
-                normal[e, f] = cut
+                for c in range(3):  # (a row assignment compiles Numba's shape checks)
+                    normal[e, f, c] = cut[c]
                 ng[e, f] = dot3(cut, towards)
 
 

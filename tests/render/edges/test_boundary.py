@@ -26,7 +26,7 @@ import minidiff as md
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
 from render.edges.boundary import pixel_order, pixel_pieces
 from render.edges.boundary.mesh_edge import approach, edge_plane, edge_sides_kernel
-from render.edges.boundary.pixels import pixel_gradient
+from render.edges.boundary.pixels import FEW_CUTS, _sort_cuts, pixel_gradient
 from render.inverse.reference import moved_along, window_difference, window_mean_gradient
 from render.scene.camera import camera_directions
 from render.scene.teapot import paper_scene
@@ -560,6 +560,24 @@ def test_pixel_order_is_the_stable_argsort(pixel, big):
     """Ties kept in order; ids too large to pack (big) take the fallback."""
     pixel = np.array(pixel + ([2**40] if big else []), np.int64)
     np.testing.assert_array_equal(pixel_order(pixel), np.argsort(pixel, kind="stable"))
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    cuts=st.lists(
+        st.floats(-2.0, 2.0, allow_subnormal=False) | st.sampled_from([0.0, 0.5]), max_size=120
+    ),  # fmt: skip
+    extra=st.integers(0, 3),
+)
+@example(cuts=[float(x) for x in range(3 * FEW_CUTS, 0, -1)] + [0.0] * 5, extra=2)  # heapsort
+def test_cuts_are_sorted_as_numpy_sorts_them(cuts, extra):
+    """Insertion sort up to FEW_CUTS cuts, heapsort above, repeated values included; the
+    scratch array's tail past m is left alone."""
+    m = len(cuts)
+    ts = np.array(cuts + [9.0] * extra)
+    _sort_cuts(ts, m)
+    np.testing.assert_array_equal(ts[:m], np.sort(np.array(cuts)))
+    np.testing.assert_array_equal(ts[m:], np.full(extra, 9.0))
 
 
 @settings(max_examples=25, deadline=None)
