@@ -142,14 +142,25 @@ def camera_directions(coords: np.ndarray, right, up, forward) -> np.ndarray:
     operations of every caller (``ray_directions`` on the tape, the edge terms and the
     path tracer off it)."""
     if isinstance(coords, np.ndarray):
-        # The same products and sums, a column at a time: NumPy broadcasting a (k, 1)
-        # column against a (3,) row loops 3 elements at a time, 2.7x slower (363k rays).
-        x, y = coords[:, 0], coords[:, 1]
-        out = np.empty((len(coords), 3), np.result_type(coords, right, up, forward))
-        for j in range(3):
-            out[:, j] = x * right[j] + y * up[j] + forward[j]
+        # The same products and sums, in one pass over the rows on the threads: NumPy took
+        # 8.3 ms for the 363k interior samples of a 512x512 boundary term (its temporaries).
+        dtype = np.result_type(coords, right, up, forward)
+        out = buffers.empty((len(coords), 3), dtype)  # (reused: no new pages to fault in)
+        basis = [np.ascontiguousarray(v, dtype) for v in (coords, right, up, forward)]
+        run_jobs(_camera_directions, job_count(len(coords), 65536), *basis, out)
         return out
     return coords[:, :1] * right + coords[:, 1:] * up + forward
+
+
+@kernel
+def _camera_directions(job, n_jobs, coords, right, up, forward, out):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``camera_directions``:
+    its share of the rows, x right + y up + forward in that order."""
+    first, stop = share(job, n_jobs, out.shape[0])
+    for i in range(first, stop):
+        x, y = coords[i, 0], coords[i, 1]
+        for j in range(3):
+            out[i, j] = x * right[j] + y * up[j] + forward[j]
 
 
 @numba.njit(cache=True, inline="always")
