@@ -16,7 +16,7 @@ loading, see ``render.teapot``). Angles are in degrees. Colours are linear RGB.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from typing import Any
 
 import numpy as np
@@ -250,14 +250,9 @@ class Scene:
         "objects[0].material.albedo": ..., "background": ...}``.
         A tensor shared by several owners (e.g. one Material on two meshes) appears once,
         under its first name."""
-        named = self.camera.named_parameters("camera.")
-        for i, light in enumerate(self.lights):
-            named.update(light.named_parameters(f"lights[{i}]."))
-        for i, obj in enumerate(self.objects):
-            named.update(obj.named_parameters(f"objects[{i}]."))
-            if obj.transform is not None:
-                named.update(obj.transform.named_parameters(f"objects[{i}].transform."))
-            named.update(obj.material.named_parameters(f"objects[{i}].material."))
+        named = {}
+        for prefix, owner in self._owners():
+            named.update(owner.named_parameters(prefix))
         named["background"] = self.background
         unique, seen = {}, set()
         for name, tensor in named.items():
@@ -270,14 +265,8 @@ class Scene:
         """Every continuous parameter tensor of the scene, each once, in the order of
         ``named_parameters`` (the same walk without the names: the path integrator asks
         a dozen times a gradient)."""
-        owners = [self.camera, *self.lights]
-        for obj in self.objects:
-            owners.append(obj)
-            if obj.transform is not None:
-                owners.append(obj.transform)
-            owners.append(obj.material)
         seen, out = set(), []
-        for owner in owners:
+        for _, owner in self._owners():
             for field in owner.FIELDS:
                 t = getattr(owner, field.name)
                 if t is not None and id(t) not in seen:
@@ -286,6 +275,19 @@ class Scene:
         if id(self.background) not in seen:
             out.append(self.background)
         return out
+
+    def _owners(self) -> Iterator[tuple[str, Any]]:
+        """(name prefix, owner) of every owner of parameters but the scene itself, in the
+        order of ``named_parameters``: the camera, the lights, each object with its
+        transform and material."""
+        yield "camera.", self.camera
+        for i, light in enumerate(self.lights):
+            yield f"lights[{i}].", light
+        for i, obj in enumerate(self.objects):
+            yield f"objects[{i}].", obj
+            if obj.transform is not None:
+                yield f"objects[{i}].transform.", obj.transform
+            yield f"objects[{i}].material.", obj.material
 
     def with_camera(self, camera: Camera) -> Scene:
         """Another view of this scene: a Scene with ``camera`` and the *same* objects,
