@@ -11,10 +11,10 @@ rasteriser's idea (``render.trace.raster``) with the light as the eye.
    one view (beyond MIN_VIEW_COSINE of its axis) are left to the BVH.
 2. Bin: each primitive's projected box lists it in the cells it overlaps, nearest the light
    first (``raster.screen_boxes``, ``raster.bin_to_tiles``, ``raster.nearest_depths``).
-3. Test: each ray against its own cell's list with the tracer's ray-primitive function
-   (``render.trace.intersect.intersect_prim``), skipping primitives whose projected edges
-   rule it out (``raster.may_see``) and stopping at the first one wholly farther from the
-   light than the ray's start (``raster.wholly_beyond``).
+3. Test: each ray against its own cell's list with the tracer's ray-primitive function,
+   skipping primitives whose projected edges rule it out and stopping at the first one
+   wholly farther from the light than the ray's start: ``raster.blocked_by_list``, the
+   camera rasteriser's occlusion test.
 
 Any-hit is a yes or no, and the lists are conservative, so the answers are the BVH's (and
 brute force's): ``tests/render/trace/test_light_view.py`` checks it on random soups and
@@ -30,21 +30,14 @@ import numpy as np
 from numba import njit
 
 from minidiff.threads import job_count, kernel, run_jobs
-from render.trace.intersect import (
-    BLOCK,
-    RAYS_PER_JOB,
-    intersect_prim,
-    make_ray,
-    n_blocks,
-    pack_primitives,
-)
+from render.trace.intersect import BLOCK, RAYS_PER_JOB, make_ray, n_blocks, pack_primitives
 from render.trace.raster import (
     EDGE_MARGIN,
     bin_to_tiles,
-    may_see,
+    blocked_by_any,
+    blocked_by_list,
     nearest_depths,
     screen_boxes,
-    wholly_beyond,
 )
 from render.trace.vec3 import cross3
 
@@ -202,20 +195,7 @@ def _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origin
         origin = (origins[i, 0], origins[i, 1], origins[i, 2])
         ray = make_ray(origin, (directions[i, 0], directions[i, 1], directions[i, 2]), 0.0, tmax[i])
         if depth <= close:  # rounding could put the ray in the wrong cell: test them all
-            for pid in range(near.shape[0]):
-                if (
-                    pid != ignore[i]
-                    and intersect_prim(prim_data, pid, pid, n_tri, ray)[0] < ray.tmax
-                ):
-                    out[i] = True
-                    break
-            return
-        for j in range(start[c], start[c + 1]):
-            pid = ids[j]
-            if wholly_beyond(near[pid], depth, rounding):
-                break
-            if pid == ignore[i] or not may_see(edges, pid, px, py):
-                continue
-            if intersect_prim(prim_data, pid, pid, n_tri, ray)[0] < ray.tmax:
-                out[i] = True
-                break
+            out[i] = blocked_by_any(prim_data, n_tri, ray, ignore[i])
+        else:
+            out[i] = blocked_by_list(prim_data, n_tri, ids, start[c], start[c + 1], near, edges,
+                                     depth, rounding, px, py, ray, ignore[i])  # fmt: skip
