@@ -109,9 +109,11 @@ def render_path(
     return on_every_parameter(image, scene)  # zeros for what the image cannot depend on
 
 
-def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp, kept=None):
-    world = placed(scene)
-    sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
+def _render_path(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp, kept=None,
+                 sampler=None):  # fmt: skip
+    if sampler is None:
+        sampler = PathSampler(placed(scene), spp, max_depth, rr_depth, seed, cache_for(scene, True))
+    world = sampler.scene
     if not differentiated(scene) and kernel.applies(world):
         # Nothing to differentiate: the compiled kernel alone (render.path.twin.kernel).
         if kept is None:
@@ -271,7 +273,10 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
         leaf.requires_grad = True
     kept = _KeptPaths() if _KeptPaths.wanted(frozen, spp, batch_spp) else None
     with md.no_grad():  # the value: the kernel's image when it applies, as without tangents
-        image = _render_path(frozen, *options, kept=kept)
+        # The sampler reads the frozen values only: the replay uses it too.
+        sampler = PathSampler(placed(frozen), spp, max_depth, rr_depth, seed,
+                              cache_for(frozen, True))  # fmt: skip
+        image = _render_path(frozen, *options, kept=kept, sampler=sampler)
 
     def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
         for leaf in leaves:  # every moving copy, as differentiated as on the tape
@@ -279,14 +284,14 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
         # Recorded even when the caller's backward runs under no_grad().
         with md.enable_grad(), buffers.fresh():
             _backpropagate(frozen, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges,
-                           edge_spp, kept)  # fmt: skip
+                           edge_spp, kept, sampler)  # fmt: skip
         return tuple(leaf.grad for leaf in leaves)  # None: the image does not depend on it
 
     return record("path_image", image.data, moving, vjp, jvp=lambda *_: tangent)
 
 
 def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp,
-                   kept=None):  # fmt: skip
+                   kept=None, sampler=None):  # fmt: skip
     """Add d_image . d image / d p (``d_image`` (H, W, 3): dL/dimage) to ``p.grad`` of every
     parameter of ``scene`` that requires grad, as ``backward`` through ``_render_path``'s
     tape would, by replaying the image's paths (the same path ids and random numbers under
@@ -295,8 +300,9 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     ``batch_spp`` samples at a time (from ``kept``'s records where it holds them). A
     parameter the image cannot depend on gets zeros, as from the compiled replay, whichever
     way computed the others."""
-    world = placed(scene)
-    sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
+    world = placed(scene)  # on the tape: which of its tensors require grad decides the route
+    if sampler is None:
+        sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     if adjoint.covers(world):
         adjoint.backpropagate(world, sampler, d_image)
     else:
