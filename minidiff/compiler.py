@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from minidiff import backend, codegen, ir
-from minidiff.tensor import Tensor, is_grad_enabled, record
+from minidiff.tensor import Tensor, _accumulate_leaf, is_grad_enabled, record
 from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-exported)
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
@@ -186,6 +186,44 @@ class CompiledFunction:
             tensors = [v if isinstance(v, Tensor) else Tensor(v) for v in given]
             results = self._on_tape(trace, tensors, data, outputs)
         return results[0] if trace.single else tuple(results)
+
+    def add_vjp(self, cotangents, *args, **kwargs) -> None:
+        """``backward`` of ``sum_j sum(cotangents[j] * output_j)`` through this function at
+        these arguments, without recording the call: its gradient is added to ``.grad`` of
+        every Tensor argument that requires grad, as ``backward`` would add it (in argument
+        order; each must be a leaf). For a caller that already holds the outputs' values
+        (from a call without the tape) and computes their cotangents from them: the path
+        replay's windows. ``cotangents``: one array per output, of its shape (a single
+        array for a function of one output)."""
+        names, values = self._bind(args, kwargs)
+        arrays, trees, key = self._classify(names, values)
+        given = [value for value, _ in arrays]
+        floats = _floats([slot for _, slot in arrays])
+        wrt = tuple(s for s in floats if isinstance(given[s], Tensor) and given[s].requires_grad)
+        for s in wrt:
+            if not given[s].is_leaf:
+                raise ValueError(
+                    f"{self.function.__name__}.add_vjp: argument {s} requires grad and is "
+                    "computed on the tape; add_vjp adds to leaves only (call the function "
+                    "on the tape and use backward)"
+                )
+        if not wrt:
+            return
+        if key[1] == 0:  # an empty batch: zero gradients, as backward on the tape gives
+            for s in wrt:
+                _accumulate_leaf(given[s], np.zeros(given[s].shape, given[s].dtype))
+            return
+        trace = self._trace_for(key, arrays, trees)
+        cotangents = [cotangents] if trace.single else list(cotangents)
+        shapes = [(trace.batch, *shape) for shape in trace.output_shapes]
+        if [np.shape(c) for c in cotangents] != shapes:
+            raise ValueError(
+                f"{self.function.__name__}.add_vjp: cotangents of shapes "
+                f"{[np.shape(c) for c in cotangents]}, the outputs have {shapes}"
+            )
+        grads = self._vjp(trace, [_contiguous(v) for v in given], wrt, cotangents)
+        for s in wrt:
+            _accumulate_leaf(given[s], grads[s].astype(given[s].dtype, copy=False))
 
     def trace(self, *args, **kwargs) -> codegen.Program:
         """The scalar program this function becomes for these arguments (for reading)."""

@@ -325,6 +325,64 @@ def test_composes_with_the_tape_in_both_modes():
     assert_close(tangent, expected[1], "tangent")
 
 
+@md.compile(shared=("light",))
+def two_outputs(points, light):
+    d = light - points
+    return d * d, md.dot(d, d)
+
+
+def _leaves(*arrays):
+    return [md.tensor(a, requires_grad=True) for a in arrays]
+
+
+def test_add_vjp_adds_what_backward_on_the_tape_adds():
+    """``add_vjp`` (the call off the tape, its VJP added to the leaves) gives the bits
+    ``backward`` through the call on the tape gives: one output and two, a gathered table,
+    gradients accumulating over calls; and a batch left empty adds zeros."""
+    rng = np.random.default_rng(3)
+    normals, points, light = _scene(300)
+    c = rng.normal(size=(300, 3))
+    on_tape, direct = _leaves(points, light), _leaves(points, light)
+    for _ in range(2):  # the second call adds to the first
+        md.sum(shading(normals, *on_tape) * c).backward()
+        shading.add_vjp(c, normals, *direct)
+    for a, b in zip(on_tape, direct, strict=True):
+        assert np.array_equal(a.grad, b.grad)
+
+    c2 = rng.normal(size=300)
+    on_tape, direct = _leaves(points, light), _leaves(points, light)
+    squares, lengths = two_outputs(*on_tape)
+    (md.sum(squares * c) + md.sum(lengths * c2)).backward()
+    two_outputs.add_vjp((c, c2), *direct)
+    for a, b in zip(on_tape, direct, strict=True):
+        assert np.array_equal(a.grad, b.grad)
+
+    vertices = rng.normal(size=(20, 3))
+    faces = rng.integers(0, 20, size=(20, 3))
+    hit, w = rng.integers(0, 20, size=200), rng.normal(size=200)
+    c3 = rng.normal(size=(200, 3))
+    on_tape, direct = _leaves(vertices), _leaves(vertices)
+    md.sum(centroid_light(on_tape[0], faces, hit, w) * c3).backward()
+    centroid_light.add_vjp(c3, direct[0], faces, hit, w)
+    assert np.array_equal(on_tape[0].grad, direct[0].grad)
+
+    lt = md.tensor(light, requires_grad=True)
+    shading.add_vjp(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), lt)
+    assert np.array_equal(lt.grad, np.zeros(3))
+
+
+def test_add_vjp_refuses_what_it_cannot_add_to():
+    normals, points, light = _scene(10)
+    computed = md.tensor(light, requires_grad=True) * 2.0  # on the tape, not a leaf
+    with pytest.raises(ValueError, match="add_vjp.*leaves only"):
+        shading.add_vjp(np.ones((10, 3)), normals, points, computed)
+    with pytest.raises(ValueError, match=r"add_vjp: cotangents of shapes \[\(10,\)\]"):
+        shading.add_vjp(np.ones(10), normals, points, md.tensor(light, requires_grad=True))
+    plain = md.tensor(light)  # nothing requires grad: nothing to add
+    shading.add_vjp(np.ones((10, 3)), normals, points, plain)
+    assert plain.grad is None
+
+
 def test_without_the_tape_it_returns_a_constant():
     normals, points, light = _scene(8)
     with md.no_grad():

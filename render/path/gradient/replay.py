@@ -132,10 +132,13 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         here = here_window.added(n_paths)  # C_k (N, 3), zero for the paths not at vertex k
         gathered += beta * here
         pending.gather(here)
-        objective = [
-            md.sum(part * (np.take(weights, rows, axis=0) * np.take(beta, rows, axis=0)))
-            for part, rows in zip(here_window.parts, here_window.rows_of, strict=True)
+        # The window's objective, sum(coefficients * C_k) + sum(scale * F_k), by its
+        # constants (from its values).
+        coefficients = [
+            np.take(weights, rows, axis=0) * np.take(beta, rows, axis=0)
+            for rows in here_window.rows_of
         ]
+        scale = None
         if here_window.factors:
             factor, rows = here_window.factor()
             before = np.take(beta, rows, axis=0)  # beta_k (np.take: see Vertices.take)
@@ -143,12 +146,11 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
             left = np.take(radiance, rows, axis=0) - np.take(gathered, rows, axis=0)
             arriving = np.divide(left, after, out=np.zeros_like(after), where=after != 0)
             scale = np.take(weights, rows, axis=0) * before * arriving
-            objective.append(md.sum(factor * scale))
             pending.carry(rows, factor.data)
             pending.open(k, rows, anchor[rows], before, after)
             beta[rows] = after
-        _backward(objective)
-        del here_window, objective  # this window's tape, before the next is built
+        here_window.backward(coefficients, scale)
+        del here_window  # this window's tape, before the next is built
     pending.close(paths, weights)
     if tables is not None:  # the tables' gradients, through the tape they were built on
         _backward(tables.carried())
@@ -212,9 +214,9 @@ class _Pending:
             rows = np.flatnonzero(mine.any(axis=1))
             anchor = self.anchor[rows, np.argmax(mine[rows], axis=1)]
             # Every one of ``rows`` goes on.
-            factor, going = _window(paths, int(e), rows, anchor).factor()
-            scale = np.where(mine, weights * self.beta * self.arriving, 0.0)[going]
-            _backward([md.sum(factor * scale)])
+            again = _window(paths, int(e), rows, anchor)
+            _, going = again.factor()
+            again.backward(None, np.where(mine, weights * self.beta * self.arriving, 0.0)[going])
 
 
 def _backward(terms: list[md.Tensor]) -> None:
@@ -333,6 +335,17 @@ class _Window:
         if factor is not None:
             self.factors.append(factor)
             self.factor_rows.append(sub.rows)
+
+    def backward(self, coefficients: list[np.ndarray] | None, scale: np.ndarray | None) -> None:
+        """``backward`` of sum(coefficients * C_k) + sum(scale * F_k) on this window's tape
+        (``coefficients``: one array per part of C_k, or None; ``scale`` for the paths
+        that go on, in ``factor``'s order, or None)."""
+        objective = []
+        if coefficients is not None:
+            objective += [md.sum(p * c) for p, c in zip(self.parts, coefficients, strict=True)]
+        if scale is not None:
+            objective.append(md.sum(self.factor()[0] * scale))
+        _backward(objective)
 
     def factor(self) -> tuple[md.Tensor, np.ndarray]:
         """F_k (m, 3) of the paths that go on, and their rows (m,)."""

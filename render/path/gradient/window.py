@@ -110,16 +110,32 @@ class CompiledWindow:
             (np.where(escape, scale, 0.0), record.escape_dir),
             (*tables.role(next_prim, next_local), np.where(going, scale, 0.0), going),
         )
-        added, factor = _window(
-            *batched, tables.frame, tables.vertices, tables.normals, tables.faces,
+        self._arguments = (
+            *_dense(batched), tables.frame, tables.vertices, tables.normals, tables.faces,
             tables.centers, tables.radii, tables.smooth, tables.materials, tables.lights,
             tables.background, (case, tables.kinds, tables.glossy),
         )  # fmt: skip
+        # The values, off the tape: ``backward`` adds the VJP to the tables' leaves itself.
+        with md.no_grad():
+            added, factor = _window(*self._arguments)
+        self._going = np.flatnonzero(going)
         self.parts, self.rows_of = [added], [rows]
         self.factors, self.factor_rows = [], []
-        if going.any():
-            self.factors.append(factor[np.flatnonzero(going)])
+        if len(self._going):
+            self.factors.append(factor[self._going])
             self.factor_rows.append(rows[going])
+
+    def backward(self, coefficients: list[np.ndarray] | None, scale: np.ndarray | None) -> None:
+        """Add to the tables' leaves' ``grad`` the gradient of sum(coefficients * C_k) +
+        sum(scale * F_k) (``coefficients``: one (m, 3) array for the window's paths, or
+        None; ``scale`` (m', 3) for the paths that go on, or None): one compiled VJP
+        (``md.compile``'s ``add_vjp``), what ``backward`` of that sum on the tape gives."""
+        n = len(self.rows_of[0])
+        of_added = np.zeros((n, 3)) if coefficients is None else coefficients[0]
+        of_factor = np.zeros((n, 3))
+        if scale is not None:
+            of_factor[self._going] = scale
+        _window.add_vjp((of_added, of_factor), *self._arguments)
 
     def added(self, n_paths: int) -> np.ndarray:
         """(N, 3) the values of C_k, zero for the paths not in the window."""
@@ -130,6 +146,17 @@ class CompiledWindow:
     def factor(self) -> tuple[md.Tensor, np.ndarray]:
         """F_k (m, 3) of the paths that go on, and their rows (m,)."""
         return self.factors[0], self.factor_rows[0]
+
+
+def _dense(arguments):
+    """``arguments`` (arrays in nested tuples) with every float array C-contiguous: the
+    records' fields are strided views, which both compiled calls of a window (the values,
+    then the VJP) would otherwise copy each."""
+    if isinstance(arguments, tuple):
+        return tuple(_dense(a) for a in arguments)
+    if isinstance(arguments, np.ndarray) and arguments.dtype.kind == "f":
+        return np.ascontiguousarray(arguments)
+    return arguments
 
 
 def _positions(among: np.ndarray, rows: np.ndarray, size: int) -> np.ndarray:
