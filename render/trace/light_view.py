@@ -145,12 +145,17 @@ def _light_view(light, origins, min_cosine):
 def bounding_box(points):
     """The bounding box (lo (3,), hi (3,)) of points (N, 3), N >= 1, in one pass (NumPy's
     min(axis=0) pays a loop set-up per row of 3)."""
-    lo, hi = points[0].copy(), points[0].copy()
+    # Six scalars, not two arrays: LLVM keeps them in registers (array elements it must
+    # load and store each time, as the arrays might overlap ``points``).
+    x0 = x1 = points[0, 0]
+    y0 = y1 = points[0, 1]
+    z0 = z1 = points[0, 2]
     for i in range(1, points.shape[0]):
-        for a in range(3):
-            lo[a] = min(lo[a], points[i, a])
-            hi[a] = max(hi[a], points[i, a])
-    return lo, hi
+        x, y, z = points[i, 0], points[i, 1], points[i, 2]
+        x0, x1 = min(x0, x), max(x1, x)
+        y0, y1 = min(y0, y), max(y1, y)
+        z0, z1 = min(z0, z), max(z1, z)
+    return np.array([x0, y0, z0]), np.array([x1, y1, z1])
 
 
 @kernel
