@@ -552,7 +552,8 @@ def occluded_ray(bvh, ray, ignore, stack):
     ``benchmarks/bench_embree.py``'s shadow rays at 1.3M triangles took 48.5 ms sorted
     against 40.2 ms, one thread; pushing the leaf children last, to test them first, the
     children stored and pushed in the order of their centres along one axis, pushes
-    without branches and a prefetch of each pushed node were slower too: docs/benchmarks.md,
+    without branches or looping over a mask of the entered slots, and a prefetch of each
+    pushed node were slower too: docs/benchmarks.md,
     "BVH against Embree").  ``stack`` (``bvh.stack_size``,) int64 is scratch space."""
     if bvh.child.shape[0] == 0:
         return False
