@@ -14,10 +14,11 @@ computes both). Its derivative is
     dL = sum_k beta_k dC_k + sum_k beta_k dF_k Lrem_k,
 
 Lrem_k = (L - sum_{j<=k} beta_j C_j) / beta_{k+1} being the radiance that arrives at vertex
-k from vertex k + 1 on. So *window* k puts on a fresh tape only what C_k and F_k depend on,
-with beta_k and Lrem_k as plain constants (from the windows' own values and the path's
-total L), and a ``backward`` of sum(weights * (beta_k C_k + beta_k F_k Lrem_k)) takes its
-share of the gradient before the next window is built.
+k from vertex k + 1 on. So *window* k computes only what C_k and F_k depend on, with beta_k
+and Lrem_k as plain constants (from the windows' own values and the path's total L), and the
+gradient of sum(weights * (beta_k C_k + beta_k F_k Lrem_k)) is taken before the next window
+is built: by ``backward`` on the window's own tape, or, for a compiled window, by its VJP
+with those constants as cotangents (``window.CompiledWindow.backward``).
 
 **What a window rebuilds.** Vertex k needs its predecessor: an ``AREA`` vertex's direction
 back (``wo``) needs the previous point, a ``MIRROR`` vertex is where the ray reflected at the
