@@ -51,7 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from minidiff import backend, codegen, ir
-from minidiff.tensor import Tensor, _accumulate_leaf, is_grad_enabled, record
+from minidiff.tensor import Tensor, _accumulate_leaf, _anomaly_mode, is_grad_enabled, record
 from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-exported)
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
@@ -222,7 +222,13 @@ class CompiledFunction:
                 f"{[np.shape(c) for c in cotangents]}, the outputs have {shapes}"
             )
         grads = self._vjp(trace, [_contiguous(v) for v in given], wrt, cotangents)
+        anomaly = _anomaly_mode.get()
         for s in wrt:
+            if anomaly and not np.isfinite(grads[s]).all():  # as backward checks in that mode
+                raise FloatingPointError(
+                    f"anomaly: the VJP of 'compiled {self.function.__name__}' produced NaN/inf "
+                    f"in the gradient of an input of shape {given[s].shape}"
+                )
             _accumulate_leaf(given[s], grads[s].astype(given[s].dtype, copy=False))
 
     def trace(self, *args, **kwargs) -> codegen.Program:

@@ -381,6 +381,11 @@ def test_add_vjp_refuses_what_it_cannot_add_to():
     plain = md.tensor(light)  # nothing requires grad: nothing to add
     shading.add_vjp(np.ones((10, 3)), normals, points, plain)
     assert plain.grad is None
+    # As backward in anomaly mode: a NaN gradient is refused, naming the function.
+    lt = md.tensor(light, requires_grad=True)
+    with md.detect_anomaly(), pytest.raises(FloatingPointError, match="compiled shading"):
+        shading.add_vjp(np.full((10, 3), np.nan), normals, points, lt)
+    assert lt.grad is None
 
 
 def test_without_the_tape_it_returns_a_constant():
