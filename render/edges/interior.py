@@ -96,7 +96,11 @@ def _restricted(seen: Visibility, rays: np.ndarray) -> Visibility:
     primary = seen.primary
     prim_id = primary.prim_id[rays]
     hit = np.flatnonzero(prim_id >= 0)
-    at = np.searchsorted(primary.hit_rays, rays[hit])  # their rows among the hits
+    # Their rows among the hits: a ray's row is the number of hits before it (hit_rays is
+    # every hit ray, ascending). One pass, where searching the hits took three times as
+    # long for the 512x512 boundary term's 180k rays.
+    row_of = np.cumsum(primary.prim_id >= 0) - 1
+    at = row_of[rays[hit]]
     points, coords = (np.take(x, at, axis=0) for x in (primary.points, primary.coords))
     sub = PrimaryHits(prim_id, hit, primary.depth[rays], points, coords)
     return replace(seen, primary=sub, lit=[mask[at] for mask in seen.lit])
