@@ -475,11 +475,14 @@ def _blocked_in_leaf(table, ids, n_tri, start, stop, ray, ignore):
 
 
 @borrowing
-def _blocked_by_row(table, ids, n_tri, k, ray, ignore):
-    """``_blocked_in_leaf`` of the one row ``k``: a function of its own, not inlined (the
-    hint is tested once per ray; a second inlined copy of the primitive tests doubled the
-    compile time of ``occluded_bvh``)."""
-    return _blocked_in_leaf(table, ids, n_tri, k, k + 1, ray, ignore)
+def meets_before_end(table, k, pid, n_tri, ray):
+    """Whether row ``k`` of ``table`` (primitive ``pid``) meets ``ray`` before its tmax:
+    the primitive tests as a function of their own, called, not inlined, where a kernel
+    tests one primitive outside its main loop (``occluded_bvh``'s hint, the rasterised
+    tests' rays that no list covers). A second inlined copy of the tests doubled the
+    compile time of ``occluded_bvh``, and cost the light's view's kernel about a second;
+    this one is compiled once for all of them."""
+    return intersect_prim(table, k, pid, n_tri, ray)[0] < ray.tmax
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -645,8 +648,10 @@ def occluded_bvh(job, n_jobs, bvh, rays, ignore, first_row, out):
         for i in range(b * BLOCK, min(n, (b + 1) * BLOCK)):
             ray = ray_at(rays, i)
             k = first_row[i] if hinted else -1
-            if k >= 0 and _blocked_by_row(
-                bvh.leaf_prim, bvh.leaf_ids, bvh.n_tri, k, ray, ignore[i]
+            if (
+                k >= 0
+                and bvh.leaf_ids[k] != ignore[i]
+                and meets_before_end(bvh.leaf_prim, k, bvh.leaf_ids[k], bvh.n_tri, ray)
             ):
                 out[i] = True
             else:

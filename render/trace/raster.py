@@ -39,7 +39,7 @@ import numpy as np
 from numba import njit
 
 from minidiff import buffers
-from minidiff.threads import borrowing, job_count, kernel, run_jobs
+from minidiff.threads import job_count, kernel, run_jobs
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.scene.scene import Camera
 from render.trace.intersect import (
@@ -47,6 +47,7 @@ from render.trace.intersect import (
     RAYS_PER_JOB,
     intersect_prim,
     make_ray,
+    meets_before_end,
     n_blocks,
     pack_primitives,
 )
@@ -316,18 +317,10 @@ def blocked_by_any(prim_data, n_tri, ray, ignore):
     ``ignore``: for rays no cell's list covers (few: those outside the image, or starting
     very close to a light)."""
     for pid in range(prim_data.shape[0]):
-        if pid != ignore and _blocks(prim_data, n_tri, pid, ray):
+        # (called, not inlined: the rays this serves are few)
+        if pid != ignore and meets_before_end(prim_data, pid, pid, n_tri, ray):
             return True
     return False
-
-
-@borrowing
-def _blocks(prim_data, n_tri, pid, ray):
-    """Whether primitive ``pid`` (row ``pid`` of ``prim_data``) meets ``ray`` before its
-    tmax: a function of its own, called, not inlined, by ``blocked_by_any`` (a second
-    inlined copy of the primitive tests in a kernel cost about a second of its compiling;
-    the rays it serves are few)."""
-    return intersect_prim(prim_data, pid, pid, n_tri, ray)[0] < ray.tmax
 
 
 #: ``render(primary="auto")`` rasterises when rays / primitives >= RASTER_RAYS_PER_PRIMITIVE.
