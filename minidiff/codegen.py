@@ -10,6 +10,9 @@ over the elements of a batch, in one of three modes.
   so the result does not depend on how many threads ran the chunks); a table's, gathered
   at an index, is written per element and added into the table's rows afterwards
   (``compiler.py``), again in a fixed order.
+- ``vjp_values``: ``vjp`` that also writes each element's outputs: one pass for a caller
+  whose cotangents the program computes itself from its values (an output such as
+  ``sum(detach(c) * y)``) and that needs the values as well (the path replay's windows).
 - ``jvp`` (forward mode): each element's program with a tangent beside every value, the
   slopes applied to the inputs' tangents.
 
@@ -56,7 +59,8 @@ class Layout:
     inputs: one per slot, in every mode. Then:
 
     - forward: one per output, (n, lanes).
-    - vjp: the outputs' cotangents (n, lanes); each differentiated batched slot's gradient
+    - vjp: the outputs' cotangents (n, lanes); (vjp_values: then one per output, (n,
+      lanes), for its values); each differentiated batched slot's gradient
       (n, lanes); the *frontier* sums (chunks, len(frontier)); per gathered index, a
       contribution buffer (n, columns) and the row each element gathered (n,) int64
       (``gathers`` lists (slot, index id) in order).
@@ -117,14 +121,17 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
         position[key] = k
         k += 1
 
-    frontier = _frontier(program, wrt) if mode in ("vjp", "vjp_shared") else ()
+    frontier = _frontier(program, wrt) if mode in ("vjp", "vjp_values", "vjp_shared") else ()
     gathers: list[tuple[int, int]] = []
     if mode == "forward":
         for o in range(len(program.outputs)):
             add(("out", o))
-    elif mode == "vjp":
+    elif mode in ("vjp", "vjp_values"):
         for o in range(len(program.outputs)):
             add(("cot", o))
+        if mode == "vjp_values":
+            for o in range(len(program.outputs)):
+                add(("out", o))
         for s in wrt:
             if program.slots[s].batched:
                 add(("grad", s))
@@ -498,22 +505,22 @@ def generate(
     program: Program, mode: str, wrt: tuple[int, ...] = (), name: str = "kernel"
 ) -> tuple[str, Layout]:
     """The LLVM IR text of ``program``'s kernel in ``mode`` ("forward", "vjp",
-    "vjp_shared", "jvp") with derivatives for the slots ``wrt``, and its buffers' layout.
-    ``name``: the kernel function's (``backend.kernel_name``)."""
+    "vjp_values", "vjp_shared", "jvp") with derivatives for the slots ``wrt``, and its
+    buffers' layout. ``name``: the kernel function's (``backend.kernel_name``)."""
     position, layout = _names(mode, program, wrt)
     graph = program.graph.extended()
     emitter = _Emitter(program, graph, position)
     with graph.building():
-        if mode == "forward":
+        if mode in ("forward", "vjp_values"):
             for o, lanes in enumerate(program.outputs):
                 for lane, vid in enumerate(lanes):
                     emitter.emit(vid)
                     emitter.store(("out", o), len(lanes), lane, emitter.name(vid))
-        elif mode == "vjp":
+        if mode in ("vjp", "vjp_values"):
             _reverse_elements(program, graph, emitter, wrt, layout)
         elif mode == "vjp_shared":
             _reverse_shared(program, graph, emitter, wrt, layout)
-        else:
+        elif mode == "jvp":
             _tangents(program, graph, emitter, wrt)
     return emitter.text(len(position), name), layout
 

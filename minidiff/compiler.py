@@ -51,7 +51,14 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from minidiff import backend, codegen, ir
-from minidiff.tensor import Tensor, _accumulate_leaf, _anomaly_mode, is_grad_enabled, record
+from minidiff.tensor import (
+    Tensor,
+    _accumulate_leaf,
+    _anomaly_mode,
+    is_grad_enabled,
+    no_grad,
+    record,
+)
 from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-exported)
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
@@ -195,41 +202,66 @@ class CompiledFunction:
         (from a call without the tape) and computes their cotangents from them: the path
         replay's windows. ``cotangents``: one array per output, of its shape (a single
         array for a function of one output)."""
-        names, values = self._bind(args, kwargs)
-        arrays, trees, key = self._classify(names, values)
+        self._add_vjp(cotangents, args, kwargs, values=False)
+
+    def value_and_add_vjp(self, cotangents, *args, **kwargs):
+        """``add_vjp``, and the outputs' values (NumPy arrays; one for a function of one
+        output) from the same pass over the elements: the VJP computes them anyway. For a
+        function that computes its own objective from its values (an output such as
+        ``sum(detach(c) * y)``, whose cotangent is 1): the values for the caller's
+        bookkeeping and the gradient in one call."""
+        return self._add_vjp(cotangents, args, kwargs, values=True)
+
+    def _add_vjp(self, cotangents, args, kwargs, values: bool):
+        names, values_ = self._bind(args, kwargs)
+        arrays, trees, key = self._classify(names, values_)
         given = [value for value, _ in arrays]
         floats = _floats([slot for _, slot in arrays])
         wrt = tuple(s for s in floats if isinstance(given[s], Tensor) and given[s].requires_grad)
+        name = self.function.__name__ + (".value_and_add_vjp" if values else ".add_vjp")
         for s in wrt:
             if not given[s].is_leaf:
                 raise ValueError(
-                    f"{self.function.__name__}.add_vjp: argument {s} requires grad and is "
-                    "computed on the tape; add_vjp adds to leaves only (call the function "
-                    "on the tape and use backward)"
+                    f"{name}: argument {s} requires grad and is computed on the tape; "
+                    "add_vjp adds to leaves only (call the function on the tape and use "
+                    "backward)"
                 )
-        if not wrt:
-            return
         if key[1] == 0:  # an empty batch: zero gradients, as backward on the tape gives
             for s in wrt:
                 _accumulate_leaf(given[s], np.zeros(given[s].shape, given[s].dtype))
-            return
+            if values:  # the tape gives the shapes
+                with no_grad():
+                    results = self.function(*args, **kwargs)
+                single = not isinstance(results, (tuple, list))
+                results = [results] if single else results
+                outputs = [np.asarray(r.data if isinstance(r, Tensor) else r) for r in results]
+                return outputs[0] if single else tuple(outputs)
+            return None
         trace = self._trace_for(key, arrays, trees)
         cotangents = [cotangents] if trace.single else list(cotangents)
         shapes = [(trace.batch, *shape) for shape in trace.output_shapes]
         if [np.shape(c) for c in cotangents] != shapes:
             raise ValueError(
-                f"{self.function.__name__}.add_vjp: cotangents of shapes "
-                f"{[np.shape(c) for c in cotangents]}, the outputs have {shapes}"
+                f"{name}: cotangents of shapes {[np.shape(c) for c in cotangents]}, the "
+                f"outputs have {shapes}"
             )
-        grads = self._vjp(trace, [_contiguous(v) for v in given], wrt, cotangents)
-        anomaly = _anomaly_mode.get()
-        for s in wrt:
-            if anomaly and not np.isfinite(grads[s]).all():  # as backward checks in that mode
-                raise FloatingPointError(
-                    f"anomaly: the VJP of 'compiled {self.function.__name__}' produced NaN/inf "
-                    f"in the gradient of an input of shape {given[s].shape}"
-                )
-            _accumulate_leaf(given[s], grads[s].astype(given[s].dtype, copy=False))
+        data = [_contiguous(v) for v in given]
+        if not wrt:
+            outputs = self._forward(trace, data) if values else None
+        else:
+            outputs = [] if values else None
+            grads = self._vjp(trace, data, wrt, cotangents, outputs)
+            anomaly = _anomaly_mode.get()
+            for s in wrt:
+                if anomaly and not np.isfinite(grads[s]).all():  # as backward checks then
+                    raise FloatingPointError(
+                        f"anomaly: the VJP of 'compiled {self.function.__name__}' produced "
+                        f"NaN/inf in the gradient of an input of shape {given[s].shape}"
+                    )
+                _accumulate_leaf(given[s], grads[s].astype(given[s].dtype, copy=False))
+        if outputs is None:
+            return None
+        return outputs[0] if trace.single else tuple(outputs)
 
     def trace(self, *args, **kwargs) -> codegen.Program:
         """The scalar program this function becomes for these arguments (for reading)."""
@@ -395,11 +427,14 @@ class CompiledFunction:
         self._run(trace, "forward", (), [*data, *outputs])
         return outputs
 
-    def _vjp(self, trace: _Trace, data, wrt, cotangents) -> list[np.ndarray | None]:
+    def _vjp(self, trace: _Trace, data, wrt, cotangents, outputs=None) -> list[np.ndarray | None]:
         """Gradients of sum(cotangent * output) for the slots ``wrt``: one array per slot,
         None for the others. The element kernel, then the shared kernel on the batch's
-        totals at the frontier (``codegen.Layout``), then the gathers' scatter-adds."""
-        _, layout = trace.kernel("vjp", wrt)
+        totals at the frontier (``codegen.Layout``), then the gathers' scatter-adds.
+        ``outputs``: a list to which the element kernel's values of the outputs are
+        appended (its ``vjp_values`` form), or None."""
+        mode = "vjp" if outputs is None else "vjp_values"
+        _, layout = trace.kernel(mode, wrt)
         slots = trace.program.slots
         n, chunks = trace.batch, -(-trace.batch // codegen.CHUNK)
         # the kernel writes every element of these (codegen._reverse_elements): not zeroed
@@ -408,8 +443,10 @@ class CompiledFunction:
         blocks, contributions, rows = _gather_blocks(layout.gathers, slots, n)
         cotangents = [np.ascontiguousarray(g, dtype=np.float64) for g in cotangents]
         per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
-        buffers = [*data, *cotangents, *grads.values(), sums, *per_gather]
-        self._run(trace, "vjp", wrt, buffers)
+        if outputs is not None:
+            outputs += [np.empty((n, *shape)) for shape in trace.output_shapes]
+        buffers = [*data, *cotangents, *(outputs or ()), *grads.values(), sums, *per_gather]
+        self._run(trace, mode, wrt, buffers)
         shared = {s: np.zeros(slots[s].shape) for s in wrt if not slots[s].batched}
         if shared and layout.frontier:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order

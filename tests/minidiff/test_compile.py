@@ -371,6 +371,64 @@ def test_add_vjp_adds_what_backward_on_the_tape_adds():
     assert np.array_equal(lt.grad, np.zeros(3))
 
 
+@md.compile(shared=("light",))
+def self_weighted(points, light, weights):
+    """Values, and an objective weighted by a constant computed from them (their cotangent
+    in the program itself, as the path replay's windows compute theirs)."""
+    d = light - points
+    lengths = md.dot(d, d)
+    scale = md.where(lengths > 1.0, weights / md.detach(lengths), 0.0)
+    return d * d, lengths, scale * lengths
+
+
+def test_value_and_add_vjp_is_the_call_and_add_vjp_in_one_pass():
+    """``value_and_add_vjp`` returns the call's values and adds ``add_vjp``'s gradient, bit
+    for bit, on 1 and 2 threads, with a table gathered; without anything requiring grad it
+    returns the values alone; an empty batch gives empty values and zero gradients."""
+    rng = np.random.default_rng(5)
+    _, points, light = _scene(3000)
+    weights = rng.normal(size=3000)
+    cotangents = (np.zeros((3000, 3)), np.zeros(3000), np.ones(3000))
+    with md.no_grad():
+        expected = [o.data for o in self_weighted(points, light, weights)]
+    reference = _leaves(points, light)
+    self_weighted.add_vjp(cotangents, *reference, weights)
+    for threads in (1, 2):
+        with compiler.using_threads(threads):
+            direct = _leaves(points, light)
+            values = self_weighted.value_and_add_vjp(cotangents, *direct, weights)
+        for a, b in zip(values, expected, strict=True):
+            assert np.array_equal(a, b)
+        for a, b in zip(direct, reference, strict=True):
+            assert np.array_equal(a.grad, b.grad)
+    # The gradient is the tape's: the objective's, its constant held.
+    on_tape = _leaves(points, light)
+    md.sum(self_weighted.function(*on_tape, weights)[2]).backward()
+    for a, b in zip(on_tape, reference, strict=True):
+        assert_close(a.grad, b.grad, "gradient")
+
+    vertices = rng.normal(size=(20, 3))
+    faces = rng.integers(0, 20, size=(20, 3))
+    hit, w = rng.integers(0, 20, size=200), rng.normal(size=200)
+    c3 = rng.normal(size=(200, 3))
+    on_tape, direct = _leaves(vertices), _leaves(vertices)
+    md.sum(centroid_light(on_tape[0], faces, hit, w) * c3).backward()
+    values = centroid_light.value_and_add_vjp(c3, direct[0], faces, hit, w)
+    assert np.array_equal(on_tape[0].grad, direct[0].grad)
+    with md.no_grad():
+        assert np.array_equal(values, centroid_light(vertices, faces, hit, w).data)
+    plain = centroid_light.value_and_add_vjp(c3, vertices, faces, hit, w)
+    assert np.array_equal(plain, values)
+
+    lt = md.tensor(light, requires_grad=True)
+    empty = np.zeros((0, 3))
+    values = self_weighted.value_and_add_vjp(
+        (empty, np.zeros(0), np.zeros(0)), empty, lt, np.zeros(0)
+    )
+    assert [v.shape for v in values] == [(0, 3), (0,), (0,)]
+    assert np.array_equal(lt.grad, np.zeros(3))
+
+
 def test_add_vjp_refuses_what_it_cannot_add_to():
     normals, points, light = _scene(10)
     computed = md.tensor(light, requires_grad=True) * 2.0  # on the tape, not a leaf

@@ -120,44 +120,60 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         seen.backward()
     paths = _Paths.of(window_world, window_frame, sampler, batch)
     vertices, tables = paths.vertices, paths.tables
-    n_paths = len(batch.paths)
-    beta = np.ones((n_paths, 3), dtype)  # the throughput before each path's current vertex
-    gathered = np.zeros((n_paths, 3), dtype)  # sum_{j<=k} beta_j C_j, plain
-    anchor = np.zeros(n_paths, np.int64)  # where window k starts, per path
-    pending = _Pending.none(n_paths, dtype)
+    sums = _Sums.of(weights, radiance)
+    anchor = np.zeros(len(batch.paths), np.int64)  # where window k starts, per path
     for k, record in enumerate(vertices):
         if k > 0:
             anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
         here_window = _window(paths, k, record.rows, anchor[record.rows])
-        # The constants of this window's objective, from its values.
-        here = here_window.added(n_paths)  # C_k (N, 3), zero for the paths not at vertex k
-        gathered += beta * here
-        pending.gather(here)
-        # The window's objective, sum(coefficients * C_k) + sum(scale * F_k), by its
-        # constants (from its values).
-        coefficients = [
-            np.take(weights, rows, axis=0) * np.take(beta, rows, axis=0)
-            for rows in here_window.rows_of
-        ]
-        scale = None
-        if here_window.factors:
-            factor, rows = here_window.factor()
-            before = np.take(beta, rows, axis=0)  # beta_k (np.take: see Vertices.take)
-            after = before * factor.data  # beta_{k+1}
-            left = np.take(radiance, rows, axis=0) - np.take(gathered, rows, axis=0)
-            arriving = np.divide(left, after, out=np.zeros_like(after), where=after != 0)
-            scale = np.take(weights, rows, axis=0) * before * arriving
-            pending.carry(rows, factor.data)
-            pending.open(k, rows, anchor[rows], before, after)
-            beta[rows] = after
-        here_window.backward(coefficients, scale)
+        here_window.replay(sums, k, anchor)
         del here_window  # this window's tape, before the next is built
-    pending.close(paths, weights)
+    sums.pending.close(paths, weights)
     if tables is not None:  # the tables' gradients, through the tape they were built on
         _backward(tables.carried())
 
     carried = [md.sum(t * copies[id(t)].grad) for t in originals if copies[id(t)].grad is not None]
     _backward(carried)
+
+
+@dataclass
+class _Sums:
+    """What the replay carries from window to window, per path (N, 3) plain: ``weights``
+    d loss / d L, ``radiance`` L, ``beta`` the throughput before the path's current vertex,
+    ``gathered`` sum_{j<=k} beta_j C_j so far, and the ``pending`` channels."""
+
+    weights: np.ndarray
+    radiance: np.ndarray
+    beta: np.ndarray
+    gathered: np.ndarray
+    pending: _Pending
+
+    @classmethod
+    def of(cls, weights: np.ndarray, radiance: np.ndarray) -> _Sums:
+        n, dtype = len(weights), weights.dtype
+        beta, gathered = np.ones((n, 3), dtype), np.zeros((n, 3), dtype)
+        return cls(weights, radiance, beta, gathered, _Pending.none(n, dtype))
+
+    def gather(self, rows: np.ndarray, added: np.ndarray) -> None:
+        """Add what the paths ``rows`` (m,) add at their current vertex, C_k (m, 3)."""
+        self.gathered[rows] = np.take(self.gathered, rows, axis=0) + (
+            np.take(self.beta, rows, axis=0) * added
+        )
+        self.pending.gather(rows, added)
+
+    def running(self, rows: np.ndarray) -> list[np.ndarray]:
+        """(weights, beta, radiance, gathered) of the paths ``rows``, each (m, 3)."""
+        arrays = (self.weights, self.beta, self.radiance, self.gathered)
+        return [np.take(a, rows, axis=0) for a in arrays]
+
+    def go_on(self, k: int, rows: np.ndarray, anchor: np.ndarray, factor: np.ndarray) -> None:
+        """The paths ``rows`` (m,) go on from vertex k with factors F_k ``factor`` (m, 3):
+        their throughput moves on, and their pending channels."""
+        before = np.take(self.beta, rows, axis=0)  # beta_k (np.take: see Vertices.take)
+        after = before * factor  # beta_{k+1}
+        self.pending.carry(rows, factor)
+        self.pending.open(k, rows, anchor, before, after)
+        self.beta[rows] = after
 
 
 @dataclass
@@ -183,10 +199,13 @@ class _Pending:
         zeros = np.zeros((n, 3), dtype)
         return cls(depth, depth.copy(), zeros, zeros.copy(), zeros.copy())
 
-    def gather(self, here: np.ndarray) -> None:
-        """Add what the current vertices add (C_k (N, 3)) to the radiance arriving."""
+    def gather(self, rows: np.ndarray, added: np.ndarray) -> None:
+        """Add what the paths ``rows`` add at their current vertices (C_k (m, 3)) to the
+        radiance arriving."""
         if self.open_any:
-            self.arriving += np.where(self.depth >= 0, self.gamma * here, 0.0)
+            pending = np.take(self.depth, rows, axis=0) >= 0
+            gamma = np.take(self.gamma, rows, axis=0)
+            self.arriving[rows] += np.where(pending, gamma * added, 0.0)
 
     def carry(self, rows: np.ndarray, factor: np.ndarray) -> None:
         """The paths ``rows`` go on with factors F_k ``factor`` (m, 3). (Only pending
@@ -303,7 +322,12 @@ class _Window:
     ``factor_rows``, F_k (m', 3) of the paths that go on, by anchor."""
 
     def __init__(self, paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
-        self.world, self.frame, self.sampler = paths.world, paths.frame, paths.sampler
+        self.world, self.frame, self.sampler, self.rows = (
+            paths.world,
+            paths.frame,
+            paths.sampler,
+            rows,
+        )
         self.batch, self.vertices, self.dtype, self.k = paths.batch, paths.vertices, paths.dtype, k
         self.parts: list[md.Tensor] = []
         self.rows_of: list[np.ndarray] = []
@@ -336,6 +360,34 @@ class _Window:
         if factor is not None:
             self.factors.append(factor)
             self.factor_rows.append(sub.rows)
+
+    def replay(self, sums: _Sums, k: int, anchor: np.ndarray) -> None:
+        """Window k's step of the replay: its values added to the running ``sums``, the
+        constants of its objective computed from them, that objective's ``backward``, and
+        the paths that go on moved on. ``anchor`` (N,): each path's window anchor."""
+        rows = self.rows
+        added = np.zeros((len(rows), 3), self.dtype)  # C_k, its parts added up
+        for part, part_rows in zip(self.parts, self.rows_of, strict=True):
+            np.add.at(added, np.searchsorted(rows, part_rows), part.data)
+        factor = np.zeros_like(added)  # F_k where the path goes on
+        going = np.zeros(len(rows), bool)
+        if self.factors:
+            factor_of, going_rows = self.factor()
+            going_at = np.searchsorted(rows, going_rows)
+            factor[going_at], going[going_at] = factor_of.data, True
+        with md.no_grad():  # (as tensors: a Python number then takes their dtype)
+            values = [md.tensor(a) for a in (added, factor)]
+            running = [md.tensor(a) for a in sums.running(rows)]
+            weights = window.objective_weights(*values, going, *running)
+        coefficients, scale = (w.data for w in weights)
+        sums.gather(rows, added)
+        if self.factors:
+            sums.go_on(k, going_rows, anchor[going_rows], factor_of.data)
+            scale = scale[going_at]
+        else:
+            scale = None
+        parts = [np.take(coefficients, np.searchsorted(rows, r), axis=0) for r in self.rows_of]
+        self.backward(parts, scale)
 
     def backward(self, coefficients: list[np.ndarray] | None, scale: np.ndarray | None) -> None:
         """``backward`` of sum(coefficients * C_k) + sum(scale * F_k) on this window's tape

@@ -115,37 +115,62 @@ class CompiledWindow:
             tables.centers, tables.radii, tables.smooth, tables.materials, tables.lights,
             tables.background, (case, tables.kinds, tables.glossy),
         )  # fmt: skip
-        # The values, off the tape: ``backward`` adds the VJP to the tables' leaves itself.
-        with md.no_grad():
-            added, factor = _window(*self._arguments)
-        self._going = np.flatnonzero(going)
-        self.parts, self.rows_of = [added], [rows]
-        self.factors, self.factor_rows = [], []
+        self.rows, self._going = rows, np.flatnonzero(going)
+        self._values: tuple[np.ndarray, np.ndarray] | None = None
+
+    def replay(self, sums, k: int, anchor: np.ndarray) -> None:
+        """Window k's step of the replay (``replay._Sums``): its values and the VJP of its
+        objective in one compiled pass (``_replayed``: the objective's constants computed
+        from the values inside it, as ``replay._Window.replay`` computes them outside),
+        then the paths' running sums moved on. ``anchor`` (N,): unused (every compiled
+        window starts at its previous vertex)."""
+        rows, n = self.rows, len(self.rows)
+        running = sums.running(rows)
+        cotangents = (np.zeros((n, 3)), np.zeros((n, 3)), np.ones(n))  # the objective's
+        added, factor, _ = _replayed.value_and_add_vjp(cotangents, *self._arguments, *running)
+        sums.gather(rows, added)
         if len(self._going):
-            self.factors.append(factor[self._going])
-            self.factor_rows.append(rows[going])
+            going = rows[self._going]
+            sums.go_on(k, going, anchor[going], factor[self._going])
 
     def backward(self, coefficients: list[np.ndarray] | None, scale: np.ndarray | None) -> None:
         """Add to the tables' leaves' ``grad`` the gradient of sum(coefficients * C_k) +
         sum(scale * F_k) (``coefficients``: one (m, 3) array for the window's paths, or
         None; ``scale`` (m', 3) for the paths that go on, or None): one compiled VJP
         (``md.compile``'s ``add_vjp``), what ``backward`` of that sum on the tape gives."""
-        n = len(self.rows_of[0])
+        n = len(self.rows)
         of_added = np.zeros((n, 3)) if coefficients is None else coefficients[0]
         of_factor = np.zeros((n, 3))
         if scale is not None:
             of_factor[self._going] = scale
         _window.add_vjp((of_added, of_factor), *self._arguments)
 
+    def values(self) -> tuple[np.ndarray, np.ndarray]:
+        """(C_k (m, 3), F_k (m, 3)) of the window's paths (F_k of the paths that do not go
+        on: unused), by the compiled forward, off the tape (computed once)."""
+        if self._values is None:
+            with md.no_grad():
+                added, factor = _window(*self._arguments)
+            self._values = (added.data, factor.data)
+        return self._values
+
+    @property
+    def rows_of(self) -> list[np.ndarray]:
+        return [self.rows]
+
+    @property
+    def factors(self) -> list[np.ndarray]:
+        return [self.values()[1][self._going]] if len(self._going) else []
+
     def added(self, n_paths: int) -> np.ndarray:
         """(N, 3) the values of C_k, zero for the paths not in the window."""
         here = np.zeros((n_paths, 3))
-        here[self.rows_of[0]] = self.parts[0].data
+        here[self.rows] = self.values()[0]
         return here
 
     def factor(self) -> tuple[md.Tensor, np.ndarray]:
         """F_k (m, 3) of the paths that go on, and their rows (m,)."""
-        return self.factors[0], self.factor_rows[0]
+        return md.tensor(self.factors[0]), self.rows[self._going]
 
 
 def _dense(arguments):
@@ -226,9 +251,11 @@ def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
     return _Vertex(points, geometric, shading, 1.0 if local is None else stretch, None, obj)
 
 
-@md.compile(shared=("frame", "vertices", "normals", "faces", "centers", "radii", "smooth",
-                    "materials", "lights", "background"))  # fmt: skip
-def _window(
+_SHARED = ("frame", "vertices", "normals", "faces", "centers", "radii", "smooth", "materials",
+           "lights", "background")  # fmt: skip
+
+
+def window_terms(
     coords,
     far,
     previous,
@@ -324,3 +351,44 @@ def _window(
     geometry = md.where(goes, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
     factor = bounce_weight(wi, next_scale) * column(geometry / md.detach(geometry))
     return added, factor
+
+
+_window = md.compile(window_terms, shared=_SHARED)
+
+
+@md.compile(shared=_SHARED)
+def _replayed(
+    coords, far, previous, here, lit, emit_weight, nee, escape, going, frame, vertices,
+    normals, faces, centers, radii, smooth, materials, lights, background, form, weights,
+    beta, radiance, gathered,
+):  # fmt: skip
+    """One window of one path (``window_terms``' arguments, then its replay's running
+    values) and the objective whose VJP is the window's gradient: (C_k, F_k, objective).
+    Batched (n, 3): ``weights`` d loss / d L, ``beta`` beta_k, ``radiance`` the path's L,
+    ``gathered`` sum_{j<k} beta_j C_j. The objective is sum(weights beta_k C_k) +
+    sum(weights beta_k Lrem_k / beta_{k+1} F_k) over the channels, its factors constants
+    (``detach``) computed as ``replay._Window.replay`` computes them: the same bits."""
+    added, factor = window_terms(
+        coords, far, previous, here, lit, emit_weight, nee, escape, going, frame, vertices,
+        normals, faces, centers, radii, smooth, materials, lights, background, form,
+    )  # fmt: skip
+    constants = md.detach(added), md.detach(factor), going[-1], weights, beta, radiance, gathered
+    coefficients, scale = objective_weights(*constants)
+    objective = md.sum(coefficients * added, axis=1) + md.sum(scale * factor, axis=1)
+    return added, factor, objective
+
+
+def objective_weights(added, factor, going, weights, beta, radiance, gathered):
+    """The constants of window k's objective, sum(coefficients * C_k) + sum(scale * F_k)
+    (``replay``'s module docstring), from its values (each (n, 3) but ``going`` (n,) bool:
+    which paths go on): coefficients weights beta_k, and scale weights beta_k Lrem_k /
+    beta_{k+1}, 0 where beta_{k+1} is or the path stops. ``added`` C_k, ``factor`` F_k,
+    ``weights`` d loss / d L, ``beta`` beta_k, ``radiance`` L, ``gathered``
+    sum_{j<k} beta_j C_j. On minidiff arrays: traced in ``_replayed``, plain values on the
+    tape's windows (``replay._Window.replay``)."""
+    coefficients = weights * beta
+    after = beta * factor  # beta_{k+1}
+    left = radiance - (gathered + beta * added)  # the radiance still to come, Lrem_k beta_{k+1}
+    safe = md.where(after != 0.0, after, 1.0)
+    arriving = md.where(after != 0.0, left / safe, 0.0)  # Lrem_k
+    return coefficients, md.where(column(going), coefficients * arriving, 0.0)
