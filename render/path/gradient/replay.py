@@ -17,8 +17,10 @@ Lrem_k = (L - sum_{j<=k} beta_j C_j) / beta_{k+1} being the radiance that arrive
 k from vertex k + 1 on. So *window* k computes only what C_k and F_k depend on, with beta_k
 and Lrem_k as plain constants (from the windows' own values and the path's total L), and the
 gradient of sum(weights * (beta_k C_k + beta_k F_k Lrem_k)) is taken before the next window
-is built: by ``backward`` on the window's own tape, or, for a compiled window, by its VJP
-with those constants as cotangents (``window.CompiledWindow.backward``).
+is built (``window.objective_weights`` computes those constants from the window's values):
+by ``backward`` on the window's own tape, or, for a compiled window, in the same pass as
+its values (``window.CompiledWindow.replay``: the objective is part of the traced function,
+``md.compile``'s ``value_and_add_vjp``).
 
 **What a window rebuilds.** Vertex k needs its predecessor: an ``AREA`` vertex's direction
 back (``wo``) needs the previous point, a ``MIRROR`` vertex is where the ray reflected at the
