@@ -193,7 +193,7 @@ save_and_show(figure, OUT / "memory.png")
 # measured, 4 spp included.
 #
 # **The lamp's position**: the replay by windows grows less than `1.1`
-# <!-- check: windows_spp_growth < --> times from 16 to 64 samples and less than `3.2`
+# <!-- check: windows_spp_growth < --> times from 16 to 64 samples and less than `3.7`
 # <!-- check: windows_depth_growth < --> times from depth 2 to 16 (the values are printed
 # above; the allocator's bookkeeping moves them by a percent from run to run). It holds one
 # batch of paths' *decisions* (which primitive, which lobe, which light: a few hundred

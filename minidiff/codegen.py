@@ -37,6 +37,11 @@ from minidiff.trace import Slot
 
 CHUNK = 1024  # elements per chunk: the unit of work of a thread, and of a shared gradient's sums
 BLOCK = 64  # elements per block of a chunk, whose frontier gradients are summed after it
+# A gathered table of at most this many numbers gets its gradient summed per chunk in the
+# element kernel (a *partial* table per chunk: it stays in the cache, and the chunks run in
+# parallel); a larger one has each element's contribution written out and added by the
+# serial scatter kernel (``scatter_add``), which needs no table per chunk.
+PARTIAL_LIMIT = 4096
 
 _LLVM_TYPES = {"f64": "double", "i64": "i64", "i1": "i1"}
 _LOAD_TYPES = {"f64": "double", "i64": "i64", "i1": "i8"}  # booleans are stored as bytes
@@ -61,9 +66,11 @@ class Layout:
     - forward: one per output, (n, lanes).
     - vjp: the outputs' cotangents (n, lanes); (vjp_values: then one per output, (n,
       lanes), for its values); each differentiated batched slot's gradient
-      (n, lanes); the *frontier* sums (chunks, len(frontier)); per gathered index, a
-      contribution buffer (n, columns) and the row each element gathered (n,) int64
-      (``gathers`` lists (slot, index id) in order).
+      (n, lanes); the *frontier* sums (chunks, len(frontier)); per gathered index of a
+      large table, a contribution buffer (n, columns) and the row each element gathered
+      (n,) int64 (``gathers`` lists (slot, index id) in order); per gathered table of at
+      most ``PARTIAL_LIMIT`` numbers, its gradient per chunk (chunks, table size)
+      (``partials`` lists the slots), summed over its chunks in order afterwards.
     - vjp_shared: the frontier totals (len(frontier),); each differentiated shared slot's
       gradient (its shape).
     - jvp: each differentiated slot's tangent (its own shape); one per output (n, lanes).
@@ -78,6 +85,7 @@ class Layout:
     wrt: tuple[int, ...]
     gathers: tuple[tuple[int, int], ...]
     frontier: tuple[int, ...]
+    partials: tuple[int, ...] = ()
 
 
 def shared_values(graph: ir.Graph) -> set[int]:
@@ -123,6 +131,7 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
 
     frontier = _frontier(program, wrt) if mode in ("vjp", "vjp_values", "vjp_shared") else ()
     gathers: list[tuple[int, int]] = []
+    partials: list[int] = []
     if mode == "forward":
         for o in range(len(program.outputs)):
             add(("out", o))
@@ -138,11 +147,16 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
         add(("frontier",))
         for node in program.graph.nodes:
             key = (node.attrs[0], node.args[0]) if node.op == "gather" else None
-            if key and key[0] in wrt and key not in gathers:
-                gathers.append(key)
+            if key and key[0] in wrt and key not in gathers and key[0] not in partials:
+                if _size(program.slots[key[0]].shape) <= PARTIAL_LIMIT:
+                    partials.append(key[0])
+                else:
+                    gathers.append(key)
         for g in gathers:
             add(("contrib", g))
             add(("rows", g))
+        for slot in partials:
+            add(("partial", slot))
     elif mode == "vjp_shared":
         add(("frontier",))
         for s in wrt:
@@ -155,7 +169,7 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
             add(("out", o))
     else:
         raise ValueError(f"codegen: unknown mode {mode!r}")
-    return position, Layout(mode, wrt, tuple(gathers), frontier)
+    return position, Layout(mode, wrt, tuple(gathers), frontier, tuple(partials))
 
 
 class _Emitter:
@@ -322,6 +336,38 @@ class _Emitter:
         base = self.pointer(("frontier",))
         address = self.element_address(self.chunk_end, base, count, f, "%c", "double")
         self.chunk_end.append(f"  store double {final}, ptr {address}")
+
+    def add_to_partial(self, slot: int, index: str, columns: int, values) -> None:
+        """Add ``values`` (one per column, None: no gradient) to the row ``index`` of this
+        chunk's partial table of ``slot`` (its rows counted from the end where negative, as
+        the gather read it; row 0 where out of range, as the gather read too, the kernel
+        then failing)."""
+        rows = self.program.slots[slot].shape[0]
+        lines = self.tail
+        negative, shifted, wrapped = self.fresh(), self.fresh(), self.fresh()
+        inside, safe, base, offset, at = (self.fresh() for _ in range(5))
+        lines += [
+            f"  {negative} = icmp slt i64 {index}, 0",
+            f"  {shifted} = add i64 {index}, {rows}",
+            f"  {wrapped} = select i1 {negative}, i64 {shifted}, i64 {index}",
+            f"  {inside} = icmp ult i64 {wrapped}, {rows}",
+            f"  {safe} = select i1 {inside}, i64 {wrapped}, i64 0",
+            f"  {base} = mul i64 %c, {rows * columns}",
+            f"  {offset} = mul i64 {safe}, {columns}",
+            f"  {at} = add i64 {base}, {offset}",
+        ]
+        for column, value in enumerate(values):
+            if value is None:
+                continue
+            self.emit(value.id)
+            address = self.element_address(lines, self.pointer(("partial", slot)), 1, column,
+                                           at, "double")  # fmt: skip
+            old, new = self.fresh(), self.fresh()
+            lines += [
+                f"  {old} = load double, ptr {address}",
+                f"  {new} = fadd double {old}, {self.name(value.id)}",
+                f"  store double {new}, ptr {address}",
+            ]
 
     def value_or_zero(self, d: ir.Value | None) -> str:
         """The name of ``d``, marked as needed; "0.0" for None (no gradient reaches)."""
@@ -569,6 +615,11 @@ def _reverse_elements(program: Program, graph: ir.Graph, emitter: _Emitter, wrt,
             if vid in adjoint:
                 _give(gathered, (slot, node.args[0], column), adjoint[vid])
     for (slot, index), columns in columns_of.items():
+        if slot in layout.partials:
+            emitter.emit(index)
+            sums = [gathered.get((slot, index, column)) for column in range(columns)]
+            emitter.add_to_partial(slot, emitter.name(index), columns, sums)
+            continue
         for column in range(columns):
             value = emitter.value_or_zero(gathered.get((slot, index, column)))
             emitter.store(("contrib", (slot, index)), columns, column, value)

@@ -445,13 +445,21 @@ class CompiledFunction:
         per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
         if outputs is not None:
             outputs += [np.empty((n, *shape)) for shape in trace.output_shapes]
-        buffers = [*data, *cotangents, *(outputs or ()), *grads.values(), sums, *per_gather]
+        partials = [
+            np.zeros((chunks, slots[s].shape[0], _columns(slots[s]))) for s in layout.partials
+        ]
+        buffers = [*data, *cotangents, *(outputs or ()), *grads.values(), sums, *per_gather,
+                   *partials]  # fmt: skip
         self._run(trace, mode, wrt, buffers)
         shared = {s: np.zeros(slots[s].shape) for s in wrt if not slots[s].batched}
         if shared and layout.frontier:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
             self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
         grads.update(shared)
+        for slot, partial in zip(layout.partials, partials, strict=True):
+            # Each table entry's chunks added in chunk order (a sum along the first axis is
+            # one row after the other, whatever the machine).
+            grads[slot] += np.add.reduce(partial, axis=0).reshape(slots[slot].shape)
         for slot, (share, where) in blocks.items():
             table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
             count = np.array([slots[slot].shape[0]], np.int64)
@@ -542,6 +550,11 @@ def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:
     hold the array, which then stays alive until the cyclic garbage collector runs. The
     caller keeps ``buffers`` alive for the call.)"""
     return (ctypes.c_void_p * len(buffers))(*(b.__array_interface__["data"][0] for b in buffers))
+
+
+def _columns(slot: Slot) -> int:
+    """The numbers in one row of a table slot."""
+    return int(np.prod(slot.shape[1:], dtype=np.int64))
 
 
 def _descents(rows: np.ndarray) -> int:

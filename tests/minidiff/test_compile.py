@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minidiff as md
-from minidiff import backend, compiler
+from minidiff import backend, codegen, compiler
 from minidiff.trace import CompileError
 
 RTOL = 1e-12
@@ -244,14 +244,18 @@ def test_gathers_with_repeated_and_negative_indices(data, n, rows):
     assert_close(t1, t2, "tangent")
 
 
+@pytest.mark.parametrize("rows", [50, codegen.PARTIAL_LIMIT // 3 + 50])
 @pytest.mark.parametrize("ascending", [False, True])
-def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(ascending):
-    """From ``compiler.PARALLEL_SCATTER`` elements whose rows come in ascending order each
-    thread adds a range of the table's rows (rows in any order: one thread): the same bits
-    as one thread, and the tape's gradient to rounding."""
+def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(ascending, rows):
+    """A table of at most ``codegen.PARTIAL_LIMIT`` numbers: its gradient summed per chunk
+    in the kernel, the chunks in order afterwards. A larger one: each element's
+    contribution added by the scatter kernel, where from ``compiler.PARALLEL_SCATTER``
+    elements whose rows come in ascending order each thread adds a range of the table's
+    rows (rows in any order: one thread). Either way the same bits as one thread, and the
+    tape's gradient to rounding."""
     rng = np.random.default_rng(3)
     n = compiler.PARALLEL_SCATTER + 1000
-    vertices, faces = rng.normal(size=(50, 3)), rng.integers(-50, 50, size=(30, 3))
+    vertices, faces = rng.normal(size=(rows, 3)), rng.integers(-rows, rows, size=(30, 3))
     hit, weights = rng.integers(-30, 30, size=n), rng.normal(size=n)
     if ascending:  # every gather's rows ascending: the faces' by hit, the vertices' by face
         faces, hit = np.sort(faces, axis=0), np.sort(rng.integers(0, 30, size=n))
