@@ -8,8 +8,9 @@ over the elements of a batch, in one of three modes.
   input is written per element; a shared input's is summed per *chunk* of elements into
   its own row of a buffer (the chunks' rows are added afterwards, always in the same order,
   so the result does not depend on how many threads ran the chunks); a table's, gathered
-  at an index, is written per element and added into the table's rows afterwards
-  (``compiler.py``), again in a fixed order.
+  at an index, is summed per chunk into the chunk's own copy of the table when the table
+  is small (``PARTIAL_LIMIT``), else written per element and added into the table's rows
+  afterwards (``compiler.py``), again in a fixed order.
 - ``vjp_values``: ``vjp`` that also writes each element's outputs: one pass for a caller
   whose cotangents the program computes itself from its values (an output such as
   ``sum(detach(c) * y)``) and that needs the values as well (the path replay's windows).

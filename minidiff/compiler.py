@@ -430,7 +430,8 @@ class CompiledFunction:
     def _vjp(self, trace: _Trace, data, wrt, cotangents, outputs=None) -> list[np.ndarray | None]:
         """Gradients of sum(cotangent * output) for the slots ``wrt``: one array per slot,
         None for the others. The element kernel, then the shared kernel on the batch's
-        totals at the frontier (``codegen.Layout``), then the gathers' scatter-adds.
+        totals at the frontier (``codegen.Layout``), then the small tables' partial
+        sums added chunk after chunk, and the large tables' scatter-adds.
         ``outputs``: a list to which the element kernel's values of the outputs are
         appended (its ``vjp_values`` form), or None."""
         mode = "vjp" if outputs is None else "vjp_values"
