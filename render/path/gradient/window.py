@@ -84,15 +84,15 @@ class CompiledWindow:
             before = vertices[k - 1]
             at = _positions(before.rows, rows, size)  # all there: rows reached vertex k
             back = tables.role(before.prim[at], np.take(before.local, at, axis=0))
-        # Paths without NEE (or that do not go on) read a harmless point: their weight is 0.
+        # Paths without NEE (or that do not go on) read a harmless point, their weight 0: a
+        # point of the primitive here (``window_terms`` puts it in the middle).
         has_nee = record.nee_weight > 0
         nee_prim = np.where(has_nee, record.nee_prim, record.prim)
-        nee_local = np.where(has_nee[:, None], record.nee_local, 1.0 / 3.0)
-        next_prim, next_local = record.prim, np.full((n, 3), 1.0 / 3.0)
+        next_prim, next_local = record.prim, record.local
         if going.any():  # gathered from the next record (row 0 for the others: unused)
             at = np.where(going, next_at, 0)
             next_prim = np.where(going, np.take(following.prim, at), record.prim)
-            next_local = np.where(going[:, None], np.take(following.local, at, axis=0), next_local)
+            next_local = following.local[at]
         lit = None
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)
@@ -106,7 +106,7 @@ class CompiledWindow:
             here,
             lit,
             record.emit_weight,
-            (*tables.role(nee_prim, nee_local), record.nee_weight),
+            (*tables.role(nee_prim, record.nee_local), record.nee_weight),
             (np.where(escape, scale, 0.0), record.escape_dir),
             (*tables.role(next_prim, next_local), np.where(going, scale, 0.0), going),
         )
@@ -331,6 +331,7 @@ def window_terms(
     # Next-event estimation on the area lights: a point on an emitting primitive, whose
     # area is half the stretch on a triangle, 4 pi times it on a sphere.
     *nee_role, nee_weight = nee
+    nee_role[4] = _middle_unless(nee_weight > 0.0, nee_role[4])
     light = surface(world, nee_role)
     wi, d2 = toward(light.points, nee_weight > 0.0)
     cos_x = md.maximum(md.dot(ns, wi), 0.0)
@@ -346,6 +347,7 @@ def window_terms(
 
     # The factor of the segment to the next vertex, with the change of measure to its area.
     *next_role, next_scale, goes = going
+    next_role[4] = _middle_unless(goes, next_role[4])
     nxt = surface(world, next_role)
     wi, d2 = toward(nxt.points, goes)
     geometry = md.where(goes, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
@@ -376,6 +378,13 @@ def _replayed(
     coefficients, scale = objective_weights(*constants)
     objective = md.sum(coefficients * added, axis=1) + md.sum(scale * factor, axis=1)
     return added, factor, objective
+
+
+def _middle_unless(used, local):
+    """``local`` (n, 3) barycentric coordinates where ``used`` (n,), else the primitive's
+    middle (1/3 each): the harmless point read by a path whose term there has weight 0 (no
+    NEE; it does not go on), whatever its record holds."""
+    return md.where(column(used), local, 1.0 / 3.0)
 
 
 def objective_weights(added, factor, going, weights, beta, radiance, gathered):
