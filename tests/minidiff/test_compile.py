@@ -339,6 +339,15 @@ def _leaves(*arrays):
     return [md.tensor(a, requires_grad=True) for a in arrays]
 
 
+def _gathered_case(rng):
+    """A table of 20 vertices, faces, 200 hits, their weights and cotangents for
+    ``centroid_light``."""
+    vertices = rng.normal(size=(20, 3))
+    faces = rng.integers(0, 20, size=(20, 3))
+    hit, w = rng.integers(0, 20, size=200), rng.normal(size=200)
+    return vertices, faces, hit, w, rng.normal(size=(200, 3))
+
+
 def test_add_vjp_adds_what_backward_on_the_tape_adds():
     """``add_vjp`` (the call off the tape, its VJP added to the leaves) gives the bits
     ``backward`` through the call on the tape gives: one output and two, a gathered table,
@@ -361,10 +370,7 @@ def test_add_vjp_adds_what_backward_on_the_tape_adds():
     for a, b in zip(on_tape, direct, strict=True):
         assert np.array_equal(a.grad, b.grad)
 
-    vertices = rng.normal(size=(20, 3))
-    faces = rng.integers(0, 20, size=(20, 3))
-    hit, w = rng.integers(0, 20, size=200), rng.normal(size=200)
-    c3 = rng.normal(size=(200, 3))
+    vertices, faces, hit, w, c3 = _gathered_case(rng)
     on_tape, direct = _leaves(vertices), _leaves(vertices)
     md.sum(centroid_light(on_tape[0], faces, hit, w) * c3).backward()
     centroid_light.add_vjp(c3, direct[0], faces, hit, w)
@@ -411,10 +417,7 @@ def test_value_and_add_vjp_is_the_call_and_add_vjp_in_one_pass():
     for a, b in zip(on_tape, reference, strict=True):
         assert_close(a.grad, b.grad, "gradient")
 
-    vertices = rng.normal(size=(20, 3))
-    faces = rng.integers(0, 20, size=(20, 3))
-    hit, w = rng.integers(0, 20, size=200), rng.normal(size=200)
-    c3 = rng.normal(size=(200, 3))
+    vertices, faces, hit, w, c3 = _gathered_case(rng)
     on_tape, direct = _leaves(vertices), _leaves(vertices)
     md.sum(centroid_light(on_tape[0], faces, hit, w) * c3).backward()
     values = centroid_light.value_and_add_vjp(c3, direct[0], faces, hit, w)
