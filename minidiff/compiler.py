@@ -204,7 +204,7 @@ class CompiledFunction:
         array for a function of one output)."""
         self._add_vjp(cotangents, args, kwargs, values=False)
 
-    def value_and_add_vjp(self, cotangents, *args, **kwargs):
+    def value_and_add_vjp(self, cotangents, *args, **kwargs) -> np.ndarray | tuple:
         """``add_vjp``, and the outputs' values (NumPy arrays; one for a function of one
         output) from the same pass over the elements: the VJP computes them anyway. For a
         function that computes its own objective from its values (an output such as
@@ -212,7 +212,7 @@ class CompiledFunction:
         bookkeeping and the gradient in one call."""
         return self._add_vjp(cotangents, args, kwargs, values=True)
 
-    def _add_vjp(self, cotangents, args, kwargs, values: bool):
+    def _add_vjp(self, cotangents, args, kwargs, values: bool) -> np.ndarray | tuple | None:
         names, values_ = self._bind(args, kwargs)
         arrays, trees, key = self._classify(names, values_)
         given = [value for value, _ in arrays]

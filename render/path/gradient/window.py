@@ -59,9 +59,12 @@ def applies(world: Scene, batch: PathBatch) -> bool:
 
 
 class CompiledWindow:
-    """``replay._Window``'s C_k and F_k for the batch's paths ``rows`` (sorted, reaching
-    vertex k), by one compiled call (``_window``): ``parts``/``rows_of`` C_k (m, 3) and its
-    rows, ``factors``/``factor_rows`` F_k of the paths that go on and their rows."""
+    """Window k of the batch's paths ``rows`` (sorted, reaching vertex k), compiled: the
+    arguments of ``window_terms`` gathered from the records once. ``replay`` is the
+    replay's step (values and VJP in one compiled pass); ``values``, ``added``,
+    ``factor`` and ``backward`` are ``replay._Window``'s interface (C_k (m, 3), F_k of the
+    paths that go on, and their VJP), for ``replay.radiance_of`` and the pending
+    channels."""
 
     def __init__(self, tables: Tables, batch: PathBatch, vertices: list[Vertices], k: int,
                  rows: np.ndarray):  # fmt: skip
@@ -122,8 +125,9 @@ class CompiledWindow:
         """Window k's step of the replay (``replay._Sums``): its values and the VJP of its
         objective in one compiled pass (``_replayed``: the objective's constants computed
         from the values inside it, as ``replay._Window.replay`` computes them outside),
-        then the paths' running sums moved on. ``anchor`` (N,): unused (every compiled
-        window starts at its previous vertex)."""
+        then the paths' running sums moved on. ``sums``: the replay's running values
+        (``replay._Sums``); ``anchor`` (N,): each path's window anchor (kept for its
+        pending channels)."""
         rows, n = self.rows, len(self.rows)
         running = sums.running(rows)
         cotangents = (np.zeros((n, 3)), np.zeros((n, 3)), np.ones(n))  # the objective's
@@ -156,10 +160,12 @@ class CompiledWindow:
 
     @property
     def rows_of(self) -> list[np.ndarray]:
+        """The rows of C_k's one part (``replay._Window``'s interface)."""
         return [self.rows]
 
     @property
     def factors(self) -> list[np.ndarray]:
+        """F_k of the paths that go on, as one part (none if no path goes on)."""
         return [self.values()[1][self._going]] if len(self._going) else []
 
     def added(self, n_paths: int) -> np.ndarray:
@@ -380,14 +386,14 @@ def _replayed(
     return added, factor, objective
 
 
-def _middle_unless(used, local):
+def _middle_unless(used, local) -> md.Tensor:
     """``local`` (n, 3) barycentric coordinates where ``used`` (n,), else the primitive's
     middle (1/3 each): the harmless point read by a path whose term there has weight 0 (no
     NEE; it does not go on), whatever its record holds."""
     return md.where(column(used), local, 1.0 / 3.0)
 
 
-def objective_weights(added, factor, going, weights, beta, radiance, gathered):
+def objective_weights(added, factor, going, weights, beta, radiance, gathered) -> tuple:
     """The constants of window k's objective, sum(coefficients * C_k) + sum(scale * F_k)
     (``replay``'s module docstring), from its values (each (n, 3) but ``going`` (n,) bool:
     which paths go on): coefficients weights beta_k, and scale weights beta_k Lrem_k /
