@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.sample.tables import Tables
+from render.path.sample.tables import Tables, role_of
 from render.path.sample.tracer import CAMERA, MIRROR, PathBatch, Vertices
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
@@ -86,7 +86,7 @@ class CompiledWindow:
         if k > 0:
             before = vertices[k - 1]
             at = _positions(before.rows, rows, size)  # all there: rows reached vertex k
-            back = tables.role(before.prim[at], np.take(before.local, at, axis=0))
+            back = (before.prim[at], np.take(before.local, at, axis=0))
         # Paths without NEE (or that do not go on) read a harmless point, their weight 0: a
         # point of the primitive here (``window_terms`` puts it in the middle).
         has_nee = record.nee_weight > 0
@@ -99,24 +99,20 @@ class CompiledWindow:
         lit = None
         if len(tables.lights):
             lit = record.lit.T.astype(np.float64)
-        here = tables.role(record.prim, record.local)
-        camera = here if k == 0 else back if case == "after_camera" else None
-        far = None if camera is None else tables.far_side(camera)
         batched = (
             coords,
-            far,
             back,
-            here,
+            (record.prim, record.local),
             lit,
             record.emit_weight,
-            (*tables.role(nee_prim, record.nee_local), record.nee_weight),
+            (nee_prim, record.nee_local, record.nee_weight),
             (np.where(escape, scale, 0.0), record.escape_dir),
-            (*tables.role(next_prim, next_local), np.where(going, scale, 0.0), going),
+            (next_prim, next_local, np.where(going, scale, 0.0), going),
         )
         self._arguments = (
             *_dense(batched), tables.frame, tables.vertices, tables.normals, tables.faces,
             tables.centers, tables.radii, tables.smooth, tables.materials, tables.lights,
-            tables.background, (case, tables.kinds, tables.glossy),
+            tables.background, tables.primitives, (case, tables.kinds, tables.glossy),
         )  # fmt: skip
         self.rows, self._going = rows, np.flatnonzero(going)
         self._values: tuple[np.ndarray, np.ndarray] | None = None
@@ -258,12 +254,11 @@ def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
 
 
 _SHARED = ("frame", "vertices", "normals", "faces", "centers", "radii", "smooth", "materials",
-           "lights", "background")  # fmt: skip
+           "lights", "background", "primitives")  # fmt: skip
 
 
 def window_terms(
     coords,
-    far,
     previous,
     here,
     lit,
@@ -281,15 +276,17 @@ def window_terms(
     materials,
     lights,
     background,
+    primitives,
     form,
 ):
     """One window of one path: (C_k (n, 3), F_k (n, 3)), ``transport._at_vertex``'s terms
     for a vertex reached without a mirror. Batched (n paths): coords (n, 2) the camera ray's
-    image-plane point (when vertex k or k - 1 is the camera's) and far (n,) whether it meets
-    a sphere's far side; previous, here: vertices k - 1 (when an ``AREA`` one) and k
-    (``Tables.role``); lit (n, L); emit_weight (n,); nee (role, weight) the point on an
-    area light; escape (scale, unit direction); going (role, scale, flag) the next vertex.
-    Shared: the tables (``Tables``). Static ``form``: (which vertex the camera's ray meets:
+    image-plane point (when vertex k or k - 1 is the camera's); previous, here: vertices k
+    - 1 (when an ``AREA`` one) and k, each (primitive (n,), barycentric coordinates (n,
+    3)); lit (n, L); emit_weight (n,); nee (primitive, coordinates, weight) the point on an
+    area light; escape (scale, unit direction); going (primitive, coordinates, scale, flag)
+    the next vertex. Shared: the tables (``Tables``; ``primitives``: what a point on each
+    primitive reads, ``role_of``). Static ``form``: (which vertex the camera's ray meets:
     "camera" (vertex k), "after_camera" (k - 1) or "after_area" (none), the lights'
     classes and parameter names, whether any material is glossy)."""
     case, kinds, glossy = form
@@ -297,16 +294,20 @@ def window_terms(
     zero = md.tensor(0.0)
     world = held_world(vertices, normals, faces, centers, radii, smooth)
     scene_lights = held_lights(kinds, lights)
+    far_of = primitives[4]  # (a camera ray meets the far side of a sphere the camera is in)
     if case == "camera":  # vertex k where the camera's ray meets it
         directions = ray_directions(frame, coords)
-        v = surface(world, here, frame[3], directions, far)
+        far = None if far_of is None else far_of[here[0]]
+        v = surface(world, role_of(primitives, *here), frame[3], directions, far)
         v.wo = -md.normalize(directions)
     else:
-        v = surface(world, here)
+        v = surface(world, role_of(primitives, *here))
+        back_role = role_of(primitives, *previous)
         if case == "after_camera":
-            back = surface(world, previous, frame[3], ray_directions(frame, coords), far).points
+            far = None if far_of is None else far_of[previous[0]]
+            back = surface(world, back_role, frame[3], ray_directions(frame, coords), far).points
         else:
-            back = surface(world, previous).points
+            back = surface(world, back_role).points
         v.wo = md.normalize(back - v.points)
     obj = v.obj
 
@@ -336,8 +337,8 @@ def window_terms(
 
     # Next-event estimation on the area lights: a point on an emitting primitive, whose
     # area is half the stretch on a triangle, 4 pi times it on a sphere.
-    *nee_role, nee_weight = nee
-    nee_role[4] = _middle_unless(nee_weight > 0.0, nee_role[4])
+    nee_prim, nee_local, nee_weight = nee
+    nee_role = role_of(primitives, nee_prim, _middle_unless(nee_weight > 0.0, nee_local))
     light = surface(world, nee_role)
     wi, d2 = toward(light.points, nee_weight > 0.0)
     cos_x = md.maximum(md.dot(ns, wi), 0.0)
@@ -352,9 +353,8 @@ def window_terms(
     added = added + bounce_weight(escape_dir, escape_scale) * background
 
     # The factor of the segment to the next vertex, with the change of measure to its area.
-    *next_role, next_scale, goes = going
-    next_role[4] = _middle_unless(goes, next_role[4])
-    nxt = surface(world, next_role)
+    next_prim, next_local, next_scale, goes = going
+    nxt = surface(world, role_of(primitives, next_prim, _middle_unless(goes, next_local)))
     wi, d2 = toward(nxt.points, goes)
     geometry = md.where(goes, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
     factor = bounce_weight(wi, next_scale) * column(geometry / md.detach(geometry))
@@ -366,8 +366,8 @@ _window = md.compile(window_terms, shared=_SHARED)
 
 @md.compile(shared=_SHARED)
 def _replayed(
-    coords, far, previous, here, lit, emit_weight, nee, escape, going, frame, vertices,
-    normals, faces, centers, radii, smooth, materials, lights, background, form, weights,
+    coords, previous, here, lit, emit_weight, nee, escape, going, frame, vertices, normals,
+    faces, centers, radii, smooth, materials, lights, background, primitives, form, weights,
     beta, radiance, gathered,
 ):  # fmt: skip
     """One window of one path (``window_terms``' arguments, then its replay's running
@@ -377,8 +377,8 @@ def _replayed(
     sum(weights beta_k Lrem_k / beta_{k+1} F_k) over the channels, its factors constants
     (``detach``) computed as ``replay._Window.replay`` computes them: the same bits."""
     added, factor = window_terms(
-        coords, far, previous, here, lit, emit_weight, nee, escape, going, frame, vertices,
-        normals, faces, centers, radii, smooth, materials, lights, background, form,
+        coords, previous, here, lit, emit_weight, nee, escape, going, frame, vertices, normals,
+        faces, centers, radii, smooth, materials, lights, background, primitives, form,
     )  # fmt: skip
     constants = md.detach(added), md.detach(factor), going[-1], weights, beta, radiance, gathered
     coefficients, scale = objective_weights(*constants)

@@ -36,7 +36,8 @@ class Tables:
     computed from on the tape. Plain: ``owner`` (P,) the object of each primitive,
     ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
     ``inside`` (S,) whether the camera is inside each sphere, ``first_vertex`` (O,) each
-    mesh's first row of ``vertices``, ``glossy``."""
+    mesh's first row of ``vertices``, ``glossy``, and ``primitives``: what a point on each
+    primitive reads (``role_of``)."""
 
     vertices: md.Tensor | None
     normals: md.Tensor | None
@@ -56,6 +57,23 @@ class Tables:
     inside: np.ndarray
     first_vertex: np.ndarray
     built: list
+    primitives: tuple = ()
+
+    def __post_init__(self) -> None:
+        """``primitives``, per primitive p (P,): (its face: p, or the spare face on a
+        sphere; its sphere: p's row among the spheres, or 0 on a triangle; whether it is a
+        sphere; its object; whether a camera ray meets it on its far side, the camera being
+        inside that sphere), face and sphere None where the scene has none, the last None
+        without spheres."""
+        p = np.arange(len(self.owner))
+        on_sphere = p >= self.n_triangles
+        face = sphere = far = None
+        if self.faces is not None:
+            face = np.where(on_sphere, self.spare_face, p)
+        if self.centers is not None:
+            sphere = np.where(on_sphere, p - self.n_triangles, 0)
+            far = on_sphere & self.inside[sphere]
+        self.primitives = (face, sphere, on_sphere, self.owner, far)
 
     @classmethod
     def of(cls, world: Scene, frame: tuple, leaves: bool = True) -> Tables:
@@ -115,18 +133,8 @@ class Tables:
         )  # fmt: skip
 
     def role(self, prims: np.ndarray, local: np.ndarray) -> tuple:
-        """What a compiled window reads of points on primitives ``prims`` (n,) at ``local``
-        (n, 3): (face (n,), sphere (n,), on a sphere (n,) bool, object (n,), local), face
-        and sphere None where the scene has none; a point on a sphere reads the spare face,
-        a point on a triangle sphere 0 (harmless values, never selected)."""
-        obj = self.owner[prims]
-        on_sphere = prims >= self.n_triangles
-        face = sphere = None
-        if self.faces is not None:
-            face = np.where(on_sphere, self.spare_face, prims)
-        if self.centers is not None:
-            sphere = np.where(on_sphere, prims - self.n_triangles, 0)
-        return face, sphere, on_sphere, obj, local
+        """``role_of`` the points on primitives ``prims`` (n,) at ``local`` (n, 3)."""
+        return role_of(self.primitives, prims, local)
 
     def far_side(self, role: tuple) -> np.ndarray | None:
         """(n,) which camera rays meeting the points of ``role`` (``role``) meet a sphere's
@@ -140,6 +148,18 @@ class Tables:
         """The terms whose ``backward`` carries what the windows put into the leaves'
         ``grad`` through the tape the tables were built on."""
         return [md.sum(t * copy.grad) for t, copy in self.built if copy.grad is not None]
+
+
+def role_of(primitives: tuple, prims, local) -> tuple:
+    """What a compiled function reads of points on primitives ``prims`` (n,) at ``local``
+    (n, 3): (face (n,), sphere (n,), on a sphere (n,) bool, object (n,), local), gathered
+    from ``Tables.primitives``; face and sphere None where the scene has none. A point on
+    a sphere reads the spare face, a point on a triangle sphere 0 (harmless values, never
+    selected). NumPy arrays, or traced ones inside a compiled function."""
+    face_of, sphere_of, on_sphere_of, owner, _ = primitives
+    face = None if face_of is None else face_of[prims]
+    sphere = None if sphere_of is None else sphere_of[prims]
+    return face, sphere, on_sphere_of[prims], owner[prims], local
 
 
 def _normals(mesh: Mesh) -> md.Tensor:
