@@ -55,13 +55,16 @@ class Kernel:
         self.key = key
         self._function = KERNEL_TYPE(engine.get_function_address(name))
 
-    def run(self, pointers: ctypes.Array, n: int, chunks: int, n_threads: int) -> int:
+    def run(self, pointers: ctypes.Array, n: int, chunks: int, n_threads: int,
+            unit: int = 1) -> int:  # fmt: skip
         """0, or 1 + the first element (of the first failing range) whose gather index was out
-        of range. Every chunk is computed the same whatever ``n_threads`` is."""
+        of range. Every chunk is computed the same whatever ``n_threads`` is. A job runs
+        whole units of ``unit`` chunks (the groups of a VJP's partial tables)."""
         if n == 0:
             return 0
-        n_jobs = max(1, min(n_threads, chunks))
-        bounds = [j * chunks // n_jobs for j in range(n_jobs + 1)]  # whole chunks a job
+        units = -(-chunks // unit)
+        n_jobs = max(1, min(n_threads, units))
+        bounds = [min(chunks, j * units // n_jobs * unit) for j in range(n_jobs + 1)]
 
         def job(j: int, _: int) -> int:
             return self._function(pointers, n, bounds[j], bounds[j + 1])

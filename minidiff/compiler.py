@@ -409,13 +409,14 @@ class CompiledFunction:
         return _Trace(program, batch, tuple(shapes), single, {})
 
     # ----------------------------------------------------------------------------------------
-    def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray], batch=None) -> None:
+    def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray], batch=None,
+             unit: int = 1) -> None:  # fmt: skip
         kernel, _ = trace.kernel(mode, wrt)
         pointers = _addresses(buffers)
         n = trace.batch if batch is None else batch
         chunks = -(-n // codegen.CHUNK)
         threads = thread_count()
-        status = kernel.run(pointers, n, chunks, threads)
+        status = kernel.run(pointers, n, chunks, threads, unit)
         if status:
             raise IndexError(
                 f"{self.function.__name__}: element {status - 1} gathers a row out of range "
@@ -446,19 +447,24 @@ class CompiledFunction:
         per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
         if outputs is not None:
             outputs += [np.empty((n, *shape)) for shape in trace.output_shapes]
+        # The partial tables' groups: at most PARTIAL_GROUPS, of ``unit`` chunks each (fixed
+        # by n alone, so that each group's sums are the same whatever runs them).
+        unit = -(-chunks // codegen.PARTIAL_GROUPS)
+        groups = -(-chunks // unit)
         partials = [
-            np.zeros((chunks, slots[s].shape[0], _columns(slots[s]))) for s in layout.partials
+            np.zeros((groups, slots[s].shape[0], _columns(slots[s]))) for s in layout.partials
         ]
+        group = [np.array([unit], np.int64)] if partials else []
         buffers = [*data, *cotangents, *(outputs or ()), *grads.values(), sums, *per_gather,
-                   *partials]  # fmt: skip
-        self._run(trace, mode, wrt, buffers)
+                   *partials, *group]  # fmt: skip
+        self._run(trace, mode, wrt, buffers, unit=unit)
         shared = {s: np.zeros(slots[s].shape) for s in wrt if not slots[s].batched}
         if shared and layout.frontier:
             totals = np.ascontiguousarray(sums.sum(axis=0))  # chunk by chunk, in order
             self._run(trace, "vjp_shared", wrt, [*data, totals, *shared.values()], batch=1)
         grads.update(shared)
         for slot, partial in zip(layout.partials, partials, strict=True):
-            # Each table entry's chunks added in chunk order (a sum along the first axis is
+            # Each table entry's groups added in group order (a sum along the first axis is
             # one row after the other, whatever the machine).
             grads[slot] += np.add.reduce(partial, axis=0).reshape(slots[slot].shape)
         for slot, (share, where) in blocks.items():

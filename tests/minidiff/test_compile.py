@@ -247,8 +247,8 @@ def test_gathers_with_repeated_and_negative_indices(data, n, rows):
 @pytest.mark.parametrize("rows", [50, codegen.PARTIAL_LIMIT // 3 + 50])
 @pytest.mark.parametrize("ascending", [False, True])
 def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(ascending, rows):
-    """A table of at most ``codegen.PARTIAL_LIMIT`` numbers: its gradient summed per chunk
-    in the kernel, the chunks in order afterwards. A larger one: each element's
+    """A table of at most ``codegen.PARTIAL_LIMIT`` numbers: its gradient summed per group
+    of chunks in the kernel, the groups in order afterwards. A larger one: each element's
     contribution added by the scatter kernel, where from ``compiler.PARALLEL_SCATTER``
     elements whose rows come in ascending order each thread adds a range of the table's
     rows (rows in any order: one thread). Either way the same bits as one thread, and the
