@@ -116,6 +116,7 @@ class CompiledWindow:
         )  # fmt: skip
         self.rows, self._going = rows, np.flatnonzero(going)
         self._values: tuple[np.ndarray, np.ndarray] | None = None
+        self._factor: np.ndarray | None = None  # F_k of the paths that go on, once taken
 
     def replay(self, sums, k: int, anchor: np.ndarray) -> None:
         """Window k's step of the replay (``replay._Sums``): its values and the VJP of its
@@ -162,7 +163,11 @@ class CompiledWindow:
     @property
     def factors(self) -> list[np.ndarray]:
         """F_k of the paths that go on, as one part (none if no path goes on)."""
-        return [self.values()[1][self._going]] if len(self._going) else []
+        if not len(self._going):
+            return []
+        if self._factor is None:
+            self._factor = np.take(self.values()[1], self._going, axis=0)
+        return [self._factor]
 
     def added(self, n_paths: int) -> np.ndarray:
         """(N, 3) the values of C_k, zero for the paths not in the window."""
