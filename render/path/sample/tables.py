@@ -9,7 +9,7 @@ the secondary term's level sets (``render.path.boundary.secondary``) and the sam
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -57,7 +57,7 @@ class Tables:
     inside: np.ndarray
     first_vertex: np.ndarray
     built: list
-    primitives: tuple = ()
+    primitives: tuple = field(init=False, default=())
 
     def __post_init__(self) -> None:
         """``primitives``, per primitive p (P,): (its face: p, or the spare face on a
