@@ -324,12 +324,8 @@ class _Window:
     ``factor_rows``, F_k (m', 3) of the paths that go on, by anchor."""
 
     def __init__(self, paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
-        self.world, self.frame, self.sampler, self.rows = (
-            paths.world,
-            paths.frame,
-            paths.sampler,
-            rows,
-        )
+        self.world, self.frame, self.sampler = paths.world, paths.frame, paths.sampler
+        self.rows = rows
         self.batch, self.vertices, self.dtype, self.k = paths.batch, paths.vertices, paths.dtype, k
         self.parts: list[md.Tensor] = []
         self.rows_of: list[np.ndarray] = []
