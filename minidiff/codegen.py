@@ -311,15 +311,24 @@ class _Emitter:
         """A gather's row: negative counts from the end. Out of range, row 0 is read instead
         and the element is remembered (the kernel returns the first such one): no branch,
         so that LLVM may vectorise the loop."""
-        negative, shifted, wrapped = self.fresh(), self.fresh(), self.fresh()
-        inside, safe = self.fresh(), self.fresh()
-        self.body.append(f"  {negative} = icmp slt i64 {row}, 0")
-        self.body.append(f"  {shifted} = add i64 {row}, {rows}")
-        self.body.append(f"  {wrapped} = select i1 {negative}, i64 {shifted}, i64 {row}")
-        self.body.append(f"  {inside} = icmp ult i64 {wrapped}, {rows}")
-        self.body.append(f"  {safe} = select i1 {inside}, i64 {wrapped}, i64 0")
+        safe, inside = self.safe_row(self.body, row, rows)
         self.inside.append(inside)
         return safe
+
+    def safe_row(self, lines: list[str], row: str, rows: int) -> tuple[str, str]:
+        """Appended to ``lines``: ``row`` of a table of ``rows`` rows counted from the end
+        where negative, row 0 where out of range; returns its name and the name of the
+        flag saying whether it was in range."""
+        negative, shifted, wrapped = self.fresh(), self.fresh(), self.fresh()
+        inside, safe = self.fresh(), self.fresh()
+        lines += [
+            f"  {negative} = icmp slt i64 {row}, 0",
+            f"  {shifted} = add i64 {row}, {rows}",
+            f"  {wrapped} = select i1 {negative}, i64 {shifted}, i64 {row}",
+            f"  {inside} = icmp ult i64 {wrapped}, {rows}",
+            f"  {safe} = select i1 {inside}, i64 {wrapped}, i64 0",
+        ]
+        return safe, inside
 
     def accumulate(self, f: int, count: int, value: str) -> None:
         """Add ``value`` to this chunk's sum number ``f`` (of ``count``), written to the
@@ -359,14 +368,9 @@ class _Emitter:
             self.chunk_start.append("  %group = udiv i64 %c, %group.size")
         rows = self.program.slots[slot].shape[0]
         lines = self.tail
-        negative, shifted, wrapped = self.fresh(), self.fresh(), self.fresh()
-        inside, safe, base, offset, at = (self.fresh() for _ in range(5))
+        safe, _ = self.safe_row(lines, index, rows)  # as the gather read it
+        base, offset, at = self.fresh(), self.fresh(), self.fresh()
         lines += [
-            f"  {negative} = icmp slt i64 {index}, 0",
-            f"  {shifted} = add i64 {index}, {rows}",
-            f"  {wrapped} = select i1 {negative}, i64 {shifted}, i64 {index}",
-            f"  {inside} = icmp ult i64 {wrapped}, {rows}",
-            f"  {safe} = select i1 {inside}, i64 {wrapped}, i64 0",
             f"  {base} = mul i64 %group, {rows * columns}",
             f"  {offset} = mul i64 {safe}, {columns}",
             f"  {at} = add i64 {base}, {offset}",

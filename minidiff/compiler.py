@@ -213,8 +213,9 @@ class CompiledFunction:
         return self._add_vjp(cotangents, args, kwargs, values=True)
 
     def _add_vjp(self, cotangents, args, kwargs, values: bool) -> np.ndarray | tuple | None:
-        names, values_ = self._bind(args, kwargs)
-        arrays, trees, key = self._classify(names, values_)
+        """``add_vjp``; and with ``values``, the outputs' values returned."""
+        names, bound = self._bind(args, kwargs)
+        arrays, trees, key = self._classify(names, bound)
         given = [value for value, _ in arrays]
         floats = _floats([slot for _, slot in arrays])
         wrt = tuple(s for s in floats if isinstance(given[s], Tensor) and given[s].requires_grad)
@@ -432,7 +433,7 @@ class CompiledFunction:
         """Gradients of sum(cotangent * output) for the slots ``wrt``: one array per slot,
         None for the others. The element kernel, then the shared kernel on the batch's
         totals at the frontier (``codegen.Layout``), then the small tables' partial
-        sums added chunk after chunk, and the large tables' scatter-adds.
+        sums added group after group, and the large tables' scatter-adds.
         ``outputs``: a list to which the element kernel's values of the outputs are
         appended (its ``vjp_values`` form), or None."""
         mode = "vjp" if outputs is None else "vjp_values"

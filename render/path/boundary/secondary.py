@@ -607,7 +607,7 @@ def _level_sets(tables: Tables, curves: Curves, index, apex, here, there, kinds)
         role = tables.role(prim, local)
         if kind != "camera":
             return role, None, None
-        return role, coords, tables.far_side(role)
+        return role, coords, tables.far_side(prim)
 
     return _compiled_phi(
         point(here, kinds[0]), point(there, kinds[1]), _curve_rows(tables, curves, index), apex,

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.sample.tables import Tables, role_of
+from render.path.sample.tables import Tables, far_side_of, role_of
 from render.path.sample.tracer import CAMERA, MIRROR, PathBatch, Vertices
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
@@ -299,17 +299,16 @@ def window_terms(
     zero = md.tensor(0.0)
     world = held_world(vertices, normals, faces, centers, radii, smooth)
     scene_lights = held_lights(kinds, lights)
-    far_of = primitives[4]  # (a camera ray meets the far side of a sphere the camera is in)
     if case == "camera":  # vertex k where the camera's ray meets it
         directions = ray_directions(frame, coords)
-        far = None if far_of is None else far_of[here[0]]
+        far = far_side_of(primitives, here[0])
         v = surface(world, role_of(primitives, *here), frame[3], directions, far)
         v.wo = -md.normalize(directions)
     else:
         v = surface(world, role_of(primitives, *here))
         back_role = role_of(primitives, *previous)
         if case == "after_camera":
-            far = None if far_of is None else far_of[previous[0]]
+            far = far_side_of(primitives, previous[0])
             back = surface(world, back_role, frame[3], ray_directions(frame, coords), far).points
         else:
             back = surface(world, back_role).points

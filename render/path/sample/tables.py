@@ -136,13 +136,10 @@ class Tables:
         """``role_of`` the points on primitives ``prims`` (n,) at ``local`` (n, 3)."""
         return role_of(self.primitives, prims, local)
 
-    def far_side(self, role: tuple) -> np.ndarray | None:
-        """(n,) which camera rays meeting the points of ``role`` (``role``) meet a sphere's
-        far side, the camera being inside it (None without spheres)."""
-        if self.centers is None:
-            return None
-        _, sphere, on_sphere, _, _ = role
-        return on_sphere & self.inside[sphere]
+    def far_side(self, prims: np.ndarray) -> np.ndarray | None:
+        """(n,) which camera rays meeting primitives ``prims`` (n,) meet a sphere's far
+        side, the camera being inside it (None without spheres): ``primitives``' last."""
+        return far_side_of(self.primitives, prims)
 
     def carried(self) -> list[md.Tensor]:
         """The terms whose ``backward`` carries what the windows put into the leaves'
@@ -160,6 +157,14 @@ def role_of(primitives: tuple, prims, local) -> tuple:
     face = None if face_of is None else face_of[prims]
     sphere = None if sphere_of is None else sphere_of[prims]
     return face, sphere, on_sphere_of[prims], owner[prims], local
+
+
+def far_side_of(primitives: tuple, prims):
+    """(n,) which camera rays meeting primitives ``prims`` (n,) meet a sphere's far side,
+    the camera being inside it, from ``Tables.primitives`` (None without spheres). NumPy
+    arrays, or traced ones inside a compiled function."""
+    far_of = primitives[4]
+    return None if far_of is None else far_of[prims]
 
 
 def _normals(mesh: Mesh) -> md.Tensor:
