@@ -88,6 +88,8 @@ def radiance_of(
     about many batches of one world makes them once)."""
     with md.no_grad():
         paths = _Paths.of(world, frame, sampler, batch, tables)
+        if paths.tables is not None:
+            return window.radiance(paths.tables, batch)
         n_paths = len(batch.paths)
         total = np.zeros((n_paths, 3), paths.dtype)
         total[batch.missed] = world.background.data  # camera rays that see the environment
@@ -96,7 +98,7 @@ def radiance_of(
         for k, record in enumerate(paths.vertices):
             if k > 0:
                 anchor[record.rows] = _anchors(paths.vertices, k, anchor[record.rows])
-            here = _window(paths, k, record.rows, anchor[record.rows])
+            here = _Window(paths, k, record.rows, anchor[record.rows])
             total += beta * here.added(n_paths)
             if here.factors:
                 factor, rows = here.factor()
@@ -121,18 +123,20 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
         seen = md.sum(md.broadcast_to(window_world.background, (len(missed), 3)) * weights[missed])
         seen.backward()
     paths = _Paths.of(window_world, window_frame, sampler, batch)
-    vertices, tables = paths.vertices, paths.tables
-    sums = _Sums.of(weights, radiance)
-    anchor = np.zeros(len(batch.paths), np.int64)  # where window k starts, per path
-    for k, record in enumerate(vertices):
-        if k > 0:
-            anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
-        here_window = _window(paths, k, record.rows, anchor[record.rows])
-        here_window.replay(sums, k, anchor)
-        del here_window  # this window's tape, before the next is built
-    sums.pending.close(paths, weights)
-    if tables is not None:  # the tables' gradients, through the tape they were built on
-        _backward(tables.carried())
+    if paths.tables is not None:  # compiled: each path's reverse sweep in one kernel
+        window.backpropagate(paths.tables, batch, weights)
+        _backward(paths.tables.carried())  # the tables' gradients, through their tape
+    else:
+        vertices = paths.vertices
+        sums = _Sums.of(weights, radiance)
+        anchor = np.zeros(len(batch.paths), np.int64)  # where window k starts, per path
+        for k, record in enumerate(vertices):
+            if k > 0:
+                anchor[record.rows] = _anchors(vertices, k, anchor[record.rows])
+            here_window = _Window(paths, k, record.rows, anchor[record.rows])
+            here_window.replay(sums, k, anchor)
+            del here_window  # this window's tape, before the next is built
+        sums.pending.close(paths, weights)
 
     carried = [md.sum(t * copies[id(t)].grad) for t in originals if copies[id(t)].grad is not None]
     _backward(carried)
@@ -236,7 +240,7 @@ class _Pending:
             rows = np.flatnonzero(mine.any(axis=1))
             anchor = self.anchor[rows, np.argmax(mine[rows], axis=1)]
             # Every one of ``rows`` goes on.
-            again = _window(paths, int(e), rows, anchor)
+            again = _Window(paths, int(e), rows, anchor)
             _, going = again.factor()
             again.backward(None, np.where(mine, weights * self.beta * self.arriving, 0.0)[going])
 
@@ -309,14 +313,6 @@ def plain_tables(world, frame) -> Tables:
         return Tables.of(world, frame)
 
 
-def _window(paths: _Paths, k: int, rows: np.ndarray, anchors: np.ndarray):
-    """Window k of the paths ``rows`` (``_Window``'s interface): compiled when the paths'
-    ``tables`` are set (``render.path.gradient.window``), else on the tape."""
-    if paths.tables is not None:
-        return window.CompiledWindow(paths.tables, paths.batch, paths.vertices, k, rows)
-    return _Window(paths, k, rows, anchors)
-
-
 class _Window:
     """Window k of the paths ``rows`` (sorted rows of the batch reaching vertex k) on its
     own tape, their vertices rebuilt from their ``anchors`` (m,): ``parts``/``rows_of``,
@@ -376,7 +372,7 @@ class _Window:
         with md.no_grad():  # (as tensors: a Python number then takes their dtype)
             values = [md.tensor(a) for a in (added, factor)]
             running = [md.tensor(a) for a in sums.running(rows)]
-            weights = window.objective_weights(*values, going, *running)
+            weights = objective_weights(*values, going, *running)
         coefficients, scale = (w.data for w in weights)
         sums.gather(rows, added)
         if self.factors:
@@ -432,3 +428,18 @@ class _Window:
             directions = 2.0 * column(md.dot(v.wo, ns)) * ns - v.wo
         return vertex_on_tape(self.world, self.sampler, record.prim, record.local, record.form,
                               v.points, directions)  # fmt: skip
+
+
+def objective_weights(added, factor, going, weights, beta, radiance, gathered) -> tuple:
+    """The constants of window k's objective, sum(coefficients * C_k) + sum(scale * F_k)
+    (``replay``'s module docstring), from its values (each (n, 3) but ``going`` (n,) bool:
+    which paths go on): coefficients weights beta_k, and scale weights beta_k Lrem_k /
+    beta_{k+1}, 0 where beta_{k+1} is or the path stops. ``added`` C_k, ``factor`` F_k,
+    ``weights`` d loss / d L, ``beta`` beta_k, ``radiance`` L, ``gathered``
+    sum_{j<k} beta_j C_j. Plain values, as tensors (``_Window.replay``)."""
+    coefficients = weights * beta
+    after = beta * factor  # beta_{k+1}
+    left = radiance - (gathered + beta * added)  # the radiance still to come, Lrem_k beta_{k+1}
+    safe = md.where(after != 0.0, after, 1.0)
+    arriving = md.where(after != 0.0, left / safe, 0.0)  # Lrem_k
+    return coefficients, md.where(column(going), coefficients * arriving, 0.0)

@@ -35,8 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
+from render.path.sample import records
 from render.path.sample.tables import Tables, far_side_of, role_of
-from render.path.sample.tracer import CAMERA, MIRROR, PathBatch, Vertices
+from render.path.sample.tracer import MIRROR, STOP, PathBatch
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere
@@ -56,147 +57,6 @@ def applies(world: Scene, batch: PathBatch) -> bool:
     if any(t.dtype != np.float64 for t in world.parameters()):
         return False
     return not any(np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in batch.vertices)
-
-
-class CompiledWindow:
-    """Window k of the batch's paths ``rows`` (sorted, reaching vertex k), compiled: the
-    arguments of ``window_terms`` gathered from the records once. ``replay`` is the
-    replay's step (values and VJP in one compiled pass); ``values``, ``added``,
-    ``factor`` and ``backward`` are ``replay._Window``'s interface (C_k (m, 3), F_k of the
-    paths that go on, and their VJP), for ``replay.radiance_of`` and the pending
-    channels."""
-
-    def __init__(self, tables: Tables, batch: PathBatch, vertices: list[Vertices], k: int,
-                 rows: np.ndarray):  # fmt: skip
-        record = vertices[k].of_rows(rows)
-        n = len(rows)
-        size = len(batch.paths)
-        going, next_at = np.zeros(n, bool), None
-        if k + 1 < len(vertices):
-            following = vertices[k + 1]
-            next_at = _positions(following.rows, rows, size)
-            going = next_at >= 0
-        scale = 1.0 / (record.next_pdf * record.survive)  # constants of the continuation
-        escape = record.escape & (record.next != 0)
-
-        back = coords = None
-        if k == 0 or vertices[k - 1].form[0] == CAMERA:
-            coords = np.take(batch.coords, rows, axis=0)
-        case = "camera" if k == 0 else "after_camera" if coords is not None else "after_area"
-        if k > 0:
-            before = vertices[k - 1]
-            at = _positions(before.rows, rows, size)  # all there: rows reached vertex k
-            back = (before.prim[at], np.take(before.local, at, axis=0))
-        # Paths without NEE (or that do not go on) read a harmless point, their weight 0: a
-        # point of the primitive here (``window_terms`` puts it in the middle).
-        has_nee = record.nee_weight > 0
-        nee_prim = np.where(has_nee, record.nee_prim, record.prim)
-        next_prim, next_local = record.prim, record.local
-        if going.any():  # gathered from the next record (row 0 for the others: unused)
-            at = np.where(going, next_at, 0)
-            next_prim = np.where(going, np.take(following.prim, at), record.prim)
-            next_local = following.local[at]
-        lit = None
-        if len(tables.lights):
-            lit = record.lit.T.astype(np.float64)
-        batched = (
-            coords,
-            back,
-            (record.prim, record.local),
-            lit,
-            record.emit_weight,
-            (nee_prim, record.nee_local, record.nee_weight),
-            (np.where(escape, scale, 0.0), record.escape_dir),
-            (next_prim, next_local, np.where(going, scale, 0.0), going),
-        )
-        self._arguments = (
-            *_dense(batched), tables.frame, tables.vertices, tables.normals, tables.faces,
-            tables.centers, tables.radii, tables.smooth, tables.materials, tables.lights,
-            tables.background, tables.primitives, (case, tables.kinds, tables.glossy),
-        )  # fmt: skip
-        self.rows, self._going = rows, np.flatnonzero(going)
-        self._values: tuple[np.ndarray, np.ndarray] | None = None
-        self._factor: np.ndarray | None = None  # F_k of the paths that go on, once taken
-
-    def replay(self, sums, k: int, anchor: np.ndarray) -> None:
-        """Window k's step of the replay (``replay._Sums``): its values and the VJP of its
-        objective in one compiled pass (``_replayed``: the objective's constants computed
-        from the values inside it, as ``replay._Window.replay`` computes them outside),
-        then the paths' running sums moved on. ``sums``: the replay's running values
-        (``replay._Sums``); ``anchor`` (N,): each path's window anchor (kept for its
-        pending channels)."""
-        rows, n = self.rows, len(self.rows)
-        running = sums.running(rows)
-        cotangents = (np.zeros((n, 3)), np.zeros((n, 3)), np.ones(n))  # the objective's
-        added, factor, _ = _replayed.value_and_add_vjp(cotangents, *self._arguments, *running)
-        sums.gather(rows, added)
-        if len(self._going):
-            going = rows[self._going]
-            sums.go_on(k, going, anchor[going], factor[self._going])
-
-    def backward(self, coefficients: list[np.ndarray] | None, scale: np.ndarray | None) -> None:
-        """Add to the tables' leaves' ``grad`` the gradient of sum(coefficients * C_k) +
-        sum(scale * F_k) (``coefficients``: one (m, 3) array for the window's paths, or
-        None; ``scale`` (m', 3) for the paths that go on, or None): one compiled VJP
-        (``md.compile``'s ``add_vjp``), what ``backward`` of that sum on the tape gives."""
-        n = len(self.rows)
-        of_added = np.zeros((n, 3)) if coefficients is None else coefficients[0]
-        of_factor = np.zeros((n, 3))
-        if scale is not None:
-            of_factor[self._going] = scale
-        _window.add_vjp((of_added, of_factor), *self._arguments)
-
-    def values(self) -> tuple[np.ndarray, np.ndarray]:
-        """(C_k (m, 3), F_k (m, 3)) of the window's paths (F_k of the paths that do not go
-        on: unused), by the compiled forward, off the tape (computed once)."""
-        if self._values is None:
-            with md.no_grad():
-                added, factor = _window(*self._arguments)
-            self._values = (added.data, factor.data)
-        return self._values
-
-    @property
-    def rows_of(self) -> list[np.ndarray]:
-        """The rows of C_k's one part (``replay._Window``'s interface)."""
-        return [self.rows]
-
-    @property
-    def factors(self) -> list[np.ndarray]:
-        """F_k of the paths that go on, as one part (none if no path goes on)."""
-        if not len(self._going):
-            return []
-        if self._factor is None:
-            self._factor = np.take(self.values()[1], self._going, axis=0)
-        return [self._factor]
-
-    def added(self, n_paths: int) -> np.ndarray:
-        """(N, 3) the values of C_k, zero for the paths not in the window."""
-        here = np.zeros((n_paths, 3))
-        here[self.rows] = self.values()[0]
-        return here
-
-    def factor(self) -> tuple[md.Tensor, np.ndarray]:
-        """F_k (m, 3) of the paths that go on, and their rows (m,)."""
-        return md.tensor(self.factors[0]), self.rows[self._going]
-
-
-def _dense(arguments):
-    """``arguments`` (arrays in nested tuples) with every float array C-contiguous: the
-    records' fields are strided views, which both compiled calls of a window (the values,
-    then the VJP) would otherwise copy each."""
-    if isinstance(arguments, tuple):
-        return tuple(_dense(a) for a in arguments)
-    if isinstance(arguments, np.ndarray) and arguments.dtype.kind == "f":
-        return np.ascontiguousarray(arguments)
-    return arguments
-
-
-def _positions(among: np.ndarray, rows: np.ndarray, size: int) -> np.ndarray:
-    """(n,) where each of the batch's paths ``rows`` stands in ``among`` (both sorted row
-    numbers below ``size``), -1 where it is not there."""
-    where = np.full(size, -1, np.int64)
-    where[among] = np.arange(len(among))
-    return where[rows]
 
 
 @dataclass
@@ -365,29 +225,123 @@ def window_terms(
     return added, factor
 
 
-_window = md.compile(window_terms, shared=_SHARED)
+def path_terms(
+    coords,
+    first_prim,
+    ints,
+    floats,
+    lit,
+    count,
+    frame,
+    vertices,
+    normals,
+    faces,
+    centers,
+    radii,
+    smooth,
+    materials,
+    lights,
+    background,
+    primitives,
+    form,
+):
+    """The radiance (n, 3) of whole paths, L = sum_k beta_k C_k with beta_{k+1} = beta_k
+    F_k: ``window_terms`` at each of their D vertices in turn. Batched (n paths): ``coords``
+    (n, 2) the camera ray's image-plane point, ``first_prim`` (n,) the primitive it meets;
+    per depth k (tuples of D): the records' ``ints`` (n, I_FIELDS), ``floats`` (n,
+    F_FIELDS) and ``lit`` (n, max(L, 1)) (``render.path.sample.records``), and ``count``
+    (n,) each path's number of vertices. Shared: the tables (``window_terms``). Static
+    ``form``: (the lights' classes and parameter names, whether any material is glossy,
+    the number of lights L).
+
+    Where a path has ended (vertex k >= count), vertex k is read at a harmless point: on
+    its record's primitive (0: the records are zero there) at fixed coordinates that
+    differ from one depth to the next, so that two such vertices in a row are never the
+    same point (the direction between them is divided by its length). Its C_k and the
+    factor before it are zero, so neither value nor gradient sees it."""
+    kinds, glossy, n_lights = form
+    total = beta = previous = None
+    for k in range(len(ints)):
+        here_i, here_f = ints[k], floats[k]
+        exists, goes = count > k, count > k + 1
+        prim = first_prim if k == 0 else here_i[:, records.PRIM]
+        here = (prim, md.where(column(exists), here_f[:, : records.LOCAL + 3], _UNUSED[k % 2]))
+        seen = md.where(lit[k][:, :n_lights], 1.0, 0.0) if n_lights else None
+        nee = (
+            here_i[:, records.NEE_PRIM],
+            here_f[:, records.NEE_LOCAL : records.NEE_LOCAL + 3],
+            here_f[:, records.NEE_WEIGHT],
+        )
+        # The continuation's constant 1 / (p q): the direction's density, Russian roulette's
+        # survival (0 where the path ended: then unused).
+        density = here_f[:, records.NEXT_PDF] * here_f[:, records.SURVIVE]
+        scale = 1.0 / md.where(density != 0.0, density, 1.0)
+        leaves = (here_i[:, records.ESCAPE] != 0) & (here_i[:, records.NEXT] != STOP)
+        away = here_f[:, records.ESCAPE_DIR : records.ESCAPE_DIR + 3]
+        escape = (md.where(leaves, scale, 0.0), away)
+        following = (prim, here[1])  # the last depth's: unused
+        if k + 1 < len(ints):
+            following = (ints[k + 1][:, records.PRIM], floats[k + 1][:, : records.LOCAL + 3])
+        going = (*following, md.where(goes, scale, 0.0), goes)
+        case = "camera" if k == 0 else "after_camera" if k == 1 else "after_area"
+        added, factor = window_terms(
+            coords, previous, here, seen, here_f[:, records.EMIT], nee, escape, going, frame,
+            vertices, normals, faces, centers, radii, smooth, materials, lights, background,
+            primitives, (case, kinds, glossy),
+        )  # fmt: skip
+        added = md.where(column(exists), added, 0.0)
+        total = added if k == 0 else total + beta * added
+        beta = factor if k == 0 else beta * factor
+        previous = here
+    return total
 
 
-@md.compile(shared=_SHARED)
-def _replayed(
-    coords, previous, here, lit, emit_weight, nee, escape, going, frame, vertices, normals,
-    faces, centers, radii, smooth, materials, lights, background, primitives, form, weights,
-    beta, radiance, gathered,
-):  # fmt: skip
-    """One window of one path (``window_terms``' arguments, then its replay's running
-    values) and the objective whose VJP is the window's gradient: (C_k, F_k, objective).
-    Batched (n, 3): ``weights`` d loss / d L, ``beta`` beta_k, ``radiance`` the path's L,
-    ``gathered`` sum_{j<k} beta_j C_j. The objective is sum(weights beta_k C_k) +
-    sum(weights beta_k Lrem_k / beta_{k+1} F_k) over the channels, its factors constants
-    (``detach``) computed as ``replay._Window.replay`` computes them: the same bits."""
-    added, factor = window_terms(
-        coords, previous, here, lit, emit_weight, nee, escape, going, frame, vertices, normals,
-        faces, centers, radii, smooth, materials, lights, background, primitives, form,
+#: The coordinates of a vertex after its path has ended, by the parity of its depth.
+_UNUSED = (np.full(3, 1.0 / 3.0), np.array([0.5, 0.25, 0.25]))
+
+_path = md.compile(path_terms, shared=_SHARED)
+
+
+def _arguments(tables: Tables, batch: PathBatch) -> tuple:
+    """``path_terms``' arguments for the paths of ``batch`` that some depth holds: the
+    batch's records (``Records.of``), a camera ray that misses read as one that hits (the
+    first path's that does: its terms are zero), and the tables."""
+    rec = records.Records.of(batch, len(tables.lights))
+    depth = int(rec.count.max(initial=0))
+    count = rec.count
+    coords = np.ascontiguousarray(rec.floats[0, :, records.COORD : records.COORD + 2])
+    first_prim = rec.ints[0, :, records.PRIM].copy()
+    missed = np.flatnonzero(count == 0)
+    if len(missed) and depth:
+        seen = int(np.argmax(count > 0))
+        coords[missed], first_prim[missed] = coords[seen], first_prim[seen]
+    per_depth = tuple(tuple(r[k] for k in range(depth)) for r in (rec.ints, rec.floats, rec.lit))
+    return (
+        coords, first_prim, *per_depth, count, tables.frame, tables.vertices, tables.normals,
+        tables.faces, tables.centers, tables.radii, tables.smooth, tables.materials,
+        tables.lights, tables.background, tables.primitives,
+        (tables.kinds, tables.glossy, rec.n_lights),
     )  # fmt: skip
-    constants = md.detach(added), md.detach(factor), going[-1], weights, beta, radiance, gathered
-    coefficients, scale = objective_weights(*constants)
-    objective = md.sum(coefficients * added, axis=1) + md.sum(scale * factor, axis=1)
-    return added, factor, objective
+
+
+def radiance(tables: Tables, batch: PathBatch) -> np.ndarray:
+    """(N, 3): the radiance of each path of ``batch`` (the environment where its camera
+    ray misses), by the compiled forward of ``path_terms``, off the tape."""
+    if batch.missed.all():
+        total = np.zeros((len(batch.paths), 3))
+    else:
+        with md.no_grad():
+            total = _path(*_arguments(tables, batch)).data  # zero where a camera ray misses
+    total[batch.missed] = tables.background.data
+    return total
+
+
+def backpropagate(tables: Tables, batch: PathBatch, weights: np.ndarray) -> None:
+    """Add the gradient of sum(weights * L) over the paths of ``batch`` that meet the
+    scene (``weights`` (N, 3): d loss / d L) to ``grad`` of the tables' leaves: the VJP of
+    ``path_terms``, each path's reverse sweep inside the compiled kernel."""
+    if not batch.missed.all():
+        _path.add_vjp(weights, *_arguments(tables, batch))
 
 
 def _middle_unless(used, local) -> md.Tensor:
@@ -395,19 +349,3 @@ def _middle_unless(used, local) -> md.Tensor:
     middle (1/3 each): the harmless point read by a path whose term there has weight 0 (no
     NEE; it does not go on), whatever its record holds."""
     return md.where(column(used), local, 1.0 / 3.0)
-
-
-def objective_weights(added, factor, going, weights, beta, radiance, gathered) -> tuple:
-    """The constants of window k's objective, sum(coefficients * C_k) + sum(scale * F_k)
-    (``replay``'s module docstring), from its values (each (n, 3) but ``going`` (n,) bool:
-    which paths go on): coefficients weights beta_k, and scale weights beta_k Lrem_k /
-    beta_{k+1}, 0 where beta_{k+1} is or the path stops. ``added`` C_k, ``factor`` F_k,
-    ``weights`` d loss / d L, ``beta`` beta_k, ``radiance`` L, ``gathered``
-    sum_{j<k} beta_j C_j. On minidiff arrays: traced in ``_replayed``, plain values on the
-    tape's windows (``replay._Window.replay``)."""
-    coefficients = weights * beta
-    after = beta * factor  # beta_{k+1}
-    left = radiance - (gathered + beta * added)  # the radiance still to come, Lrem_k beta_{k+1}
-    safe = md.where(after != 0.0, after, 1.0)
-    arriving = md.where(after != 0.0, left / safe, 0.0)  # Lrem_k
-    return coefficients, md.where(column(going), coefficients * arriving, 0.0)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -54,6 +55,9 @@ from render.trace.visibility import (
     shadow_offset,
     shadow_rays,
 )
+
+if TYPE_CHECKING:
+    from render.path.sample.records import Records
 
 #: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
 CAMERA, AREA, MIRROR = 0, 1, 2
@@ -122,12 +126,15 @@ class Vertices:
 class PathBatch:
     """A batch of N paths: their ids (N,) (``pixel * spp + sample``), the image-plane
     coordinates of their camera rays (N, 2), which camera rays miss everything (N,) bool
-    (they see the environment), and their vertices, one ``Vertices`` per depth."""
+    (they see the environment), and their vertices, one ``Vertices`` per depth; the same
+    vertices as dense ``records`` (``render.path.sample.records``) where whoever traced
+    them wrote that layout too (the path kernel), else None."""
 
     paths: np.ndarray
     coords: np.ndarray
     missed: np.ndarray
     vertices: list[Vertices]
+    records: Records | None = None
 
 
 @dataclass

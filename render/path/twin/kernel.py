@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
+from render.path.sample import records as R
 from render.path.sample.choices import MAX_SURVIVAL, MIN_SURVIVAL
 from render.path.sample.random import mix, uniform_of
 from render.path.sample.tracer import (
@@ -38,7 +39,6 @@ from render.path.sample.tracer import (
     STOP,
     PathBatch,
     PathSampler,
-    Vertices,
 )
 from render.path.twin.chain import (
     _C_ADDED,
@@ -144,11 +144,11 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     d = (x * right[0] + y * up[0] + forward[0], x * right[1] + y * up[1] + forward[1],
          x * right[2] + y * up[2] + forward[2])  # fmt: skip
     if keep:
-        rec_f[0, row, _F_COORD], rec_f[0, row, _F_COORD + 1] = x, y
+        rec_f[0, row, R.COORD], rec_f[0, row, R.COORD + 1] = x, y
     prim, t, u, v = closest_hit_one(bvh, (eye[0], eye[1], eye[2]), d, 0.0, stack, stack_t)
     if prim < 0:
         if keep:
-            rec_i[0, row, _I_COUNT] = 0
+            rec_i[0, row, R.COUNT] = 0
         if adjoint:
             for c in range(3):
                 grad[g_background + c] += delta[c]
@@ -190,7 +190,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         if side_t > 0:
             L = _emitted(L, beta, emission, o, weight, depth, chain, adjoint, delta, grad)
         if keep:  # the path's length so far, also past the records' depth
-            rec_i[0, row, _I_COUNT] = depth
+            rec_i[0, row, R.COUNT] = depth
         if kept:
             _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight)
         if depth == max_depth:
@@ -220,16 +220,16 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             go = go and uniform_of(key, _dim(depth, _ROULETTE)) < survive
         wi = _divided(wi[0], wi[1], wi[2])
         if kept:
-            rec_f[depth - 1, row, _F_SURVIVE] = survive
-            _put(rec_f, depth - 1, row, _F_ESCAPE_DIR, wi)
+            rec_f[depth - 1, row, R.SURVIVE] = survive
+            _put(rec_f, depth - 1, row, R.ESCAPE_DIR, wi)
         if not go:
             break
         scale = 1.0 / (next_pdf * survive)
         prim, t, u, v = closest_hit_one(bvh, origin, wi, 0.0, stack, stack_t)
         if kept:
-            rec_i[depth - 1, row, _I_NEXT] = MIRROR if mirror else AREA
-            rec_f[depth - 1, row, _F_NEXT_PDF] = next_pdf
-            rec_i[depth - 1, row, _I_ESCAPE] = prim < 0
+            rec_i[depth - 1, row, R.NEXT] = MIRROR if mirror else AREA
+            rec_f[depth - 1, row, R.NEXT_PDF] = next_pdf
+            rec_i[depth - 1, row, R.ESCAPE] = prim < 0
         point_next = (origin[0] + t * wi[0], origin[1] + t * wi[1], origin[2] + t * wi[2])
         factor, cos, wn, x_next, ut, vt, wo_next = _segment(
             triangles, centers, radii, (reflectance[o, 0], reflectance[o, 1], reflectance[o, 2]),
@@ -287,16 +287,16 @@ def _emitted(L, beta, emission, o, weight, depth, chain, adjoint, delta, grad):
 def _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight):
     """Vertex ``depth`` of the path of row ``row`` into the records, its NEE, lights and
     continuation as if none (what follows overwrites them)."""
-    rec_i[depth - 1, row, _I_PRIM] = prim
-    rec_i[depth - 1, row, _I_FORM] = form
-    rec_i[depth - 1, row, _I_NEE_PRIM] = -1
-    rec_i[depth - 1, row, _I_NEXT] = STOP
-    _put(rec_f, depth - 1, row, _F_LOCAL, local)
-    rec_f[depth - 1, row, _F_EMIT] = weight
-    rec_f[depth - 1, row, _F_NEE_WEIGHT] = 0.0
-    rec_f[depth - 1, row, _F_NEXT_PDF] = 1.0
-    rec_f[depth - 1, row, _F_SURVIVE] = 1.0
-    rec_i[depth - 1, row, _I_ESCAPE] = 0
+    rec_i[depth - 1, row, R.PRIM] = prim
+    rec_i[depth - 1, row, R.FORM] = form
+    rec_i[depth - 1, row, R.NEE_PRIM] = -1
+    rec_i[depth - 1, row, R.NEXT] = STOP
+    _put(rec_f, depth - 1, row, R.LOCAL, local)
+    rec_f[depth - 1, row, R.EMIT] = weight
+    rec_f[depth - 1, row, R.NEE_WEIGHT] = 0.0
+    rec_f[depth - 1, row, R.NEXT_PDF] = 1.0
+    rec_f[depth - 1, row, R.SURVIVE] = 1.0
+    rec_i[depth - 1, row, R.ESCAPE] = 0
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -319,7 +319,7 @@ def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emi
     u2 = uniform_of(key, _dim(depth, _EMITTER_POINT) + 1)
     e_local, z, nz = _point_on(triangles, centers, radii, e_prim, u1, u2)
     if kept:  # recorded whether or not it is seen, as the sampler does
-        _put(rec_f, depth - 1, row, _F_NEE_LOCAL, e_local)
+        _put(rec_f, depth - 1, row, R.NEE_LOCAL, e_local)
     to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
     d2 = _dot(to, to)
     root = math.sqrt(d2 if d2 > 0 else 1.0)
@@ -335,8 +335,8 @@ def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emi
     p_bsdf = _pdf(p_d, p_g, shin, ns, wo, wi) * cos_z / (d2 if d2 > 0 else 1.0)
     nee_weight = _power(p_nee, p_bsdf) / e_probability[pick]
     if kept:
-        rec_i[depth - 1, row, _I_NEE_PRIM] = e_prim
-        rec_f[depth - 1, row, _F_NEE_WEIGHT] = nee_weight
+        rec_i[depth - 1, row, R.NEE_PRIM] = e_prim
+        rec_f[depth - 1, row, R.NEE_WEIGHT] = nee_weight
     # The radiance it brings (transport._at_vertex), from the tape's point.
     to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
     d2 = _dot(to, to)
@@ -499,17 +499,6 @@ def _chain_factor(chain, at, o, mirror, cos, look, factor, escape, nst, wot, dir
         chain[at, _C_SPECULAR + c], chain[at, _C_BETA + c] = ks[c], before[c]
 
 
-#: The records of ``sample_paths``, depth first (a depth's paths are contiguous rows):
-#: integer fields (depth, N, _I_FIELDS) ...
-_I_PRIM, _I_FORM, _I_NEE_PRIM, _I_NEXT, _I_ESCAPE, _I_COUNT = range(6)
-_I_FIELDS = 6
-#: ... and float fields (depth, N, _F_FIELDS); _F_COORD (the camera ray's image-plane
-#: point) is kept at depth 0 only.
-_F_LOCAL, _F_EMIT, _F_NEE_LOCAL, _F_NEE_WEIGHT, _F_NEXT_PDF, _F_SURVIVE = 0, 3, 4, 7, 8, 9
-_F_ESCAPE_DIR, _F_COORD = 10, 13
-_F_FIELDS = 15
-
-
 @borrowing
 def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, start, stop, paths,
                  stack, stack_t, out, radiance, rec_i, rec_f, rec_lit, d_image, chain,
@@ -601,8 +590,8 @@ def _kernel(worker, n_workers, bvh, s, seed, spp, width, height, max_depth, rr_d
 def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=None, records=None,
          d_image=None, grads=None) -> None:  # fmt: skip
     """``_kernel`` with empty arrays for what this call does not use."""
-    none_i = np.zeros((1, 0, _I_FIELDS), np.int64)
-    none_f, none_lit = np.zeros((1, 0, _F_FIELDS)), np.zeros((1, 0, 1), bool)
+    none_i = np.zeros((1, 0, R.I_FIELDS), np.int64)
+    none_f, none_lit = np.zeros((1, 0, R.F_FIELDS)), np.zeros((1, 0, 1), bool)
     rec_i, rec_f, rec_lit = records or (none_i, none_f, none_lit)
     n = packed.width * packed.height if paths is None else len(paths)
     jobs = len(grads) if grads is not None else min(-(-n // BLOCK), CHUNKS)
@@ -636,43 +625,15 @@ def sample_paths(
     if n == 0:
         return PathBatch(paths, np.zeros((0, 2)), np.zeros(0, bool), []), radiance
     while True:
-        rec_i = np.zeros((depth, n, _I_FIELDS), np.int64)
-        rec_f = np.zeros((depth, n, _F_FIELDS))
-        rec_lit = np.zeros((depth, n, max(packed.n_lights, 1)), np.bool_)
-        _run(packed, sampler, paths=paths, radiance=radiance, records=(rec_i, rec_f, rec_lit))
-        count = rec_i[0, :, _I_COUNT]
+        records = R.Records.empty(depth, n, packed.n_lights)
+        _run(packed, sampler, paths=paths, radiance=radiance,
+             records=(records.ints, records.floats, records.lit))  # fmt: skip
+        count = records.count
         if count.max() <= depth:
             break
         depth = int(count.max())  # the same paths again, with room for every vertex
-    vertices = []
-    for k in range(depth):
-        rows = np.flatnonzero(count > k)
-        if len(rows) == 0:
-            break
-        if len(rows) == n:  # every path: views, not copies (the windows copy what they read)
-            i, f, lit = rec_i[k], rec_f[k], rec_lit[k]
-        else:
-            i, f, lit = (np.take(r[k], rows, axis=0) for r in (rec_i, rec_f, rec_lit))
-        vertices.append(
-            Vertices(
-                rows,
-                i[:, _I_PRIM],
-                f[:, _F_LOCAL : _F_LOCAL + 3],
-                i[:, _I_FORM].astype(np.int8),
-                f[:, _F_EMIT],
-                i[:, _I_NEE_PRIM],
-                f[:, _F_NEE_LOCAL : _F_NEE_LOCAL + 3],
-                f[:, _F_NEE_WEIGHT],
-                lit[:, : packed.n_lights].T.copy(),
-                i[:, _I_NEXT].astype(np.int8),
-                f[:, _F_NEXT_PDF],
-                f[:, _F_SURVIVE],
-                i[:, _I_ESCAPE].astype(bool),
-                f[:, _F_ESCAPE_DIR : _F_ESCAPE_DIR + 3],
-            )  # fmt: skip
-        )
-    coords = rec_f[0, :, _F_COORD : _F_COORD + 2].copy()
-    return PathBatch(paths, coords, count == 0, vertices), radiance
+    coords = records.floats[0, :, R.COORD : R.COORD + 2].copy()
+    return PathBatch(paths, coords, count == 0, records.vertices(), records), radiance
 
 
 def replay_gradient(

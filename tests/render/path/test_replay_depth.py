@@ -181,19 +181,37 @@ def _peak_mb(way, scene, paths) -> float:
         tracemalloc.stop()
 
 
-def test_memory_does_not_grow_with_max_depth():
-    """Cornell box 16x16, 4 spp, no Russian roulette before depth 100: from max_depth 2 to
-    8 the tape's peak grows with the vertices it holds, the replay's is that of its largest
-    window (the first ones, which hold the most paths), the same at any depth; the 10 %
-    leave room for the allocator. Measured: tape 3.59, 6.57, 11.28 MB at depths 2, 4, 8;
-    replay 4.05, 4.04, 4.04 MB."""
+def test_memory_does_not_grow_with_max_depth(monkeypatch):
+    """Cornell box 16x16, 4 spp, no Russian roulette before depth 100, max_depth 2 and 8.
+    The tape's peak grows with the vertices it holds. The replay's windows on the tape
+    (the route of mirrors and textures) peak at their largest window (the first ones,
+    which hold the most paths), the same at any depth. The compiled route (its reverse
+    sweep path by path inside the kernel) holds no tape: its peak is the batch's dense
+    records (``render.path.sample.records``, the batch's own size, made here from the
+    sampler's per-depth lists) and a few (N, 3) arrays. The 10 % (25 % for the compiled
+    route's few arrays) leave room for the allocator. Measured: tape 3.59, 11.28 MB;
+    windows 4.05, 4.04 MB; compiled 0.50, 1.55 MB of which the records 0.35, 1.38 MB."""
+    from render.path.gradient import window
+    from render.path.sample.records import Records
+
     scene = cornell_box(16, 16)
     for p in scene.parameters():
         p.requires_grad = True
     shallow, deep = (_paths(scene, 4, depth, 100, 0) for depth in (2, 8))
-    _peak_mb(_replayed, scene, shallow)  # first-call allocations (caches) not counted
-    replay = [_peak_mb(_replayed, scene, paths) for paths in (shallow, deep)]
+    for paths in (shallow, deep):  # first-call allocations (caches, kernels) not counted
+        _peak_mb(_replayed, scene, paths)
+    compiled = [_peak_mb(_replayed, scene, paths) for paths in (shallow, deep)]
+    held = []
+    for _, batch, _, _ in (shallow, deep):
+        records = Records.of(batch, 0)
+        held.append((records.ints.nbytes + records.floats.nbytes + records.lit.nbytes) / 1e6)
     tape = [_peak_mb(_taped, scene, paths) for paths in (shallow, deep)]
+    monkeypatch.setattr(window, "applies", lambda *_: False)
+    _peak_mb(_replayed, scene, shallow)
+    windows = [_peak_mb(_replayed, scene, paths) for paths in (shallow, deep)]
     assert tape[1] > 2 * tape[0]  # the measurement sees the tape grow with depth
-    assert replay[1] < 1.1 * replay[0]
-    assert replay[1] < tape[1] / 2
+    assert windows[1] < 1.1 * windows[0]
+    assert windows[1] < tape[1] / 2
+    assert held[1] > 3 * held[0]  # the records grow with depth ...
+    assert compiled[1] - held[1] < 1.25 * (compiled[0] - held[0])  # ... and nothing else
+    assert compiled[1] < tape[1] / 4

@@ -1,7 +1,8 @@
-"""Path replay's compiled windows (``render.path.gradient.window``) against the tape.
+"""The compiled gradient of whole paths (``render.path.gradient.window``) against the tape.
 
-On scenes of triangle meshes without mirrors or textures, ``backward`` on a path-traced
-image replays its paths through one compiled kernel per depth. Its gradient must be the
+On scenes of triangle meshes and spheres without mirrors or textures, ``backward`` on a
+path-traced image takes its paths' gradient in one compiled kernel (each path's reverse
+sweep over all its depths, ``window.path_terms``). Its gradient must be the
 tape's (``gradient="tape"``: every path on one tape, the readable reference) for every kind
 of parameter, on Hypothesis-drawn scenes: flat and smooth meshes (own normals or computed),
 glossy or not, point, directional and area lights, an environment, a transform."""
@@ -73,6 +74,13 @@ def triangle_scenes(draw) -> render.Scene:
     return scene
 
 
+def _counting(monkeypatch) -> list:
+    """A list that grows by one at each call of the compiled gradient."""
+    calls, original = [], window.backpropagate
+    monkeypatch.setattr(window, "backpropagate", lambda *a: calls.append(1) or original(*a))
+    return calls
+
+
 def _gradients(scene, weights, **options) -> dict:
     for p in scene.parameters():
         p.grad = None
@@ -87,22 +95,15 @@ def _gradients(scene, weights, **options) -> dict:
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
 )
 @given(scene=triangle_scenes(), depth=st.integers(2, 5), seed=st.integers(0, 2**32))
-def test_compiled_windows_give_the_tapes_gradient_for_every_parameter(
+def test_compiled_paths_give_the_tapes_gradient_for_every_parameter(
     scene, depth, seed, monkeypatch
 ):
     weights = np.random.default_rng(seed % 7).normal(size=(6, 6, 3))
     options = {"spp": 3, "max_depth": depth, "seed": seed, "batch_spp": 2}
-    calls = []
-    original = window.CompiledWindow.__init__
-
-    def counted(self, *args, **kwargs):
-        calls.append(1)
-        original(self, *args, **kwargs)
-
-    with monkeypatch.context() as patch:
-        patch.setattr(window.CompiledWindow, "__init__", counted)
-        replayed = _gradients(scene, weights, **options)
-    assert calls  # the windows were compiled ones
+    calls = _counting(monkeypatch)
+    replayed = _gradients(scene, weights, **options)
+    assert calls  # the compiled route took it
+    monkeypatch.undo()
     taped = _gradients(scene, weights, gradient="tape", **options)
     # A parameter whose derivative is exactly 0 on the tape (a ceiling no light reaches
     # directly) may get the rounding of terms that cancel (1e-15): its scale is then the
@@ -119,8 +120,8 @@ def test_compiled_windows_give_the_tapes_gradient_for_every_parameter(
     assert np.any(taped["objects[5].transform.translation"])
 
 
-def test_windows_take_the_tape_where_they_do_not_apply():
-    """A texture or a mirror bounce: the windows are the tape's (``applies`` is False)."""
+def test_the_tape_takes_what_does_not_compile():
+    """A texture or a mirror bounce: the tape's windows take it (``applies`` is False)."""
     from render.path.sample.tracer import MIRROR, PathSampler
     from render.scene.placement import placed
 
@@ -142,7 +143,7 @@ def test_windows_take_the_tape_where_they_do_not_apply():
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_compiled_windows_do_not_depend_on_the_thread_count(threads):
+def test_compiled_paths_do_not_depend_on_the_thread_count(threads):
     """The same bits on 1 and 2 threads (``minidiff.compiler.using_threads``)."""
     from minidiff import compiler
 
@@ -172,13 +173,10 @@ def test_spheres_only_with_the_camera_inside_one(monkeypatch):
     for p in scene.parameters():
         p.requires_grad = True
     weights = np.random.default_rng(0).normal(size=(8, 8, 3))
-    calls = []
-    original = window.CompiledWindow.__init__
-    monkeypatch.setattr(
-        window.CompiledWindow, "__init__", lambda s, *a: calls.append(1) or original(s, *a)
-    )
+    calls = _counting(monkeypatch)
     replayed = _gradients(scene, weights, spp=3, max_depth=4, seed=2)
     assert calls
+    monkeypatch.undo()
     taped = _gradients(scene, weights, spp=3, max_depth=4, seed=2, gradient="tape")
     assert np.any(taped["objects[0].center"]) and np.any(taped["camera.position"])
     for name, tape in taped.items():
@@ -192,8 +190,8 @@ def test_spheres_only_with_the_camera_inside_one(monkeypatch):
 @given(scene=triangle_scenes(), depth=st.integers(1, 5), seed=st.integers(0, 2**32),
        mirror=st.booleans())  # fmt: skip
 def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
-    """``replay.radiance_of`` (the boundary terms' constants, window by window: compiled,
-    or on the tape where a mirror bounce is met) equals ``transport.path_radiance``."""
+    """``replay.radiance_of`` (the boundary terms' constants: compiled, or window by window
+    on the tape where a mirror bounce is met) equals ``transport.path_radiance``."""
     from render.path.gradient.replay import radiance_of
     from render.path.gradient.transport import path_radiance
     from render.path.sample.tracer import PathSampler

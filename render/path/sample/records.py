@@ -1,0 +1,118 @@
+"""A batch's paths as dense records: every path's vertex k in row k of one set of arrays.
+
+``PathBatch.vertices`` lists, per depth, only the paths that reach it (``Vertices``: rows
+and fields). The compiled gradient (``render.path.gradient.window``) reads every depth of
+every path in one pass over the paths, so it wants the other layout: per depth k, one row
+per path of the batch, zero where the path has ended. The path kernel
+(``render.path.twin.kernel``) writes this layout as it traces (``sample_paths``); a batch
+from the reference sampler is laid out here (``Records.of``).
+
+Fields, depth first (a depth's paths are contiguous rows, each depth's table contiguous):
+``ints`` (D, N, I_FIELDS) int64, ``floats`` (D, N, F_FIELDS) float64 and ``lit`` (D, N,
+max(L, 1)) bool (which of the L point and directional lights reach the vertex). The
+columns below name them; ``COUNT`` (depth 0 only) is the number of vertices of the path,
+``COORD`` (depth 0 only) its camera ray's image-plane point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from render.path.sample.tracer import PathBatch, Vertices
+
+#: Integer columns: the primitive, the vertex's form, NEE's primitive (-1: none), the
+#: continuation (``STOP``, ``AREA``, ``MIRROR``), whether the ray left the scene, the count.
+PRIM, FORM, NEE_PRIM, NEXT, ESCAPE, COUNT = range(6)
+I_FIELDS = 6
+#: Float columns (first column of each): the point's coordinates on its primitive (3), the
+#: emission's MIS weight, NEE's point (3) and weight, the continuation's density and
+#: Russian roulette's survival probability, the escape direction (3), the camera ray's
+#: image-plane point (2).
+LOCAL, EMIT, NEE_LOCAL, NEE_WEIGHT, NEXT_PDF, SURVIVE = 0, 3, 4, 7, 8, 9
+ESCAPE_DIR, COORD = 10, 13
+F_FIELDS = 15
+
+
+@dataclass
+class Records:
+    """Dense records of a batch's N paths over D depths (module docstring) and the number
+    of lights ``n_lights`` whose visibility ``lit`` holds."""
+
+    ints: np.ndarray
+    floats: np.ndarray
+    lit: np.ndarray
+    n_lights: int
+
+    @classmethod
+    def empty(cls, depth: int, n: int, n_lights: int) -> Records:
+        """Zeroed records of ``n`` paths over ``depth`` depths."""
+        ints = np.zeros((depth, n, I_FIELDS), np.int64)
+        floats = np.zeros((depth, n, F_FIELDS))
+        return cls(ints, floats, np.zeros((depth, n, max(n_lights, 1)), np.bool_), n_lights)
+
+    @classmethod
+    def of(cls, batch: PathBatch, n_lights: int) -> Records:
+        """The records of ``batch`` (its ``records`` if it has them), one depth per
+        ``Vertices`` that some path reaches."""
+        if batch.records is not None:
+            return batch.records
+        vertices = [v for v in batch.vertices if len(v.rows)]
+        n = len(batch.paths)
+        out = cls.empty(len(vertices), n, n_lights)
+        for k, v in enumerate(vertices):
+            i, f, rows = out.ints[k], out.floats[k], v.rows
+            for column, value in ((PRIM, v.prim), (FORM, v.form), (NEE_PRIM, v.nee_prim),
+                                  (NEXT, v.next), (ESCAPE, v.escape)):  # fmt: skip
+                i[rows, column] = value
+            for column, value in ((LOCAL, v.local), (EMIT, v.emit_weight),
+                                  (NEE_LOCAL, v.nee_local), (NEE_WEIGHT, v.nee_weight),
+                                  (NEXT_PDF, v.next_pdf), (SURVIVE, v.survive),
+                                  (ESCAPE_DIR, v.escape_dir)):  # fmt: skip
+                f[rows, column : column + (value.shape[1] if value.ndim == 2 else 1)] = (
+                    value if value.ndim == 2 else value[:, None]
+                )
+            out.lit[k, rows, :n_lights] = v.lit.T
+            out.ints[0, rows, COUNT] += 1
+        if len(vertices):
+            out.floats[0, :, COORD : COORD + 2] = batch.coords
+        return out
+
+    @property
+    def count(self) -> np.ndarray:
+        """(N,) each path's number of vertices (0: its camera ray missed)."""
+        return self.ints[0, :, COUNT]
+
+    def vertices(self) -> list[Vertices]:
+        """``PathBatch.vertices``: per depth, the paths that reach it and their fields
+        (views of the records where every path does, else copies of its rows)."""
+        count, out = self.count, []
+        for k in range(len(self.ints)):
+            rows = np.flatnonzero(count > k)
+            if len(rows) == 0:
+                break
+            if len(rows) == len(count):  # every path: views, not copies
+                i, f, lit = self.ints[k], self.floats[k], self.lit[k]
+            else:
+                arrays = (self.ints, self.floats, self.lit)
+                i, f, lit = (np.take(r[k], rows, axis=0) for r in arrays)
+            out.append(
+                Vertices(
+                    rows,
+                    i[:, PRIM],
+                    f[:, LOCAL : LOCAL + 3],
+                    i[:, FORM].astype(np.int8),
+                    f[:, EMIT],
+                    i[:, NEE_PRIM],
+                    f[:, NEE_LOCAL : NEE_LOCAL + 3],
+                    f[:, NEE_WEIGHT],
+                    lit[:, : self.n_lights].T.copy(),
+                    i[:, NEXT].astype(np.int8),
+                    f[:, NEXT_PDF],
+                    f[:, SURVIVE],
+                    i[:, ESCAPE].astype(bool),
+                    f[:, ESCAPE_DIR : ESCAPE_DIR + 3],
+                )  # fmt: skip
+            )
+        return out
