@@ -49,22 +49,25 @@ lesson_start = time.perf_counter()
 #
 # `render_path(..., gradient="tape")` does exactly that. The library's default,
 # `gradient="replay"`, renders the image with the compiled kernel and hands the tape one
-# node; its backward *replays* the paths (below) either in the compiled kernel
-# (`render/path/twin/adjoint.py`: when only materials, lights' strengths or the environment are
-# differentiated) or one depth at a time (`render/path/gradient/replay.py`: anything else, such as a
-# light's position). One depth at a time means *windows*: window `k` computes only what
-# vertex `k` of the batch's paths adds and what its bounce multiplies by (which needs
-# vertices `k − 1`, `k` and `k + 1`), takes its share of the gradient with its own
-# `backward`, and is freed before window `k + 1` is built (section 3 says what it takes
-# from the rest of the path). A window is one call of a compiled function
-# (`render/path/gradient/window.py`: the readable formulas of the tape, traced by lesson 16's
-# compiler, forward and VJP in parallel over the paths); where that does not apply (a
-# mirror, a texture) it is a fresh tape.
+# node; its backward *replays* the paths (below): it follows each path again from the
+# decisions the render recorded (which primitive, which lobe, which light sample) and takes
+# its derivative path by path, never holding a tape of the batch. When only materials,
+# lights' strengths or the environment are differentiated that is the compiled kernel's
+# hand-written adjoint (`render/path/twin/adjoint.py`); for anything else, such as a light's
+# position, it is one compiled function of the whole path (`render/path/gradient/window.py`:
+# the tape's readable formulas for vertex `k`, called for one vertex after the other and
+# traced by lesson 16's compiler), whose VJP runs each path's reverse sweep inside the
+# kernel, in parallel over the paths. Where that does not apply (a mirror, a texture) the
+# replay goes one depth at a time on the tape (`render/path/gradient/replay.py`): *windows*,
+# window `k` computing only what vertex `k` of the batch's paths adds and what its bounce
+# multiplies by (which needs vertices `k − 1`, `k` and `k + 1`), taking its share of the
+# gradient with its own `backward`, freed before window `k + 1` is built (section 3 says
+# what it takes from the rest of the path).
 #
 # Which replay runs depends on the parameter, and so does the tape's size (a moving lamp
 # puts the geometry of every shadow ray on the tape, an albedo only the shading). So compare
 # like with like: the tape against the compiled replay for the left wall's albedo, and the
-# tape against the replay by windows for the lamp's position. The peak of NumPy's
+# tape against the compiled replay of whole paths for the lamp's position. The peak of NumPy's
 # allocations during one gradient of the Cornell box at 16 × 16, without Russian roulette
 # (so paths really are `max_depth` long):
 
@@ -105,10 +108,12 @@ WAYS = {  # the parameter, then how its gradient is taken
     "albedo: through the tape": ("tape", "albedo"),
     "albedo: compiled replay": ("replay", "albedo"),
     "lamp's position: through the tape": ("tape", "lamp"),
-    "lamp's position: replay by windows": ("replay", "lamp"),
+    "lamp's position: compiled whole paths": ("replay", "lamp"),
 }
 for gradient, parameter in WAYS.values():  # first calls load kernels and fill caches
-    gradient_peak_mb(gradient, parameter, 4, 4)  # (depth 4 loads some that depth 2 does not)
+    # (the compiled lamp's kernel is one per depth: lesson 16's compiler traces each once)
+    for depth in [2, 4, 8, 16] if gradient == "replay" else [4]:
+        gradient_peak_mb(gradient, parameter, 4, depth)
 spps, depths = [4, 16, 64], [2, 4, 8, 16]
 memory_by_spp = {w: [gradient_peak_mb(*WAYS[w], spp, 4) for spp in spps] for w in WAYS}
 # 16 spp at max_depth 4 was measured just above: the depth sweep reuses it.
@@ -120,13 +125,13 @@ for name in WAYS:
     print(f"{name:38s} spp {spps}: {np.round(memory_by_spp[name], 2)} MB; "
           f"max_depth {depths}: {np.round(memory_by_depth[name], 2)} MB")  # fmt: skip
 albedo_tape, compiled = "albedo: through the tape", "albedo: compiled replay"
-lamp_tape, windows = "lamp's position: through the tape", "lamp's position: replay by windows"
+lamp_tape, paths = "lamp's position: through the tape", "lamp's position: compiled whole paths"
 tape_spp_growth = memory_by_spp[albedo_tape][2] / memory_by_spp[albedo_tape][1]
 tape_depth_growth = memory_by_depth[albedo_tape][3] / memory_by_depth[albedo_tape][0]
 lamp_tape_spp_growth = memory_by_spp[lamp_tape][2] / memory_by_spp[lamp_tape][1]
 lamp_tape_depth_growth = memory_by_depth[lamp_tape][3] / memory_by_depth[lamp_tape][0]
-windows_spp_growth = memory_by_spp[windows][2] / memory_by_spp[windows][1]
-windows_depth_growth = memory_by_depth[windows][3] / memory_by_depth[windows][0]
+paths_spp_growth = memory_by_spp[paths][2] / memory_by_spp[paths][1]
+paths_depth_growth = memory_by_depth[paths][3] / memory_by_depth[paths][0]
 compiled_peak = max(memory_by_spp[compiled] + memory_by_depth[compiled])
 # Like with like: each parameter's tape over its replay, at each point measured.
 albedo_smallest_saving = min(
@@ -135,17 +140,17 @@ albedo_smallest_saving = min(
     for t, r in zip(by[albedo_tape], by[compiled], strict=True)
 )
 lamp_saving_by_spp, lamp_saving_by_depth = (
-    [t / r for t, r in zip(by[lamp_tape], by[windows], strict=True)]
+    [t / r for t, r in zip(by[lamp_tape], by[paths], strict=True)]
     for by in (memory_by_spp, memory_by_depth)
 )
 lamp_smallest_spp_saving = min(lamp_saving_by_spp)
 lamp_saving_at_64 = lamp_saving_by_spp[2]
 lamp_saving_at_depth_2 = lamp_saving_by_depth[0]
-# The first depth from which the replay by windows holds less than the tape, at 16 spp.
+# The first depth from which the lamp's replay holds less than the tape, at 16 spp.
 replay_cheaper_from_depth = next(
     d for i, d in enumerate(depths) if all(s > 1 for s in lamp_saving_by_depth[i:])
 )
-print(f"lamp's position, tape / replay by windows: spp {spps}: "
+print(f"lamp's position, tape / compiled whole paths: spp {spps}: "
       f"{np.round(lamp_saving_by_spp, 2)}; max_depth {depths}: "
       f"{np.round(lamp_saving_by_depth, 2)}")  # fmt: skip
 # The tape's memory per pixel per sample, from 16 to 64 spp, scaled to 512 × 512 at 256 spp.
@@ -192,22 +197,23 @@ save_and_show(figure, OUT / "memory.png")
 # more than `15` <!-- check: albedo_smallest_saving > --> times as much at every point
 # measured, 4 spp included.
 #
-# **The lamp's position**: the replay by windows grows less than `1.1`
-# <!-- check: windows_spp_growth < --> times from 16 to 64 samples and less than `3.7`
-# <!-- check: windows_depth_growth < --> times from depth 2 to 16 (the values are printed
+# **The lamp's position**: its compiled replay grows less than `1.1`
+# <!-- check: paths_spp_growth < --> times from 16 to 64 samples and less than `5.2`
+# <!-- check: paths_depth_growth < --> times from depth 2 to 16 (the values are printed
 # above; the allocator's bookkeeping moves them by a percent from run to run). It holds one
 # batch of paths' *decisions* (which primitive, which lobe, which light: a few hundred
-# bytes per vertex) and one window, never the whole batch's tape. A compiled window holds a
-# few arrays per path, so the decisions are most of the peak, and they grow with the
-# paths' length: that is the growth with depth. A batch is 16 samples per pixel by default
+# bytes per vertex) and a few arrays per path, never the whole batch's tape: the reverse
+# sweep of a path keeps its values inside the kernel, one path per thread at a time. So the
+# decisions are most of the peak, and they grow with the paths' length: that is the growth
+# with depth. A batch is 16 samples per pixel by default
 # (`batch_spp`), so below 16 it grows with the samples like the tape, and above it stays
 # flat. Against the lamp's own tape it is the smaller at every point measured: the tape
 # holds more than `2` <!-- check: lamp_smallest_spp_saving > --> times as much at every
-# spp, more than `6` <!-- check: lamp_saving_at_64 > --> times at 64, and more than `1.3`
+# spp, more than `6` <!-- check: lamp_saving_at_64 > --> times at 64, and more than `2.4`
 # <!-- check: lamp_saving_at_depth_2 > --> times at depth 2, so the replay is the cheaper
-# from depth `2` <!-- check: replay_cheaper_from_depth --> on. (When windows were tapes of
-# their own, a window spanned three vertices, which at depth 2 is the whole path: there the
-# replay held more than the tape.) `memory.png` shows the four against spp (left) and
+# from depth `2` <!-- check: replay_cheaper_from_depth --> on. (When the replay went window
+# by window and each window was a tape of its own, a window spanned three vertices, which at
+# depth 2 is the whole path: there the replay held more than the tape.) `memory.png` shows the four against spp (left) and
 # against `max_depth` (right): blue the albedo, orange the lamp, solid lines the tape,
 # dashed the replay. Scaled to 512 × 512 at 256 samples, the albedo's tape would need more
 # than `50` <!-- check: tape_at_512_gb > --> GB.
@@ -331,11 +337,13 @@ print(f"replay against the tape, Cornell box: {library_replay_difference:.1e} (r
 # %% [markdown]
 # They agree to `1e-12` <!-- check: library_replay_difference < --> (relative). One
 # detail differs from the hand-written replay above: dividing `remaining` by `ρ` fails
-# where a channel's albedo is 0 (a pure red wall has no green). The compiled replay
-# therefore gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}`, over a few
-# numbers kept per vertex of the one path being replayed; the replay by windows divides,
-# and where a factor is 0 it gathers `R_k` from the later windows and builds that window
-# again at the end (`docs/path_tracing.md`, `render/path/gradient/replay.py`). Mitsuba's `prb`
+# where a channel's albedo is 0 (a pure red wall has no green). The hand-written compiled
+# replay therefore gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}`, over a few
+# numbers kept per vertex of the one path being replayed; the compiled whole path needs
+# neither (its reverse sweep is reverse mode through the path's product of factors, which
+# multiplies and never divides); the replay by windows on the tape divides, and where a
+# factor is 0 it gathers `R_k` from the later windows and builds that window again at the
+# end (`docs/path_tracing.md`, `render/path/gradient/replay.py`). Mitsuba's `prb`
 # divides and takes the inverse of a zero as 0, which drops that term. Exercise 1 asks
 # why that matters.
 #
@@ -404,7 +412,7 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 #    `g_k = a_k / d²`, and add `d/dd` to the hand-written adjoint (only the `C_k` depend on
 #    `d`). Check against the tape.
 # 3. **Memory at depth.** Extend the depth sweep of section 1 to `max_depth` 32 for the
-#    tape and the replay by windows. Which one grows, by how much, and what grows in the
+#    tape and the lamp's compiled replay. Which one grows, by how much, and what grows in the
 #    replay (see `docs/path_tracing.md`)?
 #
 # Solutions: `lessons/solutions/14_path_replay.py`.

@@ -120,28 +120,31 @@ assert distance_difference < 1e-14
 #
 # ## Exercise 3: memory at depth 32
 #
-# Like with like: the tape and the replay by windows, both for the lamp's position (the
-# replay by windows is what the library runs for it).
+# Like with like: the tape and the compiled replay of whole paths, both for the lamp's
+# position (the replay is what the library runs for it). The replay's kernel is compiled
+# once per depth (lesson 16), so a first call at each depth comes before the measurement.
 
 
 # %%
+for depth in (2, 32):
+    gradient_peak_mb("replay", "lamp", 4, depth)
 tape = {d: gradient_peak_mb("tape", "lamp", 16, d) for d in (2, 32)}
-windows = {d: gradient_peak_mb("replay", "lamp", 16, d) for d in (2, 32)}
+paths = {d: gradient_peak_mb("replay", "lamp", 16, d) for d in (2, 32)}
 tape_growth_32 = tape[32] / tape[2]
-windows_growth_32 = windows[32] / windows[2]
-tape_over_windows_32 = tape[32] / windows[32]
-print(f"depth 2 -> 32: tape {tape[2]:.1f} -> {tape[32]:.1f} MB, replay by windows "
-      f"{windows[2]:.1f} -> {windows[32]:.1f} MB")  # fmt: skip
+paths_growth_32 = paths[32] / paths[2]
+tape_over_paths_32 = tape[32] / paths[32]
+print(f"depth 2 -> 32: tape {tape[2]:.1f} -> {tape[32]:.1f} MB, compiled replay "
+      f"{paths[2]:.1f} -> {paths[32]:.1f} MB")  # fmt: skip
 
 # %% [markdown]
 # From depth 2 to 32 the tape grows more than `3.5` <!-- check: tape_growth_32 > --> times,
-# and the replay by windows more than `4.5` <!-- check: windows_growth_32 > --> times
-# (printed above); at depth 32 the tape holds `1.3` <!-- check: tape_over_windows_32 -->
+# and the compiled replay more than `4.5` <!-- check: paths_growth_32 > --> times
+# (printed above); at depth 32 the tape holds `1.3` <!-- check: tape_over_paths_32 -->
 # times as much. What grows in the replay is the batch's *records*: every vertex's
-# decisions (primitive, lobe, light sample) for all the batch's paths, which the windows
-# read and which are kept for the whole batch (`docs/path_tracing.md`); a window itself
-# holds a few arrays per path of one depth (a compiled window) or three vertices' tape,
-# whatever the depth. So the replay by windows is flat in the number of samples, not in
-# depth; only the compiled replay, which keeps a few numbers per vertex of one path per
-# thread, is flat in both. (Many paths leave the open box long before depth 32, so nothing
-# grows sixteen-fold.)
+# decisions (primitive, lobe, light sample) for all the batch's paths, which the replay
+# reads and which are kept for the whole batch (`docs/path_tracing.md`); the kernel itself
+# keeps one path's values per thread while it runs that path's reverse sweep, whatever the
+# number of paths. So the replay is flat in the number of samples, not in depth; only the
+# hand-written replay of the albedo, which keeps a few numbers per vertex of one path per
+# thread and no records, is flat in both. (Many paths leave the open box long before depth
+# 32, so nothing grows sixteen-fold.)
