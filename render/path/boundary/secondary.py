@@ -64,9 +64,10 @@ from render.path.gradient.replay import plain_tables, radiance_of
 from render.path.gradient.transport import next_vertex, vertex_on_tape, viewer_side
 from render.path.sample.choices import geometric_normal, padded_role, padded_tables
 from render.path.sample.random import bounce_dimension, uniform
+from render.path.sample.records import PathBatch, Vertices
 from render.path.sample.sampling import dot
 from render.path.sample.tables import Tables
-from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathBatch, PathSampler, Vertices
+from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathSampler
 from render.path.twin import kernel
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
 from render.shade.surface import column, geometric_normals

@@ -55,8 +55,9 @@ import numpy as np
 import minidiff as md
 from render.path.gradient import window
 from render.path.gradient.transport import Vertex, _at_vertex, vertex_on_tape, viewer_side
+from render.path.sample.records import PathBatch, Vertices
 from render.path.sample.tables import Tables
-from render.path.sample.tracer import AREA, CAMERA, MIRROR, PathBatch, PathSampler, Vertices
+from render.path.sample.tracer import AREA, CAMERA, MIRROR, PathSampler
 from render.scene.camera import ray_directions
 from render.scene.substitute import substituted
 from render.shade.surface import column

@@ -41,7 +41,8 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.sample.tracer import AREA, MIRROR, STOP, PathBatch, PathSampler
+from render.path.sample.records import PathBatch
+from render.path.sample.tracer import AREA, MIRROR, STOP, PathSampler
 from render.scene.camera import ray_directions
 from render.shade.lighting import Appearance, appearance, brdf, light_contribution
 from render.shade.surface import Surface, column, in_order, surface_at, toward_ray

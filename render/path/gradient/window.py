@@ -36,8 +36,9 @@ import numpy as np
 
 import minidiff as md
 from render.path.sample import records
+from render.path.sample.records import PathBatch
 from render.path.sample.tables import Tables, far_side_of, role_of
-from render.path.sample.tracer import MIRROR, STOP, PathBatch
+from render.path.sample.tracer import MIRROR, STOP
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere

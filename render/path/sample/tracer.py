@@ -30,9 +30,7 @@ of a batch do not depend on which other paths are in it.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +38,7 @@ import minidiff as md
 from render.path.sample.choices import vertex_choices
 from render.path.sample.emitters import Emitters
 from render.path.sample.random import bounce_dimension, uniform
+from render.path.sample.records import PathBatch, Vertices
 from render.path.sample.sampling import dot, unit
 from render.path.sample.tables import Tables
 from render.scene.cache import RenderCache
@@ -56,85 +55,12 @@ from render.trace.visibility import (
     shadow_rays,
 )
 
-if TYPE_CHECKING:
-    from render.path.sample.records import Records
-
 #: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
 CAMERA, AREA, MIRROR = 0, 1, 2
 STOP = 0
 #: The largest max_depth and rr_depth: every bounce's random-number dimensions
 #: (``random.bounce_dimension``) then fit in an int64.
 MAX_DEPTH = 2**59
-
-
-@dataclass
-class Vertices:
-    """The n paths of a batch that reach their k-th vertex, and what they do there.
-
-    rows (n,) int64: which paths of the batch (indices into ``PathBatch.paths``);
-    prim (n,) int64 the primitive hit; local (n, 3) the point's coordinates on it ((u, v, 0)
-    barycentrics, or the unit direction from a sphere's centre); form (n,) int8 ``CAMERA``,
-    ``AREA`` or ``MIRROR``; emit_weight (n,): the MIS weight of the emission seen here.
-    NEE: nee_prim (n,) the emissive primitive picked (-1: none), nee_local (n, 3) the point
-    on it, nee_weight (n,): visible * MIS weight / P(primitive) (0 if occluded or behind);
-    lit (L, n) bool: which point and directional lights reach the vertex.
-    Continuation: next (n,) int8 ``STOP``, ``AREA`` (diffuse or glossy) or ``MIRROR``;
-    next_pdf (n,): the direction's density per steradian (``AREA``) or the lobe's
-    probability (``MIRROR``); survive (n,): Russian roulette's survival probability (1
-    before ``rr_depth``); escape (n,) bool: the ray left the scene; escape_dir (n, 3) its
-    direction (unit)."""
-
-    rows: np.ndarray
-    prim: np.ndarray
-    local: np.ndarray
-    form: np.ndarray
-    emit_weight: np.ndarray
-    nee_prim: np.ndarray
-    nee_local: np.ndarray
-    nee_weight: np.ndarray
-    lit: np.ndarray
-    next: np.ndarray
-    next_pdf: np.ndarray
-    survive: np.ndarray
-    escape: np.ndarray
-    escape_dir: np.ndarray
-
-    @classmethod
-    def none(cls, n_lights: int) -> Vertices:
-        """The record of no path."""
-        i, f = np.zeros(0, np.int64), np.zeros(0)
-        return cls(i, i, np.zeros((0, 3)), np.zeros(0, np.int8), f, i, np.zeros((0, 3)), f,
-                   np.zeros((n_lights, 0), bool), np.zeros(0, np.int8), f, f,
-                   np.zeros(0, bool), np.zeros((0, 3)))  # fmt: skip
-
-    def take(self, at: np.ndarray) -> Vertices:
-        """The paths at positions ``at`` of this record (the lights' visibility is (L, n)).
-        (``np.take`` along an axis: for rows of an (n, 3) array, several times faster than
-        indexing with ``at``, for the same values.)"""
-        fields = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
-        return Vertices(**{name: np.take(value, at, axis=1 if name == "lit" else 0)
-                           for name, value in fields.items()})  # fmt: skip
-
-    def of_rows(self, rows: np.ndarray) -> Vertices:
-        """The record of the batch's paths ``rows`` (sorted, all among ``self.rows``)."""
-        if len(rows) == len(self.rows):  # then all of them
-            return self
-        return self.take(np.searchsorted(self.rows, rows))
-
-
-@dataclass
-class PathBatch:
-    """A batch of N paths: their ids (N,) (``pixel * spp + sample``), the image-plane
-    coordinates of their camera rays (N, 2), which camera rays miss everything (N,) bool
-    (they see the environment), and their vertices, one ``Vertices`` per depth; the same
-    vertices as dense ``records`` (``render.path.sample.records``) where whoever traced
-    them wrote that layout too (the path kernel), else None."""
-
-    paths: np.ndarray
-    coords: np.ndarray
-    missed: np.ndarray
-    vertices: list[Vertices]
-    records: Records | None = None
 
 
 @dataclass

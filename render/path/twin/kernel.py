@@ -32,14 +32,8 @@ from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
 from render.path.sample import records as R
 from render.path.sample.choices import MAX_SURVIVAL, MIN_SURVIVAL
 from render.path.sample.random import mix, uniform_of
-from render.path.sample.tracer import (
-    AREA,
-    CAMERA,
-    MIRROR,
-    STOP,
-    PathBatch,
-    PathSampler,
-)
+from render.path.sample.records import PathBatch
+from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathSampler
 from render.path.twin.chain import (
     _C_ADDED,
     _C_BETA,

@@ -24,7 +24,8 @@ import minidiff as md
 import render
 from render.path import render_path
 from render.path.gradient.transport import path_radiance
-from render.path.sample.tracer import CAMERA, MIRROR, PathBatch, PathSampler
+from render.path.sample.records import PathBatch
+from render.path.sample.tracer import CAMERA, MIRROR, PathSampler
 from render.path.twin import kernel
 from render.scene.camera import camera_frame
 from render.scene.cornell import box_mesh, cornell_box
