@@ -226,26 +226,9 @@ def window_terms(
     return added, factor
 
 
-def path_terms(
-    coords,
-    first_prim,
-    ints,
-    floats,
-    lit,
-    count,
-    frame,
-    vertices,
-    normals,
-    faces,
-    centers,
-    radii,
-    smooth,
-    materials,
-    lights,
-    background,
-    primitives,
-    form,
-):
+def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, normals,
+               faces, centers, radii, smooth, materials, lights, background, primitives,
+               form):  # fmt: skip
     """The radiance (n, 3) of whole paths, L = sum_k beta_k C_k with beta_{k+1} = beta_k
     F_k: ``window_terms`` at each of their D vertices in turn. Batched (n paths): ``coords``
     (n, 2) the camera ray's image-plane point, ``first_prim`` (n,) the primitive it meets;
