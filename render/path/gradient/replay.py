@@ -1,9 +1,12 @@
 """Path replay backpropagation: a batch's gradient one depth at a time, its tape flat in depth.
 
 ``render.path.gradient.transport.path_radiance`` puts every depth of every path on one tape,
-so the memory of a batch's ``backward`` grows with ``max_depth``. Path replay (Vicini et al.
-2021, "Path Replay Backpropagation"; Mitsuba 3's ``prb.py``) gives the same gradient with
-one depth on the tape at a time. A path's radiance is, componentwise in RGB,
+so the memory of a batch's ``backward`` grows with ``max_depth``. Where the batch's paths
+compile (``window.applies``) their gradient is one compiled function of the whole path,
+whose reverse sweep runs path by path inside the kernel (``window.path_terms``): no tape
+at all. Otherwise (a mirror bounce, a texture) path replay (Vicini et al. 2021, "Path
+Replay Backpropagation"; Mitsuba 3's ``prb.py``) gives the same gradient with one depth on
+the tape at a time. A path's radiance is, componentwise in RGB,
 
     L = sum_k beta_k C_k,    beta_0 = 1,  beta_{k+1} = beta_k F_k,
 
@@ -17,10 +20,8 @@ Lrem_k = (L - sum_{j<=k} beta_j C_j) / beta_{k+1} being the radiance that arrive
 k from vertex k + 1 on. So *window* k computes only what C_k and F_k depend on, with beta_k
 and Lrem_k as plain constants (from the windows' own values and the path's total L), and the
 gradient of sum(weights * (beta_k C_k + beta_k F_k Lrem_k)) is taken before the next window
-is built (``window.objective_weights`` computes those constants from the window's values):
-by ``backward`` on the window's own tape, or, for a compiled window, in the same pass as
-its values (``window.CompiledWindow.replay``: the objective is part of the traced function,
-``md.compile``'s ``value_and_add_vjp``).
+is built (``objective_weights`` computes those constants from the window's values), by
+``backward`` on the window's own tape.
 
 **What a window rebuilds.** Vertex k needs its predecessor: an ``AREA`` vertex's direction
 back (``wo``) needs the previous point, a ``MIRROR`` vertex is where the ray reflected at the
@@ -81,9 +82,9 @@ def radiance_of(
     world, frame, sampler: PathSampler, batch: PathBatch, tables: Tables | None = None
 ) -> np.ndarray:
     """(N, 3) plain: the radiance each path of ``batch`` carries, the value of
-    ``transport.path_radiance``, summed window by window (L = sum_k beta_k C_k, the module
-    docstring): the windows compiled and parallel over the paths where they apply
-    (``window.applies``), else on the tape without recording. For the constants of the
+    ``transport.path_radiance`` (L = sum_k beta_k C_k, the module docstring): compiled and
+    parallel over the paths where they compile (``window.radiance``), else summed window by
+    window on the tape without recording. For the constants of the
     boundary terms (``render.path.boundary.secondary``, ``render.path.boundary.primary``).
     ``tables``: ``plain_tables(world, frame)`` if the caller has them (a caller asking
     about many batches of one world makes them once)."""
@@ -291,12 +292,12 @@ class _Paths:
     batch: PathBatch
     vertices: list[Vertices]
     dtype: np.dtype
-    tables: Tables | None  # the scene's tables when the windows are compiled
+    tables: Tables | None  # the scene's tables when the paths' gradient compiles
 
     @classmethod
     def of(cls, world, frame, sampler: PathSampler, batch: PathBatch, tables=None) -> _Paths:
         """The windows' view of ``batch`` in ``world`` (its dtype, the depths some path
-        reaches), with the scene's tables where the windows compile (``window.applies``):
+        reaches), with the scene's tables where the paths compile (``window.applies``):
         ``tables`` if given (made by ``Tables.of(world, frame)``), else made here."""
         dtype = np.result_type(*[t.dtype for t in world.parameters()])
         vertices = [v for v in batch.vertices if len(v.rows)]
