@@ -15,8 +15,9 @@ medians) on each thread count (``numba.set_num_threads``, which the compiled ker
 * ``albedo``: the red wall's albedo (the hand-written compiled replay,
   ``render.path.twin.adjoint``);
 * ``light_position``, ``block_vertices``, ``sphere_centre``, ``camera_position``: the
-  replay one depth at a time (``render.path.gradient.replay``), its windows compiled
-  (``render.path.gradient.window``) where they apply (here: everywhere);
+  compiled whole paths (``render.path.gradient.window``: each path's reverse sweep inside
+  one kernel) where they apply (here: everywhere), else the replay one depth at a time on
+  the tape (``render.path.gradient.replay``);
 * ``light_position_secondary``: the light's position with ``antialias="secondary"``
   (the soft shadows' boundary term);
 * ``forward``: the image alone (the compiled kernel, ``render.path.twin.kernel``);
@@ -24,7 +25,7 @@ medians) on each thread count (``numba.set_num_threads``, which the compiled ker
   (``PathSampler.sample``: the rays, and its compiled choices, ``render.path.sample.choices``),
   which the tape's gradient and the secondary term's continued paths use;
 * ``wavefront``: the image's radiance without the kernel: the sampler's decisions, then
-  the replay's compiled windows summing each path's radiance (``replay.radiance_of``).
+  the compiled whole paths' forward summing each path's radiance (``replay.radiance_of``).
 
 Reported per row: the median (ms), its ratio to the albedo's on the same thread count
 (target: at most 1.5), the secondary row over the plain light-position row (target: at
