@@ -89,9 +89,9 @@ def radiance_of(
     ``tables``: ``plain_tables(world, frame)`` if the caller has them (a caller asking
     about many batches of one world makes them once)."""
     with md.no_grad():
-        paths = _Paths.of(world, frame, sampler, batch, tables)
-        if paths.tables is not None:
-            return window.radiance(paths.tables, batch)
+        if window.applies(world, batch):
+            return window.radiance(tables or Tables.of(world, frame), batch)
+        paths = _Paths.of(world, frame, sampler, batch)
         n_paths = len(batch.paths)
         total = np.zeros((n_paths, 3), paths.dtype)
         total[batch.missed] = world.background.data  # camera rays that see the environment
@@ -124,11 +124,12 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
     if len(missed) and window_world.background.requires_grad:  # camera rays seeing the sky
         seen = md.sum(md.broadcast_to(window_world.background, (len(missed), 3)) * weights[missed])
         seen.backward()
-    paths = _Paths.of(window_world, window_frame, sampler, batch)
-    if paths.tables is not None:  # compiled: each path's reverse sweep in one kernel
-        window.backpropagate(paths.tables, batch, weights)
-        _backward(paths.tables.carried())  # the tables' gradients, through their tape
+    if window.applies(window_world, batch):  # compiled: each path's reverse sweep in a kernel
+        tables = Tables.of(window_world, window_frame)
+        window.backpropagate(tables, batch, weights)
+        _backward(tables.carried())  # the tables' gradients, through their tape
     else:
+        paths = _Paths.of(window_world, window_frame, sampler, batch)
         vertices = paths.vertices
         sums = _Sums.of(weights, radiance)
         anchor = np.zeros(len(batch.paths), np.int64)  # where window k starts, per path
@@ -292,20 +293,14 @@ class _Paths:
     batch: PathBatch
     vertices: list[Vertices]
     dtype: np.dtype
-    tables: Tables | None  # the scene's tables when the paths' gradient compiles
 
     @classmethod
-    def of(cls, world, frame, sampler: PathSampler, batch: PathBatch, tables=None) -> _Paths:
+    def of(cls, world, frame, sampler: PathSampler, batch: PathBatch) -> _Paths:
         """The windows' view of ``batch`` in ``world`` (its dtype, the depths some path
-        reaches), with the scene's tables where the paths compile (``window.applies``):
-        ``tables`` if given (made by ``Tables.of(world, frame)``), else made here."""
+        reaches)."""
         dtype = np.result_type(*[t.dtype for t in world.parameters()])
         vertices = [v for v in batch.vertices if len(v.rows)]
-        if not window.applies(world, batch):
-            tables = None
-        elif tables is None:
-            tables = Tables.of(world, frame)
-        return cls(world, frame, sampler, batch, vertices, dtype, tables)
+        return cls(world, frame, sampler, batch, vertices, dtype)
 
 
 def plain_tables(world, frame) -> Tables:

@@ -45,7 +45,7 @@ import minidiff as md
 from render.path.sample import records
 from render.path.sample.records import PathBatch
 from render.path.sample.tables import Tables, far_side_of, role_of
-from render.path.sample.tracer import MIRROR, STOP
+from render.path.sample.tracer import STOP
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere
@@ -64,7 +64,7 @@ def applies(world: Scene, batch: PathBatch) -> bool:
         return False
     if any(t.dtype != np.float64 for t in world.parameters()):
         return False
-    return not any(np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in batch.vertices)
+    return not batch.meets_mirror()
 
 
 @dataclass

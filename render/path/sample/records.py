@@ -23,6 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
+CAMERA, AREA, MIRROR = 0, 1, 2
+STOP = 0
+
 
 @dataclass
 class Vertices:
@@ -79,19 +83,35 @@ class Vertices:
         return self.take(np.searchsorted(self.rows, rows))
 
 
-@dataclass
 class PathBatch:
-    """A batch of N paths: their ids (N,) (``pixel * spp + sample``), the image-plane
-    coordinates of their camera rays (N, 2), which camera rays miss everything (N,) bool
-    (they see the environment), and their vertices, one ``Vertices`` per depth; the same
-    vertices as dense ``records`` (``render.path.sample.records``) where whoever traced
-    them wrote that layout too (the path kernel), else None."""
+    """A batch of N paths: their ids ``paths`` (N,) (``pixel * spp + sample``), the
+    image-plane coordinates of their camera rays ``coords`` (N, 2), which camera rays miss
+    everything ``missed`` (N,) bool (they see the environment), and their ``vertices``,
+    one ``Vertices`` per depth. Given dense ``records`` instead (the path kernel writes
+    that layout as it traces), the vertices are laid out from them when first asked for:
+    the compiled gradient reads the records alone."""
 
-    paths: np.ndarray
-    coords: np.ndarray
-    missed: np.ndarray
-    vertices: list[Vertices]
-    records: Records | None = None
+    def __init__(self, paths: np.ndarray, coords: np.ndarray, missed: np.ndarray,
+                 vertices: list[Vertices] | None = None,
+                 records: Records | None = None) -> None:  # fmt: skip
+        if vertices is None and records is None:
+            raise ValueError("PathBatch: give its vertices, its records or both")
+        self.paths, self.coords, self.missed = paths, coords, missed
+        self._vertices, self.records = vertices, records
+
+    @property
+    def vertices(self) -> list[Vertices]:
+        """Per depth some path reaches, the paths that reach it and their fields."""
+        if self._vertices is None:  # (two threads may both lay them out: the same lists)
+            self._vertices = self.records.vertices()
+        return self._vertices
+
+    def meets_mirror(self) -> bool:
+        """Whether a path of the batch has a ``MIRROR`` vertex or bounce."""
+        if self.records is not None:
+            forms = self.records.ints[:, :, [FORM, NEXT]]
+            return bool(np.any(forms == MIRROR))
+        return any(np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in self.vertices)
 
 
 #: Integer columns: the primitive, the vertex's form, NEE's primitive (-1: none), the

@@ -38,7 +38,7 @@ import minidiff as md
 from render.path.sample.choices import vertex_choices
 from render.path.sample.emitters import Emitters
 from render.path.sample.random import bounce_dimension, uniform
-from render.path.sample.records import PathBatch, Vertices
+from render.path.sample.records import AREA, CAMERA, MIRROR, STOP, PathBatch, Vertices
 from render.path.sample.sampling import dot, unit
 from render.path.sample.tables import Tables
 from render.scene.cache import RenderCache
@@ -55,9 +55,6 @@ from render.trace.visibility import (
     shadow_rays,
 )
 
-#: How a vertex was reached (``Vertices.form``) and how a path goes on (``Vertices.next``).
-CAMERA, AREA, MIRROR = 0, 1, 2
-STOP = 0
 #: The largest max_depth and rr_depth: every bounce's random-number dimensions
 #: (``random.bounce_dimension``) then fit in an int64.
 MAX_DEPTH = 2**59

@@ -627,7 +627,7 @@ def sample_paths(
             break
         depth = int(count.max())  # the same paths again, with room for every vertex
     coords = records.floats[0, :, R.COORD : R.COORD + 2].copy()
-    return PathBatch(paths, coords, count == 0, records.vertices(), records), radiance
+    return PathBatch(paths, coords, count == 0, records=records), radiance
 
 
 def replay_gradient(
