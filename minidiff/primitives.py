@@ -685,6 +685,8 @@ def _where_traced(condition, a, b):
     condition = trace.traced(condition)
     if condition.dtype != np.bool_:
         raise trace.CompileError(f"where: the condition must be boolean, got {condition.dtype}")
+    if all(trace.traced(x).dtype.kind == "i" for x in (a, b)):  # indices: no derivative
+        return trace.select_integers(condition, a, b)
     return trace.elementwise(
         "where", _where_scalar, condition, a, b, differentiable=(False, True, True)
     )

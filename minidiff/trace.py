@@ -367,6 +367,12 @@ def compare(op: str, a, b) -> Traced:
     return _map(lambda x, y: ir.compare(op, x, y), a, b)
 
 
+def select_integers(condition, a, b) -> Traced:
+    """``where`` on integer arrays (indices, which take no derivative): ``a`` where the
+    boolean ``condition`` holds, else ``b``, elementwise."""
+    return _map(ir.select, condition, a, b, dtype=np.int64)
+
+
 def logical(op: str, a, b) -> Traced:
     """``a & b`` or ``a | b`` of boolean traced arrays."""
     for x in (a, b):

@@ -244,6 +244,33 @@ def test_gathers_with_repeated_and_negative_indices(data, n, rows):
     assert_close(t1, t2, "tangent")
 
 
+@md.compile(shared=("table",))
+def picked_rows(x, rows, fallback, table):
+    """Rows of ``table`` (m, 3) picked by an integer ``where``: ``rows`` where x > 0, else
+    ``fallback``, times x."""
+    return table[md.where(x > 0.0, rows, fallback)] * md.reshape(x, (-1, 1))
+
+
+@settings(max_examples=20)
+@given(st.data(), st.integers(1, 30), st.integers(1, 6))
+def test_where_picks_integer_indices(data, n, m):
+    """``where`` on two integer arrays (indices) picks as NumPy's does, and the gather it
+    feeds gets the gradient of the rows picked."""
+    x = data.draw(arrays((n,), False))
+    table = data.draw(arrays((m, 3), False))
+    index = st.lists(st.integers(-m, m - 1), min_size=n, max_size=n)
+    rows, fallback = (np.array(data.draw(index)) for _ in range(2))
+    t = md.tensor(table, requires_grad=True)
+    out = picked_rows(x, rows, fallback, t)
+    picked = np.where(x > 0.0, rows, fallback)
+    assert_close(out.data, table[picked] * x[:, None], "value")
+    cot = data.draw(arrays((n, 3), False))
+    (out * cot).sum().backward()
+    expected = np.zeros_like(table)
+    np.add.at(expected, picked, cot * x[:, None])
+    assert_close(t.grad, expected, "d/dtable")
+
+
 @pytest.mark.parametrize("rows", [50, codegen.PARTIAL_LIMIT // 3 + 50])
 @pytest.mark.parametrize("ascending", [False, True])
 def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(ascending, rows):

@@ -43,9 +43,8 @@ import numpy as np
 
 import minidiff as md
 from render.path.sample import records
-from render.path.sample.records import PathBatch
+from render.path.sample.records import MIRROR, STOP, PathBatch
 from render.path.sample.tables import Tables, far_side_of, role_of
-from render.path.sample.tracer import STOP
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere
@@ -55,16 +54,14 @@ from render.shade.surface import column, surface_at, toward_ray
 
 
 def applies(world: Scene, batch: PathBatch) -> bool:
-    """Whether ``batch``'s gradient compiles (``path_terms``): no object with a texture, no
-    ``MIRROR`` vertex or bounce among its paths, float64 parameters and lights whose
-    shading compiles (``Light.compiled_shading``)."""
+    """Whether ``batch``'s gradient compiles (``path_terms``): no object with a texture,
+    float64 parameters and lights whose shading compiles (``Light.compiled_shading``).
+    (``batch``: its paths' mirror bounces are compiled too, when there are any.)"""
     if any(obj.material.textures for obj in world.objects):
         return False
     if not all(light.compiled_shading for light in world.lights):
         return False
-    if any(t.dtype != np.float64 for t in world.parameters()):
-        return False
-    return not batch.meets_mirror()
+    return all(t.dtype == np.float64 for t in world.parameters())
 
 
 @dataclass
@@ -127,62 +124,102 @@ def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
 
 
 _SHARED = ("frame", "vertices", "normals", "faces", "centers", "radii", "smooth", "materials",
-           "lights", "background", "primitives")  # fmt: skip
+           "lights", "background", "primitives", "harmless")  # fmt: skip
 
 
-def window_terms(
-    coords,
-    previous,
-    here,
-    lit,
-    emit_weight,
-    nee,
-    escape,
-    going,
-    frame,
-    vertices,
-    normals,
-    faces,
-    centers,
-    radii,
-    smooth,
-    materials,
-    lights,
-    background,
-    primitives,
-    form,
-):
-    """One window of one path: (C_k (n, 3), F_k (n, 3)), ``transport._at_vertex``'s terms
-    for a vertex reached without a mirror. Batched (n paths): coords (n, 2) the camera ray's
-    image-plane point (when vertex k or k - 1 is the camera's); previous, here: vertices k
-    - 1 (when an ``AREA`` one) and k, each (primitive (n,), barycentric coordinates (n,
-    3)); lit (n, L); emit_weight (n,); nee (primitive, coordinates, weight) the point on an
-    area light; escape (scale, unit direction); going (primitive, coordinates, scale, flag)
-    the next vertex. Shared: the tables (``Tables``; ``primitives``: what a point on each
-    primitive reads, ``role_of``). Static ``form``: (which vertex the camera's ray meets:
-    "camera" (vertex k), "after_camera" (k - 1) or "after_area" (none), the lights'
-    classes and parameter names, whether any material is glossy)."""
-    case, kinds, glossy = form
-    albedo, specular, shininess, emission = materials
-    zero = md.tensor(0.0)
+def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, normals,
+               faces, centers, radii, smooth, materials, lights, background, primitives,
+               harmless, form):  # fmt: skip
+    """The radiance (n, 3) of whole paths, L = sum_k beta_k C_k with beta_{k+1} = beta_k
+    F_k, vertex after vertex (``vertex_terms``, ``next_vertex``). Batched (n paths):
+    ``coords`` (n, 2) the camera ray's image-plane point, ``first_prim`` (n,) the primitive
+    it meets; per depth k (tuples of D): the records' ``ints`` (n, I_FIELDS), ``floats``
+    (n, F_FIELDS) and ``lit`` (n, max(L, 1)) (``render.path.sample.records``), and
+    ``count`` (n,) each path's number of vertices. Shared: the tables (``Tables``;
+    ``primitives``: what a point on each primitive reads, ``role_of``) and ``harmless`` ()
+    a primitive of some size (``Tables.harmless``). Static ``form``:
+    (the lights' classes and parameter names, whether any material is glossy, the number
+    of lights L, whether a path meets a mirror).
+
+    Where a path has ended (vertex k >= count), vertex k is read at a harmless point: on
+    the ``harmless`` primitive at fixed coordinates that differ from one depth to the
+    next, so that two such vertices in a row are never the same point (the direction
+    between them is divided by its length). Its C_k and the factor before it are zero, so
+    neither value nor gradient sees it."""
+    kinds, glossy, n_lights, mirrors = form
     world = held_world(vertices, normals, faces, centers, radii, smooth)
-    scene_lights = held_lights(kinds, lights)
-    if case == "camera":  # vertex k where the camera's ray meets it
-        directions = ray_directions(frame, coords)
-        far = far_side_of(primitives, here[0])
-        v = surface(world, role_of(primitives, *here), frame[3], directions, far)
-        v.wo = -md.normalize(directions)
-    else:
-        v = surface(world, role_of(primitives, *here))
-        back_role = role_of(primitives, *previous)
-        if case == "after_camera":
-            far = far_side_of(primitives, previous[0])
-            back = surface(world, back_role, frame[3], ray_directions(frame, coords), far).points
-        else:
-            back = surface(world, back_role).points
-        v.wo = md.normalize(back - v.points)
-    obj = v.obj
+    scene = (world, held_lights(kinds, lights), materials, background, primitives, harmless,
+             glossy)  # fmt: skip
+    directions = ray_directions(frame, coords)  # vertex 0: where the camera's ray meets
+    far = far_side_of(primitives, first_prim)
+    v = surface(world, role_of(primitives, first_prim, _UNUSED[0]), frame[3], directions, far)
+    v.wo = -md.normalize(directions)
+    total = beta = None
+    for k in range(len(ints)):
+        exists, goes = count > k, count > k + 1
+        here = (ints[k], floats[k], md.where(lit[k][:, :n_lights], 1.0, 0.0) if n_lights else None)
+        nxt = None
+        if k + 1 < len(ints):
+            mirror = (ints[k][:, records.NEXT] == MIRROR) & goes if mirrors else None
+            following = (ints[k + 1], floats[k + 1])
+            nxt = next_vertex(world, primitives, harmless, v, following, goes, mirror, k + 1)
+        added, factor = vertex_terms(scene, v, here, nxt, goes, mirrors)
+        added = md.where(column(exists), added, 0.0)
+        total = added if k == 0 else total + beta * added
+        beta = factor if k == 0 else beta * factor
+        v = nxt
+    return total
 
+
+def next_vertex(world, primitives, harmless, v: _Vertex, record, goes, mirror, depth: int):
+    """Vertex ``depth`` of the paths, which follows ``v`` (``record``: its ints and floats):
+    ``AREA`` ones at their recorded coordinates on their primitives, where ``mirror``
+    (None: nowhere) where the ray reflected at ``v`` meets the primitive
+    (``transport.next_vertex``), its direction back ``wo`` set. Where the path does not go
+    on (``goes`` false) a harmless point (``path_terms``)."""
+    ints, floats = record
+    prim = md.where(goes, ints[:, records.PRIM], harmless)
+    local = md.where(column(goes), floats[:, : records.LOCAL + 3], _UNUSED[depth % 2])
+    role = role_of(primitives, prim, local)
+    placed = surface(world, role)
+    placed.wo = md.normalize(v.points - placed.points)
+    if mirror is None:
+        return placed
+    # The reflected ray about the shading normal facing the viewer, from the vertex. Where
+    # the path does not bounce off a mirror, a ray along the placed point's normal to it
+    # (it meets the primitive there: no ray that misses, so no NaN in the unused values).
+    ns = v.shading * toward_ray(v.geometric, -v.wo)
+    reflected = 2.0 * column(md.dot(v.wo, ns)) * ns - v.wo
+    pick = column(mirror)
+    origins = md.where(pick, v.points, placed.points + placed.geometric)
+    far = None
+    if role[1] is not None:  # a ray that starts inside a sphere meets its far side
+        _, _, centers, radii = world
+        far = md.norm(origins - centers[role[1]]) < radii[role[1]]
+    found = surface(world, role, origins, md.where(pick, reflected, -placed.geometric), far)
+    return _Vertex(
+        md.where(pick, found.points, placed.points),
+        md.where(pick, found.geometric, placed.geometric),
+        md.where(pick, found.shading, placed.shading),
+        md.where(mirror, 1.0, placed.stretch),
+        md.where(pick, -md.normalize(reflected), placed.wo),
+        placed.obj,
+    )
+
+
+def vertex_terms(scene, v: _Vertex, here, nxt: _Vertex | None, goes, mirrors: bool):
+    """(C_k (n, 3), F_k (n, 3)): what vertex ``v`` adds to its path and the factor of the
+    segment to the next vertex ``nxt`` (None after the last depth: F_k is then unused),
+    ``transport._at_vertex``'s terms. ``scene``: (the held world, its lights, the material
+    tables, the environment, ``Tables.primitives``, a harmless primitive, whether any
+    material is glossy);
+    ``here``: the vertex's records (ints, floats, the lights that reach it (n, L) or None);
+    ``goes`` (n,): whether the path goes on; ``mirrors``: whether a path meets a mirror."""
+    world, scene_lights, materials, background, primitives, harmless, glossy = scene
+    albedo, specular, shininess, emission, reflectance = materials
+    ints, floats, lit = here
+    zero = md.tensor(0.0)
+    obj = v.obj
     side = toward_ray(v.geometric, -v.wo)  # two-sided: the shading normal faces the viewer
     ns = v.shading * side
     look = Appearance(albedo[obj], specular[obj] if glossy else zero, zero, shininess[obj], None)
@@ -191,7 +228,7 @@ def window_terms(
 
     # Emission seen here (from its front only), MIS-weighted; the point and directional
     # lights.
-    added = emission[obj] * column(md.maximum(side[:, 0], 0.0) * emit_weight)
+    added = emission[obj] * column(md.maximum(side[:, 0], 0.0) * floats[:, records.EMIT])
     for j, light in enumerate(scene_lights):
         added = added + light_contribution(v.points, ns, -v.wo, look, light, lit[:, j])
 
@@ -209,10 +246,13 @@ def window_terms(
 
     # Next-event estimation on the area lights: a point on an emitting primitive, whose
     # area is half the stretch on a triangle, 4 pi times it on a sphere.
-    nee_prim, nee_local, nee_weight = nee
-    nee_role = role_of(primitives, nee_prim, _middle_unless(nee_weight > 0.0, nee_local))
+    nee_weight = floats[:, records.NEE_WEIGHT]
+    nee_local = floats[:, records.NEE_LOCAL : records.NEE_LOCAL + 3]
+    sampled = nee_weight > 0.0
+    nee_prim = md.where(sampled, ints[:, records.NEE_PRIM], harmless)
+    nee_role = role_of(primitives, nee_prim, _middle_unless(sampled, nee_local))
     light = surface(world, nee_role)
-    wi, d2 = toward(light.points, nee_weight > 0.0)
+    wi, d2 = toward(light.points, sampled)
     cos_x = md.maximum(md.dot(ns, wi), 0.0)
     cos_z = md.abs(md.dot(light.geometric, wi))
     f = brdf(ns, view, wi, diffuse, look)
@@ -220,71 +260,34 @@ def window_terms(
     scale = cos_x * cos_z / d2 * area * nee_weight
     added = added + f * column(scale) * emission[light.obj]
 
+    # The continuation's constant 1 / (p q): the direction's density (a mirror: the lobe's
+    # probability), Russian roulette's survival (0 where the path ended: then unused).
+    density = floats[:, records.NEXT_PDF] * floats[:, records.SURVIVE]
+    scale = 1.0 / md.where(density != 0.0, density, 1.0)
+    after_mirror = ints[:, records.NEXT] == MIRROR if mirrors else None
+
+    def bounce(wi, weight):
+        """F_k for unit directions wi, ``weight`` 1 / (p q) where used, else 0: f cos /
+        (p q), or off a mirror its reflectance / q."""
+        factor = bounce_weight(wi, weight)
+        if after_mirror is None:
+            return factor
+        return md.where(column(after_mirror), reflectance[obj] * column(weight), factor)
+
     # Paths that leave the scene see the environment.
-    escape_scale, escape_dir = escape
-    added = added + bounce_weight(escape_dir, escape_scale) * background
+    leaves = (ints[:, records.ESCAPE] != 0) & (ints[:, records.NEXT] != STOP)
+    away = floats[:, records.ESCAPE_DIR : records.ESCAPE_DIR + 3]
+    added = added + bounce(away, md.where(leaves, scale, 0.0)) * background
+    if nxt is None:
+        return added, added
 
-    # The factor of the segment to the next vertex, with the change of measure to its area.
-    next_prim, next_local, next_scale, goes = going
-    nxt = surface(world, role_of(primitives, next_prim, _middle_unless(goes, next_local)))
+    # The factor of the segment to the next vertex, with the change of measure to its area
+    # (a mirror's next vertex is where its ray meets: no change of measure).
     wi, d2 = toward(nxt.points, goes)
-    geometry = md.where(goes, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
-    factor = bounce_weight(wi, next_scale) * column(geometry / md.detach(geometry))
+    measured = goes if after_mirror is None else goes & ~after_mirror
+    geometry = md.where(measured, md.abs(md.dot(nxt.geometric, wi)) / d2 * nxt.stretch, 1.0)
+    factor = bounce(wi, md.where(goes, scale, 0.0)) * column(geometry / md.detach(geometry))
     return added, factor
-
-
-def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, normals,
-               faces, centers, radii, smooth, materials, lights, background, primitives,
-               form):  # fmt: skip
-    """The radiance (n, 3) of whole paths, L = sum_k beta_k C_k with beta_{k+1} = beta_k
-    F_k: ``window_terms`` at each of their D vertices in turn. Batched (n paths): ``coords``
-    (n, 2) the camera ray's image-plane point, ``first_prim`` (n,) the primitive it meets;
-    per depth k (tuples of D): the records' ``ints`` (n, I_FIELDS), ``floats`` (n,
-    F_FIELDS) and ``lit`` (n, max(L, 1)) (``render.path.sample.records``), and ``count``
-    (n,) each path's number of vertices. Shared: the tables (``window_terms``). Static
-    ``form``: (the lights' classes and parameter names, whether any material is glossy,
-    the number of lights L).
-
-    Where a path has ended (vertex k >= count), vertex k is read at a harmless point: on
-    its record's primitive (0: the records are zero there) at fixed coordinates that
-    differ from one depth to the next, so that two such vertices in a row are never the
-    same point (the direction between them is divided by its length). Its C_k and the
-    factor before it are zero, so neither value nor gradient sees it."""
-    kinds, glossy, n_lights = form
-    total = beta = previous = None
-    for k in range(len(ints)):
-        here_i, here_f = ints[k], floats[k]
-        exists, goes = count > k, count > k + 1
-        prim = first_prim if k == 0 else here_i[:, records.PRIM]
-        here = (prim, md.where(column(exists), here_f[:, : records.LOCAL + 3], _UNUSED[k % 2]))
-        seen = md.where(lit[k][:, :n_lights], 1.0, 0.0) if n_lights else None
-        nee = (
-            here_i[:, records.NEE_PRIM],
-            here_f[:, records.NEE_LOCAL : records.NEE_LOCAL + 3],
-            here_f[:, records.NEE_WEIGHT],
-        )
-        # The continuation's constant 1 / (p q): the direction's density, Russian roulette's
-        # survival (0 where the path ended: then unused).
-        density = here_f[:, records.NEXT_PDF] * here_f[:, records.SURVIVE]
-        scale = 1.0 / md.where(density != 0.0, density, 1.0)
-        leaves = (here_i[:, records.ESCAPE] != 0) & (here_i[:, records.NEXT] != STOP)
-        away = here_f[:, records.ESCAPE_DIR : records.ESCAPE_DIR + 3]
-        escape = (md.where(leaves, scale, 0.0), away)
-        following = (prim, here[1])  # the last depth's: unused
-        if k + 1 < len(ints):
-            following = (ints[k + 1][:, records.PRIM], floats[k + 1][:, : records.LOCAL + 3])
-        going = (*following, md.where(goes, scale, 0.0), goes)
-        case = "camera" if k == 0 else "after_camera" if k == 1 else "after_area"
-        added, factor = window_terms(
-            coords, previous, here, seen, here_f[:, records.EMIT], nee, escape, going, frame,
-            vertices, normals, faces, centers, radii, smooth, materials, lights, background,
-            primitives, (case, kinds, glossy),
-        )  # fmt: skip
-        added = md.where(column(exists), added, 0.0)
-        total = added if k == 0 else total + beta * added
-        beta = factor if k == 0 else beta * factor
-        previous = here
-    return total
 
 
 #: The coordinates of a vertex after its path has ended, by the parity of its depth.
@@ -310,8 +313,8 @@ def _arguments(tables: Tables, batch: PathBatch) -> tuple:
     return (
         coords, first_prim, *per_depth, count, tables.frame, tables.vertices, tables.normals,
         tables.faces, tables.centers, tables.radii, tables.smooth, tables.materials,
-        tables.lights, tables.background, tables.primitives,
-        (tables.kinds, tables.glossy, rec.n_lights),
+        tables.lights, tables.background, tables.primitives, np.int64(tables.harmless),
+        (tables.kinds, tables.glossy, rec.n_lights, batch.meets_mirror()),
     )  # fmt: skip
 
 

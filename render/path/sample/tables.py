@@ -21,7 +21,7 @@ from render.shade.surface import vertex_normals
 from render.trace.primitives import primitive_ranges
 
 #: The material's parameters a path reads, as per-object tables.
-MATERIAL_FIELDS = ("albedo", "specular", "shininess", "emission")
+MATERIAL_FIELDS = ("albedo", "specular", "shininess", "emission", "reflectance")
 
 
 @dataclass
@@ -114,7 +114,7 @@ class Tables:
             inside = np.linalg.norm(eye - centers.data, axis=1) < radii.data
         columns = {
             name: _stacked([getattr(o.material, name) for o in objects], 3)
-            for name in ("albedo", "specular", "emission")
+            for name in ("albedo", "specular", "emission", "reflectance")
         }
         columns["shininess"] = _stacked([o.material.shininess for o in objects], None)
         light_parameters, kinds = light_arguments(world.lights)
@@ -131,6 +131,14 @@ class Tables:
             n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
             inside=inside, first_vertex=first_vertex, built=built,
         )  # fmt: skip
+
+    @property
+    def harmless(self) -> int:
+        """A primitive of some size, where a path that has ended reads its harmless points:
+        the largest triangle, or the largest sphere in a scene of spheres."""
+        if self.faces is not None:
+            return self.spare_face
+        return self.n_triangles + int(np.argmax(self.radii.data))
 
     def role(self, prims: np.ndarray, local: np.ndarray) -> tuple:
         """``role_of`` the points on primitives ``prims`` (n,) at ``local`` (n, 3)."""

@@ -7,6 +7,8 @@ does."""
 from __future__ import annotations
 
 import tracemalloc
+from contextlib import nullcontext
+from unittest import mock
 
 import numpy as np
 import pytest
@@ -16,6 +18,7 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from minidiff import buffers
+from render.path.gradient import window
 from render.path.gradient.replay import backpropagate_paths
 from render.path.gradient.transport import path_radiance
 from render.path.sample.tracer import MIRROR, PathSampler
@@ -61,13 +64,15 @@ def _gradients(scene, way, paths) -> dict:
     return {name: p.grad for name, p in scene.named_parameters().items()}
 
 
-def _assert_same_gradients(scene, paths) -> int:
+def _assert_same_gradients(scene, paths, windows: bool = False) -> int:
     """The replay's gradients against the tape's, within GRAD_RTOL of each parameter's
     largest; returns how many parameters the tape moves. None (never reached) counts as
     zero: the replay reaches a factor whose later radiance is zero, where the tape may
-    not (a mirror's reflectance when nothing is seen in it)."""
+    not (a mirror's reflectance when nothing is seen in it). ``windows``: the replay one
+    depth at a time on the tape (the route of textured scenes) rather than compiled."""
     taped = _gradients(scene, _taped, paths)
-    replayed = _gradients(scene, _replayed, paths)
+    with mock.patch.object(window, "applies", lambda *_: False) if windows else nullcontext():
+        replayed = _gradients(scene, _replayed, paths)
     pairs = {n: (0.0 if g is None else g, 0.0 if replayed[n] is None else replayed[n])
              for n, g in taped.items() if g is not None or replayed[n] is not None}  # fmt: skip
     scales = {n: np.abs(tape).max() for n, (tape, _) in pairs.items()}
@@ -134,25 +139,29 @@ def _mirrored(kind: str, reflectance: float, albedo: float, shift) -> render.Sce
     max_depth=st.integers(2, 6),
     rr_depth=st.integers(1, 3),
     seed=st.integers(0, 2**16),
+    windows=st.booleans(),
 )
 def test_mirror_scenes_get_the_tapes_gradient(
-    kind, reflectance, albedo, shift, max_depth, rr_depth, seed
+    kind, reflectance, albedo, shift, max_depth, rr_depth, seed, windows
 ):
     scene = _mirrored(kind, reflectance, albedo, shift)
     paths = _paths(scene, spp=2, max_depth=max_depth, rr_depth=rr_depth, seed=seed)
-    assert _assert_same_gradients(scene, paths) >= 15
+    assert _assert_same_gradients(scene, paths, windows) >= 15
 
 
-def test_a_run_of_mirrors_is_rebuilt_from_its_start():
+@pytest.mark.parametrize("windows", [False, True])
+def test_a_run_of_mirrors_is_rebuilt_from_its_start(windows):
     """Facing mirrors that reflect almost everything: paths bounce between them several
-    times in a row (each window must rebuild the run from its first vertex)."""
+    times in a row (the compiled path follows them; each window on the tape must rebuild
+    the run from its first vertex)."""
     scene = _mirrored("facing", 0.95, 0.05, (0.0, 0.0))
     paths = _paths(scene, spp=4, max_depth=8, rr_depth=8, seed=5)
     assert _longest_mirror_run(paths[1]) >= 3
-    assert _assert_same_gradients(scene, paths) >= 15
+    assert _assert_same_gradients(scene, paths, windows) >= 15
 
 
-def test_a_zero_channel_of_the_throughput_keeps_its_derivative():
+@pytest.mark.parametrize("windows", [False, True])
+def test_a_zero_channel_of_the_throughput_keeps_its_derivative(windows):
     """A red wall with no green or blue, a green one with no red and a zero specular: the
     paths' throughput is zero in those channels after a bounce there, but the derivative
     of the albedo's zero channels (and of the specular) is not (the light that arrives
@@ -162,7 +171,7 @@ def test_a_zero_channel_of_the_throughput_keeps_its_derivative():
     scene.objects[4].material = render.Material((0.0, 0.5, 0.2), specular=0.0, shininess=5.0)
     _differentiate(scene)
     paths = _paths(scene, spp=4, max_depth=5, rr_depth=3, seed=1)
-    assert _assert_same_gradients(scene, paths) >= 15
+    assert _assert_same_gradients(scene, paths, windows) >= 15
     grad = _gradients(scene, _replayed, paths)["objects[3].material.albedo"]
     assert np.all(grad[1:] != 0)  # the zero channels do move the image
 

@@ -121,7 +121,8 @@ def test_compiled_paths_give_the_tapes_gradient_for_every_parameter(
 
 
 def test_the_tape_takes_what_does_not_compile():
-    """A texture or a mirror bounce: the tape's windows take it (``applies`` is False)."""
+    """A texture: the tape's windows take it (``applies`` is False); a mirror bounce
+    compiles."""
     from render.path.sample.tracer import MIRROR, PathSampler
     from render.scene.placement import placed
 
@@ -135,7 +136,7 @@ def test_the_tape_takes_what_does_not_compile():
     scene.objects[0].material = render.Material((0.5, 0.5, 0.5), reflectance=0.5)
     compiled, batch = applies(scene)
     assert any(np.any(v.next == MIRROR) for v in batch.vertices)  # a path meets the mirror
-    assert not compiled
+    assert compiled and batch.meets_mirror()
     scene = cornell_box(4, 4, blocks=True)
     scene.objects[0].material = render.Material((0.5, 0.5, 0.5), texture=np.ones((2, 2, 3)))
     scene.objects[0].uvs = md.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
@@ -190,8 +191,8 @@ def test_spheres_only_with_the_camera_inside_one(monkeypatch):
 @given(scene=triangle_scenes(), depth=st.integers(1, 5), seed=st.integers(0, 2**32),
        mirror=st.booleans())  # fmt: skip
 def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
-    """``replay.radiance_of`` (the boundary terms' constants: compiled, or window by window
-    on the tape where a mirror bounce is met) equals ``transport.path_radiance``."""
+    """``replay.radiance_of`` (the boundary terms' constants, compiled, mirror bounces
+    included) equals ``transport.path_radiance``."""
     from render.path.gradient.replay import radiance_of
     from render.path.gradient.transport import path_radiance
     from render.path.sample.tracer import PathSampler
@@ -205,7 +206,7 @@ def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
         frame = camera_frame(world.camera)
         batch = PathSampler(world, 2, depth, 3, seed).sample(np.arange(72, dtype=np.int64))
         bounces = [np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in batch.vertices]
-        assert window.applies(world, batch) == (not any(bounces))
+        assert window.applies(world, batch) and batch.meets_mirror() == any(bounces)
         expected = path_radiance(world, frame, PathSampler(world, 2, depth, 3, seed), batch).data
     got = radiance_of(world, frame, PathSampler(world, 2, depth, 3, seed), batch)
     scale = max(np.abs(expected).max(), 1e-300)
