@@ -207,6 +207,12 @@ def to_float(x: Value) -> Value:
     return active().add("tofloat", (x,), "f64")
 
 
+def to_index(x: Value) -> Value:
+    """An f64 that holds an integer as an i64 (an index for a gather): saturating at
+    int64's range, NaN as 0 (LLVM's ``fptosi.sat``: defined for every input)."""
+    return active().add("toint", (x,), "i64")
+
+
 def is_nan(x: Value) -> Value:
     """True where x is NaN (the only value unequal to itself)."""
     return compare("ne", x, x)
@@ -237,6 +243,7 @@ INSTRUCTIONS = {
     "tanh": "call double @tanh(double {0})",
     "fabs": "call double @llvm.fabs.f64(double {0})",
     "floor": "call double @llvm.floor.f64(double {0})",
+    "toint": "call i64 @llvm.fptosi.sat.i64.f64(double {0})",
     "pow": "call double @llvm.pow.f64(double {0}, double {1})",
     "and": "and i1 {0}, {1}",
     "or": "or i1 {0}, {1}",
@@ -258,6 +265,7 @@ declare double @llvm.pow.f64(double, double)
 declare double @tan(double)
 declare double @tanh(double)
 declare i64 @llvm.smin.i64(i64, i64)
+declare i64 @llvm.fptosi.sat.i64.f64(double)
 """
 
 

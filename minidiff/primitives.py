@@ -488,6 +488,31 @@ def detach(x: Any) -> Tensor:
     return Tensor(as_tensor(x)._data)
 
 
+def _floor_scalar(x):
+    return ir.call("floor", x), (None,)
+
+
+@_traces_as(lambda x: trace.elementwise("floor", _floor_scalar, x, differentiable=(False,)))
+def floor(x: Any) -> Tensor:
+    """The largest integer <= x, elementwise, as floats. A step function: its derivative
+    is 0 wherever it exists and is taken as 0 at the steps too, so the result is a
+    constant (which cell of a texture a point falls in is a discrete choice of the
+    renderer, as visibility is)."""
+    return Tensor(np.floor(as_tensor(x)._data))
+
+
+@_traces_as(trace.to_index)
+def to_index(x: Any) -> np.ndarray:
+    """Floats that hold integers (a texel's row, say) as an int64 NumPy array of indices
+    for a gather; a traced one inside a compiled function. Not differentiable: an index
+    is a discrete choice. Outside int64's range the value saturates, and NaN gives 0, as
+    the compiled form's LLVM ``fptosi.sat`` does (NumPy's cast would be undefined
+    there)."""
+    data = as_tensor(x)._data
+    safe = np.clip(np.where(np.isnan(data), 0.0, data), -(2.0**63), 2.0**63 - 1024.0)
+    return safe.astype(np.int64)
+
+
 def _log_scalar(x):
     return ir.call("log", x), (lambda d: d / x,)
 

@@ -367,6 +367,11 @@ def compare(op: str, a, b) -> Traced:
     return _map(lambda x, y: ir.compare(op, x, y), a, b)
 
 
+def to_index(x) -> Traced:
+    """Floats that hold integers as int64 indices, elementwise (``ir.to_index``)."""
+    return _map(ir.to_index, x, dtype=np.int64)
+
+
 def select_integers(condition, a, b) -> Traced:
     """``where`` on integer arrays (indices, which take no derivative): ``a`` where the
     boolean ``condition`` holds, else ``b``, elementwise."""

@@ -245,6 +245,44 @@ def test_gathers_with_repeated_and_negative_indices(data, n, rows):
 
 
 @md.compile(shared=("table",))
+def cell_blend(x, table):
+    """A 1-D linear interpolation of ``table`` (m, 1) at x (n,) in cells: floor picks the
+    cell, to_index makes it a row (wrapped into the table by floats: floor and to_index
+    take no derivative), the blend weight x - floor(x) carries x's."""
+    cell = md.floor(x)
+    m = table.shape[0]
+    row = cell - m * md.floor(cell / m)  # in [0, m)
+    after = md.where(row + 1.0 >= m, 0.0, row + 1.0)
+    w = md.reshape(x - cell, (-1, 1))
+    return table[md.to_index(row)] * (1.0 - w) + table[md.to_index(after)] * w
+
+
+@settings(max_examples=25)
+@given(st.data(), st.integers(1, 20), st.integers(1, 6))
+def test_floor_and_to_index_give_the_tapes_cells_and_derivatives(data, n, m):
+    """``floor`` (a step: no derivative) and ``to_index`` (floats holding integers as
+    gather rows) compiled against the tape: the same values and gradients, through the
+    blend weight only; NaN and infinite x read as the tape reads them (floor passes them
+    on; to_index gives row 0 for NaN)."""
+    x = np.array(data.draw(st.lists(st.floats(-50, 50), min_size=n, max_size=n)))
+    if data.draw(st.booleans()):
+        x[data.draw(st.integers(0, n - 1))] = data.draw(st.sampled_from([np.nan, 7.0, -3.0]))
+    table = data.draw(arrays((m, 1), False))
+    cot = data.draw(arrays((n, 1), False))
+    results = []
+    for fn in (cell_blend, cell_blend.function):
+        ts = [md.tensor(x, requires_grad=True), md.tensor(table, requires_grad=True)]
+        out = fn(*ts)
+        (out * cot).sum().backward()
+        results.append((out.data, ts[0].grad, ts[1].grad))
+    for a, e, what in zip(results[0], results[1], ("value", "d/dx", "d/dtable"), strict=True):
+        assert_close(a, e, what, sparse_zeros=True)
+    assert np.array_equal(md.floor(x).data, np.floor(x), equal_nan=True)
+    ints = np.trunc(np.where(np.isnan(x), 0.0, x))
+    assert np.array_equal(md.to_index(x), ints.astype(np.int64))  # toward 0, NaN as 0
+
+
+@md.compile(shared=("table",))
 def picked_rows(x, rows, fallback, table):
     """Rows of ``table`` (m, 3) picked by an integer ``where``: ``rows`` where x > 0, else
     ``fallback``, times x."""
