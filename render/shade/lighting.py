@@ -22,14 +22,28 @@ from render.scene.scene import Light, Material, Mesh
 from render.shade.surface import Surface, column, surface_at
 
 
-def _texel_position(shape, uv):
-    """Continuous texel coordinates (x, y) of (k, 2) UVs in an (H, W, ...) texture.
+def _footprint(uv, width, height) -> tuple:
+    """The bilinear footprint of (k, 2) UVs in a ``width`` x ``height`` texture, repeating
+    outside [0, 1]: its columns (x0, x1) and rows (y0, y1) as integer-valued floats in the
+    texture, and the blend weights (fx, fy) (k,). ``width``, ``height``: numbers, or per
+    point (k,) floats. On tensors (the weights carry the UVs' derivative; the cell is a
+    constant, ``md.floor``), on plain arrays, or traced inside a compiled function.
 
     Texel centres sit at integers: UV (0, 0) is the bottom-left corner of the image and
-    (1, 1) the top-right (the OBJ convention). Works on tensors and on plain arrays.
-    """
-    height, width = shape[0], shape[1]
-    return uv[:, 0] * width - 0.5, (1.0 - uv[:, 1]) * height - 0.5
+    (1, 1) the top-right (the OBJ convention). The UV is first taken modulo 1 (u -
+    floor(u) is exact for every finite u, where u * width could round away from the
+    cell, or overflow an index, for a UV as large as 1e300), so the cell's column is in
+    [-1, width - 1] and -1 wraps to the last."""
+    u, v = uv[:, 0], uv[:, 1]
+    x = (u - md.floor(u)) * width - 0.5
+    y = (1.0 - (v - md.floor(v))) * height - 0.5
+    x0, y0 = md.floor(x), md.floor(y)
+    weights = (x - x0, y - y0)
+    x1 = md.where(x0 + 1.0 >= width, 0.0, x0 + 1.0)
+    y1 = md.where(y0 + 1.0 >= height, 0.0, y0 + 1.0)
+    x0 = md.where(x0 < 0.0, width - 1.0, x0)
+    y0 = md.where(y0 < 0.0, height - 1.0, y0)
+    return (x0, x1), (y0, y1), weights
 
 
 def texel_cell(shape, uv: np.ndarray) -> np.ndarray:
@@ -40,38 +54,33 @@ def texel_cell(shape, uv: np.ndarray) -> np.ndarray:
     where a sample crosses into the next cell, so the cell is a discrete decision of the
     renderer, like visibility: ``RenderInfo.texel`` reports it.
     """
-    x, y = _texel_position(shape, np.asarray(uv))
-    height, width = shape[0], shape[1]
-    return _wrapped(np.floor(y), height) * width + _wrapped(np.floor(x), width)
-
-
-def _wrapped(index: np.ndarray, n: int) -> np.ndarray:
-    """Integer-valued float texel indices (k,) wrapped into [0, n), as int64. Wrapped while
-    still floats: a UV as large as 1e300 would overflow the cast to int64 first (the
-    remainder of an integer-valued float is exact at any size)."""
-    return np.mod(index, n).astype(np.int64)
+    with md.no_grad():
+        (x0, _), (y0, _), _ = _footprint(md.tensor(np.asarray(uv, np.float64)), shape[1], shape[0])
+    return md.to_index(y0 * shape[1] + x0)
 
 
 def sample_texture(texture, uv) -> md.Tensor:
-    """Bilinear lookup of an (H, W, 3) texture at (k, 2) UVs, repeating outside [0, 1].
+    """Bilinear lookup of an (H, W, C) texture at (k, 2) UVs, repeating outside [0, 1]
+    (``lookup``)."""
+    height, width, channels = texture.shape
+    return lookup(md.reshape(texture, (height * width, channels)), uv, width, height)
 
-    Texel centres sit at half-integer UV positions (see ``_texel_position``). Gradients reach
-    both the four texels involved (through the gathers) and the UVs (through the blend
-    weights); the footprint itself (``texel_cell``) is a constant.
-    """
-    height, width = texture.shape[0], texture.shape[1]
-    x, y = _texel_position(texture.shape, uv)
-    x0 = np.floor(x.data)
-    y0 = np.floor(y.data)
-    fx = column(x - x0)  # the blend weights are differentiable in uv
-    fy = column(y - y0)
-    ix0 = _wrapped(x0, width)
-    iy0 = _wrapped(y0, height)
-    ix1 = (ix0 + 1) % width
-    iy1 = (iy0 + 1) % height
-    texels = md.reshape(texture, (height * width, texture.shape[2]))
-    top = texels[iy0 * width + ix0] * (1.0 - fx) + texels[iy0 * width + ix1] * fx
-    bottom = texels[iy1 * width + ix0] * (1.0 - fx) + texels[iy1 * width + ix1] * fx
+
+def lookup(texels, uv, width, height, offset=0.0) -> md.Tensor:
+    """Bilinear lookup at (k, 2) UVs of the texture whose texels are the rows of
+    ``texels`` (T, C) from row ``offset`` on, ``width`` x ``height`` of them row by row,
+    top row first (``width``, ``height``, ``offset``: numbers, or per point (k,) floats:
+    the textures of several objects in one table, inside a compiled function). Gradients
+    reach the four texels of each footprint (through the gathers) and the UVs (through
+    the blend weights); the footprint itself (``texel_cell``) is a constant."""
+    (x0, x1), (y0, y1), (fx, fy) = _footprint(uv, width, height)
+    fx, fy = column(fx), column(fy)
+
+    def texel(row, col):
+        return texels[md.to_index(offset + row * width + col)]
+
+    top = texel(y0, x0) * (1.0 - fx) + texel(y0, x1) * fx
+    bottom = texel(y1, x0) * (1.0 - fx) + texel(y1, x1) * fx
     return top * (1.0 - fy) + bottom * fy
 
 

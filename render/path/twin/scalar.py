@@ -27,13 +27,16 @@ def sample_rgb(texture, u, v):
     footprint's cell. One inlined copy serves all three channels: a copy per channel made
     every kernel that inlines it compile for longer."""
     height, width = texture.shape[0], texture.shape[1]
-    x, y = u * width - 0.5, (1.0 - v) * height - 0.5
-    # Floors kept as floats and wrapped before the cast (``lighting._wrapped``): Numba's
-    # math.floor returns int64, which a UV of 1e100 overflows.
+    # The UV modulo 1 first, as ``lighting._footprint`` takes it: the cell's column is
+    # then in [-1, width - 1] (-1 wraps to the last), whatever the UV's size.
+    x = (u - np.floor(u)) * width - 0.5
+    y = (1.0 - (v - np.floor(v))) * height - 0.5
     x0, y0 = np.floor(x), np.floor(y)
     fx, fy = x - x0, y - y0
-    ix0, iy0 = int(x0 % width), int(y0 % height)
-    ix1, iy1 = (ix0 + 1) % width, (iy0 + 1) % height
+    ix0 = int(x0) if x0 >= 0.0 else width - 1
+    iy0 = int(y0) if y0 >= 0.0 else height - 1
+    ix1 = int(x0) + 1 if x0 + 1.0 < width else 0
+    iy1 = int(y0) + 1 if y0 + 1.0 < height else 0
     return (
         _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 0),
         _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, 1),
