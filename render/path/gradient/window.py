@@ -4,10 +4,11 @@ each path's reverse sweep inside the kernel.
 A path's radiance is L = sum_k beta_k C_k with beta_0 = 1 and beta_{k+1} = beta_k F_k: C_k
 what vertex k adds (emission, next-event estimation, the point and directional lights, the
 environment after a last bounce), F_k the factor of the segment to vertex k + 1.
-``window_terms`` computes C_k and F_k of one vertex from the scene's parameters and the
+``vertex_terms`` computes C_k and F_k of one vertex from the scene's parameters and the
 path's recorded decisions (which primitive, where on it, which light sample), with the
 readable formulas the tape runs (``surface_at``, ``light_contribution``, ``brdf``);
-``path_terms`` calls it for vertex 0, 1, ... in turn and sums L. ``minidiff.compile``
+``path_terms`` places vertex 0, 1, ... in turn (``next_vertex``: each once, handed on)
+and sums L. ``minidiff.compile``
 traces that once per number of depths into one function of *one path*, run in parallel
 over the paths, its VJP generated from the primitives' own rules: reverse mode through the
 whole path, with the path's values held inside the kernel while its reverse sweep runs, so
@@ -28,10 +29,11 @@ face table), and per object its material. They are built once per batch on the t
 the parameters, handed to the compiled function as leaves, and one last ``backward``
 carries their gradients to the parameters (``Tables.carried``).
 
-It applies (``applies``) to meshes and spheres without textures, no mirror bounce among the
-batch's paths, float64 and lights whose shading compiles; otherwise the tape's windows take
-the batch. ``tests/render/path/test_window.py`` ties the two together for every kind of
-parameter. A new number of depths is a new trace: compiling it takes about 0.3 s at 4
+Mirror bounces are followed (the next vertex where the reflected ray meets its primitive),
+and textures read (``lighting.lookup``, the tape's own lookup, from one table of every
+object's texels). It applies (``applies``) to float64 scenes whose lights' shading
+compiles; otherwise the tape's windows take the batch. ``tests/render/path/test_window.py``
+and ``test_replay_depth.py`` tie the two together for every kind of parameter. A new number of depths is a new trace: compiling it takes about 0.3 s at 4
 depths and 1.7 s at 16 (``docs/compiler.md``); the kernel is then cached on disk.
 """
 
@@ -44,21 +46,19 @@ import numpy as np
 import minidiff as md
 from render.path.sample import records
 from render.path.sample.records import MIRROR, STOP, PathBatch
-from render.path.sample.tables import Tables, far_side_of, role_of
+from render.path.sample.tables import TEXTURE_FIELDS, Tables, far_side_of, role_of
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
 from render.scene.scene import Mesh, Scene, Sphere
 from render.shade.compiled import held_lights
-from render.shade.lighting import Appearance, brdf, light_contribution
+from render.shade.lighting import Appearance, brdf, light_contribution, lookup
 from render.shade.surface import column, surface_at, toward_ray
 
 
 def applies(world: Scene, batch: PathBatch) -> bool:
-    """Whether ``batch``'s gradient compiles (``path_terms``): no object with a texture,
-    float64 parameters and lights whose shading compiles (``Light.compiled_shading``).
-    (``batch``: its paths' mirror bounces are compiled too, when there are any.)"""
-    if any(obj.material.textures for obj in world.objects):
-        return False
+    """Whether ``batch``'s gradient compiles (``path_terms``): float64 parameters and lights
+    whose shading compiles (``Light.compiled_shading``). (``batch``: its paths' mirror
+    bounces and textures are compiled too, when there are any.)"""
     if not all(light.compiled_shading for light in world.lights):
         return False
     return all(t.dtype == np.float64 for t in world.parameters())
@@ -66,9 +66,10 @@ def applies(world: Scene, batch: PathBatch) -> bool:
 
 @dataclass
 class _Vertex:
-    """Path vertices inside the compiled window: points, unit geometric and shading
+    """Path vertices inside the compiled function: points, unit geometric and shading
     normals (k, 3), the area element's ``stretch`` (k,) (1 for points found by rays), the
-    direction back ``wo`` (k, 3) (set by the caller) and the object each lies on (k,)."""
+    direction back ``wo`` (k, 3) (set by the caller), the object each lies on (k,) and its
+    UV (k, 2) (where the scene has a texture, else None)."""
 
     points: object
     geometric: object
@@ -76,16 +77,21 @@ class _Vertex:
     stretch: object
     wo: object
     obj: object
+    uv: object = None
 
 
-def held_world(vertices, normals, faces, centers, radii, smooth) -> tuple:
+def held_world(vertices, normals, faces, centers, radii, smooth, uvs=None, texels=None) -> tuple:
     """What ``surface`` reads, from the tables' (traced) arrays: (all meshes as one
     ``Mesh`` (smooth; ``smooth`` (O,) says which objects are), smooth, the spheres'
-    centres and radii)."""
-    look = Material.holding(texture=None, specular_texture=None, ambient_texture=None)
-    mesh = Mesh.holding(vertices=vertices, faces=faces, normals=normals, uvs=None, smooth=True,
+    centres and radii). With ``uvs`` (V, 2) and a table of ``texels``, the mesh is textured:
+    its points get their UVs."""
+    plain = Material.holding(texture=None, specular_texture=None, ambient_texture=None)
+    look = plain if uvs is None else Material.holding(
+        texture=texels, specular_texture=None, ambient_texture=None
+    )  # fmt: skip
+    mesh = Mesh.holding(vertices=vertices, faces=faces, normals=normals, uvs=uvs, smooth=True,
                         material=look, transform=None)  # fmt: skip
-    return mesh, smooth, centers, radii
+    return mesh, smooth, centers, radii, plain
 
 
 def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
@@ -93,7 +99,7 @@ def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
     (an ``AREA`` vertex) or where the rays meet them (``far``: which rays meet a sphere's far
     side). ``surface_at`` on the concatenated mesh and on the spheres, each point taking its
     own primitive's; a flat mesh's shading normal is its geometric one."""
-    mesh, smooth, centers, radii = world
+    mesh, smooth, centers, radii, plain = world
     face, sphere, on_sphere, obj, local = role
     if origins is not None:
         local = None
@@ -103,8 +109,9 @@ def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
         tri.shading = md.where(column(smooth[obj]), tri.shading, tri.geometric)
         found.append(tri)
     if sphere is not None:
-        ball = Sphere.holding(center=centers[sphere], radius=radii[sphere], material=mesh.material)
+        ball = Sphere.holding(center=centers[sphere], radius=radii[sphere], material=plain)
         found.append(surface_at(ball, sphere, origins, directions, local=local, far_root=far))
+    uv = found[0].uv if face is not None else None  # (a sphere has none: never read)
     if len(found) == 1:
         only = found[0]
         points, geometric, shading, stretch = (
@@ -120,24 +127,26 @@ def surface(world, role, origins=None, directions=None, far=None) -> _Vertex:
         geometric = md.where(pick, ball.geometric, tri.geometric)
         shading = md.where(pick, ball.shading, tri.shading)
         stretch = None if local is None else md.where(on_sphere, ball.stretch, tri.stretch)
-    return _Vertex(points, geometric, shading, 1.0 if local is None else stretch, None, obj)
+    stretch = 1.0 if local is None else stretch
+    return _Vertex(points, geometric, shading, stretch, None, obj, uv)
 
 
 _SHARED = ("frame", "vertices", "normals", "faces", "centers", "radii", "smooth", "materials",
-           "lights", "background", "primitives", "harmless")  # fmt: skip
+           "lights", "background", "primitives", "harmless", "uvs", "textures")  # fmt: skip
 
 
 def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, normals,
                faces, centers, radii, smooth, materials, lights, background, primitives,
-               harmless, form):  # fmt: skip
+               harmless, uvs, textures, form):  # fmt: skip
     """The radiance (n, 3) of whole paths, L = sum_k beta_k C_k with beta_{k+1} = beta_k
     F_k, vertex after vertex (``vertex_terms``, ``next_vertex``). Batched (n paths):
     ``coords`` (n, 2) the camera ray's image-plane point, ``first_prim`` (n,) the primitive
     it meets; per depth k (tuples of D): the records' ``ints`` (n, I_FIELDS), ``floats``
     (n, F_FIELDS) and ``lit`` (n, max(L, 1)) (``render.path.sample.records``), and
     ``count`` (n,) each path's number of vertices. Shared: the tables (``Tables``;
-    ``primitives``: what a point on each primitive reads, ``role_of``) and ``harmless`` ()
-    a primitive of some size (``Tables.harmless``). Static ``form``:
+    ``primitives``: what a point on each primitive reads, ``role_of``; ``uvs`` and
+    ``textures``: None and () without textures), and ``harmless`` () a primitive of some
+    size (``Tables.harmless``). Static ``form``:
     (the lights' classes and parameter names, whether any material is glossy, the number
     of lights L, whether a path meets a mirror).
 
@@ -147,9 +156,10 @@ def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, no
     between them is divided by its length). Its C_k and the factor before it are zero, so
     neither value nor gradient sees it."""
     kinds, glossy, n_lights, mirrors = form
-    world = held_world(vertices, normals, faces, centers, radii, smooth)
-    scene = (world, held_lights(kinds, lights), materials, background, primitives, harmless,
-             glossy)  # fmt: skip
+    texels = next((t[0] for t in textures if t is not None), None)
+    world = held_world(vertices, normals, faces, centers, radii, smooth, uvs, texels)
+    scene = (world, held_lights(kinds, lights), materials, textures, background, primitives,
+             harmless, glossy)  # fmt: skip
     directions = ray_directions(frame, coords)  # vertex 0: where the camera's ray meets
     far = far_side_of(primitives, first_prim)
     v = surface(world, role_of(primitives, first_prim, _UNUSED[0]), frame[3], directions, far)
@@ -194,7 +204,7 @@ def next_vertex(world, primitives, harmless, v: _Vertex, record, goes, mirror, d
     origins = md.where(pick, v.points, placed.points + placed.geometric)
     far = None
     if role[1] is not None:  # a ray that starts inside a sphere meets its far side
-        _, _, centers, radii = world
+        _, _, centers, radii, _ = world
         far = md.norm(origins - centers[role[1]]) < radii[role[1]]
     found = surface(world, role, origins, md.where(pick, reflected, -placed.geometric), far)
     return _Vertex(
@@ -204,6 +214,7 @@ def next_vertex(world, primitives, harmless, v: _Vertex, record, goes, mirror, d
         md.where(mirror, 1.0, placed.stretch),
         md.where(pick, -md.normalize(reflected), placed.wo),
         placed.obj,
+        None if placed.uv is None else md.where(pick, found.uv, placed.uv),
     )
 
 
@@ -211,18 +222,23 @@ def vertex_terms(scene, v: _Vertex, here, nxt: _Vertex | None, goes, mirrors: bo
     """(C_k (n, 3), F_k (n, 3)): what vertex ``v`` adds to its path and the factor of the
     segment to the next vertex ``nxt`` (None after the last depth: F_k is then unused),
     ``transport._at_vertex``'s terms. ``scene``: (the held world, its lights, the material
-    tables, the environment, ``Tables.primitives``, a harmless primitive, whether any
-    material is glossy);
+    and texture tables, the environment, ``Tables.primitives``, a harmless primitive,
+    whether any material is glossy);
     ``here``: the vertex's records (ints, floats, the lights that reach it (n, L) or None);
     ``goes`` (n,): whether the path goes on; ``mirrors``: whether a path meets a mirror."""
-    world, scene_lights, materials, background, primitives, harmless, glossy = scene
+    world, scene_lights, materials, textures, background, primitives, harmless, glossy = scene
     albedo, specular, shininess, emission, reflectance = materials
     ints, floats, lit = here
     zero = md.tensor(0.0)
     obj = v.obj
     side = toward_ray(v.geometric, -v.wo)  # two-sided: the shading normal faces the viewer
     ns = v.shading * side
-    look = Appearance(albedo[obj], specular[obj] if glossy else zero, zero, shininess[obj], None)
+    textured = dict(zip(TEXTURE_FIELDS, textures or (None, None), strict=True))
+    look = Appearance(
+        _textured(albedo[obj], textured["texture"], obj, v.uv, replaces=True),
+        _textured(specular[obj], textured["specular_texture"], obj, v.uv) if glossy else zero,
+        zero, shininess[obj], None,
+    )  # fmt: skip
     diffuse = look.albedo * (1.0 / np.pi)
     view = v.wo if glossy else None
 
@@ -314,6 +330,7 @@ def _arguments(tables: Tables, batch: PathBatch) -> tuple:
         coords, first_prim, *per_depth, count, tables.frame, tables.vertices, tables.normals,
         tables.faces, tables.centers, tables.radii, tables.smooth, tables.materials,
         tables.lights, tables.background, tables.primitives, np.int64(tables.harmless),
+        tables.uvs, tables.textures,
         (tables.kinds, tables.glossy, rec.n_lights, batch.meets_mirror()),
     )  # fmt: skip
 
@@ -336,6 +353,18 @@ def backpropagate(tables: Tables, batch: PathBatch, weights: np.ndarray) -> None
     ``path_terms``, each path's reverse sweep inside the compiled kernel."""
     if not batch.missed.all():
         _path.add_vjp(weights, *_arguments(tables, batch))
+
+
+def _textured(value, table, obj, uv, replaces: bool = False):
+    """A material's ``value`` (n, 3) at points on objects ``obj`` (n,) with UVs ``uv``:
+    where the object has a texture of ``table`` (``Tables.textures``' kind; None: no
+    object has one), the texture's lookup, which replaces the value (``replaces``: the
+    albedo's) or multiplies it (the specular's), as ``lighting.appearance`` reads them."""
+    if table is None:
+        return value
+    texels, first, width, height, has = table
+    sampled = lookup(texels, uv, width[obj], height[obj], first[obj])
+    return md.where(column(has[obj]), sampled if replaces else value * sampled, value)
 
 
 def _middle_unless(used, local) -> md.Tensor:

@@ -22,6 +22,9 @@ from render.trace.primitives import primitive_ranges
 
 #: The material's parameters a path reads, as per-object tables.
 MATERIAL_FIELDS = ("albedo", "specular", "shininess", "emission", "reflectance")
+#: The textures a path reads: the albedo's (which replaces it) and the specular's (which
+#: multiplies it).
+TEXTURE_FIELDS = ("texture", "specular_texture")
 
 
 @dataclass
@@ -30,9 +33,11 @@ class Tables:
     (V, 3) of all of them (a flat mesh's rows are a constant, never used), ``faces`` (F, 3)
     int64 with global vertex ids (row p is primitive p); spheres: ``centers`` (S, 3) and
     ``radii`` (S,) (None without spheres); per object (``primitive_ranges``' order)
-    ``smooth`` (O,) bool and the materials' ``albedo``, ``specular``, ``emission`` (O, 3)
-    and ``shininess`` (O,); the lights' parameters and kinds, the environment and the camera
-    frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
+    ``smooth`` (O,) bool and the materials' ``albedo``, ``specular``, ``emission``,
+    ``reflectance`` (O, 3) and ``shininess`` (O,); where an object has a texture, the
+    meshes' ``uvs`` (V, 2) and per kind of texture (``TEXTURE_FIELDS``) its table
+    (``_textures``; None for a kind no object has), else None and (); the lights'
+    parameters and kinds, the environment and the camera frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
     computed from on the tape. Plain: ``owner`` (P,) the object of each primitive,
     ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
     ``inside`` (S,) whether the camera is inside each sphere, ``first_vertex`` (O,) each
@@ -57,6 +62,8 @@ class Tables:
     inside: np.ndarray
     first_vertex: np.ndarray
     built: list
+    uvs: md.Tensor | None = None
+    textures: tuple = ()
     primitives: tuple = field(init=False, default=())
 
     def __post_init__(self) -> None:
@@ -117,6 +124,11 @@ class Tables:
             for name in ("albedo", "specular", "emission", "reflectance")
         }
         columns["shininess"] = _stacked([o.material.shininess for o in objects], None)
+        uvs, textures = None, ()
+        if any(o.material.textures for o in objects):
+            uvs = leaf(md.concatenate([_uvs(m) for m in meshes]))
+            textures = tuple(_textures([getattr(o.material, name) for o in objects], leaf)
+                             for name in TEXTURE_FIELDS)  # fmt: skip
         light_parameters, kinds = light_arguments(world.lights)
         return cls(
             vertices=vertices, normals=normals,
@@ -129,7 +141,7 @@ class Tables:
             glossy=any(term_present(o.material.specular) for o in objects),
             owner=np.repeat(np.arange(len(objects)), [count for _, _, count in ranges]),
             n_triangles=int(sum(len(m.faces) for m in meshes)), spare_face=spare_face,
-            inside=inside, first_vertex=first_vertex, built=built,
+            inside=inside, first_vertex=first_vertex, built=built, uvs=uvs, textures=textures,
         )  # fmt: skip
 
     @property
@@ -173,6 +185,27 @@ def far_side_of(primitives: tuple, prims):
     arrays, or traced ones inside a compiled function."""
     far_of = primitives[4]
     return None if far_of is None else far_of[prims]
+
+
+def _uvs(mesh: Mesh) -> md.Tensor:
+    """A mesh's UVs (V, 2), or zeros where it has none (then it has no texture either)."""
+    return mesh.uvs if mesh.uvs is not None else md.tensor(np.zeros((len(mesh.vertices.data), 2)))
+
+
+def _textures(maps: list, leaf) -> tuple | None:
+    """One kind of texture of every object (``maps``: each (H, W, 3) or None) as one
+    table: (texels (T, 3), a leaf, each texture's rows one after the other, and per object
+    (O,) floats: its first row, width and height (0, 1 and 1 without one), and whether it
+    has one (O,) bool); None if no object has one."""
+    if all(m is None for m in maps):
+        return None
+    sizes = [0 if m is None else m.shape[0] * m.shape[1] for m in maps]
+    first = np.cumsum([0, *sizes[:-1]]).astype(np.float64)
+    first[[m is None for m in maps]] = 0.0  # (read by no one, and in range)
+    width = np.array([1.0 if m is None else m.shape[1] for m in maps])
+    height = np.array([1.0 if m is None else m.shape[0] for m in maps])
+    texels = leaf(md.concatenate([md.reshape(m, (-1, 3)) for m in maps if m is not None]))
+    return texels, first, width, height, np.array([m is not None for m in maps])
 
 
 def _normals(mesh: Mesh) -> md.Tensor:

@@ -120,9 +120,10 @@ def test_compiled_paths_give_the_tapes_gradient_for_every_parameter(
     assert np.any(taped["objects[5].transform.translation"])
 
 
-def test_the_tape_takes_what_does_not_compile():
-    """A texture: the tape's windows take it (``applies`` is False); a mirror bounce
-    compiles."""
+def test_mirrors_and_textures_compile_float32_takes_the_tape():
+    """A mirror bounce and a texture compile (``applies``; their gradients:
+    ``test_replay.py``'s ``every_kind``); a float32 parameter is left to the tape's
+    windows."""
     from render.path.sample.tracer import MIRROR, PathSampler
     from render.scene.placement import placed
 
@@ -140,6 +141,8 @@ def test_the_tape_takes_what_does_not_compile():
     scene = cornell_box(4, 4, blocks=True)
     scene.objects[0].material = render.Material((0.5, 0.5, 0.5), texture=np.ones((2, 2, 3)))
     scene.objects[0].uvs = md.tensor([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    assert applies(scene)[0]
+    scene.objects[1].material.albedo = md.tensor(np.float32([0.7, 0.6, 0.5]))
     assert not applies(scene)[0]
 
 
