@@ -33,8 +33,9 @@ Mirror bounces are followed (the next vertex where the reflected ray meets its p
 and textures read (``lighting.lookup``, the tape's own lookup, from one table of every
 object's texels). It applies (``applies``) to float64 scenes whose lights' shading
 compiles; otherwise the tape's windows take the batch. ``tests/render/path/test_window.py``
-and ``test_replay_depth.py`` tie the two together for every kind of parameter. A new number of depths is a new trace: compiling it takes about 0.3 s at 4
-depths and 1.7 s at 16 (``docs/compiler.md``); the kernel is then cached on disk.
+and ``test_replay_depth.py`` tie the two together for every kind of parameter. A new
+number of depths is a new trace: compiling it takes about 0.3 s at 4 depths and 1.7 s at
+16 (``docs/compiler.md``); the kernel is then cached on disk.
 """
 
 from __future__ import annotations

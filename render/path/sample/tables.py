@@ -37,8 +37,9 @@ class Tables:
     ``reflectance`` (O, 3) and ``shininess`` (O,); where an object has a texture, the
     meshes' ``uvs`` (V, 2) and per kind of texture (``TEXTURE_FIELDS``) its table
     (``_textures``; None for a kind no object has), else None and (); the lights'
-    parameters and kinds, the environment and the camera frame. The tensors are leaves; ``built`` pairs each differentiated one with what it was
-    computed from on the tape. Plain: ``owner`` (P,) the object of each primitive,
+    parameters and kinds, the environment and the camera frame. The tensors are leaves;
+    ``built`` pairs each differentiated one with what it was computed from on the tape.
+    Plain: ``owner`` (P,) the object of each primitive,
     ``n_triangles``, ``spare_face`` (the largest triangle, read by paths on spheres),
     ``inside`` (S,) whether the camera is inside each sphere, ``first_vertex`` (O,) each
     mesh's first row of ``vertices``, ``glossy``, and ``primitives``: what a point on each
