@@ -5,14 +5,16 @@ kernel's image (``render.path.twin.kernel``). With ``gradient="tape"`` the refer
 batches of ``batch_spp`` samples and every batch stays on the tape until the caller's
 ``backward``: memory grows with spp x depth (plain reverse mode, the readable reference).
 By default (``gradient="replay"``) the image is the kernel's, one node on the tape whose
-VJP (``_backpropagate``) replays the image's paths with the caller's dL/dimage: compiled
-(``render.path.twin.adjoint``) when only materials, lights' strengths and colours and the
-environment are differentiated, else on the tape one depth at a time
-(``render.path.gradient.replay``). ``backward`` gives the tape's gradient (to rounding), and
-memory does not grow with spp. An image whose paths the replay on the tape takes in one go
-(one batch of at most ``REPLAY_PATHS`` paths) keeps their records from the render to the
-``backward`` (``_KeptPaths``), which its replay would make anyway: its paths are traced
-once, not twice. A larger image keeps nothing: its replay traces its paths again.
+VJP (``_backpropagate``) replays the image's paths with the caller's dL/dimage
+(``render.path.gradient.replay``): the kernel records each path's decisions, and the
+gradient of every parameter is compiled from the readable formulas, each path's reverse
+sweep inside one kernel (``render.path.gradient.window``; one depth at a time on the tape
+where that does not apply: float32, a light without compiled shading). ``backward`` gives
+the tape's gradient (to rounding), and memory does not grow with spp. An image whose paths
+the replay takes in one go (one batch of at most ``REPLAY_PATHS`` paths) keeps their
+records from the render to the ``backward`` (``_KeptPaths``), which its replay would make
+anyway: its paths are traced once, not twice. A larger image keeps nothing: its replay
+traces its paths again.
 
 ``replay_gradient`` is the same adjoint for a loss given as a function (the structure of
 radiative backpropagation, Nimier-David et al. 2020): a primal pass without a tape gives
@@ -42,7 +44,7 @@ from render.path.gradient.replay import backpropagate_paths
 from render.path.gradient.transport import path_radiance
 from render.path.sample.random import check_seed
 from render.path.sample.tracer import PathSampler, check_count, check_path_options
-from render.path.twin import adjoint, kernel
+from render.path.twin import kernel
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame
 from render.scene.placement import placed
@@ -141,7 +143,7 @@ class _KeptPaths:
             return False
         with md.enable_grad():  # placed as in the backward, which the moving leaves reach
             world = placed(scene)
-        return kernel.applies(world) and not adjoint.covers(world)
+        return kernel.applies(world)
 
     def image(self, sampler: PathSampler) -> np.ndarray:
         """The (H, W, 3) image of ``kernel.render_image(sampler)``, bit for bit (each
@@ -295,18 +297,12 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     """Add d_image . d image / d p (``d_image`` (H, W, 3): dL/dimage) to ``p.grad`` of every
     parameter of ``scene`` that requires grad, as ``backward`` through ``_render_path``'s
     tape would, by replaying the image's paths (the same path ids and random numbers under
-    ``seed``): compiled when only materials, lights' strengths and colours and the
-    environment require grad (``render.path.twin.adjoint``), else on the tape, a batch of
-    ``batch_spp`` samples at a time (from ``kept``'s records where it holds them). A
-    parameter the image cannot depend on gets zeros, as from the compiled replay, whichever
-    way computed the others."""
-    world = placed(scene)  # on the tape: which of its tensors require grad decides the route
+    ``seed``), a batch of ``batch_spp`` samples at a time (from ``kept``'s records where it
+    holds them; ``_replay_batches``). A parameter the image cannot depend on gets zeros."""
     if sampler is None:
+        world = placed(scene)
         sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
-    if adjoint.covers(world):
-        adjoint.backpropagate(world, sampler, d_image)
-    else:
-        _backpropagate_on_tape(scene, sampler, d_image, batch_spp, kept)
+    _replay_batches(scene, sampler, d_image, batch_spp, kept)
     if edges[0] and differentiated(scene):
         world = placed(scene)
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
@@ -327,15 +323,15 @@ def _zeros_where_missing(scene: Scene) -> None:
             p.grad = np.zeros(p.shape, p.dtype)
 
 
-def _backpropagate_on_tape(scene, sampler: PathSampler, d_image, batch_spp: int,
-                           kept: _KeptPaths | None = None) -> None:  # fmt: skip
-    """``_backpropagate``'s tape, a batch of ``batch_spp`` samples at a time. With the
-    kernel (``kernel.applies``): its paths and radiance, replayed one depth at a time
-    (``render.path.gradient.replay``: a tape flat in depth; the paths' records grow with it), at
-    most REPLAY_PATHS paths at a time (memory bounded whatever the image's size); else the
-    reference sampler's paths, each batch on one tape that its ``backward`` frees before
-    the next batch is rendered. ``kept``: the render's records of the paths, if it kept
-    them (``_KeptPaths``)."""
+def _replay_batches(scene, sampler: PathSampler, d_image, batch_spp: int,
+                    kept: _KeptPaths | None = None) -> None:  # fmt: skip
+    """``_backpropagate``'s replay, a batch of ``batch_spp`` samples at a time. With the
+    kernel (``kernel.applies``): its paths' records and radiance, replayed
+    (``render.path.gradient.replay``: compiled whole paths, or one depth at a time on the
+    tape; the paths' records grow with depth), at most REPLAY_PATHS paths at a time
+    (memory bounded whatever the image's size); else the reference sampler's paths, each
+    batch on one tape that its ``backward`` frees before the next batch is rendered.
+    ``kept``: the render's records of the paths, if it kept them (``_KeptPaths``)."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
     compiled, packed = kernel.applies(sampler.scene), None  # packed once it is needed

@@ -185,10 +185,10 @@ def closed_room() -> render.Scene:
     ids=["compiled replay", "replay on the tape"],
 )
 def test_paths_longer_than_the_first_records_and_chains(names):
-    """40 vertices per path, more than the kernel first makes room for (``CHAIN_ROWS``):
+    """40 vertices per path, more than the kernel first makes room for (``RECORD_ROWS``):
     the records are traced again deeper, the replay runs its jobs again with a longer chain,
     and the gradient is still the tape's (the reference's) to rounding."""
-    assert kernel.CHAIN_ROWS < 40
+    assert kernel.RECORD_ROWS < 40
     options = {"max_depth": 40, "rr_depth": 41}
     sampler = PathSampler(placed(closed_room()), 1, 40, 41, 0)
     batch, _ = kernel.sample_paths(sampler, np.arange(64, dtype=np.int64))

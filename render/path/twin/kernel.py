@@ -34,28 +34,6 @@ from render.path.sample.choices import MAX_SURVIVAL, MIN_SURVIVAL
 from render.path.sample.random import mix, uniform_of
 from render.path.sample.records import PathBatch
 from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathSampler
-from render.path.twin.chain import (
-    _C_ADDED,
-    _C_BETA,
-    _C_COS,
-    _C_DIRECTION,
-    _C_ESCAPE,
-    _C_FACTOR,
-    _C_FIELDS,
-    _C_LOBE,
-    _C_MIRROR,
-    _C_NORMAL,
-    _C_OBJECT,
-    _C_SHININESS,
-    _C_SPECULAR,
-    _C_TEXTURED,
-    _C_VIEW,
-    _G_EMISSION,
-    _G_LIGHT,
-    _G_OBJECT,
-    _factor_gradients,
-    _replay_chain,
-)
 from render.path.twin.packed import Packed, applies, pack
 from render.path.twin.scalar import (
     _DIRECTION,
@@ -64,7 +42,6 @@ from render.path.twin.scalar import (
     _LOBE,
     _ROULETTE,
     _brdf,
-    _brdf_adjoint,
     _dim,
     _divided,
     _dot,
@@ -82,41 +59,23 @@ from render.path.twin.scalar import (
 )
 from render.trace.intersect import BLOCK, closest_hit_one, occluded_one
 
-__all__ = ["Packed", "applies", "pack", "render_image", "replay_gradient", "sample_paths"]
+__all__ = ["Packed", "applies", "pack", "render_image", "sample_paths"]
 
-#: Blocks of pixels are dealt to this many jobs (``_kernel``); path replay adds into one
-#: partial gradient vector per job, then sums them in order: the same bits on any number
-#: of threads.
+#: Blocks of pixels are dealt to this many jobs (``_kernel``).
 CHUNKS = 64
-#: Path replay's chain starts with this many rows (at most max_depth) and doubles when a
-#: path is longer; ``sample_paths`` first records this many vertices per path, and traces
-#: again with room for the longest path's if one had more: memory by the paths' real
-#: lengths (Russian roulette ends most of them early), not by max_depth.
-CHAIN_ROWS = 32
+#: ``sample_paths`` first records this many vertices per path (at most max_depth), and
+#: traces again with room for the longest path's if one had more: memory by the paths'
+#: real lengths (Russian roulette ends most of them early), not by max_depth.
+RECORD_ROWS = 32
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
-                stack_t, keep, row, rec_i, rec_f, rec_lit, delta, chain, grad):  # fmt: skip
-    """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2), its number of
-    vertices n (0: the camera ray missed) and whether its chain had room (below). With
-    ``keep``, its decisions are written to row ``row`` of the records (``_I_*``, ``_F_*``):
-    its length n, and its first vertices, as many as the records have room for.
-
-    Path replay (``grad`` non-empty, ``chain`` (rows >= 1, _C_FIELDS) zeroed, ``delta``
-    the pixel's dL/dimage / spp): the radiance is sum_k beta_k C_k with beta_{k+1} =
-    beta_k F_k (C_k what vertex k adds, F_k its continuation factor, RGB), so d radiance
-    = sum_k beta_k (dC_k + dF_k R_k), R_k = C_{k+1} + F_{k+1} R_{k+1} the radiance that
-    reaches vertex k from the rest of the path (Vicini et al. 2021). The dC_k terms are
-    added to ``grad`` (laid out by ``_G_*``) as the path is traced; each vertex's C_k, F_k,
-    the environment seen after it and what dF_k needs go into the chain, and once the path
-    has ended ``_replay_chain`` computes R_k and ``_factor_gradients`` adds the dF_k R_k
-    terms from its first n rows (a longer path stops there, returning False: ``_kernel``
-    runs the job again with a longer chain). One trace per path (nothing in dF_k R_k but
-    R_k waits for the rest of the path), and memory of a few numbers per vertex of one
-    path per job. R_k from the recursion, not from (radiance - what came before) /
-    beta_{k+1} as Mitsuba's prb divides, stays exact where a channel of F_k is 0 (an
-    albedo channel at 0 still gets its derivative).
+                stack_t, keep, row, rec_i, rec_f, rec_lit):  # fmt: skip
+    """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2) and its number
+    of vertices n (0: the camera ray missed). With ``keep``, its decisions are written to
+    row ``row`` of the records (``render.path.sample.records``): its length n, and its first
+    vertices, as many as the records have room for.
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -128,8 +87,6 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
      normals, uvs, e_prims, e_cdf, e_probability, e_area, e_row_of, light_kind, light_vec,
      light_strength, light_color, forward, right, up, eye, background, offset,
      n_tri, lobe_on) = s  # fmt: skip
-    adjoint = grad.shape[0] > 0  # path replay: dC_k now, the rest into the chain
-    g_background = _G_OBJECT * albedo.shape[0] + _G_LIGHT * light_kind.shape[0]
     key = mix(seed_key ^ np.uint64(path))
     # The camera ray (PathSampler.sample, to_image_plane, camera_directions).
     fx = px + uniform_of(key, 0)
@@ -143,10 +100,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     if prim < 0:
         if keep:
             rec_i[0, row, R.COUNT] = 0
-        if adjoint:
-            for c in range(3):
-                grad[g_background + c] += delta[c]
-        return background[0], background[1], background[2], 0, True
+        return background[0], background[1], background[2], 0
     point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
     incoming = _divided(d[0], d[1], d[2])
     form, pdf, previous, estimate = CAMERA, 0.0, point, 1.0
@@ -156,11 +110,8 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     depth = 1
     while True:
         # Memory by the paths' real lengths, not by max_depth: the records hold the vertices
-        # that fit (sample_paths traces again with deeper ones if a path had more), and so
-        # does the chain (_kernel runs the job again with a longer one).
+        # that fit (sample_paths traces again with deeper ones if a path had more).
         kept = keep and depth <= rec_i.shape[0]
-        if adjoint and depth > chain.shape[0]:
-            return L[0], L[1], L[2], depth, False
         o, ng, ns, uv, local = _surface(
             triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v
         )
@@ -182,7 +133,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 e_row_of, e_probability, e_area, prim, point, previous, ng, pdf
             )
         if side_t > 0:
-            L = _emitted(L, beta, emission, o, weight, depth, chain, adjoint, delta, grad)
+            L = _emitted(L, beta, emission, o, weight)
         if keep:  # the path's length so far, also past the records' depth
             rec_i[0, row, R.COUNT] = depth
         if kept:
@@ -194,16 +145,14 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         # What the lights' terms read of the vertex and its surface.
         ignore = prim if prim < n_tri else -1
         here = (point, xt, ng, nst, wot, prim, ignore, o, depth, kept)
-        look = (kd, ks, shininess[o], lobe_on[o], maps[o, 0, 0] >= 0, p_d, p_g)
+        look = (kd, ks, shininess[o], lobe_on[o], p_d, p_g)
         origin = (point[0] + offset * ng[0], point[1] + offset * ng[1], point[2] + offset * ng[2])
         if e_prims.shape[0] > 0:  # next-event estimation: one point on the area lights
             L = _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object,
                             emission, e_prims, e_cdf, e_probability, e_area, key, origin, ns,
-                            wo, here, look, row, rec_i, rec_f, chain, adjoint, delta,
-                            grad)  # fmt: skip
+                            wo, here, look, row, rec_i, rec_f)  # fmt: skip
         L = _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_color,
-                    offset, _G_OBJECT * albedo.shape[0], here, look, row, rec_lit, chain,
-                    adjoint, delta, grad)  # fmt: skip
+                    offset, here, look, row, rec_lit)  # fmt: skip
         # How the path goes on (PathSampler._continue).
         mirror, wi, next_pdf = _direction(key, depth, wo, ns, p_d, p_g, p_m, shininess[o])
         go = (p_d + p_g + p_m > 0) and next_pdf > 0 and _dot(ng, wi) > 0
@@ -225,27 +174,19 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
             rec_f[depth - 1, row, R.NEXT_PDF] = next_pdf
             rec_i[depth - 1, row, R.ESCAPE] = prim < 0
         point_next = (origin[0] + t * wi[0], origin[1] + t * wi[1], origin[2] + t * wi[2])
-        factor, cos, wn, x_next, ut, vt, wo_next = _segment(
+        factor, x_next, ut, vt, wo_next = _segment(
             triangles, centers, radii, (reflectance[o, 0], reflectance[o, 1], reflectance[o, 2]),
             prim, mirror, scale, wi, point_next, u, v, xt, ut, vt, wot, nst, look,
         )  # fmt: skip
-        before = beta
         beta = (beta[0] * factor[0], beta[1] * factor[1], beta[2] * factor[2])
-        if adjoint:  # F_k, and what dF_k needs once R_k is known (_factor_gradients)
-            escape = (background[0], background[1], background[2]) if prim < 0 else (0.0, 0.0, 0.0)
-            _chain_factor(chain, depth - 1, o, mirror, cos, look, factor, escape, nst, wot, wn,
-                          before)  # fmt: skip
         if prim < 0:  # the environment
             L = (L[0] + beta[0] * background[0], L[1] + beta[1] * background[1],
                  L[2] + beta[2] * background[2])  # fmt: skip
-            if adjoint:
-                for c in range(3):
-                    grad[g_background + c] += delta[c] * beta[c]
             break
         previous, point, xt, wot = point, point_next, x_next, wo_next
         incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
         depth += 1
-    return L[0], L[1], L[2], depth, True
+    return L[0], L[1], L[2], depth
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -265,16 +206,11 @@ def _emission_weight(e_row_of, e_probability, e_area, prim, point, previous, ng,
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
-def _emitted(L, beta, emission, o, weight, depth, chain, adjoint, delta, grad):
-    """``L`` plus the emission of object ``o`` seen at vertex ``depth`` with MIS weight
-    ``weight``, through throughput ``beta``; with path replay its dC_k and C_k."""
-    L = (L[0] + beta[0] * (emission[o, 0] * weight), L[1] + beta[1] * (emission[o, 1] * weight),
-         L[2] + beta[2] * (emission[o, 2] * weight))  # fmt: skip
-    if adjoint:
-        for c in range(3):
-            chain[depth - 1, _C_ADDED + c] += emission[o, c] * weight
-            grad[_G_OBJECT * o + _G_EMISSION + c] += delta[c] * beta[c] * weight
-    return L
+def _emitted(L, beta, emission, o, weight):
+    """``L`` plus the emission of object ``o`` seen at a vertex with MIS weight ``weight``,
+    through throughput ``beta``."""
+    return (L[0] + beta[0] * (emission[o, 0] * weight), L[1] + beta[1] * (emission[o, 1] * weight),
+            L[2] + beta[2] * (emission[o, 2] * weight))  # fmt: skip
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -295,15 +231,14 @@ def _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight):
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emission, e_prims,
-                e_cdf, e_probability, e_area, key, origin, ns, wo, here, look, row, rec_i, rec_f,
-                chain, adjoint, delta, grad):  # fmt: skip
+                e_cdf, e_probability, e_area, key, origin, ns, wo, here, look, row, rec_i,
+                rec_f):  # fmt: skip
     """``L`` plus next-event estimation at the vertex ``here``: one point drawn on the area
     lights (the ``e_`` arrays), its shadow ray from ``origin``, MIS against the BSDF's density
     (its shading normal ``ns`` facing ``wo``) (PathSampler._next_event), and the radiance
-    it brings (transport._at_vertex, from the tape's point); with path replay its dC_k and
-    C_k."""
+    it brings (transport._at_vertex, from the tape's point)."""
     point, xt, ng, nst, wot, prim, ignore, o, depth, kept = here
-    kd, ks, shin, lobe, textured, p_d, p_g = look
+    kd, ks, shin, lobe, p_d, p_g = look
     n_emit = e_prims.shape[0]
     pick = np.searchsorted(e_cdf, uniform_of(key, _dim(depth, _EMITTER)) * e_cdf[-1],
                            side="right")  # fmt: skip
@@ -340,31 +275,19 @@ def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emi
     scale = max(_dot(nst, wi), 0.0) * abs(_dot(nz, wi)) / d2 * e_area[pick]
     scale = scale * nee_weight
     f = _brdf(nst, wot, wi, kd, ks, shin, lobe)
-    L = (L[0] + beta[0] * (f[0] * scale * emission[eo, 0]),
-         L[1] + beta[1] * (f[1] * scale * emission[eo, 1]),
-         L[2] + beta[2] * (f[2] * scale * emission[eo, 2]))  # fmt: skip
-    if adjoint:
-        for c in range(3):
-            chain[depth - 1, _C_ADDED + c] += f[c] * scale * emission[eo, c]
-        w = (delta[0] * beta[0] * scale * emission[eo, 0],
-             delta[1] * beta[1] * scale * emission[eo, 1],
-             delta[2] * beta[2] * scale * emission[eo, 2])  # fmt: skip
-        _brdf_adjoint(nst, wot, wi, ks, shin, lobe, textured, w, grad, _G_OBJECT * o)
-        g = _G_OBJECT * eo + _G_EMISSION
-        for c in range(3):
-            grad[g + c] += delta[c] * beta[c] * f[c] * scale
-    return L
+    return (L[0] + beta[0] * (f[0] * scale * emission[eo, 0]),
+            L[1] + beta[1] * (f[1] * scale * emission[eo, 1]),
+            L[2] + beta[2] * (f[2] * scale * emission[eo, 2]))  # fmt: skip
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_color, offset,
-            g_light, here, look, row, rec_lit, chain, adjoint, delta, grad):  # fmt: skip
+            here, look, row, rec_lit):  # fmt: skip
     """``L`` plus the point and directional lights that reach the vertex ``here``
     (PathSampler._lights, lighting.light_contribution), their shadow rays from the sampler's
-    point and their light from the tape's; with path replay their dC_k (the lights'
-    gradients from ``g_light`` on) and C_k."""
+    point and their light from the tape's."""
     point, xt, ng, nst, wot, prim, ignore, o, depth, kept = here
-    kd, ks, shin, lobe, textured, _, _ = look
+    kd, ks, shin, lobe, _, _ = look
     for j in range(light_kind.shape[0]):
         if light_kind[j] == 0:
             tx = light_vec[j, 0] - point[0]
@@ -383,7 +306,6 @@ def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_co
             ty = light_vec[j, 1] - xt[1]
             tz = light_vec[j, 2] - xt[2]
             distance_sq = tx * tx + ty * ty + tz * tz
-            per_strength = 1.0 / (1.0 if distance_sq == 0 else distance_sq)
             irradiance = light_strength[j] / (1.0 if distance_sq == 0 else distance_sq)
             wl = _unit(tx, ty, tz)
         else:
@@ -393,7 +315,7 @@ def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_co
                 so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
                       point[2] + offset * wl[2])  # fmt: skip
                 lit = not occluded_one(bvh, so, wl, np.inf, ignore, stack)
-            irradiance, per_strength = light_strength[j], 1.0
+            irradiance = light_strength[j]
         if kept:
             rec_lit[depth - 1, row, j] = lit
         if not lit:
@@ -403,18 +325,6 @@ def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_co
         L = (L[0] + beta[0] * (scalar * (f[0] * light_color[j, 0])),
              L[1] + beta[1] * (scalar * (f[1] * light_color[j, 1])),
              L[2] + beta[2] * (scalar * (f[2] * light_color[j, 2])))  # fmt: skip
-        if adjoint:
-            for c in range(3):
-                chain[depth - 1, _C_ADDED + c] += scalar * (f[c] * light_color[j, c])
-            w = (delta[0] * beta[0] * scalar * light_color[j, 0],
-                 delta[1] * beta[1] * scalar * light_color[j, 1],
-                 delta[2] * beta[2] * scalar * light_color[j, 2])  # fmt: skip
-            _brdf_adjoint(nst, wot, wl, ks, shin, lobe, textured, w, grad, _G_OBJECT * o)
-            g = g_light + _G_LIGHT * j
-            per_strength = per_strength * max(_dot(nst, wl), 0.0)  # d scalar / d I
-            for c in range(3):
-                grad[g] += delta[c] * beta[c] * per_strength * f[c] * light_color[j, c]
-                grad[g + 1 + c] += delta[c] * beta[c] * scalar * f[c]
     return L
 
 
@@ -447,12 +357,11 @@ def _direction(key, depth, wo, ns, p_d, p_g, p_m, shin):
 def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, point_next, u, v,
              xt, ut, vt, wot, nst, look):  # fmt: skip
     """The segment from the tape's point ``xt`` to the next vertex, which the ray ``wi``
-    found at ``point_next`` on ``prim`` (barycentrics u, v; -1: none): (F_k, the cosine
-    times ``scale`` (a mirror: ``scale``), the direction it leaves along, the tape's next
-    point and its (ut, vt), the direction back from it). A mirror's reflected ray starts
+    found at ``point_next`` on ``prim`` (barycentrics u, v; -1: none): (F_k, the tape's
+    next point and its (ut, vt), the direction back from it). A mirror's reflected ray starts
     at the surface (the object's ``reflectance``); another lobe's next vertex is placed on
     its primitive, the direction between the two points (``look``: the BRDF's arguments)."""
-    kd, ks, shin, lobe, _, _, _ = look
+    kd, ks, shin, lobe, _, _ = look
     x_next, wo_next = xt, wot  # (both read only when a vertex follows)
     if mirror:
         factor = (reflectance[0] * scale, reflectance[1] * scale, reflectance[2] * scale)
@@ -461,7 +370,7 @@ def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, po
         if prim >= 0:
             x_next, ut, vt = _reintersect(triangles, centers, radii, prim, xt, reflected)
         wo_next = _unit(-reflected[0], -reflected[1], -reflected[2])
-        return factor, scale, wi, x_next, ut, vt, wo_next
+        return factor, x_next, ut, vt, wo_next
     wn = wi  # the direction sampled; to a new vertex, the one between the points
     if prim >= 0:
         x_next = _placed(triangles, centers, radii, prim,
@@ -472,130 +381,79 @@ def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, po
         wo_next = _unit(-wn[0], -wn[1], -wn[2])
     cos = max(_dot(nst, wn), 0.0) * scale
     f = _brdf(nst, wot, wn, kd, ks, shin, lobe)
-    return (f[0] * cos, f[1] * cos, f[2] * cos), cos, wn, x_next, ut, vt, wo_next
-
-
-@numba.njit(cache=True, error_model="numpy", inline="always")
-def _chain_factor(chain, at, o, mirror, cos, look, factor, escape, nst, wot, direction, before):
-    """Row ``at`` of the path replay's chain: F_k and what dF_k needs once R_k is known
-    (``_factor_gradients``): the object, lobe and BRDF's arguments, the environment seen
-    after the vertex ``escape``, and the throughput ``before`` it."""
-    _, ks, shin, lobe, textured, _, _ = look
-    chain[at, _C_OBJECT], chain[at, _C_MIRROR] = o, 1.0 if mirror else 0.0
-    chain[at, _C_COS] = cos
-    chain[at, _C_SHININESS], chain[at, _C_LOBE] = shin, 1.0 if lobe else 0.0
-    chain[at, _C_TEXTURED] = 1.0 if textured else 0.0
-    for c in range(3):
-        chain[at, _C_FACTOR + c] = factor[c]
-        chain[at, _C_ESCAPE + c] = escape[c]
-        chain[at, _C_NORMAL + c], chain[at, _C_VIEW + c] = nst[c], wot[c]
-        chain[at, _C_DIRECTION + c] = direction[c]
-        chain[at, _C_SPECULAR + c], chain[at, _C_BETA + c] = ks[c], before[c]
+    return (f[0] * cos, f[1] * cos, f[2] * cos), x_next, ut, vt, wo_next
 
 
 @borrowing
 def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, start, stop, paths,
-                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit, d_image, chain,
-                 grad):  # fmt: skip
-    """Items start..stop-1, one of three ways:
+                 stack, stack_t, out, radiance, rec_i, rec_f, rec_lit):  # fmt: skip
+    """Items start..stop-1, one of two ways:
 
-    * pixels (``paths`` and ``grad`` empty): each pixel's mean over its spp paths, summed
-      in sample order, into ``out`` (H, W, 3);
-    * paths ``paths[i]``: their radiance into ``radiance`` (N, 3) and their records;
-    * pixels, path replay (``grad`` non-empty, ``chain`` zeroed): each of their paths traced
-      once, adding to ``grad`` its share of the pixel's ``d_image`` (dL/dimage / spp) .
-      d image / d q.
+    * pixels (``paths`` empty): each pixel's mean over its spp paths, summed in sample
+      order, into ``out`` (H, W, 3);
+    * paths ``paths[i]``: their radiance into ``radiance`` (N, 3) and their records.
 
     One call per block of items, so that the scene's arrays are handed over once per block,
-    not once per path. False as soon as a path had more vertices than ``chain`` has rows
-    (``_trace_path``), True when the block is done."""
+    not once per path."""
     image = paths.shape[0] == 0
-    replay = grad.shape[0] > 0
     for i in range(start, stop):
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
-        x, y = i % width, i // width
-        delta = (0.0, 0.0, 0.0)
-        if replay:
-            delta = (d_image[y, x, 0], d_image[y, x, 1], d_image[y, x, 2])
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
-            L0, L1, L2, n, fits = _trace_path(
+            L0, L1, L2, _ = _trace_path(
                 bvh, s, seed_key, path, pixel % width, pixel // width, width, height, max_depth,
-                rr_depth, stack, stack_t, not image, i, rec_i, rec_f, rec_lit, delta, chain, grad,
+                rr_depth, stack, stack_t, not image, i, rec_i, rec_f, rec_lit,
             )  # fmt: skip
-            if not fits:
-                return False
             L = (L0, L1, L2)
-            if replay:
-                _replay_chain(chain[:n])
-                _factor_gradients(chain[:n], delta, grad)
-                chain[:n] = 0.0  # zero again for the next path
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
-        if image and out.shape[0] > 0:
+        if image:
             inv = 1.0 / spp
+            x, y = i % width, i // width
             out[y, x, 0] = total[0] * inv
             out[y, x, 1] = total[1] * inv
             out[y, x, 2] = total[2] * inv
-        elif not image:
+        else:
             radiance[i, 0], radiance[i, 1], radiance[i, 2] = total
-    return True
 
 
 @kernel
 def _kernel(worker, n_workers, bvh, s, seed, spp, width, height, max_depth, rr_depth, paths,
-            out, radiance, rec_i, rec_f, rec_lit, d_image, grads):  # fmt: skip
+            out, radiance, rec_i, rec_f, rec_lit):  # fmt: skip
     """``_trace_block`` over every pixel (``paths`` empty) or every path of ``paths``, in
     blocks of BLOCK dealt to min(blocks, CHUNKS) jobs: job j takes blocks j, j + jobs, ...;
     ``worker`` of ``n_workers`` (``minidiff.threads.run_jobs``) runs a contiguous run of
     jobs, so each thread's blocks are spread over the whole image (with one job per thread,
     the left and the right halves of a 128-pixel-wide image went to different threads,
-    which take different times). Path replay (``grads`` (jobs, G), G > 0; else (1, 0)):
-    each job adds to its own row, so the sums' order, and so the gradient's bits, do not
-    depend on the threads. A job whose chain was too short for one of its paths runs
-    again from its first block, its row zeroed, with twice the rows: the same sums in the
-    same order."""
+    which take different times)."""
     n = width * height if paths.shape[0] == 0 else paths.shape[0]
     n_blocks = (n + BLOCK - 1) // BLOCK
-    replay = grads.shape[1] > 0
-    n_jobs = np.int64(grads.shape[0] if replay else min(n_blocks, CHUNKS))
+    n_jobs = np.int64(min(n_blocks, CHUNKS))
     seed_key = mix(np.uint64(seed))
     first, stop = share(worker, n_workers, n_jobs)
     stack, stack_t = np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size, np.float64)
-    rows = min(max_depth, CHAIN_ROWS) if replay else 0
     for job in range(first, stop):
-        grad = grads[np.int64(job) if replay else 0]  # (0,) when there is no replay
-        done = False
-        while not done:
-            chain = np.zeros((rows, _C_FIELDS))
-            done = True
-            for b in range(job, n_blocks, n_jobs):
-                if not _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth,
-                                    b * BLOCK, min(n, (b + 1) * BLOCK), paths, stack, stack_t,
-                                    out, radiance, rec_i, rec_f, rec_lit, d_image, chain,
-                                    grad):  # fmt: skip
-                    done = False
-                    rows = min(2 * rows, max_depth)
-                    grad[:] = 0.0
-                    break
+        for b in range(job, n_blocks, n_jobs):
+            _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, b * BLOCK,
+                         min(n, (b + 1) * BLOCK), paths, stack, stack_t, out, radiance, rec_i,
+                         rec_f, rec_lit)  # fmt: skip
 
 
-def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=None, records=None,
-         d_image=None, grads=None) -> None:  # fmt: skip
+def _run(packed: Packed, sampler: PathSampler, paths=None, out=None, radiance=None,
+         records=None) -> None:  # fmt: skip
     """``_kernel`` with empty arrays for what this call does not use."""
     none_i = np.zeros((1, 0, R.I_FIELDS), np.int64)
     none_f, none_lit = np.zeros((1, 0, R.F_FIELDS)), np.zeros((1, 0, 1), bool)
     rec_i, rec_f, rec_lit = records or (none_i, none_f, none_lit)
     n = packed.width * packed.height if paths is None else len(paths)
-    jobs = len(grads) if grads is not None else min(-(-n // BLOCK), CHUNKS)
-    run_jobs(_kernel, job_count(jobs), packed.bvh, packed.arrays, np.uint64(sampler.seed),
-            sampler.spp, packed.width, packed.height, sampler.max_depth, sampler.rr_depth,
-            np.zeros(0, np.int64) if paths is None else paths,
-            np.zeros((0, 0, 3)) if out is None else out,
-            np.zeros((0, 3)) if radiance is None else radiance, rec_i, rec_f, rec_lit,
-            np.zeros((0, 0, 3)) if d_image is None else d_image,
-            np.zeros((1, 0)) if grads is None else grads)  # fmt: skip
+    run_jobs(_kernel, job_count(min(-(-n // BLOCK), CHUNKS)), packed.bvh, packed.arrays,
+             np.uint64(sampler.seed), sampler.spp, packed.width, packed.height,
+             sampler.max_depth, sampler.rr_depth,
+             np.zeros(0, np.int64) if paths is None else paths,
+             np.zeros((0, 0, 3)) if out is None else out,
+             np.zeros((0, 3)) if radiance is None else radiance, rec_i, rec_f,
+             rec_lit)  # fmt: skip
 
 
 def render_image(sampler: PathSampler, packed: Packed | None = None) -> np.ndarray:
@@ -613,7 +471,7 @@ def sample_paths(
     """The ``PathBatch`` of path ids ``paths`` (N,) int64, as ``sampler.sample(paths)``
     makes it, and each path's radiance (N, 3) float64, traced by the kernel."""
     packed = pack(sampler) if packed is None else packed
-    n, depth = len(paths), min(sampler.max_depth, CHAIN_ROWS)
+    n, depth = len(paths), min(sampler.max_depth, RECORD_ROWS)
     radiance = np.empty((n, 3))
     paths = np.ascontiguousarray(paths, np.int64)
     if n == 0:
@@ -628,21 +486,3 @@ def sample_paths(
         depth = int(count.max())  # the same paths again, with room for every vertex
     coords = records.floats[0, :, R.COORD : R.COORD + 2].copy()
     return PathBatch(paths, coords, count == 0, records=records), radiance
-
-
-def replay_gradient(
-    sampler: PathSampler, d_image: np.ndarray, packed: Packed | None = None
-) -> np.ndarray:
-    """Path replay: the gradient vector (laid out by ``_G_*``) of sum(d_image * image) with
-    respect to the materials, the lights' strengths and colours and the environment, for
-    ``sampler``'s image (``d_image`` (H, W, 3): dL/dimage). Memory: the vector, CHUNKS
-    times; nothing per path or per vertex."""
-    packed = pack(sampler) if packed is None else packed
-    n_objects, n_lights = len(sampler.objects), packed.n_lights
-    size = _G_OBJECT * n_objects + _G_LIGHT * n_lights + 3
-    n_blocks = -(-(packed.width * packed.height) // BLOCK)
-    grads = np.zeros((min(CHUNKS, n_blocks), size))
-    # The image is the sum of each pixel's samples times 1 / spp.
-    adjoint = np.ascontiguousarray(d_image, np.float64) * (1.0 / sampler.spp)
-    _run(packed, sampler, d_image=adjoint, grads=grads)
-    return grads.sum(axis=0)

@@ -171,25 +171,6 @@ def _brdf(ns, view, wi, albedo, specular, shininess, lobe_on):
 
 
 @borrowing
-def _brdf_adjoint(ns, view, wi, specular, shininess, lobe_on, textured, w, grad, base):
-    """Add sum_c w[c] d f_c / d (albedo (3), specular (3), shininess) of ``_brdf`` to
-    grad[base : base + 7]: 1 / pi (none if ``textured``: a texture replaces the albedo),
-    the lobe, and specular . w times d lobe / d shininess, where d (n.h)^n / dn is
-    (n.h)^n log(n.h) and d ((n + 8) / (8 pi)) / dn is 1 / (8 pi)."""
-    if not textured:
-        for c in range(3):
-            grad[base + c] += w[c] * (1.0 / math.pi)
-    if lobe_on:
-        n_dot_h, power = _lobe(ns, view, wi, shininess)
-        lobe = power * ((shininess + 8.0) / (8.0 * math.pi))
-        d_lobe = power * math.log(n_dot_h) * ((shininess + 8.0) / (8.0 * math.pi))
-        d_lobe += power * (1.0 / (8.0 * math.pi))
-        for c in range(3):
-            grad[base + 3 + c] += w[c] * lobe
-        grad[base + 6] += d_lobe * (w[0] * specular[0] + w[1] * specular[1] + w[2] * specular[2])
-
-
-@borrowing
 def _surface(triangles, centers, prim_object, smooth, corners, normals, uvs, prim, point, u, v):
     """At a point on primitive ``prim`` (barycentrics u, v on a triangle): the object, the
     unit geometric normal, the shading normal and the UV, and the coordinates ``local``."""
