@@ -51,14 +51,13 @@ lesson_start = time.perf_counter()
 # `gradient="replay"`, renders the image with the compiled kernel and hands the tape one
 # node; its backward *replays* the paths (below): it follows each path again from the
 # decisions the render recorded (which primitive, which lobe, which light sample) and takes
-# its derivative path by path, never holding a tape of the batch. When only materials,
-# lights' strengths or the environment are differentiated that is the compiled kernel's
-# hand-written adjoint (`render/path/twin/adjoint.py`); for anything else, such as a light's
-# position, it is one compiled function of the whole path (`render/path/gradient/window.py`:
-# the tape's readable formulas for vertex `k`, called for one vertex after the other and
-# traced by lesson 16's compiler), whose VJP runs each path's reverse sweep inside the
-# kernel, in parallel over the paths. Where that does not apply (a mirror, a texture) the
-# replay goes one depth at a time on the tape (`render/path/gradient/replay.py`): *windows*,
+# its derivative path by path, never holding a tape of the batch. For every kind of
+# parameter (an albedo, a light's position, a vertex, the camera) that is one compiled
+# function of the whole path (`render/path/gradient/window.py`: the tape's readable
+# formulas for vertex `k`, called for one vertex after the other and traced by lesson 16's
+# compiler), whose VJP runs each path's reverse sweep inside the kernel, in parallel over
+# the paths. Where that does not apply (float32 parameters, a light whose shading does not
+# compile) the replay goes one depth at a time on the tape (`render/path/gradient/replay.py`): *windows*,
 # window `k` computing only what vertex `k` of the batch's paths adds and what its bounce
 # multiplies by (which needs vertices `k − 1`, `k` and `k + 1`), taking its share of the
 # gradient with its own `backward`, freed before window `k + 1` is built (section 3 says
@@ -132,13 +131,15 @@ lamp_tape_spp_growth = memory_by_spp[lamp_tape][2] / memory_by_spp[lamp_tape][1]
 lamp_tape_depth_growth = memory_by_depth[lamp_tape][3] / memory_by_depth[lamp_tape][0]
 paths_spp_growth = memory_by_spp[paths][2] / memory_by_spp[paths][1]
 paths_depth_growth = memory_by_depth[paths][3] / memory_by_depth[paths][0]
-compiled_peak = max(memory_by_spp[compiled] + memory_by_depth[compiled])
-# Like with like: each parameter's tape over its replay, at each point measured.
-albedo_smallest_saving = min(
-    t / r
+# The two replays are one compiled function: how far apart their peaks are, at most.
+replays_differ = max(
+    abs(a / b - 1.0)
     for by in (memory_by_spp, memory_by_depth)
-    for t, r in zip(by[albedo_tape], by[compiled], strict=True)
+    for a, b in zip(by[compiled], by[paths], strict=True)
 )
+# Like with like: each parameter's tape over its replay, at each point measured.
+albedo_saving_at_64 = memory_by_spp[albedo_tape][2] / memory_by_spp[compiled][2]
+albedo_saving_at_depth_16 = memory_by_depth[albedo_tape][3] / memory_by_depth[compiled][3]
 lamp_saving_by_spp, lamp_saving_by_depth = (
     [t / r for t, r in zip(by[lamp_tape], by[paths], strict=True)]
     for by in (memory_by_spp, memory_by_depth)
@@ -192,28 +193,30 @@ save_and_show(figure, OUT / "memory.png")
 # lamp's position reaches more of each path's arithmetic (every light sample's point,
 # distance and cosines) than an albedo does.
 #
-# **The albedo**: the compiled replay stays under `0.2` <!-- check: compiled_peak < --> MB
-# everywhere (it keeps a few numbers per vertex of one path per thread), and the tape holds
-# more than `15` <!-- check: albedo_smallest_saving > --> times as much at every point
-# measured, 4 spp included.
-#
-# **The lamp's position**: its compiled replay grows less than `1.1`
-# <!-- check: paths_spp_growth < --> times from 16 to 64 samples and less than `5.2`
+# **The replay** is one compiled function for both parameters (their peaks differ by less
+# than `0.05` <!-- check: replays_differ < --> of each other, relative). It grows less than
+# `1.1` <!-- check: paths_spp_growth < --> times from 16 to 64 samples and less than `6.5`
 # <!-- check: paths_depth_growth < --> times from depth 2 to 16 (the values are printed
 # above; the allocator's bookkeeping moves them by a percent from run to run). It holds one
 # batch of paths' *decisions* (which primitive, which lobe, which light: a few hundred
 # bytes per vertex) and a few arrays per path, never the whole batch's tape: the reverse
 # sweep of a path keeps its values inside the kernel, one path per thread at a time. So the
 # decisions are most of the peak, and they grow with the paths' length: that is the growth
-# with depth. A batch is 16 samples per pixel by default
-# (`batch_spp`), so below 16 it grows with the samples like the tape, and above it stays
-# flat. Against the lamp's own tape it is the smaller at every point measured: the tape
-# holds more than `2` <!-- check: lamp_smallest_spp_saving > --> times as much at every
-# spp, more than `6` <!-- check: lamp_saving_at_64 > --> times at 64, and more than `2.4`
+# with depth. A batch is 16 samples per pixel by default (`batch_spp`), so below 16 it
+# grows with the samples like the tape, and above it stays flat. Against the lamp's own
+# tape it is the smaller at every point measured: the tape holds more than `3.5`
+# <!-- check: lamp_smallest_spp_saving > --> times as much at every spp, more than `12`
+# <!-- check: lamp_saving_at_64 > --> times at 64, and more than `3.5`
 # <!-- check: lamp_saving_at_depth_2 > --> times at depth 2, so the replay is the cheaper
-# from depth `2` <!-- check: replay_cheaper_from_depth --> on. (When the replay went window
-# by window and each window was a tape of its own, a window spanned three vertices, which at
-# depth 2 is the whole path: there the replay held more than the tape.) `memory.png` shows the four against spp (left) and
+# from depth `2` <!-- check: replay_cheaper_from_depth --> on. An albedo puts much less on
+# its tape: at 64 samples its tape still holds more than `5`
+# <!-- check: albedo_saving_at_64 > --> times the replay, but at depth 16 about as much,
+# `1.0` <!-- check: albedo_saving_at_depth_16 --> times: there the decisions the replay
+# reads are as large as the albedo's tape. (Before the replay was compiled from the tape's
+# formulas, the albedo had a hand-written replay of its own that kept nothing per path, a
+# second copy of the mathematics; and when the replay went window by window, each window a
+# tape of its own spanning three vertices, the lamp's replay held more than its tape at
+# depth 2.) `memory.png` shows the four against spp (left) and
 # against `max_depth` (right): blue the albedo, orange the lamp, solid lines the tape,
 # dashed the replay. Scaled to 512 × 512 at 256 samples, the albedo's tape would need more
 # than `50` <!-- check: tape_at_512_gb > --> GB.
@@ -315,7 +318,7 @@ print(f"L = {path_radiance(rho, emission):.6f}; by hand d/d rho {by_hand_rho.rou
 # twice: its derivative collects both visits' shares, as a tape's would.
 #
 # The library does the same on real scenes, and its tests hold it to the tape
-# (`tests/render/path/test_replay.py`, `test_adjoint.py`). Here, the left wall's albedo
+# (`tests/render/path/test_replay.py`, `test_window.py`). Here, the left wall's albedo
 # and the lamp's position on the Cornell box, by the tape and by the default replay:
 
 
@@ -337,11 +340,11 @@ print(f"replay against the tape, Cornell box: {library_replay_difference:.1e} (r
 # %% [markdown]
 # They agree to `1e-12` <!-- check: library_replay_difference < --> (relative). One
 # detail differs from the hand-written replay above: dividing `remaining` by `ρ` fails
-# where a channel's albedo is 0 (a pure red wall has no green). The hand-written compiled
-# replay therefore gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}`, over a few
-# numbers kept per vertex of the one path being replayed; the compiled whole path needs
-# neither (its reverse sweep is reverse mode through the path's product of factors, which
-# multiplies and never divides); the replay by windows on the tape divides, and where a
+# where a channel's albedo is 0 (a pure red wall has no green). The library's compiled
+# replay never divides: its reverse sweep is reverse mode through the path's product of
+# factors, which gets `R_k` by the recursion `R_k = C_{k+1} + F_{k+1} R_{k+1}` (Exercise
+# 1 writes it by hand) from the values it holds for the one path being replayed; the
+# replay by windows on the tape divides, and where a
 # factor is 0 it gathers `R_k` from the later windows and builds that window again at the
 # end (`docs/path_tracing.md`, `render/path/gradient/replay.py`). Mitsuba's `prb`
 # divides and takes the inverse of a zero as 0, which drops that term. Exercise 1 asks

@@ -139,12 +139,13 @@ print(f"depth 2 -> 32: tape {tape[2]:.1f} -> {tape[32]:.1f} MB, compiled replay 
 # %% [markdown]
 # From depth 2 to 32 the tape grows more than `3.5` <!-- check: tape_growth_32 > --> times,
 # and the compiled replay more than `4.5` <!-- check: paths_growth_32 > --> times
-# (printed above); at depth 32 the tape holds `1.3` <!-- check: tape_over_paths_32 -->
-# times as much. What grows in the replay is the batch's *records*: every vertex's
-# decisions (primitive, lobe, light sample) for all the batch's paths, which the replay
-# reads and which are kept for the whole batch (`docs/path_tracing.md`); the kernel itself
-# keeps one path's values per thread while it runs that path's reverse sweep, whatever the
-# number of paths. So the replay is flat in the number of samples, not in depth; only the
-# hand-written replay of the albedo, which keeps a few numbers per vertex of one path per
-# thread and no records, is flat in both. (Many paths leave the open box long before depth
-# 32, so nothing grows sixteen-fold.)
+# (printed above); at depth 32 the tape still holds more than `1.2`
+# <!-- check: tape_over_paths_32 > --> times as much. What grows in the replay is the
+# batch's *records*: every vertex's decisions (primitive, lobe, light sample) for all the
+# batch's paths, which the replay reads and which are kept for the whole batch
+# (`docs/path_tracing.md`); the kernel itself keeps one path's values per thread while it
+# runs that path's reverse sweep, whatever the number of paths. So the replay is flat in
+# the number of samples, not in depth; a replay flat in both would have to trace each path
+# again while it takes its derivative, keeping no records (Exercise 1's recursion, on the
+# fly). (Many paths leave the open box long before depth 32, so nothing grows
+# sixteen-fold.)

@@ -11,7 +11,7 @@ gradient of every parameter is compiled from the readable formulas, each path's 
 sweep inside one kernel (``render.path.gradient.window``; one depth at a time on the tape
 where that does not apply: float32, a light without compiled shading). ``backward`` gives
 the tape's gradient (to rounding), and memory does not grow with spp. An image whose paths
-the replay takes in one go (one batch of at most ``REPLAY_PATHS`` paths) keeps their
+the replay takes in one go (one batch of at most ``replay_paths`` paths) keeps their
 records from the render to the ``backward`` (``_KeptPaths``), which its replay would make
 anyway: its paths are traced once, not twice. A larger image keeps nothing: its replay
 traces its paths again.
@@ -42,6 +42,7 @@ from render.path.boundary.primary import add_path_boundary_term
 from render.path.boundary.secondary import add_secondary_term, backpropagate_secondary
 from render.path.gradient.replay import backpropagate_paths
 from render.path.gradient.transport import path_radiance
+from render.path.sample import records
 from render.path.sample.random import check_seed
 from render.path.sample.tracer import PathSampler, check_count, check_path_options
 from render.path.twin import kernel
@@ -53,9 +54,12 @@ from render.scene.substitute import substituted
 
 #: Default samples per pixel in one batch (one tape, for ``replay_gradient``).
 BATCH_SPP = 16
-#: The replay on the tape takes a batch's paths this many at a time: a 512x512 batch of 16
-#: samples would otherwise hold 4 million paths' records and window at once (gigabytes).
+#: The replay takes a batch's paths at most this many at a time, and fewer for deep paths
+#: (``replay_paths``): a 512x512 batch of 16 samples would otherwise hold 4 million
+#: paths' records at once (gigabytes).
 REPLAY_PATHS = 2**17
+#: ... so that the records of the paths replayed at once take at most about this many bytes.
+REPLAY_RECORD_BYTES = 2**26
 #: Default number of vertices before Russian roulette may end a path (Mitsuba's rr_depth).
 RR_DEPTH = 5
 #: ``antialias`` -> (primary visibility's boundary term, secondary visibility's).
@@ -134,12 +138,12 @@ class _KeptPaths:
         self._paths: tuple | None = None
 
     @staticmethod
-    def wanted(scene: Scene, spp: int, batch_spp: int) -> bool:
-        """Whether ``_backpropagate_on_tape`` would replay ``scene``'s image (its parameters
+    def wanted(scene: Scene, spp: int, batch_spp: int, max_depth: int) -> bool:
+        """Whether ``_replay_batches`` would replay ``scene``'s image (its parameters
         requiring grad as they will in the ``backward``) from the kernel's records of all
-        its paths at once: one batch, at most ``REPLAY_PATHS`` paths."""
+        its paths at once: one batch, at most ``replay_paths(max_depth)`` paths."""
         camera = scene.camera
-        if spp > batch_spp or camera.width * camera.height * spp > REPLAY_PATHS:
+        if spp > batch_spp or camera.width * camera.height * spp > replay_paths(max_depth):
             return False
         with md.enable_grad():  # placed as in the backward, which the moving leaves reach
             world = placed(scene)
@@ -273,7 +277,7 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
             tangent = _render_path(frozen, *options).tangent
     for leaf in leaves:
         leaf.requires_grad = True
-    kept = _KeptPaths() if _KeptPaths.wanted(frozen, spp, batch_spp) else None
+    kept = _KeptPaths() if _KeptPaths.wanted(frozen, spp, batch_spp, max_depth) else None
     with md.no_grad():  # the value: the kernel's image when it applies, as without tangents
         # The sampler reads the frozen values only: the replay uses it too.
         sampler = PathSampler(placed(frozen), spp, max_depth, rr_depth, seed,
@@ -316,6 +320,14 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
     _zeros_where_missing(scene)
 
 
+def replay_paths(max_depth: int) -> int:
+    """How many paths the replay takes at once for paths of up to ``max_depth`` vertices:
+    ``REPLAY_PATHS``, or fewer where their records would take more than
+    ``REPLAY_RECORD_BYTES`` (at least 1,024)."""
+    rows = min(max_depth, kernel.RECORD_ROWS)
+    return min(REPLAY_PATHS, max(1024, REPLAY_RECORD_BYTES // (records.BYTES_PER_VERTEX * rows)))
+
+
 def _zeros_where_missing(scene: Scene) -> None:
     """Give every parameter of ``scene`` that requires grad and has no gradient a zero one."""
     for p in scene.parameters():
@@ -328,8 +340,8 @@ def _replay_batches(scene, sampler: PathSampler, d_image, batch_spp: int,
     """``_backpropagate``'s replay, a batch of ``batch_spp`` samples at a time. With the
     kernel (``kernel.applies``): its paths' records and radiance, replayed
     (``render.path.gradient.replay``: compiled whole paths, or one depth at a time on the
-    tape; the paths' records grow with depth), at most REPLAY_PATHS paths at a time
-    (memory bounded whatever the image's size); else the reference sampler's paths, each
+    tape; the paths' records grow with depth), at most ``replay_paths`` paths at a time
+    (memory bounded whatever the image's size and depth); else the reference sampler's paths, each
     batch on one tape that its ``backward`` frees before the next batch is rendered.
     ``kept``: the render's records of the paths, if it kept them (``_KeptPaths``)."""
     spp = sampler.spp
@@ -340,9 +352,10 @@ def _replay_batches(scene, sampler: PathSampler, d_image, batch_spp: int,
         if compiled:
             paths = _batch_paths(sampler.scene, sampler, first, last)
             per_path = np.repeat(weights.reshape(-1, 3), last - first, axis=0)
-            for start in range(0, len(paths), REPLAY_PATHS):
+            at_once = replay_paths(sampler.max_depth)
+            for start in range(0, len(paths), at_once):
                 world = placed(scene)  # a fresh tape each time: placement is on it too
-                chunk = slice(start, start + REPLAY_PATHS)
+                chunk = slice(start, start + at_once)
                 traced = kept.take(paths[chunk]) if kept is not None else None
                 if traced is None:
                     packed = kernel.pack(sampler) if packed is None else packed

@@ -334,13 +334,15 @@ CASES["power"].append(binary_case("pow_operator"))
 for _name in ("sum", "mean", "max"):
     CASES[_name] = [reduction_case(_name)]
 
-# detach is left out: its output is a constant, without a tangent (its own test below).
+# detach, floor and to_index are left out: their outputs are constants, without a tangent
+# (their own tests below).
+CONSTANT_OUTPUTS = ("detach", "floor", "to_index")
 PRIMITIVES = sorted(
     name
     for name in md.__all__
     if inspect.isfunction(getattr(md, name))
     and getattr(md, name).__module__ == primitives.__name__
-    and name != "detach"
+    and name not in CONSTANT_OUTPUTS
 )
 
 
@@ -353,6 +355,20 @@ def test_detach_carries_no_tangent():
         product = x * held
     assert held.tangent is None
     np.testing.assert_array_equal(product.tangent, [1.5, -6.0])
+
+
+def test_floor_and_to_index_carry_no_tangent():
+    """floor (a step) and to_index (an index) are constants: x - floor(x)'s tangent is
+    x's, and to_index gives a plain integer array."""
+    x = md.tensor([1.5, -2.25])
+    with md.tangents({x: np.array([1.0, 3.0])}):
+        cell = md.floor(x)
+        fraction = x - cell
+        index = md.to_index(cell)
+    assert cell.tangent is None
+    np.testing.assert_array_equal(fraction.tangent, [1.0, 3.0])
+    assert isinstance(index, np.ndarray) and index.dtype == np.int64
+    np.testing.assert_array_equal(index, [1, -3])
 
 
 def test_every_exported_primitive_has_a_jvp_case():

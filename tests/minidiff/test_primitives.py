@@ -839,6 +839,24 @@ def test_tall_broadcast_gradients(shapes, seed):
 
 
 # ---------------------------------------------------------------------------------------------
+# floor: a step, its derivative 0 between the steps
+# ---------------------------------------------------------------------------------------------
+
+
+@SETTINGS
+@given(data=st.data(), shape=shapes)
+def test_floor_is_a_step_whose_derivative_is_zero_between_steps(data, shape):
+    """floor(x) is NumPy's; away from the integers (where central differences see no
+    step) the derivative of x * floor(x) is floor(x), the step contributing nothing."""
+    whole = data.draw(hnp.arrays(np.float64, shape, elements=st.integers(-5, 5).map(float)))
+    part = data.draw(hnp.arrays(np.float64, shape, elements=floats(0.05, 0.95)))
+    x = whole + part
+    np.testing.assert_array_equal(md.floor(x).data, np.floor(x))
+    assert not md.floor(md.tensor(x, requires_grad=True)).requires_grad
+    assert_grad_matches(lambda y: y * md.floor(y), x)
+
+
+# ---------------------------------------------------------------------------------------------
 # detach: a value without a derivative
 # ---------------------------------------------------------------------------------------------
 

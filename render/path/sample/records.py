@@ -125,6 +125,8 @@ I_FIELDS = 6
 LOCAL, EMIT, NEE_LOCAL, NEE_WEIGHT, NEXT_PDF, SURVIVE = 0, 3, 4, 7, 8, 9
 ESCAPE_DIR, COORD = 10, 13
 F_FIELDS = 15
+#: About how many bytes a vertex's records take (one light's visibility).
+BYTES_PER_VERTEX = 8 * (I_FIELDS + F_FIELDS) + 1
 
 
 @dataclass
