@@ -57,9 +57,10 @@ lesson_start = time.perf_counter()
 # formulas for vertex `k`, called for one vertex after the other and traced by lesson 16's
 # compiler), whose VJP runs each path's reverse sweep inside the kernel, in parallel over
 # the paths. Where that does not apply (float32 parameters, a light whose shading does not
-# compile) the replay goes one depth at a time on the tape (`render/path/gradient/replay.py`): *windows*,
-# window `k` computing only what vertex `k` of the batch's paths adds and what its bounce
-# multiplies by (which needs vertices `k − 1`, `k` and `k + 1`), taking its share of the
+# compile) the replay goes one depth at a time on the tape
+# (`render/path/gradient/replay.py`): *windows*, window `k` computing only what vertex `k`
+# of the batch's paths adds and what its bounce multiplies by (which needs vertices
+# `k − 1`, `k` and `k + 1`), taking its share of the
 # gradient with its own `backward`, freed before window `k + 1` is built (section 3 says
 # what it takes from the rest of the path).
 #
