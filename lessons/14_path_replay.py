@@ -64,10 +64,9 @@ lesson_start = time.perf_counter()
 # gradient with its own `backward`, freed before window `k + 1` is built (section 3 says
 # what it takes from the rest of the path).
 #
-# Which replay runs depends on the parameter, and so does the tape's size (a moving lamp
-# puts the geometry of every shadow ray on the tape, an albedo only the shading). So compare
-# like with like: the tape against the compiled replay for the left wall's albedo, and the
-# tape against the compiled replay of whole paths for the lamp's position. The peak of NumPy's
+# The tape's size depends on the parameter (a moving lamp puts the geometry of every shadow
+# ray on the tape, an albedo only the shading). So compare like with like: each parameter's
+# tape against its replay, the left wall's albedo and the lamp's position. The peak of NumPy's
 # allocations during one gradient of the Cornell box at 16 × 16, without Russian roulette
 # (so paths really are `max_depth` long):
 
