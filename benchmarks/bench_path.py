@@ -6,17 +6,17 @@ Run:  python benchmarks/bench_path.py [--out out/bench_path] [--quick] [--part m
 * Memory: the peak of Python's traced allocations (``tracemalloc``; NumPy reports its
   arrays to it) during one gradient of an image loss on the Cornell box at 32x32, max_depth
   4, for three ways: through the tape (render, loss, backward: the tape holds every path
-  until the backward), the replay on the tape (``render.path.replay_gradient``, batches of
-  16 samples, the light's position and five albedos differentiated) and the compiled replay
-  (the five albedos alone: ``render.path.twin.adjoint``), from 16 to 1,024 spp; then both
-  replays from max_depth 2 to 8 at 64 spp (``rr_depth`` 100: paths go deep). The tape's
-  peak is measured up to 256 spp and its growth per sample reported.
+  until the backward), and the replay (``render.path.replay_gradient``, batches of 16
+  samples: the compiled whole paths, ``render.path.gradient.window``) with the light's
+  position and five albedos differentiated, and with the five albedos alone, from 16 to
+  1,024 spp; then both replays from max_depth 2 to 8 at 64 spp (``rr_depth`` 100: paths go
+  deep). The tape's peak is measured up to 256 spp and its growth per sample reported.
 * Time: the Cornell box at 128x128, max_depth 4, 16 spp, medians after a warm-up, as
   microseconds per sample per pixel, timed in turns: a render that nothing differentiates
   (the compiled kernel) on 2 and on 1 Numba threads, the same render on the tape (the
   readable reference, ``gradient="tape"``), and render + backward of an MSE three ways:
-  the five albedos (compiled replay), the light's position and the albedos (replay on the
-  tape), and through the tape. The comparison with Mitsuba 3 is
+  the five albedos (replay), the light's position and the albedos (replay), and through
+  the tape. The comparison with Mitsuba 3 is
   ``benchmarks/bench_path_mitsuba.py``.
 
 Writes ``bench_path.json`` to ``out/bench_path/`` (git-ignored scratch) unless ``--out`` is
@@ -89,7 +89,7 @@ def memory(size: int, tape_spps, replay_spps, depths, depth_spp: int) -> dict:
         for p in params:
             p.requires_grad = True
 
-    albedos = params[1:]  # the compiled replay's: no geometry moves
+    albedos = params[1:]  # the albedos alone: no geometry moves
 
     out = {}
     # With minidiff's pool of reusable buffers (default, at most 512 MiB: a cache whose

@@ -497,7 +497,7 @@ print(
 #
 # `render_path(..., antialias="secondary")` does this for every vertex of every path
 # (`add_secondary_term`), with `F` the whole path through `x'` estimated by the path tracer
-# (`replay.radiance_of`: the replay's compiled windows, values only), and for the shadows of
+# (`replay.radiance_of`: the compiled whole path, values only), and for the shadows of
 # point lights (the same construction with the light as the apex). Everything in a sample
 # but `∂φ/∂θ` is a constant computed off the tape; φ is recomputed from `x`, `x'` and the
 # edge's vertices (`level_set` again, compiled per sample: one node on the tape), and the

@@ -93,8 +93,10 @@ SCALES = {"%": (1.0, 100.0), "ms": (1.0, 1e3), "µs": (1.0, 1e6)}
 
 
 def _strip(text: str) -> str:
-    """The prose a reader reads: no code spans, code blocks, link targets or comments."""
+    """The prose a reader reads: no code spans, code blocks, link targets, comments or the
+    numbers of an ordered list's items."""
     text = re.sub(r"```.*?```", " ", text, flags=re.S)
+    text = re.sub(r"^(\s*)\d+\. ", r"\1", text, flags=re.M)  # "3. **One depth**": an item
     text = re.sub(r"<!--.*?-->", " ", text, flags=re.S)
     text = re.sub(r"`[^`\n]*`", " ", text)
     text = re.sub(r"\]\([^)]*\)", "]", text)  # link targets

@@ -70,6 +70,12 @@ def test_bench_secondary_quick(tmp_path, load_script):
     assert result["variance"]["std"] >= 0
 
 
+def test_bench_path_compile_quick(tmp_path, load_script):
+    load_script("benchmarks/bench_path_compile.py").main(["--quick", "--out", str(tmp_path)])
+    data = json.loads((tmp_path / "bench_path_compile.json").read_text())
+    assert data["runs"][0]["max_depth"] == 2 and data["runs"][0]["first_s"] > 0
+
+
 def test_bench_path_kinds_quick(tmp_path, load_script):
     load_script("benchmarks/bench_path_kinds.py").main(["--quick", "--out", str(tmp_path)])
     result = json.loads((tmp_path / "kinds.json").read_text())

@@ -1,0 +1,64 @@
+"""How long the compiled whole path (``render.path.gradient.window``) takes to compile, by
+the number of depths it is traced for.
+
+Run:  python benchmarks/bench_path_compile.py [--out out/bench_path_compile] [--quick]
+
+The Cornell box with its blocks at 16x16, 4 spp, no Russian roulette (so every batch
+reaches ``max_depth``), the light's position differentiated. For each ``max_depth``, in
+one process with an empty minidiff cache of its own (a temporary folder): the first
+gradient (which traces ``path_terms`` for that number of depths, generates its VJP and
+compiles it with LLVM) and the second (the kernel in memory); the difference is the
+kernel's compile latency. Numba's kernels are compiled (or loaded) before the first
+measurement. (``main`` called inside a process that has compiled these kernels already,
+as the smoke test does with ``--quick``, measures whatever its cache holds.) Writes
+``bench_path_compile.json``; the committed one is regenerated with ``--out
+docs/path_tracing``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+DEPTHS = (2, 4, 8, 16, 32)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--out", type=Path, default=Path("out/bench_path_compile"))
+    parser.add_argument("--quick", action="store_true", help="max_depth 2 only")
+    args = parser.parse_args(argv)
+    import minidiff as md
+    from render.inverse.jsonio import write_json
+    from render.path import render_path
+    from render.scene.cornell import cornell_box
+
+    scene = cornell_box(16, 16, blocks=True)
+    light = scene.objects[5].transform.translation
+    light.requires_grad = True
+
+    def gradient(depth: int) -> float:
+        light.grad = None
+        start = time.perf_counter()
+        image = render_path(scene, spp=4, max_depth=depth, seed=0, rr_depth=100)
+        md.sum(image * image).backward()
+        return time.perf_counter() - start
+
+    with md.no_grad():  # Numba's kernels (the image's), compiled or loaded from its cache
+        render_path(scene, spp=1, max_depth=2, seed=0)
+    rows = []
+    for depth in (2,) if args.quick else DEPTHS:
+        first, second = gradient(depth), gradient(depth)
+        rows.append({"max_depth": depth, "first_s": first, "second_s": second,
+                     "compile_s": first - second})  # fmt: skip
+        print(f"max_depth {depth:2d}: first {first:.2f} s, then {second:.3f} s", flush=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_json(args.out / "bench_path_compile.json", {"size": 16, "spp": 4, "runs": rows})
+
+
+if __name__ == "__main__":
+    os.environ["MINIDIFF_CACHE_DIR"] = tempfile.mkdtemp()  # empty, before minidiff is imported
+    main()
