@@ -1,14 +1,15 @@
-"""How long the compiled whole path (``render.path.gradient.window``) takes to compile, by
-the number of depths it is traced for.
+"""How long the compiled paths' gradient (``render.path.gradient.window``) takes to compile,
+by the number of depths of the paths.
 
 Run:  python benchmarks/bench_path_compile.py [--out out/bench_path_compile] [--quick]
 
 The Cornell box with its blocks at 16x16, 4 spp, no Russian roulette (so every batch
-reaches ``max_depth``), the light's position differentiated. For each ``max_depth``, in
-one process with an empty minidiff cache of its own (a temporary folder): the first
-gradient (which traces ``path_terms`` for that number of depths, generates its VJP and
-compiles it with LLVM) and the second (the kernel in memory); the difference is the
-kernel's compile latency. Numba's kernels are compiled (or loaded) before the first
+reaches ``max_depth``), the light's position differentiated. For each ``max_depth`` in
+increasing order, in one process with an empty minidiff cache of its own (a temporary
+folder): the first gradient (which traces ``path_terms`` for the segments of that many
+depths that the depths before did not need, ``window.SEGMENT`` depths at most each,
+generates their VJPs and compiles them with LLVM) and the second (the kernels in memory);
+the difference is the compile latency. Numba's kernels are compiled (or loaded) before the first
 measurement. (``main`` called inside a process that has compiled these kernels already,
 as the smoke test does with ``--quick``, measures whatever its cache holds.) Writes
 ``bench_path_compile.json``; the committed one is regenerated with ``--out

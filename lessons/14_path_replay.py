@@ -195,12 +195,14 @@ save_and_show(figure, OUT / "memory.png")
 #
 # **The replay** is one compiled function for both parameters (their peaks differ by less
 # than `0.05` <!-- check: replays_differ < --> of each other, relative). It grows less than
-# `1.1` <!-- check: paths_spp_growth < --> times from 16 to 64 samples and less than `6.5`
+# `1.1` <!-- check: paths_spp_growth < --> times from 16 to 64 samples and less than `7.5`
 # <!-- check: paths_depth_growth < --> times from depth 2 to 16 (the values are printed
 # above; the allocator's bookkeeping moves them by a percent from run to run). It holds one
 # batch of paths' *decisions* (which primitive, which lobe, which light: a few hundred
 # bytes per vertex) and a few arrays per path, never the whole batch's tape: the reverse
-# sweep of a path keeps its values inside the kernel, one path per thread at a time. So the
+# sweep of a path keeps its values inside the kernel, one path per thread at a time (8
+# depths at a time: a deeper path's vertex 8 and throughput are handed to a second
+# kernel, and their gradient back). So the
 # decisions are most of the peak, and they grow with the paths' length: that is the growth
 # with depth. A batch is 16 samples per pixel by default (`batch_spp`), so below 16 it
 # grows with the samples like the tape, and above it stays flat. Against the lamp's own
@@ -210,9 +212,10 @@ save_and_show(figure, OUT / "memory.png")
 # <!-- check: lamp_saving_at_depth_2 > --> times at depth 2, so the replay is the cheaper
 # from depth `2` <!-- check: replay_cheaper_from_depth --> on. An albedo puts much less on
 # its tape: at 64 samples its tape still holds more than `5`
-# <!-- check: albedo_saving_at_64 > --> times the replay, but at depth 16 about as much,
-# `1.0` <!-- check: albedo_saving_at_depth_16 --> times: there the decisions the replay
-# reads are as large as the albedo's tape. (Before the replay was compiled from the tape's
+# <!-- check: albedo_saving_at_64 > --> times the replay, but at depth 16 a little less,
+# `0.9` <!-- check: albedo_saving_at_depth_16 --> times: there the decisions the replay
+# reads (and its second segment's copy of the rows it needs, below depth 8) take more than
+# the albedo's tape. (Before the replay was compiled from the tape's
 # formulas, the albedo had a hand-written replay of its own that kept nothing per path, a
 # second copy of the mathematics; and when the replay went window by window, each window a
 # tape of its own spanning three vertices, the lamp's replay held more than its tape at

@@ -1,5 +1,5 @@
-"""The paths' gradient compiled: every depth of a path in one traced function, its VJP
-each path's reverse sweep inside the kernel.
+"""The paths' gradient compiled: the depths of a path in one traced function, its VJP each
+path's reverse sweep inside the kernel.
 
 A path's radiance is L = sum_k beta_k C_k with beta_0 = 1 and beta_{k+1} = beta_k F_k: C_k
 what vertex k adds (emission, next-event estimation, the point and directional lights, the
@@ -8,13 +8,13 @@ environment after a last bounce), F_k the factor of the segment to vertex k + 1.
 path's recorded decisions (which primitive, where on it, which light sample), with the
 readable formulas the tape runs (``surface_at``, ``light_contribution``, ``brdf``);
 ``path_terms`` places vertex 0, 1, ... in turn (``next_vertex``: each once, handed on)
-and sums L. ``minidiff.compile``
-traces that once per number of depths into one function of *one path*, run in parallel
-over the paths, its VJP generated from the primitives' own rules: reverse mode through the
-whole path, with the path's values held inside the kernel while its reverse sweep runs, so
-nothing is kept per depth but the batch's records (``render.path.sample.records``), which
-the render wrote anyway. Every parameter (vertices, transforms, light positions, the
-camera, materials, lights, the environment) gets its gradient at the speed of the others.
+and sums L. ``minidiff.compile`` traces that into one function of *one path* (up to
+``SEGMENT`` depths of it), run in parallel over the paths, its VJP generated from the
+primitives' own rules: reverse mode through the path, with the path's values held inside
+the kernel while its reverse sweep runs, so nothing is kept per depth but the batch's
+records (``render.path.sample.records``), which the render wrote anyway. Every parameter
+(vertices, transforms, light positions, the camera, materials, lights, the environment)
+gets its gradient at the speed of the others.
 
 On the tape (``replay._Window``) the same gradient is taken one depth at a time, a window
 per depth, each on its own tape (Vicini et al.'s path replay), for what does not compile
@@ -33,9 +33,9 @@ Mirror bounces are followed (the next vertex where the reflected ray meets its p
 and textures read (``lighting.lookup``, the tape's own lookup, from one table of every
 object's texels). It applies (``applies``) to float64 scenes whose lights' shading
 compiles; otherwise the tape's windows take the batch. ``tests/render/path/test_window.py``
-and ``test_replay_depth.py`` tie the two together for every kind of parameter. A new
-number of depths is a new trace: compiling it takes about 0.3 s at 4 depths and 1.7 s at
-16 (``docs/compiler.md``); the kernel is then cached on disk.
+and ``test_replay_depth.py`` tie the two together for every kind of parameter. The
+paths are replayed ``SEGMENT`` depths at a time (``backpropagate``), so that each kernel
+stays small enough to compile in a second or two; the kernels are then cached on disk.
 """
 
 from __future__ import annotations
@@ -136,37 +136,50 @@ _SHARED = ("frame", "vertices", "normals", "faces", "centers", "radii", "smooth"
            "lights", "background", "primitives", "harmless", "uvs", "textures")  # fmt: skip
 
 
-def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, normals,
+def path_terms(coords, first_prim, start, ints, floats, lit, count, frame, vertices, normals,
                faces, centers, radii, smooth, materials, lights, background, primitives,
                harmless, uvs, textures, form):  # fmt: skip
-    """The radiance (n, 3) of whole paths, L = sum_k beta_k C_k with beta_{k+1} = beta_k
-    F_k, vertex after vertex (``vertex_terms``, ``next_vertex``). Batched (n paths):
-    ``coords`` (n, 2) the camera ray's image-plane point, ``first_prim`` (n,) the primitive
-    it meets; per depth k (tuples of D): the records' ``ints`` (n, I_FIELDS), ``floats``
-    (n, F_FIELDS) and ``lit`` (n, max(L, 1)) (``render.path.sample.records``), and
-    ``count`` (n,) each path's number of vertices. Shared: the tables (``Tables``;
-    ``primitives``: what a point on each primitive reads, ``role_of``; ``uvs`` and
-    ``textures``: None and () without textures), and ``harmless`` () a primitive of some
-    size (``Tables.harmless``). Static ``form``:
-    (the lights' classes and parameter names, whether any material is glossy, the number
-    of lights L, whether a path meets a mirror).
+    """The radiance (n, 3) of a segment of paths, sum_k beta_k C_k with beta_{k+1} = beta_k
+    F_k, vertex after vertex (``vertex_terms``, ``next_vertex``). Batched (n paths): the
+    segment's first vertex, ``start`` None: the camera's ray through ``coords`` (n, 2) meets
+    ``first_prim`` (n,); else (beta, points, geometric, shading, wo[, uv]) of the vertex
+    and its throughput, from the segment before; per depth k of the segment (tuples): the
+    records' ``ints`` (n, I_FIELDS), ``floats`` (n, F_FIELDS) and ``lit`` (n, max(L, 1))
+    (``render.path.sample.records``), one more than the segment's vertices when a segment
+    follows (its first vertex is placed here); ``count`` (n,) each path's number of
+    vertices from the segment's first on. Shared: the tables (``Tables``; ``primitives``:
+    what a point on each primitive reads, ``role_of``; ``uvs`` and ``textures``: None and
+    () without textures), and ``harmless`` () a primitive of some size
+    (``Tables.harmless``). Static ``form``: (the lights' classes and parameter names,
+    whether any material is glossy, the number of lights L, whether a path meets a mirror,
+    whether a segment follows: then the outputs are the radiance and the next segment's
+    ``start``).
 
     Where a path has ended (vertex k >= count), vertex k is read at a harmless point: on
     the ``harmless`` primitive at fixed coordinates that differ from one depth to the
     next, so that two such vertices in a row are never the same point (the direction
     between them is divided by its length). Its C_k and the factor before it are zero, so
     neither value nor gradient sees it."""
-    kinds, glossy, n_lights, mirrors = form
+    kinds, glossy, n_lights, mirrors, follows = form
     texels = next((t[0] for t in textures if t is not None), None)
     world = held_world(vertices, normals, faces, centers, radii, smooth, uvs, texels)
     scene = (world, held_lights(kinds, lights), materials, textures, background, primitives,
              harmless, glossy)  # fmt: skip
-    directions = ray_directions(frame, coords)  # vertex 0: where the camera's ray meets
-    far = far_side_of(primitives, first_prim)
-    v = surface(world, role_of(primitives, first_prim, _UNUSED[0]), frame[3], directions, far)
-    v.wo = -md.normalize(directions)
-    total = beta = None
-    for k in range(len(ints)):
+    beta = None
+    if start is None:  # vertex 0: where the camera's ray meets
+        directions = ray_directions(frame, coords)
+        far = far_side_of(primitives, first_prim)
+        role = role_of(primitives, first_prim, _UNUSED[0])
+        v = surface(world, role, frame[3], directions, far)
+        v.wo = -md.normalize(directions)
+    else:  # the vertex the segment before placed, on the primitive it placed it on
+        beta, points, geometric, shading, wo = start[:5]
+        prim = md.where(count > 0, ints[0][:, records.PRIM], harmless)
+        obj = role_of(primitives, prim, _UNUSED[0])[3]
+        uv = start[5] if uvs is not None else None
+        v = _Vertex(points, geometric, shading, None, wo, obj, uv)
+    total = None
+    for k in range(len(floats) - (1 if follows else 0)):
         exists, goes = count > k, count > k + 1
         here = (ints[k], floats[k], md.where(lit[k][:, :n_lights], 1.0, 0.0) if n_lights else None)
         nxt = None
@@ -176,10 +189,14 @@ def path_terms(coords, first_prim, ints, floats, lit, count, frame, vertices, no
             nxt = next_vertex(world, primitives, harmless, v, following, goes, mirror, k + 1)
         added, factor = vertex_terms(scene, v, here, nxt, goes, mirrors)
         added = md.where(column(exists), added, 0.0)
-        total = added if k == 0 else total + beta * added
-        beta = factor if k == 0 else beta * factor
+        added = added if beta is None else beta * added
+        total = added if total is None else total + added
+        beta = factor if beta is None else beta * factor
         v = nxt
-    return total
+    if not follows:
+        return total
+    handed = (beta, v.points, v.geometric, v.shading, v.wo)
+    return (total, *handed, v.uv) if uvs is not None else (total, *handed)
 
 
 def next_vertex(world, primitives, harmless, v: _Vertex, record, goes, mirror, depth: int):
@@ -313,37 +330,99 @@ _UNUSED = (np.full(3, 1.0 / 3.0), np.array([0.5, 0.25, 0.25]))
 _path = md.compile(path_terms, shared=_SHARED)
 
 
-def _arguments(tables: Tables, batch: PathBatch) -> tuple:
-    """``path_terms``' arguments for the paths of ``batch`` that some depth holds: the
-    batch's records (``Records.of``), a camera ray that misses read as one that hits (the
-    first path's that does: its terms are zero), and the tables."""
+#: A path is replayed this many depths at a time: one compiled function of a segment of
+#: its vertices, the segment's last vertex and throughput handed to the next (its gradient
+#: handed back). A kernel's compile time grows faster than its depths (one of 32 depths
+#: took 4.2 s where one of 8 takes 0.5), and a later segment runs only over the paths
+#: that reach it; shorter segments would trace the first segments' values twice, once to
+#: hand them on and once in the VJP (4 depths: a depth-8 gradient 24 % slower).
+SEGMENT = 8
+
+
+@dataclass
+class _Segment:
+    """Depths ``first``.. of a batch's paths ``rows`` (those that reach it; None: every
+    path), the arguments of ``path_terms`` but its start, and whether a segment follows."""
+
+    rows: np.ndarray | None
+    arguments: tuple
+    follows: bool
+
+
+def _segments(tables: Tables, batch: PathBatch) -> list[_Segment]:
+    """The batch's paths as segments of ``SEGMENT`` depths (``path_terms``' arguments):
+    the batch's records (``Records.of``), a camera ray that misses read as one that hits
+    (the first path's that does: its terms are zero), and the tables."""
     rec = records.Records.of(batch, len(tables.lights))
-    depth = int(rec.count.max(initial=0))
-    count = rec.count
+    depth, count = int(rec.count.max(initial=0)), rec.count
     coords = np.ascontiguousarray(rec.floats[0, :, records.COORD : records.COORD + 2])
     first_prim = rec.ints[0, :, records.PRIM].copy()
     missed = np.flatnonzero(count == 0)
     if len(missed) and depth:
         seen = int(np.argmax(count > 0))
         coords[missed], first_prim[missed] = coords[seen], first_prim[seen]
-    per_depth = tuple(tuple(r[k] for k in range(depth)) for r in (rec.ints, rec.floats, rec.lit))
-    return (
-        coords, first_prim, *per_depth, count, tables.frame, tables.vertices, tables.normals,
-        tables.faces, tables.centers, tables.radii, tables.smooth, tables.materials,
-        tables.lights, tables.background, tables.primitives, np.int64(tables.harmless),
-        tables.uvs, tables.textures,
-        (tables.kinds, tables.glossy, rec.n_lights, batch.meets_mirror()),
+    shared = (
+        tables.frame, tables.vertices, tables.normals, tables.faces, tables.centers,
+        tables.radii, tables.smooth, tables.materials, tables.lights, tables.background,
+        tables.primitives, np.int64(tables.harmless), tables.uvs, tables.textures,
     )  # fmt: skip
+    out = []
+    for first in range(0, depth, SEGMENT):
+        last = min(first + SEGMENT, depth)
+        follows = last < depth
+        rows = None if first == 0 else np.flatnonzero(count > first)
+
+        def take(array, rows=rows):
+            return array if rows is None else np.take(array, rows, axis=0)
+
+        depths = range(first, last + (1 if follows else 0))
+        fields = (rec.ints, rec.floats, rec.lit)
+        per_depth = tuple(tuple(take(r[k]) for k in depths) for r in fields)
+        form = (tables.kinds, tables.glossy, rec.n_lights, batch.meets_mirror(), follows)
+        arguments = (take(coords), take(first_prim), *per_depth, take(count) - first, *shared,
+                     form)  # fmt: skip
+        out.append(_Segment(rows, arguments, follows))
+    return out
+
+
+def _call(segment: _Segment, start) -> tuple:
+    """``path_terms``' arguments for ``segment`` with its ``start``."""
+    coords, first_prim, *rest = segment.arguments
+    return (coords, first_prim, start, *rest)
+
+
+def _handed(start: tuple, previous: _Segment, segment: _Segment) -> tuple:
+    """The rows of ``start`` (the arrays ``previous`` handed on, one row per path of its
+    own) that belong to ``segment``'s paths."""
+    at = segment.rows if previous.rows is None else np.searchsorted(previous.rows, segment.rows)
+    return tuple(np.take(x, at, axis=0) for x in start)
+
+
+def _forward(segments: list[_Segment]) -> list[tuple]:
+    """Each segment's outputs (its radiance, then what it hands on), off the tape."""
+    outputs, start = [], None
+    with md.no_grad():
+        for j, segment in enumerate(segments):
+            if j > 0:
+                start = _handed(outputs[-1][1:], segments[j - 1], segment)
+            result = _path(*_call(segment, start))
+            result = result if isinstance(result, tuple) else (result,)
+            outputs.append(tuple(r.data for r in result))
+    return outputs
 
 
 def radiance(tables: Tables, batch: PathBatch) -> np.ndarray:
     """(N, 3): the radiance of each path of ``batch`` (the environment where its camera
-    ray misses), by the compiled forward of ``path_terms``, off the tape."""
-    if batch.missed.all():
-        total = np.zeros((len(batch.paths), 3))
-    else:
-        with md.no_grad():
-            total = _path(*_arguments(tables, batch)).data  # zero where a camera ray misses
+    ray misses), by the compiled forward of ``path_terms``, segment after segment, off the
+    tape."""
+    total = np.zeros((len(batch.paths), 3))
+    if not batch.missed.all():
+        segments = _segments(tables, batch)
+        for segment, outputs in zip(segments, _forward(segments), strict=True):
+            if segment.rows is None:  # zero where a camera ray misses
+                total += outputs[0]
+            else:
+                total[segment.rows] += outputs[0]
     total[batch.missed] = tables.background.data
     return total
 
@@ -351,9 +430,35 @@ def radiance(tables: Tables, batch: PathBatch) -> np.ndarray:
 def backpropagate(tables: Tables, batch: PathBatch, weights: np.ndarray) -> None:
     """Add the gradient of sum(weights * L) over the paths of ``batch`` that meet the
     scene (``weights`` (N, 3): d loss / d L) to ``grad`` of the tables' leaves: the VJP of
-    ``path_terms``, each path's reverse sweep inside the compiled kernel."""
-    if not batch.missed.all():
-        _path.add_vjp(weights, *_arguments(tables, batch))
+    ``path_terms``, each path's reverse sweep inside the compiled kernel, segment by
+    segment from the last (each hands the gradient of its start to the segment before)."""
+    if batch.missed.all():
+        return
+    segments = _segments(tables, batch)
+    if len(segments) == 1:  # one segment: its radiance is the objective's only output
+        _path.add_vjp(weights, *_call(segments[0], None))
+        return
+    outputs = _forward(segments)
+    handed_back = None  # the gradient of the sum with respect to what segment j hands on
+    for j in range(len(segments) - 1, -1, -1):
+        segment = segments[j]
+        own = weights if segment.rows is None else np.take(weights, segment.rows, axis=0)
+        cotangents = (own, *handed_back) if segment.follows else own
+        start = None
+        if j > 0:
+            handed = _handed(outputs[j - 1][1:], segments[j - 1], segment)
+            start = tuple(md.tensor(x, requires_grad=True) for x in handed)
+        _path.add_vjp(cotangents, *_call(segment, start))
+        if j > 0:  # back to the rows of the segment before
+            before = segments[j - 1]
+            n = len(weights) if before.rows is None else len(before.rows)
+            at = segment.rows if before.rows is None else np.searchsorted(before.rows, segment.rows)
+            handed_back = []
+            for t in start:
+                g = np.zeros((n, *t.shape[1:]))
+                if t.grad is not None:
+                    g[at] = t.grad
+                handed_back.append(g)
 
 
 def _textured(value, table, obj, uv, replaces: bool = False):

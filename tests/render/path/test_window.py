@@ -156,7 +156,7 @@ def test_compiled_paths_do_not_depend_on_the_thread_count(threads):
         light = scene.objects[5].transform.translation
         light.requires_grad = True
         with compiler.using_threads(n):
-            image = render_path(scene, spp=2, max_depth=4, seed=5)
+            image = render_path(scene, spp=2, max_depth=6, seed=5)
             md.sum(image * image).backward()
         return light.grad
 
