@@ -156,19 +156,16 @@ class Records:
         n = len(batch.paths)
         out = cls.empty(len(vertices), n, n_lights)
         for k, v in enumerate(vertices):
-            i, f, rows = out.ints[k], out.floats[k], v.rows
-            for column, value in ((PRIM, v.prim), (FORM, v.form), (NEE_PRIM, v.nee_prim),
-                                  (NEXT, v.next), (ESCAPE, v.escape)):  # fmt: skip
-                i[rows, column] = value
-            for column, value in ((LOCAL, v.local), (EMIT, v.emit_weight),
-                                  (NEE_LOCAL, v.nee_local), (NEE_WEIGHT, v.nee_weight),
-                                  (NEXT_PDF, v.next_pdf), (SURVIVE, v.survive),
-                                  (ESCAPE_DIR, v.escape_dir)):  # fmt: skip
-                f[rows, column : column + (value.shape[1] if value.ndim == 2 else 1)] = (
-                    value if value.ndim == 2 else value[:, None]
-                )
+            rows = v.rows
+            # Each depth's fields as whole rows, scattered once (a column at a time was
+            # several times slower).
+            out.ints[k, rows, :COUNT] = np.stack([v.prim, v.form, v.nee_prim, v.next, v.escape], 1)
+            out.floats[k, rows, :COORD] = np.concatenate(
+                [v.local, v.emit_weight[:, None], v.nee_local, v.nee_weight[:, None],
+                 v.next_pdf[:, None], v.survive[:, None], v.escape_dir], axis=1
+            )  # fmt: skip
             out.lit[k, rows, :n_lights] = v.lit.T
-            out.ints[0, rows, COUNT] += 1
+            out.ints[0, rows, COUNT] = k + 1  # the paths reaching depth k reach k - 1
         if len(vertices):
             out.floats[0, :, COORD : COORD + 2] = batch.coords
         return out

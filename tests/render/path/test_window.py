@@ -215,3 +215,31 @@ def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
     scale = max(np.abs(expected).max(), 1e-300)
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-12 * scale)
     assert depth == 1 or np.any(expected)  # light reaches some path
+
+
+def test_records_laid_out_from_a_batch_are_the_kernels():
+    """``Records.of`` a batch of the reference sampler (per-depth lists) gives the layout
+    the kernel writes as it traces the same paths: integers equal, floats to 1e-12 of their
+    scale (the two sample the same decisions, computed in another order)."""
+    from render.path.sample.records import PathBatch, Records
+    from render.path.sample.tracer import PathSampler
+    from render.path.twin import kernel
+    from render.scene.placement import placed
+
+    scene = cornell_box(8, 8, blocks=True)
+    scene.objects[2].material = render.Material((0.5, 0.5, 0.5), reflectance=0.4)
+    scene.lights = [render.PointLight((0.3, 0.6, 0.4), 1.5)]
+    world = placed(scene)
+    sampler = PathSampler(world, 2, 6, 3, 11)
+    paths = np.arange(8 * 8 * 2, dtype=np.int64)
+    traced, _ = kernel.sample_paths(sampler, paths)
+    sampled = sampler.sample(paths)
+    laid_out = Records.of(PathBatch(sampled.paths, sampled.coords, sampled.missed,
+                                    sampled.vertices), 1)  # fmt: skip
+    written = traced.records
+    depth = len(laid_out.ints)
+    assert depth >= 4 and np.any(written.ints[..., 3] == 2)  # deep, and a mirror bounce
+    np.testing.assert_array_equal(laid_out.ints, written.ints[:depth])
+    np.testing.assert_array_equal(laid_out.lit, written.lit[:depth])
+    scale = np.abs(written.floats).max()
+    np.testing.assert_allclose(laid_out.floats, written.floats[:depth], rtol=0, atol=1e-12 * scale)
