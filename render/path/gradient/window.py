@@ -366,6 +366,8 @@ def _segments(tables: Tables, batch: PathBatch) -> list[_Segment]:
         tables.radii, tables.smooth, tables.materials, tables.lights, tables.background,
         tables.primitives, np.int64(tables.harmless), tables.uvs, tables.textures,
     )  # fmt: skip
+    # (no reflectance anywhere: no path meets a mirror, and its records need no reading)
+    mirrors = bool(np.any(tables.materials[-1].data)) and batch.meets_mirror()
     out = []
     for first in range(0, depth, SEGMENT):
         last = min(first + SEGMENT, depth)
@@ -378,7 +380,7 @@ def _segments(tables: Tables, batch: PathBatch) -> list[_Segment]:
         depths = range(first, last + (1 if follows else 0))
         fields = (rec.ints, rec.floats, rec.lit)
         per_depth = tuple(tuple(take(r[k]) for k in depths) for r in fields)
-        form = (tables.kinds, tables.glossy, rec.n_lights, batch.meets_mirror(), follows)
+        form = (tables.kinds, tables.glossy, rec.n_lights, mirrors, follows)
         arguments = (take(coords), take(first_prim), *per_depth, take(count) - first, *shared,
                      form)  # fmt: skip
         out.append(_Segment(rows, arguments, follows))
