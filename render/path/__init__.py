@@ -11,10 +11,11 @@ ones before it:
 * ``gradient/``: what each path carries, on the tape (``transport``: every vertex
   recomputed from its primitive by ``render.shade.surface.surface_at``, the direct
   renderer's surfaces too, shaded with ``render.shade.lighting``'s materials and lights),
-  and path replay one depth at a time (``replay``), its windows compiled (``window``);
-* ``twin/``: the hand-written Numba twin of both (``kernel``, with ``scalar``, ``packed``,
-  ``chain``, ``adjoint``): the image, the records and the materials' replay, fast, until
-  the traced kernels replace it;
+  the gradient of whole paths compiled from those formulas (``window``), and path replay
+  one depth at a time on the tape for what does not compile (``replay``);
+* ``twin/``: the hand-written Numba twin of the sampler and of the radiance's value
+  (``kernel``, with ``scalar``, ``packed``): the image and the records, fast, until the
+  traced kernels replace it;
 * ``boundary/``: primary visibility's boundary term (``primary``: ``antialias="boundary"``
   or ``"primary"``, the boundary integral of ``render.edges`` with the jumps
   path-traced) and secondary visibility's (``secondary``: ``"boundary"`` or

@@ -27,7 +27,7 @@ def substituted(
     render cache. The copy is validated as any scene is, unless ``copies``: ``scene`` was
     validated and every replacement is a copy of the tensor it replaces (the same values),
     which the same checks would accept again (the path integrator's frozen scene and its
-    windows' leaves: 1.2 ms a scene for the Cornell box)."""
+    replay's leaves: 1.2 ms a scene for the Cornell box)."""
 
     background = new.get(id(scene.background), scene.background)
     out = Scene(

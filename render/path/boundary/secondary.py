@@ -36,7 +36,7 @@ silhouette seen from l, a curve on the surfaces, in the integral over x' from x_
 same construction with l as the apex samples it; the jump is the light's contribution at
 x'. A directional light is a point light ``FAR`` scene sizes away. Everything but
 dphi/dtheta is a constant computed off the tape (beta_k f_k G L by ``replay.radiance_of``:
-the compiled windows' values); phi is recomputed from x_k, x' (their places on their
+the compiled paths' values); phi is recomputed from x_k, x' (their places on their
 surfaces), the curve and the light (``silhouettes.level_set``, compiled per sample: one
 node on the tape), so ``backward`` reaches every parameter that moves them. Each sample's
 value is phi - phi = 0: the term adds nothing to the image.

@@ -2,7 +2,7 @@
 
 All meshes' vertices, vertex normals and faces concatenated (row p of the face table is
 primitive p), the spheres' centres and radii, per object its material and whether it is
-smooth, the lights and the environment. The replay's windows (``render.path.gradient.window``),
+smooth, the lights and the environment. The paths' compiled gradient (``render.path.gradient.window``),
 the secondary term's level sets (``render.path.boundary.secondary``) and the sampler's choices
 (``render.path.sample.choices``) all read them.
 """
@@ -163,8 +163,8 @@ class Tables:
         return far_side_of(self.primitives, prims)
 
     def carried(self) -> list[md.Tensor]:
-        """The terms whose ``backward`` carries what the windows put into the leaves'
-        ``grad`` through the tape the tables were built on."""
+        """The terms whose ``backward`` carries what the compiled paths put into the
+        leaves' ``grad`` through the tape the tables were built on."""
         return [md.sum(t * copy.grad) for t, copy in self.built if copy.grad is not None]
 
 
