@@ -2,9 +2,10 @@
 
 All meshes' vertices, vertex normals and faces concatenated (row p of the face table is
 primitive p), the spheres' centres and radii, per object its material and whether it is
-smooth, the lights and the environment. The paths' compiled gradient (``render.path.gradient.window``),
-the secondary term's level sets (``render.path.boundary.secondary``) and the sampler's choices
-(``render.path.sample.choices``) all read them.
+smooth, the lights and the environment. The paths' compiled gradient
+(``render.path.gradient.window``), the secondary term's level sets
+(``render.path.boundary.secondary``) and the sampler's choices (``render.path.sample.choices``)
+all read them.
 """
 
 from __future__ import annotations
