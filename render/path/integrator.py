@@ -138,16 +138,14 @@ class _KeptPaths:
         self._paths: tuple | None = None
 
     @staticmethod
-    def wanted(scene: Scene, spp: int, batch_spp: int, max_depth: int) -> bool:
-        """Whether ``_replay_batches`` would replay ``scene``'s image (its parameters
-        requiring grad as they will in the ``backward``) from the kernel's records of all
-        its paths at once: one batch, at most ``replay_paths(max_depth)`` paths."""
-        camera = scene.camera
+    def wanted(world: Scene, spp: int, batch_spp: int, max_depth: int) -> bool:
+        """Whether ``_replay_batches`` would replay the image of ``world`` (the placed
+        scene) from the kernel's records of all its paths at once: the kernel traces it,
+        and one batch holds them all, at most ``replay_paths(max_depth)`` paths."""
+        camera = world.camera
         if spp > batch_spp or camera.width * camera.height * spp > replay_paths(max_depth):
             return False
-        with md.enable_grad():  # placed as in the backward, which the moving leaves reach
-            world = placed(scene)
-        return kernel.applies(world)
+        return kernel.applies(world)  # (float64 and lights it shades: placed or not)
 
     def image(self, sampler: PathSampler) -> np.ndarray:
         """The (H, W, 3) image of ``kernel.render_image(sampler)``, bit for bit (each
@@ -277,11 +275,12 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
             tangent = _render_path(frozen, *options).tangent
     for leaf in leaves:
         leaf.requires_grad = True
-    kept = _KeptPaths() if _KeptPaths.wanted(frozen, spp, batch_spp, max_depth) else None
     with md.no_grad():  # the value: the kernel's image when it applies, as without tangents
         # The sampler reads the frozen values only: the replay uses it too.
         sampler = PathSampler(placed(frozen), spp, max_depth, rr_depth, seed,
                               cache_for(frozen, True))  # fmt: skip
+        wanted = _KeptPaths.wanted(sampler.scene, spp, batch_spp, max_depth)
+        kept = _KeptPaths() if wanted else None
         image = _render_path(frozen, *options, kept=kept, sampler=sampler)
 
     def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
