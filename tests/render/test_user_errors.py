@@ -133,12 +133,12 @@ def _gradients(scene, names, **options):
 @pytest.mark.parametrize(
     "names",
     [["objects[0].material.albedo"], ["objects[1].vertices", "objects[0].material.albedo"]],
-    ids=["compiled replay", "replay on the tape"],
+    ids=["a material", "the vertices and a material"],
 )
 def test_the_largest_max_depth_costs_what_the_paths_need(names):
     """Russian roulette ends every path long before max_depth = 2**59: the image and the
     gradient are those of max_depth = 64 bit for bit (no path of 64 vertices: checked),
-    where records and chains sized by max_depth could not be allocated at all."""
+    where records sized by max_depth could not be allocated at all."""
     sampler = PathSampler(placed(box(False)), 1, 64, 5, 0)
     batch, _ = kernel.sample_paths(sampler, np.arange(64, dtype=np.int64))
     assert len(batch.vertices) < 64
