@@ -95,12 +95,20 @@ def _longest_mirror_run(batch) -> int:
     return longest
 
 
-@pytest.mark.parametrize("max_depth", [2, 4, 8])
-def test_every_kind_of_parameter_gets_the_tapes_gradient(max_depth):
+@pytest.mark.parametrize("max_depth, rr_depth", [(2, 3), (4, 3), (8, 3), (10, 100)])
+def test_every_kind_of_parameter_gets_the_tapes_gradient(max_depth, rr_depth):
+    """Every kind of parameter, textures and a mirror included; at max_depth 10 without
+    Russian roulette the paths run past the first segment of the compiled replay
+    (``window.SEGMENT``), whose last vertex is handed to the next."""
+    from render.path.gradient import window
+
     scene = every_kind()
-    paths = _paths(scene, spp=4, max_depth=max_depth, rr_depth=3, seed=3)
+    spp = 4 if max_depth <= window.SEGMENT else 2
+    paths = _paths(scene, spp=spp, max_depth=max_depth, rr_depth=rr_depth, seed=3)
     # Paths go past Russian roulette's first vertex (at depth 8 the last die by depth 5).
     assert len(paths[1].vertices) >= min(max_depth, 5)
+    if max_depth > window.SEGMENT:
+        assert len(paths[1].vertices) > window.SEGMENT
     assert _assert_same_gradients(scene, paths) >= 20  # not a comparison of zeros
 
 
