@@ -85,19 +85,23 @@ def room_with(parameter: str) -> tuple:
     return room, p
 
 
-def gradient_peak_mb(gradient: str, parameter: str, spp: int, max_depth: int) -> float:
-    """The peak of traced allocations (MB) while rendering the Cornell box and
-    differentiating the mean of the squared image with respect to ``parameter``
-    (``room_with``)."""
+def box_gradient_once(gradient: str, parameter: str, spp: int, max_depth: int) -> None:
+    """Render the Cornell box and differentiate the mean of the squared image with respect
+    to ``parameter`` (``room_with``)."""
     room, _ = room_with(parameter)
     # Off: minidiff's pool of reused arrays (a reused array is no new allocation, so the
     # peak would depend on what ran before).
-    tracemalloc.start()
     with buffers.fresh():
         image = render_path(
             room, spp=spp, max_depth=max_depth, seed=0, rr_depth=100, gradient=gradient
         )
         md.mean(image * image).backward()
+
+
+def gradient_peak_mb(gradient: str, parameter: str, spp: int, max_depth: int) -> float:
+    """The peak of traced allocations (MB) during ``box_gradient_once``."""
+    tracemalloc.start()
+    box_gradient_once(gradient, parameter, spp, max_depth)
     peak = tracemalloc.get_traced_memory()[1]
     tracemalloc.stop()
     return peak / 1e6
@@ -110,9 +114,10 @@ WAYS = {  # the parameter, then how its gradient is taken
     "lamp's position: compiled whole paths": ("replay", "lamp"),
 }
 for gradient, parameter in WAYS.values():  # first calls load kernels and fill caches
-    # (the compiled lamp's kernel is one per depth: lesson 16's compiler traces each once)
+    # (the compiled replay's kernels depend on the depth: lesson 16's compiler traces
+    # each once; one sample per pixel is enough to make them)
     for depth in [2, 4, 8, 16] if gradient == "replay" else [4]:
-        gradient_peak_mb(gradient, parameter, 4, depth)
+        box_gradient_once(gradient, parameter, 1, depth)
 spps, depths = [4, 16, 64], [2, 4, 8, 16]
 memory_by_spp = {w: [gradient_peak_mb(*WAYS[w], spp, 4) for spp in spps] for w in WAYS}
 # 16 spp at max_depth 4 was measured just above: the depth sweep reuses it.

@@ -29,6 +29,7 @@ lesson = run_lesson("14_path_replay")
 surfaces, geometry = lesson["surfaces"], lesson["geometry"]
 last_hit_weight, emission, delta = lesson["last_hit_weight"], lesson["emission"], lesson["delta"]
 gradient_peak_mb = lesson["gradient_peak_mb"]
+box_gradient_once = lesson["box_gradient_once"]
 
 
 def taped_gradient(rho, emission, distance=None):
@@ -127,7 +128,7 @@ assert distance_difference < 1e-14
 
 # %%
 for depth in (2, 32):
-    gradient_peak_mb("replay", "lamp", 4, depth)
+    box_gradient_once("replay", "lamp", 1, depth)
 tape = {d: gradient_peak_mb("tape", "lamp", 16, d) for d in (2, 32)}
 paths = {d: gradient_peak_mb("replay", "lamp", 16, d) for d in (2, 32)}
 tape_growth_32 = tape[32] / tape[2]
