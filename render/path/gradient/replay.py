@@ -2,7 +2,7 @@
 
 ``render.path.gradient.transport.path_radiance`` puts every depth of every path on one tape,
 so the memory of a batch's ``backward`` grows with ``max_depth``. Where the batch's paths
-compile (``window.applies``) their gradient is one compiled function of the whole path,
+compile (``tables.compiles``) their gradient is one compiled function of the whole path,
 whose reverse sweep runs path by path inside the kernel (``window.path_terms``): no tape
 at all. Otherwise (a mirror bounce, a texture) path replay (Vicini et al. 2021, "Path
 Replay Backpropagation"; Mitsuba 3's ``prb.py``) gives the same gradient with one depth on
@@ -57,7 +57,7 @@ import minidiff as md
 from render.path.gradient import window
 from render.path.gradient.transport import Vertex, _at_vertex, vertex_on_tape, viewer_side
 from render.path.sample.records import PathBatch, Vertices
-from render.path.sample.tables import Tables
+from render.path.sample.tables import Tables, compiles
 from render.path.sample.tracer import AREA, CAMERA, MIRROR, PathSampler
 from render.scene.camera import ray_directions
 from render.scene.substitute import substituted
@@ -89,7 +89,7 @@ def radiance_of(
     ``tables``: ``plain_tables(world, frame)`` if the caller has them (a caller asking
     about many batches of one world makes them once)."""
     with md.no_grad():
-        if window.applies(world, batch):
+        if compiles(world):
             return window.radiance(tables or Tables.of(world, frame), batch)
         paths = _Paths.of(world, frame, sampler, batch)
         n_paths = len(batch.paths)
@@ -124,7 +124,7 @@ def _backpropagate(world, frame, sampler, batch, radiance, weights) -> None:
     if len(missed) and window_world.background.requires_grad:  # camera rays seeing the sky
         seen = md.sum(md.broadcast_to(window_world.background, (len(missed), 3)) * weights[missed])
         seen.backward()
-    if window.applies(window_world, batch):  # compiled: each path's reverse sweep in a kernel
+    if compiles(window_world):  # compiled: each path's reverse sweep in a kernel
         tables = Tables.of(window_world, window_frame)
         window.backpropagate(tables, batch, weights)
         _backward(tables.carried())  # the tables' gradients, through their tape

@@ -31,11 +31,12 @@ carries their gradients to the parameters (``Tables.carried``).
 
 Mirror bounces are followed (the next vertex where the reflected ray meets its primitive),
 and textures read (``lighting.lookup``, the tape's own lookup, from one table of every
-object's texels). It applies (``applies``) to float64 scenes whose lights' shading
-compiles; otherwise the tape's windows take the batch. ``tests/render/path/test_window.py``
-and ``test_replay_depth.py`` tie the two together for every kind of parameter. The
-paths are replayed ``SEGMENT`` depths at a time (``backpropagate``), so that each kernel
-stays small enough to compile in a second or two; the kernels are then cached on disk.
+object's texels). It applies to float64 scenes whose lights' shading compiles
+(``tables.compiles``); otherwise the tape's windows take the batch.
+``tests/render/path/test_window.py`` and ``test_replay_depth.py`` tie the two together
+for every kind of parameter. The paths are replayed ``SEGMENT`` depths at a time
+(``backpropagate``), so that each kernel stays small enough to compile in a second or
+two; the kernels are then cached on disk.
 """
 
 from __future__ import annotations
@@ -47,22 +48,13 @@ import numpy as np
 import minidiff as md
 from render.path.sample import records
 from render.path.sample.records import MIRROR, STOP, PathBatch
-from render.path.sample.tables import TEXTURE_FIELDS, Tables, far_side_of, role_of
+from render.path.sample.tables import MATERIAL_FIELDS, TEXTURE_FIELDS, Tables, far_side_of, role_of
 from render.scene.camera import ray_directions
 from render.scene.materials import Material
-from render.scene.scene import Mesh, Scene, Sphere
+from render.scene.scene import Mesh, Sphere
 from render.shade.compiled import held_lights
 from render.shade.lighting import Appearance, brdf, light_contribution, lookup
 from render.shade.surface import column, surface_at, toward_ray
-
-
-def applies(world: Scene, batch: PathBatch) -> bool:
-    """Whether ``batch``'s gradient compiles (``path_terms``): float64 parameters and lights
-    whose shading compiles (``Light.compiled_shading``). (``batch``: its paths' mirror
-    bounces and textures are compiled too, when there are any.)"""
-    if not all(light.compiled_shading for light in world.lights):
-        return False
-    return all(t.dtype == np.float64 for t in world.parameters())
 
 
 @dataclass
@@ -84,8 +76,8 @@ class _Vertex:
 def held_world(vertices, normals, faces, centers, radii, smooth, uvs=None, texels=None) -> tuple:
     """What ``surface`` reads, from the tables' (traced) arrays: (all meshes as one
     ``Mesh`` (smooth; ``smooth`` (O,) says which objects are), smooth, the spheres'
-    centres and radii). With ``uvs`` (V, 2) and a table of ``texels``, the mesh is textured:
-    its points get their UVs."""
+    centres and radii, the untextured material the spheres hold). With ``uvs`` (V, 2) and
+    a table of ``texels``, the mesh is textured: its points get their UVs."""
     plain = Material.holding(texture=None, specular_texture=None, ambient_texture=None)
     look = plain if uvs is None else Material.holding(
         texture=texels, specular_texture=None, ambient_texture=None
@@ -341,10 +333,13 @@ SEGMENT = 8
 
 @dataclass
 class _Segment:
-    """Depths ``first``.. of a batch's paths ``rows`` (those that reach it; None: every
-    path), the arguments of ``path_terms`` but its start, and whether a segment follows."""
+    """``SEGMENT`` depths (or fewer, the last) of a batch's paths ``rows`` (those that reach
+    the first of them; None: every path), where they stand among the rows of the segment
+    before (``within``; None for the first), the arguments of ``path_terms`` but its start,
+    and whether a segment follows."""
 
     rows: np.ndarray | None
+    within: np.ndarray | None
     arguments: tuple
     follows: bool
 
@@ -367,12 +362,16 @@ def _segments(tables: Tables, batch: PathBatch) -> list[_Segment]:
         tables.primitives, np.int64(tables.harmless), tables.uvs, tables.textures,
     )  # fmt: skip
     # (no reflectance anywhere: no path meets a mirror, and its records need no reading)
-    mirrors = bool(np.any(tables.materials[-1].data)) and batch.meets_mirror()
-    out = []
+    reflectance = tables.materials[MATERIAL_FIELDS.index("reflectance")]
+    mirrors = bool(np.any(reflectance.data)) and batch.meets_mirror()
+    out, before = [], None
     for first in range(0, depth, SEGMENT):
         last = min(first + SEGMENT, depth)
         follows = last < depth
-        rows = None if first == 0 else np.flatnonzero(count > first)
+        rows = within = None
+        if first > 0:
+            rows = np.flatnonzero(count > first)
+            within = rows if before is None else np.searchsorted(before, rows)
 
         def take(array, rows=rows):
             return array if rows is None else np.take(array, rows, axis=0)
@@ -383,7 +382,8 @@ def _segments(tables: Tables, batch: PathBatch) -> list[_Segment]:
         form = (tables.kinds, tables.glossy, rec.n_lights, mirrors, follows)
         arguments = (take(coords), take(first_prim), *per_depth, take(count) - first, *shared,
                      form)  # fmt: skip
-        out.append(_Segment(rows, arguments, follows))
+        out.append(_Segment(rows, within, arguments, follows))
+        before = rows
     return out
 
 
@@ -393,24 +393,20 @@ def _call(segment: _Segment, start) -> tuple:
     return (coords, first_prim, start, *rest)
 
 
-def _handed(start: tuple, previous: _Segment, segment: _Segment) -> tuple:
-    """The rows of ``start`` (the arrays ``previous`` handed on, one row per path of its
-    own) that belong to ``segment``'s paths."""
-    at = segment.rows if previous.rows is None else np.searchsorted(previous.rows, segment.rows)
-    return tuple(np.take(x, at, axis=0) for x in start)
-
-
-def _forward(segments: list[_Segment]) -> list[tuple]:
-    """Each segment's outputs (its radiance, then what it hands on), off the tape."""
-    outputs, start = [], None
+def _forward(segments: list[_Segment]) -> tuple[list[tuple], list[tuple | None]]:
+    """Each segment's outputs (its radiance, then what it hands on) and its start (None
+    for the first: the camera's rays), off the tape."""
+    outputs, starts = [], []
     with md.no_grad():
-        for j, segment in enumerate(segments):
-            if j > 0:
-                start = _handed(outputs[-1][1:], segments[j - 1], segment)
+        for segment in segments:
+            start = None
+            if outputs:  # the rows of what the segment before handed on that go on here
+                start = tuple(np.take(x, segment.within, axis=0) for x in outputs[-1][1:])
             result = _path(*_call(segment, start))
             result = result if isinstance(result, tuple) else (result,)
             outputs.append(tuple(r.data for r in result))
-    return outputs
+            starts.append(start)
+    return outputs, starts
 
 
 def radiance(tables: Tables, batch: PathBatch) -> np.ndarray:
@@ -420,7 +416,7 @@ def radiance(tables: Tables, batch: PathBatch) -> np.ndarray:
     total = np.zeros((len(batch.paths), 3))
     if not batch.missed.all():
         segments = _segments(tables, batch)
-        for segment, outputs in zip(segments, _forward(segments), strict=True):
+        for segment, outputs in zip(segments, _forward(segments)[0], strict=True):
             if segment.rows is None:  # zero where a camera ray misses
                 total += outputs[0]
             else:
@@ -440,26 +436,22 @@ def backpropagate(tables: Tables, batch: PathBatch, weights: np.ndarray) -> None
     if len(segments) == 1:  # one segment: its radiance is the objective's only output
         _path.add_vjp(weights, *_call(segments[0], None))
         return
-    outputs = _forward(segments)
+    outputs, starts = _forward(segments)
     handed_back = None  # the gradient of the sum with respect to what segment j hands on
     for j in range(len(segments) - 1, -1, -1):
         segment = segments[j]
         own = weights if segment.rows is None else np.take(weights, segment.rows, axis=0)
         cotangents = (own, *handed_back) if segment.follows else own
         start = None
-        if j > 0:
-            handed = _handed(outputs[j - 1][1:], segments[j - 1], segment)
-            start = tuple(md.tensor(x, requires_grad=True) for x in handed)
+        if starts[j] is not None:
+            start = tuple(md.tensor(x, requires_grad=True) for x in starts[j])
         _path.add_vjp(cotangents, *_call(segment, start))
-        if j > 0:  # back to the rows of the segment before
-            before = segments[j - 1]
-            n = len(weights) if before.rows is None else len(before.rows)
-            at = segment.rows if before.rows is None else np.searchsorted(before.rows, segment.rows)
+        if start is not None:  # back to the rows of the segment before
             handed_back = []
-            for t in start:
-                g = np.zeros((n, *t.shape[1:]))
+            for t, handed in zip(start, outputs[j - 1][1:], strict=True):
+                g = np.zeros_like(handed)
                 if t.grad is not None:
-                    g[at] = t.grad
+                    g[segment.within] = t.grad
                 handed_back.append(g)
 
 

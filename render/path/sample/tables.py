@@ -169,6 +169,16 @@ class Tables:
         return [md.sum(t * copy.grad) for t, copy in self.built if copy.grad is not None]
 
 
+def compiles(world: Scene) -> bool:
+    """Whether the path integrator's compiled code reads ``world``: its kernel
+    (``render.path.twin.packed``) and the compiled gradient of its paths
+    (``render.path.gradient.window``): float64 parameters and lights whose shading
+    compiles (``Light.compiled_shading``); otherwise the reference code runs."""
+    if not all(light.compiled_shading for light in world.lights):
+        return False
+    return all(t.dtype == np.float64 for t in world.parameters())
+
+
 def role_of(primitives: tuple, prims, local) -> tuple:
     """What a compiled function reads of points on primitives ``prims`` (n,) at ``local``
     (n, 3): (face (n,), sphere (n,), on a sphere (n,) bool, object (n,), local), gathered

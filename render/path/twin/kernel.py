@@ -72,10 +72,10 @@ RECORD_ROWS = 32
 @numba.njit(cache=True, error_model="numpy", inline="always")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
                 stack_t, keep, row, rec_i, rec_f, rec_lit):  # fmt: skip
-    """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2) and its number
-    of vertices n (0: the camera ray missed). With ``keep``, its decisions are written to
-    row ``row`` of the records (``render.path.sample.records``): its length n, and its first
-    vertices, as many as the records have room for.
+    """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2). With ``keep``,
+    its decisions are written to row ``row`` of the records
+    (``render.path.sample.records``): its number of vertices n (0: the camera ray missed),
+    and its first vertices, as many as the records have room for.
 
     Two views of each vertex, as in the reference: the sampler decides with the point its
     ray found (``point``, the direction it arrived along ``incoming``); the tape computes
@@ -100,7 +100,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     if prim < 0:
         if keep:
             rec_i[0, row, R.COUNT] = 0
-        return background[0], background[1], background[2], 0
+        return background[0], background[1], background[2]
     point = (eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2])
     incoming = _divided(d[0], d[1], d[2])
     form, pdf, previous, estimate = CAMERA, 0.0, point, 1.0
@@ -186,7 +186,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
         previous, point, xt, wot = point, point_next, x_next, wo_next
         incoming, form, pdf = wi, MIRROR if mirror else AREA, next_pdf
         depth += 1
-    return L[0], L[1], L[2], depth
+    return L[0], L[1], L[2]
 
 
 @numba.njit(cache=True, error_model="numpy", inline="always")
@@ -402,11 +402,10 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
         for sample in range(count):
             path = i * spp + sample if image else paths[i]
             pixel = path // spp
-            L0, L1, L2, _ = _trace_path(
+            L = _trace_path(
                 bvh, s, seed_key, path, pixel % width, pixel // width, width, height, max_depth,
                 rr_depth, stack, stack_t, not image, i, rec_i, rec_f, rec_lit,
             )  # fmt: skip
-            L = (L0, L1, L2)
             total = L if sample == 0 else (total[0] + L[0], total[1] + L[1], total[2] + L[2])
         if image:
             inv = 1.0 / spp

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from render.path.sample.tables import compiles
 from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh, Scene
 from render.trace.intersect import FlatBVH
@@ -19,11 +20,8 @@ from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
 
 
 def applies(world: Scene) -> bool:
-    """Whether the kernel can trace ``world``: float64 parameters and lights it shades
-    (``Light.compiled_shading``); otherwise the reference code runs."""
-    if not all(light.compiled_shading for light in world.lights):
-        return False
-    return all(t.dtype == np.float64 for t in world.parameters())
+    """Whether the kernel can trace ``world`` (``tables.compiles``)."""
+    return compiles(world)
 
 
 @dataclass

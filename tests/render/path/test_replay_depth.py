@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 import minidiff as md
 import render
 from minidiff import buffers
-from render.path.gradient import window
+from render.path.gradient import replay, window
 from render.path.gradient.replay import backpropagate_paths
 from render.path.gradient.transport import path_radiance
 from render.path.sample.tracer import MIRROR, PathSampler
@@ -71,7 +71,7 @@ def _assert_same_gradients(scene, paths, windows: bool = False) -> int:
     not (a mirror's reflectance when nothing is seen in it). ``windows``: the replay one
     depth at a time on the tape (the route of textured scenes) rather than compiled."""
     taped = _gradients(scene, _taped, paths)
-    with mock.patch.object(window, "applies", lambda *_: False) if windows else nullcontext():
+    with mock.patch.object(replay, "compiles", lambda *_: False) if windows else nullcontext():
         replayed = _gradients(scene, _replayed, paths)
     pairs = {n: (0.0 if g is None else g, 0.0 if replayed[n] is None else replayed[n])
              for n, g in taped.items() if g is not None or replayed[n] is not None}  # fmt: skip
@@ -110,7 +110,6 @@ def test_segments_hand_their_last_vertex_on(monkeypatch):
     segments of 2 depths (small kernels, quick to compile) paths of 5 vertices run through
     a first, a middle and a last segment, every kind of parameter (textures, a mirror,
     lights) against the tape."""
-    from render.path.gradient import window
 
     monkeypatch.setattr(window, "SEGMENT", 2)
     scene = every_kind()
@@ -217,7 +216,6 @@ def test_memory_does_not_grow_with_max_depth(monkeypatch):
     arrays. The 10 % (25 % for the compiled route's few arrays) leave room for the
     allocator. Measured: tape 3.59, 11.28 MB; windows 4.05, 4.04 MB; compiled 0.51, 2.29
     MB of which the records 0.35, 1.38 MB."""
-    from render.path.gradient import window
     from render.path.sample.records import Records
 
     scene = cornell_box(16, 16)
@@ -232,7 +230,7 @@ def test_memory_does_not_grow_with_max_depth(monkeypatch):
         records = Records.of(batch, 0)
         held.append((records.ints.nbytes + records.floats.nbytes + records.lit.nbytes) / 1e6)
     tape = [_peak_mb(_taped, scene, paths) for paths in (shallow, deep)]
-    monkeypatch.setattr(window, "applies", lambda *_: False)
+    monkeypatch.setattr(replay, "compiles", lambda *_: False)
     _peak_mb(_replayed, scene, shallow)
     windows = [_peak_mb(_replayed, scene, paths) for paths in (shallow, deep)]
     assert tape[1] > 2 * tape[0]  # the measurement sees the tape grow with depth

@@ -18,6 +18,7 @@ import minidiff as md
 import render
 from render.path import render_path
 from render.path.gradient import window
+from render.path.sample.tables import compiles
 from render.path.sample.tracer import MIRROR
 from render.scene.cornell import box_mesh, cornell_box
 
@@ -130,7 +131,7 @@ def test_mirrors_and_textures_compile_float32_takes_the_tape():
     def applies(scene):
         world = placed(scene)
         batch = PathSampler(world, 1, 3, 5, 0).sample(np.arange(16, dtype=np.int64))
-        return window.applies(world, batch), batch
+        return compiles(world), batch
 
     scene = cornell_box(4, 4, blocks=True)  # meshes and a sphere
     assert applies(scene)[0]
@@ -209,7 +210,7 @@ def test_radiance_of_is_the_value_of_path_radiance(scene, depth, seed, mirror):
         frame = camera_frame(world.camera)
         batch = PathSampler(world, 2, depth, 3, seed).sample(np.arange(72, dtype=np.int64))
         bounces = [np.any(v.form == MIRROR) or np.any(v.next == MIRROR) for v in batch.vertices]
-        assert window.applies(world, batch) and batch.meets_mirror() == any(bounces)
+        assert compiles(world) and batch.meets_mirror() == any(bounces)
         expected = path_radiance(world, frame, PathSampler(world, 2, depth, 3, seed), batch).data
     got = radiance_of(world, frame, PathSampler(world, 2, depth, 3, seed), batch)
     scale = max(np.abs(expected).max(), 1e-300)
