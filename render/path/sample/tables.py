@@ -238,4 +238,7 @@ def _stacked(values: list, width: int | None) -> md.Tensor:
         return md.tensor(np.zeros((0, *shape)))
     if any(v.is_differentiated() for v in values):
         return md.stack([md.broadcast_to(v, shape) for v in values])
-    return md.tensor(np.stack([np.broadcast_to(v.data, shape) for v in values]))
+    table = np.empty((len(values), *shape))
+    for row, v in enumerate(values):
+        table[row] = v.data  # (broadcast to the row's shape)
+    return md.tensor(table)
