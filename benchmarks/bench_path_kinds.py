@@ -12,12 +12,11 @@ the image, one parameter differentiated, timed in turns (``timing.measure_interl
 medians) on each thread count (``numba.set_num_threads``, which the compiled kernels of
 ``minidiff.compile`` follow too):
 
-* ``albedo``: the red wall's albedo (the hand-written compiled replay,
-  ``render.path.twin.adjoint``);
-* ``light_position``, ``block_vertices``, ``sphere_centre``, ``camera_position``: the
-  compiled whole paths (``render.path.gradient.window``: each path's reverse sweep inside
-  one kernel) where they apply (here: everywhere), else the replay one depth at a time on
-  the tape (``render.path.gradient.replay``);
+* ``albedo`` (the red wall's), ``light_position``, ``block_vertices``, ``sphere_centre``,
+  ``camera_position``: every kind by the same route, the compiled whole paths
+  (``render.path.gradient.window``: each path's reverse sweep inside one kernel) where
+  they apply (here: everywhere), else the replay one depth at a time on the tape
+  (``render.path.gradient.replay``); the albedo's is the yardstick of the others;
 * ``light_position_secondary``: the light's position with ``antialias="secondary"``
   (the soft shadows' boundary term);
 * ``forward``: the image alone (the compiled kernel, ``render.path.twin.kernel``);
