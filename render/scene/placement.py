@@ -85,6 +85,10 @@ def rotation_matrix(rotation) -> md.Tensor:
     """The (3, 3) rotation matrix of a rotation vector in degrees (3,) or a quaternion
     (w, x, y, z) (4,), on the tape (see the module docstring)."""
     rotation = md.as_tensor(rotation)
+    if rotation.shape in ((3,), (4,)) and _unturned(rotation):
+        # What the formulas below give for it, exactly (K and m are zero), without their
+        # forty steps: a transform that only moves or scales, at every render.
+        return md.tensor(np.eye(3))
     if rotation.shape == (4,):
         return _quaternion_matrix(rotation)
     if rotation.shape != (3,):
@@ -104,6 +108,15 @@ def rotation_matrix(rotation) -> md.Tensor:
         b = 2.0 * half * half
     k = _cross_matrix(r)
     return np.eye(3) + a * k + b * md.matmul(k, k)
+
+
+def _unturned(rotation: md.Tensor) -> bool:
+    """Whether ``rotation`` (a rotation vector (3,) or a quaternion (4,)) is a constant
+    whose axis part is zero: the identity, with no derivative to carry."""
+    axis = rotation.data[-3:]
+    if rotation.is_differentiated() or np.any(axis):
+        return False
+    return rotation.shape == (3,) or bool(np.isfinite(rotation.data[0]) and rotation.data[0] != 0)
 
 
 def _cross_matrix(r: md.Tensor) -> md.Tensor:

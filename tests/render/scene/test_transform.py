@@ -47,6 +47,20 @@ def test_quaternion_matches_scipy(q):
     assert np.abs(rotation_matrix(q).data - expected).max() < 1e-14
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rotation", [(0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0), (-2.5, 0.0, 0.0, 0.0)])
+def test_an_unturned_constant_is_the_formulas_identity(rotation, dtype):
+    """A constant rotation without an axis part skips the formulas (``_unturned``): the same
+    matrix and dtype as they give (a differentiated copy still takes them, and gets the
+    derivative that test_rotation_gradient_matches_central_differences checks)."""
+    constant = rotation_matrix(md.tensor(np.array(rotation, dtype)))
+    formula = rotation_matrix(md.tensor(np.array(rotation, dtype), requires_grad=True))
+    assert constant.node is None and formula.node is not None
+    assert constant.dtype == formula.dtype
+    np.testing.assert_array_equal(constant.data, formula.data)
+    np.testing.assert_array_equal(constant.data, np.eye(3))
+
+
 def central_difference(f, x: np.ndarray, h: float) -> np.ndarray:
     return np.array(
         [(f(x + h * e) - f(x - h * e)) / (2 * h) for e in np.eye(len(x))], dtype=np.float64
