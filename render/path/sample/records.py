@@ -140,11 +140,13 @@ class Records:
     n_lights: int
 
     @classmethod
-    def empty(cls, depth: int, n: int, n_lights: int) -> Records:
-        """Zeroed records of ``n`` paths over ``depth`` depths."""
-        ints = np.zeros((depth, n, I_FIELDS), np.int64)
-        floats = np.zeros((depth, n, F_FIELDS))
-        return cls(ints, floats, np.zeros((depth, n, max(n_lights, 1)), np.bool_), n_lights)
+    def empty(cls, depth: int, n: int, n_lights: int, zeroed: bool = True) -> Records:
+        """Records of ``n`` paths over ``depth`` depths: zeroed, or with ``zeroed`` False
+        uninitialised, for a writer that fills every row itself (the kernel)."""
+        make = np.zeros if zeroed else np.empty
+        ints = make((depth, n, I_FIELDS), np.int64)
+        floats = make((depth, n, F_FIELDS))
+        return cls(ints, floats, make((depth, n, max(n_lights, 1)), np.bool_), n_lights)
 
     @classmethod
     def of(cls, batch: PathBatch, n_lights: int) -> Records:

@@ -384,6 +384,19 @@ def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, po
     return (f[0] * cos, f[1] * cos, f[2] * cos), x_next, ut, vt, wo_next
 
 
+@numba.njit(cache=True, error_model="numpy", inline="always")
+def _clear_rows(rec_i, rec_f, rec_lit, row):
+    """Zero path ``row``'s records at every depth (a path writes only the fields its
+    vertices have): here, on the threads, rather than a serial ``np.zeros`` of them all."""
+    for depth in range(rec_i.shape[0]):
+        for k in range(rec_i.shape[2]):
+            rec_i[depth, row, k] = 0
+        for k in range(rec_f.shape[2]):
+            rec_f[depth, row, k] = 0.0
+        for k in range(rec_lit.shape[2]):
+            rec_lit[depth, row, k] = False
+
+
 @borrowing
 def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, start, stop, paths,
                  stack, stack_t, out, radiance, rec_i, rec_f, rec_lit):  # fmt: skip
@@ -397,6 +410,8 @@ def _trace_block(bvh, s, seed_key, spp, width, height, max_depth, rr_depth, star
     not once per path."""
     image = paths.shape[0] == 0
     for i in range(start, stop):
+        if not image:
+            _clear_rows(rec_i, rec_f, rec_lit, i)
         count = spp if image else 1
         total = (0.0, 0.0, 0.0)
         for sample in range(count):
@@ -476,7 +491,7 @@ def sample_paths(
     if n == 0:
         return PathBatch(paths, np.zeros((0, 2)), np.zeros(0, bool), []), radiance
     while True:
-        records = R.Records.empty(depth, n, packed.n_lights)
+        records = R.Records.empty(depth, n, packed.n_lights, zeroed=False)  # (_clear_rows)
         _run(packed, sampler, paths=paths, radiance=radiance,
              records=(records.ints, records.floats, records.lit))  # fmt: skip
         count = records.count
