@@ -28,6 +28,7 @@ naming the class and the argument.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -189,6 +190,11 @@ class Field:
     constraint: tuple[Callable[[np.ndarray], Any], str] | None = None
     optional: bool = False
 
+    @functools.cached_property
+    def named(self) -> bool:
+        """Whether a shape names a size (then checked against the other fields')."""
+        return any(isinstance(d, str) for shape in self.shapes for d in shape)
+
 
 class HasFields:
     """What every scene class does with its ``FIELDS``: convert the constructor's values,
@@ -212,12 +218,15 @@ class HasFields:
             value = getattr(self, f.name)
             if value is None and f.optional:
                 continue
-            # Named sizes already bound by an earlier field become exact sizes.
-            shapes = [tuple(sizes.get(d, d) for d in shape) for shape in f.shapes]
-            x = data[f.name] = check_tensor(value, owner, f.name, shapes)
-            for d, n in zip(f.shapes[0], x.shape, strict=False):
-                if isinstance(d, str):
-                    sizes.setdefault(d, n)
+            if not f.named:
+                x = data[f.name] = check_tensor(value, owner, f.name, f.shapes)
+            else:
+                # Named sizes already bound by an earlier field become exact sizes.
+                shapes = [tuple(sizes.get(d, d) for d in shape) for shape in f.shapes]
+                x = data[f.name] = check_tensor(value, owner, f.name, shapes)
+                for d, n in zip(f.shapes[0], x.shape, strict=False):
+                    if isinstance(d, str):
+                        sizes.setdefault(d, n)
             if f.constraint is not None and not f.constraint[0](x):
                 shown = float(x) if x.ndim == 0 else x
                 raise ValueError(f"{owner}: {f.name} must be {f.constraint[1]}, got {shown}")
