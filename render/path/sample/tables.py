@@ -112,7 +112,10 @@ class Tables:
             first_vertex[: len(meshes)] = offsets[:-1]
             faces = np.concatenate([m.faces + o for m, o in zip(meshes, offsets, strict=False)])
             vertices = leaf(md.concatenate([m.vertices for m in meshes]))
-            normals = leaf(md.concatenate([_normals(m) for m in meshes]))
+            if any(m.smooth for m in meshes):
+                normals = leaf(md.concatenate([_normals(m) for m in meshes]))
+            else:  # every mesh flat: ``_normals``' constant for all their vertices at once
+                normals = md.tensor(np.tile([0.0, 0.0, 1.0], (int(offsets[-1]), 1)))
             a, b, c = (vertices.data[faces[:, i]] for i in range(3))
             spare_face = int(np.argmax(np.linalg.norm(np.cross(b - a, c - a), axis=1)))
         inside = np.zeros(0, bool)
