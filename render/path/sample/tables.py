@@ -115,7 +115,7 @@ class Tables:
             if any(m.smooth for m in meshes):
                 normals = leaf(md.concatenate([_normals(m) for m in meshes]))
             else:  # every mesh flat: ``_normals``' constant for all their vertices at once
-                normals = md.tensor(np.tile([0.0, 0.0, 1.0], (int(offsets[-1]), 1)))
+                normals = _flat_normals(int(offsets[-1]))
             a, b, c = (vertices.data[faces[:, i]] for i in range(3))
             spare_face = int(np.argmax(np.linalg.norm(np.cross(b - a, c - a), axis=1)))
         inside = np.zeros(0, bool)
@@ -227,8 +227,13 @@ def _normals(mesh: Mesh) -> md.Tensor:
     """The vertex normals a mesh's shading reads: its own or computed (smooth), else a
     constant unit vector (flat: ``where`` picks the geometric normal)."""
     if not mesh.smooth:
-        return md.tensor(np.tile([0.0, 0.0, 1.0], (len(mesh.vertices.data), 1)))
+        return _flat_normals(len(mesh.vertices.data))
     return mesh.normals if mesh.normals is not None else vertex_normals(mesh.vertices, mesh.faces)
+
+
+def _flat_normals(count: int) -> md.Tensor:
+    """(count, 3): the constant unit vector a flat mesh's vertices hold as normals."""
+    return md.tensor(np.tile([0.0, 0.0, 1.0], (count, 1)))
 
 
 def _stacked(values: list, width: int | None) -> md.Tensor:
