@@ -10,8 +10,13 @@ folder): the first gradient (which traces ``path_terms`` for the segments of tha
 depths that the depths before did not need, ``window.SEGMENT`` depths at most each,
 generates their VJPs and compiles them with LLVM) and the second (the kernels in memory);
 the difference is the compile latency. Numba's kernels are compiled (or loaded) before the first
-measurement. (``main`` called inside a process that has compiled these kernels already,
-as the smoke test does with ``--quick``, measures whatever its cache holds.) Writes
+measurement. Then, at the last of those depths, the box's last mesh given 1, 2, 3
+vertices more (copies of its first, which no face uses: the same image): the first and
+second gradient at each length, where a kernel compiled for one length of the path tables
+serves every other (``minidiff.codegen``: a table's row count is read when the kernel
+runs), so only the trace is made again. (``main`` called inside a process that has
+compiled these kernels already, as the smoke test does with ``--quick``, measures
+whatever its cache holds.) Writes
 ``bench_path_compile.json``; the committed one is regenerated with ``--out
 docs/path_tracing``.
 """
@@ -32,6 +37,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/bench_path_compile"))
     parser.add_argument("--quick", action="store_true", help="max_depth 2 only")
     args = parser.parse_args(argv)
+    import numpy as np
+
     import minidiff as md
     from render.inverse.jsonio import write_json
     from render.path import render_path
@@ -56,8 +63,18 @@ def main(argv: list[str] | None = None) -> None:
         rows.append({"max_depth": depth, "first_s": first, "second_s": second,
                      "compile_s": first - second})  # fmt: skip
         print(f"max_depth {depth:2d}: first {first:.2f} s, then {second:.3f} s", flush=True)
+    lengths = []
+    mesh = scene.meshes[-1]
+    vertices = np.asarray(mesh.vertices.data)
+    for extra in (1, 2, 3):
+        mesh.vertices = md.tensor(np.concatenate([vertices, np.repeat(vertices[:1], extra, 0)]))
+        first, second = gradient(depth), gradient(depth)
+        lengths.append({"extra_vertices": extra, "vertices": len(vertices) + extra,
+                        "first_s": first, "second_s": second})  # fmt: skip
+        print(f"{extra} more vertices: first {first:.3f} s, then {second:.3f} s", flush=True)
     args.out.mkdir(parents=True, exist_ok=True)
-    write_json(args.out / "bench_path_compile.json", {"size": 16, "spp": 4, "runs": rows})
+    write_json(args.out / "bench_path_compile.json",
+               {"size": 16, "spp": 4, "runs": rows, "longer_mesh": lengths})  # fmt: skip
 
 
 if __name__ == "__main__":

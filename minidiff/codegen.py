@@ -83,6 +83,10 @@ class Layout:
       gradient (its shape).
     - jvp: each differentiated slot's tangent (its own shape); one per output (n, lanes).
 
+    Last, in every mode, where the program gathers: the slots' row counts (slots,) int64
+    (``sizes``), which a kernel reads when it runs, so that one kernel serves a table of
+    any length.
+
     The frontier is the shared values (those computed from shared arguments and constants
     only) that batched values read, or that are outputs: the tape computes them once and
     sums the gradients reaching them over the whole batch *before* going further back, so
@@ -94,6 +98,7 @@ class Layout:
     gathers: tuple[tuple[int, int], ...]
     frontier: tuple[int, ...]
     partials: tuple[int, ...] = ()
+    sizes: bool = False  # whether the last pointer is the tables' row counts (``sizes``)
 
 
 def shared_values(graph: ir.Graph) -> set[int]:
@@ -179,7 +184,10 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
             add(("out", o))
     else:
         raise ValueError(f"codegen: unknown mode {mode!r}")
-    return position, Layout(mode, wrt, tuple(gathers), frontier, tuple(partials))
+    sizes = bool(gathered_slots(program.graph))
+    if sizes:
+        add(("sizes",))
+    return position, Layout(mode, wrt, tuple(gathers), frontier, tuple(partials), sizes)
 
 
 class _Emitter:
@@ -197,6 +205,7 @@ class _Emitter:
         self.reduce: list[str] = []  # per element of a block: add its scratch row (vjp)
         self.frontier_count = 0
         self.grouped = False  # whether the chunk's group of partial tables is computed
+        self.sized: set[int] = set()  # the slots whose row count is read (``rows_of``)
         self.temp = 0
         self.emitted: set[int] = set()
 
@@ -270,9 +279,9 @@ class _Emitter:
             )
             self.load(self.entry, target, address, node.type)
         elif op in ("gather", "tgather"):
-            slot, column, columns, rows = node.attrs
+            slot, column, columns = node.attrs
             base = self.pointer(("in", slot) if op == "gather" else ("tan", slot))
-            row = self.checked_row(args[0], rows)
+            row = self.checked_row(args[0], self.rows_of(slot))
             address = self.element_address(
                 self.body, base, columns, column, row, _LOAD_TYPES[node.type]
             )
@@ -307,7 +316,20 @@ class _Emitter:
         else:
             self.body.append(f"  {target} = " + ir.INSTRUCTIONS[op].format(*args))
 
-    def checked_row(self, row: str, rows: int) -> str:
+    def rows_of(self, slot: int) -> str:
+        """The name of table ``slot``'s row count, read once per call from the ``sizes``
+        buffer: not a constant of the kernel, which then serves a table of any length."""
+        name = f"%rows{slot}"
+        if slot not in self.sized:
+            self.sized.add(slot)
+            address = self.fresh()
+            self.entry += [
+                f"  {address} = getelementptr i64, ptr {self.pointer(('sizes',))}, i64 {slot}",
+                f"  {name} = load i64, ptr {address}",
+            ]
+        return name
+
+    def checked_row(self, row: str, rows: str) -> str:
         """A gather's row: negative counts from the end. Out of range, row 0 is read instead
         and the element is remembered (the kernel returns the first such one): no branch,
         so that LLVM may vectorise the loop."""
@@ -315,7 +337,7 @@ class _Emitter:
         self.inside.append(inside)
         return safe
 
-    def safe_row(self, lines: list[str], row: str, rows: int) -> tuple[str, str]:
+    def safe_row(self, lines: list[str], row: str, rows: str) -> tuple[str, str]:
         """Appended to ``lines``: ``row`` of a table of ``rows`` rows counted from the end
         where negative, row 0 where out of range; returns its name and the name of the
         flag saying whether it was in range."""
@@ -366,12 +388,13 @@ class _Emitter:
             self.grouped = True
             self.entry.append(f"  %group.size = load i64, ptr {self.pointer(('group',))}")
             self.chunk_start.append("  %group = udiv i64 %c, %group.size")
-        rows = self.program.slots[slot].shape[0]
+        rows = self.rows_of(slot)
         lines = self.tail
         safe, _ = self.safe_row(lines, index, rows)  # as the gather read it
-        base, offset, at = self.fresh(), self.fresh(), self.fresh()
+        size, base, offset, at = self.fresh(), self.fresh(), self.fresh(), self.fresh()
         lines += [
-            f"  {base} = mul i64 %group, {rows * columns}",
+            f"  {size} = mul i64 {rows}, {columns}",
+            f"  {base} = mul i64 %group, {size}",
             f"  {offset} = mul i64 {safe}, {columns}",
             f"  {at} = add i64 {base}, {offset}",
         ]
@@ -547,7 +570,13 @@ def program_text(program: Program, mode: str, wrt: tuple[int, ...] = (), lines=N
     text, so that a kernel already on disk is found without writing it. None when a line's
     derivative rule comes from outside minidiff: such a kernel is keyed by its IR text."""
     lines = program_lines(program) if lines is None else lines
-    return None if lines is None else f"{mode} {wrt}\n{lines}"
+    if lines is None:
+        return None
+    if mode in ("vjp", "vjp_values"):  # which tables' gradients are summed in the kernel
+        small = sorted(s for s in gathered_slots(program.graph) & set(wrt)
+                       if _size(program.slots[s].shape) <= PARTIAL_LIMIT)  # fmt: skip
+        return f"{mode} {wrt} {small}\n{lines}"
+    return f"{mode} {wrt}\n{lines}"
 
 
 def program_lines(program: Program) -> str | None:
@@ -555,7 +584,7 @@ def program_lines(program: Program) -> str | None:
     attributes, its parents and the scalar form each one's derivative rule comes from);
     None when a rule comes from outside minidiff (a scalar form written elsewhere, whose
     edits minidiff's source would not show)."""
-    lines = [f"{program.slots} {program.outputs}"]
+    lines = [f"{_slots_text(program)} {program.outputs}"]
     for node in program.graph.nodes:
         rules = []  # which scalar form's rule each parent takes
         for slope in node.slopes:
@@ -564,6 +593,24 @@ def program_lines(program: Program) -> str | None:
             rules.append("-" if slope is None else slope.__qualname__)
         lines.append(f"{node.op} {node.args} {node.type} {node.attrs!r} {node.parents} {rules}")
     return "\n".join(lines)
+
+
+def gathered_slots(graph: ir.Graph) -> set[int]:
+    """The slots that ``graph`` gathers rows of."""
+    return {node.attrs[0] for node in graph.nodes if node.op == "gather"}
+
+
+def _slots_text(program: Program) -> str:
+    """The slots as the kernels see them: a table read only by gathers has its row count
+    read when the kernel runs (``_Emitter.rows_of``), so its length is left out: one kernel
+    for every length (``program_text`` adds what else the length decides: which tables'
+    gradients are summed in the VJP's kernel, ``PARTIAL_LIMIT``)."""
+    graph = program.graph
+    free = gathered_slots(graph) - {n.attrs[0] for n in graph.nodes if n.op == "uniform"}
+    return repr(tuple(
+        (s.batched, ("rows", *s.shape[1:]), s.type) if k in free else s
+        for k, s in enumerate(program.slots)
+    ))  # fmt: skip
 
 
 def generate(
@@ -629,7 +676,7 @@ def _reverse_elements(program: Program, graph: ir.Graph, emitter: _Emitter, wrt,
     for vid in leaves:
         node = graph.nodes[vid]
         if node.op == "gather":
-            slot, column, columns, _ = node.attrs
+            slot, column, columns = node.attrs
             columns_of[slot, node.args[0]] = columns
             if vid in adjoint:
                 _give(gathered, (slot, node.args[0], column), adjoint[vid])

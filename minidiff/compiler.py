@@ -126,6 +126,7 @@ class _Trace:
     output_shapes: tuple[tuple[int, ...], ...]  # per output, one element's shape
     single: bool  # the function returned one array (not a tuple)
     kernels: dict
+    sizes: np.ndarray  # per slot, a shared array's rows (0 for the others): read by gathers
     lines: str | None = ""  # codegen.program_lines, made on first use ("": not yet)
 
     def kernel(self, mode: str, wrt: tuple[int, ...]) -> tuple[backend.Kernel, codegen.Layout]:
@@ -407,12 +408,15 @@ class CompiledFunction:
                 outputs.append(tuple(v.id for v in lanes.ravel().tolist()))
                 shapes.append(tuple(lanes.shape))
         program = codegen.Program(graph, slots, tuple(outputs))
-        return _Trace(program, batch, tuple(shapes), single, {})
+        sizes = np.array([0 if s.batched or not s.shape else s.shape[0] for s in slots], np.int64)
+        return _Trace(program, batch, tuple(shapes), single, {}, sizes)
 
     # ----------------------------------------------------------------------------------------
     def _run(self, trace: _Trace, mode: str, wrt, buffers: list[np.ndarray], batch=None,
              unit: int = 1) -> None:  # fmt: skip
-        kernel, _ = trace.kernel(mode, wrt)
+        kernel, layout = trace.kernel(mode, wrt)
+        if layout.sizes:  # the tables' lengths, which the kernel reads as it runs
+            buffers = [*buffers, trace.sizes]
         pointers = _addresses(buffers)
         n = trace.batch if batch is None else batch
         chunks = -(-n // codegen.CHUNK)

@@ -514,9 +514,7 @@ def gather(table: Traced, rows: Traced) -> Traced:
     for position in np.ndindex(rows.lane_shape):
         row = rows.lanes[position]
         for c in range(columns):
-            out[position + (c,)] = graph.add(
-                "gather", (row,), type_, (table.slot, c, columns, shape[0])
-            )
+            out[position + (c,)] = graph.add("gather", (row,), type_, (table.slot, c, columns))
     return Traced(out.reshape(rows.lane_shape + shape[1:]), rows.batch, table.dtype)
 
 

@@ -345,6 +345,49 @@ def test_a_gather_out_of_range_is_an_index_error():
         centroid_light(vertices, bad, np.array([0, 1]), np.ones(2))
 
 
+@md.compile(shared=("table",))
+def scaled_rows(x, rows, table):
+    """Rows of ``table`` (m, 3) picked by ``rows`` (n,), times x (n,): a function of its own
+    (no other test calls it), so that the kernels it compiles are counted here alone."""
+    return table[rows] * md.reshape(x, (-1, 1)) + 0.375
+
+
+def test_one_kernel_serves_a_table_of_any_length():
+    """A table read only by gathers is not part of its kernels' key: its row count is read
+    when the kernel runs, so tables of other lengths (a mesh with more vertices, a scene
+    with more materials) reuse the kernels compiled for the first, with the values and
+    gradients of each, a negative row counted from each one's own end and a row past it
+    refused. Only whether the table is small enough to have its gradient summed in the
+    kernel (``codegen.PARTIAL_LIMIT``) makes another kernel."""
+    rng = np.random.default_rng(11)
+    x = rng.normal(size=200)
+    small, large = [], []
+    for m in (5, 9, 40, codegen.PARTIAL_LIMIT // 3 + 1, codegen.PARTIAL_LIMIT // 3 + 70):
+        table = rng.normal(size=(m, 3))
+        rows = rng.integers(-m, m, size=len(x))
+        t = md.tensor(table, requires_grad=True)
+        out = scaled_rows(x, rows, t)
+        assert_close(out.data, table[rows] * x[:, None] + 0.375, f"value, {m} rows")
+        cot = rng.normal(size=out.shape)
+        (out * cot).sum().backward()
+        expected = np.zeros_like(table)
+        np.add.at(expected, rows, cot * x[:, None])
+        assert_close(t.grad, expected, f"d/dtable, {m} rows")
+        tangent = rng.normal(size=table.shape)
+        forward = md.jvp(lambda v, r=rows: scaled_rows(x, r, v), (table,), (tangent,))[1]
+        assert_close(forward.data, tangent[rows] * x[:, None], f"tangent, {m} rows")
+        kernels = next(t for t in reversed(scaled_rows._traces.values()) if t.sizes[2] == m)
+        (small if m * 3 <= codegen.PARTIAL_LIMIT else large).append(kernels.kernels)
+        with pytest.raises(IndexError, match="gathers a row out of range"):
+            scaled_rows(x[:3], np.array([0, m, 1]), table)  # one past this table's end
+    # forward, vjp and jvp: once for every length; the vjp once more for the large tables
+    assert len({id(k) for kernels in small + large for k, _ in kernels.values()}) == 4
+    for group in (small, large):
+        for mode in group[0]:
+            assert all(k[mode][0] is group[0][mode][0] for k in group)
+    assert small[0][("forward", ())][0] is large[0][("forward", ())][0]
+
+
 # ---------------------------------------------------------------------------------------------
 # Threads, the tape, the cache
 # ---------------------------------------------------------------------------------------------

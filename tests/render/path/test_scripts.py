@@ -74,6 +74,8 @@ def test_bench_path_compile_quick(tmp_path, load_script):
     load_script("benchmarks/bench_path_compile.py").main(["--quick", "--out", str(tmp_path)])
     data = json.loads((tmp_path / "bench_path_compile.json").read_text())
     assert data["runs"][0]["max_depth"] == 2 and data["runs"][0]["first_s"] > 0
+    assert [row["extra_vertices"] for row in data["longer_mesh"]] == [1, 2, 3]
+    assert all(row["first_s"] > 0 and row["second_s"] > 0 for row in data["longer_mesh"])
 
 
 def test_bench_path_kinds_quick(tmp_path, load_script):
