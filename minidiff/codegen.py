@@ -158,10 +158,11 @@ def _names(mode: str, program: Program, wrt: tuple[int, ...]):
             if program.slots[s].batched:
                 add(("grad", s))
         add(("frontier",))
+        summed = summed_in_kernel(program, wrt)
         for node in program.graph.nodes:
             key = (node.attrs[0], node.args[0]) if node.op == "gather" else None
             if key and key[0] in wrt and key not in gathers and key[0] not in partials:
-                if _size(program.slots[key[0]].shape) <= PARTIAL_LIMIT:
+                if key[0] in summed:
                     partials.append(key[0])
                 else:
                     gathers.append(key)
@@ -573,9 +574,7 @@ def program_text(program: Program, mode: str, wrt: tuple[int, ...] = (), lines=N
     if lines is None:
         return None
     if mode in ("vjp", "vjp_values"):  # which tables' gradients are summed in the kernel
-        small = sorted(s for s in gathered_slots(program.graph) & set(wrt)
-                       if _size(program.slots[s].shape) <= PARTIAL_LIMIT)  # fmt: skip
-        return f"{mode} {wrt} {small}\n{lines}"
+        return f"{mode} {wrt} {sorted(summed_in_kernel(program, wrt))}\n{lines}"
     return f"{mode} {wrt}\n{lines}"
 
 
@@ -598,6 +597,13 @@ def program_lines(program: Program) -> str | None:
 def gathered_slots(graph: ir.Graph) -> set[int]:
     """The slots that ``graph`` gathers rows of."""
     return {node.attrs[0] for node in graph.nodes if node.op == "gather"}
+
+
+def summed_in_kernel(program: Program, wrt: tuple[int, ...]) -> set[int]:
+    """The gathered tables among the slots ``wrt`` whose gradient the VJP's element kernel
+    sums into partial tables: those of at most ``PARTIAL_LIMIT`` numbers (``Layout``)."""
+    gathered = gathered_slots(program.graph) & set(wrt)
+    return {s for s in gathered if _size(program.slots[s].shape) <= PARTIAL_LIMIT}
 
 
 def _slots_text(program: Program) -> str:

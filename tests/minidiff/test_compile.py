@@ -376,8 +376,8 @@ def test_one_kernel_serves_a_table_of_any_length():
         tangent = rng.normal(size=table.shape)
         forward = md.jvp(lambda v, r=rows: scaled_rows(x, r, v), (table,), (tangent,))[1]
         assert_close(forward.data, tangent[rows] * x[:, None], f"tangent, {m} rows")
-        kernels = next(t for t in reversed(scaled_rows._traces.values()) if t.sizes[2] == m)
-        (small if m * 3 <= codegen.PARTIAL_LIMIT else large).append(kernels.kernels)
+        trace = next(t for t in reversed(scaled_rows._traces.values()) if t.sizes[2] == m)
+        (small if m * 3 <= codegen.PARTIAL_LIMIT else large).append(trace.kernels)
         with pytest.raises(IndexError, match="gathers a row out of range"):
             scaled_rows(x[:3], np.array([0, m, 1]), table)  # one past this table's end
     # forward, vjp and jvp: once for every length; the vjp once more for the large tables
