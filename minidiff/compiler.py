@@ -51,6 +51,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from minidiff import backend, codegen, ir
+from minidiff import buffers as memory
 from minidiff.tensor import (
     Tensor,
     _accumulate_leaf,
@@ -429,7 +430,13 @@ class CompiledFunction:
             )
 
     def _forward(self, trace: _Trace, data) -> list[np.ndarray]:
-        outputs = [np.empty((trace.batch, *shape)) for shape in trace.output_shapes]
+        # Batch-sized outputs (here and in the VJP and JVP) come from minidiff's pool of
+        # reused arrays (``minidiff.buffers``), as the tape's kernels' do: fresh memory is
+        # faulted in by whichever thread writes it first, and NumPy asks the kernel for huge
+        # pages for large arrays, whose faults can stall one thread for milliseconds while
+        # the other waits (the 363k interior samples' directions of a 512x512 boundary term:
+        # 0.6 ms on one thread, 6.7 ms on the other; 0.7 ms each from the pool).
+        outputs = [memory.empty((trace.batch, *shape), np.float64) for shape in trace.output_shapes]
         self._run(trace, "forward", (), [*data, *outputs])
         return outputs
 
@@ -445,13 +452,13 @@ class CompiledFunction:
         slots = trace.program.slots
         n, chunks = trace.batch, -(-trace.batch // codegen.CHUNK)
         # the kernel writes every element of these (codegen._reverse_elements): not zeroed
-        grads = {s: np.empty((n, *slots[s].shape)) for s in wrt if slots[s].batched}
+        grads = {s: memory.empty((n, *slots[s].shape), np.float64) for s in wrt if slots[s].batched}
         sums = np.zeros((chunks, max(1, len(layout.frontier))))
         blocks, contributions, rows = _gather_blocks(layout.gathers, slots, n)
         cotangents = [np.ascontiguousarray(g, dtype=np.float64) for g in cotangents]
         per_gather = [b for pair in zip(contributions, rows, strict=True) for b in pair]
         if outputs is not None:
-            outputs += [np.empty((n, *shape)) for shape in trace.output_shapes]
+            outputs += [memory.empty((n, *shape), np.float64) for shape in trace.output_shapes]
         # The partial tables' groups: at most PARTIAL_GROUPS, of ``unit`` chunks each (fixed
         # by n alone, so that each group's sums are the same whatever runs them).
         unit = -(-chunks // codegen.PARTIAL_GROUPS)
@@ -486,7 +493,7 @@ class CompiledFunction:
 
     def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:
         wrt = tuple(s for s, t in enumerate(tangents) if t is not None)
-        outputs = [np.empty((trace.batch, *shape)) for shape in trace.output_shapes]
+        outputs = [memory.empty((trace.batch, *shape), np.float64) for shape in trace.output_shapes]
         ts = [
             np.ascontiguousarray(np.broadcast_to(tangents[s], data[s].shape), dtype=np.float64)
             for s in wrt
