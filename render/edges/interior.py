@@ -44,8 +44,7 @@ from render.scene.camera import (
     camera_directions,
     check_square,
     plain_frame,
-    subpixel_offsets,
-    to_image_plane,
+    sample_coords,
 )
 from render.scene.scene import Scene
 from render.shade.hits import sample_colours, shade_camera_hits, working_dtype
@@ -155,9 +154,7 @@ def mixed_pixels(
     if len(pixels) == 0:
         return None
     # 2: the candidates' samples, traced and shadow-tested as camera rays are.
-    offsets = subpixel_offsets(grid_spp)  # (G, 2)
-    corner = np.stack([pixels % width, pixels // width], axis=1).astype(np.float64)
-    coords = to_image_plane((corner[:, None] + offsets).reshape(-1, 2), width, height)
+    coords = sample_coords(pixels, grid_spp, width, height)
     forward, right, up, eye = plain_frame(scene.camera)
     directions = camera_directions(coords, right, up, forward)
     prim_id, depth = _first_hits(scene, visibility, pixels, directions, grid_spp)

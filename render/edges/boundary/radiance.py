@@ -18,7 +18,7 @@ import numpy as np
 
 import minidiff as md
 from render.scene.cache import RenderCache
-from render.scene.camera import camera_directions, plain_frame
+from render.scene.camera import camera_directions, plain_frame, ray_ends
 from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits
 from render.shade.mirrors import Mirrors
@@ -68,11 +68,8 @@ def seen_through(
     hit = np.flatnonzero(prim_id >= 0)
     at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
     if directions is None:
-        directions = camera_directions(at, right, up, forward)
-    else:
-        directions = np.take(directions, hit, axis=0)
-    points = np.take(depth, hit)[:, None] * directions  # eye + t d, without a third array
-    points += eye
+        directions = camera_directions(coords, right, up, forward)
+    points = ray_ends(eye, directions, depth, hit)
     primary = PrimaryHits(prim_id, hit, depth, points, at)
     lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
     return replace(visibility, primary=primary, lit=lit)

@@ -1,7 +1,8 @@
 """``camera_directions`` off the tape (its formula compiled by ``minidiff.compile``; NumPy
 for float32) gives the bits of its formula written on arrays, x right + y up + forward in
 that order (what a compiled function traces and the tape's ``ray_directions`` applies), on
-any number of threads."""
+any number of threads; so do the parallel passes ``sample_coords`` (the image-plane points
+of some pixels' samples) and ``ray_ends`` (where rays end), against their NumPy forms."""
 
 from __future__ import annotations
 
@@ -10,7 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from minidiff.threads import using_threads
-from render.scene.camera import camera_directions
+from render.scene.camera import (
+    camera_directions,
+    ray_ends,
+    sample_coords,
+    subpixel_offsets,
+    to_image_plane,
+)
 
 
 @settings(max_examples=20, deadline=None)
@@ -29,4 +36,44 @@ def test_camera_directions_are_the_formulas_bits(n, seed, scale, dtype):
         with using_threads(threads):
             got = camera_directions(coords, right, up, forward)
         assert got.shape == (n, 3) and got.dtype == dtype
+        np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    m=st.integers(0, 3) | st.integers(16_384, 40_000),  # one job, and two on two threads
+    spp=st.sampled_from([1, 4, 16]),
+    width=st.integers(1, 700),
+    height=st.integers(1, 700),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_sample_coords_are_to_image_planes_bits(m, spp, width, height, seed):
+    pixels = np.random.default_rng(seed).integers(0, width * height, m)
+    corner = np.stack([pixels % width, pixels // width], axis=1).astype(np.float64)
+    offsets = subpixel_offsets(spp)
+    want = to_image_plane((corner[:, None] + offsets).reshape(-1, 2), width, height)
+    for threads in (1, 2):
+        with using_threads(threads):
+            got = sample_coords(pixels, spp, width, height)
+        assert got.shape == (m * spp, 2)
+        np.testing.assert_array_equal(got, want)
+
+
+@settings(max_examples=20, deadline=None)
+@given(
+    n=st.integers(0, 3) | st.integers(16_384, 40_000),
+    seed=st.integers(0, 2**32 - 1),
+    scale=st.sampled_from([1e-3, 1.0, 1e3]),
+)
+def test_ray_ends_are_eye_plus_depth_times_direction(n, seed, scale):
+    rng = np.random.default_rng(seed)
+    eye = rng.normal(size=3) * scale
+    directions = rng.normal(size=(n, 3))
+    depth = np.where(rng.random(n) < 0.2, np.inf, rng.uniform(0, 10 * scale, n))
+    rays = np.flatnonzero(np.isfinite(depth))
+    want = np.take(depth, rays)[:, None] * np.take(directions, rays, axis=0) + eye
+    for threads in (1, 2):
+        with using_threads(threads):
+            got = ray_ends(eye, directions, depth, rays)
+        assert got.shape == (len(rays), 3)
         np.testing.assert_array_equal(got, want)
