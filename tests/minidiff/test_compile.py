@@ -311,13 +311,16 @@ def test_where_picks_integer_indices(data, n, m):
 
 @pytest.mark.parametrize("rows", [50, codegen.PARTIAL_LIMIT // 3 + 50])
 @pytest.mark.parametrize("ascending", [False, True])
-def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(ascending, rows):
+def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(
+    ascending, rows, monkeypatch
+):
     """A table of at most ``codegen.PARTIAL_LIMIT`` numbers: its gradient summed per group
     of chunks in the kernel, the groups in order afterwards. A larger one: each element's
     contribution added by the scatter kernel, where from ``compiler.PARALLEL_SCATTER``
     elements whose rows come in ascending order each thread adds a range of the table's
     rows (rows in any order: one thread). Either way the same bits as one thread, and the
     tape's gradient to rounding."""
+    monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)  # every kernel on the threads
     rng = np.random.default_rng(3)
     n = compiler.PARALLEL_SCATTER + 1000
     vertices, faces = rng.normal(size=(rows, 3)), rng.integers(-rows, rows, size=(30, 3))
@@ -406,7 +409,8 @@ def _scene(n, seed=0):
     return rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=3) * 3
 
 
-def test_the_same_bits_on_any_number_of_threads():
+def test_the_same_bits_on_any_number_of_threads(monkeypatch):
+    monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)  # a batch this small on the threads too
     normals, points, light = _scene(5 * 1024 + 17)  # six chunks, the last one short
     results = []
     for threads in (1, 2, 3):
@@ -419,6 +423,26 @@ def test_the_same_bits_on_any_number_of_threads():
     for other in results[1:]:
         for a, b in zip(results[0], other, strict=True):
             assert np.array_equal(a, b)
+
+
+def test_small_kernels_run_on_one_thread(monkeypatch):
+    """A kernel whose batch times its program's lines is below ``PARALLEL_WORK`` runs as
+    one job (handing work to a thread costs more than it saves), a larger one on the
+    threads it may use; the same bits either way (the test above)."""
+    asked = []
+    run = backend.Kernel.run
+
+    def recorded(self, pointers, n, chunks, n_threads, unit=1):
+        asked.append((n, n_threads))
+        return run(self, pointers, n, chunks, n_threads, unit)
+
+    monkeypatch.setattr(backend.Kernel, "run", recorded)
+    lines = len(shading.trace(*_scene(10)).graph.nodes)
+    assert 100 * lines < compiler.PARALLEL_WORK <= 200_000 * lines
+    with compiler.using_threads(2), md.no_grad():
+        shading(*_scene(100))
+        shading(*_scene(200_000))
+    assert asked == [(100, 1), (200_000, 2)]
 
 
 def test_composes_with_the_tape_in_both_modes():
@@ -499,10 +523,11 @@ def self_weighted(points, light, weights):
     return d * d, lengths, scale * lengths
 
 
-def test_value_and_add_vjp_is_the_call_and_add_vjp_in_one_pass():
+def test_value_and_add_vjp_is_the_call_and_add_vjp_in_one_pass(monkeypatch):
     """``value_and_add_vjp`` returns the call's values and adds ``add_vjp``'s gradient, bit
     for bit, on 1 and 2 threads, with a table gathered; without anything requiring grad it
     returns the values alone; an empty batch gives empty values and zero gradients."""
+    monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)  # on 2 threads below, however small
     rng = np.random.default_rng(5)
     _, points, light = _scene(3000)
     weights = rng.normal(size=3000)
@@ -799,6 +824,8 @@ import multiprocessing
 import numpy as np
 import minidiff as md
 from minidiff import compiler
+
+compiler.PARALLEL_WORK = 0  # this small batch on the pool's threads too
 
 @md.compile(shared=("light",))
 def shading(normals, points, light):

@@ -148,9 +148,12 @@ def test_mirrors_and_textures_compile_float32_takes_the_tape():
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_compiled_paths_do_not_depend_on_the_thread_count(threads):
-    """The same bits on 1 and 2 threads (``minidiff.compiler.using_threads``)."""
+def test_compiled_paths_do_not_depend_on_the_thread_count(threads, monkeypatch):
+    """The same bits on 1 and 2 threads (``minidiff.compiler.using_threads``), with every
+    kernel on the threads however small its batch (``PARALLEL_WORK``)."""
     from minidiff import compiler
+
+    monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)
 
     def gradient(n):
         scene = cornell_box(6, 6, blocks=True)

@@ -7,9 +7,11 @@ of some pixels' samples) and ``ray_ends`` (where rays end), against their NumPy 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from minidiff import compiler
 from minidiff.threads import using_threads
 from render.scene.camera import (
     camera_directions,
@@ -18,6 +20,13 @@ from render.scene.camera import (
     subpixel_offsets,
     to_image_plane,
 )
+
+
+@pytest.fixture(autouse=True)
+def every_kernel_on_the_threads(monkeypatch):
+    """Compiled kernels on the threads however small their batch (the test is of the
+    two-thread path too)."""
+    monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)
 
 
 @settings(max_examples=20, deadline=None)
