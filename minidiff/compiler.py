@@ -73,12 +73,11 @@ MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dr
 # 24,576-row table: 8.2 and 3.2 ms).
 PARALLEL_SCATTER = 1 << 16
 # A kernel runs on threads only if its batch times its program's lines (the traced graph's
-# nodes) reaches this: handing a job to a pool thread and hearing back took ~90 us here
-# (two wake-ups of a thread on the other core), while a line costs an element about
-# 0.05-0.3 ns, so smaller kernels ran slower on two threads than on one (the secondary
-# term's level sets, 71 lines over 4-11k boundary samples: 60-104 us on one thread,
-# 170-235 us on two). Only the speed changes: the chunks, and so every bit, are the same
-# for any number of jobs.
+# nodes) reaches this: handing a job to a pool thread and hearing back costs ~100 us on a
+# machine whose idle cores sleep (two wake-ups across cores), and smaller kernels ran
+# slower on two threads than on one (docs/compiler.md, "Threads and memory around the
+# kernels"; benchmarks/bench_dispatch.py). Only the speed changes: the chunks, and so every
+# bit, are the same for any number of jobs.
 PARALLEL_WORK = 1 << 21
 
 # Whether compiled functions run their plain function on the tape in this thread (context).

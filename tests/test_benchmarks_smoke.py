@@ -46,6 +46,14 @@ EXPECTED = {
         for dtype in ("float64", "float32")
         for key in ("ratio_forward", "ratio_forward_backward")
     ],
+    "bench_dispatch": [
+        ("run_jobs", "1_jobs_us"),
+        ("run_jobs", "2_jobs_us"),
+        ("level_set", "*", "forward_1_us"),
+        ("level_set", "*", "forward_backward_2_us"),
+        ("fresh_memory", "pool_job_0_ms"),
+        ("fresh_memory", "fresh_job_0_ms"),
+    ],
     "bench_compiler": [
         ("results", route, "median_ms") for route in ("tape", "compiled_1", "compiled_2")
     ]
