@@ -39,14 +39,7 @@ BATCHES = (1024, 4096, 16384, 65536, 262144)
 
 def median_us(fn, repeats: int) -> float:
     """The median time of ``repeats`` calls of ``fn``, in microseconds, after a warm-up."""
-    for _ in range(min(repeats, 20)):
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return 1e6 * float(np.median(times))
+    return 1e3 * timing.measure(fn, repeats, warmup=min(repeats, 20))["median_ms"]
 
 
 def run_jobs_cost(repeats: int) -> dict:

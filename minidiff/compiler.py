@@ -442,8 +442,7 @@ class CompiledFunction:
         # reused arrays (``minidiff.buffers``), as the tape's kernels' do: fresh memory is
         # faulted in by whichever thread writes it first, and NumPy asks the kernel for huge
         # pages for large arrays, whose faults can stall one thread for milliseconds while
-        # the other waits (the 363k interior samples' directions of a 512x512 boundary term:
-        # 0.6 ms on one thread, 6.7 ms on the other; 0.7 ms each from the pool).
+        # the other waits (docs/compiler.md, "Threads and memory around the kernels").
         outputs = [memory.empty((trace.batch, *shape), np.float64) for shape in trace.output_shapes]
         self._run(trace, "forward", (), [*data, *outputs])
         return outputs
