@@ -359,6 +359,8 @@ def run_on_two_threads(script: str) -> str:
 _ONE_AND_TWO_THREADS = """
 import numba as _numba
 import numpy as _np
+from minidiff import compiler as _compiler
+_compiler.PARALLEL_WORK = 0  # compiled kernels split however small (only the speed differs)
 _runs = []
 for _n in (1, 2):
     _numba.set_num_threads(_n)
@@ -374,5 +376,7 @@ print("same bits")
 def same_bits_on_one_and_two_threads(script: str) -> None:
     """Fail unless ``script`` (Python that defines ``run()``, returning a sequence of
     arrays) gives the same arrays bit for bit when ``run()`` is called on one and then on
-    two Numba threads, in one new process (``run_on_two_threads``)."""
+    two Numba threads, in one new process (``run_on_two_threads``), with every compiled
+    kernel split into jobs, however small its batch (``minidiff.compiler.PARALLEL_WORK``
+    0 there)."""
     assert run_on_two_threads(script + _ONE_AND_TWO_THREADS) == "same bits"
