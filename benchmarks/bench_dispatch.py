@@ -119,7 +119,7 @@ def _level_set_row(n: int, rng, edges, repeats: int) -> dict:
 def fresh_memory_jobs(size: int, calls: int) -> dict:
     """Each job's time (ms) in the boundary term's compiled sample directions, outputs from
     the pool and from fresh memory: medians over ``calls`` forward+backward passes."""
-    from minidiff import backend, buffers, threads
+    from minidiff import backend, buffers
     from render.edges import interior
 
     problem = bench_render.loss_problem(size, ground=False)
@@ -127,21 +127,23 @@ def fresh_memory_jobs(size: int, calls: int) -> dict:
     run = backend.Kernel.run
 
     def timed_run(self, pointers, n, chunks, n_threads, unit=1):
-        """``Kernel.run`` with each job's time recorded while ``record`` is a list."""
+        """``Kernel.run``, each job's call of the machine code timed while ``record`` is a
+        list: (the first chunk it runs, seconds)."""
+        function = self._function
         if record is None:
             return run(self, pointers, n, chunks, n_threads, unit)
-        units = -(-chunks // unit)
-        n_jobs = max(1, min(n_threads, units))
-        bounds = [min(chunks, j * units // n_jobs * unit) for j in range(n_jobs + 1)]
 
-        def job(j: int, _: int) -> int:
+        def timed(*call):  # (pointers, n, first chunk, end chunk)
             start = time.perf_counter()
-            status = self._function(pointers, n, bounds[j], bounds[j + 1])
-            record.append((j, time.perf_counter() - start))
+            status = function(*call)
+            record.append((call[2], time.perf_counter() - start))
             return status
 
-        failed = [r for r in threads.run_jobs(job, n_jobs) if r]
-        return min(failed) if failed else 0
+        self._function = timed
+        try:
+            return run(self, pointers, n, chunks, n_threads, unit)
+        finally:
+            self._function = function
 
     directions = interior.camera_directions
     out = {"rays": 0}
@@ -156,8 +158,8 @@ def fresh_memory_jobs(size: int, calls: int) -> dict:
                     with buffers.fresh():
                         return directions(coords, *frame)
                 return directions(coords, *frame)
-            finally:
-                jobs.append(record)
+            finally:  # job j: the j-th first chunk
+                jobs.append([(j, t) for j, (_, t) in enumerate(sorted(record))])
                 out["rays"] = len(coords)
                 record = None
 

@@ -89,10 +89,16 @@ def image_plane_coords(camera: Camera, ray_ids: np.ndarray, spp: int) -> np.ndar
 
     Ray r belongs to pixel r // spp (row-major, row 0 at the top) and sample r % spp.
     """
-    offsets = subpixel_offsets(spp)
+    return _coords_of_rays(ray_ids, camera.width, camera.height, spp)
+
+
+def _coords_of_rays(ray_ids: np.ndarray, width: int, height: int, spp: int) -> np.ndarray:
+    """``image_plane_coords`` of rays ``ray_ids`` (k,) of a width x height image, ``spp``
+    per pixel, in one parallel pass (``_image_plane_coords``)."""
     ids = np.ascontiguousarray(ray_ids, dtype=np.int64)
     out = buffers.empty((len(ids), 2), np.float64)
-    _image_plane_coords(ids, camera.width, camera.height, spp, offsets, out)
+    run_jobs(_image_plane_coords, job_count(len(ids), 65536), ids, width, height,
+             subpixel_offsets(spp), out)  # fmt: skip
     return out
 
 
@@ -103,9 +109,12 @@ def pixel_xy(px, py, ox, oy, width, height):
     return 2.0 * (px + ox) / width - 1.0, 1.0 - 2.0 * (py + oy) / height
 
 
-@numba.njit(cache=True)
-def _image_plane_coords(ray_ids, width, height, spp, offsets, out):
-    for i in range(ray_ids.shape[0]):
+@kernel
+def _image_plane_coords(job, n_jobs, ray_ids, width, height, offsets, out):
+    """Job ``job`` of ``n_jobs`` of ``_coords_of_rays``: its share of the rays."""
+    spp = offsets.shape[0]
+    first, stop = share(job, n_jobs, ray_ids.shape[0])
+    for i in range(first, stop):
         pixel, s = divmod(ray_ids[i], spp)
         py, px = divmod(pixel, width)
         out[i, 0], out[i, 1] = pixel_xy(px, py, offsets[s, 0], offsets[s, 1], width, height)
@@ -255,34 +264,18 @@ def _hits_along_rays(
         ox, oy = offsets[s, 0], offsets[s, 1]
         coords[i, 0], coords[i, 1] = pixel_xy(px, py, ox, oy, width, height)
         d = pixel_ray(px, py, ox, oy, width, height, forward, right, up)
-        for a in range(3):
-            points[i, a] = eye[a] + t[r] * d[a]
+        points[i, 0], points[i, 1], points[i, 2] = _ray_end(eye, t[r], d)
 
 
 def sample_coords(pixels: np.ndarray, spp: int, width: int, height: int) -> np.ndarray:
     """Image-plane coords (m * spp, 2) of the ``spp`` samples of each of the flat pixel
     indices ``pixels`` (m,) of a width x height image, pixel by pixel (sample s of
-    ``pixels[i]`` is row i * spp + s, at ``subpixel_offsets(spp)[s]``): ``pixel_xy``, the
-    very bits of ``to_image_plane`` of the pixel's corner plus the offset, in one parallel
-    pass (NumPy's temporaries took 7.9 ms for the 363k candidate samples of a 512x512
-    boundary term)."""
-    ids = np.ascontiguousarray(pixels, dtype=np.int64)
-    offsets = subpixel_offsets(spp)
-    out = buffers.empty((len(ids) * spp, 2), np.float64)
-    run_jobs(_sample_coords, job_count(len(ids), 16384), ids, offsets, width, height, out)
-    return out
-
-
-@kernel
-def _sample_coords(job, n_jobs, pixels, offsets, width, height, out):
-    """Job ``job`` of ``n_jobs`` of ``sample_coords``: its share of the pixels."""
-    spp = offsets.shape[0]
-    first, stop = share(job, n_jobs, pixels.shape[0])
-    for i in range(first, stop):
-        py, px = divmod(pixels[i], width)
-        for s in range(spp):
-            r = i * spp + s
-            out[r, 0], out[r, 1] = pixel_xy(px, py, offsets[s, 0], offsets[s, 1], width, height)
+    ``pixels[i]`` is row i * spp + s, at ``subpixel_offsets(spp)[s]``): the coords of those
+    camera rays (``image_plane_coords``), the very bits of ``to_image_plane`` of the
+    pixel's corner plus the offset, in one parallel pass (NumPy's temporaries took 7.9 ms
+    for the 363k candidate samples of a 512x512 boundary term)."""
+    rays = np.asarray(pixels, np.int64)[:, None] * spp + np.arange(spp)
+    return _coords_of_rays(rays.reshape(-1), width, height, spp)
 
 
 def ray_ends(eye: np.ndarray, directions: np.ndarray, depth: np.ndarray, rays: np.ndarray
@@ -306,8 +299,13 @@ def _ray_ends(job, n_jobs, eye, directions, depth, rays, out):
     first, stop = share(job, n_jobs, rays.shape[0])
     for i in range(first, stop):
         r = rays[i]
-        for a in range(3):
-            out[i, a] = eye[a] + depth[r] * directions[r, a]
+        out[i, 0], out[i, 1], out[i, 2] = _ray_end(eye, depth[r], directions[r])
+
+
+@numba.njit(cache=True, inline="always")
+def _ray_end(eye, t, d):
+    """eye + t d: where a ray from the eye (3,) along ``d`` (three numbers) ends at t."""
+    return eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2]
 
 
 def primary_rays(camera: Camera, spp: int = 1) -> tuple[np.ndarray, np.ndarray]:
