@@ -64,14 +64,6 @@ from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-expor
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
-# Batches from this size add gathered rows' gradients on threads (each a range of table
-# rows, every one reading all elements' rows); below it, starting threads costs more. Only
-# where each gather's rows mostly ascend (a gather by the hits' triangles of rays in
-# triangle order; at most one row in 8 below the one before): a thread skips the elements
-# of the others' rows at a branch that random rows mispredict half the time (1M random
-# rows of a 2,000-row table: 1.5 ms on one thread, 9.4 ms on two; 1M ascending rows of a
-# 24,576-row table: 8.2 and 3.2 ms).
-PARALLEL_SCATTER = 1 << 16
 # A kernel runs on threads only if its batch times its program's lines (the traced graph's
 # nodes) reaches this: handing a job to a pool thread and hearing back costs ~100 us on a
 # machine whose idle cores sleep (two wake-ups across cores), and smaller kernels ran
@@ -492,10 +484,11 @@ class CompiledFunction:
             kernel = _scatter_kernel(share.shape[1])
             buffers = [where, share, table, count]
             pointers = _addresses(buffers)
-            threads = thread_count() if len(where) >= PARALLEL_SCATTER else 1
-            if threads > 1 and _descents(where.reshape(-1, n)) > len(where) // 8:
-                threads = 1  # (the same bits either way: each row's sum in element order)
-            kernel.run(pointers, len(where), len(table), threads)  # threads: ranges of rows
+            # One thread: the adds are bound by reading the contributions from memory, and
+            # a second thread (a range of the table's rows each, both reading every
+            # element's row) was no faster in the compiler benchmark's VJP (1M hits, three
+            # corners each: 6.6 ms on one thread, 7.0 ms on two).
+            kernel.run(pointers, len(where), len(table), 1)
         return [grads.get(s) for s in range(len(slots))]
 
     def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:
@@ -556,8 +549,12 @@ def _gather_blocks(gathers, slots, n: int):
     count: dict[int, int] = {}
     for slot, _ in gathers:
         count[slot] = count.get(slot, 0) + 1
+    # From the pool, as the outputs (``_forward``): the element kernel writes every row.
     blocks = {
-        slot: (np.empty((g * n, int(np.prod(slots[slot].shape[1:])))), np.empty(g * n, np.int64))
+        slot: (
+            memory.empty((g * n, _columns(slots[slot])), np.float64),
+            memory.empty((g * n,), np.int64),
+        )
         for slot, g in count.items()
     }
     contributions, rows, used = [], [], dict.fromkeys(count, 0)
@@ -581,11 +578,6 @@ def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:
 def _columns(slot: Slot) -> int:
     """The numbers in one row of a table slot."""
     return int(np.prod(slot.shape[1:], dtype=np.int64))
-
-
-def _descents(rows: np.ndarray) -> int:
-    """How many elements of ``rows`` (g, n) are below the one before them in their row."""
-    return int(np.count_nonzero(rows[:, 1:] < rows[:, :-1]))
 
 
 @functools.cache

@@ -311,18 +311,17 @@ def test_where_picks_integer_indices(data, n, m):
 
 @pytest.mark.parametrize("rows", [50, codegen.PARTIAL_LIMIT // 3 + 50])
 @pytest.mark.parametrize("ascending", [False, True])
-def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(
+def test_large_batches_add_gathered_gradients_with_the_same_bits_on_any_threads(
     ascending, rows, monkeypatch
 ):
     """A table of at most ``codegen.PARTIAL_LIMIT`` numbers: its gradient summed per group
     of chunks in the kernel, the groups in order afterwards. A larger one: each element's
-    contribution added by the scatter kernel, where from ``compiler.PARALLEL_SCATTER``
-    elements whose rows come in ascending order each thread adds a range of the table's
-    rows (rows in any order: one thread). Either way the same bits as one thread, and the
-    tape's gradient to rounding."""
+    contribution written by the kernel (its chunks on the threads) and added by the scatter
+    kernel in element order, runs of one row in registers. Either way the same bits on one
+    thread and two, and the tape's gradient to rounding."""
     monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)  # every kernel on the threads
     rng = np.random.default_rng(3)
-    n = compiler.PARALLEL_SCATTER + 1000
+    n = 40 * codegen.CHUNK + 100
     vertices, faces = rng.normal(size=(rows, 3)), rng.integers(-rows, rows, size=(30, 3))
     hit, weights = rng.integers(-30, 30, size=n), rng.normal(size=n)
     if ascending:  # every gather's rows ascending: the faces' by hit, the vertices' by face
@@ -336,6 +335,41 @@ def test_large_batches_add_gathered_gradients_on_threads_with_the_same_bits(
             grads.append(t.grad)
     assert np.array_equal(grads[0], grads[1])
     assert_close(grads[0], grads[2], "d/dvertices")
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.data(), columns=st.integers(1, 4), rows=st.integers(1, 12))
+def test_scatter_kernel_adds_in_element_order(data, columns, rows):
+    """``codegen.scatter_add``, which sums a run of elements on one row in registers: every
+    row of the table gets ``row + c_i + c_j + ...`` over its elements in element order, the
+    same bits as adding them one at a time (NaN, infinities, signed zeros and wide ranges
+    of magnitude included), a negative row counted from the end; a call given a range of
+    rows adds only theirs."""
+    n = data.draw(st.integers(0, 60))
+    run = st.lists(st.integers(-rows, rows - 1), min_size=1, max_size=8).map(
+        lambda r: [r[0]] * len(r)  # runs of one row, as hits on one triangle give
+    )
+    where = np.array(sum(data.draw(st.lists(run, max_size=n)), []), np.int64)
+    special = st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -0.0, 1e300, -1e-300])
+    value = st.one_of(st.floats(-1e6, 1e6), special)
+    share = np.array(
+        data.draw(st.lists(value, min_size=len(where) * columns, max_size=len(where) * columns)),
+        np.float64,
+    ).reshape(len(where), columns)
+    start = np.array(data.draw(st.lists(value, min_size=rows * columns, max_size=rows * columns)))
+    first = data.draw(st.integers(0, rows))
+    end = data.draw(st.integers(first, rows))
+    expected = start.reshape(rows, columns).copy()
+    with np.errstate(all="ignore"):  # inf - inf: NaN, as in the kernel
+        for i, r in enumerate(where):
+            if first <= r % rows < end:
+                expected[r] += share[i]
+    table = start.reshape(rows, columns).copy()
+    kernel = compiler._scatter_kernel(columns)
+    buffers = [where, share, table, np.array([rows], np.int64)]
+    kernel._function(compiler._addresses(buffers), len(where), first, end)
+    np.testing.assert_array_equal(table, expected)  # NaN where NaN, -0.0 kept by bits:
+    assert np.array_equal(np.signbit(table), np.signbit(expected))
 
 
 def test_a_gather_out_of_range_is_an_index_error():

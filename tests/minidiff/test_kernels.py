@@ -90,6 +90,39 @@ ROW_PATTERNS = [((9000, 3), (9000, 1)), ((9000, 1), (9000, 3)), ((3,), (9000, 3)
 ROW_PATTERNS += [((9000, 3), (1, 3)), ((9000, 1), (3,)), ((1, 3), (9000, 1))]
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    shapes=st.one_of(
+        tall_broadcast_pairs(),
+        hnp.mutually_broadcastable_shapes(num_shapes=2, min_dims=1, max_dims=3, max_side=30)
+        .map(lambda b: b.input_shapes)
+        .filter(lambda s: sum(np.prod(x) for x in s) >= 8192),
+    ),
+    ops=st.sampled_from(ARITHMETIC),
+    dtype=DTYPES,
+    threads=st.integers(2, 5),
+    seed=st.integers(0, 2**16),
+)
+def test_arithmetic_split_among_threads_equals_numpy(shapes, ops, dtype, threads, seed):
+    """From ``kernels.PARALLEL_ELEMENTS`` on (here lowered to 0), NumPy's loop runs on the
+    threads, each on its rows of the result (an operand broadcast along the first axis
+    passed whole): bit for bit NumPy's result, on any number of threads, however the
+    operands broadcast."""
+    from minidiff.threads import using_threads
+
+    kernel, ufunc = ops
+    rng = np.random.default_rng(seed)
+    x, y = (values(rng, shape, dtype) for shape in shapes)
+    saved = kernels.PARALLEL_ELEMENTS
+    kernels.PARALLEL_ELEMENTS = 0
+    try:
+        with using_threads(threads):
+            got = kernel(x, y)
+    finally:
+        kernels.PARALLEL_ELEMENTS = saved
+    assert_identical(got, ufunc(x, y))
+
+
 @pytest.mark.parametrize("ops", ARITHMETIC)
 @pytest.mark.parametrize("shapes", ROW_PATTERNS)
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
