@@ -24,7 +24,9 @@ Reported (medians, the two routes timed in turns in one process; this machine's 
 - compile latency: a new kernel of the random 200-primitive program (``random_program``)
   traced, generated and compiled (forward and VJP), with an empty disk cache (target <=
   0.5 s per kernel), and fetched again from the disk cache by a fresh function (<= 10 ms);
-- the number of primitives in the shading graph (tape nodes of one forward).
+- the number of primitives in the shading graph (tape nodes of one forward);
+- where a compiled forward+backward goes on 1 and 2 threads: each kernel, the scatter-add
+  of gathered rows' gradients, and the rest (``kernel_split``).
 """
 
 from __future__ import annotations
@@ -215,6 +217,49 @@ def two_thread_ceiling(repeats: int) -> float:
     return times["one"]["median_ms"] / times["two"]["median_ms"]
 
 
+def kernel_split(parameters, constants, weights, repeats: int) -> dict:
+    """Where one compiled forward+backward goes, per thread count (1, 2): the median time
+    (ms) of the whole call and of each compiled kernel it runs, by mode ("forward", "vjp",
+    "vjp_shared"), and of the scatter kernel that adds gathered rows' gradients
+    ("scatter"); "rest" is the call less these (the tape's loss and its backward, NumPy
+    around the kernels). Found by wrapping ``backend.Kernel.run``, one call in turns per
+    thread count."""
+    scatter_keys = {compiler._scatter_kernel(c).key for c in range(1, 5)}
+    times: dict[int, dict[str, list[float]]] = {1: {}, 2: {}}
+    current = {"mode": ""}
+    run, run_kernel = compiler.CompiledFunction._run, backend.Kernel.run
+
+    def timed_run(self, trace, mode, *args, **kwargs):
+        current["mode"] = mode
+        return run(self, trace, mode, *args, **kwargs)
+
+    def timed_kernel(kernel, *args, **kwargs):
+        start = time.perf_counter()
+        status = run_kernel(kernel, *args, **kwargs)
+        name = "scatter" if kernel.key in scatter_keys else current["mode"]
+        calls[name] = calls.get(name, 0.0) + time.perf_counter() - start
+        return status
+
+    compiler.CompiledFunction._run, backend.Kernel.run = timed_run, timed_kernel
+    try:
+        for _ in range(repeats):
+            for threads in (1, 2):
+                calls: dict[str, float] = {}
+                with compiler.using_threads(threads):
+                    start = time.perf_counter()
+                    forward_backward(hit_radiance, parameters, constants, weights)
+                    calls["call"] = time.perf_counter() - start
+                calls["rest"] = 2 * calls["call"] - sum(calls.values())
+                for name, seconds in calls.items():
+                    times[threads].setdefault(name, []).append(seconds)
+    finally:
+        compiler.CompiledFunction._run, backend.Kernel.run = run, run_kernel
+    return {
+        f"threads_{t}": {name: 1e3 * statistics.median(v) for name, v in by.items()}
+        for t, by in times.items()
+    }
+
+
 def run(args) -> dict:
     hits = 100_000 if args.quick else args.hits
     parameters, constants, weights = scene(hits)
@@ -265,6 +310,7 @@ def run(args) -> dict:
             k: statistics.median(s[k] for _, _, s in latency) for k in latency[0][2]
         },
         "repeats": args.repeats,
+        "kernel_split_ms": kernel_split(parameters, constants, weights, args.repeats),
     }
     r["report"] = make_report(r)
     return r
@@ -293,6 +339,10 @@ def make_report(r: dict) -> dict:
         timing.row("shading graph: tape primitives / scalar program lines",
                    f"{r['tape_primitives_per_forward']} / {r['scalar_program_lines']}"),
     ]  # fmt: skip
+    one, two = r["kernel_split_ms"]["threads_1"], r["kernel_split_ms"]["threads_2"]
+    for name in one:
+        label = f"of a compiled f+b, 1 / 2 threads: {name}"
+        rows.append(timing.row(label, f"{one[name]:.1f} / {two[name]:.1f} ms"))
     notes = [f"{r['hits']:,} hits on the teapot, medians of {r['repeats']} calls, in turns."]
     return timing.report_section("minidiff.compile (bench_compiler.py)", rows, notes, [])
 
