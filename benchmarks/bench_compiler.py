@@ -220,11 +220,12 @@ def two_thread_ceiling(repeats: int) -> float:
 def kernel_split(parameters, constants, weights, repeats: int) -> dict:
     """Where one compiled forward+backward goes, per thread count (1, 2): the median time
     (ms) of the whole call and of each compiled kernel it runs, by mode ("forward", "vjp",
-    "vjp_shared"), and of the scatter kernel that adds gathered rows' gradients
-    ("scatter"); "rest" is the call less these (the tape's loss and its backward, NumPy
-    around the kernels). Found by wrapping ``backend.Kernel.run``, one call in turns per
-    thread count."""
+    "vjp_shared"), and of the kernels that add gathered rows' gradients ("scatter": the
+    blocks' rows found, then the scatter-add); "rest" is the call less these (the tape's
+    loss and its backward, NumPy around the kernels). Found by wrapping
+    ``backend.Kernel.run``, one call in turns per thread count."""
     scatter_keys = {compiler._scatter_kernel(c).key for c in range(1, 5)}
+    scatter_keys.add(compiler._row_bounds().key)
     times: dict[int, dict[str, list[float]]] = {1: {}, 2: {}}
     current = {"mode": ""}
     run, run_kernel = compiler.CompiledFunction._run, backend.Kernel.run

@@ -766,15 +766,110 @@ def _tangents(program: Program, graph: ir.Graph, emitter: _Emitter, wrt) -> None
             emitter.store(("out", o), len(lanes), lane, value)
 
 
-def scatter_add(columns: int) -> str:
+#: Elements per block of a scatter-add's rows: the unit whose lowest and highest row
+#: (``row_bounds``) let a thread skip the blocks that hold none of its rows.
+SCATTER_BLOCK = 4096
+
+
+def _row_of(name: str, index: str) -> list[str]:
+    """IR: ``%name``, the row of element ``index`` of ``%rows``, a negative one counted from
+    the end (``%count`` rows)."""
+    return [
+        f"  %{name}.ptr = getelementptr i64, ptr %rows, i64 {index}",
+        f"  %{name}.given = load i64, ptr %{name}.ptr",
+        f"  %{name}.negative = icmp slt i64 %{name}.given, 0",
+        f"  %{name}.shifted = add i64 %{name}.given, %count",
+        f"  %{name} = select i1 %{name}.negative, i64 %{name}.shifted, i64 %{name}.given",
+    ]
+
+
+def _buffer(k: int, name: str, kind: str = "ptr") -> list[str]:
+    """IR: ``%name``, entry ``k`` of the pointer array ``%buffers`` (loaded as ``kind``)."""
+    return [
+        f"  %{name}.at = getelementptr ptr, ptr %buffers, i64 {k}",
+        f"  %{name} = load {kind}, ptr %{name}.at",
+    ]
+
+
+def row_bounds(block: int = SCATTER_BLOCK) -> str:
+    """The kernel that finds each block's lowest and highest row for ``scatter_add``:
+    buffers (rows (n,) int64, bounds (blocks, 2) int64 written, sizes (2,) int64 whose first
+    entry is the table's row count); its "chunks" are the blocks of ``block`` elements."""
+    return "\n".join(
+        [
+            "define i64 @kernel(ptr %buffers, i64 %n, i64 %first, i64 %end) {",
+            "entry:",
+            *_buffer(0, "rows"),
+            *_buffer(1, "bounds"),
+            *_buffer(2, "sizes"),
+            "  %count = load i64, ptr %sizes",
+            "  %b.slot = alloca i64",
+            "  %i.slot = alloca i64",
+            "  %lo.slot = alloca i64",
+            "  %hi.slot = alloca i64",
+            "  store i64 %first, ptr %b.slot",
+            "  br label %block",
+            "block:",
+            "  %b = load i64, ptr %b.slot",
+            "  %more = icmp slt i64 %b, %end",
+            "  br i1 %more, label %start, label %done",
+            "start:",
+            f"  %i.first = mul i64 %b, {block}",
+            f"  %i.past = add i64 %i.first, {block}",
+            "  %short = icmp slt i64 %n, %i.past",
+            "  %stop = select i1 %short, i64 %n, i64 %i.past",
+            "  store i64 %i.first, ptr %i.slot",
+            "  store i64 9223372036854775807, ptr %lo.slot",
+            "  store i64 -9223372036854775808, ptr %hi.slot",
+            "  br label %head",
+            "head:",
+            "  %i = load i64, ptr %i.slot",
+            "  %inside = icmp slt i64 %i, %stop",
+            "  br i1 %inside, label %body, label %store",
+            "body:",
+            *_row_of("r", "%i"),
+            "  %lo = load i64, ptr %lo.slot",
+            "  %hi = load i64, ptr %hi.slot",
+            "  %lower = icmp slt i64 %r, %lo",
+            "  %higher = icmp sgt i64 %r, %hi",
+            "  %lo.new = select i1 %lower, i64 %r, i64 %lo",
+            "  %hi.new = select i1 %higher, i64 %r, i64 %hi",
+            "  store i64 %lo.new, ptr %lo.slot",
+            "  store i64 %hi.new, ptr %hi.slot",
+            "  %i.next = add i64 %i, 1",
+            "  store i64 %i.next, ptr %i.slot",
+            "  br label %head",
+            "store:",
+            "  %lo.end = load i64, ptr %lo.slot",
+            "  %hi.end = load i64, ptr %hi.slot",
+            "  %at = mul i64 %b, 2",
+            "  %lo.ptr = getelementptr i64, ptr %bounds, i64 %at",
+            "  %hi.ptr = getelementptr i64, ptr %lo.ptr, i64 1",
+            "  store i64 %lo.end, ptr %lo.ptr",
+            "  store i64 %hi.end, ptr %hi.ptr",
+            "  %b.next = add i64 %b, 1",
+            "  store i64 %b.next, ptr %b.slot",
+            "  br label %block",
+            "done:",
+            "  ret i64 0",
+            "}",
+        ]
+    )
+
+
+def scatter_add(columns: int, block: int = SCATTER_BLOCK) -> str:
     """The kernel that adds a gather's contributions into its table's gradient: buffers
-    (rows (n,) int64, contributions (n, columns), gradient (table rows, columns), the table's
-    row count (1,) int64); a negative row counts from the end, as the gather read it.
+    (rows (n,) int64, contributions (n, columns), gradient (table rows, columns), sizes (2,)
+    int64: the table's row count and whether ``bounds`` is filled, bounds (blocks, 2) int64:
+    each block's lowest and highest row, ``row_bounds``); a negative row counts from the
+    end, as the gather read it.
 
     A call adds the contributions to the table rows [first, end) (its "chunks" are the
-    table's rows): each call reads every element's row and takes its own, in element order.
-    So threads given different row ranges never write the same row, and each row's sum is
-    made in element order whatever the split: the same bits on any thread count.
+    table's rows): each call reads the elements' rows in element order and takes its own,
+    skipping (where ``bounds`` is filled) the blocks of ``block`` elements (a power of two)
+    whose rows all lie elsewhere. So threads given different row ranges never write the
+    same row, and each row's sum is made in element order whatever the split: the same
+    bits on any thread count.
 
     A run of consecutive elements on one row (the hits on one triangle gather its corners
     one after the other) is summed in registers, starting from the row's value, and stored
@@ -807,30 +902,19 @@ def scatter_add(columns: int) -> str:
             f"  store double %total{c}, ptr %dst{c}",
         ]
     accumulators = [f"  %acc{c} = alloca double" for c in range(columns)]
-
-    def row(name: str, index: str) -> list[str]:
-        """The row of element ``index``, a negative one counted from the end."""
-        return [
-            f"  %{name}.ptr = getelementptr i64, ptr %rows, i64 {index}",
-            f"  %{name}.given = load i64, ptr %{name}.ptr",
-            f"  %{name}.negative = icmp slt i64 %{name}.given, 0",
-            f"  %{name}.shifted = add i64 %{name}.given, %count",
-            f"  %{name} = select i1 %{name}.negative, i64 %{name}.shifted, i64 %{name}.given",
-        ]
-
     return "\n".join(
         [
             "define i64 @kernel(ptr %buffers, i64 %n, i64 %first, i64 %end) {",
             "entry:",
-            "  %p0 = getelementptr ptr, ptr %buffers, i64 0",
-            "  %rows = load ptr, ptr %p0",
-            "  %p1 = getelementptr ptr, ptr %buffers, i64 1",
-            "  %contrib = load ptr, ptr %p1",
-            "  %p2 = getelementptr ptr, ptr %buffers, i64 2",
-            "  %grad = load ptr, ptr %p2",
-            "  %p3 = getelementptr ptr, ptr %buffers, i64 3",
-            "  %count.ptr = load ptr, ptr %p3",
-            "  %count = load i64, ptr %count.ptr",
+            *_buffer(0, "rows"),
+            *_buffer(1, "contrib"),
+            *_buffer(2, "grad"),
+            *_buffer(3, "sizes"),
+            *_buffer(4, "bounds"),
+            "  %count = load i64, ptr %sizes",
+            "  %bounded.ptr = getelementptr i64, ptr %sizes, i64 1",
+            "  %bounded = load i64, ptr %bounded.ptr",
+            "  %skips = icmp ne i64 %bounded, 0",
             "  %i.slot = alloca i64",
             "  %j.slot = alloca i64",
             *accumulators,
@@ -839,9 +923,29 @@ def scatter_add(columns: int) -> str:
             "head:",  # element i: the next one not yet added
             "  %i = load i64, ptr %i.slot",
             "  %more = icmp slt i64 %i, %n",
-            "  br i1 %more, label %body, label %done",
+            "  br i1 %more, label %check, label %done",
+            "check:",  # at a block's first element: skip the block if none of its rows is ours
+            f"  %offset = and i64 %i, {block - 1}",
+            "  %starts = icmp eq i64 %offset, 0",
+            "  %look = and i1 %starts, %skips",
+            "  br i1 %look, label %block, label %body",
+            "block:",
+            f"  %b = sdiv i64 %i, {block}",
+            "  %b2 = mul i64 %b, 2",
+            "  %lo.ptr = getelementptr i64, ptr %bounds, i64 %b2",
+            "  %hi.ptr = getelementptr i64, ptr %lo.ptr, i64 1",
+            "  %lo = load i64, ptr %lo.ptr",
+            "  %hi = load i64, ptr %hi.ptr",
+            "  %before = icmp slt i64 %hi, %first",
+            "  %after = icmp sge i64 %lo, %end",
+            "  %none = or i1 %before, %after",
+            "  br i1 %none, label %jump, label %body",
+            "jump:",
+            f"  %i.jump = add i64 %i, {block}",
+            "  store i64 %i.jump, ptr %i.slot",
+            "  br label %head",
             "body:",
-            *row("r", "%i"),
+            *_row_of("r", "%i"),
             "  %below = icmp slt i64 %r, %first",
             "  %above = icmp sge i64 %r, %end",
             "  %elsewhere = or i1 %below, %above",
@@ -862,7 +966,7 @@ def scatter_add(columns: int) -> str:
             "  %j.more = icmp slt i64 %j, %n",
             "  br i1 %j.more, label %run.row, label %flush",
             "run.row:",
-            *row("rj", "%j"),
+            *_row_of("rj", "%j"),
             "  %same = icmp eq i64 %rj, %r",
             "  br i1 %same, label %run.add, label %flush",
             "run.add:",

@@ -64,6 +64,13 @@ from minidiff.threads import thread_count, using_threads  # noqa: F401 (re-expor
 from minidiff.trace import DTYPES, TYPES, CompileError, Slot, Traced, traced
 
 MAX_TRACES = 64  # signatures remembered per compiled function (the oldest is dropped)
+# Gathered rows' gradients are added on threads from this many contributions on, and only
+# where the threads together would read at most SCATTER_OVERLAP times the blocks of rows
+# there are (``_scatter``). Below it, finding the blocks' rows and starting a thread cost
+# more than they save (1M contributions, 1 -> 2 threads: ascending rows 1.2 -> 1.15 ms,
+# rows in random order 1.8-1.9 -> 2.2-2.3 ms, found to need one thread).
+PARALLEL_SCATTER = 1 << 20
+SCATTER_OVERLAP = 1.5
 # A kernel runs on threads only if its batch times its program's lines (the traced graph's
 # nodes) reaches this: handing a job to a pool thread and hearing back costs ~100 us on a
 # machine whose idle cores sleep (two wake-ups across cores), and smaller kernels ran
@@ -480,15 +487,7 @@ class CompiledFunction:
             grads[slot] += np.add.reduce(partial, axis=0).reshape(slots[slot].shape)
         for slot, (share, where) in blocks.items():
             table = grads[slot].reshape(slots[slot].shape[0], -1)  # a fresh array: ours
-            count = np.array([slots[slot].shape[0]], np.int64)
-            kernel = _scatter_kernel(share.shape[1])
-            buffers = [where, share, table, count]
-            pointers = _addresses(buffers)
-            # One thread: the adds are bound by reading the contributions from memory, and
-            # a second thread (a range of the table's rows each, both reading every
-            # element's row) was no faster in the compiler benchmark's VJP (1M hits, three
-            # corners each: 6.6 ms on one thread, 7.0 ms on two).
-            kernel.run(pointers, len(where), len(table), 1)
+            _scatter(where, share, table)
         return [grads.get(s) for s in range(len(slots))]
 
     def _jvp(self, trace: _Trace, data, tangents) -> list[np.ndarray]:
@@ -578,6 +577,41 @@ def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:
 def _columns(slot: Slot) -> int:
     """The numbers in one row of a table slot."""
     return int(np.prod(slot.shape[1:], dtype=np.int64))
+
+
+def _scatter(where: np.ndarray, share: np.ndarray, table: np.ndarray) -> None:
+    """table (rows, columns) += the contributions ``share`` (k, columns) at rows ``where``
+    (k,) int64, each row's in element order (``codegen.scatter_add``): on threads, each a
+    range of the table's rows, where the rows come in blocks that mostly belong to one
+    range (a gather by the hits' triangles of rays in triangle order: each thread then
+    reads about its share of the contributions, and skips the other blocks); else on one
+    thread (a thread must read every element's row of the blocks it cannot skip, and
+    rows in random order mispredict its branch half the time). The same bits either way."""
+    rows = len(table)
+    blocks = -(-len(where) // codegen.SCATTER_BLOCK)
+    n_jobs = min(thread_count(), rows) if len(where) >= PARALLEL_SCATTER else 1
+    bounds = np.empty((blocks, 2), np.int64)
+    sizes = np.array([rows, 0], np.int64)
+    if n_jobs > 1:
+        _row_bounds().run(_addresses([where, bounds, sizes]), len(where), blocks, n_jobs)
+        # the blocks each job would read, as ``Kernel.run`` splits the rows among the jobs
+        cuts = np.arange(n_jobs + 1) * rows // n_jobs
+        read = sum(
+            np.count_nonzero((bounds[:, 1] >= cuts[j]) & (bounds[:, 0] < cuts[j + 1]))
+            for j in range(n_jobs)
+        )
+        if read <= SCATTER_OVERLAP * blocks:
+            sizes[1] = 1
+        else:
+            n_jobs = 1
+    pointers = _addresses([where, share, table, sizes, bounds])
+    _scatter_kernel(share.shape[1]).run(pointers, len(where), rows, n_jobs)
+
+
+@functools.cache
+def _row_bounds() -> backend.Kernel:
+    """The kernel that finds each block's lowest and highest row (``codegen.row_bounds``)."""
+    return backend.compile_ir(codegen.row_bounds())
 
 
 @functools.cache

@@ -317,9 +317,12 @@ def test_large_batches_add_gathered_gradients_with_the_same_bits_on_any_threads(
     """A table of at most ``codegen.PARTIAL_LIMIT`` numbers: its gradient summed per group
     of chunks in the kernel, the groups in order afterwards. A larger one: each element's
     contribution written by the kernel (its chunks on the threads) and added by the scatter
-    kernel in element order, runs of one row in registers. Either way the same bits on one
-    thread and two, and the tape's gradient to rounding."""
+    kernel in element order, runs of one row in registers; with the rows ascending, on the
+    threads, each a range of rows, skipping the blocks of elements it has no rows in (in
+    random order, on one thread). Either way the same bits on one thread, two and three,
+    and the tape's gradient to rounding."""
     monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)  # every kernel on the threads
+    monkeypatch.setattr(compiler, "PARALLEL_SCATTER", 0)
     rng = np.random.default_rng(3)
     n = 40 * codegen.CHUNK + 100
     vertices, faces = rng.normal(size=(rows, 3)), rng.integers(-rows, rows, size=(30, 3))
@@ -328,13 +331,14 @@ def test_large_batches_add_gathered_gradients_with_the_same_bits_on_any_threads(
         faces, hit = np.sort(faces, axis=0), np.sort(rng.integers(0, 30, size=n))
     cot = rng.normal(size=(n, 3))
     grads = []
-    for threads, fn in ((1, centroid_light), (2, centroid_light), (1, centroid_light.function)):
+    runs = ((1, centroid_light), (2, centroid_light), (3, centroid_light))
+    for threads, fn in (*runs, (1, centroid_light.function)):
         with compiler.using_threads(threads):
             t = md.tensor(vertices, requires_grad=True)
             (fn(t, faces, hit, weights) * cot).sum().backward()
             grads.append(t.grad)
-    assert np.array_equal(grads[0], grads[1])
-    assert_close(grads[0], grads[2], "d/dvertices")
+    assert np.array_equal(grads[0], grads[1]) and np.array_equal(grads[0], grads[2])
+    assert_close(grads[0], grads[3], "d/dvertices")
 
 
 @settings(max_examples=60, deadline=None)
@@ -342,14 +346,18 @@ def test_large_batches_add_gathered_gradients_with_the_same_bits_on_any_threads(
 def test_scatter_kernel_adds_in_element_order(data, columns, rows):
     """``codegen.scatter_add``, which sums a run of elements on one row in registers: every
     row of the table gets ``row + c_i + c_j + ...`` over its elements in element order, the
-    same bits as adding them one at a time (NaN, infinities, signed zeros and wide ranges
-    of magnitude included), a negative row counted from the end; a call given a range of
-    rows adds only theirs."""
+    same bits as adding them one at a time (infinities, signed zeros and wide ranges of
+    magnitude included; NaN where NaN), a negative row counted from the end. A call given a range of
+    rows adds only theirs, with or without the blocks' lowest and highest rows
+    (``codegen.row_bounds``, here blocks of 4 elements) to skip the blocks of other rows
+    by."""
     n = data.draw(st.integers(0, 60))
     run = st.lists(st.integers(-rows, rows - 1), min_size=1, max_size=8).map(
         lambda r: [r[0]] * len(r)  # runs of one row, as hits on one triangle give
     )
     where = np.array(sum(data.draw(st.lists(run, max_size=n)), []), np.int64)
+    if data.draw(st.booleans()):  # rows mostly ascending: whole blocks of other rows
+        where = where[np.argsort(where % rows, kind="stable")]
     special = st.sampled_from([np.nan, np.inf, -np.inf, 0.0, -0.0, 1e300, -1e-300])
     value = st.one_of(st.floats(-1e6, 1e6), special)
     share = np.array(
@@ -364,12 +372,25 @@ def test_scatter_kernel_adds_in_element_order(data, columns, rows):
         for i, r in enumerate(where):
             if first <= r % rows < end:
                 expected[r] += share[i]
-    table = start.reshape(rows, columns).copy()
-    kernel = compiler._scatter_kernel(columns)
-    buffers = [where, share, table, np.array([rows], np.int64)]
-    kernel._function(compiler._addresses(buffers), len(where), first, end)
-    np.testing.assert_array_equal(table, expected)  # NaN where NaN, -0.0 kept by bits:
-    assert np.array_equal(np.signbit(table), np.signbit(expected))
+    block = 4
+    blocks = -(-len(where) // block)
+    bounds = np.full((max(1, blocks), 2), -7, np.int64)
+    finder = backend.compile_ir(codegen.row_bounds(block))
+    sizes = np.array([rows, 0], np.int64)
+    finder._function(compiler._addresses([where, bounds, sizes]), len(where), 0, blocks)
+    for b in range(blocks):  # each block's lowest and highest row
+        mine = where[b * block : (b + 1) * block] % rows
+        assert tuple(bounds[b]) == (mine.min(), mine.max())
+    kernel = backend.compile_ir(codegen.scatter_add(columns, block))
+    for skip in (0, 1):
+        table = start.reshape(rows, columns).copy()
+        sizes[1] = skip
+        buffers = [where, share, table, sizes, bounds]
+        kernel._function(compiler._addresses(buffers), len(where), first, end)
+        np.testing.assert_array_equal(table, expected)  # NaN where NaN; -0.0 kept by bits
+        # (a NaN's sign is not: LLVM, like C, may swap an addition's operands)
+        number = ~np.isnan(expected)
+        assert np.array_equal(np.signbit(table[number]), np.signbit(expected[number]))
 
 
 def test_a_gather_out_of_range_is_an_index_error():
