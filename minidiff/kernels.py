@@ -28,11 +28,10 @@ light-estimation iteration took 44 ms with it, 20 ms without).
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 from minidiff import buffers, jitcache  # noqa: F401  (jitcache: before any kernel is cached)
-from minidiff.threads import run_jobs, thread_count
+from minidiff.threads import jit, run_jobs, thread_count
 
 # Below this many elements (both operands together) NumPy's own operators are fast enough:
 # the compiled loops and reused memory only pay off on large arrays.
@@ -128,7 +127,7 @@ def _numpy_loop(ufunc, x: np.ndarray, y: np.ndarray, out: np.ndarray) -> np.ndar
 _ADD, _SUBTRACT, _MULTIPLY = 0, 1, 2
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def _apply(code, p, q, swap):
     """p op q, or q op p if ``swap`` (the operator given by its code)."""
     if swap:
@@ -140,7 +139,7 @@ def _apply(code, p, q, swap):
     return p * q
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _per_row(code, full, column, swap, out):
     """out (k, 3) = full (k, 3) op column (k, 1), one pass over the rows."""
     for i in range(out.shape[0]):
@@ -149,7 +148,7 @@ def _per_row(code, full, column, swap, out):
             out[i, j] = _apply(code, full[i, j], c, swap)
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _fixed_row(code, full, row, swap, out):
     """out (k, 3) = full (k, 3) op row (1, 3), one pass over the rows."""
     r0, r1, r2 = row[0, 0], row[0, 1], row[0, 2]
@@ -159,7 +158,7 @@ def _fixed_row(code, full, row, swap, out):
         out[i, 2] = _apply(code, full[i, 2], r2, swap)
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _outer(code, column, row, swap, out):
     """out (k, 3) = column (k, 1) op row (1, 3), one pass over the rows."""
     r0, r1, r2 = row[0, 0], row[0, 1], row[0, 2]
@@ -236,13 +235,13 @@ def _rows_of_three(a: np.ndarray, b: np.ndarray) -> bool:
 # Numba does not contract without fastmath), row by row in one pass: 3-5x faster for k = 41k.
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _dot_rows(a, b, out):
     for i in range(a.shape[0]):
         out[i] = a[i, 0] * b[i, 0] + a[i, 1] * b[i, 1] + a[i, 2] * b[i, 2]
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _cross_rows(a, b, out):
     for i in range(a.shape[0]):
         a0, a1, a2 = a[i, 0], a[i, 1], a[i, 2]
@@ -267,7 +266,7 @@ def project_out(y: np.ndarray, g: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return multiply(g - multiply(y, dot_last(y, g)[..., None]), scale)
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _project_out_rows(y, g, scale, out):
     for i in range(y.shape[0]):
         d = y[i, 0] * g[i, 0] + y[i, 1] * g[i, 1] + y[i, 2] * g[i, 2]  # dot_last's order
@@ -326,7 +325,7 @@ def scatter_add_rows(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarra
     return out.reshape((n,) + values.shape[1:])
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _add_rows_at(index, rows, sums):
     """sums[index[i]] += rows[i] for i in order (in float64); False if an index is outside
     sums (nothing is written past it)."""
@@ -421,7 +420,7 @@ def pass_where_equal(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _pass_where_equal(g, a, b, out):
     for i in range(g.shape[0]):
         out[i] = g[i] if a[i] == b[i] else 0.0

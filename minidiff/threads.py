@@ -28,12 +28,21 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor, wait
 
 import numba
-from numba.core.compiler import CompilerBase, DefaultPassBuilder
+from numba.core.compiler import CompilerBase, DefaultPassBuilder, Flags
 from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.ir_utils import simplify
 from numba.core.typed_passes import NopythonRewrites
 
-__all__ = ["using_threads", "thread_count", "run_jobs", "job_count", "share", "kernel", "borrowing"]
+__all__ = [
+    "using_threads",
+    "thread_count",
+    "run_jobs",
+    "job_count",
+    "share",
+    "jit",
+    "kernel",
+    "borrowing",
+]
 
 # Threads a kernel may use in this thread (context); None: Numba's setting.
 _threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
@@ -119,12 +128,29 @@ class _KernelPipeline(CompilerBase):
         return [pipeline]
 
 
+#: Options every Numba function of the project is compiled with: no C-callable wrapper,
+#: which Numba makes for each function so that it can be passed around as a first-class
+#: function object (none of ours is), at about 20 ms of compiling each: a second of a cold
+#: start's first boundary-term gradient. (An option of Numba's compiler flags without a
+#: public description: asked for only where this Numba has it.)
+_OPTIONS = {"no_cfunc_wrapper": True} if hasattr(Flags, "no_cfunc_wrapper") else {}
+
+
+def jit(function: Callable | None = None, **options) -> Callable:
+    """``numba.njit(function, **options)`` with the project's own options (``_OPTIONS``):
+    how every hand-written Numba function in ``minidiff`` and ``render`` is compiled, used
+    as ``@jit(cache=True, ...)``."""
+    if function is None:
+        return lambda f: numba.njit(**_OPTIONS, **options)(f)
+    return numba.njit(**_OPTIONS, **options)(function)
+
+
 def kernel(function: Callable) -> Callable:
     """A job kernel (``kernel(job, n_jobs, ...)``, run by ``run_jobs``): ``function``
     compiled by Numba with the GIL released, cached on disk, NumPy's error model (x / 0 is
     inf or NaN, not an exception), through ``_KernelPipeline``."""
-    return numba.njit(cache=True, nogil=True, error_model="numpy", pipeline_class=_KernelPipeline)(
-        function
+    return jit(
+        function, cache=True, nogil=True, error_model="numpy", pipeline_class=_KernelPipeline
     )
 
 
@@ -140,10 +166,10 @@ def borrowing(function: Callable) -> Callable:
     threads that share a scene's arrays contend for their counts. Numba refuses to compile
     a function with this flag that would allocate (``np.empty``, a new array): such work
     stays in the kernel that calls it (``kernel``, counted as usual)."""
-    return numba.njit(cache=True, error_model="numpy", _nrt=False)(function)
+    return jit(function, cache=True, error_model="numpy", _nrt=False)
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def share(job, n_jobs, n):
     """(start, stop): job ``job``'s contiguous share of ``n`` independent items split among
     ``n_jobs`` jobs (for a kernel, inside its ``nogil`` Numba code)."""

@@ -26,13 +26,12 @@ from __future__ import annotations
 import math
 import threading
 
-import numba
 import numpy as np
 
 import minidiff as md
 from minidiff import buffers
 from minidiff.kernels import sum_rows
-from minidiff.threads import job_count, kernel, run_jobs, share
+from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from minidiff.trace import Traced
 from render.scene.cache import same
 from render.scene.scene import Camera, check_ray_count
@@ -102,7 +101,7 @@ def _coords_of_rays(ray_ids: np.ndarray, width: int, height: int, spp: int) -> n
     return out
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def pixel_xy(px, py, ox, oy, width, height):
     """Image-plane (x, y) of sub-pixel (ox, oy) of pixel (px, py), in the one order of
     operations every kernel uses."""
@@ -174,7 +173,7 @@ def _in_double(*arrays) -> bool:
     return all(np.asarray(a).dtype == np.float64 for a in arrays)
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def pixel_ray(px, py, ox, oy, width, height, forward, right, up):
     """The direction (dx, dy, dz) of the camera ray through sub-pixel (ox, oy) of pixel
     (px, py): the module docstring's formula, in the one order of operations every kernel
@@ -302,7 +301,7 @@ def _ray_ends(job, n_jobs, eye, directions, depth, rays, out):
         out[i, 0], out[i, 1], out[i, 2] = _ray_end(eye, depth[r], directions[r])
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def _ray_end(eye, t, d):
     """eye + t d: where a ray from the eye (3,) along ``d`` (three numbers) ends at t."""
     return eye[0] + t * d[0], eye[1] + t * d[1], eye[2] + t * d[2]

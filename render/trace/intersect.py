@@ -38,9 +38,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
 
-from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
+from minidiff.threads import borrowing, jit, job_count, kernel, run_jobs, share
 from render.trace.simd import enter4
 from render.trace.wide import CHILD, WIDTH
 
@@ -198,7 +197,7 @@ def _pack_rows(job, n_jobs, triangles, sphere_centers, sphere_radii, order, data
 # --------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def safe_inverse(d):
     """1/d for the slab test, with exact zeros replaced by a tiny positive number: then
     ``(bound - origin) * inv`` is huge (or +-inf) or exactly 0, never ``0 * inf = NaN``."""
@@ -207,7 +206,7 @@ def safe_inverse(d):
     return 1.0 / d
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def make_ray(origin, direction, tmin, tmax):
     """The :class:`Ray` ``origin + t * direction``, ``tmin < t < tmax``; origin and direction
     are three numbers each (an array row or a tuple)."""
@@ -237,7 +236,7 @@ def make_ray(origin, direction, tmin, tmax):
     )
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def ray_at(rays, i):
     """Ray ``i`` of ``rays`` (a :class:`Rays`) as a :class:`Ray`."""
     return make_ray(
@@ -253,7 +252,7 @@ def ray_at(rays, i):
 # --------------------------------------------------------------------------------------------
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def intersect_triangle(prim, k, ray):
     """Watertight test of ``ray`` (a :class:`Ray`) against row ``k`` of ``prim`` (P, 16)
     (Woop, Benthin and Wald 2013, "Watertight Ray/Triangle Intersection").
@@ -307,7 +306,7 @@ def intersect_triangle(prim, k, ray):
     return t, e_v * inv, e_w * inv
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def intersect_sphere(prim, k, ray):
     """Ray-sphere test of ``ray`` against row ``k`` of ``prim``; returns the nearest root
     ``t > ray.tmin`` (``inf`` for a miss).
@@ -351,7 +350,7 @@ def intersect_sphere(prim, k, ray):
     return np.inf
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def intersect_prim(prim, k, pid, n_tri, ray):
     """Test of ``ray`` against row ``k`` of ``prim``, primitive ``pid``: a triangle if
     ``pid < n_tri``, else a sphere.  Returns ``(t, u, v)`` with ``t = inf`` for a miss
@@ -361,7 +360,7 @@ def intersect_prim(prim, k, pid, n_tri, ray):
     return intersect_sphere(prim, k, ray), 0.0, 0.0
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def enter_slot(boxes, w, k, ray, t_far):
     """Slab test of ``ray`` against slot ``k`` of wide node ``w`` of ``boxes`` (W, 32)
     (``render.trace.wide``): the plain version of ``render.trace.simd.enter4``, which tests
@@ -398,7 +397,7 @@ def enter_slot(boxes, w, k, ray, t_far):
 # ``borrowing`` function, which would have compiled the traversal once for every kernel).
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _pop(stack, stack_t, sp, best_t):
     """Pop the most recently pushed node that can still hold an accepted hit (entry distance
     ``<= best_t``; equal is kept for the tie rule).  Returns ``(code, sp)`` (a child code of
@@ -410,7 +409,7 @@ def _pop(stack, stack_t, sp, best_t):
     return 0, -1
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _next(stack, sp):
     """Pop the most recently pushed node: ``(code, sp)``, ``sp = -1`` when the stack is
     empty."""
@@ -419,7 +418,7 @@ def _next(stack, sp):
     return stack[sp - 1], sp - 1
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _push_if(stack, sp, code, entry):
     """Push ``code`` if its box was entered (``entry`` finite); returns the new ``sp``."""
     if entry != np.inf:
@@ -428,7 +427,7 @@ def _push_if(stack, sp, code, entry):
     return sp
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _leaf_rows(bvh, code):
     """Rows ``start:stop`` of the leaf-ordered table that the leaf of child code ``code`` (<
     0) holds."""
@@ -445,7 +444,7 @@ def _leaf_rows(bvh, code):
 # 76 s.
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _closest_in_leaf(table, ids, n_tri, start, stop, ray, best):
     """``best`` = (prim_id, t, u, v) updated with the hits of ``ray`` on rows ``start:stop``
     of ``table`` (primitives ``ids[start:stop]``), in the (t, id) order."""
@@ -463,7 +462,7 @@ def _closest_in_leaf(table, ids, n_tri, start, stop, ray, best):
     return best_id, best_t, best_u, best_v
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _blocked_in_leaf(table, ids, n_tri, start, stop, ray, ignore):
     """Whether ``ray`` hits one of the primitives ``ids[start:stop]`` (rows ``start:stop`` of
     ``table``) other than ``ignore`` before ``ray.tmax``."""
@@ -485,7 +484,7 @@ def meets_before_end(table, k, pid, n_tri, ray):
     return intersect_prim(table, k, pid, n_tri, ray)[0] < ray.tmax
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def closest_hit_ray(bvh, ray, stack, stack_t):
     """Closest hit of ``ray`` (a :class:`Ray`) in ``bvh`` (a :class:`FlatBVH`): returns
     ``(prim_id, t, u, v)``, ``(-1, inf, 0, 0)`` for a miss.  ``stack`` int64 and ``stack_t``
@@ -545,7 +544,7 @@ def closest_hit_ray(bvh, ray, stack, stack_t):
     return best
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def occluded_ray(bvh, ray, ignore, stack):
     """Any-hit query of a shadow ``ray`` in ``bvh``: True if some primitive other than
     ``ignore`` is hit with ``ray.tmin < t < ray.tmax``.  Stops at the first such hit.  Same
@@ -610,7 +609,7 @@ def occluded_one(bvh, origin, direction, tmax, ignore, stack):
 # Each job allocates its traversal stack once.
 
 
-@njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def n_blocks(n_rays):
     """How many blocks of BLOCK rays N rays make."""
     return (n_rays + BLOCK - 1) // BLOCK

@@ -36,10 +36,9 @@ end. The shadow rays towards a point light are answered the same way, seen from 
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from minidiff import buffers
-from minidiff.threads import job_count, kernel, run_jobs
+from minidiff.threads import jit, job_count, kernel, run_jobs
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.scene.scene import Camera
 from render.trace.intersect import (
@@ -51,6 +50,7 @@ from render.trace.intersect import (
     n_blocks,
     pack_primitives,
 )
+from render.trace.vec3 import EPS, dot3
 
 #: Side of a binning tile, in pixels.
 TILE = 16
@@ -113,7 +113,7 @@ def screen_boxes(
 EDGE_MARGIN = 0.01
 
 
-@njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _project(corners, eye, forward, right, up, width, height, offsets, boxes, edges):
     """Fill ``boxes`` (and, for triangles, ``edges``) of point sets (P, n, 3) (see
     ``screen_boxes``). Serial: in parallel blocks it took twice as long on the teapot's
@@ -121,14 +121,22 @@ def _project(corners, eye, forward, right, up, width, height, offsets, boxes, ed
     # Continuous pixel coordinates: the sample at offset (ox, oy) of pixel (px, py) sits at
     # X = px + ox, Y = py + oy. A sample in [X0, X1] belongs to a pixel from
     # floor(X0 - max ox) to floor(X1 - min ox); the margin covers rounding many times over.
-    margin = EDGE_MARGIN
-    lo_ox, lo_oy = offsets[:, 0].min() - margin, offsets[:, 1].min() - margin
-    hi_ox, hi_oy = offsets[:, 0].max() + margin, offsets[:, 1].max() + margin
-    over_rr, over_uu = 1.0 / (right @ right), 1.0 / (up @ up)
+    # (Loops and ``dot3`` rather than ``.min()`` and ``@``: NumPy's functions compiled for
+    # Numba cost a cold start tenths of a second each.)
+    lo_ox = lo_oy = np.inf
+    hi_ox = hi_oy = -np.inf
+    for k in range(offsets.shape[0]):
+        lo_ox, hi_ox = min(lo_ox, offsets[k, 0]), max(hi_ox, offsets[k, 0])
+        lo_oy, hi_oy = min(lo_oy, offsets[k, 1]), max(hi_oy, offsets[k, 1])
+    lo_ox, lo_oy = lo_ox - EDGE_MARGIN, lo_oy - EDGE_MARGIN
+    hi_ox, hi_oy = hi_ox + EDGE_MARGIN, hi_oy + EDGE_MARGIN
+    over_rr, over_uu = 1.0 / dot3(right, right), 1.0 / dot3(up, up)
     n = corners.shape[1]
     xs, ys = np.empty(n), np.empty(n)
     for p in range(corners.shape[0]):
         behind = False
+        x_lo = y_lo = np.inf
+        x_hi = y_hi = -np.inf
         for k in range(n):
             qx = corners[p, k, 0] - eye[0]
             qy = corners[p, k, 1] - eye[1]
@@ -142,18 +150,20 @@ def _project(corners, eye, forward, right, up, width, height, offsets, boxes, ed
             xs[k], ys[k] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
             if not (depth > 0.0 and np.isfinite(xs[k]) and np.isfinite(ys[k])):
                 behind = True  # a projection would be meaningless: the whole screen
+            x_lo, x_hi = min(x_lo, xs[k]), max(x_hi, xs[k])
+            y_lo, y_hi = min(y_lo, ys[k]), max(y_hi, ys[k])
         if behind:
             boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = 0, 0, width - 1, height - 1
             continue
-        boxes[p, 0] = _pixel_in(np.floor(xs.min() - hi_ox), width)
-        boxes[p, 1] = _pixel_in(np.floor(ys.min() - hi_oy), height)
-        boxes[p, 2] = _pixel_in(np.floor(xs.max() - lo_ox), width)
-        boxes[p, 3] = _pixel_in(np.floor(ys.max() - lo_oy), height)
+        boxes[p, 0] = _pixel_in(np.floor(x_lo - hi_ox), width)
+        boxes[p, 1] = _pixel_in(np.floor(y_lo - hi_oy), height)
+        boxes[p, 2] = _pixel_in(np.floor(x_hi - lo_ox), width)
+        boxes[p, 3] = _pixel_in(np.floor(y_hi - lo_oy), height)
         if n == 3:
             _triangle_edges(xs, ys, edges[p])
 
 
-@njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _triangle_edges(xs, ys, out):
     """The edge lines (a, b, c) of the projected triangle (xs, ys) (3,), as signed distances
     in pixels, positive inside (``screen_boxes``); left as they are (always true) if rounding
@@ -162,7 +172,7 @@ def _triangle_edges(xs, ys, out):
     reach = 1.0  # bounds every |difference| below
     for k in range(3):
         reach = max(reach, 2.0 * abs(xs[k]) + 1.0, 2.0 * abs(ys[k]) + 1.0)
-    rounding = 8.0 * np.finfo(np.float64).eps * reach * reach  # of a cross product below
+    rounding = 8.0 * EPS * reach * reach  # of a cross product below
     area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0])
     if abs(area) <= 64.0 * rounding:
         return
@@ -182,13 +192,13 @@ def _triangle_edges(xs, ys, out):
         out[k, 0], out[k, 1], out[k, 2] = a, b, -(a * xs[k] + b * ys[k])
 
 
-@njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def _pixel_in(value, n):
     """A whole number of pixels clipped to [0, n - 1] (clipped as a float: it may be huge)."""
     return int(min(max(value, 0.0), n - 1.0))
 
 
-@njit(cache=True)
+@jit(cache=True)
 def bin_to_tiles(boxes, tiles_x, tiles_y, tile, order):
     """Per tile of ``tile`` x ``tile`` pixels (row-major), the ids of the primitives whose
     box overlaps it, in the order of ``order`` (a permutation of the ids): CSR arrays
@@ -273,7 +283,7 @@ def _raster_closest_hit(
                                 out_v[r] = v
 
 
-@njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def wholly_beyond(near, depth, rounding):
     """Whether a primitive whose nearest depth (along the view axis) is ``near`` lies wholly
     beyond ``depth`` >= 0, with room for the rounding of both: a relative millionth plus
@@ -281,7 +291,7 @@ def wholly_beyond(near, depth, rounding):
     return near > depth * (1.0 + 1e-6) + rounding
 
 
-@njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def may_see(edges, pid, x, y):
     """Whether a sample at continuous pixel position (x, y) passes primitive ``pid``'s three
     edge tests (``screen_boxes``). (Elements read one by one: a row view ``edges[pid]``
@@ -292,7 +302,7 @@ def may_see(edges, pid, x, y):
     return True
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def blocked_by_list(prim_data, n_tri, ids, first, last, near, edges, depth, rounding, x, y,
                     ray, ignore):  # fmt: skip
     """Whether ``ray`` (its end at most ``depth`` along the view axis, its sample at
@@ -311,7 +321,7 @@ def blocked_by_list(prim_data, n_tri, ids, first, last, near, edges, depth, roun
     return False
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def blocked_by_any(prim_data, n_tri, ray, ignore):
     """Whether ``ray`` is blocked by any primitive of ``prim_data`` (in id order) other than
     ``ignore``: for rays no cell's list covers (few: those outside the image, or starting
@@ -502,7 +512,7 @@ def _raster_occluded(
             )  # fmt: skip
 
 
-@njit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, error_model="numpy", inline="always")
 def _occluded_in_tile(
     prim_data, n_tri, edges, near, rounding, start, ids, tile_size, tiles_x, width, height,
     eye, forward, coords, directions, tmax, ignore, i,
@@ -523,7 +533,7 @@ def _occluded_in_tile(
                            depth, rounding, x, y, ray, ignore[i])  # fmt: skip
 
 
-@njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def nearest_depths(triangles, centers, radii, eye, forward):
     """(P,) each primitive's smallest depth along ``forward`` from the point ``eye`` (a camera's
     eye or a light; triangles: their nearest corner; spheres: centre depth - radius)."""

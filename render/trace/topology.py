@@ -16,10 +16,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
-from minidiff.threads import job_count, kernel, run_jobs, share
+from minidiff.threads import jit, job_count, kernel, run_jobs, share
 
 # Vertices closer than this fraction of the mesh's size (its bounding box diagonal) are one
 # position when welding.
@@ -292,7 +291,7 @@ def walk_to_silhouette(
     return face, edge, s_out, mid
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def _edge_values(vertices, a, b, eye, directional, near, far):
     """The edge function of edge (a, b) at the segment's two ends, with scalars only (no
     temporaries in the walk's inner loop): e = near . m with m = (v_a - eye) x (v_b - eye)

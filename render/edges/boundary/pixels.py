@@ -21,12 +21,11 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
 import minidiff as md
 from minidiff import buffers
-from minidiff.threads import job_count, kernel, run_jobs
+from minidiff.threads import jit, job_count, kernel, run_jobs
 from render.trace.intersect import BLOCK, n_blocks
 
 #: Quadrature points per piece of a curve inside one pixel (Gauss-Legendre on [0, 1]). The
@@ -58,7 +57,7 @@ NO_BORDER = np.iinfo(np.int64).min
 BOX_SLACK = 1e-9
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _clip_box(x0, y0, x1, y1, width, height):
     """Liang-Barsky: the parameter range [t0, t1] of the segment inside [0, W] x [0, H]
     (t0 > t1: none of it)."""
@@ -77,7 +76,7 @@ def _clip_box(x0, y0, x1, y1, width, height):
     return t0, t1
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _crossings(a0, a1, t0, t1, out):
     """The parameters t in (t0, t1) where a0 + t (a1 - a0) crosses an integer, in
     increasing order, written to ``out``; returns how many."""
@@ -111,7 +110,7 @@ def border_share(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
     return np.prod(np.where(border_lines(p0, p1) == NO_BORDER, 1.0, 0.5), axis=1)
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _cells(c, border):
     """The pixel cells, along one axis, of a piece whose midpoint has coordinate ``c``: the
     two cells beside ``border`` if the piece's segment lies on it (``border_lines``), else
@@ -122,7 +121,7 @@ def _cells(c, border):
     return cell, cell
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _count_pieces(p0, p1, border, width, height):
     n = 0
     for s in range(p0.shape[0]):
@@ -137,7 +136,7 @@ def _count_pieces(p0, p1, border, width, height):
     return n
 
 
-@numba.njit(cache=True)
+@jit(cache=True)
 def _fill_pieces(p0, p1, border, width, height, segment, start, end, pixel):
     xs = np.empty(width + 2)
     ys = np.empty(height + 2)
@@ -192,7 +191,7 @@ def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
     return segment[:n], start[:n], end[:n], pixel[:n]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _piece_geometry(p0, p1, segment, start, end, order, lo, hi, out):
     """Rows lo..hi - 1 of the pieces' geometry, in ``order``: each piece's start a, its
     extent b (the piece is a -> a + b), its bounding box widened by BOX_SLACK and how far
@@ -213,7 +212,7 @@ def _piece_geometry(p0, p1, segment, start, end, order, lo, hi, out):
         out[x, 8] = max(1e-12, JUNCTION / math.sqrt(bx * bx + by * by))
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def boxes_apart(ax0, ax1, bx0, bx1, ay0, ay1, by0, by1):
     """Whether two axis-aligned boxes, [ax0, ax1] x [ay0, ay1] and [bx0, bx1] x [by0, by1],
     are apart along x or y."""
@@ -224,7 +223,7 @@ def boxes_apart(ax0, ax1, bx0, bx1, ay0, ay1, by0, by1):
 FEW_CUTS = 24
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _sort_cuts(ts, m):
     """Sort ts[:m] in place. m is small on most pieces, and Numba's ``sort`` costs ~200 ns
     even for two (10 ms of a 512x512 teapot's split): insertion below FEW_CUTS. Where
@@ -236,7 +235,7 @@ def _sort_cuts(ts, m):
             _sift_down(ts, root, m)
         for end in range(m - 1, 0, -1):  # the largest left to the end, one after another
             ts[0], ts[end] = ts[end], ts[0]
-            _sift_down(ts, 0, end)
+            _sift_down(ts, np.int64(0), end)  # (a literal 0: a second compile)
         return
     for k in range(1, m):
         t = ts[k]
@@ -247,7 +246,7 @@ def _sort_cuts(ts, m):
         ts[j + 1] = t
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _sift_down(ts, root, end):
     """Move ts[root] down the heap ts[:end] (children of i at 2 i + 1 and 2 i + 2) until
     neither child is larger."""
@@ -263,7 +262,7 @@ def _sift_down(ts, root, end):
         root = child
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
     """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
     touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
@@ -272,7 +271,7 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
     for x in range(lo, hi):
         i = order[x]
         ax, ay, bx, by = geometry[x, 0], geometry[x, 1], geometry[x, 2], geometry[x, 3]
-        m = 0
+        m = np.int64(0)  # not the literal 0: _sort_cuts would compile for both
         for y in range(lo, hi):
             if y == x:
                 continue
@@ -390,7 +389,7 @@ def pixel_order(pixel: np.ndarray) -> np.ndarray:
 COUNTING_SPAN = 16
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _counting_order(pixel, n_pixels):
     """``pixel_order``'s order of pixel ids (k,) int64 in [0, n_pixels), by a counting
     sort (stable; several times faster than NumPy's sort on the teapot's pieces)."""
@@ -406,7 +405,7 @@ def _counting_order(pixel, n_pixels):
     return order
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _pixel_groups(pixel, order):
     """The pieces (pixel ids (k,), k > 0, in ``order``, by pixel) grouped: ``bounds``
     (n + 1,) where each of the n occupied pixels' group starts in ``order``, and ``slots``

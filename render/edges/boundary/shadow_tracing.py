@@ -25,10 +25,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
-from minidiff.threads import job_count, kernel, run_jobs
+from minidiff.threads import jit, job_count, kernel, run_jobs
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
@@ -174,7 +173,7 @@ def _starting_chords(scene, frame, curves):
     return (curve, u0, u0 + 1.0 / count[curve]), own
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _curve_point(kind, a, b, axis, u, out):
     """The point S(u) of one curve (kind 0: the segment from a to b; 1: the circle with
     centre a, radius vector b and second axis ``axis``) at parameter u in [0, 1], into out
@@ -189,7 +188,7 @@ def _curve_point(kind, a, b, axis, u, out):
             out[c] = a[c] + u * (b[c] - a[c])
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, stack_t, px):
     """Where the light's ray grazing the point s (3,) of a curve goes on to hit: the
     receiver (-1: nothing, behind the camera, or ``own``, the sphere grazed, which a ray
@@ -294,7 +293,7 @@ def _bisect_blocks(
         )  # fmt: skip
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _bisect_block(
     bvh, curves, where, point, own, start, first, last, frame, width, height, size,
     first_sphere, out, offset, room,

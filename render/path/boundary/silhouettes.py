@@ -47,11 +47,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 import minidiff as md
-from minidiff.threads import borrowing, job_count, kernel, run_jobs, share
+from minidiff.threads import borrowing, jit, job_count, kernel, run_jobs, share
 from render.path.sample.sampling import dot, unit
 from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh
@@ -548,22 +547,22 @@ def pick_reference(curves: Curves, apex, u_curve, u_point, triangle=None, active
     return index, np.where(index >= 0, probability * density, 0.0), faces, t
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _sub(a, b):
     return a[0] - b[0], a[1] - b[1], a[2] - b[2]
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _cross(a, b):
     return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _norm(a):
     return np.sqrt(_dot(a, a))
 
@@ -572,7 +571,7 @@ def _norm(a):
 # ``_whole``, ``_clipped``, ``_edge_towards``: as calls, the Cornell box's draws took a
 # fifth to a third longer); the others are plain calls, which LLVM inlines by itself
 # (Numba's inlining of them doubled the kernel's cold compile, 4 -> 9 s, for no speed).
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _edge(p, a, b, c0, c1, grazing):
     """An edge seen from p: (the angle it subtends, 0 if no silhouette; its faces' side)."""
     pa, pb = _sub(a, p), _sub(b, p)
@@ -590,7 +589,7 @@ def _edge(p, a, b, c0, c1, grazing):
     return np.arctan2(size, _dot(pa, pb)), np.sign(s0)
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _edge_towards(p, a, b, tri):
     """(lo, hi): the part of edge a -> b through which rays from p meet the triangle ``tri``
     (its three corners) (``Curves.towards``); lo = hi = 0 if none."""
@@ -606,7 +605,7 @@ def _edge_towards(p, a, b, tri):
     return min(max(lo, 0.0), 1.0), min(max(hi, 0.0), 1.0)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
     """``_edge_towards``'s (lo, hi, found) extended by the triangle's side vi -> vj (corners
     from p), if the plane through p and the edge (``normal``) crosses it: the parameter t
@@ -623,7 +622,7 @@ def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
     return min(lo, t), max(hi, t), found + 1
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _axes(n):
     """``basis`` for one unit vector."""
     helper = (0.0, 1.0, 0.0) if abs(n[0]) > 0.9 else (1.0, 0.0, 0.0)
@@ -633,7 +632,7 @@ def _axes(n):
     return u1, _cross(n, u1)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _sphere_towards(p, centre, tri):
     """(lo, hi): the azimuths (over 2 pi) about p -> centre that the triangle ``tri`` (its
     three corners) spans."""
@@ -659,7 +658,7 @@ def _sphere_towards(p, centre, tri):
     return lo, lo + (2 * np.pi - widest) / (2 * np.pi)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _in_order(x, y):
     """(x, y) in ascending order, NaN after every number (np.sort's order)."""
     if y < x or (x != x and y == y):
@@ -676,7 +675,7 @@ def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
     return _clipped(p, j, a, b, centre, weight, side, tri)
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _whole(p, j, a, b, c, centre, radius, grazing):
     """Curve j seen from p, whole: (weight, side): an edge's angle if it is a silhouette
     (``_edge``), a sphere's outline's 2 pi r / distance unless p is inside; 0 else."""
@@ -690,7 +689,7 @@ def _whole(p, j, a, b, c, centre, radius, grazing):
     return 2 * np.pi * radius[s] / max(distance, 1e-300), 0.0
 
 
-@numba.njit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always", error_model="numpy")
 def _clipped(p, j, a, b, centre, weight, side, tri):
     """Curve j seen from p, whose whole weight ``weight`` (> 0) and side are known: (its
     weight, side, lo, hi) clipped to the part whose rays meet triangle ``tri``, as

@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import math
 
-import numba
 import numpy as np
 
-from minidiff.threads import borrowing
+from minidiff.threads import borrowing, jit
 from render.path.sample.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def sample_rgb(texture, u, v):
     """The bilinear lookup of an (H, W, 3) texture at UV (u, v), repeating
     (``render.shade.lighting.sample_texture`` for one point): its three channels, and the
@@ -45,7 +44,7 @@ def sample_rgb(texture, u, v):
     )
 
 
-@numba.njit(cache=True, inline="always")
+@jit(cache=True, inline="always")
 def _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, c):
     """Channel c of ``sample_rgb``: the four texels' weighted sum."""
     top = texture[iy0, ix0, c] * (1.0 - fx) + texture[iy0, ix1, c] * fx
@@ -53,7 +52,7 @@ def _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, c):
     return top * (1.0 - fy) + bottom * fy
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _unit(x0, x1, x2):
     """``md.normalize`` of one 3-vector: x times 1 / |x| (the zero vector stays zero)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -70,7 +69,7 @@ _EMITTER = BOUNCE_DIMENSIONS["emitter"]
 _EMITTER_POINT = BOUNCE_DIMENSIONS["emitter_point"]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _dim(depth, j):
     """``render.path.sample.random.bounce_dimension``."""
     return 2 + DIMENSIONS_PER_BOUNCE * (depth - 1) + j
@@ -79,12 +78,12 @@ def _dim(depth, j):
 # --- small vector helpers ----------------------------------------------------------------------
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _divided(x0, x1, x2):
     """x / |x| (``np.linalg.norm`` then a division, as the sampler's ``unit``)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -122,7 +121,7 @@ def _to_world(l0, l1, l2, n):
     )
 
 
-@numba.njit(cache=True, error_model="numpy")
+@jit(cache=True, error_model="numpy")
 def _power(p, q):
     total = p * p + q * q
     return p * p / total if total > 0 else 0.0
