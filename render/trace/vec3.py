@@ -1,4 +1,4 @@
-"""Two 3-vector helpers and float64's epsilon for the hand-written Numba kernels (the
+"""3-vector helpers and float64's epsilon for the hand-written Numba kernels (the
 light's view, the rasteriser, the BVH's boxes, the mesh edges' sides and crossings):
 written out, because NumPy's ``np.cross``, ``@`` and ``np.finfo`` compile to Numba code with
 shape checks and error messages that took over a second of a cold start."""
@@ -31,3 +31,9 @@ def cross3(x, y, out):
 def cross(x, y):
     """x cross y of two 3-tuples, a 3-tuple (``cross3``'s arithmetic)."""
     return (x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0])
+
+
+@jit(cache=True, error_model="numpy", inline="always")
+def sub(x, y):
+    """x - y of two 3-tuples (or rows), a 3-tuple."""
+    return (x[0] - y[0], x[1] - y[1], x[2] - y[2])

@@ -21,7 +21,7 @@ from render.edges.boundary.pixels import boxes_apart, pixel_gradient
 from render.edges.geometry import plane_normal, triangle_corners
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
-from render.trace.vec3 import cross, dot3
+from render.trace.vec3 import cross, dot3, sub
 
 
 class SurfaceCrossing:
@@ -67,13 +67,13 @@ def _segment_of(t1, t2):
     fraction of the time, and compiled in a fraction of it too."""
     zero = (0.0, 0.0, 0.0)
     a1, a2 = _corner(t1, 0), _corner(t2, 0)
-    n1 = cross(_minus(_corner(t1, 1), a1), _minus(_corner(t1, 2), a1))
-    n2 = cross(_minus(_corner(t2, 1), a2), _minus(_corner(t2, 2), a2))
+    n1 = cross(sub(_corner(t1, 1), a1), sub(_corner(t1, 2), a1))
+    n2 = cross(sub(_corner(t2, 1), a2), sub(_corner(t2, 2), a2))
     # each triangle's corners against the other's plane
-    d2 = (dot3(n1, _minus(_corner(t2, 0), a1)), dot3(n1, _minus(_corner(t2, 1), a1)),
-          dot3(n1, _minus(_corner(t2, 2), a1)))  # fmt: skip
-    d1 = (dot3(n2, _minus(_corner(t1, 0), a2)), dot3(n2, _minus(_corner(t1, 1), a2)),
-          dot3(n2, _minus(_corner(t1, 2), a2)))  # fmt: skip
+    d2 = (dot3(n1, sub(_corner(t2, 0), a1)), dot3(n1, sub(_corner(t2, 1), a1)),
+          dot3(n1, sub(_corner(t2, 2), a1)))  # fmt: skip
+    d1 = (dot3(n2, sub(_corner(t1, 0), a2)), dot3(n2, sub(_corner(t1, 1), a2)),
+          dot3(n2, sub(_corner(t1, 2), a2)))  # fmt: skip
     if _one_side(d1) or _one_side(d2):
         return False, zero, zero
     u = cross(n1, n2)
@@ -100,12 +100,6 @@ def _one_side(d):
 def _corner(t, k):
     """Corner k of triangle t (3, 3), a 3-tuple."""
     return (t[k, 0], t[k, 1], t[k, 2])
-
-
-@jit(cache=True, inline="always")
-def _minus(x, y):
-    """x - y of two 3-tuples."""
-    return (x[0] - y[0], x[1] - y[1], x[2] - y[2])
 
 
 @jit(cache=True)

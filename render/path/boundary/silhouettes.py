@@ -57,6 +57,7 @@ from render.scene.scene import Mesh
 from render.shade.surface import column, divided_unit
 from render.trace.seams import shared_edges
 from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
+from render.trace.vec3 import cross, dot3, sub
 
 #: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
 GRAZING = 1e-9
@@ -466,18 +467,18 @@ def _touch(job, n_jobs, points, triangles, tolerance, out):
         p = (points[i, 0], points[i, 1], points[i, 2])
         for f in range(len(triangles)):
             v0 = (triangles[f, 0, 0], triangles[f, 0, 1], triangles[f, 0, 2])
-            e1 = _sub(triangles[f, 1], v0)
-            e2 = _sub(triangles[f, 2], v0)
-            normal = _cross(e1, e2)
+            e1 = sub(triangles[f, 1], v0)
+            e2 = sub(triangles[f, 2], v0)
+            normal = cross(e1, e2)
             area = _norm(normal)
             if area == 0:
                 continue
-            d = _sub(p, v0)
-            if abs(_dot(d, normal)) > tolerance * area:
+            d = sub(p, v0)
+            if abs(dot3(d, normal)) > tolerance * area:
                 continue
             # Barycentrics of p's projection, with a margin of ``tolerance`` along the sides.
-            d11, d12, d22 = _dot(e1, e1), _dot(e1, e2), _dot(e2, e2)
-            p1, p2 = _dot(d, e1), _dot(d, e2)
+            d11, d12, d22 = dot3(e1, e1), dot3(e1, e2), dot3(e2, e2)
+            p1, p2 = dot3(d, e1), dot3(d, e2)
             det = d11 * d22 - d12 * d12
             u, v = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
             margin = tolerance * _norm(e1) / area + tolerance * _norm(e2) / area
@@ -548,23 +549,8 @@ def pick_reference(curves: Curves, apex, u_curve, u_point, triangle=None, active
 
 
 @jit(cache=True, inline="always", error_model="numpy")
-def _sub(a, b):
-    return a[0] - b[0], a[1] - b[1], a[2] - b[2]
-
-
-@jit(cache=True, inline="always", error_model="numpy")
-def _dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@jit(cache=True, inline="always", error_model="numpy")
-def _cross(a, b):
-    return a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
-
-
-@jit(cache=True, inline="always", error_model="numpy")
 def _norm(a):
-    return np.sqrt(_dot(a, a))
+    return np.sqrt(dot3(a, a))
 
 
 # The draws' helpers: those run per curve and apex are inlined by Numba (``_edge``,
@@ -574,10 +560,10 @@ def _norm(a):
 @jit(cache=True, inline="always", error_model="numpy")
 def _edge(p, a, b, c0, c1, grazing):
     """An edge seen from p: (the angle it subtends, 0 if no silhouette; its faces' side)."""
-    pa, pb = _sub(a, p), _sub(b, p)
-    normal = _cross(pa, pb)
-    d0, d1 = _sub(c0, p), _sub(c1, p)
-    s0, s1 = _dot(d0, normal), _dot(d1, normal)
+    pa, pb = sub(a, p), sub(b, p)
+    normal = cross(pa, pb)
+    d0, d1 = sub(c0, p), sub(c1, p)
+    s0, s1 = dot3(d0, normal), dot3(d1, normal)
     # Most edges of a closed mesh are not silhouettes: their faces' far corners lie on
     # opposite sides. Tested first, it spares them the three square roots below (either
     # test alone gives 0; NaN fails both).
@@ -586,16 +572,16 @@ def _edge(p, a, b, c0, c1, grazing):
     size = _norm(normal)
     if not (abs(s0) > grazing * size * _norm(d0) and abs(s1) > grazing * size * _norm(d1)):
         return 0.0, 0.0
-    return np.arctan2(size, _dot(pa, pb)), np.sign(s0)
+    return np.arctan2(size, dot3(pa, pb)), np.sign(s0)
 
 
 @jit(cache=True, inline="always", error_model="numpy")
 def _edge_towards(p, a, b, tri):
     """(lo, hi): the part of edge a -> b through which rays from p meet the triangle ``tri``
     (its three corners) (``Curves.towards``); lo = hi = 0 if none."""
-    e, pa = _sub(b, a), _sub(a, p)
-    normal = _cross(pa, _sub(b, p))
-    v0, v1, v2 = _sub(tri[0], p), _sub(tri[1], p), _sub(tri[2], p)
+    e, pa = sub(b, a), sub(a, p)
+    normal = cross(pa, sub(b, p))
+    v0, v1, v2 = sub(tri[0], p), sub(tri[1], p), sub(tri[2], p)
     # The triangle's sides in turn (written out: a tuple indexed by a variable is slow).
     lo, hi, found = _side_crossing(v0, v1, normal, e, pa, 0.0, 0.0, 0)
     lo, hi, found = _side_crossing(v1, v2, normal, e, pa, lo, hi, found)
@@ -610,13 +596,13 @@ def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
     """``_edge_towards``'s (lo, hi, found) extended by the triangle's side vi -> vj (corners
     from p), if the plane through p and the edge (``normal``) crosses it: the parameter t
     on the edge a + t e where the ray from p through the crossing meets it."""
-    di, dj = _dot(vi, normal), _dot(vj, normal)
+    di, dj = dot3(vi, normal), dot3(vj, normal)
     if not di * dj < 0:
         return lo, hi, found
     f = di / (di - dj)
     q = (vi[0] + f * (vj[0] - vi[0]), vi[1] + f * (vj[1] - vi[1]), vi[2] + f * (vj[2] - vi[2]))
-    exq = _cross(e, q)
-    t = _dot(_cross((-pa[0], -pa[1], -pa[2]), q), exq) / max(_dot(exq, exq), 1e-300)
+    exq = cross(e, q)
+    t = dot3(cross((-pa[0], -pa[1], -pa[2]), q), exq) / max(dot3(exq, exq), 1e-300)
     if found == 0:
         return t, t, 1
     return min(lo, t), max(hi, t), found + 1
@@ -626,23 +612,23 @@ def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
 def _axes(n):
     """``basis`` for one unit vector."""
     helper = (0.0, 1.0, 0.0) if abs(n[0]) > 0.9 else (1.0, 0.0, 0.0)
-    u1 = _cross(n, helper)
+    u1 = cross(n, helper)
     length = _norm(u1)
     u1 = (u1[0] / length, u1[1] / length, u1[2] / length)
-    return u1, _cross(n, u1)
+    return u1, cross(n, u1)
 
 
 @jit(cache=True, error_model="numpy")
 def _sphere_towards(p, centre, tri):
     """(lo, hi): the azimuths (over 2 pi) about p -> centre that the triangle ``tri`` (its
     three corners) spans."""
-    q = _sub(centre, p)
+    q = sub(centre, p)
     length = max(_norm(q), 1e-300)
     u1, u2 = _axes((q[0] / length, q[1] / length, q[2] / length))
-    v0, v1, v2 = _sub(tri[0], p), _sub(tri[1], p), _sub(tri[2], p)
-    z0 = np.arctan2(_dot(u2, v0), _dot(u1, v0))
-    z1 = np.arctan2(_dot(u2, v1), _dot(u1, v1))
-    z2 = np.arctan2(_dot(u2, v2), _dot(u1, v2))
+    v0, v1, v2 = sub(tri[0], p), sub(tri[1], p), sub(tri[2], p)
+    z0 = np.arctan2(dot3(u2, v0), dot3(u1, v0))
+    z1 = np.arctan2(dot3(u2, v1), dot3(u1, v1))
+    z2 = np.arctan2(dot3(u2, v2), dot3(u1, v2))
     z0, z1 = _in_order(z0, z1)  # sorted as np.sort sorts (NaN last)
     z1, z2 = _in_order(z1, z2)
     z0, z1 = _in_order(z0, z1)
@@ -683,7 +669,7 @@ def _whole(p, j, a, b, c, centre, radius, grazing):
     if j < n_edges:
         return _edge(p, a[j], b[j], c[j, 0], c[j, 1], grazing)
     s = j - n_edges
-    distance = _norm(_sub(centre[s], p))
+    distance = _norm(sub(centre[s], p))
     if not radius[s] < distance * (1 - 1e-9):
         return 0.0, 0.0
     return 2 * np.pi * radius[s] / max(distance, 1e-300), 0.0
@@ -697,11 +683,11 @@ def _clipped(p, j, a, b, centre, weight, side, tri):
     n_edges = a.shape[0]
     if j < n_edges:
         lo, hi = _edge_towards(p, a[j], b[j], tri)
-        e = _sub(b[j], a[j])
+        e = sub(b[j], a[j])
         start = (a[j][0] + lo * e[0] - p[0], a[j][1] + lo * e[1] - p[1],
                  a[j][2] + lo * e[2] - p[2])  # fmt: skip
         end = (a[j][0] + hi * e[0] - p[0], a[j][1] + hi * e[1] - p[1], a[j][2] + hi * e[2] - p[2])
-        return np.arctan2(_norm(_cross(start, end)), _dot(start, end)), side, lo, hi
+        return np.arctan2(_norm(cross(start, end)), dot3(start, end)), side, lo, hi
     lo, hi = _sphere_towards(p, centre[j - n_edges], tri)
     return weight * (hi - lo), 0.0, lo, hi
 
@@ -772,7 +758,7 @@ def _draw(p, weights, u_curve, u_point, a, b, c, centre, radius, triangle, clip,
         out[0], out[1], out[2] = chosen, probability / (hi - lo), 0.0
         out[3] = lo + u_point * (hi - lo)
         return
-    e = _sub(b[chosen], a[chosen])
+    e = sub(b[chosen], a[chosen])
     start = (a[chosen][0] + lo * e[0] - p[0], a[chosen][1] + lo * e[1] - p[1],
              a[chosen][2] + lo * e[2] - p[2])  # fmt: skip
     end = (a[chosen][0] + hi * e[0] - p[0], a[chosen][1] + hi * e[1] - p[1],
@@ -780,8 +766,8 @@ def _draw(p, weights, u_curve, u_point, a, b, c, centre, radius, triangle, clip,
     ls, le = _norm(start), _norm(end)
     start = (start[0] / ls, start[1] / ls, start[2] / ls)
     end = (end[0] / le, end[1] / le, end[2] / le)
-    angle = np.arctan2(_norm(_cross(start, end)), _dot(start, end))
-    c_ = _dot(end, start)
+    angle = np.arctan2(_norm(cross(start, end)), dot3(start, end))
+    c_ = dot3(end, start)
     tw = (end[0] - c_ * start[0], end[1] - c_ * start[1], end[2] - c_ * start[2])
     lt = _norm(tw)
     tw = (tw[0] / lt, tw[1] / lt, tw[2] / lt)
@@ -789,11 +775,11 @@ def _draw(p, weights, u_curve, u_point, a, b, c, centre, radius, triangle, clip,
     d = (np.cos(psi) * start[0] + np.sin(psi) * tw[0],
          np.cos(psi) * start[1] + np.sin(psi) * tw[1],
          np.cos(psi) * start[2] + np.sin(psi) * tw[2])  # fmt: skip
-    exd = _cross(e, d)
-    ti = _dot(_cross(_sub(p, a[chosen]), d), exd) / max(_dot(exd, exd), 1e-300)
+    exd = cross(e, d)
+    ti = dot3(cross(sub(p, a[chosen]), d), exd) / max(dot3(exd, exd), 1e-300)
     w = (a[chosen][0] + ti * e[0] - p[0], a[chosen][1] + ti * e[1] - p[1],
          a[chosen][2] + ti * e[2] - p[2])  # fmt: skip
-    rate = _norm(_cross(w, e)) / _dot(w, w)  # dpsi / dt
+    rate = _norm(cross(w, e)) / dot3(w, w)  # dpsi / dt
     density = probability * rate / (angle if angle > 0 else 1.0)
     if np.isfinite(density) and density > 0 and np.isfinite(ti):  # else an edge seen end-on
         out[0], out[1], out[2], out[3] = chosen, density, faces, ti

@@ -43,7 +43,6 @@ from render.path.twin.scalar import (
     _brdf,
     _dim,
     _divided,
-    _dot,
     _local,
     _look,
     _pdf,
@@ -57,6 +56,7 @@ from render.path.twin.scalar import (
     _unit,
 )
 from render.trace.intersect import BLOCK, closest_hit_one, occluded_one
+from render.trace.vec3 import dot3
 
 __all__ = ["Packed", "applies", "pack", "render_image", "sample_paths"]
 
@@ -120,10 +120,10 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                 triangles, centers, prim_object, smooth, corners, normals, uvs, prim, xt, ut, vt
             )[1:4]
         wo = (-incoming[0], -incoming[1], -incoming[2])
-        side = -1.0 if _dot(ng, wo) < 0 else 1.0
+        side = -1.0 if dot3(ng, wo) < 0 else 1.0
         ng = (side * ng[0], side * ng[1], side * ng[2])
         ns = (side * ns[0], side * ns[1], side * ns[2])
-        side_t = -1.0 if _dot(ngt, wot) < 0 else 1.0
+        side_t = -1.0 if dot3(ngt, wot) < 0 else 1.0
         nst = (side_t * nst[0], side_t * nst[1], side_t * nst[2])
         # Emission seen here, MIS-weighted against NEE (PathSampler._emission_weight).
         weight = 1.0
@@ -154,7 +154,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
                     offset, here, look, row, rec_lit)  # fmt: skip
         # How the path goes on (PathSampler._continue).
         mirror, wi, next_pdf = _direction(key, depth, wo, ns, p_d, p_g, p_m, shininess[o])
-        go = (p_d + p_g + p_m > 0) and next_pdf > 0 and _dot(ng, wi) > 0
+        go = (p_d + p_g + p_m > 0) and next_pdf > 0 and dot3(ng, wi) > 0
         estimate = estimate * lobe_reflectance[o]
         survive = 1.0
         if depth >= rr_depth:
@@ -196,9 +196,9 @@ def _emission_weight(e_row_of, e_probability, e_area, prim, point, previous, ng,
     r = e_row_of[prim]
     p_nee = e_probability[r] / e_area[r] if r >= 0 else 0.0
     to = (point[0] - previous[0], point[1] - previous[1], point[2] - previous[2])
-    d2 = _dot(to, to)
+    d2 = dot3(to, to)
     d2 = d2 if d2 > 0 else 1.0
-    cos = abs(_dot(ng, to)) / math.sqrt(d2)
+    cos = abs(dot3(ng, to)) / math.sqrt(d2)
     if p_nee > 0:
         return _power(pdf * cos / d2, p_nee)
     return 1.0
@@ -249,11 +249,11 @@ def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emi
     if kept:  # recorded whether or not it is seen, as the sampler does
         _put(rec_f, depth - 1, row, R.NEE_LOCAL, e_local)
     to = (z[0] - point[0], z[1] - point[1], z[2] - point[2])
-    d2 = _dot(to, to)
+    d2 = dot3(to, to)
     root = math.sqrt(d2 if d2 > 0 else 1.0)
     wi = (to[0] / root, to[1] / root, to[2] / root)
-    cos_z = -_dot(nz, wi)
-    ok = (p_d + p_g > 0) and cos_z > 0 and _dot(ng, wi) > 0 and d2 > 0 and e_prim != prim
+    cos_z = -dot3(nz, wi)
+    ok = (p_d + p_g > 0) and cos_z > 0 and dot3(ng, wi) > 0 and d2 > 0 and e_prim != prim
     if ok:
         to = (z[0] - origin[0], z[1] - origin[1], z[2] - origin[2])
         ok = not occluded_one(bvh, origin, to, 1.0 - 1e-7, ignore, stack)
@@ -267,11 +267,11 @@ def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emi
         rec_f[depth - 1, row, R.NEE_WEIGHT] = nee_weight
     # The radiance it brings (transport._at_vertex), from the tape's point.
     to = (z[0] - xt[0], z[1] - xt[1], z[2] - xt[2])
-    d2 = _dot(to, to)
+    d2 = dot3(to, to)
     root = math.sqrt(d2)
     wi = (to[0] / root, to[1] / root, to[2] / root)
     eo = prim_object[e_prim]
-    scale = max(_dot(nst, wi), 0.0) * abs(_dot(nz, wi)) / d2 * e_area[pick]
+    scale = max(dot3(nst, wi), 0.0) * abs(dot3(nz, wi)) / d2 * e_area[pick]
     scale = scale * nee_weight
     f = _brdf(nst, wot, wi, kd, ks, shin, lobe)
     return (L[0] + beta[0] * (f[0] * scale * emission[eo, 0]),
@@ -309,7 +309,7 @@ def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_co
             wl = _unit(tx, ty, tz)
         else:
             wl = (light_vec[j, 0], light_vec[j, 1], light_vec[j, 2])
-            lit = _dot(ng, wl) > 0
+            lit = dot3(ng, wl) > 0
             if lit:
                 so = (point[0] + offset * wl[0], point[1] + offset * wl[1],
                       point[2] + offset * wl[2])  # fmt: skip
@@ -319,7 +319,7 @@ def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_co
             rec_lit[depth - 1, row, j] = lit
         if not lit:
             continue
-        scalar = irradiance * max(_dot(nst, wl), 0.0)
+        scalar = irradiance * max(dot3(nst, wl), 0.0)
         f = _brdf(nst, wot, wl, kd, ks, shin, lobe)
         L = (L[0] + beta[0] * (scalar * (f[0] * light_color[j, 0])),
              L[1] + beta[1] * (scalar * (f[1] * light_color[j, 1])),
@@ -336,14 +336,14 @@ def _direction(key, depth, wo, ns, p_d, p_g, p_m, shin):
     u2 = uniform_of(key, _dim(depth, _DIRECTION) + 1)
     pick_lobe = uniform_of(key, _dim(depth, _LOBE))
     if pick_lobe >= p_d + p_g:  # the mirror
-        c2 = 2.0 * _dot(wo, ns)
+        c2 = 2.0 * dot3(wo, ns)
         return True, (c2 * ns[0] - wo[0], c2 * ns[1] - wo[1], c2 * ns[2] - wo[2]), p_m
     if pick_lobe >= p_d:  # glossy
         cos_h = u1 ** (1.0 / (shin + 1.0))
         sin_h = math.sqrt(max(1.0 - cos_h**2, 0.0))
         phi = 2.0 * math.pi * u2
         h = _to_world(sin_h * math.cos(phi), sin_h * math.sin(phi), cos_h, ns)
-        c2 = 2.0 * _dot(wo, h)
+        c2 = 2.0 * dot3(wo, h)
         wi = (c2 * h[0] - wo[0], c2 * h[1] - wo[1], c2 * h[2] - wo[2])
     else:
         r, phi = math.sqrt(u1), 2.0 * math.pi * u2
@@ -364,7 +364,7 @@ def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, po
     x_next, wo_next = xt, wot  # (both read only when a vertex follows)
     if mirror:
         factor = (reflectance[0] * scale, reflectance[1] * scale, reflectance[2] * scale)
-        c2 = 2.0 * _dot(wot, nst)  # the tape's reflected ray, from its own point
+        c2 = 2.0 * dot3(wot, nst)  # the tape's reflected ray, from its own point
         reflected = (c2 * nst[0] - wot[0], c2 * nst[1] - wot[1], c2 * nst[2] - wot[2])
         if prim >= 0:
             x_next, ut, vt = _reintersect(triangles, centers, radii, prim, xt, reflected)
@@ -375,10 +375,10 @@ def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, po
         x_next = _placed(triangles, centers, radii, prim,
                          _local(triangles, centers, prim, point_next, u, v))  # fmt: skip
         to = (x_next[0] - xt[0], x_next[1] - xt[1], x_next[2] - xt[2])
-        root = math.sqrt(_dot(to, to))
+        root = math.sqrt(dot3(to, to))
         wn = (to[0] / root, to[1] / root, to[2] / root)
         wo_next = _unit(-wn[0], -wn[1], -wn[2])
-    cos = max(_dot(nst, wn), 0.0) * scale
+    cos = max(dot3(nst, wn), 0.0) * scale
     f = _brdf(nst, wot, wn, kd, ks, shin, lobe)
     return (f[0] * cos, f[1] * cos, f[2] * cos), x_next, ut, vt, wo_next
 

@@ -17,6 +17,7 @@ import numpy as np
 
 from minidiff.threads import borrowing, jit
 from render.path.sample.random import BOUNCE_DIMENSIONS, DIMENSIONS_PER_BOUNCE
+from render.trace.vec3 import dot3
 
 
 @jit(cache=True, inline="always")
@@ -79,11 +80,6 @@ def _dim(depth, j):
 
 
 @jit(cache=True, error_model="numpy")
-def _dot(a, b):
-    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-@jit(cache=True, error_model="numpy")
 def _divided(x0, x1, x2):
     """x / |x| (``np.linalg.norm`` then a division, as the sampler's ``unit``)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -131,9 +127,9 @@ def _power(p, q):
 def _glossy_pdf(n, view, w, shininess):
     """``render.path.sample.sampling.blinn_phong_pdf`` of one direction."""
     h = _divided(view[0] + w[0], view[1] + w[1], view[2] + w[2])
-    cos_h = max(_dot(n, h), 0.0)
-    vh = abs(_dot(view, h))
-    if not (vh > 0 and _dot(n, w) > 0):
+    cos_h = max(dot3(n, h), 0.0)
+    vh = abs(dot3(view, h))
+    if not (vh > 0 and dot3(n, w) > 0):
         return 0.0
     return (shininess + 1.0) / (2.0 * math.pi) * cos_h**shininess / (4.0 * vh)
 
@@ -143,7 +139,7 @@ def _pdf(p_diffuse, p_glossy, shininess, ns, wo, wi):
     """``PathSampler._pdf``: the density of the diffuse-or-glossy choice at wi (the glossy
     lobe's, and its power, only where the material has one: 0 x its finite pdf is 0)."""
     glossy = _glossy_pdf(ns, wo, wi, shininess) if p_glossy > 0 else 0.0
-    return p_diffuse * (max(_dot(ns, wi), 0.0) / math.pi) + p_glossy * glossy
+    return p_diffuse * (max(dot3(ns, wi), 0.0) / math.pi) + p_glossy * glossy
 
 
 @borrowing
@@ -151,7 +147,7 @@ def _lobe(ns, view, wi, shininess):
     """The Blinn-Phong lobe's n.h (clamped as the tape clamps it, >= 1e-12) and
     (n.h)^shininess."""
     h = _unit(wi[0] + view[0], wi[1] + view[1], wi[2] + view[2])
-    n_dot_h = max(_dot(ns, h), 1e-12)
+    n_dot_h = max(dot3(ns, h), 1e-12)
     return n_dot_h, n_dot_h**shininess
 
 
@@ -257,19 +253,19 @@ def _reintersect(triangles, centers, radii, prim, o, d):
         e1 = (b[0] - a[0], b[1] - a[1], b[2] - a[2])
         e2 = (c[0] - a[0], c[1] - a[1], c[2] - a[2])
         p = (d[1] * e2[2] - d[2] * e2[1], d[2] * e2[0] - d[0] * e2[2], d[0] * e2[1] - d[1] * e2[0])
-        inv_det = 1.0 / _dot(e1, p)
+        inv_det = 1.0 / dot3(e1, p)
         q0 = (o[0] - a[0], o[1] - a[1], o[2] - a[2])
         q = (q0[1] * e1[2] - q0[2] * e1[1], q0[2] * e1[0] - q0[0] * e1[2],
              q0[0] * e1[1] - q0[1] * e1[0])  # fmt: skip
-        t = _dot(e2, q) * inv_det
-        u, v = _dot(q0, p) * inv_det, _dot(d, q) * inv_det
+        t = dot3(e2, q) * inv_det
+        u, v = dot3(q0, p) * inv_det, dot3(d, q) * inv_det
     else:
         k = prim - n_tri
         oc = (o[0] - centers[k, 0], o[1] - centers[k, 1], o[2] - centers[k, 2])
-        a2, b2 = _dot(d, d), _dot(oc, d)
-        c2 = _dot(oc, oc) - radii[k] * radii[k]
+        a2, b2 = dot3(d, d), dot3(oc, d)
+        c2 = dot3(oc, oc) - radii[k] * radii[k]
         root = math.sqrt(max(b2 * b2 - a2 * c2, max(b2 * b2 * 1e-16, 2.2250738585072014e-308)))
-        sign = 1.0 if math.sqrt(_dot(oc, oc)) < radii[k] else -1.0
+        sign = 1.0 if math.sqrt(dot3(oc, oc)) < radii[k] else -1.0
         t = (-b2 + sign * root) / a2
         u = v = 0.0
     return (o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]), u, v
