@@ -174,56 +174,55 @@ def _starting_chords(scene, frame, curves):
 
 
 @jit(cache=True, error_model="numpy")
-def _curve_point(kind, a, b, axis, u, out):
-    """The point S(u) of one curve (kind 0: the segment from a to b; 1: the circle with
-    centre a, radius vector b and second axis ``axis``) at parameter u in [0, 1], into out
-    (3,)."""
-    if kind == 1:
+def _curve_point(kind, a, b, axis, cv, u):
+    """The point S(u) (a 3-tuple) of curve ``cv`` (rows of kind, a, b, axis: kind 0 the
+    segment from a to b; 1 the circle with centre a, radius vector b and second axis
+    ``axis``) at parameter u in [0, 1]."""
+    if kind[cv] == 1:
         phi = 2.0 * math.pi * u
         cos, sin = math.cos(phi), math.sin(phi)
-        for c in range(3):
-            out[c] = a[c] + cos * b[c] + sin * axis[c]
-    else:
-        for c in range(3):
-            out[c] = a[c] + u * (b[c] - a[c])
+        return (a[cv, 0] + cos * b[cv, 0] + sin * axis[cv, 0],
+                a[cv, 1] + cos * b[cv, 1] + sin * axis[cv, 1],
+                a[cv, 2] + cos * b[cv, 2] + sin * axis[cv, 2])  # fmt: skip
+    return (a[cv, 0] + u * (b[cv, 0] - a[cv, 0]), a[cv, 1] + u * (b[cv, 1] - a[cv, 1]),
+            a[cv, 2] + u * (b[cv, 2] - a[cv, 2]))  # fmt: skip
 
 
 @jit(cache=True, error_model="numpy")
-def _graze_one(bvh, where, point, s, own, frame, width, height, size, stack, stack_t, px):
-    """Where the light's ray grazing the point s (3,) of a curve goes on to hit: the
-    receiver (-1: nothing, behind the camera, or ``own``, the sphere grazed, which a ray
-    touching it meets again only by rounding) and its pixel position, written to px (2,).
-    ``where``: the light's position if ``point``, else its unit direction. (Scalars and
-    tuples only: arrays allocated per ray cost more than the arithmetic around the trace.)"""
+def _graze_one(bvh, where, point, own, cv, s, frame, width, height, size, stack, stack_t):
+    """Where the light of curve ``cv`` sends the ray grazing the point s (a 3-tuple) of the
+    curve on to hit: (receiver, x, y), the receiver -1 (nothing, behind the camera, or
+    ``own[cv]``, the sphere grazed, which a ray touching it meets again only by rounding)
+    or its pixel position (x, y) (0, 0 for -1). ``where[cv]``: the light's position if
+    ``point[cv]``, else its unit direction. (Scalars and tuples only: arrays allocated per
+    ray cost more than the arithmetic around the trace, and cost the cold start their
+    compiling.)"""
     forward, right, up, eye = frame
     # One traversal for both kinds of light (``closest_hit_one``: the one compiled copy the
     # path kernel calls too): from a light at a point the ray leaves the light towards s,
     # from a light at infinity it leaves s along the light's direction.
-    if point:
-        o = (where[0], where[1], where[2])
-        d = (s[0] - where[0], s[1] - where[1], s[2] - where[2])
+    w = (where[cv, 0], where[cv, 1], where[cv, 2])
+    if point[cv]:
+        o = w
+        d = (s[0] - w[0], s[1] - w[1], s[2] - w[2])
         tmin = 1.0 + START
     else:
-        o = (s[0], s[1], s[2])
-        d = (where[0], where[1], where[2])
+        o = s
+        d = w
         tmin = START * size
     prim, t, _, _ = closest_hit_one(bvh, o, d, tmin, stack, stack_t)
-    t_hit = t if prim >= 0 else 0.0
-    h0, h1, h2 = o[0] + t_hit * d[0], o[1] + t_hit * d[1], o[2] + t_hit * d[2]
     if prim < 0:
-        px[0] = px[1] = 0.0
-        return -1
+        return -1, 0.0, 0.0
+    h0, h1, h2 = o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]
     r0, r1, r2 = h0 - eye[0], h1 - eye[1], h2 - eye[2]
     depth = r0 * forward[0] + r1 * forward[1] + r2 * forward[2]
     rr = right[0] * right[0] + right[1] * right[1] + right[2] * right[2]
     uu = up[0] * up[0] + up[1] * up[1] + up[2] * up[2]
     x = (r0 * right[0] + r1 * right[1] + r2 * right[2]) / (depth * rr)
     y = (r0 * up[0] + r1 * up[1] + r2 * up[2]) / (depth * uu)
-    if not (depth > 1e-7 * size) or prim == own:
-        px[0] = px[1] = 0.0
-        return -1
-    px[0], px[1] = (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
-    return prim
+    if not (depth > 1e-7 * size) or prim == own[cv]:
+        return -1, 0.0, 0.0
+    return prim, (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
 
 
 #: Rows of chords each block of starting chords (BLOCK of them, ``bisect_chords``) may
@@ -312,22 +311,18 @@ def _bisect_block(
     todo_p = np.empty((2 * ROUNDS + 4, 2), np.int64)
     todo_x = np.empty((2 * ROUNDS + 4, 4))
     todo_r = np.empty(2 * ROUNDS + 4, np.int64)
-    s, px = np.empty(3), np.empty(2)
     for k in range(first, last):
         cv = curve0[k]
         curved_curve = kind[cv] == 1
-        _curve_point(kind[cv], a[cv], b[cv], axis[cv], u0s[k], s)
-        p_a = _graze_one(
-            bvh, where[cv], point[cv], s, own[cv], frame, width, height, size, stack, stack_t, px
-        )
-        xa0, xa1 = px[0], px[1]
-        _curve_point(kind[cv], a[cv], b[cv], axis[cv], u1s[k], s)
-        p_b = _graze_one(
-            bvh, where[cv], point[cv], s, own[cv], frame, width, height, size, stack, stack_t, px
-        )
+        s = _curve_point(kind, a, b, axis, cv, u0s[k])
+        p_a, xa0, xa1 = _graze_one(bvh, where, point, own, cv, s, frame, width, height, size,
+                                   stack, stack_t)  # fmt: skip
+        s = _curve_point(kind, a, b, axis, cv, u1s[k])
+        p_b, xb0, xb1 = _graze_one(bvh, where, point, own, cv, s, frame, width, height, size,
+                                   stack, stack_t)  # fmt: skip
         todo_u[0, 0], todo_u[0, 1] = u0s[k], u1s[k]
         todo_p[0, 0], todo_p[0, 1] = p_a, p_b
-        todo_x[0, 0], todo_x[0, 1], todo_x[0, 2], todo_x[0, 3] = xa0, xa1, px[0], px[1]
+        todo_x[0, 0], todo_x[0, 1], todo_x[0, 2], todo_x[0, 3] = xa0, xa1, xb0, xb1
         todo_r[0] = 0
         n = 1
         while n > 0:
@@ -343,18 +338,18 @@ def _bisect_block(
             change = p0 != p1 and not (both and length < GAP)
             if (long or change) and rounds < ROUNDS:
                 mid = 0.5 * (lo + hi)
-                _curve_point(kind[cv], a[cv], b[cv], axis[cv], mid, s)
-                pm = _graze_one(bvh, where[cv], point[cv], s, own[cv], frame, width, height,
-                                size, stack, stack_t, px)  # fmt: skip
+                pm, xm0, xm1 = _graze_one(bvh, where, point, own, cv,
+                                          _curve_point(kind, a, b, axis, cv, mid), frame,
+                                          width, height, size, stack, stack_t)  # fmt: skip
                 # the upper half first on the stack, so the lower one is taken next
                 todo_u[n, 0], todo_u[n, 1] = mid, hi
                 todo_p[n, 0], todo_p[n, 1] = pm, p1
-                todo_x[n, 0], todo_x[n, 1], todo_x[n, 2], todo_x[n, 3] = px[0], px[1], x10, x11
+                todo_x[n, 0], todo_x[n, 1], todo_x[n, 2], todo_x[n, 3] = xm0, xm1, x10, x11
                 todo_r[n] = rounds + 1
                 todo_u[n + 1, 0], todo_u[n + 1, 1] = lo, mid
                 todo_p[n + 1, 0], todo_p[n + 1, 1] = p0, pm
                 todo_x[n + 1, 0], todo_x[n + 1, 1] = x00, x01
-                todo_x[n + 1, 2], todo_x[n + 1, 3] = px[0], px[1]
+                todo_x[n + 1, 2], todo_x[n + 1, 3] = xm0, xm1
                 todo_r[n + 1] = rounds + 1
                 n += 2
                 continue
