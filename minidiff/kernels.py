@@ -15,7 +15,9 @@ arithmetic on long rows. The kernels below write a loop over the rows out by han
 
 Large outputs are written into arrays from ``buffers.py`` (memory an earlier pass used and
 nothing refers to any more) instead of fresh ones: the values are the same, the page faults
-of touching new memory on every pass are gone.
+of touching new memory on every pass are gone. The largest sums, differences and products
+run NumPy's own loop on the threads of ``minidiff.threads``, each on its rows
+(``_numpy_loop``): an element is one operation whichever thread computes it.
 
 Only what measurably pays stays here: where NumPy's own operator was as fast in the
 renderer (timed alone and in whole forward and backward passes), minidiff uses it.
