@@ -62,15 +62,22 @@ class Kernel:
         whole units of ``unit`` chunks (the groups of a VJP's partial tables)."""
         if n == 0:
             return 0
-        units = -(-chunks // unit)
-        n_jobs = max(1, min(n_threads, units))
-        bounds = [min(chunks, j * units // n_jobs * unit) for j in range(n_jobs + 1)]
+        bounds = job_bounds(chunks, n_threads, unit)
+        n_jobs = len(bounds) - 1
 
         def job(j: int, _: int) -> int:
             return self._function(pointers, n, bounds[j], bounds[j + 1])
 
         failed = [r for r in threads.run_jobs(job, n_jobs) if r]
         return min(failed) if failed else 0
+
+
+def job_bounds(chunks: int, n_threads: int, unit: int = 1) -> list[int]:
+    """How ``Kernel.run`` splits chunks [0, chunks) among at most ``n_threads`` jobs of whole
+    units of ``unit`` chunks: job j runs chunks [bounds[j], bounds[j + 1])."""
+    units = -(-chunks // unit)
+    n_jobs = max(1, min(n_threads, units))
+    return [min(chunks, j * units // n_jobs * unit) for j in range(n_jobs + 1)]
 
 
 def _after_fork_in_child() -> None:

@@ -594,11 +594,11 @@ def _scatter(where: np.ndarray, share: np.ndarray, table: np.ndarray) -> None:
     sizes = np.array([rows, 0], np.int64)
     if n_jobs > 1:
         _row_bounds().run(_addresses([where, bounds, sizes]), len(where), blocks, n_jobs)
-        # the blocks each job would read, as ``Kernel.run`` splits the rows among the jobs
-        cuts = np.arange(n_jobs + 1) * rows // n_jobs
+        # the blocks each job would read, with the rows split as ``Kernel.run`` splits them
+        cuts = backend.job_bounds(rows, n_jobs)
         read = sum(
-            np.count_nonzero((bounds[:, 1] >= cuts[j]) & (bounds[:, 0] < cuts[j + 1]))
-            for j in range(n_jobs)
+            np.count_nonzero((bounds[:, 1] >= low) & (bounds[:, 0] < high))
+            for low, high in zip(cuts[:-1], cuts[1:], strict=True)
         )
         if read <= SCATTER_OVERLAP * blocks:
             sizes[1] = 1
