@@ -37,6 +37,7 @@ __all__ = [
     "using_threads",
     "thread_count",
     "run_jobs",
+    "beside",
     "job_count",
     "share",
     "jit",
@@ -97,6 +98,52 @@ def run_jobs(kernel: Callable, n_jobs: int, *args) -> list:
     finally:
         wait(others)  # even if job 0 failed: the others still write into the arrays
     return [first, *(future.result() for future in others)]
+
+
+@contextlib.contextmanager
+def beside(work: Callable[[], object] | None):
+    """Run ``work()`` on a thread of its own while the ``with`` block runs in this one;
+    yields ``result()``, which waits for ``work`` and returns what it returned (or raises
+    what it raised). The block and ``work`` share this thread's kernel threads
+    (``thread_count``): ``work``'s kernels get half of them, the block's the rest, so that
+    the two together use as many as the caller asked for. With one thread there is nothing
+    to share: ``work`` runs here, before the block. ``work`` None: nothing runs beside the
+    block, which keeps every thread (``result()`` is None).
+
+    For two independent steps of which neither needs the other's results, each running
+    parts that hold the GIL (NumPy's loops that are not threaded, Python): one step's such
+    parts run while the other's do. ``work`` runs in a copy of the caller's context
+    (``contextvars``: the tape's gradient mode, ``using_threads``); results do not depend
+    on the split. Leaving the block, by its end or an exception, waits for ``work``."""
+    count = thread_count()
+    if work is None or count < 2:
+        value = None if work is None else work()
+        yield lambda: value
+        return
+    mine = count // 2
+    outcome: dict[str, object] = {}
+
+    def run() -> None:
+        with using_threads(mine):
+            try:
+                outcome["value"] = work()
+            except BaseException as error:  # handed to result(), raised in the caller
+                outcome["error"] = error
+
+    thread = threading.Thread(target=contextvars.copy_context().run, args=(run,))
+    thread.start()
+
+    def result():
+        thread.join()
+        if "error" in outcome:
+            raise outcome["error"]
+        return outcome["value"]
+
+    try:
+        with using_threads(count - mine):
+            yield result
+    finally:
+        thread.join()
 
 
 @register_pass(mutates_CFG=True, analysis_only=False)

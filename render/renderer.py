@@ -15,7 +15,11 @@
 4. Edges (``render/edges/``, with ``antialias=True``): where a silhouette, a crease or a
    shadow edge passes between two adjacent samples, blend them by how much of each one's
    box the edge covers, with the crossing computed on the tape: gradients then see
-   occlusion and shadow boundaries move.
+   occlusion and shadow boundaries move. With ``antialias="boundary"`` instead: pixels
+   whose box is mixed become the mean of 16 samples (``render.edges.interior``), and the
+   boundary term adds the exact edge derivative (``render.edges.boundary``); its curve
+   points, off the tape, are found on a second thread while the mixed pixels are
+   (``minidiff.threads.beside``: neither needs the other's).
 5. Image (``render/film.py``): each pixel the mean of its samples, misses showing the
    background.
 
@@ -37,17 +41,17 @@ anew on every render. ``docs/architecture.md`` walks through the folders.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 import minidiff as md
+from minidiff.threads import beside
 from render.edges import terms
 from render.edges.interior import INTERIOR_SAMPLES, antialias_mixed_pixels, check_interior_samples
-from render.edges.shadows import ShadowPairs
-from render.edges.silhouettes import EdgePairs
-from render.edges.terms import EdgeDecisions, add_boundary_term, add_edge_terms, differentiated
+from render.edges.terms import add_boundary_term, add_edge_terms, differentiated
 from render.film import image_from_hits, pixel_means
+from render.info import RenderInfo
 from render.path.integrator import render_path
 from render.scene.cache import cache_for
 from render.scene.camera import camera_frame, plain_frame, subpixel_offsets
@@ -164,9 +168,11 @@ def render(
             image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
     if antialias == "boundary":  # 4': mixed pixels from their 16 samples, on every route
         frame = camera_frame(world.camera) if fused_route else frame
-        image = antialias_mixed_pixels(world, visibility, image, frame, spp, max_bounces, inner)
-        if differentiated(scene):  # the boundary term: zero in value
-            image = add_boundary_term(world, visibility, cache, image, frame, max_bounces)
+        curves = differentiated(scene)  # the boundary term (zero in value) only if so
+        find = partial(terms.boundary_points_of, world, visibility, cache, frame, max_bounces)
+        with beside(find if curves else None) as found:
+            image = antialias_mixed_pixels(world, visibility, image, frame, spp, max_bounces, inner)
+        image = add_boundary_term(world, image, frame, found()) if curves else image
     image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on
     if not return_info:
         return image
@@ -201,60 +207,3 @@ def _check_bounces(value) -> int:
     if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 0:
         raise ValueError(f"render: max_bounces must be an integer >= 0, got {value!r}")
     return int(value)
-
-
-@dataclass
-class RenderInfo:
-    """The discrete decisions behind an image (constants on the tape), per ray.
-
-    prim_id (H, W, spp) int64: the primitive each ray hit (-1: background).
-    lit (n_lights, H, W, spp) bool: light j reaches the ray's hit point unoccluded.
-    texel (H, W, spp) int64: the cell of the bilinear texture lookup at the hit
-        (``render.shade.lighting.texel_cell``; -1 where the hit surface is untextured or missed).
-    pairs: with ``antialias=True``, the pairs of adjacent samples across a silhouette and
-        the edge each one uses (``render.edges.silhouettes.EdgePairs``, ray ids r = pixel * spp +
-        sample); None without (and with ``antialias="boundary"``, which integrates them).
-    shadow_pairs: likewise across shadow edges (``render.edges.shadows.ShadowPairs``);
-        None without antialiasing or without shadows.
-    bounces: per mirror reflection b = 1, 2, ..., an (H, W, spp) int64 array: the
-        primitive the ray's b-th mirror ray hit (-1: the background; -2: no such ray).
-        Empty when nothing in the scene reflects (or ``max_bounces=0``).
-    bounce_lit: per mirror reflection, (n_lights, H, W, spp) bool: light j reaches the
-        point that mirror ray hit (False where there is none).
-    Two renders have the same visibility where ``prim_id``, ``lit``, ``bounces`` and
-    ``bounce_lit`` agree.
-    The image is a smooth function of the parameters only while all of these stay the same: the tape
-    gradient is the derivative for fixed decisions, so finite differences agree with it
-    only where a perturbation changes none of them.
-    """
-
-    prim_id: np.ndarray
-    lit: np.ndarray
-    texel: np.ndarray
-    pairs: EdgePairs | None = None
-    shadow_pairs: ShadowPairs | None = None
-    bounces: list[np.ndarray] = field(default_factory=list)
-    bounce_lit: list[np.ndarray] = field(default_factory=list)
-
-    @classmethod
-    def of(cls, scene, visibility, texel, spp: int, mirrors, edges: EdgeDecisions | None):
-        """The per-ray arrays of one render (``render.trace.visibility.Visibility``; texel
-        (N,), None if no ray hit a textured surface; the ``Mirrors`` or None; the edge
-        pairs or None), shaped (H, W, spp)."""
-        camera, primary = scene.camera, visibility.primary
-        record = None if mirrors is None else mirrors.record
-        if texel is None:
-            texel = np.full(primary.prim_id.size, -1, dtype=np.int64)
-        shape = (camera.height, camera.width, spp)
-        lit = np.zeros((len(visibility.lit), primary.prim_id.size), dtype=bool)
-        for j, mask in enumerate(visibility.lit):
-            lit[j, primary.hit_rays] = mask
-        return cls(
-            primary.prim_id.reshape(shape),
-            lit.reshape((len(visibility.lit),) + shape),
-            texel.reshape(shape),
-            None if edges is None else edges.silhouettes,
-            None if edges is None else edges.shadows,
-            [] if record is None else [ids.reshape(shape) for ids in record.hit_ids],
-            [] if record is None else [m.reshape(lit.shape[:1] + shape) for m in record.lit],
-        )

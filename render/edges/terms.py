@@ -8,7 +8,8 @@ visibility they come from is unchanged; then, on the tape, where each edge cross
 pair and how much of each sample's box lies beyond it, and adds the blends to the
 samples' colours. With ``antialias="boundary"`` nothing is blended: ``add_boundary_term``
 adds the exact term of every edge and shadow border to the image instead, curve kind by
-curve kind (``primary_kinds``, ``ShadowBorder``; ``render.edges.boundary``).
+curve kind (``primary_kinds``, ``ShadowBorder``; ``render.edges.boundary``), at the points
+``boundary_points_of`` finds off the tape.
 """
 
 from __future__ import annotations
@@ -20,17 +21,18 @@ import numpy as np
 import minidiff as md
 from minidiff.tensor import record
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
-from render.edges.boundary.curves import CurveKind
+from render.edges.boundary.curves import CurveKind, CurvePoints, View
 from render.edges.boundary.mesh_edge import MeshEdge
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.radiance import DirectRadiance
 from render.edges.boundary.shadow_border import ShadowBorder
 from render.edges.boundary.sphere import SphereCut, SphereOutline
-from render.edges.boundary.term import add_curve_terms
+from render.edges.boundary.term import boundary_points, boundary_term
 from render.edges.geometry import add_to_samples
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
 from render.scene.cache import RenderCache, light_key
+from render.scene.camera import plain_frame
 from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
 from render.trace.seams import shared_edges
@@ -196,23 +198,32 @@ def _geometry_tables(scene: Scene, occluders: Occluders, cache: RenderCache) -> 
     return topology, crossings, shared
 
 
+def boundary_points_of(
+    scene: Scene, visibility: Visibility, cache: RenderCache, frame, max_bounces: int
+) -> tuple[list[CurveKind], list[CurvePoints]]:
+    """Off the tape: the curve kinds of the direct renderer's boundary term (every
+    silhouette, crease, sphere outline, intersection of surfaces and shadow border,
+    ``render.edges.boundary``) and their quadrature points with their constant factors
+    (``boundary_points``). The radiance either side of a curve is the renderer's own
+    shading (``DirectRadiance``). Nothing is recorded on the tape, so that the renderer
+    may find them on another thread while it shades (``minidiff.threads.beside``)."""
+    with md.no_grad():
+        occluders = Occluders.of(visibility)
+        topology, _, shared = _geometry_tables(scene, occluders, cache)
+        kinds = [
+            *primary_kinds(scene, occluders, cache),
+            ShadowBorder(visibility, frame, topology, shared),
+        ]
+        radiance = DirectRadiance(scene, visibility, frame, max_bounces)
+        view = View(scene, plain_frame(scene.camera), occluders, radiance)
+        return kinds, boundary_points(view, kinds)
+
+
 def add_boundary_term(
-    scene: Scene,
-    visibility: Visibility,
-    cache: RenderCache,
-    image: md.Tensor,
-    frame,
-    max_bounces: int,
+    scene: Scene, image: md.Tensor, frame, found: tuple[list[CurveKind], list[CurvePoints]]
 ) -> md.Tensor:
-    """The direct renderer's image (H, W, 3) plus the boundary term of every silhouette,
-    crease, sphere outline, intersection of surfaces and shadow border
-    (``render.edges.boundary``): the same values, the exact edge derivative. The radiance
-    either side of a curve is the renderer's own shading (``DirectRadiance``)."""
-    occluders = Occluders.of(visibility)
-    topology, _, shared = _geometry_tables(scene, occluders, cache)
-    kinds = [
-        *primary_kinds(scene, occluders, cache),
-        ShadowBorder(visibility, frame, topology, shared),
-    ]
-    radiance = DirectRadiance(scene, visibility, frame, max_bounces)
-    return add_curve_terms(scene, occluders, image, frame, radiance, kinds)
+    """The direct renderer's image (H, W, 3) plus the boundary term of the curves ``found``
+    (``boundary_points_of``): the same values, the exact edge derivative."""
+    kinds, points = found
+    term = boundary_term(scene, frame, kinds, points)
+    return image if term is None else image + term

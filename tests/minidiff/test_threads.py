@@ -1,9 +1,14 @@
-"""``minidiff.threads.borrowing``: Numba functions for a kernel's inner loop, compiled without
-reference counts. They read and write the arrays they are handed (views included), give the
-same values as the same function with counts, and Numba refuses one that would allocate
-(an allocation needs the counts to be freed)."""
+"""``minidiff.threads``: ``borrowing``, Numba functions for a kernel's inner loop compiled
+without reference counts: they read and write the arrays they are handed (views included),
+give the same values as the same function with counts, and Numba refuses one that would
+allocate (an allocation needs the counts to be freed). ``beside``, a step run on a second
+thread while the caller goes on: the caller's threads shared, its context kept, its result
+or exception handed back, and nothing left running when the block ends."""
 
 from __future__ import annotations
+
+import threading
+import time
 
 import numba
 import numpy as np
@@ -12,7 +17,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from minidiff.threads import borrowing
+import minidiff as md
+from minidiff.threads import beside, borrowing, thread_count, using_threads
 
 
 def _row_sums(a, out):
@@ -49,3 +55,70 @@ def test_a_borrowing_function_gives_what_the_counted_one_gives(a):
 def test_a_borrowing_function_that_allocates_is_refused():
     with pytest.raises(numba.core.errors.TypingError, match="zeros"):
         _allocates(3)
+
+
+@pytest.mark.parametrize("count", [2, 3, 4, 7])
+def test_beside_runs_the_work_on_another_thread_with_the_callers_threads_shared(count):
+    seen = {}
+
+    def work():
+        seen["thread"] = threading.get_ident()
+        seen["count"] = thread_count()
+        return "done"
+
+    with using_threads(count):
+        with beside(work) as result:
+            inside = thread_count()
+        assert thread_count() == count  # restored after the block
+    assert result() == "done"
+    assert seen["thread"] != threading.get_ident()
+    assert (seen["count"], inside) == (count // 2, count - count // 2)
+
+
+def test_beside_on_one_thread_runs_the_work_here_before_the_block():
+    order = []
+    with using_threads(1):
+        with beside(lambda: order.append(("work", threading.get_ident())) or 5) as result:
+            order.append(("block", threading.get_ident()))
+            inside = thread_count()
+    assert result() == 5 and inside == 1
+    assert order == [("work", threading.get_ident()), ("block", threading.get_ident())]
+
+
+def test_beside_without_work_keeps_every_thread_for_the_block():
+    with using_threads(4):
+        with beside(None) as result:
+            inside = thread_count()
+    assert result() is None and inside == 4
+
+
+def test_beside_hands_the_works_exception_to_result():
+    def work():
+        raise KeyError("from the work")
+
+    with using_threads(2):
+        with beside(work) as result:
+            pass
+        with pytest.raises(KeyError, match="from the work"):
+            result()
+
+
+def test_beside_waits_for_the_work_when_the_block_raises():
+    finished = []
+
+    def work():
+        time.sleep(0.05)
+        finished.append(True)
+
+    with using_threads(2), pytest.raises(ValueError, match="block"):
+        with beside(work):
+            raise ValueError("block")
+    assert finished == [True]  # not left running
+
+
+def test_beside_runs_the_work_in_the_callers_context():
+    with using_threads(2), md.no_grad():
+        with beside(md.is_grad_enabled) as result:
+            assert not md.is_grad_enabled()
+    assert result() is False
+    assert md.is_grad_enabled()

@@ -2,9 +2,10 @@
 
 Users do this: Numba kernels release the GIL, and fitting several views with a thread pool
 is the obvious way to use more than one core. Each thread renders its own scenes with
-``backward`` (plain, antialiased, 4 samples per pixel, mirrors), and all of them render one
-shared scene read-only; every image and gradient must be bit-identical to the same work done
-alone, and gradient mode must be what it was in every thread afterwards.
+``backward`` (plain, antialiased, the boundary term, 4 samples per pixel, mirrors), and all
+of them render one shared scene read-only; every image and gradient must be bit-identical
+to the same work done alone, and gradient mode must be what it was in every thread
+afterwards.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ N_THREADS = 4
 
 def scene_and_options(job: int):
     """A different scene and render options for each job number."""
-    kind = job % 5
+    kind = job % 6
     if kind == 0:
         return render.paper_scene(width=40, height=32), {}
     if kind == 1:
@@ -33,6 +34,8 @@ def scene_and_options(job: int):
     if kind == 3:
         mirror = Material((0.05, 0.05, 0.05), reflectance=0.8)
         return render.paper_scene(width=32, height=24, ground_material=mirror), {}
+    if kind == 5:  # its curve points found beside the mixed pixels (threads.beside)
+        return render.paper_scene(width=40, height=32, ground=True), {"antialias": "boundary"}
     return random_scene(job, smooth=True), {"antialias": True}
 
 
@@ -167,3 +170,38 @@ def test_no_grad_in_one_thread_does_not_switch_the_tape_off_in_another():
         t.join()
     assert other_saw == [(True, True)]
     assert md.is_grad_enabled()
+
+
+def test_the_boundary_terms_points_found_beside_the_mixed_pixels_change_no_bit(monkeypatch):
+    """With two threads or more the renderer finds the boundary term's curve points on a
+    second thread while it finds and shades the mixed pixels (``minidiff.threads.beside``):
+    the image and every gradient are those of one thread, bit for bit."""
+    import render.renderer as renderer
+    from minidiff.threads import using_threads
+
+    where = []
+    find = renderer.terms.boundary_points_of
+
+    def recorded(*args):
+        where.append(threading.get_ident())
+        return find(*args)
+
+    monkeypatch.setattr(renderer.terms, "boundary_points_of", recorded)
+
+    def run() -> list[np.ndarray]:
+        scene = render.paper_scene(width=48, height=40, ground=True)
+        params = [t for _, t in sorted(scene.named_parameters().items())]
+        for p in params:
+            p.requires_grad = True
+        image = render.render(scene, antialias="boundary")
+        weights = np.random.default_rng(3).standard_normal(image.shape)
+        (image * md.tensor(weights)).sum().backward()
+        return [image.data.copy()] + [np.array(p.grad) for p in params]
+
+    with using_threads(1):
+        alone = run()
+    assert where == [threading.get_ident()]
+    for count in (2, 3):
+        with using_threads(count):
+            assert_identical(run(), alone)
+    assert len(where) == 3 and threading.get_ident() not in where[1:]
