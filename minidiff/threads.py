@@ -45,8 +45,18 @@ __all__ = [
     "borrowing",
 ]
 
+
+class _Budget:
+    """How many threads kernels launched under a ``using_threads`` block may use. A
+    ``beside`` work's budget grows when the block beside it ends (``count`` is read at each
+    launch; the count changes only the speed, never a result)."""
+
+    def __init__(self, count: int) -> None:
+        self.count = count
+
+
 # Threads a kernel may use in this thread (context); None: Numba's setting.
-_threads: contextvars.ContextVar[int | None] = contextvars.ContextVar("threads", default=None)
+_threads: contextvars.ContextVar[_Budget | None] = contextvars.ContextVar("threads", default=None)
 
 _lock = threading.Lock()
 _pool: ThreadPoolExecutor | None = None
@@ -58,7 +68,14 @@ def using_threads(count: int):
     (results are the same for any count; this only changes the speed)."""
     if isinstance(count, bool) or not isinstance(count, int) or count < 1:
         raise ValueError(f"using_threads: count must be a positive int, got {count!r}")
-    token = _threads.set(count)
+    with _budget(_Budget(count)):
+        yield
+
+
+@contextlib.contextmanager
+def _budget(budget: _Budget):
+    """``using_threads`` with a budget the caller may change while the block runs."""
+    token = _threads.set(budget)
     try:
         yield
     finally:
@@ -67,7 +84,8 @@ def using_threads(count: int):
 
 def thread_count() -> int:
     """How many threads a kernel launched now from this thread may use."""
-    return _threads.get() or numba.get_num_threads()
+    budget = _threads.get()
+    return budget.count if budget is not None else numba.get_num_threads()
 
 
 def job_count(n_items: int, per_job: int = 1) -> int:
@@ -106,7 +124,8 @@ def beside(work: Callable[[], object] | None):
     yields ``result()``, which waits for ``work`` and returns what it returned (or raises
     what it raised). The block and ``work`` share this thread's kernel threads
     (``thread_count``): ``work``'s kernels get half of them, the block's the rest, so that
-    the two together use as many as the caller asked for. With one thread there is nothing
+    the two together use as many as the caller asked for; once the block has ended,
+    ``work``'s kernels launched after that get them all. With one thread there is nothing
     to share: ``work`` runs here, before the block. ``work`` None: nothing runs beside the
     block, which keeps every thread (``result()`` is None).
 
@@ -120,11 +139,11 @@ def beside(work: Callable[[], object] | None):
         value = None if work is None else work()
         yield lambda: value
         return
-    mine = count // 2
+    mine = _Budget(count // 2)
     outcome: dict[str, object] = {}
 
     def run() -> None:
-        with using_threads(mine):
+        with _budget(mine):
             try:
                 outcome["value"] = work()
             except BaseException as error:  # handed to result(), raised in the caller
@@ -140,9 +159,10 @@ def beside(work: Callable[[], object] | None):
         return outcome["value"]
 
     try:
-        with using_threads(count - mine):
+        with using_threads(count - mine.count):
             yield result
     finally:
+        mine.count = count  # the block is done: its threads are free for the work
         thread.join()
 
 

@@ -19,7 +19,8 @@
    whose box is mixed become the mean of 16 samples (``render.edges.interior``), and the
    boundary term adds the exact edge derivative (``render.edges.boundary``); its curve
    points, off the tape, are found on a second thread while the mixed pixels are
-   (``minidiff.threads.beside``: neither needs the other's).
+   (``minidiff.threads.beside``: neither needs the other's; with no mixed pixels to find,
+   ``interior_samples`` <= ``spp``, they are found here, a second thread only costing).
 5. Image (``render/film.py``): each pixel the mean of its samples, misses showing the
    background.
 
@@ -170,9 +171,11 @@ def render(
         frame = camera_frame(world.camera) if fused_route else frame
         curves = differentiated(scene)  # the boundary term (zero in value) only if so
         find = partial(terms.boundary_points_of, world, visibility, cache, frame, max_bounces)
-        with beside(find if curves else None) as found:
+        both = curves and inner > spp  # its points found beside the mixed pixels' (docstring)
+        with beside(find if both else None) as found:
             image = antialias_mixed_pixels(world, visibility, image, frame, spp, max_bounces, inner)
-        image = add_boundary_term(world, image, frame, found()) if curves else image
+        if curves:
+            image = add_boundary_term(world, image, frame, found() if both else find())
     image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on
     if not return_info:
         return image

@@ -59,20 +59,29 @@ def test_a_borrowing_function_that_allocates_is_refused():
 
 @pytest.mark.parametrize("count", [2, 3, 4, 7])
 def test_beside_runs_the_work_on_another_thread_with_the_callers_threads_shared(count):
-    seen = {}
+    """While the block runs, the work's kernels get half the threads and the block's the
+    rest; once the block has ended, the work's get them all."""
+    seen, recorded = {}, threading.Event()
 
     def work():
         seen["thread"] = threading.get_ident()
-        seen["count"] = thread_count()
+        seen["during"] = thread_count()
+        recorded.set()
+        deadline = time.monotonic() + 10.0
+        while thread_count() != count and time.monotonic() < deadline:
+            time.sleep(0.001)  # the block's end hands its threads over
+        seen["after"] = thread_count()
         return "done"
 
     with using_threads(count):
         with beside(work) as result:
             inside = thread_count()
+            assert recorded.wait(10.0)
         assert thread_count() == count  # restored after the block
     assert result() == "done"
     assert seen["thread"] != threading.get_ident()
-    assert (seen["count"], inside) == (count // 2, count - count // 2)
+    assert (seen["during"], inside) == (count // 2, count - count // 2)
+    assert seen["after"] == count
 
 
 def test_beside_on_one_thread_runs_the_work_here_before_the_block():
