@@ -279,6 +279,8 @@ def ratios(results: dict, ours: str, threads: list[int]) -> dict:
     for n in (t for t in threads if t > 1 and 1 in threads):  # 1 -> n threads
         suffix = "" if n == 2 else f"_{n}"
         for key, name in (("forward", "forward"), ("boundary", "fb_boundary"),
+                          ("boundary16", "fb_boundary16"),
+                          ("boundary16_ground", "fb_boundary16_ground"),
                           ("plain", "fb_plain")):  # fmt: skip
             out[f"threads_{key}{suffix}"] = m(name, "ours_1") / m(name, f"ours_{n}")
     for name in results:
