@@ -47,9 +47,9 @@ __all__ = [
 
 
 class _Budget:
-    """How many threads kernels launched under a ``using_threads`` block may use. A
-    ``beside`` work's budget grows when the block beside it ends (``count`` is read at each
-    launch; the count changes only the speed, never a result)."""
+    """How many threads kernels launched under a ``using_threads`` block may use. Under
+    ``beside``, the work's and the block's budgets grow when the other one ends (``count``
+    is read at each launch; the count changes only the speed, never a result)."""
 
     def __init__(self, count: int) -> None:
         self.count = count
@@ -124,10 +124,10 @@ def beside(work: Callable[[], object] | None):
     yields ``result()``, which waits for ``work`` and returns what it returned (or raises
     what it raised). The block and ``work`` share this thread's kernel threads
     (``thread_count``): ``work``'s kernels get half of them, the block's the rest, so that
-    the two together use as many as the caller asked for; once the block has ended,
-    ``work``'s kernels launched after that get them all. With one thread there is nothing
-    to share: ``work`` runs here, before the block. ``work`` None: nothing runs beside the
-    block, which keeps every thread (``result()`` is None).
+    the two together use as many as the caller asked for; whichever ends first hands its
+    threads to the other (kernels launched after that get them all). With one thread there
+    is nothing to share: ``work`` runs here, before the block. ``work`` None: nothing runs
+    beside the block, which keeps every thread (``result()`` is None).
 
     For two independent steps of which neither needs the other's results, each running
     parts that hold the GIL (NumPy's loops that are not threaded, Python): one step's such
@@ -139,7 +139,7 @@ def beside(work: Callable[[], object] | None):
         value = None if work is None else work()
         yield lambda: value
         return
-    mine = _Budget(count // 2)
+    mine, theirs = _Budget(count // 2), _Budget(count - count // 2)
     outcome: dict[str, object] = {}
 
     def run() -> None:
@@ -148,6 +148,8 @@ def beside(work: Callable[[], object] | None):
                 outcome["value"] = work()
             except BaseException as error:  # handed to result(), raised in the caller
                 outcome["error"] = error
+            finally:
+                theirs.count = count  # the work is done: its threads are free for the block
 
     thread = threading.Thread(target=contextvars.copy_context().run, args=(run,))
     thread.start()
@@ -159,7 +161,7 @@ def beside(work: Callable[[], object] | None):
         return outcome["value"]
 
     try:
-        with using_threads(count - mine.count):
+        with _budget(theirs):
             yield result
     finally:
         mine.count = count  # the block is done: its threads are free for the work

@@ -59,8 +59,8 @@ def test_a_borrowing_function_that_allocates_is_refused():
 
 @pytest.mark.parametrize("count", [2, 3, 4, 7])
 def test_beside_runs_the_work_on_another_thread_with_the_callers_threads_shared(count):
-    """While the block runs, the work's kernels get half the threads and the block's the
-    rest; once the block has ended, the work's get them all."""
+    """While both run, the work's kernels get half the threads and the block's the rest;
+    once the block has ended, the work's get them all, and the other way round."""
     seen, recorded = {}, threading.Event()
 
     def work():
@@ -82,6 +82,22 @@ def test_beside_runs_the_work_on_another_thread_with_the_callers_threads_shared(
     assert seen["thread"] != threading.get_ident()
     assert (seen["during"], inside) == (count // 2, count - count // 2)
     assert seen["after"] == count
+    read = threading.Event()
+
+    def second():
+        during = thread_count()
+        assert read.wait(10.0)  # the block has read its count while this work ran
+        return during
+
+    with using_threads(count):
+        with beside(second) as result:
+            first = thread_count()
+            read.set()
+            deadline = time.monotonic() + 10.0
+            while thread_count() != count and time.monotonic() < deadline:
+                time.sleep(0.001)  # the work's end hands its threads over
+            last = thread_count()
+    assert (result(), first, last) == (count // 2, count - count // 2, count)
 
 
 def test_beside_on_one_thread_runs_the_work_here_before_the_block():
