@@ -123,6 +123,28 @@ def _numpy_loop(ufunc, x: np.ndarray, y: np.ndarray, out: np.ndarray) -> np.ndar
     return out
 
 
+def copy(g, dtype: np.dtype) -> np.ndarray:
+    """Equals ``np.array(g, dtype=dtype)`` bit for bit: a copy that aliases nothing. A large
+    array of floats is copied into reused memory (``buffers.py``), its rows split among the
+    threads as ``_numpy_loop`` splits them: a gradient of a million rows of three took
+    3.2 ms on one thread into fresh memory (a leaf's first ``.grad``)."""
+    dtype = np.dtype(dtype)
+    if not isinstance(g, np.ndarray) or g.size < PARALLEL_ELEMENTS or dtype not in _FLOATS:
+        return np.array(g, dtype=dtype)
+    if g.ndim == 0 or g.dtype not in _FLOATS:
+        return np.array(g, dtype=dtype)
+    out = buffers.empty(g.shape, dtype)
+    rows = out.shape[0]
+    n_jobs = min(thread_count(), rows)
+
+    def job(j: int, n: int) -> None:
+        first, end = j * rows // n, (j + 1) * rows // n
+        np.copyto(out[first:end], g[first:end], casting="unsafe")
+
+    run_jobs(job, max(1, n_jobs))
+    return out
+
+
 # The operators of the compiled loops, by code. Each is a single IEEE operation, so the
 # loops give NumPy's bits. (Division is left to NumPy: its vectorised divide is faster than
 # such a loop.)

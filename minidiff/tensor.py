@@ -506,9 +506,12 @@ def _same_values(a: np.ndarray, b: np.ndarray) -> bool:
 
 
 def _accumulate_leaf(x: Tensor, g: np.ndarray) -> None:
-    """Add g into a leaf's .grad (copying the first time, so .grad never aliases)."""
+    """Add g into a leaf's .grad (copying the first time, so .grad never aliases; large
+    ones on the threads, ``kernels.copy`` and ``kernels.add``: NumPy's bits)."""
     if x.grad is None:
-        x.grad = np.array(g, dtype=x.dtype)
+        x.grad = kernels.copy(g, x.dtype)
+    elif isinstance(x.grad, np.ndarray) and isinstance(g, np.ndarray):
+        x.grad = kernels.add(x.grad, g)
     else:
         x.grad = x.grad + g
 

@@ -432,3 +432,40 @@ def test_sum_keepdims_last3_differs_from_numpy_only_in_the_sign_of_zero(dtype):
     assert_identical(got, expected)
     np.testing.assert_array_equal(np.signbit(got), [[True], [False], [False]])
     np.testing.assert_array_equal(np.signbit(expected), [[False], [False], [False]])
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=hnp.array_shapes(min_dims=1, max_dims=3, max_side=40),
+    source=st.sampled_from([np.float32, np.float64, np.int64]),
+    target=st.sampled_from([np.float32, np.float64]),
+    threads=st.integers(1, 5),
+    reversed_rows=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_copy_equals_numpys_copy_and_aliases_nothing(
+    shape, source, target, threads, reversed_rows, seed
+):
+    """``kernels.copy`` (a leaf's first ``.grad``): ``np.array(g, dtype)`` bit for bit
+    (signs of zeros, NaN, a cast down to float32 included), from any view, with its rows
+    split among any number of threads (``PARALLEL_ELEMENTS`` lowered to 0), never sharing
+    memory with ``g``."""
+    from minidiff.threads import using_threads
+
+    rng = np.random.default_rng(seed)
+    g = values(rng, shape, source)
+    if np.dtype(source).kind == "f" and g.size:
+        g.flat[rng.integers(0, g.size)] = np.nan
+    if reversed_rows:
+        g = g[::-1]
+    saved = kernels.PARALLEL_ELEMENTS
+    kernels.PARALLEL_ELEMENTS = 0
+    try:
+        with using_threads(threads):
+            got = kernels.copy(g, target)
+    finally:
+        kernels.PARALLEL_ELEMENTS = saved
+    want = np.array(g, dtype=target)
+    assert got.shape == want.shape and got.dtype == want.dtype
+    assert got.tobytes() == want.tobytes()  # every bit, the signs of zeros and NaN's too
+    assert not np.shares_memory(got, g)
