@@ -20,7 +20,11 @@ Medians of ``--repeats`` calls each:
 * ``fresh_memory``: the 363k candidate samples' directions in the 512x512 boundary term
   (``render.edges.interior``, 64x64 with ``--quick``): each job's time in the call, with
   the compiled outputs from minidiff's pool (as the renderer runs) and from fresh memory
-  (``buffers.fresh()`` around the call).
+  (``buffers.fresh()`` around the call);
+* ``leaf_gradient``: the backward of ``(r * w).sum()`` over a leaf ``r`` of 1M rows of three,
+  on one thread and on two, its first ``.grad`` copied by ``kernels.copy`` (on the threads,
+  into reused memory: as minidiff runs) and by ``np.array`` (one thread, fresh memory: as it
+  did before), in turns.
 """
 
 from __future__ import annotations
@@ -176,6 +180,35 @@ def fresh_memory_jobs(size: int, calls: int) -> dict:
     return out
 
 
+def leaf_gradient(repeats: int, rows: int = 1_000_000) -> dict:
+    """The backward of ``(r * w).sum()`` over a (rows, 3) leaf, in ms (medians), on 1 and 2
+    threads, its ``.grad`` copied by ``kernels.copy`` and by ``np.array``."""
+    import minidiff as md
+    from minidiff import kernels
+    from minidiff.threads import using_threads
+
+    rng = np.random.default_rng(0)
+    r0, w = rng.random((rows, 3)), rng.random((rows, 3))
+    copy = kernels.copy
+    plain = {"kernels_copy": copy, "np_array": lambda g, dtype: np.array(g, dtype=dtype)}
+    times: dict[str, list[float]] = {}
+    for _ in range(repeats):
+        for name, function in plain.items():
+            for threads in (1, 2):
+                kernels.copy = function
+                try:
+                    with using_threads(threads):
+                        r = md.tensor(r0, requires_grad=True)
+                        total = (r * w).sum()
+                        start = time.perf_counter()
+                        total.backward()
+                        seconds = time.perf_counter() - start
+                finally:
+                    kernels.copy = copy
+                times.setdefault(f"{name}_{threads}_ms", []).append(1e3 * seconds)
+    return {key: float(np.median(v[2:])) for key, v in times.items()} | {"rows": rows}
+
+
 def main(argv=None) -> dict:
     parser = timing.make_parser(__doc__, out=timing.DEFAULT_OUT / "bench_dispatch")
     parser.add_argument("--repeats", type=int, default=300)
@@ -193,6 +226,7 @@ def main(argv=None) -> dict:
                 max(3, repeats // 10), BATCHES[:2] if args.quick else BATCHES
             ),
             "fresh_memory": fresh_memory_jobs(64 if args.quick else 512, 2 if args.quick else 9),
+            "leaf_gradient": leaf_gradient(5 if args.quick else 21),
         }
     jobs = result["run_jobs"]
     rows = [
@@ -217,6 +251,12 @@ def main(argv=None) -> dict:
             ", ".join(f"{fresh[k]:.2f}" for k in sorted(fresh) if k.startswith(f"{s}_job"))
             for s in ("pool", "fresh")
         ) + " ms",
+    ))  # fmt: skip
+    leaf = result["leaf_gradient"]
+    rows.append(timing.row(
+        f"backward of (r * w).sum(), r {leaf['rows']} x 3, 1 / 2 threads: kernels.copy; np.array",
+        f"{leaf['kernels_copy_1_ms']:.1f} / {leaf['kernels_copy_2_ms']:.1f}; "
+        f"{leaf['np_array_1_ms']:.1f} / {leaf['np_array_2_ms']:.1f} ms",
     ))  # fmt: skip
     result["report"] = timing.report_section("Handing work to a thread (bench_dispatch.py)",
                                              rows, [], [])  # fmt: skip
