@@ -11,8 +11,8 @@ RENDER = Path(__file__).resolve().parents[1] / "render"
 
 #: The stages in pipeline order; a module may import from its own stage and earlier ones.
 STAGES = [
-    "scene", "trace", "shade", "edges", "film", "info", "path", "renderer", "inverse", "torch", "jax",
-    "render",
+    "scene", "trace", "shade", "edges", "film", "info", "path", "renderer", "inverse", "torch",
+    "jax", "render",
 ]  # fmt: skip
 
 
