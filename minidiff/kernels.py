@@ -104,44 +104,53 @@ def _arithmetic(code: int, ufunc, x: np.ndarray, y: np.ndarray) -> np.ndarray:
 
 
 def _numpy_loop(ufunc, x: np.ndarray, y: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """``ufunc(x, y, out=out)``; from PARALLEL_ELEMENTS on, the rows of ``out`` split among
-    the threads (``minidiff.threads``), each computing ``ufunc`` on its rows of the
-    operands (an operand broadcast along the first axis is passed whole). Each element is
-    one operation on its own two numbers: the same bits on any number of threads."""
-    n_jobs = min(thread_count(), out.shape[0]) if out.size >= PARALLEL_ELEMENTS else 1
-    if n_jobs <= 1:
-        return ufunc(x, y, out=out)
+    """``ufunc(x, y, out=out)``, by rows (``_by_rows``): each job computes ``ufunc`` on its
+    rows of the operands (an operand broadcast along the first axis is passed whole)."""
     rows = out.shape[0]
 
-    def job(j: int, n: int) -> None:
-        first, end = j * rows // n, (j + 1) * rows // n
+    def part(first: int, end: int) -> None:
         # an operand with the result's first axis is cut; one broadcast along it is not
         mine = [a[first:end] if a.ndim == out.ndim and a.shape[0] == rows else a for a in (x, y)]
         ufunc(*mine, out=out[first:end])
 
-    run_jobs(job, n_jobs)
+    _by_rows(rows, out.size, part)
     return out
+
+
+def _by_rows(rows: int, size: int, part) -> None:
+    """``part(first, end)`` over the rows [0, rows) of an array of ``size`` elements: from
+    PARALLEL_ELEMENTS elements on, one contiguous share of the rows per thread
+    (``minidiff.threads``; NumPy releases the GIL inside its loops, the compiled loops
+    here are ``nogil``), else all of them at once. Each element is one operation on its
+    own numbers, whichever share holds it: the same bits on any number of threads."""
+    n_jobs = min(thread_count(), rows) if size >= PARALLEL_ELEMENTS else 1
+    if n_jobs <= 1:
+        part(0, rows)
+        return
+    run_jobs(lambda j, n: part(j * rows // n, (j + 1) * rows // n), n_jobs)
+
+
+def double_in_place(x: np.ndarray) -> None:
+    """``np.add(x, x, out=x)``, by rows on the threads (``_by_rows``) when x is large."""
+    if x.ndim == 0:
+        np.add(x, x, out=x)
+        return
+    _by_rows(x.shape[0], x.size, lambda a, b: np.add(x[a:b], x[a:b], out=x[a:b]))
 
 
 def copy(g, dtype: np.dtype) -> np.ndarray:
     """Equals ``np.array(g, dtype=dtype)`` bit for bit: a copy that aliases nothing. A large
-    array of floats is copied into reused memory (``buffers.py``), its rows split among the
-    threads as ``_numpy_loop`` splits them: a gradient of a million rows of three took
-    3.2 ms on one thread into fresh memory (a leaf's first ``.grad``)."""
+    array of floats is copied into reused memory (``buffers.py``), by rows on the threads
+    (``_by_rows``): a gradient of a million rows of three took 3.2 ms on one thread into
+    fresh memory (a leaf's first ``.grad``)."""
     dtype = np.dtype(dtype)
     if not isinstance(g, np.ndarray) or g.size < PARALLEL_ELEMENTS or dtype not in _FLOATS:
         return np.array(g, dtype=dtype)
     if g.ndim == 0 or g.dtype not in _FLOATS:
         return np.array(g, dtype=dtype)
     out = buffers.empty(g.shape, dtype)
-    rows = out.shape[0]
-    n_jobs = min(thread_count(), rows)
-
-    def job(j: int, n: int) -> None:
-        first, end = j * rows // n, (j + 1) * rows // n
-        np.copyto(out[first:end], g[first:end], casting="unsafe")
-
-    run_jobs(job, max(1, n_jobs))
+    _by_rows(out.shape[0], out.size,
+             lambda a, b: np.copyto(out[a:b], g[a:b], casting="unsafe"))  # fmt: skip
     return out
 
 
@@ -420,9 +429,11 @@ def clip(x: np.ndarray, lo, hi) -> np.ndarray:
     Reused memory is the whole point: a loss clips the whole image, and a fresh image-sized
     array would be page-faulted in on every pass (measured with ``np.clip``: ~1,800 more
     faults per light-estimation iteration at 512x512)."""
-    if x.dtype.kind != "f" or not all(_scalar_of(v, x.dtype) for v in (lo, hi)):
+    if x.dtype.kind != "f" or x.ndim == 0 or not all(_scalar_of(v, x.dtype) for v in (lo, hi)):
         return np.clip(x, lo, hi)
-    return np.clip(x, lo, hi, out=buffers.empty(x.shape, x.dtype))
+    out = buffers.empty(x.shape, x.dtype)
+    _by_rows(x.shape[0], x.size, lambda a, b: np.clip(x[a:b], lo, hi, out=out[a:b]))
+    return out
 
 
 def pass_where_equal(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -440,11 +451,12 @@ def pass_where_equal(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     ):
         return np.where(a == b, g, 0.0)
     out = buffers.empty(g.shape, g.dtype)
-    _pass_where_equal(g.reshape(-1), a.reshape(-1), b.reshape(-1), out.reshape(-1))
+    flat = [v.reshape(-1) for v in (g, a, b, out)]
+    _by_rows(g.size, g.size, lambda i, j: _pass_where_equal(*(v[i:j] for v in flat)))
     return out
 
 
-@jit(cache=True)
+@jit(cache=True, nogil=True)
 def _pass_where_equal(g, a, b, out):
     for i in range(g.shape[0]):
         out[i] = g[i] if a[i] == b[i] else 0.0

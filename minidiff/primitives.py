@@ -825,7 +825,7 @@ def mean_squared_error(a: Any, b: Any) -> Tensor:
         # the bits agree. (d (2 g/n) is the same number except where (g/n) d is subnormal:
         # rounding it first, then doubling, differs there.)
         grad = kernels.multiply(diff, g / n)
-        np.add(grad, grad, out=grad)
+        kernels.double_in_place(grad)  # grad + grad
         return grad, (-grad if b.requires_grad else None)
 
     def jvp(ta, tb):

@@ -469,3 +469,41 @@ def test_copy_equals_numpys_copy_and_aliases_nothing(
     assert got.shape == want.shape and got.dtype == want.dtype
     assert got.tobytes() == want.tobytes()  # every bit, the signs of zeros and NaN's too
     assert not np.shares_memory(got, g)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    shape=SMALL_OR_LARGE,
+    dtype=DTYPES,
+    threads=st.integers(2, 5),
+    seed=st.integers(0, 2**16),
+)
+def test_clip_its_gradient_and_doubling_split_among_threads_equal_numpy(
+    shape, dtype, threads, seed
+):
+    """From ``kernels.PARALLEL_ELEMENTS`` on (here lowered to 0) the loss's clip, the
+    clip's VJP and the squared error's doubling run by rows on the threads
+    (``kernels._by_rows``): NumPy's bits (signs of zeros and NaN included) on any number
+    of threads."""
+    from minidiff.threads import using_threads
+
+    rng = np.random.default_rng(seed)
+    x = np.asarray(values(rng, shape, np.float64) * 2, dtype)
+    if x.size:
+        x.reshape(-1)[:: max(1, x.size // 7)] = np.nan
+    g = np.asarray(values(rng, shape, np.float64) * 3, dtype)
+    saved = kernels.PARALLEL_ELEMENTS
+    kernels.PARALLEL_ELEMENTS = 0
+    try:
+        with using_threads(threads):
+            clipped = kernels.clip(x, -0.5, 0.5)
+            passed = kernels.pass_where_equal(g, clipped, x)
+            doubled = g.copy()
+            kernels.double_in_place(doubled)
+    finally:
+        kernels.PARALLEL_ELEMENTS = saved
+    want = np.clip(x, -0.5, 0.5)
+    for got, expected in ((clipped, want), (passed, np.where(want == x, g, 0.0)),
+                          (doubled, g + g)):  # fmt: skip
+        assert got.shape == expected.shape and got.dtype == expected.dtype
+        assert got.tobytes() == expected.tobytes()
