@@ -126,8 +126,9 @@ def beside(work: Callable[[], object] | None):
     (``thread_count``): ``work``'s kernels get half of them, the block's the rest, so that
     the two together use as many as the caller asked for; whichever ends first hands its
     threads to the other (kernels launched after that get them all). With one thread there
-    is nothing to share: ``work`` runs here, before the block. ``work`` None: nothing runs
-    beside the block, which keeps every thread (``result()`` is None).
+    is nothing to share: ``work`` runs here, before the block (what it raises is raised by
+    ``result()`` all the same). ``work`` None: nothing runs beside the block, which keeps
+    every thread (``result()`` is None).
 
     For two independent steps of which neither needs the other's results, each running
     parts that hold the GIL (NumPy's loops that are not threaded, Python): one step's such
@@ -135,31 +136,38 @@ def beside(work: Callable[[], object] | None):
     (``contextvars``: the tape's gradient mode, ``using_threads``); results do not depend
     on the split. Leaving the block, by its end or an exception, waits for ``work``."""
     count = thread_count()
-    if work is None or count < 2:
-        value = None if work is None else work()
-        yield lambda: value
-        return
-    mine, theirs = _Budget(count // 2), _Budget(count - count // 2)
-    outcome: dict[str, object] = {}
+    outcome: dict[str, object] = {"value": None}
 
     def run() -> None:
-        with _budget(mine):
-            try:
-                outcome["value"] = work()
-            except BaseException as error:  # handed to result(), raised in the caller
-                outcome["error"] = error
-            finally:
-                theirs.count = count  # the work is done: its threads are free for the block
-
-    thread = threading.Thread(target=contextvars.copy_context().run, args=(run,))
-    thread.start()
+        try:
+            outcome["value"] = work()
+        except BaseException as error:  # handed to result(), raised in the caller
+            outcome["error"] = error
 
     def result():
-        thread.join()
+        if thread is not None:
+            thread.join()
         if "error" in outcome:
             raise outcome["error"]
         return outcome["value"]
 
+    thread = None
+    if work is None or count < 2:
+        if work is not None:
+            run()
+        yield result
+        return
+    mine, theirs = _Budget(count // 2), _Budget(count - count // 2)
+
+    def run_beside() -> None:
+        with _budget(mine):
+            try:
+                run()
+            finally:
+                theirs.count = count  # the work is done: its threads are free for the block
+
+    thread = threading.Thread(target=contextvars.copy_context().run, args=(run_beside,))
+    thread.start()
     try:
         with _budget(theirs):
             yield result

@@ -117,15 +117,18 @@ def test_beside_without_work_keeps_every_thread_for_the_block():
     assert result() is None and inside == 4
 
 
-def test_beside_hands_the_works_exception_to_result():
+@pytest.mark.parametrize("count", [1, 2])
+def test_beside_hands_the_works_exception_to_result(count):
     def work():
         raise KeyError("from the work")
 
-    with using_threads(2):
+    ran = []
+    with using_threads(count):
         with beside(work) as result:
-            pass
+            ran.append(True)  # the block runs all the same
         with pytest.raises(KeyError, match="from the work"):
             result()
+    assert ran == [True]
 
 
 def test_beside_waits_for_the_work_when_the_block_raises():
