@@ -144,9 +144,8 @@ def copy(g, dtype: np.dtype) -> np.ndarray:
     (``_by_rows``): a gradient of a million rows of three took 3.2 ms on one thread into
     fresh memory (a leaf's first ``.grad``)."""
     dtype = np.dtype(dtype)
-    if not isinstance(g, np.ndarray) or g.size < PARALLEL_ELEMENTS or dtype not in _FLOATS:
-        return np.array(g, dtype=dtype)
-    if g.ndim == 0 or g.dtype not in _FLOATS:
+    large = isinstance(g, np.ndarray) and g.ndim > 0 and g.size >= PARALLEL_ELEMENTS
+    if not large or dtype not in _FLOATS or g.dtype not in _FLOATS:
         return np.array(g, dtype=dtype)
     out = buffers.empty(g.shape, dtype)
     _by_rows(out.shape[0], out.size,

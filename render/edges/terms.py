@@ -21,18 +21,17 @@ import numpy as np
 import minidiff as md
 from minidiff.tensor import record
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
-from render.edges.boundary.curves import CurveKind, CurvePoints, View
+from render.edges.boundary.curves import CurveKind, CurvePoints
 from render.edges.boundary.mesh_edge import MeshEdge
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.radiance import DirectRadiance
 from render.edges.boundary.shadow_border import ShadowBorder
 from render.edges.boundary.sphere import SphereCut, SphereOutline
-from render.edges.boundary.term import boundary_points, boundary_term
+from render.edges.boundary.term import curve_points, with_boundary_term
 from render.edges.geometry import add_to_samples
 from render.edges.shadows import ShadowPairs, shadow_pairs, shadow_terms
 from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_updates
 from render.scene.cache import RenderCache, light_key
-from render.scene.camera import plain_frame
 from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
 from render.trace.seams import shared_edges
@@ -215,8 +214,7 @@ def boundary_points_of(
             ShadowBorder(visibility, frame, topology, shared),
         ]
         radiance = DirectRadiance(scene, visibility, frame, max_bounces)
-        view = View(scene, plain_frame(scene.camera), occluders, radiance)
-        return kinds, boundary_points(view, kinds)
+        return kinds, curve_points(scene, occluders, radiance, kinds)
 
 
 def add_boundary_term(
@@ -224,6 +222,4 @@ def add_boundary_term(
 ) -> md.Tensor:
     """The direct renderer's image (H, W, 3) plus the boundary term of the curves ``found``
     (``boundary_points_of``): the same values, the exact edge derivative."""
-    kinds, points = found
-    term = boundary_term(scene, frame, kinds, points)
-    return image if term is None else image + term
+    return with_boundary_term(scene, image, frame, *found)

@@ -5,7 +5,9 @@ cuts them all together at pixel borders and where they cross (``render.edges.bou
 pixels``), puts the quadrature points on the pieces and hands each kind back the points on
 its own curves, for their constant factors. ``boundary_term`` then adds, for every kind, c_g
 (e(x_g; theta) - detach(e(x_g; theta))) to the image: zero in value, the boundary term in
-derivative. ``add_curve_terms`` does both for one render.
+derivative. ``add_curve_terms`` does both for one render; ``curve_points`` and
+``with_boundary_term`` are its two halves, for a caller that finds the points apart (the
+direct renderer, on a second thread: ``render.edges.terms.boundary_points_of``).
 """
 
 from __future__ import annotations
@@ -90,6 +92,23 @@ def add_curve_terms(
     exact edge derivative. ``occluders``: the render's geometry for occlusion rays;
     ``frame``: its ``camera_frame``; ``radiance``: what the camera sees either side of a
     curve."""
+    points = curve_points(scene, occluders, radiance, kinds)
+    return with_boundary_term(scene, image, frame, kinds, points)
+
+
+def curve_points(
+    scene: Scene, occluders: Occluders, radiance: SideRadiance, kinds: Sequence[CurveKind]
+) -> list[CurvePoints]:
+    """``boundary_points`` of ``kinds`` seen in the render's camera, the sides of each
+    curve shaded by ``radiance`` and occluded by ``occluders`` (off the tape)."""
     view = View(scene, plain_frame(scene.camera), occluders, radiance)
-    term = boundary_term(scene, frame, kinds, boundary_points(view, kinds))
+    return boundary_points(view, kinds)
+
+
+def with_boundary_term(
+    scene: Scene, image: md.Tensor, frame, kinds: Sequence[CurveKind],
+    points: Sequence[CurvePoints],
+) -> md.Tensor:  # fmt: skip
+    """The image (H, W, 3) plus ``boundary_term`` of ``kinds`` at their ``points``."""
+    term = boundary_term(scene, frame, kinds, points)
     return image if term is None else image + term
