@@ -246,6 +246,20 @@ def borrowing(function: Callable) -> Callable:
     return jit(function, cache=True, error_model="numpy", _nrt=False)
 
 
+def inlined(function: Callable) -> Callable:
+    """A ``borrowing`` function that LLVM inlines into every caller (Numba's
+    ``forceinline``: LLVM's ``alwaysinline``), for the per-ray and per-primitive work of
+    the kernels' inner loops (a traversal, a ray-primitive test).
+
+    Why not Numba's own ``inline="always"``: that copies the function's IR into each
+    caller, where it is typed and lowered again, which is most of a cold compile (a
+    traversal copied into four kernels cost 1.8-2.4 s of compiling each). This one is typed,
+    lowered and optimised once, then linked into each caller and inlined there by LLVM, so
+    the callers run the same inlined code (the BVH's closest and any hits of 1.3M
+    triangles within noise of Numba's inlining: 61 against 61 ms, 41 against 41 ms)."""
+    return jit(function, cache=True, error_model="numpy", _nrt=False, forceinline=True)
+
+
 @jit(cache=True, inline="always")
 def share(job, n_jobs, n):
     """(start, stop): job ``job``'s contiguous share of ``n`` independent items split among

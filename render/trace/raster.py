@@ -38,7 +38,7 @@ from __future__ import annotations
 import numpy as np
 
 from minidiff import buffers
-from minidiff.threads import jit, job_count, kernel, run_jobs
+from minidiff.threads import inlined, jit, job_count, kernel, run_jobs
 from render.scene.camera import pixel_ray, plain_frame, subpixel_offsets
 from render.scene.scene import Camera
 from render.trace.intersect import (
@@ -302,7 +302,7 @@ def may_see(edges, pid, x, y):
     return True
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@inlined
 def blocked_by_list(prim_data, n_tri, ids, first, last, near, edges, depth, rounding, x, y,
                     ray, ignore):  # fmt: skip
     """Whether ``ray`` (its end at most ``depth`` along the view axis, its sample at
@@ -321,13 +321,12 @@ def blocked_by_list(prim_data, n_tri, ids, first, last, near, edges, depth, roun
     return False
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@inlined
 def blocked_by_any(prim_data, n_tri, ray, ignore):
     """Whether ``ray`` is blocked by any primitive of ``prim_data`` (in id order) other than
     ``ignore``: for rays no cell's list covers (few: those outside the image, or starting
     very close to a light)."""
     for pid in range(prim_data.shape[0]):
-        # (called, not inlined: the rays this serves are few)
         if pid != ignore and meets_before_end(prim_data, pid, pid, n_tri, ray):
             return True
     return False
