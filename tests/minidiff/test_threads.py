@@ -1,7 +1,9 @@
 """``minidiff.threads``: ``borrowing``, Numba functions for a kernel's inner loop compiled
 without reference counts: they read and write the arrays they are handed (views included),
 give the same values as the same function with counts, and Numba refuses one that would
-allocate (an allocation needs the counts to be freed). ``beside``, a step run on a second
+allocate (an allocation needs the counts to be freed); ``inlined``, such a function
+compiled once for every caller, which gives what the same code inlined by Numba gives.
+``beside``, a step run on a second
 thread while the caller goes on: the caller's threads shared, its context kept, its result
 or exception handed back, and nothing left running when the block ends."""
 
@@ -18,7 +20,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import minidiff as md
-from minidiff.threads import beside, borrowing, thread_count, using_threads
+from minidiff.threads import beside, borrowing, inlined, thread_count, using_threads
 
 
 def _row_sums(a, out):
@@ -50,6 +52,27 @@ def test_a_borrowing_function_gives_what_the_counted_one_gives(a):
     assert np.array_equal(first, expected, equal_nan=True)
     in_order = np.array([sum(row.tolist(), 0.0) for row in a])  # the loop's order
     assert np.array_equal(got, in_order, equal_nan=True)
+
+
+_inlined_sums = inlined(_row_sums)
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _twice_through_inlined(a, out):
+    """Two callers' worth of calls of the inlined function, with different array layouts."""
+    return _inlined_sums(a, out) + _inlined_sums(a[::-1], out[::-1])
+
+
+@given(arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 5))))
+def test_an_inlined_function_gives_what_numbas_inlining_gives(a):
+    """One compile per signature (not a copy per call site), the same values as the
+    function compiled with reference counts."""
+    got, want = np.full(a.shape[0], -1.0), np.full(a.shape[0], -1.0)
+    total = _twice_through_inlined(a, got)
+    expected = _counted_sums(a, want) + _counted_sums(a[::-1], want[::-1])
+    assert np.array_equal(got, want, equal_nan=True)
+    assert np.array_equal(total, expected, equal_nan=True)
+    assert 1 <= len(_inlined_sums.signatures) <= 2  # C-ordered and reversed views
 
 
 def test_a_borrowing_function_that_allocates_is_refused():
