@@ -57,7 +57,7 @@ def test_a_borrowing_function_gives_what_the_counted_one_gives(a):
 _inlined_sums = inlined(_row_sums)
 
 
-@numba.njit(cache=True, error_model="numpy")
+@numba.njit(error_model="numpy")  # not cached: compiled here, it asks for the callee's code
 def _twice_through_inlined(a, out):
     """Two callers' worth of calls of the inlined function, with different array layouts."""
     return _inlined_sums(a, out) + _inlined_sums(a[::-1], out[::-1])
