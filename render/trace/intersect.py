@@ -238,10 +238,12 @@ def make_ray(origin, direction, tmin, tmax):
 
 @inlined
 def ray_at(rays, i):
-    """Ray ``i`` of ``rays`` (a :class:`Rays`) as a :class:`Ray`."""
+    """Ray ``i`` of ``rays`` (a :class:`Rays`) as a :class:`Ray`. (Elements read one by one
+    into tuples: ``make_ray`` is compiled for tuples only, and no row view is made.)"""
+    o, d = i * rays.o_step, i * rays.d_step
     return make_ray(
-        rays.origins[i * rays.o_step],
-        rays.directions[i * rays.d_step],
+        (rays.origins[o, 0], rays.origins[o, 1], rays.origins[o, 2]),
+        (rays.directions[d, 0], rays.directions[d, 1], rays.directions[d, 2]),
         rays.tmin,
         rays.tmax[i * rays.t_step],
     )

@@ -209,7 +209,9 @@ def bin_to_tiles(boxes, tiles_x, tiles_y, tile, order):
         for ty in range(boxes[p, 1] // tile, boxes[p, 3] // tile + 1):
             for tx in range(boxes[p, 0] // tile, boxes[p, 2] // tile + 1):
                 counts[ty * tiles_x + tx + 1] += 1
-    start = np.cumsum(counts)
+    start = counts  # summed in place (a loop: np.cumsum compiles a second function)
+    for t in range(1, n_tiles + 1):
+        start[t] += start[t - 1]
     fill = start[:-1].copy()
     ids = np.empty(start[-1], np.int64)
     for p in order:
@@ -238,6 +240,7 @@ def _raster_closest_hit(
     spp = offsets.shape[0]
     n_tiles = start.shape[0] - 1
     some = slot.shape[0] > 0
+    origin = (eye[0], eye[1], eye[2])  # a tuple, as every caller of make_ray passes
     # Tiles dealt round-robin to jobs: contiguous parts would give one thread the sky and
     # the other the object.
     for tile in range(job, n_tiles, n_jobs):
@@ -271,7 +274,7 @@ def _raster_closest_hit(
                                 px, py, offsets[s, 0], offsets[s, 1], width, height, forward,
                                 right, up,
                             )  # fmt: skip
-                        ray = make_ray(eye, direction, 0.0, np.inf)
+                        ray = make_ray(origin, direction, 0.0, np.inf)
                         t, u, v = intersect_prim(prim_data, pid, pid, n_tri, ray)
                         # The BVH's order: (t, id); a miss is t = inf and never accepted.
                         best = out_t[r]
@@ -523,8 +526,8 @@ def _occluded_in_tile(
     inside = inside and -EDGE_MARGIN <= y <= height + EDGE_MARGIN
     tile = (_pixel_in(np.floor(y), height) // tile_size) * tiles_x
     tile += _pixel_in(np.floor(x), width) // tile_size
-    d = directions[i]
-    ray = make_ray(eye, d, 0.0, tmax[i])
+    d = (directions[i, 0], directions[i, 1], directions[i, 2])
+    ray = make_ray((eye[0], eye[1], eye[2]), d, 0.0, tmax[i])
     if not inside:
         return blocked_by_any(prim_data, n_tri, ray, ignore[i])
     depth = tmax[i] * (d[0] * forward[0] + d[1] * forward[1] + d[2] * forward[2])

@@ -46,7 +46,7 @@ from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, n_blocks
 from render.trace.seams import SharedEdges
 from render.trace.topology import EdgeTable
-from render.trace.vec3 import cross3, dot3
+from render.trace.vec3 import cross, dot3, sub
 
 
 def edge_plane(a, b, eye):
@@ -183,47 +183,47 @@ def _per_edge(
     n, n_own = rows.shape[0], own_faces.shape[1]
     n_faces = n_own + shared_faces.shape[1]
     sx, sy = 2.0 / width, -2.0 / height
-    am, bm, m, towards = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    t, third, cut = np.empty(3), np.empty(3), np.empty(3)
+    # 3-vectors as tuples (``render.trace.vec3``): no scratch arrays, no row views.
+    o = (eye[0], eye[1], eye[2])
+    r, w = (right[0], right[1], right[2]), (up[0], up[1], up[2])
     for block in range(job, n_blocks(n), n_jobs):
         for e in range(block * BLOCK, min(n, (block + 1) * BLOCK)):
             row = rows[e]
-            ia, ib = i[row], j[row]
-            for c in range(3):
-                am[c], bm[c] = vertices[ia, c] - eye[c], vertices[ib, c] - eye[c]
-                u[e, c], w0[e, c] = vertices[ib, c] - vertices[ia, c], eye[c] - vertices[ia, c]
-            cross3(am, bm, m)
-            uu[e], uw[e] = dot3(u[e], u[e]), dot3(u[e], w0[e])
+            a = (vertices[i[row], 0], vertices[i[row], 1], vertices[i[row], 2])
+            b = (vertices[j[row], 0], vertices[j[row], 1], vertices[j[row], 2])
+            ue, we = sub(b, a), sub(o, a)
+            u[e, 0], u[e, 1], u[e, 2] = ue
+            w0[e, 0], w0[e, 1], w0[e, 2] = we
+            m = cross(sub(a, o), sub(b, o))
+            uu[e], uw[e] = dot3(ue, ue), dot3(ue, we)
             # pixel_gradient of grad e = (m . right, m . up)
-            gx, gy = dot3(m, right) * sx, dot3(m, up) * sy
+            gx, gy = dot3(m, r) * sx, dot3(m, w) * sy
             length[e] = math.sqrt(gx * gx + gy * gy)
             scale = length[e] if length[e] > 0 else 1.0
             step_e[e, 0], step_e[e, 1] = gx / scale * sx, gy / scale * sy
-            for c in range(3):
-                towards[c] = step_e[e, 0] * right[c] + step_e[e, 1] * up[c]
+            towards = (step_e[e, 0] * r[0] + step_e[e, 1] * w[0],
+                       step_e[e, 0] * r[1] + step_e[e, 1] * w[1],
+                       step_e[e, 0] * r[2] + step_e[e, 1] * w[2])  # fmt: skip
             for f in range(n_faces):  # each face's side and normal
                 if f < n_own:
                     if own_faces[row, f] < 0:
                         continue
-                    for c in range(3):
-                        third[c] = vertices[own_thirds[row, f], c]
+                    k = own_thirds[row, f]
+                    third = (vertices[k, 0], vertices[k, 1], vertices[k, 2])
                     global_id = own_faces[row, f] + first_prim
                 else:
                     global_id = shared_faces[row, f - n_own]
                     if global_id < 0:
                         continue
-                    for c in range(3):
-                        third[c] = shared_thirds[row, f - n_own, c]
-                for c in range(3):
-                    t[c] = third[c] - vertices[ia, c]
-                side = (third[0] - eye[0]) * m[0] + (third[1] - eye[1]) * m[1]
-                side = side + (third[2] - eye[2]) * m[2]
+                    third = (shared_thirds[row, f - n_own, 0], shared_thirds[row, f - n_own, 1],
+                             shared_thirds[row, f - n_own, 2])  # fmt: skip
+                side = (third[0] - o[0]) * m[0] + (third[1] - o[1]) * m[1]
+                side = side + (third[2] - o[2]) * m[2]
                 if side == 0 or side != side:
                     continue
                 face[e, f], plus[e, f] = global_id, side > 0
-                cross3(u[e], t, cut)
-                for c in range(3):  # (a row assignment compiles Numba's shape checks)
-                    normal[e, f, c] = cut[c]
+                cut = cross(ue, sub(third, a))
+                normal[e, f, 0], normal[e, f, 1], normal[e, f, 2] = cut
                 ng[e, f] = dot3(cut, towards)
 
 
