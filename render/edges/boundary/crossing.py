@@ -61,29 +61,29 @@ class SurfaceCrossing:
 
 @jit(cache=True)
 def _segment_of(t1, t2):
-    """Where triangles t1 and t2 (3, 3) cross: (ok, a, b), the segment from a to b (3-tuples)
-    they share, ok False where they do not cross (coplanar or touching triangles do not
-    count). Scalars and tuples, no arrays: the same arithmetic as array expressions, in a
-    fraction of the time, and compiled in a fraction of it too."""
+    """Where triangles t1 and t2 (each its three corners, 3-tuples) cross: (ok, a, b), the
+    segment from a to b (3-tuples) they share, ok False where they do not cross (coplanar
+    or touching triangles do not count). Scalars and tuples, no arrays: the same
+    arithmetic as array expressions, in a fraction of the time, and compiled in a fraction
+    of it too."""
     zero = (0.0, 0.0, 0.0)
-    a1, a2 = _corner(t1, 0), _corner(t2, 0)
-    n1 = cross(sub(_corner(t1, 1), a1), sub(_corner(t1, 2), a1))
-    n2 = cross(sub(_corner(t2, 1), a2), sub(_corner(t2, 2), a2))
+    p0, p1, p2 = t1
+    q0, q1, q2 = t2
+    n1 = cross(sub(p1, p0), sub(p2, p0))
+    n2 = cross(sub(q1, q0), sub(q2, q0))
     # each triangle's corners against the other's plane
-    d2 = (dot3(n1, sub(_corner(t2, 0), a1)), dot3(n1, sub(_corner(t2, 1), a1)),
-          dot3(n1, sub(_corner(t2, 2), a1)))  # fmt: skip
-    d1 = (dot3(n2, sub(_corner(t1, 0), a2)), dot3(n2, sub(_corner(t1, 1), a2)),
-          dot3(n2, sub(_corner(t1, 2), a2)))  # fmt: skip
+    d2 = (dot3(n1, sub(q0, p0)), dot3(n1, sub(q1, p0)), dot3(n1, sub(q2, p0)))
+    d1 = (dot3(n2, sub(p0, q0)), dot3(n2, sub(p1, q0)), dot3(n2, sub(p2, q0)))
     if _one_side(d1) or _one_side(d2):
         return False, zero, zero
     u = cross(n1, n2)
     # each triangle's interval along u: where its edges cross the other's plane
-    ok1, p1, q1, s1, e1 = _interval(t1, d1, u)
-    ok2, p2, q2, s2, e2 = _interval(t2, d2, u)
+    ok1, a1, b1, s1, e1 = _interval(t1, d1, u)
+    ok2, a2, b2, s2, e2 = _interval(t2, d2, u)
     if not (ok1 and ok2):
         return False, zero, zero
-    start, first = (p1, s1) if s1 >= s2 else (p2, s2)
-    end, last = (q1, e1) if e1 <= e2 else (q2, e2)
+    start, first = (a1, s1) if s1 >= s2 else (a2, s2)
+    end, last = (b1, e1) if e1 <= e2 else (b2, e2)
     if first >= last:
         return False, zero, zero
     return True, start, end
@@ -96,37 +96,45 @@ def _one_side(d):
     return (d[0] >= 0 and d[1] >= 0 and d[2] >= 0) or (d[0] <= 0 and d[1] <= 0 and d[2] <= 0)
 
 
-@jit(cache=True, inline="always")
-def _corner(t, k):
-    """Corner k of triangle t (3, 3), a 3-tuple."""
-    return (t[k, 0], t[k, 1], t[k, 2])
-
-
 @jit(cache=True)
 def _interval(tri, d, u):
-    """Where triangle ``tri``'s edges cross a plane (its corners' signed distances d (3,)
-    from it): (ok, p, q, s, e), the two points p, q in the order of their positions s <= e
-    along u; ok False unless two edges cross it."""
-    m = 0
-    p = q = (0.0, 0.0, 0.0)
-    s = e = 0.0
-    for k in range(3):
-        a, b = k, (k + 1) % 3
-        if (d[a] > 0) != (d[b] > 0) and m < 2:
-            f = d[a] / (d[a] - d[b])
-            x, y = _corner(tri, a), _corner(tri, b)
-            point = (x[0] + (y[0] - x[0]) * f, x[1] + (y[1] - x[1]) * f,
-                     x[2] + (y[2] - x[2]) * f)  # fmt: skip
-            if m == 0:
-                p, s = point, dot3(point, u)
-            else:
-                q, e = point, dot3(point, u)
-            m += 1
+    """Where triangle ``tri``'s edges (its corners, 3-tuples) cross a plane (the corners'
+    signed distances d from it): (ok, p, q, s, e), the two points p, q in the order of
+    their positions s <= e along u; ok False unless two edges cross it. The edges in turn
+    (written out: a tuple indexed by a variable is slow in Numba)."""
+    c0, c1, c2 = tri
+    zero = (0.0, 0.0, 0.0)
+    m, p, q, s, e = _edge_crossing(c0, c1, d[0], d[1], u, 0, zero, zero, 0.0, 0.0)
+    m, p, q, s, e = _edge_crossing(c1, c2, d[1], d[2], u, m, p, q, s, e)
+    m, p, q, s, e = _edge_crossing(c2, c0, d[2], d[0], u, m, p, q, s, e)
     if m < 2:
         return False, p, q, s, e
     if s > e:
         return True, q, p, e, s
     return True, p, q, s, e
+
+
+@jit(cache=True)
+def _edge_crossing(x, y, dx, dy, u, m, p, q, s, e):
+    """``_interval``'s (m, p, q, s, e) extended by the edge from corner x to corner y (at
+    signed distances dx, dy from the plane) if it crosses the plane and fewer than two
+    edges have."""
+    if (dx > 0) != (dy > 0) and m < 2:
+        f = dx / (dx - dy)
+        point = (x[0] + (y[0] - x[0]) * f, x[1] + (y[1] - x[1]) * f,
+                 x[2] + (y[2] - x[2]) * f)  # fmt: skip
+        if m == 0:
+            return 1, point, q, dot3(point, u), e
+        return m + 1, p, point, s, dot3(point, u)
+    return m, p, q, s, e
+
+
+@jit(cache=True, inline="always")
+def _triangle(triangles, i):
+    """Triangle i of ``triangles`` (N, 3, 3) as its three corners (3-tuples)."""
+    return ((triangles[i, 0, 0], triangles[i, 0, 1], triangles[i, 0, 2]),
+            (triangles[i, 1, 0], triangles[i, 1, 1], triangles[i, 1, 2]),
+            (triangles[i, 2, 0], triangles[i, 2, 1], triangles[i, 2, 2]))  # fmt: skip
 
 
 @jit(cache=True)
@@ -143,8 +151,8 @@ def _crossing_pairs(triangles, welded, order, low, high):
             j = order[b]
             if low[j, 0] > high[i, 0]:
                 break
-            a0, a1, b0, b1 = low[i], high[i], low[j], high[j]
-            if boxes_apart(a0[1], a1[1], b0[1], b1[1], a0[2], a1[2], b0[2], b1[2]):  # y, z
+            if boxes_apart(low[i, 1], high[i, 1], low[j, 1], high[j, 1],
+                           low[i, 2], high[i, 2], low[j, 2], high[j, 2]):  # y, z  # fmt: skip
                 continue
             shared = False
             for p in range(3):
@@ -153,7 +161,7 @@ def _crossing_pairs(triangles, welded, order, low, high):
                         shared = True
             if shared:
                 continue
-            ok, seg_a, seg_b = _segment_of(triangles[i], triangles[j])
+            ok, seg_a, seg_b = _segment_of(_triangle(triangles, i), _triangle(triangles, j))
             if not ok:
                 continue
             if found == capacity:  # grow by doubling (arrays and scalar loops compile fast)

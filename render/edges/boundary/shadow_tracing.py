@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from minidiff.threads import jit, job_count, kernel, run_jobs
+from minidiff.threads import borrowing, jit, job_count, kernel, run_jobs
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
@@ -173,7 +173,7 @@ def _starting_chords(scene, frame, curves):
     return (curve, u0, u0 + 1.0 / count[curve]), own
 
 
-@jit(cache=True, error_model="numpy")
+@borrowing
 def _curve_point(kind, a, b, axis, cv, u):
     """The point S(u) (a 3-tuple) of curve ``cv`` (rows of kind, a, b, axis: kind 0 the
     segment from a to b; 1 the circle with centre a, radius vector b and second axis
@@ -188,7 +188,7 @@ def _curve_point(kind, a, b, axis, cv, u):
             a[cv, 2] + u * (b[cv, 2] - a[cv, 2]))  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy")
+@borrowing
 def _graze_one(bvh, where, point, own, cv, s, frame, width, height, size, stack, stack_t):
     """Where the light of curve ``cv`` sends the ray grazing the point s (a 3-tuple) of the
     curve on to hit: (receiver, x, y), the receiver -1 (nothing, behind the camera, or
@@ -255,6 +255,9 @@ def bisect_chords(
     ``n`` (a positive value, for the tests, forces that many)."""
     n = len(start[0])
     blocks = max(1, -(-n // BLOCK))
+    # The frame's vectors as tuples of floats: the kernels read them without reference
+    # counts, and compile no array arguments for them.
+    axes = tuple((float(v[0]), float(v[1]), float(v[2])) for v in frame)
     if room <= 0:
         room = CHORDS_PER_START * min(n, BLOCK) + SPARE_ROWS
     while True:
@@ -262,7 +265,7 @@ def bisect_chords(
                np.empty(blocks * room, np.int64), np.empty(blocks * room, np.int64))  # fmt: skip
         count = np.empty(blocks, np.int64)
         run_jobs(
-            _bisect_blocks, job_count(n, BLOCK), bvh, curves, where, point, own, start, frame,
+            _bisect_blocks, job_count(n, BLOCK), bvh, curves, where, point, own, start, axes,
             width, height, size, first_sphere, out, room, count,
         )  # fmt: skip
         if np.all(count >= 0):
