@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from minidiff.threads import borrowing, jit, job_count, kernel, run_jobs
+from minidiff.threads import borrowing, job_count, kernel, run_jobs
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
@@ -288,32 +288,32 @@ def _bisect_blocks(
     blocks of starting chords, block ``k``'s chords written to rows k * room, ... of ``out``
     and their number to ``count[k]`` (-1 if they need more than ``room`` rows)."""
     n = start[0].shape[0]
+    # The job's scratch: the traversal's stack, and the pending intervals (u0, u1, receiver
+    # and pixel at either end, round).
+    scratch = (np.empty(bvh.stack_size, np.int64), np.empty(bvh.stack_size),
+               np.empty((2 * ROUNDS + 4, 2)), np.empty((2 * ROUNDS + 4, 2), np.int64),
+               np.empty((2 * ROUNDS + 4, 4)), np.empty(2 * ROUNDS + 4, np.int64))  # fmt: skip
     for block in range(job, max(1, n_blocks(n)), n_jobs):
         count[block] = _bisect_block(
             bvh, curves, where, point, own, start, block * BLOCK, min(n, (block + 1) * BLOCK),
-            frame, width, height, size, first_sphere, out, block * room, room,
+            frame, width, height, size, first_sphere, out, block * room, room, scratch,
         )  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy")
+@borrowing
 def _bisect_block(
     bvh, curves, where, point, own, start, first, last, frame, width, height, size,
-    first_sphere, out, offset, room,
+    first_sphere, out, offset, room, scratch,
 ):  # fmt: skip
     """``bisect_chords`` for the starting chords first..last - 1: their chords written to
     rows offset, offset + 1, ... of ``out`` = (x0, x1, curve, receiver). Returns how many,
-    or -1 if they need more than ``room`` rows."""
+    or -1 if they need more than ``room`` rows. (Without reference counts: its scratch
+    comes from ``_bisect_blocks``.)"""
     x0s, x1s, curve_out, receiver_out = out
     kind, a, b, axis = curves
     curve0, u0s, u1s = start
-    stack = np.empty(bvh.stack_size, np.int64)
-    stack_t = np.empty(bvh.stack_size)
+    stack, stack_t, todo_u, todo_p, todo_x, todo_r = scratch
     m = 0
-    # A pending interval: (u0, u1, receiver and pixel at either end, its round).
-    todo_u = np.empty((2 * ROUNDS + 4, 2))
-    todo_p = np.empty((2 * ROUNDS + 4, 2), np.int64)
-    todo_x = np.empty((2 * ROUNDS + 4, 4))
-    todo_r = np.empty(2 * ROUNDS + 4, np.int64)
     for k in range(first, last):
         cv = curve0[k]
         curved_curve = kind[cv] == 1
