@@ -18,6 +18,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from numba.core.compiler import Flags
 
 import minidiff as md
 from minidiff.threads import beside, borrowing, inlined, thread_count, using_threads
@@ -72,7 +73,8 @@ def test_an_inlined_function_gives_what_numbas_inlining_gives(a):
     expected = _counted_sums(a, want) + _counted_sums(a[::-1], want[::-1])
     assert np.array_equal(got, want, equal_nan=True)
     assert np.array_equal(total, expected, equal_nan=True)
-    assert 1 <= len(_inlined_sums.signatures) <= 2  # C-ordered and reversed views
+    if hasattr(Flags, "forceinline"):  # (else Numba's own inlining: no compile of its own)
+        assert 1 <= len(_inlined_sums.signatures) <= 2  # C-ordered and reversed views
 
 
 def test_a_borrowing_function_that_allocates_is_refused():
