@@ -455,7 +455,7 @@ def pass_where_equal(g: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
-@jit(cache=True, nogil=True)
+@jit(cache=True)
 def _pass_where_equal(g, a, b, out):
     for i in range(g.shape[0]):
         out[i] = g[i] if a[i] == b[i] else 0.0

@@ -231,9 +231,7 @@ def kernel(function: Callable) -> Callable:
     """A job kernel (``kernel(job, n_jobs, ...)``, run by ``run_jobs``): ``function``
     compiled by Numba with the GIL released, cached on disk, NumPy's error model (x / 0 is
     inf or NaN, not an exception), through ``_KernelPipeline``."""
-    return jit(
-        function, cache=True, nogil=True, error_model="numpy", pipeline_class=_KernelPipeline
-    )
+    return jit(function, cache=True, pipeline_class=_KernelPipeline)
 
 
 def borrowing(function: Callable) -> Callable:
@@ -248,7 +246,7 @@ def borrowing(function: Callable) -> Callable:
     threads that share a scene's arrays contend for their counts. Numba refuses to compile
     a function with this flag that would allocate (``np.empty``, a new array): such work
     stays in the kernel that calls it (``kernel``, counted as usual)."""
-    return jit(function, cache=True, error_model="numpy", _nrt=False)
+    return jit(function, cache=True, _nrt=False)
 
 
 def inlined(function: Callable) -> Callable:
@@ -264,7 +262,7 @@ def inlined(function: Callable) -> Callable:
     triangles within noise of Numba's inlining: 61 against 61 ms, 41 against 41 ms)."""
     if not hasattr(Flags, "forceinline"):  # a Numba without it: its own inlining, same code
         return jit(function, cache=True, inline="always")
-    return jit(function, cache=True, error_model="numpy", _nrt=False, forceinline=True)
+    return jit(function, cache=True, _nrt=False, forceinline=True)
 
 
 @jit(cache=True, inline="always")

@@ -57,7 +57,7 @@ TASKS_PER_BUILD = 64
 PAD_RELATIVE = 1e-5
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def primitive_bounds(triangles, sphere_centers, sphere_radii):
     """Padded bounding boxes of all primitives, triangles first, then spheres.
 
@@ -93,7 +93,7 @@ def primitive_bounds(triangles, sphere_centers, sphere_radii):
     return prim_min, prim_max
 
 
-@jit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always")
 def _extent(p, a, triangles, sphere_centers, sphere_radii):
     """(low, high): primitive ``p``'s unpadded extent along axis ``a`` (ids: the triangles,
     then the spheres)."""
@@ -105,7 +105,7 @@ def _extent(p, a, triangles, sphere_centers, sphere_radii):
             sphere_centers[p - n_tri, a] + sphere_radii[p - n_tri])  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _pad(lo, hi):
     """How far every box grows (``primitive_bounds`` says why), for a scene whose primitives
     span ``lo`` to ``hi`` (3,): 1e-5 of its extent plus 64 ulps of its largest coordinate."""
@@ -116,7 +116,7 @@ def _pad(lo, hi):
     return PAD_RELATIVE * extent + 64.0 * EPS * magnitude
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def half_area(lx, ly, lz, hx, hy, hz):
     """Half the surface area of the box [lx, hx] x [ly, hy] x [lz, hz] (the factor 2 cancels
     in the SAH ratios).  An empty box (lo > hi) has area 0."""
@@ -128,7 +128,7 @@ def half_area(lx, ly, lz, hx, hy, hz):
     return ex * ey + ey * ez + ez * ex
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _set_bounds(node, first, count, order, prim_min, prim_max, node_bounds):
     """Set ``node_bounds[node]`` to the union of the boxes of ``order[first:first+count]``."""
     lx = ly = lz = np.inf
@@ -149,14 +149,14 @@ def _set_bounds(node, first, count, order, prim_min, prim_max, node_bounds):
     node_bounds[node, 5] = hz
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _bin_index(c, cmin, scale, n_bins):
     """Bin of centroid coordinate ``c`` along an axis binned from ``cmin`` with ``scale``
     bins per unit.  Shared by the SAH evaluation and the partition so that they agree."""
     return min(n_bins - 1, int((c - cmin) * scale))
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def split_scratch(n_bins):
     """The scratch arrays of :func:`_find_split`, allocated once per build, not per node:
     bin counts (3, n_bins) int64, bin boxes (3, n_bins, 6), the left sweep's counts and
@@ -174,7 +174,7 @@ def split_scratch(n_bins):
     )
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav, scratch):
     """Binned SAH split search for the primitives ``order[first:first+count]``.
 
@@ -283,7 +283,7 @@ def _find_split(first, count, order, prim_min, prim_max, centroid, area, c_trav,
     return best_axis, best_bin, cmin[best_axis], scale[best_axis], best_cost
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bins):
     """Reorder ``order[first:first+count]`` in place so that primitives with centroid bin
     ``< split_bin`` come first (a quicksort-style partition); returns how many went left."""
@@ -298,7 +298,7 @@ def _partition(first, count, order, centroid, axis, split_bin, cmin, scale, n_bi
     return i - first
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred, deferred_level):
     """Split the subtree under ``root`` (at ``level``, root = 1) until its leaves are final.
 
@@ -406,7 +406,7 @@ def _subdivide_in_parallel(
             )
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _close_gaps(nodes_used, tasks, task_free, task_end, node_bounds, node_first, node_count):
     """Move the subtrees' regions down to follow each other from ``nodes_used`` on, shifting
     the child links of their interior nodes (and of their roots, which live above) by as much.
@@ -548,7 +548,7 @@ def _leaf_boxes(job, n_jobs, node_first, node_count, order, triangles, sphere_ce
             span[a], span[3 + a] = min(span[a], box[a]), max(span[3 + a], box[3 + a])
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _pad_and_join(node_first, node_count, node_bounds, spans):
     """``refit_bounds``' second pass: every leaf's box grown by the pad of the scene's span
     (the union of ``spans`` (jobs, 6)), then each interior node's box the union of its
@@ -572,7 +572,7 @@ def _pad_and_join(node_first, node_count, node_bounds, spans):
                 box[3 + a] = max(node_bounds[left, 3 + a], node_bounds[left + 1, 3 + a])
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def sah_cost(node_bounds, node_first, node_count, c_trav):
     """The tree's SAH cost, in primitive tests: the expected work of a ray through the root
     box, sum over interior nodes of ``c_trav`` A(node) / A(root) plus over leaves of their

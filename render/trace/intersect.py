@@ -197,7 +197,7 @@ def _pack_rows(job, n_jobs, triangles, sphere_centers, sphere_radii, order, data
 # --------------------------------------------------------------------------------------------
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def safe_inverse(d):
     """1/d for the slab test, with exact zeros replaced by a tiny positive number: then
     ``(bound - origin) * inv`` is huge (or +-inf) or exactly 0, never ``0 * inf = NaN``."""
@@ -209,7 +209,7 @@ def safe_inverse(d):
 @inlined
 def make_ray(origin, direction, tmin, tmax):
     """The :class:`Ray` ``origin + t * direction``, ``tmin < t < tmax``; origin and direction
-    are three numbers each (an array row or a tuple)."""
+    are 3-tuples of floats (every caller passes tuples, so it is compiled once)."""
     dx, dy, dz = direction[0], direction[1], direction[2]
     ox, oy, oz = origin[0], origin[1], origin[2]
     # The watertight test's frame: z along the direction's largest component, x and y the
@@ -254,7 +254,7 @@ def ray_at(rays, i):
 # --------------------------------------------------------------------------------------------
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def intersect_triangle(prim, k, ray):
     """Watertight test of ``ray`` (a :class:`Ray`) against row ``k`` of ``prim`` (P, 16)
     (Woop, Benthin and Wald 2013, "Watertight Ray/Triangle Intersection").
@@ -308,7 +308,7 @@ def intersect_triangle(prim, k, ray):
     return t, e_v * inv, e_w * inv
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def intersect_sphere(prim, k, ray):
     """Ray-sphere test of ``ray`` against row ``k`` of ``prim``; returns the nearest root
     ``t > ray.tmin`` (``inf`` for a miss).
@@ -362,7 +362,7 @@ def intersect_prim(prim, k, pid, n_tri, ray):
     return intersect_sphere(prim, k, ray), 0.0, 0.0
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def enter_slot(boxes, w, k, ray, t_far):
     """Slab test of ``ray`` against slot ``k`` of wide node ``w`` of ``boxes`` (W, 32)
     (``render.trace.wide``): the plain version of ``render.trace.simd.enter4``, which tests
@@ -403,7 +403,7 @@ def enter_slot(boxes, w, k, ray, t_far):
 # 41, 43, 21 ms either way), a cold first boundary gradient 28.1 -> 21.8 s.
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _pop(stack, stack_t, sp, best_t):
     """Pop the most recently pushed node that can still hold an accepted hit (entry distance
     ``<= best_t``; equal is kept for the tie rule).  Returns ``(code, sp)`` (a child code of
@@ -415,7 +415,7 @@ def _pop(stack, stack_t, sp, best_t):
     return 0, -1
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _next(stack, sp):
     """Pop the most recently pushed node: ``(code, sp)``, ``sp = -1`` when the stack is
     empty."""
@@ -424,7 +424,7 @@ def _next(stack, sp):
     return stack[sp - 1], sp - 1
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _push_if(stack, sp, code, entry):
     """Push ``code`` if its box was entered (``entry`` finite); returns the new ``sp``."""
     if entry != np.inf:
@@ -433,7 +433,7 @@ def _push_if(stack, sp, code, entry):
     return sp
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _leaf_rows(bvh, code):
     """Rows ``start:stop`` of the leaf-ordered table that the leaf of child code ``code`` (<
     0) holds."""
@@ -450,7 +450,7 @@ def _leaf_rows(bvh, code):
 # 76 s.
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _closest_in_leaf(table, ids, n_tri, start, stop, ray, best):
     """``best`` = (prim_id, t, u, v) updated with the hits of ``ray`` on rows ``start:stop``
     of ``table`` (primitives ``ids[start:stop]``), in the (t, id) order."""
@@ -468,7 +468,7 @@ def _closest_in_leaf(table, ids, n_tri, start, stop, ray, best):
     return best_id, best_t, best_u, best_v
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _blocked_in_leaf(table, ids, n_tri, start, stop, ray, ignore):
     """Whether ``ray`` hits one of the primitives ``ids[start:stop]`` (rows ``start:stop`` of
     ``table``) other than ``ignore`` before ``ray.tmax``."""

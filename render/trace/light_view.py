@@ -98,7 +98,7 @@ def occluded_towards_light(
     return out
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _light_view(light, origins, min_cosine):
     """The light's view of the rays: (fits, forward, right, up, spread); fits is False if
     the rays fan out wider than ``min_cosine`` allows.
@@ -149,7 +149,7 @@ def _light_view(light, origins, min_cosine):
     return fits, np.array([forward[0], forward[1], forward[2]]), right, up, spread
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _unit(x):
     """The 3-tuple x divided by its length."""
     length = np.sqrt(x[0] * x[0] + x[1] * x[1] + x[2] * x[2])
@@ -193,7 +193,7 @@ def _occluded_by_cell(job, n_jobs, prim_data, n_tri, start, ids, near, edges, vi
                           directions, tmax, ignore, out, i, rr, uu, eps, light_size)  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origins, directions,
                   tmax, ignore, out, i, rr, uu, eps, light_size):  # fmt: skip
     """``_occluded_by_cell`` for ray i."""

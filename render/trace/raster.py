@@ -113,7 +113,7 @@ def screen_boxes(
 EDGE_MARGIN = 0.01
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _project(corners, eye, forward, right, up, width, height, offsets, boxes, edges):
     """Fill ``boxes`` (and, for triangles, ``edges``) of point sets (P, n, 3) (see
     ``screen_boxes``). Serial: in parallel blocks it took twice as long on the teapot's
@@ -163,7 +163,7 @@ def _project(corners, eye, forward, right, up, width, height, offsets, boxes, ed
             _triangle_edges(xs, ys, edges[p])
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _triangle_edges(xs, ys, out):
     """The edge lines (a, b, c) of the projected triangle (xs, ys) (3,), as signed distances
     in pixels, positive inside (``screen_boxes``); left as they are (always true) if rounding
@@ -514,7 +514,7 @@ def _raster_occluded(
             )  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _occluded_in_tile(
     prim_data, n_tri, edges, near, rounding, start, ids, tile_size, tiles_x, width, height,
     eye, forward, coords, directions, tmax, ignore, i,
@@ -535,7 +535,7 @@ def _occluded_in_tile(
                            depth, rounding, x, y, ray, ignore[i])  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def nearest_depths(triangles, centers, radii, eye, forward):
     """(P,) each primitive's smallest depth along ``forward`` from the point ``eye`` (a camera's
     eye or a light; triangles: their nearest corner; spheres: centre depth - radius)."""

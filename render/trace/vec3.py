@@ -13,26 +13,20 @@ from minidiff.threads import jit
 EPS = float(np.finfo(np.float64).eps)
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def dot3(x, y):
     """x . y of two 3-vectors, summed left to right."""
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def cross(x, y):
     """x cross y of two 3-vectors (tuples or rows), a 3-tuple (``np.cross``'s arithmetic,
     term for term)."""
     return (x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0])
 
 
-@jit(cache=True, error_model="numpy")
-def cross3(x, y, out):
-    """out = x cross y (``cross``), written into the array ``out`` (3,)."""
-    out[0], out[1], out[2] = cross(x, y)
-
-
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def sub(x, y):
     """x - y of two 3-tuples (or rows), a 3-tuple."""
     return (x[0] - y[0], x[1] - y[1], x[2] - y[2])

@@ -48,7 +48,7 @@ CHILD = 6 * WIDTH
 NODE_COLUMNS = 32
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def collapse(node_bounds, node_first, node_count):
     """The 4-wide tree of a binary tree of ``build_bvh``'s form (``node_bounds`` (M, 6),
     ``node_first``, ``node_count`` (M,)): returns ``child`` (W, 4), ``leaf_start`` (L + 1,)
@@ -168,7 +168,7 @@ def _fill_boxes(job, n_jobs, node_bounds, slot_node, boxes):
                     boxes[w, 3 * WIDTH + a * WIDTH + k] = _up(node_bounds[n, 3 + a])
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _down(x):
     """The largest float32 <= x (float32(x) rounds to nearest: one step down where that
     went up)."""
@@ -178,7 +178,7 @@ def _down(x):
     return y
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _up(x):
     """The smallest float32 >= x."""
     y = np.float32(x)

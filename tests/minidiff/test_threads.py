@@ -2,10 +2,10 @@
 without reference counts: they read and write the arrays they are handed (views included),
 give the same values as the same function with counts, and Numba refuses one that would
 allocate (an allocation needs the counts to be freed); ``inlined``, such a function
-compiled once for every caller, which gives what the same code inlined by Numba gives.
-``beside``, a step run on a second
-thread while the caller goes on: the caller's threads shared, its context kept, its result
-or exception handed back, and nothing left running when the block ends."""
+compiled once for every caller, which gives what the same function compiled plainly
+gives. ``beside``, a step run on a second thread while the caller goes on: the caller's
+threads shared, its context kept, its result or exception handed back, and nothing left
+running when the block ends."""
 
 from __future__ import annotations
 
@@ -65,7 +65,7 @@ def _twice_through_inlined(a, out):
 
 
 @given(arrays(np.float64, st.tuples(st.integers(0, 6), st.integers(0, 5))))
-def test_an_inlined_function_gives_what_numbas_inlining_gives(a):
+def test_an_inlined_function_gives_what_the_plain_function_gives(a):
     """One compile per signature (not a copy per call site), the same values as the
     function compiled with reference counts."""
     got, want = np.full(a.shape[0], -1.0), np.full(a.shape[0], -1.0)

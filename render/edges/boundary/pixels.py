@@ -191,7 +191,7 @@ def pixel_pieces(p0: np.ndarray, p1: np.ndarray, width: int, height: int):
     return segment[:n], start[:n], end[:n], pixel[:n]
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _piece_geometry(p0, p1, segment, start, end, order, lo, hi, out):
     """Rows lo..hi - 1 of the pieces' geometry, in ``order``: each piece's start a, its
     extent b (the piece is a -> a + b), its bounding box widened by BOX_SLACK and how far
@@ -223,7 +223,7 @@ def boxes_apart(ax0, ax1, bx0, bx1, ay0, ay1, by0, by1):
 FEW_CUTS = 24
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _sort_cuts(ts, m):
     """Sort ts[:m] in place. m is small on most pieces, and Numba's ``sort`` costs ~200 ns
     even for two (10 ms of a 512x512 teapot's split): insertion below FEW_CUTS. Where
@@ -246,7 +246,7 @@ def _sort_cuts(ts, m):
         ts[j + 1] = t
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _sift_down(ts, root, end):
     """Move ts[root] down the heap ts[:end] (children of i at 2 i + 1 and 2 i + 2) until
     neither child is larger."""
@@ -262,7 +262,7 @@ def _sift_down(ts, root, end):
         root = child
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
     """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
     touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
@@ -389,7 +389,7 @@ def pixel_order(pixel: np.ndarray) -> np.ndarray:
 COUNTING_SPAN = 16
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _counting_order(pixel, n_pixels):
     """``pixel_order``'s order of pixel ids (k,) int64 in [0, n_pixels), by a counting
     sort (stable; several times faster than NumPy's sort on the teapot's pieces)."""
@@ -405,7 +405,7 @@ def _counting_order(pixel, n_pixels):
     return order
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _pixel_groups(pixel, order):
     """The pieces (pixel ids (k,), k > 0, in ``order``, by pixel) grouped: ``bounds``
     (n + 1,) where each of the n occupied pixels' group starts in ``order``, and ``slots``

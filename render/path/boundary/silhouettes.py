@@ -548,7 +548,7 @@ def pick_reference(curves: Curves, apex, u_curve, u_point, triangle=None, active
     return index, np.where(index >= 0, probability * density, 0.0), faces, t
 
 
-@jit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always")
 def _norm(a):
     return np.sqrt(dot3(a, a))
 
@@ -557,7 +557,7 @@ def _norm(a):
 # ``_whole``, ``_clipped``, ``_edge_towards``: as calls, the Cornell box's draws took a
 # fifth to a third longer); the others are plain calls, which LLVM inlines by itself
 # (Numba's inlining of them doubled the kernel's cold compile, 4 -> 9 s, for no speed).
-@jit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always")
 def _edge(p, a, b, c0, c1, grazing):
     """An edge seen from p: (the angle it subtends, 0 if no silhouette; its faces' side)."""
     pa, pb = sub(a, p), sub(b, p)
@@ -575,7 +575,7 @@ def _edge(p, a, b, c0, c1, grazing):
     return np.arctan2(size, dot3(pa, pb)), np.sign(s0)
 
 
-@jit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always")
 def _edge_towards(p, a, b, tri):
     """(lo, hi): the part of edge a -> b through which rays from p meet the triangle ``tri``
     (its three corners) (``Curves.towards``); lo = hi = 0 if none."""
@@ -591,7 +591,7 @@ def _edge_towards(p, a, b, tri):
     return min(max(lo, 0.0), 1.0), min(max(hi, 0.0), 1.0)
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
     """``_edge_towards``'s (lo, hi, found) extended by the triangle's side vi -> vj (corners
     from p), if the plane through p and the edge (``normal``) crosses it: the parameter t
@@ -608,7 +608,7 @@ def _side_crossing(vi, vj, normal, e, pa, lo, hi, found):
     return min(lo, t), max(hi, t), found + 1
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _axes(n):
     """``basis`` for one unit vector."""
     helper = (0.0, 1.0, 0.0) if abs(n[0]) > 0.9 else (1.0, 0.0, 0.0)
@@ -618,7 +618,7 @@ def _axes(n):
     return u1, cross(n, u1)
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _sphere_towards(p, centre, tri):
     """(lo, hi): the azimuths (over 2 pi) about p -> centre that the triangle ``tri`` (its
     three corners) spans."""
@@ -644,7 +644,7 @@ def _sphere_towards(p, centre, tri):
     return lo, lo + (2 * np.pi - widest) / (2 * np.pi)
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _in_order(x, y):
     """(x, y) in ascending order, NaN after every number (np.sort's order)."""
     if y < x or (x != x and y == y):
@@ -661,7 +661,7 @@ def _curve(p, j, a, b, c, centre, radius, tri, clip, grazing):
     return _clipped(p, j, a, b, centre, weight, side, tri)
 
 
-@jit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always")
 def _whole(p, j, a, b, c, centre, radius, grazing):
     """Curve j seen from p, whole: (weight, side): an edge's angle if it is a silhouette
     (``_edge``), a sphere's outline's 2 pi r / distance unless p is inside; 0 else."""
@@ -675,7 +675,7 @@ def _whole(p, j, a, b, c, centre, radius, grazing):
     return 2 * np.pi * radius[s] / max(distance, 1e-300), 0.0
 
 
-@jit(cache=True, inline="always", error_model="numpy")
+@jit(cache=True, inline="always")
 def _clipped(p, j, a, b, centre, weight, side, tri):
     """Curve j seen from p, whose whole weight ``weight`` (> 0) and side are known: (its
     weight, side, lo, hi) clipped to the part whose rays meet triangle ``tri``, as

@@ -41,7 +41,7 @@ _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(
 # calls, which LLVM inlines: inlined by Numba, each of a kernel's many calls was a copy that
 # Numba typed and lowered again (the path kernel's cold compile was slower, its speed the
 # same).
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def mix(z):
     """SplitMix64's step on a uint64 (wrapping arithmetic, as intended)."""
     z = z + _GOLDEN
@@ -50,7 +50,7 @@ def mix(z):
     return z ^ (z >> _S31)
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def uniform_of(key, dimension):
     """The random number of one path for one ``dimension``, given its key =
     mix(mix(seed) ^ path id): 53 random bits as a float64 in [0, 1)."""

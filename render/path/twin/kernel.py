@@ -68,7 +68,7 @@ CHUNKS = 64
 RECORD_ROWS = 32
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_depth, stack,
                 stack_t, keep, row, rec_i, rec_f, rec_lit):  # fmt: skip
     """The radiance of path id ``path`` through pixel (px, py) (L0, L1, L2). With ``keep``,
@@ -188,7 +188,7 @@ def _trace_path(bvh, s, seed_key, path, px, py, width, height, max_depth, rr_dep
     return L[0], L[1], L[2]
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _emission_weight(e_row_of, e_probability, e_area, prim, point, previous, ng, pdf):
     """MIS weight of the emission seen at an ``AREA`` vertex ``point`` on ``prim``, reached
     from ``previous`` by a direction of density ``pdf``, against NEE's choice of the same
@@ -204,7 +204,7 @@ def _emission_weight(e_row_of, e_probability, e_area, prim, point, previous, ng,
     return 1.0
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _emitted(L, beta, emission, o, weight):
     """``L`` plus the emission of object ``o`` seen at a vertex with MIS weight ``weight``,
     through throughput ``beta``."""
@@ -212,7 +212,7 @@ def _emitted(L, beta, emission, o, weight):
             L[2] + beta[2] * (emission[o, 2] * weight))  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight):
     """Vertex ``depth`` of the path of row ``row`` into the records, its NEE, lights and
     continuation as if none (what follows overwrites them)."""
@@ -228,7 +228,7 @@ def _record_vertex(rec_i, rec_f, depth, row, prim, form, local, weight):
     rec_i[depth - 1, row, R.ESCAPE] = 0
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emission, e_prims,
                 e_cdf, e_probability, e_area, key, origin, ns, wo, here, look, row, rec_i,
                 rec_f):  # fmt: skip
@@ -279,7 +279,7 @@ def _next_event(L, beta, bvh, stack, triangles, centers, radii, prim_object, emi
             L[2] + beta[2] * (f[2] * scale * emission[eo, 2]))  # fmt: skip
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_color, offset,
             here, look, row, rec_lit):  # fmt: skip
     """``L`` plus the point and directional lights that reach the vertex ``here``
@@ -327,7 +327,7 @@ def _lights(L, beta, bvh, stack, light_kind, light_vec, light_strength, light_co
     return L
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _direction(key, depth, wo, ns, p_d, p_g, p_m, shin):
     """The lobe picked at vertex ``depth`` (diffuse, glossy or mirror with probabilities
     ``p_d``, ``p_g``, ``p_m``) and the direction it draws about the shading normal ``ns``
@@ -352,7 +352,7 @@ def _direction(key, depth, wo, ns, p_d, p_g, p_m, shin):
     return False, wi, _pdf(p_d, p_g, shin, ns, wo, wi)
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, point_next, u, v,
              xt, ut, vt, wot, nst, look):  # fmt: skip
     """The segment from the tape's point ``xt`` to the next vertex, which the ray ``wi``
@@ -383,7 +383,7 @@ def _segment(triangles, centers, radii, reflectance, prim, mirror, scale, wi, po
     return (f[0] * cos, f[1] * cos, f[2] * cos), x_next, ut, vt, wo_next
 
 
-@jit(cache=True, error_model="numpy", inline="always")
+@jit(cache=True, inline="always")
 def _clear_rows(rec_i, rec_f, rec_lit, row):
     """Zero path ``row``'s records at every depth (a path writes only the fields its
     vertices have): here, on the threads, rather than a serial ``np.zeros`` of them all."""

@@ -53,7 +53,7 @@ def _bilinear(texture, iy0, ix0, iy1, ix1, fx, fy, c):
     return top * (1.0 - fy) + bottom * fy
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _unit(x0, x1, x2):
     """``md.normalize`` of one 3-vector: x times 1 / |x| (the zero vector stays zero)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -70,7 +70,7 @@ _EMITTER = BOUNCE_DIMENSIONS["emitter"]
 _EMITTER_POINT = BOUNCE_DIMENSIONS["emitter_point"]
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _dim(depth, j):
     """``render.path.sample.random.bounce_dimension``."""
     return 2 + DIMENSIONS_PER_BOUNCE * (depth - 1) + j
@@ -79,7 +79,7 @@ def _dim(depth, j):
 # --- small vector helpers ----------------------------------------------------------------------
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _divided(x0, x1, x2):
     """x / |x| (``np.linalg.norm`` then a division, as the sampler's ``unit``)."""
     length = math.sqrt(x0 * x0 + x1 * x1 + x2 * x2)
@@ -117,7 +117,7 @@ def _to_world(l0, l1, l2, n):
     )
 
 
-@jit(cache=True, error_model="numpy")
+@jit(cache=True)
 def _power(p, q):
     total = p * p + q * q
     return p * p / total if total > 0 else 0.0
