@@ -1,7 +1,10 @@
 """The Embree side of ``bench_embree.py``, run by that script in Embree's own environment
 (numpy and embreex only: nothing of this project is imported, nor needed there).
 
-``bench_embree.py`` runs ``main(CASES.npz, RESULT.json, REPEATS)`` in Embree's Python.
+``bench_embree.py`` runs ``main(CASES.npz, RESULT.json, REPEATS, CORES)`` in Embree's Python:
+CORES "one", the process pinned to one core before Embree starts (its build then runs on
+one thread; its queries are one thread's loop either way), or "all", the build alone on
+every core the process may use (Embree's default: as many threads as cores).
 
 ``CASES.npz`` holds ``triangles`` (T, 3, 3) and, per case name ``c`` in ``cases``, its
 rays ``c_origins``, ``c_directions`` (N, 3), ``c_far`` (N,) and its query ``c_query``:
@@ -16,6 +19,7 @@ milliseconds, and each case's answers (primitive ids, or occluded flags) for
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import numpy as np
@@ -31,7 +35,9 @@ def median_ms(fn, repeats: int) -> float:
     return float(np.median(times) * 1e3)
 
 
-def main(cases_path: str, result_path: str, repeats: int) -> None:
+def main(cases_path: str, result_path: str, repeats: int, cores: str = "one") -> None:
+    if cores == "one":  # before Embree's thread pool exists: it takes this mask's size
+        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     from embreex import rtcore_scene
     from embreex.mesh_construction import TriangleMesh
 
@@ -52,7 +58,7 @@ def main(cases_path: str, result_path: str, repeats: int) -> None:
         scene = build()
         builds.append(time.perf_counter() - t0)
     result = {"build_ms": float(np.median(builds) * 1e3), "cases": {}}
-    for case in data["cases"]:
+    for case in data["cases"] if cores == "one" else ():
         o = data[f"{case}_origins"].astype(np.float32)
         d = data[f"{case}_directions"].astype(np.float32)
         far = data[f"{case}_far"].astype(np.float32)

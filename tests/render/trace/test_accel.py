@@ -15,7 +15,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from render.trace.accel import Accelerator
-from render.trace.bvh import MAX_LEAF_SIZE, build_bvh, primitive_bounds
+from render.trace.bvh import MAX_LEAF_SIZE, N_BINS, _partition, build_bvh, primitive_bounds
 from render.trace.intersect import intersect_prim, make_ray, pack_primitives
 
 NO_SPHERES = (np.zeros((0, 3)), np.zeros(0))
@@ -483,6 +483,41 @@ def test_parallel_build_makes_the_serial_tree(tris, copies):
     assert parallel[0].shape == serial[0].shape
     assert _tree_in_visit_order(*parallel[:3]) == _tree_in_visit_order(*serial[:3])
     assert np.array_equal(parallel[3], serial[3]) and parallel[4] == serial[4]
+
+
+@SETTINGS
+@given(
+    centroid=st.integers(1, 200).flatmap(
+        lambda n: st.lists(st.tuples(*[st.floats(-1e3, 1e3)] * 3), min_size=n, max_size=n)
+    ),
+    axis=st.integers(0, 2),
+    split_bin=st.integers(1, N_BINS - 1),
+    seed=st.integers(0, 2**16),
+)
+def test_partition_gives_each_side_its_centroids_bounds(centroid, axis, split_bin, seed):
+    # The builder's children read the centroid bounds the partition gathered on its way
+    # (a pass over their primitives saved): they must be the plain min and max.
+    centroid = np.array(centroid, float)
+    n = len(centroid)
+    order = np.random.default_rng(seed).permutation(n).astype(np.int64)
+    lo, hi = centroid[:, axis].min(), centroid[:, axis].max()
+    scale = N_BINS / (hi - lo) if hi > lo else 0.0
+    child_cb = np.empty((2, 6))
+    first = min(3, n - 1)
+    kept = order[:first].copy()
+    count = n - first
+    n_left = _partition(first, count, order, centroid, axis, split_bin, lo, scale, N_BINS,
+                        child_cb)  # fmt: skip
+    assert np.array_equal(order[:first], kept)  # only its range is reordered
+    bins = np.minimum(N_BINS - 1, ((centroid[:, axis] - lo) * scale).astype(np.int64))
+    left, right = order[first : first + n_left], order[first + n_left : first + count]
+    assert np.all(bins[left] < split_bin) and np.all(bins[right] >= split_bin)
+    for side, ids in enumerate((left, right)):
+        if len(ids):
+            expected = np.concatenate([centroid[ids].min(axis=0), centroid[ids].max(axis=0)])
+        else:
+            expected = np.array([np.inf] * 3 + [-np.inf] * 3)
+        assert np.array_equal(child_cb[side], expected)
 
 
 def test_parallel_build_of_a_mesh_makes_the_serial_tree():
