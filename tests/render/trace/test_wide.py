@@ -33,6 +33,39 @@ def _slot_box(boxes, w, k):
     return b[:3], b[3:]
 
 
+# Bounds a float32 rounds the wrong way near zero, at the ends of its range and beyond.
+EDGES = [0.0, -0.0, 1e-320, -1e-320, 1e-46, -1e-46, 1.401298464324817e-45, 3.5e38, -3.5e38,
+         3.4028235677973366e38, 1.0 + 1e-9, -1.0 - 1e-9, np.inf, -np.inf]  # fmt: skip
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    values=st.lists(
+        st.one_of(st.sampled_from(EDGES), st.floats(allow_nan=False, allow_subnormal=True)),
+        min_size=6,
+        max_size=48,
+    )
+)
+def test_boxes_are_rounded_outward_to_the_nearest_float32s(values):
+    # Each slot's low corner the largest float32 <= the float64 bound, its high corner the
+    # smallest >= it: NumPy's nextafter is the reference (the fill steps on the bits).
+    m = len(values) // 6
+    bounds = np.array(values[: 6 * m], float).reshape(m, 6)
+    slot_node = np.full((-(-m // WIDTH), WIDTH), -1, np.int64)
+    slot_node.ravel()[:m] = np.arange(m)
+    boxes = wide_nodes(bounds, slot_node, np.zeros(slot_node.shape, np.int64))
+    with np.errstate(over="ignore"):
+        near = bounds.astype(np.float32)
+    down = np.where(near > bounds, np.nextafter(near, np.float32(-np.inf)), near)
+    up = np.where(near < bounds, np.nextafter(near, np.float32(np.inf)), near)
+    for n in range(m):
+        w, k = divmod(n, WIDTH)
+        for a in range(3):
+            for got, want in ((boxes[w, a * WIDTH + k], down[n, a]),
+                              (boxes[w, 3 * WIDTH + a * WIDTH + k], up[n, 3 + a])):  # fmt: skip
+                assert np.float32(got).view(np.int32) == np.float32(want).view(np.int32)
+
+
 @SETTINGS
 @given(tris=soups(min_size=1, max_size=120))
 def test_the_collapse_keeps_every_leaf_once_under_boxes_that_hold_the_binary_ones(tris):
