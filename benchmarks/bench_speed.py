@@ -56,6 +56,14 @@ TARGETS = {
     "threads_forward": 1.7,
     "threads_boundary": 1.7,
 }
+#: Each timed block follows this many seconds of untimed calls of the same workload in the
+#: same worker. A worker that has sat idle while the others took their turns starts slow:
+#: our forward at 512x512 on 2 threads took 6.3-7.8 ms for its first 16 calls after 3 s
+#: idle, then 4.7-5.2 ms (this 2-core VM; the second core wakes slowly for each job handed
+#: to it until it is kept busy), and a second thread only looked useless (1 -> 2 threads
+#: 0.97x in turns with Mitsuba's worker, 1.37x when run alone). An optimisation loop runs
+#: in the warm state; so is every worker measured.
+WARM_SECONDS = 0.3
 MITSUBA_WORKLOADS = ("forward", "light_iteration", "shape_iteration")
 
 
@@ -129,9 +137,9 @@ def workloads(size: int, wanted) -> dict:
 
 def worker(kind: str, size: int, wanted: str) -> None:
     """A worker's loop: build the workloads of ``kind`` ("ours" or "mitsuba") named in
-    ``wanted`` (comma-separated), then answer the lines of stdin, ``name calls``: run
-    ``calls`` calls of workload ``name`` and print their times (seconds) as one JSON line;
-    ``names`` prints the names of the workloads it has."""
+    ``wanted`` (comma-separated), then answer the lines of stdin, ``name calls warm``: run
+    workload ``name`` untimed for ``warm`` seconds, then ``calls`` calls, and print their
+    times (seconds) as one JSON line; ``names`` prints the names of the workloads it has."""
     import time
 
     wanted = wanted.split(",")
@@ -147,7 +155,10 @@ def worker(kind: str, size: int, wanted: str) -> None:
         if words == ["names"]:
             answer = sorted(fns)
         else:
-            fn, calls = fns[words[0]], int(words[1])
+            fn, calls, warm = fns[words[0]], int(words[1]), float(words[2])
+            start = time.perf_counter()
+            while time.perf_counter() - start < warm:
+                fn()
             answer = []
             for _ in range(calls):
                 t0 = time.perf_counter()
@@ -199,17 +210,18 @@ class Worker:
 
 def measure_all(workers: list[Worker], names: list[str], repeats: int, rounds: int = 3) -> dict:
     """{workload: {worker label: summary}}: every worker that has the workload runs it in
-    turns, ``rounds`` blocks of calls each after two warm-up calls."""
+    turns, ``rounds`` blocks of calls each after two warm-up calls, each block after
+    ``WARM_SECONDS`` of untimed calls."""
     out = {}
     block = max(1, -(-repeats // rounds))
     for name in names:
         have = [w for w in workers if name in w.names]
         times = {w.label: [] for w in have}
         for w in have:
-            w.ask(f"{name} 2")  # warm-up: compilation, caches
+            w.ask(f"{name} 2 0")  # warm-up: compilation, caches
         for _ in range(rounds):
             for w in have:
-                times[w.label] += w.ask(f"{name} {block}")
+                times[w.label] += w.ask(f"{name} {block} {WARM_SECONDS}")
         out[name] = {label: timing.summarize(t) for label, t in times.items()}
         print(name, {k: f"{v['median_ms']:.1f}" for k, v in out[name].items()}, flush=True)
     return out
