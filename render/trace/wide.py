@@ -174,7 +174,7 @@ def _fill_boxes(job, n_jobs, node_bounds, slot_node, boxes):
 
 # Rounded outward by a step on the float32's bits, chosen without a branch: with
 # ``np.nextafter`` (a call) behind a branch that goes either way at random, the boxes of the
-# 1.3M-triangle tree took 49-58 ms on one thread, 24 ms this way (the same bits:
+# 1.3M-triangle tree took 49-58 ms on one thread, 24-28 ms this way (the same bits:
 # tests/render/trace/test_wide.py); a refit gathers them again. A float32's bits, read as
 # an int32, step to its neighbour away from zero by +1 and towards zero by -1 (on either
 # side of zero); from a zero, the neighbour is the smallest subnormal of the wanted sign.
