@@ -54,10 +54,10 @@ def test_boxes_are_rounded_outward_to_the_nearest_float32s(values):
     slot_node = np.full((-(-m // WIDTH), WIDTH), -1, np.int64)
     slot_node.ravel()[:m] = np.arange(m)
     boxes = wide_nodes(bounds, slot_node, np.zeros(slot_node.shape, np.int64))
-    with np.errstate(over="ignore"):
+    with np.errstate(over="ignore"):  # (beyond float32's range: inf, as the fill's)
         near = bounds.astype(np.float32)
-    down = np.where(near > bounds, np.nextafter(near, np.float32(-np.inf)), near)
-    up = np.where(near < bounds, np.nextafter(near, np.float32(np.inf)), near)
+        down = np.where(near > bounds, np.nextafter(near, np.float32(-np.inf)), near)
+        up = np.where(near < bounds, np.nextafter(near, np.float32(np.inf)), near)
     for n in range(m):
         w, k = divmod(n, WIDTH)
         for a in range(3):
