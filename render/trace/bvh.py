@@ -130,7 +130,8 @@ def half_area(lx, ly, lz, hx, hy, hz):
 
 @jit(cache=True)
 def _set_bounds(node, first, count, order, prim_min, prim_max, node_bounds):
-    """Set ``node_bounds[node]`` to the union of the boxes of ``order[first:first+count]``."""
+    """Set ``node_bounds[node]`` to the union of the boxes of ``order[first:first+count]``
+    (with ``centroid`` as both ``prim_min`` and ``prim_max``: the bounds of their centroids)."""
     lx = ly = lz = np.inf
     hx = hy = hz = -np.inf
     for k in range(first, first + count):
@@ -171,20 +172,6 @@ def split_scratch(n_bins):
         np.empty((2, 6)),
         np.empty((2, 6)),
     )
-
-
-@jit(cache=True)
-def _centroid_bounds(first, count, order, centroid, out, row):
-    """``out[row]`` = (min x, y, z, max x, y, z) of the centroids of the primitives
-    ``order[first:first+count]``."""
-    for a in range(3):
-        out[row, a] = np.inf
-        out[row, 3 + a] = -np.inf
-    for k in range(first, first + count):
-        p = order[k]
-        for a in range(3):
-            out[row, a] = min(out[row, a], centroid[p, a])
-            out[row, 3 + a] = max(out[row, 3 + a], centroid[p, a])
 
 
 @jit(cache=True)
@@ -362,7 +349,7 @@ def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred,
     cb = np.empty((1, 6))  # the node's, copied: its stack row is overwritten by a child's
     stack[0] = root
     stack_level[0] = level
-    _centroid_bounds(node_first[root], node_count[root], order, centroid, stack_cb, 0)
+    _set_bounds(0, node_first[root], node_count[root], order, centroid, centroid, stack_cb)
     sp = 1
     while sp > 0:
         sp -= 1
@@ -393,8 +380,8 @@ def _subdivide(root, level, next_free, tree, boxes, rule, defer_below, deferred,
             )
         elif count > max_leaf_size:
             n_left = count // 2  # all centroids coincide: split by index
-            _centroid_bounds(first, n_left, order, centroid, child_cb, 0)
-            _centroid_bounds(first + n_left, count - n_left, order, centroid, child_cb, 1)
+            _set_bounds(0, first, n_left, order, centroid, centroid, child_cb)
+            _set_bounds(1, first + n_left, count - n_left, order, centroid, centroid, child_cb)
         else:
             continue
         # Children are allocated as a pair, so the right child is always left + 1.
