@@ -55,9 +55,10 @@ import math
 import sys
 import threading
 from collections import OrderedDict
-from collections.abc import Iterator
 
 import numpy as np
+
+from minidiff.scoped import set_within
 
 #: Arrays smaller than this come from NumPy directly: glibc keeps small blocks in the
 #: process anyway (its mmap threshold starts at 128 KiB), so reusing them would gain nothing.
@@ -94,15 +95,10 @@ _UNUSED = 3
 _fresh: contextvars.ContextVar[bool] = contextvars.ContextVar("minidiff_fresh", default=False)
 
 
-@contextlib.contextmanager
-def fresh() -> Iterator[None]:
+def fresh() -> contextlib.AbstractContextManager:
     """Within the block, on this thread (or asyncio task) only, ``empty`` neither reuses
     nor keeps arrays: for passes whose shapes will not come back."""
-    token = _fresh.set(True)
-    try:
-        yield
-    finally:
-        _fresh.reset(token)
+    return set_within(_fresh, True)
 
 
 def empty(shape: tuple[int, ...], dtype: np.dtype | type) -> np.ndarray:

@@ -36,7 +36,6 @@ to compile for, and it gives the outputs' shapes.
 
 from __future__ import annotations
 
-import contextlib
 import contextvars
 import ctypes
 import dataclasses
@@ -52,6 +51,7 @@ import numpy as np
 
 from minidiff import backend, codegen, ir
 from minidiff import buffers as memory
+from minidiff.scoped import set_within
 from minidiff.tensor import (
     Tensor,
     _accumulate_leaf,
@@ -86,17 +86,12 @@ _on_the_tape: contextvars.ContextVar[bool] = contextvars.ContextVar("on_the_tape
 _ARRAYS = (Tensor, np.ndarray, float, np.floating, np.integer, np.bool_)
 
 
-@contextlib.contextmanager
 def tape_only():
     """Within the block, compiled functions called from this thread (context) run their
     plain function instead, primitive by primitive on the tape: the readable reference the
     compiled kernels are tested against (and the course's path). Other threads keep
     their kernels."""
-    token = _on_the_tape.set(True)
-    try:
-        yield
-    finally:
-        _on_the_tape.reset(token)
+    return set_within(_on_the_tape, True)
 
 
 class _Leaf(NamedTuple):

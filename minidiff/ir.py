@@ -23,8 +23,9 @@ import contextvars
 import math
 import struct
 from collections.abc import Callable
-from contextlib import contextmanager
 from dataclasses import dataclass, field
+
+from minidiff.scoped import set_within
 
 # The graph that Values are appended to, per thread (a contextvar: two threads can trace
 # at once, each into its own graph).
@@ -66,14 +67,9 @@ class Graph:
         """A copy to append derivative lines to; the original stays as traced."""
         return Graph(list(self.nodes), self.reads_batch)
 
-    @contextmanager
     def building(self):
         """Within the block, operations on Values append to this graph."""
-        token = _building.set(self)
-        try:
-            yield self
-        finally:
-            _building.reset(token)
+        return set_within(_building, self)
 
 
 def active() -> Graph:

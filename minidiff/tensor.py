@@ -52,6 +52,7 @@ from typing import Any
 import numpy as np
 
 from minidiff import kernels
+from minidiff.scoped import set_within
 
 # The switches, per context: each thread (and each asyncio task) has its own, like PyTorch's
 # grad mode, so that ``no_grad()`` in one thread never turns the tape off in another. A new
@@ -681,14 +682,9 @@ def _output_tangent(name: str, out: np.ndarray, inputs: Sequence[Tensor], jvp) -
     return t
 
 
-@contextmanager
 def _grad_mode(enabled: bool):
     """Gradients enabled or not in the current thread (context) within the block."""
-    token = _grad_enabled.set(enabled)
-    try:
-        yield
-    finally:
-        _grad_enabled.reset(token)
+    return set_within(_grad_enabled, enabled)
 
 
 def no_grad():
@@ -706,15 +702,10 @@ def enable_grad():
     return _grad_mode(True)
 
 
-@contextmanager
 def detect_anomaly():
     """Opt-in checking: raise at the first primitive whose forward value or backward
     gradient contains NaN or inf, naming it. Costs one ``isfinite`` scan per array."""
-    token = _anomaly_mode.set(True)
-    try:
-        yield
-    finally:
-        _anomaly_mode.reset(token)
+    return set_within(_anomaly_mode, True)
 
 
 def as_tangent(where: str, what: str, primal: Tensor, direction: Any) -> np.ndarray:

@@ -33,6 +33,8 @@ from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.ir_utils import simplify
 from numba.core.typed_passes import NopythonRewrites
 
+from minidiff.scoped import set_within
+
 __all__ = [
     "using_threads",
     "thread_count",
@@ -72,14 +74,9 @@ def using_threads(count: int):
         yield
 
 
-@contextlib.contextmanager
 def _budget(budget: _Budget):
     """``using_threads`` with a budget the caller may change while the block runs."""
-    token = _threads.set(budget)
-    try:
-        yield
-    finally:
-        _threads.reset(token)
+    return set_within(_threads, budget)
 
 
 def thread_count() -> int:
