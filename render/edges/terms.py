@@ -34,6 +34,7 @@ from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_upda
 from render.scene.cache import RenderCache, light_key
 from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
+from render.trace.outlines import Outlines
 from render.trace.seams import shared_edges
 from render.trace.topology import edge_structure, welding
 from render.trace.visibility import Visibility
@@ -197,6 +198,19 @@ def _geometry_tables(scene: Scene, occluders: Occluders, cache: RenderCache) -> 
     return topology, crossings, shared
 
 
+def scene_outlines(scene: Scene, occluders: Occluders, cache: RenderCache) -> Outlines:
+    """The scene's curves that can be outlines seen from a light (``render.trace.outlines``),
+    reused from ``cache`` while the geometry is unchanged."""
+    topology, _, shared = _geometry_tables(scene, occluders, cache)
+    tables = [topology[k] for k in range(len(scene.meshes))], shared
+    found, _ = cache.get(
+        "outlines",
+        [occluders.geometry],
+        lambda: Outlines.of(scene, occluders.primitives[0], occluders.size, tables),
+    )
+    return found
+
+
 def boundary_points_of(
     scene: Scene, visibility: Visibility, cache: RenderCache, frame, max_bounces: int
 ) -> tuple[list[CurveKind], list[CurvePoints]]:
@@ -208,10 +222,9 @@ def boundary_points_of(
     may find them on another thread while it shades (``minidiff.threads.beside``)."""
     with md.no_grad():
         occluders = Occluders.of(visibility)
-        topology, _, shared = _geometry_tables(scene, occluders, cache)
         kinds = [
             *primary_kinds(scene, occluders, cache),
-            ShadowBorder(visibility, frame, topology, shared),
+            ShadowBorder(visibility, frame, scene_outlines(scene, occluders, cache)),
         ]
         radiance = DirectRadiance(scene, visibility, frame, max_bounces)
         return kinds, curve_points(scene, occluders, radiance, kinds)

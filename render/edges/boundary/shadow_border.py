@@ -56,6 +56,7 @@ from render.scene.lights import Light
 from render.scene.scene import Scene
 from render.shade.hits import working_dtype
 from render.shade.surface import in_order
+from render.trace.outlines import Outlines
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
 
@@ -436,20 +437,17 @@ class ShadowBorder:
     weighs, its edge function ``shadow_term``. It keeps the chords and the points of the
     render it is asked about, for that render's later steps. Labels: chord ids.
 
-    ``visibility``, ``frame``: the render's; ``topology``: ``mesh_edges`` per mesh;
-    ``shared``: the edges meshes share (``render.trace.seams.shared_edges``, None: none)."""
+    ``visibility``, ``frame``: the render's; ``outlines``: the scene's curves that can be
+    outlines (``render.trace.outlines.Outlines``)."""
 
     summed, taped = 4, 0
 
-    def __init__(self, visibility: Visibility, frame, topology: dict, shared=None) -> None:
-        self.visibility, self.frame = visibility, frame
-        self.topology, self.shared = topology, shared
+    def __init__(self, visibility: Visibility, frame, outlines: Outlines) -> None:
+        self.visibility, self.frame, self.outlines = visibility, frame, outlines
 
     def curves(self, view: View) -> Curves:
         """The chords of every light's shadow borders."""
-        self.chords = border_chords(
-            view.scene, self.visibility, self.frame, self.topology, self.shared
-        )
+        self.chords = border_chords(view.scene, self.visibility, self.frame, self.outlines)
         return Curves(self.chords.start, self.chords.end, np.arange(len(self.chords.start)))
 
     def points(self, view: View, on: OnCurves) -> CurvePoints:

@@ -5,14 +5,16 @@ A point light L casts past an occluder's silhouette *as seen from the light* a s
 border, on the receiving surface, is where the light's ray to the receiver point grazes the
 occluder (``render.edges.boundary.shadow_border`` writes that border's edge function e and
 adds its term). Each silhouette curve of each occluder seen from the light (mesh edges whose
-faces do not all face the light, open edges, a sphere's circle of tangency;
-``_light_silhouettes``) is followed by rays from the light that graze it; where such a ray
-goes on to hit a receiver, it marks a point of the border. Consecutive points on one
-receiver triangle are joined by a chord, exact while the occluder is an edge and the
-receiver a triangle (the border is then straight), and at most ``CHORD`` pixels long
-otherwise; where the receiver changes, the curve parameter is bisected until the gap is
-below ``GAP`` pixels (``bisect_chords``, one compiled pass; its plain NumPy statement,
-round by round, is ``tests/render/edges/shadow_reference.py``, and a test ties the two).
+faces all lie on one side of the plane the edge sweeps in the light, open edges, a sphere's
+circle of tangency: ``render.trace.outlines``, which finds the path integrator's soft
+shadows' edges too; ``_light_silhouettes``) is followed by rays from the light that graze
+it; where such a ray goes on to hit a receiver, it marks a point of the border.
+Consecutive points on one receiver triangle are joined by a chord, exact while the occluder
+is an edge and the receiver a triangle (the border is then straight), and at most ``CHORD``
+pixels long otherwise; where the receiver changes, the curve parameter is bisected until
+the gap is below ``GAP`` pixels (``bisect_chords``, one compiled pass; its plain NumPy
+statement, round by round, is ``tests/render/edges/shadow_reference.py``, and a test ties
+the two).
 
 Not included: shadow borders seen in mirrors, and a receiver narrower than the spacing of
 the grazing rays: they start ``SPACING`` pixels apart along the occluder's image and are
@@ -32,6 +34,7 @@ from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, closest_hit_one, n_blocks
+from render.trace.outlines import Outlines, one_sided
 from render.trace.primitives import first_sphere_id
 from render.trace.visibility import Visibility
 
@@ -72,81 +75,27 @@ class BorderChords:
 # ---------------------------------------------------------------------------------------
 
 
-def _edge_faces(scene: Scene, topology, shared=None) -> list[tuple]:
-    """Per mesh, for every face on every welded edge (``EdgeTable.faces``, (E, K), then the
-    faces other meshes have on it, ``render.trace.seams.SharedEdges.faces``, when
-    ``shared`` is given): its normal (E, K', 3), first corner (E, K', 3) and whether the
-    slot holds a face (E, K') bool; the same for every light, so computed once per
-    render."""
-    out = []
-    if shared is not None:
-        every = [np.asarray(m.vertices.data, np.float64)[m.faces] for m in scene.meshes]
-        triangles = np.concatenate(every)  # (N, 3, 3), by global primitive id
-    for k, mesh in enumerate(scene.meshes):
-        vertices = np.asarray(mesh.vertices.data, np.float64)
-        faces = topology[k].table.faces
-        tri = vertices[mesh.faces[np.maximum(faces, 0)]]  # (E, K, 3, 3)
-        valid = faces >= 0
-        if shared is not None:
-            tri = np.concatenate([tri, triangles[np.maximum(shared[k].faces, 0)]], axis=1)
-            valid = np.concatenate([valid, shared[k].faces >= 0], axis=1)
-        normal = np.cross(tri[..., 1, :] - tri[..., 0, :], tri[..., 2, :] - tri[..., 0, :])
-        out.append((normal, tri[..., 0, :], valid))
-    return out
-
-
-def _light_silhouettes(scene: Scene, topology, light, edge_faces, shared=None):
-    """Occluder curves of one light: (occluder (c, 3) int64 as in ``BorderChords``, curve
-    kind per row: 0 a segment from ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius
-    vector ``b`` and second axis ``axis`` (c, 3)). ``edge_faces``: ``_edge_faces``;
-    ``shared``: the edges meshes share (``render.trace.seams.shared_edges``, None: none),
-    each an occluder's silhouette once, judged by every mesh's faces on it."""
-    rows, a, b, axis = [], [], [], []
-    for k, mesh in enumerate(scene.meshes):
-        table = topology[k].table
-        vertices = np.asarray(mesh.vertices.data, np.float64)
-        normal, corner, valid = edge_faces[k]
-        facing = np.sign(np.sum(normal * light.towards(corner), axis=-1))
-        lit = np.any(valid & (facing > 0), axis=1)
-        dark = np.any(valid & (facing < 0), axis=1)
-        keep = (lit & dark) | (valid.sum(axis=1) == 1)
-        if shared is not None:
-            joined = np.any(shared[k].faces >= 0, axis=1)
-            own = vertices[np.maximum(table.thirds, 0)]
-            thirds = np.concatenate([own, shared[k].thirds], axis=1)
-            one_side = _one_sided(vertices[table.i], vertices[table.j], thirds, valid, light)
-            # Where faces of several meshes meet, their windings need not agree (two
-            # coincident copies, a seam between differently wound parts): the edge is an
-            # outline seen from the light where all their third corners lie on one side
-            # of the plane through the light and the edge.
-            keep = np.where(joined, one_side, keep) & shared[k].owned
-        keep = np.flatnonzero(keep)
-        rows.append(np.stack([np.full(len(keep), k), table.i[keep], table.j[keep]], axis=1))
-        a.append(vertices[table.i[keep]])
-        b.append(vertices[table.j[keep]])
-        axis.append(np.zeros((len(keep), 3)))
-    for index, sphere in enumerate(scene.spheres):
-        centre, r = np.asarray(sphere.center.data, np.float64), float(sphere.radius.data)
-        circle = light.sphere_outline(centre, r)
+def _light_silhouettes(outlines: Outlines, light: Light):
+    """Occluder curves of one light, among the scene's ``outlines`` (``render.trace.
+    outlines``: the edges whose faces lie on one side of the plane the edge sweeps in the
+    light, ``Light.edge_plane``; the spheres' circles of tangency, ``Light.sphere_outline``):
+    (occluder (c, 3) int64 as in ``BorderChords``, curve kind per row: 0 a segment from
+    ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius vector ``b`` and second axis
+    ``axis`` (c, 3))."""
+    m, base = light.edge_plane(outlines.a, outlines.b)
+    keep = np.flatnonzero(one_sided(m, base, outlines.c)[0])
+    rows = [np.stack([outlines.edge_object[keep], *outlines.ends[keep].T], axis=1)]
+    a, b, axis = [outlines.a[keep]], [outlines.b[keep]], [np.zeros((len(keep), 3))]
+    for index, (centre, r) in enumerate(zip(outlines.centre, outlines.radius, strict=True)):
+        circle = light.sphere_outline(centre, float(r))
         if circle is None:
             continue  # the light inside the sphere: everything outside is dark
         rows.append(np.array([[-1, index, -1]]))
         for out, x in zip((a, b, axis), circle, strict=True):
             out.append(x[None])
-    occluder = np.concatenate(rows) if rows else np.zeros((0, 3), np.int64)
+    occluder = np.concatenate(rows).astype(np.int64)
     kind = (occluder[:, 0] < 0).astype(np.int64)
-    cat = (lambda x: np.concatenate(x)) if rows else (lambda x: np.zeros((0, 3)))
-    return occluder, kind, cat(a), cat(b), cat(axis)
-
-
-def _one_sided(a, b, thirds, valid, light: Light) -> np.ndarray:
-    """(E,) bool: edges (a, b) (E, 3) whose faces' third corners ``thirds`` (E, K, 3) (where
-    ``valid`` (E, K)) all lie on one side of the plane the edge sweeps in ``light``."""
-    m, _ = light.edge_plane(a, b)
-    side = np.einsum("ekj,ej->ek", thirds - a[:, None], m)
-    plus = np.any(valid & (side > 0), axis=1)
-    minus = np.any(valid & (side < 0), axis=1)
-    return ~(plus & minus)
+    return occluder, kind, np.concatenate(a), np.concatenate(b), np.concatenate(axis)
 
 
 # ---------------------------------------------------------------------------------------
@@ -366,20 +315,15 @@ def _bisect_block(
     return m
 
 
-def border_chords(
-    scene: Scene, visibility: Visibility, frame, topology, shared=None
-) -> BorderChords:
-    """The chords of every light's shadow borders (module docstring); ``topology``:
-    ``mesh_edges`` per mesh; ``shared``: the edges meshes share
-    (``render.trace.seams.shared_edges``, None: none). None of them without shadows."""
+def border_chords(scene: Scene, visibility: Visibility, frame, outlines: Outlines) -> BorderChords:
+    """The chords of every light's shadow borders (module docstring); ``outlines``: the
+    scene's curves that can be outlines (``render.trace.outlines.Outlines``). None of them
+    without shadows."""
     plain = plain_camera(frame)
     size = max(visibility.size, 1e-300)
     parts = []
-    edge_faces = (
-        _edge_faces(scene, topology, shared) if visibility.shadows and scene.lights else None
-    )
     for j, light in enumerate(scene.lights if visibility.shadows else []):
-        curves = _light_silhouettes(scene, topology, light, edge_faces, shared)
+        curves = _light_silhouettes(outlines, light)
         parts.append((*curves, np.full(len(curves[0]), j)))
     if parts:
         *curves, light = (np.concatenate(p) for p in zip(*parts, strict=True))

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 import minidiff as md
-from render.path.boundary.silhouettes import CONTACT, Curves, level_set
+from render.path.boundary.silhouettes import Curves, level_set
 from render.path.gradient import window
 from render.path.gradient.replay import plain_tables, radiance_of
 from render.path.gradient.transport import next_vertex, vertex_on_tape, viewer_side
@@ -71,6 +71,7 @@ from render.path.sample.tracer import AREA, CAMERA, MIRROR, STOP, PathSampler
 from render.path.twin import kernel
 from render.scene.camera import camera_frame, project, ray_directions, to_image_plane
 from render.shade.surface import column, geometric_normals
+from render.trace.outlines import CONTACT
 from render.trace.visibility import shadow_offset
 
 #: The boundary paths' seed is the render's seed XOR this (independent of the image's).

@@ -13,29 +13,10 @@ one is drawn:
 * a point on it uniformly in that angle (``parameter``): drawn uniformly along the edge, a
   point near an apex close to the edge would carry a weight that grows as 1 / distance.
 
-Meshes that share an edge (a multi-material file read as one mesh per material, walls
-meeting at a corner) are welded into one (``_welded_groups``: ``render.trace.seams`` finds
-them, ``render.trace.topology`` welds the group), so that a shared edge has a face of each
-mesh, and is a silhouette where both lie on one side of the plane through apex and edge,
-as in one mesh: the same curves, in the same order, as the group's faces make as one mesh
-(so the same draws). Taken mesh by mesh, such an edge is a border of each (a silhouette
-from everywhere, counted twice), and it lies on the other mesh's face, so that the contact
-rule below dropped it: a cube split into meshes lost its shadow's gradient.
-
-Edges that rest on another object's surface without being one of its edges (a box standing
-on the floor, a fin standing on a plate inside it) are left out. A ray from the apex that
-grazes such an edge meets that surface at the edge itself, unless it runs in the surface's
-plane: the curve where visibility changes behind the edge is the edge, whether the edge is
-convex (the box's: nothing shows between box and floor) or concave (the fin's: its two
-sides see the plate on their own sides), and there is no surface beyond it to sample
-(``render.path.boundary.secondary`` wants one). What this leaves out (by this argument, not
-measured) is the contact line's own motion along the surface: a box sliding on the floor
-covers floor in front of it that a vertex off the floor's plane saw. While the line stays
-in place on the surface (the light moving, the occluder's other edges), nothing is missed;
-for a box lifted off the floor, the derivative given is the one-sided one of pressing it
-in. An edge lying along an edge of another object's face, with vertices of its own (not
-shared), is left out too, though it is a silhouette where the two objects' faces lie on one
-side (an L whose fin and plate are tessellated differently): a case not handled here.
+Which curves can be silhouettes (mesh edges welded across the meshes that share them,
+the two outer faces of an edge where more meet, edges resting on another object's surface
+left out) is ``render.trace.outlines``' to say, for this term and the direct renderer's
+shadow borders alike: ``Curves`` are its ``Outlines`` with the draws added.
 
 ``pick_reference`` composes the NumPy steps (n x E arrays: the version to read);
 ``Curves.pick`` does the same per apex in one parallel Numba loop over the curves (no
@@ -45,7 +26,7 @@ checks that they agree.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import fields
 
 import numpy as np
 
@@ -55,14 +36,8 @@ from render.path.sample.sampling import dot, unit
 from render.path.sample.tracer import PathSampler
 from render.scene.scene import Mesh
 from render.shade.surface import column, divided_unit
-from render.trace.seams import shared_edges
-from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
+from render.trace.outlines import GRAZING, Outlines, one_sided
 from render.trace.vec3 import cross, dot3, sub
-
-#: A face whose plane passes within this angle of the apex is seen edge-on: not a silhouette.
-GRAZING = 1e-9
-#: A surface closer than this (a fraction of the scene's size) to an edge touches it.
-CONTACT = 1e-5
 
 
 def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
@@ -88,42 +63,17 @@ def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
     return md.where(is_edge, edge, sphere)
 
 
-@dataclass
-class Curves:
-    """Where visibility can change, as plain world-space arrays: mesh edges (E of them)
-    with their endpoints ``a``, ``b`` (E, 3), the third vertices ``c`` (E, 2, 3) of the
-    faces on either side (a border edge: its one face twice), the owning object (E,) and
-    the endpoints' vertex ids in it ``ends`` (E, 2) (coincident vertices welded, as
-    ``render.trace.topology`` does, across the meshes that share edges: an edge two meshes
-    share is one edge, its object the first of them; where more than two faces meet, the
-    two that bound the others around the edge, ``_outer_faces``); and spheres (S):
-    ``centre`` (S, 3), ``radius`` (S,), object (S,). Left out: edges between two faces of
-    one plane and edges whose faces span more than a half turn around them (never
-    silhouettes), and edges that rest on another object's surface (a box standing on the
-    floor: the module docstring says why and what that leaves out)."""
-
-    a: np.ndarray
-    b: np.ndarray
-    c: np.ndarray
-    edge_object: np.ndarray
-    ends: np.ndarray
-    centre: np.ndarray
-    radius: np.ndarray
-    sphere_object: np.ndarray
+class Curves(Outlines):
+    """The scene's ``Outlines`` (``render.trace.outlines``: mesh edges ``a``, ``b`` (E, 3)
+    with their faces' third corners ``c`` (E, 2, 3), owner and vertex ids; spheres
+    ``centre`` (S, 3), ``radius`` (S,)) and how a point on one seen from a path vertex is
+    drawn (the module docstring)."""
 
     @classmethod
     def of(cls, sampler: PathSampler) -> Curves:
-        parts = [_group_edges(sampler, *group) for group in _welded_groups(sampler)]
-        spheres = [(o, obj) for o, obj in enumerate(sampler.objects) if not isinstance(obj, Mesh)]
-        return cls(
-            _rows([p[0] for p in parts], (0, 3)), _rows([p[1] for p in parts], (0, 3)),
-            _rows([p[2] for p in parts], (0, 2, 3)),
-            _rows([p[3] for p in parts], (0,)).astype(np.int64),
-            _rows([p[4] for p in parts], (0, 2)).astype(np.int64),
-            np.array([s.center.data for _, s in spheres], np.float64).reshape(-1, 3),
-            np.array([float(s.radius.data) for _, s in spheres], np.float64),
-            np.array([o for o, _ in spheres], np.int64),
-        )  # fmt: skip
+        """The curves of the sampler's scene (world space)."""
+        found = Outlines.of(sampler.scene, sampler.primitives[0], sampler.size)
+        return cls(**{f.name: getattr(found, f.name) for f in fields(Outlines)})
 
     @classmethod
     def kept(cls, sampler: PathSampler) -> Curves:
@@ -139,26 +89,19 @@ class Curves:
             key.extend(np.array(getattr(part, "data", part)) for part in shape)
         return sampler.cache.get("silhouette curves", key, lambda: cls.of(sampler))[0]
 
-    @property
-    def n_edges(self) -> int:
-        return len(self.a)
-
     def silhouettes(self, apex: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For apexes (n, 3): the angle (n, E + S) each curve subtends there, zero where it
         is no silhouette (edges first, then spheres), and the side (n, E) of the plane
         through apex and edge that the edge's faces lie on (+1 or -1)."""
         pa, pb = self.a[None] - apex[:, None], self.b[None] - apex[:, None]  # (n, E, 3)
         normal = np.cross(pa, pb)
+        silhouette, side = one_sided(normal, apex[:, None], self.c)
         size = np.linalg.norm(normal, axis=2)
-        pc = self.c[None] - apex[:, None, None]  # (n, E, 2, 3)
-        side = np.einsum("neij,nej->nei", pc, normal)
-        sure = np.abs(side) > GRAZING * size[..., None] * np.linalg.norm(pc, axis=3)
-        silhouette = sure.all(axis=2) & (np.sign(side[..., 0]) == np.sign(side[..., 1]))
         angle = np.where(silhouette, np.arctan2(size, np.einsum("nej,nej->ne", pa, pb)), 0.0)
         distance = np.linalg.norm(self.centre[None] - apex[:, None], axis=2)  # (n, S)
         around = self.radius < distance * (1 - 1e-9)
         circle = np.where(around, 2 * np.pi * self.radius / np.maximum(distance, 1e-300), 0.0)
-        return np.concatenate([angle, circle], axis=1), np.sign(side[..., 0])
+        return np.concatenate([angle, circle], axis=1), side
 
     def towards(self, apex: np.ndarray, triangle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The parameters (lo, hi) (n, E + S) of the part of each curve through which rays
@@ -338,157 +281,6 @@ def _aim(apex, t, side, edge, ball, is_edge, lift, a, b, centre, radius):
 def _level_set_of(apex, far, edge, ball, is_edge, a, b, centre, radius):
     """``level_set`` of rows of curves (``Curves.rows`` into ``Curves.padded``)."""
     return level_set(apex, far, a[edge], b[edge], centre[ball], radius[ball], is_edge)
-
-
-def _welded_groups(sampler: PathSampler) -> list[tuple[list[int], MeshEdges]]:
-    """The scene's meshes (object indices) in groups that are welded into one: meshes that
-    share an edge (``render.trace.seams``: a vertex of each at the same place, at both
-    ends), and the meshes that share one with those, and so on; each group (in the order
-    of its first mesh) with its welded ``MeshEdges``, the group's meshes taken as one
-    (their vertices, then their faces, concatenated in scene order)."""
-    meshes = [obj for obj in sampler.objects if isinstance(obj, Mesh)]  # objects 0..M-1
-    topology = [mesh_edges(*_arrays([obj])) for obj in meshes]
-    parent = list(range(len(meshes)))
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            k = parent[k]
-        return k
-
-    for k, shared in enumerate(shared_edges(sampler.scene, topology) or []):
-        faces = shared.faces[shared.faces >= 0]  # other meshes' faces on mesh k's edges
-        for o in np.unique(np.searchsorted(sampler.first, faces, side="right") - 1):
-            low, high = sorted((root(k), root(int(o))))
-            parent[high] = low
-    groups: dict[int, list[int]] = {}
-    for k in range(len(meshes)):
-        groups.setdefault(root(k), []).append(k)
-    return [
-        (
-            group,
-            topology[group[0]]
-            if len(group) == 1
-            else mesh_edges(*_arrays([meshes[o] for o in group])),
-        )
-        for group in sorted(groups.values())
-    ]
-
-
-def _arrays(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
-    """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh."""
-    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-    vertices = np.concatenate([np.asarray(m.vertices.data, np.float64) for m in meshes])
-    faces = [np.asarray(m.faces) + s for m, s in zip(meshes, offsets[:-1], strict=True)]
-    return vertices, np.concatenate(faces)
-
-
-def _group_edges(
-    sampler: PathSampler, group: list[int], edges: MeshEdges
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The curves' edge arrays (a, b, c, object, ends: ``Curves``) of the meshes ``group``
-    (object indices) welded as one, with ``edges`` their ``MeshEdges``: every welded edge
-    but the flat ones and those that rest on another object's surface (``_touching``)."""
-    meshes = [sampler.objects[o] for o in group]
-    vertices, faces = _arrays(meshes)
-    table = edges.table
-    pick, fenced = _outer_faces(vertices, table)
-    both = np.take_along_axis(table.faces, pick, axis=1)
-    thirds = np.take_along_axis(table.thirds, pick, axis=1)
-    tri = vertices[faces]
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n1, n2 = normal[both[:, 0]], normal[both[:, 1]]
-    flat = (
-        (table.faces[:, 1] >= 0)
-        & (
-            np.linalg.norm(np.cross(n1, n2), axis=1)
-            <= 1e-9 * np.linalg.norm(n1, axis=1) * np.linalg.norm(n2, axis=1)
-        )
-        & (dot(n1, n2) > 0)
-    )
-    middle = 0.5 * (vertices[table.i] + vertices[table.j])
-    keep = ~flat & ~fenced & ~_touching(middle, group, sampler)
-    i, j = table.i[keep], table.j[keep]
-    # Both ends are corners of the edge's first face, hence of one mesh: its ids there.
-    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-    mesh = np.searchsorted(offsets, i, side="right") - 1
-    c = np.stack([vertices[thirds[keep, 0]], vertices[thirds[keep, 1]]], axis=1)
-    ends = np.stack([i, j], axis=1) - offsets[mesh][:, None]
-    return vertices[i], vertices[j], c, np.asarray(group, np.int64)[mesh], ends
-
-
-def _outer_faces(vertices: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:
-    """Which two of each edge's faces (columns of ``table.faces``, (E, 2); a border edge:
-    its one face twice) decide whether it is a silhouette, and which edges never are (E,)
-    bool. An edge is a silhouette where all its faces lie on one side of the plane through
-    apex and edge. With two faces, those; where more meet (a fin standing on a plate's
-    edge between two of the plate's faces, a box on a floor whose grid runs along its
-    bottom edges), the faces' half-planes around the edge lie on one side of such a plane
-    only if they fit in a half turn: then the two that bound them decide it; if not (the
-    largest angle between neighbours around the edge is at most a half turn), it never
-    is one."""
-    count = np.sum(table.faces >= 0, axis=1)
-    pick = np.where(count[:, None] >= 2, [[0, 1]], [[0, 0]])
-    fenced = np.zeros(len(count), bool)
-    for row in np.flatnonzero(count > 2):  # few: non-manifold edges
-        a, b = vertices[table.i[row]], vertices[table.j[row]]
-        axis = unit((b - a)[None])[0]
-        w = vertices[table.thirds[row, : count[row]]] - a
-        w -= np.outer(w @ axis, axis)  # each face's direction away from the edge
-        angle = np.arctan2(np.cross(w[0], w) @ axis, w @ w[0])
-        order = np.argsort(angle)
-        gaps = np.diff(np.r_[angle[order], angle[order[0]] + 2 * np.pi])
-        widest = int(np.argmax(gaps))
-        fenced[row] = gaps[widest] <= np.pi * (1 + 1e-9)
-        pick[row] = order[(widest + 1) % len(order)], order[widest]
-    return pick, fenced
-
-
-def _touching(points: np.ndarray, owners: list[int], sampler: PathSampler) -> np.ndarray:
-    """(k,) bool: which ``points`` (k, 3) of the objects ``owners`` lie on a triangle of
-    another object (within ``CONTACT`` of the scene's size)."""
-    low, high = sampler.first, np.r_[sampler.first[1:], len(sampler.primitives[0])]
-    other = np.ones(sampler.n_triangles, bool)
-    for owner in owners:
-        other[low[owner] : min(high[owner], sampler.n_triangles)] = False
-    triangles = np.ascontiguousarray(sampler.primitives[0][other])
-    out = np.zeros(len(points), bool)
-    run_jobs(_touch, job_count(len(points), 256), np.ascontiguousarray(points), triangles,
-             CONTACT * sampler.size, out)  # fmt: skip
-    return out
-
-
-@kernel
-def _touch(job, n_jobs, points, triangles, tolerance, out):
-    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``), for its share of the
-    points: out[i], point i is within ``tolerance`` of some triangle (its plane, inside
-    it)."""
-    first, stop = share(job, n_jobs, len(points))
-    for i in range(first, stop):
-        p = (points[i, 0], points[i, 1], points[i, 2])
-        for f in range(len(triangles)):
-            v0 = (triangles[f, 0, 0], triangles[f, 0, 1], triangles[f, 0, 2])
-            e1 = sub(triangles[f, 1], v0)
-            e2 = sub(triangles[f, 2], v0)
-            normal = cross(e1, e2)
-            area = _norm(normal)
-            if area == 0:
-                continue
-            d = sub(p, v0)
-            if abs(dot3(d, normal)) > tolerance * area:
-                continue
-            # Barycentrics of p's projection, with a margin of ``tolerance`` along the sides.
-            d11, d12, d22 = dot3(e1, e1), dot3(e1, e2), dot3(e2, e2)
-            p1, p2 = dot3(d, e1), dot3(d, e2)
-            det = d11 * d22 - d12 * d12
-            u, v = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
-            margin = tolerance * _norm(e1) / area + tolerance * _norm(e2) / area
-            if u >= -margin and v >= -margin and u + v <= 1 + margin:
-                out[i] = True
-                break
-
-
-def _rows(parts: list[np.ndarray], empty: tuple) -> np.ndarray:
-    return np.concatenate(parts) if parts else np.zeros(empty)
 
 
 def _choose(weights: np.ndarray, u: np.ndarray, side: np.ndarray):
