@@ -1,9 +1,10 @@
 """A scene as the compiled path tracer reads it (``render.path.twin.kernel``): plain arrays.
 
-``pack`` reads a ``PathSampler``'s world once: its primitives and BVH, emitters and lobe
-probabilities (the sampler's own), and per object its material, smooth normals, UVs and
-textures, concatenated into flat float64 / int64 arrays that Numba code indexes by object
-or primitive id.
+``pack`` reads a ``PathSampler`` once: its primitives and BVH, emitters and lobe
+probabilities (the sampler's own), and its ``Tables`` (``render.path.sample.tables``, the
+one packing of the scene's objects that the compiled gradient and choices read too): per
+object its material, smoothness and textures, every mesh's faces, vertex normals and UVs,
+laid out as flat float64 / int64 arrays that Numba code indexes by object or primitive id.
 """
 
 from __future__ import annotations
@@ -14,7 +15,8 @@ import numpy as np
 
 from render.path.sample.tables import compiles
 from render.path.sample.tracer import PathSampler
-from render.scene.scene import Mesh, Scene
+from render.scene.scene import Scene
+from render.shade.lighting import term_present
 from render.trace.intersect import FlatBVH
 from render.trace.visibility import SHADOW_EPSILON, SHADOW_ULPS
 
@@ -36,49 +38,24 @@ class Packed:
 
 
 def pack(sampler: PathSampler) -> Packed:
-    """The plain arrays of ``sampler``'s scene (its primitives, BVH, emitters, lobes), and
-    per object its material, smooth normals, UVs and textures, concatenated."""
+    """The plain arrays of ``sampler``'s scene: its primitives, BVH, emitters and lobes,
+    and what the compiled paths read too, from the sampler's own ``Tables`` (per object
+    its material, smoothness and textures; every mesh's faces, vertex normals and UVs), in
+    the layout Numba code indexes by object or primitive id."""
     world = sampler.scene
-    objects = sampler.objects
-    n_obj = len(objects)
+    tables = sampler.tables
     triangles, centers, radii = sampler.primitives
-    counts = np.diff(np.append(sampler.first, sampler.n_triangles + len(centers)))
-    prim_object = np.repeat(np.arange(n_obj, dtype=np.int64), counts)
-    albedo, specular, reflectance, emission = (np.zeros((n_obj, 3)) for _ in range(4))
-    shininess = np.zeros(n_obj)
+    albedo, specular, shininess, emission, reflectance = (
+        np.ascontiguousarray(m.data, np.float64) for m in tables.materials
+    )
     # Whether the Blinn-Phong lobe is computed: a non-zero or differentiated specular
     # (render.path.gradient.transport computes it then; its derivative needs it when zero).
-    lobe_on = np.zeros(n_obj, np.bool_)
-    maps = np.full((n_obj, 2, 3), -1, np.int64)  # (offset, height, width) of map_Kd, map_Ks
-    texels, n_texels = [], 0
-    smooth = np.zeros(n_obj, np.bool_)
-    corners = np.zeros((sampler.n_triangles, 3), np.int64)  # global vertex ids
-    uvs, n_vertices = [], 0
-    # The vertex normals of every mesh (a smooth mesh's own; a flat one's are never read).
-    tables = sampler.tables
+    lobe_on = np.array([term_present(obj.material.specular) for obj in sampler.objects], bool)
+    maps, texels = _texture_maps(tables)
+    n_vertices = 0 if tables.vertices is None else len(tables.vertices.data)
+    corners = np.zeros((0, 3), np.int64) if tables.faces is None else tables.faces
     normals = np.zeros((0, 3)) if tables.normals is None else tables.normals.data
-    for o, obj in enumerate(objects):
-        m = obj.material
-        albedo[o] = np.broadcast_to(m.albedo.data, (3,))
-        specular[o] = np.broadcast_to(m.specular.data, (3,))
-        reflectance[o] = np.broadcast_to(m.reflectance.data, (3,))
-        emission[o] = np.broadcast_to(m.emission.data, (3,))
-        shininess[o] = float(m.shininess.data)
-        lobe_on[o] = m.specular.is_differentiated() or bool(np.any(m.specular.data))
-        for k, texture in enumerate((m.texture, m.specular_texture)):
-            if texture is not None:
-                h, w = texture.shape[:2]
-                maps[o, k] = (n_texels, h, w)
-                texels.append(texture.data.reshape(-1, 3))
-                n_texels += h * w
-        if isinstance(obj, Mesh):
-            first = sampler.first[o]
-            corners[first : first + obj.num_faces] = obj.faces + n_vertices
-            count = obj.vertices.shape[0]
-            if obj.smooth:
-                smooth[o] = True
-            uvs.append(obj.uvs.data if obj.uvs is not None else np.zeros((count, 2)))
-            n_vertices += count
+    uvs = np.zeros((n_vertices, 2)) if tables.uvs is None else tables.uvs.data
     e = sampler.emitters
     lights = world.lights
     packs = [light.shading_pack() for light in lights]
@@ -97,12 +74,10 @@ def pack(sampler: PathSampler) -> Packed:
     offset = max(SHADOW_EPSILON * sampler.size, SHADOW_ULPS * np.finfo(np.float64).eps * magnitude)
     background = np.broadcast_to(world.background.data, (3,)).astype(np.float64)
     arrays = (
-        triangles, centers, radii, prim_object,
+        triangles, centers, radii, tables.owner.astype(np.int64),
         albedo, specular, shininess, reflectance, emission,
-        sampler.lobes.probability, sampler.lobes.reflectance, maps,
-        np.concatenate(texels) if texels else np.zeros((0, 3)), smooth, corners,
-        normals,
-        np.concatenate(uvs) if uvs else np.zeros((0, 2)),
+        sampler.lobes.probability, sampler.lobes.reflectance, maps, texels,
+        tables.smooth.astype(np.bool_), corners, normals, uvs,
         e.prims, e.cdf, e.probability, e.area, e.row_of,
         light_kind, light_vec, light_strength, light_color,
         np.ascontiguousarray(forward), np.ascontiguousarray(right), np.ascontiguousarray(up),
@@ -111,3 +86,22 @@ def pack(sampler: PathSampler) -> Packed:
     camera = world.camera
     return Packed(sampler.accelerator.flat_tree(), arrays, camera.width, camera.height,
                   len(lights))  # fmt: skip
+
+
+def _texture_maps(tables) -> tuple[np.ndarray, np.ndarray]:
+    """The textures of ``tables`` (``Tables.textures``: per kind, albedo's then the
+    specular's, the texels and each object's first row, width and height) as the kernel
+    reads them: maps (O, 2, 3) int64, per object and kind (first row, height, width) in
+    ``texels`` (T, 3), the kinds' texels one after the other (-1: no texture)."""
+    n_obj = len(tables.smooth)
+    maps = np.full((n_obj, 2, 3), -1, np.int64)
+    parts, n_texels = [], 0
+    for kind, table in enumerate(tables.textures):
+        if table is None:
+            continue
+        rows, first, width, height, has = table
+        for o in np.flatnonzero(has):
+            maps[o, kind] = (n_texels + int(first[o]), int(height[o]), int(width[o]))
+        parts.append(rows.data)
+        n_texels += len(rows.data)
+    return maps, np.concatenate(parts) if parts else np.zeros((0, 3))
