@@ -263,12 +263,29 @@ def _sift_down(ts, root, end):
 
 
 @jit(cache=True)
-def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts):
-    """Split the pieces order[lo:hi] (all in one pixel) where another of them crosses or
-    touches them; append the parts to ``out`` (segment, start, end, pixel rows) from row n
-    (``geometry``: ``_piece_geometry``; ``ts``: scratch, at least hi - lo long). Returns the
-    new row count."""
-    for x in range(lo, hi):
+def _room(out, base, n, end, extra):
+    """A job's table with room for ``extra`` more rows: its parts are rows base..n-1 of
+    ``out``, which it may fill up to row ``end``. Returns (out, base, n, end): the same
+    where there is room, else a table of its own at least twice as long holding those
+    rows from row 0."""
+    if n + extra <= end:
+        return out, base, n, end
+    size = max(2 * (end - base), n - base + extra)
+    bigger = np.empty((size, 4))
+    bigger[: n - base] = out[base:n]
+    return bigger, 0, n - base, size
+
+
+@jit(cache=True)
+def _split_group(geometry, segment, start, end, pixel, order, lo, hi, first, out, n, limit, ts):
+    """Split the pieces order[first:hi] (of the group order[lo:hi], all in one pixel) where
+    another of the group crosses or touches them; append the parts (segment, start, end,
+    pixel rows) to ``out`` from row n, up to row ``limit`` (``geometry``:
+    ``_piece_geometry``; ``ts``: scratch, at least hi - lo long). Returns the new row count
+    and the first piece whose parts did not fit (hi: all did); the caller grows ``out``
+    and calls again from there. (No array is returned: Numba would count its references
+    for every group.)"""
+    for x in range(first, hi):
         i = order[x]
         ax, ay, bx, by = geometry[x, 0], geometry[x, 1], geometry[x, 2], geometry[x, 3]
         m = np.int64(0)  # not the literal 0: _sort_cuts would compile for both
@@ -299,6 +316,8 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
                 ts[m] = t
                 m += 1
         _sort_cuts(ts, m)
+        if n + m + 1 > limit:  # m cuts make at most m + 1 parts
+            return n, x
         previous = 0.0
         for k in range(m + 1):
             t = ts[k] if k < m else 1.0
@@ -309,66 +328,88 @@ def _split_group(geometry, segment, start, end, pixel, order, lo, hi, out, n, ts
                 out[n, 3] = pixel[i]
                 n += 1
             previous = t
-    return n
+    return n, hi
 
 
-def _split_all(p0, p1, segment, start, end, pixel, order, bounds, slots, out):
+def _split_all(p0, p1, segment, start, end, pixel, order, bounds):
     """Every pixel's group of pieces split (``_split_group``): the groups (pieces
     order[bounds[g]:bounds[g + 1]]) in blocks of BLOCK, dealt to jobs as
     ``render.trace.intersect`` deals rays (the crowded pixels lie together in pixel
-    order). A group of k pieces has at most k * k parts (``slots``: their running sum):
-    each job writes its groups' parts one after the other into its own stretch of a
-    scratch table ``out`` (slots[-1] rows at least; the parts packed, not each group at
-    its slot, since rows spread over the whole table missed the caches), and they are then
+    order). Each job writes its groups' parts one after the other into its own stretch of
+    a scratch table, twice as many rows as its pieces (most pieces are not cut), and on
+    into a table of its own, grown as it fills, if they are more (a pixel of k pieces may
+    have up to k * k parts, but a dense mesh's thousands of pieces in one pixel of a small
+    image cross little: a table for k * k parts took tens of GB). The parts are then
     copied out in group order: the same rows, in the same order, on any number of
     threads. Returns the parts' (segment, start, end, pixel) (m,) each."""
     n_groups = len(bounds) - 1
     count, at = np.empty(n_groups, np.int64), np.empty(n_groups, np.int64)
     n_jobs = job_count(n_groups, BLOCK)
-    # Where each job's stretch of ``out`` starts: the slots of the blocks dealt before it.
+    # Each job's stretch of the scratch table: twice the pieces of the blocks dealt to it.
     firsts = np.arange(0, n_groups, BLOCK)
-    sizes = slots[np.minimum(firsts + BLOCK, n_groups)] - slots[firsts]
+    pieces = bounds[np.minimum(firsts + BLOCK, n_groups)] - bounds[firsts]
     stretch = np.zeros(n_jobs + 1, np.int64)
-    np.add.at(stretch, np.arange(len(firsts)) % n_jobs + 1, sizes)
+    np.add.at(stretch, np.arange(len(firsts)) % n_jobs + 1, 2 * pieces + 16)
     stretch = np.cumsum(stretch)
+    # From minidiff's pool, its rows rounded up to a power of two, so that the next
+    # render, whose count differs a little, reuses it instead of touching fresh pages.
+    scratch = buffers.empty((1 << int(stretch[-1]).bit_length(), 4), np.float64)
     widest = int(np.diff(bounds).max(initial=0))
     geometry = np.empty((len(order), 9))
-    run_jobs(
-        _split_groups, n_jobs, p0, p1, segment, start, end, pixel, order, bounds, out, stretch,
-        widest, geometry, count, at,
+    tables = run_jobs(
+        _split_groups, n_jobs, p0, p1, segment, start, end, pixel, order, bounds, scratch,
+        stretch, widest, geometry, count, at,
     )  # fmt: skip
-    # Group g's parts are rows at[g], ..., at[g] + count[g] - 1 of ``out``.
-    rows = np.repeat(at - (np.cumsum(count) - count), count) + np.arange(int(count.sum()))
-    columns = np.ascontiguousarray(out[rows].T)  # each returned array contiguous, as before
+    # Group g's parts are rows at[g], ..., at[g] + count[g] - 1 of its job's table (the
+    # job of its block), which starts at row offset[job] of ``joined``: the scratch table
+    # itself where every job's parts fit in their stretches (the common case), else the
+    # tables joined.
+    if all(np.may_share_memory(t, scratch) for t in tables):  # (a grown one is apart)
+        joined, offset = scratch, stretch
+    else:
+        joined = np.concatenate(tables)
+        offset = np.cumsum([0] + [len(t) for t in tables])
+    first = offset[(np.arange(n_groups) // BLOCK) % n_jobs] + at
+    rows = np.repeat(first - (np.cumsum(count) - count), count) + np.arange(int(count.sum()))
+    columns = np.ascontiguousarray(joined[rows].T)  # each returned array contiguous, as before
     return columns[0].astype(np.int64), columns[1], columns[2], columns[3].astype(np.int64)
 
 
 @kernel
 def _split_groups(
-    job, n_jobs, p0, p1, segment, start, end, pixel, order, bounds, out, stretch, widest,
+    job, n_jobs, p0, p1, segment, start, end, pixel, order, bounds, scratch, stretch, widest,
     geometry, count, at,
 ):  # fmt: skip
     """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``_split_all``: its
-    blocks of groups split, their parts written from row ``stretch[job]`` of ``out`` on;
-    group g's first row to at[g], its number of parts to count[g]."""
+    blocks of groups split, their parts written from row ``stretch[job]`` of ``scratch``
+    on (or into a table of its own once that stretch is full); returns the rows it
+    filled; group g's first row among them to at[g], its number of parts to count[g]."""
     n_groups = bounds.shape[0] - 1
     ts = np.empty(widest + 1)
-    row = stretch[job]
+    out, base, limit = scratch, stretch[job], stretch[job + 1]
+    row = base
     for b in range(job, n_blocks(n_groups), n_jobs):
         for g in range(b * BLOCK, min(n_groups, (b + 1) * BLOCK)):
             lo, hi = bounds[g], bounds[g + 1]
-            at[g] = row
+            at[g] = row - base
             if hi - lo == 1:  # nothing to cut: the common case
+                if row + 1 > limit:
+                    out, base, row, limit = _room(out, base, row, limit, 1)
                 i = order[lo]
                 out[row, 0], out[row, 1], out[row, 2] = segment[i], start[i], end[i]
                 out[row, 3] = pixel[i]
                 row += 1
             else:
                 _piece_geometry(p0, p1, segment, start, end, order, lo, hi, geometry)
-                row = _split_group(
-                    geometry, segment, start, end, pixel, order, lo, hi, out, row, ts
-                )  # fmt: skip
-            count[g] = row - at[g]
+                x = lo
+                while True:
+                    row, x = _split_group(geometry, segment, start, end, pixel, order, lo, hi,
+                                          x, out, row, limit, ts)  # fmt: skip
+                    if x == hi:
+                        break
+                    out, base, row, limit = _room(out, base, row, limit, hi - lo)
+            count[g] = row - base - at[g]
+    return out[base:row]
 
 
 def pixel_order(pixel: np.ndarray) -> np.ndarray:
@@ -408,22 +449,18 @@ def _counting_order(pixel, n_pixels):
 @jit(cache=True)
 def _pixel_groups(pixel, order):
     """The pieces (pixel ids (k,), k > 0, in ``order``, by pixel) grouped: ``bounds``
-    (n + 1,) where each of the n occupied pixels' group starts in ``order``, and ``slots``
-    (n + 1,) the running sum of the groups' most parts (a group of k pieces has at most
-    k * k parts)."""
+    (n + 1,) where each of the n occupied pixels' group starts in ``order``."""
     n_groups = 1
     for x in range(1, len(pixel)):
         n_groups += pixel[order[x]] != pixel[order[x - 1]]
-    bounds, slots = np.empty(n_groups + 1, np.int64), np.empty(n_groups + 1, np.int64)
-    bounds[0] = slots[0] = 0
+    bounds = np.empty(n_groups + 1, np.int64)
+    bounds[0] = 0
     g = 0
     for x in range(1, len(pixel) + 1):
         if x == len(pixel) or pixel[order[x]] != pixel[order[x - 1]]:
             g += 1
             bounds[g] = x
-            size = x - bounds[g - 1]
-            slots[g] = slots[g - 1] + size * size
-    return bounds, slots
+    return bounds
 
 
 def split_at_crossings(p0, p1, segment, start, end, pixel):
@@ -438,14 +475,10 @@ def split_at_crossings(p0, p1, segment, start, end, pixel):
         order = _counting_order(pixel, n_pixels)
     else:
         order = pixel_order(pixel)
-    bounds, slots = _pixel_groups(pixel, order)
-    # The scratch table (~8 MB at 512x512) from minidiff's pool, its rows rounded up to a
-    # power of two so that the next render, whose count differs a little, reuses it
-    # instead of touching fresh pages.
-    scratch = buffers.empty((1 << int(slots[-1]).bit_length(), 4), np.float64)
+    bounds = _pixel_groups(pixel, order)
     return _split_all(
         np.ascontiguousarray(p0, np.float64), np.ascontiguousarray(p1, np.float64), segment,
-        start, end, pixel, order, bounds, slots, scratch,
+        start, end, pixel, order, bounds,
     )  # fmt: skip
 
 
