@@ -40,16 +40,20 @@ def same(key_a: list[np.ndarray] | None, key_b: list[np.ndarray]) -> bool:
 class RenderCache:
     """Stage results of earlier renders of one scene: slot -> (key, value, stamp).
 
-    Guarded: one lock per cache, held while a stage is looked up and, if need be, computed
-    (a stage's computation may look up the stages it builds on: the lock is re-entrant).
-    Two threads rendering the same scene therefore take turns in its cache, and neither
-    sees the other's half-stored entry; renders of different scenes do not wait for each
-    other. The values are shared read-only: no stage writes into a value it got here."""
+    Guarded: one lock per cache, held while an entry is looked up or stored, never while a
+    stage is computed. A render's two threads (the boundary term's points found beside
+    the mixed pixels, ``minidiff.threads.beside``) and two threads rendering the same scene
+    therefore never wait for each other's computations (held during them, the lock made
+    the mixed pixels wait for the curves' tables of a moving mesh: 0.6 s of a 1.9 s
+    gradient of a 160k-face sphere), and none sees another's half-stored entry. Two
+    threads that need the same missing stage at once may both compute it (the same
+    value): the first stored is kept, and both get it. The values are shared read-only: no
+    stage writes into a value it got here."""
 
     def __init__(self) -> None:
         self._entries: dict[Hashable, tuple[list[np.ndarray], Any, np.ndarray]] = {}
         self._computed = 0
-        self._lock = threading.RLock()
+        self._lock = threading.Lock()
 
     def get(
         self, slot: Hashable, key: list[np.ndarray], compute: Callable[[], Any]
@@ -59,9 +63,14 @@ class RenderCache:
         the stages that build on it."""
         with self._lock:
             entry = self._entries.get(slot)
-            if entry is None or not same(entry[0], key):
+            if entry is not None and same(entry[0], key):
+                return entry[1], entry[2]
+        value = compute()  # unlocked: it may take long, and look up what it builds on
+        with self._lock:
+            entry = self._entries.get(slot)
+            if entry is None or not same(entry[0], key):  # else another thread's came first
                 self._computed += 1
-                entry = (key, compute(), np.array([self._computed]))
+                entry = (key, value, np.array([self._computed]))
                 self._entries[slot] = entry
             return entry[1], entry[2]
 

@@ -254,6 +254,8 @@ def _touching(points: np.ndarray, owners: list[int], triangles, first, size) -> 
     return out
 
 
+#: Points and triangles this few in pairs are tested pair by pair: the grid costs more.
+_FEW_PAIRS = 1 << 20
 #: A triangle whose grown box spans more grid cells than this is tested against every
 #: point instead of being listed in each cell (a floor of two triangles under a fine mesh).
 _MOST_CELLS = 64
@@ -268,6 +270,8 @@ def _cells(points, triangles, tolerance):
     empty = np.zeros(len(points), np.int64)
     if len(triangles) == 0 or len(points) == 0:
         return empty, empty, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if len(points) * len(triangles) <= _FEW_PAIRS:  # a floor's edges against a dense mesh
+        return empty, empty, np.zeros(0, np.int64), np.arange(len(triangles), dtype=np.int64)
     # What ``on_triangle`` accepts: within the tolerance of the plane, and barycentrics
     # u, v >= -m, u + v <= 1 + m (m in units of the triangle's sides): the triangle with
     # corners (u, v) = (-m, -m), (1 + 2m, -m), (-m, 1 + 2m), then the tolerance off it.

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from minidiff.either import as_column, cross_last, dot_last
-from minidiff.threads import jit
+from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
 from render.edges.boundary.mesh_edge import approach
 from render.edges.boundary.occlusion import hidden_points
@@ -137,15 +137,18 @@ def _triangle(triangles, i):
             (triangles[i, 2, 0], triangles[i, 2, 1], triangles[i, 2, 2]))  # fmt: skip
 
 
-@jit(cache=True)
-def _crossing_pairs(triangles, welded, order, low, high):
-    """Every pair of triangles that cross, by a sweep along x over their bounding boxes
-    (``order`` sorts them by low x); pairs sharing a (welded) corner are neighbours, not
-    crossings. Returns the pairs (m, 2) and their segments (m, 2, 3)."""
+@kernel
+def _crossing_pairs(job, n_jobs, triangles, welded, order, low, high):
+    """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): every pair of triangles
+    that cross whose first in ``order`` (the triangles sorted by low x) is in the job's
+    share, by a sweep along x over their bounding boxes; pairs sharing a (welded) corner
+    are neighbours, not crossings. Returns the pairs (m, 2) and their segments (m, 2, 3),
+    in the order of the sweep (the jobs' in turn: the order of one job)."""
     capacity, found = 64, 0
     pairs, segments = np.empty((capacity, 2), np.int64), np.empty((capacity, 2, 3))
     n = len(order)
-    for a in range(n):
+    first, stop = share(job, n_jobs, n)
+    for a in range(first, stop):
         i = order[a]
         for b in range(a + 1, n):
             j = order[b]
@@ -190,7 +193,11 @@ def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
         return np.zeros((0, 2), np.int64), np.zeros((0, 2, 3))
     low, high = triangles.min(axis=1), triangles.max(axis=1)
     order = np.argsort(low[:, 0], kind="stable")
-    return _crossing_pairs(triangles, welded, order, low, high)
+    found = run_jobs(_crossing_pairs, job_count(len(order), 4096), triangles, welded, order,
+                     low, high)  # fmt: skip
+    if len(found) == 1:
+        return found[0]
+    return np.concatenate([p for p, _ in found]), np.concatenate([s for _, s in found])
 
 
 def global_welded(scene: Scene, topology) -> np.ndarray:

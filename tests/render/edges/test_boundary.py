@@ -632,3 +632,30 @@ def test_the_spheres_newton_steps_follow_their_edge_functions(seed):
             step[axis] = h
             numeric = (e(points + step) - e(points - step)) / (2.0 * h)
             np.testing.assert_allclose(grad[:, axis], numeric, rtol=1e-5, atol=1e-7 * scale)
+
+
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n=st.integers(8200, 13000))
+def test_crossing_pairs_are_the_same_in_one_job_and_in_many(seed, n):
+    """``crossing_segments`` deals the sweep's triangles to jobs (4,096 or more each): the
+    pairs and segments, in order, of one job, whatever the thread count; and each pair
+    crosses (its segment lies in both triangles' planes)."""
+    from minidiff.threads import using_threads
+    from render.edges.boundary.crossing import crossing_segments
+
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(-1, 1, (n, 1, 3))
+    triangles = centre + 0.05 * rng.normal(size=(n, 3, 3))
+    welded = np.arange(3 * n).reshape(n, 3)
+    with using_threads(1):
+        pairs, segments = crossing_segments(triangles, welded)
+    assert len(pairs) > 0
+    for threads in (2, 3):
+        with using_threads(threads):
+            other = crossing_segments(triangles, welded)
+        np.testing.assert_array_equal(other[0], pairs)
+        np.testing.assert_array_equal(other[1], segments)
+    for (i, j), seg in zip(pairs, segments, strict=True):
+        for t in (triangles[i], triangles[j]):
+            normal = np.cross(t[1] - t[0], t[2] - t[0])
+            assert np.all(np.abs((seg - t[0]) @ normal) <= 1e-9 * np.linalg.norm(normal) * 4)

@@ -4,6 +4,7 @@ for the direct renderer's shadow borders and the path integrator's secondary ter
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
@@ -16,6 +17,7 @@ from render.path.boundary.silhouettes import Curves
 from render.path.sample.tracer import PathSampler
 from render.scene.cornell import grid_quad
 from render.scene.placement import placed
+from render.trace import outlines
 from render.trace.outlines import Outlines, one_sided
 from render.trace.primitives import scene_primitives
 from render.trace.visibility import scene_size
@@ -191,7 +193,10 @@ def test_the_grid_finds_the_points_on_triangles_that_testing_every_pair_finds(
     off = rng.normal(size=on.shape) * tolerance * rng.choice([0.3, 1.0, 3.0], (len(on), 1))
     points = np.concatenate([on + off, rng.uniform(-1.5, 1.5, (100, 3))])
     size = tolerance / CONTACT
-    got = _touching(points, [], triangles, np.array([0, len(triangles)]), size)
     want = on_some_triangle(points, triangles, tolerance)
-    np.testing.assert_array_equal(got, want)
+    for few_pairs in (0, outlines._FEW_PAIRS):  # the grid, and pair by pair for this few
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(outlines, "_FEW_PAIRS", few_pairs)
+            got = _touching(points, [], triangles, np.array([0, len(triangles)]), size)
+        np.testing.assert_array_equal(got, want)
     assert 0 < want.sum() < len(points) or len(triangles) == 0
