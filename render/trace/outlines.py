@@ -236,17 +236,20 @@ def _touching(points: np.ndarray, owners: list[int], triangles, first, size) -> 
     """(k,) bool: which ``points`` (k, 3) of the meshes ``owners`` lie on a triangle of
     another object (within ``CONTACT`` of the scene's ``size``: ``on_triangle``);
     ``triangles`` (T, 3, 3): every mesh's, ``first`` (M + 1,): each mesh's first row
-    there. Each point is tested against the triangles whose box, grown by the tolerance,
-    overlaps its cell of a grid (``_cells``), and against the few triangles too large for
-    the grid: the answer of testing every triangle, at a cost that grows with the points
-    and the triangles, not their product (two meshes of 20k triangles: 1.7 s tested
-    pairwise)."""
+    there. Few pairs of points and triangles (a teapot's edges against a floor's two
+    triangles) are tested pair by pair in NumPy (``on_triangles``); more, each point
+    against the triangles whose box, grown by the tolerance, overlaps its cell of a grid
+    (``_cells``), and against the few triangles too large for the grid (``_touch``): the
+    same answers, at a cost that grows with the points and the triangles, not their
+    product (two meshes of 20k triangles: 1.7 s tested pairwise)."""
     other = np.ones(len(triangles), bool)
     for owner in owners:
         other[first[owner] : first[owner + 1]] = False
     triangles = np.ascontiguousarray(triangles[other], np.float64)
     tolerance = CONTACT * size
     points = np.ascontiguousarray(points, np.float64)
+    if len(points) * len(triangles) <= _FEW_PAIRS:
+        return on_triangles(points, triangles, tolerance)
     starts, stops, order, large = _cells(points, triangles, tolerance)
     out = np.zeros(len(points), bool)
     run_jobs(_touch, job_count(len(points), 256), points, triangles, starts, stops, order,
@@ -254,8 +257,35 @@ def _touching(points: np.ndarray, owners: list[int], triangles, first, size) -> 
     return out
 
 
-#: Points and triangles this few in pairs are tested pair by pair: the grid costs more.
-_FEW_PAIRS = 1 << 20
+#: Points and triangles this few in pairs are tested pair by pair: the grid costs more
+#: (and its kernel seconds of a cold start).
+_FEW_PAIRS = 1 << 18
+
+
+def on_triangles(points: np.ndarray, triangles: np.ndarray, tolerance: float) -> np.ndarray:
+    """(k,) bool: whether each of ``points`` (k, 3) is ``on_triangle`` of some triangle
+    of ``triangles`` (T, 3, 3), every pair tested (the same arithmetic, in NumPy), 4,096
+    points at a time. A sliver's det may be 0, or its margin and barycentrics not finite:
+    comparisons with NaN are False, as in the kernel, and a zero area leaves it out."""
+    out = np.zeros(len(points), bool)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        v0 = triangles[:, 0]
+        e1, e2 = triangles[:, 1] - v0, triangles[:, 2] - v0
+        normal = np.cross(e1, e2)
+        area = np.sqrt(np.sum(normal * normal, axis=1))
+        d11, d12, d22 = (np.sum(x * y, axis=1) for x, y in ((e1, e1), (e1, e2), (e2, e2)))
+        det = d11 * d22 - d12 * d12
+        margin = tolerance * np.sqrt(d11) / area + tolerance * np.sqrt(d22) / area
+        for lo in range(0, len(points), 4096):
+            d = points[lo : lo + 4096, None] - v0[None]  # (n, T, 3)
+            near = np.abs(np.sum(d * normal, axis=2)) <= tolerance * area
+            p1, p2 = np.sum(d * e1, axis=2), np.sum(d * e2, axis=2)
+            u, v = (d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det
+            inside = (u >= -margin) & (v >= -margin) & (u + v <= 1 + margin)
+            out[lo : lo + 4096] = np.any((area > 0) & near & inside, axis=1)
+    return out
+
+
 #: A triangle whose grown box spans more grid cells than this is tested against every
 #: point instead of being listed in each cell (a floor of two triangles under a fine mesh).
 _MOST_CELLS = 64
@@ -270,8 +300,6 @@ def _cells(points, triangles, tolerance):
     empty = np.zeros(len(points), np.int64)
     if len(triangles) == 0 or len(points) == 0:
         return empty, empty, np.zeros(0, np.int64), np.zeros(0, np.int64)
-    if len(points) * len(triangles) <= _FEW_PAIRS:  # a floor's edges against a dense mesh
-        return empty, empty, np.zeros(0, np.int64), np.arange(len(triangles), dtype=np.int64)
     # What ``on_triangle`` accepts: within the tolerance of the plane, and barycentrics
     # u, v >= -m, u + v <= 1 + m (m in units of the triangle's sides): the triangle with
     # corners (u, v) = (-m, -m), (1 + 2m, -m), (-m, 1 + 2m), then the tolerance off it.

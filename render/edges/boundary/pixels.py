@@ -272,7 +272,9 @@ def _room(out, base, n, end, extra):
         return out, base, n, end
     size = max(2 * (end - base), n - base + extra)
     bigger = np.empty((size, 4))
-    bigger[: n - base] = out[base:n]
+    for r in range(n - base):  # (a slice assignment compiles its shape checks: seconds)
+        for c in range(4):
+            bigger[r, c] = out[base + r, c]
     return bigger, 0, n - base, size
 
 
@@ -364,11 +366,11 @@ def _split_all(p0, p1, segment, start, end, pixel, order, bounds):
     # job of its block), which starts at row offset[job] of ``joined``: the scratch table
     # itself where every job's parts fit in their stretches (the common case), else the
     # tables joined.
-    if all(np.may_share_memory(t, scratch) for t in tables):  # (a grown one is apart)
+    if all(np.may_share_memory(t, scratch) for t, _, _ in tables):  # (a grown one is apart)
         joined, offset = scratch, stretch
     else:
-        joined = np.concatenate(tables)
-        offset = np.cumsum([0] + [len(t) for t in tables])
+        joined = np.concatenate([t[base:row] for t, base, row in tables])
+        offset = np.cumsum([0] + [row - base for _, base, row in tables])
     first = offset[(np.arange(n_groups) // BLOCK) % n_jobs] + at
     rows = np.repeat(first - (np.cumsum(count) - count), count) + np.arange(int(count.sum()))
     columns = np.ascontiguousarray(joined[rows].T)  # each returned array contiguous, as before
@@ -382,8 +384,9 @@ def _split_groups(
 ):  # fmt: skip
     """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``_split_all``: its
     blocks of groups split, their parts written from row ``stretch[job]`` of ``scratch``
-    on (or into a table of its own once that stretch is full); returns the rows it
-    filled; group g's first row among them to at[g], its number of parts to count[g]."""
+    on (or into a table of its own once that stretch is full); returns that table and the
+    rows it filled, (table, first, stop); group g's first row among them to at[g], its
+    number of parts to count[g]."""
     n_groups = bounds.shape[0] - 1
     ts = np.empty(widest + 1)
     out, base, limit = scratch, stretch[job], stretch[job + 1]
@@ -409,7 +412,7 @@ def _split_groups(
                         break
                     out, base, row, limit = _room(out, base, row, limit, hi - lo)
             count[g] = row - base - at[g]
-    return out[base:row]
+    return out, base, row
 
 
 def pixel_order(pixel: np.ndarray) -> np.ndarray:

@@ -194,7 +194,7 @@ def test_the_grid_finds_the_points_on_triangles_that_testing_every_pair_finds(
     points = np.concatenate([on + off, rng.uniform(-1.5, 1.5, (100, 3))])
     size = tolerance / CONTACT
     want = on_some_triangle(points, triangles, tolerance)
-    for few_pairs in (0, outlines._FEW_PAIRS):  # the grid, and pair by pair for this few
+    for few_pairs in (0, outlines._FEW_PAIRS):  # the grid, and pair by pair (NumPy)
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(outlines, "_FEW_PAIRS", few_pairs)
             got = _touching(points, [], triangles, np.array([0, len(triangles)]), size)
