@@ -27,6 +27,7 @@ checks that they agree.
 from __future__ import annotations
 
 from dataclasses import fields
+from functools import cached_property
 
 import numpy as np
 
@@ -38,6 +39,13 @@ from render.scene.scene import Mesh
 from render.shade.surface import column, divided_unit
 from render.trace.outlines import GRAZING, Outlines, one_sided
 from render.trace.vec3 import cross, dot3, sub
+
+#: A draw weighs the edges in runs of this many, skipping a run where bounds on its
+#: faces' planes show that none is a silhouette from the apex (``Curves.clusters``).
+CLUSTER = 16
+#: ... by at least this fraction of the distance and the run's radius (the bounds are
+#: computed otherwise than the edges' own tests, and round otherwise).
+RUN_MARGIN = 1e-6
 
 
 def level_set(apex, far, a, b, centre, radius, is_edge) -> md.Tensor:
@@ -73,7 +81,15 @@ class Curves(Outlines):
     def of(cls, sampler: PathSampler) -> Curves:
         """The curves of the sampler's scene (world space)."""
         found = Outlines.of(sampler.scene, sampler.primitives[0], sampler.size)
-        return cls(**{f.name: getattr(found, f.name) for f in fields(Outlines)})
+        # The edges in the order of their midpoints along a Morton curve, so that runs of
+        # consecutive edges lie near each other (``clusters``; positions only: the meshes
+        # of a split mesh give its curves in the same order).
+        order = np.argsort(_morton(0.5 * (found.a + found.b)), kind="stable")
+        edge_fields = ("a", "b", "c", "edge_object", "ends")
+        return cls(**{
+            f.name: getattr(found, f.name)[order] if f.name in edge_fields
+            else getattr(found, f.name) for f in fields(Outlines)
+        })  # fmt: skip
 
     @classmethod
     def kept(cls, sampler: PathSampler) -> Curves:
@@ -144,6 +160,45 @@ class Curves(Outlines):
         lo = np.concatenate([edge_lo, sphere_lo], axis=1)
         return lo, np.concatenate([edge_hi, sphere_hi], axis=1)
 
+    @cached_property
+    def clusters(self) -> tuple[np.ndarray, np.ndarray]:
+        """Bounds that let a draw skip runs of ``CLUSTER`` consecutive edges none of which
+        is a silhouette from its apex (``_hidden_run``; ``of`` orders the edges along a
+        Morton curve, so that a run's lie near each other). Per run (K,), the edges' planes
+        through a and its faces' third corners, each turned so that a point on its
+        positive side (of both an edge's) makes the edge no silhouette (side_k(p) =
+        -n_k . (p - a), n_k = (b - a) x (c_k - a)); as a cone of their unit normals (axis
+        (K, 3), the cosine and sine of its half-angle) and a sphere about their points a
+        (centre (K, 3), radius): ``bounds`` (K, 9) = axis, cos, sin, centre, radius, and
+        whether a run may be skipped at all (K,) bool (not where a face is degenerate or
+        the cone is a quarter turn wide or more). From most apexes most runs of a dense
+        mesh are skipped."""
+        n_runs = -(-self.n_edges // CLUSTER)
+        bounds, usable = np.zeros((n_runs, 9)), np.zeros(n_runs, bool)
+        if n_runs == 0:
+            return bounds, usable
+        a, b = self.a, self.b
+        normals = np.stack([np.cross(b - a, self.c[:, 0] - a),
+                            -np.cross(b - a, self.c[:, 1] - a)], axis=1)  # fmt: skip
+        length = np.linalg.norm(normals, axis=2)
+        ok = np.all(length > 0, axis=1)
+        unit_normals = normals / np.where(length > 0, length, 1.0)[..., None]
+        pad = n_runs * CLUSTER - self.n_edges  # the last run's missing edges: its first's
+        idx = np.r_[np.arange(self.n_edges), np.full(pad, (n_runs - 1) * CLUSTER)]
+        m = unit_normals[idx].reshape(n_runs, 2 * CLUSTER, 3)
+        points = a[idx].reshape(n_runs, CLUSTER, 3)
+        axis = m.sum(axis=1)
+        size = np.linalg.norm(axis, axis=1)
+        axis = axis / np.where(size > 0, size, 1.0)[:, None]
+        cos = np.min(np.einsum("kij,kj->ki", m, axis), axis=1)
+        centre = points.mean(axis=1)
+        radius = np.max(np.linalg.norm(points - centre[:, None], axis=2), axis=1)
+        usable = ok[idx].reshape(n_runs, CLUSTER).all(axis=1) & (size > 0) & (cos > 0)
+        cos = np.clip(cos, -1.0, 1.0)
+        bounds = np.concatenate([axis, cos[:, None], np.sqrt(1.0 - cos * cos)[:, None],
+                                 centre, radius[:, None]], axis=1)  # fmt: skip
+        return np.ascontiguousarray(bounds), usable
+
     def pick(self, apex, whole, towards=None):
         """``pick_reference`` computed per apex in one compiled loop over the curves:
         ``whole`` = (u_curve, u_point, active) for a draw from whole curves, ``towards`` =
@@ -158,8 +213,8 @@ class Curves(Outlines):
         active = np.stack([whole[2], second[2]]).astype(bool)
         out = np.empty((2, 4, n))
         run_jobs(_pick, job_count(n, 256), np.ascontiguousarray(apex, float), self.a, self.b,
-                 self.c, self.centre, self.radius, tri, clip, active, u_curve, u_point, GRAZING,
-                 out)  # fmt: skip
+                 self.c, self.centre, self.radius, *self.clusters, tri, clip, active, u_curve,
+                 u_point, GRAZING, out)  # fmt: skip
         draws = [(o[0].astype(np.int64), o[1], o[2], o[3]) for o in out]
         return draws[0], draws[1] if clip else None
 
@@ -486,8 +541,9 @@ def _clipped(p, j, a, b, centre, weight, side, tri):
 
 @kernel
 def _pick(
-    job, n_jobs, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point, grazing, out
-):
+    job, n_jobs, apex, a, b, c, centre, radius, bounds, usable, tri, clip, active, u_curve,
+    u_point, grazing, out,
+):  # fmt: skip
     """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``): for its share of the
     draws, ``pick_reference`` per apex (row i of ``apex``, or row 0 if it has one), twice:
     ``out[0]`` from whole curves (rows ``active[0]``, uniforms ``u_curve[0]``,
@@ -496,16 +552,21 @@ def _pick(
     density, side, t. One pass over the curves serves both (their silhouette tests)."""
     first, stop = share(job, n_jobs, u_curve.shape[1])
     weights = np.zeros((2, a.shape[0] + centre.shape[0]))  # one apex's weights, filled anew
+    totals = np.zeros((2, len(usable) + 1))  # and their sums, run by run (the spheres last)
     for i in range(first, stop):
-        _pick_one(i, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point,
-                  grazing, weights, out)  # fmt: skip
+        _pick_one(i, apex, a, b, c, centre, radius, bounds, usable, tri, clip, active, u_curve,
+                  u_point, grazing, weights, totals, out)  # fmt: skip
 
 
 @borrowing
-def _pick_one(i, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_point, grazing,
-              weights, out):  # fmt: skip
-    """``_pick``'s draw i, its curves' ``weights`` (2, count) as room (compiled without
-    reference counts: its loop over the curves takes a view of each one's row)."""
+def _pick_one(i, apex, a, b, c, centre, radius, bounds, usable, tri, clip, active, u_curve,
+              u_point, grazing, weights, totals, out):  # fmt: skip
+    """``_pick``'s draw i, its curves' ``weights`` (2, count) and their sums by runs of
+    ``CLUSTER`` edges, ``totals`` (2, runs + 1) (the spheres last), as room (compiled
+    without reference counts: its loop over the curves takes a view of each one's row).
+    A run that ``_hidden_run`` shows holds no silhouette (``Curves.clusters``) gets a zero
+    sum, its weights neither tested nor written (``_draw`` does not read them): a dense
+    mesh's draw costs its runs and the few edges near its silhouettes, not every edge."""
     for s in range(2):
         out[s, 0, i], out[s, 1, i], out[s, 2, i], out[s, 3, i] = -1.0, 0.0, 0.0, 0.0
     count = weights.shape[1]
@@ -517,31 +578,110 @@ def _pick_one(i, apex, a, b, c, centre, radius, tri, clip, active, u_curve, u_po
     triangle = ((tri[r, 0, 0], tri[r, 0, 1], tri[r, 0, 2]),
                 (tri[r, 1, 0], tri[r, 1, 1], tri[r, 1, 2]),
                 (tri[r, 2, 0], tri[r, 2, 1], tri[r, 2, 2]))  # fmt: skip
-    for j in range(count):
-        weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
-        weights[0, j] = weight if active[0, i] else 0.0
-        weights[1, j] = 0.0
-        if clip and active[1, i] and weight > 0:  # the part towards the triangle
-            weights[1, j] = _clipped(p, j, a, b, centre, weight, side, triangle)[0]
+    n_runs = len(usable)
+    for k in range(n_runs + 1):
+        first, stop = _run(k, n_runs, a.shape[0], count)
+        totals[0, k] = totals[1, k] = 0.0
+        if k < n_runs and usable[k] and _hidden_run(p, bounds, k):
+            continue
+        for j in range(first, stop):
+            _weigh_curve(i, j, p, a, b, c, centre, radius, triangle, clip, active, grazing,
+                         weights)  # fmt: skip
+            totals[0, k] += weights[0, j]
+            totals[1, k] += weights[1, j]
     for s in range(2 if clip else 1):
-        _draw(p, weights[s], u_curve[s, i], u_point[s, i], a, b, c, centre, radius, triangle,
-              s == 1, grazing, out[s, :, i])  # fmt: skip
+        _draw(p, weights[s], totals[s], u_curve[s, i], u_point[s, i], a, b, c, centre, radius,
+              triangle, s == 1, grazing, out[s, :, i])  # fmt: skip
+
+
+@jit(cache=True, inline="always")
+def _run(k, n_runs, n_edges, count):
+    """Curves first..stop-1 of run k: ``CLUSTER`` edges, the last run's the rest; run
+    ``n_runs``, the spheres."""
+    if k == n_runs:
+        return n_edges, count
+    return k * CLUSTER, min(n_edges, (k + 1) * CLUSTER)
+
+
+@jit(cache=True, inline="always")
+def _weigh_curve(i, j, p, a, b, c, centre, radius, triangle, clip, active, grazing, weights):
+    """Curve j's weights for draw i from p: whole (row 0) and towards the triangle (row 1)."""
+    weight, side = _whole(p, j, a, b, c, centre, radius, grazing)
+    weights[0, j] = weight if active[0, i] else 0.0
+    weights[1, j] = 0.0
+    if clip and active[1, i] and weight > 0:  # the part towards the triangle
+        weights[1, j] = _clipped(p, j, a, b, centre, weight, side, triangle)[0]
+
+
+def _morton(points: np.ndarray) -> np.ndarray:
+    """(n,) int64: the Morton codes of ``points`` (n, 3), 21 bits a coordinate over their
+    bounding box: points near each other mostly get codes near each other."""
+    low, high = points.min(axis=0), points.max(axis=0)
+    cells = np.floor((points - low) / np.where(high > low, high - low, 1.0) * 2097151.0)
+    code = np.zeros(len(points), np.int64)
+    for axis in range(3):
+        x = np.clip(cells[:, axis], 0, 2097151).astype(np.int64)
+        for bit in range(21):
+            code |= ((x >> bit) & 1) << (3 * bit + axis)
+    return code
+
+
+@jit(cache=True, inline="always")
+def _hidden_run(p, bounds, k):
+    """Whether p lies on the positive side of every plane of run k (``Curves.clusters``),
+    or on the negative side of every one, by a margin: then none of its edges has both
+    faces on one side of the plane through p and the edge, and none is a silhouette. With
+    w = p - centre, each plane's m . (p - x) is within radius of m . w, and m . w, the
+    angle between m and w within the cone's half-angle theta of phi (the axis's to w), is
+    at least |w| cos(phi + theta) and at most |w| cos(phi - theta) (where phi - theta >=
+    0; these bounds only decide where phi + theta or phi - theta lies past a quarter
+    turn)."""
+    w = (p[0] - bounds[k, 5], p[1] - bounds[k, 6], p[2] - bounds[k, 7])
+    d = _norm(w)
+    radius = bounds[k, 8]
+    if not d > radius:  # p within the sphere: no bound
+        return False
+    cos_phi = (w[0] * bounds[k, 0] + w[1] * bounds[k, 1] + w[2] * bounds[k, 2]) / d
+    cos_phi = min(1.0, max(-1.0, cos_phi))
+    sin_phi = np.sqrt(1.0 - cos_phi * cos_phi)
+    cos_t, sin_t = bounds[k, 3], bounds[k, 4]
+    margin = RUN_MARGIN * (d + radius)
+    low = d * (cos_phi * cos_t - sin_phi * sin_t)  # |w| cos(phi + theta)
+    if low - radius > margin and cos_phi * cos_t - sin_phi * sin_t > 0:
+        return True
+    high = d * (cos_phi * cos_t + sin_phi * sin_t)  # |w| cos(phi - theta)
+    return high + radius < -margin and cos_phi < 0
 
 
 @borrowing
-def _draw(p, weights, u_curve, u_point, a, b, c, centre, radius, triangle, clip, grazing, out):
-    """One curve drawn by its ``weights`` (count,) and a point on it, into out (4,)."""
+def _draw(p, weights, totals, u_curve, u_point, a, b, c, centre, radius, triangle, clip,
+          grazing, out):  # fmt: skip
+    """One curve drawn by its ``weights`` (count,), summed by runs in ``totals`` (runs +
+    1,) (``_pick_one``: a run summed to zero holds no weight, and its weights are not
+    read), and a point on it, into out (4,): the run where the running sum of the runs
+    reaches u_curve times their total, then the curve in it where the running sum of its
+    weights does (or its last curve with weight, should rounding leave that sum short)."""
     total = 0.0
-    for j in range(len(weights)):
-        total += weights[j]
+    for k in range(len(totals)):
+        total += totals[k]
     if not total > 0:
         return
-    target, running, chosen = u_curve * total, 0.0, len(weights) - 1
-    for j in range(len(weights)):
-        running += weights[j]
-        if not running < target:
-            chosen = j
+    target, running, run = u_curve * total, 0.0, len(totals) - 1
+    for k in range(len(totals)):
+        if totals[k] > 0 and not running + totals[k] < target:
+            run = k
             break
+        running += totals[k]
+    while not totals[run] > 0:  # rounding left the target past the last run with weight
+        run -= 1
+    first, stop = _run(run, len(totals) - 1, a.shape[0], len(weights))
+    chosen = first
+    for j in range(first, stop):
+        if weights[j] > 0:
+            chosen = j
+            running += weights[j]
+            if not running < target:
+                break
     weight, faces, lo, hi = _curve(p, chosen, a, b, c, centre, radius, triangle, clip, grazing)
     if not (weight > 0 and hi > lo):
         return

@@ -197,6 +197,65 @@ def test_compiled_draws_equal_the_reference(seed, towards):
         np.testing.assert_allclose(got[ok], want[ok], rtol=1e-9, atol=1e-12)
 
 
+def dense_curves(n: int = 24, seed: int = 0):
+    """A jittered UV sphere of 2 n^2 faces (wound outward), a lone triangle (its edges
+    always silhouettes) and a floor, as curves; plus apexes around, near and inside the
+    sphere and on the floor."""
+    rng = np.random.default_rng(seed)
+    theta, phi = np.meshgrid(np.linspace(0, np.pi, n + 1), np.linspace(0, 2 * np.pi, n,
+                             endpoint=False), indexing="ij")  # fmt: skip
+    v = np.stack([np.sin(theta) * np.cos(phi), np.cos(theta), np.sin(theta) * np.sin(phi)], -1)
+    v = (v.reshape(-1, 3) + rng.normal(0, 0.01, ((n + 1) * n, 3))) * 0.4 + [0, 0.6, 0]
+    idx = np.arange(len(v)).reshape(n + 1, n)
+    a, b = idx[:-1], np.roll(idx[:-1], -1, 1)
+    c, d = idx[1:], np.roll(idx[1:], -1, 1)
+    faces = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3),
+                            np.stack([b, d, c], -1).reshape(-1, 3)])  # fmt: skip
+    grey = render.Material((0.5, 0.5, 0.5))
+    v_floor, f_floor = grid_quad((0, 0, 0), np.array([2.0, 0, 0]), np.array([0, 0, -2.0]))
+    lone = np.array([[0.8, 0.5, 0.0], [1.0, 0.6, 0.1], [0.9, 0.9, -0.1]])
+    objects = [render.Mesh(v_floor, f_floor, grey), render.Mesh(v, faces, grey),
+               render.Mesh(lone, np.array([[0, 1, 2]]), grey)]  # fmt: skip
+    camera = render.Camera((0, 1, 3), (0, 0.5, 0), (0, 1, 0), 50.0, 8, 8)
+    scene = render.Scene(objects, [render.PointLight((0, 2, 0), 1.0)], camera)
+    sampler = PathSampler(placed(scene), 1, 3, 100, 0)
+    apex = np.concatenate([
+        rng.uniform(-1.5, 1.5, (300, 3)) + [0, 0.8, 0],  # around
+        [0, 0.6, 0] + 0.4 * rng.normal(1, 0.02, (200, 1)) * rng.normal(size=(200, 3)) / 1.7,
+        rng.uniform(-0.15, 0.15, (50, 3)) + [0, 0.6, 0],  # inside
+        np.c_[rng.uniform(-1, 1, 50), np.zeros(50), rng.uniform(-1, 1, 50)],  # on the floor
+    ])  # fmt: skip
+    return Curves.of(sampler), sampler, apex
+
+
+def test_skipped_runs_of_edges_leave_every_draw_as_it_is():
+    """The draws skip runs of edges that bounds on their faces' planes show hold no
+    silhouette (``Curves.clusters``): on a dense sphere, from apexes around it, near its
+    surface, inside it and on the floor, the draws are those with no run skipped, bit for
+    bit (a run skipped that held a silhouette would change them); and many runs are
+    skipped (a third here, of this coarse sphere's; more of a finer one's)."""
+    from render.path.boundary.silhouettes import _hidden_run
+
+    curves, sampler, apex = dense_curves()
+    bounds, usable = curves.clusters
+    rng = np.random.default_rng(1)
+    n = len(apex)
+    u = rng.random((2, n))
+    triangles = sampler.primitives[0][rng.integers(0, sampler.n_triangles, n)]
+    towards = (triangles, u[1], u[0], np.ones(n, bool))
+    skipping = curves.pick(apex, (u[0], u[1], np.ones(n, bool)), towards)
+    skipped = np.mean([[_hidden_run(tuple(p), bounds, k) for k in range(len(usable))]
+                       for p in apex[:300]])  # fmt: skip
+    assert skipped > 0.2, skipped
+    curves.__dict__["clusters"] = (bounds, np.zeros_like(usable))  # no run skipped
+    every = curves.pick(apex, (u[0], u[1], np.ones(n, bool)), towards)
+    for mine, theirs in zip(skipping, every, strict=True):
+        for x, y in zip(mine, theirs, strict=True):
+            np.testing.assert_array_equal(x, y)
+    reference = pick_reference(curves, apex, u[0], u[1], None, np.ones(n, bool))
+    assert np.mean(skipping[0][0] == reference[0]) >= 0.99
+
+
 #: The secondary term's gradient and the curve draws on 1 and 2 threads in one process.
 _THREADS = """
 import sys, numpy as np
