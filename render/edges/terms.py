@@ -36,7 +36,7 @@ from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
 from render.trace.outlines import Outlines
 from render.trace.seams import shared_edges
-from render.trace.topology import edge_structure, welding
+from render.trace.topology import cut_at_t_junctions, edge_structure, welding
 from render.trace.visibility import Visibility
 
 
@@ -54,17 +54,19 @@ def mesh_topology(scene: Scene, geometry: np.ndarray, cache: RenderCache) -> dic
     """``mesh_edges`` per mesh index in ``scene.meshes``, reused from ``cache`` while the
     geometry (its stamp ``geometry``) is unchanged, and while a mesh's faces and their
     ``welding`` are (vertices that move without merging or collapsing a face, as in a shape
-    optimisation: only the welding is computed again)."""
+    optimisation: only the welding, and the cuts at T-junctions, are computed again)."""
 
     def per_mesh() -> dict:
         out = {}
         for i, mesh in enumerate(scene.meshes):
             ids, degenerate = welding(mesh.vertices.data, mesh.faces)
-            out[i], _ = cache.get(
+            structure, _ = cache.get(
                 ("topology", i),
                 [mesh.faces, ids, degenerate],
                 lambda f=mesh.faces, w=ids, d=degenerate: edge_structure(f, w, d),
             )
+            vertices = np.asarray(mesh.vertices.data, np.float64)
+            out[i] = cut_at_t_junctions(structure, vertices, mesh.faces)
         return out
 
     topology, _ = cache.get("topology", [geometry], per_mesh)

@@ -14,7 +14,7 @@ renderer runs); ``tests/render/edges/test_pairs.py`` checks that they agree.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -132,8 +132,98 @@ def _scale(vertices: np.ndarray) -> float:
 
 
 def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
-    """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3)."""
-    return edge_structure(faces, *welding(vertices, faces))
+    """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3), its table's
+    open rows cut at T-junctions (``cut_at_t_junctions``)."""
+    structure = edge_structure(faces, *welding(vertices, faces))
+    return cut_at_t_junctions(structure, np.asarray(vertices, np.float64), faces)
+
+
+def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
+    """``edges`` with the open rows of its table (one face) cut where a vertex of another
+    open row lies inside them (within ``_WELD_TOLERANCE`` of the mesh's size): a T-junction,
+    where one face's edge runs along two of another's (a quad split on one side only).
+    The parts join the rows of the same welded ends, so that the curve between the faces
+    is one row with a face on each side, as it would be had the long edge been split
+    too; elsewhere ``edges`` itself. (Uncut, each face's edge counted the jump to the other
+    face as its own: the curve twice.) Only ``table`` changes: the faces' own edges and
+    neighbours stay as the faces have them. Vertices (V, 3) float64, faces (F, 3)."""
+    table = edges.table
+    open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+    if len(open_rows) < 2:
+        return edges
+    ids = np.full(len(vertices), -1, np.int64)
+    ids[faces] = edges.welded  # each vertex's welded id
+    ends = np.unique(np.r_[table.i[open_rows], table.j[open_rows]])
+    inside = _points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
+                            _WELD_TOLERANCE * _scale(vertices))  # fmt: skip
+    if len(inside[0]) == 0:
+        return edges
+    return replace(edges, table=_cut_table(table, open_rows, *inside, ids))
+
+
+def _points_inside(vertices, i, j, points, ids, tolerance):
+    """The pairs (segment (m,), point (m,), t (m,)) of segments (vertex ids i, j (n,)) and
+    ``points`` (vertex ids) that lie strictly inside them, within ``tolerance``: at t along
+    the segment, 0 < t < 1, another welded vertex than its ends. Candidates by a sweep
+    along the points' widest axis."""
+    a, b = vertices[i], vertices[j]
+    p = vertices[points]
+    axis = int(np.argmax(np.ptp(p, axis=0))) if len(p) else 0
+    order = np.argsort(p[:, axis], kind="stable")
+    keys = p[order, axis]
+    low = np.searchsorted(keys, np.minimum(a[:, axis], b[:, axis]) - tolerance, side="left")
+    high = np.searchsorted(keys, np.maximum(a[:, axis], b[:, axis]) + tolerance, side="right")
+    count = high - low
+    segment = np.repeat(np.arange(len(i)), count)
+    point = order[np.repeat(low - np.cumsum(count) + count, count) + np.arange(count.sum())]
+    d = b[segment] - a[segment]
+    length2 = np.sum(d * d, axis=1)
+    off = p[point] - a[segment]
+    t = np.sum(off * d, axis=1) / np.where(length2 > 0, length2, 1.0)
+    miss = off - t[:, None] * d
+    on = (np.sum(miss * miss, axis=1) <= tolerance * tolerance) & (length2 > 0)
+    pid = ids[points[point]]
+    own = (pid == ids[i[segment]]) | (pid == ids[j[segment]])
+    keep = on & ~own & (t > 0.0) & (t < 1.0)
+    return segment[keep], points[point[keep]], t[keep]
+
+
+def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids) -> EdgeTable:
+    """``table`` with open row ``open_rows[s]`` cut at the vertices ``point`` found inside
+    it (``_points_inside``'s pairs), its parts merged with the rows of the same welded ends
+    (the first row's place, ends and faces first; then the others' faces)."""
+    rows_i, rows_j, faces, thirds, place = [], [], [], [], []
+    cut = {}
+    for s, _, x in sorted(zip(segment.tolist(), t.tolist(), point.tolist(), strict=True)):
+        cut.setdefault(s, []).append(x)  # each row's points in the order of t
+    cut_rows = {int(open_rows[s]): points for s, points in cut.items()}
+    for r in range(len(table.i)):
+        chain = [table.i[r], *cut_rows.get(r, []), table.j[r]]
+        for q in range(len(chain) - 1):
+            rows_i.append(chain[q])
+            rows_j.append(chain[q + 1])
+            faces.append(table.faces[r][table.faces[r] >= 0])
+            thirds.append(table.thirds[r][table.faces[r] >= 0])
+            place.append(r)
+    key = np.sort(np.stack([ids[rows_i], ids[rows_j]], axis=1), axis=1)
+    group = row_ids(key)
+    first = {}
+    for n, g in enumerate(group.tolist()):
+        first.setdefault(g, n)
+    members: dict[int, list[int]] = {}
+    for n, g in enumerate(group.tolist()):
+        members.setdefault(first[g], []).append(n)
+    heads = sorted(members, key=lambda n: (place[n], n))
+    width = max(sum(len(faces[n]) for n in members[h]) for h in heads)
+    out_faces = np.full((len(heads), width), -1, np.int64)
+    out_thirds = np.full_like(out_faces, -1)
+    for row, h in enumerate(heads):
+        f = np.concatenate([faces[n] for n in members[h]])
+        out_faces[row, : len(f)] = f
+        out_thirds[row, : len(f)] = np.concatenate([thirds[n] for n in members[h]])
+    new_i = np.array([rows_i[h] for h in heads], np.int64)
+    new_j = np.array([rows_j[h] for h in heads], np.int64)
+    return EdgeTable(new_i, new_j, out_faces, out_thirds)
 
 
 def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -14,13 +14,16 @@ Both sides are shaded, shadows included, by the render's ``SideRadiance``
 (``_side_factors``): for the direct renderer its batched BVH queries and the camera hits'
 compiled shading, the formulas written once.
 
-Edges that lie on one curve without sharing vertices (a T-junction, inside a mesh or
-between two; a seam whose two sides were cut differently; a gap or overlap narrower than
-COINCIDENT of the scene; two faces overlapping flat) would each count the jump that the
-ray beyond the other sees: the one curve twice (the translation gradient of a plane split
-at a T-junction was 4.74 against 2.79). Where the ray beyond an open edge meets such a
-face, one of the two edges counts the curve (``_counted_elsewhere``); edges that share
-their vertices are matched across meshes before (``render.trace.seams``).
+Inside a mesh, an open edge along which another face's vertex lies (a T-junction) is cut
+there before (``render.trace.topology.cut_at_t_junctions``): its parts are rows with a
+face on each side. Edges that lie on one curve without sharing vertices otherwise (a
+T-junction between two meshes; a seam whose two sides were cut differently; a gap or
+overlap narrower than COINCIDENT of the scene; two faces overlapping flat) would each
+count the jump that the ray beyond the other sees: the one curve twice (the translation
+gradient of a plane split at a T-junction was 4.74 against 2.79). Where the ray beyond
+an open edge meets such a face, one of the two edges counts the curve
+(``_counted_elsewhere``); edges that share their vertices are matched across meshes
+before (``render.trace.seams``).
 """
 
 from __future__ import annotations
