@@ -49,6 +49,7 @@ import numpy as np
 
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.scene.scene import Mesh, Scene
+from render.trace.grid import boxes_at_points
 from render.trace.seams import shared_edges
 from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
 from render.trace.vec3 import cross, dot3, sub
@@ -286,20 +287,12 @@ def on_triangles(points: np.ndarray, triangles: np.ndarray, tolerance: float) ->
     return out
 
 
-#: A triangle whose grown box spans more grid cells than this is tested against every
-#: point instead of being listed in each cell (a floor of two triangles under a fine mesh).
-_MOST_CELLS = 64
-
-
 def _cells(points, triangles, tolerance):
     """The candidates of each point (k,) for ``_touch``: ``order[starts[i]:stops[i]]``,
     the triangles whose box (around all that ``on_triangle`` accepts for them) overlaps
-    point i's cell of a uniform grid (cells as wide as the median box), and ``large``, the
-    triangles spanning more than ``_MOST_CELLS`` cells, for every point. A triangle that
-    accepts a point has the point in its box, hence is listed in its cell."""
-    empty = np.zeros(len(points), np.int64)
-    if len(triangles) == 0 or len(points) == 0:
-        return empty, empty, np.zeros(0, np.int64), np.zeros(0, np.int64)
+    point i's cell of a uniform grid, and ``large``, those too large for it, for every
+    point (``render.trace.grid``). A triangle that accepts a point has the point in its
+    box, hence is among its candidates."""
     # What ``on_triangle`` accepts: within the tolerance of the plane, and barycentrics
     # u, v >= -m, u + v <= 1 + m (m in units of the triangle's sides): the triangle with
     # corners (u, v) = (-m, -m), (1 + 2m, -m), (-m, 1 + 2m), then the tolerance off it.
@@ -316,30 +309,7 @@ def _cells(points, triangles, tolerance):
     # With a margin for the rounding of either computation.
     reach = 1.001 * tolerance + 1e-12 * np.max(np.abs(grown), axis=(1, 2))[:, None]
     lo, hi = grown.min(axis=1) - reach, grown.max(axis=1) + reach
-    origin = np.minimum(lo.min(axis=0), points.min(axis=0))
-    extent = np.maximum(hi.max(axis=0), points.max(axis=0)) - origin
-    # Cells as wide as the median box, at most 2^20 along an axis (keys fit an int64).
-    width = max(float(np.median(np.max(hi - lo, axis=1))), float(extent.max()) / 2**20, 1e-300)
-    dims = np.floor(extent / width).astype(np.int64) + 1
-    first_cell = np.clip(np.floor((lo - origin) / width).astype(np.int64), 0, dims - 1)
-    last_cell = np.clip(np.floor((hi - origin) / width).astype(np.int64), 0, dims - 1)
-    span = last_cell - first_cell + 1
-    count = np.prod(span, axis=1)
-    large = np.flatnonzero(count > _MOST_CELLS)
-    small = np.flatnonzero(count <= _MOST_CELLS)
-    # Every (triangle, cell) pair of the small triangles: cell = first corner + offset.
-    tri = np.repeat(small, count[small])
-    k = np.arange(len(tri)) - np.repeat(np.cumsum(count[small]) - count[small], count[small])
-    sx, sy = span[tri, 0], span[tri, 1]
-    cell = first_cell[tri] + np.stack([k % sx, (k // sx) % sy, k // (sx * sy)], axis=1)
-    key = (cell[:, 2] * dims[1] + cell[:, 1]) * dims[0] + cell[:, 0]
-    sort = np.argsort(key, kind="stable")
-    key, order = key[sort], tri[sort]
-    at = np.clip(np.floor((points - origin) / width).astype(np.int64), 0, dims - 1)
-    point_key = (at[:, 2] * dims[1] + at[:, 1]) * dims[0] + at[:, 0]
-    starts = np.searchsorted(key, point_key, side="left")
-    stops = np.searchsorted(key, point_key, side="right")
-    return starts, stops, order.astype(np.int64), large.astype(np.int64)
+    return boxes_at_points(points, lo, hi)
 
 
 @jit(cache=True, inline="always")

@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
+from render.trace.grid import candidate_pairs
 
 # Vertices closer than this fraction of the mesh's size (its bounding box diagonal) are one
 # position when welding.
@@ -156,26 +157,34 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
     ends = np.unique(np.r_[table.i[open_rows], table.j[open_rows]])
     inside = _points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
                             _WELD_TOLERANCE * _scale(vertices))  # fmt: skip
-    if len(inside[0]) == 0:
+    if inside is None or len(inside[0]) == 0:  # None: too many candidates to test (a soup)
         return edges
     return replace(edges, table=_cut_table(table, open_rows, *inside, ids))
+
+
+#: ``cut_at_t_junctions`` tests at most this many (point, open edge) pairs that a grid of
+#: the edges' boxes leaves: a mesh of many long open edges crowding its volume (a soup of
+#: disjoint triangles, where T-junctions are not to be expected) keeps its table uncut
+#: rather than spend seconds (``MeshEdge``'s ``_counted_elsewhere`` still counts such
+#: curves once where the ray beyond one edge meets the other's face).
+_MOST_PAIRS = 1 << 22
 
 
 def _points_inside(vertices, i, j, points, ids, tolerance):
     """The pairs (segment (m,), point (m,), t (m,)) of segments (vertex ids i, j (n,)) and
     ``points`` (vertex ids) that lie strictly inside them, within ``tolerance``: at t along
-    the segment, 0 < t < 1, another welded vertex than its ends. Candidates by a sweep
-    along the points' widest axis."""
+    the segment, 0 < t < 1, another welded vertex than its ends; None if the candidates a
+    grid of the segments' boxes leaves (``render.trace.grid``) are more than
+    ``_MOST_PAIRS``."""
     a, b = vertices[i], vertices[j]
     p = vertices[points]
-    axis = int(np.argmax(np.ptp(p, axis=0))) if len(p) else 0
-    order = np.argsort(p[:, axis], kind="stable")
-    keys = p[order, axis]
-    low = np.searchsorted(keys, np.minimum(a[:, axis], b[:, axis]) - tolerance, side="left")
-    high = np.searchsorted(keys, np.maximum(a[:, axis], b[:, axis]) + tolerance, side="right")
-    count = high - low
-    segment = np.repeat(np.arange(len(i)), count)
-    point = order[np.repeat(low - np.cumsum(count) + count, count) + np.arange(count.sum())]
+    reach = 1.001 * tolerance + 1e-12 * np.maximum(np.abs(a), np.abs(b)).max(axis=1)
+    lo = np.minimum(a, b) - reach[:, None]
+    hi = np.maximum(a, b) + reach[:, None]
+    pairs = candidate_pairs(p, lo, hi, _MOST_PAIRS)
+    if pairs is None:
+        return None
+    point, segment = pairs
     d = b[segment] - a[segment]
     length2 = np.sum(d * d, axis=1)
     off = p[point] - a[segment]

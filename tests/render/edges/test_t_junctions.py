@@ -121,7 +121,7 @@ def test_the_cut_table_is_the_conforming_meshs_and_the_outlines_have_no_false_bo
 @settings(max_examples=30, deadline=None)
 @given(st.integers(0, 2**32 - 1), st.integers(1, 60), st.integers(0, 60))
 def test_points_inside_segments_are_those_every_pair_finds(seed, n_segments, n_points):
-    """``_points_inside`` (candidates by a sweep along one axis) finds what testing every
+    """``_points_inside`` (candidates from a grid of the segments' boxes) finds what testing every
     segment against every point finds: points on segments (at random t, or at an end),
     off them by less and by more than the tolerance, and anywhere."""
     from render.trace.topology import _points_inside
@@ -148,3 +148,16 @@ def test_points_inside_segments_are_those_every_pair_finds(seed, n_segments, n_p
     want = [(s, int(candidates[p])) for s, p in zip(*np.nonzero(near & (tt > 0) & (tt < 1)),
                                                      strict=True)]  # fmt: skip
     assert found == sorted(want)
+
+
+def test_too_many_candidates_leave_the_table_uncut(monkeypatch):
+    """Where the grid of open edges' boxes leaves more candidate pairs than the budget (a
+    soup of long edges), the table stays as it was: the same object, no cut."""
+    import render.trace.topology as topology
+
+    t_box = with_t_junctions(box(), [(0, 0.5)])
+    v, f = np.asarray(t_box.vertices.data), np.asarray(t_box.faces)
+    structure = edge_structure(f, *welding(v, f))
+    assert cut_at_t_junctions(structure, v, f) is not structure
+    monkeypatch.setattr(topology, "_MOST_PAIRS", 0)
+    assert cut_at_t_junctions(structure, v, f) is structure
