@@ -13,12 +13,16 @@ that a shadow border and a soft shadow's edge come from the same edges, chosen b
 rules:
 
 * Meshes that share an edge (a multi-material file read as one mesh per material, walls
-  meeting at a corner) are welded into one (``_welded_groups``: ``render.trace.seams``
-  finds them, ``render.trace.topology`` welds the group), so that a shared edge has a face
-  of each mesh and is an outline where both lie on one side of the plane through apex and
-  edge, as in one mesh. Taken mesh by mesh, such an edge is a border of each (an outline
-  from everywhere, counted twice). The rule is the faces' positions, not their winding:
-  two coincident copies, or parts wound differently, still agree.
+  meeting at a corner), or meet at a T-junction (a vertex of one inside an open edge of
+  the other: a fin tessellated otherwise than the plate it hangs from), are welded into
+  one (``_welded_groups``: ``render.trace.seams`` finds the first, ``render.trace.topology``
+  the second, welds the group and cuts its open edges at T-junctions), so that such an
+  edge has a face of each mesh and is an outline where both lie on one side of the plane
+  through apex and edge, as in one mesh. Taken mesh by mesh, it is a border of each (an
+  outline from everywhere, counted twice), or, at a T-junction, it rests on the other's
+  face (and the rule below drops it: an L whose fin's top edge was split lost its
+  corner). The rule is the faces' positions, not their winding: two coincident copies, or
+  parts wound differently, still agree.
 * Where more than two faces meet at an edge, the two that bound the others around it
   decide (``_outer_faces``), and an edge whose faces span more than a half turn never is
   one; nor is an edge between two faces of one plane.
@@ -33,9 +37,9 @@ rules:
   in front of it that a point off the floor's plane saw. While the line stays in place on
   the surface (the light moving, the occluder's other edges), nothing is missed; for a box
   lifted off the floor, the derivative given is the one-sided one of pressing it in. An
-  edge lying along an edge of another object's face, with vertices of its own (not
-  shared), is left out too, though it is an outline where the two objects' faces lie on
-  one side (an L whose fin and plate are tessellated differently): a case not handled.
+  edge lying along another object's edge with no vertex of either inside the other (the
+  same segment, its ends not welded: a gap wider than the welding's tolerance) is left
+  out too, though it may be an outline: a case not handled.
 
 Everything here is discrete (which curves, on plain float64 arrays, off the tape); the
 edge functions the boundary terms differentiate are their modules' own.
@@ -51,7 +55,15 @@ from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.scene.scene import Mesh, Scene
 from render.trace.grid import boxes_at_points
 from render.trace.seams import shared_edges
-from render.trace.topology import EdgeTable, MeshEdges, mesh_edges
+from render.trace.topology import (
+    _WELD_TOLERANCE,
+    EdgeTable,
+    MeshEdges,
+    _scale,
+    mesh_edges,
+    points_inside,
+    welded_ids,
+)
 from render.trace.vec3 import cross, dot3, sub
 
 #: A face whose plane passes within this angle of the apex is seen edge-on: not an outline.
@@ -137,9 +149,12 @@ def _welded_groups(
 ) -> list[tuple[list[int], MeshEdges]]:
     """The meshes (indices) in groups that are welded into one: meshes that share an edge
     (``shared``: ``render.trace.seams.shared_edges`` of the meshes' ``topology``; ``first``
-    (M + 1,): each mesh's first global face id), and the meshes that share one with those,
-    and so on; each group (in the order of its first mesh) with its welded ``MeshEdges``,
-    the group's meshes taken as one (their vertices, then their faces, concatenated)."""
+    (M + 1,): each mesh's first global face id) or meet at a T-junction (a vertex of one
+    inside an open edge of the other: a fin tessellated otherwise than the plate it hangs
+    from, ``_t_junction_pairs``), and the meshes joined to those, and so on; each group (in
+    the order of its first mesh) with its welded ``MeshEdges``, the group's meshes taken as
+    one (their vertices, then their faces, concatenated; the table cut at its T-junctions,
+    ``render.trace.topology.cut_at_t_junctions``)."""
     parent = list(range(len(meshes)))
 
     def root(k: int) -> int:
@@ -147,11 +162,16 @@ def _welded_groups(
             k = parent[k]
         return k
 
+    def join(k: int, o: int) -> None:
+        low, high = sorted((root(k), root(o)))
+        parent[high] = low
+
     for k, joined in enumerate(shared or []):
         faces = joined.faces[joined.faces >= 0]  # other meshes' faces on mesh k's edges
         for o in np.unique(np.searchsorted(first, faces, side="right") - 1):
-            low, high = sorted((root(k), root(int(o))))
-            parent[high] = low
+            join(k, int(o))
+    for k, o in _t_junction_pairs(meshes, topology):
+        join(k, o)
     groups: dict[int, list[int]] = {}
     for k in range(len(meshes)):
         groups.setdefault(root(k), []).append(k)
@@ -164,6 +184,33 @@ def _welded_groups(
         )
         for group in sorted(groups.values())
     ]
+
+
+def _t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
+    """The pairs of meshes (indices) where a vertex of one lies inside an open edge of the
+    other (``render.trace.topology``'s test, on every mesh's open edges at once)."""
+    if len(meshes) < 2:
+        return set()
+    vertices, _ = _arrays(meshes)
+    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+    i, j = [], []
+    for k, edges in enumerate(topology):
+        table = edges.table
+        open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+        i.append(table.i[open_rows] + offsets[k])
+        j.append(table.j[open_rows] + offsets[k])
+    i, j = np.concatenate(i), np.concatenate(j)
+    if len(i) < 2:
+        return set()
+    ids = welded_ids(vertices)
+    found = points_inside(vertices, i, j, np.unique(np.r_[i, j]), ids,
+                          _WELD_TOLERANCE * _scale(vertices))  # fmt: skip
+    if found is None:
+        return set()
+    segment, point, _ = found
+    edge_mesh = np.searchsorted(offsets, i[segment], side="right") - 1
+    point_mesh = np.searchsorted(offsets, point, side="right") - 1
+    return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
 
 
 def _arrays(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:

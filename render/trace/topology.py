@@ -155,7 +155,7 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
     ids = np.full(len(vertices), -1, np.int64)
     ids[faces] = edges.welded  # each vertex's welded id
     ends = np.unique(np.r_[table.i[open_rows], table.j[open_rows]])
-    inside = _points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
+    inside = points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
                             _WELD_TOLERANCE * _scale(vertices))  # fmt: skip
     if inside is None or len(inside[0]) == 0:  # None: too many candidates to test (a soup)
         return edges
@@ -170,7 +170,7 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
 _MOST_PAIRS = 1 << 22
 
 
-def _points_inside(vertices, i, j, points, ids, tolerance):
+def points_inside(vertices, i, j, points, ids, tolerance):
     """The pairs (segment (m,), point (m,), t (m,)) of segments (vertex ids i, j (n,)) and
     ``points`` (vertex ids) that lie strictly inside them, within ``tolerance``: at t along
     the segment, 0 < t < 1, another welded vertex than its ends; None if the candidates a
@@ -199,7 +199,7 @@ def _points_inside(vertices, i, j, points, ids, tolerance):
 
 def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids) -> EdgeTable:
     """``table`` with open row ``open_rows[s]`` cut at the vertices ``point`` found inside
-    it (``_points_inside``'s pairs), its parts merged with the rows of the same welded ends
+    it (``points_inside``'s pairs), its parts merged with the rows of the same welded ends
     (the first row's place, ends and faces first; then the others' faces)."""
     rows_i, rows_j, faces, thirds, place = [], [], [], [], []
     cut = {}
