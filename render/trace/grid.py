@@ -18,6 +18,14 @@ import numpy as np
 MOST_CELLS = 64
 
 
+def grown(lo: np.ndarray, hi: np.ndarray, tolerance: float) -> tuple[np.ndarray, np.ndarray]:
+    """Boxes [lo, hi] (n, 3) grown by ``tolerance``, and by a margin for the rounding of
+    whatever computed them and of the test that will use them (a part in 1e12 of their
+    coordinates): a point the test accepts lies in its grown box."""
+    reach = 1.001 * tolerance + 1e-12 * np.maximum(np.abs(lo), np.abs(hi)).max(axis=1)
+    return lo - reach[:, None], hi + reach[:, None]
+
+
 def boxes_at_points(points: np.ndarray, lo: np.ndarray, hi: np.ndarray):
     """For points (k, 3) and boxes [lo, hi] (n, 3) each: (starts, stops (k,), order, large):
     point i's candidates are boxes ``order[starts[i]:stops[i]]`` (those overlapping its

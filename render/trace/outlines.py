@@ -53,15 +53,14 @@ import numpy as np
 
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.scene.scene import Mesh, Scene
-from render.trace.grid import boxes_at_points
+from render.trace.grid import boxes_at_points, grown
 from render.trace.seams import shared_edges
 from render.trace.topology import (
-    _WELD_TOLERANCE,
     EdgeTable,
     MeshEdges,
-    _scale,
     mesh_edges,
     points_inside,
+    weld_distance,
     welded_ids,
 )
 from render.trace.vec3 import cross, dot3, sub
@@ -204,7 +203,7 @@ def _t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
         return set()
     ids = welded_ids(vertices)
     found = points_inside(vertices, i, j, np.unique(np.r_[i, j]), ids,
-                          _WELD_TOLERANCE * _scale(vertices))  # fmt: skip
+                          weld_distance(vertices))  # fmt: skip
     if found is None:
         return set()
     segment, point, _ = found
@@ -351,11 +350,9 @@ def _cells(points, triangles, tolerance):
     area = np.linalg.norm(np.cross(e1, e2), axis=1)
     sides = np.linalg.norm(e1, axis=1) + np.linalg.norm(e2, axis=1)
     m = np.where(area > 0, tolerance * sides / np.where(area > 0, area, 1.0), 0.0)[:, None]
-    grown = np.stack([v0 - m * (e1 + e2), v0 + (1 + 2 * m) * e1 - m * e2,
-                      v0 - m * e1 + (1 + 2 * m) * e2], axis=1)  # fmt: skip
-    # With a margin for the rounding of either computation.
-    reach = 1.001 * tolerance + 1e-12 * np.max(np.abs(grown), axis=(1, 2))[:, None]
-    lo, hi = grown.min(axis=1) - reach, grown.max(axis=1) + reach
+    region = np.stack([v0 - m * (e1 + e2), v0 + (1 + 2 * m) * e1 - m * e2,
+                       v0 - m * e1 + (1 + 2 * m) * e2], axis=1)  # fmt: skip
+    lo, hi = grown(region.min(axis=1), region.max(axis=1), tolerance)
     return boxes_at_points(points, lo, hi)
 
 

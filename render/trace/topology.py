@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
-from render.trace.grid import candidate_pairs
+from render.trace.grid import candidate_pairs, grown
 
 # Vertices closer than this fraction of the mesh's size (its bounding box diagonal) are one
 # position when welding.
@@ -107,7 +107,7 @@ def welded_ids(vertices: np.ndarray) -> np.ndarray:
     # Relative to the mesh's own size and corner, so that welding does not depend on where
     # the mesh is or how large it is.
     low = vertices.min(axis=0)
-    keys = np.round((vertices - low) / (_scale(vertices) * _WELD_TOLERANCE))
+    keys = np.round((vertices - low) / weld_distance(vertices))
     return row_ids(keys)
 
 
@@ -124,6 +124,12 @@ def row_ids(rows: np.ndarray) -> np.ndarray:
     ids = np.empty(len(rows), np.int64)
     ids[order] = np.cumsum(new) - 1
     return ids
+
+
+def weld_distance(vertices: np.ndarray) -> float:
+    """How close two of these vertices (V, 3) must be to be one position: ``_WELD_TOLERANCE``
+    of their bounding box's diagonal."""
+    return _WELD_TOLERANCE * _scale(vertices)
 
 
 def _scale(vertices: np.ndarray) -> float:
@@ -156,7 +162,7 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
     ids[faces] = edges.welded  # each vertex's welded id
     ends = np.unique(np.r_[table.i[open_rows], table.j[open_rows]])
     inside = points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
-                            _WELD_TOLERANCE * _scale(vertices))  # fmt: skip
+                           weld_distance(vertices))  # fmt: skip
     if inside is None or len(inside[0]) == 0:  # None: too many candidates to test (a soup)
         return edges
     return replace(edges, table=_cut_table(table, open_rows, *inside, ids))
@@ -178,9 +184,7 @@ def points_inside(vertices, i, j, points, ids, tolerance):
     ``_MOST_PAIRS``."""
     a, b = vertices[i], vertices[j]
     p = vertices[points]
-    reach = 1.001 * tolerance + 1e-12 * np.maximum(np.abs(a), np.abs(b)).max(axis=1)
-    lo = np.minimum(a, b) - reach[:, None]
-    hi = np.maximum(a, b) + reach[:, None]
+    lo, hi = grown(np.minimum(a, b), np.maximum(a, b), tolerance)
     pairs = candidate_pairs(p, lo, hi, _MOST_PAIRS)
     if pairs is None:
         return None
@@ -199,40 +203,46 @@ def points_inside(vertices, i, j, points, ids, tolerance):
 
 def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids) -> EdgeTable:
     """``table`` with open row ``open_rows[s]`` cut at the vertices ``point`` found inside
-    it (``points_inside``'s pairs), its parts merged with the rows of the same welded ends
-    (the first row's place, ends and faces first; then the others' faces)."""
-    rows_i, rows_j, faces, thirds, place = [], [], [], [], []
-    cut = {}
-    for s, _, x in sorted(zip(segment.tolist(), t.tolist(), point.tolist(), strict=True)):
-        cut.setdefault(s, []).append(x)  # each row's points in the order of t
-    cut_rows = {int(open_rows[s]): points for s, points in cut.items()}
-    for r in range(len(table.i)):
-        chain = [table.i[r], *cut_rows.get(r, []), table.j[r]]
-        for q in range(len(chain) - 1):
-            rows_i.append(chain[q])
-            rows_j.append(chain[q + 1])
-            faces.append(table.faces[r][table.faces[r] >= 0])
-            thirds.append(table.thirds[r][table.faces[r] >= 0])
-            place.append(r)
-    key = np.sort(np.stack([ids[rows_i], ids[rows_j]], axis=1), axis=1)
-    group = row_ids(key)
-    first = {}
-    for n, g in enumerate(group.tolist()):
-        first.setdefault(g, n)
-    members: dict[int, list[int]] = {}
-    for n, g in enumerate(group.tolist()):
-        members.setdefault(first[g], []).append(n)
-    heads = sorted(members, key=lambda n: (place[n], n))
-    width = max(sum(len(faces[n]) for n in members[h]) for h in heads)
-    out_faces = np.full((len(heads), width), -1, np.int64)
-    out_thirds = np.full_like(out_faces, -1)
-    for row, h in enumerate(heads):
-        f = np.concatenate([faces[n] for n in members[h]])
-        out_faces[row, : len(f)] = f
-        out_thirds[row, : len(f)] = np.concatenate([thirds[n] for n in members[h]])
-    new_i = np.array([rows_i[h] for h in heads], np.int64)
-    new_j = np.array([rows_j[h] for h in heads], np.int64)
-    return EdgeTable(new_i, new_j, out_faces, out_thirds)
+    it (``points_inside``'s pairs), in the order of t, its parts merged with the rows of
+    the same welded ends (at the first row's place, with its ends and its faces first, then
+    the others' faces). Only the cut rows and those they merge with are looked at one by
+    one: a large mesh with a few T-junctions keeps the rest of its table as arrays."""
+    order = np.lexsort((t, segment))
+    segment, point = segment[order], point[order]
+    cut = np.unique(segment)
+    sources, ranks, parts_i, parts_j = [], [], [], []
+    for s in cut:  # few: the rows with T-junctions
+        r = open_rows[s]
+        chain = np.r_[table.i[r], point[segment == s], table.j[r]]
+        sources.append(np.full(len(chain) - 1, r))
+        ranks.append(np.arange(len(chain) - 1))
+        parts_i.append(chain[:-1])
+        parts_j.append(chain[1:])
+    kept = np.setdiff1d(np.arange(len(table.i)), open_rows[cut])
+    source = np.r_[kept, *sources]
+    rank = np.r_[np.zeros(len(kept), np.int64), *ranks]
+    new_i = np.r_[table.i[kept], *parts_i]
+    new_j = np.r_[table.j[kept], *parts_j]
+    by_place = np.lexsort((rank, source))  # each row where its source row was
+    source, new_i, new_j = source[by_place], new_i[by_place], new_j[by_place]
+    group = row_ids(np.sort(np.stack([ids[new_i], ids[new_j]], axis=1), axis=1))
+    _, head = np.unique(group, return_index=True)  # each group's first row
+    heads = np.sort(head)
+    faces, thirds = table.faces[source[heads]], table.thirds[source[heads]]
+    merged = np.flatnonzero(np.bincount(group)[group[heads]] > 1)
+    if len(merged):  # the parts that lie on another row: one row, every face
+        columns = []
+        for row in merged:
+            members = np.flatnonzero(group == group[heads[row]])
+            on = table.faces[source[members]] >= 0
+            columns.append((table.faces[source[members]][on], table.thirds[source[members]][on]))
+        width = max(faces.shape[1], *(len(f) for f, _ in columns))
+        faces = np.pad(faces, ((0, 0), (0, width - faces.shape[1])), constant_values=-1)
+        thirds = np.pad(thirds, ((0, 0), (0, width - thirds.shape[1])), constant_values=-1)
+        for row, (f, third) in zip(merged, columns, strict=True):
+            faces[row], thirds[row] = -1, -1
+            faces[row, : len(f)], thirds[row, : len(f)] = f, third
+    return EdgeTable(new_i[heads], new_j[heads], faces, thirds)
 
 
 def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
