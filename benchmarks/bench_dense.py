@@ -64,7 +64,7 @@ def secondary_rows(n: int, repeats: int) -> dict:
             clusters = silhouettes.Curves.clusters
             if not skip:  # every run kept: each edge tested at every vertex
                 silhouettes.Curves.clusters = property(
-                    lambda self: (clusters.func(self)[0], np.zeros(-(-self.n_edges // 16), bool))
+                    lambda self: (clusters.func(self)[0], np.zeros_like(clusters.func(self)[1]))
                 )
             try:
                 image = render_path(scene, spp=4, max_depth=3, seed=0, antialias=antialias)

@@ -98,7 +98,7 @@ def test_a_box_with_t_junctions_has_the_box_gradients(picks):
                                atol=1e-4 * np.abs(translation).max())  # fmt: skip
 
 
-def test_the_cut_table_is_the_conforming_meshs_and_the_outlines_have_no_false_border():
+def test_the_cut_table_has_a_face_each_side_and_the_outlines_have_no_false_border():
     """A box with a T-junction: every row of its cut table has two faces (as the box's),
     and the path integrator's curves see no border edge (a border is an outline from
     everywhere: the long edge would have been one); a mesh without T-junctions keeps its
