@@ -263,7 +263,7 @@ n_pairs = len(pairs.near)
 print(f"{n_pairs} pairs across the square's edges")
 
 # %% [markdown]
-# The square has `109` <!-- check: n_pairs --> such pairs: the horizontal pairs of its two
+# The square has `88` <!-- check: n_pairs --> such pairs: the horizontal pairs of its two
 # near-vertical edges (one per row) and the vertical pairs of its two near-horizontal ones.
 #
 # ## A stationary point that is not a solution
@@ -385,8 +385,8 @@ save_and_show(figure, OUT / "camera_calibration_error.png")
 # <!-- check: camera_aa_error < --> %, the plain one above `2`
 # <!-- check: camera_plain_error > --> % (`camera_calibration_error.png`; the exact values
 # are printed). Both curves first *rise*: with edges, from `11.5`
-# <!-- check: camera_start_error --> % to `28.9` <!-- check: camera_peak_error --> % at
-# iteration `32` <!-- check: camera_peak_at -->, while the loss falls by a factor of `6.4`
+# <!-- check: camera_start_error --> % to `28.8` <!-- check: camera_peak_error --> % at
+# iteration `31` <!-- check: camera_peak_at -->, while the loss falls by a factor of `6.7`
 # <!-- check: camera_loss_fall_to_peak --> and the look-at point moves from `1.15`
 # <!-- check: look_at_start --> to `0.57` <!-- check: look_at_at_peak --> units from the
 # truth. The loss is first lowered by putting the teapot where the target has it in the
@@ -435,7 +435,7 @@ print(f"elapsed {time.perf_counter() - lesson_start:.1f} s; figures in {OUT}")
 # %% [markdown]
 # The edge term holds more than `0.9` <!-- check: silhouette_share > --> of the
 # antialiased gradient image's total magnitude, and not all of it at the outline:
-# `0.38` <!-- check: interior_edge_share --> of the edge term lies in pixels at least one
+# `0.37` <!-- check: interior_edge_share --> of the edge term lies in pixels at least one
 # pixel away from the background, on the facet edges inside the teapot. A flat-shaded
 # mesh is a mosaic of small jumps, and every one of them moves with the camera.
 #

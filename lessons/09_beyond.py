@@ -255,9 +255,9 @@ print(f"48 vertices: lambda = 0: {folds_free} folds, edge lengths {spacing_free:
       f"outline {outline_reg:.4f}")  # fmt: skip
 
 # %% [markdown]
-# Without the regulariser the 48-vertex rim ends with `10` <!-- check: folds_free -->
-# folds, its longest edge `17.3` <!-- check: spacing_free --> times its shortest, and its
-# outline up to `0.0254` <!-- check: outline_free --> off the ellipse; with `λ = 0.01`, `0`
+# Without the regulariser the 48-vertex rim ends with `9` <!-- check: folds_free -->
+# folds, its longest edge `19.5` <!-- check: spacing_free --> times its shortest, and its
+# outline up to `0.112` <!-- check: outline_free --> off the ellipse; with `λ = 0.01`, `0`
 # <!-- check: folds_reg --> folds, a ratio of `1.4` <!-- check: spacing_reg -->, and
 # `0.003` <!-- check: outline_reg --> (`crumpling.png`). The image loss is about the same
 # in both (the folds are nearly invisible at this resolution): the regulariser chose among

@@ -60,6 +60,7 @@ from render.edges.geometry import (
 )
 from render.scene.camera import image_plane_coords, ray_directions
 from render.scene.scene import Scene
+from render.scene.shapes import Mesh
 from render.shade.surface import in_order
 from render.trace.primitives import first_sphere_id
 from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
@@ -105,6 +106,23 @@ def candidate_pairs(grid: np.ndarray, prim_id: np.ndarray):
     return a, b, horizontal
 
 
+def creases(topo: MeshEdges, vertices: np.ndarray, mesh: Mesh) -> np.ndarray:
+    """(F, 3) bool: the colour may jump across edge k of face f though it is no
+    silhouette: where flat shading changes normal (not between two faces of one plane, as
+    a face split in two has: no colour changes there), or where the faces do not share the
+    edge's vertex ids (a seam: smooth or given normals and UVs are per vertex id)."""
+    seams = ~topo.shared_ids
+    if mesh.smooth or mesh.normals is not None or mesh.material.textures:
+        return seams
+    corners = vertices[mesh.faces]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.finfo(float).tiny)
+    across = normal[np.maximum(topo.neighbour, 0)]
+    # within rounding of one plane (an angle of ~1e-6 rad: no visible change of colour)
+    flat = (topo.neighbour >= 0) & (np.einsum("fkc,fc->fk", across, normal) > 1.0 - 1e-12)
+    return ~flat
+
+
 def edge_pairs(
     scene: Scene,
     prim_id: np.ndarray,
@@ -135,10 +153,7 @@ def edge_pairs(
             topo = topology[index]
             silhouette = silhouette_edges(topo, vertices, mesh.faces, eye)
             start = prim[rows] - first
-            # Creases: the colour jumps across an edge that is not a silhouette too where
-            # flat shading changes normal, or where the faces do not share the edge's vertex
-            # ids (a seam: smooth normals and UVs are per vertex id).
-            jumps = ~topo.shared_ids if mesh.smooth else np.ones(mesh.faces.shape, bool)
+            jumps = creases(topo, vertices, mesh)
             face, k, s[rows], (mid_face, mid_k, mid_s) = walk_to_silhouette_fast(
                 topo, silhouette, vertices, mesh.faces, start, eye, d_near[rows], d_far[rows],
                 jumps=jumps,

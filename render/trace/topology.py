@@ -53,6 +53,38 @@ class MeshEdges:
     shared_ids: np.ndarray
     welded: np.ndarray
     table: EdgeTable
+    pieces: Pieces
+
+
+@dataclass
+class Pieces:
+    """The faces met along an open edge at T-junctions (``cut_at_t_junctions``): where
+    face f's edge k runs along the edges of several other faces, the walk across the mesh
+    (``walk_to_silhouette``) steps into the one whose edge holds the crossing.
+
+    first (F, 3) int64: the first piece of edge k of face f; -1 for an edge of one
+        neighbour or none (``MeshEdges.neighbour``).
+    end (m,) float64: where each piece ends along its edge (t from corner k to corner
+        k + 1), increasing within an edge; the last piece of an edge ends at +inf.
+    face (m,) int64: the face on the other side of the piece; -1 none (an open stretch),
+        -2 more than one (a non-manifold stretch).
+    edge (m,) int64: that face's edge along the piece (-1 with no face).
+    """
+
+    first: np.ndarray
+    end: np.ndarray
+    face: np.ndarray
+    edge: np.ndarray
+
+    def arrays(self) -> tuple:
+        """(first, end, face, edge), as the walk's kernels take them."""
+        return self.first, self.end, self.face, self.edge
+
+    @staticmethod
+    def none(n_faces: int) -> Pieces:
+        """No T-junctions on a mesh of ``n_faces`` faces."""
+        empty = np.zeros(0, np.int64)
+        return Pieces(np.full((n_faces, 3), -1, np.int64), np.zeros(0), empty, empty)
 
 
 @dataclass
@@ -152,8 +184,10 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
     The parts join the rows of the same welded ends, so that the curve between the faces
     is one row with a face on each side, as it would be had the long edge been split
     too; elsewhere ``edges`` itself. (Uncut, each face's edge counted the jump to the other
-    face as its own: the curve twice.) Only ``table`` changes: the faces' own edges and
-    neighbours stay as the faces have them. Vertices (V, 3) float64, faces (F, 3)."""
+    face as its own: the curve twice.) The faces meet across the cut too, for the walk
+    (``walk_to_silhouette``): a face whose edge is one part is the neighbour of the long
+    edge's face, and the long edge holds its parts' faces (``Pieces``); uncut, the walk took
+    the long edge for an open one, a silhouette. Vertices (V, 3) float64, faces (F, 3)."""
     table = edges.table
     open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
     if len(open_rows) < 2:
@@ -165,7 +199,8 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
                            weld_distance(vertices))  # fmt: skip
     if inside is None or len(inside[0]) == 0:  # None: too many candidates to test (a soup)
         return edges
-    return replace(edges, table=_cut_table(table, open_rows, *inside, ids))
+    cut, parts = _cut_table(table, open_rows, *inside, ids)
+    return _joined_across(replace(edges, table=cut), faces, table, parts)
 
 
 #: ``cut_at_t_junctions`` tests at most this many (point, open edge) pairs that a grid of
@@ -201,19 +236,22 @@ def points_inside(vertices, i, j, points, ids, tolerance):
     return segment[keep], points[point[keep]], t[keep]
 
 
-def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids) -> EdgeTable:
+def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids):
     """``table`` with open row ``open_rows[s]`` cut at the vertices ``point`` found inside
     it (``points_inside``'s pairs), in the order of t, its parts merged with the rows of
     the same welded ends (at the first row's place, with its ends and its faces first, then
     the others' faces). Only the cut rows and those they merge with are looked at one by
-    one: a large mesh with a few T-junctions keeps the rest of its table as arrays."""
+    one: a large mesh with a few T-junctions keeps the rest of its table as arrays.
+    Returns the new table and, for each cut row, (its row in ``table``, where its parts
+    end along it (t, increasing, the last 1), their rows in the new table)."""
     order = np.lexsort((t, segment))
-    segment, point = segment[order], point[order]
+    segment, point, t = segment[order], point[order], t[order]
     cut = np.unique(segment)
-    sources, ranks, parts_i, parts_j = [], [], [], []
+    sources, ranks, parts_i, parts_j, ends = [], [], [], [], []
     for s in cut:  # few: the rows with T-junctions
         r = open_rows[s]
         chain = np.r_[table.i[r], point[segment == s], table.j[r]]
+        ends.append(np.r_[t[segment == s], 1.0])
         sources.append(np.full(len(chain) - 1, r))
         ranks.append(np.arange(len(chain) - 1))
         parts_i.append(chain[:-1])
@@ -228,6 +266,11 @@ def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids) -> EdgeTable
     group = row_ids(np.sort(np.stack([ids[new_i], ids[new_j]], axis=1), axis=1))
     _, head = np.unique(group, return_index=True)  # each group's first row
     heads = np.sort(head)
+    final = np.empty(len(heads), np.int64)  # each group's row in the new table
+    final[group[heads]] = np.arange(len(heads))
+    first_part = np.searchsorted(source, open_rows[cut])  # rows sorted by source, then rank
+    parts = [(open_rows[s], end, final[group[first + np.arange(len(end))]])
+             for s, end, first in zip(cut, ends, first_part, strict=True)]  # fmt: skip
     faces, thirds = table.faces[source[heads]], table.thirds[source[heads]]
     merged = np.flatnonzero(np.bincount(group)[group[heads]] > 1)
     if len(merged):  # the parts that lie on another row: one row, every face
@@ -242,7 +285,50 @@ def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids) -> EdgeTable
         for row, (f, third) in zip(merged, columns, strict=True):
             faces[row], thirds[row] = -1, -1
             faces[row, : len(f)], thirds[row, : len(f)] = f, third
-    return EdgeTable(new_i[heads], new_j[heads], faces, thirds)
+    return EdgeTable(new_i[heads], new_j[heads], faces, thirds), parts
+
+
+def _joined_across(edges: MeshEdges, faces, uncut: EdgeTable, parts) -> MeshEdges:
+    """``edges`` (its table cut by ``_cut_table`` from ``uncut``, which also gave ``parts``)
+    with the faces on either side of each cut edge made neighbours: a face whose whole edge
+    is one part of the long edge has the long edge's face as its ``neighbour``, and the long
+    edge's ``Pieces`` hold each part's face. Faces (F, 3)."""
+    neighbour, neighbour_edge = edges.neighbour.copy(), edges.neighbour_edge.copy()
+    first = edges.pieces.first.copy()
+    ends, others, other_edges, whole = [], [], [], []
+    for r, end, rows in parts:
+        face = uncut.faces[r, 0]  # an open row: one face, whose edge runs i -> j
+        k = _edge_index(faces[face], uncut.i[r], uncut.j[r])
+        first[face, k] = sum(len(e) for e in ends)
+        ends.append(np.r_[end[:-1], np.inf])
+        for row in rows:
+            on = edges.table.faces[row]
+            across = (on >= 0) & (on != face)
+            if np.sum(across) != 1:  # -1: nothing across this part, -2: several faces
+                others.append(-1 if not np.any(across) else -2)
+                other_edges.append(-1)
+                continue
+            g = int(on[across][0])
+            # g's edge along the part is the one opposite its third vertex (which may be
+            # longer than the part, where g's edge is cut too)
+            kg = (int(np.flatnonzero(faces[g] == edges.table.thirds[row][across][0])[0]) + 1) % 3
+            others.append(g)
+            other_edges.append(kg)
+            whole.append((g, kg, face, k))
+    for g, kg, face, k in whole:
+        if neighbour[g, kg] < 0 and first[g, kg] < 0:  # a part that is g's whole edge
+            neighbour[g, kg], neighbour_edge[g, kg] = face, k
+    pieces = Pieces(first, np.concatenate(ends), np.array(others, np.int64),
+                    np.array(other_edges, np.int64))  # fmt: skip
+    return replace(edges, neighbour=neighbour, neighbour_edge=neighbour_edge, pieces=pieces)
+
+
+def _edge_index(corners: np.ndarray, i: int, j: int) -> int:
+    """Which edge k of a face with ``corners`` (3,) (vertex ids) runs from i to j."""
+    for k in range(3):
+        if corners[k] == i and corners[(k + 1) % 3] == j:
+            return k
+    raise AssertionError("the face has no such edge")  # the table's rows come from its faces
 
 
 def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -303,7 +389,14 @@ def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -
     na, nb = a_ids[f, k], b_ids[f, k]
     shared = (neighbour >= 0) & (((na == b_ids) & (nb == a_ids)) | ((na == a_ids) & (nb == b_ids)))
     return MeshEdges(
-        group, n_groups, neighbour, neighbour_edge, shared, ids, _edge_table(faces, slots, g)
+        group,
+        n_groups,
+        neighbour,
+        neighbour_edge,
+        shared,
+        ids,
+        _edge_table(faces, slots, g),
+        Pieces.none(len(faces)),
     )
 
 
@@ -328,6 +421,11 @@ def silhouette_edges(
     total = n_front + n_back
     silhouette = np.zeros(valid.shape, dtype=bool)
     silhouette[valid] = (total[groups] == 1) | ((n_front[groups] > 0) & (n_back[groups] > 0))
+    # Two faces that are neighbours: the same rule from the pair itself (which also holds
+    # where they meet at a T-junction, their edges on different welded ends).
+    paired = edges.neighbour >= 0
+    facing = np.broadcast_to(front[:, None], paired.shape)
+    silhouette[paired] = facing[paired] != front[edges.neighbour[paired]]
     return silhouette
 
 
@@ -383,18 +481,25 @@ def walk_to_silhouette(
         k = np.argmin(s_k, axis=1)
         s = s_k[np.arange(len(active)), k]
         inside = s < 1.0  # else the far sample lies on this face's side: no edge between
-        at_silhouette = inside & silhouette[face[active], k]
-        jump = inside & ~at_silhouette & jumps[face[active], k]
+        here = face[active]
+        nb, nb_edge = edges.neighbour[here, k], edges.neighbour_edge[here, k]
+        across, jump = silhouette[here, k], jumps[here, k]
+        for r in np.flatnonzero(inside & (edges.pieces.first[here, k] >= 0)):  # T-junctions
+            nb[r], nb_edge[r], across[r], jump[r] = _across(
+                here[r], k[r], edges.neighbour, edges.neighbour_edge, silhouette, jumps,
+                *edges.pieces.arrays(), vertices, faces, eye, directional, d_near[active[r]],
+                d_far[active[r]], s[r],
+            )  # fmt: skip
+        at_silhouette = inside & across
+        jump &= inside & ~at_silhouette
         closer = jump & ~(np.abs(mid[2][active] - 0.5) <= np.abs(s - 0.5))
         rows = active[closer]
         mid[0][rows], mid[1][rows], mid[2][rows] = face[rows], k[closer], s[closer]
         done = active[at_silhouette]
         edge[done], s_out[done] = k[at_silhouette], s[at_silhouette]
-        step = inside & ~at_silhouette
-        nb = edges.neighbour[face[active], k]
-        step &= nb >= 0
+        step = inside & ~at_silhouette & (nb >= 0)
         moving = active[step]
-        entry[moving] = edges.neighbour_edge[face[moving], k[step]]
+        entry[moving] = nb_edge[step]
         face[moving], s_entry[moving] = nb[step], s[step]
         active = moving
     return face, edge, s_out, mid
@@ -424,10 +529,45 @@ def _edge_values(vertices, a, b, eye, directional, near, far):
     return e_near, e_far
 
 
+@jit(cache=True)
+def _along_edge(vertices, a, b, eye, directional, near, far, s):
+    """Where, as t from v_a (0) to v_b (1), the line of edge (a, b) meets the ray of the
+    segment's point at s (the ray from ``eye`` along near + s (far - near), or, with
+    ``directional``, the ray through that point along ``eye``): the t that makes
+    (v_a + t e - o) parallel to the ray's direction d, e = v_b - v_a, o the ray's origin."""
+    point = near + s * (far - near)
+    if directional:
+        origin, d = point, eye
+    else:
+        origin, d = eye, point
+    e = vertices[b] - vertices[a]
+    e_x_d = np.cross(e, d)
+    return -np.dot(np.cross(vertices[a] - origin, d), e_x_d) / np.dot(e_x_d, e_x_d)
+
+
+@jit(cache=True)
+def _across(f, k, neighbour, neighbour_edge, silhouette, jumps, first, end, piece_face,
+            piece_edge, vertices, faces, eye, directional, near, far, s):  # fmt: skip
+    """What lies across edge k of face f where the segment (near, far) crosses it at s:
+    the face (-1: none), its edge, whether the edge is a silhouette there and whether the
+    colour jumps. An edge with ``Pieces`` (a T-junction) answers for the piece that holds
+    the crossing."""
+    p = first[f, k]
+    if p < 0:
+        return neighbour[f, k], neighbour_edge[f, k], silhouette[f, k], jumps[f, k]
+    t = _along_edge(vertices, faces[f, k], faces[f, (k + 1) % 3], eye, directional, near, far, s)
+    while t > end[p]:
+        p += 1
+    g, kg = piece_face[p], piece_edge[p]
+    if g >= 0:
+        return g, kg, silhouette[g, kg], jumps[g, kg]
+    return -1, -1, g == -1, True  # open (a silhouette), or several faces (the walk stops)
+
+
 @kernel
 def _walk_kernel(job, n_jobs, vertices, faces, neighbour, neighbour_edge, silhouette, jumps,
-                 start, eye, d_near, d_far, max_steps, directional, face, edge, s_out,
-                 mid_face, mid_k, mid_s):  # fmt: skip
+                 piece_first, piece_end, piece_face, piece_edge, start, eye, d_near, d_far,
+                 max_steps, directional, face, edge, s_out, mid_face, mid_k, mid_s):  # fmt: skip
     """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``walk_to_silhouette``,
     one segment at a time (same steps, same tie-breaking: the lowest edge index wins); the
     outputs (face, edge, s_out, mid_face, mid_k, mid_s) hold start, -2, nan, -1, -1, nan on
@@ -453,15 +593,19 @@ def _walk_kernel(job, n_jobs, vertices, faces, neighbour, neighbour_edge, silhou
                         best_k, best_s = k, s
             if not best_s < 1.0:
                 break
-            if silhouette[f, best_k]:
+            nb, nb_edge, at_silhouette, jump = _across(
+                f, best_k, neighbour, neighbour_edge, silhouette, jumps, piece_first, piece_end,
+                piece_face, piece_edge, vertices, faces, eye, directional, d_near[i], d_far[i],
+                best_s,
+            )  # fmt: skip
+            if at_silhouette:
                 edge[i], s_out[i] = best_k, best_s
                 break
-            if jumps[f, best_k] and not abs(mid_s[i] - 0.5) <= abs(best_s - 0.5):
+            if jump and not abs(mid_s[i] - 0.5) <= abs(best_s - 0.5):
                 mid_face[i], mid_k[i], mid_s[i] = f, best_k, best_s
-            nb = neighbour[f, best_k]
             if nb < 0:
                 break
-            entry = neighbour_edge[f, best_k]
+            entry = nb_edge
             f = nb
             s_entry = best_s
         face[i] = f
@@ -480,7 +624,7 @@ def walk_to_silhouette_fast(
     run_jobs(
         _walk_kernel, job_count(n, 256), np.ascontiguousarray(vertices, dtype=np.float64),
         faces, edges.neighbour, edges.neighbour_edge, np.ascontiguousarray(silhouette),
-        np.ascontiguousarray(jumps), start, np.asarray(eye, np.float64),
+        np.ascontiguousarray(jumps), *edges.pieces.arrays(), start, np.asarray(eye, np.float64),
         np.ascontiguousarray(d_near, dtype=np.float64),
         np.ascontiguousarray(d_far, dtype=np.float64), max_steps, directional, face, edge, s,
         mid_face, mid_k, mid_s,
