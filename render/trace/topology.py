@@ -400,6 +400,16 @@ def edge_structure(faces: np.ndarray, ids: np.ndarray, degenerate: np.ndarray) -
     )
 
 
+def facing(vertices: np.ndarray, faces: np.ndarray, eye, directional: bool = False) -> np.ndarray:
+    """(F,) bool: each face faces the viewer at ``eye`` (3,) (with ``directional``: at
+    infinity, looking along ``eye``), by the side of its plane the viewer is on."""
+    corners = vertices[faces]
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    if directional:
+        return normal @ -np.asarray(eye, np.float64) > 0
+    return np.einsum("ij,ij->i", normal, eye - corners[:, 0]) > 0
+
+
 def silhouette_edges(
     edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, eye, directional: bool = False
 ) -> np.ndarray:
@@ -407,25 +417,20 @@ def silhouette_edges(
     edge (no other non-degenerate face shares it) or one whose faces face opposite ways.
     With ``directional`` the viewer is at infinity and ``eye`` is the direction in which
     it looks (a directional light's direction of travel)."""
-    corners = vertices[faces]
-    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    if directional:
-        front = normal @ -np.asarray(eye, np.float64) > 0
-    else:
-        front = np.einsum("ij,ij->i", normal, eye - corners[:, 0]) > 0
+    front = facing(vertices, faces, eye, directional)
     valid = edges.edge_group >= 0
     groups = edges.edge_group[valid]
-    facing = np.broadcast_to(front[:, None], valid.shape)[valid]
-    n_front = np.bincount(groups[facing], minlength=edges.n_groups)
-    n_back = np.bincount(groups[~facing], minlength=edges.n_groups)
+    forward = np.broadcast_to(front[:, None], valid.shape)[valid]
+    n_front = np.bincount(groups[forward], minlength=edges.n_groups)
+    n_back = np.bincount(groups[~forward], minlength=edges.n_groups)
     total = n_front + n_back
     silhouette = np.zeros(valid.shape, dtype=bool)
     silhouette[valid] = (total[groups] == 1) | ((n_front[groups] > 0) & (n_back[groups] > 0))
     # Two faces that are neighbours: the same rule from the pair itself (which also holds
     # where they meet at a T-junction, their edges on different welded ends).
     paired = edges.neighbour >= 0
-    facing = np.broadcast_to(front[:, None], paired.shape)
-    silhouette[paired] = facing[paired] != front[edges.neighbour[paired]]
+    own = np.broadcast_to(front[:, None], paired.shape)
+    silhouette[paired] = own[paired] != front[edges.neighbour[paired]]
     return silhouette
 
 
@@ -459,6 +464,7 @@ def walk_to_silhouette(
     s_out = np.full(n, np.nan)
     active = np.arange(n)
     jumps = np.zeros(silhouette.shape, bool) if jumps is None else jumps
+    front = _front_if_cut(edges, vertices, faces, eye, directional)
     mid = (np.full(n, -1, np.int64), np.full(n, -1, np.int64), np.full(n, np.nan))
     for _ in range(max_steps):
         if len(active) == 0:
@@ -487,8 +493,8 @@ def walk_to_silhouette(
         for r in np.flatnonzero(inside & (edges.pieces.first[here, k] >= 0)):  # T-junctions
             nb[r], nb_edge[r], across[r], jump[r] = _across(
                 here[r], k[r], edges.neighbour, edges.neighbour_edge, silhouette, jumps,
-                *edges.pieces.arrays(), vertices, faces, eye, directional, d_near[active[r]],
-                d_far[active[r]], s[r],
+                *edges.pieces.arrays(), front, vertices, faces, eye, directional,
+                d_near[active[r]], d_far[active[r]], s[r],
             )  # fmt: skip
         at_silhouette = inside & across
         jump &= inside & ~at_silhouette
@@ -529,6 +535,13 @@ def _edge_values(vertices, a, b, eye, directional, near, far):
     return e_near, e_far
 
 
+def _front_if_cut(edges: MeshEdges, vertices, faces, eye, directional) -> np.ndarray:
+    """``facing`` where the walk may need it (a mesh with ``Pieces``), else no faces."""
+    if edges.pieces.end.size == 0:
+        return np.zeros(0, bool)
+    return facing(np.asarray(vertices, np.float64), faces, np.asarray(eye, np.float64), directional)
+
+
 @jit(cache=True)
 def _along_edge(vertices, a, b, eye, directional, near, far, s):
     """Where, as t from v_a (0) to v_b (1), the line of edge (a, b) meets the ray of the
@@ -547,11 +560,13 @@ def _along_edge(vertices, a, b, eye, directional, near, far, s):
 
 @jit(cache=True)
 def _across(f, k, neighbour, neighbour_edge, silhouette, jumps, first, end, piece_face,
-            piece_edge, vertices, faces, eye, directional, near, far, s):  # fmt: skip
+            piece_edge, front, vertices, faces, eye, directional, near, far, s):  # fmt: skip
     """What lies across edge k of face f where the segment (near, far) crosses it at s:
     the face (-1: none), its edge, whether the edge is a silhouette there and whether the
     colour jumps. An edge with ``Pieces`` (a T-junction) answers for the piece that holds
-    the crossing."""
+    the crossing: a silhouette there if the face beyond faces the other way (``front``,
+    ``facing``: the face's own edge may be cut too, and its ``silhouette`` that of an open
+    edge)."""
     p = first[f, k]
     if p < 0:
         return neighbour[f, k], neighbour_edge[f, k], silhouette[f, k], jumps[f, k]
@@ -560,14 +575,15 @@ def _across(f, k, neighbour, neighbour_edge, silhouette, jumps, first, end, piec
         p += 1
     g, kg = piece_face[p], piece_edge[p]
     if g >= 0:
-        return g, kg, silhouette[g, kg], jumps[g, kg]
+        return g, kg, front[f] != front[g], jumps[g, kg]
     return -1, -1, g == -1, True  # open (a silhouette), or several faces (the walk stops)
 
 
 @kernel
 def _walk_kernel(job, n_jobs, vertices, faces, neighbour, neighbour_edge, silhouette, jumps,
-                 piece_first, piece_end, piece_face, piece_edge, start, eye, d_near, d_far,
-                 max_steps, directional, face, edge, s_out, mid_face, mid_k, mid_s):  # fmt: skip
+                 piece_first, piece_end, piece_face, piece_edge, front, start, eye, d_near,
+                 d_far, max_steps, directional, face, edge, s_out, mid_face, mid_k,
+                 mid_s):  # fmt: skip
     """Job ``job`` of ``n_jobs`` (``minidiff.threads.run_jobs``) of ``walk_to_silhouette``,
     one segment at a time (same steps, same tie-breaking: the lowest edge index wins); the
     outputs (face, edge, s_out, mid_face, mid_k, mid_s) hold start, -2, nan, -1, -1, nan on
@@ -595,8 +611,8 @@ def _walk_kernel(job, n_jobs, vertices, faces, neighbour, neighbour_edge, silhou
                 break
             nb, nb_edge, at_silhouette, jump = _across(
                 f, best_k, neighbour, neighbour_edge, silhouette, jumps, piece_first, piece_end,
-                piece_face, piece_edge, vertices, faces, eye, directional, d_near[i], d_far[i],
-                best_s,
+                piece_face, piece_edge, front, vertices, faces, eye, directional, d_near[i],
+                d_far[i], best_s,
             )  # fmt: skip
             if at_silhouette:
                 edge[i], s_out[i] = best_k, best_s
@@ -617,6 +633,7 @@ def walk_to_silhouette_fast(
 ):  # fmt: skip
     """``walk_to_silhouette`` (same arguments, same results) as one Numba kernel."""
     jumps = np.zeros(silhouette.shape, bool) if jumps is None else jumps
+    front = _front_if_cut(edges, vertices, faces, eye, directional)
     start = np.array(start, np.int64)
     n = len(start)
     face, edge, s = start.copy(), np.full(n, -2, np.int64), np.full(n, np.nan)
@@ -624,7 +641,8 @@ def walk_to_silhouette_fast(
     run_jobs(
         _walk_kernel, job_count(n, 256), np.ascontiguousarray(vertices, dtype=np.float64),
         faces, edges.neighbour, edges.neighbour_edge, np.ascontiguousarray(silhouette),
-        np.ascontiguousarray(jumps), *edges.pieces.arrays(), start, np.asarray(eye, np.float64),
+        np.ascontiguousarray(jumps), *edges.pieces.arrays(), front, start,
+        np.asarray(eye, np.float64),
         np.ascontiguousarray(d_near, dtype=np.float64),
         np.ascontiguousarray(d_far, dtype=np.float64), max_steps, directional, face, edge, s,
         mid_face, mid_k, mid_s,
