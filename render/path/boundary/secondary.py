@@ -54,10 +54,12 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
 import minidiff as md
+from minidiff.threads import beside
 from render.path.boundary.silhouettes import Curves, level_set
 from render.path.gradient import window
 from render.path.gradient.replay import plain_tables, radiance_of
@@ -168,7 +170,10 @@ def add_secondary_term(world, image: md.Tensor, frame, sampler: PathSampler) -> 
     """The image (H, W, 3) plus secondary visibility's boundary term (zero in value),
     estimated with ``sampler.spp`` boundary paths per pixel; on the tape of ``world``."""
     own, curves, packed = _boundary_sampler(sampler)
-    terms = [_chunk(world, frame, own, curves, packed, paths) for paths in _paths(own)]
+    terms = []
+    for paths in _paths(own, curves):
+        prefixes = _prefixes(own, packed, paths)
+        terms.append(_terms(world, frame, own, curves, prefixes, _depths(own, prefixes[0]), True))
     terms = [t for t in terms if t is not None]
     if not terms:
         return image
@@ -181,16 +186,29 @@ def add_secondary_term(world, image: md.Tensor, frame, sampler: PathSampler) -> 
 
 def backpropagate_secondary(placed_world, sampler: PathSampler, d_image: np.ndarray) -> None:
     """Add d_image . d term / d p to the gradients of the parameters, ``d_image`` (H, W, 3)
-    dL/dimage: one chunk of ``CHUNK_PATHS`` boundary paths at a time, each on a fresh tape
-    from ``placed_world()`` (memory bounded by a chunk, whatever the spp)."""
+    dL/dimage: one chunk of ``CHUNK_PATHS`` boundary paths at a time (memory bounded by a
+    chunk, whatever the spp), each in two shares of its depths, each share on a fresh tape
+    from ``placed_world()``. The shares' samples are found side by side (``beside``: much
+    of their time is NumPy and Python between kernels, which one thread alone leaves the
+    other idle for), and their backward passes run after, one after the other in the
+    shares' order: each tape is one thread's, and the gradients are summed in the same
+    order whatever the number of threads."""
     own, curves, packed = _boundary_sampler(sampler)
     weights = d_image.reshape(-1, 3) * (1.0 / sampler.spp)
-    for paths in _paths(own):
-        world = placed_world()
-        term = _chunk(world, camera_frame(world.camera), own, curves, packed, paths)
-        if term is not None and term[0].requires_grad:
-            values, pixels = term
-            md.sum(values * weights[pixels]).backward()
+    for paths in _paths(own, curves):
+        prefixes = _prefixes(own, packed, paths)
+        shares = _shares(_depths(own, prefixes[0]), prefixes[0])
+        find = []
+        for depths, seen in zip(shares, (False, True), strict=True):
+            world = placed_world()  # made here, in turn: one tape a share
+            frame = camera_frame(world.camera)
+            find.append(partial(_terms, world, frame, own, curves, prefixes, depths, seen))
+        with beside(find[0]) as first:
+            second = find[1]()
+        for term in (first(), second):
+            if term is not None and term[0].requires_grad:
+                values, pixels = term
+                md.sum(values * weights[pixels]).backward()
 
 
 def _boundary_sampler(sampler: PathSampler):
@@ -203,20 +221,21 @@ def _boundary_sampler(sampler: PathSampler):
     return own, Curves.kept(own), kernel.pack(own) if kernel.applies(own.scene) else None
 
 
-def _paths(sampler: PathSampler):
-    """The boundary paths' ids (pixel x spp + sample, as the image's), a chunk at a time."""
+def _paths(sampler: PathSampler, curves: Curves):
+    """The boundary paths' ids (pixel x spp + sample, as the image's), a chunk at a time
+    (none when there are no curves to sample)."""
+    if curves.n_edges + len(curves.radius) == 0:
+        return
     camera = sampler.scene.camera
     total = camera.width * camera.height * sampler.spp
     for start in range(0, total, CHUNK_PATHS):
         yield np.arange(start, min(start + CHUNK_PATHS, total), dtype=np.int64)
 
 
-def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np.ndarray):
-    """(values (M, 3) on the tape, pixel (M,)) of the boundary samples of boundary paths
-    ``paths`` (their prefixes traced by the kernel with ``packed``, else by the reference),
-    or None if none."""
-    if curves.n_edges + len(curves.radius) == 0:
-        return None
+def _prefixes(sampler: PathSampler, packed, paths: np.ndarray):
+    """The boundary paths ``paths`` traced (by the kernel with ``packed``, else by the
+    reference) up to the vertices where their samples stand: (the ``PathBatch``, each
+    depth's vertex positions, the paths)."""
     # The samples stand at vertices 1 .. max_depth - 1 and read only where the prefix went
     # (a vertex's place, and how the path left the ones before it): traced one vertex
     # short, the same records up to there, without the last vertex's lights and rays.
@@ -226,15 +245,40 @@ def _chunk(world, frame, sampler: PathSampler, curves: Curves, packed, paths: np
         batch, _ = kernel.sample_paths(short, paths, packed)
     else:
         batch = short.sample(paths)
-    points = _points(sampler, batch)
+    return batch, _points(sampler, batch), paths
+
+
+def _depths(sampler: PathSampler, batch: PathBatch) -> list[int]:
+    """The depths k whose vertices hold samples: 1 .. max_depth - 1, as far as any path
+    went."""
+    return list(range(1, min(len(batch.vertices), sampler.max_depth - 1) + 1))
+
+
+def _shares(depths: list[int], batch: PathBatch) -> tuple[list[int], list[int]]:
+    """``depths`` in two shares of about as many vertices each, each in order (the first
+    depth, which has the most, alone in the first share while the rest have more)."""
+    first, second = [], []
+    sizes = [0, 0]
+    for k in depths:
+        share = 0 if sizes[0] <= sizes[1] else 1
+        (first, second)[share].append(k)
+        sizes[share] += len(batch.vertices[k - 1].rows)
+    return first, second
+
+
+def _terms(world, frame, sampler: PathSampler, curves: Curves, prefixes, depths, seen: bool):
+    """(values (M, 3) on the tape of ``world``, pixel (M,)) of the boundary samples at the
+    vertices of depths ``depths`` of the paths ``prefixes`` (``_prefixes``) and, with
+    ``seen``, of the lights' shadows the camera sees; None if none."""
+    batch, points, paths = prefixes
     tables = Tables.of(world, frame, leaves=False)  # what phi reads, on this tape
     plain = plain_tables(world, frame)  # what the samples' radiance reads, made once
     values, pixels = [], []
-    for k in range(1, min(len(batch.vertices), sampler.max_depth - 1) + 1):
+    for k in depths:
         for term in _terms_at(sampler, curves, batch, points, k, world, frame, tables, plain):
             values.append(term[0])
             pixels.append(batch.paths[term[1]] // sampler.spp)
-    if sampler.max_depth >= 2:  # the lights' shadows seen by the camera
+    if seen and sampler.max_depth >= 2:  # the lights' shadows seen by the camera
         for value, pixel in _seen_shadows(sampler, curves, paths, world, frame, tables, plain):
             values.append(value)
             pixels.append(pixel)
