@@ -299,7 +299,7 @@ def _joined_across(edges: MeshEdges, faces, uncut: EdgeTable, parts) -> MeshEdge
     for r, end, rows in parts:
         face = uncut.faces[r, 0]  # an open row: one face, whose edge runs i -> j
         k = _edge_index(faces[face], uncut.i[r], uncut.j[r])
-        first[face, k] = sum(len(e) for e in ends)
+        first[face, k] = len(others)  # its pieces: the next len(rows)
         ends.append(np.r_[end[:-1], np.inf])
         for row in rows:
             on = edges.table.faces[row]
@@ -542,20 +542,25 @@ def _front_if_cut(edges: MeshEdges, vertices, faces, eye, directional) -> np.nda
     return facing(np.asarray(vertices, np.float64), faces, np.asarray(eye, np.float64), directional)
 
 
-@jit(cache=True)
+@jit(cache=True, inline="always")
 def _along_edge(vertices, a, b, eye, directional, near, far, s):
     """Where, as t from v_a (0) to v_b (1), the line of edge (a, b) meets the ray of the
     segment's point at s (the ray from ``eye`` along near + s (far - near), or, with
     ``directional``, the ray through that point along ``eye``): the t that makes
     (v_a + t e - o) parallel to the ray's direction d, e = v_b - v_a, o the ray's origin."""
-    point = near + s * (far - near)
-    if directional:
-        origin, d = point, eye
-    else:
-        origin, d = eye, point
-    e = vertices[b] - vertices[a]
-    e_x_d = np.cross(e, d)
-    return -np.dot(np.cross(vertices[a] - origin, d), e_x_d) / np.dot(e_x_d, e_x_d)
+    px = near[0] + s * (far[0] - near[0])
+    py = near[1] + s * (far[1] - near[1])
+    pz = near[2] + s * (far[2] - near[2])
+    ox, oy, oz, dx, dy, dz = eye[0], eye[1], eye[2], px, py, pz  # from eye through the point
+    if directional:  # from the point along eye
+        ox, oy, oz, dx, dy, dz = px, py, pz, eye[0], eye[1], eye[2]
+    ex = vertices[b, 0] - vertices[a, 0]
+    ey = vertices[b, 1] - vertices[a, 1]
+    ez = vertices[b, 2] - vertices[a, 2]
+    wx, wy, wz = vertices[a, 0] - ox, vertices[a, 1] - oy, vertices[a, 2] - oz
+    mx, my, mz = ey * dz - ez * dy, ez * dx - ex * dz, ex * dy - ey * dx  # e x d
+    nx, ny, nz = wy * dz - wz * dy, wz * dx - wx * dz, wx * dy - wy * dx  # (v_a - o) x d
+    return -(nx * mx + ny * my + nz * mz) / (mx * mx + my * my + mz * mz)
 
 
 @jit(cache=True)
