@@ -76,8 +76,10 @@ class Outlines:
     """The curves that can be outlines, as plain world-space arrays: mesh edges (E of them)
     with their endpoints ``a``, ``b`` (E, 3), the third vertices ``c`` (E, 2, 3) of the
     faces on either side (a border edge: its one face twice), the owning object (E,) (an
-    index into ``scene.meshes``, which are the scene's first objects) and the endpoints'
-    vertex ids in it ``ends`` (E, 2) (coincident vertices welded across the meshes that
+    index into ``scene.meshes``, which are the scene's first objects: its first end's
+    mesh) and the endpoints' vertex ids ``ends`` (E, 2) among every mesh's vertices, mesh
+    after mesh in ``scene.meshes``' order (the part of an edge cut at a T-junction between
+    two meshes ends at a vertex of the other; coincident vertices welded across the meshes that
     share edges: an edge two meshes share is one edge, its object the first of them; where
     more than two faces meet, the two that bound the others around the edge); and spheres
     (S): ``centre`` (S, 3), ``radius`` (S,), object (S,) (an index into the scene's
@@ -139,7 +141,7 @@ def one_sided(m: np.ndarray, base: np.ndarray, c: np.ndarray) -> tuple[np.ndarra
 
 def _tables(world: Scene) -> tuple[list[MeshEdges], list | None]:
     """Each mesh's ``mesh_edges`` and the edges meshes share (``shared_edges``)."""
-    topology = [mesh_edges(*_arrays([mesh])) for mesh in world.meshes]
+    topology = [mesh_edges(*as_one_mesh([mesh])) for mesh in world.meshes]
     return topology, shared_edges(world, topology)
 
 
@@ -150,7 +152,7 @@ def _welded_groups(
     (``shared``: ``render.trace.seams.shared_edges`` of the meshes' ``topology``; ``first``
     (M + 1,): each mesh's first global face id) or meet at a T-junction (a vertex of one
     inside an open edge of the other: a fin tessellated otherwise than the plate it hangs
-    from, ``_t_junction_pairs``), and the meshes joined to those, and so on; each group (in
+    from, ``t_junction_pairs``), and the meshes joined to those, and so on; each group (in
     the order of its first mesh) with its welded ``MeshEdges``, the group's meshes taken as
     one (their vertices, then their faces, concatenated; the table cut at its T-junctions,
     ``render.trace.topology.cut_at_t_junctions``)."""
@@ -169,7 +171,7 @@ def _welded_groups(
         faces = joined.faces[joined.faces >= 0]  # other meshes' faces on mesh k's edges
         for o in np.unique(np.searchsorted(first, faces, side="right") - 1):
             join(k, int(o))
-    for k, o in _t_junction_pairs(meshes, topology):
+    for k, o in t_junction_pairs(meshes, topology):
         join(k, o)
     groups: dict[int, list[int]] = {}
     for k in range(len(meshes)):
@@ -179,18 +181,18 @@ def _welded_groups(
             group,
             topology[group[0]]
             if len(group) == 1
-            else mesh_edges(*_arrays([meshes[o] for o in group])),
+            else mesh_edges(*as_one_mesh([meshes[o] for o in group])),
         )
         for group in sorted(groups.values())
     ]
 
 
-def _t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
+def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
     """The pairs of meshes (indices) where a vertex of one lies inside an open edge of the
     other (``render.trace.topology``'s test, on every mesh's open edges at once)."""
     if len(meshes) < 2:
         return set()
-    vertices, _ = _arrays(meshes)
+    vertices, _ = as_one_mesh(meshes)
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
     i, j = [], []
     for k, edges in enumerate(topology):
@@ -212,8 +214,9 @@ def _t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
     return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
 
 
-def _arrays(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
-    """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh."""
+def as_one_mesh(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh (their
+    vertices, then their faces, concatenated)."""
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
     vertices = np.concatenate([np.asarray(m.vertices.data, np.float64) for m in meshes])
     faces = [np.asarray(m.faces) + s for m, s in zip(meshes, offsets[:-1], strict=True)]
@@ -225,7 +228,7 @@ def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangl
     (indices) welded as one, with ``edges`` their ``MeshEdges``: every welded edge but the
     flat ones and those that rest on another object's surface (``_touching``)."""
     members = [meshes[o] for o in group]
-    vertices, faces = _arrays(members)
+    vertices, faces = as_one_mesh(members)
     table = edges.table
     pick, fenced = _outer_faces(vertices, table)
     both = np.take_along_axis(table.faces, pick, axis=1)
@@ -244,12 +247,14 @@ def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangl
     middle = 0.5 * (vertices[table.i] + vertices[table.j])
     keep = ~flat & ~fenced & ~_touching(middle, group, triangles, first, size)
     i, j = table.i[keep], table.j[keep]
-    # Both ends are corners of the edge's first face, hence of one mesh: its ids there.
+    # The ends as ids among every mesh's vertices: a part of an edge cut at a T-junction
+    # between two meshes ends at the other mesh's vertex.
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in members])
-    mesh = np.searchsorted(offsets, i, side="right") - 1
+    start = np.cumsum([0] + [len(m.vertices.data) for m in meshes])[np.asarray(group)]
+    member = np.searchsorted(offsets, np.stack([i, j], axis=1), side="right") - 1
+    ends = start[member] + np.stack([i, j], axis=1) - offsets[member]
     c = np.stack([vertices[thirds[keep, 0]], vertices[thirds[keep, 1]]], axis=1)
-    ends = np.stack([i, j], axis=1) - offsets[mesh][:, None]
-    return vertices[i], vertices[j], c, np.asarray(group, np.int64)[mesh], ends
+    return vertices[i], vertices[j], c, np.asarray(group, np.int64)[member[:, 0]], ends
 
 
 def _outer_faces(vertices: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:

@@ -48,10 +48,17 @@ def shared_edges(scene: Scene, topology) -> list[SharedEdges] | None:
     mesh index, from the same vertex values), or None when no two meshes share an edge
     (then each mesh's table is the whole truth)."""
     meshes = scene.meshes
-    if len(meshes) < 2:
-        return None
     vertices = [np.asarray(m.vertices.data, np.float64) for m in meshes]
     tables = [topology[k].table for k in range(len(meshes))]
+    return shared_between(vertices, tables, [m.num_faces for m in meshes])
+
+
+def shared_between(vertices: list, tables: list, n_faces: list) -> list[SharedEdges] | None:
+    """``shared_edges`` of meshes given by their vertices (V_k, 3) float64, their tables
+    (``EdgeTable``) and their numbers of faces (their faces' global ids follow one another
+    in this order): one ``SharedEdges`` per mesh, or None."""
+    if len(tables) < 2:
+        return None
     # Welded positions across meshes: no coarser than any one mesh's own welding, so that
     # no two vertices a mesh keeps apart are merged here.
     every = np.concatenate(vertices)
@@ -79,7 +86,7 @@ def shared_edges(scene: Scene, topology) -> list[SharedEdges] | None:
     owner = order[np.maximum.accumulate(np.where(first, np.arange(len(g)), 0))]
     copies = order[~first]  # rows that join their edge's owner
     owner = owner[~first]
-    firsts = np.cumsum([0] + [m.num_faces for m in meshes])
+    firsts = np.cumsum([0, *n_faces])
 
     # One entry per (copy row, face on it): the owner it joins, its global id, its third.
     join, face, third = [], [], []

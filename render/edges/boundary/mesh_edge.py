@@ -32,6 +32,7 @@ import math
 
 import numpy as np
 
+import minidiff as md
 from minidiff.either import cross_last, dot_last
 from minidiff.threads import job_count, kernel, run_jobs
 from render.edges.boundary.curves import (
@@ -47,6 +48,7 @@ from render.edges.boundary.radiance import EPSILON
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, n_blocks
+from render.trace.outlines import as_one_mesh
 from render.trace.seams import SharedEdges
 from render.trace.topology import EdgeTable
 from render.trace.vec3 import cross, dot3, sub
@@ -59,31 +61,42 @@ def edge_plane(a, b, eye):
 
 
 class MeshEdge:
-    """The edges of mesh ``index`` as a curve kind (``render.edges.boundary.curves``):
-    ``table`` its ``EdgeTable``, ``first_prim`` the global id of its first face, ``shared``
-    the faces other meshes have on its edges (``render.trace.seams.SharedEdges``; None: no
-    mesh shares an edge with another). Labels: rows of ``table``."""
+    """The edges of the meshes ``meshes`` (a range of indices into ``scene.meshes``: one
+    mesh, or meshes that meet at T-junctions taken as one, ``render.edges.terms``) as a
+    curve kind (``render.edges.boundary.curves``): ``table`` their ``EdgeTable`` (vertex
+    and face ids of the meshes' vertices and faces concatenated), ``first_prim`` the global
+    id of their first face, ``shared`` the faces other meshes have on their edges
+    (``render.trace.seams.SharedEdges``; None: no mesh shares an edge with another).
+    Labels: rows of ``table``."""
 
     summed, taped = 0, 1
 
     def __init__(
-        self, index: int, table: EdgeTable, first_prim: int, shared: SharedEdges | None
+        self, meshes: range, table: EdgeTable, first_prim: int, shared: SharedEdges | None
     ) -> None:
-        self.index, self.table, self.first_prim, self.shared = index, table, first_prim, shared
+        self.meshes, self.table, self.first_prim, self.shared = meshes, table, first_prim, shared
+
+    def vertices(self, scene: Scene) -> np.ndarray:
+        """(V, 3) float64: the meshes' vertices, concatenated (the table's vertex ids)."""
+        return as_one_mesh([scene.meshes[k] for k in self.meshes])[0]
 
     def curves(self, view: View) -> Curves:
         """Every edge in front of the eye that can be a jump: ``continuous_creases`` are
         left out, and the rows another mesh counts (``SharedEdges.owned``)."""
-        mesh, table, frame = view.scene.meshes[self.index], self.table, view.frame
+        table, frame = self.table, view.frame
         camera = view.scene.camera
-        vertices = np.asarray(mesh.vertices.data, np.float64)
+        meshes = [view.scene.meshes[k] for k in self.meshes]
+        vertices, faces = as_one_mesh(meshes)
         a, b, keep = clip_to_near(vertices[table.i], vertices[table.j], frame, NEAR * view.size)
+        # Smooth shading is continuous across a mesh's own vertex ids only; of meshes taken
+        # together, one flat among them makes every edge a possible jump (none left out).
+        smooth = all(m.smooth for m in meshes)
+        continuous = continuous_creases(smooth, faces, vertices, table, frame[3])
         if self.shared is None:
-            keep = keep & ~continuous_creases(mesh, table, frame[3])
+            keep = keep & ~continuous
         else:  # a row that other meshes' faces join is no continuous crease of this one
             alone = ~np.any(self.shared.faces >= 0, axis=1)
-            creases = continuous_creases(mesh, table, frame[3]) & alone
-            keep = keep & self.shared.owned & ~creases
+            keep = keep & self.shared.owned & ~(continuous & alone)
         return Curves(
             project(a[keep], frame, camera.width, camera.height)[0],
             project(b[keep], frame, camera.width, camera.height)[0],
@@ -97,29 +110,32 @@ class MeshEdge:
 
     def edge_function(self, scene: Scene, frame, points: CurvePoints):
         """e = d . m on the tape (``edge_plane``)."""
-        vertices = scene.meshes[self.index].vertices
+        meshes = [scene.meshes[k].vertices for k in self.meshes]
+        vertices = md.concatenate(meshes) if len(meshes) > 1 else meshes[0]
         i, j = self.table.i[points.label], self.table.j[points.label]
         m = edge_plane(vertices[i], vertices[j], frame[3])
         e = dot_last(directions_at(scene, frame, points.coords), m)
         return e, np.arange(len(points.pixel))
 
 
-def continuous_creases(mesh, table: EdgeTable, eye: np.ndarray) -> np.ndarray:
-    """(E,) bool: the edges of a smooth-shaded mesh across which the image cannot jump, so
-    that they need no quadrature points: manifold edges whose two faces share the edge's
-    vertex ids, wind consistently (one i -> j, the other j -> i) and lie on either side of
-    the plane through the eye and the edge (not a silhouette from this eye). Normals and
-    UVs are per vertex id, so both faces interpolate the same values along the edge and
-    their shading agrees there exactly; both face the eye alike, so neither is flipped
-    alone. (Their f_+ - f_- was zero up to rounding: dropping them changes the term by
-    rounding only, and saves the rays and shading of most points of a smooth mesh.)"""
-    if not mesh.smooth or table.faces.shape[1] < 2:
+def continuous_creases(
+    smooth: bool, faces: np.ndarray, vertices: np.ndarray, table: EdgeTable, eye: np.ndarray
+) -> np.ndarray:
+    """(E,) bool: the edges of a smooth-shaded mesh (faces (F, 3), vertices (V, 3) float64;
+    none where not ``smooth``) across which the image cannot jump, so that they need no
+    quadrature points: manifold edges whose two faces share the edge's vertex ids, wind
+    consistently (one i -> j, the other j -> i) and lie on either side of the plane through
+    the eye and the edge (not a silhouette from this eye). Normals and UVs are per vertex
+    id, so both faces interpolate the same values along the edge and their shading agrees
+    there exactly; both face the eye alike, so neither is flipped alone. (Their f_+ - f_-
+    was zero up to rounding: dropping them changes the term by rounding only, and saves
+    the rays and shading of most points of a smooth mesh.)"""
+    if not smooth or table.faces.shape[1] < 2:
         return np.zeros(len(table.i), dtype=bool)
     two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
-    second = mesh.faces[np.maximum(table.faces[:, 1], 0)]  # (E, 3) vertex ids
+    second = faces[np.maximum(table.faces[:, 1], 0)]  # (E, 3) vertex ids
     following = np.roll(second, -1, axis=1)  # each corner's next corner
     reversed_edge = np.any((second == table.j[:, None]) & (following == table.i[:, None]), axis=1)
-    vertices = np.asarray(mesh.vertices.data, np.float64)
     a, b = vertices[table.i], vertices[table.j]
     m = edge_plane(a, b, eye)
     thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
@@ -269,8 +285,8 @@ def _per_point(
 
 
 def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
-    """(g, 3): w (f_+ - f_-) / |grad e| for the quadrature points ``on`` the edges of mesh
-    ``kind.index`` (labels: rows of its table), zero where the edge point is hidden.
+    """(g, 3): w (f_+ - f_-) / |grad e| for the quadrature points ``on`` the edges of
+    ``kind``'s meshes (labels: rows of its table), zero where the edge point is hidden.
 
     The edge point is where the camera ray through the quadrature point meets the edge.
     It is visible if nothing lies in front of it (an any-hit ray that ends just short of
@@ -288,7 +304,7 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     edges, coords, pixel, weight, keys = on.label, on.coords, on.pixel, on.weight, on.key
     camera = scene.camera
     forward, right, up, eye = view.frame
-    vertices = np.asarray(scene.meshes[kind.index].vertices.data, np.float64)
+    vertices = kind.vertices(scene)
     shared_faces, shared_thirds = np.zeros((len(table.i), 0), np.int64), np.zeros((1, 0, 3))
     if shared is not None:
         shared_faces, shared_thirds = shared.faces, shared.thirds
@@ -420,7 +436,7 @@ def _coincident(view: View, kind: MeshEdge, rows, point, q) -> np.ndarray:
     face = triangles[own]
     face_normal = _unit(np.cross(face[:, 1] - face[:, 0], face[:, 2] - face[:, 0]))
     parallel = np.linalg.norm(np.cross(face_normal, normal), axis=1) <= COINCIDENT
-    vertices = np.asarray(view.scene.meshes[kind.index].vertices.data, np.float64)
+    vertices = kind.vertices(view.scene)
     a, b = vertices[kind.table.i[rows]], vertices[kind.table.j[rows]]
     u = _unit(b - a)[:, None]
     off = tri - a[:, None]  # (n, 3, 3): q's corners from a

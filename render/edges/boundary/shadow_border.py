@@ -278,9 +278,10 @@ def _border_rows(scene, visibility, light, occluder, receiver):
     k = len(receiver)
     normal, corner, radius = _receiver_rows(scene, visibility, receiver)
     kind, m, base, size = np.zeros(k, np.int64), np.zeros((k, 3)), np.zeros((k, 3)), np.zeros(k)
-    for index, mesh in enumerate(scene.meshes):
-        rows = np.flatnonzero(occluder[:, 0] == index)
-        vertices = np.asarray(mesh.vertices.data, np.float64)
+    rows = np.flatnonzero(occluder[:, 0] >= 0)
+    if len(rows):  # edges: their ends among every mesh's vertices (``Outlines.ends``)
+        vertices = np.concatenate([np.asarray(mesh.vertices.data, np.float64)
+                                   for mesh in scene.meshes])  # fmt: skip
         vi, vj = vertices[occluder[rows, 1]], vertices[occluder[rows, 2]]
         m[rows], base[rows] = light.edge_plane(vi, vj)
     for index, sphere in enumerate(scene.spheres):
@@ -408,13 +409,14 @@ def shadow_term(scene: Scene, points: ShadowPoints, frame) -> tuple[md.Tensor, n
         mine = points.light == j
         if not mine.any():
             continue
-        for k, mesh in enumerate(scene.meshes):
-            rows = np.flatnonzero(mine & (points.occluder[:, 0] == k))
-            if len(rows) == 0:
-                continue
+        rows = np.flatnonzero(mine & (points.occluder[:, 0] >= 0))
+        if len(rows):  # edges: their ends among every mesh's vertices (``Outlines.ends``)
+            meshes = scene.meshes
+            vertices = (md.concatenate([mesh.vertices for mesh in meshes])
+                        if len(meshes) > 1 else meshes[0].vertices)  # fmt: skip
             p = _receiver_points_tape(scene, d[rows], eye, points.receiver[rows])
-            vi = mesh.vertices[points.occluder[rows, 1]]
-            vj = mesh.vertices[points.occluder[rows, 2]]
+            vi = vertices[points.occluder[rows, 1]]
+            vj = vertices[points.occluder[rows, 2]]
             parts.append(edge_border(*light.edge_plane(vi, vj), p))
             order.append(rows)
         for index, sphere in enumerate(scene.spheres):

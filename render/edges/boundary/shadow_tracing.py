@@ -60,8 +60,9 @@ START = 1e-7
 class BorderChords:
     """The shadow borders of one render as image segments (off the tape): start, end (k, 2)
     pixel coordinates; per chord its light (k,) (an index into ``scene.lights``), occluder
-    (k, 3) int64 ((mesh index, v_i, v_j) of an occluder edge, or (-1, sphere index, -1) of
-    an occluder sphere) and receiver (k,) (the primitive, global id, the border lies on)."""
+    (k, 3) int64 ((mesh index, v_i, v_j) of an occluder edge, v_i and v_j among every
+    mesh's vertices as ``Outlines.ends`` has them, or (-1, sphere index, -1) of an occluder
+    sphere) and receiver (k,) (the primitive, global id, the border lies on)."""
 
     start: np.ndarray
     end: np.ndarray

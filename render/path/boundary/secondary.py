@@ -611,10 +611,9 @@ def _curve_rows(tables: Tables, curves: Curves, index: np.ndarray) -> tuple:
     is_edge = index < curves.n_edges
     m = len(index)
     start, end = np.zeros(m, np.int64), np.zeros(m, np.int64)
-    if curves.n_edges:
+    if curves.n_edges:  # ``Outlines.ends``: rows of every mesh's vertices, as the tables'
         e = index[is_edge]
-        first = tables.first_vertex[curves.edge_object[e]]
-        start[is_edge], end[is_edge] = first + curves.ends[e, 0], first + curves.ends[e, 1]
+        start[is_edge], end[is_edge] = curves.ends[e, 0], curves.ends[e, 1]
     ball = np.where(is_edge, 0, index - curves.n_edges)
     return start, end, ball, is_edge
 

@@ -418,19 +418,18 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
     culled = grad()
     eye = np.asarray(camera.position.data)
     table = mesh_edges(vertices, faces).table
-    dropped = boundary.continuous_creases(mesh, table, eye)
+    dropped = boundary.continuous_creases(True, faces, vertices, table, eye)
     assert dropped.mean() > 0.7  # most edges of a smooth sphere are no silhouette
-    monkeypatch.setattr(boundary, "continuous_creases", lambda m, t, e: np.zeros(len(t.i), bool))
+    monkeypatch.setattr(
+        boundary, "continuous_creases", lambda smooth, f, v, t, e: np.zeros(len(t.i), bool)
+    )
     full = grad()
     assert np.abs(culled - full).max() <= 1e-9 * np.abs(full).max()
     monkeypatch.undo()
-    mesh.smooth = False
-    assert not boundary.continuous_creases(mesh, table, eye).any()
-    mesh.smooth = True
-    unwelded = Mesh(vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3),
-                           mesh.material, smooth=True)  # fmt: skip
-    table = mesh_edges(unwelded.vertices.data, unwelded.faces).table
-    assert not boundary.continuous_creases(unwelded, table, eye).any()
+    assert not boundary.continuous_creases(False, faces, vertices, table, eye).any()
+    unwelded = vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3)
+    table = mesh_edges(*unwelded).table
+    assert not boundary.continuous_creases(True, unwelded[1], unwelded[0], table, eye).any()
 
 
 def edge_sides(eye, forward, right, up, vertices, i, j, faces, thirds, coords, width, height):

@@ -21,6 +21,7 @@ from render.trace import outlines
 from render.trace.outlines import Outlines, one_sided
 from render.trace.primitives import scene_primitives
 from render.trace.visibility import scene_size
+from tests.render.edges.test_t_junctions import boxes_in_meshes
 
 GREY = render.Material((0.5, 0.5, 0.5))
 X, Y, Z = np.eye(3)
@@ -200,3 +201,23 @@ def test_the_grid_finds_the_points_on_triangles_that_testing_every_pair_finds(
             got = _touching(points, [], triangles, np.array([0, len(triangles)]), size)
         np.testing.assert_array_equal(got, want)
     assert 0 < want.sum() < len(points) or len(triangles) == 0
+
+
+@settings(max_examples=20, deadline=None)
+@given(boxes_in_meshes())
+def test_the_outlines_ends_are_the_vertices_at_their_ends(case):
+    """Every outline's ``ends`` are the rows of every mesh's vertices (mesh after mesh) at
+    its ends ``a`` and ``b``, also where meshes meet at a T-junction, so that an edge is
+    cut at another mesh's vertex (before, an end was counted among its first end's mesh's
+    vertices: an index past them, or another mesh's vertex, once the meshes that meet were
+    not neighbours in ``scene.meshes``)."""
+    _, meshes = case
+    v, f = grid_quad((0, 0, 0), np.array([1.5, 0, 0]), np.array([0, 0, -1.5]))
+    floor = render.Mesh(v, f, render.Material((0.5, 0.5, 0.5)))
+    camera = render.Camera((0.6, 1.3, 1.1), (0, 0.3, 0), (0, 1, 0), 45.0, 8, 8)
+    scene = render.Scene([*meshes, floor], [], camera)
+    found = outlines_of(scene)
+    vertices = np.concatenate([np.asarray(m.vertices.data) for m in scene.meshes])
+    assert found.n_edges > 0
+    np.testing.assert_array_equal(vertices[found.ends[:, 0]], found.a)
+    np.testing.assert_array_equal(vertices[found.ends[:, 1]], found.b)
