@@ -49,7 +49,8 @@ from render.shade.lighting import appearance, light_contribution
 from render.shade.surface import Hits, Surface, in_order
 from render.trace.accel import Accelerator
 from render.trace.primitives import first_sphere_id, object_index_of, primitive_ranges
-from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
+from render.trace.seams import WeldedScene
+from render.trace.topology import silhouette_edges, walk_to_silhouette_fast
 from render.trace.visibility import shadow_rays
 
 
@@ -124,13 +125,15 @@ def shadow_pairs(
     primary,
     lit: list[np.ndarray],
     spp: int,
-    topology: dict[int, MeshEdges],
+    welded: WeldedScene,
     size: float,
 ) -> ShadowPairs:
     """Every pair of adjacent samples on one object across a shadow edge of some light.
 
-    primary: ``render.trace.visibility.PrimaryHits``; lit[j] (k,) bool per hit ray; topology:
-    ``mesh_edges`` per mesh; size: the scene's size (for the shadow rays' start offset).
+    primary: ``render.trace.visibility.PrimaryHits``; lit[j] (k,) bool per hit ray; welded:
+    the meshes in groups welded as one (``render.trace.seams.WeldedScene``: the walk
+    crosses from one mesh to another where they share edges); size: the scene's size (for
+    the shadow rays' start offset).
     """
     camera, prim_id = scene.camera, primary.prim_id
     grid = geometry.sample_grid(camera, spp)
@@ -161,13 +164,13 @@ def shadow_pairs(
         blocker, _, _, _ = accel.closest_hit(rays.origins, rays.directions, 0.0, tmax)
         rows = (lit_id, dark_id, h, blocker)
         parts.append(
-            _edges_of_blockers(scene, light, j, primary, hit_index, rows, n_tri, topology, spp)
+            _edges_of_blockers(scene, light, j, primary, hit_index, rows, n_tri, welded, spp)
         )
     return ShadowPairs.concatenate(parts)
 
 
 def _edges_of_blockers(
-    scene, light, j, primary, hit_index, rows, n_tri, topology, spp
+    scene, light, j, primary, hit_index, rows, n_tri, welded, spp
 ) -> ShadowPairs:
     """For one light j: each pair's occluder edge (seen from the light), kept where the
     shadow edge crosses the pair within the 45-degree rule. rows: (lit ray ids, dark ray
@@ -183,29 +186,29 @@ def _edges_of_blockers(
     occluder = blocker.copy()
     edge = np.full(len(lit_id), -2, dtype=np.int64)
     image_normal = np.zeros((len(lit_id), 3))
-    first = 0
-    for index, mesh in enumerate(scene.meshes):
-        rows = np.flatnonzero((blocker >= first) & (blocker < first + mesh.num_faces))
+    on_mesh = np.flatnonzero((blocker >= 0) & (blocker < n_tri))
+    group_of, local = np.full(len(blocker), -1), np.full(len(blocker), -1)
+    group_of[on_mesh], local[on_mesh] = welded.locate(blocker[on_mesh])
+    for g, group in enumerate(welded.groups):
+        rows = np.flatnonzero(group_of == g)
         if len(rows):
-            vertices = np.asarray(mesh.vertices.data, np.float64)
-            topo = topology[index]
-            silhouette = silhouette_edges(topo, vertices, mesh.faces, viewer, directional)
+            vertices, faces = group.vertices, group.faces
+            silhouette = silhouette_edges(group.edges, vertices, faces, viewer, directional)
             if directional:  # segment end points
                 near, far = dark_points[rows], lit_points[rows]
             else:  # directions from the light
                 near, far = dark_points[rows] - viewer, lit_points[rows] - viewer
             face, k, _, _ = walk_to_silhouette_fast(
-                topo, silhouette, vertices, mesh.faces, blocker[rows] - first, viewer, near,
-                far, directional=directional,
+                group.edges, silhouette, vertices, faces, local[rows], viewer, near, far,
+                directional=directional,
             )  # fmt: skip
             found = k >= 0
-            corners = vertices[mesh.faces[face]]
+            corners = vertices[faces[face]]
             r, kk = np.arange(len(rows)), np.maximum(k, 0)
             m, _ = light.edge_plane(corners[r, kk], corners[r, (kk + 1) % 3])
             image_normal[rows] = _image_normal(m, corners[r, kk], normal[rows], anchor[rows], eye)
             edge[rows] = np.where(found, k, -2)
-            occluder[rows] = face + first
-        first += mesh.num_faces
+            occluder[rows] = group.face_ids[face]
     s = np.full(len(lit_id), np.nan)
     triangle = edge >= 0
     e_lit = np.sum(d_lit * image_normal, axis=1)

@@ -60,9 +60,9 @@ from render.edges.geometry import (
 )
 from render.scene.camera import image_plane_coords, ray_directions
 from render.scene.scene import Scene
-from render.scene.shapes import Mesh
 from render.shade.surface import in_order
 from render.trace.primitives import first_sphere_id
+from render.trace.seams import WeldedMeshes, WeldedScene
 from render.trace.topology import MeshEdges, silhouette_edges, walk_to_silhouette_fast
 
 # --------------------------------------------------------------------------------------
@@ -106,21 +106,29 @@ def candidate_pairs(grid: np.ndarray, prim_id: np.ndarray):
     return a, b, horizontal
 
 
-def creases(topo: MeshEdges, vertices: np.ndarray, mesh: Mesh) -> np.ndarray:
-    """(F, 3) bool: the colour may jump across edge k of face f though it is no
-    silhouette: where flat shading changes normal (not between two faces of one plane, as
-    a face split in two has: no colour changes there), or where the faces do not share the
-    edge's vertex ids (a seam: smooth or given normals and UVs are per vertex id)."""
-    seams = ~topo.shared_ids
-    if mesh.smooth or mesh.normals is not None or mesh.material.textures:
-        return seams
-    corners = vertices[mesh.faces]
+def creases(group: WeldedMeshes, scene: Scene) -> np.ndarray:
+    """(F, 3) bool: the colour may jump across edge k of face f of ``group`` (meshes welded
+    as one) though it is no silhouette: where flat shading changes normal (not between two
+    faces of one plane, as a face split in two has: no colour changes there) or changes
+    material or way of shading (another mesh's face); where the faces do not share the
+    edge's vertex ids (a seam: smooth or given normals and UVs are per vertex id, and
+    every edge between two meshes is one)."""
+    edges, meshes = group.edges, [scene.meshes[k] for k in group.meshes]
+    seams = ~edges.shared_ids
+    # Per face: flat and untextured (its colour from its own normal), and its material.
+    flat = np.array([not (m.smooth or m.normals is not None or m.material.textures)
+                     for m in meshes])[np.searchsorted(group.meshes, group.face_mesh)]  # fmt: skip
+    looks = np.array([id(m.material) for m in meshes])[
+        np.searchsorted(group.meshes, group.face_mesh)
+    ]
+    corners = group.vertices[group.faces]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.finfo(float).tiny)
-    across = normal[np.maximum(topo.neighbour, 0)]
+    nb = np.maximum(edges.neighbour, 0)
     # within rounding of one plane (an angle of ~1e-6 rad: no visible change of colour)
-    flat = (topo.neighbour >= 0) & (np.einsum("fkc,fc->fk", across, normal) > 1.0 - 1e-12)
-    return ~flat
+    same = (edges.neighbour >= 0) & (np.einsum("fkc,fc->fk", normal[nb], normal) > 1.0 - 1e-12)
+    same &= (looks[nb] == looks[:, None]) & flat[nb]
+    return np.where(flat[:, None], ~same, seams)
 
 
 def edge_pairs(
@@ -128,12 +136,15 @@ def edge_pairs(
     prim_id: np.ndarray,
     depth: np.ndarray,
     spp: int,
+    welded: WeldedScene,
     topology: dict[int, MeshEdges],
 ) -> EdgePairs:
     """Every pair of adjacent samples separated by a silhouette of the nearer primitive.
 
     prim_id, depth (N,): each ray's primitive (-1: none) and hit distance along the view
-    axis (inf: none); topology: ``mesh_edges`` per mesh index in ``scene.meshes``.
+    axis (inf: none); welded: the meshes in groups welded as one (meshes that share edges
+    or meet at T-junctions: the walk crosses from one to the other); topology:
+    ``mesh_edges`` per mesh index in ``scene.meshes``.
     """
     camera = scene.camera
     grid = sample_grid(camera, spp)
@@ -145,36 +156,37 @@ def edge_pairs(
     eye, d_near, d_far, to_pixels = plain_rays(camera, near, far, spp)
     edge = np.full(len(near), -2, dtype=np.int64)  # -2: not a silhouette pair
     s = np.full(len(near), np.nan)
-    n_triangles, first = first_sphere_id(scene), 0
-    for index, mesh in enumerate(scene.meshes):
-        rows = np.flatnonzero((prim >= first) & (prim < first + mesh.num_faces))
-        if len(rows):
-            vertices = np.asarray(mesh.vertices.data, dtype=np.float64)
-            topo = topology[index]
-            silhouette = silhouette_edges(topo, vertices, mesh.faces, eye)
-            start = prim[rows] - first
-            jumps = creases(topo, vertices, mesh)
-            face, k, s[rows], (mid_face, mid_k, mid_s) = walk_to_silhouette_fast(
-                topo, silhouette, vertices, mesh.faces, start, eye, d_near[rows], d_far[rows],
-                jumps=jumps,
-            )  # fmt: skip
-            # Where no silhouette lies between the samples and the walk ended on the far
-            # sample's face, blend across the crease crossed nearest the middle (at low
-            # resolution several may lie between two samples: they move together, and one
-            # crossing carries the whole colour difference).
-            crease = (k < 0) & (mid_k >= 0) & (face == prim_id[far[rows]] - first)
-            face[crease], k[crease], s[rows[crease]] = (
-                mid_face[crease],
-                mid_k[crease],
-                mid_s[crease],
-            )
-            corners = vertices[mesh.faces[face]]
-            kk, r = np.maximum(k, 0), np.arange(len(rows))
-            normal = np.cross(corners[r, kk] - eye, corners[r, (kk + 1) % 3] - eye)
-            ok = (k >= 0) & axis_ok(normal, horizontal[rows], to_pixels)
-            edge[rows] = np.where(ok, k, -2)
-            prim[rows] = face + first
-        first += mesh.num_faces
+    n_triangles = first_sphere_id(scene)
+    on_mesh = np.flatnonzero((prim >= 0) & (prim < n_triangles))
+    group_of, local = np.full(len(prim), -1), np.full(len(prim), -1)
+    group_of[on_mesh], local[on_mesh] = welded.locate(prim[on_mesh])
+    far_local = np.full(len(prim), -1)
+    far_prim = prim_id[far]
+    far_on = np.flatnonzero((far_prim >= 0) & (far_prim < n_triangles))
+    far_group, far_local[far_on] = welded.locate(far_prim[far_on])
+    far_local[far_on[far_group != group_of[far_on]]] = -1  # another group's face
+    for g, group in enumerate(welded.groups):
+        rows = np.flatnonzero(group_of == g)
+        if len(rows) == 0:
+            continue
+        vertices, faces = group.vertices, group.faces
+        silhouette = silhouette_edges(group.edges, vertices, faces, eye)
+        face, k, s[rows], (mid_face, mid_k, mid_s) = walk_to_silhouette_fast(
+            group.edges, silhouette, vertices, faces, local[rows], eye, d_near[rows],
+            d_far[rows], jumps=creases(group, scene),
+        )  # fmt: skip
+        # Where no silhouette lies between the samples and the walk ended on the far
+        # sample's face, blend across the crease crossed nearest the middle (at low
+        # resolution several may lie between two samples: they move together, and one
+        # crossing carries the whole colour difference).
+        crease = (k < 0) & (mid_k >= 0) & (face == far_local[rows])
+        face[crease], k[crease], s[rows[crease]] = mid_face[crease], mid_k[crease], mid_s[crease]
+        corners = vertices[faces[face]]
+        kk, r = np.maximum(k, 0), np.arange(len(rows))
+        normal = np.cross(corners[r, kk] - eye, corners[r, (kk + 1) % 3] - eye)
+        ok = (k >= 0) & axis_ok(normal, horizontal[rows], to_pixels)
+        edge[rows] = np.where(ok, k, -2)
+        prim[rows] = group.face_ids[face]
     for index, sphere in enumerate(scene.spheres):
         rows = np.flatnonzero(prim == n_triangles + index)
         if len(rows):
@@ -186,12 +198,12 @@ def edge_pairs(
     other = np.full(len(near), -1, dtype=np.int64)
     if n_triangles:
         triangles = np.concatenate([m.triangles() for m in scene.meshes]).astype(np.float64)
-        welded, offset = [], 0  # welded vertex ids, distinct between meshes
+        ids, offset = [], 0  # welded vertex ids, distinct between meshes
         for index in range(len(scene.meshes)):
-            welded.append(topology[index].welded + offset)
+            ids.append(topology[index].welded + offset)
             offset += int(topology[index].welded.max()) + 1
         _intersections(
-            triangles, np.concatenate(welded), prim_id[near], prim_id[far], depth[far], eye,
+            triangles, np.concatenate(ids), prim_id[near], prim_id[far], depth[far], eye,
             d_near, d_far, horizontal, to_pixels, prim, edge, s, other,
         )  # fmt: skip
     keep = edge >= -1

@@ -34,8 +34,14 @@ from render.edges.silhouettes import EdgePairs, crossings, edge_pairs, edge_upda
 from render.scene.cache import RenderCache, light_key
 from render.scene.scene import Scene
 from render.shade.hits import CameraShading, working_dtype
-from render.trace.outlines import Outlines, as_one_mesh, t_junction_pairs
-from render.trace.seams import shared_between, shared_edges
+from render.trace.outlines import Outlines
+from render.trace.seams import (
+    WeldedScene,
+    as_one_mesh,
+    shared_between,
+    shared_edges,
+    t_junction_pairs,
+)
 from render.trace.topology import cut_at_t_junctions, edge_structure, mesh_edges, welding
 from render.trace.visibility import Visibility
 
@@ -78,10 +84,16 @@ def find_pairs(scene: Scene, visibility: Visibility, cache: RenderCache, spp: in
     camera rays' hits and lit masks of step 1, reused from ``cache`` while those are."""
     primary, traced = visibility.primary, visibility.stamp
     topology = mesh_topology(scene, visibility.geometry, cache)
+    shared, _ = cache.get(
+        "shared edges", [visibility.geometry], lambda: shared_edges(scene, topology)
+    )
+    welded, _ = cache.get(
+        "welded meshes", [visibility.geometry], lambda: WeldedScene.of(scene, topology, shared)
+    )
     pairs, _ = cache.get(
         "pairs",
         [traced, np.array([m.smooth for m in scene.meshes], dtype=bool)],  # smooth: creases
-        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, topology),
+        lambda: edge_pairs(scene, primary.prim_id, primary.depth, spp, welded, topology),
     )
     if not visibility.shadows:
         return EdgeDecisions(pairs, None)
@@ -95,7 +107,7 @@ def find_pairs(scene: Scene, visibility: Visibility, cache: RenderCache, spp: in
             primary,
             visibility.lit,
             spp,
-            topology,
+            welded,
             visibility.size,
         ),  # fmt: skip
     )
@@ -192,7 +204,7 @@ def mesh_units(scene: Scene, topology: dict, shared) -> tuple[list, list | None]
     they share (``shared``: ``shared_edges`` of the meshes, each alone): ([(range of
     indices into ``scene.meshes``, ``EdgeTable``)], ``SharedEdges`` per range or None).
     Each mesh alone, but meshes that meet at a T-junction (a vertex of one inside an open
-    edge of the other, ``render.trace.outlines.t_junction_pairs``), with every mesh between
+    edge of the other, ``render.trace.seams.t_junction_pairs``), with every mesh between
     them, as one mesh: their vertices and faces concatenated, welded, and cut at the
     T-junction (``mesh_edges``), so that the edge of one and the edges of the other that
     lie along it are one curve with a face on each side, as in one mesh. Kept apart, each

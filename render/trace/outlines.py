@@ -15,8 +15,9 @@ rules:
 * Meshes that share an edge (a multi-material file read as one mesh per material, walls
   meeting at a corner), or meet at a T-junction (a vertex of one inside an open edge of
   the other: a fin tessellated otherwise than the plate it hangs from), are welded into
-  one (``_welded_groups``: ``render.trace.seams`` finds the first, ``render.trace.topology``
-  the second, welds the group and cuts its open edges at T-junctions), so that such an
+  one (``render.trace.seams.welded_groups``: ``shared_edges`` finds the first,
+  ``t_junction_pairs`` the second; the group welded and its open edges cut at
+  T-junctions by ``render.trace.topology``), so that such an
   edge has a face of each mesh and is an outline where both lie on one side of the plane
   through apex and edge, as in one mesh. Taken mesh by mesh, it is a border of each (an
   outline from everywhere, counted twice), or, at a T-junction, it rests on the other's
@@ -54,14 +55,11 @@ import numpy as np
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.scene.scene import Mesh, Scene
 from render.trace.grid import boxes_at_points, grown
-from render.trace.seams import shared_edges
+from render.trace.seams import as_one_mesh, shared_edges, welded_groups
 from render.trace.topology import (
     EdgeTable,
     MeshEdges,
     mesh_edges,
-    points_inside,
-    weld_distance,
-    welded_ids,
 )
 from render.trace.vec3 import cross, dot3, sub
 
@@ -107,7 +105,7 @@ class Outlines:
         first = np.cumsum([0] + [m.num_faces for m in meshes])
         parts = [
             _group_edges(meshes, group, welded, triangles, first, size)
-            for group, welded in _welded_groups(meshes, topology, shared, first)
+            for group, welded in welded_groups(meshes, topology, shared, first)
         ]
         spheres = world.spheres
         return cls(
@@ -143,84 +141,6 @@ def _tables(world: Scene) -> tuple[list[MeshEdges], list | None]:
     """Each mesh's ``mesh_edges`` and the edges meshes share (``shared_edges``)."""
     topology = [mesh_edges(*as_one_mesh([mesh])) for mesh in world.meshes]
     return topology, shared_edges(world, topology)
-
-
-def _welded_groups(
-    meshes: list[Mesh], topology, shared, first
-) -> list[tuple[list[int], MeshEdges]]:
-    """The meshes (indices) in groups that are welded into one: meshes that share an edge
-    (``shared``: ``render.trace.seams.shared_edges`` of the meshes' ``topology``; ``first``
-    (M + 1,): each mesh's first global face id) or meet at a T-junction (a vertex of one
-    inside an open edge of the other: a fin tessellated otherwise than the plate it hangs
-    from, ``t_junction_pairs``), and the meshes joined to those, and so on; each group (in
-    the order of its first mesh) with its welded ``MeshEdges``, the group's meshes taken as
-    one (their vertices, then their faces, concatenated; the table cut at its T-junctions,
-    ``render.trace.topology.cut_at_t_junctions``)."""
-    parent = list(range(len(meshes)))
-
-    def root(k: int) -> int:
-        while parent[k] != k:
-            k = parent[k]
-        return k
-
-    def join(k: int, o: int) -> None:
-        low, high = sorted((root(k), root(o)))
-        parent[high] = low
-
-    for k, joined in enumerate(shared or []):
-        faces = joined.faces[joined.faces >= 0]  # other meshes' faces on mesh k's edges
-        for o in np.unique(np.searchsorted(first, faces, side="right") - 1):
-            join(k, int(o))
-    for k, o in t_junction_pairs(meshes, topology):
-        join(k, o)
-    groups: dict[int, list[int]] = {}
-    for k in range(len(meshes)):
-        groups.setdefault(root(k), []).append(k)
-    return [
-        (
-            group,
-            topology[group[0]]
-            if len(group) == 1
-            else mesh_edges(*as_one_mesh([meshes[o] for o in group])),
-        )
-        for group in sorted(groups.values())
-    ]
-
-
-def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
-    """The pairs of meshes (indices) where a vertex of one lies inside an open edge of the
-    other (``render.trace.topology``'s test, on every mesh's open edges at once)."""
-    if len(meshes) < 2:
-        return set()
-    vertices, _ = as_one_mesh(meshes)
-    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-    i, j = [], []
-    for k, edges in enumerate(topology):
-        table = edges.table
-        open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
-        i.append(table.i[open_rows] + offsets[k])
-        j.append(table.j[open_rows] + offsets[k])
-    i, j = np.concatenate(i), np.concatenate(j)
-    if len(i) < 2:
-        return set()
-    ids = welded_ids(vertices)
-    found = points_inside(vertices, i, j, np.unique(np.r_[i, j]), ids,
-                          weld_distance(vertices))  # fmt: skip
-    if found is None:
-        return set()
-    segment, point, _ = found
-    edge_mesh = np.searchsorted(offsets, i[segment], side="right") - 1
-    point_mesh = np.searchsorted(offsets, point, side="right") - 1
-    return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
-
-
-def as_one_mesh(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
-    """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh (their
-    vertices, then their faces, concatenated)."""
-    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-    vertices = np.concatenate([np.asarray(m.vertices.data, np.float64) for m in meshes])
-    faces = [np.asarray(m.faces) + s for m, s in zip(meshes, offsets[:-1], strict=True)]
-    return vertices, np.concatenate(faces)
 
 
 def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangles, first, size):

@@ -14,6 +14,11 @@ vertices welded as within a mesh, at the finest of the meshes' welding tolerance
 first mesh in ``scene.meshes`` that has an edge keeps it, and the faces the other meshes
 have on it join its row: the edge's sides are then chosen among all of them, and the
 later meshes drop their copies of the row.
+
+Where meshes must be taken as one instead (the outlines, drawn edge by edge; the pixel
+pairs' walk from face to face), ``welded_groups`` joins the meshes that share an edge or
+meet at a T-junction (``t_junction_pairs``: a vertex of one inside an open edge of the
+other) and welds each group as one mesh (``as_one_mesh``, ``WeldedMeshes``).
 """
 
 from __future__ import annotations
@@ -22,8 +27,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from render.scene.scene import Scene
-from render.trace.topology import _WELD_TOLERANCE, _scale, row_ids
+from render.scene.scene import Mesh, Scene
+from render.trace.topology import (
+    _WELD_TOLERANCE,
+    MeshEdges,
+    _scale,
+    mesh_edges,
+    points_inside,
+    row_ids,
+    weld_distance,
+    welded_ids,
+)
 
 
 @dataclass
@@ -121,3 +135,133 @@ def shared_between(vertices: list, tables: list, n_faces: list) -> list[SharedEd
         out.append(SharedEdges(owned, faces, thirds))
         offset += n
     return out
+
+
+def welded_groups(meshes: list[Mesh], topology, shared, first) -> list[tuple[list[int], MeshEdges]]:
+    """The meshes (indices) in groups that are welded into one: meshes that share an edge
+    (``shared``: ``render.trace.seams.shared_edges`` of the meshes' ``topology``; ``first``
+    (M + 1,): each mesh's first global face id) or meet at a T-junction (a vertex of one
+    inside an open edge of the other: a fin tessellated otherwise than the plate it hangs
+    from, ``t_junction_pairs``), and the meshes joined to those, and so on; each group (in
+    the order of its first mesh) with its welded ``MeshEdges``, the group's meshes taken as
+    one (their vertices, then their faces, concatenated; the table cut at its T-junctions,
+    ``render.trace.topology.cut_at_t_junctions``)."""
+    parent = list(range(len(meshes)))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            k = parent[k]
+        return k
+
+    def join(k: int, o: int) -> None:
+        low, high = sorted((root(k), root(o)))
+        parent[high] = low
+
+    for k, joined in enumerate(shared or []):
+        faces = joined.faces[joined.faces >= 0]  # other meshes' faces on mesh k's edges
+        for o in np.unique(np.searchsorted(first, faces, side="right") - 1):
+            join(k, int(o))
+    for k, o in t_junction_pairs(meshes, topology):
+        join(k, o)
+    groups: dict[int, list[int]] = {}
+    for k in range(len(meshes)):
+        groups.setdefault(root(k), []).append(k)
+    return [
+        (
+            group,
+            topology[group[0]]
+            if len(group) == 1
+            else mesh_edges(*as_one_mesh([meshes[o] for o in group])),
+        )
+        for group in sorted(groups.values())
+    ]
+
+
+def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
+    """The pairs of meshes (indices) where a vertex of one lies inside an open edge of the
+    other (``render.trace.topology``'s test, on every mesh's open edges at once)."""
+    if len(meshes) < 2:
+        return set()
+    vertices, _ = as_one_mesh(meshes)
+    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+    i, j = [], []
+    for k, edges in enumerate(topology):
+        table = edges.table
+        open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+        i.append(table.i[open_rows] + offsets[k])
+        j.append(table.j[open_rows] + offsets[k])
+    i, j = np.concatenate(i), np.concatenate(j)
+    if len(i) < 2:
+        return set()
+    ids = welded_ids(vertices)
+    found = points_inside(vertices, i, j, np.unique(np.r_[i, j]), ids,
+                          weld_distance(vertices))  # fmt: skip
+    if found is None:
+        return set()
+    segment, point, _ = found
+    edge_mesh = np.searchsorted(offsets, i[segment], side="right") - 1
+    point_mesh = np.searchsorted(offsets, point, side="right") - 1
+    return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
+
+
+def as_one_mesh(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices (V, 3) float64 and faces (F, 3) of ``meshes`` taken as one mesh (their
+    vertices, then their faces, concatenated)."""
+    offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
+    vertices = np.concatenate([np.asarray(m.vertices.data, np.float64) for m in meshes])
+    faces = [np.asarray(m.faces) + s for m, s in zip(meshes, offsets[:-1], strict=True)]
+    return vertices, np.concatenate(faces)
+
+
+@dataclass
+class WeldedMeshes:
+    """The meshes of one ``welded_groups`` group taken as one, for a walk across their
+    faces: their indices in ``scene.meshes`` (``meshes``), their ``MeshEdges``, vertices
+    (V, 3) float64 and faces (F, 3) (``as_one_mesh``), and per face its global primitive id
+    ``face_ids`` (F,) and its mesh ``face_mesh`` (F,) (an index into ``scene.meshes``)."""
+
+    meshes: list[int]
+    edges: MeshEdges
+    vertices: np.ndarray
+    faces: np.ndarray
+    face_ids: np.ndarray
+    face_mesh: np.ndarray
+
+
+@dataclass
+class WeldedScene:
+    """A scene's meshes in ``WeldedMeshes`` groups, and where each mesh's faces are in its
+    group: ``group_of`` (M,) its group, ``offset`` (M,) the group-local id of its first
+    face, ``first`` (M + 1,) the global id of its first face (the meshes' faces come first
+    among the primitives, mesh after mesh)."""
+
+    groups: list[WeldedMeshes]
+    group_of: np.ndarray
+    offset: np.ndarray
+    first: np.ndarray
+
+    @classmethod
+    def of(cls, scene: Scene, topology, shared) -> WeldedScene:
+        """The groups of ``scene``'s meshes (``topology``: ``mesh_edges`` per mesh index;
+        ``shared``: their ``shared_edges``)."""
+        meshes = scene.meshes
+        first = np.cumsum([0] + [m.num_faces for m in meshes])
+        group_of = np.zeros(len(meshes), np.int64)
+        offset = np.zeros(len(meshes), np.int64)
+        groups = []
+        topology = [topology[k] for k in range(len(meshes))]
+        for g, (members, edges) in enumerate(welded_groups(meshes, topology, shared, first)):
+            vertices, faces = as_one_mesh([meshes[k] for k in members])
+            counts = [meshes[k].num_faces for k in members]
+            group_of[members] = g
+            offset[members] = np.cumsum([0, *counts[:-1]])
+            face_ids = np.concatenate([np.arange(first[k], first[k + 1]) for k in members])
+            face_mesh = np.repeat(np.asarray(members, np.int64), counts)
+            groups.append(WeldedMeshes(members, edges, vertices, faces, face_ids, face_mesh))
+        return cls(groups, group_of, offset, first)
+
+    def locate(self, prim: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For triangles ``prim`` (n,) (global ids below ``first[-1]``): their groups (n,)
+        and their ids in them (n,)."""
+        mesh = np.searchsorted(self.first, prim, side="right") - 1
+        return self.group_of[mesh], prim - self.first[mesh] + self.offset[mesh]

@@ -48,8 +48,7 @@ from render.edges.boundary.radiance import EPSILON
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, n_blocks
-from render.trace.outlines import as_one_mesh
-from render.trace.seams import SharedEdges
+from render.trace.seams import SharedEdges, as_one_mesh
 from render.trace.topology import EdgeTable
 from render.trace.vec3 import cross, dot3, sub
 
