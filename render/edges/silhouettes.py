@@ -45,6 +45,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last
+from render.edges.boundary.crossing import global_welded
 from render.edges.geometry import (
     axis_ok,
     outline_normal,
@@ -198,12 +199,8 @@ def edge_pairs(
     other = np.full(len(near), -1, dtype=np.int64)
     if n_triangles:
         triangles = np.concatenate([m.triangles() for m in scene.meshes]).astype(np.float64)
-        ids, offset = [], 0  # welded vertex ids, distinct between meshes
-        for index in range(len(scene.meshes)):
-            ids.append(topology[index].welded + offset)
-            offset += int(topology[index].welded.max()) + 1
         _intersections(
-            triangles, np.concatenate(ids), prim_id[near], prim_id[far], depth[far], eye,
+            triangles, global_welded(scene, topology), prim_id[near], prim_id[far], depth[far], eye,
             d_near, d_far, horizontal, to_pixels, prim, edge, s, other,
         )  # fmt: skip
     keep = edge >= -1

@@ -29,9 +29,7 @@ import numpy as np
 
 from render.scene.scene import Mesh, Scene
 from render.trace.topology import (
-    _WELD_TOLERANCE,
     MeshEdges,
-    _scale,
     mesh_edges,
     points_inside,
     row_ids,
@@ -73,17 +71,8 @@ def shared_between(vertices: list, tables: list, n_faces: list) -> list[SharedEd
     in this order): one ``SharedEdges`` per mesh, or None."""
     if len(tables) < 2:
         return None
-    # Welded positions across meshes: no coarser than any one mesh's own welding, so that
-    # no two vertices a mesh keeps apart are merged here.
     every = np.concatenate(vertices)
-    tolerance = min(_scale(v) for v in vertices) * _WELD_TOLERANCE
-    # Never below the coordinates' own rounding (a mesh collapsed to a point has size ~0):
-    # positions closer than that are one position anyway, and the keys stay finite.
-    tolerance = max(tolerance, 4 * np.finfo(np.float64).eps * float(np.abs(every).max()))
-    if tolerance == 0.0:  # every vertex at the origin
-        return None
-    keys = np.round((every - every.min(axis=0)) / tolerance)
-    welded = row_ids(keys)
+    welded = welded_ids(every, seam_distance(every), open_ends(tables, vertices))
     starts = np.cumsum([0] + [len(v) for v in vertices])
     ends = [
         np.sort(np.stack([welded[t.i + s], welded[t.j + s]], axis=1), axis=1)
@@ -166,15 +155,16 @@ def welded_groups(meshes: list[Mesh], topology, shared, first) -> list[tuple[lis
     groups: dict[int, list[int]] = {}
     for k in range(len(meshes)):
         groups.setdefault(root(k), []).append(k)
-    return [
-        (
-            group,
-            topology[group[0]]
-            if len(group) == 1
-            else mesh_edges(*as_one_mesh([meshes[o] for o in group])),
-        )
-        for group in sorted(groups.values())
-    ]
+    out = []
+    for group in sorted(groups.values()):
+        if len(group) == 1:
+            out.append((group, topology[group[0]]))
+        else:
+            vertices, faces = as_one_mesh([meshes[o] for o in group])
+            near = open_ends([topology[o].table for o in group],
+                             [meshes[o].vertices.data for o in group])  # fmt: skip
+            out.append((group, mesh_edges(vertices, faces, seam_distance(vertices), near)))
+    return out
 
 
 def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
@@ -193,15 +183,43 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
     i, j = np.concatenate(i), np.concatenate(j)
     if len(i) < 2:
         return set()
-    ids = welded_ids(vertices)
-    found = points_inside(vertices, i, j, np.unique(np.r_[i, j]), ids,
-                          weld_distance(vertices))  # fmt: skip
+    tolerance = seam_distance(vertices)
+    ends = np.unique(np.r_[i, j])
+    found = points_inside(vertices, i, j, ends, welded_ids(vertices, tolerance, ends), tolerance)
     if found is None:
         return set()
     segment, point, _ = found
     edge_mesh = np.searchsorted(offsets, i[segment], side="right") - 1
     point_mesh = np.searchsorted(offsets, point, side="right") - 1
     return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
+
+
+#: Vertices of different meshes closer than this fraction of their coordinates' size are
+#: one position (``seam_distance``): four float32 steps, as far as coordinates that were
+#: once float32 (most mesh files) and were computed otherwise in two meshes can differ.
+SEAM_GAP = 4 * float(np.finfo(np.float32).eps)
+
+
+def open_ends(tables: list, vertices: list) -> np.ndarray:
+    """The ends of the open rows (one face) of meshes' ``tables`` (``EdgeTable``), as ids
+    among their ``vertices`` (V_k, 3) concatenated: where meshes can meet."""
+    offsets = np.cumsum([0] + [len(v) for v in vertices])
+    ends = []
+    for table, offset in zip(tables, offsets, strict=False):
+        rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+        ends += [table.i[rows] + offset, table.j[rows] + offset]
+    return np.concatenate(ends) if ends else np.zeros(0, np.int64)
+
+
+def seam_distance(vertices: np.ndarray) -> float:
+    """How close vertices (V, 3) of different meshes must be to be one position: within
+    ``SEAM_GAP`` of their largest coordinate, or within a mesh's own welding distance
+    (``weld_distance``), whichever is larger. Coarser than a mesh's own welding: two meshes
+    that meet along a seam may have come apart by more than rounding (one of them through
+    float32, the other not: 1.2e-8 apart on a box of size 0.4 at 0.7 from the origin, where
+    their boundary terms' gradients, taken as two borders, were 20 % off and more)."""
+    size = float(np.abs(vertices).max()) if len(vertices) else 0.0
+    return max(SEAM_GAP * size, weld_distance(vertices), np.finfo(float).tiny)
 
 
 def as_one_mesh(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:

@@ -17,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.trace.grid import candidate_pairs, grown
@@ -133,14 +135,42 @@ def _edge_table(faces: np.ndarray, slots: np.ndarray, g: np.ndarray) -> EdgeTabl
                      table_faces, thirds)  # fmt: skip
 
 
-def welded_ids(vertices: np.ndarray) -> np.ndarray:
+def welded_ids(
+    vertices: np.ndarray, tolerance: float | None = None, near: np.ndarray | None = None
+) -> np.ndarray:
     """(V,) int64: each vertex's welded id, equal for vertices at the same position (within
-    ``_WELD_TOLERANCE`` of the mesh's bounding-box diagonal), numbered 0..U-1."""
+    ``_WELD_TOLERANCE`` of the mesh's bounding-box diagonal), numbered 0..U-1. With a
+    ``tolerance``: equal too for a vertex ``near`` (indices; None: every vertex) and any
+    vertex closer to it than that, and for chains of such (the pairs a grid of boxes finds,
+    ``render.trace.grid``, joined): where vertices that are one position came apart by
+    more than rounding, as coordinates that went through float32 do, no cell boundary
+    splits them. (Where meshes meet, at their seams and T-junctions, each side's vertices
+    are on its open edges: ``near`` those, the grid has few boxes.)"""
     # Relative to the mesh's own size and corner, so that welding does not depend on where
     # the mesh is or how large it is.
-    low = vertices.min(axis=0)
+    low = vertices.min(axis=0) if len(vertices) else np.zeros(3)
     keys = np.round((vertices - low) / weld_distance(vertices))
-    return row_ids(keys)
+    ids = row_ids(keys)
+    if tolerance is None or len(vertices) == 0:
+        return ids
+    near = np.arange(len(vertices)) if near is None else np.unique(near)
+    lo, hi = grown(vertices[near], vertices[near], tolerance)
+    found = candidate_pairs(vertices, lo, hi, _MOST_PAIRS)
+    if found is None:  # a crowd within the tolerance (a mesh collapsed to a few points)
+        return row_ids(np.round((vertices - low) / tolerance))
+    point, box = found
+    other = near[box]
+    close = np.sum((vertices[point] - vertices[other]) ** 2, axis=1) <= tolerance**2
+    n = int(ids.max()) + 1
+    edges = (ids[point[close]], ids[other[close]])
+    count, label = connected_components(
+        coo_matrix((np.ones(len(edges[0])), edges), shape=(n, n)), directed=False
+    )
+    # Numbered as without a tolerance, by the key of each group's first vertex in
+    # lexicographic order: where nothing came apart, the same ids (and tables).
+    first = np.full(count, len(vertices))
+    np.minimum.at(first, label[ids], np.arange(len(vertices)))
+    return row_ids(keys[first])[label[ids]]
 
 
 def row_ids(rows: np.ndarray) -> np.ndarray:
@@ -170,14 +200,19 @@ def _scale(vertices: np.ndarray) -> float:
     return max(float(np.linalg.norm(extent)), np.finfo(float).tiny)
 
 
-def mesh_edges(vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
+def mesh_edges(
+    vertices: np.ndarray, faces: np.ndarray, tolerance: float | None = None, near=None
+) -> MeshEdges:
     """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3), its table's
-    open rows cut at T-junctions (``cut_at_t_junctions``)."""
-    structure = edge_structure(faces, *welding(vertices, faces))
-    return cut_at_t_junctions(structure, np.asarray(vertices, np.float64), faces)
+    open rows cut at T-junctions (``cut_at_t_junctions``); vertices welded within
+    ``tolerance`` of the vertices ``near`` where it is given (``welded_ids``)."""
+    structure = edge_structure(faces, *welding(vertices, faces, tolerance, near))
+    return cut_at_t_junctions(structure, np.asarray(vertices, np.float64), faces, tolerance)
 
 
-def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray) -> MeshEdges:
+def cut_at_t_junctions(
+    edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, tolerance: float | None = None
+) -> MeshEdges:
     """``edges`` with the open rows of its table (one face) cut where a vertex of another
     open row lies inside them (within ``_WELD_TOLERANCE`` of the mesh's size): a T-junction,
     where one face's edge runs along two of another's (a quad split on one side only).
@@ -196,7 +231,7 @@ def cut_at_t_junctions(edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray
     ids[faces] = edges.welded  # each vertex's welded id
     ends = np.unique(np.r_[table.i[open_rows], table.j[open_rows]])
     inside = points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
-                           weld_distance(vertices))  # fmt: skip
+                           tolerance or weld_distance(vertices))  # fmt: skip
     if inside is None or len(inside[0]) == 0:  # None: too many candidates to test (a soup)
         return edges
     cut, parts = _cut_table(table, open_rows, *inside, ids)
@@ -331,7 +366,9 @@ def _edge_index(corners: np.ndarray, i: int, j: int) -> int:
     raise AssertionError("the face has no such edge")  # the table's rows come from its faces
 
 
-def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def welding(
+    vertices: np.ndarray, faces: np.ndarray, tolerance: float | None = None, near=None
+) -> tuple[np.ndarray, np.ndarray]:
     """All that ``mesh_edges`` needs from the vertex positions: each corner's welded vertex
     id (F, 3) int64 and which faces are degenerate (F,) bool (a welded edge, an area below
     ``_DEGENERATE_AREA`` of the mesh's squared size, or a repeat of an earlier face with
@@ -339,7 +376,7 @@ def welding(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.nda
     are open or shared as if it were listed once). While a shape moves, these rarely
     change, so the rest (``edge_structure``) can be reused."""
     scale = _scale(vertices)
-    ids = welded_ids(vertices)[faces]  # (F, 3) welded vertex ids
+    ids = welded_ids(vertices, tolerance, near)[faces]  # (F, 3) welded vertex ids
     corners = vertices[faces]
     area = np.linalg.norm(
         np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1

@@ -21,6 +21,8 @@ from render.edges.boundary.pixels import boxes_apart, pixel_gradient
 from render.edges.geometry import plane_normal, triangle_corners
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
+from render.trace.seams import as_one_mesh, open_ends, seam_distance
+from render.trace.topology import welded_ids
 from render.trace.vec3 import cross, dot3, sub
 
 
@@ -201,13 +203,20 @@ def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
 
 
 def global_welded(scene: Scene, topology) -> np.ndarray:
-    """(N, 3) welded vertex ids of every triangle, distinct between meshes."""
-    parts, offset = [], 0
-    for k, _ in enumerate(scene.meshes):
-        welded = topology[k].welded
-        parts.append(welded + offset)
-        offset += int(welded.max()) + 1 if welded.size else 0
-    return np.concatenate(parts) if parts else np.zeros((0, 3), np.int64)
+    """(N, 3) welded vertex ids of every triangle: a mesh's own (``topology``: ``mesh_edges``
+    per mesh index), or, with several meshes, ids equal where their vertices are one
+    position (``render.trace.seams.seam_distance``: two triangles of two meshes that meet
+    along a seam touch there, they do not cross, though the seam's two sides came apart
+    by a float32 rounding)."""
+    meshes = scene.meshes
+    if len(meshes) == 1:
+        return topology[0].welded
+    if not meshes:
+        return np.zeros((0, 3), np.int64)
+    vertices, faces = as_one_mesh(meshes)
+    near = open_ends([topology[k].table for k in range(len(meshes))],
+                     [m.vertices.data for m in meshes])  # fmt: skip
+    return welded_ids(vertices, seam_distance(vertices), near)[faces]
 
 
 def plane_line(t1, t2, eye):

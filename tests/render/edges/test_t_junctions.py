@@ -341,18 +341,19 @@ def in_meshes(mesh: render.Mesh, owner: list[int], between: bool) -> list[render
     return out
 
 
-def meshes_gradients(meshes: list[render.Mesh], antialias="boundary") -> np.ndarray:
+def meshes_gradients(meshes: list[render.Mesh], antialias="boundary", shadows=True) -> np.ndarray:
     """The light's position gradient and the translation gradient of every mesh but the
     floor together (``scene_with``'s scene at 32 x 32, the boundary term with one interior
     sample or the pixel pairs, the image's weighted sum)."""
     scene = scene_with(meshes[0], 32)
     scene = render.Scene([scene.objects[0], *meshes], scene.lights, scene.camera)
     light = scene.lights[0].position
-    light.requires_grad = True
+    light.requires_grad, light.grad = True, None
     for m in scene.meshes[1:]:
-        m.vertices.requires_grad = True
+        m.vertices.requires_grad, m.vertices.grad = True, None  # the meshes may be reused
     weights = md.tensor(np.random.default_rng(7).uniform(0, 1, (32, 32, 3)))
-    md.sum(render.render(scene, antialias=antialias, interior_samples=1) * weights).backward()
+    image = render.render(scene, antialias=antialias, interior_samples=1, shadows=shadows)
+    md.sum(image * weights).backward()
     return np.r_[light.grad, sum(m.vertices.grad.sum(axis=0) for m in scene.meshes[1:])]
 
 
@@ -379,11 +380,13 @@ def test_meshes_that_meet_at_t_junctions_have_the_one_meshs_gradients(case):
     were taken as one (``render.edges.terms.mesh_units``), each counted its edge as a
     border: on a box of 16 faces in two meshes, 24 x 24, the translation's x 22.42 against
     -3.83 without shadows; with shadows the shadow borders' edges indexed the wrong
-    mesh's vertices (an IndexError, or a wrong vertex)."""
+    mesh's vertices (an IndexError, or a wrong vertex). To 1e-5: the meshes' faces come
+    in another order, so an edge's row may run the other way, and its shadow border's
+    chords start from the other end (1e-7 of the gradients measured)."""
     t_box, meshes = case
     one = meshes_gradients([t_box])
     many = meshes_gradients(meshes)
-    np.testing.assert_allclose(many, one, rtol=1e-9, atol=1e-9 * np.abs(one).max())
+    np.testing.assert_allclose(many, one, rtol=1e-5, atol=1e-5 * np.abs(one).max())
 
 
 @settings(max_examples=8, deadline=None)
@@ -399,3 +402,25 @@ def test_pixel_pairs_walk_across_the_meshes_of_one_surface(case):
     one = meshes_gradients([t_box], antialias=True)
     many = meshes_gradients(meshes, antialias=True)
     np.testing.assert_allclose(many, one, rtol=1e-9, atol=1e-9 * np.abs(one).max())
+
+
+@settings(max_examples=6, deadline=None)
+@given(boxes_in_meshes(), st.sampled_from([("boundary", False), (True, True)]))
+def test_meshes_whose_seam_went_through_float32_have_the_one_meshs_gradients(case, mode):
+    """The same boxes in meshes, the last mesh's vertices rounded to float32 and back (a
+    part stored or transformed in float32: its seams with the others 1e-8 apart, above
+    the 1e-9 welding of one mesh): the gradients are the one mesh's, as if the seam were
+    closed (``render.trace.seams.seam_distance`` welds across meshes within four float32
+    steps). Before, each side of such a seam was a border (the boundary term 20-53 % off
+    on boxes split in two without T-junctions, the pixel pairs 4-8 %), and the crossing
+    test found the meshes' faces crossing along it. The boundary term without shadows: its shadow
+    borders along a T-junction of such meshes are still wrong (the grazing rays pass the
+    1e-8 crack between the two sides; in 6 of 40 random cases, up to 2.3 times off)."""
+    antialias, shadows = mode
+    t_box, meshes = case
+    last = meshes[-1]
+    rounded = np.asarray(last.vertices.data).astype(np.float32).astype(np.float64)
+    meshes = [*meshes[:-1], render.Mesh(rounded, last.faces, last.material)]
+    one = meshes_gradients([t_box], antialias, shadows)
+    many = meshes_gradients(meshes, antialias, shadows)
+    np.testing.assert_allclose(many, one, rtol=1e-5, atol=1e-5 * np.abs(one).max())
