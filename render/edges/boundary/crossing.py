@@ -203,20 +203,33 @@ def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
 
 
 def global_welded(scene: Scene, topology) -> np.ndarray:
-    """(N, 3) welded vertex ids of every triangle: a mesh's own (``topology``: ``mesh_edges``
-    per mesh index), or, with several meshes, ids equal where their vertices are one
-    position (``render.trace.seams.seam_distance``: two triangles of two meshes that meet
-    along a seam touch there, they do not cross, though the seam's two sides came apart
-    by a float32 rounding)."""
+    """(N, 3) welded vertex ids of every triangle: each mesh's own (``topology``:
+    ``mesh_edges`` per mesh index), distinct between meshes but where the ends of their
+    open edges are one position (``render.trace.seams.seam_distance``: two triangles of
+    two meshes that meet along a seam touch there, they do not cross, though the seam's
+    two sides came apart by a float32 rounding)."""
     meshes = scene.meshes
-    if len(meshes) == 1:
-        return topology[0].welded
-    if not meshes:
-        return np.zeros((0, 3), np.int64)
+    ids, offset = [], 0
+    for k in range(len(meshes)):
+        ids.append(topology[k].welded + offset)
+        offset += int(topology[k].welded.max()) + 1 if topology[k].welded.size else 0
+    if len(meshes) < 2:
+        return ids[0] if ids else np.zeros((0, 3), np.int64)
+    ids = np.concatenate(ids)
     vertices, faces = as_one_mesh(meshes)
-    near = open_ends([topology[k].table for k in range(len(meshes))],
-                     [m.vertices.data for m in meshes])  # fmt: skip
-    return welded_ids(vertices, seam_distance(vertices), near)[faces]
+    ends = np.unique(open_ends([topology[k].table for k in range(len(meshes))],
+                               [m.vertices.data for m in meshes]))  # fmt: skip
+    if len(ends) == 0:
+        return ids
+    # Each end's welded id (any corner at that vertex has it), then the ends joined.
+    corner = np.full(len(vertices), -1, np.int64)
+    corner[faces.reshape(-1)] = ids.reshape(-1)
+    joined = welded_ids(vertices[ends], seam_distance(vertices))
+    merged = np.arange(offset)
+    lowest = np.full(int(joined.max()) + 1, offset)
+    np.minimum.at(lowest, joined, corner[ends])
+    merged[corner[ends]] = lowest[joined]
+    return merged[ids]
 
 
 def plane_line(t1, t2, eye):
