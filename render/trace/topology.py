@@ -140,12 +140,12 @@ def welded_ids(
 ) -> np.ndarray:
     """(V,) int64: each vertex's welded id, equal for vertices at the same position (within
     ``_WELD_TOLERANCE`` of the mesh's bounding-box diagonal), numbered 0..U-1. With a
-    ``tolerance``: equal too for a vertex ``near`` (indices; None: every vertex) and any
-    vertex closer to it than that, and for chains of such (the pairs a grid of boxes finds,
+    ``tolerance``: equal too for two vertices among ``near`` (indices; None: every vertex)
+    closer than that, and for chains of such (the pairs a grid of boxes finds,
     ``render.trace.grid``, joined): where vertices that are one position came apart by
     more than rounding, as coordinates that went through float32 do, no cell boundary
     splits them. (Where meshes meet, at their seams and T-junctions, each side's vertices
-    are on its open edges: ``near`` those, the grid has few boxes.)"""
+    are on its open edges: ``near`` those, the grid holds few.)"""
     # Relative to the mesh's own size and corner, so that welding does not depend on where
     # the mesh is or how large it is.
     low = vertices.min(axis=0) if len(vertices) else np.zeros(3)
@@ -155,14 +155,15 @@ def welded_ids(
         return ids
     near = np.arange(len(vertices)) if near is None else np.unique(near)
     lo, hi = grown(vertices[near], vertices[near], tolerance)
-    found = candidate_pairs(vertices, lo, hi, _MOST_PAIRS)
+    found = candidate_pairs(vertices[near], lo, hi, _MOST_PAIRS)
     if found is None:  # a crowd within the tolerance (a mesh collapsed to a few points)
         return row_ids(np.round((vertices - low) / tolerance))
-    point, box = found
-    other = near[box]
+    point, other = near[found[0]], near[found[1]]
     close = np.sum((vertices[point] - vertices[other]) ** 2, axis=1) <= tolerance**2
-    n = int(ids.max()) + 1
     edges = (ids[point[close]], ids[other[close]])
+    if np.all(edges[0] == edges[1]):  # nothing came apart: the ids as they are
+        return ids
+    n = int(ids.max()) + 1
     count, label = connected_components(
         coo_matrix((np.ones(len(edges[0])), edges), shape=(n, n)), directed=False
     )
