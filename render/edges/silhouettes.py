@@ -117,11 +117,10 @@ def creases(group: WeldedMeshes, scene: Scene) -> np.ndarray:
     edges, meshes = group.edges, [scene.meshes[k] for k in group.meshes]
     seams = ~edges.shared_ids
     # Per face: flat and untextured (its colour from its own normal), and its material.
+    member = np.searchsorted(group.meshes, group.face_mesh)  # each face's mesh in the group
     flat = np.array([not (m.smooth or m.normals is not None or m.material.textures)
-                     for m in meshes])[np.searchsorted(group.meshes, group.face_mesh)]  # fmt: skip
-    looks = np.array([id(m.material) for m in meshes])[
-        np.searchsorted(group.meshes, group.face_mesh)
-    ]
+                     for m in meshes])[member]  # fmt: skip
+    looks = np.array([id(m.material) for m in meshes])[member]
     corners = group.vertices[group.faces]
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.finfo(float).tiny)

@@ -38,13 +38,12 @@ from render.trace.outlines import Outlines
 from render.trace.seams import (
     WeldedScene,
     as_one_mesh,
-    open_ends,
-    seam_distance,
+    edges_as_one,
     shared_between,
     shared_edges,
     t_junction_pairs,
 )
-from render.trace.topology import cut_at_t_junctions, edge_structure, mesh_edges, welding
+from render.trace.topology import cut_at_t_junctions, edge_structure, welding
 from render.trace.visibility import Visibility
 
 
@@ -228,16 +227,11 @@ def mesh_units(scene: Scene, topology: dict, shared) -> tuple[list, list | None]
         units += [range(m, m + 1) for m in range(k, low)] + [range(low, high + 1)]
         k = high + 1
     units += [range(m, m + 1) for m in range(k, len(meshes))]
-    joined = [as_one_mesh([meshes[m] for m in unit]) for unit in units]
-    vertices = [v for v, _ in joined]
-    tables = []
-    for unit, (vertices_u, faces_u) in zip(units, joined, strict=True):
-        if len(unit) == 1:
-            tables.append(topology[unit.start].table)
-            continue
-        near = open_ends([topology[m].table for m in unit],
-                         [meshes[m].vertices.data for m in unit])  # fmt: skip
-        tables.append(mesh_edges(vertices_u, faces_u, seam_distance(vertices_u), near).table)
+    tables = [
+        topology[unit.start].table if len(unit) == 1 else edges_as_one(meshes, unit, topology).table
+        for unit in units
+    ]
+    vertices = [as_one_mesh([meshes[m] for m in unit])[0] for unit in units]
     n_faces = [sum(meshes[m].num_faces for m in unit) for unit in units]
     return list(zip(units, tables, strict=True)), shared_between(vertices, tables, n_faces)
 

@@ -31,6 +31,7 @@ from render.scene.scene import Mesh, Scene
 from render.trace.topology import (
     MeshEdges,
     mesh_edges,
+    open_rows_of,
     points_inside,
     row_ids,
     weld_distance,
@@ -155,16 +156,20 @@ def welded_groups(meshes: list[Mesh], topology, shared, first) -> list[tuple[lis
     groups: dict[int, list[int]] = {}
     for k in range(len(meshes)):
         groups.setdefault(root(k), []).append(k)
-    out = []
-    for group in sorted(groups.values()):
-        if len(group) == 1:
-            out.append((group, topology[group[0]]))
-        else:
-            vertices, faces = as_one_mesh([meshes[o] for o in group])
-            near = open_ends([topology[o].table for o in group],
-                             [meshes[o].vertices.data for o in group])  # fmt: skip
-            out.append((group, mesh_edges(vertices, faces, seam_distance(vertices), near)))
-    return out
+    return [
+        (group, topology[group[0]] if len(group) == 1 else edges_as_one(meshes, group, topology))
+        for group in sorted(groups.values())
+    ]
+
+
+def edges_as_one(meshes: list[Mesh], members, topology) -> MeshEdges:
+    """The ``MeshEdges`` of the meshes ``members`` (indices into ``meshes``; ``topology``:
+    each mesh's ``mesh_edges``) taken as one (``as_one_mesh``): welded within
+    ``seam_distance`` where their open edges end, cut at their T-junctions."""
+    vertices, faces = as_one_mesh([meshes[o] for o in members])
+    near = open_ends([topology[o].table for o in members],
+                     [meshes[o].vertices.data for o in members])  # fmt: skip
+    return mesh_edges(vertices, faces, seam_distance(vertices), near)
 
 
 def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
@@ -177,9 +182,9 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
     i, j = [], []
     for k, edges in enumerate(topology):
         table = edges.table
-        open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
-        i.append(table.i[open_rows] + offsets[k])
-        j.append(table.j[open_rows] + offsets[k])
+        rows = open_rows_of(table)
+        i.append(table.i[rows] + offsets[k])
+        j.append(table.j[rows] + offsets[k])
     i, j = np.concatenate(i), np.concatenate(j)
     if len(i) < 2:
         return set()
@@ -206,7 +211,7 @@ def open_ends(tables: list, vertices: list) -> np.ndarray:
     offsets = np.cumsum([0] + [len(v) for v in vertices])
     ends = []
     for table, offset in zip(tables, offsets, strict=False):
-        rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+        rows = open_rows_of(table)
         ends += [table.i[rows] + offset, table.j[rows] + offset]
     return np.concatenate(ends) if ends else np.zeros(0, np.int64)
 

@@ -135,6 +135,11 @@ def _edge_table(faces: np.ndarray, slots: np.ndarray, g: np.ndarray) -> EdgeTabl
                      table_faces, thirds)  # fmt: skip
 
 
+def open_rows_of(table: EdgeTable) -> np.ndarray:
+    """The rows of ``table`` with one face (open edges: borders, and where meshes meet)."""
+    return np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+
+
 def welded_ids(
     vertices: np.ndarray, tolerance: float | None = None, near: np.ndarray | None = None
 ) -> np.ndarray:
@@ -225,7 +230,7 @@ def cut_at_t_junctions(
     edge's face, and the long edge holds its parts' faces (``Pieces``); uncut, the walk took
     the long edge for an open one, a silhouette. Vertices (V, 3) float64, faces (F, 3)."""
     table = edges.table
-    open_rows = np.flatnonzero(np.sum(table.faces >= 0, axis=1) == 1)
+    open_rows = open_rows_of(table)
     if len(open_rows) < 2:
         return edges
     ids = np.full(len(vertices), -1, np.int64)
