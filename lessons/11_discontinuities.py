@@ -312,7 +312,7 @@ print({name: round(e, 4) for name, e in method_errors.items()})
 # %% [markdown]
 # Relative to the truth (over the whole gradient image), the plain renderer is off by
 # `0.9` <!-- check: plain_teapot_error > --> or more (it has only the interior term), the
-# pixel pairs by `0.28` <!-- check: pairs_teapot_error -->, the boundary integral by just
+# pixel pairs by `0.26` <!-- check: pairs_teapot_error -->, the boundary integral by just
 # over `0.045` <!-- check: boundary_teapot_error > -->.
 #
 # How good is that 0.045? The truth is an estimate too: a regular grid of samples counts
@@ -358,7 +358,7 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # off by `0.036` <!-- check: boundary_error_low --> to just under `0.070`
 # <!-- check: boundary_error_high < -->, no more than the truths are off one another: it
 # agrees with the truth to within the truth's own uncertainty, and its 0.045 measures the
-# reference as much as the method. The pixel pairs, `0.27`
+# reference as much as the method. The pixel pairs, `0.25`
 # <!-- check: pairs_error_low > --> or more off every truth, are far outside that
 # uncertainty: their error is their own, and so is the plain renderer's.
 #
@@ -370,7 +370,7 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
 # the boundary integral `0.030` <!-- check: boundary_from_mean --> with 16 samples, about
 # as close as the best single truth, and about `0.02` <!-- check: boundary_64_from_mean -->
-# with 64, closer than any 4,096-sample truth. The pairs stay `0.28`
+# with 64, closer than any 4,096-sample truth. The pairs stay `0.27`
 # <!-- check: pairs_from_mean --> off. So the 0.045 above is mostly the reference's
 # error. What is the method's own, at 16 samples, is mostly the interior term's (sampled,
 # not integrated: it shrinks with 64 samples), and at 64 samples it is below what these

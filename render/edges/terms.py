@@ -43,7 +43,7 @@ from render.trace.seams import (
     shared_edges,
     t_junction_pairs,
 )
-from render.trace.topology import cut_at_t_junctions, edge_structure, welding
+from render.trace.topology import cut_at_t_junctions, edge_structure, seam_distance, welding
 from render.trace.visibility import Visibility
 
 
@@ -65,6 +65,9 @@ def mesh_topology(scene: Scene, geometry: np.ndarray, cache: RenderCache) -> dic
 
     def per_mesh() -> dict:
         out = {}
+        # T-junctions within the meshes' seam distance, as between meshes (a T-junction's
+        # vertex rounded in a file lies off the long edge's line)
+        cut = seam_distance(as_one_mesh(scene.meshes)[0]) if scene.meshes else None
         for i, mesh in enumerate(scene.meshes):
             ids, degenerate = welding(mesh.vertices.data, mesh.faces)
             structure, _ = cache.get(
@@ -73,7 +76,7 @@ def mesh_topology(scene: Scene, geometry: np.ndarray, cache: RenderCache) -> dic
                 lambda f=mesh.faces, w=ids, d=degenerate: edge_structure(f, w, d),
             )
             vertices = np.asarray(mesh.vertices.data, np.float64)
-            out[i] = cut_at_t_junctions(structure, vertices, mesh.faces)
+            out[i] = cut_at_t_junctions(structure, vertices, mesh.faces, cut)
         return out
 
     topology, _ = cache.get("topology", [geometry], per_mesh)

@@ -56,11 +56,7 @@ from minidiff.threads import jit, job_count, kernel, run_jobs, share
 from render.scene.scene import Mesh, Scene
 from render.trace.grid import boxes_at_points, grown
 from render.trace.seams import as_one_mesh, shared_edges, welded_groups
-from render.trace.topology import (
-    EdgeTable,
-    MeshEdges,
-    mesh_edges,
-)
+from render.trace.topology import EdgeTable, MeshEdges, mesh_edges, seam_distance
 from render.trace.vec3 import cross, dot3, sub
 
 #: A face whose plane passes within this angle of the apex is seen edge-on: not an outline.
@@ -89,6 +85,7 @@ class Outlines:
     c: np.ndarray
     edge_object: np.ndarray
     ends: np.ndarray
+    faces: np.ndarray
     centre: np.ndarray
     radius: np.ndarray
     sphere_object: np.ndarray
@@ -113,6 +110,7 @@ class Outlines:
             _rows([p[2] for p in parts], (0, 2, 3)),
             _rows([p[3] for p in parts], (0,)).astype(np.int64),
             _rows([p[4] for p in parts], (0, 2)).astype(np.int64),
+            _rows([p[5] for p in parts], (0, 2)).astype(np.int64),
             np.array([s.center.data for s in spheres], np.float64).reshape(-1, 3),
             np.array([float(s.radius.data) for s in spheres], np.float64),
             np.arange(len(meshes), len(meshes) + len(spheres), dtype=np.int64),
@@ -138,13 +136,15 @@ def one_sided(m: np.ndarray, base: np.ndarray, c: np.ndarray) -> tuple[np.ndarra
 
 
 def _tables(world: Scene) -> tuple[list[MeshEdges], list | None]:
-    """Each mesh's ``mesh_edges`` and the edges meshes share (``shared_edges``)."""
-    topology = [mesh_edges(*as_one_mesh([mesh])) for mesh in world.meshes]
+    """Each mesh's ``mesh_edges`` (cut at T-junctions within the meshes' ``seam_distance``)
+    and the edges meshes share (``shared_edges``)."""
+    cut = seam_distance(as_one_mesh(world.meshes)[0]) if world.meshes else None
+    topology = [mesh_edges(*as_one_mesh([mesh]), cut=cut) for mesh in world.meshes]
     return topology, shared_edges(world, topology)
 
 
 def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangles, first, size):
-    """The edge arrays (a, b, c, object, ends: ``Outlines``) of the meshes ``group``
+    """The edge arrays (a, b, c, object, ends, faces: ``Outlines``) of the meshes ``group``
     (indices) welded as one, with ``edges`` their ``MeshEdges``: every welded edge but the
     flat ones and those that rest on another object's surface (``_touching``)."""
     members = [meshes[o] for o in group]
@@ -174,7 +174,9 @@ def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangl
     member = np.searchsorted(offsets, np.stack([i, j], axis=1), side="right") - 1
     ends = start[member] + np.stack([i, j], axis=1) - offsets[member]
     c = np.stack([vertices[thirds[keep, 0]], vertices[thirds[keep, 1]]], axis=1)
-    return vertices[i], vertices[j], c, np.asarray(group, np.int64)[member[:, 0]], ends
+    face_ids = np.concatenate([np.arange(first[k], first[k + 1]) for k in group])
+    owner = np.asarray(group, np.int64)[member[:, 0]]
+    return vertices[i], vertices[j], c, owner, ends, face_ids[both[keep]]
 
 
 def _outer_faces(vertices: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:

@@ -34,7 +34,7 @@ from render.trace.topology import (
     open_rows_of,
     points_inside,
     row_ids,
-    weld_distance,
+    seam_distance,
     welded_ids,
 )
 
@@ -165,11 +165,12 @@ def welded_groups(meshes: list[Mesh], topology, shared, first) -> list[tuple[lis
 def edges_as_one(meshes: list[Mesh], members, topology) -> MeshEdges:
     """The ``MeshEdges`` of the meshes ``members`` (indices into ``meshes``; ``topology``:
     each mesh's ``mesh_edges``) taken as one (``as_one_mesh``): welded within
-    ``seam_distance`` where their open edges end, cut at their T-junctions."""
+    ``seam_distance`` (of all ``meshes``) where their open edges end, cut at their
+    T-junctions."""
     vertices, faces = as_one_mesh([meshes[o] for o in members])
     near = open_ends([topology[o].table for o in members],
                      [meshes[o].vertices.data for o in members])  # fmt: skip
-    return mesh_edges(vertices, faces, seam_distance(vertices), near)
+    return mesh_edges(vertices, faces, seam_distance(as_one_mesh(meshes)[0]), near)
 
 
 def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
@@ -199,12 +200,6 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
     return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
 
 
-#: Vertices of different meshes closer than this fraction of their coordinates' size are
-#: one position (``seam_distance``): four float32 steps, as far as coordinates that were
-#: once float32 (most mesh files) and were computed otherwise in two meshes can differ.
-SEAM_GAP = 4 * float(np.finfo(np.float32).eps)
-
-
 def open_ends(tables: list, vertices: list) -> np.ndarray:
     """The ends of the open rows (one face) of meshes' ``tables`` (``EdgeTable``), as ids
     among their ``vertices`` (V_k, 3) concatenated: where meshes can meet."""
@@ -214,17 +209,6 @@ def open_ends(tables: list, vertices: list) -> np.ndarray:
         rows = open_rows_of(table)
         ends += [table.i[rows] + offset, table.j[rows] + offset]
     return np.concatenate(ends) if ends else np.zeros(0, np.int64)
-
-
-def seam_distance(vertices: np.ndarray) -> float:
-    """How close vertices (V, 3) of different meshes must be to be one position: within
-    ``SEAM_GAP`` of their largest coordinate, or within a mesh's own welding distance
-    (``weld_distance``), whichever is larger. Coarser than a mesh's own welding: two meshes
-    that meet along a seam may have come apart by more than rounding (one of them through
-    float32, the other not: 1.2e-8 apart on a box of size 0.4 at 0.7 from the origin, where
-    their boundary terms' gradients, taken as two borders, were 20 % off and more)."""
-    size = float(np.abs(vertices).max()) if len(vertices) else 0.0
-    return max(SEAM_GAP * size, weld_distance(vertices), np.finfo(float).tiny)
 
 
 def as_one_mesh(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:

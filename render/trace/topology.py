@@ -197,30 +197,68 @@ def row_ids(rows: np.ndarray) -> np.ndarray:
 def weld_distance(vertices: np.ndarray) -> float:
     """How close two of these vertices (V, 3) must be to be one position: ``_WELD_TOLERANCE``
     of their bounding box's diagonal."""
-    return _WELD_TOLERANCE * _scale(vertices)
+    return _WELD_TOLERANCE * mesh_size(vertices)
 
 
-def _scale(vertices: np.ndarray) -> float:
+def mesh_size(vertices: np.ndarray) -> float:
     """The length of the mesh's bounding-box diagonal (never zero)."""
     extent = vertices.max(axis=0) - vertices.min(axis=0)
     return max(float(np.linalg.norm(extent)), np.finfo(float).tiny)
 
 
+#: Vertices of different meshes closer than this fraction of their coordinates' size are
+#: one position (``seam_distance``): four float32 steps, as far as coordinates that were
+#: once float32 (most mesh files) and were computed otherwise in two meshes can differ.
+SEAM_GAP = 4 * float(np.finfo(np.float32).eps)
+#: ... or closer than this fraction of the meshes' size (their bounding box's diagonal):
+#: four times the distance within which the boundary term takes a point of an open edge to
+#: lie on another face's edge (``render.edges.boundary.mesh_edge.COINCIDENT``, which
+#: reads it). A seam whose sides came apart by less is welded, one row with both faces,
+#: the same answer seen from either side; one that came apart by more lies outside that
+#: test everywhere along it, and each side is a border. Between the two (the weld at four
+#: float32 steps, the test at 1e-6), the test saw the seam closed at some of its points and
+#: open at others: a box split into meshes whose seams were moved 2e-6 apart had gradients
+#: 11-85 % off the one mesh's.
+SEAM_SIZE = 4e-6
+
+
+def seam_distance(vertices: np.ndarray) -> float:
+    """How close vertices of different meshes must be to be one position, and a vertex to
+    an open edge to lie on it (a T-junction), for meshes whose vertices (V, 3), all of them,
+    are ``vertices`` (or one mesh's, for its own T-junctions): within ``SEAM_GAP`` of their
+    largest coordinate or ``SEAM_SIZE`` of their size, whichever is larger. Coarser than a
+    mesh's own welding (``weld_distance``): two meshes that meet along a seam may have come
+    apart by more than rounding (one of them through float32, the other not: 1.2e-8 apart
+    on a box of size 0.4 at 0.7 from the origin, where their boundary terms' gradients,
+    taken as two borders, were 20 % off and more), and a T-junction's vertex, rounded, is
+    off the long edge's line."""
+    if len(vertices) == 0:
+        return np.finfo(float).tiny
+    size = float(np.abs(vertices).max())
+    return max(SEAM_GAP * size, SEAM_SIZE * mesh_size(vertices), np.finfo(float).tiny)
+
+
 def mesh_edges(
-    vertices: np.ndarray, faces: np.ndarray, tolerance: float | None = None, near=None
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    tolerance: float | None = None,
+    near=None,
+    cut: float | None = None,
 ) -> MeshEdges:
     """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3), its table's
-    open rows cut at T-junctions (``cut_at_t_junctions``); vertices welded within
-    ``tolerance`` of the vertices ``near`` where it is given (``welded_ids``)."""
+    open rows cut at T-junctions (``cut_at_t_junctions``, within ``cut`` or else
+    ``tolerance``); vertices welded within ``tolerance`` of the vertices ``near`` where it
+    is given (``welded_ids``)."""
     structure = edge_structure(faces, *welding(vertices, faces, tolerance, near))
-    return cut_at_t_junctions(structure, np.asarray(vertices, np.float64), faces, tolerance)
+    vertices = np.asarray(vertices, np.float64)
+    return cut_at_t_junctions(structure, vertices, faces, cut or tolerance)
 
 
 def cut_at_t_junctions(
     edges: MeshEdges, vertices: np.ndarray, faces: np.ndarray, tolerance: float | None = None
 ) -> MeshEdges:
     """``edges`` with the open rows of its table (one face) cut where a vertex of another
-    open row lies inside them (within ``_WELD_TOLERANCE`` of the mesh's size): a T-junction,
+    open row lies inside them (within ``tolerance``, else ``seam_distance``): a T-junction,
     where one face's edge runs along two of another's (a quad split on one side only).
     The parts join the rows of the same welded ends, so that the curve between the faces
     is one row with a face on each side, as it would be had the long edge been split
@@ -237,7 +275,7 @@ def cut_at_t_junctions(
     ids[faces] = edges.welded  # each vertex's welded id
     ends = np.unique(np.r_[table.i[open_rows], table.j[open_rows]])
     inside = points_inside(vertices, table.i[open_rows], table.j[open_rows], ends, ids,
-                           tolerance or weld_distance(vertices))  # fmt: skip
+                           tolerance or seam_distance(vertices))  # fmt: skip
     if inside is None or len(inside[0]) == 0:  # None: too many candidates to test (a soup)
         return edges
     cut, parts = _cut_table(table, open_rows, *inside, ids)
@@ -287,6 +325,12 @@ def _cut_table(table: EdgeTable, open_rows, segment, point, t, ids):
     end along it (t, increasing, the last 1), their rows in the new table)."""
     order = np.lexsort((t, segment))
     segment, point, t = segment[order], point[order], t[order]
+    # A position found twice inside one row (the vertices of two meshes welded as one: a
+    # T-junction's vertex in each) cuts it once: else a part from one to the other, of no
+    # length, was left open, a border.
+    _, once = np.unique(np.stack([segment, ids[point]], axis=1), axis=0, return_index=True)
+    once = np.sort(once)
+    segment, point, t = segment[once], point[once], t[once]
     cut = np.unique(segment)
     sources, ranks, parts_i, parts_j, ends = [], [], [], [], []
     for s in cut:  # few: the rows with T-junctions
@@ -381,7 +425,7 @@ def welding(
     the same welded corners in the same winding: the surface is there once, and its edges
     are open or shared as if it were listed once). While a shape moves, these rarely
     change, so the rest (``edge_structure``) can be reused."""
-    scale = _scale(vertices)
+    scale = mesh_size(vertices)
     ids = welded_ids(vertices, tolerance, near)[faces]  # (F, 3) welded vertex ids
     corners = vertices[faces]
     area = np.linalg.norm(

@@ -21,8 +21,8 @@ from render.edges.boundary.pixels import boxes_apart, pixel_gradient
 from render.edges.geometry import plane_normal, triangle_corners
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
-from render.trace.seams import as_one_mesh, open_ends, seam_distance
-from render.trace.topology import welded_ids
+from render.trace.seams import as_one_mesh, open_ends
+from render.trace.topology import seam_distance, welded_ids
 from render.trace.vec3 import cross, dot3, sub
 
 
@@ -205,7 +205,7 @@ def crossing_segments(triangles: np.ndarray, welded: np.ndarray):
 def global_welded(scene: Scene, topology) -> np.ndarray:
     """(N, 3) welded vertex ids of every triangle: each mesh's own (``topology``:
     ``mesh_edges`` per mesh index), distinct between meshes but where the ends of their
-    open edges are one position (``render.trace.seams.seam_distance``: two triangles of
+    open edges are one position (``render.trace.topology.seam_distance``: two triangles of
     two meshes that meet along a seam touch there, they do not cross, though the seam's
     two sides came apart by a float32 rounding)."""
     meshes = scene.meshes

@@ -43,14 +43,15 @@ from render.edges.boundary.curves import (
     View,
     directions_at,
 )
-from render.edges.boundary.occlusion import hidden_points, seen_in
+from render.edges.boundary.occlusion import SHORT, hidden_points, seen_in
 from render.edges.boundary.radiance import EPSILON
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, n_blocks
 from render.trace.seams import SharedEdges, as_one_mesh
-from render.trace.topology import EdgeTable
+from render.trace.topology import SEAM_SIZE, EdgeTable
 from render.trace.vec3 import cross, dot3, sub
+from render.trace.visibility import blocked_past
 
 
 def edge_plane(a, b, eye):
@@ -317,8 +318,18 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
         view.occluders, view.frame, camera, coords, directions, depth, norm, ignore,
         seen_in(view.occluders, pixel, scene),
     )  # fmt: skip
+    on_row = _faces_on(kind, shared_faces)  # (E, K) global ids, -1 padding
+    seams = _seam_rows(
+        kind, shared_faces, vertices, as_one_mesh([scene.meshes[k] for k in kind.meshes])[1]
+    )
+    again = np.flatnonzero(hidden & (norm > 0) & (depth > 0) & seams[edges])
+    if len(again):  # a face of the edge hides its point only across a seam's crack
+        hidden[again] = blocked_past(
+            view.occluders.accelerator(), np.broadcast_to(eye, (len(again), 3)),
+            directions[again], depth[again] * (1.0 - SHORT), on_row[edges[again]],
+        )  # fmt: skip
     seen = np.flatnonzero(~hidden)
-    faces = _faces_on(kind, shared_faces)[edges[seen]]  # (n, K) global ids, -1 padding
+    faces = on_row[edges[seen]]
     open_row = _open_rows(kind, shared_faces)
     occluder = _thin_occluder(view, directions[seen], depth[seen], faces)
     # An open edge just behind a face that draws the same curve is that curve: which of the
@@ -335,14 +346,17 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     coords, depth, step, chosen = (np.take(x, seen, axis=0) for x in (coords, depth, step, chosen))
     scale, keys = weight[seen] / norm[seen], keys[seen]
     out = np.zeros((len(hidden), 3))
-    out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale)
+    beside = np.where(seams[edges[seen], None], on_row[edges[seen]], -1)
+    out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale, beside)
     return out
 
 
 #: An edge point within this fraction of the scene's size of another face's plane, on an
 #: edge of that face in line with its own (or on a face parallel to its own), lies on a
 #: curve that face's edges draw too (module docstring: seams that do not share vertices).
-COINCIDENT = 1e-6
+#: A quarter of the distance within which meshes' seams are welded before
+#: (``render.trace.topology.SEAM_SIZE``): a seam is either welded or beyond this test.
+COINCIDENT = SEAM_SIZE / 4
 #: The ray beyond an open boundary passes this fraction of the scene's size from the edge
 #: (when nearer than ``EPSILON`` pixels): well inside ``COINCIDENT``, so a gap it crosses
 #: is one that ``_counted_elsewhere`` sees as closed.
@@ -372,6 +386,27 @@ def _thin_occluder(view: View, directions, depth, faces) -> np.ndarray:
         np.broadcast_to(eye, directions.shape), directions, tmax=depth * (1.0 - THIN)
     )
     return np.where(np.any(faces == prim[:, None], axis=1), -1, prim)
+
+
+def _seam_rows(kind: MeshEdge, shared_faces: np.ndarray, vertices, faces) -> np.ndarray:
+    """(E,) bool: the rows of ``kind.table`` whose faces may have come apart along them:
+    those other meshes' faces join, and those with a face whose corners are not both the
+    row's ends, at the same positions (welded within ``seam_distance``: a seam between
+    meshes taken as one, or the long edge of a T-junction, whose vertex was rounded off
+    its line). ``vertices`` (V, 3) and ``faces`` (F, 3): the meshes' (``as_one_mesh``).
+    A ray through an edge point meets the planes of the edge's faces there only, but
+    across such a crack it may meet another face of the edge: the visibility tests of
+    these rows' points pass the row's faces (``blocked_past``)."""
+    table = kind.table
+    a, b = vertices[table.i][:, None], vertices[table.j][:, None]
+    apart = np.any(shared_faces >= 0, axis=1)
+    for column in table.faces.T:
+        corners = vertices[faces[np.maximum(column, 0)]]  # (E, 3, 3)
+        ends = np.any(np.all(corners == a, axis=2), axis=1) & np.any(
+            np.all(corners == b, axis=2), axis=1
+        )
+        apart |= (column >= 0) & ~ends
+    return apart
 
 
 def _open_rows(kind: MeshEdge, shared_faces: np.ndarray) -> np.ndarray:
@@ -452,11 +487,12 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.where(length > 0, length, 1.0)
 
 
-def _side_factors(view: View, coords, depth, step, chosen, keys, scale) -> np.ndarray:
+def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces) -> np.ndarray:
     """(n, 3): ``scale`` (n,) times f_+ - f_- of n visible edge points through image-plane
     points ``coords`` (n, 2) at ``depth`` (n,), the faces ``chosen`` (n, 2) seen either
     side (-1: none, then the ray ``EPSILON`` pixels along ``step`` (n, 2) beside the
-    edge), shaded by ``view.radiance`` (``keys`` (n,) its names of the points)."""
+    edge), shaded by ``view.radiance`` (``keys`` (n,) its names of the points; ``faces``
+    (n, K) the faces on each point's edge, which its shadow rays pass)."""
     n = len(coords)
     keys = np.concatenate([keys, keys])  # per row of ``colour`` below
     # Both sides at once: one shading pass for the sides with a face (shaded at the edge
@@ -468,6 +504,7 @@ def _side_factors(view: View, coords, depth, step, chosen, keys, scale) -> np.nd
     colour[faced] = view.radiance.seen(
         np.take(both, faced, axis=0), face[faced],
         np.concatenate([depth, depth])[faced], keys[faced],
+        beside=np.take(np.concatenate([faces, faces]), faced, axis=0),
     )  # fmt: skip
     offset = EPSILON * np.concatenate([step, -step])
     colour[beyond] = view.radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond])

@@ -52,6 +52,10 @@ class Occluders:
         )
 
 
+#: ``hidden_points``' rays end this fraction of the depth short of the point.
+SHORT = 1e-6
+
+
 def hidden_points(
     visibility: Occluders | Visibility,
     frame,
@@ -72,7 +76,7 @@ def hidden_points(
     which tries
     ``first_try`` (k,), a primitive likely to lie in front of each point (``seen_in``),
     before its traversal: the same answers either way."""
-    tmax = depth * (1.0 - 1e-6)
+    tmax = depth * (1.0 - SHORT)
     primitives = visibility.primitives
     n_prims = len(primitives[0]) + len(primitives[1])
     if visibility.bvh and len(coords) >= OCCLUSION_RAYS_PER_PRIMITIVE * n_prims:

@@ -37,12 +37,12 @@ class SideRadiance(Protocol):
     sides' random numbers from it, so that f_+ - f_- is estimated with common random
     numbers (far less noise than two independent estimates)."""
 
-    def seen(
-        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
-    ) -> np.ndarray:
+    def seen(self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray,
+             beside: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """(k, 3): the radiance of camera rays through ``coords`` (k, 2) that first meet
         primitive ``prim_id`` (k,) int64 (global ids; -1: none) at ``depth`` (k,) along the
-        view axis."""
+        view axis. ``beside`` (k, m) (global ids, -1 padding): for points on an edge, the
+        faces on that edge, which cannot shadow them (``Visibility.lit_beside``)."""
         ...
 
     def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
@@ -58,12 +58,14 @@ def seen_through(
     prim_id: np.ndarray,
     depth: np.ndarray,
     directions: np.ndarray | None = None,
+    beside: np.ndarray | None = None,
 ) -> Visibility:
     """The render's ``visibility`` with its camera rays replaced by k rays through
     image-plane points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the
     background) at ``depth`` (k,) along the view axis: their hit points and, per light,
-    which of them it reaches (shadow rays traced as the render's are). ``directions``:
-    the rays' camera directions (k, 3) if the caller has them already."""
+    which of them it reaches (shadow rays traced as the render's are; for points on an
+    edge, passing the faces ``beside`` (k, m) on it: ``Visibility.lit_beside``).
+    ``directions``: the rays' camera directions (k, 3) if the caller has them already."""
     forward, right, up, eye = plain_frame(scene.camera)
     hit = np.flatnonzero(prim_id >= 0)
     at = np.take(coords, hit, axis=0)  # np.take: rows gathered ~5x faster than coords[hit]
@@ -72,6 +74,9 @@ def seen_through(
     points = ray_ends(eye, directions, depth, hit)
     primary = PrimaryHits(prim_id, hit, depth, points, at)
     lit = [visibility.lit_towards(light, points, prim_id[hit]) for light in scene.lights]
+    if beside is not None and visibility.shadows:
+        lit = [visibility.lit_beside(light, points, prim_id[hit], beside[hit], mask)
+               for light, mask in zip(scene.lights, lit, strict=True)]  # fmt: skip
     return replace(visibility, primary=primary, lit=lit)
 
 
@@ -84,15 +89,14 @@ class DirectRadiance:
         self.scene, self.visibility, self.frame = scene, visibility, frame
         self.max_bounces = max_bounces
 
-    def seen(
-        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
-    ) -> np.ndarray:
+    def seen(self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray,
+             beside: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """``SideRadiance.seen``, off the tape: the radiance (k, 3) float64 of camera rays
         through ``coords`` (k, 2) that meet ``prim_id`` (k,) (-1: the background) at
         ``depth`` (k,), shaded as the render's camera hits are (shadows and mirror
-        reflections included, by ``shade_camera_hits``)."""
+        reflections included, by ``shade_camera_hits``; the faces ``beside`` passed)."""
         scene, max_bounces = self.scene, self.max_bounces
-        seen = seen_through(scene, self.visibility, coords, prim_id, depth)
+        seen = seen_through(scene, self.visibility, coords, prim_id, depth, beside=beside)
         out = np.empty((len(coords), 3))
         out[:] = np.asarray(scene.background.data, np.float64)
         # Values only: a reflectance that is zero adds nothing, even while it is differentiated.

@@ -76,27 +76,32 @@ class BorderChords:
 # ---------------------------------------------------------------------------------------
 
 
-def _light_silhouettes(outlines: Outlines, light: Light):
+def _light_silhouettes(outlines: Outlines, light: Light, first_sphere: int):
     """Occluder curves of one light, among the scene's ``outlines`` (``render.trace.
     outlines``: the edges whose faces lie on one side of the plane the edge sweeps in the
     light, ``Light.edge_plane``; the spheres' circles of tangency, ``Light.sphere_outline``):
     (occluder (c, 3) int64 as in ``BorderChords``, curve kind per row: 0 a segment from
     ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius vector ``b`` and second axis
-    ``axis`` (c, 3))."""
+    ``axis`` (c, 3), and ``own`` (c, 2) the primitives a ray grazing the curve meets only
+    by rounding: an edge's two faces, a sphere's id twice; ``first_sphere``: the first
+    sphere's primitive id)."""
     m, base = light.edge_plane(outlines.a, outlines.b)
     keep = np.flatnonzero(one_sided(m, base, outlines.c)[0])
     rows = [np.stack([outlines.edge_object[keep], *outlines.ends[keep].T], axis=1)]
     a, b, axis = [outlines.a[keep]], [outlines.b[keep]], [np.zeros((len(keep), 3))]
+    own = [outlines.faces[keep]]
     for index, (centre, r) in enumerate(zip(outlines.centre, outlines.radius, strict=True)):
         circle = light.sphere_outline(centre, float(r))
         if circle is None:
             continue  # the light inside the sphere: everything outside is dark
         rows.append(np.array([[-1, index, -1]]))
+        own.append(np.full((1, 2), first_sphere + index))
         for out, x in zip((a, b, axis), circle, strict=True):
             out.append(x[None])
     occluder = np.concatenate(rows).astype(np.int64)
     kind = (occluder[:, 0] < 0).astype(np.int64)
-    return occluder, kind, np.concatenate(a), np.concatenate(b), np.concatenate(axis)
+    return (occluder, kind, np.concatenate(a), np.concatenate(b), np.concatenate(axis),
+            np.concatenate(own).astype(np.int64))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------
@@ -106,9 +111,8 @@ def _light_silhouettes(outlines: Outlines, light: Light):
 
 def _starting_chords(scene, frame, curves):
     """Where the grazing rays start: each curve at 2 points plus one per SPACING pixels of
-    its image from the camera, as chords (curve (n,), u0 (n,), u1 (n,)); and per curve
-    the sphere a ray grazing it must not count as its receiver (``own`` (c,), -2: none)."""
-    occluder, kind, a, b, axis = curves
+    its image from the camera, as chords (curve (n,), u0 (n,), u1 (n,))."""
+    occluder, kind, a, b, axis = curves[:5]
     camera = scene.camera
     ends = np.concatenate([a, np.where(kind[:, None] == 1, a + b, b)])
     px, depth = project(ends, frame, camera.width, camera.height)
@@ -119,8 +123,7 @@ def _starting_chords(scene, frame, curves):
     curve = np.repeat(np.arange(len(a)), count)
     first = np.repeat(np.cumsum(count) - count, count)
     u0 = (np.arange(len(curve)) - first) / count[curve]
-    own = np.where(kind == 1, first_sphere_id(scene) + occluder[:, 1], -2)
-    return (curve, u0, u0 + 1.0 / count[curve]), own
+    return curve, u0, u0 + 1.0 / count[curve]
 
 
 @borrowing
@@ -139,12 +142,13 @@ def _curve_point(kind, a, b, axis, cv, u):
 
 
 @borrowing
-def _graze_one(bvh, where, point, own, cv, s, frame, width, height, size, stack, stack_t):
+def _graze_one(bvh, where, point, own, cv, s, frame, width, height, size, first_sphere, stack,
+               stack_t):  # fmt: skip
     """Where the light of curve ``cv`` sends the ray grazing the point s (a 3-tuple) of the
-    curve on to hit: (receiver, x, y), the receiver -1 (nothing, behind the camera, or
-    ``own[cv]``, the sphere grazed, which a ray touching it meets again only by rounding)
-    or its pixel position (x, y) (0, 0 for -1). ``where[cv]``: the light's position if
-    ``point[cv]``, else its unit direction. (Scalars and tuples only: arrays allocated per
+    curve on to hit: (receiver, x, y), the receiver -1 (nothing, behind the camera, or the
+    sphere grazed) or its pixel position (x, y) (0, 0 for -1). ``where[cv]``: the light's
+    position if ``point[cv]``, else its unit direction; ``own[cv]``: what the ray meets only
+    by rounding (``_light_silhouettes``). (Scalars and tuples only: arrays allocated per
     ray cost more than the arithmetic around the trace, and cost the cold start their
     compiling.)"""
     forward, right, up, eye = frame
@@ -161,6 +165,13 @@ def _graze_one(bvh, where, point, own, cv, s, frame, width, height, size, stack,
         d = w
         tmin = START * size
     prim, t, _, _ = closest_hit_one(bvh, o, d, tmin, stack, stack_t)
+    for _ in range(2):
+        # A face of the edge grazed: the ray through the edge meets its plane nowhere else,
+        # so it met the face by rounding, or across a crack where the meshes that share
+        # the edge meet (float32 vertices: 1e-8 apart). The ray goes on beyond it.
+        if prim < 0 or prim >= first_sphere or (prim != own[cv, 0] and prim != own[cv, 1]):
+            break
+        prim, t, _, _ = closest_hit_one(bvh, o, d, t, stack, stack_t)
     if prim < 0:
         return -1, 0.0, 0.0
     h0, h1, h2 = o[0] + t * d[0], o[1] + t * d[1], o[2] + t * d[2]
@@ -170,7 +181,7 @@ def _graze_one(bvh, where, point, own, cv, s, frame, width, height, size, stack,
     uu = up[0] * up[0] + up[1] * up[1] + up[2] * up[2]
     x = (r0 * right[0] + r1 * right[1] + r2 * right[2]) / (depth * rr)
     y = (r0 * up[0] + r1 * up[1] + r2 * up[2]) / (depth * uu)
-    if not (depth > 1e-7 * size) or prim == own[cv]:
+    if not (depth > 1e-7 * size) or prim == own[cv, 0]:  # the sphere grazed
         return -1, 0.0, 0.0
     return prim, (x + 1.0) * (width / 2.0), (1.0 - y) * (height / 2.0)
 
@@ -193,7 +204,7 @@ def bisect_chords(
     over one receiver longer than SPACING (CHORD where a sphere casts or receives) is
     halved, and one whose ends see different receivers is halved until they are GAP apart,
     ROUNDS times at most. ``curves`` = (kind, a, b, axis) per curve; ``where``
-    (c, 3), ``point`` (c,) and ``own`` (c,) per curve. Returns the chords (x0 (m, 2), x1
+    (c, 3), ``point`` (c,) and ``own`` (c, 2) per curve. Returns the chords (x0 (m, 2), x1
     (m, 2), curve (m,), receiver (m,)). ``tests/render/edges/shadow_reference.py`` states
     the same bisection round by round in NumPy, and test_shadow_edges.py ties the two.
 
@@ -269,10 +280,10 @@ def _bisect_block(
         curved_curve = kind[cv] == 1
         s = _curve_point(kind, a, b, axis, cv, u0s[k])
         p_a, xa0, xa1 = _graze_one(bvh, where, point, own, cv, s, frame, width, height, size,
-                                   stack, stack_t)  # fmt: skip
+                                   first_sphere, stack, stack_t)  # fmt: skip
         s = _curve_point(kind, a, b, axis, cv, u1s[k])
         p_b, xb0, xb1 = _graze_one(bvh, where, point, own, cv, s, frame, width, height, size,
-                                   stack, stack_t)  # fmt: skip
+                                   first_sphere, stack, stack_t)  # fmt: skip
         todo_u[0, 0], todo_u[0, 1] = u0s[k], u1s[k]
         todo_p[0, 0], todo_p[0, 1] = p_a, p_b
         todo_x[0, 0], todo_x[0, 1], todo_x[0, 2], todo_x[0, 3] = xa0, xa1, xb0, xb1
@@ -293,7 +304,8 @@ def _bisect_block(
                 mid = 0.5 * (lo + hi)
                 pm, xm0, xm1 = _graze_one(bvh, where, point, own, cv,
                                           _curve_point(kind, a, b, axis, cv, mid), frame,
-                                          width, height, size, stack, stack_t)  # fmt: skip
+                                          width, height, size, first_sphere, stack,
+                                          stack_t)  # fmt: skip
                 # the upper half first on the stack, so the lower one is taken next
                 todo_u[n, 0], todo_u[n, 1] = mid, hi
                 todo_p[n, 0], todo_p[n, 1] = pm, p1
@@ -324,7 +336,7 @@ def border_chords(scene: Scene, visibility: Visibility, frame, outlines: Outline
     size = max(visibility.size, 1e-300)
     parts = []
     for j, light in enumerate(scene.lights if visibility.shadows else []):
-        curves = _light_silhouettes(outlines, light)
+        curves = _light_silhouettes(outlines, light, first_sphere_id(scene))
         parts.append((*curves, np.full(len(curves[0]), j)))
     if parts:
         *curves, light = (np.concatenate(p) for p in zip(*parts, strict=True))
@@ -332,14 +344,14 @@ def border_chords(scene: Scene, visibility: Visibility, frame, outlines: Outline
         empty = np.zeros(0, np.int64)
         return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
                             np.zeros((0, 3), np.int64), empty)  # fmt: skip
-    start, own = _starting_chords(scene, plain, curves)
+    start = _starting_chords(scene, plain, curves)
     # The kernel's grazing rays: from a point light's position, or along a light's unit
     # direction of travel.
     kinds, towards = zip(*(x.pack(unit=True) for x in scene.lights), strict=True)
     point, towards = np.array(kinds) == POINT, np.array(towards)
     camera = scene.camera
     x0, x1, curve, receiver = bisect_chords(
-        visibility.accelerator().flat_tree(), tuple(curves[1:]), towards[light], point[light],
-        own, start, plain, camera.width, camera.height, size, first_sphere_id(scene),
+        visibility.accelerator().flat_tree(), tuple(curves[1:5]), towards[light], point[light],
+        curves[5], start, plain, camera.width, camera.height, size, first_sphere_id(scene),
     )  # fmt: skip
     return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)

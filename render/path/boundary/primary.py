@@ -51,11 +51,12 @@ class PathRadiance:
         self.world, self.frame, self.sampler = world, frame, sampler
         self.samples, self.first_id = samples, first_id
 
-    def seen(
-        self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray
-    ) -> np.ndarray:
+    def seen(self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray,
+             beside: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
-        (k, 2) that first meets primitive ``prim_id`` (k,) (-1: none) at ``depth`` (k,)."""
+        (k, 2) that first meets primitive ``prim_id`` (k,) (-1: none) at ``depth`` (k,).
+        ``beside`` is not needed: the paths start ``INSIDE`` their triangles (``_inside``),
+        off the faces of the edge."""
         coords, depth = self._inside(coords, prim_id, depth)
         return self._estimate(coords, key, prim_id, depth)
 

@@ -24,26 +24,35 @@ def curve_points(kind, a, b, axis, u):
     return np.where(kind[:, None] == 1, circle, a + u[:, None] * (b - a))
 
 
-def graze(visibility, where, point, s, own, frame, width, height, size):
+def graze(visibility, where, point, s, own, frame, width, height, size, first_sphere):
     """Where the light's rays grazing the points s (k, 3) go on to hit: receiver (k,) (-1:
-    nothing, behind the camera, or ``own`` (k,), the sphere grazed) and its pixel position
-    (k, 2). Per point its light: ``where`` (k, 3), a position where ``point`` (k,), else a
-    unit direction. The rays from point lights are traced in one call, the others in
-    another."""
+    nothing, behind the camera, or the sphere grazed) and its pixel position (k, 2). Per
+    point its light: ``where`` (k, 3), a position where ``point`` (k,), else a unit
+    direction, and ``own`` (k, 2), what it meets only by rounding: a ray that meets a face
+    of the edge grazed goes on beyond it (twice at most), one that meets the sphere grazed
+    counts as meeting nothing. The rays from point lights are traced in one call, the
+    others in another; those that go on, one at a time."""
     prim, hit = np.full(len(s), -1), np.zeros_like(s)
+    accelerator = visibility.accelerator()
     for rows in (np.flatnonzero(point), np.flatnonzero(~point)):
         if len(rows) == 0:
             continue
         at, w = np.take(s, rows, axis=0), np.take(where, rows, axis=0)
         if point[rows[0]]:  # from the light through the point, on beyond it
-            p, t, _, _ = visibility.accelerator().closest_hit(w, at - w, tmin=1.0 + START)
-            hit[rows] = w + np.where(p >= 0, t, 0.0)[:, None] * (at - w)
+            o, d, tmin = w, at - w, 1.0 + START
         else:  # from the point along the light's (unit) direction
-            p, t, _, _ = visibility.accelerator().closest_hit(at, w, tmin=START * size)
-            hit[rows] = at + np.where(p >= 0, t, 0.0)[:, None] * w
+            o, d, tmin = at, w, START * size
+        p, t, _, _ = accelerator.closest_hit(o, d, tmin=tmin)
+        for _ in range(2):
+            again = np.flatnonzero((p >= 0) & (p < first_sphere)
+                                   & np.any(p[:, None] == own[rows], axis=1))  # fmt: skip
+            for r in again:
+                p[r : r + 1], t[r : r + 1], _, _ = accelerator.closest_hit(
+                    o[r : r + 1], d[r : r + 1], tmin=float(t[r]))  # fmt: skip
+        hit[rows] = o + np.where(p >= 0, t, 0.0)[:, None] * d
         prim[rows] = p
     px, depth = project(np.where(prim[:, None] >= 0, hit, s), frame, width, height)
-    prim = np.where((prim >= 0) & (depth > 1e-7 * size) & (prim != own), prim, -1)
+    prim = np.where((prim >= 0) & (depth > 1e-7 * size) & (prim != own[:, 0]), prim, -1)
     return prim, np.where(prim[:, None] >= 0, px, 0.0)
 
 
@@ -56,7 +65,9 @@ def border_chords(visibility, curves, where, point, own, start, frame, width, he
 
     def sample(c, u):
         s = curve_points(*(np.take(x, c, axis=0) for x in (kind, a, b, axis)), u)
-        return graze(visibility, where[c], point[c], s, own[c], frame, width, height, size)
+        return graze(
+            visibility, where[c], point[c], s, own[c], frame, width, height, size, first_sphere
+        )
 
     p0, x0 = sample(curve, u0)
     p1, x1 = sample(curve, u1)

@@ -19,7 +19,7 @@ from render.scene.cornell import grid_quad
 from render.scene.placement import placed
 from render.trace import outlines
 from render.trace.outlines import Outlines, one_sided
-from render.trace.primitives import scene_primitives
+from render.trace.primitives import first_sphere_id, scene_primitives
 from render.trace.visibility import scene_size
 from tests.render.edges.test_t_junctions import boxes_in_meshes
 
@@ -91,7 +91,7 @@ def test_the_outlines_seen_from_a_light_are_the_edges_where_the_faces_turn(
     m, base = light.edge_plane(outlines.a, outlines.b)
     kept = one_sided(m, base, outlines.c)[0]
     assert {frozenset(map(int, e)) for e in outlines.ends[kept]} == want
-    occluder = _light_silhouettes(outlines, light)[0]
+    occluder = _light_silhouettes(outlines, light, first_sphere=mesh.num_faces)[0]
     assert {frozenset(map(int, row[1:])) for row in occluder} == want
 
 
@@ -109,7 +109,7 @@ def test_a_soft_shadows_edges_seen_from_a_point_lights_place_are_its_shadow_bord
     curves = Curves.of(PathSampler(world, 1, 2, 100, 0))
     angle, _ = curves.silhouettes(np.asarray(light.position.data, np.float64)[None])
     from_path = np.flatnonzero(angle[0, : curves.n_edges] > 0)
-    occluder = _light_silhouettes(curves, light)[0]
+    occluder = _light_silhouettes(curves, light, first_sphere_id(world))[0]
     rows = np.column_stack([curves.edge_object, curves.ends])[from_path]
     np.testing.assert_array_equal(occluder[occluder[:, 0] >= 0], rows)
 
