@@ -689,3 +689,23 @@ def test_broadcast_rays_equal_materialised_rays(use_bvh):
     )
     with pytest.raises(ValueError, match="origins must be finite"):
         acc.closest_hit(np.broadcast_to(np.array([np.nan, 0, 0]), d.shape), d)
+
+
+@pytest.mark.parametrize("use_bvh", [True, False])
+def test_blocked_past_goes_on_beyond_the_faces_it_passes(use_bvh):
+    """``render.trace.visibility.blocked_past``: rays up the z axis through three stacked
+    triangles (ids 0, 1, 2 at z = 1, 2, 3) are blocked by the first they do not pass,
+    within tmax; ending before the first not passed, they are not."""
+    from render.trace.visibility import blocked_past
+
+    tri = np.array([[-1.0, -1.0, 0.0], [2.0, -1.0, 0.0], [-1.0, 2.0, 0.0]])
+    stacked = np.stack([tri + [0.0, 0.0, z] for z in (1.0, 2.0, 3.0)])
+    acc = Accelerator(stacked, use_bvh=use_bvh)
+    passing = np.array([[-1, -1], [0, -1], [0, 1], [0, 1], [1, 2], [0, 2]])
+    tmax = np.array([10.0, 10.0, 10.0, 2.5, 10.0, 1.5])
+    origins = np.zeros((len(tmax), 3))
+    directions = np.broadcast_to([0.0, 0.0, 1.0], origins.shape)
+    blocked = blocked_past(acc, origins, directions, tmax, passing)
+    # 0 blocks; 1 blocks past 0; 2 past 0, 1; 2 is beyond tmax 2.5; 0 blocks (passing 1, 2);
+    # passing 0 and 2, 1 lies beyond tmax 1.5
+    np.testing.assert_array_equal(blocked, [True, True, True, False, True, False])
