@@ -261,26 +261,42 @@ class Visibility:
         return out
 
 
-def blocked_past(accelerator: Accelerator, origins, directions, tmax, passing) -> np.ndarray:
-    """(k,) bool: whether the rays ``origins + t directions`` (k, 3), 0 < t < ``tmax`` (k,),
-    meet a primitive other than those ``passing`` (k, m) (global ids, -1 padding), which
-    they go on beyond (closest hits: one more than the faces to pass at most; a ray that
-    meets only such faces is not blocked)."""
+def hit_past(accelerator: Accelerator, origins, directions, passing, tmax=np.inf) -> tuple:
+    """The closest hits (prim (k,), t (k,), u (k,), v (k,): ``Accelerator.closest_hit``'s)
+    of the rays ``origins + t directions`` (k, 3), 0 < t < ``tmax`` (k,) or a float, past
+    the primitives ``passing`` (k, m) (global ids, -1 padding): a ray that meets one goes
+    on beyond it (one more closest hit than the faces to pass, at most; a ray that meets
+    only such faces meets nothing). For rays through an edge point, which meet the planes
+    of the edge's faces there only, but across a seam's crack may meet a face of the edge
+    (``render.trace.topology.seam_distance``)."""
     origins = np.array(origins, np.float64)
-    tmax = np.array(tmax, np.float64)
-    blocked = np.zeros(len(origins), bool)
+    tmax = np.array(np.broadcast_to(tmax, (len(origins),)), np.float64)
+    prim, t, u, v = accelerator.closest_hit(origins, directions, 0.0, tmax)
+    travelled = np.zeros(len(origins))
     todo = np.arange(len(origins))
-    for _ in range(passing.shape[1] + 1):
-        prim, t, _, _ = accelerator.closest_hit(origins[todo], directions[todo], 0.0, tmax[todo])
-        passed = (prim >= 0) & np.any(prim[:, None] == passing[todo], axis=1)
-        blocked[todo[(prim >= 0) & ~passed]] = True
-        todo, t = todo[passed], t[passed]
+    for _ in range(passing.shape[1]):
+        passed = (prim[todo] >= 0) & np.any(prim[todo, None] == passing[todo], axis=1)
+        todo = todo[passed]
         if len(todo) == 0:
             break
         # On from where it met the face (the direction keeps its length).
-        origins[todo] += t[:, None] * directions[todo]
-        tmax[todo] -= t
-    return blocked
+        step = t[todo]
+        travelled[todo] += step
+        origins[todo] += step[:, None] * directions[todo]
+        tmax[todo] -= step
+        prim[todo], t[todo], u[todo], v[todo] = accelerator.closest_hit(
+            origins[todo], directions[todo], 0.0, tmax[todo]
+        )
+    else:
+        last = todo[(prim[todo] >= 0) & np.any(prim[todo, None] == passing[todo], axis=1)]
+        prim[last], t[last] = -1, np.inf
+    return prim, np.where(prim >= 0, travelled + t, np.inf), u, v
+
+
+def blocked_past(accelerator: Accelerator, origins, directions, tmax, passing) -> np.ndarray:
+    """(k,) bool: whether the rays ``origins + t directions`` (k, 3), 0 < t < ``tmax`` (k,),
+    meet a primitive other than those ``passing`` (k, m) (``hit_past``)."""
+    return hit_past(accelerator, origins, directions, passing, tmax)[0] >= 0
 
 
 def geometry_stamp(cache: RenderCache, primitives: Primitives) -> np.ndarray:
