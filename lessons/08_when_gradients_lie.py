@@ -386,7 +386,7 @@ save_and_show(figure, OUT / "camera_calibration_error.png")
 # <!-- check: camera_plain_error > --> % (`camera_calibration_error.png`; the exact values
 # are printed). Both curves first *rise*: with edges, from `11.5`
 # <!-- check: camera_start_error --> % to `28.8` <!-- check: camera_peak_error --> % at
-# iteration `32` <!-- check: camera_peak_at -->, while the loss falls by a factor of `6.3`
+# iteration `32` <!-- check: camera_peak_at -->, while the loss falls by a factor of `6.4`
 # <!-- check: camera_loss_fall_to_peak --> and the look-at point moves from `1.15`
 # <!-- check: look_at_start --> to `0.57` <!-- check: look_at_at_peak --> units from the
 # truth. The loss is first lowered by putting the teapot where the target has it in the

@@ -370,7 +370,7 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
 # the boundary integral `0.030` <!-- check: boundary_from_mean --> with 16 samples, about
 # as close as the best single truth, and about `0.02` <!-- check: boundary_64_from_mean -->
-# with 64, closer than any 4,096-sample truth. The pairs stay `0.27`
+# with 64, closer than any 4,096-sample truth. The pairs stay `0.26`
 # <!-- check: pairs_from_mean --> off. So the 0.045 above is mostly the reference's
 # error. What is the method's own, at 16 samples, is mostly the interior term's (sampled,
 # not integrated: it shrinks with 64 samples), and at 64 samples it is below what these

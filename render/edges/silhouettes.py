@@ -125,10 +125,10 @@ def creases(group: WeldedMeshes, scene: Scene) -> np.ndarray:
     normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), np.finfo(float).tiny)
     nb = np.maximum(edges.neighbour, 0)
-    # One plane within an angle of ~1.4e-4 rad (no visible change of colour): within
-    # rounding, or tilted by a seam between meshes welded within ``seam_distance`` (4e-6
-    # of the scene on an edge of 0.1 tilts its face by 4e-5 rad).
-    same = (edges.neighbour >= 0) & (np.einsum("fkc,fc->fk", normal[nb], normal) > 1.0 - 1e-8)
+    # One plane within an angle of 2e-3 rad (a change of colour of 0.2 % at most): within
+    # rounding, or tilted by a seam welded across a crack (``render.trace.topology.
+    # seam_reach``: up to 1e-3 of the edges' length).
+    same = (edges.neighbour >= 0) & (np.einsum("fkc,fc->fk", normal[nb], normal) > 1.0 - 2e-6)
     same &= (looks[nb] == looks[:, None]) & flat[nb]
     return np.where(flat[:, None], ~same, seams)
 

@@ -35,6 +35,7 @@ from render.trace.topology import (
     points_inside,
     row_ids,
     seam_distance,
+    seam_reach,
     welded_ids,
 )
 
@@ -73,7 +74,7 @@ def shared_between(vertices: list, tables: list, n_faces: list) -> list[SharedEd
     if len(tables) < 2:
         return None
     every = np.concatenate(vertices)
-    welded = welded_ids(every, seam_distance(every), open_ends(tables, vertices))
+    welded = welded_ids(every, *seam_tolerances(every, tables, vertices, every))
     starts = np.cumsum([0] + [len(v) for v in vertices])
     ends = [
         np.sort(np.stack([welded[t.i + s], welded[t.j + s]], axis=1), axis=1)
@@ -168,9 +169,10 @@ def edges_as_one(meshes: list[Mesh], members, topology) -> MeshEdges:
     ``seam_distance`` (of all ``meshes``) where their open edges end, cut at their
     T-junctions."""
     vertices, faces = as_one_mesh([meshes[o] for o in members])
-    near = open_ends([topology[o].table for o in members],
-                     [meshes[o].vertices.data for o in members])  # fmt: skip
-    return mesh_edges(vertices, faces, seam_distance(as_one_mesh(meshes)[0]), near)
+    every = as_one_mesh(meshes)[0]
+    reach, near = seam_tolerances(vertices, [topology[o].table for o in members],
+                                  [meshes[o].vertices.data for o in members], every)  # fmt: skip
+    return mesh_edges(vertices, faces, reach, near, seam_distance(every))
 
 
 def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
@@ -180,18 +182,14 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
         return set()
     vertices, _ = as_one_mesh(meshes)
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-    i, j = [], []
-    for k, edges in enumerate(topology):
-        table = edges.table
-        rows = open_rows_of(table)
-        i.append(table.i[rows] + offsets[k])
-        j.append(table.j[rows] + offsets[k])
-    i, j = np.concatenate(i), np.concatenate(j)
+    parts = [m.vertices.data for m in meshes]
+    i, j = open_rows_ends([edges.table for edges in topology], parts)
     if len(i) < 2:
         return set()
-    tolerance = seam_distance(vertices)
+    reach, _ = seam_tolerances(vertices, [edges.table for edges in topology], parts, vertices)
     ends = np.unique(np.r_[i, j])
-    found = points_inside(vertices, i, j, ends, welded_ids(vertices, tolerance, ends), tolerance)
+    found = points_inside(vertices, i, j, ends, welded_ids(vertices, reach, ends),
+                          seam_distance(vertices))  # fmt: skip
     if found is None:
         return set()
     segment, point, _ = found
@@ -203,12 +201,28 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
 def open_ends(tables: list, vertices: list) -> np.ndarray:
     """The ends of the open rows (one face) of meshes' ``tables`` (``EdgeTable``), as ids
     among their ``vertices`` (V_k, 3) concatenated: where meshes can meet."""
+    return np.concatenate(open_rows_ends(tables, vertices))
+
+
+def open_rows_ends(tables: list, vertices: list) -> tuple[np.ndarray, np.ndarray]:
+    """The ends (i (n,), j (n,)) of the open rows of meshes' ``tables``, as ids among their
+    ``vertices`` (V_k, 3) concatenated."""
     offsets = np.cumsum([0] + [len(v) for v in vertices])
-    ends = []
+    i, j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for table, offset in zip(tables, offsets, strict=False):
         rows = open_rows_of(table)
-        ends += [table.i[rows] + offset, table.j[rows] + offset]
-    return np.concatenate(ends) if ends else np.zeros(0, np.int64)
+        i.append(table.i[rows] + offset)
+        j.append(table.j[rows] + offset)
+    return np.concatenate(i), np.concatenate(j)
+
+
+def seam_tolerances(vertices: np.ndarray, tables: list, parts: list, every: np.ndarray):
+    """For meshes taken as one, their vertices (V, 3) ``vertices`` (the meshes' ``parts``
+    (V_k, 3) concatenated) with their ``tables``: each vertex's ``seam_reach`` (V,) (its
+    floor the ``seam_distance`` of ``every``, all the scene's meshes' vertices), and the
+    ends of the open rows (ids among ``vertices``), where meshes can meet."""
+    i, j = open_rows_ends(tables, parts)
+    return seam_reach(vertices, i, j, seam_distance(every)), np.r_[i, j]
 
 
 def as_one_mesh(meshes: list[Mesh]) -> tuple[np.ndarray, np.ndarray]:

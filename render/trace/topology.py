@@ -145,8 +145,9 @@ def welded_ids(
 ) -> np.ndarray:
     """(V,) int64: each vertex's welded id, equal for vertices at the same position (within
     ``_WELD_TOLERANCE`` of the mesh's bounding-box diagonal), numbered 0..U-1. With a
-    ``tolerance``: equal too for two vertices among ``near`` (indices; None: every vertex)
-    closer than that, and for chains of such (the pairs a grid of boxes finds,
+    ``tolerance`` (a float, or (V,) per vertex: ``seam_reach``): equal too for two
+    vertices among ``near`` (indices; None: every vertex) closer than that (than both
+    vertices' tolerances), and for chains of such (the pairs a grid of boxes finds,
     ``render.trace.grid``, joined): where vertices that are one position came apart by
     more than rounding, as coordinates that went through float32 do, no cell boundary
     splits them. (Where meshes meet, at their seams and T-junctions, each side's vertices
@@ -159,12 +160,14 @@ def welded_ids(
     if tolerance is None or len(vertices) == 0:
         return ids
     near = np.arange(len(vertices)) if near is None else np.unique(near)
-    lo, hi = grown(vertices[near], vertices[near], tolerance)
+    reach = np.broadcast_to(np.asarray(tolerance, np.float64), (len(vertices),))
+    lo, hi = grown(vertices[near], vertices[near], reach[near])
     found = candidate_pairs(vertices[near], lo, hi, _MOST_PAIRS)
     if found is None:  # a crowd within the tolerance (a mesh collapsed to a few points)
-        return row_ids(np.round((vertices - low) / tolerance))
+        return row_ids(np.round((vertices - low) / reach[near].min()))
     point, other = near[found[0]], near[found[1]]
-    close = np.sum((vertices[point] - vertices[other]) ** 2, axis=1) <= tolerance**2
+    within = np.minimum(reach[point], reach[other])  # both ends' reach
+    close = np.sum((vertices[point] - vertices[other]) ** 2, axis=1) <= within**2
     edges = (ids[point[close]], ids[other[close]])
     if np.all(edges[0] == edges[1]):  # nothing came apart: the ids as they are
         return ids
@@ -220,6 +223,13 @@ SEAM_GAP = 4 * float(np.finfo(np.float32).eps)
 #: open at others: a box split into meshes whose seams were moved 2e-6 apart had gradients
 #: 11-85 % off the one mesh's.
 SEAM_SIZE = 4e-6
+#: ... or closer than this fraction of the shortest open edge at either of them (a crack
+#: narrow beside the edges it lies between: parts exported one by one, each tessellated
+#: and rounded alone), and a vertex as close to an open edge, relative to that edge, lies
+#: on it (``points_inside``). Left open, such a crack's two sides were two borders: a box
+#: split into meshes whose seams were moved 1e-4 apart (3e-4 of its edges) had gradients
+#: off the one mesh's by 5-77 % (24 boxes of ``benchmarks/seams.py``).
+SEAM_LENGTH = 1e-3
 
 
 def seam_distance(vertices: np.ndarray) -> float:
@@ -238,6 +248,17 @@ def seam_distance(vertices: np.ndarray) -> float:
     return max(SEAM_GAP * size, SEAM_SIZE * mesh_size(vertices), np.finfo(float).tiny)
 
 
+def seam_reach(vertices: np.ndarray, i: np.ndarray, j: np.ndarray, floor: float) -> np.ndarray:
+    """(V,): how far each of ``vertices`` (V, 3) reaches to be one position with another
+    (``welded_ids``): ``floor`` (``seam_distance``), or ``SEAM_LENGTH`` of the shortest
+    open edge (ends i, j (n,)) at it, whichever is larger."""
+    length = np.linalg.norm(vertices[i] - vertices[j], axis=1)
+    shortest = np.full(len(vertices), np.inf)
+    np.minimum.at(shortest, i, length)
+    np.minimum.at(shortest, j, length)
+    return np.maximum(floor, np.where(np.isfinite(shortest), SEAM_LENGTH * shortest, 0.0))
+
+
 def mesh_edges(
     vertices: np.ndarray,
     faces: np.ndarray,
@@ -246,12 +267,11 @@ def mesh_edges(
     cut: float | None = None,
 ) -> MeshEdges:
     """The welded edge structure of a mesh: vertices (V, 3), faces (F, 3), its table's
-    open rows cut at T-junctions (``cut_at_t_junctions``, within ``cut`` or else
-    ``tolerance``); vertices welded within ``tolerance`` of the vertices ``near`` where it
-    is given (``welded_ids``)."""
+    open rows cut at T-junctions (``cut_at_t_junctions``, within ``cut``: by default its
+    ``seam_distance``); vertices welded within ``tolerance`` (a float, or (V,): per vertex)
+    of the vertices ``near`` where it is given (``welded_ids``)."""
     structure = edge_structure(faces, *welding(vertices, faces, tolerance, near))
-    vertices = np.asarray(vertices, np.float64)
-    return cut_at_t_junctions(structure, vertices, faces, cut or tolerance)
+    return cut_at_t_junctions(structure, np.asarray(vertices, np.float64), faces, cut)
 
 
 def cut_at_t_junctions(
@@ -292,12 +312,13 @@ _MOST_PAIRS = 1 << 22
 
 def points_inside(vertices, i, j, points, ids, tolerance):
     """The pairs (segment (m,), point (m,), t (m,)) of segments (vertex ids i, j (n,)) and
-    ``points`` (vertex ids) that lie strictly inside them, within ``tolerance``: at t along
-    the segment, 0 < t < 1, another welded vertex than its ends; None if the candidates a
-    grid of the segments' boxes leaves (``render.trace.grid``) are more than
-    ``_MOST_PAIRS``."""
+    ``points`` (vertex ids) that lie strictly inside them, within ``tolerance`` or
+    ``SEAM_LENGTH`` of the segment's length, whichever is larger: at t along the segment,
+    0 < t < 1, another welded vertex than its ends; None if the candidates a grid of the
+    segments' boxes leaves (``render.trace.grid``) are more than ``_MOST_PAIRS``."""
     a, b = vertices[i], vertices[j]
     p = vertices[points]
+    tolerance = np.maximum(tolerance, SEAM_LENGTH * np.linalg.norm(b - a, axis=1))
     lo, hi = grown(np.minimum(a, b), np.maximum(a, b), tolerance)
     pairs = candidate_pairs(p, lo, hi, _MOST_PAIRS)
     if pairs is None:
@@ -308,7 +329,7 @@ def points_inside(vertices, i, j, points, ids, tolerance):
     off = p[point] - a[segment]
     t = np.sum(off * d, axis=1) / np.where(length2 > 0, length2, 1.0)
     miss = off - t[:, None] * d
-    on = (np.sum(miss * miss, axis=1) <= tolerance * tolerance) & (length2 > 0)
+    on = (np.sum(miss * miss, axis=1) <= tolerance[segment] ** 2) & (length2 > 0)
     pid = ids[points[point]]
     own = (pid == ids[i[segment]]) | (pid == ids[j[segment]])
     keep = on & ~own & (t > 0.0) & (t < 1.0)

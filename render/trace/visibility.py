@@ -284,8 +284,10 @@ def hit_past(accelerator: Accelerator, origins, directions, passing, tmax=np.inf
         travelled[todo] += step
         origins[todo] += step[:, None] * directions[todo]
         tmax[todo] -= step
+        # From the face met, the ray meets it again by rounding: it goes on from a
+        # billionth of its direction's length beyond.
         prim[todo], t[todo], u[todo], v[todo] = accelerator.closest_hit(
-            origins[todo], directions[todo], 0.0, tmax[todo]
+            origins[todo], directions[todo], 1e-9, tmax[todo]
         )
     else:
         last = todo[(prim[todo] >= 0) & np.any(prim[todo, None] == passing[todo], axis=1)]

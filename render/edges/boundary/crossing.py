@@ -21,8 +21,8 @@ from render.edges.boundary.pixels import boxes_apart, pixel_gradient
 from render.edges.geometry import plane_normal, triangle_corners
 from render.scene.camera import camera_directions, clip_to_near, project
 from render.scene.scene import Scene
-from render.trace.seams import as_one_mesh, open_ends
-from render.trace.topology import seam_distance, welded_ids
+from render.trace.seams import as_one_mesh, seam_tolerances
+from render.trace.topology import welded_ids
 from render.trace.vec3 import cross, dot3, sub
 
 
@@ -217,14 +217,15 @@ def global_welded(scene: Scene, topology) -> np.ndarray:
         return ids[0] if ids else np.zeros((0, 3), np.int64)
     ids = np.concatenate(ids)
     vertices, faces = as_one_mesh(meshes)
-    ends = np.unique(open_ends([topology[k].table for k in range(len(meshes))],
-                               [m.vertices.data for m in meshes]))  # fmt: skip
+    reach, ends = seam_tolerances(vertices, [topology[k].table for k in range(len(meshes))],
+                                  [m.vertices.data for m in meshes], vertices)  # fmt: skip
+    ends = np.unique(ends)
     if len(ends) == 0:
         return ids
     # Each end's welded id (any corner at that vertex has it), then the ends joined.
     corner = np.full(len(vertices), -1, np.int64)
     corner[faces.reshape(-1)] = ids.reshape(-1)
-    joined = welded_ids(vertices[ends], seam_distance(vertices))
+    joined = welded_ids(vertices[ends], reach[ends])
     merged = np.arange(offset)
     lowest = np.full(int(joined.max()) + 1, offset)
     np.minimum.at(lowest, joined, corner[ends])

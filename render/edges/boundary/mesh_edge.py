@@ -500,14 +500,16 @@ def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces) -
     face = np.concatenate([chosen[:, 0], chosen[:, 1]])  # rows: the + sides, then the -
     both = np.concatenate([coords, coords])
     faced, beyond = np.flatnonzero(face >= 0), np.flatnonzero(face < 0)
+    sides = np.concatenate([faces, faces])
     colour = np.empty((2 * n, 3))
     colour[faced] = view.radiance.seen(
         np.take(both, faced, axis=0), face[faced],
         np.concatenate([depth, depth])[faced], keys[faced],
-        beside=np.take(np.concatenate([faces, faces]), faced, axis=0),
+        beside=np.take(sides, faced, axis=0),
     )  # fmt: skip
     offset = EPSILON * np.concatenate([step, -step])
-    colour[beyond] = view.radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond])
+    colour[beyond] = view.radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond],
+                                         beside=np.take(sides, beyond, axis=0))  # fmt: skip
     return scale[:, None] * (colour[:n] - colour[n:])
 
 

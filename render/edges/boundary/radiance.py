@@ -22,7 +22,7 @@ from render.scene.camera import camera_directions, plain_frame, ray_ends
 from render.scene.scene import Scene
 from render.shade.hits import shade_camera_hits
 from render.shade.mirrors import Mirrors
-from render.trace.visibility import PrimaryHits, Visibility
+from render.trace.visibility import PrimaryHits, Visibility, hit_past
 
 #: How far, in pixels, the two rays that see either side of a curve pass from it.
 EPSILON = 1e-3
@@ -45,9 +45,12 @@ class SideRadiance(Protocol):
         faces on that edge, which cannot shadow them (``Visibility.lit_beside``)."""
         ...
 
-    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+    def along(
+        self, coords: np.ndarray, key: np.ndarray, beside: np.ndarray | None = None
+    ) -> np.ndarray:
         """(k, 3): the radiance of the camera rays through ``coords`` (k, 2), their first
-        hit traced."""
+        hit traced (past the faces ``beside`` (k, m), as ``seen``'s: the rays just beyond
+        an edge, which meet its faces only across a seam's crack)."""
         ...
 
 
@@ -111,13 +114,25 @@ class DirectRadiance:
             out[shading.rays] = shading.colour.data
         return out
 
-    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+    def along(
+        self, coords: np.ndarray, key: np.ndarray, beside: np.ndarray | None = None
+    ) -> np.ndarray:
         """``SideRadiance.along``, off the tape: the radiance (k, 3) the camera sees through
-        image-plane points ``coords`` (k, 2), each ray traced with the render's accelerator,
-        then shaded as ``seen`` does."""
-        forward, right, up, eye = plain_frame(self.scene.camera)
-        directions = camera_directions(coords, right, up, forward)
-        prim_id, t, _, _ = self.visibility.accelerator().closest_hit(
-            np.broadcast_to(eye, directions.shape), directions
-        )
+        image-plane points ``coords`` (k, 2), each ray traced with the render's accelerator
+        (past the faces ``beside``), then shaded as ``seen`` does."""
+        prim_id, t = first_hits(self.scene, self.visibility.accelerator(), coords, beside)
         return self.seen(coords, prim_id, t, key)
+
+
+def first_hits(scene: Scene, accelerator, coords: np.ndarray, beside=None) -> tuple:
+    """(prim (k,), depth (k,)): what the camera rays through image-plane points ``coords``
+    (k, 2) first meet (-1, inf: nothing), past the faces ``beside`` (k, m) where given
+    (``render.trace.visibility.hit_past``)."""
+    forward, right, up, eye = plain_frame(scene.camera)
+    directions = camera_directions(coords, right, up, forward)
+    origins = np.broadcast_to(eye, directions.shape)
+    if beside is None or not np.any(beside >= 0):
+        prim_id, t, _, _ = accelerator.closest_hit(origins, directions)
+    else:
+        prim_id, t, _, _ = hit_past(accelerator, origins, directions, beside)
+    return prim_id, t

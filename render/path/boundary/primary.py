@@ -23,6 +23,7 @@ import numpy as np
 
 import minidiff as md
 from render.edges.boundary.occlusion import Occluders
+from render.edges.boundary.radiance import first_hits
 from render.edges.boundary.term import add_curve_terms
 from render.edges.terms import primary_kinds
 from render.path.gradient.replay import radiance_of
@@ -80,10 +81,16 @@ class PathRadiance:
         coords[rows] = to_image_plane(px, camera.width, camera.height)
         return coords, depth
 
-    def along(self, coords: np.ndarray, key: np.ndarray) -> np.ndarray:
+    def along(
+        self, coords: np.ndarray, key: np.ndarray, beside: np.ndarray | None = None
+    ) -> np.ndarray:
         """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
-        (k, 2), its first hit traced."""
-        return self._estimate(coords, key)
+        (k, 2), its first hit traced (past the faces ``beside``, where given, as
+        ``render.edges.boundary.radiance.first_hits`` traces them)."""
+        if beside is None or not np.any(beside >= 0):
+            return self._estimate(coords, key)
+        prim, depth = first_hits(self.world, self.sampler.accelerator, coords, beside)
+        return self._estimate(coords, key, prim, depth)
 
     def _estimate(self, coords, key, prim=None, depth=None) -> np.ndarray:
         n = self.samples

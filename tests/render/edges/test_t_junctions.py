@@ -194,15 +194,17 @@ def test_the_cut_table_has_a_face_each_side_and_the_outlines_have_no_false_borde
 def test_points_inside_segments_are_those_every_pair_finds(seed, n_segments, n_points):
     """``points_inside`` (candidates from a grid of the segments' boxes) finds what testing every
     segment against every point finds: points on segments (at random t, or at an end),
-    off them by less and by more than the tolerance, and anywhere."""
-    from render.trace.topology import points_inside
+    off them by less and by more than the tolerance (1e-6, or ``SEAM_LENGTH`` of the
+    segment's length, whichever is larger), and anywhere."""
+    from render.trace.topology import SEAM_LENGTH, points_inside
 
     rng = np.random.default_rng(seed)
     a, b = rng.uniform(-1, 1, (2, n_segments, 3))
     on = rng.integers(0, n_segments, n_points)
     t = rng.choice([0.0, 0.3, 0.5, 1.0, rng.uniform()], n_points)
-    scale = rng.choice([0.0, 0.5, 2.0], (n_points, 1)) * 1e-6
-    points = a[on] + t[:, None] * (b[on] - a[on]) + scale * rng.normal(size=(n_points, 3))
+    reach = np.maximum(1e-6, SEAM_LENGTH * np.linalg.norm(b - a, axis=1))[on, None]
+    scale = rng.choice([0.0, 0.5, 2.0], (n_points, 1)) * reach
+    points = a[on] + t[:, None] * (b[on] - a[on]) + scale * rng.normal(size=(n_points, 3)) / 3
     points = np.concatenate([points, rng.uniform(-1, 1, (5, 3))])
     vertices = np.concatenate([a, b, points])
     i, j = np.arange(n_segments), n_segments + np.arange(n_segments)
@@ -215,7 +217,8 @@ def test_points_inside_segments_are_those_every_pair_finds(seed, n_segments, n_p
     length2 = np.sum(d * d, axis=2)
     tt = np.sum(off * d, axis=2) / length2
     miss = off - tt[..., None] * d
-    near = np.sum(miss * miss, axis=2) <= 1e-12
+    tolerance = np.maximum(1e-6, SEAM_LENGTH * np.sqrt(length2))  # (S, 1)
+    near = np.sum(miss * miss, axis=2) <= tolerance**2
     want = [(s, int(candidates[p])) for s, p in zip(*np.nonzero(near & (tt > 0) & (tt < 1)),
                                                      strict=True)]  # fmt: skip
     assert found == sorted(want)
