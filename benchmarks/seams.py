@@ -7,9 +7,10 @@ Run:  python benchmarks/seams.py [--out out/seams] [--quick] [--boxes 24]
 Each case is a box (0.3 x 0.2 x 0.24) with 0-4 of its faces split at T-junctions, its
 faces dealt at random to two or three meshes, over a floor (3 x 3) under a point light,
 seen at 32 x 32 with shadows; the last mesh is then rounded to float32 (``float32``) or
-has its positions moved by up to ``distance`` in random directions (``moved``: 4e-6,
-inside the welding of seams, ``render.trace.topology.SEAM_SIZE`` of the meshes' size,
-about 1.7e-5 here; 1e-4, outside it: a crack a thousandth of a pixel wide). The error
+has its positions moved by up to ``distance`` in random directions (``moved``: 4e-6 and
+1e-4, inside the welding of seams, ``render.trace.topology.seam_reach``: 4e-6 of the
+meshes' size, 1.7e-5 here, or 1e-3 of the open edges at a vertex, 5e-5 to 3e-4 here;
+1e-3, outside it: a crack a hundredth of a pixel wide). The error
 of a case is the largest difference between its gradients (the light's position and the
 meshes' translation, of a fixed random weighting of the image) and those of the box as
 one mesh, over the largest of the latter.
@@ -31,7 +32,7 @@ SIZE = 32
 GREY = render.Material((0.6, 0.6, 0.6))
 
 #: How far ``moved_apart`` moves the positions: inside and outside the welding of seams.
-DISTANCES = (4e-6, 1e-4)
+DISTANCES = (4e-6, 1e-4, 1e-3)
 #: The perturbations of the last mesh: name -> (mesh, rng) -> mesh.
 CASES = {
     "float32": lambda mesh, rng: through_float32(mesh),

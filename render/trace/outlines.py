@@ -75,10 +75,14 @@ class Outlines:
     after mesh in ``scene.meshes``' order (the part of an edge cut at a T-junction between
     two meshes ends at a vertex of the other; coincident vertices welded across the meshes that
     share edges: an edge two meshes share is one edge, its object the first of them; where
-    more than two faces meet, the two that bound the others around the edge); and spheres
-    (S): ``centre`` (S, 3), ``radius`` (S,), object (S,) (an index into the scene's
-    objects, meshes first). Left out: the edges the module docstring says never are
-    outlines, or whose shadow has no border of its own."""
+    more than two faces meet, the two that bound the others around the edge), the faces
+    ``faces`` (E, 2) whose third corners ``c`` are (global primitive ids: a ray through the
+    edge meets them nowhere else), and how far from the edge's ends their sides may lie,
+    ``crack`` (E,) (0 where they share its ends; a seam welded across a crack,
+    ``render.trace.topology.seam_reach``); and spheres (S): ``centre`` (S, 3), ``radius``
+    (S,), object (S,) (an index into the scene's objects, meshes first). Left out: the
+    edges the module docstring says never are outlines, or whose shadow has no border of
+    its own."""
 
     a: np.ndarray
     b: np.ndarray
@@ -86,6 +90,7 @@ class Outlines:
     edge_object: np.ndarray
     ends: np.ndarray
     faces: np.ndarray
+    crack: np.ndarray
     centre: np.ndarray
     radius: np.ndarray
     sphere_object: np.ndarray
@@ -111,6 +116,7 @@ class Outlines:
             _rows([p[3] for p in parts], (0,)).astype(np.int64),
             _rows([p[4] for p in parts], (0, 2)).astype(np.int64),
             _rows([p[5] for p in parts], (0, 2)).astype(np.int64),
+            _rows([p[6] for p in parts], (0,)),
             np.array([s.center.data for s in spheres], np.float64).reshape(-1, 3),
             np.array([float(s.radius.data) for s in spheres], np.float64),
             np.arange(len(meshes), len(meshes) + len(spheres), dtype=np.int64),
@@ -144,7 +150,7 @@ def _tables(world: Scene) -> tuple[list[MeshEdges], list | None]:
 
 
 def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangles, first, size):
-    """The edge arrays (a, b, c, object, ends, faces: ``Outlines``) of the meshes ``group``
+    """The edge arrays (a, b, c, object, ends, faces, crack: ``Outlines``) of the meshes ``group``
     (indices) welded as one, with ``edges`` their ``MeshEdges``: every welded edge but the
     flat ones and those that rest on another object's surface (``_touching``)."""
     members = [meshes[o] for o in group]
@@ -176,7 +182,25 @@ def _group_edges(meshes: list[Mesh], group: list[int], edges: MeshEdges, triangl
     c = np.stack([vertices[thirds[keep, 0]], vertices[thirds[keep, 1]]], axis=1)
     face_ids = np.concatenate([np.arange(first[k], first[k + 1]) for k in group])
     owner = np.asarray(group, np.int64)[member[:, 0]]
-    return vertices[i], vertices[j], c, owner, ends, face_ids[both[keep]]
+    crack = _crack(vertices[i], vertices[j], vertices[faces[both[keep]]])
+    return vertices[i], vertices[j], c, owner, ends, face_ids[both[keep]], crack
+
+
+def _crack(a: np.ndarray, b: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    """(E,): the largest distance from an edge's ends ``a``, ``b`` (E, 3) to the sides of
+    its faces (``corners`` (E, 2, 3, 3)): 0 where both faces have the edge (a T-junction's
+    part lies on the long edge's side), the width of the crack where meshes welded across
+    one come apart (``render.trace.topology.seam_reach``)."""
+    start, end = corners, np.roll(corners, -1, axis=2)  # (E, 2, 3, 3): each face's sides
+    side = end - start
+    length2 = np.maximum(np.sum(side * side, axis=-1), np.finfo(float).tiny)
+    worst = np.zeros(len(a))
+    for p in (a, b):
+        off = p[:, None, None] - start
+        t = np.clip(np.sum(off * side, axis=-1) / length2, 0.0, 1.0)
+        gap = np.linalg.norm(off - t[..., None] * side, axis=-1)  # (E, 2, 3)
+        worst = np.maximum(worst, gap.min(axis=2).max(axis=1))
+    return worst
 
 
 def _outer_faces(vertices: np.ndarray, table: EdgeTable) -> tuple[np.ndarray, np.ndarray]:

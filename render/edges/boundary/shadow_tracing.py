@@ -62,13 +62,15 @@ class BorderChords:
     pixel coordinates; per chord its light (k,) (an index into ``scene.lights``), occluder
     (k, 3) int64 ((mesh index, v_i, v_j) of an occluder edge, v_i and v_j among every
     mesh's vertices as ``Outlines.ends`` has them, or (-1, sphere index, -1) of an occluder
-    sphere) and receiver (k,) (the primitive, global id, the border lies on)."""
+    sphere), receiver (k,) (the primitive, global id, the border lies on) and crack (k,)
+    (the occluder edge's ``Outlines.crack``: its side samples must pass farther)."""
 
     start: np.ndarray
     end: np.ndarray
     light: np.ndarray
     occluder: np.ndarray
     receiver: np.ndarray
+    crack: np.ndarray
 
 
 # ---------------------------------------------------------------------------------------
@@ -82,26 +84,28 @@ def _light_silhouettes(outlines: Outlines, light: Light, first_sphere: int):
     light, ``Light.edge_plane``; the spheres' circles of tangency, ``Light.sphere_outline``):
     (occluder (c, 3) int64 as in ``BorderChords``, curve kind per row: 0 a segment from
     ``a`` to ``b`` (c, 3), 1 a circle centre ``a``, radius vector ``b`` and second axis
-    ``axis`` (c, 3), and ``own`` (c, 2) the primitives a ray grazing the curve meets only
-    by rounding: an edge's two faces, a sphere's id twice; ``first_sphere``: the first
-    sphere's primitive id)."""
+    ``axis`` (c, 3), ``own`` (c, 2) the primitives a ray grazing the curve meets only
+    by rounding: an edge's two faces, a sphere's id twice, and ``crack`` (c,), an edge's
+    ``Outlines.crack``, 0 for a sphere; ``first_sphere``: the first sphere's primitive
+    id)."""
     m, base = light.edge_plane(outlines.a, outlines.b)
     keep = np.flatnonzero(one_sided(m, base, outlines.c)[0])
     rows = [np.stack([outlines.edge_object[keep], *outlines.ends[keep].T], axis=1)]
     a, b, axis = [outlines.a[keep]], [outlines.b[keep]], [np.zeros((len(keep), 3))]
-    own = [outlines.faces[keep]]
+    own, crack = [outlines.faces[keep]], [outlines.crack[keep]]
     for index, (centre, r) in enumerate(zip(outlines.centre, outlines.radius, strict=True)):
         circle = light.sphere_outline(centre, float(r))
         if circle is None:
             continue  # the light inside the sphere: everything outside is dark
         rows.append(np.array([[-1, index, -1]]))
         own.append(np.full((1, 2), first_sphere + index))
+        crack.append(np.zeros(1))
         for out, x in zip((a, b, axis), circle, strict=True):
             out.append(x[None])
     occluder = np.concatenate(rows).astype(np.int64)
     kind = (occluder[:, 0] < 0).astype(np.int64)
     return (occluder, kind, np.concatenate(a), np.concatenate(b), np.concatenate(axis),
-            np.concatenate(own).astype(np.int64))  # fmt: skip
+            np.concatenate(own).astype(np.int64), np.concatenate(crack))  # fmt: skip
 
 
 # ---------------------------------------------------------------------------------------
@@ -343,7 +347,7 @@ def border_chords(scene: Scene, visibility: Visibility, frame, outlines: Outline
     if not parts or len(light) == 0:
         empty = np.zeros(0, np.int64)
         return BorderChords(np.zeros((0, 2)), np.zeros((0, 2)), empty,
-                            np.zeros((0, 3), np.int64), empty)  # fmt: skip
+                            np.zeros((0, 3), np.int64), empty, np.zeros(0))  # fmt: skip
     start = _starting_chords(scene, plain, curves)
     # The kernel's grazing rays: from a point light's position, or along a light's unit
     # direction of travel.
@@ -354,4 +358,4 @@ def border_chords(scene: Scene, visibility: Visibility, frame, outlines: Outline
         visibility.accelerator().flat_tree(), tuple(curves[1:5]), towards[light], point[light],
         curves[5], start, plain, camera.width, camera.height, size, first_sphere_id(scene),
     )  # fmt: skip
-    return BorderChords(x0, x1, light[curve], curves[0][curve], receiver)
+    return BorderChords(x0, x1, light[curve], curves[0][curve], receiver, curves[6][curve])

@@ -85,7 +85,7 @@ class Curves(Outlines):
         # consecutive edges lie near each other (``clusters``; positions only: the meshes
         # of a split mesh give its curves in the same order).
         order = np.argsort(_morton(0.5 * (found.a + found.b)), kind="stable")
-        edge_fields = ("a", "b", "c", "edge_object", "ends", "faces")
+        edge_fields = ("a", "b", "c", "edge_object", "ends", "faces", "crack")
         return cls(**{
             f.name: getattr(found, f.name)[order] if f.name in edge_fields
             else getattr(found, f.name) for f in fields(Outlines)
