@@ -127,8 +127,10 @@ def creases(group: WeldedMeshes, scene: Scene) -> np.ndarray:
     nb = np.maximum(edges.neighbour, 0)
     # One plane within an angle of 2e-3 rad (a change of colour of 0.2 % at most): within
     # rounding, or tilted by a seam welded across a crack (``render.trace.topology.
-    # seam_reach``: up to 1e-3 of the edges' length).
-    same = (edges.neighbour >= 0) & (np.einsum("fkc,fc->fk", normal[nb], normal) > 1.0 - 2e-6)
+    # seam_reach``: up to 1e-3 of the edges' length); whichever way the faces are wound
+    # (their normals then opposite: the shading turns each to the viewer).
+    cosine = np.abs(np.einsum("fkc,fc->fk", normal[nb], normal))
+    same = (edges.neighbour >= 0) & (cosine > 1.0 - 2e-6)
     same &= (looks[nb] == looks[:, None]) & flat[nb]
     return np.where(flat[:, None], ~same, seams)
 
