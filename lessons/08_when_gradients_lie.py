@@ -238,7 +238,8 @@ print(f"share of the pairs' squared error in the two partly covered end rows: "
 #
 # 1. **Pairs (constants).** Every pair of horizontally or vertically adjacent samples whose
 #    primary hits differ, and the edge between them: a silhouette (a mesh boundary, or an
-#    edge whose two faces face opposite ways from the eye), a crease where the colour
+#    edge whose two faces face opposite ways from the eye, by where they lie, whichever
+#    way each is wound), a crease where the colour
 #    jumps, or where one surface passes behind another. `RenderInfo.pairs` holds them.
 # 2. **The crossing, on the tape.** With camera directions `d_N`, `d_F` of the near and far
 #    sample and the edge `(v_i, v_j)` seen from the eye `C`, the edge function
