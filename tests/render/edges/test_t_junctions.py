@@ -467,9 +467,9 @@ def test_a_shadow_across_a_seam_between_meshes_has_the_one_meshs_gradients(antia
     """The floor as a 4 x 4 grid, one mesh or its faces dealt to three meshes, under the
     box's shadow (which crosses the meshes' seams): the same light and box-translation
     gradients, to 1e-6 (the boundary term's shadow-border chords, found from faces in
-    another order, differ by 6e-8). Before, the pixel pairs took a shadow's two samples on two meshes
-    for two objects (no shadow-edge term: a teapot in four meshes had gradients 1.5 % off
-    its own), and shaded the dark one from the lit one's object (a wrong row)."""
+    another order, differ by 6e-8). Before, the pixel pairs took a shadow's two samples on
+    two meshes for two objects (no shadow-edge term: a teapot in four meshes had gradients
+    1.5 % off its own), and shaded the dark one from the lit one's object (a wrong row)."""
     v, f = grid_quad((0, 0, 0), 1.5 * X, -1.5 * Z, n=4)
     floor = render.Mesh(v, f, GREY)
     owner = np.random.default_rng(5).integers(0, 3, len(f))
