@@ -492,7 +492,8 @@ def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces) -
     points ``coords`` (n, 2) at ``depth`` (n,), the faces ``chosen`` (n, 2) seen either
     side (-1: none, then the ray ``EPSILON`` pixels along ``step`` (n, 2) beside the
     edge), shaded by ``view.radiance`` (``keys`` (n,) its names of the points; ``faces``
-    (n, K) the faces on each point's edge, which its shadow rays pass)."""
+    (n, K) the faces on each point's edge where they may have come apart, which the rays
+    of its sides pass: ``_seam_rows``)."""
     n = len(coords)
     keys = np.concatenate([keys, keys])  # per row of ``colour`` below
     # Both sides at once: one shading pass for the sides with a face (shaded at the edge
