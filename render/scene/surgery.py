@@ -7,7 +7,8 @@ files differ from the tidy meshes a renderer is usually tested on.
   one mesh per material), which then meet along seams;
 * ``moved_apart``: each position moved a little, in a random direction (parts written with
   a few digits, or transformed apart: their seams come apart);
-* ``through_float32``: the vertices rounded to float32 and back (a part stored in float32).
+* ``through_float32``: the vertices rounded to float32 and back (a part stored in float32);
+* ``wound_at_random``: faces flipped at random (scans and soups are wound inconsistently).
 
 The boundary terms must give the same gradients on all of them as on the tidy mesh
 (``tests/render/edges/test_t_junctions.py``; ``benchmarks/seams.py`` measures by how much
@@ -84,3 +85,11 @@ def through_float32(mesh: Mesh) -> Mesh:
     """``mesh`` with its vertices rounded to float32 and back."""
     rounded = np.asarray(mesh.vertices.data).astype(np.float32).astype(np.float64)
     return Mesh(rounded, mesh.faces, mesh.material)
+
+
+def wound_at_random(mesh: Mesh, rng: np.random.Generator, share: float = 0.5) -> Mesh:
+    """``mesh`` with about ``share`` of its faces, drawn by ``rng``, wound the other way."""
+    faces = np.asarray(mesh.faces).copy()
+    flip = rng.random(len(faces)) < share
+    faces[flip] = faces[flip][:, ::-1]
+    return Mesh(np.asarray(mesh.vertices.data), faces, mesh.material)
