@@ -23,10 +23,15 @@ from pathlib import Path
 import numpy as np
 import timing
 
-import minidiff as md
 import render
-from render.scene.cornell import box_mesh, grid_quad
-from render.scene.surgery import in_meshes, moved_apart, through_float32, with_t_junctions
+from render.scene.cornell import box_mesh
+from render.scene.surgery import (
+    in_meshes,
+    light_and_translation,
+    moved_apart,
+    through_float32,
+    with_t_junctions,
+)
 
 SIZE = 32
 GREY = render.Material((0.6, 0.6, 0.6))
@@ -41,19 +46,11 @@ CASES = {
 
 
 def gradients(meshes: list[render.Mesh], antialias) -> np.ndarray:
-    """The light's position gradient and the meshes' translation gradient (their vertices'
-    gradients summed) of a fixed random weighting of the image (SIZE x SIZE, shadows)."""
-    floor = render.Mesh(*grid_quad((0, 0, 0), (1.5, 0, 0), (0, 0, -1.5)), GREY)
-    light = render.PointLight((0.3, 1.6, 0.2), 3.0)
-    camera = render.Camera((0.6, 1.3, 1.1), (0.05, 0.3, 0.0), (0, 1, 0), 45.0, SIZE, SIZE)
-    scene = render.Scene([floor, *meshes], [light], camera)
-    light.position.requires_grad = True
-    for mesh in meshes:
-        mesh.vertices.requires_grad, mesh.vertices.grad = True, None
-    weights = md.tensor(np.random.default_rng(7).uniform(0, 1, (SIZE, SIZE, 3)))
-    image = render.render(scene, antialias=antialias, interior_samples=1)
-    md.sum(image * weights).backward()
-    return np.r_[light.position.grad, sum(m.vertices.grad.sum(axis=0) for m in meshes)]
+    """The light's position gradient and the meshes' translation gradient of a fixed
+    random weighting of the image (SIZE x SIZE, shadows): ``surgery.light_and_translation``."""
+    return light_and_translation(
+        meshes, lambda scene: render.render(scene, antialias=antialias, interior_samples=1), SIZE
+    )
 
 
 def case_errors(boxes: int) -> dict:

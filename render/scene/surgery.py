@@ -12,14 +12,21 @@ files differ from the tidy meshes a renderer is usually tested on.
 
 The boundary terms must give the same gradients on all of them as on the tidy mesh
 (``tests/render/edges/test_t_junctions.py``; ``benchmarks/seams.py`` measures by how much
-they do).
+they do; lesson 11 shows it). ``light_and_translation`` is the comparison they share: the
+gradients of one weighting of a render of the meshes over a floor (``floor_scene``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from render.scene.scene import Mesh
+import minidiff as md
+from render.scene.cornell import grid_quad
+from render.scene.lights import PointLight
+from render.scene.materials import Material
+from render.scene.scene import Camera, Mesh, Scene
 
 
 def with_t_junctions(mesh: Mesh, picks: list[tuple[int, float]]) -> Mesh:
@@ -93,3 +100,29 @@ def wound_at_random(mesh: Mesh, rng: np.random.Generator, share: float = 0.5) ->
     flip = rng.random(len(faces)) < share
     faces[flip] = faces[flip][:, ::-1]
     return Mesh(np.asarray(mesh.vertices.data), faces, mesh.material)
+
+
+def floor_scene(meshes: list[Mesh], size: int = 32) -> Scene:
+    """``meshes`` over a grey 3 x 3 floor at y = 0 under a point light, seen from above at
+    ``size`` x ``size`` (a box about (0.1, 0.6, 0) of size 0.3 fills a third of it)."""
+    floor = Mesh(*grid_quad((0, 0, 0), (1.5, 0, 0), (0, 0, -1.5)), Material((0.6, 0.6, 0.6)))
+    light = PointLight((0.3, 1.6, 0.2), 3.0)
+    camera = Camera((0.6, 1.3, 1.1), (0.05, 0.3, 0.0), (0, 1, 0), 45.0, size, size)
+    return Scene([floor, *meshes], [light], camera)
+
+
+def light_and_translation(
+    meshes: list[Mesh], image_of: Callable[[Scene], md.Tensor], size: int = 32
+) -> np.ndarray:
+    """(6,): the light's position gradient and the meshes' translation gradient (their
+    vertices' gradients summed) of a fixed random weighting of ``image_of(scene)`` (H, W,
+    3), the meshes over the floor (``floor_scene``). The meshes' gradients are reset first
+    (a mesh may be compared more than once)."""
+    scene = floor_scene(meshes, size)
+    light = scene.lights[0].position
+    light.requires_grad = True
+    for mesh in meshes:
+        mesh.vertices.requires_grad, mesh.vertices.grad = True, None
+    weights = np.random.default_rng(7).uniform(0, 1, (size, size, 3))
+    md.sum(image_of(scene) * weights).backward()
+    return np.r_[light.grad, sum(m.vertices.grad.sum(axis=0) for m in meshes)]

@@ -26,6 +26,7 @@ from render.scene.cornell import box_mesh, grid_quad
 from render.scene.placement import placed
 from render.scene.surgery import (
     in_meshes,
+    light_and_translation,
     moved_apart,
     through_float32,
     with_t_junctions,
@@ -309,17 +310,12 @@ def test_faces_whose_edges_overlap_have_the_conforming_gradients(antialias, size
 def meshes_gradients(meshes: list[render.Mesh], antialias="boundary", shadows=True) -> np.ndarray:
     """The light's position gradient and the translation gradient of every mesh but the
     floor together (``scene_with``'s scene at 32 x 32, the boundary term with one interior
-    sample or the pixel pairs, the image's weighted sum)."""
-    scene = scene_with(meshes[0], 32)
-    scene = render.Scene([scene.objects[0], *meshes], scene.lights, scene.camera)
-    light = scene.lights[0].position
-    light.requires_grad, light.grad = True, None
-    for m in scene.meshes[1:]:
-        m.vertices.requires_grad, m.vertices.grad = True, None  # the meshes may be reused
-    weights = md.tensor(np.random.default_rng(7).uniform(0, 1, (32, 32, 3)))
-    image = render.render(scene, antialias=antialias, interior_samples=1, shadows=shadows)
-    md.sum(image * weights).backward()
-    return np.r_[light.grad, sum(m.vertices.grad.sum(axis=0) for m in scene.meshes[1:])]
+    sample or the pixel pairs, the image's weighted sum: ``surgery.light_and_translation``)."""
+
+    def image_of(scene):
+        return render.render(scene, antialias=antialias, interior_samples=1, shadows=shadows)
+
+    return light_and_translation(meshes, image_of)
 
 
 @st.composite

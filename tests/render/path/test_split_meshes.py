@@ -261,19 +261,14 @@ def _seam_case(apart: str):
 
 def _seam_gradients(parts, seed: int, antialias: str, spp: int, edge_spp=None) -> np.ndarray:
     """The light's position and the parts' translation gradients of a fixed weighting of
-    the box over a floor, 24 x 24, depth 3 (``render_path``)."""
-    floor = render.Mesh(*grid_quad((0, 0, 0), (1.5, 0, 0), (0, 0, -1.5)), GREY)
-    light = render.PointLight((0.3, 1.6, 0.2), 3.0)
-    camera = render.Camera((0.6, 1.3, 1.1), (0.05, 0.3, 0.0), (0, 1, 0), 45.0, 24, 24)
-    scene = render.Scene([floor, *parts], [light], camera)
-    light.position.requires_grad = True
-    for mesh in parts:
-        mesh.vertices.requires_grad, mesh.vertices.grad = True, None
-    image = render_path(scene, spp=spp, max_depth=3, seed=seed, antialias=antialias,
-                        edge_spp=edge_spp)  # fmt: skip
-    weights = np.random.default_rng(7).uniform(0, 1, (24, 24, 3))
-    md.sum(image * weights).backward()
-    return np.r_[light.position.grad, sum(m.vertices.grad.sum(axis=0) for m in parts)]
+    the box over a floor, 24 x 24, depth 3 (``render_path``; ``light_and_translation``)."""
+    from render.scene.surgery import light_and_translation
+
+    def image_of(scene):
+        return render_path(scene, spp=spp, max_depth=3, seed=seed, antialias=antialias,
+                           edge_spp=edge_spp)  # fmt: skip
+
+    return light_and_translation(parts, image_of, 24)
 
 
 def _within_noise(one: np.ndarray, many: np.ndarray) -> None:
