@@ -319,9 +319,7 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
         seen_in(view.occluders, pixel, scene),
     )  # fmt: skip
     on_row = _faces_on(kind, shared_faces)  # (E, K) global ids, -1 padding
-    seams = _seam_rows(
-        kind, shared_faces, vertices, as_one_mesh([scene.meshes[k] for k in kind.meshes])[1]
-    )
+    seams = _seam_rows(kind, on_row, vertices, view.occluders.primitives[0])
     again = np.flatnonzero(hidden & (norm > 0) & (depth > 0) & seams[edges])
     if len(again):  # a face of the edge hides its point only across a seam's crack
         hidden[again] = blocked_past(
@@ -388,20 +386,20 @@ def _thin_occluder(view: View, directions, depth, faces) -> np.ndarray:
     return np.where(np.any(faces == prim[:, None], axis=1), -1, prim)
 
 
-def _seam_rows(kind: MeshEdge, shared_faces: np.ndarray, vertices, faces) -> np.ndarray:
+def _seam_rows(kind: MeshEdge, on_row: np.ndarray, vertices, triangles) -> np.ndarray:
     """(E,) bool: the rows of ``kind.table`` whose faces may have come apart along them:
-    those other meshes' faces join, and those with a face whose corners are not both the
-    row's ends, at the same positions (welded within ``seam_distance``: a seam between
-    meshes taken as one, or the long edge of a T-junction, whose vertex was rounded off
-    its line). ``vertices`` (V, 3) and ``faces`` (F, 3): the meshes' (``as_one_mesh``).
-    A ray through an edge point meets the planes of the edge's faces there only, but
-    across such a crack it may meet another face of the edge: the visibility tests of
-    these rows' points pass the row's faces (``blocked_past``)."""
+    those with a face (``on_row`` (E, K), global ids: ``_faces_on``; ``triangles`` (T, 3,
+    3) every face's corners) whose corners are not both the row's ends (``vertices`` (V,
+    3): the meshes', ``as_one_mesh``) at the same positions: meshes welded across a crack
+    (within ``seam_distance``), or the long edge of a T-junction, whose vertex was rounded
+    off its line. A ray through an edge point meets the planes of the edge's faces there
+    only, but across such a crack it may meet another face of the edge: the visibility
+    tests of these rows' points pass the row's faces (``blocked_past``)."""
     table = kind.table
     a, b = vertices[table.i][:, None], vertices[table.j][:, None]
-    apart = np.any(shared_faces >= 0, axis=1)
-    for column in table.faces.T:
-        corners = vertices[faces[np.maximum(column, 0)]]  # (E, 3, 3)
+    apart = np.zeros(len(table.i), bool)
+    for column in on_row.T:
+        corners = triangles[np.maximum(column, 0)]  # (E, 3, 3)
         ends = np.any(np.all(corners == a, axis=2), axis=1) & np.any(
             np.all(corners == b, axis=2), axis=1
         )
