@@ -182,14 +182,13 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
         return set()
     vertices, _ = as_one_mesh(meshes)
     offsets = np.cumsum([0] + [len(m.vertices.data) for m in meshes])
-    parts = [m.vertices.data for m in meshes]
-    i, j = open_rows_ends([edges.table for edges in topology], parts)
+    i, j = open_rows_ends([edges.table for edges in topology], [m.vertices.data for m in meshes])
     if len(i) < 2:
         return set()
-    reach, _ = seam_tolerances(vertices, [edges.table for edges in topology], parts, vertices)
+    floor = seam_distance(vertices)
     ends = np.unique(np.r_[i, j])
-    found = points_inside(vertices, i, j, ends, welded_ids(vertices, reach, ends),
-                          seam_distance(vertices))  # fmt: skip
+    reach = seam_reach(vertices, i, j, floor)
+    found = points_inside(vertices, i, j, ends, welded_ids(vertices, reach, ends), floor)
     if found is None:
         return set()
     segment, point, _ = found
@@ -198,15 +197,10 @@ def t_junction_pairs(meshes: list[Mesh], topology) -> set[tuple[int, int]]:
     return {(int(a), int(b)) for a, b in zip(edge_mesh, point_mesh, strict=True) if a != b}
 
 
-def open_ends(tables: list, vertices: list) -> np.ndarray:
-    """The ends of the open rows (one face) of meshes' ``tables`` (``EdgeTable``), as ids
-    among their ``vertices`` (V_k, 3) concatenated: where meshes can meet."""
-    return np.concatenate(open_rows_ends(tables, vertices))
-
-
 def open_rows_ends(tables: list, vertices: list) -> tuple[np.ndarray, np.ndarray]:
-    """The ends (i (n,), j (n,)) of the open rows of meshes' ``tables``, as ids among their
-    ``vertices`` (V_k, 3) concatenated."""
+    """The ends (i (n,), j (n,)) of the open rows (one face) of meshes' ``tables``
+    (``EdgeTable``), as ids among their ``vertices`` (V_k, 3) concatenated: where meshes
+    can meet."""
     offsets = np.cumsum([0] + [len(v) for v in vertices])
     i, j = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for table, offset in zip(tables, offsets, strict=False):

@@ -141,7 +141,9 @@ def open_rows_of(table: EdgeTable) -> np.ndarray:
 
 
 def welded_ids(
-    vertices: np.ndarray, tolerance: float | None = None, near: np.ndarray | None = None
+    vertices: np.ndarray,
+    tolerance: float | np.ndarray | None = None,
+    near: np.ndarray | None = None,
 ) -> np.ndarray:
     """(V,) int64: each vertex's welded id, equal for vertices at the same position (within
     ``_WELD_TOLERANCE`` of the mesh's bounding-box diagonal), numbered 0..U-1. With a
@@ -262,7 +264,7 @@ def seam_reach(vertices: np.ndarray, i: np.ndarray, j: np.ndarray, floor: float)
 def mesh_edges(
     vertices: np.ndarray,
     faces: np.ndarray,
-    tolerance: float | None = None,
+    tolerance: float | np.ndarray | None = None,
     near=None,
     cut: float | None = None,
 ) -> MeshEdges:
@@ -438,7 +440,10 @@ def _edge_index(corners: np.ndarray, i: int, j: int) -> int:
 
 
 def welding(
-    vertices: np.ndarray, faces: np.ndarray, tolerance: float | None = None, near=None
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    tolerance: float | np.ndarray | None = None,
+    near=None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """All that ``mesh_edges`` needs from the vertex positions: each corner's welded vertex
     id (F, 3) int64 and which faces are degenerate (F,) bool (a welded edge, an area below
