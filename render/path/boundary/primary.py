@@ -24,6 +24,7 @@ import numpy as np
 import minidiff as md
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.radiance import first_hits
+from render.edges.boundary.shadow_border import plane_depth
 from render.edges.boundary.term import add_curve_terms
 from render.edges.terms import primary_kinds
 from render.path.gradient.replay import radiance_of
@@ -94,7 +95,7 @@ class PathRadiance:
             tri, at = triangles[far], rows[far]
             d = forward + coords[at, :1] * right + coords[at, 1:] * up
             normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            depth[at] = np.sum(normal * (tri[:, 0] - eye), axis=1) / np.sum(normal * d, axis=1)
+            depth[at] = plane_depth(normal, tri[:, 0], eye, d)
         return coords, depth
 
     def along(
