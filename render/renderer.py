@@ -173,7 +173,8 @@ def render(
         find = partial(terms.boundary_points_of, world, visibility, cache, frame, max_bounces)
         both = curves and inner > spp  # its points found beside the mixed pixels' (docstring)
         with beside(find if both else None) as found:
-            image = antialias_mixed_pixels(world, visibility, image, frame, spp, max_bounces, inner)
+            image = antialias_mixed_pixels(world, visibility, cache, image, frame, spp,
+                                           max_bounces, inner)  # fmt: skip
         if curves:
             image = add_boundary_term(world, image, frame, found() if both else find())
     image = terms.on_every_parameter(image, scene)  # zeros for what the image cannot depend on
