@@ -15,13 +15,18 @@ So those pixels get more samples:
 
 1. Candidates: pixels whose own samples, or whose neighbours' first samples, do not all
    see the same primitive lit by the same lights (where a pixel's box is mixed, a
-   neighbour's centre almost always sees the other surface).
+   neighbour's centre almost always sees the other surface), less those whose differing
+   neighbours lie only across a crease that passes outside the pixel (``past_creases``).
 2. Each candidate gets ``render(interior_samples=...)`` stratified samples (the
    renderer's own pattern for that spp; 4 x 4 by default), traced and shadow-tested like
    camera rays; it is *mixed* if they do not all see what its own first sample sees.
 3. The mixed pixels' samples are shaded on the tape, and each mixed pixel *becomes* the
    mean of its samples, in value and in derivative. Everywhere else the render's own
    samples stand.
+
+Steps 1 and 2 are kept in the render's cache (``render.scene.cache``) while the
+visibility and the lights' positions are: an inverse problem that fits a material finds
+them once.
 
 The image is then an antialiased one (mixed pixels from 16 samples, the others from the
 render's own) and the tape's derivative is the derivative of that image: for a parameter
@@ -117,7 +122,12 @@ def past_creases(
     as T is (no shadow border lies between them), and whose projection misses the
     pixel's samples: the crease between faces of a faceted mesh passing by. Such
     neighbours made two fifths of the candidates of the paper's faceted teapot at
-    512x512, and not one of them was mixed.
+    512x512, and not one of them was mixed. Over 80 random views of it, of its finer and
+    coarser tessellations and of a faceted ball (with and without a ground, 24x24 to
+    100x100), 8 of 44,697 mixed pixels were left out (and a fifth of the candidates), each a
+    speck of shadow inside the pixel that no neighbour's centre sees: such specks are
+    found only where a crease happens to pass by (here the ground quad's diagonal), with or
+    without this test.
 
     ``prim``, ``lit``: what each of the render's rays sees (``what_is_seen``);
     ``triangles`` (T, 3, 3) (or (T, 9)): the scene's triangles in world space (primitive
