@@ -59,8 +59,8 @@ from render.shade.mirrors import Mirrors
 from render.trace.raster import (
     EDGE_MARGIN,
     RASTER_RAYS_PER_PRIMITIVE,
-    project,
     raster_closest_hit,
+    screen_boxes,
 )
 from render.trace.visibility import PrimaryHits, Visibility
 
@@ -132,38 +132,65 @@ def past_creases(
     ``prim``, ``lit``: what each of the render's rays sees (``what_is_seen``);
     ``triangles`` (T, 3, 3) (or (T, 9)): the scene's triangles in world space (primitive
     ids below T); ``frame`` its plain camera frame (``plain_frame``)."""
-    forward, right, up, eye = frame
     offsets = subpixel_offsets(grid_spp)
     # The box of the samples in their pixel, widened as the rasteriser widens it.
     box = np.concatenate([offsets.min(axis=0) - EDGE_MARGIN, offsets.max(axis=0) + EDGE_MARGIN])
     tri = np.ascontiguousarray(triangles, np.float64).reshape(-1, 3, 3)
-    keep = _needs_samples(
-        np.ascontiguousarray(pixels, np.int64), prim, np.ascontiguousarray(lit), width, height,
-        spp, tri, np.zeros(len(tri), np.int8), np.zeros((len(tri), 3, 3)), box, eye, forward,
-        right, up,
-    )  # fmt: skip
+    slot, lines = _screen_lines(pixels, prim, width, height, spp, tri, frame, offsets)
+    keep = _needs_samples(np.ascontiguousarray(pixels, np.int64), prim, np.ascontiguousarray(lit),
+                          width, height, spp, tri, slot, lines, box)  # fmt: skip
     return pixels[keep]
 
 
+def _screen_lines(
+    pixels, prim, width: int, height: int, spp: int, tri: np.ndarray, frame, offsets
+) -> tuple[np.ndarray, np.ndarray]:
+    """The projected edge lines of the triangles that the first samples of ``pixels`` and
+    of their 8 neighbours see: (slot (T,) int64, lines (n, 3, 3)); a triangle's lines are
+    row slot[t] (-1: not seen there, or not safe to use: reaching behind the eye's plane,
+    or seen edge-on). Lines (a, b, c) give a X + b Y + c, the distance in pixels inside
+    each edge at continuous pixel position (X, Y) (``render.trace.raster.screen_boxes``)."""
+    listed = np.flatnonzero(_seen_near(pixels, prim, width, height, spp, len(tri)))
+    forward, right, up, eye = frame
+    _, lines = screen_boxes(tri[listed], np.zeros((0, 3)), np.zeros(0), eye, forward, right,
+                            up, width, height, offsets)  # fmt: skip
+    # screen_boxes leaves an unsafe triangle's lines (0, 0, 1): always true.
+    known = np.all(np.abs(lines[:, :, :2]).sum(axis=2) > 0.0, axis=1)
+    slot = np.full(len(tri), -1, np.int64)
+    slot[listed] = np.where(known, np.arange(len(listed)), -1)
+    return slot, lines
+
+
 @jit(cache=True)
-def _needs_samples(pixels, prim, lit, width, height, spp, tri, state, lines, box, eye, forward,
-                   right, up):  # fmt: skip
+def _seen_near(pixels, prim, width, height, spp, n_tri):
+    """(n_tri,) bool: the triangles the first samples of ``pixels`` and of their 8
+    neighbours (the image's border standing for beyond it) see."""
+    seen = np.zeros(n_tri, np.bool_)
+    for i in range(len(pixels)):
+        py, px = pixels[i] // width, pixels[i] % width
+        for qy in range(max(py - 1, 0), min(py + 1, height - 1) + 1):
+            for qx in range(max(px - 1, 0), min(px + 1, width - 1) + 1):
+                pid = prim[(qy * width + qx) * spp]
+                if 0 <= pid < n_tri:
+                    seen[pid] = True
+    return seen
+
+
+@jit(cache=True)
+def _needs_samples(pixels, prim, lit, width, height, spp, tri, slot, lines, box):
     """``past_creases``'s test, pixel by pixel: (m,) bool, False where the pixel is left
-    out. ``state`` (T,) zeros and ``lines`` (T, 3, 3) are filled as triangles are first
-    needed: 1 and their projected edge lines (``_on_lines``), or 2 where those are not
-    safe to use (the triangle may then be anywhere on the screen)."""
+    out; ``slot`` and ``lines``: the triangles' projected edge lines (``_screen_lines``)."""
     keep = np.ones(len(pixels), np.bool_)
-    scratch = (np.empty((1, 4), np.int64), np.zeros((1, 2)))  # project's box and offsets
     for i in range(len(pixels)):
         py, px = pixels[i] // width, pixels[i] % width
         first = pixels[i] * spp
         own = prim[first]
-        if not _on_lines(own, tri, state, lines, eye, forward, right, up, width, height, scratch):
+        if _row(slot, own) < 0:
             continue
         alike = True
         for s in range(1, spp):
             alike = alike and prim[first + s] == own and _lit_alike(lit, first + s, first)
-        if not alike or _least(lines, own, px, py, box, -1.0) <= 0.0:
+        if not alike or _least(lines, _row(slot, own), px, py, box, -1.0) <= 0.0:
             continue  # a sample of the pixel may fall outside T
         keep[i] = False
         for dy in range(-1, 2):
@@ -179,11 +206,9 @@ def _needs_samples(pixels, prim, lit, width, height, spp, tri, state, lines, box
                 keep[i] = not (
                     same_lit
                     and other != own
-                    and _on_lines(
-                        other, tri, state, lines, eye, forward, right, up, width, height, scratch
-                    )
+                    and _row(slot, other) >= 0
                     and _share_a_corner(tri, own, other)
-                    and _least(lines, other, px, py, box, 1.0) < 0.0
+                    and _least(lines, _row(slot, other), px, py, box, 1.0) < 0.0
                 )
                 if keep[i]:
                     break
@@ -193,33 +218,22 @@ def _needs_samples(pixels, prim, lit, width, height, spp, tri, state, lines, box
 
 
 @inlined
-def _on_lines(pid, tri, state, lines, eye, forward, right, up, width, height, scratch):
-    """Whether primitive ``pid`` is a triangle whose projected edge lines are safe to use,
-    computing them into ``lines[pid]`` on first asking (``render.trace.raster``'s
-    ``screen_boxes``: a X + b Y + c, the distance in pixels inside each edge at continuous
-    pixel position (X, Y); left (0, 0, 1), always true, where rounding could flip a sign)."""
-    if pid < 0 or pid >= tri.shape[0]:
-        return False
-    if state[pid] == 0:
-        lines[pid, :, 2] = 1.0
-        project(tri[pid : pid + 1], eye, forward, right, up, width, height, scratch[1],
-                scratch[0], lines[pid : pid + 1])  # fmt: skip
-        state[pid] = 1
-        for k in range(3):
-            if lines[pid, k, 0] == 0.0 and lines[pid, k, 1] == 0.0:
-                state[pid] = 2
-    return state[pid] == 1
+def _row(slot, pid):
+    """Primitive ``pid``'s row of lines (``_screen_lines``), -1 for none."""
+    if pid < 0 or pid >= slot.shape[0]:
+        return -1
+    return slot[pid]
 
 
 @inlined
-def _least(lines, pid, px, py, box, sign):
-    """The least over the 3 edge lines of triangle ``pid`` of each line's least (``sign``
+def _least(lines, row, px, py, box, sign):
+    """The least over the 3 edge lines of row ``row`` of ``lines`` of each line's least (``sign``
     -1) or largest (``sign`` 1) value over the samples' ``box`` (x0, y0, x1, y1), offsets
     in pixel (px, py): > 0 with -1, every sample lies inside the triangle; < 0 with 1, all
     lie outside one of its edges."""
     out = np.inf
     for k in range(3):
-        a, b, c = lines[pid, k, 0], lines[pid, k, 1], lines[pid, k, 2]
+        a, b, c = lines[row, k, 0], lines[row, k, 1], lines[row, k, 2]
         x = px + (box[2] if a * sign > 0 else box[0])
         y = py + (box[3] if b * sign > 0 else box[1])
         out = min(out, a * x + b * y + c)

@@ -85,8 +85,7 @@ def test_past_creases_is_the_same_test_compiled_or_run_as_python():
         args = (found, *seen, 48, 48, 1, one.primitives[0], plain_frame(scene.camera), 16)
         compiled = interior.past_creases(*args)
         with pytest.MonkeyPatch.context() as patch:
-            for name in ("_needs_samples", "_on_lines", "_least", "_lit_alike",
-                         "_share_a_corner"):  # fmt: skip
+            for name in ("_needs_samples", "_row", "_least", "_lit_alike", "_share_a_corner"):
                 patch.setattr(interior, name, getattr(interior, name).py_func)
             np.testing.assert_array_equal(interior.past_creases(*args), compiled)
 
