@@ -105,6 +105,13 @@ EXPECTED = {
         for name in ("AD + BVH", "AD, no BVH", "FD + BVH", "FD, no BVH")
     ]
     + [("runs", "AD + BVH", "position_errors", "*")],
+    "mixed_pixels": [
+        ("paper", "plain", "candidates"),
+        ("paper", "ground", "kept"),
+        ("views_total", "mixed_kept"),
+        ("time", "boundary"),
+        ("time", "search_without_test"),
+    ],
     "scaling": [
         ("pixels", "*", "forward", "median_ms"),
         ("pixels", "*", "forward_backward", "median_ms"),
