@@ -313,7 +313,7 @@ print({name: round(e, 4) for name, e in method_errors.items()})
 # Relative to the truth (over the whole gradient image), the plain renderer is off by
 # `0.9` <!-- check: plain_teapot_error > --> or more (it has only the interior term), the
 # pixel pairs by `0.26` <!-- check: pairs_teapot_error -->, the boundary integral by just
-# over `0.045` <!-- check: boundary_teapot_error > -->.
+# under `0.045` <!-- check: boundary_teapot_error < -->.
 #
 # How good is that 0.045? The truth is an estimate too: a regular grid of samples counts
 # an edge's coverage in steps of one sample spacing, and the step moves the edges by only

@@ -38,12 +38,16 @@ from render.trace.intersect import BLOCK, n_blocks
 #: two 0.35 % (0.7 %).
 GAUSS_POINTS = 1
 #: A piece that ends this close (pixels) before another one, its line going on to cross
-#: it, counts as ending on it (a T-junction, ``split_at_crossings``): a shadow border
-#: followed until its receiver changes (``shadow_tracing.bisect_chords``) stops just
-#: short of the border of the shadow it enters, ~1e-5 pixels before it, and the other
-#: border must still be cut there (on one side of the junction it lies inside this
-#: shadow and jumps by nothing).
-JUNCTION = 1e-4
+#: it, counts as ending on it (a T-junction, ``split_at_crossings``). A shadow border is
+#: followed until its receiver changes (``shadow_tracing.bisect_chords``): where it falls
+#: onto the next face of a faceted receiver its chord stops up to ``shadow_tracing.GAP``
+#: (half of this) short of the crease, and where it enters another shadow ~1e-5 pixels
+#: short of that shadow's border; the crease or the border must still be cut there (on
+#: one side of the junction it lies in the shadow and jumps by nothing). When this was a
+#: tenth of GAP, the creases were cut only by chance: a faceted cone's shadow on another
+#: (RayTracer.jl's tree) gave the receiver's translation gradient 7 % off
+#: (tests/render/edges/test_shadow_edges.py).
+JUNCTION = 2e-3
 #: A segment both of whose ends lie this close (pixels) to the same pixel border lies on it
 #: (``border_lines``): far above the rounding of projected pixel coordinates (~1e-13),
 #: far below any offset a finite difference could resolve.

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from minidiff.threads import borrowing, job_count, kernel, run_jobs
+from render.edges.boundary.pixels import JUNCTION
 from render.scene.camera import plain_camera, project
 from render.scene.lights import POINT, Light
 from render.scene.scene import Scene
@@ -43,8 +44,10 @@ CHORD = 0.5
 #: Grazing rays along a silhouette are at most this far apart, in image pixels, while they
 #: hit the same receiver (so that a small receiver between two of them is rarely missed).
 SPACING = 2.0
-#: Where the receiver changes between two grazing rays, bisect until they are this close.
-GAP = 1e-3
+#: Where the receiver changes between two grazing rays, bisect until they are this close:
+#: half the reach of a T-junction (``pixels.JUNCTION``), so that the curve where the
+#: receiver changes (a crease of a faceted receiver) is cut where the border meets it.
+GAP = JUNCTION / 2
 #: Bisection rounds at most. A chord is at most SPACING = 2 pixels long at the start, so
 #: after 20 halvings what is left of one whose receiver jumps (the border falls off one
 #: surface onto another farther away, and the two ends never come within GAP) is ~2e-6

@@ -249,3 +249,29 @@ def run():
 @pytest.mark.new_processes
 def test_the_same_bits_on_one_and_two_threads():
     same_bits_on_one_and_two_threads(_THREADS)
+
+
+@pytest.mark.parametrize("short", [0.0, 0.4, 0.99])
+def test_a_border_that_stops_short_of_a_crease_still_cuts_it(short):
+    """A shadow border falling onto the next face of a faceted receiver is followed until
+    its grazing rays either side of the crease are ``shadow_tracing.GAP`` apart, so its
+    chord stops up to GAP short of the crease; the crease must still be cut where the
+    border meets it (on one side the crease lies in the shadow and jumps by nothing). A
+    chord ending ``short`` x GAP before a crease across pixel (0, 0): the crease is cut
+    in two where the chord's line meets it; one ending twice ``pixels.JUNCTION`` before
+    it is no junction."""
+    from render.edges.boundary.shadow_tracing import GAP
+
+    assert GAP < pixels.JUNCTION
+    for gap, cut in ((short * GAP, True), (2.0 * pixels.JUNCTION, False)):
+        way = np.array([0.5, 1.0])  # the chord's direction: its line meets the crease at 0.5
+        end = np.array([0.5, 0.5]) - gap * way
+        p0 = np.array([[0.1, 0.5], end - 0.3 * way])  # the crease, the chord
+        p1 = np.array([[0.9, 0.5], end])
+        pieces = pixels.pixel_pieces(p0, p1, 2, 2)
+        segment, start, end, _ = pixels.split_at_crossings(p0, p1, *pieces)
+        parts = np.sort(np.c_[start, end][segment == 0], axis=0)
+        if cut:
+            np.testing.assert_allclose(parts, [[0.0, 0.5], [0.5, 1.0]], atol=1e-12)
+        else:
+            np.testing.assert_array_equal(parts, [[0.0, 1.0]])
