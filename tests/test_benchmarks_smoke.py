@@ -105,6 +105,7 @@ EXPECTED = {
         for name in ("AD + BVH", "AD, no BVH", "FD + BVH", "FD, no BVH")
     ]
     + [("runs", "AD + BVH", "position_errors", "*")],
+    "mesh_files": [("cases", name, "*", "truth_error") for name in ("tree", "teapot", "sign")],
     "mixed_pixels": [
         ("paper", "plain", "candidates"),
         ("paper", "ground", "kept"),
