@@ -368,7 +368,7 @@ print(f"each truth from the six's mean: {np.round(truths_from_mean, 4)}; the bou
 # truths' mean has about 1/√6 of one truth's noise (if their errors are independent);
 # each truth is `0.026` <!-- check: truth_from_mean_low --> to `0.059`
 # <!-- check: truth_from_mean_high --> off that mean (though each is a sixth of it),
-# the boundary integral `0.030` <!-- check: boundary_from_mean --> with 16 samples, about
+# the boundary integral `0.029` <!-- check: boundary_from_mean --> with 16 samples, about
 # as close as the best single truth, and about `0.02` <!-- check: boundary_64_from_mean -->
 # with 64, closer than any 4,096-sample truth. The pairs stay `0.26`
 # <!-- check: pairs_from_mean --> off. So the 0.045 above is mostly the reference's

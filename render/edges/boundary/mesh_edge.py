@@ -29,6 +29,7 @@ before (``render.trace.seams``).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -46,6 +47,7 @@ from render.edges.boundary.curves import (
 from render.edges.boundary.occlusion import SHORT, hidden_points, seen_in
 from render.edges.boundary.radiance import EPSILON
 from render.scene.camera import camera_directions, clip_to_near, project
+from render.scene.lights import Light
 from render.scene.scene import Scene
 from render.trace.intersect import BLOCK, n_blocks
 from render.trace.seams import SharedEdges, as_one_mesh
@@ -91,7 +93,8 @@ class MeshEdge:
         # Smooth shading is continuous across a mesh's own vertex ids only; of meshes taken
         # together, one flat among them makes every edge a possible jump (none left out).
         smooth = all(m.smooth for m in meshes)
-        continuous = continuous_creases(smooth, faces, vertices, table, frame[3])
+        continuous = continuous_creases(smooth, faces, vertices, table, frame[3],
+                                        view.scene.lights)  # fmt: skip
         if self.shared is None:
             keep = keep & ~continuous
         else:  # a row that other meshes' faces join is no continuous crease of this one
@@ -119,8 +122,9 @@ class MeshEdge:
 
 
 def continuous_creases(
-    smooth: bool, faces: np.ndarray, vertices: np.ndarray, table: EdgeTable, eye: np.ndarray
-) -> np.ndarray:
+    smooth: bool, faces: np.ndarray, vertices: np.ndarray, table: EdgeTable, eye: np.ndarray,
+    lights: Sequence[Light] = (),
+) -> np.ndarray:  # fmt: skip
     """(E,) bool: the edges of a smooth-shaded mesh (faces (F, 3), vertices (V, 3) float64;
     none where not ``smooth``) across which the image cannot jump, so that they need no
     quadrature points: manifold edges whose two faces share the edge's vertex ids, wind
@@ -129,7 +133,9 @@ def continuous_creases(
     id, so both faces interpolate the same values along the edge and their shading agrees
     there exactly; both face the eye alike, so neither is flipped alone. (Their f_+ - f_-
     was zero up to rounding: dropping them changes the term by rounding only, and saves
-    the rays and shading of most points of a smooth mesh.)"""
+    the rays and shading of most points of a smooth mesh.) Nor a silhouette as seen from
+    one of ``lights``: there one face shadows the other's side of the edge
+    (``shadowed_sides``), which smooth normals can light while flat ones cannot."""
     if not smooth or table.faces.shape[1] < 2:
         return np.zeros(len(table.i), dtype=bool)
     two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
@@ -140,7 +146,58 @@ def continuous_creases(
     m = edge_plane(a, b, eye)
     thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
     side = np.einsum("ekj,ej->ek", thirds - eye, m)
-    return two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
+    continuous = two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
+    for light in lights:
+        continuous &= ~light_silhouettes(light, vertices, table)
+    return continuous
+
+
+def light_silhouettes(light: Light, vertices: np.ndarray, table: EdgeTable) -> np.ndarray:
+    """(E,) bool: the rows of ``table`` with two faces (vertices (V, 3)) both on one side
+    of the plane the edge sweeps in ``light`` (``Light.edge_plane``): silhouettes as seen
+    from the light."""
+    if table.faces.shape[1] < 2:
+        return np.zeros(len(table.i), bool)
+    two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
+    m, base = light.edge_plane(vertices[table.i], vertices[table.j])
+    thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
+    side = np.einsum("ekj,ej->ek", thirds - base[..., None, :], m)
+    return two & (side[:, 0] * side[:, 1] > 0)
+
+
+def shadowed_sides(
+    lights: Sequence[Light], vertices: np.ndarray, table: EdgeTable, rows: np.ndarray,
+    faces: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """(k, L) bool: whether the side of face ``faces`` (k,) (local ids of the mesh's faces;
+    -1: none) of an edge point on row ``rows`` (k,) of ``table`` lies in the shadow of the
+    edge's other face for each light. On a light's silhouette edge (``light_silhouettes``)
+    the face that lies behind the other's plane as seen from the light is shadowed by it
+    right up to the edge: a ray to the light from a point of it near the edge crosses the
+    other face (on a non-silhouette edge the crossing falls outside the other face). The
+    edge point itself is no such point (every ray through it passes the edge's faces), so
+    its side is shaded in this shadow, the limit from inside the face. Flat shading made
+    this no matter: a face behind another from the light faces away from it and is dark
+    anyway; smooth normals light it (the Blender teapot's spout, 36 % off)."""
+    out = np.zeros((len(rows), len(lights)), bool)
+    if table.faces.shape[1] < 2 or len(rows) == 0:
+        return out  # no edge with two faces
+    first, second = table.faces[rows, 0], table.faces[rows, 1]
+    other = np.where(faces == first, 1, 0)  # the column of the edge's other face
+    mine = np.where(faces == first, 0, 1)
+    a, b = vertices[table.i[rows]], vertices[table.j[rows]]
+    third = vertices[np.maximum(table.thirds[rows], 0)]  # (k, K, 3)
+    pick = np.arange(len(rows))
+    c_other, c_mine = third[pick, other], third[pick, mine]
+    normal = np.cross(b - a, c_other - a)  # the other face's plane (either orientation)
+    behind = np.einsum("kj,kj->k", normal, c_mine - a)
+    ok = (faces >= 0) & ((faces == first) | (faces == second))
+    for j, light in enumerate(lights):
+        silhouette = light_silhouettes(light, vertices, table)[rows]
+        towards = np.broadcast_to(light.towards(a), a.shape)
+        lit_side = np.einsum("kj,kj->k", normal, towards)
+        out[:, j] = ok & silhouette & (behind * lit_side < 0)
+    return out
 
 
 def edge_sides_kernel(
@@ -345,7 +402,10 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     scale, keys = weight[seen] / norm[seen], keys[seen]
     out = np.zeros((len(hidden), 3))
     beside = np.where(seams[edges[seen], None], on_row[edges[seen]], -1)
-    out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale, beside)
+    local = np.where(chosen >= 0, chosen - first_prim, -1)  # ids among the table's faces
+    shadowed = np.stack([shadowed_sides(scene.lights, vertices, table, edges[seen], local[:, s])
+                         for s in (0, 1)], axis=1)  # fmt: skip
+    out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale, beside, shadowed)
     return out
 
 
@@ -485,13 +545,15 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.where(length > 0, length, 1.0)
 
 
-def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces) -> np.ndarray:
+def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces, shadowed
+                  ) -> np.ndarray:  # fmt: skip
     """(n, 3): ``scale`` (n,) times f_+ - f_- of n visible edge points through image-plane
     points ``coords`` (n, 2) at ``depth`` (n,), the faces ``chosen`` (n, 2) seen either
     side (-1: none, then the ray ``EPSILON`` pixels along ``step`` (n, 2) beside the
     edge), shaded by ``view.radiance`` (``keys`` (n,) its names of the points; ``faces``
     (n, K) the faces on each point's edge where they may have come apart, which the rays
-    of its sides pass: ``_seam_rows``)."""
+    of its sides pass: ``_seam_rows``; ``shadowed`` (n, 2, L) the sides in their edge's
+    own shadow: ``shadowed_sides``)."""
     n = len(coords)
     keys = np.concatenate([keys, keys])  # per row of ``colour`` below
     # Both sides at once: one shading pass for the sides with a face (shaded at the edge
@@ -505,6 +567,7 @@ def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces) -
         np.take(both, faced, axis=0), face[faced],
         np.concatenate([depth, depth])[faced], keys[faced],
         beside=np.take(sides, faced, axis=0),
+        shadowed=np.concatenate([shadowed[:, 0], shadowed[:, 1]])[faced],
     )  # fmt: skip
     offset = EPSILON * np.concatenate([step, -step])
     colour[beyond] = view.radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond],

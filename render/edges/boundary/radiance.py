@@ -38,11 +38,15 @@ class SideRadiance(Protocol):
     numbers (far less noise than two independent estimates)."""
 
     def seen(self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray,
-             beside: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+             beside: np.ndarray | None = None, shadowed: np.ndarray | None = None,
+             ) -> np.ndarray:  # fmt: skip
         """(k, 3): the radiance of camera rays through ``coords`` (k, 2) that first meet
         primitive ``prim_id`` (k,) int64 (global ids; -1: none) at ``depth`` (k,) along the
         view axis. ``beside`` (k, m) (global ids, -1 padding): for points on an edge, the
-        faces on that edge, which cannot shadow them (``Visibility.lit_beside``)."""
+        faces on that edge, which cannot shadow them (``Visibility.lit_beside``).
+        ``shadowed`` (k, L) bool: for points on an edge, whether their side (their face)
+        lies in the shadow the edge's other face casts from each light
+        (``mesh_edge.shadowed_sides``): the limit from inside the face."""
         ...
 
     def along(
@@ -62,12 +66,14 @@ def seen_through(
     depth: np.ndarray,
     directions: np.ndarray | None = None,
     beside: np.ndarray | None = None,
+    shadowed: np.ndarray | None = None,
 ) -> Visibility:
     """The render's ``visibility`` with its camera rays replaced by k rays through
     image-plane points ``coords`` (k, 2) that meet primitives ``prim_id`` (k,) (-1: the
     background) at ``depth`` (k,) along the view axis: their hit points and, per light,
     which of them it reaches (shadow rays traced as the render's are; for points on an
-    edge, passing the faces ``beside`` (k, m) on it: ``Visibility.lit_beside``).
+    edge, passing the faces ``beside`` (k, m) on it: ``Visibility.lit_beside``; and dark
+    where ``shadowed`` (k, L) says the edge's other face shadows their side).
     ``directions``: the rays' camera directions (k, 3) if the caller has them already."""
     forward, right, up, eye = plain_frame(scene.camera)
     hit = np.flatnonzero(prim_id >= 0)
@@ -80,6 +86,8 @@ def seen_through(
     if beside is not None and visibility.shadows:
         lit = [visibility.lit_beside(light, points, prim_id[hit], beside[hit], mask)
                for light, mask in zip(scene.lights, lit, strict=True)]  # fmt: skip
+    if shadowed is not None and visibility.shadows:
+        lit = [mask & ~shadowed[hit, j] for j, mask in enumerate(lit)]
     return replace(visibility, primary=primary, lit=lit)
 
 
@@ -93,13 +101,16 @@ class DirectRadiance:
         self.max_bounces = max_bounces
 
     def seen(self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray,
-             beside: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+             beside: np.ndarray | None = None, shadowed: np.ndarray | None = None,
+             ) -> np.ndarray:  # fmt: skip
         """``SideRadiance.seen``, off the tape: the radiance (k, 3) float64 of camera rays
         through ``coords`` (k, 2) that meet ``prim_id`` (k,) (-1: the background) at
         ``depth`` (k,), shaded as the render's camera hits are (shadows and mirror
-        reflections included, by ``shade_camera_hits``; the faces ``beside`` passed)."""
+        reflections included, by ``shade_camera_hits``; the faces ``beside`` passed, the
+        sides ``shadowed`` in their edge's own shadow)."""
         scene, max_bounces = self.scene, self.max_bounces
-        seen = seen_through(scene, self.visibility, coords, prim_id, depth, beside=beside)
+        seen = seen_through(scene, self.visibility, coords, prim_id, depth, beside=beside,
+                            shadowed=shadowed)  # fmt: skip
         out = np.empty((len(coords), 3))
         out[:] = np.asarray(scene.background.data, np.float64)
         # Values only: a reflectance that is zero adds nothing, even while it is differentiated.

@@ -56,11 +56,14 @@ class PathRadiance:
         self.samples, self.first_id = samples, first_id
 
     def seen(self, coords: np.ndarray, prim_id: np.ndarray, depth: np.ndarray, key: np.ndarray,
-             beside: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+             beside: np.ndarray | None = None, shadowed: np.ndarray | None = None,
+             ) -> np.ndarray:  # fmt: skip
         """(k, 3): the mean radiance of ``samples`` paths per camera ray through ``coords``
         (k, 2) that first meets primitive ``prim_id`` (k,) (-1: none) at ``depth`` (k,).
         The paths start inside their triangles (``_inside``), off the faces of the edge,
-        and farther in on the edges whose faces ``beside`` (k, m) may have come apart."""
+        and farther in on the edges whose faces ``beside`` (k, m) may have come apart;
+        from there their shadow rays find the edge's own shadow themselves (``shadowed``
+        is not needed)."""
         cracked = np.zeros(len(coords), bool) if beside is None else np.any(beside >= 0, axis=1)
         coords, depth = self._inside(coords, prim_id, depth, cracked)
         return self._estimate(coords, key, prim_id, depth)

@@ -23,7 +23,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import minidiff as md
-from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
+from render import Camera, Material, Mesh, PointLight, Scene, Sphere, Transform, render
 from render.edges.boundary import pixel_order, pixel_pieces
 from render.edges.boundary.mesh_edge import approach, edge_plane, edge_sides_kernel
 from render.edges.boundary.pixels import FEW_CUTS, _sort_cuts, pixel_gradient
@@ -396,9 +396,11 @@ def test_nothing_in_view_gives_no_boundary_term():
 
 
 def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
-    """Dropping the smooth mesh's non-silhouette edges (``continuous_creases``) changes the
-    boundary term by rounding only: their two sides were shaded alike. Flat-shaded meshes
-    and meshes whose faces do not share the edge's vertex ids keep every edge."""
+    """Dropping the smooth mesh's edges that are silhouettes neither from the eye nor from
+    a light (``continuous_creases``) changes the boundary term by little: their two sides
+    are shaded alike, and only where they cut the edges kept does the quadrature change.
+    Flat-shaded meshes and meshes whose faces do not share the edge's vertex ids keep
+    every edge; so do the light's silhouettes."""
     from render.edges.boundary import mesh_edge as boundary
     from render.inverse.shape import icosphere
     from render.trace.topology import mesh_edges
@@ -421,12 +423,18 @@ def test_continuous_creases_of_a_smooth_mesh_carry_no_term(monkeypatch):
     dropped = boundary.continuous_creases(True, faces, vertices, table, eye)
     assert dropped.mean() > 0.7  # most edges of a smooth sphere are no silhouette
     monkeypatch.setattr(
-        boundary, "continuous_creases", lambda smooth, f, v, t, e: np.zeros(len(t.i), bool)
+        boundary, "continuous_creases", lambda smooth, f, v, t, *rest: np.zeros(len(t.i), bool)
     )
     full = grad()
-    assert np.abs(culled - full).max() <= 1e-9 * np.abs(full).max()
+    # Their jumps are zero up to rounding; kept, they still cut the light's silhouettes
+    # where they meet them (measured: 9e-5 of the largest gradient).
+    assert np.abs(culled - full).max() <= 1e-3 * np.abs(full).max()
     monkeypatch.undo()
     assert not boundary.continuous_creases(False, faces, vertices, table, eye).any()
+    lit = boundary.continuous_creases(True, faces, vertices, table, eye, scene.lights)
+    silhouettes = boundary.light_silhouettes(scene.lights[0], vertices, table)
+    assert silhouettes.sum() >= 10 and not (lit & silhouettes).any()
+    np.testing.assert_array_equal(lit, dropped & ~silhouettes)
     unwelded = vertices[faces].reshape(-1, 3), np.arange(faces.size).reshape(-1, 3)
     table = mesh_edges(*unwelded).table
     assert not boundary.continuous_creases(True, unwelded[1], unwelded[0], table, eye).any()
@@ -658,3 +666,41 @@ def test_crossing_pairs_are_the_same_in_one_job_and_in_many(seed, n):
         for t in (triangles[i], triangles[j]):
             normal = np.cross(t[1] - t[0], t[2] - t[0])
             assert np.all(np.abs((seg - t[0]) @ normal) <= 1e-9 * np.linalg.norm(normal) * 4)
+
+
+def test_a_smooth_coarse_sphere_s_terminator_has_the_supersampled_gradient():
+    """Smooth normals light faces that face away from the light; a ray to the light from
+    such a face, near the edge where the sphere turns away from it (a silhouette as seen
+    from the light), crosses the neighbouring face: the image jumps from lit to dark along
+    that edge, which ``continuous_creases`` dropped as a smooth mesh's continuous edge and
+    whose sides were both shaded lit (every ray through the edge point passes its faces).
+    Now the edge is kept and the face behind the other from the light is shaded in its
+    shadow (``mesh_edge.shadowed_sides``). An icosphere of 80 faces lit from the side, its
+    translation gradient against the window difference of 1,024-spp renders: measured 57 %
+    and 33 % off (x, y) before, 1.4 % and 2.6 % after (32 points in the window)."""
+    from render.inverse.shape import icosphere
+
+    vertices, faces = icosphere(1)
+    weights = np.random.default_rng(2).uniform(0.0, 1.0, (40, 40, 3))
+    for axis in (0, 1):
+        direction = np.eye(3)[axis]
+
+        def make(s, direction=direction):
+            translation = md.tensor(direction * s)
+            ball = Mesh(vertices * 0.5, faces, Material((0.8, 0.6, 0.4)), smooth=True)
+            ball.transform = Transform(translation=translation)
+            camera = Camera((0.0, 0.4, 2.2), (0, 0, 0), (0, 1, 0), 35.0, 40, 40)
+            return (
+                Scene([ball], [PointLight((3.0, 0.5, -0.6), 12.0)], camera),
+                translation,
+                direction,
+            )
+
+        truth = [window_difference(make, weights, 0.01, 1024, seed) for seed in (0, 1)]
+        ours = window_mean_gradient(make, weights, 0.01, "boundary", 16)
+        mean = np.mean(truth)
+        assert abs(ours - mean) < 0.06 * abs(mean) + 3 * abs(truth[1] - truth[0]), (
+            axis,
+            ours,
+            truth,
+        )
