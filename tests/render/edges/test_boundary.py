@@ -23,22 +23,14 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 import minidiff as md
-from render import (
-    Camera,
-    DirectionalLight,
-    Material,
-    Mesh,
-    PointLight,
-    Scene,
-    Sphere,
-    Transform,
-    render,
-)
+from render import Camera, Material, Mesh, PointLight, Scene, Sphere, render
 from render.edges.boundary import pixel_order, pixel_pieces
 from render.edges.boundary.mesh_edge import approach, edge_plane, edge_sides_kernel
 from render.edges.boundary.pixels import FEW_CUTS, _sort_cuts, pixel_gradient
 from render.inverse.reference import moved_along, window_difference, window_mean_gradient
 from render.scene.camera import camera_directions
+from render.scene.lights import DirectionalLight
+from render.scene.shapes import Transform
 from render.scene.teapot import paper_scene
 from tests.render_helpers import random_scene
 
