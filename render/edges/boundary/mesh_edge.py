@@ -138,65 +138,78 @@ def continuous_creases(
     (``shadowed_sides``), which smooth normals can light while flat ones cannot."""
     if not smooth or table.faces.shape[1] < 2:
         return np.zeros(len(table.i), dtype=bool)
-    two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
     second = faces[np.maximum(table.faces[:, 1], 0)]  # (E, 3) vertex ids
     following = np.roll(second, -1, axis=1)  # each corner's next corner
     reversed_edge = np.any((second == table.j[:, None]) & (following == table.i[:, None]), axis=1)
-    a, b = vertices[table.i], vertices[table.j]
-    m = edge_plane(a, b, eye)
-    thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
-    side = np.einsum("ekj,ej->ek", thirds - eye, m)
-    continuous = two & reversed_edge & (side[:, 0] * side[:, 1] < 0)
+    rows = np.arange(len(table.i))
+    m = edge_plane(vertices[table.i], vertices[table.j], eye)
+    side = _third_sides(vertices, table, rows, m, eye)
+    continuous = _two_faces(table, rows) & reversed_edge & (side[:, 0] * side[:, 1] < 0)
     for light in lights:
-        continuous &= ~light_silhouettes(light, vertices, table)
+        continuous &= ~light_silhouettes(light, vertices, table, rows)
     return continuous
 
 
-def light_silhouettes(light: Light, vertices: np.ndarray, table: EdgeTable) -> np.ndarray:
-    """(E,) bool: the rows of ``table`` with two faces (vertices (V, 3)) both on one side
-    of the plane the edge sweeps in ``light`` (``Light.edge_plane``): silhouettes as seen
-    from the light."""
+def light_silhouettes(light: Light, vertices: np.ndarray, table: EdgeTable, rows: np.ndarray
+                      ) -> np.ndarray:  # fmt: skip
+    """(k,) bool: which of the rows ``rows`` (k,) of ``table`` (vertices (V, 3)) have two
+    faces both on one side of the plane the edge sweeps in ``light`` (``Light.edge_plane``):
+    silhouettes as seen from the light."""
+    m, base = light.edge_plane(vertices[table.i[rows]], vertices[table.j[rows]])
+    side = _third_sides(vertices, table, rows, m, base)
+    return _two_faces(table, rows) & (side[:, 0] * side[:, 1] > 0)
+
+
+def _two_faces(table: EdgeTable, rows: np.ndarray) -> np.ndarray:
+    """(k,) bool: which of the rows ``rows`` of ``table`` have exactly two faces."""
     if table.faces.shape[1] < 2:
-        return np.zeros(len(table.i), bool)
-    two = (table.faces[:, 1] >= 0) & np.all(table.faces[:, 2:] < 0, axis=1)
-    m, base = light.edge_plane(vertices[table.i], vertices[table.j])
-    thirds = vertices[np.maximum(table.thirds[:, :2], 0)]  # (E, 2, 3)
-    side = np.einsum("ekj,ej->ek", thirds - base[..., None, :], m)
-    return two & (side[:, 0] * side[:, 1] > 0)
+        return np.zeros(len(rows), bool)
+    faces = table.faces[rows]
+    return (faces[:, 1] >= 0) & np.all(faces[:, 2:] < 0, axis=1)
+
+
+def _third_sides(vertices, table: EdgeTable, rows: np.ndarray, m, base) -> np.ndarray:
+    """(k, 2): m . (c - base) for the third vertex c of each of the first two faces of the
+    rows ``rows`` of ``table``: on which side of the plane (m (k, 3), through ``base``
+    (k, 3) or (3,)) through each edge they lie."""
+    thirds = vertices[np.maximum(table.thirds[rows, :2], 0)]  # (k, 2, 3)
+    return np.einsum("kfj,kj->kf", thirds - np.asarray(base)[..., None, :], m)
 
 
 def shadowed_sides(
     lights: Sequence[Light], vertices: np.ndarray, table: EdgeTable, rows: np.ndarray,
     faces: np.ndarray,
 ) -> np.ndarray:  # fmt: skip
-    """(k, L) bool: whether the side of face ``faces`` (k,) (local ids of the mesh's faces;
-    -1: none) of an edge point on row ``rows`` (k,) of ``table`` lies in the shadow of the
-    edge's other face for each light. On a light's silhouette edge (``light_silhouettes``)
-    the face that lies behind the other's plane as seen from the light is shadowed by it
-    right up to the edge: a ray to the light from a point of it near the edge crosses the
-    other face (on a non-silhouette edge the crossing falls outside the other face). The
-    edge point itself is no such point (every ray through it passes the edge's faces), so
-    its side is shaded in this shadow, the limit from inside the face. Flat shading made
-    this no matter: a face behind another from the light faces away from it and is dark
-    anyway; smooth normals light it (the Blender teapot's spout, 36 % off)."""
-    out = np.zeros((len(rows), len(lights)), bool)
-    if table.faces.shape[1] < 2 or len(rows) == 0:
-        return out  # no edge with two faces
-    first, second = table.faces[rows, 0], table.faces[rows, 1]
-    other = np.where(faces == first, 1, 0)  # the column of the edge's other face
-    mine = np.where(faces == first, 0, 1)
+    """(k, 2, L) bool: whether the side of face ``faces[:, s]`` (k, 2) (local ids of the
+    mesh's faces; -1: none) of an edge point on row ``rows`` (k,) of ``table`` lies in the
+    shadow of the edge's other face for each light. On a light's silhouette edge
+    (``light_silhouettes``) the face that lies behind the other's plane as seen from the
+    light is shadowed by it right up to the edge: a ray to the light from a point of it
+    near the edge crosses the other face (on a non-silhouette edge the crossing falls
+    outside the other face). The edge point itself is no such point (every ray through it
+    passes the edge's faces), so its side is shaded in this shadow, the limit from inside
+    the face. Flat shading made this no matter: a face behind another from the light faces
+    away from it and is dark anyway; smooth normals light it (the Blender teapot's spout,
+    36 % off)."""
+    out = np.zeros((len(rows), 2, len(lights)), bool)
+    two = np.flatnonzero(_two_faces(table, rows))
+    if len(two) == 0 or not lights:
+        return out
+    rows, faces = rows[two], faces[two]
     a, b = vertices[table.i[rows]], vertices[table.j[rows]]
-    third = vertices[np.maximum(table.thirds[rows], 0)]  # (k, K, 3)
+    third = vertices[table.thirds[rows, :2]]  # (k, 2, 3): the two faces' third vertices
+    normal = np.cross((b - a)[:, None], third - a[:, None])  # (k, 2, 3), either orientation
+    # across[:, f]: how far the other face's third vertex lies off face f's plane.
+    across = np.einsum("kfj,kfj->kf", normal, third[:, ::-1] - a[:, None])
     pick = np.arange(len(rows))
-    c_other, c_mine = third[pick, other], third[pick, mine]
-    normal = np.cross(b - a, c_other - a)  # the other face's plane (either orientation)
-    behind = np.einsum("kj,kj->k", normal, c_mine - a)
-    ok = (faces >= 0) & ((faces == first) | (faces == second))
     for j, light in enumerate(lights):
-        silhouette = light_silhouettes(light, vertices, table)[rows]
-        towards = np.broadcast_to(light.towards(a), a.shape)
-        lit_side = np.einsum("kj,kj->k", normal, towards)
-        out[:, j] = ok & silhouette & (behind * lit_side < 0)
+        silhouette = light_silhouettes(light, vertices, table, rows)
+        lit_side = np.einsum("kfj,kj->kf", normal, np.broadcast_to(light.towards(a), a.shape))
+        for s in (0, 1):
+            other = np.where(faces[:, s] == table.faces[rows, 0], 1, 0)  # the other face's column
+            behind = across[pick, other] * lit_side[pick, other] < 0
+            on_edge = faces[:, s] == table.faces[rows, 1 - other]
+            out[two, s, j] = silhouette & on_edge & behind
     return out
 
 
@@ -403,8 +416,7 @@ def _edge_factors(view: View, kind: MeshEdge, on: OnCurves) -> np.ndarray:
     out = np.zeros((len(hidden), 3))
     beside = np.where(seams[edges[seen], None], on_row[edges[seen]], -1)
     local = np.where(chosen >= 0, chosen - first_prim, -1)  # ids among the table's faces
-    shadowed = np.stack([shadowed_sides(scene.lights, vertices, table, edges[seen], local[:, s])
-                         for s in (0, 1)], axis=1)  # fmt: skip
+    shadowed = shadowed_sides(scene.lights, vertices, table, edges[seen], local)
     out[seen] = _side_factors(view, coords, depth, step, chosen, keys, scale, beside, shadowed)
     return out
 
