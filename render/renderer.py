@@ -50,7 +50,7 @@ import minidiff as md
 from minidiff.threads import beside
 from render.edges import terms
 from render.edges.interior import INTERIOR_SAMPLES, antialias_mixed_pixels, check_interior_samples
-from render.edges.terms import add_boundary_term, add_edge_terms, differentiated
+from render.edges.terms import add_boundary_term, add_edge_terms, curves_move
 from render.film import image_from_hits, pixel_means
 from render.info import RenderInfo
 from render.path.integrator import render_path
@@ -169,7 +169,7 @@ def render(
             image = image_from_hits(world, prim_id, shading.colour, shading.rays, spp)  # 5
     if antialias == "boundary":  # 4': mixed pixels from their 16 samples, on every route
         frame = camera_frame(world.camera) if fused_route else frame
-        curves = differentiated(scene)  # the boundary term (zero in value) only if so
+        curves = curves_move(scene, world)  # the boundary term (zero in value) only if so
         find = partial(terms.boundary_points_of, world, visibility, cache, frame, max_bounces)
         both = curves and inner > spp  # its points found beside the mixed pixels' (docstring)
         with beside(find if both else None) as found:

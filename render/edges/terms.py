@@ -21,7 +21,7 @@ import numpy as np
 import minidiff as md
 from minidiff.tensor import record
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
-from render.edges.boundary.curves import CurveKind, CurvePoints
+from render.edges.boundary.curves import CurveKind, CurvePoints, geometry_moves
 from render.edges.boundary.mesh_edge import MeshEdge
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.radiance import DirectRadiance
@@ -146,6 +146,14 @@ def differentiated(scene: Scene) -> bool:
     one it would change nothing."""
     grad = md.is_grad_enabled()
     return any(p.tangent is not None or (grad and p.requires_grad) for p in scene.parameters())
+
+
+def curves_move(scene: Scene, world: Scene) -> bool:
+    """Whether a boundary term can carry a derivative: something is differentiated
+    (``differentiated``) among what places a curve (``geometry_moves``, in ``world``: the
+    scene's objects placed in world space). Not for a material's or a light's strength
+    alone, whose gradients need no curve."""
+    return differentiated(scene) and geometry_moves(world)
 
 
 def on_every_parameter(image: md.Tensor, scene: Scene) -> md.Tensor:

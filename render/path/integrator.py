@@ -37,7 +37,7 @@ import numpy as np
 import minidiff as md
 from minidiff import buffers
 from minidiff.tensor import record
-from render.edges.terms import differentiated, on_every_parameter
+from render.edges.terms import curves_move, differentiated, on_every_parameter
 from render.path.boundary.primary import add_path_boundary_term
 from render.path.boundary.secondary import add_secondary_term, backpropagate_secondary
 from render.path.gradient.replay import backpropagate_paths
@@ -182,9 +182,10 @@ def _taped_image(scene, world, sampler, spp, batch_spp, edges, edge_spp):
         for s in range(samples.shape[2]):
             total = samples[:, :, s] if total is None else total + samples[:, :, s]
     image = total * (1.0 / spp)
-    if edges[0] and differentiated(scene):
+    moves = curves_move(scene, world)  # else the edge terms are zero in derivative too
+    if edges[0] and moves:
         image = add_path_boundary_term(scene, world, image, frame, sampler, edge_spp)
-    if edges[1] and differentiated(scene):
+    if edges[1] and moves:
         image = add_secondary_term(world, image, frame, sampler)
     return image
 
@@ -306,7 +307,8 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         world = placed(scene)
         sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     _replay_batches(scene, sampler, d_image, batch_spp, kept)
-    if edges[0] and differentiated(scene):
+    moves = curves_move(scene, placed(scene))  # else the edge terms are zero in derivative
+    if edges[0] and moves:
         world = placed(scene)
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
         term = add_path_boundary_term(
@@ -314,7 +316,7 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         )
         if term.requires_grad:
             md.sum(term * d_image).backward()
-    if edges[1] and differentiated(scene):
+    if edges[1] and moves:
         backpropagate_secondary(lambda: placed(scene), sampler, d_image)
     _zeros_where_missing(scene)
 

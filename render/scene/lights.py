@@ -8,6 +8,8 @@ A light answers, for the stages that trace, shade and differentiate edges, in on
   (``render.trace.visibility``); ``shadow_ray_end``: the end of a ray along ``towards``;
   ``location()``: where it is, if it is anywhere (the shadow rays' offset, the light's view);
 * ``shadow_key()``: what its shadow rays depend on (``render.scene.cache``);
+  ``placement()``: the parameters that say where it is (its shadows' borders move only
+  with them, ``render.edges.boundary.curves.geometry_moves``);
 * ``pack()`` / ``shading_pack()``: its kind code and values for the hand-written kernels
   (``render.edges.boundary.shadow_tracing``, the path integrator's ``render.path.twin.packed``);
 * ``edge_plane(v_i, v_j)``: the plane an occluder's edge sweeps in its light, the shadow's
@@ -86,6 +88,11 @@ class Light(HasFields, ABC):
     @abstractmethod
     def location(self) -> np.ndarray | None:
         """(3,) float64: where the light is; None for a light at infinity."""
+
+    @abstractmethod
+    def placement(self) -> tuple[Tensor, ...]:
+        """The parameters that say where the light is, not how bright: what its shadows'
+        borders move with (``render.edges.boundary.curves.geometry_moves``)."""
 
     @abstractmethod
     def towards(self, points: Values) -> Values:
@@ -185,6 +192,9 @@ class PointLight(Light):
         self._set_fields(position=position, intensity=intensity, color=color)
         self.validate()
 
+    def placement(self) -> tuple[Tensor, ...]:
+        return (self.position,)
+
     def location(self) -> np.ndarray:
         return np.asarray(self.position.data, dtype=np.float64)
 
@@ -261,6 +271,9 @@ class DirectionalLight(Light):
     def __init__(self, direction: ArrayLike, irradiance: ArrayLike, color: ArrayLike = WHITE):
         self._set_fields(direction=direction, irradiance=irradiance, color=color)
         self.validate()
+
+    def placement(self) -> tuple[Tensor, ...]:
+        return (self.direction,)
 
     def location(self) -> None:
         return None

@@ -14,7 +14,16 @@ import numpy as np
 
 from minidiff.either import as_column, cross_last, dot_last
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
-from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
+from render.edges.boundary.curves import (
+    NEAR,
+    CurvePoints,
+    Curves,
+    OnCurves,
+    View,
+    camera_moves,
+    directions_at,
+    meshes_move,
+)
 from render.edges.boundary.mesh_edge import approach
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import boxes_apart, pixel_gradient
@@ -36,6 +45,10 @@ class SurfaceCrossing:
 
     def __init__(self, pairs: np.ndarray, segments: np.ndarray) -> None:
         self.pairs, self.segments = pairs, segments
+
+    def moves(self, scene: Scene) -> bool:
+        """The camera or some mesh's vertices differentiated (``CurveKind.moves``)."""
+        return camera_moves(scene) or meshes_move(scene)
 
     def curves(self, view: View) -> Curves:
         """The segments in front of the eye."""

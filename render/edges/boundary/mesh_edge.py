@@ -42,7 +42,9 @@ from render.edges.boundary.curves import (
     Curves,
     OnCurves,
     View,
+    camera_moves,
     directions_at,
+    meshes_move,
 )
 from render.edges.boundary.occlusion import SHORT, hidden_points, seen_in
 from render.edges.boundary.radiance import EPSILON
@@ -81,6 +83,10 @@ class MeshEdge:
     def vertices(self, scene: Scene) -> np.ndarray:
         """(V, 3) float64: the meshes' vertices, concatenated (the table's vertex ids)."""
         return as_one_mesh([scene.meshes[k] for k in self.meshes])[0]
+
+    def moves(self, scene: Scene) -> bool:
+        """The camera or the meshes' vertices differentiated (``CurveKind.moves``)."""
+        return camera_moves(scene) or meshes_move(scene, self.meshes)
 
     def curves(self, view: View) -> Curves:
         """Every edge in front of the eye that can be a jump: ``continuous_creases`` are

@@ -45,7 +45,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last, square_root
-from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
+from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View, geometry_moves
 from render.edges.boundary.occlusion import Occluders, hidden_points, seen_in
 from render.edges.boundary.pixels import pixel_step
 from render.edges.boundary.radiance import EPSILON, SideRadiance
@@ -497,6 +497,11 @@ class ShadowBorder:
 
     def __init__(self, visibility: Visibility, frame, outlines: Outlines) -> None:
         self.visibility, self.frame, self.outlines = visibility, frame, outlines
+
+    def moves(self, scene: Scene) -> bool:
+        """Anything that places a curve differentiated: where a light is, the occluders,
+        the receivers, the camera (``geometry_moves``; ``CurveKind.moves``)."""
+        return geometry_moves(scene)
 
     def curves(self, view: View) -> Curves:
         """The chords of every light's shadow borders."""

@@ -19,7 +19,17 @@ import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last
-from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
+from render.edges.boundary.curves import (
+    NEAR,
+    CurvePoints,
+    Curves,
+    OnCurves,
+    View,
+    camera_moves,
+    directions_at,
+    meshes_move,
+    spheres_move,
+)
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON
@@ -40,6 +50,10 @@ class SphereOutline:
 
     def __init__(self, index: int) -> None:
         self.index = index
+
+    def moves(self, scene: Scene) -> bool:
+        """The camera or the sphere differentiated (``CurveKind.moves``)."""
+        return camera_moves(scene) or spheres_move(scene, [self.index])
 
     def curves(self, view: View) -> Curves:
         """The outline as a closed polyline (``_outline_polyline``; none where it cannot be
@@ -71,6 +85,10 @@ class SphereCut:
     (``render.edges.boundary.curves``). Labels: (sphere index, triangle's global id) (k, 2)."""
 
     summed, taped = 2, 3
+
+    def moves(self, scene: Scene) -> bool:
+        """The camera, a sphere or a mesh's vertices differentiated (``CurveKind.moves``)."""
+        return camera_moves(scene) or spheres_move(scene) or meshes_move(scene)
 
     def curves(self, view: View) -> Curves:
         """The curves as chords (``sphere_cut_curves``)."""

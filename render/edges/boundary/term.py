@@ -44,9 +44,9 @@ def boundary_points(view: View, kinds: Sequence[CurveKind]) -> list[CurvePoints]
         kinds, curves, kind_points(p0, p1, pieces, counts, width, height), strict=True
     ):
         on = OnCurves(mine.label[segment], coords, pixel, weight, rows)
-        if len(rows):
+        if len(rows) and kind.moves(view.scene):
             found.append(kind.points(view, on))
-        else:  # no points on this kind's curves
+        else:  # no points on this kind's curves, or a term zero in derivative
             found.append(CurvePoints.nonzero(on, np.zeros((0, 3)), on.coords))
     return found
 

@@ -707,3 +707,56 @@ def test_a_smooth_coarse_sphere_s_terminator_has_the_supersampled_gradient(sun):
             ours,
             truth,
         )
+
+
+@settings(max_examples=6, deadline=None)
+@given(st.integers(0, 2**16), st.booleans())
+def test_each_parameter_s_gradient_is_the_same_alone_or_with_every_other(seed, moved):
+    """Each parameter of a random scene (both light types, a sphere and a pyramid casting
+    shadows; with ``moved``, the pyramid and the sphere placed by transforms) differentiated
+    alone, and with every other: the same boundary-term gradient. Alone, the curve kinds
+    whose edge functions read nothing differentiated find no points
+    (``CurveKind.moves``: a light's position needs the shadow borders, not the mesh edges;
+    a material needs no curve at all): a kind left out wrongly would take its share of
+    that parameter's gradient with it."""
+    scene = random_scene(seed, lights=("point", "directional"), width=24, height=20)
+    if moved:
+        scene.objects[1].transform = Transform(rotation=(3.0, -4.0, 2.0), translation=(0.1, 0, 0))
+        scene.objects[2].transform = Transform(translation=(0.0, 0.05, -0.1), scale=1.1)
+    weights = _weights(20, 24)
+
+    def gradients(differentiated: list[md.Tensor]) -> list[np.ndarray]:
+        for tensor in scene.parameters():
+            tensor.requires_grad, tensor.grad = False, None
+        for tensor in differentiated:
+            tensor.requires_grad = True
+        md.sum(render(scene, antialias="boundary", reuse_visibility=False) * weights).backward()
+        return [np.array(tensor.grad) for tensor in differentiated]
+
+    every = gradients(scene.parameters())
+    for tensor, together in zip(scene.parameters(), every, strict=True):
+        (alone,) = gradients([tensor])
+        scale = max(np.abs(together).max(), 1e-300)
+        np.testing.assert_allclose(alone, together, rtol=1e-12, atol=1e-12 * scale)
+
+
+def test_a_material_s_gradient_looks_for_no_curve(monkeypatch):
+    """Only a material differentiated: the boundary term, zero in derivative for it, is not
+    looked for (``render.edges.terms.curves_move``); the mixed pixels still get their
+    interior samples (the image is the antialiased one)."""
+    scene = random_scene(3, width=24, height=20)
+    albedo = scene.objects[1].material.albedo
+    albedo.requires_grad = True
+    image = render(scene, antialias="boundary", reuse_visibility=False)
+
+    def refuse(*args):
+        raise AssertionError("looked for curves")
+
+    monkeypatch.setattr("render.edges.terms.boundary_points_of", refuse)
+    again = render(scene, antialias="boundary", reuse_visibility=False)
+    np.testing.assert_array_equal(again.data, image.data)
+    md.sum(again * _weights(20, 24)).backward()
+    assert np.abs(albedo.grad).max() > 0
+    scene.lights[0].position.requires_grad = True
+    with pytest.raises(AssertionError, match="looked for curves"):
+        render(scene, antialias="boundary", reuse_visibility=False)
