@@ -113,6 +113,11 @@ EXPECTED = {
         ("time", "boundary"),
         ("time", "search_without_test"),
     ],
+    "moving_curves": [
+        ("choices", name, key)
+        for name in ("light_position", "albedo", "vertices", "every_parameter")
+        for key in ("boundary", "every_kind", "boundary_over_plain")
+    ],
     "scaling": [
         ("pixels", "*", "forward", "median_ms"),
         ("pixels", "*", "forward_backward", "median_ms"),

@@ -1,0 +1,138 @@
+"""What the default boundary term costs for one parameter's gradient when only some of its
+curves move with that parameter (``render.edges.boundary.curves``: ``CurveKind.moves``).
+
+Run:  python benchmarks/moving_curves.py [--out out/moving_curves] [--quick] [--repeats 15]
+(the committed results in docs/edges/ were made with ``--out docs/edges``)
+
+The paper scene at 512x512 (64x64 with ``--quick``), one forward+backward of a weighted
+sum of the image (``reuse_visibility=False``) into each of: the light's position (its
+shadow borders move; the mesh edges do not), the teapot's albedo (no curve moves), the
+teapot's vertices and every parameter (every curve moves). For each, in turns (medians):
+``plain`` (no edge terms), ``boundary`` (the default boundary term, 16 interior samples
+per mixed pixel) and ``every_kind`` (the same, every curve kind taken to move, as before
+``moves``: the points' factors of every kind computed, and the curves looked for whatever
+is differentiated). The gradients of ``boundary`` and ``every_kind`` are compared too
+(``gradient_difference``: the largest difference over the largest value).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import timing
+
+import minidiff as md
+import render
+import render.renderer
+from render.edges import terms
+from render.edges.boundary.crossing import SurfaceCrossing
+from render.edges.boundary.mesh_edge import MeshEdge
+from render.edges.boundary.shadow_border import ShadowBorder
+from render.edges.boundary.sphere import SphereCut, SphereOutline
+
+KINDS = (MeshEdge, SurfaceCrossing, SphereOutline, SphereCut, ShadowBorder)
+#: Which tensors each workload differentiates.
+CHOICES: dict[str, Callable[[render.Scene], list[md.Tensor]]] = {
+    "light_position": lambda s: [s.lights[0].position],
+    "albedo": lambda s: [s.objects[0].material.albedo],
+    "vertices": lambda s: [s.objects[0].vertices],
+    "every_parameter": lambda s: s.parameters(),
+}
+
+
+def every_kind_moves(fn: Callable[[], list[np.ndarray]]) -> Callable[[], list[np.ndarray]]:
+    """``fn`` run with every curve kind taken to move (each kind's ``moves`` answering True,
+    the renderer looking for curves whenever something is differentiated)."""
+
+    def run() -> list[np.ndarray]:
+        own = {kind: kind.moves for kind in KINDS}
+        own_gate = render.renderer.curves_move
+        try:
+            for kind in KINDS:
+                kind.moves = lambda self, scene: True
+            render.renderer.curves_move = lambda scene, world: terms.differentiated(scene)
+            return fn()
+        finally:
+            for kind, moves in own.items():
+                kind.moves = moves
+            render.renderer.curves_move = own_gate
+
+    return run
+
+
+def workloads(size: int, choice: str) -> dict[str, Callable[[], list[np.ndarray]]]:
+    """The three variants (module docstring) of one parameter choice, each returning the
+    gradients."""
+    scene = render.paper_scene(size, size)
+    for tensor in scene.parameters():
+        tensor.requires_grad = False
+    chosen = CHOICES[choice](scene)
+    for tensor in chosen:
+        tensor.requires_grad = True
+    weights = np.random.default_rng(3).uniform(0.0, 1.0, (size, size, 3))
+
+    def gradient(antialias) -> Callable[[], list[np.ndarray]]:
+        def run() -> list[np.ndarray]:
+            for tensor in chosen:
+                tensor.grad = None
+            image = render.render(scene, antialias=antialias, reuse_visibility=False)
+            md.sum(image * weights).backward()
+            return [np.array(tensor.grad) for tensor in chosen]
+
+        return run
+
+    boundary = gradient("boundary")
+    return {"plain": gradient(False), "boundary": boundary,
+            "every_kind": every_kind_moves(boundary)}  # fmt: skip
+
+
+def measure(size: int, repeats: int) -> dict:
+    """Per parameter choice: each variant's median (ms), the ratios to ``plain`` and the
+    gradients' difference."""
+    out = {}
+    for choice in CHOICES:
+        fns = workloads(size, choice)
+        now, before = fns["boundary"](), fns["every_kind"]()
+        scale = max(max(np.abs(g).max() for g in before), 1e-300)
+        difference = max(np.abs(a - b).max() for a, b in zip(now, before, strict=True)) / scale
+        stats = timing.measure_interleaved(fns, repeats=repeats, warmup=2)
+        ms = {name: stats[name]["median_ms"] for name in fns}
+        out[choice] = {
+            **ms,
+            "boundary_over_plain": ms["boundary"] / ms["plain"],
+            "every_kind_over_plain": ms["every_kind"] / ms["plain"],
+            "gradient_difference": float(difference),
+        }
+    return out
+
+
+def report(result: dict) -> dict:
+    """The report section (``timing.report_section``) of ``main``'s result."""
+    rows = []
+    for choice, r in result["choices"].items():
+        rows.append(timing.target_row(
+            f"{choice}: boundary f+b / plain f+b (every kind moving: "
+            f"{r['every_kind_over_plain']:.2f}x; gradients apart by "
+            f"{r['gradient_difference']:.1e})",
+            f"{r['boundary_over_plain']:.2f}x", r["boundary_over_plain"], 3.0, "at most 3x",
+        ))  # fmt: skip
+    title = f"The boundary term when only some curves move, {result['size']}x{result['size']}"
+    return timing.report_section(title, rows, [], [])
+
+
+def main(argv=None) -> None:
+    parser = timing.make_parser(__doc__, Path("out/moving_curves"), quick="64x64, 1 repeat")
+    parser.add_argument("--repeats", type=int, default=15, help="timed calls (default 15)")
+    args = parser.parse_args(argv)
+    size = 64 if args.quick else 512
+    repeats = timing.QUICK_REPEATS if args.quick else args.repeats
+    result = {"size": size, "choices": measure(size, repeats)}
+    result["report"] = report(result)
+    timing.print_report(result["report"], timing.machine())
+    timing.write_json(args.out, "moving_curves", result)
+
+
+if __name__ == "__main__":
+    main()
