@@ -60,6 +60,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.threads import beside
+from render.edges.boundary.curves import camera_moves, moving
 from render.path.boundary.silhouettes import Curves, level_set
 from render.path.gradient import window
 from render.path.gradient.replay import plain_tables, radiance_of
@@ -471,9 +472,17 @@ def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep
     rows in the batch (M,)). ``tables``: the tables on the tape, what phi reads; ``plain``:
     the same off the tape, what the samples' radiance reads."""
     record = batch.vertices[k - 1]
-    sub = np.flatnonzero(cross.valid)[keep]
-    if len(sub) == 0:
+    valid = np.flatnonzero(cross.valid)
+    chosen = np.flatnonzero(keep)
+    # Only the samples whose phi can carry a derivative: the others' terms are zero in
+    # derivative too, and their radiance (a path continued from x') is the costly part.
+    chosen = chosen[_moving(world, sampler, curves, record.rows[valid[chosen]], k, batch,
+                            cross.prim[chosen], cross.index[chosen], light)]  # fmt: skip
+    if len(chosen) == 0:
         return
+    keep = np.zeros(len(valid), bool)
+    keep[chosen] = True
+    sub = valid[keep]
     hit = _take(cross, keep)
     src = record.rows[sub]
     m = len(src)
@@ -492,6 +501,28 @@ def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep
         _value(world, frame, tables, plain, sampler, curves, batch, k, src, hit, records, light),
         src,
     )
+
+
+def _moving(world, sampler, curves, src, k, batch, there, index, light) -> np.ndarray:
+    """(m,) bool: which samples' phi can carry a derivative (the paths ``src`` (m,) at their
+    k-th vertices, x' on primitives ``there`` (m,), curves ``index`` (m,), the apex light
+    ``light`` or None): the camera, the apex light's placement, x_k's, x''s or the curve's
+    object differentiated in ``world``, or x_k reached through a mirror (replayed from the
+    camera: every sample kept). ``curves_move`` gates the whole term likewise."""
+    placed = [moving(mesh.vertices) for mesh in world.meshes]
+    placed += [moving(sphere.center, sphere.radius) for sphere in world.spheres]
+    objects = np.array(placed, bool)
+    apex = light is not None and moving(*world.lights[light].placement())
+    if camera_moves(world) or apex:
+        return np.ones(len(src), bool)
+    here = _Rows(batch.vertices[k - 1], src)
+    owner = np.zeros(len(index), np.int64)  # the curve's object
+    edge = index < curves.n_edges
+    owner[edge] = curves.edge_object[index[edge]]
+    owner[~edge] = curves.sphere_object[index[~edge] - curves.n_edges]
+    of = partial(np.searchsorted, sampler.first, side="right")
+    out = objects[of(here.prim) - 1] | objects[of(there) - 1] | objects[owner]
+    return out | (here.form == MIRROR)
 
 
 def _from_light(sampler, curves, light, u_curve, u_point, active, viewer):

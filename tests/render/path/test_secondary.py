@@ -483,3 +483,38 @@ def test_curve_gradient_is_central_differences_of_phi(seed):
     scale = np.abs(expected).max(axis=1, keepdims=True)
     error = np.abs(got - expected) / np.maximum(scale, 1e-3)  # relative to each row's size
     assert error.max() < 1e-6, error.max()
+
+
+@pytest.mark.parametrize("gradient", ["replay", "tape"])
+@pytest.mark.parametrize(
+    "occluder, light", [("tall box", "area"), ("sphere", "area"), ("square", "point")]
+)
+def test_each_parameter_s_gradient_is_the_same_alone_or_with_every_other(occluder, light,
+                                                                         gradient):  # fmt: skip
+    """Each parameter of a shadowed floor differentiated alone, and with every other: the
+    same gradient with both boundary terms. Alone, the secondary samples whose phi reads
+    nothing differentiated are dropped before their radiance is computed
+    (``secondary._moving``: the area light's position needs the samples whose x', x_k or
+    curve is the light, not those of the box's shadow seen against the floor): a sample
+    dropped wrongly would take its share of that parameter's gradient with it. (Not an
+    emission: differentiated, it makes its mesh an emitter that next-event estimation
+    picks, another estimator of the same image.)"""
+    scene = shadowed_floor(occluder, light)
+    weights = 1.0 + 0.5 * np.random.default_rng(2).standard_normal((8, 8, 3))
+
+    def gradients(differentiated: list[md.Tensor]) -> list[np.ndarray]:
+        for tensor in scene.parameters():
+            tensor.requires_grad, tensor.grad = False, None
+        for tensor in differentiated:
+            tensor.requires_grad = True
+        image = render_path(scene, spp=4, max_depth=3, seed=3, antialias="boundary",
+                            gradient=gradient)  # fmt: skip
+        md.sum(image * weights).backward()
+        return [np.array(tensor.grad) for tensor in differentiated]
+
+    tensors = [t for name, t in scene.named_parameters().items() if not name.endswith("emission")]
+    every = gradients(tensors)
+    for tensor, together in zip(tensors, every, strict=True):
+        (alone,) = gradients([tensor])
+        scale = max(np.abs(together).max(), 1e-300)
+        np.testing.assert_allclose(alone, together, rtol=1e-12, atol=1e-12 * scale)
