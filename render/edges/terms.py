@@ -21,8 +21,9 @@ import numpy as np
 import minidiff as md
 from minidiff.tensor import record
 from render.edges.boundary.crossing import SurfaceCrossing, crossing_segments, global_welded
-from render.edges.boundary.curves import CurveKind, CurvePoints, geometry_moves
+from render.edges.boundary.curves import CurveKind, CurvePoints
 from render.edges.boundary.mesh_edge import MeshEdge
+from render.edges.boundary.moving import geometry_moves
 from render.edges.boundary.occlusion import Occluders
 from render.edges.boundary.radiance import DirectRadiance
 from render.edges.boundary.shadow_border import ShadowBorder

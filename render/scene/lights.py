@@ -9,7 +9,7 @@ A light answers, for the stages that trace, shade and differentiate edges, in on
   ``location()``: where it is, if it is anywhere (the shadow rays' offset, the light's view);
 * ``shadow_key()``: what its shadow rays depend on (``render.scene.cache``);
   ``placement()``: the parameters that say where it is (its shadows' borders move only
-  with them, ``render.edges.boundary.curves.geometry_moves``);
+  with them, ``render.edges.boundary.moving.geometry_moves``);
 * ``pack()`` / ``shading_pack()``: its kind code and values for the hand-written kernels
   (``render.edges.boundary.shadow_tracing``, the path integrator's ``render.path.twin.packed``);
 * ``edge_plane(v_i, v_j)``: the plane an occluder's edge sweeps in its light, the shadow's
@@ -92,7 +92,7 @@ class Light(HasFields, ABC):
     @abstractmethod
     def placement(self) -> tuple[Tensor, ...]:
         """The parameters that say where the light is, not how bright: what its shadows'
-        borders move with (``render.edges.boundary.curves.geometry_moves``)."""
+        borders move with (``render.edges.boundary.moving.geometry_moves``)."""
 
     @abstractmethod
     def towards(self, points: Values) -> Values:

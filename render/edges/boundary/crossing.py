@@ -14,17 +14,9 @@ import numpy as np
 
 from minidiff.either import as_column, cross_last, dot_last
 from minidiff.threads import jit, job_count, kernel, run_jobs, share
-from render.edges.boundary.curves import (
-    NEAR,
-    CurvePoints,
-    Curves,
-    OnCurves,
-    View,
-    camera_moves,
-    directions_at,
-    meshes_move,
-)
+from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
 from render.edges.boundary.mesh_edge import approach
+from render.edges.boundary.moving import camera_moves, meshes_move
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import boxes_apart, pixel_gradient
 from render.edges.geometry import plane_normal, triangle_corners

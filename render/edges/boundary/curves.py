@@ -120,8 +120,9 @@ class CurveKind(Protocol):
     summed: int
 
     def moves(self, scene: Scene) -> bool:
-        """Whether a parameter its edge function reads is differentiated (``moving``), in
-        the render's ``scene`` (its objects placed in world space, on the tape)."""
+        """Whether a parameter its edge function reads is differentiated, in the render's
+        ``scene`` (its objects placed in world space, on the tape;
+        ``render.edges.boundary.moving``)."""
         ...
 
     def curves(self, view: View) -> Curves:
@@ -139,42 +140,6 @@ class CurveKind(Protocol):
         ``camera_frame``), and the rows (g,) of ``points`` each value belongs to (a kind
         that evaluates its points in groups returns them in its groups' order)."""
         ...
-
-
-def moving(*tensors: md.Tensor | None) -> bool:
-    """Whether a derivative flows through any of ``tensors`` (None: none), in either mode
-    (``Tensor.is_differentiated``)."""
-    return any(t is not None and t.is_differentiated() for t in tensors)
-
-
-def camera_moves(scene: Scene) -> bool:
-    """Whether the camera's position, orientation or field of view is differentiated: then
-    every curve moves in the image."""
-    camera = scene.camera
-    return moving(*(getattr(camera, field.name) for field in camera.FIELDS))
-
-
-def meshes_move(scene: Scene, meshes=None) -> bool:
-    """Whether the vertices of ``scene.meshes[k]`` for k in ``meshes`` (default: all) are
-    differentiated (in world space: a transform's parameters reach them too)."""
-    chosen = scene.meshes if meshes is None else [scene.meshes[k] for k in meshes]
-    return moving(*(mesh.vertices for mesh in chosen))
-
-
-def spheres_move(scene: Scene, spheres=None) -> bool:
-    """Whether the centre or radius of ``scene.spheres[k]`` for k in ``spheres`` (default:
-    all) is differentiated."""
-    chosen = scene.spheres if spheres is None else [scene.spheres[k] for k in spheres]
-    return moving(*(t for sphere in chosen for t in (sphere.center, sphere.radius)))
-
-
-def geometry_moves(scene: Scene) -> bool:
-    """Whether anything that places a curve is differentiated: the camera, a mesh's
-    vertices, a sphere, where a light is (``Light.placement``; its shadows' borders). When
-    not, every kind's boundary term is zero in derivative (``CurveKind.moves``), and the
-    renderer looks for no curve."""
-    lights = (t for light in scene.lights for t in light.placement())
-    return camera_moves(scene) or meshes_move(scene) or spheres_move(scene) or moving(*lights)
 
 
 def directions_at(scene: Scene, frame, coords: np.ndarray) -> md.Tensor:

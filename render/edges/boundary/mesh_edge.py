@@ -36,16 +36,8 @@ import numpy as np
 import minidiff as md
 from minidiff.either import cross_last, dot_last
 from minidiff.threads import job_count, kernel, run_jobs
-from render.edges.boundary.curves import (
-    NEAR,
-    CurvePoints,
-    Curves,
-    OnCurves,
-    View,
-    camera_moves,
-    directions_at,
-    meshes_move,
-)
+from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
+from render.edges.boundary.moving import camera_moves, meshes_move
 from render.edges.boundary.occlusion import SHORT, hidden_points, seen_in
 from render.edges.boundary.radiance import EPSILON
 from render.scene.camera import camera_directions, clip_to_near, project

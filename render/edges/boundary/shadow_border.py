@@ -45,7 +45,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last, square_root
-from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View, geometry_moves
+from render.edges.boundary.curves import CurvePoints, Curves, OnCurves, View
+from render.edges.boundary.moving import geometry_moves
 from render.edges.boundary.occlusion import Occluders, hidden_points, seen_in
 from render.edges.boundary.pixels import pixel_step
 from render.edges.boundary.radiance import EPSILON, SideRadiance

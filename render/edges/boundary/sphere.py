@@ -19,17 +19,8 @@ import numpy as np
 
 import minidiff as md
 from minidiff.either import as_column, dot_last
-from render.edges.boundary.curves import (
-    NEAR,
-    CurvePoints,
-    Curves,
-    OnCurves,
-    View,
-    camera_moves,
-    directions_at,
-    meshes_move,
-    spheres_move,
-)
+from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
+from render.edges.boundary.moving import camera_moves, meshes_move, spheres_move
 from render.edges.boundary.occlusion import hidden_points
 from render.edges.boundary.pixels import pixel_gradient
 from render.edges.boundary.radiance import EPSILON

@@ -60,7 +60,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.threads import beside
-from render.edges.boundary.curves import camera_moves, moving
+from render.edges.boundary.moving import camera_moves, moving
 from render.path.boundary.silhouettes import Curves, level_set
 from render.path.gradient import window
 from render.path.gradient.replay import plain_tables, radiance_of

@@ -8,16 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import minidiff
-from render.scene.scene import (
-    Camera,
-    DirectionalLight,
-    Material,
-    Mesh,
-    PointLight,
-    Scene,
-    Sphere,
-    Transform,
-)
+from render import Camera, DirectionalLight, Material, Mesh, PointLight, Scene, Sphere, Transform
 
 TRI_V = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 TRI_F = np.array([[0, 1, 2]])

@@ -1,0 +1,47 @@
+"""Which parameters move which curves: a curve kind's boundary term carries a derivative
+only where a parameter its edge function reads is differentiated
+(``render.edges.boundary.curves.CurveKind.moves``); the path integrator's secondary term
+asks the same of each sample. Tested by each parameter's gradient alone and with every
+other (``tests/render/edges/test_boundary.py``, ``tests/render/path/test_secondary.py``).
+"""
+
+from __future__ import annotations
+
+import minidiff as md
+from render.scene.scene import Scene
+
+
+def moving(*tensors: md.Tensor | None) -> bool:
+    """Whether a derivative flows through any of ``tensors`` (None: none), in either mode
+    (``Tensor.is_differentiated``)."""
+    return any(t is not None and t.is_differentiated() for t in tensors)
+
+
+def camera_moves(scene: Scene) -> bool:
+    """Whether the camera's position, orientation or field of view is differentiated: then
+    every curve moves in the image."""
+    camera = scene.camera
+    return moving(*(getattr(camera, field.name) for field in camera.FIELDS))
+
+
+def meshes_move(scene: Scene, meshes=None) -> bool:
+    """Whether the vertices of ``scene.meshes[k]`` for k in ``meshes`` (default: all) are
+    differentiated (in world space: a transform's parameters reach them too)."""
+    chosen = scene.meshes if meshes is None else [scene.meshes[k] for k in meshes]
+    return moving(*(mesh.vertices for mesh in chosen))
+
+
+def spheres_move(scene: Scene, spheres=None) -> bool:
+    """Whether the centre or radius of ``scene.spheres[k]`` for k in ``spheres`` (default:
+    all) is differentiated."""
+    chosen = scene.spheres if spheres is None else [scene.spheres[k] for k in spheres]
+    return moving(*(t for sphere in chosen for t in (sphere.center, sphere.radius)))
+
+
+def geometry_moves(scene: Scene) -> bool:
+    """Whether anything that places a curve is differentiated: the camera, a mesh's
+    vertices, a sphere, where a light is (``Light.placement``; its shadows' borders). When
+    not, every kind's boundary term is zero in derivative (``CurveKind.moves``), and the
+    renderer looks for no curve."""
+    lights = (t for light in scene.lights for t in light.placement())
+    return camera_moves(scene) or meshes_move(scene) or spheres_move(scene) or moving(*lights)
