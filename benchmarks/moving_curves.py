@@ -13,11 +13,17 @@ per mixed pixel) and ``every_kind`` (the same, every curve kind taken to move, a
 ``moves``: the points' factors of every kind computed, and the curves looked for whatever
 is differentiated). The gradients of ``boundary`` and ``every_kind`` are compared too
 (``gradient_difference``: the largest difference over the largest value).
+
+``fits``: the same ``plain`` and ``boundary`` as steps of a fit, with the render cache
+(``reuse_visibility=True``, the default): the albedo's (nothing the cache keys on moves:
+the visibility and the mixed pixels are found once) and the light position's (the light
+moved by 1e-3 before every call, back and forth: its shadows are traced again each time).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +114,34 @@ def measure(size: int, repeats: int) -> dict:
     return out
 
 
+def _fit_step(scene, tensor, weights, steps, antialias) -> None:
+    """One forward+backward into ``tensor``, first moved by the next of ``steps`` (None:
+    not moved)."""
+    tensor.grad = None
+    if steps is not None:
+        with md.no_grad():
+            tensor.data[...] = tensor.data + next(steps)
+    md.sum(render.render(scene, antialias=antialias) * weights).backward()
+
+
+def fits(size: int, repeats: int) -> dict:
+    """``fits`` of the module docstring: per choice, each variant's median (ms) and the
+    ratio."""
+    out = {}
+    for choice in ("albedo", "light_position"):
+        scene = render.paper_scene(size, size)
+        (tensor,) = CHOICES[choice](scene)
+        tensor.requires_grad = True
+        weights = np.random.default_rng(3).uniform(0.0, 1.0, (size, size, 3))
+        steps = iter(np.tile([1e-3, -1e-3], 10_000)) if choice == "light_position" else None
+        step = partial(_fit_step, scene, tensor, weights, steps)
+        fns = {"plain": partial(step, False), "boundary": partial(step, "boundary")}
+        stats = timing.measure_interleaved(fns, repeats=repeats, warmup=2)
+        ms = {name: stats[name]["median_ms"] for name in fns}
+        out[choice] = {**ms, "boundary_over_plain": ms["boundary"] / ms["plain"]}
+    return out
+
+
 def report(result: dict) -> dict:
     """The report section (``timing.report_section``) of ``main``'s result."""
     rows = []
@@ -116,6 +150,11 @@ def report(result: dict) -> dict:
             f"{choice}: boundary f+b / plain f+b (every kind moving: "
             f"{r['every_kind_over_plain']:.2f}x; gradients apart by "
             f"{r['gradient_difference']:.1e})",
+            f"{r['boundary_over_plain']:.2f}x", r["boundary_over_plain"], 3.0, "at most 3x",
+        ))  # fmt: skip
+    for choice, r in result["fits"].items():
+        rows.append(timing.target_row(
+            f"{choice}, a fit's step (the render cache): boundary f+b / plain f+b",
             f"{r['boundary_over_plain']:.2f}x", r["boundary_over_plain"], 3.0, "at most 3x",
         ))  # fmt: skip
     title = f"The boundary term when only some curves move, {result['size']}x{result['size']}"
@@ -128,7 +167,7 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     size = 64 if args.quick else 512
     repeats = timing.QUICK_REPEATS if args.quick else args.repeats
-    result = {"size": size, "choices": measure(size, repeats)}
+    result = {"size": size, "choices": measure(size, repeats), "fits": fits(size, repeats)}
     result["report"] = report(result)
     timing.print_report(result["report"], timing.machine())
     timing.write_json(args.out, "moving_curves", result)

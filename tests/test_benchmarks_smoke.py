@@ -117,7 +117,8 @@ EXPECTED = {
         ("choices", name, key)
         for name in ("light_position", "albedo", "vertices", "every_parameter")
         for key in ("boundary", "every_kind", "boundary_over_plain")
-    ],
+    ]
+    + [("fits", name, "boundary_over_plain") for name in ("albedo", "light_position")],
     "scaling": [
         ("pixels", "*", "forward", "median_ms"),
         ("pixels", "*", "forward_backward", "median_ms"),
