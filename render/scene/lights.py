@@ -8,8 +8,8 @@ A light answers, for the stages that trace, shade and differentiate edges, in on
   (``render.trace.visibility``); ``shadow_ray_end``: the end of a ray along ``towards``;
   ``location()``: where it is, if it is anywhere (the shadow rays' offset, the light's view);
 * ``shadow_key()``: what its shadow rays depend on (``render.scene.cache``);
-  ``placement()``: the parameters that say where it is (its shadows' borders move only
-  with them, ``render.edges.boundary.moving.geometry_moves``);
+  ``placement()``: the parameters that say where it is (by default all of them; its
+  shadows' borders move only with them, ``render.edges.boundary.moving.geometry_moves``);
 * ``pack()`` / ``shading_pack()``: its kind code and values for the hand-written kernels
   (``render.edges.boundary.shadow_tracing``, the path integrator's ``render.path.twin.packed``);
 * ``edge_plane(v_i, v_j)``: the plane an occluder's edge sweeps in its light, the shadow's
@@ -89,10 +89,12 @@ class Light(HasFields, ABC):
     def location(self) -> np.ndarray | None:
         """(3,) float64: where the light is; None for a light at infinity."""
 
-    @abstractmethod
     def placement(self) -> tuple[Tensor, ...]:
         """The parameters that say where the light is, not how bright: what its shadows'
-        borders move with (``render.edges.boundary.moving.geometry_moves``)."""
+        borders move with (``render.edges.boundary.moving.geometry_moves``). By default
+        every parameter of the light (a new light type is right without it, if slower: a
+        differentiated strength then makes its borders' points be found too)."""
+        return tuple(getattr(self, field.name) for field in self.FIELDS)
 
     @abstractmethod
     def towards(self, points: Values) -> Values:

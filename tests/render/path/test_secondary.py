@@ -378,7 +378,7 @@ def test_vertices_after_a_mirror_are_where_the_tape_puts_them():
 def _written_by_a_user(light_type: type) -> type:
     """A direct subclass of ``render.Light`` with ``light_type``'s physics: its formulas,
     none of its class identity, the base class's ``shadow_apex``."""
-    names = ("placement", "location", "towards", "incidence", "shadow_rays", "shadow_key", "pack",
+    names = ("location", "towards", "incidence", "shadow_rays", "shadow_key", "pack",
              "edge_plane", "ray_to", "sphere_outline", "__init__")  # fmt: skip
     attrs = {name: getattr(light_type, name) for name in names}
     attrs |= {k: getattr(light_type, k) for k in ("KIND", "shadow_ray_end", "FIELDS")}
