@@ -307,9 +307,9 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         world = placed(scene)
         sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     _replay_batches(scene, sampler, d_image, batch_spp, kept)
-    moves = curves_move(scene, placed(scene))  # else the edge terms are zero in derivative
+    world = placed(scene)
+    moves = curves_move(scene, world)  # else the edge terms are zero in derivative too
     if edges[0] and moves:
-        world = placed(scene)
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
         term = add_path_boundary_term(
             scene, world, zero, camera_frame(world.camera), sampler, edge_spp

@@ -7,6 +7,8 @@ other (``tests/render/edges/test_boundary.py``, ``tests/render/path/test_seconda
 
 from __future__ import annotations
 
+import numpy as np
+
 import minidiff as md
 from render.scene.scene import Scene
 
@@ -24,18 +26,27 @@ def camera_moves(scene: Scene) -> bool:
     return moving(*(getattr(camera, field.name) for field in camera.FIELDS))
 
 
+def objects_move(scene: Scene) -> np.ndarray:
+    """(M + S,) bool: whether each mesh's vertices (in world space: a transform's
+    parameters reach them too), then each sphere's centre or radius, are differentiated
+    (the objects in the order of ``render.trace.primitives.scene_primitives``)."""
+    meshes = [moving(mesh.vertices) for mesh in scene.meshes]
+    spheres = [moving(sphere.center, sphere.radius) for sphere in scene.spheres]
+    return np.array(meshes + spheres, bool)
+
+
 def meshes_move(scene: Scene, meshes=None) -> bool:
     """Whether the vertices of ``scene.meshes[k]`` for k in ``meshes`` (default: all) are
-    differentiated (in world space: a transform's parameters reach them too)."""
-    chosen = scene.meshes if meshes is None else [scene.meshes[k] for k in meshes]
-    return moving(*(mesh.vertices for mesh in chosen))
+    differentiated (``objects_move``)."""
+    flags = objects_move(scene)[: len(scene.meshes)]
+    return bool(flags.any() if meshes is None else flags[list(meshes)].any())
 
 
 def spheres_move(scene: Scene, spheres=None) -> bool:
     """Whether the centre or radius of ``scene.spheres[k]`` for k in ``spheres`` (default:
-    all) is differentiated."""
-    chosen = scene.spheres if spheres is None else [scene.spheres[k] for k in spheres]
-    return moving(*(t for sphere in chosen for t in (sphere.center, sphere.radius)))
+    all) is differentiated (``objects_move``)."""
+    flags = objects_move(scene)[len(scene.meshes) :]
+    return bool(flags.any() if spheres is None else flags[list(spheres)].any())
 
 
 def geometry_moves(scene: Scene) -> bool:

@@ -60,7 +60,7 @@ import numpy as np
 
 import minidiff as md
 from minidiff.threads import beside
-from render.edges.boundary.moving import camera_moves, moving
+from render.edges.boundary.moving import camera_moves, moving, objects_move
 from render.path.boundary.silhouettes import Curves, level_set
 from render.path.gradient import window
 from render.path.gradient.replay import plain_tables, radiance_of
@@ -473,16 +473,13 @@ def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep
     the same off the tape, what the samples' radiance reads."""
     record = batch.vertices[k - 1]
     valid = np.flatnonzero(cross.valid)
-    chosen = np.flatnonzero(keep)
     # Only the samples whose phi can carry a derivative: the others' terms are zero in
     # derivative too, and their radiance (a path continued from x') is the costly part.
-    chosen = chosen[_moving(world, sampler, curves, record.rows[valid[chosen]], k, batch,
-                            cross.prim[chosen], cross.index[chosen], light)]  # fmt: skip
-    if len(chosen) == 0:
-        return
-    keep = np.zeros(len(valid), bool)
-    keep[chosen] = True
+    keep = keep & _moving(world, sampler, curves, record.rows[valid], k, batch, cross.prim,
+                          cross.index, light)  # fmt: skip
     sub = valid[keep]
+    if len(sub) == 0:
+        return
     hit = _take(cross, keep)
     src = record.rows[sub]
     m = len(src)
@@ -509,9 +506,7 @@ def _moving(world, sampler, curves, src, k, batch, there, index, light) -> np.nd
     ``light`` or None): the camera, the apex light's placement, x_k's, x''s or the curve's
     object differentiated in ``world``, or x_k reached through a mirror (replayed from the
     camera: every sample kept). ``curves_move`` gates the whole term likewise."""
-    placed = [moving(mesh.vertices) for mesh in world.meshes]
-    placed += [moving(sphere.center, sphere.radius) for sphere in world.spheres]
-    objects = np.array(placed, bool)
+    objects = objects_move(world)
     apex = light is not None and moving(*world.lights[light].placement())
     if camera_moves(world) or apex:
         return np.ones(len(src), bool)
