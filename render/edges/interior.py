@@ -26,7 +26,9 @@ So those pixels get more samples:
 
 Steps 1 and 2 are kept in the render's cache (``render.scene.cache``) while the
 visibility and the lights' positions are: an inverse problem that fits a material finds
-them once.
+them once. The candidates' samples' first hits are kept while the camera and the geometry
+are: one that fits a light traces only the samples of the pixels its shadows' borders
+have newly reached (the shadow rays, which move with the light, are traced every time).
 
 The image is then an antialiased one (mixed pixels from 16 samples, the others from the
 render's own) and the tape's derivative is the derivative of that image: for a parameter
@@ -38,7 +40,7 @@ so every route of steps 2, 3 and 5 (compiled or on the tape) gives the same imag
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -299,7 +301,7 @@ def antialias_mixed_pixels(
     key = [visibility.stamp, np.array([spp, grid_spp, visibility.shadows])]
     key += [array for light in scene.lights for array in light_key(light)]
     found, _ = cache.get("mixed pixels", key,
-                         lambda: mixed_pixels(scene, visibility, spp, grid_spp))  # fmt: skip
+                         lambda: mixed_pixels(scene, visibility, spp, grid_spp, cache))  # fmt: skip
     if found is None:
         return image
     pixels, seen = found
@@ -317,12 +319,17 @@ def antialias_mixed_pixels(
 
 
 def mixed_pixels(
-    scene: Scene, visibility: Visibility, spp: int, grid_spp: int = INTERIOR_SAMPLES
+    scene: Scene,
+    visibility: Visibility,
+    spp: int,
+    grid_spp: int = INTERIOR_SAMPLES,
+    cache: RenderCache | None = None,
 ) -> tuple[np.ndarray, Visibility] | None:
     """Steps 1 and 2 of the module docstring, off the tape: the flat indices (m,) of the
     mixed pixels, ascending, and their ``grid_spp`` samples' visibility (m * grid_spp rays,
     pixel by pixel; ``visibility`` is the render's, ``spp`` per pixel). None when no pixel
-    is mixed, or ``grid_spp`` <= ``spp``."""
+    is mixed, or ``grid_spp`` <= ``spp``. ``cache``: the render's, where the candidates'
+    first hits are kept (``_kept_first_hits``); None: none kept."""
     camera = scene.camera
     width, height = camera.width, camera.height
     if spp >= grid_spp:
@@ -338,7 +345,7 @@ def mixed_pixels(
     coords = sample_coords(pixels, grid_spp, width, height)
     forward, right, up, eye = frame
     directions = camera_directions(coords, right, up, forward)
-    prim_id, depth = _first_hits(scene, visibility, pixels, directions, grid_spp)
+    prim_id, depth = _kept_first_hits(scene, visibility, cache, pixels, directions, grid_spp)
     seen = seen_through(scene, visibility, coords, prim_id, depth, directions)
     prim, lit = what_is_seen(seen, len(coords))
     own = pixels * spp  # each candidate's first sample
@@ -350,6 +357,70 @@ def mixed_pixels(
         return None
     rays = (mixed[:, None] * grid_spp + np.arange(grid_spp)).reshape(-1)
     return pixels[mixed], _restricted(seen, rays)
+
+
+@dataclass(frozen=True)
+class _FirstHits:
+    """The first hits of the ``grid_spp`` samples of the pixels traced so far: each pixel's
+    row (W * H,) int64 (-1: not traced), and per row its samples' prim_id and depth (rows,
+    grid_spp)."""
+
+    row: np.ndarray
+    prim_id: np.ndarray
+    depth: np.ndarray
+
+    def adding(self, pixels: np.ndarray, prim_id, depth, keep: np.ndarray) -> _FirstHits:
+        """These hits and those of ``pixels`` (k,) (not traced so far; ``prim_id``, ``depth``
+        (k * grid_spp,)), in new arrays. Where the rows would pass ``KEPT_ROWS`` times the
+        ``keep`` pixels' (m,) (those a render needs now), only theirs are kept: the store
+        holds what a fit's last renders saw, not every pixel it ever saw."""
+        grid = self.prim_id.shape[1]
+        row, old_prim, old_depth = self.row, self.prim_id, self.depth
+        if len(old_prim) + len(pixels) > KEPT_ROWS * len(keep):
+            held = keep[row[keep] >= 0]
+            old_prim, old_depth = old_prim[row[held]], old_depth[row[held]]
+            row = np.full(len(row), -1, np.int64)
+            row[held] = np.arange(len(held))
+        else:
+            row = row.copy()
+        row[pixels] = len(old_prim) + np.arange(len(pixels))
+        return _FirstHits(row, np.concatenate([old_prim, prim_id.reshape(-1, grid)]),
+                          np.concatenate([old_depth, depth.reshape(-1, grid)]))  # fmt: skip
+
+
+#: ``_FirstHits.adding`` keeps at most this many times the rows a render needs.
+KEPT_ROWS = 4
+
+
+def _kept_first_hits(
+    scene: Scene, visibility: Visibility, cache: RenderCache | None, pixels: np.ndarray,
+    directions: np.ndarray, grid_spp: int,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """``_first_hits`` of ``pixels`` (m,) (ascending), those of the pixels an earlier render
+    traced taken from ``cache`` while the camera rays' hits are the same
+    (``visibility.stamp``: the camera and the geometry): where a light moves, its shadows'
+    borders move and some candidates with them, but every candidate's samples still meet
+    what they met (a light's fit traced them all anew at every step: a fifth of its
+    boundary term at 512x512)."""
+    if cache is None:
+        return _first_hits(scene, visibility, pixels, directions, grid_spp)
+    key = [visibility.stamp, np.array([grid_spp])]
+    n_pixels = scene.camera.width * scene.camera.height
+
+    def none_yet() -> _FirstHits:
+        empty = np.zeros((0, grid_spp))
+        return _FirstHits(np.full(n_pixels, -1, np.int64), empty.astype(np.int64), empty)
+
+    kept, _ = cache.get("interior first hits", key, none_yet)
+    missing = np.flatnonzero(kept.row[pixels] < 0)
+    if len(missing):
+        rays = (missing[:, None] * grid_spp + np.arange(grid_spp)).reshape(-1)
+        prim_id, depth = _first_hits(scene, visibility, pixels[missing], directions[rays],
+                                     grid_spp)  # fmt: skip
+        kept = kept.adding(pixels[missing], prim_id, depth, pixels)
+        cache.put("interior first hits", key, kept)
+    rows = kept.row[pixels]
+    return kept.prim_id[rows].reshape(-1), kept.depth[rows].reshape(-1)
 
 
 def _first_hits(

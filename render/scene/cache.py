@@ -74,6 +74,14 @@ class RenderCache:
                 self._entries[slot] = entry
             return entry[1], entry[2]
 
+    def put(self, slot: Hashable, key: list[np.ndarray], value: Any) -> None:
+        """Store ``value`` in ``slot`` for ``key``, in place of what was there: a stage that
+        grows its value while the key holds (``render.edges.interior``'s first hits of the
+        pixels it has seen) stores a new value, never writes into the one it got."""
+        with self._lock:
+            self._computed += 1
+            self._entries[slot] = (key, value, np.array([self._computed]))
+
     def latest(self, slot: Hashable) -> Any:
         """The value last stored in ``slot`` whatever its key (None if none): what a stage
         may start from when its key has changed (the BVH refitted to moved vertices,

@@ -13,7 +13,7 @@ import render
 from render import Camera, Material, Mesh, PointLight, Scene, Sphere
 from render.edges import interior
 from render.inverse.reference import window_difference, window_mean_gradient
-from render.scene.cache import RenderCache
+from render.scene.cache import RenderCache, cache_for
 from render.scene.camera import plain_frame
 from render.trace.visibility import trace_visibility
 
@@ -114,6 +114,51 @@ def test_mixed_pixels_are_kept_while_the_visibility_is():
             fresh = render.render(scene, antialias="boundary", reuse_visibility=False)
             np.testing.assert_array_equal(kept.data, fresh.data)
             assert len(found) == [2, 3, 5][step], (step, len(found))
+
+
+def test_a_light_s_fit_traces_only_the_candidates_it_has_not_seen(monkeypatch):
+    """While only a light moves, the candidates' samples meet what they met: a render with
+    the cache traces the first hits of the new candidates alone (a fraction of them once
+    the light moves a little), keeps at most ``KEPT_ROWS`` times the rows it needs, and
+    gives the image and the light's gradient of a render without reuse, bit for bit; a
+    moved camera traces them all again."""
+    monkeypatch.setattr(interior, "KEPT_ROWS", 1.02)  # the store is rebuilt on the way
+    scene = _faceted_scene(40)
+    light = scene.lights[0].position
+    light.requires_grad = True
+    traced = []
+    first_hits = interior._first_hits
+
+    def counted(scene, visibility, pixels, directions, grid_spp):
+        traced.append(len(pixels))
+        return first_hits(scene, visibility, pixels, directions, grid_spp)
+
+    monkeypatch.setattr(interior, "_first_hits", counted)
+    weights = np.random.default_rng(0).uniform(0.0, 1.0, (40, 40, 3))
+    candidates = []
+    for step in range(12):
+        with md.no_grad():
+            light.data[...] = light.data + (0.5 if step == 11 else 0.04)
+        if step == 10:
+            scene.camera.position.data[0] += 1e-3
+        gradients = []
+        for reuse in (True, False):
+            light.grad = None
+            traced.clear()
+            image = render.render(scene, antialias="boundary", reuse_visibility=reuse)
+            md.sum(image * weights).backward()
+            gradients.append((image.data, np.array(light.grad), sum(traced)))
+        (kept, kept_grad, kept_traced), (fresh, fresh_grad, all_traced) = gradients
+        np.testing.assert_array_equal(kept, fresh)
+        np.testing.assert_array_equal(kept_grad, fresh_grad)
+        candidates.append(all_traced)
+        if step == 0 or step == 10:  # the first render, a moved camera: every candidate
+            assert kept_traced == all_traced, step
+        elif step < 10:
+            assert kept_traced < all_traced / 4, (step, kept_traced, all_traced)
+        held = cache_for(scene, True).latest("interior first hits")
+        assert len(held.prim_id) <= 1.02 * all_traced, (step, len(held.prim_id), all_traced)
+    assert 0 < candidates[-1] and max(candidates) > min(candidates)  # the candidates moved
 
 
 def test_a_mixed_pixel_is_the_mean_of_its_samples_on_every_route():
