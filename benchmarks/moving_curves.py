@@ -18,7 +18,8 @@ is differentiated). The gradients of ``boundary`` and ``every_kind`` are compare
 (``reuse_visibility=True``, the default): the albedo's (nothing the cache keys on moves:
 the visibility and the mixed pixels are found once) and the light position's (the light
 set before every call to one of two places 1e-3 apart, each variant's own: its shadows
-are traced again at every call).
+are traced again at every call); for the light, also ``boundary_hits_not_kept``: the
+mixed pixels' candidates' first hits traced anew at every step, as before they were kept.
 """
 
 from __future__ import annotations
@@ -33,7 +34,7 @@ import timing
 import minidiff as md
 import render
 import render.renderer
-from render.edges import terms
+from render.edges import interior, terms
 from render.edges.boundary.crossing import SurfaceCrossing
 from render.edges.boundary.mesh_edge import MeshEdge
 from render.edges.boundary.shadow_border import ShadowBorder
@@ -147,10 +148,27 @@ def fits(size: int, repeats: int) -> dict:
                 offsets = np.tile([1e-3 * (2 * k + 1), 1e-3 * (2 * k + 2)], 10_000)
                 places = (base + offset for offset in offsets)
             fns[name] = partial(_fit_step, scene, tensor, weights, places, antialias)
+        if choice == "light_position":  # the candidates' first hits traced at every step
+            offsets = np.tile([5e-3, 6e-3], 10_000)
+            step = partial(_fit_step, scene, tensor, weights, (base + o for o in offsets))
+            fns["boundary_hits_not_kept"] = partial(hits_not_kept, partial(step, "boundary"))
         stats = timing.measure_interleaved(fns, repeats=repeats, warmup=2)
         ms = {name: stats[name]["median_ms"] for name in fns}
         out[choice] = {**ms, "boundary_over_plain": ms["boundary"] / ms["plain"]}
+        if "boundary_hits_not_kept" in ms:
+            out[choice]["hits_not_kept_over_plain"] = ms["boundary_hits_not_kept"] / ms["plain"]
     return out
+
+
+def hits_not_kept(fn: Callable[[], None]) -> None:
+    """``fn()`` with the mixed pixels' candidates' first hits traced anew at every render
+    (``interior._kept_first_hits`` without its cache: as before it kept them)."""
+    kept = interior._kept_first_hits
+    try:
+        interior._kept_first_hits = lambda scene, vis, cache, *rest: kept(scene, vis, None, *rest)
+        fn()
+    finally:
+        interior._kept_first_hits = kept
 
 
 def report(result: dict) -> dict:
@@ -164,8 +182,10 @@ def report(result: dict) -> dict:
             f"{r['boundary_over_plain']:.2f}x", r["boundary_over_plain"], 3.0, "at most 3x",
         ))  # fmt: skip
     for choice, r in result["fits"].items():
+        before = r.get("hits_not_kept_over_plain")
+        note = "" if before is None else f" (first hits not kept: {before:.2f}x)"
         rows.append(timing.target_row(
-            f"{choice}, a fit's step (the render cache): boundary f+b / plain f+b",
+            f"{choice}, a fit's step (the render cache): boundary f+b / plain f+b{note}",
             f"{r['boundary_over_plain']:.2f}x", r["boundary_over_plain"], 3.0, "at most 3x",
         ))  # fmt: skip
     title = f"The boundary term when only some curves move, {result['size']}x{result['size']}"

@@ -530,6 +530,8 @@ def _clipped(p, j, a, b, centre, weight, side, tri):
     n_edges = a.shape[0]
     if j < n_edges:
         lo, hi = _edge_towards(p, a[j], b[j], tri)
+        if hi == lo:  # no ray through the edge meets the triangle (most edges): angle 0
+            return 0.0, side, lo, hi
         e = sub(b[j], a[j])
         start = (a[j][0] + lo * e[0] - p[0], a[j][1] + lo * e[1] - p[1],
                  a[j][2] + lo * e[2] - p[2])  # fmt: skip
