@@ -11,12 +11,14 @@ afterwards.
 from __future__ import annotations
 
 import threading
+from copy import deepcopy
 
 import numpy as np
 
 import minidiff as md
 import render
 from render import Material
+from render.scene.cache import cache_for, share_cache
 from tests.render_helpers import random_scene
 
 N_THREADS = 4
@@ -205,3 +207,32 @@ def test_the_boundary_terms_points_found_beside_the_mixed_pixels_change_no_bit(m
         with using_threads(count):
             assert_identical(run(), alone)
     assert len(where) == 3 and threading.get_ident() not in where[1:]
+
+
+def test_threads_sharing_one_render_cache_with_lights_of_their_own_match_a_render_alone():
+    """Copies of one scene, each with its light elsewhere, sharing the scene's render cache
+    (``share_cache``, as ``render.inverse.function``'s copies do), rendered with the
+    boundary term from several threads at once: the mixed pixels' kept first hits, grown by
+    every render, give each the image it gets alone without reuse."""
+    scene = render.paper_scene(width=48, height=40, ground=True)
+    cache = cache_for(scene, True)
+
+    def moved(job: int) -> render.Scene:
+        copy = deepcopy(scene)
+        copy.lights[0].position.data[:] += (0.04 * (job % 5), 0.0, 0.03 * (job % 3))
+        share_cache(copy, cache)
+        return copy
+
+    with md.no_grad():
+        alone = {job: render.render(moved(job), antialias="boundary", reuse_visibility=False)
+                 .data.copy() for job in range(3 * N_THREADS)}  # fmt: skip
+
+    def work(job: int) -> list[np.ndarray]:
+        with md.no_grad():
+            return [render.render(moved(job), antialias="boundary").data.copy()]
+
+    jobs = [[t + N_THREADS * k for k in range(3)] for t in range(N_THREADS)]
+    together, _ = run_in_threads(work, jobs)
+    for job, (image,) in together.items():
+        np.testing.assert_array_equal(image, alone[job])
+    assert cache.latest("interior first hits") is not None
