@@ -104,13 +104,18 @@ class _Crossing:
     index: np.ndarray
 
 
-def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, origin):
+def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, origin,
+           moves=None):  # fmt: skip
     """Boundary samples behind the curves ``index`` (n,) (-1: none) seen from ``apex``
     (n, 3): the point at t (n,) on the curve must be seen from the apex (rays leave from
     ``origin`` (n, 3), the apex lifted off its surface), and the first surface beyond it,
     x', must not touch the curve; its normal is turned to face ``viewer`` (n, 3).
     ``probability`` (n,): the density of the sample, P(curve) times the density of t.
-    The arithmetic on either side of the rays is compiled (``Curves.aim``, ``_weigh``)."""
+    ``moves``: None, or which samples to keep once x' is found, ``moves(rows, prim,
+    index)`` (k,) bool of the samples at rows ``rows`` (k,) of these arrays, x' on
+    primitives ``prim``, behind curves ``index`` (``_moving_at``): the others are no
+    samples, and their rays past x' are not traced. The arithmetic on either side of the
+    rays is compiled (``Curves.aim``, ``_weigh``)."""
     rows = np.flatnonzero((index >= 0) & (probability > 0))
 
     def of(values, at):  # rows of (n, ...) arrays (np.take: see tracer.Vertices.take)
@@ -120,8 +125,9 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     size = sampler.size
     m, tangent, off, direction = curves.aim(apex, index, side, t[rows], 1e-9 * size)
     start = of(origin, rows)
+    wanted = None if moves is None else (lambda at, prim, index: moves(rows[at], prim, index))
     seen, (prim, far, u, v) = _past_the_edge(sampler.accelerator, curves, index, start, off,
-                                             direction)  # fmt: skip
+                                             direction, wanted)  # fmt: skip
     ok = np.flatnonzero(seen & (prim >= 0) & (far > CONTACT * size))
     rows, apex, index, side, m, tangent, direction, prim, far, u, v = (
         of(x, ok) for x in (rows, apex, index, side, m, tangent, direction, prim, far, u, v)
@@ -142,27 +148,33 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     return _Crossing(valid, prim, local, points, normal[good], weight[good], index[good])
 
 
-def _past_the_edge(accelerator, curves: Curves, index, start, off, direction):
+def _past_the_edge(accelerator, curves: Curves, index, start, off, direction, wanted=None):
     """Whether the points ``off`` (n, 3) beside the curves ``index`` (n,) are seen from
     ``start`` (n, 3), and the closest hits (prim, t, u, v) of the rays from them along
     ``direction`` (n, 3). Both rays pass through the curve: they pass an edge's faces
     (``render.trace.visibility.hit_past``), which they meet only across a seam's crack
     (meshes welded within ``seam_distance``: a box split into meshes whose seams were moved
     4e-6 apart had its light's gradient 40 % off the one mesh's). Rays are traced as any
-    other first, again past the faces only where they met one."""
+    other first, again past the faces only where they met one. ``wanted``: None, or which
+    of the rows (k,) that met a primitive (those primitives, the rows' curves) are wanted,
+    (k,) bool: the others are not seen, and not tested."""
     passing = np.full((len(index), 2), -1, np.int64)
     edge = np.flatnonzero(index < curves.n_edges)
     passing[edge] = curves.faces[index[edge]]
-    seen = ~accelerator.occluded(start, off - start, 1.0, tmin=0.0)
-    again = np.flatnonzero(~seen & np.any(passing >= 0, axis=1))
-    seen[again] = ~blocked_past(accelerator, start[again], off[again] - start[again],
-                                np.ones(len(again)), passing[again])  # fmt: skip
     hits = accelerator.closest_hit(off, direction, tmin=0.0)
     again = np.flatnonzero((hits[0] >= 0) & np.any(hits[0][:, None] == passing, axis=1))
     if len(again):
         past = hit_past(accelerator, off[again], direction[again], passing[again])
         for whole, part in zip(hits, past, strict=True):
             whole[again] = part
+    test = np.flatnonzero(hits[0] >= 0)
+    if wanted is not None:
+        test = test[wanted(test, hits[0][test], index[test])]
+    seen = np.zeros(len(index), bool)
+    seen[test] = ~accelerator.occluded(start[test], off[test] - start[test], 1.0, tmin=0.0)
+    again = test[~seen[test] & np.any(passing[test] >= 0, axis=1)]
+    seen[again] = ~blocked_past(accelerator, start[again], off[again] - start[again],
+                                np.ones(len(again)), passing[again])  # fmt: skip
     return seen, hits
 
 
@@ -407,6 +419,9 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables, plai
     origin = here + shadow_offset(here, sampler.size) * normal
     dims = bounce_dimension(k, "lobe")  # bounce k's block of dimensions (its first)
     seed = sampler.seed ^ CHOICE_KEY
+    # Only the samples whose phi can carry a derivative: the others' terms are zero in
+    # derivative too; found once x' is, before the rays that test the rest.
+    moves = partial(_moving_at, world, sampler, curves, batch, k, None)
 
     # Two estimators of the next segment's term, for two parts of F: x''s emission, by
     # curves clipped to where their rays meet an emitter picked as NEE picks it (a soft
@@ -433,14 +448,14 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables, plai
                 mine[~on] = theirs[~on]
         index, density, faces, t = near
         density = density * emitters.probability[row]
-        cross = _cross(sampler, curves, here, index, density, faces, t, here, origin)
+        cross = _cross(sampler, curves, here, index, density, faces, t, here, origin, moves)
         sub = np.flatnonzero(cross.valid)
         keep = (dot(normal[sub], cross.points - here[sub]) > 0) & (cross.prim == target[sub])
         yield from _samples(
             world, frame, tables, plain, sampler, curves, batch, k, cross, keep, here, "emission"
         )
 
-    cross = _cross(sampler, curves, here, *whole[:3], whole[3], here, origin)
+    cross = _cross(sampler, curves, here, *whole[:3], whole[3], here, origin, moves)
     front = dot(normal[cross.valid], cross.points - here[cross.valid]) > 0
     yield from _samples(
         world, frame, tables, plain, sampler, curves, batch, k, cross, front, here, "rest"
@@ -452,7 +467,8 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables, plai
     for j, light in enumerate(sampler.scene.lights):
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
         u = (uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1))
-        at, cross = _from_light(sampler, curves, light, *u, can, here)
+        moves_j = partial(_moving_at, world, sampler, curves, batch, k, j)
+        at, cross = _from_light(sampler, curves, light, *u, can, here, moves_j)
         sub = np.flatnonzero(cross.valid)
         to = cross.points - here[sub]
         ok = (dot(normal[sub], to) > 0) & (dot(cross.normal, at - cross.points) > 0)
@@ -473,10 +489,6 @@ def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep
     the same off the tape, what the samples' radiance reads."""
     record = batch.vertices[k - 1]
     valid = np.flatnonzero(cross.valid)
-    # Only the samples whose phi can carry a derivative: the others' terms are zero in
-    # derivative too, and their radiance (a path continued from x') is the costly part.
-    keep = keep & _moving(world, sampler, curves, record.rows[valid], k, batch, cross.prim,
-                          cross.index, light)  # fmt: skip
     sub = valid[keep]
     if len(sub) == 0:
         return
@@ -520,16 +532,23 @@ def _moving(world, sampler, curves, src, k, batch, there, index, light) -> np.nd
     return out | (here.form == MIRROR)
 
 
-def _from_light(sampler, curves, light, u_curve, u_point, active, viewer):
+def _from_light(sampler, curves, light, u_curve, u_point, active, viewer, moves=None):
     """Points x' on the borders of ``light``'s shadows, one per row of the uniforms
     (n,) where ``active``: a silhouette seen from the light and a point on it, the first
-    surface beyond; normals turned to ``viewer`` (n, 3). Returns (where the light casts
-    from (1, 3), the ``_Crossing``)."""
+    surface beyond; normals turned to ``viewer`` (n, 3); ``moves``: as ``_cross``'s.
+    Returns (where the light casts from (1, 3), the ``_Crossing``)."""
     with md.no_grad():
         at = np.asarray(_apex(light, sampler).data, np.float64)[None]
     index, density, side, t = curves.pick(at, (u_curve, u_point, active))[0]
     apex = np.repeat(at, len(u_curve), 0)
-    return at, _cross(sampler, curves, apex, index, density, side, t, viewer, apex)
+    return at, _cross(sampler, curves, apex, index, density, side, t, viewer, apex, moves)
+
+
+def _moving_at(world, sampler, curves, batch, k, light, rows, there, index) -> np.ndarray:
+    """``_moving`` of the samples at the k-th vertices' rows ``rows`` (m,) of the batch's
+    record (the apexes ``_terms_at`` hands ``_cross``)."""
+    src = batch.vertices[k - 1].rows[rows]
+    return _moving(world, sampler, curves, src, k, batch, there, index, light)
 
 
 def _apex(light, sampler: PathSampler):
