@@ -359,6 +359,10 @@ def mixed_pixels(
     return pixels[mixed], _restricted(seen, rays)
 
 
+#: ``_FirstHits.adding`` keeps at most this many times the rows a render needs.
+KEPT_ROWS = 4
+
+
 @dataclass(frozen=True)
 class _FirstHits:
     """The first hits of the ``grid_spp`` samples of the pixels traced so far: each pixel's
@@ -386,10 +390,6 @@ class _FirstHits:
         row[pixels] = len(old_prim) + np.arange(len(pixels))
         return _FirstHits(row, np.concatenate([old_prim, prim_id.reshape(-1, grid)]),
                           np.concatenate([old_depth, depth.reshape(-1, grid)]))  # fmt: skip
-
-
-#: ``_FirstHits.adding`` keeps at most this many times the rows a render needs.
-KEPT_ROWS = 4
 
 
 def _kept_first_hits(

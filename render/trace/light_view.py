@@ -201,7 +201,7 @@ def _occluded_ray(prim_data, n_tri, start, ids, near, edges, view, close, origin
     if tmax[i] > 0.0:  # else the light is at the ray's start: nothing between
         ox, oy, oz = origins[i, 0], origins[i, 1], origins[i, 2]
         wx, wy, wz = ox - light[0], oy - light[1], oz - light[2]
-        # The ray's cell: its origin's position as raster.project computes it for points.
+        # The ray's cell: its origin's position as raster._project computes it for points.
         depth = wx * forward[0] + wy * forward[1] + wz * forward[2]
         x = (wx * right[0] + wy * right[1] + wz * right[2]) / (rr * depth)
         y = (wx * up[0] + wy * up[1] + wz * up[2]) / (uu * depth)

@@ -103,7 +103,7 @@ def screen_boxes(
     edges[:, :, 2] = 1.0
     for rows, corners in ((slice(0, n_tri), tri), (slice(n_tri, None), sphere_corners)):
         if len(corners):
-            project(corners, eye, forward, right, up, width, height, offsets, boxes[rows],
+            _project(corners, eye, forward, right, up, width, height, offsets, boxes[rows],
                      edges[rows])  # fmt: skip
     return boxes, edges
 
@@ -114,7 +114,7 @@ EDGE_MARGIN = 0.01
 
 
 @jit(cache=True)
-def project(corners, eye, forward, right, up, width, height, offsets, boxes, edges):
+def _project(corners, eye, forward, right, up, width, height, offsets, boxes, edges):
     """Fill ``boxes`` (and, for triangles, ``edges``) of point sets (P, n, 3) (see
     ``screen_boxes``). Serial: in parallel blocks it took twice as long on the teapot's
     1,536 triangles (0.3 against 0.15 ms: waking the threads costs more than the work)."""

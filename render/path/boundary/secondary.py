@@ -113,7 +113,7 @@ def _cross(sampler, curves: Curves, apex, index, probability, side, t, viewer, o
     ``probability`` (n,): the density of the sample, P(curve) times the density of t.
     ``moves``: None, or which samples to keep once x' is found, ``moves(rows, prim,
     index)`` (k,) bool of the samples at rows ``rows`` (k,) of these arrays, x' on
-    primitives ``prim``, behind curves ``index`` (``_moving_at``): the others are no
+    primitives ``prim``, behind curves ``index`` (``_moving``): the others are no
     samples, and their rays past x' are not traced. The arithmetic on either side of the
     rays is compiled (``Curves.aim``, ``_weigh``)."""
     rows = np.flatnonzero((index >= 0) & (probability > 0))
@@ -421,7 +421,7 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables, plai
     seed = sampler.seed ^ CHOICE_KEY
     # Only the samples whose phi can carry a derivative: the others' terms are zero in
     # derivative too; found once x' is, before the rays that test the rest.
-    moves = partial(_moving_at, world, sampler, curves, batch, k, None)
+    moves = partial(_moving, world, sampler, curves, batch, k, None)
 
     # Two estimators of the next segment's term, for two parts of F: x''s emission, by
     # curves clipped to where their rays meet an emitter picked as NEE picks it (a soft
@@ -467,7 +467,7 @@ def _terms_at(sampler, curves, batch, points, k: int, world, frame, tables, plai
     for j, light in enumerate(sampler.scene.lights):
         seed_j = sampler.seed ^ ((CHOICE_KEY * (j + 2)) & (2**64 - 1))
         u = (uniform(seed_j, ids, dims), uniform(seed_j, ids, dims + 1))
-        moves_j = partial(_moving_at, world, sampler, curves, batch, k, j)
+        moves_j = partial(_moving, world, sampler, curves, batch, k, j)
         at, cross = _from_light(sampler, curves, light, *u, can, here, moves_j)
         sub = np.flatnonzero(cross.valid)
         to = cross.points - here[sub]
@@ -512,24 +512,25 @@ def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep
     )
 
 
-def _moving(world, sampler, curves, src, k, batch, there, index, light) -> np.ndarray:
-    """(m,) bool: which samples' phi can carry a derivative (the paths ``src`` (m,) at their
-    k-th vertices, x' on primitives ``there`` (m,), curves ``index`` (m,), the apex light
-    ``light`` or None): the camera, the apex light's placement, x_k's, x''s or the curve's
-    object differentiated in ``world``, or x_k reached through a mirror (replayed from the
+def _moving(world, sampler, curves, batch, k, light, rows, there, index) -> np.ndarray:
+    """(m,) bool: which samples' phi can carry a derivative (at the k-th vertices of the
+    batch's record rows ``rows`` (m,): the apexes ``_terms_at`` hands ``_cross``; x' on
+    primitives ``there`` (m,), curves ``index`` (m,), the apex light ``light`` or None):
+    the camera, the apex light's placement, x_k's, x''s or the curve's object
+    differentiated in ``world``, or x_k reached through a mirror (replayed from the
     camera: every sample kept). ``curves_move`` gates the whole term likewise."""
     objects = objects_move(world)
     apex = light is not None and moving(*world.lights[light].placement())
     if camera_moves(world) or apex:
-        return np.ones(len(src), bool)
-    here = _Rows(batch.vertices[k - 1], src)
+        return np.ones(len(rows), bool)
+    record = batch.vertices[k - 1]
     owner = np.zeros(len(index), np.int64)  # the curve's object
     edge = index < curves.n_edges
     owner[edge] = curves.edge_object[index[edge]]
     owner[~edge] = curves.sphere_object[index[~edge] - curves.n_edges]
     of = partial(np.searchsorted, sampler.first, side="right")
-    out = objects[of(here.prim) - 1] | objects[of(there) - 1] | objects[owner]
-    return out | (here.form == MIRROR)
+    out = objects[of(record.prim[rows]) - 1] | objects[of(there) - 1] | objects[owner]
+    return out | (record.form[rows] == MIRROR)
 
 
 def _from_light(sampler, curves, light, u_curve, u_point, active, viewer, moves=None):
@@ -542,13 +543,6 @@ def _from_light(sampler, curves, light, u_curve, u_point, active, viewer, moves=
     index, density, side, t = curves.pick(at, (u_curve, u_point, active))[0]
     apex = np.repeat(at, len(u_curve), 0)
     return at, _cross(sampler, curves, apex, index, density, side, t, viewer, apex, moves)
-
-
-def _moving_at(world, sampler, curves, batch, k, light, rows, there, index) -> np.ndarray:
-    """``_moving`` of the samples at the k-th vertices' rows ``rows`` (m,) of the batch's
-    record (the apexes ``_terms_at`` hands ``_cross``)."""
-    src = batch.vertices[k - 1].rows[rows]
-    return _moving(world, sampler, curves, src, k, batch, there, index, light)
 
 
 def _apex(light, sampler: PathSampler):
