@@ -193,21 +193,24 @@ def shadowed_sides(
     two = np.flatnonzero(_two_faces(table, rows))
     if len(two) == 0 or not lights:
         return out
-    rows, faces = rows[two], faces[two]
-    a, b = vertices[table.i[rows]], vertices[table.j[rows]]
-    third = vertices[table.thirds[rows, :2]]  # (k, 2, 3): the two faces' third vertices
-    normal = np.cross((b - a)[:, None], third - a[:, None])  # (k, 2, 3), either orientation
+    # What depends on the edge alone, once per edge (many points lie on each).
+    named, at = np.unique(rows[two], return_inverse=True)
+    faces = faces[two]
+    a, b = vertices[table.i[named]], vertices[table.j[named]]
+    third = vertices[table.thirds[named, :2]]  # (e, 2, 3): the two faces' third vertices
+    normal = np.cross((b - a)[:, None], third - a[:, None])  # (e, 2, 3), either orientation
     # across[:, f]: how far the other face's third vertex lies off face f's plane.
     across = np.einsum("kfj,kfj->kf", normal, third[:, ::-1] - a[:, None])
-    pick = np.arange(len(rows))
+    own = table.faces[named, :2][at]  # (k, 2): the edge's two faces at each point
     for j, light in enumerate(lights):
-        silhouette = light_silhouettes(light, vertices, table, rows)
+        silhouette = light_silhouettes(light, vertices, table, named)[at]
         lit_side = np.einsum("kfj,kj->kf", normal, np.broadcast_to(light.towards(a), a.shape))
+        # behind[:, f]: the face other than f lies behind f's plane as the light sees it.
+        behind = across * lit_side < 0
         for s in (0, 1):
-            other = np.where(faces[:, s] == table.faces[rows, 0], 1, 0)  # the other face's column
-            behind = across[pick, other] * lit_side[pick, other] < 0
-            on_edge = faces[:, s] == table.faces[rows, 1 - other]
-            out[two, s, j] = silhouette & on_edge & behind
+            other = np.where(faces[:, s] == own[:, 0], 1, 0)  # the other face's column
+            on_edge = (faces[:, s] == own[:, 0]) | (faces[:, s] == own[:, 1])
+            out[two, s, j] = silhouette & on_edge & behind[at, other]
     return out
 
 
