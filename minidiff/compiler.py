@@ -562,11 +562,21 @@ def _gather_blocks(gathers, slots, n: int):
 
 
 def _addresses(buffers: list[np.ndarray]) -> ctypes.Array:
-    """The arrays' data addresses, as the kernel's pointer argument. (Read from
-    ``__array_interface__``: NumPy's ``.ctypes`` makes objects in a reference cycle that
-    hold the array, which then stays alive until the cyclic garbage collector runs. The
-    caller keeps ``buffers`` alive for the call.)"""
-    return (ctypes.c_void_p * len(buffers))(*(b.__array_interface__["data"][0] for b in buffers))
+    """The arrays' data addresses, as the kernel's pointer argument. The caller keeps
+    ``buffers`` alive for the call."""
+    return (ctypes.c_void_p * len(buffers))(*(_address(b) for b in buffers))
+
+
+def _address(array: np.ndarray) -> int:
+    """The address of ``array``'s data: through a ctypes view of its buffer, or, where
+    ctypes cannot view it (read-only, or empty), from ``__array_interface__``, whose
+    dictionary takes four times as long to build (10 of a small call's 45 us: one per
+    array). Not NumPy's ``.ctypes``: it makes objects in a reference cycle that hold the
+    array, which then stays alive until the cyclic garbage collector runs."""
+    try:
+        return ctypes.addressof(ctypes.c_char.from_buffer(array))
+    except (TypeError, ValueError):
+        return array.__array_interface__["data"][0]
 
 
 def _columns(slot: Slot) -> int:

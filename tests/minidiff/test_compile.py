@@ -968,3 +968,30 @@ def test_tape_only_runs_the_plain_function_in_this_thread_only():
     assert calls[1] != calls[0]
     assert_close(results["there"], results["here"], "the kernel against the plain function")
     assert wrapped(normals, points, light).data is not None and len(calls) == 2  # kernel now
+
+
+def test_a_kernel_s_pointers_are_the_arrays_data_whatever_ctypes_can_view():
+    """``compiler._address`` reads an array's address through a ctypes view of its buffer,
+    which ctypes refuses for read-only and empty arrays: every kind a call passes gets its
+    data's own address, and a compiled call on read-only inputs computes what it does on
+    writable ones."""
+    read_only = np.arange(6.0).reshape(2, 3)
+    read_only.setflags(write=False)
+    arrays = [np.zeros((4, 3)), read_only, np.zeros((0, 3)), np.zeros(5, np.int64),
+              np.zeros(5, np.uint8), np.zeros(()), np.zeros((3, 4))[:, 1:].copy()]  # fmt: skip
+    for array in arrays:
+        assert compiler._address(array) == array.__array_interface__["data"][0]
+    pointers = compiler._addresses(arrays)
+    assert [p for p in pointers] == [a.__array_interface__["data"][0] or None for a in arrays]
+
+    @md.compile
+    def scaled(x, y):
+        return x * 2.0 + y
+
+    x = np.arange(12.0).reshape(4, 3)
+    y = np.ones((4, 3))
+    frozen_x, frozen_y = x.copy(), y.copy()
+    frozen_x.setflags(write=False)
+    frozen_y.setflags(write=False)
+    assert np.array_equal(scaled(frozen_x, frozen_y).data, scaled(x, y).data)
+    assert np.array_equal(scaled(x, y).data, x * 2.0 + y)
