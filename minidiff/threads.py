@@ -24,7 +24,8 @@ import contextlib
 import contextvars
 import os
 import threading
-from collections.abc import Callable
+from collections import deque
+from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, wait
 
 import numba
@@ -40,6 +41,7 @@ __all__ = [
     "thread_count",
     "run_jobs",
     "beside",
+    "share_tasks",
     "job_count",
     "share",
     "jit",
@@ -131,7 +133,9 @@ def beside(work: Callable[[], object] | None):
     parts that hold the GIL (NumPy's loops that are not threaded, Python): one step's such
     parts run while the other's do. ``work`` runs in a copy of the caller's context
     (``contextvars``: the tape's gradient mode, ``using_threads``); results do not depend
-    on the split. Leaving the block, by its end or an exception, waits for ``work``."""
+    on the split. Leaving the block, by its end or an exception, waits for ``work``, and
+    meanwhile this thread runs the tasks ``work`` shares out (``share_tasks``) that it has
+    not begun."""
     count = thread_count()
     outcome: dict[str, object] = {"value": None}
 
@@ -155,13 +159,15 @@ def beside(work: Callable[[], object] | None):
         yield result
         return
     mine, theirs = _Budget(count // 2), _Budget(count - count // 2)
+    board = _Board()
 
     def run_beside() -> None:
-        with _budget(mine):
+        with _budget(mine), set_within(_board, board):
             try:
                 run()
             finally:
                 theirs.count = count  # the work is done: its threads are free for the block
+                board.close()
 
     thread = threading.Thread(target=contextvars.copy_context().run, args=(run_beside,))
     thread.start()
@@ -169,8 +175,116 @@ def beside(work: Callable[[], object] | None):
         with _budget(theirs):
             yield result
     finally:
-        mine.count = count  # the block is done: its threads are free for the work
+        board.help(mine, theirs, count)  # the block is done: its thread and threads help
         thread.join()
+
+
+class _Task:
+    """One of ``share_tasks``'s callables, run once by whichever thread claims it first
+    (``claimed``, set under the board's lock); ``done`` is set when it has run."""
+
+    def __init__(self, call: Callable[[], object]) -> None:
+        self.call, self.context = call, contextvars.copy_context()  # the poster's context
+        self.claimed, self.done = False, threading.Event()
+        self.value: object = None
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        """Call it here, keeping what it returns or raises."""
+        try:
+            self.value = self.call()
+        except BaseException as error:  # raised by share_tasks, in the task's order
+            self.error = error
+        finally:
+            self.done.set()
+
+
+class _Board:
+    """The tasks ``beside``'s work has posted (``share_tasks``) and not yet begun, for the
+    block's thread to take once its block has ended, until the work ends (``close``)."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Condition()
+        self.posted: deque[_Task] = deque()
+        self.closed = False
+
+    def post(self, tasks: Sequence[_Task]) -> None:
+        with self.lock:
+            self.posted.extend(tasks)
+            self.lock.notify_all()
+
+    def claim(self, task: _Task) -> bool:
+        """True if ``task`` was not begun: it is now the caller's to run."""
+        with self.lock:
+            mine, task.claimed = not task.claimed, True
+            return mine
+
+    def close(self) -> None:
+        with self.lock:
+            self.closed = True
+            self.lock.notify_all()
+
+    def help(self, work: _Budget, block: _Budget, count: int) -> None:
+        """Run the posted tasks no one has begun, the last posted first (the poster takes its
+        own in order: the two meet in the middle), each in its poster's context on the
+        block's share of the threads (``block``), until the work ends. While there is none
+        to run, the work's kernels may use every thread (``work``, of ``count``)."""
+        while True:
+            with self.lock:
+                task = self._take()
+                while task is None and not self.closed:
+                    work.count = count
+                    self.lock.wait()
+                    task = self._take()
+                if task is None:
+                    return
+                work.count = count // 2
+            task.context.run(_run_with, block, task)
+
+    def _take(self) -> _Task | None:
+        while self.posted:
+            task = self.posted.pop()
+            if not task.claimed:
+                task.claimed = True
+                return task
+        return None
+
+
+def _run_with(budget: _Budget, task: _Task) -> None:
+    with _budget(budget):
+        task.run()
+
+
+# The board of the ``beside`` work this thread runs (context); None: not under ``beside``.
+_board: contextvars.ContextVar[_Board | None] = contextvars.ContextVar("board", default=None)
+
+
+def share_tasks(tasks: Sequence[Callable[[], object]]) -> list:
+    """``[task() for task in tasks]`` for independent ``tasks`` (none needs another's
+    result, none writes what another reads). Run by ``beside``'s work, the tasks are posted
+    for the block's thread, which, once its block has ended, takes those the work has not
+    begun yet: the two threads end together rather than one waiting for the other's last
+    steps. Who runs a task changes only when, never what it returns. Elsewhere the tasks
+    run here, in order. If tasks raise, the first of them in order's exception is raised
+    (once every task begun has ended; none is begun after one has failed)."""
+    board = _board.get()
+    if board is None or len(tasks) < 2:
+        return [task() for task in tasks]
+    posted = [_Task(task) for task in tasks]
+    board.post(posted)
+    for task in posted:
+        if board.claim(task):
+            task.run()
+            if task.error is not None:
+                break
+    for task in posted:
+        if board.claim(task):  # left unbegun after a failure: never to run
+            task.done.set()
+        task.done.wait()
+    for task in posted:
+        if task.error is not None:
+            raise task.error
+    return [task.value for task in posted]
 
 
 @register_pass(mutates_CFG=True, analysis_only=False)

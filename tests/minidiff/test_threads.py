@@ -5,12 +5,14 @@ allocate (an allocation needs the counts to be freed); ``inlined``, such a funct
 compiled once for every caller, which gives what the same function compiled plainly
 gives. ``beside``, a step run on a second thread while the caller goes on: the caller's
 threads shared, its context kept, its result or exception handed back, and nothing left
-running when the block ends."""
+running when the block ends. ``share_tasks``, tasks the work posts for the block's thread to
+take once the block has ended: the same results in order, whoever runs them."""
 
 from __future__ import annotations
 
 import threading
 import time
+from functools import partial
 
 import numba
 import numpy as np
@@ -21,7 +23,14 @@ from hypothesis.extra.numpy import arrays
 from numba.core.compiler import Flags
 
 import minidiff as md
-from minidiff.threads import beside, borrowing, inlined, thread_count, using_threads
+from minidiff.threads import (
+    beside,
+    borrowing,
+    inlined,
+    share_tasks,
+    thread_count,
+    using_threads,
+)
 
 
 def _row_sums(a, out):
@@ -175,3 +184,93 @@ def test_beside_runs_the_work_in_the_callers_context():
             assert not md.is_grad_enabled()
     assert result() is False
     assert md.is_grad_enabled()
+
+
+def test_share_tasks_elsewhere_runs_the_tasks_here_in_order():
+    order = []
+    tasks = [lambda k=k: order.append((k, threading.get_ident())) or k * k for k in range(4)]
+    for count in (1, 2):
+        order.clear()
+        with using_threads(count):
+            assert share_tasks(tasks) == [0, 1, 4, 9]
+        assert order == [(k, threading.get_ident()) for k in range(4)]
+    assert share_tasks([]) == []
+
+
+@pytest.mark.parametrize("count", [2, 3])
+def test_the_block_takes_the_tasks_the_work_has_not_begun(count):
+    """The work's first task waits until another has run: only the block's thread, once its
+    block has ended, can run that one. The last posted is taken first; each runs in the
+    work's context (``no_grad``) on the block's share of the threads; the results come back
+    in the tasks' order."""
+    ran, other_ran = {}, threading.Event()
+
+    def first():
+        ran[0] = threading.get_ident()
+        assert other_ran.wait(10.0)
+        return "first"
+
+    def later(k):
+        ran[k] = (threading.get_ident(), md.is_grad_enabled(), thread_count())
+        other_ran.set()
+        return k
+
+    def work():
+        with md.no_grad():
+            return threading.get_ident(), share_tasks([first, partial(later, 1),
+                                                       partial(later, 2)])  # fmt: skip
+
+    with using_threads(count):
+        with beside(work) as result:
+            pass
+    worker, values = result()
+    assert values == ["first", 1, 2]
+    assert ran[0] == worker != threading.get_ident()
+    assert ran[2] == (threading.get_ident(), False, count - count // 2)
+    here, there = (threading.get_ident(), False, count - count // 2), (worker, False, count // 2)
+    assert ran[1] in {here, there}
+
+
+def test_nested_shared_tasks_are_taken_too():
+    """Tasks posted by a task, on either thread, are run once each, results in order."""
+    calls = []
+
+    def leaf(k):
+        calls.append(k)
+        time.sleep(0.001)
+        return k
+
+    def branch(k):
+        return share_tasks([partial(leaf, 10 * k + j) for j in range(5)])
+
+    with using_threads(2):
+        with beside(lambda: share_tasks([partial(branch, k) for k in range(6)])) as result:
+            pass
+    assert result() == [[10 * k + j for j in range(5)] for k in range(6)]
+    assert sorted(calls) == sorted(10 * k + j for k in range(6) for j in range(5))
+
+
+@pytest.mark.parametrize("count", [1, 2])
+def test_share_tasks_raises_the_first_failure_in_order_once_the_begun_have_ended(count):
+    ended, began = [], threading.Event()
+
+    def slow_then_fail():
+        began.set()
+        time.sleep(0.05)
+        ended.append("slow")
+        raise KeyError("second")
+
+    def fail_first():
+        assert began.wait(10.0) or count == 1
+        raise ValueError("first")
+
+    tasks = [fail_first, lambda: ended.append("never") or 3, slow_then_fail]
+    if count == 1:
+        tasks = tasks[:2]
+    with using_threads(count):
+        with beside(lambda: share_tasks(tasks)) as result:
+            pass
+        with pytest.raises(ValueError, match="first"):
+            result()
+    assert "never" not in ended
+    assert ended == (["slow"] if count == 2 else [])

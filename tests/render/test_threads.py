@@ -174,6 +174,19 @@ def test_no_grad_in_one_thread_does_not_switch_the_tape_off_in_another():
     assert md.is_grad_enabled()
 
 
+def boundary_gradients() -> list[np.ndarray]:
+    """The image and every parameter's gradient of the paper scene on a ground, with the
+    boundary term (its points found beside the mixed pixels where there are threads)."""
+    scene = render.paper_scene(width=48, height=40, ground=True)
+    params = [t for _, t in sorted(scene.named_parameters().items())]
+    for p in params:
+        p.requires_grad = True
+    image = render.render(scene, antialias="boundary")
+    weights = np.random.default_rng(3).standard_normal(image.shape)
+    (image * md.tensor(weights)).sum().backward()
+    return [image.data.copy()] + [np.array(p.grad) for p in params]
+
+
 def test_the_boundary_terms_points_found_beside_the_mixed_pixels_change_no_bit(monkeypatch):
     """With two threads or more the renderer finds the boundary term's curve points on a
     second thread while it finds and shades the mixed pixels (``minidiff.threads.beside``):
@@ -190,23 +203,57 @@ def test_the_boundary_terms_points_found_beside_the_mixed_pixels_change_no_bit(m
 
     monkeypatch.setattr(renderer.terms, "boundary_points_of", recorded)
 
-    def run() -> list[np.ndarray]:
-        scene = render.paper_scene(width=48, height=40, ground=True)
-        params = [t for _, t in sorted(scene.named_parameters().items())]
-        for p in params:
-            p.requires_grad = True
-        image = render.render(scene, antialias="boundary")
-        weights = np.random.default_rng(3).standard_normal(image.shape)
-        (image * md.tensor(weights)).sum().backward()
-        return [image.data.copy()] + [np.array(p.grad) for p in params]
-
     with using_threads(1):
-        alone = run()
+        alone = boundary_gradients()
     assert where == [threading.get_ident()]
     for count in (2, 3):
         with using_threads(count):
-            assert_identical(run(), alone)
+            assert_identical(boundary_gradients(), alone)
     assert len(where) == 3 and threading.get_ident() not in where[1:]
+
+
+def test_the_curve_kinds_points_taken_by_the_mixed_pixels_thread_change_no_bit(monkeypatch):
+    """Once its mixed pixels are done, the renderer's own thread takes the kinds' points
+    (and the mesh edges' side passes) that the second thread has not begun
+    (``minidiff.threads.share_tasks``). Forced here: the first kind's points wait until
+    another kind's have been found on the renderer's thread. The image and every gradient
+    are those of one thread, bit for bit."""
+    from minidiff.threads import using_threads
+    from render.edges.boundary import term
+
+    runs = []
+    boundary_points = term.boundary_points
+
+    def forcing(view, kinds):
+        taken, where = threading.Event(), []
+        for k, kind in enumerate(kinds):
+            monkeypatch.setattr(kind, "points", waiting(kind.points, k, taken, where))
+        found = boundary_points(view, kinds)
+        runs.append(where)
+        return found
+
+    def waiting(points, k, taken, where):
+        def points_here(*args):
+            if k == 0 and threading.get_ident() != main:
+                assert taken.wait(10.0)  # another kind's points, found on the main thread
+            result = points(*args)
+            where.append((k, threading.get_ident()))
+            if threading.get_ident() == main:
+                taken.set()
+            return result
+
+        return points_here
+
+    main = threading.get_ident()
+    with using_threads(1):
+        alone = boundary_gradients()
+    monkeypatch.setattr(term, "boundary_points", forcing)
+    with using_threads(2):
+        assert_identical(boundary_gradients(), alone)
+    assert len(runs) == 1 and len(runs[0]) >= 3
+    assert {k for k, thread in runs[0] if thread == main} - {0}  # some taken by this thread
+    first = [thread for k, thread in runs[0] if k == 0]
+    assert len(first) == 1 and first[0] != main  # the first kind's, on the second thread
 
 
 def test_threads_sharing_one_render_cache_with_lights_of_their_own_match_a_render_alone():

@@ -30,12 +30,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from functools import partial
 
 import numpy as np
 
 import minidiff as md
 from minidiff.either import cross_last, dot_last
-from minidiff.threads import job_count, kernel, run_jobs
+from minidiff.threads import job_count, kernel, run_jobs, share_tasks
 from render.edges.boundary.curves import NEAR, CurvePoints, Curves, OnCurves, View, directions_at
 from render.edges.boundary.moving import camera_moves, meshes_move
 from render.edges.boundary.occlusion import SHORT, hidden_points, seen_in
@@ -575,16 +576,16 @@ def _side_factors(view: View, coords, depth, step, chosen, keys, scale, faces, s
     both = np.concatenate([coords, coords])
     faced, beyond = np.flatnonzero(face >= 0), np.flatnonzero(face < 0)
     sides = np.concatenate([faces, faces])
-    colour = np.empty((2 * n, 3))
-    colour[faced] = view.radiance.seen(
-        np.take(both, faced, axis=0), face[faced],
-        np.concatenate([depth, depth])[faced], keys[faced],
-        beside=np.take(sides, faced, axis=0),
-        shadowed=np.concatenate([shadowed[:, 0], shadowed[:, 1]])[faced],
-    )  # fmt: skip
     offset = EPSILON * np.concatenate([step, -step])
-    colour[beyond] = view.radiance.along(np.take(both + offset, beyond, axis=0), keys[beyond],
-                                         beside=np.take(sides, beyond, axis=0))  # fmt: skip
+    colour = np.empty((2 * n, 3))
+    colour[faced], colour[beyond] = share_tasks([  # two independent passes (share_tasks)
+        partial(view.radiance.seen, np.take(both, faced, axis=0), face[faced],
+                np.concatenate([depth, depth])[faced], keys[faced],
+                beside=np.take(sides, faced, axis=0),
+                shadowed=np.concatenate([shadowed[:, 0], shadowed[:, 1]])[faced]),
+        partial(view.radiance.along, np.take(both + offset, beyond, axis=0), keys[beyond],
+                beside=np.take(sides, beyond, axis=0)),
+    ])  # fmt: skip
     return scale[:, None] * (colour[:n] - colour[n:])
 
 

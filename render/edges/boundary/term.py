@@ -13,10 +13,12 @@ direct renderer, on a second thread: ``render.edges.terms.boundary_points_of``).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 
 import numpy as np
 
 import minidiff as md
+from minidiff.threads import share_tasks
 from render.edges.boundary.curves import CurveKind, CurvePoints, OnCurves, View
 from render.edges.boundary.kind_points import kind_points
 from render.edges.boundary.occlusion import Occluders
@@ -39,16 +41,18 @@ def boundary_points(view: View, kinds: Sequence[CurveKind]) -> list[CurvePoints]
     p1 = np.concatenate([np.zeros((0, 2))] + [c.end for c in curves])
     pieces = split_at_crossings(p0, p1, *pixel_pieces(p0, p1, width, height))
     counts = np.array([len(c.start) for c in curves], np.int64)
-    found = []
+    tasks = []
     for kind, mine, (segment, coords, pixel, weight, rows) in zip(
         kinds, curves, kind_points(p0, p1, pieces, counts, width, height), strict=True
     ):
         on = OnCurves(mine.label[segment], coords, pixel, weight, rows)
         if len(rows) and kind.moves(view.scene):
-            found.append(kind.points(view, on))
+            tasks.append(partial(kind.points, view, on))
         else:  # no points on this kind's curves, or a term zero in derivative
-            found.append(CurvePoints.nonzero(on, np.zeros((0, 3)), on.coords))
-    return found
+            tasks.append(partial(CurvePoints.nonzero, on, np.zeros((0, 3)), on.coords))
+    # Each kind's points apart: a thread that has ended its own step may take some
+    # (the direct renderer's mixed pixels' thread, ``minidiff.threads.share_tasks``).
+    return share_tasks(tasks)
 
 
 def boundary_term(
