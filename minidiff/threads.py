@@ -264,9 +264,11 @@ def share_tasks(tasks: Sequence[Callable[[], object]]) -> list:
     result, none writes what another reads). Run by ``beside``'s work, the tasks are posted
     for the block's thread, which, once its block has ended, takes those the work has not
     begun yet: the two threads end together rather than one waiting for the other's last
-    steps. Who runs a task changes only when, never what it returns. Elsewhere the tasks
-    run here, in order. If tasks raise, the first of them in order's exception is raised
-    (once every task begun has ended; none is begun after one has failed)."""
+    steps. Who runs a task changes only when, never what it returns; a task must not record
+    on the tape (under ``no_grad``, as ``beside``'s work should be), whose order would then
+    depend on who ran what. Elsewhere the tasks run here, in order. If tasks raise, what
+    the first of them (in order) raised is raised, once every task begun has ended (none
+    is begun after one has failed)."""
     board = _board.get()
     if board is None or len(tasks) < 2:
         return [task() for task in tasks]
