@@ -307,8 +307,8 @@ def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, ed
         world = placed(scene)
         sampler = PathSampler(world, spp, max_depth, rr_depth, seed, cache_for(scene, True))
     _replay_batches(scene, sampler, d_image, batch_spp, kept)
-    world = placed(scene)
-    moves = curves_move(scene, world)  # else the edge terms are zero in derivative too
+    world = placed(scene) if any(edges) else None  # placed anew only for the edge terms
+    moves = world is not None and curves_move(scene, world)  # else they are zero too
     if edges[0] and moves:
         zero = md.tensor(np.zeros(d_image.shape, d_image.dtype))
         term = add_path_boundary_term(
