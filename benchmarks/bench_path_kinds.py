@@ -19,6 +19,9 @@ medians) on each thread count (``numba.set_num_threads``, which the compiled ker
   (``render.path.gradient.replay``); the albedo's is the yardstick of the others;
 * ``light_position_secondary``: the light's position with ``antialias="secondary"``
   (the soft shadows' boundary term);
+* ``light_position_tangent``: forward mode, the image and its tangent along the light's
+  position (the compiled whole paths' JVP, ``window.tangent``); ``..._tangent_tape``: the
+  same with ``gradient="tape"`` (the reference computing the tangents as it goes);
 * ``forward``: the image alone (the compiled kernel, ``render.path.twin.kernel``);
 * ``sampler``: the reference sampler's decisions for the image's paths
   (``PathSampler.sample``: the rays, and its compiled choices, ``render.path.sample.choices``),
@@ -75,6 +78,16 @@ def _rows(size: int, spp: int) -> dict:
 
         return run
 
+    def tangent(gradient: str):
+        scene = cornell_box(size, size, blocks=True)
+        direction = {PARAMETERS["light_position"](scene): np.array([0.3, -0.2, 0.5])}
+
+        def run():
+            with md.tangents(direction):
+                render_path(scene, spp=spp, max_depth=DEPTH, seed=0, gradient=gradient)
+
+        return run
+
     def forward():
         scene = cornell_box(size, size, blocks=True)
         with md.no_grad():
@@ -90,6 +103,8 @@ def _rows(size: int, spp: int) -> dict:
 
     rows = {name: gradient(name) for name in PARAMETERS}
     rows["light_position_secondary"] = gradient("light_position", "secondary")
+    rows["light_position_tangent"] = tangent("replay")
+    rows["light_position_tangent_tape"] = tangent("tape")
     rows["forward"] = forward
     rows["sampler"] = sampler
     rows["wavefront"] = lambda: sampler(radiance=True)
@@ -110,6 +125,9 @@ def cost(size: int, spp: int, threads: list[int], repeats: int) -> list[dict]:
         row = {"threads": n} | {k: v["median_ms"] for k, v in times.items()}
         row["over_albedo"] = {k: row[k] / row["albedo"] for k in rows}
         row["secondary_over_plain"] = row["light_position_secondary"] / row["light_position"]
+        row["tangent_over_tape"] = (
+            row["light_position_tangent"] / row["light_position_tangent_tape"]
+        )
         out.append(row)
         print(f"{n} threads: " + ", ".join(f"{k} {row[k]:.0f} ms" for k in rows), flush=True)
         ratios = ", ".join(f"{k} {v:.2f}" for k, v in row["over_albedo"].items())

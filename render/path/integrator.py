@@ -10,11 +10,12 @@ VJP (``_backpropagate``) replays the image's paths with the caller's dL/dimage
 gradient of every parameter is compiled from the readable formulas, each path's reverse
 sweep inside one kernel (``render.path.gradient.window``; one depth at a time on the tape
 where that does not apply: float32, a light without compiled shading). ``backward`` gives
-the tape's gradient (to rounding), and memory does not grow with spp. An image whose paths
-the replay takes in one go (one batch of at most ``replay_paths`` paths) keeps their
-records from the render to the ``backward`` (``_KeptPaths``), which its replay would make
-anyway: its paths are traced once, not twice. A larger image keeps nothing: its replay
-traces its paths again.
+the tape's gradient (to rounding), and memory does not grow with spp. Forward mode
+(tangents) takes the same compiled function's JVP over the kernel's records
+(``_image_tangent``). An image whose paths the replay takes in one go (one batch of at
+most ``replay_paths`` paths) keeps their records from the render to the ``backward``
+(``_KeptPaths``), which its replay would make anyway: its paths are traced once, not
+twice. A larger image keeps nothing: its replay traces its paths again.
 
 ``replay_gradient`` is the same adjoint for a loss given as a function (the structure of
 radiative backpropagation, Nimier-David et al. 2020): a primal pass without a tape gives
@@ -40,10 +41,12 @@ from minidiff.tensor import record
 from render.edges.terms import curves_move, differentiated, on_every_parameter
 from render.path.boundary.primary import add_path_boundary_term
 from render.path.boundary.secondary import add_secondary_term, backpropagate_secondary
+from render.path.gradient import window
 from render.path.gradient.replay import backpropagate_paths
 from render.path.gradient.transport import path_radiance
 from render.path.sample import records
 from render.path.sample.random import check_seed
+from render.path.sample.tables import Tables, compiles
 from render.path.sample.tracer import PathSampler, check_count, check_path_options
 from render.path.twin import kernel
 from render.scene.cache import cache_for
@@ -258,31 +261,35 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
     differentiated makes its surface an area light that NEE samples, ``Material.emissive``).
     The value: they require grad and the render runs under ``no_grad()`` (the kernel's
     image). With forward mode, first the tangent: each copy carries its parameter's tangent
-    (zero if it has none) and nothing requires grad, so the tangents flow through the
-    reference on the tape and nothing is recorded; the image's tangent is the tape's."""
+    (zero if it has none) and nothing requires grad, so nothing is recorded
+    (``_image_tangent``: the compiled paths' JVP; the image's tangent is the tape's)."""
     parameters = scene.parameters()
     copies = {id(p): md.tensor(p.data) for p in parameters}
     frozen = substituted(scene, copies, {}, copies=True)  # validated on entry, copied since
     moving = [p for p in parameters if p.requires_grad or p.tangent is not None]
     leaves = [copies[id(p)] for p in moving]
     options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
-    tangent = None
+    tangent = value = None
     if any(p.tangent is not None for p in moving):
         directions = {
             leaf: np.zeros(p.shape, p.dtype) if p.tangent is None else p.tangent
             for p, leaf in zip(moving, leaves, strict=True)
         }
         with md.tangents(directions):
-            tangent = _render_path(frozen, *options).tangent
+            tangent, value = _image_tangent(frozen, *options)
     for leaf in leaves:
         leaf.requires_grad = True
     with md.no_grad():  # the value: the kernel's image when it applies, as without tangents
         # The sampler reads the frozen values only: the replay uses it too.
         sampler = PathSampler(placed(frozen), spp, max_depth, rr_depth, seed,
                               cache_for(frozen, True))  # fmt: skip
-        wanted = _KeptPaths.wanted(sampler.scene, spp, batch_spp, max_depth)
-        kept = _KeptPaths() if wanted else None
-        image = _render_path(frozen, *options, kept=kept, sampler=sampler)
+        kept = None
+        if value is not None and not any(p.requires_grad for p in moving):
+            image = md.tensor(value)  # the tangent's paths gave it: no backward to keep them for
+        else:
+            wanted = _KeptPaths.wanted(sampler.scene, spp, batch_spp, max_depth)
+            kept = _KeptPaths() if wanted else None
+            image = _render_path(frozen, *options, kept=kept, sampler=sampler)
 
     def vjp(d_image: np.ndarray) -> tuple[np.ndarray | None, ...]:
         for leaf in leaves:  # every moving copy, as differentiated as on the tape
@@ -294,6 +301,48 @@ def _replayed_image(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edg
         return tuple(leaf.grad for leaf in leaves)  # None: the image does not depend on it
 
     return record("path_image", image.data, moving, vjp, jvp=lambda *_: tangent)
+
+
+def _image_tangent(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp):
+    """(the tangent (H, W, 3) of ``_render_path``'s image along the tangents that the
+    parameters of ``scene`` carry, the image or None), called within ``md.tangents``
+    (nothing requires grad, so nothing is recorded). Where the kernel and the compiled
+    paths apply, each path's radiance's tangent is the compiled JVP of its whole path
+    (``window.tangent``) read from the kernel's records, at most ``replay_paths`` paths at
+    a time, a batch of ``batch_spp`` samples after the other (memory bounded as the
+    replay's); the edge terms add their own tangents. The kernel's radiance of those paths
+    gives the image too, each pixel's samples summed in sample order as
+    ``kernel.render_image`` sums them (bit for bit). Elsewhere the reference computes the
+    tangent on the tape as it goes (and the image is left to the caller)."""
+    sampler = PathSampler(placed(scene), spp, max_depth, rr_depth, seed, cache_for(scene, True))
+    world = sampler.scene
+    options = (spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp)
+    if not (kernel.applies(world) and compiles(world)):
+        return _render_path(scene, *options, sampler=sampler).tangent, None
+    frame = camera_frame(world.camera)
+    tables = Tables.of(world, frame, leaves=False)  # their tangents, from the parameters'
+    camera = world.camera
+    shape = (camera.height, camera.width, 3)
+    total, image = np.zeros((shape[0] * shape[1], 3)), np.zeros((shape[0] * shape[1], 3))
+    packed, at_once = kernel.pack(sampler), replay_paths(max_depth)
+    for first in range(0, spp, batch_spp):
+        paths = _batch_paths(world, sampler, first, min(first + batch_spp, spp))
+        for start in range(0, len(paths), at_once):
+            chunk = paths[start : start + at_once]
+            batch, radiance = kernel.sample_paths(sampler, chunk, packed)
+            # Each path to its pixel (its id is pixel x spp + sample), one after the other.
+            np.add.at(total, chunk // spp, window.tangent(tables, batch))
+            np.add.at(image, chunk // spp, radiance)
+    out = total.reshape(shape) * (1.0 / spp)
+    if any(edges) and curves_move(scene, world):  # else the edge terms are zero in it too
+        terms = md.tensor(np.zeros(out.shape))  # the edge terms alone (zero in value)
+        if edges[0]:
+            terms = add_path_boundary_term(scene, world, terms, frame, sampler, edge_spp)
+        if edges[1]:
+            terms = add_secondary_term(world, terms, frame, sampler)
+        if terms.tangent is not None:
+            out = out + terms.tangent
+    return out, image.reshape(shape) * (1.0 / spp)
 
 
 def _backpropagate(scene, d_image, spp, max_depth, seed, rr_depth, batch_spp, edges, edge_spp,

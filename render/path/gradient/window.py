@@ -425,6 +425,34 @@ def radiance(tables: Tables, batch: PathBatch) -> np.ndarray:
     return total
 
 
+def tangent(tables: Tables, batch: PathBatch) -> np.ndarray:
+    """(N, 3): the tangent of each path's radiance (``radiance``'s value) along the
+    tangents the tables' tensors carry (forward mode: ``md.tangents`` on the parameters the
+    tables are computed from, ``Tables.of(..., leaves=False)``): the compiled JVP of
+    ``path_terms``, each path's forward sweep with its tangents inside the kernel, segment
+    after segment, each handing its start on with its tangent. Nothing requires grad, so
+    nothing is recorded: memory is the batch's records and a few (N, 3) arrays. Where a
+    camera ray misses, the environment's tangent."""
+    total = np.zeros((len(batch.paths), 3))
+    if not batch.missed.all():
+        handed = None  # what the segment before handed on (Tensors with their tangents)
+        for segment in _segments(tables, batch):
+            start = None
+            if handed is not None:
+                start = tuple(x[segment.within] for x in handed)
+            result = _path(*_call(segment, start))
+            result = result if isinstance(result, tuple) else (result,)
+            if result[0].tangent is not None:
+                if segment.rows is None:
+                    total += result[0].tangent
+                else:
+                    total[segment.rows] += result[0].tangent
+            handed = result[1:]
+    if tables.background.tangent is not None:
+        total[batch.missed] = tables.background.tangent
+    return total
+
+
 def backpropagate(tables: Tables, batch: PathBatch, weights: np.ndarray) -> None:
     """Add the gradient of sum(weights * L) over the paths of ``batch`` that meet the
     scene (``weights`` (N, 3): d loss / d L) to ``grad`` of the tables' leaves: the VJP of

@@ -126,23 +126,42 @@ def test_the_differentiated_image_does_not_depend_on_batch_spp():
     assert plain.node is None
     for image in images:
         np.testing.assert_array_equal(image.data, plain.data)
+    # Forward mode alone: the image is summed from the paths its tangent traced, the same
+    # bits as the plain render's (of a scene whose emissions are not differentiated now).
+    for p in scene.parameters():
+        p.requires_grad = False
+    plain = render_path(scene, spp=4, max_depth=3)
+    light = scene.objects[5].transform.translation
+    for b in (1, 4, 8):
+        with md.tangents({light: np.ones(3)}):
+            image = render_path(scene, spp=4, max_depth=3, batch_spp=b)
+        assert np.any(image.tangent)
+        np.testing.assert_array_equal(image.data, plain.data)
 
 
-def test_forward_mode_through_the_replayed_image():
-    """Tangents on some parameters while others require grad: the image's tangent and the
-    gradients are the tape's (the tangents flow in the replay's render, no tape kept)."""
+@pytest.mark.parametrize("antialias", [False, "boundary"])
+def test_forward_mode_through_the_replayed_image(antialias, monkeypatch):
+    """Tangents on some parameters while others require grad: the image's tangent (the
+    compiled JVP of the whole paths, ``window.tangent``, plus the edge terms' own) and the
+    gradients are the tape's."""
+    from render.path.gradient import window
+
     scene = every_kind()
     light = scene.objects[5].transform.translation
     albedo = scene.objects[3].material.albedo
     albedo.requires_grad = False  # a tangent only
     weights = np.random.default_rng(2).normal(size=(8, 8, 3))
     directions = {light: [0.3, -0.2, 0.5], albedo: [1.0, 0.0, 0.5]}
-    options = {"spp": 4, "max_depth": 3, "seed": 7, "batch_spp": 2}
+    options = {"spp": 4, "max_depth": 3, "seed": 7, "batch_spp": 2, "antialias": antialias,
+               "edge_spp": 2}  # fmt: skip
     with md.tangents(directions):
         taped_image, taped = _gradients(scene, weights, gradient="tape", **options)
+    calls, compiled = [], window.tangent
+    monkeypatch.setattr(window, "tangent", lambda *a: calls.append(1) or compiled(*a))
     with md.tangents(directions):
         image, replayed = _gradients(scene, weights, **options)
     assert image.node.name == "path_image"
+    assert len(calls) == 2  # the compiled route, a batch of 2 samples at a time
     _assert_same_image(image, taped_image)
     tangent = taped_image.tangent
     assert np.abs(tangent).max() > 0
@@ -218,6 +237,31 @@ def test_memory_does_not_grow_with_spp():
     assert tape[1] > 3 * tape[0]  # the measurement sees the tape grow
     assert replay[1] < 1.25 * replay[0]
     assert replay[1] < tape[1] / 4
+
+
+def _tangent_peak_mb(scene, directions, spp: int) -> float:
+    """Peak traced allocation (MB) of one render's tangent (forward mode)."""
+    buffers.clear()
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        with md.tangents(directions):
+            image = render_path(scene, spp=spp, max_depth=3, seed=0, batch_spp=2)
+        assert np.any(image.tangent)
+        return (tracemalloc.get_traced_memory()[1] - base) / 1e6
+    finally:
+        tracemalloc.stop()
+
+
+def test_forward_mode_memory_does_not_grow_with_spp():
+    """The tangent of a 4x larger spp: the compiled paths' tangents are summed into the
+    image a batch at a time, nothing kept (measured at 16x16, batches of 2: 0.69 and 0.70
+    MB at 4 and 16 spp, 0.73 at 64)."""
+    scene = cornell_box(16, 16)
+    directions = {p: np.ones(p.shape) for p in scene.parameters()}
+    _tangent_peak_mb(scene, directions, 4)  # first-call allocations not counted
+    peaks = [_tangent_peak_mb(scene, directions, spp) for spp in (4, 16)]
+    assert peaks[1] < 1.25 * peaks[0]
 
 
 def test_bad_gradient_option_is_named():

@@ -21,6 +21,7 @@ from minidiff import buffers
 from render.path.gradient import replay, window
 from render.path.gradient.replay import backpropagate_paths
 from render.path.gradient.transport import path_radiance
+from render.path.sample.tables import Tables
 from render.path.sample.tracer import MIRROR, PathSampler
 from render.scene.camera import camera_frame
 from render.scene.cornell import cornell_box
@@ -116,6 +117,39 @@ def test_segments_hand_their_last_vertex_on(monkeypatch):
     paths = _paths(scene, spp=2, max_depth=5, rr_depth=100, seed=3)
     assert len(paths[1].vertices) == 5
     assert _assert_same_gradients(scene, paths) >= 20
+
+
+def _tangents(scene, paths, compiled: bool) -> np.ndarray:
+    """The tangent (N, 3) of the paths' radiance along a random direction of every
+    parameter at once: the compiled JVP of the whole paths, or the tape's forward mode."""
+    sampler, batch = paths[:2]
+    rng = np.random.default_rng(11)
+    directions = {p: rng.normal(size=p.shape) for p in scene.parameters()}
+    with md.tangents(directions):
+        world = placed(scene)
+        frame = camera_frame(world.camera)
+        if compiled:
+            return window.tangent(Tables.of(world, frame, leaves=False), batch)
+        return path_radiance(world, frame, sampler, batch).tangent
+
+
+@pytest.mark.parametrize("segment", [2, window.SEGMENT])
+def test_forward_mode_compiled_paths_are_the_tapes(segment, monkeypatch):
+    """The tangent of each path's radiance by the compiled JVP (``window.tangent``), every
+    kind of parameter moving at once (textures, a mirror, lights, the environment), equals
+    the tape's forward mode: in one segment, and in segments of 2 depths that hand their
+    last vertex on with its tangent."""
+    monkeypatch.setattr(window, "SEGMENT", segment)
+    scene = every_kind()
+    for p in scene.parameters():
+        p.requires_grad = False  # tangents only: nothing recorded
+    paths = _paths(scene, spp=2, max_depth=5, rr_depth=100, seed=3)
+    assert len(paths[1].vertices) == 5
+    tape = _tangents(scene, paths, compiled=False)
+    compiled = _tangents(scene, paths, compiled=True)
+    scale = np.abs(tape).max()
+    assert scale > 0 and np.all(np.isfinite(compiled))
+    np.testing.assert_allclose(compiled, tape, rtol=0, atol=GRAD_RTOL * scale)
 
 
 def _differentiate(scene: render.Scene) -> render.Scene:

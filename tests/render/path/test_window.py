@@ -121,6 +121,33 @@ def test_compiled_paths_give_the_tapes_gradient_for_every_parameter(
     assert np.any(taped["objects[5].transform.translation"])
 
 
+@settings(
+    max_examples=4,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture],
+)
+@given(scene=triangle_scenes(), depth=st.integers(2, 5), seed=st.integers(0, 2**32))
+def test_compiled_paths_give_the_tapes_tangent(scene, depth, seed, monkeypatch):
+    """Forward mode: the image's tangent along a random direction of every parameter at
+    once, by the compiled JVP of the whole paths (``window.tangent``), is the tape's."""
+    rng = np.random.default_rng(seed % 7)
+    directions = {p: rng.normal(size=p.shape) for p in scene.parameters() if p.requires_grad}
+    for p in scene.parameters():
+        p.requires_grad = False  # tangents only
+    options = {"spp": 3, "max_depth": depth, "seed": seed, "batch_spp": 2}
+    calls, compiled = [], window.tangent
+    monkeypatch.setattr(window, "tangent", lambda *a: calls.append(1) or compiled(*a))
+    with md.tangents(directions):
+        replayed = render_path(scene, **options).tangent
+    assert calls  # the compiled route took it
+    monkeypatch.undo()
+    with md.tangents(directions):
+        taped = render_path(scene, gradient="tape", **options).tangent
+    scale = np.abs(taped).max()
+    assert scale > 0  # the area light's place moves every image (NEE)
+    np.testing.assert_allclose(replayed, taped, rtol=0, atol=GRAD_RTOL * scale)
+
+
 def test_mirrors_and_textures_compile_float32_takes_the_tape():
     """A mirror bounce and a texture compile (``applies``; their gradients:
     ``test_replay.py``'s ``every_kind``); a float32 parameter is left to the tape's
@@ -165,6 +192,31 @@ def test_compiled_paths_do_not_depend_on_the_thread_count(threads, monkeypatch):
         return light.grad
 
     np.testing.assert_array_equal(gradient(threads), gradient(1))
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_compiled_tangents_do_not_depend_on_the_thread_count(threads, monkeypatch):
+    """Forward mode: the same bits on 1 and 2 threads, and a float32 parameter's tangent
+    taken by the tape (the compiled route declines it) equal to its tape's."""
+    from minidiff import compiler
+
+    monkeypatch.setattr(compiler, "PARALLEL_WORK", 0)
+
+    def tangent(n, dtype=np.float64):
+        scene = cornell_box(6, 6, blocks=True)
+        wall = scene.objects[3].material
+        wall.albedo = md.tensor(wall.albedo.data.astype(dtype))
+        light = scene.objects[5].transform.translation
+        directions = {wall.albedo: np.ones(3, dtype), light: np.array([0.2, -0.3, 0.1])}
+        with compiler.using_threads(n), md.tangents(directions):
+            return render_path(scene, spp=2, max_depth=6, seed=5).tangent
+
+    np.testing.assert_array_equal(tangent(threads), tangent(1))
+    calls, compiled = [], window.tangent
+    monkeypatch.setattr(window, "tangent", lambda *a: calls.append(1) or compiled(*a))
+    single = tangent(threads, np.float32)
+    assert not calls and np.any(single)
+    np.testing.assert_allclose(single, tangent(1), rtol=0, atol=1e-4 * np.abs(single).max())
 
 
 def test_spheres_only_with_the_camera_inside_one(monkeypatch):
