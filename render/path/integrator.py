@@ -228,6 +228,17 @@ def _batch_paths(world, sampler: PathSampler, first: int, last: int) -> np.ndarr
     return (pixels[:, None] * sampler.spp + np.arange(first, last)[None, :]).ravel()
 
 
+def _path_chunks(sampler: PathSampler, batch_spp: int):
+    """The image's path ids as the compiled routes take them: a batch of ``batch_spp``
+    samples of every pixel after the other (``_batch_paths``), each in chunks of at most
+    ``replay_paths`` paths (memory bounded whatever the image's size and depth)."""
+    at_once = replay_paths(sampler.max_depth)
+    for first in range(0, sampler.spp, batch_spp):
+        paths = _batch_paths(sampler.scene, sampler, first, min(first + batch_spp, sampler.spp))
+        for start in range(0, len(paths), at_once):
+            yield paths[start : start + at_once]
+
+
 def _batch_samples(world, frame, sampler: PathSampler, first: int, last: int) -> md.Tensor:
     """The radiance of samples first..last-1 of every pixel, (H, W, last - first, 3), on the
     tape: the reference sampler's paths, their radiance recomputed on the tape."""
@@ -324,15 +335,12 @@ def _image_tangent(scene, spp, max_depth, seed, rr_depth, batch_spp, edges, edge
     camera = world.camera
     shape = (camera.height, camera.width, 3)
     total, image = np.zeros((shape[0] * shape[1], 3)), np.zeros((shape[0] * shape[1], 3))
-    packed, at_once = kernel.pack(sampler), replay_paths(max_depth)
-    for first in range(0, spp, batch_spp):
-        paths = _batch_paths(world, sampler, first, min(first + batch_spp, spp))
-        for start in range(0, len(paths), at_once):
-            chunk = paths[start : start + at_once]
-            batch, radiance = kernel.sample_paths(sampler, chunk, packed)
-            # Each path to its pixel (its id is pixel x spp + sample), one after the other.
-            np.add.at(total, chunk // spp, window.tangent(tables, batch))
-            np.add.at(image, chunk // spp, radiance)
+    packed = kernel.pack(sampler)
+    for paths in _path_chunks(sampler, batch_spp):
+        batch, radiance = kernel.sample_paths(sampler, paths, packed)
+        # Each path to its pixel (its id is pixel x spp + sample), one after the other.
+        np.add.at(total, paths // spp, window.tangent(tables, batch))
+        np.add.at(image, paths // spp, radiance)
     out = total.reshape(shape) * (1.0 / spp)
     if any(edges) and curves_move(scene, world):  # else the edge terms are zero in it too
         terms = md.tensor(np.zeros(out.shape))  # the edge terms alone (zero in value)
@@ -396,25 +404,21 @@ def _replay_batches(scene, sampler: PathSampler, d_image, batch_spp: int,
     ``kept``: the render's records of the paths, if it kept them (``_KeptPaths``)."""
     spp = sampler.spp
     weights = d_image * (1.0 / spp)  # the image is total * (1 / spp)
-    compiled, packed = kernel.applies(sampler.scene), None  # packed once it is needed
+    if kernel.applies(sampler.scene):
+        per_pixel, packed = weights.reshape(-1, 3), None  # packed once it is needed
+        for paths in _path_chunks(sampler, batch_spp):
+            world = placed(scene)  # a fresh tape each time: placement is on it too
+            traced = kept.take(paths) if kept is not None else None
+            if traced is None:
+                packed = kernel.pack(sampler) if packed is None else packed
+                traced = kernel.sample_paths(sampler, paths, packed)
+            batch, radiance = traced
+            backpropagate_paths(world, camera_frame(world.camera), sampler, batch, radiance,
+                                per_pixel[paths // spp])  # fmt: skip
+            del batch, radiance, traced  # before the next chunk's records are made
+        return
     for first in range(0, spp, batch_spp):
         last = min(first + batch_spp, spp)
-        if compiled:
-            paths = _batch_paths(sampler.scene, sampler, first, last)
-            per_path = np.repeat(weights.reshape(-1, 3), last - first, axis=0)
-            at_once = replay_paths(sampler.max_depth)
-            for start in range(0, len(paths), at_once):
-                world = placed(scene)  # a fresh tape each time: placement is on it too
-                chunk = slice(start, start + at_once)
-                traced = kept.take(paths[chunk]) if kept is not None else None
-                if traced is None:
-                    packed = kernel.pack(sampler) if packed is None else packed
-                    traced = kernel.sample_paths(sampler, paths[chunk], packed)
-                batch, radiance = traced
-                backpropagate_paths(world, camera_frame(world.camera), sampler, batch,
-                                    radiance, per_path[chunk])  # fmt: skip
-                del batch, radiance, traced  # before the next chunk's records are made
-            continue
         world = placed(scene)  # a fresh tape per batch: placement is on it too
         frame = camera_frame(world.camera)
         samples = _batch_samples(world, frame, sampler, first, last)
