@@ -113,6 +113,15 @@ EXPECTED = {
         ("time", "boundary"),
         ("time", "search_without_test"),
     ],
+    "boundary_budget": [
+        ("rays", "hits"),
+        ("rays", "candidates"),
+        ("rays", "interior_hits"),
+        ("time", "fb_boundary_2", "median_ms"),
+        ("time", "points_1", "median_ms"),
+        ("profiled_ms", "mixed_pixels", "ray_kernels"),
+        ("ratios", "threads_boundary"),
+    ],
     "moving_curves": [
         ("choices", name, key)
         for name in ("light_position", "albedo", "vertices", "every_parameter")
