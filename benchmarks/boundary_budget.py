@@ -2,9 +2,9 @@
 and its two halves timed alone on 1 and 2 threads (issue 57's targets: its forward+backward
 at most 3x a plain one, and 1.6x faster on 2 threads than on 1).
 
-Run:  python benchmarks/boundary_budget.py [--out out] [--quick] [--repeats 15] [--size 512]
-(the committed results in docs/benchmarks/budget/ were made with
-``--out docs/benchmarks/budget``)
+Run:  python benchmarks/boundary_budget.py [--out DIR] [--quick] [--repeats 15] [--size 512]
+(DIR: out/benchmarks by default; the committed results in docs/benchmarks/budget/ were made
+with ``--out docs/benchmarks/budget``)
 
 The paper scene at 512x512 (64x64 with ``--quick``), its light moved as in
 ``bench_render.loss_problem``, ``antialias="boundary"`` with its default 16 interior samples:
