@@ -74,7 +74,7 @@ def rays(size: int) -> dict:
         "interior_samples": int(len(pixels) * INTERIOR),
         "interior_hits": 0 if seen is None else int(len(seen.primary.hit_rays)),
         "curve_points": {
-            type(kind).__name__: len(found.pixel) for kind, found in zip(kinds, points, strict=True)
+            type(kind).__name__: len(on.pixel) for kind, on in zip(kinds, points, strict=True)
         },
     }
 
