@@ -55,4 +55,4 @@ def geometry_moves(scene: Scene) -> bool:
     not, every kind's boundary term is zero in derivative (``CurveKind.moves``), and the
     renderer looks for no curve."""
     lights = (t for light in scene.lights for t in light.placement())
-    return camera_moves(scene) or meshes_move(scene) or spheres_move(scene) or moving(*lights)
+    return camera_moves(scene) or bool(objects_move(scene).any()) or moving(*lights)

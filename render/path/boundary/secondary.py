@@ -488,8 +488,7 @@ def _samples(world, frame, tables, plain, sampler, curves, batch, k, cross, keep
     rows in the batch (M,)). ``tables``: the tables on the tape, what phi reads; ``plain``:
     the same off the tape, what the samples' radiance reads."""
     record = batch.vertices[k - 1]
-    valid = np.flatnonzero(cross.valid)
-    sub = valid[keep]
+    sub = np.flatnonzero(cross.valid)[keep]
     if len(sub) == 0:
         return
     hit = _take(cross, keep)

@@ -393,17 +393,27 @@ def _call(segment: _Segment, start) -> tuple:
     return (coords, first_prim, start, *rest)
 
 
+def _sweep(segments: list[_Segment], handed_on):
+    """Each segment with its start (None for the first: the camera's rays) and its outputs
+    as Tensors (its radiance, then what it hands on), segment after segment: a segment's
+    start is ``handed_on(x, segment.within)`` of each thing the segment before handed on
+    (the rows of it that go on here)."""
+    result = None
+    for segment in segments:
+        start = None
+        if result is not None:
+            start = tuple(handed_on(x, segment.within) for x in result[1:])
+        result = _path(*_call(segment, start))
+        result = result if isinstance(result, tuple) else (result,)
+        yield segment, start, result
+
+
 def _forward(segments: list[_Segment]) -> tuple[list[tuple], list[tuple | None]]:
     """Each segment's outputs (its radiance, then what it hands on) and its start (None
     for the first: the camera's rays), off the tape."""
     outputs, starts = [], []
     with md.no_grad():
-        for segment in segments:
-            start = None
-            if outputs:  # the rows of what the segment before handed on that go on here
-                start = tuple(np.take(x, segment.within, axis=0) for x in outputs[-1][1:])
-            result = _path(*_call(segment, start))
-            result = result if isinstance(result, tuple) else (result,)
+        for _, start, result in _sweep(segments, lambda x, at: np.take(x.data, at, axis=0)):
             outputs.append(tuple(r.data for r in result))
             starts.append(start)
     return outputs, starts
@@ -435,19 +445,13 @@ def tangent(tables: Tables, batch: PathBatch) -> np.ndarray:
     camera ray misses, the environment's tangent."""
     total = np.zeros((len(batch.paths), 3))
     if not batch.missed.all():
-        handed = None  # what the segment before handed on (Tensors with their tangents)
-        for segment in _segments(tables, batch):
-            start = None
-            if handed is not None:
-                start = tuple(x[segment.within] for x in handed)
-            result = _path(*_call(segment, start))
-            result = result if isinstance(result, tuple) else (result,)
+        # What a segment hands on goes on as Tensors, carrying their tangents.
+        for segment, _, result in _sweep(_segments(tables, batch), lambda x, at: x[at]):
             if result[0].tangent is not None:
                 if segment.rows is None:
                     total += result[0].tangent
                 else:
                     total[segment.rows] += result[0].tangent
-            handed = result[1:]
     if tables.background.tangent is not None:
         total[batch.missed] = tables.background.tangent
     return total
